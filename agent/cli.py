@@ -1,0 +1,235 @@
+"""The ``uma`` command line: argument parsing and dispatch (the contract of DESIGN.md).
+
+Each command's work lives in its own module, imported only when the command runs, so
+``uma --help`` stays fast and one command's dependencies never slow another.
+Exit codes: 0 success, 1 failure (a clear message on stderr), 2 bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+from agent import plugins
+from agent.errors import UmaError
+
+# command -> "module:function"; the function takes the parsed arguments, returns an exit code
+HANDLERS = {
+    "agent": "agent.commands.daemon:main",
+    "router": "agent.commands.router:main",
+    "services": "agent.commands.services:main",
+    "query": "agent.commands.query:main",
+    "demo": "services.demo:main",
+    "schemas": "schemas.export:main",
+}
+
+
+def _version() -> str:
+    try:
+        return version("uma-tracking")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def _add_network(p: argparse.ArgumentParser, listen: bool = True) -> None:
+    p.add_argument("--realm", default="default",
+                   help="deployment namespace; agents of one realm only meet each other")
+    p.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    if listen:
+        p.add_argument("--listen", action="append", default=[], metavar="EP",
+                       help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command-line grammar."""
+    top = argparse.ArgumentParser(
+        prog="uma",
+        description="uma: peer-to-peer middleware for ubiquitous tracking. One agent per host "
+                    "matches tracker services' needs and abilities over Zenoh and answers pose "
+                    "queries across hosts.",
+        epilog="Start here: 'uma demo' runs an agent, simulated trackers and a query in one "
+               "process. 'uma COMMAND --help' explains each command.")
+    top.add_argument("--version", action="version", version=f"uma {_version()}")
+    sub = top.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("agent", help="run the agent daemon of this host",
+                       description="Run the per-host agent: advertises local services, matches "
+                                   "their needs to abilities in the realm, keeps the host's "
+                                   "spatial relationship graph and answers pose queries. "
+                                   "Stops cleanly on Ctrl-C / SIGTERM.")
+    _add_network(p)
+    p.add_argument("--id", default=None, help="agent id (default: this host's name)")
+    p.add_argument("--service", action="append", default=[], metavar="NAME",
+                   help="host a service inside the agent process (repeatable; see "
+                        "'uma service run --help' for names)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="TOML file with the same settings and static edges (examples in deploy/)")
+
+    p = sub.add_parser("router", help="run a Zenoh router for client-mode agents",
+                       description="Run a Zenoh router in this process so agents and clients in "
+                                   "client mode can meet through it (larger sites).")
+    p.add_argument("--listen", action="append", default=[], metavar="EP",
+                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+
+    p = sub.add_parser("service", help="run one tracker service on its own",
+                       description="Run a tracker service as its own process; it registers with "
+                                   "the local agent.")
+    ssub = p.add_subparsers(dest="service_command", metavar="ACTION", required=True)
+    names = plugins.names(plugins.SERVICE_GROUP)
+    sp = ssub.add_parser("run", help="run the service NAME",
+                         description="Run the service NAME. Known services: "
+                                     f"{', '.join(names) or 'none installed'}. "
+                                     "'uma service run NAME --help' lists its options.",
+                         add_help=False)
+    sp.add_argument("name", metavar="NAME", nargs="?", help="service name")
+    sp.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+
+    p = sub.add_parser("services", help="list agents, services, needs, abilities and matches",
+                       description="Ask every agent of the realm for its services and print "
+                                   "each agent, service, need, ability and current match.")
+    _add_network(p, listen=False)
+    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+    p = sub.add_parser("query", help="query the pose of TARGET in SOURCE's frame",
+                       description="Compute the pose of frame TARGET in frame SOURCE over the "
+                                   "spatial relationship graphs of all agents in the realm.")
+    p.add_argument("source", metavar="SOURCE", help="frame id, e.g. ivy/world")
+    p.add_argument("target", metavar="TARGET", help="frame id, e.g. alice/head")
+    p.add_argument("--at", default=None, metavar="T",
+                   help="time: integer ns since the epoch, or 'now' (default: latest common time)")
+    p.add_argument("--error", default="hops", metavar="E",
+                   help="error function to minimise: hops, latency, accuracy, confidence, cost, "
+                        "or an expression over attributes (default: hops)")
+    _add_network(p, listen=False)
+    p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the answer")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+    p = sub.add_parser("demo", help="run everything in one command (agent, simulated trackers, "
+                                    "fusion, a query)",
+                       description="The embedded default: an agent, the simulated IVY world, the "
+                                   "laser-dot camera and accelerometer trackers, their fusion and "
+                                   "pose queries, all on loopback; prints a summary.")
+    p.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
+    p.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+    evals = plugins.names(plugins.EVAL_GROUP)
+    p = sub.add_parser("eval", help="measure a tracker's accuracy against simulated ground truth",
+                       description="Run a tracker on the simulator and print its accuracy against "
+                                   f"ground truth. Known: {', '.join(evals) or 'none'}. "
+                                   "'uma eval NAME --help' lists its options.",
+                       add_help=False)
+    p.add_argument("name", metavar="NAME", nargs="?", help="what to evaluate")
+    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+
+    p = sub.add_parser("schemas", help="export the JSON Schemas of uma's models",
+                       description="Export the JSON Schemas of uma's descriptors and results.")
+    xsub = p.add_subparsers(dest="schemas_command", metavar="ACTION", required=True)
+    xp = xsub.add_parser("export", help="write one JSON Schema file per model into DIR")
+    xp.add_argument("dir", metavar="DIR", help="output directory (created if missing)")
+    return top
+
+
+def _call(target: str, args: argparse.Namespace) -> int:
+    module, func = target.split(":")
+    try:
+        fn = getattr(importlib.import_module(module), func)
+    except (ImportError, AttributeError):
+        raise UmaError(f"'uma {args.command}' is not built yet") from None
+    return int(fn(args) or 0)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT/SIGTERM, so long-running commands stop cleanly."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _run_service(args: argparse.Namespace) -> int:
+    names = plugins.names(plugins.SERVICE_GROUP)
+    if args.name in (None, "-h", "--help"):
+        print("usage: uma service run NAME [options]\n\nRun one tracker service as its own "
+              f"process.\nKnown services: {', '.join(names)}\n"
+              "'uma service run NAME --help' lists the options of NAME.")
+        return 0 if args.name else 2
+    plugin: plugins.ServicePlugin = plugins.load(plugins.SERVICE_GROUP, args.name)
+    parser = argparse.ArgumentParser(prog=f"uma service run {plugin.name}",
+                                     description=plugin.help)
+    plugins.add_service_arguments(parser, plugin)
+    sargs = parser.parse_args(args.rest)
+    return plugin.run(sargs, stop_on_signals())
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    names = plugins.names(plugins.EVAL_GROUP)
+    if args.name in (None, "-h", "--help"):
+        print("usage: uma eval NAME [--seconds S] [--seed N] [--json] [options]\n\n"
+              "Measure a tracker's accuracy against simulated ground truth.\n"
+              f"Known: {', '.join(names)}\n'uma eval NAME --help' lists the options of NAME.")
+        return 0 if args.name else 2
+    plugin: plugins.EvalPlugin = plugins.load(plugins.EVAL_GROUP, args.name)
+    parser = argparse.ArgumentParser(prog=f"uma eval {plugin.name}", description=plugin.help)
+    parser.add_argument("--seconds", type=float, default=60.0,
+                        help="simulated seconds (default 60)")
+    parser.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    plugin.add_arguments(parser)
+    eargs = parser.parse_args(args.rest)
+    if eargs.seconds <= 0:
+        parser.error("--seconds must be positive")
+    figures = plugin.run(eargs)
+    print(json.dumps(figures) if eargs.json else format_figures(figures))
+    return 0
+
+
+def format_figures(figures: Any, indent: int = 0) -> str:
+    """Nested figures as indented ``name: value`` lines for people."""
+    pad = "  " * indent
+    lines = []
+    for key, value in figures.items():
+        if isinstance(value, dict):
+            lines.append(f"{pad}{key}:")
+            lines.append(format_figures(value, indent + 1))
+        elif isinstance(value, float):
+            lines.append(f"{pad}{key}: {value:.6g}")
+        else:
+            lines.append(f"{pad}{key}: {value}")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``uma`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "service":
+            return _run_service(args)
+        if args.command == "eval":
+            return _run_eval(args)
+        return _call(HANDLERS[args.command], args)
+    except KeyboardInterrupt:
+        return 130
+    except (UmaError, ValueError, LookupError, OSError, TimeoutError) as exc:
+        print(f"uma {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # last resort: a message, never a traceback (UMA_DEBUG=1 shows it)
+        if os.environ.get("UMA_DEBUG"):
+            raise
+        print(f"uma {args.command}: internal error: {type(exc).__name__}: {exc} "
+              "(set UMA_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

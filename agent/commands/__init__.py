@@ -1,0 +1,1 @@
+"""One module per ``uma`` command that runs the agent side (the grammar is in ``agent.cli``)."""

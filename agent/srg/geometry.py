@@ -1,0 +1,397 @@
+"""SE(3) geometry: the one place in uma where poses, quaternions and covariances are computed.
+
+Conventions (everything in uma follows them):
+
+* A pose ``(p, q)`` of frame B in frame A maps B-coordinates to A-coordinates:
+  ``x_A = R(q) @ x_B + p``.  This is the edge ``A -> B`` of the spatial relationship graph.
+* Quaternions are stored **x, y, z, w** (scalar last, like ROS, Eigen's coeffs() and
+  scipy), Hamilton product, unit norm.
+* A rotation vector ``r`` is axis * angle (radians); ``exp`` maps it to a quaternion and
+  ``log`` back (angle in [0, pi]).
+* A 6x6 pose covariance is over the **left** (parent-frame) perturbation
+  ``T_true = Exp(xi) @ T`` with ``xi = [rho (translation, m), phi (rotation, rad)]``.
+  Composition and inversion then propagate by the SE(3) adjoint to first order.
+  ``decoupled_to_se3`` / ``se3_to_decoupled`` convert to and from the more intuitive
+  "independent position error + parent-frame rotation error" form that sensors report.
+
+Functions broadcast over leading axes where it is natural (``(..., 3)``, ``(..., 4)``).
+Inputs that cross a trust boundary go through the ``check_*`` functions, which raise
+``ValueError`` naming the value and why it was refused.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+Array = np.ndarray
+
+#: Largest accepted deviation of a quaternion's norm from 1 before it is refused, not
+#: normalised. Rounding in text, float32 and msgpack stays far below it; a quaternion
+#: off by more is a bug upstream and must not be silently repaired.
+QUAT_NORM_TOL = 1e-3
+#: Largest accepted deviation of R^T R from I for a rotation matrix.
+ROT_ORTHO_TOL = 1e-4
+_SMALL_ANGLE = 1e-8
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _finite(x: Any, name: str, shape_tail: tuple[int, ...]) -> Array:
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: not a numeric array ({exc})") from None
+    if a.shape[a.ndim - len(shape_tail):] != shape_tail or a.ndim < len(shape_tail):
+        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), "
+                         f"got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a))[0]
+        raise ValueError(f"{name}: non-finite value {a[tuple(bad)]!r} at index {tuple(bad)}")
+    return a
+
+
+def check_vector(v: Any, name: str = "position") -> Array:
+    """A finite (..., 3) array, or ``ValueError`` naming what was wrong."""
+    return _finite(v, name, (3,))
+
+
+def check_quaternion(q: Any, name: str = "quaternion", tol: float = QUAT_NORM_TOL) -> Array:
+    """A finite unit (..., 4) xyzw quaternion, renormalised; refuses norms off by > tol."""
+    a = _finite(q, name, (4,))
+    n = np.linalg.norm(a, axis=-1)
+    off = np.abs(n - 1.0)
+    if np.any(off > tol):
+        worst = float(np.max(off))
+        raise ValueError(f"{name}: not a unit quaternion (norm {float(n.flat[np.argmax(off)]):.6g}"
+                         f", off by {worst:.3g} > tolerance {tol:g}); quaternions are x, y, z, w")
+    return a / n[..., None]
+
+
+def check_rotation_matrix(R: Any, name: str = "rotation") -> Array:
+    """A finite (..., 3, 3) proper rotation matrix, or ``ValueError`` saying why not."""
+    a = _finite(R, name, (3, 3))
+    err = np.abs(np.swapaxes(a, -1, -2) @ a - np.eye(3)).max()
+    if err > ROT_ORTHO_TOL:
+        raise ValueError(f"{name}: not orthonormal "
+                         f"(max |R^T R - I| = {err:.3g} > {ROT_ORTHO_TOL:g})")
+    det = np.linalg.det(a)
+    if np.any(det < 0):
+        raise ValueError(f"{name}: determinant {float(np.min(det)):.3g} < 0, a reflection, "
+                         "not a rotation")
+    return a
+
+
+def check_matrix(T: Any, name: str = "transform") -> Array:
+    """A finite (..., 4, 4) homogeneous rigid transform, or ``ValueError`` saying why not."""
+    a = _finite(T, name, (4, 4))
+    bottom = a[..., 3, :]
+    if np.abs(bottom - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {bottom.tolist()}")
+    check_rotation_matrix(a[..., :3, :3], f"{name} rotation block")
+    return a
+
+
+def check_covariance(C: Any, name: str = "covariance", dim: int = 6) -> Array:
+    """A finite, symmetric, positive semi-definite (dim, dim) matrix."""
+    a = _finite(C, name, (dim, dim))
+    if a.ndim != 2:
+        raise ValueError(f"{name}: expected one ({dim}, {dim}) matrix, got shape {a.shape}")
+    scale = max(1.0, float(np.abs(a).max()))
+    if np.abs(a - a.T).max() > 1e-9 * scale:
+        raise ValueError(f"{name}: not symmetric")
+    w = np.linalg.eigvalsh(a)
+    if w[0] < -1e-9 * scale:
+        raise ValueError(f"{name}: not positive semi-definite (smallest eigenvalue {w[0]:.3g})")
+    return a
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_identity(shape: tuple[int, ...] = ()) -> Array:
+    q = np.zeros((*shape, 4))
+    q[..., 3] = 1.0
+    return q
+
+
+def quat_multiply(a: Array, b: Array) -> Array:
+    """Hamilton product ``a * b`` (apply b first, then a), xyzw."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ], axis=-1)
+
+
+def quat_conjugate(q: Array) -> Array:
+    """Conjugate, the inverse of a unit quaternion."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([-q[..., :3], q[..., 3:]], axis=-1)
+
+
+def quat_canonical(q: Array) -> Array:
+    """The representative of ``q`` / ``-q`` with w >= 0 (same rotation)."""
+    q = np.asarray(q, dtype=float)
+    return np.where(q[..., 3:4] < 0, -q, q)
+
+
+def quat_rotate(q: Array, v: Array) -> Array:
+    """Rotate vectors ``v`` (..., 3) by unit quaternions ``q`` (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    v = np.asarray(v, dtype=float)
+    u = q[..., :3]
+    w = q[..., 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def quat_to_matrix(q: Array) -> Array:
+    """Unit quaternion(s) (..., 4) to rotation matrices (..., 3, 3)."""
+    q = np.asarray(q, dtype=float)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    R = np.empty((*q.shape[:-1], 3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - z * w)
+    R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w)
+    R[..., 2, 1] = 2 * (y * z + x * w)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def matrix_to_quat(R: Array) -> Array:
+    """Rotation matrices (..., 3, 3) to unit quaternions (w >= 0), Shepperd's method."""
+    R = np.asarray(R, dtype=float)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    trace = m00 + m11 + m22
+    # Four candidate solutions; pick per element the one with the largest pivot (stable).
+    cand = np.stack([
+        np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1], 1 + trace], -1),
+        np.stack([1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0],
+                  R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
+        np.stack([R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22,
+                  R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
+        np.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1],
+                  1 - m00 - m11 + m22, R[..., 1, 0] - R[..., 0, 1]], -1),
+    ], axis=-2)
+    pivots = np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
+                       1 - m00 - m11 + m22], -1)
+    idx = np.argmax(pivots, axis=-1)
+    q = np.take_along_axis(cand, idx[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return quat_canonical(q)
+
+
+def rotvec_to_quat(r: Array) -> Array:
+    """Exponential map: rotation vector(s) (..., 3) to unit quaternion(s)."""
+    r = np.asarray(r, dtype=float)
+    theta = np.linalg.norm(r, axis=-1, keepdims=True)
+    half = 0.5 * theta
+    small = theta < _SMALL_ANGLE
+    # sin(theta/2)/theta with its Taylor series near 0
+    k = np.where(small, 0.5 - theta**2 / 48.0, np.sin(half) / np.where(small, 1.0, theta))
+    return np.concatenate([r * k, np.cos(half)], axis=-1)
+
+
+def quat_to_rotvec(q: Array) -> Array:
+    """Logarithm map: unit quaternion(s) to rotation vector(s), angle in [0, pi]."""
+    q = quat_canonical(q)
+    v = q[..., :3]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    w = q[..., 3:4]
+    theta = 2.0 * np.arctan2(s, w)
+    small = s < _SMALL_ANGLE
+    # theta / s -> 2 / w as s -> 0 (w is then close to 1)
+    k = np.where(small, 2.0 / np.where(small, w, 1.0), theta / np.where(small, 1.0, s))
+    return v * k
+
+
+def rodrigues(r: Array) -> Array:
+    """Rotation vector(s) to rotation matrices (Rodrigues' formula, like ``cv2.Rodrigues``)."""
+    return quat_to_matrix(rotvec_to_quat(r))
+
+
+def rodrigues_inverse(R: Array) -> Array:
+    """Rotation matrices to rotation vectors (the inverse direction of ``cv2.Rodrigues``)."""
+    return quat_to_rotvec(matrix_to_quat(R))
+
+
+def skew(v: Array) -> Array:
+    """Cross-product matrices ``[v]x`` (..., 3, 3) with ``[v]x @ u == cross(v, u)``."""
+    v = np.asarray(v, dtype=float)
+    x, y, z = np.moveaxis(v, -1, 0)
+    o = np.zeros_like(x)
+    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1),
+                     np.stack([-y, x, o], -1)], -2)
+
+
+def quat_angle(a: Array, b: Array) -> Array:
+    """Rotation angle (rad, [0, pi]) between orientations ``a`` and ``b``."""
+    d = quat_multiply(quat_conjugate(a), b)  # atan2 keeps precision near 0 (arccos does not)
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., :3], axis=-1), np.abs(d[..., 3]))
+
+
+def slerp(q0: Array, q1: Array, alpha: Array | float) -> Array:
+    """Spherical linear interpolation, shortest arc; ``alpha`` 0 gives q0, 1 gives q1.
+
+    ``alpha`` outside [0, 1] extrapolates along the same great circle.
+    """
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    alpha = np.asarray(alpha, dtype=float)
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    # q(alpha) = q0 * exp(alpha * log(q0^-1 q1)): exact, also for tiny angles.
+    delta = quat_to_rotvec(quat_multiply(quat_conjugate(q0), q1))
+    a = alpha[..., None] if alpha.ndim else alpha
+    return quat_multiply(q0, rotvec_to_quat(delta * a))
+
+
+# --------------------------------------------------------------------------- poses
+
+
+def compose(p1: Array, q1: Array, p2: Array, q2: Array) -> tuple[Array, Array]:
+    """``T1 @ T2``: the pose of C in A from B in A (p1, q1) and C in B (p2, q2)."""
+    return np.asarray(p1, float) + quat_rotate(q1, p2), quat_multiply(q1, q2)
+
+
+def inverse(p: Array, q: Array) -> tuple[Array, Array]:
+    """``T^-1``: from the pose of B in A to the pose of A in B."""
+    qi = quat_conjugate(q)
+    return -quat_rotate(qi, p), qi
+
+
+def transform_points(p: Array, q: Array, points: Array) -> Array:
+    """Map points (..., 3) given in the child frame into the parent frame."""
+    return quat_rotate(q, points) + np.asarray(p, float)
+
+
+def to_matrix(p: Array, q: Array) -> Array:
+    """Pose(s) to 4x4 homogeneous matrices."""
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    shape = np.broadcast_shapes(p.shape[:-1], q.shape[:-1])
+    T = np.zeros((*shape, 4, 4))
+    T[..., :3, :3] = quat_to_matrix(q)
+    T[..., :3, 3] = p
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def from_matrix(T: Array) -> tuple[Array, Array]:
+    """4x4 homogeneous matrices to poses (translation, xyzw quaternion)."""
+    T = np.asarray(T, dtype=float)
+    return T[..., :3, 3].copy(), matrix_to_quat(T[..., :3, :3])
+
+
+def interpolate(p0: Array, q0: Array, p1: Array, q1: Array,
+                alpha: Array | float) -> tuple[Array, Array]:
+    """Pose interpolation: linear in translation, slerp in rotation."""
+    a = np.asarray(alpha, dtype=float)
+    ap = a[..., None] if a.ndim else a
+    p0 = np.asarray(p0, dtype=float)
+    return p0 + (np.asarray(p1, float) - p0) * ap, slerp(q0, q1, a)
+
+
+def pose_error(p_est: Array, q_est: Array, p_true: Array, q_true: Array) -> tuple[Array, Array]:
+    """Position error (m) and orientation error (rad) of estimates against ground truth."""
+    dp = np.linalg.norm(np.asarray(p_est, float) - np.asarray(p_true, float), axis=-1)
+    return dp, quat_angle(q_est, q_true)
+
+
+# --------------------------------------------------------------------------- covariance
+
+
+def adjoint(p: Array, q: Array) -> Array:
+    """SE(3) adjoint (6x6) of a pose for ``xi = [rho, phi]``: ``Exp(Ad xi) T = T Exp(xi)``."""
+    R = quat_to_matrix(q)
+    Ad = np.zeros((*R.shape[:-2], 6, 6))
+    Ad[..., :3, :3] = R
+    Ad[..., 3:, 3:] = R
+    Ad[..., :3, 3:] = skew(p) @ R
+    return Ad
+
+
+def compose_covariance(p1: Array, q1: Array, C1: Array | None,
+                       C2: Array | None) -> Array | None:
+    """Covariance of ``T1 @ T2`` from independent covariances of T1 and T2 (first order).
+
+    ``Exp(xi1) T1 Exp(xi2) T2 = Exp(xi1 + Ad(T1) xi2) T1 T2``, hence
+    ``C = C1 + Ad(T1) C2 Ad(T1)^T``.  ``None`` means "exactly known" (zero).
+    """
+    if C1 is None and C2 is None:
+        return None
+    out = np.zeros((6, 6)) if C1 is None else np.array(C1, dtype=float)
+    if C2 is not None:
+        Ad = adjoint(p1, q1)
+        out = out + Ad @ np.asarray(C2, float) @ Ad.T
+    return out
+
+
+def inverse_covariance(p: Array, q: Array, C: Array | None) -> Array | None:
+    """Covariance of ``T^-1``: ``T^-1 Exp(-xi) = Exp(-Ad(T^-1) xi) T^-1``."""
+    if C is None:
+        return None
+    pi, qi = inverse(p, q)
+    Ad = adjoint(pi, qi)
+    return Ad @ np.asarray(C, float) @ Ad.T
+
+
+def decoupled_to_se3(p: Array, C: Array) -> Array:
+    """Convert a covariance of [position error, parent-frame rotation error] to ``xi`` form.
+
+    Sensors report position noise independent of the rotation noise; in the SE(3) left
+    perturbation the translation part is ``rho = dp - phi x p``.
+    """
+    J = np.eye(6)
+    J[:3, 3:] = skew(p)
+    return J @ np.asarray(C, float) @ J.T
+
+
+def se3_to_decoupled(p: Array, C: Array) -> Array:
+    """Inverse of ``decoupled_to_se3``: ``dp = rho + phi x p``."""
+    J = np.eye(6)
+    J[:3, 3:] = -skew(p)
+    return J @ np.asarray(C, float) @ J.T
+
+
+def covariance_from_std(p: Array, pos_std_m: float | None,
+                        rot_std_rad: float | None) -> Array | None:
+    """A 6x6 ``xi`` covariance from isotropic position and rotation standard deviations."""
+    if pos_std_m is None and rot_std_rad is None:
+        return None
+    d = np.zeros(6)
+    d[:3] = (pos_std_m or 0.0) ** 2
+    d[3:] = (rot_std_rad or 0.0) ** 2
+    return decoupled_to_se3(p, np.diag(d))
+
+
+# Upper-triangular packing of a symmetric 6x6 matrix (the wire format's 21 floats).
+_TRIU = np.triu_indices(6)
+
+
+def pack_covariance(C: Array) -> list[float]:
+    """The 21 upper-triangular entries of a symmetric 6x6 covariance, row by row."""
+    return np.asarray(C, float)[_TRIU].tolist()
+
+
+def unpack_covariance(values: Any) -> Array:
+    """Rebuild a symmetric 6x6 matrix from its 21 upper-triangular entries."""
+    v = np.asarray(values, dtype=float)
+    if v.shape != (21,):
+        raise ValueError(f"covariance: expected 21 upper-triangular values, got shape {v.shape}")
+    C = np.zeros((6, 6))
+    C[_TRIU] = v
+    return C + np.triu(C, 1).T

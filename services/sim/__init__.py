@@ -1,0 +1,1 @@
+"""The simulated world: IVY six-sided display, head trajectory and ground truth."""
