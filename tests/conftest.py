@@ -1,0 +1,77 @@
+"""Shared fixtures: free loopback ports, a unique realm per test, and child processes that
+are always stopped (by the PID we started, never by name)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+
+import pytest
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint(port: int) -> str:
+    """The Zenoh endpoint string of a loopback TCP port."""
+    return f"tcp/127.0.0.1:{port}"
+
+
+@pytest.fixture
+def realm() -> str:
+    """A realm no other test uses, so concurrent tests never see each other."""
+    return f"t{uuid.uuid4().hex[:12]}"
+
+
+class Processes:
+    """Starts ``uma`` (or any Python module) in child processes and stops them all."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, *args: str, module: str = "agent.cli", env: dict | None = None,
+              ) -> subprocess.Popen:
+        """``python -m MODULE ARGS...`` with unbuffered output captured to pipes."""
+        e = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        p = subprocess.Popen([sys.executable, "-m", module, *args], env=e,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.procs.append(p)
+        return p
+
+    def kill(self, p: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
+        """Send ``sig`` to a process this fixture started."""
+        if p.poll() is None:
+            p.send_signal(sig)
+
+    def stop_all(self, timeout: float = 5.0) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in self.procs:
+            try:
+                p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=timeout)
+            for stream in (p.stdout, p.stderr):
+                if stream:
+                    stream.close()
+
+
+@pytest.fixture
+def processes() -> Iterator[Processes]:
+    """Child processes that are stopped (SIGTERM, then SIGKILL) when the test ends."""
+    procs = Processes()
+    try:
+        yield procs
+    finally:
+        procs.stop_all()
