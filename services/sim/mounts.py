@@ -1,0 +1,31 @@
+"""Where the trackers sit on the simulated user: the ground truth of the rig mountings.
+
+Frames (shared by every service, the SRG and the evaluations):
+
+* ``ivy/world``         the IVY cube, origin at its centre, z up
+* ``marvin/head``       the user's head (x forward, y left, z up); the trajectory's frame
+* ``marvin/laser_rig``  the laser-diode housing of the optical tracker (seed 003 ch. 5)
+* ``marvin/accel_rig``  the six-accelerometer rig (seed 003 ch. 4)
+
+Each mounting is the pose of the rig in the head frame (the SRG edge ``marvin/head ->
+marvin/<rig>``).  They are deliberately not axis-aligned, so alignment and fusion cannot
+succeed by assuming identity.  Real systems get them from tracker alignment (AX = XB).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+
+WORLD = "ivy/world"
+HEAD = "marvin/head"
+LASER_RIG = "marvin/laser_rig"
+ACCEL_RIG = "marvin/accel_rig"
+
+#: laser housing on top of the head, pitched 5 degrees forward
+HEAD_TO_LASER_RIG = (np.array([0.02, 0.0, 0.12]),
+                     geo.rotvec_to_quat(np.radians([0.0, 5.0, 0.0])))
+#: accelerometer rig at the back of the head, turned 12 degrees about z and tilted 4 about x
+HEAD_TO_ACCEL_RIG = (np.array([-0.08, 0.01, 0.06]),
+                     geo.rotvec_to_quat(np.radians([4.0, 0.0, 12.0])))
