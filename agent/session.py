@@ -1,0 +1,184 @@
+"""Opening Zenoh sessions the way every uma process needs them.
+
+One place builds the Zenoh configuration so agents, services, clients and the router all
+behave alike (see ``shared/ZENOH_NOTES.md`` for the measurements behind each choice):
+
+- **multicast scouting off**: it finds nobody on plain loopback and fails in many
+  containers; peers meet through explicit ``connect`` endpoints and gossip.
+- **every peer listens** (default ``tcp/127.0.0.1:0``): peers do not relay for each other,
+  so a peer that only connects is invisible to the other peers of its agent.
+- **lease 1000 ms** (``transport/link/tx/lease``, keep-alive every lease/4 = 250 ms): the
+  lease that counts is the one of the process that *dies*; 1 s makes a frozen process or
+  a vanished host detected in ~1 s while a killed process is seen in ~2 ms anyway (the
+  kernel closes its sockets).  Override with ``UMA_LEASE_MS`` or ``lease_ms=``.
+- **scouting/delay 0**: otherwise ``open()`` of a router waits 0.5 s.
+- **client mode** for processes behind a Zenoh router; a router that cannot be reached is
+  an error at open, as it is for ``require_connection=True`` peers.
+
+Bad endpoints (wrong syntax, port out of range, unknown host, nothing listening when a
+connection is required) become an :class:`agent.errors.UmaError` naming the endpoint.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import re
+import socket
+from collections.abc import Iterable, Sequence
+
+import zenoh
+
+from agent import keys
+from agent.errors import UmaError
+
+MODES = ("peer", "client", "router")
+DEFAULT_LEASE_MS = 1000
+DEFAULT_PEER_LISTEN = "tcp/127.0.0.1:0"
+DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
+#: how long a ``require_connection`` open waits for its connect endpoints
+CONNECT_TIMEOUT_MS = 2000
+
+_PROTOCOLS_WITH_PORT = {"tcp", "udp", "tls", "quic", "ws"}
+_ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
+_HOST_PORT = re.compile(r"^(?P<host>\[[0-9a-fA-F:.]+\]|[^:\[\]]+):(?P<port>\d+)$")
+
+
+def check_endpoint(ep: str) -> str:
+    """Return ``ep`` if it is a usable Zenoh endpoint, else raise ``UmaError`` saying why.
+
+    Zenoh itself accepts ``tcp/127.0.0.1:99999`` or an unresolvable host and then silently
+    never connects; catching these here turns a hang into a message.
+    """
+    if not isinstance(ep, str) or not ep.strip():
+        raise UmaError(f"empty Zenoh endpoint {ep!r} (expected e.g. tcp/127.0.0.1:7447)")
+    m = _ENDPOINT.match(ep.strip())
+    if not m:
+        raise UmaError(f"invalid Zenoh endpoint {ep!r}: expected <protocol>/<address>, "
+                       "e.g. tcp/127.0.0.1:7447")
+    if m["proto"] not in _PROTOCOLS_WITH_PORT:
+        return ep.strip()
+    hp = _HOST_PORT.match(m["addr"])
+    if not hp:
+        raise UmaError(f"invalid Zenoh endpoint {ep!r}: expected {m['proto']}/HOST:PORT")
+    port = int(hp["port"])
+    if not 0 <= port <= 65535:
+        raise UmaError(f"invalid Zenoh endpoint {ep!r}: port {port} is not in 0..65535")
+    host = hp["host"].strip("[]")
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        try:
+            socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except (socket.gaierror, UnicodeError) as exc:
+            raise UmaError(f"invalid Zenoh endpoint {ep!r}: unknown host {host!r} "
+                           f"({exc})") from None
+    return ep.strip()
+
+
+def lease_ms_default() -> int:
+    """The lease in ms: ``UMA_LEASE_MS`` if set (validated), else 1000."""
+    raw = os.environ.get("UMA_LEASE_MS")
+    if raw is None:
+        return DEFAULT_LEASE_MS
+    try:
+        value = int(raw)
+    except ValueError:
+        raise UmaError(f"UMA_LEASE_MS={raw!r} is not an integer number of ms") from None
+    if not 50 <= value <= 600_000:
+        raise UmaError(f"UMA_LEASE_MS={value} is outside 50..600000 ms")
+    return value
+
+
+def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
+                 connect: Iterable[str] = (), *, lease_ms: int | None = None,
+                 require_connection: bool = False, adminspace: bool = True) -> zenoh.Config:
+    """The Zenoh configuration of a uma process (see the module docstring for each choice).
+
+    ``listen=None`` means the mode's default (peers: an ephemeral loopback port, routers:
+    7447, clients: none); ``listen=[]`` means no listener.
+    """
+    if mode not in MODES:
+        raise UmaError(f"unknown Zenoh mode {mode!r} (expected one of {', '.join(MODES)})")
+    connect = [check_endpoint(ep) for ep in connect]
+    if listen is None:
+        listen = {"peer": [DEFAULT_PEER_LISTEN], "router": [DEFAULT_ROUTER_LISTEN],
+                  "client": []}[mode]
+    listen = [check_endpoint(ep) for ep in listen]
+    if mode == "client" and not connect:
+        raise UmaError("client mode needs at least one --connect endpoint (a Zenoh router)")
+    lease = lease_ms_default() if lease_ms is None else int(lease_ms)
+    c = zenoh.Config()
+    _insert(c, "mode", mode)
+    _insert(c, "scouting/multicast/enabled", False)
+    _insert(c, "scouting/delay", 0)
+    _insert(c, "transport/link/tx/lease", lease)
+    _insert(c, "listen/endpoints", listen)
+    _insert(c, "connect/endpoints", connect)
+    # adminspace lets this process read back the port it really listens on (listen :0)
+    _insert(c, "adminspace/enabled", adminspace)
+    if require_connection and connect and mode == "peer":
+        _insert(c, "connect/exit_on_failure", True)
+        _insert(c, "connect/timeout_ms", CONNECT_TIMEOUT_MS)
+    return c
+
+
+def _insert(c: zenoh.Config, key: str, value: object) -> None:
+    try:
+        c.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as exc:
+        raise UmaError(f"invalid Zenoh setting {key}={value!r}: {_short(exc)}") from None
+
+
+def _short(exc: BaseException) -> str:
+    """Zenoh's error text without its Rust source location."""
+    text = str(exc)
+    return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text).strip()
+
+
+def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
+                 connect: Iterable[str] = (), realm: str | None = None, *,
+                 lease_ms: int | None = None, require_connection: bool = False,
+                 ) -> zenoh.Session:
+    """Open a Zenoh session configured for uma; ``UmaError`` if it cannot be opened.
+
+    ``realm`` is only validated here (uma keys carry it; see :mod:`agent.keys`), so a bad
+    realm fails before any network activity.  ``require_connection`` makes a peer fail
+    when none of its ``connect`` endpoints answers within 2 s (a client always does).
+    """
+    if realm is not None:
+        keys.check_name("realm", realm)
+    connect = list(connect)
+    config = build_config(mode, listen, connect, lease_ms=lease_ms,
+                          require_connection=require_connection)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        text = _short(exc)
+        if "Unable to connect" in text:
+            raise UmaError(f"cannot reach {', '.join(connect)} ({mode} mode): nothing "
+                           "answers there; is the agent/router running?") from None
+        if "Can not create a new" in text or "listen" in text.lower():
+            raise UmaError(f"cannot listen on {', '.join(listen or [])}: {text}") from None
+        raise UmaError(f"cannot open Zenoh session: {text}") from None
+
+
+def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[str]:
+    """The endpoints this session really listens on (``:0`` resolved to the real port).
+
+    Read from the session's own admin space, so a hosted service or a test can connect to
+    an agent that was told to listen on an ephemeral port.
+    """
+    zid = str(session.zid())
+    found: list[str] = []
+    for reply in session.get(f"@/{zid}/**", timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            info = json.loads(reply.ok.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(info, dict) and isinstance(info.get("locators"), list):
+            found.extend(str(x) for x in info["locators"])
+    return found
