@@ -1,0 +1,238 @@
+"""Needs/Abilities matching (DWARF's service manager rule), pure: no I/O, no clocks.
+
+An agent matches each need of its local services against every ability of the realm:
+
+1. **type** equal;
+2. **edge** fits the need's edge patterns (``*`` within one segment, ``frame_matches``); an
+   ability published under a ``key`` instead of an edge (``accel_raw``, ``image``, ...) fits
+   when the key matches the need's *child* pattern;
+3. **predicate** (``where``) true over the ability's numeric attributes plus the values the
+   agent measured on the stream: ``measured_frequency_hz`` / ``measured_latency_s``, which
+   also *replace* ``frequency_hz`` / ``latency_s`` once known, so ``frequency_hz >= 30``
+   judges the rate really delivered rather than the advertised one.  An ability lacking a
+   name the predicate uses does not qualify;
+4. **rank** by the preference (``prefer``, minimised; an ability lacking a name it uses ranks
+   after all that have it), then local before remote, then the currently connected one
+   (no needless moves between equals), then the data key (a total, stable order);
+5. **multiplicity**: the best ``max_count`` are chosen; the need is *satisfied* when at least
+   ``min_count`` qualify.
+
+Abilities the agent has *excluded* for a need (their measured rate/latency failed the
+predicate for longer than the grace period; see ``agent.daemon``) are skipped.
+
+Speed: offers are indexed by type once per realm change and needs are compiled once
+(``Requirement``); a match then costs one dict lookup, one cached edge test and one compiled
+predicate call per ability of the right type.  ``bench/bench_matching.py`` measures it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Iterable, Mapping
+from dataclasses import dataclass, field
+
+from schemas import expr
+from schemas.models import Ability, Need, frame_matches
+
+Values = Mapping[str, float]
+#: Measured attributes and the advertised attribute each one overrides.
+MEASURED_OVERRIDES = {"measured_frequency_hz": "frequency_hz",
+                      "measured_latency_s": "latency_s"}
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """One ability somewhere in the realm, flattened for matching.
+
+    ``key`` (its data key) identifies it uniquely; ``values`` are its numeric attributes
+    (computed once, when the descriptor arrives).
+    """
+
+    key: str
+    agent_id: str
+    service_id: str
+    ability: Ability
+    values: Mapping[str, float]
+
+    @classmethod
+    def of(cls, key: str, agent_id: str, service_id: str, ability: Ability) -> Offer:
+        return cls(key, agent_id, service_id, ability, ability.attributes.numeric())
+
+    @property
+    def type(self) -> str:
+        return self.ability.type
+
+    def target(self) -> tuple[str | None, str]:
+        """``(parent, child)`` of an edge ability, ``(None, key)`` of a keyed one."""
+        a = self.ability
+        return (a.edge[0], a.edge[1]) if a.edge is not None else (None, str(a.key))
+
+
+@dataclass(frozen=True, slots=True)
+class Requirement:
+    """A need compiled for matching (expressions parsed once by ``schemas.models.Need``)."""
+
+    service_id: str
+    need: Need
+    where: expr.Expr | None
+    prefer: expr.Expr | None
+
+    @classmethod
+    def of(cls, service_id: str, need: Need) -> Requirement:
+        return cls(service_id, need, need.where_expr, need.prefer_expr)
+
+    @property
+    def name(self) -> str:
+        return self.need.name
+
+
+@dataclass(frozen=True, slots=True)
+class Choice:
+    """A chosen ability and why: its score under the preference, whether it is local."""
+
+    offer: Offer
+    score: float
+    local: bool
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """The outcome for one need: the chosen abilities (best first) and a tally of rejects."""
+
+    requirement: Requirement
+    chosen: tuple[Choice, ...]
+    qualified: int
+    rejected: Mapping[str, int] = field(default_factory=dict)
+
+    @property
+    def satisfied(self) -> bool:
+        return self.qualified >= self.requirement.need.min_count
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        return tuple(c.offer.key for c in self.chosen)
+
+
+class OfferIndex:
+    """The realm's abilities grouped by type, with a memo of edge-pattern tests."""
+
+    def __init__(self, offers: Iterable[Offer] = ()) -> None:
+        self.by_type: dict[str, list[Offer]] = {}
+        self.by_key: dict[str, Offer] = {}
+        self._fits: dict[tuple[str, str, str | None, str], bool] = {}
+        for o in offers:
+            self.add(o)
+
+    def add(self, offer: Offer) -> None:
+        if offer.key in self.by_key:
+            self.remove(offer.key)
+        self.by_key[offer.key] = offer
+        self.by_type.setdefault(offer.type, []).append(offer)
+
+    def remove(self, key: str) -> None:
+        old = self.by_key.pop(key, None)
+        if old is not None:
+            self.by_type[old.type] = [o for o in self.by_type[old.type] if o.key != key]
+
+    def __len__(self) -> int:
+        return len(self.by_key)
+
+    def fits(self, need: Need, offer: Offer) -> bool:
+        """Whether the offer's edge (or key) fits the need's patterns, memoised."""
+        parent, child = offer.target()
+        memo = (need.edge[0], need.edge[1], parent, child)
+        hit = self._fits.get(memo)
+        if hit is None:
+            hit = frame_matches(need.edge[1], child) and (
+                parent is None or frame_matches(need.edge[0], parent))
+            if len(self._fits) > 100_000:
+                self._fits.clear()
+            self._fits[memo] = hit
+        return hit
+
+
+def evaluation_values(offer: Offer, measured: Values | None) -> Values:
+    """The values a need's expressions see for this offer (see the module docstring)."""
+    if not measured:
+        return offer.values
+    values = dict(offer.values)
+    for name, value in measured.items():
+        values[name] = value
+        advertised = MEASURED_OVERRIDES.get(name)
+        if advertised is not None:
+            values[advertised] = value
+    return values
+
+
+def qualifies(req: Requirement, values: Values) -> tuple[bool, str]:
+    """``(True, "")`` if the predicate holds, else ``(False, reason)``."""
+    if req.where is None:
+        return True, ""
+    try:
+        return bool(req.where.evaluate(values)), "predicate false"
+    except expr.ExprError as exc:
+        return False, f"predicate: {exc.reason}"
+
+
+def score(req: Requirement, values: Values) -> float:
+    """The preference value (minimised); ``inf`` when the offer lacks a name it uses."""
+    if req.prefer is None:
+        return 0.0
+    try:
+        v = float(req.prefer.evaluate(values))
+    except expr.ExprError:
+        return math.inf
+    return v if math.isfinite(v) else math.inf
+
+
+def match(req: Requirement, index: OfferIndex, local_agent: str, *,
+          measured: Mapping[str, Values] | None = None,
+          excluded: Collection[str] = (), current: Collection[str] = ()) -> MatchResult:
+    """Match one need against the realm (see the module docstring for the rules).
+
+    ``measured``: data key -> measured values; ``excluded``: data keys this need must not
+    use; ``current``: data keys it is connected to now (kept on ties).  A service never
+    matches its own abilities.
+    """
+    need = req.need
+    measured = measured or {}
+    rejected: dict[str, int] = {}
+    ranked: list[tuple[float, int, int, str, Choice]] = []
+    for offer in index.by_type.get(need.type, ()):
+        if offer.service_id == req.service_id and offer.agent_id == local_agent:
+            continue
+        if not index.fits(need, offer):
+            rejected["edge"] = rejected.get("edge", 0) + 1
+            continue
+        if offer.key in excluded:
+            rejected["measured"] = rejected.get("measured", 0) + 1
+            continue
+        values = evaluation_values(offer, measured.get(offer.key))
+        ok, reason = qualifies(req, values)
+        if not ok:
+            rejected[reason] = rejected.get(reason, 0) + 1
+            continue
+        s = score(req, values)
+        local = offer.agent_id == local_agent
+        ranked.append((s, 0 if local else 1, 0 if offer.key in current else 1, offer.key,
+                       Choice(offer, s, local)))
+    ranked.sort(key=lambda r: r[:4])
+    chosen = tuple(r[4] for r in ranked[:need.max_count])
+    return MatchResult(req, chosen, len(ranked), rejected)
+
+
+def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, *,
+              measured: Mapping[str, Values] | None = None,
+              excluded: Mapping[tuple[str, str], Collection[str]] | None = None,
+              current: Mapping[tuple[str, str], Collection[str]] | None = None,
+              ) -> dict[tuple[str, str], MatchResult]:
+    """Match many needs; keys of ``excluded``/``current`` and of the result are
+    ``(service_id, need name)``."""
+    excluded = excluded or {}
+    current = current or {}
+    out = {}
+    for req in reqs:
+        k = (req.service_id, req.name)
+        out[k] = match(req, index, local_agent, measured=measured,
+                       excluded=excluded.get(k, ()), current=current.get(k, ()))
+    return out
