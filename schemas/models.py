@@ -121,7 +121,7 @@ def frame_matches(pattern: str, frame: str) -> bool:
 # --------------------------------------------------------------------------- plain values
 
 
-def _check_plain(value: Any, where: str, depth: int = 0, numbers_only: bool = False) -> None:
+def check_plain(value: Any, where: str, depth: int = 0, numbers_only: bool = False) -> None:
     """Refuse anything but finite numbers, bools, strings, None, and bounded lists/dicts."""
     if depth > MAX_PLAIN_DEPTH:
         raise ValueError(f"{where}: nested deeper than {MAX_PLAIN_DEPTH} levels")
@@ -135,7 +135,7 @@ def _check_plain(value: Any, where: str, depth: int = 0, numbers_only: bool = Fa
         if len(value) > MAX_LIST_LENGTH:
             raise ValueError(f"{where}: list longer than {MAX_LIST_LENGTH}")
         for i, item in enumerate(value):
-            _check_plain(item, f"{where}[{i}]", depth + 1, numbers_only)
+            check_plain(item, f"{where}[{i}]", depth + 1, numbers_only)
         return
     if not numbers_only and (value is None or isinstance(value, str)):
         return
@@ -145,14 +145,14 @@ def _check_plain(value: Any, where: str, depth: int = 0, numbers_only: bool = Fa
         for k, item in value.items():
             if not isinstance(k, str):
                 raise ValueError(f"{where}: key {k!r} is not a string")
-            _check_plain(item, f"{where}.{k}", depth + 1)
+            check_plain(item, f"{where}.{k}", depth + 1)
         return
     allowed = "numbers or lists of numbers" if numbers_only else "plain JSON values"
     raise ValueError(f"{where}: {type(value).__name__} not allowed ({allowed})")
 
 
 def _plain_dict(value: dict[str, Any]) -> dict[str, Any]:
-    _check_plain(value, "attributes")
+    check_plain(value, "attributes")
     return value
 
 
@@ -201,7 +201,7 @@ class Attributes(BaseModel):
                 raise ValueError(f"attribute name {name!r} is not an identifier "
                                  "(letters, digits, '_'; no leading digit)")
             if not isinstance(value, str):
-                _check_plain(value, f"attribute {name}", numbers_only=True)
+                check_plain(value, f"attribute {name}", numbers_only=True)
         return self
 
     def numeric(self) -> dict[str, float]:
