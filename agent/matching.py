@@ -20,9 +20,10 @@ An agent matches each need of its local services against every ability of the re
 Abilities the agent has *excluded* for a need (their measured rate/latency failed the
 predicate for longer than the grace period; see ``agent.daemon``) are skipped.
 
-Speed: offers are indexed by type once per realm change and needs are compiled once
-(``Requirement``); a match then costs one dict lookup, one cached edge test and one compiled
-predicate call per ability of the right type.  ``bench/bench_matching.py`` measures it.
+Speed: needs are compiled once (``Requirement``) and ``OfferIndex`` keeps, per distinct
+(type, edge patterns), the abilities that fit, updated incrementally as abilities come and
+go; a match then costs one compiled predicate and preference call per fitting ability.
+``bench/bench_matching.py`` measures it.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 from schemas import expr
 from schemas.models import Ability, Need, frame_matches
@@ -53,19 +55,15 @@ class Offer:
     service_id: str
     ability: Ability
     values: Mapping[str, float]
+    type: str
+    #: ``(parent, child)`` of an edge ability, ``(None, key)`` of a keyed one
+    target: tuple[str | None, str]
 
     @classmethod
     def of(cls, key: str, agent_id: str, service_id: str, ability: Ability) -> Offer:
-        return cls(key, agent_id, service_id, ability, ability.attributes.numeric())
-
-    @property
-    def type(self) -> str:
-        return self.ability.type
-
-    def target(self) -> tuple[str | None, str]:
-        """``(parent, child)`` of an edge ability, ``(None, key)`` of a keyed one."""
-        a = self.ability
-        return (a.edge[0], a.edge[1]) if a.edge is not None else (None, str(a.key))
+        a = ability
+        target = (a.edge[0], a.edge[1]) if a.edge is not None else (None, str(a.key))
+        return cls(key, agent_id, service_id, a, a.attributes.numeric(), a.type, target)
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,7 +95,8 @@ class Choice:
 
 @dataclass(frozen=True)
 class MatchResult:
-    """The outcome for one need: the chosen abilities (best first) and a tally of rejects."""
+    """The outcome for one need: the chosen abilities (best first) and a tally of why the
+    other abilities of its type and edge were rejected."""
 
     requirement: Requirement
     chosen: tuple[Choice, ...]
@@ -114,41 +113,61 @@ class MatchResult:
 
 
 class OfferIndex:
-    """The realm's abilities grouped by type, with a memo of edge-pattern tests."""
+    """The realm's abilities by data key and type, with the candidates of each need pattern.
+
+    ``candidates(need)`` (type + edge patterns) is computed once per distinct pattern and then
+    kept up to date by ``add``/``remove``, so a re-match after one ability changed tests the
+    edge patterns of that ability only.
+    """
 
     def __init__(self, offers: Iterable[Offer] = ()) -> None:
-        self.by_type: dict[str, list[Offer]] = {}
         self.by_key: dict[str, Offer] = {}
-        self._fits: dict[tuple[str, str, str | None, str], bool] = {}
+        self.by_type: dict[str, dict[str, Offer]] = {}
+        self._candidates: dict[tuple[str, str, str], dict[str, Offer]] = {}
         for o in offers:
             self.add(o)
 
     def add(self, offer: Offer) -> None:
-        if offer.key in self.by_key:
-            self.remove(offer.key)
+        """Add or replace (same data key) an offer."""
+        self.remove(offer.key)
         self.by_key[offer.key] = offer
-        self.by_type.setdefault(offer.type, []).append(offer)
+        self.by_type.setdefault(offer.type, {})[offer.key] = offer
+        for (type_, parent, child), found in self._candidates.items():
+            if type_ == offer.type and _fits(parent, child, offer):
+                found[offer.key] = offer
 
     def remove(self, key: str) -> None:
         old = self.by_key.pop(key, None)
-        if old is not None:
-            self.by_type[old.type] = [o for o in self.by_type[old.type] if o.key != key]
+        if old is None:
+            return
+        del self.by_type[old.type][key]
+        for (type_, _, _), found in self._candidates.items():
+            if type_ == old.type:
+                found.pop(key, None)
 
     def __len__(self) -> int:
         return len(self.by_key)
 
-    def fits(self, need: Need, offer: Offer) -> bool:
-        """Whether the offer's edge (or key) fits the need's patterns, memoised."""
-        parent, child = offer.target()
-        memo = (need.edge[0], need.edge[1], parent, child)
-        hit = self._fits.get(memo)
-        if hit is None:
-            hit = frame_matches(need.edge[1], child) and (
-                parent is None or frame_matches(need.edge[0], parent))
-            if len(self._fits) > 100_000:
-                self._fits.clear()
-            self._fits[memo] = hit
-        return hit
+    def candidates(self, need: Need) -> Iterable[Offer]:
+        """Offers of the need's type whose edge (or key) fits its patterns."""
+        pattern = (need.type, need.edge[0], need.edge[1])
+        found = self._candidates.get(pattern)
+        if found is None:
+            found = {o.key: o for o in self.by_type.get(need.type, {}).values()
+                     if _fits(need.edge[0], need.edge[1], o)}
+            self._candidates[pattern] = found
+        return found.values()
+
+
+@lru_cache(maxsize=65536)
+def _frame_fits(pattern: str, frame: str) -> bool:
+    return frame_matches(pattern, frame)
+
+
+def _fits(parent_pattern: str, child_pattern: str, offer: Offer) -> bool:
+    parent, child = offer.target
+    return _frame_fits(child_pattern, child) and (
+        parent is None or _frame_fits(parent_pattern, parent))
 
 
 def evaluation_values(offer: Offer, measured: Values | None) -> Values:
@@ -198,11 +217,8 @@ def match(req: Requirement, index: OfferIndex, local_agent: str, *,
     measured = measured or {}
     rejected: dict[str, int] = {}
     ranked: list[tuple[float, int, int, str, Choice]] = []
-    for offer in index.by_type.get(need.type, ()):
+    for offer in index.candidates(need):
         if offer.service_id == req.service_id and offer.agent_id == local_agent:
-            continue
-        if not index.fits(need, offer):
-            rejected["edge"] = rejected.get("edge", 0) + 1
             continue
         if offer.key in excluded:
             rejected["measured"] = rejected.get("measured", 0) + 1
