@@ -6,19 +6,23 @@ An agent matches each need of its local services against every ability of the re
 2. **edge** fits the need's edge patterns (``*`` within one segment, ``frame_matches``); an
    ability published under a ``key`` instead of an edge (``accel_raw``, ``image``, ...) fits
    when the key matches the need's *child* pattern;
-3. **predicate** (``where``) true over the ability's numeric attributes plus the values the
-   agent measured on the stream: ``measured_frequency_hz`` / ``measured_latency_s``, which
-   also *replace* ``frequency_hz`` / ``latency_s`` once known, so ``frequency_hz >= 30``
-   judges the rate really delivered rather than the advertised one.  An ability lacking a
-   name the predicate uses does not qualify;
-4. **rank** by the preference (``prefer``, minimised; an ability lacking a name it uses ranks
-   after all that have it), then local before remote, then the currently connected one
+3. **predicate** (``where``) true over the ability's advertised numeric attributes.  The
+   names ``measured_frequency_hz`` / ``measured_latency_s`` stand for the advertised
+   ``frequency_hz`` / ``latency_s`` here; what was really measured on a connected stream is
+   judged by the agent (``agent.daemon``), with a grace period, through ``judge``: there the
+   measured values *replace* ``frequency_hz`` / ``latency_s``, so ``frequency_hz >= 30``
+   holds the rate really delivered to account.  An ability lacking a name the predicate uses
+   does not qualify;
+4. **rank** by the preference (``prefer``, minimised) over the advertised attributes only
+   (ranking one ability by measured and another by advertised values would make needs
+   flap); an ability lacking a name it uses ranks after all that have it; then local
+   before remote, then the currently connected one
    (no needless moves between equals), then the data key (a total, stable order);
 5. **multiplicity**: the best ``max_count`` are chosen; the need is *satisfied* when at least
    ``min_count`` qualify.
 
 Abilities the agent has *excluded* for a need (their measured rate/latency failed the
-predicate for longer than the grace period; see ``agent.daemon``) are skipped.
+predicate for longer than the grace period) are skipped.
 
 Speed: needs are compiled once (``Requirement``) and ``OfferIndex`` keeps, per distinct
 (type, edge patterns), the abilities that fit, updated incrementally as abilities come and
@@ -63,7 +67,8 @@ class Offer:
     def of(cls, key: str, agent_id: str, service_id: str, ability: Ability) -> Offer:
         a = ability
         target = (a.edge[0], a.edge[1]) if a.edge is not None else (None, str(a.key))
-        return cls(key, agent_id, service_id, a, a.attributes.numeric(), a.type, target)
+        return cls(key, agent_id, service_id, a, advertised_values(a.attributes.numeric()),
+                   a.type, target)
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,10 +175,19 @@ def _fits(parent_pattern: str, child_pattern: str, offer: Offer) -> bool:
         parent is None or _frame_fits(parent_pattern, parent))
 
 
-def evaluation_values(offer: Offer, measured: Values | None) -> Values:
-    """The values a need's expressions see for this offer (see the module docstring)."""
-    if not measured:
-        return offer.values
+def advertised_values(attributes: Values) -> dict[str, float]:
+    """An ability's numeric attributes plus the ``measured_*`` names standing for their
+    advertised counterparts (so a predicate using them can match before any measurement)."""
+    values = dict(attributes)
+    for measured_name, advertised in MEASURED_OVERRIDES.items():
+        if advertised in values:
+            values[measured_name] = values[advertised]
+    return values
+
+
+def measured_values(offer: Offer, measured: Values) -> Values:
+    """The values a predicate judges a connected stream by: the advertised ones, with what
+    was measured replacing both the ``measured_*`` names and their advertised twins."""
     values = dict(offer.values)
     for name, value in measured.items():
         values[name] = value
@@ -188,9 +202,10 @@ def qualifies(req: Requirement, values: Values) -> tuple[bool, str]:
     if req.where is None:
         return True, ""
     try:
-        return bool(req.where.evaluate(values)), "predicate false"
+        ok = bool(req.where.evaluate(values))
     except expr.ExprError as exc:
         return False, f"predicate: {exc.reason}"
+    return ok, "" if ok else "predicate false"
 
 
 def score(req: Requirement, values: Values) -> float:
@@ -204,17 +219,19 @@ def score(req: Requirement, values: Values) -> float:
     return v if math.isfinite(v) else math.inf
 
 
+def judge(req: Requirement, offer: Offer, measured: Values) -> tuple[bool, str]:
+    """Whether a connected stream's *measured* values still satisfy the need's predicate."""
+    return qualifies(req, measured_values(offer, measured))
+
+
 def match(req: Requirement, index: OfferIndex, local_agent: str, *,
-          measured: Mapping[str, Values] | None = None,
           excluded: Collection[str] = (), current: Collection[str] = ()) -> MatchResult:
     """Match one need against the realm (see the module docstring for the rules).
 
-    ``measured``: data key -> measured values; ``excluded``: data keys this need must not
-    use; ``current``: data keys it is connected to now (kept on ties).  A service never
-    matches its own abilities.
+    ``excluded``: data keys this need must not use; ``current``: data keys it is connected
+    to now (kept on ties).  A service never matches its own abilities.
     """
     need = req.need
-    measured = measured or {}
     rejected: dict[str, int] = {}
     ranked: list[tuple[float, int, int, str, Choice]] = []
     for offer in index.candidates(need):
@@ -223,12 +240,11 @@ def match(req: Requirement, index: OfferIndex, local_agent: str, *,
         if offer.key in excluded:
             rejected["measured"] = rejected.get("measured", 0) + 1
             continue
-        values = evaluation_values(offer, measured.get(offer.key))
-        ok, reason = qualifies(req, values)
+        ok, reason = qualifies(req, offer.values)
         if not ok:
             rejected[reason] = rejected.get(reason, 0) + 1
             continue
-        s = score(req, values)
+        s = score(req, offer.values)
         local = offer.agent_id == local_agent
         ranked.append((s, 0 if local else 1, 0 if offer.key in current else 1, offer.key,
                        Choice(offer, s, local)))
@@ -238,7 +254,6 @@ def match(req: Requirement, index: OfferIndex, local_agent: str, *,
 
 
 def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, *,
-              measured: Mapping[str, Values] | None = None,
               excluded: Mapping[tuple[str, str], Collection[str]] | None = None,
               current: Mapping[tuple[str, str], Collection[str]] | None = None,
               ) -> dict[tuple[str, str], MatchResult]:
@@ -249,6 +264,6 @@ def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, 
     out = {}
     for req in reqs:
         k = (req.service_id, req.name)
-        out[k] = match(req, index, local_agent, measured=measured,
-                       excluded=excluded.get(k, ()), current=current.get(k, ()))
+        out[k] = match(req, index, local_agent, excluded=excluded.get(k, ()),
+                       current=current.get(k, ()))
     return out

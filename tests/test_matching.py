@@ -10,7 +10,7 @@ from agent.matching import (
     Offer,
     OfferIndex,
     Requirement,
-    evaluation_values,
+    judge,
     match,
     match_all,
 )
@@ -97,18 +97,22 @@ def test_multiplicity_min_and_max() -> None:
     assert not r.satisfied
 
 
-def test_measured_values_override_advertised_ones() -> None:
+def test_measured_values_judge_a_connected_stream() -> None:
     o = offer("cam", frequency_hz=100, latency_s=0.001)
-    values = evaluation_values(o, {"measured_frequency_hz": 12.0, "measured_latency_s": 0.3})
-    assert values["frequency_hz"] == 12.0 and values["measured_frequency_hz"] == 12.0
-    assert values["latency_s"] == 0.3
+    req = need(where="frequency_hz >= 30 and latency_s < 0.1")
+    assert judge(req, o, {"measured_frequency_hz": 99.0, "measured_latency_s": 0.002}) == (
+        True, "")
+    assert judge(req, o, {"measured_frequency_hz": 12.0}) == (False, "predicate false")
+    assert judge(req, o, {"measured_latency_s": 0.3}) == (False, "predicate false")
     assert o.values["frequency_hz"] == 100.0  # the offer itself is untouched
-    idx = OfferIndex([o, offer("other", frequency_hz=50)])
-    r = match(need(where="frequency_hz >= 30", prefer="-frequency_hz"), idx, "a",
-              measured={o.key: {"measured_frequency_hz": 12.0}})
-    assert chosen_services(r) == ["other"]
+    explicit = need(where="measured_frequency_hz >= 30")
+    assert judge(explicit, o, {"measured_frequency_hz": 12.0})[0] is False
+
+
+def test_measured_names_stand_for_advertised_ones_when_matching() -> None:
+    idx = OfferIndex([offer("slow", frequency_hz=10), offer("fast", frequency_hz=100)])
     r = match(need(where="measured_frequency_hz >= 30"), idx, "a")
-    assert chosen_services(r) == []  # nothing measured yet: the name is missing
+    assert chosen_services(r) == ["fast"]
 
 
 def test_excluded_abilities_are_skipped() -> None:
