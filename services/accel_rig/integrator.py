@@ -1,0 +1,273 @@
+"""Pose from accelerations, seed 003 §4.3: dead reckoning with an honest covariance.
+
+Each sample's N accelerations give the rig-frame specific force and angular acceleration
+by the linear system of eq. 4.42 (``RigLayout.solve``); the angular acceleration is
+integrated to angular velocity (eq. 4.44), the rate quaternion (eq. 4.45) to orientation,
+gravity is added back in the world frame (eq. 4.46) and the acceleration is integrated
+twice (eqs. 4.47-4.48).  All four are one coupled ODE, integrated by classical RK4 between
+consecutive samples, with the readings inside a step interpolated by the parabola through
+the last three samples (third-order accurate, no extra latency).
+
+The covariance is the linearised error propagation of that ODE, error state
+``[dtheta (world-frame rotation), dp, dv, domega (rig frame)]``, driven by the reading
+noise of the calibration's noise model, plus the calibration's own uncertainty (bias, gain
+and axis of each accelerometer act as constant reading errors, carried as a sensitivity
+matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
+error feeds back through the centripetal terms of eq. 4.42.
+
+Times: a reading taken at sample time t describes the motion at ``t - latency_s`` (the
+0-110 Hz response), so the state and the reported pose carry that motion time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from services.accel_rig.sensor import Calibration
+from services.sim.trajectory import GRAVITY
+
+Array = np.ndarray
+
+_I3 = np.eye(3)
+_I4 = np.eye(4)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The dead-reckoned state at motion time ``t``.
+
+    ``covariance`` is the 6x6 pose covariance in geometry's convention (left perturbation,
+    ``[rho, phi]``); ``velocity`` is world-frame, ``omega`` rig-frame.
+    """
+
+    t: float
+    position: Array
+    quaternion: Array
+    covariance: Array
+    velocity: Array
+    omega: Array
+
+
+class DeadReckoner:
+    """Step-by-step inertial integrator: ``reset(...)`` with an absolute pose, then
+    ``update(t, accel)`` for every sample.
+
+    ``rate_hz`` is the nominal sample rate; it scales the per-sample noise variance.
+    """
+
+    def __init__(self, calibration: Calibration, rate_hz: float = 300.0,
+                 gravity: Array = GRAVITY):
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"dead reckoner: rate_hz must be positive, got {rate_hz!r}")
+        self.calibration = calibration
+        self.layout = calibration.layout
+        self.rate_hz = float(rate_hz)
+        self.gravity = np.asarray(gravity, float)
+        self._noise_var = calibration.accel_var(rate_hz)  # (N,) per-sample, (m/s^2)^2
+        n = self.layout.count
+        self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
+        self._k = calibration.gain_v_per_mps2
+        self._samples: list[tuple[float, Array]] = []  # up to 3 (motion time, accel)
+        self._t: float | None = None
+        self._p = np.zeros(3)
+        self._q = geo.quat_identity()
+        self._v = np.zeros(3)
+        self._w = np.zeros(3)
+        self._P = np.zeros((12, 12))
+        self._S = np.zeros((12, 4 * n))
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def initialised(self) -> bool:
+        """True once an absolute pose has been given; before that there is no pose."""
+        return self._t is not None
+
+    def reset(self, t: float, position: Array, quaternion: Array,
+              covariance: Array | None = None, velocity: Array | None = None,
+              velocity_cov: Array | None = None, omega: Array | None = None,
+              omega_cov: Array | None = None) -> None:
+        """Restart from an absolute pose at motion time ``t`` (seconds).
+
+        ``covariance`` is the pose's 6x6 covariance in geometry's convention (None: exact).
+        Velocity (world) and angular velocity (rig frame) keep their current estimate when
+        not given; at the first reset they start at zero (a rig at rest, as in §4.3.1).
+        """
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"reset: time must be finite, got {t!r}")
+        p = geo.check_vector(position, "reset position").reshape(3)
+        q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4)
+        C = np.zeros((6, 6)) if covariance is None else \
+            geo.se3_to_decoupled(p, geo.check_covariance(covariance, "reset covariance"))
+        P_old = self._P if self.initialised else np.zeros((12, 12))
+        S_old = self._S
+        P = np.zeros((12, 12))
+        S = np.zeros_like(S_old)
+        P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
+        P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
+        kept = []
+        for name, sl, value, cov in (("velocity", slice(6, 9), velocity, velocity_cov),
+                                     ("omega", slice(9, 12), omega, omega_cov)):
+            if value is None:
+                kept.append(sl)
+                continue
+            val = geo.check_vector(value, f"reset {name}").reshape(3)
+            if sl.start == 6:
+                self._v = val
+            else:
+                self._w = val
+            if cov is not None:
+                P[sl, sl] = geo.check_covariance(cov, f"reset {name} covariance", dim=3)
+        for a in kept:  # keep what was not reset, including its calibration sensitivity
+            for b in kept:
+                P[a, b] = P_old[a, b]
+            S[a] = S_old[a]
+        self._t, self._p, self._q, self._P, self._S = t, p, q, P, S
+        self._samples = [s for s in self._samples if s[0] <= t][-3:]
+
+    def estimate(self) -> Estimate:
+        """The current state and its pose covariance (geometry convention)."""
+        if not self.initialised:
+            raise ValueError("dead reckoner: no pose yet; reset it with an absolute pose first")
+        P = self._P if self._cal_cov is None else \
+            self._P + self._S @ self._cal_cov @ self._S.T
+        C = np.empty((6, 6))
+        C[:3, :3], C[3:, 3:] = P[3:6, 3:6], P[0:3, 0:3]
+        C[:3, 3:], C[3:, :3] = P[3:6, 0:3], P[0:3, 3:6]
+        C = geo.decoupled_to_se3(self._p, 0.5 * (C + C.T))
+        return Estimate(self._t, self._p.copy(), self._q.copy(), C, self._v.copy(),
+                        self._w.copy())
+
+    def state_covariance(self) -> Array:
+        """Full 12x12 covariance of ``[dtheta, dp, dv, domega]`` (noise + calibration)."""
+        if self._cal_cov is None:
+            return self._P.copy()
+        return self._P + self._S @ self._cal_cov @ self._S.T
+
+    # ------------------------------------------------------------------ integration
+
+    def update_volts(self, t: float, volts: Array) -> Estimate | None:
+        """``update`` for raw voltages, converted (and validated) by the calibration."""
+        return self.update(t, self.calibration.to_accel(volts))
+
+    def update(self, t: float, accel: Array) -> Estimate | None:
+        """Integrate up to the sample taken at time ``t`` with accelerations ``accel`` (N,).
+
+        Returns the estimate at motion time ``t - latency_s``, or None before the first
+        reset.  NaN or wrongly sized samples and non-increasing times are refused without
+        touching the state.
+        """
+        a = np.asarray(accel, dtype=float)
+        if a.shape != (self.layout.count,):
+            raise ValueError(f"accelerometer sample: expected {self.layout.count} values, "
+                             f"got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            j = int(np.flatnonzero(~np.isfinite(a))[0])
+            raise ValueError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
+                             f"{a[j]!r} (NaN samples are refused)")
+        tm = float(t) - self.calibration.latency_s
+        if not math.isfinite(tm):
+            raise ValueError(f"accelerometer sample: time must be finite, got {t!r}")
+        if self._samples and tm <= self._samples[-1][0]:
+            raise ValueError(f"accelerometer sample at t={t!r} is not after the previous "
+                             f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
+        self._samples = [*self._samples[-2:], (tm, a)]
+        if not self.initialised:
+            return None
+        if tm > self._t:
+            self._step(self._t, tm)
+        return self.estimate()
+
+    def _reading_at(self, tau: float) -> Array:
+        """Readings at motion time ``tau`` by Lagrange interpolation over the kept samples."""
+        pts = self._samples
+        if len(pts) == 1:
+            return pts[0][1]
+        out = np.zeros_like(pts[0][1])
+        for i, (ti, ai) in enumerate(pts):
+            w = 1.0
+            for j, (tj, _) in enumerate(pts):
+                if j != i:
+                    w *= (tau - tj) / (ti - tj)
+            out = out + w * ai
+        return out
+
+    def _step(self, t0: float, t1: float) -> None:
+        """One RK4 step of the coupled (q, omega, v, p) ODE and its error propagation."""
+        h = t1 - t0
+        a0, am, a1 = (self._reading_at(t0), self._reading_at(t0 + 0.5 * h),
+                      self._reading_at(t1))
+        lay = self.layout
+        # omega stages (omega_dot depends on omega through the centripetal terms only)
+        w0 = self._w
+        f1, k1 = lay.solve(a0, w0)
+        w2 = w0 + 0.5 * h * k1
+        f2, k2 = lay.solve(am, w2)
+        w3 = w0 + 0.5 * h * k2
+        f3, k3 = lay.solve(am, w3)
+        w4 = w0 + h * k3
+        f4, k4 = lay.solve(a1, w4)
+        ws = np.array([w0, w2, w3, w4])
+        fs = np.array([f1, f2, f3, f4])
+        # quaternion stages: q' = 1/2 q (x) [omega, 0] = M(omega) q, linear in q
+        what = np.zeros((4, 4))
+        what[:, :3] = ws
+        M = 0.5 * np.swapaxes(geo.quat_multiply(_I4[None, :, :], what[:, None, :]), 1, 2)
+        q0 = self._q
+        kq1 = M[0] @ q0
+        kq2 = M[1] @ (q0 + 0.5 * h * kq1)
+        kq3 = M[2] @ (q0 + 0.5 * h * kq2)
+        qs = np.array([q0, q0 + 0.5 * h * kq1, q0 + 0.5 * h * kq2, q0 + h * kq3])
+        kq4 = M[3] @ qs[3]
+        q1 = q0 + h / 6.0 * (kq1 + 2 * kq2 + 2 * kq3 + kq4)
+        # velocity / position stages: v' = R(q) f + g, p' = v
+        Rs = geo.quat_to_matrix(qs / np.linalg.norm(qs, axis=1, keepdims=True))
+        acc = np.einsum("sij,sj->si", Rs, fs) + self.gravity
+        v0 = self._v
+        self._p = self._p + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
+        self._v = v0 + h / 6.0 * (acc[0] + 2 * acc[1] + 2 * acc[2] + acc[3])
+        self._w = w0 + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        self._q = q1 / np.linalg.norm(q1)
+        self._t = t1
+        self._propagate(h, Rs[1], fs[1], w2, am)
+
+    def _propagate(self, h: float, R: Array, f: Array, w: Array, a: Array) -> None:
+        """Error-state propagation over one step, linearised at the step's midpoint."""
+        G, Jw = self.layout.solve_jacobians(w)  # d(f, wd)/d(a) (6 x N), d(f, wd)/d(omega)
+        A = np.zeros((12, 12))
+        A[0:3, 9:12] = R
+        A[3:6, 6:9] = _I3
+        A[6:9, 0:3] = -geo.skew(R @ f)
+        A[6:9, 9:12] = R @ Jw[:3]
+        A[9:12, 9:12] = Jw[3:]
+        Ah = A * h
+        F = np.eye(12) + Ah + 0.5 * (Ah @ Ah)
+        B = np.empty((12, G.shape[1]))
+        B[0:6] = 0.0
+        B[6:9] = R @ G[:3]
+        B[9:12] = G[3:]
+        Q = (h / self.rate_hz) * (B * self._noise_var) @ B.T
+        self._P = F @ self._P @ F.T + Q
+        if self._cal_cov is not None:
+            # a reading error from calibration: da_j = ([1, f_j] / k_j) . [dB_j, dm_j]
+            c = np.empty((a.size, 4))
+            c[:, 0] = 1.0
+            c[:, 1:] = f
+            c /= self._k[:, None]
+            self._S = F @ self._S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+
+
+def _calibration_cov_in_accel(cal: Calibration) -> Array | None:
+    """Block-diagonal (4N, 4N) covariance of the calibration parameters, or None."""
+    if cal.param_cov is None:
+        return None
+    n = cal.layout.count
+    out = np.zeros((4 * n, 4 * n))
+    for j in range(n):
+        out[4 * j:4 * j + 4, 4 * j:4 * j + 4] = cal.param_cov[j]
+    return out

@@ -1,0 +1,214 @@
+"""The accelerometer electronics of seed 003 appendix C.1 and the calibration that inverts them.
+
+Signal chain per accelerometer (Kyowa AS-5GA, RHC amplifier, VIPS 10 A/D):
+
+    volts = bias + gain * (n_true . specific force at r_j) + noise     (eq. 4.2, §4.4.1)
+    amplifier clips at +/-2.0 V (1 g = 400 mV, so +/-5 g)
+    frequency response 0-110 Hz: a 2nd-order Butterworth low-pass at 110 Hz
+    12-bit A/D, bipolar +/-2.048 V, 1 LSB = 1 mV
+
+A ``Calibration`` holds what seed 003 §4.4.2 estimates for each accelerometer (bias B_j,
+scale, sensing axis n_j) together with the layout positions, the noise model and the
+filter latency, so a reading in volts becomes an acceleration along n_j and the dead
+reckoner knows how much to trust it.  It is serialised as JSON (the calibration file of
+``uma service run accel-rig --calibrate``) and copied into the ``accel_raw`` ability's
+attributes for the fusion service.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.accel_rig.rig import RigLayout
+from services.sim.trajectory import GRAVITY
+
+Array = np.ndarray
+
+G = float(np.linalg.norm(GRAVITY))
+VOLTS_PER_G = 0.400  # appendix C.1: "1G = 400mV"
+NOMINAL_GAIN = VOLTS_PER_G / G  # V per m/s^2
+AMP_RAIL_V = 2.0  # the amplifier regulates its output to +/-2.0 V
+ADC_BITS = 12
+ADC_REF_V = 4.096  # +/-2.048 V bipolar, table C.2
+LSB_V = ADC_REF_V / 2**ADC_BITS  # 1 mV
+ADC_MIN_COUNT = -(2 ** (ADC_BITS - 1))
+ADC_MAX_COUNT = 2 ** (ADC_BITS - 1) - 1
+BANDWIDTH_HZ = 110.0  # table C.1 frequency response 0-110 Hz
+#: White noise density at the amplifier output.  Appendix C gives no noise figure; table C.2
+#: promises +/-1 LSB relative accuracy, so the analog noise is set to about half an LSB rms
+#: over the 110 Hz band (50 uV/sqrt(Hz) * sqrt(122 Hz noise bandwidth) = 0.55 mV).
+NOISE_DENSITY_V = 50e-6
+#: Readings this close to the amplifier rail are clipped and carry no information.
+SATURATION_MARGIN_V = 0.5 * LSB_V
+
+CALIBRATION_FORMAT = "uma.accel_rig.calibration/1"
+
+
+def counts_to_volts(counts: Array) -> Array:
+    """A/D counts to volts (1 LSB = 1 mV)."""
+    return np.asarray(counts, float) * LSB_V
+
+
+def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
+    """Refuse NaN, infinite, out-of-range and saturated voltages with a clear message.
+
+    A reading outside the A/D range cannot come from the hardware (wrong units or a
+    corrupt line); one at the amplifier rail is clipped, so its acceleration is unknown.
+    """
+    v = np.asarray(volts, dtype=float)
+    if not np.all(np.isfinite(v)):
+        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
+        raise ValueError(f"{name}: non-finite value {v[idx]!r} at index {idx} "
+                         "(NaN samples are refused, not interpolated)")
+    lo, hi = ADC_MIN_COUNT * LSB_V, ADC_MAX_COUNT * LSB_V
+    out = np.abs(v) > max(-lo, hi) + 1e-9
+    if np.any(out):
+        idx = tuple(int(i) for i in np.argwhere(out)[0])
+        raise ValueError(f"{name}: {v[idx]:.4g} V at index {idx} is outside the A/D range "
+                         f"[{lo:.3f}, {hi:.3f}] V (are these volts?)")
+    sat = np.abs(v) >= AMP_RAIL_V - SATURATION_MARGIN_V
+    if np.any(sat):
+        idx = tuple(int(i) for i in np.argwhere(sat)[0])
+        raise ValueError(f"{name}: {v[idx]:.4g} V at index {idx} is at the amplifier rail "
+                         f"(+/-{AMP_RAIL_V} V = +/-5 g): the accelerometer saturated")
+    return v
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """What the estimator assumes about a reading's random error (volts).
+
+    ``per_sample_var_v2(rate)`` is the variance of a white sequence at that rate with the
+    same low-frequency power as the filtered analog noise plus the quantisation error, which
+    is what matters once readings are integrated twice.
+    """
+
+    density_v: float = NOISE_DENSITY_V
+    lsb_v: float = LSB_V
+    quantised: bool = True
+
+    def per_sample_var_v2(self, rate_hz: float) -> float:
+        q = self.lsb_v**2 / 12.0 if self.quantised else 0.0
+        return self.density_v**2 * rate_hz / 2.0 + q
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Per-accelerometer bias (V), gain (V per m/s^2) and sensing axis, plus the model.
+
+    ``param_cov`` (N, 4, 4) is the covariance of each accelerometer's ``[bias, gain * axis]``
+    estimate (§4.4.2 least squares); ``latency_s`` is the group delay of the 0-110 Hz
+    response, so a reading taken at t describes the motion at ``t - latency_s``.
+    """
+
+    layout: RigLayout
+    bias_v: Array
+    gain_v_per_mps2: Array
+    param_cov: Array | None = None
+    noise: NoiseModel = NoiseModel()
+    latency_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        n = self.layout.count
+        b = np.asarray(self.bias_v, float)
+        k = np.asarray(self.gain_v_per_mps2, float)
+        if b.shape != (n,) or k.shape != (n,):
+            raise ValueError(f"calibration: bias {b.shape} and gain {k.shape} must be ({n},) "
+                             f"for {n} accelerometers")
+        if not (np.all(np.isfinite(b)) and np.all(np.isfinite(k))):
+            raise ValueError("calibration: bias and gain must be finite")
+        if np.any(k <= 0):
+            raise ValueError(f"calibration: gain of accelerometer {int(np.argmin(k)) + 1} is "
+                             f"{k.min():.4g} V/(m/s^2); gains are positive (sign goes in the axis)")
+        object.__setattr__(self, "bias_v", b)
+        object.__setattr__(self, "gain_v_per_mps2", k)
+        if self.param_cov is not None:
+            c = np.asarray(self.param_cov, float)
+            if c.shape != (n, 4, 4) or not np.all(np.isfinite(c)):
+                raise ValueError(f"calibration: param_cov must be finite ({n}, 4, 4)")
+            object.__setattr__(self, "param_cov", c)
+        if not math.isfinite(self.latency_s) or self.latency_s < 0:
+            raise ValueError(f"calibration: latency_s must be >= 0, got {self.latency_s!r}")
+
+    @property
+    def axes(self) -> Array:
+        return self.layout.axes
+
+    def to_accel(self, volts: Array) -> Array:
+        """Voltages (..., N) to accelerations along each sensing axis (m/s^2), validated."""
+        v = check_volts(volts)
+        if v.shape[-1] != self.layout.count:
+            raise ValueError(f"accelerometer voltages: {v.shape[-1]} channels, the calibration "
+                             f"has {self.layout.count}")
+        return (v - self.bias_v) / self.gain_v_per_mps2
+
+    def to_volts(self, accel: Array) -> Array:
+        """Accelerations along the axes back to ideal (unquantised) voltages."""
+        return np.asarray(accel, float) * self.gain_v_per_mps2 + self.bias_v
+
+    def accel_var(self, rate_hz: float) -> Array:
+        """Per-sample variance (m/s^2)^2 of each accelerometer's reading at ``rate_hz``."""
+        return self.noise.per_sample_var_v2(rate_hz) / self.gain_v_per_mps2**2
+
+    # ------------------------------------------------------------------ JSON
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-serialisable description (also the ``accel_raw`` ability's attributes)."""
+        return {
+            "format": CALIBRATION_FORMAT,
+            "layout": self.layout.name,
+            "positions_m": self.layout.positions.tolist(),
+            "axes": self.layout.axes.tolist(),
+            "bias_v": self.bias_v.tolist(),
+            "gain_v_per_mps2": self.gain_v_per_mps2.tolist(),
+            "param_cov": None if self.param_cov is None else self.param_cov.tolist(),
+            "noise_density_v_per_rthz": self.noise.density_v,
+            "lsb_v": self.noise.lsb_v,
+            "quantised": self.noise.quantised,
+            "latency_s": self.latency_s,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Calibration:
+        """Rebuild from ``to_dict``'s output; ``ValueError`` naming a missing/bad field."""
+        if not isinstance(d, dict):
+            raise ValueError("calibration: expected a JSON object")
+        if d.get("format") != CALIBRATION_FORMAT:
+            raise ValueError(f"calibration: format {d.get('format')!r} is not "
+                             f"{CALIBRATION_FORMAT!r}")
+        try:
+            layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
+                               name=str(d.get("layout", "custom")))
+            noise = NoiseModel(float(d["noise_density_v_per_rthz"]), float(d["lsb_v"]),
+                               bool(d["quantised"]))
+            cov = d.get("param_cov")
+            return cls(layout, np.asarray(d["bias_v"], float),
+                       np.asarray(d["gain_v_per_mps2"], float),
+                       None if cov is None else np.asarray(cov, float), noise,
+                       float(d["latency_s"]))
+        except KeyError as exc:
+            raise ValueError(f"calibration: missing field {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"calibration: bad value ({exc})") from None
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> Calibration:
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ValueError(f"calibration file {str(path)!r}: {exc.strerror}") from None
+        try:
+            return cls.from_dict(json.loads(text))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"calibration file {str(path)!r}: not JSON ({exc})") from None
+        except ValueError as exc:
+            raise ValueError(f"calibration file {str(path)!r}: {exc}") from None
