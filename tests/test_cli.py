@@ -1,0 +1,104 @@
+"""The ``uma`` command line as a user meets it: help, version, exit codes 0/1/2, messages."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from schemas import export
+from schemas.models import MODELS
+
+
+def uma(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "agent.cli", *args], capture_output=True,
+                          text=True, timeout=timeout, check=False)
+
+
+COMMANDS = ["agent", "router", "service", "services", "query", "demo", "eval", "schemas"]
+
+
+def test_top_level_help_lists_every_command() -> None:
+    r = uma("--help")
+    assert r.returncode == 0, r.stderr
+    assert "ubiquitous tracking" in r.stdout
+    for command in COMMANDS:
+        assert f"\n    {command} " in r.stdout, command
+
+
+@pytest.mark.parametrize(("args", "purpose"), [
+    (["agent"], "per-host agent"),
+    (["router"], "Zenoh router"),
+    (["service"], "tracker service"),
+    (["services"], "each agent, service, need, ability"),
+    (["query"], "pose of frame TARGET in frame SOURCE"),
+    (["demo"], "simulated IVY world"),
+    (["schemas"], "JSON Schemas"),
+    (["schemas", "export"], "output directory"),
+    pytest.param(["eval"], "accuracy against simulated ground truth", marks=pytest.mark.xfail(
+        strict=True, reason="agent/cli.py: 'uma eval --help' exits 2 (add_help=False + "
+                            "REMAINDER leaves --help unrecognised)")),
+    pytest.param(["service", "run"], "Known services", marks=pytest.mark.xfail(
+        strict=True, reason="agent/cli.py: 'uma service run --help' exits 2 (same cause)")),
+])
+def test_every_command_explains_itself(args: list[str], purpose: str) -> None:
+    r = uma(*args, "--help")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(f"usage: uma {' '.join(args)}")
+    assert purpose in " ".join(r.stdout.split())
+
+
+def test_version() -> None:
+    r = uma("--version")
+    assert r.returncode == 0
+    assert r.stdout.startswith("uma ")
+    assert r.stdout.split()[1][0].isdigit() or "unknown" in r.stdout
+
+
+@pytest.mark.parametrize(("args", "fragment"), [
+    ([], "required: COMMAND"),
+    (["nosuch"], "invalid choice: 'nosuch'"),
+    (["query"], "required: SOURCE, TARGET"),
+    (["query", "a/b", "c/d", "--timeout", "soon"], "invalid float value: 'soon'"),
+    (["demo", "--seconds", "x"], "invalid float value: 'x'"),
+    (["schemas"], "required: ACTION"),
+    (["schemas", "export"], "required: DIR"),
+    (["agent", "--bogus"], "unrecognized arguments: --bogus"),
+])
+def test_bad_arguments_exit_2(args: list[str], fragment: str) -> None:
+    r = uma(*args)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert fragment in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(("args", "fragment"), [
+    (["eval", "nosuch"], "no eval named 'nosuch' (known: "),
+    (["service", "run", "nosuch"], "no service named 'nosuch' (known: "),
+])
+def test_unknown_plugins_exit_1_with_a_message(args: list[str], fragment: str) -> None:
+    r = uma(*args)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert fragment in r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+
+
+def test_schemas_export_writes_the_committed_schemas(tmp_path: Path) -> None:
+    out = tmp_path / "new" / "dir"
+    r = uma("schemas", "export", str(out))
+    assert r.returncode == 0, r.stderr
+    names = sorted(f"{n}.schema.json" for n in MODELS)
+    assert sorted(Path(line).name for line in r.stdout.split()) == names
+    for name in MODELS:
+        assert (out / f"{name}.schema.json").read_text() == export.render(name)
+
+
+def test_schemas_export_into_a_file_fails_cleanly(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    r = uma("schemas", "export", str(blocker))
+    assert r.returncode == 1
+    assert r.stderr.startswith("uma schemas: error:") and "File exists" in r.stderr
+    assert "Traceback" not in r.stderr
