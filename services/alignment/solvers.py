@@ -169,7 +169,18 @@ def _lstsq_full_rank(M: np.ndarray, rhs: np.ndarray, what: str) -> np.ndarray:
     return sol
 
 
-def tsai_lenz(pairs: MotionPairs, min_angle_rad: float = MIN_ANGLE_RAD,
+def _row_weights(weights: np.ndarray | None, n: int) -> np.ndarray:
+    """Square roots of per-motion weights, the factor for each motion's equations."""
+    if weights is None:
+        return np.ones(n)
+    w = np.asarray(weights, dtype=float)
+    if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise AlignmentError(f"weights: expected {n} finite non-negative values, got {w!r}")
+    return np.sqrt(w)
+
+
+def tsai_lenz(pairs: MotionPairs, weights: np.ndarray | None = None,
+              min_angle_rad: float = MIN_ANGLE_RAD,
               min_axis_spread_rad: float = MIN_AXIS_SPREAD_RAD) -> Pose:
     """Tsai and Lenz's two-step solution (seed 000, §3.4.1, eqs. 3.2-3.5).
 
@@ -178,19 +189,21 @@ def tsai_lenz(pairs: MotionPairs, min_angle_rad: float = MIN_ANGLE_RAD,
     (eq. 3.5) by linear least squares, then ``r_X = 2 r'_X / sqrt(1 + |r'_X|^2)`` (the seed
     prints ``sqrt(1 + |r'_X|)``, a typo).  Then the translation from
     ``(R_A - I) t_X = R_X t_B - t_A`` (from eq. 3.3).  Cannot represent |X| rotations of
-    180 degrees (``r'_X = tan(theta/2) n`` diverges), like the original.
+    180 degrees (``r'_X = tan(theta/2) n`` diverges), like the original.  ``weights`` (n,)
+    scale each motion's equations, e.g. bootstrap multiplicities.
     """
     check_conditioning(pairs, min_angle_rad, min_axis_spread_rad)
+    w = _row_weights(weights, len(pairs))
     r_a = 2.0 * pairs.qa[:, :3]
     r_b = 2.0 * pairs.qb[:, :3]
-    M = geo.skew(r_a + r_b).reshape(-1, 3)
-    r_prime = _lstsq_full_rank(M, (r_b - r_a).reshape(-1), "Tsai-Lenz rotation")
+    M = (geo.skew(r_a + r_b) * w[:, None, None]).reshape(-1, 3)
+    r_prime = _lstsq_full_rank(M, ((r_b - r_a) * w[:, None]).reshape(-1), "Tsai-Lenz rotation")
     r_x = 2.0 * r_prime / np.sqrt(1.0 + r_prime @ r_prime)
     half = 0.5 * r_x
     q_x = np.append(half, np.sqrt(max(0.0, 1.0 - half @ half)))
     R_a = geo.quat_to_matrix(pairs.qa)
-    C = (R_a - np.eye(3)).reshape(-1, 3)
-    d = (geo.quat_rotate(q_x, pairs.pb) - pairs.pa).reshape(-1)
+    C = ((R_a - np.eye(3)) * w[:, None, None]).reshape(-1, 3)
+    d = ((geo.quat_rotate(q_x, pairs.pb) - pairs.pa) * w[:, None]).reshape(-1)
     t_x = _lstsq_full_rank(C, d, "Tsai-Lenz translation")
     return Pose(t_x, geo.quat_canonical(q_x))
 
@@ -246,9 +259,7 @@ def daniilidis(pairs: MotionPairs, weights: np.ndarray | None = None,
     ``weights`` (n,) scale each motion's equations, e.g. bootstrap multiplicities.
     """
     check_conditioning(pairs, min_angle_rad, min_axis_spread_rad)
-    S = _motion_matrix(pairs)
-    if weights is not None:
-        S = S * np.sqrt(np.asarray(weights, float))[:, None, None]
+    S = _motion_matrix(pairs) * _row_weights(weights, len(pairs))[:, None, None]
     _, sv, Vt = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)
     if sv[5] < _RANK_TOL * sv[0]:
         raise DegenerateMotionError(

@@ -1,0 +1,252 @@
+"""Tracker alignment end to end: streams -> time offset -> stations -> pairs -> X.
+
+``align_stations`` works on synchronous pose pairs (stations): it forms the motion pairs of
+every two stations, selects them (angle threshold, axis criterion), eliminates outliers by
+RANSAC, solves, and bootstraps the covariance.  ``align_streams`` first estimates the time
+offset of two free-running streams: coarsely from the angular speeds, then jointly with X
+by minimising the ``A X = X B`` misfit over the offset (golden section), and interpolates
+stream b at the stations' times.  Conventions: ``solvers`` (A, B, X) and ``timesync``
+(offset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from services.alignment.covariance import bootstrap_covariance
+from services.alignment.robust import misfit, ransac
+from services.alignment.selection import (
+    DEFAULT_MIN_ANGLE_RAD,
+    Selection,
+    angle_mask,
+    select_pairs,
+)
+from services.alignment.solvers import (
+    AlignmentError,
+    DegenerateMotionError,
+    MotionPairs,
+    Pose,
+    Residuals,
+    all_pairs,
+    daniilidis,
+    pair_residuals,
+    relative_motions,
+    tsai_lenz,
+)
+from services.alignment.timesync import PoseSeries, coarse_offset, golden_section
+
+SOLVERS = {"daniilidis": daniilidis, "tsai-lenz": tsai_lenz}
+#: Half width (s) of the joint refinement around the correlation estimate, and its tolerance.
+_REFINE_HALF_WIDTH_S = 0.01
+_REFINE_TOL_S = 1e-4
+#: Fraction of the largest misfits ignored by the offset cost (robust to outliers).
+_REFINE_TRIM = 0.2
+#: Stations used by the offset refinement, and the index gaps of the pairs formed from them
+#: (varied gaps give both short and long motions without the cost of all combinations).
+_REFINE_STATIONS = 240
+_REFINE_GAPS = (5, 11, 23, 47)
+
+
+@dataclass(frozen=True)
+class AlignmentOptions:
+    """How to align; the defaults suit human-held trackers at 30-200 Hz."""
+
+    method: str = "daniilidis"
+    min_angle_rad: float = DEFAULT_MIN_ANGLE_RAD
+    max_pairs: int | None = 400
+    max_stations: int = 40
+    ransac: bool = True
+    ransac_iterations: int = 200
+    bootstrap: int = 100
+    estimate_offset: bool = True
+    max_offset_s: float = 0.5
+    offset_s: float = 0.0  # used as is when estimate_offset is False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in SOLVERS:
+            raise ValueError(f"method must be one of {', '.join(SOLVERS)}, got {self.method!r}")
+        if self.max_stations < 3:
+            raise ValueError(f"max_stations must be >= 3, got {self.max_stations}")
+        if self.max_pairs is not None and self.max_pairs < 2:
+            raise ValueError(f"max_pairs must be >= 2, got {self.max_pairs}")
+
+
+@dataclass(frozen=True)
+class AlignmentResult:
+    """X (pose of sensor_b in sensor_a), its covariance and how it was obtained."""
+
+    position: np.ndarray
+    quaternion: np.ndarray
+    covariance: np.ndarray  # 6x6, geometry's left-perturbation convention
+    time_offset_s: float  # t_b = t_a + offset
+    method: str
+    n_stations: int
+    n_candidates: int  # motion pairs formed
+    n_selected: int  # after angle threshold and axis criterion
+    n_inliers: int  # after RANSAC
+    axis_spread_rad: float
+    axis_criterion: float
+    residuals: Residuals = field(repr=False)  # of the inlier pairs
+
+    @property
+    def pose(self) -> Pose:
+        return Pose(self.position, self.quaternion)
+
+    @property
+    def residual_rot_rad(self) -> float:
+        """RMS rotation misfit of the inlier pairs."""
+        return float(np.sqrt(np.mean(self.residuals.rot_rad ** 2)))
+
+    @property
+    def residual_pos_m(self) -> float:
+        """RMS translation misfit of the inlier pairs."""
+        return float(np.sqrt(np.mean(self.residuals.pos_m ** 2)))
+
+    @property
+    def pos_std_m(self) -> float:
+        """RMS per-axis position standard deviation (trace of the position block / 3)."""
+        c = geo.se3_to_decoupled(self.position, self.covariance)
+        return float(np.sqrt(np.trace(c[:3, :3]) / 3.0))
+
+    @property
+    def rot_std_rad(self) -> float:
+        """RMS per-axis rotation standard deviation."""
+        return float(np.sqrt(np.trace(self.covariance[3:, 3:]) / 3.0))
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready figures: the pose, its uncertainty and the fit's quality."""
+        return {
+            "position": self.position.tolist(), "quaternion": self.quaternion.tolist(),
+            "pos_std_m": self.pos_std_m, "rot_std_rad": self.rot_std_rad,
+            "time_offset_s": self.time_offset_s, "method": self.method,
+            "residual_rot_rad": self.residual_rot_rad, "residual_pos_m": self.residual_pos_m,
+            "stations": self.n_stations, "pairs_candidate": self.n_candidates,
+            "pairs_selected": self.n_selected, "pairs_inlier": self.n_inliers,
+            "axis_spread_deg": float(np.degrees(self.axis_spread_rad)),
+            "axis_criterion": self.axis_criterion,
+        }
+
+
+def _selected_motions(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
+                      options: AlignmentOptions) -> tuple[MotionPairs, np.ndarray, Selection]:
+    """Motion pairs of all station pairs that pass the selection, with their indices."""
+    ij = all_pairs(len(pa))
+    motions = relative_motions(pa, qa, pb, qb, ij)
+    selection = select_pairs(motions, options.min_angle_rad, options.max_pairs)
+    if len(selection.index) < 2:
+        raise DegenerateMotionError(
+            f"only {len(selection.index)} of {len(motions)} motion pairs rotate by "
+            f"{np.degrees(options.min_angle_rad):.3g} to "
+            f"{180 - np.degrees(options.min_angle_rad):.3g} deg; move the trackers more")
+    return motions.subset(selection.index), ij[selection.index], selection
+
+
+@dataclass(frozen=True)
+class Fit:
+    """X from stations before its covariance: the pairs used and which were consistent."""
+
+    pose: Pose
+    motions: MotionPairs  # the selected motion pairs
+    pairs_ij: np.ndarray  # their station indices (i, j)
+    inliers: np.ndarray  # bool, over the selected pairs
+    selection: Selection
+
+
+def fit_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
+                 options: AlignmentOptions, rng: np.random.Generator) -> Fit:
+    """Select motion pairs, eliminate outliers (if ``options.ransac``) and solve."""
+    if len(pa) < 3:
+        raise AlignmentError(f"need at least 3 stations (2 motions), got {len(pa)}")
+    solver = SOLVERS[options.method]
+    motions, ij, selection = _selected_motions(pa, qa, pb, qb, options)
+    if options.ransac and len(motions) >= 3:
+        found = ransac(motions, solver, options.ransac_iterations, rng=rng)
+        return Fit(found.pose, motions, ij, found.inliers, selection)
+    return Fit(solver(motions), motions, ij, np.ones(len(motions), dtype=bool), selection)
+
+
+def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
+                   options: AlignmentOptions | None = None, time_offset_s: float = 0.0,
+                   ) -> AlignmentResult:
+    """X from synchronous pose pairs: ``(pa, qa)[k]`` = A_k and ``(pb, qb)[k]`` = B_k."""
+    options = options or AlignmentOptions()
+    rng = np.random.default_rng(options.seed)
+    fit = fit_stations(pa, qa, pb, qb, options, rng)
+    covariance = bootstrap_covariance(pa, qa, pb, qb, fit.pairs_ij[fit.inliers], fit.pose,
+                                      SOLVERS[options.method], options.bootstrap, rng)
+    return AlignmentResult(
+        position=fit.pose.position, quaternion=fit.pose.quaternion, covariance=covariance,
+        time_offset_s=time_offset_s, method=options.method, n_stations=len(pa),
+        n_candidates=fit.selection.candidates, n_selected=len(fit.motions),
+        n_inliers=int(fit.inliers.sum()), axis_spread_rad=fit.selection.axis_spread_rad,
+        axis_criterion=fit.selection.axis_criterion,
+        residuals=pair_residuals(fit.motions.subset(fit.inliers), fit.pose))
+
+
+def station_times(a: PoseSeries, b: PoseSeries, offset_s: float, count: int) -> np.ndarray:
+    """Up to ``count`` of a's sample times, evenly spread, at which b is defined too.
+
+    A margin of the offset search range keeps the refinement from leaving b's span.
+    """
+    margin = _REFINE_HALF_WIDTH_S
+    _, _, inside = b.at(a.t + offset_s)
+    _, _, early = b.at(a.t + offset_s - margin)
+    _, _, late = b.at(a.t + offset_s + margin)
+    usable = a.t[inside & early & late]
+    if len(usable) < 3:
+        raise AlignmentError(f"{a.name} and {b.name} have only {len(usable)} common instants "
+                             f"at offset {offset_s * 1e3:.1f} ms")
+    pick = np.unique(np.linspace(0, len(usable) - 1, min(count, len(usable))).round().astype(int))
+    return usable[pick]
+
+
+def _offset_cost(a: PoseSeries, b: PoseSeries, times: np.ndarray, ij: np.ndarray,
+                 solver: Any) -> Any:
+    """The misfit of X solved at offset d, as a function of d (trimmed mean square)."""
+    pa, qa, _ = a.at(times)
+    keep = int(np.ceil((1.0 - _REFINE_TRIM) * len(ij)))
+
+    def cost(d: float) -> float:
+        pb, qb, _ = b.at(times + d)
+        motions = relative_motions(pa, qa, pb, qb, ij)
+        x = solver(motions)
+        e = misfit(motions, x, max(float(np.median(np.linalg.norm(motions.pa, axis=-1))),
+                                   0.01))
+        return float(np.mean(np.sort(e)[:keep] ** 2))
+
+    return cost
+
+
+def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
+                    ) -> tuple[float, float]:
+    """The time offset (coarse by correlation, then refined jointly with X) and the coarse one.
+    """
+    coarse, _ = coarse_offset(a, b, options.max_offset_s)
+    times = station_times(a, b, coarse, _REFINE_STATIONS)
+    pa, qa, _ = a.at(times)
+    pb, qb, _ = b.at(times + coarse)
+    ij = np.concatenate([np.stack([np.arange(len(times) - g), np.arange(g, len(times))], -1)
+                         for g in _REFINE_GAPS if g < len(times)])
+    ij = ij[angle_mask(relative_motions(pa, qa, pb, qb, ij), options.min_angle_rad)]
+    if len(ij) < 2:
+        raise DegenerateMotionError("the streams hardly rotate; cannot align their time offset")
+    cost = _offset_cost(a, b, times, ij, SOLVERS[options.method])
+    refined = golden_section(cost, coarse - _REFINE_HALF_WIDTH_S, coarse + _REFINE_HALF_WIDTH_S,
+                             _REFINE_TOL_S)
+    return refined, coarse
+
+
+def align_streams(a: PoseSeries, b: PoseSeries,
+                  options: AlignmentOptions | None = None) -> AlignmentResult:
+    """X and the time offset from two free-running pose streams of rigidly joined sensors."""
+    options = options or AlignmentOptions()
+    offset = estimate_offset(a, b, options)[0] if options.estimate_offset else options.offset_s
+    times = station_times(a, b, offset, options.max_stations)
+    pa, qa, _ = a.at(times)
+    pb, qb, _ = b.at(times + offset)
+    return align_stations(pa, qa, pb, qb, options, time_offset_s=offset)

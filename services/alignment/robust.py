@@ -1,0 +1,85 @@
+"""RANSAC outlier elimination for ``A X = X B`` (seed 000, §3.4.3, "Eliminating Outliers").
+
+Hypotheses come from random minimal samples of two motions; each is scored by the median
+of the pairs' misfits (least median of squares), which needs no noise threshold from the
+user and tolerates up to half of the motions being outliers.  The consistent pairs are
+those whose misfit stays within ``threshold_factor`` times the median misfit of the
+refit; X is then solved from them alone (the seed's step 4), twice, so the final inlier
+set is judged against a fit that outliers did not pull.
+
+A pair's misfit combines its two residuals into one length:
+``sqrt(pos^2 + (L rot)^2)`` with ``L`` the median translation of the motions, the lever at
+which a rotation error of the size ``rot`` displaces points by ``L rot``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.alignment.solvers import (
+    AlignmentError,
+    DegenerateMotionError,
+    MotionPairs,
+    Pose,
+    daniilidis,
+    pair_residuals,
+)
+
+Solver = Callable[[MotionPairs], Pose]
+_MIN_LEVER_M = 0.01
+#: Floor of the misfit threshold, so noise-free data does not reject pairs over rounding.
+_MIN_THRESHOLD_M = 1e-6
+
+
+@dataclass(frozen=True)
+class RansacResult:
+    """The refit on the consistent pairs and which pairs those are."""
+
+    pose: Pose
+    inliers: np.ndarray  # bool (n,)
+    threshold_m: float  # misfit threshold used (combined, metres)
+    lever_m: float
+
+
+def misfit(pairs: MotionPairs, x: Pose, lever_m: float) -> np.ndarray:
+    """Combined residual of each pair in metres (module docstring)."""
+    r = pair_residuals(pairs, x)
+    return np.hypot(r.pos_m, lever_m * r.rot_rad)
+
+
+def ransac(pairs: MotionPairs, solver: Solver = daniilidis, iterations: int = 200,
+           threshold_factor: float = 3.0, rng: np.random.Generator | None = None) -> RansacResult:
+    """Robust X from motion pairs that may contain outliers (module docstring)."""
+    n = len(pairs)
+    if n < 3:
+        raise AlignmentError(f"RANSAC needs at least 3 motion pairs, got {n}")
+    if iterations < 1 or threshold_factor <= 0:
+        raise ValueError("RANSAC: iterations must be >= 1 and threshold_factor > 0")
+    rng = rng if rng is not None else np.random.default_rng(0)
+    lever = max(float(np.median(np.linalg.norm(pairs.pa, axis=-1))), _MIN_LEVER_M)
+    best: Pose | None = None
+    best_score = np.inf
+    for _ in range(iterations):
+        sample = rng.choice(n, size=2, replace=False)
+        try:
+            hypothesis = solver(pairs.subset(sample))
+        except DegenerateMotionError:
+            continue  # two motions about (nearly) parallel axes: no hypothesis
+        score = float(np.median(misfit(pairs, hypothesis, lever)))
+        if score < best_score:
+            best, best_score = hypothesis, score
+    if best is None:
+        raise DegenerateMotionError(
+            f"RANSAC: none of {iterations} samples of two motions had distinct rotation axes")
+    pose, inliers, threshold = best, np.ones(n, dtype=bool), np.inf
+    for _ in range(2):
+        e = misfit(pairs, pose, lever)
+        threshold = max(threshold_factor * float(np.median(e)), _MIN_THRESHOLD_M)
+        inliers = e <= threshold
+        if inliers.sum() < 2:
+            raise AlignmentError(f"RANSAC: only {int(inliers.sum())} consistent motion pairs")
+        pose = solver(pairs.subset(inliers))
+    return RansacResult(pose, inliers, threshold, lever)
