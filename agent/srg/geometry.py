@@ -49,7 +49,8 @@ def _finite(x: Any, name: str, shape_tail: tuple[int, ...]) -> Array:
                          f"got {a.shape}")
     if not np.all(np.isfinite(a)):
         bad = np.argwhere(~np.isfinite(a))[0]
-        raise ValueError(f"{name}: non-finite value {a[tuple(bad)]!r} at index {tuple(bad)}")
+        index = tuple(int(i) for i in bad)  # plain ints: numpy 2 reprs would say np.int64(2)
+        raise ValueError(f"{name}: non-finite value {float(a[index])!r} at index {index}")
     return a
 
 
