@@ -1,0 +1,33 @@
+"""``uma router``: a Zenoh router in this Python process.
+
+Larger sites run agents and clients in *client* mode attached to a router (see
+``deploy/router.toml`` and ``deploy/start_site.sh``); on one LAN, peers with explicit
+endpoints need none.  Stops cleanly on Ctrl-C / SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from agent.cli import stop_on_signals
+from agent.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
+
+log = logging.getLogger("uma.router")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Handler of ``uma router``."""
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    stop = stop_on_signals()
+    session = open_session("router", args.listen or [DEFAULT_ROUTER_LISTEN])
+    try:
+        endpoints = listening_endpoints(session)
+        print(f"uma router {session.zid()} listening on {' '.join(endpoints)}", flush=True)
+        while not stop.wait(0.5):
+            pass
+    finally:
+        session.close()
+    return 0

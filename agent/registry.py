@@ -1,0 +1,455 @@
+"""The registry: what one agent knows of its realm, and the protocol that keeps it true.
+
+Registration protocol (all messages are msgpack maps with ``"v": 1``, built and checked by
+the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
+===========================================================================================
+
+**Service -> its local agent**
+
+1. The service opens its session, declares its control subscriber ``uma/R/ctl/A/S``, its
+   descriptor queryable ``uma/R/svc/A/S`` and its publishers, then watches the liveliness
+   token ``uma/R/agent/A`` (history on).  While that token is absent the service waits: it
+   is started, publishes, and registers as soon as the agent appears.
+2. Register: ``get uma/R/agent/A/register`` with ``{op: "register", instance, revision,
+   descriptor, connected}`` where ``descriptor`` is ``schemas.codec.encode_descriptor``
+   bytes, ``instance`` a random id of this process, ``revision`` a counter bumped by every
+   attribute change, ``connected`` the data keys each need is subscribed to right now.
+3. The agent validates the descriptor (``agent_id`` must be A) and replies ``{ok: true,
+   epoch}``, or ``reply_err {ok: false, error}``.  A second process registering a service
+   id that is already registered (different ``instance``) is refused with "duplicate
+   service id" *if the first one still answers* on ``uma/R/svc/A/S``; if it does not
+   (it died and its lease has not expired yet) the newcomer replaces it.  A refusal with
+   ``retry: true`` is temporary (a check for that id is in progress).
+4. On the first acceptance the service declares its liveliness token ``uma/R/svc/A/S``
+   (only then, so a refused duplicate never merges with the original's token).  The agent
+   advertises a local service's abilities once it has seen that token; the token's DELETE
+   (undeclared, process killed: ~2 ms; frozen process: the lease, 1 s) removes it.
+   A registration whose token never shows up is dropped after ``PENDING_TIMEOUT_S``.
+5. Attribute changes (``ability.update(...)``) are re-registrations with a higher revision.
+   If the agent restarts (its token goes and comes back) the service registers again;
+   its data subscriptions stay up meanwhile (agents are not in the data path), and the new
+   agent learns them from ``connected``, so nothing is torn down needlessly.
+
+**Agent -> its local services** (``uma/R/ctl/A/S``, put, congestion control BLOCK)
+
+``{op: "connect", epoch, seq, need, matches: [match...], satisfied}``: the complete set of
+abilities the need must be subscribed to now (``match`` = ``{key, agent_id, service_id,
+ability, type, edge, attributes}``).  Set semantics make messages idempotent; the service
+ignores a message older (same ``epoch``, lower ``seq``) than one it applied, and the agent
+re-sends every need's set every ``RESEND_S`` (anti-entropy, in case a put was lost).
+
+**Agent <-> agents**
+
+- Every agent declares its token ``uma/R/agent/A`` and watches ``uma/R/agent/*`` (history on).
+- ``uma/R/agent/A/services`` is a queryable *and* a publication: the snapshot ``{agent
+  (AgentInfo), epoch, revision, services: [{descriptor, instance, matches, satisfied,
+  excluded}]}`` of A's live local services with their current matches and measured
+  rates.  A publishes it whenever it changes; a newcomer fetches it when A's token
+  appears.  Snapshots older than the last applied one (``(epoch, revision)``) are ignored.
+- Every agent also watches all service tokens ``uma/R/svc/*/*``: a killed remote service is
+  dropped on its own token's DELETE, without waiting for its agent's next snapshot.  A
+  remote ability is offered to matching only while its descriptor is known (snapshot) *and*
+  its service token is alive; when an agent's token goes, all its services go with it.
+
+**Measuring** (the consuming side): the agent of the consuming service subscribes itself
+to every data key its local needs are connected to, measures rate and latency over a
+sliding window, and judges them against the need's predicate (``agent.daemon``).  The SDK
+only receives; it reports nothing.
+
+Bad input anywhere (undecodable bytes, invalid descriptors, unknown types, invalid
+predicates, a key of the wrong shape) is dropped with one rate-limited log line naming the
+key or service and the reason; nothing else is affected.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from agent import keys
+from agent.matching import Offer, OfferIndex, Requirement
+from schemas.codec import DecodeError, decode_descriptor, decode_message, encode_message
+from schemas.models import Ability, ServiceDescriptor
+
+#: seconds a registered service may take to declare its liveliness token
+PENDING_TIMEOUT_S = 5.0
+#: seconds between re-sends of every need's match set (anti-entropy)
+RESEND_S = 5.0
+
+
+class RateLimitedLog:
+    """One log line per (subject, reason) per ``interval`` seconds, with a count of the
+    repeats it swallowed: bad input from a peer must not flood the log."""
+
+    def __init__(self, logger: logging.Logger, interval: float = 10.0) -> None:
+        self.logger = logger
+        self.interval = interval
+        self._last: dict[tuple[str, str], tuple[float, int]] = {}
+
+    def warning(self, subject: str, reason: str) -> bool:
+        """Log ``subject: reason`` unless logged recently; True if it was logged."""
+        now = time.monotonic()
+        k = (subject, reason[:200])
+        last, swallowed = self._last.get(k, (-1e18, 0))
+        if now - last < self.interval:
+            self._last[k] = (last, swallowed + 1)
+            return False
+        if len(self._last) > 10_000:
+            self._last.clear()
+        self._last[k] = (now, 0)
+        more = f" ({swallowed} similar since)" if swallowed else ""
+        self.logger.warning("%s: %s%s", subject, reason, more)
+        return True
+
+
+# --------------------------------------------------------------------------- matches
+
+
+@dataclass(frozen=True)
+class Match:
+    """An ability a need is connected to, as the service sees it."""
+
+    key: str
+    agent_id: str
+    service_id: str
+    ability: str
+    type: str
+    edge: tuple[str, str] | None
+    attributes: dict[str, Any]
+
+    @classmethod
+    def of(cls, offer: Offer) -> Match:
+        a = offer.ability
+        return cls(offer.key, offer.agent_id, offer.service_id, a.name, a.type,
+                   None if a.edge is None else (a.edge[0], a.edge[1]),
+                   a.attributes.model_dump(mode="json", exclude_none=True))
+
+    def to_wire(self) -> dict[str, Any]:
+        return {"key": self.key, "agent_id": self.agent_id, "service_id": self.service_id,
+                "ability": self.ability, "type": self.type,
+                "edge": None if self.edge is None else list(self.edge),
+                "attributes": self.attributes}
+
+    @classmethod
+    def from_wire(cls, d: Any, realm: str) -> Match:
+        """Check a wire match; ``DecodeError`` names the field that is wrong."""
+        if not isinstance(d, dict):
+            raise DecodeError(f"match: expected a map, got {type(d).__name__}")
+        key = d.get("key")
+        parts = keys.parse_data(key, realm) if isinstance(key, str) else None
+        if parts is None:
+            raise DecodeError(f"match: {key!r} is not a data key of realm {realm!r}")
+        edge = d.get("edge")
+        if edge is not None and not (isinstance(edge, list) and len(edge) == 2
+                                     and all(isinstance(x, str) for x in edge)):
+            raise DecodeError(f"match {key}: edge must be two frame ids or nil")
+        attributes = d.get("attributes")
+        if not isinstance(attributes, dict):
+            raise DecodeError(f"match {key}: attributes must be a map")
+        typ = d.get("type")
+        if not isinstance(typ, str):
+            raise DecodeError(f"match {key}: type must be a string")
+        return cls(key, parts[0], parts[1], parts[2], typ,
+                   None if edge is None else (edge[0], edge[1]), attributes)
+
+
+# --------------------------------------------------------------------------- messages
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A decoded register request."""
+
+    descriptor: ServiceDescriptor
+    instance: str
+    revision: int
+    connected: dict[str, list[str]]
+
+
+def register_request(desc_bytes: bytes, instance: str, revision: int,
+                     connected: Mapping[str, Iterable[str]]) -> bytes:
+    return encode_message({"op": "register", "instance": instance, "revision": revision,
+                           "descriptor": desc_bytes,
+                           "connected": {k: list(v) for k, v in connected.items()}})
+
+
+def parse_register_request(data: bytes, agent_id: str) -> Registration:
+    """Decode and validate a registration for agent ``agent_id``; ``DecodeError`` says why."""
+    msg = decode_message(data, required=("op", "instance", "revision", "descriptor"))
+    if msg["op"] != "register":
+        raise DecodeError(f"unknown op {msg['op']!r} (expected 'register')")
+    instance, revision = msg["instance"], msg["revision"]
+    if not isinstance(instance, str) or not 0 < len(instance) <= 64:
+        raise DecodeError("instance: expected a short string")
+    if type(revision) is not int or revision < 0:
+        raise DecodeError("revision: expected a non-negative integer")
+    if not isinstance(msg["descriptor"], bytes):
+        raise DecodeError("descriptor: expected encoded descriptor bytes")
+    desc = decode_descriptor(msg["descriptor"])
+    if desc.agent_id != agent_id:
+        raise DecodeError(f"service {desc.service_id!r} names agent {desc.agent_id!r}, but "
+                          f"registered with agent {agent_id!r}")
+    connected = msg.get("connected") or {}
+    if not isinstance(connected, dict) or not all(
+            isinstance(k, str) and isinstance(v, list) and all(isinstance(x, str) for x in v)
+            for k, v in connected.items()):
+        raise DecodeError("connected: expected a map of need name -> list of data keys")
+    return Registration(desc, instance, revision, connected)
+
+
+def reply_ok(epoch: int) -> bytes:
+    return encode_message({"ok": True, "epoch": epoch})
+
+
+def reply_error(error: str, retry: bool = False) -> bytes:
+    """A refusal; ``retry`` says it is temporary (try again shortly)."""
+    return encode_message({"ok": False, "error": error, "retry": retry})
+
+
+def parse_reply(data: bytes) -> tuple[bool, str, bool]:
+    """``(ok, error, retry)`` of a register reply (a reply_err payload included)."""
+    msg = decode_message(data, required=("ok",))
+    return bool(msg["ok"]), str(msg.get("error", "")), bool(msg.get("retry", False))
+
+
+def control_message(epoch: int, seq: int, need: str, matches: Iterable[Match],
+                    satisfied: bool) -> bytes:
+    return encode_message({"op": "connect", "epoch": epoch, "seq": seq, "need": need,
+                           "matches": [m.to_wire() for m in matches],
+                           "satisfied": satisfied})
+
+
+@dataclass(frozen=True)
+class Control:
+    epoch: int
+    seq: int
+    need: str
+    matches: tuple[Match, ...]
+    satisfied: bool
+
+
+def parse_control(data: bytes, realm: str) -> Control:
+    msg = decode_message(data, required=("op", "epoch", "seq", "need", "matches"))
+    if msg["op"] != "connect":
+        raise DecodeError(f"unknown op {msg['op']!r} (expected 'connect')")
+    if type(msg["epoch"]) is not int or type(msg["seq"]) is not int:
+        raise DecodeError("epoch and seq must be integers")
+    if not isinstance(msg["need"], str) or not isinstance(msg["matches"], list):
+        raise DecodeError("need must be a string and matches a list")
+    matches = tuple(Match.from_wire(m, realm) for m in msg["matches"])
+    return Control(msg["epoch"], msg["seq"], msg["need"], matches,
+                   bool(msg.get("satisfied", True)))
+
+
+def descriptor_reply(desc_bytes: bytes, instance: str, revision: int,
+                     connected: Mapping[str, Iterable[str]]) -> bytes:
+    """What a service answers on ``uma/R/svc/A/S`` (used for duplicate checks)."""
+    return encode_message({"instance": instance, "revision": revision,
+                           "descriptor": desc_bytes,
+                           "connected": {k: list(v) for k, v in connected.items()}})
+
+
+def parse_descriptor_reply(data: bytes) -> str:
+    """The ``instance`` of a service's descriptor reply."""
+    msg = decode_message(data, required=("instance",))
+    if not isinstance(msg["instance"], str):
+        raise DecodeError("instance: expected a string")
+    return msg["instance"]
+
+
+@dataclass
+class Snapshot:
+    """A decoded agent snapshot; ``errors`` lists the services that were dropped and why."""
+
+    agent_id: str
+    epoch: int
+    revision: int
+    info: dict[str, Any]
+    services: dict[str, ServiceDescriptor]
+    status: dict[str, dict[str, Any]]
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def version(self) -> tuple[int, int]:
+        return (self.epoch, self.revision)
+
+
+def snapshot_message(info: Mapping[str, Any], epoch: int, revision: int,
+                     services: Iterable[Mapping[str, Any]]) -> bytes:
+    return encode_message({"agent": dict(info), "epoch": epoch, "revision": revision,
+                           "services": list(services)})
+
+
+def parse_snapshot(data: bytes, agent_id: str | None = None) -> Snapshot:
+    """Decode a snapshot; a bad service entry is dropped (and listed in ``errors``), a bad
+    envelope raises ``DecodeError``."""
+    msg = decode_message(data, required=("agent", "epoch", "revision", "services"))
+    info = msg["agent"]
+    if not isinstance(info, dict) or not isinstance(info.get("agent_id"), str):
+        raise DecodeError("agent: expected a map with agent_id")
+    if agent_id is not None and info["agent_id"] != agent_id:
+        raise DecodeError(f"snapshot of agent {info['agent_id']!r} published as {agent_id!r}")
+    if type(msg["epoch"]) is not int or type(msg["revision"]) is not int:
+        raise DecodeError("epoch and revision must be integers")
+    if not isinstance(msg["services"], list):
+        raise DecodeError("services: expected a list")
+    snap = Snapshot(info["agent_id"], msg["epoch"], msg["revision"], info, {}, {})
+    for i, entry in enumerate(msg["services"]):
+        try:
+            if not isinstance(entry, dict) or not isinstance(entry.get("descriptor"), bytes):
+                raise DecodeError("expected a map with descriptor bytes")
+            desc = decode_descriptor(entry["descriptor"])
+            if desc.agent_id != snap.agent_id:
+                raise DecodeError(f"service {desc.service_id!r} names agent {desc.agent_id!r}")
+        except DecodeError as exc:
+            snap.errors.append(f"service #{i}: {exc}")
+            continue
+        snap.services[desc.service_id] = desc
+        snap.status[desc.service_id] = {k: v for k, v in entry.items() if k != "descriptor"}
+    return snap
+
+
+# --------------------------------------------------------------------------- the realm view
+
+
+@dataclass
+class LocalService:
+    """A service registered with this agent."""
+
+    descriptor: ServiceDescriptor
+    instance: str
+    revision: int
+    registered: float  # monotonic time of the (last) registration
+    connected: dict[str, list[str]]
+
+
+class RealmView:
+    """What this agent knows: its local services, other agents' snapshots, live tokens.
+
+    Keeps ``index`` (every offer of the realm that is present, see the module docstring)
+    up to date; every mutator returns whether the offers or the local needs changed, so
+    the daemon re-matches only when something did.
+    """
+
+    def __init__(self, realm: str, agent_id: str) -> None:
+        self.realm = realm
+        self.agent_id = agent_id
+        self.index = OfferIndex()
+        self.local: dict[str, LocalService] = {}
+        self.remote: dict[str, Snapshot] = {}
+        self.live_agents: set[str] = set()
+        self.live_services: set[tuple[str, str]] = set()
+        self._offered: dict[tuple[str, str], dict[str, Offer]] = {}
+        self._requirements: list[Requirement] | None = None
+
+    # -- queries
+    def descriptor(self, agent_id: str, service_id: str) -> ServiceDescriptor | None:
+        if agent_id == self.agent_id:
+            entry = self.local.get(service_id)
+            return entry.descriptor if entry else None
+        snap = self.remote.get(agent_id)
+        return snap.services.get(service_id) if snap else None
+
+    def present(self, agent_id: str, service_id: str) -> bool:
+        """Known descriptor and live token: its abilities may be matched."""
+        return ((agent_id, service_id) in self.live_services
+                and self.descriptor(agent_id, service_id) is not None)
+
+    def requirements(self) -> list[Requirement]:
+        """The needs of the local services, compiled (cached until a local change)."""
+        if self._requirements is None:
+            self._requirements = [Requirement.of(sid, n) for sid, e in self.local.items()
+                                  for n in e.descriptor.needs]
+        return self._requirements
+
+    def local_abilities(self, service_id: str) -> list[Ability]:
+        entry = self.local.get(service_id)
+        return list(entry.descriptor.abilities) if entry else []
+
+    def expired_pending(self, now: float) -> list[str]:
+        """Local services registered long ago whose token never appeared."""
+        return [sid for sid, e in self.local.items()
+                if (self.agent_id, sid) not in self.live_services
+                and now - e.registered > PENDING_TIMEOUT_S]
+
+    # -- mutators (each returns True if offers or local needs changed)
+    def register_local(self, reg: Registration, now: float) -> bool:
+        sid = reg.descriptor.service_id
+        old = self.local.get(sid)
+        self.local[sid] = LocalService(reg.descriptor, reg.instance, reg.revision, now,
+                                       reg.connected)
+        if old is not None and old.descriptor == reg.descriptor:
+            return False
+        self._requirements = None
+        self._sync(self.agent_id, sid)
+        return True
+
+    def remove_local(self, service_id: str) -> bool:
+        if self.local.pop(service_id, None) is None:
+            return False
+        self._requirements = None
+        self._sync(self.agent_id, service_id)
+        return True
+
+    def service_alive(self, agent_id: str, service_id: str) -> bool:
+        self.live_services.add((agent_id, service_id))
+        return self._sync(agent_id, service_id)
+
+    def service_gone(self, agent_id: str, service_id: str) -> bool:
+        self.live_services.discard((agent_id, service_id))
+        changed = self._sync(agent_id, service_id)
+        if agent_id == self.agent_id:
+            changed |= self.remove_local(service_id)
+        return changed
+
+    def apply_snapshot(self, snap: Snapshot) -> bool:
+        """Apply a remote agent's snapshot unless older than the one applied."""
+        if snap.agent_id == self.agent_id or snap.agent_id not in self.live_agents:
+            return False
+        old = self.remote.get(snap.agent_id)
+        if old is not None and snap.version <= old.version:
+            return False
+        self.remote[snap.agent_id] = snap
+        changed = False
+        for sid in set(snap.services) | set(old.services if old else ()):
+            changed |= self._sync(snap.agent_id, sid)
+        return changed
+
+    def agent_alive(self, agent_id: str) -> None:
+        self.live_agents.add(agent_id)
+
+    def agent_gone(self, agent_id: str) -> bool:
+        self.live_agents.discard(agent_id)
+        old = self.remote.pop(agent_id, None)
+        if old is None:
+            return False
+        changed = False
+        for sid in old.services:
+            changed |= self._sync(agent_id, sid)
+        return changed
+
+    def _sync(self, agent_id: str, service_id: str) -> bool:
+        """Make the index hold exactly the offers of this service if it is present."""
+        k = (agent_id, service_id)
+        want: dict[str, Offer] = {}
+        desc = self.descriptor(agent_id, service_id) if self.present(*k) else None
+        if desc is not None:
+            for a in desc.abilities:
+                key = keys.data(self.realm, agent_id, service_id, a.name)
+                want[key] = Offer.of(key, agent_id, service_id, a)
+        have = self._offered.get(k, {})
+        if have.keys() == want.keys() and all(
+                have[x].ability == want[x].ability for x in want):
+            return False
+        for key in have.keys() - want.keys():
+            self.index.remove(key)
+        for offer in want.values():
+            self.index.add(offer)
+        if want:
+            self._offered[k] = want
+        else:
+            self._offered.pop(k, None)
+        return True
