@@ -1,0 +1,121 @@
+"""Shortest and k-shortest simple paths over a multigraph walked in both directions.
+
+The SRG and the planner's graph of supernode summaries both use these: nodes are frame
+ids, each edge has a key (parallel edges between the same frames are distinct keys) and
+may be walked forwards or backwards.  Additive error functions rank paths by the sum of
+per-edge weights (Dijkstra); path-level ones (seed 000: e : A* -> R) are evaluated on the
+k shortest simple paths found by Yen's algorithm.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+#: frame -> [(neighbour frame, edge key, walked forwards?)]
+Adjacency = Mapping[str, Sequence[tuple[str, Hashable, bool]]]
+Weight = Callable[[Hashable], float]
+
+
+@dataclass(frozen=True)
+class Path:
+    """A simple path: ``frames[i] -> frames[i + 1]`` over ``steps[i] = (edge key, forward)``."""
+
+    frames: tuple[str, ...]
+    steps: tuple[tuple[Hashable, bool], ...]
+    weight: float
+
+    @property
+    def edge_keys(self) -> tuple[Hashable, ...]:
+        return tuple(k for k, _ in self.steps)
+
+
+def reachable(adj: Adjacency, start: str) -> set[str]:
+    """Every frame connected to ``start`` (edges walked both ways)."""
+    seen = {start}
+    todo = [start]
+    while todo:
+        for nxt, _, _ in adj.get(todo.pop(), ()):
+            if nxt not in seen:
+                seen.add(nxt)
+                todo.append(nxt)
+    return seen
+
+
+def dijkstra(adj: Adjacency, source: str, target: str, weight: Weight,
+             banned_edges: Iterable[Hashable] = (), banned_frames: Iterable[str] = (),
+             ) -> Path | None:
+    """The lightest path (weights must be >= 0; ``inf`` edges are never used), or None."""
+    banned_e = set(banned_edges)
+    banned_f = set(banned_frames)
+    if source in banned_f:
+        return None
+    best = {source: 0.0}
+    back: dict[str, tuple[str, Hashable, bool]] = {}
+    heap = [(0.0, 0, source)]
+    counter = 1
+    done: set[str] = set()
+    while heap:
+        d, _, u = heapq.heappop(heap)
+        if u in done:
+            continue
+        if u == target:
+            break
+        done.add(u)
+        for v, key, fwd in adj.get(u, ()):
+            if v in done or v in banned_f or key in banned_e:
+                continue
+            w = weight(key)
+            if w < 0 or math.isnan(w):
+                raise ValueError(f"error function gave edge {key} the weight {w!r}; additive "
+                                 "error functions need weights >= 0")
+            nd = d + w
+            if nd < best.get(v, math.inf):
+                best[v] = nd
+                back[v] = (u, key, fwd)
+                heapq.heappush(heap, (nd, counter, v))
+                counter += 1
+    if target not in best or best[target] == math.inf:
+        return None
+    frames = [target]
+    steps = []
+    while frames[-1] != source:
+        u, key, fwd = back[frames[-1]]
+        steps.append((key, fwd))
+        frames.append(u)
+    return Path(tuple(reversed(frames)), tuple(reversed(steps)), best[target])
+
+
+def k_shortest(adj: Adjacency, source: str, target: str, weight: Weight, k: int) -> list[Path]:
+    """Up to ``k`` lightest simple paths, lightest first (Yen's algorithm)."""
+    first = dijkstra(adj, source, target, weight)
+    if first is None:
+        return []
+    found = [first]
+    seen = {first.steps}
+    candidates: list[tuple[float, int, Path]] = []
+    counter = 0
+    while len(found) < k:
+        prev = found[-1]
+        for i in range(len(prev.steps)):
+            root_frames = prev.frames[: i + 1]
+            root_steps = prev.steps[:i]
+            banned = {p.steps[i][0] for p in found
+                      if len(p.steps) > i and p.frames[: i + 1] == root_frames}
+            spur = dijkstra(adj, root_frames[-1], target, weight, banned, root_frames[:-1])
+            if spur is None:
+                continue
+            steps = root_steps + spur.steps
+            if steps in seen:
+                continue
+            seen.add(steps)
+            w = sum(weight(key) for key, _ in root_steps) + spur.weight
+            heapq.heappush(candidates, (w, counter, Path(root_frames[:-1] + spur.frames,
+                                                         steps, w)))
+            counter += 1
+        if not candidates:
+            break
+        found.append(heapq.heappop(candidates)[2])
+    return found
