@@ -1,0 +1,392 @@
+"""MARVIN's fusion filter: an error-state EKF with SCAAT updates (seed 003 ch. 6, seed 000 §4.6.2).
+
+State (eq. 6.1) of the *head* frame: orientation ``q`` (head in world, xyzw), body angular
+velocity ``omega`` and acceleration ``omega_dot`` (head axes), position ``p``, velocity
+``v`` and acceleration ``alpha`` (world), and, optionally, one residual bias per
+accelerometer (SCAAT's autocalibration, seed 003 appendix B.3).
+
+Where and why the model has its own form instead of filterpy's ``ExtendedKalmanFilter``:
+
+* The quaternion cannot take an additive correction ``x + K y``.  The filter keeps it
+  outside the covariance, as SCAAT keeps its "external quaternion" (appendix B.3, eqs.
+  B.30-B.32): the covariance is over the 3-vector ``dtheta`` of the world-frame (left)
+  rotation error ``q_true = Exp(dtheta) q`` (geometry's convention), each update injects
+  ``Exp(dtheta) q`` and zeroes ``dtheta``.
+* SCAAT updates are scalar (one accelerometer, eq. 6.13): ``S`` is a number, so the gain is
+  a division and the covariance update a rank-one correction, ten times cheaper than
+  filterpy's general update with its matrix inverse, which is what makes >= 3000 updates/s
+  possible in Python.
+* The time update (eq. 6.2-6.5) integrates the quaternion on the manifold.
+
+filterpy provides the process noise: ``Q_continuous_white_noise`` for the
+(angle, rate, acceleration) and (position, velocity, acceleration) chains driven by white
+jerk.
+
+The static mountings (head -> accelerometer rig, head -> laser rig) are inputs
+(``AccelModel.from_layout``, the ``mount`` of ``update_rig_pose``), which callers take from
+the SRG's static edges; the filter has no geometry constants of its own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.common import Q_continuous_white_noise
+
+from agent.srg import geometry as geo
+from services.sim.trajectory import GRAVITY
+
+Array = np.ndarray
+
+TH, W, WD, P, V, A = (slice(3 * i, 3 * i + 3) for i in range(6))
+CORE = 18
+
+#: chi-square quantiles used as gates (99.9 %): a measurement further out is an outlier
+CHI2_999 = {1: 10.828, 3: 16.266, 6: 22.458}
+
+
+@dataclass(frozen=True)
+class AccelModel:
+    """The accelerometers as the filter sees them: positions and axes in the *head* frame.
+
+    ``from_layout`` moves a rig layout (rig frame) through the head -> rig mounting, which
+    comes from the SRG, so eq. 6.13 needs no rig-specific code in the filter.
+    """
+
+    positions: Array           # (N, 3) m, head frame
+    axes: Array                # (N, 3) unit, head frame
+    variance: Array            # (N,) per-sample reading variance (m/s^2)^2
+    latency_s: float = 0.0     # a reading at t describes the motion at t - latency_s
+    cross: Array = field(init=False, repr=False, compare=False)  # r_j x n_j
+
+    def __post_init__(self) -> None:
+        r = geo.check_vector(self.positions, "accelerometer positions")
+        n = geo.check_vector(self.axes, "accelerometer axes")
+        var = np.asarray(self.variance, float).reshape(-1)
+        if r.ndim != 2 or n.shape != r.shape or var.shape != (r.shape[0],):
+            raise ValueError(f"accel model: positions {r.shape}, axes {n.shape} and "
+                             f"variance {var.shape} must be (N, 3), (N, 3), (N,)")
+        if not np.all(np.isfinite(var)) or np.any(var <= 0):
+            raise ValueError("accel model: reading variances must be positive and finite")
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise ValueError(f"accel model: latency_s must be >= 0, got {self.latency_s!r}")
+        object.__setattr__(self, "positions", r)
+        object.__setattr__(self, "axes", n / np.linalg.norm(n, axis=1, keepdims=True))
+        object.__setattr__(self, "variance", var)
+        object.__setattr__(self, "cross", np.cross(r, self.axes))
+
+    @property
+    def count(self) -> int:
+        return self.positions.shape[0]
+
+    @classmethod
+    def from_layout(cls, positions_rig: Array, axes_rig: Array,
+                    head_to_rig: tuple[Array, Array], variance: Array | float,
+                    latency_s: float = 0.0, model_floor: float = 0.0) -> AccelModel:
+        """Accelerometers given in the rig frame, rig mounted at ``head_to_rig`` (p, q).
+
+        ``model_floor`` (m/s^2, std) is added to every reading's noise for what the
+        calibration does not capture (position errors of the drawing, axis residuals).
+        """
+        p, q = head_to_rig
+        r = geo.transform_points(p, q, np.asarray(positions_rig, float))
+        n = geo.quat_rotate(q, np.asarray(axes_rig, float))
+        var = np.broadcast_to(np.asarray(variance, float), (r.shape[0],)) + model_floor**2
+        return cls(r, n, var, latency_s)
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Noise model and behaviour of the filter (SI units)."""
+
+    angular_jerk_psd: float = 2.0e3      # (rad/s^3)^2 / Hz, white angular jerk
+    linear_jerk_psd: float = 2.0e2       # (m/s^3)^2 / Hz, white linear jerk
+    bias_walk: float = 1e-3              # m/s^2 / sqrt(s), accelerometer bias random walk
+    initial_bias_std: float = 0.05       # m/s^2, residual bias after calibration
+    estimate_bias: bool = True
+    initial_std: tuple[float, ...] = (3.0, 5.0, 1.0, 2.0, 10.0)  # omega, omega_dot, v, alpha..
+    accel_gate: float = CHI2_999[1]
+    pose_gate: float = CHI2_999[6]
+    max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
+    max_step_s: float = 0.05             # longer predictions are split (integration accuracy)
+
+    def __post_init__(self) -> None:
+        for name in ("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
+                     "max_step_s", "initial_bias_std"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"fusion config: {name} must be positive, got {value!r}")
+        if len(self.initial_std) != 5 or not all(s > 0 for s in self.initial_std):
+            raise ValueError("fusion config: initial_std needs 5 positive numbers (omega, "
+                             "omega_dot, v, alpha, spare)")
+
+
+@dataclass
+class FusionStats:
+    time_updates: int = 0
+    accel_updates: int = 0
+    accel_rejected: int = 0
+    pose_updates: int = 0
+    pose_rejected: int = 0
+    reinitialised: int = 0
+    last_pose_nis: float = float("nan")
+
+    @property
+    def measurement_updates(self) -> int:
+        return self.accel_updates + self.pose_updates
+
+
+class FusionEKF:
+    """Head pose from accelerometer readings (one at a time) and absolute optical poses."""
+
+    def __init__(self, accel: AccelModel, config: FusionConfig | None = None,
+                 gravity: Array = GRAVITY):
+        self.config = config or FusionConfig()
+        self.accel = accel
+        self.gravity = np.asarray(gravity, float)
+        self.n_bias = accel.count if self.config.estimate_bias else 0
+        self.dim = CORE + self.n_bias
+        self.t: float | None = None
+        self.q = geo.quat_identity()
+        self.x = np.zeros(self.dim)  # [dtheta slot (always 0), omega, omega_dot, p, v, alpha, b]
+        self.P = np.eye(self.dim)
+        self.stats = FusionStats()
+        self._rejected_in_row = 0
+
+    # ------------------------------------------------------------------ state access
+
+    @property
+    def initialised(self) -> bool:
+        return self.t is not None
+
+    @property
+    def omega(self) -> Array:
+        return self.x[W].copy()
+
+    @property
+    def omega_dot(self) -> Array:
+        return self.x[WD].copy()
+
+    @property
+    def position(self) -> Array:
+        return self.x[P].copy()
+
+    @property
+    def velocity(self) -> Array:
+        return self.x[V].copy()
+
+    @property
+    def acceleration(self) -> Array:
+        return self.x[A].copy()
+
+    @property
+    def bias(self) -> Array:
+        return self.x[CORE:].copy()
+
+    def pose_covariance(self) -> Array:
+        """6x6 covariance of the head pose in geometry's ``xi = [rho, phi]`` convention."""
+        idx = np.r_[9:12, 0:3]
+        return geo.decoupled_to_se3(self.x[P], self.P[np.ix_(idx, idx)])
+
+    def pose(self, horizon_s: float = 0.0) -> tuple[Array, Array]:
+        """Head pose now, or extrapolated ``horizon_s`` ahead with the estimated motion."""
+        if not self.initialised:
+            raise ValueError("fusion: no pose yet (waiting for the first optical pose)")
+        if horizon_s == 0.0:
+            return self.x[P].copy(), self.q.copy()
+        h = float(horizon_s)
+        p = self.x[P] + self.x[V] * h + 0.5 * self.x[A] * h * h
+        q = geo.quat_multiply(self.q, geo.rotvec_to_quat(self.x[W] * h + 0.5 * self.x[WD] * h * h))
+        return p, q
+
+    # ------------------------------------------------------------------ initialisation
+
+    def initialise(self, t: float, p: Array, q: Array, cov_decoupled: Array) -> None:
+        """Start (or restart) from an absolute pose; motion unknown (initial_std)."""
+        cfg = self.config
+        so, sod, sv, sa, _ = cfg.initial_std
+        self.t = float(t)
+        self.q = geo.check_quaternion(q, "fusion initial quaternion").reshape(4)
+        bias = self.x[CORE:].copy()
+        self.x = np.zeros(self.dim)
+        self.x[P] = geo.check_vector(p, "fusion initial position").reshape(3)
+        self.x[CORE:] = bias
+        diag = np.concatenate([np.zeros(3), [so**2] * 3, [sod**2] * 3, np.zeros(3),
+                               [sv**2] * 3, [sa**2] * 3, [cfg.initial_bias_std**2] * self.n_bias])
+        P0 = np.diag(diag)
+        if self.stats.reinitialised and self.n_bias:
+            P0[CORE:, CORE:] = self.P[CORE:, CORE:]
+        idx = np.r_[9:12, 0:3]
+        P0[np.ix_(idx, idx)] = cov_decoupled
+        self.P = P0
+        self.stats.reinitialised += 1
+        self._rejected_in_row = 0
+
+    # ------------------------------------------------------------------ time update
+
+    def predict_to(self, t: float) -> None:
+        """Integrate the state to time ``t`` (eqs. 6.2-6.5); earlier times are refused."""
+        if self.t is None:
+            raise ValueError("fusion: predict before initialisation")
+        dt = float(t) - self.t
+        if dt < -1e-9:
+            raise ValueError(f"fusion: time {t:.6f} s is before the filter time "
+                             f"{self.t:.6f} s (measurements must come in time order)")
+        while dt > 1e-12:
+            step = min(dt, self.config.max_step_s)
+            self._predict_step(step)
+            dt -= step
+        self.t = max(self.t, float(t))
+
+    def _predict_step(self, dt: float) -> None:
+        x = self.x
+        # q(t+dt) = q Exp(omega dt + omega_dot dt^2 / 2): body-frame increment (eq. 6.5)
+        self.q = geo.quat_multiply(self.q, geo.rotvec_to_quat(x[W] * dt + 0.5 * x[WD] * dt * dt))
+        x[W] += x[WD] * dt
+        x[P] += x[V] * dt + 0.5 * x[A] * dt * dt
+        x[V] += x[A] * dt
+        R = geo.quat_to_matrix(self.q)
+        F = np.eye(self.dim)
+        F[TH, W] = R * dt
+        F[TH, WD] = R * (0.5 * dt * dt)
+        F[W, WD] = np.eye(3) * dt
+        F[P, V] = np.eye(3) * dt
+        F[P, A] = np.eye(3) * (0.5 * dt * dt)
+        F[V, A] = np.eye(3) * dt
+        self.P = F @ self.P @ F.T + self._process_noise(dt, R)
+        self.t += dt
+        self.stats.time_updates += 1
+
+    def _process_noise(self, dt: float, R: Array) -> Array:
+        cfg = self.config
+        Q = np.zeros((self.dim, self.dim))
+        qa = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=cfg.angular_jerk_psd)
+        ql = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=cfg.linear_jerk_psd)
+        eye = np.eye(3)
+        # angular chain: dtheta is world-frame, omega and omega_dot body-frame (dtheta' = R dw)
+        frames = (R, eye, eye)
+        for i, si in enumerate((TH, W, WD)):
+            for j, sj in enumerate((TH, W, WD)):
+                Q[si, sj] = qa[i, j] * (frames[i] @ frames[j].T)
+        for i, si in enumerate((P, V, A)):
+            for j, sj in enumerate((P, V, A)):
+                Q[si, sj] = ql[i, j] * eye
+        if self.n_bias:
+            Q[CORE:, CORE:] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
+        return Q
+
+    # ------------------------------------------------------------------ SCAAT: accelerometers
+
+    def predict_reading(self, j: int) -> tuple[float, Array]:
+        """Eq. 6.13 for accelerometer ``j`` and its Jacobian row over the error state.
+
+        ``a_j = n_j . (R^T (alpha - g) + omega_dot x r_j + omega x (omega x r_j)) + b_j``,
+        all in head axes (specific force: a resting head reads -g).
+        """
+        x = self.x
+        r, n = self.accel.positions[j], self.accel.axes[j]
+        R = geo.quat_to_matrix(self.q)
+        w = x[W]
+        u = x[A] - self.gravity
+        f_head = R.T @ u
+        wr = float(w @ r)
+        centripetal = w * wr - r * float(w @ w)
+        pred = float(n @ (f_head + np.cross(x[WD], r) + centripetal))
+        H = np.zeros(self.dim)
+        nRt = R @ n                             # n^T R^T as a vector
+        H[TH] = nRt @ geo.skew(u)               # d(R^T u)/d dtheta = R^T [u]x
+        H[W] = (n @ w) * r + wr * n - 2.0 * float(n @ r) * w
+        H[WD] = self.accel.cross[j]
+        H[A] = nRt
+        if self.n_bias:
+            pred += x[CORE + j]
+            H[CORE + j] = 1.0
+        return pred, H
+
+    def update_accel(self, j: int, reading: float) -> bool:
+        """One SCAAT update with accelerometer ``j``'s reading (m/s^2); False if gated."""
+        if not math.isfinite(reading):
+            raise ValueError(f"fusion: accelerometer {j + 1} reading {reading!r} is not finite")
+        pred, H = self.predict_reading(j)
+        y = reading - pred
+        PH = self.P @ H
+        s = float(H @ PH) + self.accel.variance[j]
+        if y * y / s > self.config.accel_gate:
+            self.stats.accel_rejected += 1
+            return False
+        self._inject(PH * (y / s))
+        self.P -= np.outer(PH, PH) / s
+        self.stats.accel_updates += 1
+        return True
+
+    def update_accel_sample(self, t: float, readings: Array) -> int:
+        """All accelerometers of one sample, one constraint at a time; returns accepted."""
+        readings = np.asarray(readings, float).reshape(-1)
+        if readings.shape != (self.accel.count,):
+            raise ValueError(f"fusion: {readings.size} accelerometer readings, the model has "
+                             f"{self.accel.count}")
+        self.predict_to(t - self.accel.latency_s)
+        return sum(self.update_accel(j, float(a)) for j, a in enumerate(readings))
+
+    # ------------------------------------------------------------------ optical pose
+
+    def update_pose(self, t: float, p: Array, q: Array, cov_decoupled: Array) -> bool:
+        """Absolute head pose (world) with its covariance over ``[dp, dtheta]``; False if gated.
+
+        The first pose initialises the filter.  A pose far outside the predicted
+        uncertainty is rejected (Mahalanobis gate); after ``max_rejected_poses`` rejections in
+        a row the filter trusts the optics again and re-initialises from it.
+        """
+        p = geo.check_vector(p, "optical position").reshape(3)
+        q = geo.check_quaternion(q, "optical quaternion").reshape(4)
+        Rm = geo.check_covariance(cov_decoupled, "optical covariance")
+        if not self.initialised:
+            self.initialise(t, p, q, Rm)
+            return True
+        self.predict_to(t)
+        y = np.concatenate([p - self.x[P], geo.quat_to_rotvec(geo.quat_multiply(
+            q, geo.quat_conjugate(self.q)))])
+        idx = np.r_[9:12, 0:3]
+        PHt = self.P[:, idx]
+        S = PHt[idx] + Rm
+        nis = float(y @ np.linalg.solve(S, y))
+        self.stats.last_pose_nis = nis
+        if nis > self.config.pose_gate:
+            self.stats.pose_rejected += 1
+            self._rejected_in_row += 1
+            if self._rejected_in_row >= self.config.max_rejected_poses:
+                self.initialise(t, p, q, Rm)
+                return True
+            return False
+        self._rejected_in_row = 0
+        K = np.linalg.solve(S, PHt.T).T
+        self._inject(K @ y)
+        # Joseph form: the 6-D update is large enough for rounding to matter
+        I_KH = np.eye(self.dim)
+        I_KH[:, idx] -= K
+        self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
+        self.stats.pose_updates += 1
+        return True
+
+    def update_rig_pose(self, t: float, p_rig: Array, q_rig: Array, cov_rig_se3: Array,
+                        mount: tuple[Array, Array]) -> bool:
+        """A tracker's pose of its rig (world -> rig), mounted at ``mount`` (head -> rig).
+
+        ``T_world_head = T_world_rig T_head_rig^-1``; a left perturbation of the rig pose is
+        the same left perturbation of the head pose, so the covariance carries over and is
+        converted to the filter's position/rotation form.
+        """
+        pm, qm = geo.inverse(*mount)
+        p, q = geo.compose(p_rig, q_rig, pm, qm)
+        cov = geo.se3_to_decoupled(p, geo.check_covariance(cov_rig_se3, "rig pose covariance"))
+        return self.update_pose(t, p, q, cov)
+
+    # ------------------------------------------------------------------ internals
+
+    def _inject(self, dx: Array) -> None:
+        """Apply an error-state correction: rotation on the manifold, the rest additively."""
+        self.q = geo.quat_multiply(geo.rotvec_to_quat(dx[TH]), self.q)
+        self.q /= np.linalg.norm(self.q)
+        self.x[3:] += dx[3:]
