@@ -49,7 +49,6 @@ import logging
 import math
 import queue
 import re
-import socket
 import statistics
 import threading
 import time
@@ -97,18 +96,12 @@ FETCH_TIMEOUT_S = 2.0
 FEED_QUEUE = 10_000
 
 
-def default_agent_id() -> str:
-    """This host's name, made a valid agent id (``agent.keys.check_name``)."""
-    name = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname()) or "localhost"
-    return name[:64]
-
-
 @dataclass
 class AgentSettings:
     """Everything ``uma agent`` can be told (command line and/or TOML config)."""
 
     realm: str = "default"
-    agent_id: str = field(default_factory=default_agent_id)
+    agent_id: str = field(default_factory=keys.default_agent_id)
     mode: str = "peer"
     listen: list[str] | None = None
     connect: list[str] = field(default_factory=list)

@@ -24,6 +24,7 @@ key                                             primitive            meaning
 from __future__ import annotations
 
 import re
+import socket
 
 from agent.errors import UmaError
 
@@ -42,6 +43,12 @@ def check_name(kind: str, value: object) -> str:
         raise UmaError(f"{kind} {value!r} may only contain letters, digits and _ . - + : = ~ , "
                        "(no '/', '*', '$', '#', '?', spaces; not starting with '@')")
     return value
+
+
+def default_agent_id() -> str:
+    """This host's name, made a valid agent id (the default of agents and services)."""
+    name = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname()).strip(".-") or "localhost"
+    return name[:64]
 
 
 def realm_root(realm: str) -> str:

@@ -1,0 +1,141 @@
+"""``uma services``: every agent, service, need, ability and current match of a realm.
+
+Joins the realm as a listening peer (so Zenoh's gossip links it to every agent, not only
+to the one it connects to), waits until the set of live agents is stable, then asks every
+agent's ``uma/R/agent/A/services`` queryable for its snapshot (``agent.registry``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import zenoh
+
+from agent import keys
+from agent.errors import UmaError
+from agent.registry import parse_snapshot
+from agent.session import open_session
+from schemas.codec import DecodeError
+from schemas.models import ServiceDescriptor
+
+#: how long the set of live agents must stay unchanged before asking them
+SETTLE_S = 0.15
+
+
+def live_agents(session: zenoh.Session, realm: str, timeout: float) -> set[str]:
+    """Agent ids whose liveliness token is visible now."""
+    found = set()
+    for reply in session.liveliness().get(keys.all_agent_tokens(realm), timeout=timeout):
+        if reply.ok is not None:
+            agent_id = keys.parse_agent_token(str(reply.ok.key_expr), realm)
+            if agent_id:
+                found.add(agent_id)
+    return found
+
+
+def collect(session: zenoh.Session, realm: str, timeout: float) -> dict[str, Any]:
+    """The realm as one JSON-able dict (agents sorted by id)."""
+    deadline = time.monotonic() + timeout
+    seen: set[str] = set()
+    stable_since = time.monotonic()
+    while time.monotonic() < deadline:
+        now_seen = live_agents(session, realm, min(0.5, max(0.05, deadline - time.monotonic())))
+        if now_seen != seen:
+            seen, stable_since = now_seen, time.monotonic()
+        elif seen and time.monotonic() - stable_since >= SETTLE_S:
+            break
+        time.sleep(0.03)
+    agents: dict[str, Any] = {}
+    problems: list[str] = []
+    left = max(0.2, deadline - time.monotonic())
+    for reply in session.get(keys.all_agent_services(realm), timeout=left):
+        if reply.ok is None:
+            problems.append(f"an agent answered with an error: {_text(reply.err.payload)}")
+            continue
+        key = str(reply.ok.key_expr)
+        try:
+            snap = parse_snapshot(reply.ok.payload.to_bytes(),
+                                  keys.parse_agent_services(key, realm))
+        except DecodeError as exc:
+            problems.append(f"{key}: unreadable snapshot ({exc})")
+            continue
+        problems += [f"{key}: {e}" for e in snap.errors]
+        agents[snap.agent_id] = {
+            **snap.info,
+            "services": [_service(desc, snap.status.get(sid, {}))
+                         for sid, desc in sorted(snap.services.items())]}
+    for agent_id in sorted(seen - agents.keys()):
+        problems.append(f"agent {agent_id} is alive but did not answer in time")
+    return {"realm": realm, "agents": [agents[a] for a in sorted(agents)],
+            "problems": problems}
+
+
+def _text(payload: zenoh.ZBytes) -> str:
+    try:
+        return payload.to_bytes().decode("utf-8", "replace")[:200]
+    except Exception:
+        return "?"
+
+
+def _service(desc: ServiceDescriptor, status: dict[str, Any]) -> dict[str, Any]:
+    matches = status.get("matches", {})
+    satisfied = status.get("satisfied", {})
+    excluded = status.get("excluded", {})
+    return {
+        "service_id": desc.service_id,
+        "instance": status.get("instance"),
+        "attributes": desc.attributes,
+        "abilities": [a.model_dump(mode="json", exclude_none=True) for a in desc.abilities],
+        "needs": [{**n.model_dump(mode="json", exclude_none=True),
+                   "matches": matches.get(n.name, []),
+                   "satisfied": satisfied.get(n.name, False),
+                   "excluded": excluded.get(n.name, {})} for n in desc.needs],
+    }
+
+
+def format_realm(realm: dict[str, Any]) -> str:
+    """The realm for people: one block per agent."""
+    lines = [f"realm {realm['realm']}: {len(realm['agents'])} agent(s)"]
+    for a in realm["agents"]:
+        lines.append(f"agent {a['agent_id']}  ({', '.join(a.get('endpoints', [])) or '-'})")
+        if not a["services"]:
+            lines.append("  (no services)")
+        for s in a["services"]:
+            lines.append(f"  service {s['service_id']}")
+            for ab in s["abilities"]:
+                where = " -> ".join(ab["edge"]) if "edge" in ab else ab.get("key", "")
+                attrs = ", ".join(f"{k}={v}" for k, v in ab.get("attributes", {}).items()
+                                  if k != "static" or v)
+                lines.append(f"    ability {ab['name']} [{ab['type']}] {where}  {attrs}")
+            for n in s["needs"]:
+                flag = "" if n["satisfied"] else "  (UNSATISFIED)"
+                extra = "".join(f"  {k} {n[k]!r}" for k in ("where", "prefer") if n.get(k))
+                lines.append(f"    need {n['name']} [{n['type']}] {' -> '.join(n['edge'])}"
+                             f"{extra}{flag}")
+                for m in n["matches"]:
+                    meas = ", ".join(f"{k}={v:.4g}" for k, v in m.get("measured", {}).items())
+                    lines.append(f"      => {m['agent_id']}/{m['service_id']}/{m['ability']}"
+                                 f"{'  (local)' if m.get('local') else ''}"
+                                 f"{'  ' + meas if meas else ''}")
+                for key, why in n.get("excluded", {}).items():
+                    lines.append(f"      excluded {key}: {why}")
+    for p in realm["problems"]:
+        lines.append(f"problem: {p}")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Handler of ``uma services``."""
+    if args.timeout <= 0:
+        raise UmaError(f"--timeout must be positive, got {args.timeout}")
+    session = open_session("peer", None, args.connect, args.realm,
+                           require_connection=bool(args.connect))
+    try:
+        realm = collect(session, args.realm, args.timeout)
+    finally:
+        session.close()
+    print(json.dumps(realm) if args.json else format_realm(realm))
+    return 0

@@ -1,0 +1,568 @@
+"""The service SDK: declare abilities and needs, publish, receive matched streams.
+
+::
+
+    from agent import Service
+    with Service("cam-nw", realm="lab", agent="hostA", connect=["tcp/127.0.0.1:7447"]) as svc:
+        out = svc.ability("pose", type="pose6d", edge=("ivy/world", "alice/head"),
+                          frequency_hz=60, latency_s=0.005, pos_std_m=0.01)
+        svc.need("head", type="pose6d", edge=("ivy/world", "*/head"),
+                 where="frequency_hz >= 30", prefer="latency_s", on_sample=handle)
+        svc.start()
+        out.publish(t_ns, position, quaternion, covariance=None)
+
+``handle(m)`` receives a ``schemas.codec.Measurement`` (``m.t_ns``, ``m.position``,
+``m.quaternion``, ``m.covariance``, the other fields for other types) with ``m.edge``,
+``m.source`` (the publishing service's id) and ``m.attributes`` (the ability's advertised
+attributes) filled in.  Callbacks run on the service's own dispatch thread, one at a time,
+never on a Zenoh thread; an exception in a callback is logged, not fatal.
+
+The service registers with its local agent (``agent.registry`` documents the protocol): if
+the agent is not running yet, ``start()`` waits ``register_timeout`` seconds, then returns
+and the service registers as soon as the agent appears (and again whenever the agent
+restarts).  A duplicate service id is refused: ``start()`` raises ``UmaError``.  The agent
+then tells the service which data keys each need subscribes to; the service subscribes
+directly (agents are not in the data path) and follows every re-match without any action
+by the code using it.  ``svc.matches(name)`` and ``svc.wait_matched(name)`` expose them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import secrets
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+from pydantic import ValidationError
+
+from agent import keys
+from agent.errors import UmaError
+from agent.registry import (
+    Match,
+    RateLimitedLog,
+    descriptor_reply,
+    parse_control,
+    parse_reply,
+    register_request,
+)
+from agent.session import open_session
+from schemas.codec import (
+    DecodeError,
+    Measurement,
+    decode_measurement,
+    encode_descriptor,
+    encode_measurement,
+    encode_pose,
+    validation_summary,
+)
+from schemas.models import Ability, Need, ServiceDescriptor
+
+log = logging.getLogger("uma.service")
+
+#: bound on received samples waiting for the dispatch thread (oldest data is worth least)
+SAMPLE_QUEUE = 10_000
+#: registration query timeout, and the retry back-off bounds
+REGISTER_TIMEOUT_S = 2.0
+RETRY_MIN_S, RETRY_MAX_S = 0.1, 1.0
+
+OnSample = Callable[[Measurement], Any]
+
+
+def _checked(model: type, what: str, **fields: Any) -> Any:
+    """Build a pydantic model; a ``ValueError`` with a one-line reason if invalid."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        raise ValueError(f"{what}: {validation_summary(exc)}") from None
+
+
+class AbilityHandle:
+    """What ``Service.ability`` returns: publish samples, change attributes."""
+
+    def __init__(self, svc: Service, ability: Ability) -> None:
+        self._svc = svc
+        self.ability = ability
+        self.key = keys.data(svc.realm, svc.agent_id, svc.service_id, ability.name)
+        self._publisher: Any = None
+        self._seq = 0
+
+    @property
+    def name(self) -> str:
+        return self.ability.name
+
+    def publish(self, t_ns: int, position: Any, quaternion: Any, covariance: Any = None) -> None:
+        """Publish one pose (``pose6d`` abilities); ``ValueError`` names a bad field."""
+        if self.ability.type != "pose6d":
+            raise UmaError(f"ability {self.name!r} is {self.ability.type}; use "
+                           "publish_measurement()")
+        self._put(encode_pose(t_ns, position, quaternion, covariance, seq=self._next_seq()))
+
+    def publish_measurement(self, m: Measurement) -> None:
+        """Publish a measurement of any type (must be this ability's type)."""
+        if m.type != self.ability.type:
+            raise UmaError(f"ability {self.name!r} publishes {self.ability.type}, "
+                           f"not {m.type}")
+        if m.seq is None:
+            m.seq = self._next_seq()
+        self._put(encode_measurement(m))
+
+    def update(self, **attributes: Any) -> None:
+        """Change advertised attributes at run time (re-advertised, re-matched)."""
+        self._svc._update_ability(self, attributes)
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    def _put(self, payload: bytes) -> None:
+        pub = self._publisher
+        if pub is None:
+            raise UmaError(f"service {self._svc.service_id!r}: call start() before publishing "
+                           f"on {self.name!r}" if not self._svc.closed else
+                           f"service {self._svc.service_id!r} is closed")
+        pub.put(payload)
+
+
+@dataclass
+class _Link:
+    """One subscription of a need to a matched ability (the callback reads ``match``)."""
+
+    match: Match
+    subscriber: Any = None
+
+
+@dataclass
+class NeedHandle:
+    """What ``Service.need`` returns; ``matches`` is the current set, best first."""
+
+    need: Need
+    on_sample: OnSample | None
+    matches: tuple[Match, ...] = ()
+    satisfied: bool = False
+    links: dict[str, _Link] = field(default_factory=dict)
+    last: tuple[int, int] = (-1, -1)  # (agent epoch, seq) of the last control applied
+
+    @property
+    def name(self) -> str:
+        return self.need.name
+
+
+class Service:
+    """A uma service (see the module docstring)."""
+
+    def __init__(self, service_id: str, realm: str = "default", agent: str | None = None,
+                 connect: Iterable[str] = (), listen: Sequence[str] | None = None, *,
+                 attributes: dict[str, Any] | None = None,
+                 register_timeout: float = 3.0) -> None:
+        self.service_id = keys.check_name("service id", service_id)
+        self.realm = keys.check_name("realm", realm)
+        self.agent_id = keys.check_name("agent id", agent or keys.default_agent_id())
+        self.connect = list(connect)
+        self.listen = None if listen is None else list(listen)
+        self.attributes = dict(attributes or {})
+        self.register_timeout = register_timeout
+        _checked(ServiceDescriptor, f"service {service_id!r}", service_id=service_id,
+                 agent_id=self.agent_id, attributes=self.attributes)
+        self.instance = secrets.token_hex(8)
+        self.session: zenoh.Session | None = None
+        self.closed = False
+        self.error: str | None = None
+        self._abilities: dict[str, AbilityHandle] = {}
+        self._needs: dict[str, NeedHandle] = {}
+        self._lock = threading.Lock()          # abilities/needs/revision vs the worker
+        self._cond = threading.Condition()     # match changes, registration outcome
+        self._revision = 0
+        self._registered_revision = -1
+        self._agent_present = False
+        self._registering = False
+        self._next_try = 0.0
+        self._backoff = RETRY_MIN_S
+        self._outcome = threading.Event()
+        self._token: Any = None
+        self._decls: list[Any] = []
+        self._events: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = (
+            queue.Queue())
+        self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
+            SAMPLE_QUEUE)
+        self._threads: list[threading.Thread] = []
+        self._bad = RateLimitedLog(log)
+
+    # -- declaring
+    def ability(self, name: str, type: str, edge: tuple[str, str] | None = None,
+                key: str | None = None, **attributes: Any) -> AbilityHandle:
+        """Declare a stream this service publishes; returns its handle."""
+        ab = _checked(Ability, f"ability {name!r}", name=name, type=type,
+                      edge=None if edge is None else tuple(edge), key=key,
+                      attributes=attributes)
+        with self._lock:
+            if name in self._abilities:
+                raise ValueError(f"service {self.service_id!r} already has an ability "
+                                 f"named {name!r}")
+            handle = AbilityHandle(self, ab)
+            self._abilities[name] = handle
+            self._revision += 1
+        if self.session is not None:
+            handle._publisher = self.session.declare_publisher(handle.key)
+            self._enqueue(self._register)
+        return handle
+
+    def need(self, name: str, type: str, edge: tuple[str, str],
+             where: str | None = None, prefer: str | None = None, min_count: int = 1,
+             max_count: int = 1, on_sample: OnSample | None = None) -> NeedHandle:
+        """Declare what this service wants; ``on_sample(m)`` receives each sample."""
+        need = _checked(Need, f"need {name!r}", name=name, type=type, edge=tuple(edge),
+                        where=where, prefer=prefer, min_count=min_count, max_count=max_count)
+        if on_sample is not None and not callable(on_sample):
+            raise ValueError(f"need {name!r}: on_sample must be callable")
+        with self._lock:
+            if name in self._needs:
+                raise ValueError(f"service {self.service_id!r} already has a need named "
+                                 f"{name!r}")
+            handle = NeedHandle(need, on_sample)
+            self._needs[name] = handle
+            self._revision += 1
+        if self.session is not None:
+            self._enqueue(self._register)
+        return handle
+
+    def descriptor(self) -> ServiceDescriptor:
+        """What is advertised now."""
+        with self._lock:
+            return self._descriptor_locked()
+
+    def _descriptor_locked(self) -> ServiceDescriptor:
+        return _checked(ServiceDescriptor, f"service {self.service_id!r}",
+                        service_id=self.service_id, agent_id=self.agent_id,
+                        needs=[n.need for n in self._needs.values()],
+                        abilities=[a.ability for a in self._abilities.values()],
+                        attributes=self.attributes)
+
+    def _update_ability(self, handle: AbilityHandle, attributes: dict[str, Any]) -> None:
+        with self._lock:
+            merged = {**handle.ability.attributes.model_dump(exclude_none=True,
+                                                             exclude_defaults=True),
+                      **attributes}
+            handle.ability = _checked(Ability, f"ability {handle.name!r}",
+                                      **{**handle.ability.model_dump(exclude={"attributes"}),
+                                         "attributes": merged})
+            self._revision += 1
+        if self.session is not None:
+            self._enqueue(self._register)
+
+    # -- life cycle
+    def start(self) -> Service:
+        """Open the session, declare everything, register with the agent.
+
+        Waits up to ``register_timeout`` s for the agent's answer; raises ``UmaError`` if
+        it refuses (e.g. a duplicate service id).  If the agent is not there yet, returns
+        anyway and registers when it appears.
+        """
+        if self.closed:
+            raise UmaError(f"service {self.service_id!r} is closed; create a new one")
+        if self.session is not None:
+            return self
+        if not self.connect:
+            log.warning("service %s: no connect endpoint given; it will only find agent %s "
+                        "if that agent connects to it", self.service_id, self.agent_id)
+        self.session = open_session("peer", self.listen, self.connect, self.realm)
+        try:
+            self._declare()
+        except BaseException:
+            self.close()
+            raise
+        if not self._outcome.wait(self.register_timeout):
+            log.warning("service %s: agent %s of realm %s not reachable yet; will register "
+                        "when it appears", self.service_id, self.agent_id, self.realm)
+        elif self.error is not None:
+            error = self.error
+            self.close()
+            raise UmaError(error)
+        return self
+
+    def _declare(self) -> None:
+        sess, r, a, s = self.session, self.realm, self.agent_id, self.service_id
+        assert sess is not None
+        for handle in self._abilities.values():
+            handle._publisher = sess.declare_publisher(handle.key)
+        for target, name in ((self._work, "worker"), (self._dispatch, "dispatch")):
+            t = threading.Thread(target=target, name=f"uma-service-{s}-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        put = self._enqueue
+        self._decls += [
+            sess.declare_subscriber(keys.control(r, a, s),
+                                    lambda smp: put(self._on_control, smp.payload.to_bytes())),
+            sess.declare_queryable(keys.service_token(r, a, s),
+                                   lambda q: put(self._on_descriptor_query, q)),
+            sess.liveliness().declare_subscriber(
+                keys.agent_token(r, a), lambda smp: put(self._on_agent_token, smp.kind),
+                history=True),
+        ]
+
+    def close(self) -> None:
+        """Leave: undeclare the token first (agents re-match at once), then everything."""
+        if self.closed:
+            return
+        self.closed = True
+        for obj in [self._token, *self._decls]:
+            if obj is not None:
+                with contextlib.suppress(Exception):
+                    obj.undeclare()
+        self._token, self._decls = None, []
+        for need in self._needs.values():
+            for link in need.links.values():
+                with contextlib.suppress(Exception):
+                    link.subscriber.undeclare()
+            need.links.clear()
+        for handle in self._abilities.values():
+            if handle._publisher is not None:
+                with contextlib.suppress(Exception):
+                    handle._publisher.undeclare()
+                handle._publisher = None
+        self._events.put(None)
+        with contextlib.suppress(queue.Full):
+            self._samples.put_nowait(None)
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(1.0)
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+            self.session = None
+        self._outcome.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    def __enter__(self) -> Service:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- matches
+    def matches(self, need: str) -> list[Match]:
+        """The abilities need ``need`` is connected to now, best first."""
+        return list(self._need(need).matches)
+
+    def wait_matched(self, need: str, count: int = 1, timeout: float = 5.0,
+                     until: Callable[[list[Match]], bool] | None = None) -> list[Match]:
+        """Wait until ``need`` has ``count`` matches (or ``until(matches)`` is true);
+        ``TimeoutError`` saying what it has instead."""
+        handle = self._need(need)
+        test = until or (lambda ms: len(ms) >= count)
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not test(list(handle.matches)):
+                left = deadline - time.monotonic()
+                if left <= 0 or self.closed:
+                    have = ", ".join(m.key for m in handle.matches) or "nothing"
+                    raise TimeoutError(f"service {self.service_id!r}: need {need!r} not matched "
+                                       f"as wanted within {timeout:g} s (connected to {have})")
+                self._cond.wait(left)
+            return list(handle.matches)
+
+    def wait_registered(self, timeout: float = 5.0) -> bool:
+        """Whether the agent accepted the current descriptor within ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._registered_revision != self._revision and not self.closed:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return self._registered_revision == self._revision
+
+    def _need(self, name: str) -> NeedHandle:
+        try:
+            return self._needs[name]
+        except KeyError:
+            raise UmaError(f"service {self.service_id!r} has no need {name!r} (has: "
+                           f"{', '.join(self._needs) or 'none'})") from None
+
+    # -- the worker (owns registration and subscriptions)
+    def _enqueue(self, fn: Callable[..., None], *args: Any) -> None:
+        self._events.put((fn, args))
+
+    def _work(self) -> None:
+        while not self.closed:
+            try:
+                item = self._events.get(timeout=0.05)
+            except queue.Empty:
+                item = (self._retry, ())
+            if item is None:
+                return
+            fn, args = item
+            try:
+                fn(*args)
+            except zenoh.ZError as exc:
+                if not self.closed:
+                    self._bad.warning(f"service {self.service_id}", f"Zenoh: {exc}")
+            except Exception:
+                log.exception("service %s: %s failed", self.service_id, fn.__name__)
+
+    def _on_agent_token(self, kind: zenoh.SampleKind) -> None:
+        if kind == zenoh.SampleKind.PUT:
+            self._agent_present = True
+            self._backoff = RETRY_MIN_S
+            self._registered_revision = -1  # a (re)started agent needs the registration
+            self._register()
+        else:
+            self._agent_present = False
+            self._registered_revision = -1
+            log.warning("service %s: agent %s is gone; keeping current connections, will "
+                        "register again when it is back", self.service_id, self.agent_id)
+
+    def _retry(self) -> None:
+        if (self._agent_present and not self._registering and self.error is None
+                and self._registered_revision != self._revision
+                and time.monotonic() >= self._next_try):
+            self._register()
+
+    def _register(self) -> None:
+        if self._registering or self.error is not None or not self._agent_present:
+            return
+        assert self.session is not None
+        with self._lock:
+            revision = self._revision
+            desc = encode_descriptor(self._descriptor_locked())
+        connected = {n.name: [m.key for m in n.matches] for n in self._needs.values()}
+        self._registering = True
+        answered: list[bool] = []
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            answered.append(True)
+            ok, data = (True, reply.ok.payload.to_bytes()) if reply.ok is not None else (
+                False, reply.err.payload.to_bytes())
+            self._enqueue(self._on_register_reply, revision, data, ok)
+
+        def on_done() -> None:
+            self._enqueue(self._on_register_done, bool(answered))
+        self.session.get(keys.agent_register(self.realm, self.agent_id),
+                         zenoh.handlers.Callback(on_reply, on_done),
+                         payload=register_request(desc, self.instance, revision, connected),
+                         timeout=REGISTER_TIMEOUT_S)
+
+    def _on_register_reply(self, revision: int, data: bytes, ok_reply: bool) -> None:
+        try:
+            ok, error, retry = parse_reply(data)
+        except DecodeError as exc:
+            ok, error, retry = False, f"unreadable reply from agent ({exc})", True
+        if ok and ok_reply:
+            first = self._token is None
+            if first:
+                assert self.session is not None
+                self._token = self.session.liveliness().declare_token(
+                    keys.service_token(self.realm, self.agent_id, self.service_id))
+            with self._cond:
+                self._registered_revision = revision
+                self._cond.notify_all()
+            self._backoff = RETRY_MIN_S
+            self._outcome.set()
+            log.info("service %s registered with agent %s (revision %d)", self.service_id,
+                     self.agent_id, revision)
+        elif retry or "Timeout" in error:
+            self._schedule_retry()
+        else:
+            self.error = (f"service {self.service_id!r} refused by agent {self.agent_id!r}: "
+                          f"{error}")
+            log.error("%s", self.error)
+            self._outcome.set()
+            with self._cond:
+                self._cond.notify_all()
+
+    def _on_register_done(self, answered: bool) -> None:
+        self._registering = False
+        if not answered:
+            self._schedule_retry()
+
+    def _schedule_retry(self) -> None:
+        self._next_try = time.monotonic() + self._backoff
+        self._backoff = min(RETRY_MAX_S, self._backoff * 2)
+
+    def _on_descriptor_query(self, query: zenoh.Query) -> None:
+        try:
+            with self._lock:
+                desc = encode_descriptor(self._descriptor_locked())
+            connected = {n.name: [m.key for m in n.matches] for n in self._needs.values()}
+            query.reply(query.key_expr, descriptor_reply(desc, self.instance,
+                                                         self._revision, connected))
+        finally:
+            query.drop()
+
+    def _on_control(self, data: bytes) -> None:
+        ctl_key = keys.control(self.realm, self.agent_id, self.service_id)
+        try:
+            ctl = parse_control(data, self.realm)
+        except DecodeError as exc:
+            self._bad.warning(f"control {ctl_key}", f"dropped: {exc}")
+            return
+        need = self._needs.get(ctl.need)
+        if need is None:
+            self._bad.warning(f"control {ctl_key}", f"names unknown need {ctl.need!r}")
+            return
+        if ctl.epoch == need.last[0] and ctl.seq <= need.last[1]:
+            return  # older than what was applied
+        need.last = (ctl.epoch, ctl.seq)
+        self._apply(need, ctl.matches, ctl.satisfied)
+
+    def _apply(self, need: NeedHandle, matches: tuple[Match, ...], satisfied: bool) -> None:
+        """Subscribe to exactly ``matches`` (keeping links that stay)."""
+        assert self.session is not None
+        wanted = {m.key: m for m in matches}
+        for key in list(need.links):
+            if key not in wanted:
+                with contextlib.suppress(Exception):
+                    need.links.pop(key).subscriber.undeclare()
+        for key, m in wanted.items():
+            link = need.links.get(key)
+            if link is not None:
+                link.match = m  # attributes may have changed
+                continue
+            link = _Link(m)
+            link.subscriber = self.session.declare_subscriber(
+                key, lambda smp, n=need, ln=link: self._on_data(n, ln, smp))
+            need.links[key] = link
+        with self._cond:
+            if need.matches != matches:
+                log.info("service %s: need %s -> %s", self.service_id, need.name,
+                         ", ".join(m.key for m in matches) or "nothing")
+            need.matches, need.satisfied = matches, satisfied
+            self._cond.notify_all()
+
+    # -- data
+    def _on_data(self, need: NeedHandle, link: _Link, smp: zenoh.Sample) -> None:
+        try:
+            self._samples.put_nowait((need, link, smp.payload.to_bytes()))
+        except queue.Full:
+            self._bad.warning(f"service {self.service_id} need {need.name}",
+                              "callback queue full (on_sample too slow); samples dropped")
+
+    def _dispatch(self) -> None:
+        while True:
+            item = self._samples.get()
+            if item is None or self.closed:
+                return
+            need, link, data = item
+            if link.match.key not in need.links:
+                continue  # disconnected meanwhile
+            try:
+                m = decode_measurement(data, expected_type=need.need.type)
+            except DecodeError as exc:
+                self._bad.warning(f"data {link.match.key}", f"dropped: {exc}")
+                continue
+            m.edge, m.source, m.attributes = (link.match.edge, link.match.service_id,
+                                              link.match.attributes)
+            if need.on_sample is None:
+                continue
+            try:
+                need.on_sample(m)
+            except Exception as exc:
+                if self._bad.warning(f"service {self.service_id} need {need.name}",
+                                     f"on_sample raised {type(exc).__name__}: {exc}"):
+                    log.debug("on_sample traceback", exc_info=True)

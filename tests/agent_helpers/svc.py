@@ -1,0 +1,124 @@
+"""A scriptable test service: publishes a pose ability and/or receives a need, and reports
+what happens as JSON lines on stdout.  Commands on stdin change it while it runs.
+
+    python -m tests.agent_helpers.svc --id cam1 --realm R --agent A --connect EP \\
+        [--ability pose --edge ivy/world alice/head --rate 100 --attr frequency_hz=100] \\
+        [--need head --need-edge ivy/world '*/head' --where 'frequency_hz >= 30' \\
+         --prefer latency_s]
+
+stdout events: ``{"event": "started"}``, ``{"event": "refused", "error": ...}``,
+``{"event": "match", "need", "keys"}``, ``{"event": "first", "source", "recv_ns", "t_ns"}``
+(first sample from a source since the last change of source), ``{"event": "counts",
+"counts": {source: n}}`` every 0.25 s.
+stdin commands: ``rate HZ`` (publishing rate), ``update NAME=VALUE ...`` (attributes).
+SIGTERM closes the service cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+
+from agent.errors import UmaError
+from agent.service import Service
+
+
+def emit(**event: object) -> None:
+    print(json.dumps(event), flush=True)
+
+
+def attr(text: str) -> tuple[str, object]:
+    name, _, value = text.partition("=")
+    try:
+        return name, json.loads(value)
+    except ValueError:
+        return name, value
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--id", required=True)
+    ap.add_argument("--realm", required=True)
+    ap.add_argument("--agent", required=True)
+    ap.add_argument("--connect", action="append", default=[])
+    ap.add_argument("--ability")
+    ap.add_argument("--edge", nargs=2, default=["ivy/world", "alice/head"])
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--attr", action="append", default=[], type=attr)
+    ap.add_argument("--need")
+    ap.add_argument("--need-edge", nargs=2, default=["ivy/world", "*/head"])
+    ap.add_argument("--where")
+    ap.add_argument("--prefer")
+    ap.add_argument("--max-count", type=int, default=1)
+    args = ap.parse_args()
+
+    counts: dict[str, int] = {}
+    last_source: list[str | None] = [None]
+    lock = threading.Lock()
+
+    def on_sample(m) -> None:
+        with lock:
+            counts[m.source] = counts.get(m.source, 0) + 1
+            if m.source != last_source[0]:
+                last_source[0] = m.source
+                emit(event="first", source=m.source, recv_ns=time.time_ns(), t_ns=m.t_ns,
+                     attributes=m.attributes, edge=m.edge)
+
+    svc = Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect)
+    out = None
+    if args.ability:
+        out = svc.ability(args.ability, type="pose6d", edge=tuple(args.edge), **dict(args.attr))
+    if args.need:
+        svc.need(args.need, type="pose6d", edge=tuple(args.need_edge), where=args.where,
+                 prefer=args.prefer, max_count=args.max_count, on_sample=on_sample)
+    try:
+        svc.start()
+    except UmaError as exc:
+        emit(event="refused", error=str(exc))
+        return 3
+    emit(event="started", registered=svc.wait_registered(0))
+    rate = [args.rate]
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    def commands() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if not words:
+                continue
+            if words[0] == "rate":
+                rate[0] = float(words[1])
+            elif words[0] == "update" and out is not None:
+                out.update(**dict(attr(w) for w in words[1:]))
+            emit(event="ack", command=words[0])
+
+    threading.Thread(target=commands, daemon=True).start()
+    last_keys: list[str] | None = None
+    next_pub = next_report = time.monotonic()
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if out is not None and now >= next_pub:
+                out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+                next_pub = max(next_pub + 1.0 / rate[0], now - 0.1)
+            if args.need:
+                keys = [m.key for m in svc.matches(args.need)]
+                if keys != last_keys:
+                    last_keys = keys
+                    emit(event="match", need=args.need, keys=keys)
+            if now >= next_report:
+                next_report = now + 0.25
+                with lock:
+                    emit(event="counts", counts=dict(counts))
+            time.sleep(max(0.0, min(next_pub, now + 0.01) - time.monotonic()))
+    finally:
+        svc.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
