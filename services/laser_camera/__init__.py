@@ -1,1 +1,14 @@
-"""laser_camera service."""
+"""MARVIN's laser-dot camera tracker (seed 003 ch. 5).
+
+The pure pipeline (no I/O) for reuse in evaluations and other services::
+
+    from services.laser_camera import Calibration, LaserTracker
+    tracker = LaserTracker(Calibration.load("ivy.json"))
+    result = tracker.process({"front": img, ...}, t)   # PoseEstimate or NoPose
+"""
+
+from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
+
+__all__ = ["Calibration", "LaserTracker", "NoPose", "PoseEstimate", "TrackerParams",
+           "calibrate_sim"]

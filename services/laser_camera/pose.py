@@ -1,0 +1,117 @@
+"""Pose of the laser housing from its four wall hits (seed 003 §5.3, fig. 5.4, eqs. 5.6-5.9).
+
+With the hits labeled P1..P4 (beams 1 and 2 opposite, 3 and 4 orthogonal to them and to
+each other, all through P0):
+
+* P0 is the foot of the perpendicular from P3 on the line P1P2 (§5.3);
+* beam 3 points from P0 to P3; the normal ``n = P0P1 x P0P3`` points along beam 4;
+* in the rig frame of ``services.sim.laser_housing`` (beams +y, -y, -x, +z) the rig's x
+  axis is ``-unit(P0P3)``, its z axis ``unit(n)`` and y = z x x.
+
+The labels are unknown: all 24 assignments are scored by eq. 5.6,
+``eps = eps_perp + D + F``: ``eps_perp`` sums the five |dot products| of directions that
+must be perpendicular (eq. 5.7; unit vectors here, so the term is a sum of cosines and does
+not grow with the size of the cube), ``D`` the squared distance (m^2) between P0 and the
+P0' found from P4 instead of P3 (eq. 5.8), ``F`` is 1 when the normal points away from P4
+(eq. 5.9).  The correct labeling and its reflection (2, 1, 4, 3) -- the housing turned
+180 degrees about the bisector of beams 3 and 4 -- score exactly alike; the tracker picks
+between them by temporal coherence (``tracker``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import permutations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+
+#: every assignment of four points to the diodes: PERMUTATIONS[i][k] = index of the point
+#: labeled diode k + 1
+PERMUTATIONS = np.array(list(permutations(range(4))))
+
+
+@dataclass(frozen=True)
+class LabeledPose:
+    """A rig pose computed from one labeling of four wall points."""
+
+    position: np.ndarray  # P0, world
+    quaternion: np.ndarray  # rig in world, xyzw
+    order: tuple[int, int, int, int]  # indices of the points labeled diodes 1..4
+    error: float  # eps of eq. 5.6
+
+
+def frame_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rig pose (P0, rotation matrix) from four labeled hits ``P`` (4, 3), rows P1..P4.
+
+    Raises ``ValueError`` when P1 and P2 coincide or P3 lies on the line P1P2 (no frame).
+    """
+    P1, P2, P3 = P[0], P[1], P[2]
+    d12 = P2 - P1
+    L2 = float(d12 @ d12)
+    if L2 < 1e-12:
+        raise ValueError("pose: P1 and P2 coincide")
+    P0 = P1 + ((P3 - P1) @ d12) / L2 * d12
+    v3 = P3 - P0
+    n = np.cross(P1 - P0, v3)
+    n3, nn = np.linalg.norm(v3), np.linalg.norm(n)
+    if n3 < 1e-9 or nn < 1e-12:
+        raise ValueError("pose: P3 lies on the line P1P2")
+    x = -v3 / n3
+    z = n / nn
+    return P0, np.column_stack([x, np.cross(z, x), z])
+
+
+def labeling_errors(points: np.ndarray) -> np.ndarray:
+    """eps(i) of eq. 5.6 for all 24 labelings of four points (4, 3), vectorised; ``inf``
+    where a labeling defines no frame."""
+    P = points[PERMUTATIONS]  # (24, 4, 3): P[i, k] = point labeled diode k + 1
+    P1, P2, P3, P4 = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
+    d12 = P2 - P1
+    L2 = np.einsum("ij,ij->i", d12, d12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        P0 = P1 + (np.einsum("ij,ij->i", P3 - P1, d12) / L2)[:, None] * d12
+        P0b = P1 + (np.einsum("ij,ij->i", P4 - P1, d12) / L2)[:, None] * d12
+        u = [_unit(Pk - P0) for Pk in (P1, P2, P3, P4)]
+        u1, u2, u3, u4 = u
+        perp = (np.abs(_dot(u4, u1)) + np.abs(_dot(u4, u2)) + np.abs(_dot(u4, u3))
+                + np.abs(_dot(u1, u3)) + np.abs(_dot(u2, u3)))
+        D = np.einsum("ij,ij->i", P0 - P0b, P0 - P0b)
+        n = np.cross(P1 - P0, P3 - P0)
+        F = (_dot(n, P4 - P0) <= 0).astype(float)
+        eps = perp + D + F
+    return np.where(np.isfinite(eps), eps, np.inf)
+
+
+def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
+    """Poses of the labelings with ``eps <= max_error``, best first (the thesis keeps the
+    two best: the correct one and its reflection)."""
+    points = np.asarray(points, float)
+    if points.shape != (4, 3) or not np.all(np.isfinite(points)):
+        raise ValueError(f"pose: need four finite 3-D points, got shape {points.shape}")
+    eps = labeling_errors(points)
+    out = []
+    for i in np.argsort(eps, kind="stable"):
+        if not eps[i] <= max_error:
+            break
+        order = tuple(int(k) for k in PERMUTATIONS[i])
+        try:
+            P0, R = frame_from_points(points[list(order)])
+        except ValueError:
+            continue
+        out.append(LabeledPose(P0, geo.matrix_to_quat(R), order, float(eps[i])))
+    return out
+
+
+def reflection(order: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """The labeling that scores like ``order``: diodes (1, 2, 3, 4) -> (2, 1, 4, 3)."""
+    return (order[1], order[0], order[3], order[2])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", a, b)

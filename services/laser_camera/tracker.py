@@ -1,0 +1,264 @@
+"""The laser-dot tracker pipeline, pure (no I/O): camera images in, a rig pose or a reason
+for having none out.
+
+``LaserTracker(calibration).process(images, t)`` runs, per frame set (seed 003 fig. 5.2):
+
+1. dot detection in every image (``detection``), undistortion, image -> screen
+   homography, screen -> world (eq. 5.40); dots near a screen's edge are dropped (a spot
+   clipped by the frame has a biased centroid) and dots seen by two overlapping cameras
+   merged;
+2. with four or more dots, every 4-subset and all 24 labelings scored by eq. 5.6
+   (``pose``); labelings above ``max_labeling_error`` are impossible geometries;
+3. the choice among the survivors -- the true labeling and its reflection always score
+   alike -- by temporal coherence: the smallest error-quaternion angle to the previous
+   pose (eqs. 5.10-5.11); with no recent pose, by the upright assumption of the thesis'
+   initialisation (the head's up axis, the rig's z, is the one closer to the world's up);
+4. gating: a pose that moved or turned faster than a head can is refused;
+5. a 6x6 covariance by first-order propagation of each dot's measured uncertainty.
+
+Anything that prevents a pose (fewer than four dots, no consistent labeling, a gated
+jump, ...) yields ``NoPose`` with the reason, counted in ``tracker.counts`` -- never an
+exception.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from services.laser_camera.calibration import Calibration
+from services.laser_camera.detection import STD, U, V, detect_dots
+from services.laser_camera.homography import apply_homography
+from services.laser_camera.pose import LabeledPose, candidate_poses, frame_from_points
+
+#: why a frame set gave no pose
+NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
+                   "not_upright", "gated_jump", "degenerate")
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Tuning of the tracker; defaults suit IVY and human head motion."""
+
+    max_labeling_error: float = 0.08  # eps of eq. 5.6 (sum of cosines + m^2 + 0/1)
+    edge_guard_m: float = 0.012  # drop dots this close to a screen's edge
+    merge_world_m: float = 0.03  # dots of overlapping cameras closer than this are one
+    max_dots: int = 8  # more candidates than this: no pose (C(8, 4) = 70 subsets at most)
+    max_angular_speed_dps: float = 500.0  # gating: faster turns are refused
+    max_speed_mps: float = 3.0  # gating: faster moves are refused
+    gate_margin_deg: float = 3.0
+    gate_margin_m: float = 0.05
+    coherence_s: float = 0.3  # beyond this gap without a pose, re-initialise (upright)
+    min_upright_cos: float = 0.3  # initialisation needs the rig's z within ~73 deg of up
+    init_pool_eps: float = 0.02  # labelings this close to the best compete at initialisation
+    calib_sigma_m: float = 0.0005  # calibration error of a dot on the screen (1 sigma)
+
+    def __post_init__(self) -> None:
+        if self.max_dots < 4:
+            raise ValueError("max_dots must be at least 4")
+        if self.coherence_s <= 0 or self.max_labeling_error <= 0:
+            raise ValueError("coherence_s and max_labeling_error must be positive")
+
+
+@dataclass(frozen=True)
+class WorldDots:
+    """Dots of one frame set in world coordinates."""
+
+    points: np.ndarray  # (n, 3)
+    std_m: np.ndarray  # (n,) in-plane standard deviation of each dot
+    walls: list[str]  # wall of each dot
+    axes: np.ndarray  # (n, 2, 3) the wall's in-plane unit axes (for error propagation)
+    cameras: list[str]
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A rig pose (``marvin/laser_rig`` in ``ivy/world``) from one frame set."""
+
+    t: float
+    position: np.ndarray  # (3,) P0, metres
+    quaternion: np.ndarray  # (4,) xyzw
+    covariance: np.ndarray  # (6, 6) over xi = [rho, phi], left perturbation
+    dots: dict[int, np.ndarray]  # diode label -> world point of its spot
+    dot_std_m: dict[int, float]  # diode label -> in-plane std of that spot
+    labeling_error: float  # eps of the chosen labeling
+    n_dots: int  # candidates detected
+    reinitialised: bool  # chosen by the upright rule, not temporal coherence
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return True
+
+
+@dataclass(frozen=True)
+class NoPose:
+    """No pose for this frame set, and why (one of ``NO_POSE_REASONS``)."""
+
+    t: float
+    reason: str
+    n_dots: int
+    detail: str = ""
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return False
+
+
+class LaserTracker:
+    """Rig poses from synchronous camera images, with temporal coherence between calls."""
+
+    def __init__(self, calibration: Calibration, params: TrackerParams | None = None):
+        self.calibration = calibration
+        self.params = params or TrackerParams()
+        self.counts: Counter[str] = Counter()
+        self._last: PoseEstimate | None = None
+
+    def reset(self) -> None:
+        """Forget the previous pose: the next one is chosen by the upright rule."""
+        self._last = None
+
+    @property
+    def last_pose(self) -> PoseEstimate | None:
+        return self._last
+
+    # ------------------------------------------------------------------ pipeline
+
+    def process(self, images: Mapping[str, np.ndarray], t: float) -> PoseEstimate | NoPose:
+        """One frame set (camera name -> 8-bit image) taken at ``t`` seconds."""
+        t0 = time.perf_counter()
+        dots = self.detect(images)
+        t1 = time.perf_counter()
+        result = self.solve(dots, t)
+        t2 = time.perf_counter()
+        timing = {"detect": t1 - t0, "pose": t2 - t1, "total": t2 - t0}
+        object.__setattr__(result, "timing_s", timing)
+        return result
+
+    def detect(self, images: Mapping[str, np.ndarray]) -> WorldDots:
+        """World-frame dots of all images; unknown camera names raise ``ValueError``."""
+        pts, std, walls, axes, cams = [], [], [], [], []
+        guard = self.params.edge_guard_m
+        for name, img in images.items():
+            cal = self.calibration.camera(name)
+            det = detect_dots(img, cal.detector)
+            if not len(det):
+                continue
+            und = cal.undistort(det[:, [U, V]])
+            xy = apply_homography(cal.H, und)
+            keep = cal.wall.on_screen(xy, guard)
+            for i in np.flatnonzero(keep):
+                mpp = cal.metres_per_pixel(und[i])
+                pts.append(cal.wall.to_world(xy[i])[0])
+                std.append(float(np.hypot(det[i, STD] * mpp, self.params.calib_sigma_m)))
+                walls.append(cal.wall.name)
+                axes.append(cal.wall.rotation[:, :2].T)
+                cams.append(name)
+        dots = WorldDots(np.array(pts).reshape(-1, 3), np.array(std), walls,
+                         np.array(axes).reshape(-1, 2, 3), cams)
+        return _merge_duplicates(dots, self.params.merge_world_m)
+
+    def solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
+        """The pose from world-frame dots (``detect``'s output), with temporal coherence."""
+        p = self.params
+        n = len(dots.points)
+        if n < 4:
+            return self._fail(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
+        if n > p.max_dots:
+            return self._fail(t, "too_many_dots", n, f"{n} candidates > max_dots {p.max_dots}")
+        cands: list[tuple[LabeledPose, tuple[int, ...]]] = []
+        for subset in combinations(range(n), 4):
+            for c in candidate_poses(dots.points[list(subset)], p.max_labeling_error):
+                cands.append((c, subset))
+        if not cands:
+            return self._fail(t, "no_consistent_labeling", n,
+                              f"no labeling of {n} dots fits the housing (eps > "
+                              f"{p.max_labeling_error})")
+        last = self._last
+        tracking = last is not None and 0 <= t - last.t <= p.coherence_s
+        if tracking:
+            angles = [float(geo.quat_angle(last.quaternion, c.quaternion)) for c, _ in cands]
+            best, subset = cands[int(np.argmin(angles))]
+            dt = t - last.t
+            turn = np.degrees(min(angles))
+            move = float(np.linalg.norm(best.position - last.position))
+            if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
+                    or move > p.max_speed_mps * dt + p.gate_margin_m:
+                return self._fail(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
+                                  f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
+        else:
+            # the true labeling and its reflection score alike up to noise
+            eps_min = min(c.error for c, _ in cands)
+            pool = [(c, s) for c, s in cands if c.error <= eps_min + p.init_pool_eps]
+            ups = [float(geo.quat_rotate(c.quaternion, [0.0, 0.0, 1.0])[2]) for c, _ in pool]
+            k = int(np.argmax(ups))
+            if ups[k] < p.min_upright_cos:
+                return self._fail(t, "not_upright", n, "initialisation needs an upright head "
+                                  f"(best up-axis cosine {ups[k]:.2f})")
+            best, subset = pool[k]
+        idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
+        try:
+            cov = _covariance(dots, idx, best.position)
+        except ValueError as exc:
+            return self._fail(t, "degenerate", n, str(exc))
+        est = PoseEstimate(
+            t, best.position, best.quaternion, cov,
+            {k + 1: dots.points[i] for k, i in enumerate(idx)},
+            {k + 1: float(dots.std_m[i]) for k, i in enumerate(idx)},
+            best.error, n, not tracking)
+        self._last = est
+        self.counts["pose"] += 1
+        return est
+
+    def _fail(self, t: float, reason: str, n: int, detail: str) -> NoPose:
+        self.counts[reason] += 1
+        return NoPose(t, reason, n, detail)
+
+
+def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
+    """One dot per spot: overlapping cameras (the split floor and ceiling) see some twice."""
+    n = len(d.points)
+    if n < 2:
+        return d
+    keep = np.ones(n, bool)
+    pts, std = d.points.copy(), d.std_m.copy()
+    for i in range(n):
+        for j in range(i + 1, n):
+            if keep[i] and keep[j] and d.walls[i] == d.walls[j] \
+                    and np.linalg.norm(pts[i] - pts[j]) < tol:
+                wi, wj = 1 / std[i] ** 2, 1 / std[j] ** 2
+                pts[i] = (wi * pts[i] + wj * pts[j]) / (wi + wj)
+                std[i] = 1 / np.sqrt(wi + wj)
+                keep[j] = False
+    if keep.all():
+        return d
+    k = np.flatnonzero(keep)
+    return WorldDots(pts[k], std[k], [d.walls[i] for i in k], d.axes[k],
+                     [d.cameras[i] for i in k])
+
+
+def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
+                step_m: float = 1e-4) -> np.ndarray:
+    """6x6 pose covariance (xi form) from the dots' in-plane errors, by numeric Jacobian of
+    the closed-form solution: each dot moves along its wall's two axes."""
+    P = dots.points[idx]
+    base_p, base_R = frame_from_points(P)
+    cols, var = [], []
+    for k, i in enumerate(idx):
+        for axis in dots.axes[i]:
+            Q = P.copy()
+            Q[k] += step_m * axis
+            p, R = frame_from_points(Q)
+            dphi = geo.rodrigues_inverse(R @ base_R.T)  # world-frame (left) rotation error
+            cols.append(np.concatenate([(p - base_p), dphi]) / step_m)
+            var.append(dots.std_m[i] ** 2)
+    J = np.array(cols).T  # (6, 8)
+    C = (J * np.array(var)) @ J.T
+    return geo.decoupled_to_se3(p0, 0.5 * (C + C.T))

@@ -1,0 +1,143 @@
+"""IVY's projection surfaces: the faces of the cube, their screens and screen->world maps.
+
+Seed 003 §5.4.3 maps a point ``(X, Y)`` on a screen to the world by a rigid transform per
+wall (eq. 5.40)::
+
+    [x, y, z]^T = R_wall [X, Y, Pi_wall]^T - T_wall
+
+with ``R_wall`` the screen axes in world coordinates, ``Pi_wall`` the distance from the
+world origin to the wall and ``T_wall`` the offset of the screen origin, one corner of the
+screen (thesis table 5.1).  Here the columns of ``R_wall`` are the screen's X axis, its Y
+axis and the wall's outward normal, so ``X x Y = normal`` on every wall and a camera behind
+a screen always sees it mirrored (the calibration relies on that to order checkerboard
+corners).
+
+Only the active area of a screen (``screen_side_m``, centred on its face) shows a laser
+spot; the remaining band at the edges is the frame and seams of the cube, where a beam
+gives no spot -- the "holes" of thesis fig. 5.14.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.sim.trajectory import CUBE_SIDE_M
+
+#: default active screen side: the 2.44 m cube minus a 4 cm frame/seam band at each edge
+SCREEN_SIDE_M = 2.36
+
+# face name -> (screen X axis, screen Y axis, outward normal); X x Y = normal
+_FACES: dict[str, tuple[tuple[float, ...], ...]] = {
+    "front": ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
+    "back": ((0, -1, 0), (0, 0, 1), (-1, 0, 0)),
+    "left": ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+    "right": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "ceiling": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "floor": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+}
+WALL_NAMES = tuple(_FACES)
+
+
+@dataclass(frozen=True)
+class Wall:
+    """One face of the cube and its screen, in the terms of eq. 5.40."""
+
+    name: str
+    rotation: np.ndarray  # R_wall (3x3): columns screen X, screen Y, outward normal
+    translation: np.ndarray  # T_wall (3,), metres
+    plane_distance: float  # Pi_wall, metres
+    screen_side_m: float  # side of the active (spot-showing) screen area
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Outward unit normal in world coordinates."""
+        return self.rotation[:, 2]
+
+    def to_world(self, xy: np.ndarray) -> np.ndarray:
+        """Screen points (n, 2) in metres to world points (n, 3) by eq. 5.40."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        xyz = np.column_stack([xy, np.full(len(xy), self.plane_distance)])
+        return xyz @ self.rotation.T - self.translation
+
+    def to_screen(self, points: np.ndarray) -> np.ndarray:
+        """World points (n, 3) on the wall's plane to screen coordinates (n, 2)."""
+        pts = np.atleast_2d(np.asarray(points, float))
+        return ((pts + self.translation) @ self.rotation)[:, :2]
+
+    def on_screen(self, xy: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+        """Which screen points (n, 2) lie on the active area, at least ``margin_m`` inside."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        lo, hi = margin_m, self.screen_side_m - margin_m
+        return np.all((xy >= lo) & (xy <= hi), axis=1)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "rotation": self.rotation.tolist(),
+                "translation": self.translation.tolist(),
+                "plane_distance": self.plane_distance, "screen_side_m": self.screen_side_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Wall:
+        R = np.asarray(d["rotation"], float)
+        if R.shape != (3, 3) or abs(np.linalg.det(R) - 1.0) > 1e-6:
+            raise ValueError(f"wall {d.get('name')!r}: rotation must be a proper 3x3 rotation")
+        T = np.asarray(d["translation"], float)
+        if T.shape != (3,):
+            raise ValueError(f"wall {d.get('name')!r}: translation must have 3 values")
+        return cls(str(d["name"]), R, T, float(d["plane_distance"]), float(d["screen_side_m"]))
+
+
+def make_walls(cube_side_m: float = CUBE_SIDE_M,
+               screen_side_m: float = SCREEN_SIDE_M) -> dict[str, Wall]:
+    """The six walls of a cube centred on the world origin (z up)."""
+    if not 0 < screen_side_m <= cube_side_m:
+        raise ValueError(f"screen side {screen_side_m} m must be in (0, cube side "
+                         f"{cube_side_m} m]")
+    half = cube_side_m / 2
+    walls = {}
+    for name, (ex, ey, n) in _FACES.items():
+        R = np.column_stack([ex, ey, n]).astype(float)
+        # screen origin = the corner of the active area at -X, -Y
+        T = 0.5 * screen_side_m * (R[:, 0] + R[:, 1])
+        walls[name] = Wall(name, R, T, half, screen_side_m)
+    return walls
+
+
+@dataclass(frozen=True)
+class BeamHit:
+    """Where a beam from inside the cube meets a wall."""
+
+    wall: str
+    point: np.ndarray  # (3,) world
+    direction: np.ndarray  # (3,) unit beam direction, world
+    screen_xy: np.ndarray  # (2,) screen coordinates on that wall
+    cos_incidence: float  # direction . outward normal, in (0, 1]
+    on_screen: bool  # inside the active area (a spot is visible)
+
+
+def intersect_beam(walls: dict[str, Wall], origin: np.ndarray,
+                   direction: np.ndarray) -> BeamHit:
+    """The first wall a ray from ``origin`` (inside the cube) along ``direction`` meets.
+
+    A ray parallel to a wall never meets it; from inside a closed cube it always meets
+    another one, so every ray has a hit (maybe off the active screen).
+    """
+    o = np.asarray(origin, float)
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d)
+    best: tuple[float, Wall] | None = None
+    for wall in walls.values():
+        c = float(d @ wall.normal)
+        if c <= 1e-12:
+            continue
+        s = (wall.plane_distance - float(o @ wall.normal)) / c
+        if s >= 0 and (best is None or s < best[0]):
+            best = (s, wall)
+    if best is None:  # only possible from outside the cube
+        raise ValueError(f"ray from {o.tolist()} along {d.tolist()} meets no wall; "
+                         "is the origin inside the cube?")
+    s, wall = best
+    p = o + s * d
+    xy = wall.to_screen(p)[0]
+    return BeamHit(wall.name, p, d, xy, float(d @ wall.normal), bool(wall.on_screen(xy)[0]))

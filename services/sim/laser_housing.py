@@ -1,0 +1,32 @@
+"""MARVIN's laser-diode housing (seed 003 fig. 5.4, appendix C.2) in the ``marvin/laser_rig``
+frame.
+
+Four diodes whose beams all pass through one point P0, the frame's origin.  Beams 1 and 2
+point in opposite directions along a line (here +y and -y), beam 3 is orthogonal to that
+line (here -x: behind the user) and beam 4 is orthogonal to both (here +z), so that
+``P3P0 . P1P2 = P4P0 . P1P2 = P3P0 . P4P0 = 0`` and the normal ``n = P0P1 x P0P3`` points
+along beam 4.  The rig frame is recovered from four wall hits as origin P0, x = -(unit
+P0P3), z = unit n, y = z x x (``services.laser_camera.pose``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+
+#: diode label -> unit beam direction in the rig frame
+BEAM_DIRECTIONS = {
+    1: np.array([0.0, 1.0, 0.0]),
+    2: np.array([0.0, -1.0, 0.0]),
+    3: np.array([-1.0, 0.0, 0.0]),
+    4: np.array([0.0, 0.0, 1.0]),
+}
+LABELS = (1, 2, 3, 4)
+
+
+def beam_directions_world(q_rig: np.ndarray) -> dict[int, np.ndarray]:
+    """Beam directions in the world for a rig orientation ``q_rig`` (xyzw, rig in world)."""
+    dirs = geo.quat_rotate(np.asarray(q_rig, float)[None, :],
+                           np.stack([BEAM_DIRECTIONS[k] for k in LABELS]))
+    return {k: dirs[i] for i, k in enumerate(LABELS)}

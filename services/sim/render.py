@@ -1,0 +1,166 @@
+"""Rendering of 8-bit camera images: laser spots on a dark background, and checkerboards.
+
+Behind the 650 nm notch filter (seed 003 §5.2) a camera sees a dark frame with a few
+bright laser spots.  A spot is the beam's footprint on the translucent screen: the beam's
+Gaussian cross-section stretched by ``1 / cos(incidence)`` along its in-plane direction,
+blurred by the screen's diffusion, mapped into the image by the local affine map of the
+camera at that point.  Its total energy is fixed, so grazing spots are larger and dimmer;
+head-on spots saturate the sensor, as in the thesis.  Sensor effects: a dark level, read
+and shot noise, rounding to 8 bits, clipping at 255, a few stuck pixels.  Spots are
+rendered with 3x3 sub-pixel samples, so the intensity centroid of a noise-free spot is
+the projection of its centre to a few hundredths of a pixel.
+
+Calibration patterns (checkerboards held in front of a camera, or projected on a screen)
+are rendered by intersecting every sub-pixel viewing ray with the pattern's plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.sim.camera import Camera
+
+_SUB = (np.arange(3) - 1) / 3.0  # 3x3 sub-pixel sample offsets
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """8-bit sensor behind the notch filter."""
+
+    dark_level_dn: float = 8.0
+    read_noise_dn: float = 1.5
+    gain_dn_per_e: float = 0.1  # shot noise variance = gain * signal
+    stuck_pixels: int = 3  # per camera, always 255 (hot pixels)
+
+
+@dataclass(frozen=True)
+class Spot:
+    """A Gaussian blob in the image: centre (px), 2x2 covariance (px^2), energy (DN px^2),
+    and an optional screen clip (pixels whose screen point is off the active area are
+    dark): ``(A, b, side)`` maps a pixel ``uv`` to screen ``A @ uv + b``."""
+
+    uv: np.ndarray
+    cov: np.ndarray
+    energy: float
+    clip: tuple[np.ndarray, np.ndarray, float] | None = None
+
+
+def spot_window(spots: list[Spot], width: int, height: int) -> tuple[int, int, int, int]:
+    """Pixel box (u0, u1, v0, v1), exclusive ends, covering all blobs to 4 sigma."""
+    lo = np.array([np.inf, np.inf])
+    hi = -lo
+    for s in spots:
+        r = 4.0 * np.sqrt(np.diag(s.cov)) + 1.0
+        lo = np.minimum(lo, s.uv - r)
+        hi = np.maximum(hi, s.uv + r)
+    u0, v0 = max(0, int(np.floor(lo[0]))), max(0, int(np.floor(lo[1])))
+    u1, v1 = min(width, int(np.ceil(hi[0])) + 1), min(height, int(np.ceil(hi[1])) + 1)
+    return u0, u1, v0, v1
+
+
+def render_spots(spots: list[Spot], box: tuple[int, int, int, int]) -> np.ndarray:
+    """Signal (DN, float) of the blobs in a pixel box, averaged over 3x3 sub-samples."""
+    u0, u1, v0, v1 = box
+    us = (np.arange(u0, u1)[:, None] + _SUB).ravel()
+    vs = (np.arange(v0, v1)[:, None] + _SUB).ravel()
+    uu, vv = np.meshgrid(us, vs)
+    out = np.zeros_like(uu)
+    for s in spots:
+        inv = np.linalg.inv(s.cov)
+        du, dv = uu - s.uv[0], vv - s.uv[1]
+        m = inv[0, 0] * du * du + 2 * inv[0, 1] * du * dv + inv[1, 1] * dv * dv
+        g = s.energy / (2 * np.pi * np.sqrt(np.linalg.det(s.cov))) * np.exp(-0.5 * m)
+        if s.clip is not None:
+            A, b, side = s.clip
+            xs = A[0, 0] * uu + A[0, 1] * vv + b[0]
+            ys = A[1, 0] * uu + A[1, 1] * vv + b[1]
+            g *= (xs >= 0) & (xs <= side) & (ys >= 0) & (ys <= side)
+        out += g
+    h, w = v1 - v0, u1 - u0
+    return out.reshape(h, 3, w, 3).mean(axis=(1, 3))
+
+
+class NoiseBank:
+    """Dark frames with read noise, pre-rendered once per camera; each image takes a random
+    crop of one.  Fresh Gaussian noise for every 640x480 frame would dominate the cost of
+    rendering, and detection never looks at the noise of two frames together."""
+
+    PAD = 32
+
+    def __init__(self, cam: Camera, sensor: SensorModel, rng: np.random.Generator,
+                 n_frames: int = 4):
+        shape = (n_frames, cam.height + self.PAD, cam.width + self.PAD)
+        noise = sensor.dark_level_dn + sensor.read_noise_dn * rng.standard_normal(shape)
+        self.frames = np.clip(np.rint(noise), 0, 255).astype(np.uint8)
+        flat = rng.choice(cam.width * cam.height, sensor.stuck_pixels, replace=False)
+        self.stuck = np.unravel_index(flat, (cam.height, cam.width))
+        self.size = (cam.height, cam.width)
+
+    def dark_frame(self, rng: np.random.Generator) -> np.ndarray:
+        k = rng.integers(len(self.frames))
+        oy, ox = rng.integers(0, self.PAD + 1, 2)
+        img = self.frames[k, oy:oy + self.size[0], ox:ox + self.size[1]].copy()
+        img[self.stuck] = 255
+        return img
+
+
+def add_spots(img: np.ndarray, spots: list[Spot], sensor: SensorModel,
+              rng: np.random.Generator) -> None:
+    """Draw blobs into an 8-bit image in place, with shot and read noise, rounding and
+    saturation in their window."""
+    if not spots:
+        return
+    h, w = img.shape
+    box = spot_window(spots, w, h)
+    u0, u1, v0, v1 = box
+    if u1 <= u0 or v1 <= v0:
+        return
+    signal = render_spots(spots, box)
+    std = np.sqrt(sensor.read_noise_dn ** 2 + sensor.gain_dn_per_e * signal)
+    val = sensor.dark_level_dn + signal + std * rng.standard_normal(signal.shape)
+    win = img[v0:v1, u0:u1]
+    # keep stuck pixels stuck: take the max with what is there
+    np.maximum(np.clip(np.rint(val), 0, 255).astype(np.uint8),
+               np.where(win == 255, win, 0).astype(np.uint8), out=win)
+
+
+def render_plane_pattern(cam: Camera, origin: np.ndarray, axis_a: np.ndarray,
+                         axis_b: np.ndarray, pattern, supersample: int = 2,
+                         background: float = 20.0, blur_px: float = 0.7) -> np.ndarray:
+    """8-bit image of a planar pattern: ``pattern(a, b)`` gives the brightness (0..255, NaN
+    where the plane shows nothing) at plane coordinates ``(a, b)`` along the unit axes
+    ``axis_a``, ``axis_b`` from ``origin``, seen through a lens blurring by ``blur_px``."""
+    rays = cam.pixel_rays(supersample)
+    n = np.cross(axis_a, axis_b)
+    denom = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = ((origin - cam.center) @ n) / denom
+    pts = cam.center + s[..., None] * rays - origin
+    a, b = pts @ axis_a, pts @ axis_b
+    val = pattern(a, b)
+    val = np.where((s > 0) & np.isfinite(val), val, background)
+    k = supersample
+    val = val.reshape(cam.height, k, cam.width, k).mean(axis=(1, 3))
+    if blur_px > 0:  # the lens' point spread; also removes the rest of the aliasing
+        val = cv2.GaussianBlur(val, (0, 0), blur_px)
+    return np.clip(np.rint(val), 0, 255).astype(np.uint8)
+
+
+def checkerboard(square_m: float, n_squares: tuple[int, int], black: float = 30.0,
+                 white: float = 220.0, border_m: float = 0.0, border: float = 220.0):
+    """A pattern function for ``render_plane_pattern``: ``n_squares`` (along a, along b)
+    squares from (0, 0), square (0, 0) black, surrounded by a ``border_m`` white margin."""
+    na, nb = n_squares
+
+    def pattern(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        ia, ib = np.floor(a / square_m), np.floor(b / square_m)
+        inside = (ia >= 0) & (ia < na) & (ib >= 0) & (ib < nb)
+        ring = (a >= -border_m) & (a <= na * square_m + border_m) \
+            & (b >= -border_m) & (b <= nb * square_m + border_m)
+        val = np.where((ia + ib) % 2 == 0, black, white)
+        return np.where(inside, val, np.where(ring, border, np.nan))
+
+    return pattern

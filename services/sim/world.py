@@ -1,0 +1,270 @@
+"""The simulated IVY world: cube, screens, cameras, the laser housing on a moving head.
+
+``IvyWorld(n_cameras=6, seed=1)`` builds the installation (cameras with their own
+intrinsics, distortion and misalignment, from ``install_seed``) and a head trajectory
+(from ``seed``).  ``world.render(t)`` returns the eight-bit images of all cameras at time
+``t`` with the ground truth; ``world.laser_hits(p, q)`` where the four beams of a rig at
+pose ``(p, q)`` meet the walls.  Rendering is deterministic in ``(seed, t)``, whatever the
+order of calls.  Everything the tracker may know comes from calibration images
+(``intrinsic_views``, ``screen_board``, ``dark_frame``) and the walls' measured geometry,
+never from the ``Camera`` objects themselves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from services.sim import mounts
+from services.sim.camera import Camera, place_camera
+from services.sim.ivy import BeamHit, Wall, intersect_beam, make_walls
+from services.sim.laser_housing import LABELS, beam_directions_world
+from services.sim.render import (
+    NoiseBank,
+    SensorModel,
+    Spot,
+    add_spots,
+    checkerboard,
+    render_plane_pattern,
+)
+from services.sim.trajectory import CUBE_SIDE_M, HeadTrajectory
+
+#: overlap (m) of the two cameras sharing the floor or the ceiling in the 8-camera layout
+SPLIT_OVERLAP_M = 0.1
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Physical parameters of the simulation (defaults: seed 003 ch. 5 and appendix C)."""
+
+    n_cameras: int = 6  # 6: one per screen; 8: floor and ceiling split in two (the thesis)
+    cube_side_m: float = CUBE_SIDE_M
+    screen_side_m: float = 2.36
+    beam_sigma_m: float = 0.0015  # 6 mm spot at 5 m (appendix C.2.1)
+    diffusion_sigma_m: float = 0.005  # blur of the rear-projection screen
+    spot_energy_dn: float = 3000.0  # integrated DN of one spot: head-on spots saturate
+    exposure_s: float = 0.004  # spots smear while the head moves
+    exposure_samples: int = 4
+    distractor_rate: float = 0.02  # stray bright blobs per image (reflections, glints)
+    sensor: SensorModel = field(default_factory=SensorModel)
+
+    def __post_init__(self) -> None:
+        if self.n_cameras not in (6, 8):
+            raise ValueError(f"n_cameras must be 6 (one per screen) or 8 (floor and ceiling "
+                             f"split, as in the thesis), got {self.n_cameras}")
+        if self.exposure_samples < 1 or self.exposure_s < 0:
+            raise ValueError("exposure_s must be >= 0 and exposure_samples >= 1")
+
+
+@dataclass
+class Frame:
+    """One synchronous set of camera images and what really happened."""
+
+    t: float
+    images: dict[str, np.ndarray]  # camera name -> (480, 640) uint8
+    rig_position: np.ndarray  # ground truth marvin/laser_rig in ivy/world
+    rig_quaternion: np.ndarray
+    hits: dict[int, BeamHit]  # diode label -> wall hit at t
+    image_points: dict[str, dict[int, np.ndarray]]  # camera -> label -> true pixel (u, v)
+    n_distractors: int
+
+    @property
+    def visible_labels(self) -> set[int]:
+        """Diodes whose spot some camera sees."""
+        return {k for pts in self.image_points.values() for k in pts}
+
+
+class IvyWorld:
+    """The IVY display with its cameras and a head wearing the laser housing."""
+
+    def __init__(self, n_cameras: int = 6, seed: int = 0, install_seed: int = 0,
+                 trajectory: HeadTrajectory | None = None, config: WorldConfig | None = None):
+        self.config = config or WorldConfig(n_cameras=n_cameras)
+        if config is not None and config.n_cameras != n_cameras and n_cameras != 6:
+            raise ValueError("give n_cameras either directly or in config, not both")
+        self.seed = seed
+        self.walls: dict[str, Wall] = make_walls(self.config.cube_side_m,
+                                                 self.config.screen_side_m)
+        self.cameras: list[Camera] = _install_cameras(self.walls, self.config, install_seed)
+        self.trajectory = trajectory or HeadTrajectory(seed)
+        self._noise = {c.name: NoiseBank(c, self.config.sensor,
+                                         np.random.default_rng([install_seed, i, 7]))
+                       for i, c in enumerate(self.cameras)}
+
+    # ------------------------------------------------------------------ ground truth
+
+    def rig_pose(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """True pose of ``marvin/laser_rig`` in ``ivy/world`` at ``t`` (s): (n, 3), (n, 4)."""
+        p_h, q_h = self.trajectory.pose(t)
+        return geo.compose(p_h, q_h, *mounts.HEAD_TO_LASER_RIG)
+
+    def laser_hits(self, p: np.ndarray, q: np.ndarray) -> dict[int, BeamHit]:
+        """Where the beams of a rig at pose ``(p, q)`` (rig in world) meet the walls."""
+        p = geo.check_vector(p, "rig position").reshape(3)
+        q = geo.check_quaternion(q, "rig quaternion").reshape(4)
+        half = self.config.cube_side_m / 2
+        if np.any(np.abs(p) >= half):
+            raise ValueError(f"rig position {p.tolist()} is outside the cube (half side "
+                             f"{half} m)")
+        dirs = beam_directions_world(q)
+        return {k: intersect_beam(self.walls, p, dirs[k]) for k in LABELS}
+
+    # ------------------------------------------------------------------ rendering
+
+    def render(self, t: float, pose: tuple[np.ndarray, np.ndarray] | None = None) -> Frame:
+        """All camera images at time ``t`` (s).  The rig follows the trajectory (with
+        motion blur over the exposure) unless ``pose`` fixes it (then no blur)."""
+        cfg = self.config
+        rng = np.random.default_rng([self.seed, round(t * 1e6) & 0xFFFFFFFF, 11])
+        if pose is None:
+            n = cfg.exposure_samples
+            ts = t + cfg.exposure_s * ((np.arange(n) + 0.5) / n - 0.5)
+            ps, qs = self.rig_pose(ts)
+            p_t, q_t = self.rig_pose(t)
+            p_t, q_t = p_t[0], q_t[0]
+        else:
+            p_t = geo.check_vector(pose[0], "rig position").reshape(3)
+            q_t = geo.check_quaternion(pose[1], "rig quaternion").reshape(4)
+            ps, qs = p_t[None], q_t[None]
+        sub_hits = [self.laser_hits(p, q) for p, q in zip(ps, qs, strict=True)]
+        hits = self.laser_hits(p_t, q_t)
+        images: dict[str, np.ndarray] = {}
+        image_points: dict[str, dict[int, np.ndarray]] = {}
+        n_distractors = 0
+        for cam in self.cameras:
+            spots = []
+            for hs in sub_hits:
+                spots += [s for h in hs.values()
+                          if (s := self._spot(cam, h, 1.0 / len(sub_hits))) is not None]
+            extra = self._distractors(cam, rng)
+            n_distractors += len(extra)
+            img = self._noise[cam.name].dark_frame(rng)
+            add_spots(img, spots + extra, cfg.sensor, rng)
+            images[cam.name] = img
+            image_points[cam.name] = {
+                k: uv for k, h in hits.items()
+                if h.wall == cam.wall and h.on_screen
+                and cam.in_image(uv := cam.project(h.point[None])[0])[0]}
+        return Frame(t, images, p_t, q_t, hits, image_points, n_distractors)
+
+    def _spot(self, cam: Camera, hit: BeamHit, share: float) -> Spot | None:
+        """The image blob of a beam's footprint, if this camera sees it."""
+        if hit.wall != cam.wall or not hit.on_screen:
+            return None
+        uv = cam.project(hit.point[None])[0]
+        if not cam.in_image(uv)[0]:
+            return None
+        cfg = self.config
+        wall = self.walls[hit.wall]
+        # beam direction in screen coordinates: its in-plane part sets the stretch
+        d = wall.rotation.T @ hit.direction
+        a = d[:2] / max(np.linalg.norm(d[:2]), 1e-12)
+        c = max(hit.cos_incidence, 1e-3)
+        cov_s = cfg.beam_sigma_m ** 2 * (np.eye(2) + (1 / c ** 2 - 1) * np.outer(a, a)) \
+            + cfg.diffusion_sigma_m ** 2 * np.eye(2)
+        J = cam.screen_to_image_jacobian(wall, hit.screen_xy)
+        A = np.linalg.inv(J)
+        clip = (A, hit.screen_xy - A @ uv, wall.screen_side_m)
+        return Spot(uv, J @ cov_s @ J.T, cfg.spot_energy_dn * share, clip)
+
+    def _distractors(self, cam: Camera, rng: np.random.Generator) -> list[Spot]:
+        n = rng.poisson(self.config.distractor_rate)
+        out = []
+        for _ in range(n):
+            uv = rng.uniform([20, 20], [cam.width - 20, cam.height - 20])
+            sig = rng.uniform(0.7, 2.5)
+            out.append(Spot(uv, sig ** 2 * np.eye(2),
+                            self.config.spot_energy_dn * rng.uniform(0.3, 1.5)))
+        return out
+
+    # ------------------------------------------------------------------ calibration
+
+    def camera(self, name: str) -> Camera:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise ValueError(f"no camera {name!r} (cameras: "
+                         f"{', '.join(c.name for c in self.cameras)})")
+
+    def dark_frame(self, name: str, seed: int = 0) -> np.ndarray:
+        """An image with the lasers off (for the sensor's dark level and noise)."""
+        return self._noise[name].dark_frame(np.random.default_rng([seed, 5]))
+
+    def intrinsic_views(self, name: str, n_views: int = 8, seed: int = 0,
+                        pattern: tuple[int, int] = (9, 6), square_m: float = 0.06,
+                        ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Images of a checkerboard held in front of camera ``name`` in ``n_views`` poses
+        (thesis §5.4.1, intrinsic calibration), each with the board's 3D inner-corner
+        coordinates (board frame, z = 0) in OpenCV's row-major order."""
+        cam = self.camera(name)
+        rng = np.random.default_rng([seed, 3])
+        na, nb = pattern[0] + 1, pattern[1] + 1
+        size = np.array([na, nb]) * square_m
+        obj = np.array([[(i + 1) * square_m, (j + 1) * square_m, 0.0]
+                        for j in range(pattern[1]) for i in range(pattern[0])])
+        views = []
+        while len(views) < n_views:
+            dist = rng.uniform(0.7, 1.3)
+            R = geo.rodrigues(np.radians(rng.uniform(-35, 35, 3) * [1, 1, 0.5]))
+            lateral = rng.uniform(-0.4, 0.4, 2) * dist * [1.0, 0.75]
+            center_c = np.array([lateral[0], lateral[1], dist])
+            # board axes in camera coordinates, board centre at center_c
+            a_c, b_c = R[:, 0], R[:, 1]
+            origin_c = center_c - 0.5 * (size[0] * a_c + size[1] * b_c)
+            to_w = cam.R_cw.T
+            origin, a_w, b_w = cam.center + to_w @ origin_c, to_w @ a_c, to_w @ b_c
+            corners_w = origin + obj[:, :1] * a_w + obj[:, 1:2] * b_w
+            if not cam.in_image(cam.project(corners_w), margin_px=12).all():
+                continue
+            img = render_plane_pattern(cam, origin, a_w, b_w,
+                                       checkerboard(square_m, (na, nb), border_m=square_m))
+            views.append((img, obj.copy()))
+        return views
+
+    def screen_board(self, name: str, square_m: float = 0.16
+                     ) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
+        """A checkerboard projected onto camera ``name``'s screen region (thesis §5.4.1,
+        fig. 5.12): the image, the inner-corner pattern size and the inner corners' screen
+        coordinates (m) in OpenCV's row-major order.  The square counts are one odd, one
+        even, so the board's orientation is unambiguous."""
+        cam = self.camera(name)
+        wall = self.walls[cam.wall]
+        x0, x1, y0, y1 = cam.region
+        margin = 0.06
+        na = int((x1 - x0 - 2 * margin) // square_m)
+        nb = int((y1 - y0 - 2 * margin) // square_m)
+        if (na + nb) % 2 == 0:
+            nb -= 1
+        org_xy = np.array([(x0 + x1 - na * square_m) / 2, (y0 + y1 - nb * square_m) / 2])
+        origin = wall.to_world(org_xy)[0]
+        ex, ey = wall.rotation[:, 0], wall.rotation[:, 1]
+        side = wall.screen_side_m
+        board = checkerboard(square_m, (na, nb), border_m=margin * 0.9)
+
+        def on_screen(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            X, Y = a + org_xy[0], b + org_xy[1]
+            val = board(a, b)
+            lit = (np.minimum(X, Y) >= 0) & (np.maximum(X, Y) <= side)
+            return np.where(lit, np.where(np.isnan(val), 60.0, val), np.nan)
+
+        img = render_plane_pattern(cam, origin, ex, ey, on_screen)
+        pattern = (na - 1, nb - 1)
+        jj, ii = np.mgrid[0:pattern[1], 0:pattern[0]]
+        corners = org_xy + square_m * np.column_stack([ii.ravel() + 1, jj.ravel() + 1])
+        return img, pattern, corners
+
+
+def _install_cameras(walls: dict[str, Wall], cfg: WorldConfig, seed: int) -> list[Camera]:
+    rng = np.random.default_rng([seed, 1])
+    S = cfg.screen_side_m
+    cams = []
+    for name, wall in walls.items():
+        if cfg.n_cameras == 8 and name in ("floor", "ceiling"):
+            h = S / 2
+            cams.append(place_camera(f"{name}1", wall, (0.0, h + SPLIT_OVERLAP_M, 0.0, S), rng))
+            cams.append(place_camera(f"{name}2", wall, (h - SPLIT_OVERLAP_M, S, 0.0, S), rng))
+        else:
+            cams.append(place_camera(name, wall, (0.0, S, 0.0, S), rng))
+    return cams
