@@ -60,6 +60,7 @@ class AccelModel:
     variance: Array            # (N,) per-sample reading variance (m/s^2)^2
     latency_s: float = 0.0     # a reading at t describes the motion at t - latency_s
     cross: Array = field(init=False, repr=False, compare=False)  # r_j x n_j
+    n_dot_r: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -76,6 +77,7 @@ class AccelModel:
         object.__setattr__(self, "axes", n / np.linalg.norm(n, axis=1, keepdims=True))
         object.__setattr__(self, "variance", var)
         object.__setattr__(self, "cross", np.cross(r, self.axes))
+        object.__setattr__(self, "n_dot_r", np.einsum("ij,ij->i", r, self.axes))
 
     @property
     def count(self) -> int:
@@ -154,6 +156,9 @@ class FusionEKF:
         self.P = np.eye(self.dim)
         self.stats = FusionStats()
         self._rejected_in_row = 0
+        self._R = geo.quat_to_matrix(self.q)
+        self._dtheta = np.zeros(3)
+        self._step_cache: dict[float, tuple[Array, Array, Array]] = {}
 
     # ------------------------------------------------------------------ state access
 
@@ -221,6 +226,7 @@ class FusionEKF:
         idx = np.r_[9:12, 0:3]
         P0[np.ix_(idx, idx)] = cov_decoupled
         self.P = P0
+        self._R = geo.quat_to_matrix(self.q)
         self.stats.reinitialised += 1
         self._rejected_in_row = 0
 
@@ -248,34 +254,50 @@ class FusionEKF:
         x[P] += x[V] * dt + 0.5 * x[A] * dt * dt
         x[V] += x[A] * dt
         R = geo.quat_to_matrix(self.q)
-        F = np.eye(self.dim)
-        F[TH, W] = R * dt
+        self._R = R
+        F, Q, qa = self._step_matrices(dt)
+        F = F.copy()
+        F[TH, W] = R * dt                       # dtheta' = dtheta + R (domega dt + ...)
         F[TH, WD] = R * (0.5 * dt * dt)
-        F[W, WD] = np.eye(3) * dt
-        F[P, V] = np.eye(3) * dt
-        F[P, A] = np.eye(3) * (0.5 * dt * dt)
-        F[V, A] = np.eye(3) * dt
-        self.P = F @ self.P @ F.T + self._process_noise(dt, R)
+        Q = Q.copy()
+        # angular chain: dtheta is world-frame, omega and omega_dot body-frame
+        Q[TH, W] = qa[0, 1] * R
+        Q[TH, WD] = qa[0, 2] * R
+        Q[W, TH] = qa[1, 0] * R.T
+        Q[WD, TH] = qa[2, 0] * R.T
+        self.P = F @ self.P @ F.T + Q
         self.t += dt
         self.stats.time_updates += 1
 
-    def _process_noise(self, dt: float, R: Array) -> Array:
+    def _step_matrices(self, dt: float) -> tuple[Array, Array, Array]:
+        """The rotation-independent parts of F and Q for a step ``dt`` (cached: the
+        inertial rate is nearly constant)."""
+        key = round(dt, 9)
+        hit = self._step_cache.get(key)
+        if hit is not None:
+            return hit
         cfg = self.config
-        Q = np.zeros((self.dim, self.dim))
+        eye = np.eye(3)
+        F = np.eye(self.dim)
+        F[W, WD] = eye * dt
+        F[P, V] = eye * dt
+        F[P, A] = eye * (0.5 * dt * dt)
+        F[V, A] = eye * dt
         qa = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=cfg.angular_jerk_psd)
         ql = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=cfg.linear_jerk_psd)
-        eye = np.eye(3)
-        # angular chain: dtheta is world-frame, omega and omega_dot body-frame (dtheta' = R dw)
-        frames = (R, eye, eye)
+        Q = np.zeros((self.dim, self.dim))
         for i, si in enumerate((TH, W, WD)):
             for j, sj in enumerate((TH, W, WD)):
-                Q[si, sj] = qa[i, j] * (frames[i] @ frames[j].T)
+                Q[si, sj] = qa[i, j] * eye
         for i, si in enumerate((P, V, A)):
             for j, sj in enumerate((P, V, A)):
                 Q[si, sj] = ql[i, j] * eye
         if self.n_bias:
             Q[CORE:, CORE:] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
-        return Q
+        if len(self._step_cache) > 64:
+            self._step_cache.clear()
+        self._step_cache[key] = (F, Q, qa)
+        return F, Q, qa
 
     # ------------------------------------------------------------------ SCAAT: accelerometers
 
@@ -283,23 +305,23 @@ class FusionEKF:
         """Eq. 6.13 for accelerometer ``j`` and its Jacobian row over the error state.
 
         ``a_j = n_j . (R^T (alpha - g) + omega_dot x r_j + omega x (omega x r_j)) + b_j``,
-        all in head axes (specific force: a resting head reads -g).
+        all in head axes (specific force: a resting head reads -g).  Written with dot
+        products of precomputed vectors: this runs 1800 times a second.
         """
         x = self.x
         r, n = self.accel.positions[j], self.accel.axes[j]
-        R = geo.quat_to_matrix(self.q)
         w = x[W]
         u = x[A] - self.gravity
-        f_head = R.T @ u
+        Rn = self._R @ n                        # R n: the axis in world coordinates
         wr = float(w @ r)
-        centripetal = w * wr - r * float(w @ w)
-        pred = float(n @ (f_head + np.cross(x[WD], r) + centripetal))
+        wn = float(w @ n)
+        pred = (float(Rn @ u) + float(x[WD] @ self.accel.cross[j])
+                + wn * wr - float(w @ w) * self.accel.n_dot_r[j])
         H = np.zeros(self.dim)
-        nRt = R @ n                             # n^T R^T as a vector
-        H[TH] = nRt @ geo.skew(u)               # d(R^T u)/d dtheta = R^T [u]x
-        H[W] = (n @ w) * r + wr * n - 2.0 * float(n @ r) * w
+        H[TH] = _cross(Rn, u)                   # n^T R^T [u]x, the left rotation error
+        H[W] = wn * r + wr * n - 2.0 * self.accel.n_dot_r[j] * w
         H[WD] = self.accel.cross[j]
-        H[A] = nRt
+        H[A] = Rn
         if self.n_bias:
             pred += x[CORE + j]
             H[CORE + j] = 1.0
@@ -316,8 +338,12 @@ class FusionEKF:
         if y * y / s > self.config.accel_gate:
             self.stats.accel_rejected += 1
             return False
-        self._inject(PH * (y / s))
-        self.P -= np.outer(PH, PH) / s
+        dx = PH * (y / s)
+        # small rotation: keep R current to first order, fold into q once per sample
+        self._dtheta += dx[TH]
+        self._R += _skew(dx[TH]) @ self._R
+        self.x[3:] += dx[3:]
+        self.P -= np.outer(PH, PH / s)
         self.stats.accel_updates += 1
         return True
 
@@ -327,8 +353,15 @@ class FusionEKF:
         if readings.shape != (self.accel.count,):
             raise ValueError(f"fusion: {readings.size} accelerometer readings, the model has "
                              f"{self.accel.count}")
+        if not np.all(np.isfinite(readings)):
+            raise ValueError(f"fusion: accelerometer readings {readings.tolist()} are not "
+                             "all finite")
         self.predict_to(t - self.accel.latency_s)
-        return sum(self.update_accel(j, float(a)) for j, a in enumerate(readings))
+        self._begin_scalar_updates()
+        try:
+            return sum(self.update_accel(j, float(a)) for j, a in enumerate(readings))
+        finally:
+            self._end_scalar_updates()
 
     # ------------------------------------------------------------------ optical pose
 
@@ -389,4 +422,32 @@ class FusionEKF:
         """Apply an error-state correction: rotation on the manifold, the rest additively."""
         self.q = geo.quat_multiply(geo.rotvec_to_quat(dx[TH]), self.q)
         self.q /= np.linalg.norm(self.q)
+        self._R = geo.quat_to_matrix(self.q)
         self.x[3:] += dx[3:]
+
+    def _begin_scalar_updates(self) -> None:
+        self._R = geo.quat_to_matrix(self.q)
+        self._dtheta = np.zeros(3)
+
+    def _end_scalar_updates(self) -> None:
+        """Fold the rotation corrections of one sample's scalar updates into ``q``.
+
+        Each correction is ~1e-4 rad, so summing them differs from composing them by
+        ~1e-9 rad; the quaternion is then exact again and ``R`` is rebuilt from it.
+        """
+        if np.any(self._dtheta):
+            self.q = geo.quat_multiply(geo.rotvec_to_quat(self._dtheta), self.q)
+            self.q /= np.linalg.norm(self.q)
+        self._dtheta = np.zeros(3)
+        self._R = geo.quat_to_matrix(self.q)
+
+
+# Single-vector forms of cross product and skew matrix for the scalar-update hot path:
+# numpy's broadcasting versions (np.cross, geo.skew) cost more than the whole update.
+def _cross(a: Array, b: Array) -> Array:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+def _skew(v: Array) -> Array:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
