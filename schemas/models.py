@@ -92,6 +92,8 @@ _check_frame = _checker(_FRAME_RE, "frame id", "non-empty segments of letters, d
                         "'_', '.', '-' separated by '/', e.g. 'ivy/world'", MAX_FRAME_LENGTH)
 _check_pattern = _checker(_EDGE_RE, "frame pattern", "like a frame id, '*' allowed inside "
                           "segments, e.g. '*/head'", MAX_FRAME_LENGTH)
+_check_key = _checker(_FRAME_RE, "key", "non-empty segments of letters, digits, '_', '.', "
+                      "'-' separated by '/', e.g. 'marvin/rig'", MAX_FRAME_LENGTH)
 _check_name = _checker(_NAME_RE, "name", "letters, digits, '_' and '-' only", MAX_NAME_LENGTH)
 _check_id = _checker(_ID_RE, "id", "letters, digits, '_', '.' and '-' only", MAX_NAME_LENGTH)
 
@@ -101,6 +103,9 @@ FrameId = Annotated[str, AfterValidator(_check_frame),
 FramePattern = Annotated[str, AfterValidator(_check_pattern),
                          Field(json_schema_extra={"pattern": EDGE_PATTERN,
                                                   "maxLength": MAX_FRAME_LENGTH})]
+StreamKey = Annotated[str, AfterValidator(_check_key),
+                      Field(json_schema_extra={"pattern": FRAME_PATTERN,
+                                               "maxLength": MAX_FRAME_LENGTH})]
 Name = Annotated[str, AfterValidator(_check_name),
                  Field(json_schema_extra={"pattern": NAME_PATTERN,
                                           "maxLength": MAX_NAME_LENGTH})]
@@ -226,7 +231,7 @@ class Ability(BaseModel):
     type: MeasurementType
     edge: tuple[FrameId, FrameId] | None = Field(
         None, description="(parent, child): the stream carries the pose of child in parent")
-    key: FrameId | None = Field(None, description="stream id for data that is not an edge")
+    key: StreamKey | None = Field(None, description="stream id for data that is not an edge")
     attributes: Attributes = Field(default_factory=Attributes)
 
     @model_validator(mode="after")

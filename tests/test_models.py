@@ -123,6 +123,7 @@ def test_ability_valid_forms() -> None:
     (_ability(edge=["ivy/world$", "alice/head"]), "is not valid"),
     (_ability(edge=["ivy/w" + "o" * 300, "alice/head"]), "longer than"),
     (_ability(colour="red"), "Extra inputs are not permitted"),
+    ({"name": "clicks", "type": "event", "key": "a b"}, "key 'a b' is not valid"),
 ])
 def test_ability_refused(data: dict[str, Any], fragment: str) -> None:
     assert fragment in _error(Ability, data)
