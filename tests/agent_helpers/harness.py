@@ -1,0 +1,152 @@
+"""Multi-process test harness: agents (``uma agent``) and scripted services
+(``tests.agent_helpers.svc``) on loopback, their output collected by reader threads.
+
+Every process is registered with the ``processes`` fixture, which stops it by PID.
+Waits are bounded by both a time limit and the events seen (no sleeps that assume speed).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = str(Path(__file__).resolve().parents[2])
+WAIT_S = 20.0  # generous: 2 shared cores, many test processes
+
+
+class Proc:
+    """A child process whose stdout JSON lines become ``events`` and stderr ``log``."""
+
+    def __init__(self, popen: subprocess.Popen) -> None:
+        self.popen = popen
+        self.events: list[dict[str, Any]] = []
+        self.lines: list[str] = []
+        self.log: list[str] = []
+        self._cond = threading.Condition()
+        threading.Thread(target=self._read_out, daemon=True).start()
+        threading.Thread(target=self._read_err, daemon=True).start()
+
+    def _read_out(self) -> None:
+        for line in self.popen.stdout:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                try:
+                    ev = json.loads(line)
+                    if isinstance(ev, dict):
+                        ev["_mono"] = time.monotonic()
+                        self.events.append(ev)
+                except ValueError:
+                    pass
+                self._cond.notify_all()
+
+    def _read_err(self) -> None:
+        for line in self.popen.stderr:
+            with self._cond:
+                self.log.append(line.rstrip("\n"))
+                self._cond.notify_all()
+
+    def wait_for(self, pred: Callable[[dict[str, Any]], bool], timeout: float = WAIT_S,
+                 after: int = 0) -> dict[str, Any]:
+        """The first event (from index ``after``) satisfying ``pred``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for ev in self.events[after:]:
+                    if pred(ev):
+                        return ev
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(
+                        f"no matching event within {timeout} s; exit={self.popen.poll()}; "
+                        f"last events: {self.events[-5:]}; log tail: {self.log[-15:]}")
+                self._cond.wait(min(left, 0.2))
+
+    def wait_line(self, text: str, timeout: float = WAIT_S) -> str:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for line in self.lines:
+                    if text in line:
+                        return line
+                left = deadline - time.monotonic()
+                if left <= 0 or self.popen.poll() is not None:
+                    raise AssertionError(f"no line with {text!r}; exit={self.popen.poll()}; "
+                                         f"log tail: {self.log[-15:]}")
+                self._cond.wait(min(left, 0.2))
+
+    def wait_log(self, text: str, timeout: float = WAIT_S) -> str:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for line in self.log:
+                    if text in line:
+                        return line
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(f"no log line with {text!r}; log tail: "
+                                         f"{self.log[-15:]}")
+                self._cond.wait(min(left, 0.2))
+
+    def send(self, line: str) -> None:
+        self.popen.stdin.write(line + "\n")
+        self.popen.stdin.flush()
+
+    @property
+    def mark(self) -> int:
+        with self._cond:
+            return len(self.events)
+
+
+def spawn(processes: Any, args: list[str]) -> Proc:
+    """``python ARGS`` with pipes, registered with the ``processes`` fixture."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1",
+               PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
+    p = subprocess.Popen([sys.executable, *args], env=env, cwd=ROOT, stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    processes.procs.append(p)
+    return Proc(p)
+
+
+def agent(processes: Any, realm: str, agent_id: str, endpoint: str,
+          connect: tuple[str, ...] = (), extra: tuple[str, ...] = ()) -> Proc:
+    """``uma agent`` listening on ``endpoint``; returns once it says it listens."""
+    args = ["-m", "agent.cli", "agent", "--realm", realm, "--id", agent_id,
+            "--listen", endpoint]
+    for ep in connect:
+        args += ["--connect", ep]
+    proc = spawn(processes, [*args, *extra])
+    proc.wait_line("listening on")
+    return proc
+
+
+def service(processes: Any, realm: str, sid: str, agent_id: str, endpoint: str,
+            *extra: str) -> Proc:
+    """The scripted test service registered with ``agent_id`` at ``endpoint``."""
+    return spawn(processes, ["-m", "tests.agent_helpers.svc", "--id", sid, "--realm", realm,
+                             "--agent", agent_id, "--connect", endpoint, *extra])
+
+
+def services_json(realm: str, endpoint: str) -> dict[str, Any]:
+    """``uma services --json`` as a dict."""
+    out = subprocess.run([sys.executable, "-m", "agent.cli", "services", "--realm", realm,
+                          "--connect", endpoint, "--json"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def matched_to(ev: dict[str, Any], need: str, *sources: str) -> bool:
+    """A ``match`` event of ``need`` naming exactly these services (in order)."""
+    return (ev.get("event") == "match" and ev.get("need") == need
+            and [k.split("/")[4] for k in ev["keys"]] == list(sources))
+
+
+def first_from(ev: dict[str, Any], source: str) -> bool:
+    return ev.get("event") == "first" and ev.get("source") == source
