@@ -64,6 +64,18 @@ _FIELDS = {
     "event": _COMMON,
 }
 _TRIU = {6: np.triu_indices(6), 3: np.triu_indices(3)}
+
+
+def _full_index(dim: int) -> np.ndarray:
+    """For each entry of a symmetric matrix, its position among the packed upper triangle."""
+    index = np.zeros((dim, dim), dtype=np.intp)
+    index[_TRIU[dim]] = np.arange(dim * (dim + 1) // 2)
+    return np.maximum(index, index.T)
+
+
+_FULL = {6: _full_index(6), 3: _full_index(3)}
+#: Positions of the diagonal among the packed upper triangle.
+_DIAG = {dim: tuple(int(_FULL[dim][i, i]) for i in range(dim)) for dim in (6, 3)}
 _T_MAX = 1 << 63
 
 
@@ -107,14 +119,15 @@ def pack_covariance(C: Any, dim: int = 6, name: str = "covariance") -> list[floa
     a = np.asarray(C, dtype=float)
     if a.shape != (dim, dim):
         raise ValueError(f"{name}: expected shape ({dim}, {dim}), got {a.shape}")
-    if not np.isfinite(a).all():
+    packed = a[_TRIU[dim]].tolist()
+    if not all(map(math.isfinite, packed)):
         raise ValueError(f"{name}: non-finite value")
-    scale = max(1.0, float(np.abs(a).max()))
-    if np.abs(a - a.T).max() > 1e-9 * scale:
+    scale = max(1.0, max(map(abs, packed)))
+    if np.abs(a - a.T).max() > 1e-9 * scale:  # also refuses a non-finite lower triangle
         raise ValueError(f"{name}: not symmetric")
-    if (np.diagonal(a) < 0).any():
+    if min(packed[i] for i in _DIAG[dim]) < 0:
         raise ValueError(f"{name}: negative variance on the diagonal")
-    return a[_TRIU[dim]].tolist()
+    return packed
 
 
 def unpack_covariance(values: Any, dim: int = 6, name: str = "covariance") -> np.ndarray:
@@ -123,9 +136,7 @@ def unpack_covariance(values: Any, dim: int = 6, name: str = "covariance") -> np
     n = dim * (dim + 1) // 2
     if v.shape != (n,):
         raise ValueError(f"{name}: expected {n} upper-triangular values, got shape {v.shape}")
-    C = np.zeros((dim, dim))
-    C[_TRIU[dim]] = v
-    return C + np.triu(C, 1).T
+    return v[_FULL[dim]]
 
 
 # --------------------------------------------------------------------------- encoding
@@ -340,10 +351,9 @@ def _cov_in(obj: dict[str, Any], dim: int, kind: str) -> np.ndarray | None:
     if obj.get("c") is None:
         return None
     values = _floats_in(obj, "c", dim * (dim + 1) // 2, kind)
-    C = unpack_covariance(values, dim)
-    if (np.diagonal(C) < 0).any():
+    if min(values[i] for i in _DIAG[dim]) < 0:
         raise DecodeError(f"{kind} field 'c': negative variance on the diagonal")
-    return C
+    return np.array(values, dtype=float)[_FULL[dim]]
 
 
 def _dec_pose6d(obj: dict[str, Any], m: Measurement) -> None:
