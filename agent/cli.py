@@ -90,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      f"{', '.join(names) or 'none installed'}. "
                                      "'uma service run NAME --help' lists its options.",
                          add_help=False)
+    sp.add_argument("-h", "--help", dest="show_help", action="store_true")
     sp.add_argument("name", metavar="NAME", nargs="?", help="service name")
     sp.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
@@ -129,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    f"ground truth. Known: {', '.join(evals) or 'none'}. "
                                    "'uma eval NAME --help' lists its options.",
                        add_help=False)
+    p.add_argument("-h", "--help", dest="show_help", action="store_true")
     p.add_argument("name", metavar="NAME", nargs="?", help="what to evaluate")
     p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
@@ -157,28 +159,35 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
+def _plugin_args(args: argparse.Namespace) -> list[str]:
+    """The plug-in's own arguments; a ``--help`` that argparse took for us goes back to it."""
+    return ["--help", *args.rest] if args.show_help else list(args.rest)
+
+
 def _run_service(args: argparse.Namespace) -> int:
     names = plugins.names(plugins.SERVICE_GROUP)
-    if args.name in (None, "-h", "--help"):
+    if args.name is None:
         print("usage: uma service run NAME [options]\n\nRun one tracker service as its own "
               f"process.\nKnown services: {', '.join(names)}\n"
-              "'uma service run NAME --help' lists the options of NAME.")
-        return 0 if args.name else 2
+              "'uma service run NAME --help' lists the options of NAME.",
+              file=sys.stdout if args.show_help else sys.stderr)
+        return 0 if args.show_help else 2
     plugin: plugins.ServicePlugin = plugins.load(plugins.SERVICE_GROUP, args.name)
     parser = argparse.ArgumentParser(prog=f"uma service run {plugin.name}",
                                      description=plugin.help)
     plugins.add_service_arguments(parser, plugin)
-    sargs = parser.parse_args(args.rest)
+    sargs = parser.parse_args(_plugin_args(args))
     return plugin.run(sargs, stop_on_signals())
 
 
 def _run_eval(args: argparse.Namespace) -> int:
     names = plugins.names(plugins.EVAL_GROUP)
-    if args.name in (None, "-h", "--help"):
+    if args.name is None:
         print("usage: uma eval NAME [--seconds S] [--seed N] [--json] [options]\n\n"
               "Measure a tracker's accuracy against simulated ground truth.\n"
-              f"Known: {', '.join(names)}\n'uma eval NAME --help' lists the options of NAME.")
-        return 0 if args.name else 2
+              f"Known: {', '.join(names)}\n'uma eval NAME --help' lists the options of NAME.",
+              file=sys.stdout if args.show_help else sys.stderr)
+        return 0 if args.show_help else 2
     plugin: plugins.EvalPlugin = plugins.load(plugins.EVAL_GROUP, args.name)
     parser = argparse.ArgumentParser(prog=f"uma eval {plugin.name}", description=plugin.help)
     parser.add_argument("--seconds", type=float, default=60.0,
@@ -186,7 +195,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     parser.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     plugin.add_arguments(parser)
-    eargs = parser.parse_args(args.rest)
+    eargs = parser.parse_args(_plugin_args(args))
     if eargs.seconds <= 0:
         parser.error("--seconds must be positive")
     figures = plugin.run(eargs)
