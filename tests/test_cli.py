@@ -37,11 +37,8 @@ def test_top_level_help_lists_every_command() -> None:
     (["demo"], "simulated IVY world"),
     (["schemas"], "JSON Schemas"),
     (["schemas", "export"], "output directory"),
-    pytest.param(["eval"], "accuracy against simulated ground truth", marks=pytest.mark.xfail(
-        strict=True, reason="agent/cli.py: 'uma eval --help' exits 2 (add_help=False + "
-                            "REMAINDER leaves --help unrecognised)")),
-    pytest.param(["service", "run"], "Known services", marks=pytest.mark.xfail(
-        strict=True, reason="agent/cli.py: 'uma service run --help' exits 2 (same cause)")),
+    (["eval"], "accuracy against simulated ground truth"),
+    (["service", "run"], "Known services"),
 ])
 def test_every_command_explains_itself(args: list[str], purpose: str) -> None:
     r = uma(*args, "--help")
