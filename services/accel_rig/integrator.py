@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -33,23 +34,32 @@ from services.sim.trajectory import GRAVITY
 Array = np.ndarray
 
 _I3 = np.eye(3)
-_I4 = np.eye(4)
+_I12 = np.eye(12)
+#: q (x) [omega, 0] / 2 = sum_i omega_i _HALF_RIGHT_PRODUCT[i] @ q: the rate quaternion
+#: (eq. 4.45) as a linear map of q, built from geometry's Hamilton product.
+_HALF_RIGHT_PRODUCT = 0.5 * np.stack(
+    [geo.quat_multiply(np.eye(4), np.eye(4)[i]).T for i in range(3)]).reshape(3, 16)
 
 
 @dataclass(frozen=True)
 class Estimate:
     """The dead-reckoned state at motion time ``t``.
 
-    ``covariance`` is the 6x6 pose covariance in geometry's convention (left perturbation,
-    ``[rho, phi]``); ``velocity`` is world-frame, ``omega`` rig-frame.
+    ``velocity`` is world-frame, ``omega`` rig-frame.  ``decoupled_covariance`` is the 6x6
+    covariance of ``[position error, world-frame rotation error]``; ``covariance`` the same
+    in geometry's SE(3) convention (left perturbation ``[rho, phi]``), computed on first use.
     """
 
     t: float
     position: Array
     quaternion: Array
-    covariance: Array
     velocity: Array
     omega: Array
+    decoupled_covariance: Array
+
+    @cached_property
+    def covariance(self) -> Array:
+        return geo.decoupled_to_se3(self.position, self.decoupled_covariance)
 
 
 class DeadReckoner:
@@ -67,10 +77,11 @@ class DeadReckoner:
         self.layout = calibration.layout
         self.rate_hz = float(rate_hz)
         self.gravity = np.asarray(gravity, float)
-        self._noise_var = calibration.accel_var(rate_hz)  # (N,) per-sample, (m/s^2)^2
+        self._noise_std = np.sqrt(calibration.accel_var(rate_hz))  # per sample, m/s^2
         n = self.layout.count
         self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
-        self._k = calibration.gain_v_per_mps2
+        # [1, f] / k_j, the reading error per unit calibration error, f filled in per step
+        self._cal_base = np.ones((n, 4)) / calibration.gain_v_per_mps2[:, None]
         self._samples: list[tuple[float, Array]] = []  # up to 3 (motion time, accel)
         self._t: float | None = None
         self._p = np.zeros(3)
@@ -139,9 +150,8 @@ class DeadReckoner:
         C = np.empty((6, 6))
         C[:3, :3], C[3:, 3:] = P[3:6, 3:6], P[0:3, 0:3]
         C[:3, 3:], C[3:, :3] = P[3:6, 0:3], P[0:3, 3:6]
-        C = geo.decoupled_to_se3(self._p, 0.5 * (C + C.T))
-        return Estimate(self._t, self._p.copy(), self._q.copy(), C, self._v.copy(),
-                        self._w.copy())
+        return Estimate(self._t, self._p.copy(), self._q.copy(), self._v.copy(),
+                        self._w.copy(), 0.5 * (C + C.T))
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[dtheta, dp, dv, domega]`` (noise + calibration)."""
@@ -176,89 +186,91 @@ class DeadReckoner:
         if self._samples and tm <= self._samples[-1][0]:
             raise ValueError(f"accelerometer sample at t={t!r} is not after the previous "
                              f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
-        self._samples = [*self._samples[-2:], (tm, a)]
+        self._samples = [*self._samples[-2:], (tm, self.layout.project(a))]
         if not self.initialised:
             return None
         if tm > self._t:
             self._step(self._t, tm)
         return self.estimate()
 
-    def _reading_at(self, tau: float) -> Array:
-        """Readings at motion time ``tau`` by Lagrange interpolation over the kept samples."""
-        pts = self._samples
-        if len(pts) == 1:
-            return pts[0][1]
-        out = np.zeros_like(pts[0][1])
-        for i, (ti, ai) in enumerate(pts):
-            w = 1.0
-            for j, (tj, _) in enumerate(pts):
-                if j != i:
-                    w *= (tau - tj) / (ti - tj)
-            out = out + w * ai
-        return out
+    def _interpolate(self, taus: tuple[float, ...]) -> Array:
+        """Projected readings (``layout.project``) at motion times ``taus``, (len, 6), by
+        Lagrange interpolation over the kept samples (a parabola once three are kept)."""
+        ts = [t for t, _ in self._samples]
+        W = []
+        for tau in taus:
+            row = []
+            for i, ti in enumerate(ts):
+                w = 1.0
+                for j, tj in enumerate(ts):
+                    if j != i:
+                        w *= (tau - tj) / (ti - tj)
+                row.append(w)
+            W.append(row)
+        return np.array(W) @ np.array([x for _, x in self._samples])
 
     def _step(self, t0: float, t1: float) -> None:
         """One RK4 step of the coupled (q, omega, v, p) ODE and its error propagation."""
         h = t1 - t0
-        a0, am, a1 = (self._reading_at(t0), self._reading_at(t0 + 0.5 * h),
-                      self._reading_at(t1))
-        lay = self.layout
+        x0, xm, x1 = self._interpolate((t0, t0 + 0.5 * h, t1))
+        corr = self.layout.correction
         # omega stages (omega_dot depends on omega through the centripetal terms only)
         w0 = self._w
-        f1, k1 = lay.solve(a0, w0)
-        w2 = w0 + 0.5 * h * k1
-        f2, k2 = lay.solve(am, w2)
-        w3 = w0 + 0.5 * h * k2
-        f3, k3 = lay.solve(am, w3)
-        w4 = w0 + h * k3
-        f4, k4 = lay.solve(a1, w4)
+        s1 = x0 + corr(w0)
+        w2 = w0 + 0.5 * h * s1[3:]
+        s2 = xm + corr(w2)
+        w3 = w0 + 0.5 * h * s2[3:]
+        s3 = xm + corr(w3)
+        w4 = w0 + h * s3[3:]
+        s4 = x1 + corr(w4)
         ws = np.array([w0, w2, w3, w4])
-        fs = np.array([f1, f2, f3, f4])
+        xs = np.array([s1, s2, s3, s4])  # [f, omega_dot] per stage
         # quaternion stages: q' = 1/2 q (x) [omega, 0] = M(omega) q, linear in q
-        what = np.zeros((4, 4))
-        what[:, :3] = ws
-        M = 0.5 * np.swapaxes(geo.quat_multiply(_I4[None, :, :], what[:, None, :]), 1, 2)
+        M = (ws @ _HALF_RIGHT_PRODUCT).reshape(4, 4, 4)
         q0 = self._q
         kq1 = M[0] @ q0
-        kq2 = M[1] @ (q0 + 0.5 * h * kq1)
-        kq3 = M[2] @ (q0 + 0.5 * h * kq2)
-        qs = np.array([q0, q0 + 0.5 * h * kq1, q0 + 0.5 * h * kq2, q0 + h * kq3])
-        kq4 = M[3] @ qs[3]
-        q1 = q0 + h / 6.0 * (kq1 + 2 * kq2 + 2 * kq3 + kq4)
+        q2 = q0 + 0.5 * h * kq1
+        kq2 = M[1] @ q2
+        q3 = q0 + 0.5 * h * kq2
+        kq3 = M[2] @ q3
+        q4 = q0 + h * kq3
+        kq4 = M[3] @ q4
+        q1 = q0 + h / 6.0 * (kq1 + 2.0 * kq2 + 2.0 * kq3 + kq4)
         # velocity / position stages: v' = R(q) f + g, p' = v
-        Rs = geo.quat_to_matrix(qs / np.linalg.norm(qs, axis=1, keepdims=True))
-        acc = np.einsum("sij,sj->si", Rs, fs) + self.gravity
+        qs = np.array([q0, q2, q3, q4])
+        Rs = geo.quat_to_matrix(qs / np.sqrt((qs * qs).sum(axis=1))[:, None])
+        acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
         v0 = self._v
         self._p = self._p + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
-        self._v = v0 + h / 6.0 * (acc[0] + 2 * acc[1] + 2 * acc[2] + acc[3])
-        self._w = w0 + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        self._q = q1 / np.linalg.norm(q1)
+        self._v = v0 + h / 6.0 * (acc[0] + 2.0 * acc[1] + 2.0 * acc[2] + acc[3])
+        self._w = w0 + h / 6.0 * (s1[3:] + 2.0 * s2[3:] + 2.0 * s3[3:] + s4[3:])
+        self._q = q1 / math.sqrt(q1 @ q1)
         self._t = t1
-        self._propagate(h, Rs[1], fs[1], w2, am)
+        self._propagate(h, Rs[1], s2[:3], w2)
 
-    def _propagate(self, h: float, R: Array, f: Array, w: Array, a: Array) -> None:
+    def _propagate(self, h: float, R: Array, f: Array, w: Array) -> None:
         """Error-state propagation over one step, linearised at the step's midpoint."""
-        G, Jw = self.layout.solve_jacobians(w)  # d(f, wd)/d(a) (6 x N), d(f, wd)/d(omega)
+        G, Jw = self.layout.solve_jacobians(w)  # d(f, wd)/d(readings), d(f, wd)/d(omega)
         A = np.zeros((12, 12))
         A[0:3, 9:12] = R
         A[3:6, 6:9] = _I3
-        A[6:9, 0:3] = -geo.skew(R @ f)
+        u = R @ f  # d(v')/d(dtheta) = -[R f]x
+        A[6, 1], A[6, 2] = u[2], -u[1]
+        A[7, 0], A[7, 2] = -u[2], u[0]
+        A[8, 0], A[8, 1] = u[1], -u[0]
         A[6:9, 9:12] = R @ Jw[:3]
         A[9:12, 9:12] = Jw[3:]
         Ah = A * h
-        F = np.eye(12) + Ah + 0.5 * (Ah @ Ah)
-        B = np.empty((12, G.shape[1]))
-        B[0:6] = 0.0
+        F = _I12 + Ah + 0.5 * (Ah @ Ah)
+        B = np.zeros((12, G.shape[1]))
         B[6:9] = R @ G[:3]
         B[9:12] = G[3:]
-        Q = (h / self.rate_hz) * (B * self._noise_var) @ B.T
-        self._P = F @ self._P @ F.T + Q
+        Bs = B * self._noise_std
+        self._P = F @ self._P @ F.T + (h / self.rate_hz) * (Bs @ Bs.T)
         if self._cal_cov is not None:
             # a reading error from calibration: da_j = ([1, f_j] / k_j) . [dB_j, dm_j]
-            c = np.empty((a.size, 4))
-            c[:, 0] = 1.0
-            c[:, 1:] = f
-            c /= self._k[:, None]
+            c = self._cal_base.copy()
+            c[:, 1:] *= f
             self._S = F @ self._S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
 
 

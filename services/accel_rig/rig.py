@@ -69,9 +69,14 @@ class RigLayout:
     positions: Array
     axes: Array
     name: str = "custom"
-    _solve: Array = field(init=False, repr=False, compare=False)
-    _solved_w: Array = field(init=False, repr=False, compare=False)
-    _predicted_w: Array = field(init=False, repr=False, compare=False)
+    _cent: Array = field(init=False, repr=False, compare=False)
+    _pred: Array = field(init=False, repr=False, compare=False)
+    _proj: Array = field(init=False, repr=False, compare=False)
+    _corr: Array = field(init=False, repr=False, compare=False)
+    _rows: Array = field(init=False, repr=False, compare=False)
+    _cols: Array = field(init=False, repr=False, compare=False)
+    _e_rows: Array = field(init=False, repr=False, compare=False)
+    _e_cols: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -107,6 +112,14 @@ class RigLayout:
     @property
     def centripetal_matrix(self) -> Array:
         """N x 6 map from the entries (xx yy zz xy yz xz) of ``omega omega^T`` to Omega_j."""
+        return self._cent.copy()
+
+    @property
+    def omega_free(self) -> bool:
+        """True if the angular acceleration is solved without an angular-velocity estimate."""
+        return self._pred.size < 6
+
+    def _centripetal(self) -> Array:
         r, n = self.positions, self.axes
         M = 0.5 * (n[:, :, None] * r[:, None, :] + r[:, :, None] * n[:, None, :])
         M -= np.einsum("ij,ij->i", n, r)[:, None, None] * np.eye(3)
@@ -114,13 +127,12 @@ class RigLayout:
         C[:, 3:] *= 2.0  # off-diagonal entries appear twice in omega^T M omega
         return C
 
-    @property
-    def omega_free(self) -> bool:
-        """True if the angular acceleration is solved without an angular-velocity estimate."""
-        return self._solved_w.size > 0
-
     def _build_solver(self) -> None:
-        """Choose the unknowns and precompute the pseudo-inverse of the linear system."""
+        """Choose the unknowns and precompute the pseudo-inverse of the linear system.
+
+        Caches ``_proj`` (6 x N: readings to [f; omega_dot]) and ``_corr`` (6 x P: the
+        correction for the P entries of omega omega^T that must be predicted from omega).
+        """
         H = self.system_matrix
         rank = np.linalg.matrix_rank(H, tol=1e-9 * max(1.0, np.abs(H).max()))
         if rank < 6:
@@ -132,16 +144,20 @@ class RigLayout:
         if cond > MAX_CONDITION:
             raise ValueError(f"near-singular accelerometer layout {self.name!r}: condition "
                              f"number {cond:.3g} > {MAX_CONDITION:g}")
-        C = self.centripetal_matrix
+        C = self._centripetal()
         solved, A = np.array([], dtype=int), H
         if self.count >= 9:
             A9 = np.hstack([H, C[:, _W_OFFDIAG]])
             if np.linalg.cond(A9) < MAX_CONDITION:
                 solved, A = _W_OFFDIAG, A9
-        object.__setattr__(self, "_solve", np.linalg.pinv(A))
-        object.__setattr__(self, "_solved_w", solved)
-        object.__setattr__(self, "_predicted_w",
-                           np.setdiff1d(np.arange(6), solved))
+        pred = np.setdiff1d(np.arange(6), solved)
+        proj = np.linalg.pinv(A)[:6]
+        rows, cols = _W_ROWS[pred], _W_COLS[pred]
+        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": -proj @ C[:, pred],
+                 "_rows": rows, "_cols": cols,
+                 "_e_rows": np.eye(3)[rows], "_e_cols": np.eye(3)[cols]}
+        for name, value in cache.items():
+            object.__setattr__(self, name, value)
 
     @staticmethod
     def _unobserved(H: Array) -> str:
@@ -198,7 +214,7 @@ class RigLayout:
         J[:, 3:6] = n @ (Rt @ geo.skew(g_free))
         # d/dw [w (w.r) - r |w|^2] = w r^T + (w.r) I - 2 r w^T
         wr = r @ w
-        J[:, 6:9] = (n @ w)[:, None] * r + (wr * 1.0)[:, None] * n \
+        J[:, 6:9] = (n @ w)[:, None] * r + wr[:, None] * n \
             - 2.0 * (np.einsum("ji,ji->j", n, r))[:, None] * w[None, :]
         # n . (wd x r) = (r x n) . wd
         J[:, 9:12] = np.cross(r, n)
@@ -209,7 +225,17 @@ class RigLayout:
     def centripetal(self, omega: Array) -> Array:
         """Omega_j = n_j . (omega x (omega x r_j)) for each accelerometer, (..., N)."""
         w = np.asarray(omega, float)
-        return (w[..., _W_ROWS] * w[..., _W_COLS]) @ self.centripetal_matrix.T
+        return (w[..., _W_ROWS] * w[..., _W_COLS]) @ self._cent.T
+
+    def project(self, readings: Array) -> Array:
+        """The omega-independent part of ``solve``: ``[f; omega_dot]`` (..., 6) before the
+        centripetal correction.  Linear in the readings, so it can be computed per sample."""
+        return np.asarray(readings, float) @ self._proj.T
+
+    def correction(self, omega: Array) -> Array:
+        """What the centripetal terms predicted from ``omega`` add to ``project``, (..., 6)."""
+        w = np.asarray(omega, float)
+        return (w[..., self._rows] * w[..., self._cols]) @ self._corr.T
 
     def solve(self, readings: Array, omega: Array) -> tuple[Array, Array]:
         """Eq. 4.42: rig-frame specific force and angular acceleration from N readings.
@@ -219,25 +245,16 @@ class RigLayout:
         (zero weight for an ideal nine-accelerometer rig).  Least squares when N exceeds the
         number of unknowns.
         """
-        a = np.asarray(readings, float)
-        w = np.asarray(omega, float)
-        ww = w[..., _W_ROWS[self._predicted_w]] * w[..., _W_COLS[self._predicted_w]]
-        rhs = a - ww @ self.centripetal_matrix[:, self._predicted_w].T
-        x = rhs @ self._solve.T
+        x = self.project(readings) + self.correction(omega)
         return x[..., :3], x[..., 3:6]
 
     def solve_jacobians(self, omega: Array) -> tuple[Array, Array]:
         """Derivatives of ``solve``'s (f, omega_dot) = (6,): w.r.t. the readings (6 x N) and
         w.r.t. omega (6 x 3); the dead reckoner propagates its covariance with them."""
         w = np.asarray(omega, float)
-        G = self._solve[:6]
-        Cp = self.centripetal_matrix[:, self._predicted_w]
-        # d(w_a w_b)/dw for the predicted entries
-        rows, cols = _W_ROWS[self._predicted_w], _W_COLS[self._predicted_w]
-        dW = np.zeros((rows.size, 3))
-        np.add.at(dW, (np.arange(rows.size), rows), w[cols])
-        np.add.at(dW, (np.arange(rows.size), cols), w[rows])
-        return G, -G @ (Cp @ dW)
+        # d(w_a w_b)/dw = w_b e_a + w_a e_b for each predicted entry (a, b)
+        dW = self._e_rows * w[self._cols][:, None] + self._e_cols * w[self._rows][:, None]
+        return self._proj, self._corr @ dW
 
 
 # ---------------------------------------------------------------------- standard layouts

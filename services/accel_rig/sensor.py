@@ -85,17 +85,23 @@ class NoiseModel:
     """What the estimator assumes about a reading's random error (volts).
 
     ``per_sample_var_v2(rate)`` is the variance of a white sequence at that rate with the
-    same low-frequency power as the filtered analog noise plus the quantisation error, which
-    is what matters once readings are integrated twice.
+    same low-frequency power as the sampled analog noise (including what the 0-110 Hz
+    response lets alias down from above the Nyquist frequency) plus the quantisation
+    error: what matters once readings are integrated twice.
     """
 
     density_v: float = NOISE_DENSITY_V
     lsb_v: float = LSB_V
     quantised: bool = True
+    bandwidth_hz: float | None = BANDWIDTH_HZ
 
     def per_sample_var_v2(self, rate_hz: float) -> float:
         q = self.lsb_v**2 / 12.0 if self.quantised else 0.0
-        return self.density_v**2 * rate_hz / 2.0 + q
+        alias = 0.0
+        if self.bandwidth_hz is not None:  # 2nd-order Butterworth |H(f)|^2 at k * rate
+            k = np.arange(1, 64)
+            alias = float(np.sum(2.0 / (1.0 + (k * rate_hz / self.bandwidth_hz) ** 4)))
+        return self.density_v**2 * rate_hz / 2.0 * (1.0 + alias) + q
 
 
 @dataclass(frozen=True)
@@ -171,6 +177,7 @@ class Calibration:
             "noise_density_v_per_rthz": self.noise.density_v,
             "lsb_v": self.noise.lsb_v,
             "quantised": self.noise.quantised,
+            "bandwidth_hz": self.noise.bandwidth_hz,
             "latency_s": self.latency_s,
         }
 
@@ -185,8 +192,9 @@ class Calibration:
         try:
             layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
                                name=str(d.get("layout", "custom")))
+            bw = d["bandwidth_hz"]
             noise = NoiseModel(float(d["noise_density_v_per_rthz"]), float(d["lsb_v"]),
-                               bool(d["quantised"]))
+                               bool(d["quantised"]), None if bw is None else float(bw))
             cov = d.get("param_cov")
             return cls(layout, np.asarray(d["bias_v"], float),
                        np.asarray(d["gain_v_per_mps2"], float),

@@ -84,7 +84,7 @@ class SensorTruth:
         return _group_delay_s(self.bandwidth_hz, self.oversample * rate_hz)
 
     def noise_model(self) -> sn.NoiseModel:
-        return sn.NoiseModel(self.noise_density_v, sn.LSB_V, self.quantise)
+        return sn.NoiseModel(self.noise_density_v, sn.LSB_V, self.quantise, self.bandwidth_hz)
 
     def calibration(self, rate_hz: float = DEFAULT_RATE_HZ) -> sn.Calibration:
         """The exact calibration of this device (what a perfect §4.4.2 run would give)."""
