@@ -137,7 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("schemas", help="export the JSON Schemas of uma's models",
                        description="Export the JSON Schemas of uma's descriptors and results.")
     xsub = p.add_subparsers(dest="schemas_command", metavar="ACTION", required=True)
-    xp = xsub.add_parser("export", help="write one JSON Schema file per model into DIR")
+    xp = xsub.add_parser("export", help="write one JSON Schema file per model into DIR",
+                         description="Write <Model>.schema.json for each of uma's models "
+                                     "(service descriptors, needs, abilities, attributes, pose "
+                                     "results) into DIR, for validating messages in other "
+                                     "languages.")
     xp.add_argument("dir", metavar="DIR", help="output directory (created if missing)")
     return top
 

@@ -12,6 +12,12 @@ import uuid
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import settings
+
+# Repeatable property tests (the same examples on every run and machine) with no per-example
+# deadline: CI machines are shared and slow, and a deadline there fails for the wrong reason.
+settings.register_profile("uma", derandomize=True, deadline=None)
+settings.load_profile("uma")
 
 
 def free_port() -> int:
