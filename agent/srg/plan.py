@@ -112,6 +112,7 @@ class Chain:
             A = np.empty((m, 1))
             missing = []
             brackets = []
+            exact = True  # every edge has a sample at t: nothing to interpolate
             for j, (edge, _, limit) in enumerate(measured):
                 buf = edge.buffer
                 i0, i1, a, ex = buf.bracket(t_ns, limit)
@@ -121,6 +122,7 @@ class Chain:
                 Q0[j] = buf.quats[i0]
                 A[j, 0] = a
                 if i0 != i1:
+                    exact = False
                     d = buf.deltas[i0]
                     if d is None:
                         missing.append(j)
@@ -131,8 +133,11 @@ class Chain:
                 stamps.append((buf.times[i0], buf.times[i1]))
             if missing:
                 self._fill_deltas(brackets, missing, D)
-            P = P0 + (P1 - P0) * A
-            Q = geo.quat_multiply(Q0, geo.rotvec_to_quat(D * A))
+            if exact:
+                P, Q = P0, Q0
+            else:
+                P = P0 + (P1 - P0) * A
+                Q = geo.quat_multiply(Q0, geo.rotvec_to_quat(D * A))
             P_edge = P
             if self._uncertain:
                 covs = [self._edge_cov(edge, br) for (edge, _, _), br in zip(measured, brackets,
@@ -178,17 +183,25 @@ class Chain:
     def _compose_items(self, P: np.ndarray | None, Q: np.ndarray | None,
                        P_edge: np.ndarray | None, covs: list,
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Compose the items in order; covariance by the adjoint of each prefix."""
+        """Compose the items in order; covariance by the adjoint of each prefix.
+
+        The position only needs the rotation matrices of the items before the last one,
+        so the last measured edge (often the only one) costs no matrix conversion.
+        """
         items = self._items
-        Tm = geo.to_matrix(P, Q) if P is not None else None
-        mats = [self._const[i][0] if it[0] == "c" else Tm[it[1]] for i, it in enumerate(items)]
+        need = [it[1] for it in items[:-1] if it[0] == "m"]
+        Tm = dict(zip(need, geo.to_matrix(P[need], Q[need]), strict=True)) if need else {}
+        M = None
+        for i, it in enumerate(items[:-1]):
+            T = self._const[i][0] if it[0] == "c" else Tm[it[1]]
+            M = T if M is None else M @ T
+        last = items[-1]
+        p = self._const[len(items) - 1][0][:3, 3] if last[0] == "c" else P[last[1]]
+        p = p.copy() if M is None else M[:3, :3] @ p + M[:3, 3]
         quats = [self._const[i][1] if it[0] == "c" else Q[it[1]] for i, it in enumerate(items)]
-        M = mats[0]
-        for T in mats[1:]:
-            M = M @ T
         q = _product(np.array(quats))
         cov = self._propagate(P, Q, P_edge, covs) if self._uncertain else None
-        return M[:3, 3].copy(), q, cov
+        return p, q, cov
 
     def _propagate(self, P: np.ndarray | None, Q: np.ndarray | None,
                    P_edge: np.ndarray | None, covs: list) -> np.ndarray | None:
