@@ -29,7 +29,7 @@ import numpy as np
 
 from agent.srg import geometry as geo
 from services.accel_rig.sensor import Calibration
-from services.sim.trajectory import GRAVITY
+from services.sim.trajectory import GRAVITY, KinematicState
 
 Array = np.ndarray
 
@@ -179,7 +179,7 @@ class DeadReckoner:
         if not np.all(np.isfinite(a)):
             j = int(np.flatnonzero(~np.isfinite(a))[0])
             raise ValueError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
-                             f"{a[j]!r} (NaN samples are refused)")
+                             f"{float(a[j])} (NaN samples are refused)")
         tm = float(t) - self.calibration.latency_s
         if not math.isfinite(tm):
             raise ValueError(f"accelerometer sample: time must be finite, got {t!r}")
@@ -282,4 +282,21 @@ def _calibration_cov_in_accel(cal: Calibration) -> Array | None:
     out = np.zeros((4 * n, 4 * n))
     for j in range(n):
         out[4 * j:4 * j + 4, 4 * j:4 * j + 4] = cal.param_cov[j]
+    return out
+
+
+def dead_reckon_from_truth(calibration: Calibration, t: Array, accel: Array,
+                           truth: KinematicState, rate_hz: float) -> list[Estimate]:
+    """Reset to the exact state of the first sample, then integrate every later sample.
+
+    ``truth`` holds the rig's kinematics at the samples' motion times (as
+    ``SimulatedRun.truth``); returns one estimate per sample, the first being the reset.
+    This is how the tests and ``uma eval accel-rig`` measure the drift of §4.3 alone.
+    """
+    dr = DeadReckoner(calibration, rate_hz)
+    dr.reset(truth.t[0], truth.position[0], truth.quaternion[0],
+             velocity=truth.velocity[0], omega=truth.omega_body[0])
+    dr.update(t[0], accel[0])
+    out = [dr.estimate()]
+    out.extend(dr.update(t[k], accel[k]) for k in range(1, len(t)))
     return out

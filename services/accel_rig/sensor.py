@@ -64,7 +64,7 @@ def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
     v = np.asarray(volts, dtype=float)
     if not np.all(np.isfinite(v)):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
-        raise ValueError(f"{name}: non-finite value {v[idx]!r} at index {idx} "
+        raise ValueError(f"{name}: non-finite value {float(v[idx])} at index {idx} "
                          "(NaN samples are refused, not interpolated)")
     lo, hi = ADC_MIN_COUNT * LSB_V, ADC_MAX_COUNT * LSB_V
     out = np.abs(v) > max(-lo, hi) + 1e-9

@@ -1,0 +1,240 @@
+"""The accelerometer rig model, the simulator and the dead reckoner (seed 003 ch. 4).
+
+The thesis' figures 4.12-4.20 become tests: on noise-free data the estimator must follow
+the simulator's ground truth (it uses RK4 where the thesis used Euler, so "follows" means
+to micrometres and thousandths of a degree, not to plotting accuracy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.srg import geometry as geo
+from services.accel_rig import rig as rg
+from services.accel_rig.integrator import DeadReckoner, dead_reckon_from_truth
+from services.accel_rig.motions import AxisRotation, SinusoidalTranslation
+from services.accel_rig.simulator import (
+    SensorTruth,
+    default_device,
+    simulate,
+    specific_force_readings,
+)
+from services.sim.mounts import HEAD_TO_ACCEL_RIG
+from services.sim.trajectory import GRAVITY, HeadTrajectory
+
+RATE = 300.0
+
+
+def _track(layout: rg.RigLayout, motion, seconds: float, mount=None, t0: float = 0.0):
+    """Ideal device on ``layout`` (axes exactly known): simulate, then dead-reckon."""
+    device = SensorTruth.ideal(layout)
+    run = simulate(motion, seconds, RATE, seed=0, t0=t0, sensor=device, mount=mount)
+    est = dead_reckon_from_truth(device.calibration(), run.t, run.accel, run.truth, RATE)
+    p = np.array([e.position for e in est])
+    q = np.array([e.quaternion for e in est])
+    dp, dq = geo.pose_error(p, q, run.truth.position, run.truth.quaternion)
+    return run, est, dp, np.degrees(dq)
+
+
+# ---------------------------------------------------------------------- the rig model
+
+
+def test_marvin_six_readings_match_the_thesis_pair_equations():
+    """Eqs. 4.26-4.31 for the ideal MARVIN rig, term by term."""
+    d = 0.05
+    lay = rg.marvin_six(d)
+    rng = np.random.default_rng(3)
+    f, w, wd = rng.normal(size=(3, 3))
+    a = lay.readings(f, w, wd)
+    x, y, z = f
+    expected = [z - w[1] * w[2] * d - wd[0] * d, z + w[1] * w[2] * d + wd[0] * d,
+                y + w[0] * w[1] * d + wd[2] * d, y - w[0] * w[1] * d - wd[2] * d,
+                x - w[2] * w[0] * d - wd[1] * d, x + w[2] * w[0] * d + wd[1] * d]
+    np.testing.assert_allclose(a, expected, atol=1e-12)
+    # eq. 4.32 (pair sums) and 4.34 (pair differences)
+    np.testing.assert_allclose([(a[4] + a[5]) / 2, (a[2] + a[3]) / 2, (a[0] + a[1]) / 2], f,
+                               atol=1e-12)
+    np.testing.assert_allclose((a[1] - a[0]) / (2 * d) - w[1] * w[2], wd[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("make", [rg.marvin_six, rg.marvin_six_table_4_1,
+                                  rg.nine_accelerometer])
+def test_solve_inverts_the_measurement_model(make):
+    lay = make()
+    rng = np.random.default_rng(4)
+    f, w, wd = rng.normal(size=(3, 3)) * [[9.0], [3.0], [20.0]]
+    f_est, wd_est = lay.solve(lay.readings(f, w, wd), w)
+    np.testing.assert_allclose(f_est, f, atol=1e-9)
+    np.testing.assert_allclose(wd_est, wd, atol=1e-9)
+
+
+def test_nine_accelerometer_rig_needs_no_angular_velocity():
+    lay = rg.nine_accelerometer()
+    assert lay.omega_free and not rg.marvin_six().omega_free
+    rng = np.random.default_rng(5)
+    f, w, wd = rng.normal(size=(3, 3)) * 3.0
+    a = lay.readings(f, w, wd)
+    f_est, wd_est = lay.solve(a, np.zeros(3))  # a wrong omega estimate does not matter
+    np.testing.assert_allclose(wd_est, wd, atol=1e-9)
+    np.testing.assert_allclose(f_est, f, atol=1e-9)
+    # the six-accelerometer rig does need it
+    six = rg.marvin_six()
+    _, wd6 = six.solve(six.readings(f, w, wd), np.zeros(3))
+    assert np.abs(wd6 - wd).max() > 0.1
+
+
+def test_h_matches_the_simulator_and_its_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(6)
+    lay = rg.marvin_six_table_4_1()
+    acc, w, wd = rng.normal(size=(3, 3))
+    q = geo.rotvec_to_quat(rng.normal(size=3))
+    y = lay.h(acc, q, w, wd)
+    # h through the world frame equals eq. 4.72 with the rig-frame specific force
+    f = geo.quat_rotate(geo.quat_conjugate(q), acc - GRAVITY)
+    np.testing.assert_allclose(y, lay.readings(f, w, wd), atol=1e-12)
+    J = lay.h_jacobian(acc, q, w, wd)
+    eps = 1e-6
+    for k in range(12):
+        d = np.zeros(12)
+        d[k] = eps
+        qk = geo.quat_multiply(geo.rotvec_to_quat(d[3:6]), q)
+        yk = lay.h(acc + d[:3], qk, w + d[6:9], wd + d[9:])
+        np.testing.assert_allclose((yk - y) / eps, J[:, k], atol=1e-4, err_msg=f"column {k}")
+
+
+def test_singular_layouts_are_refused_with_the_reason():
+    d = 0.05
+    pos = np.array([[0, -d, 0], [0, d, 0], [d, 0, 0], [-d, 0, 0], [0, 0, -d], [0, 0, d]])
+    all_z = np.tile([0.0, 0.0, 1.0], (6, 1))
+    with pytest.raises(ValueError, match=r"singular accelerometer layout.*rank"):
+        rg.RigLayout(pos, all_z)
+    with pytest.raises(ValueError, match="at least 6"):
+        rg.RigLayout(pos[:5], all_z[:5])
+    with pytest.raises(ValueError, match="unit vector"):
+        rg.RigLayout(pos, 2.0 * rg.marvin_six().axes)
+    with pytest.raises(ValueError, match="non-finite"):
+        rg.RigLayout(pos, np.where(np.eye(6, 3) > 0, np.nan, rg.marvin_six().axes))
+    with pytest.raises(ValueError, match="positive length"):
+        rg.marvin_six(-0.1)
+    with pytest.raises(ValueError, match="unknown accelerometer layout"):
+        rg.layout_by_name("seven")
+
+
+# ---------------------------------------------------------------------- simulator
+
+
+def test_simulator_is_deterministic_and_seeded():
+    traj = HeadTrajectory(2)
+    a = simulate(traj, 0.2, seed=7)
+    b = simulate(traj, 0.2, seed=7)
+    c = simulate(traj, 0.2, seed=8)
+    np.testing.assert_array_equal(a.counts, b.counts)
+    assert np.any(a.counts != c.counts)
+    assert a.counts.dtype == np.int16 and a.counts.shape == (60, 6)
+    np.testing.assert_allclose(a.t[1] - a.t[0], 1 / 300)
+
+
+def test_simulator_applies_appendix_c_electronics():
+    """1 g = 400 mV, 1 LSB = 1 mV, a static rig reads its bias + gain * n.f within noise."""
+    dev = default_device()
+    still = simulate(AxisRotation(amplitude_rad=0.0), 1.0, seed=1, sensor=dev, mount=None)
+    f = -GRAVITY  # z up, at rest
+    expect = dev.bias_v + dev.gain_v_per_mps2 * (dev.layout.axes @ f)
+    np.testing.assert_allclose(still.volts.mean(axis=0), expect, atol=2e-4)
+    np.testing.assert_allclose(still.volts, still.counts * 1e-3)  # volts are whole mV
+    assert 0.3e-3 < still.volts.std(axis=0).mean() < 1.0e-3  # ~0.55 mV rms + quantisation
+    # a z-sensing accelerometer at rest reads about 1 g = 400 mV away from its bias
+    assert abs(abs(expect[0] - dev.bias_v[0]) - 0.4) < 0.02
+
+
+def test_simulator_bandwidth_delays_by_the_reported_latency():
+    """The 0-110 Hz response is a 2 ms delay for head motion; ``truth`` accounts for it."""
+    lay = rg.marvin_six()
+    filtered = SensorTruth(lay, np.zeros(6), np.zeros(6), noise_density_v=0.0, quantise=False)
+    run = simulate(SinusoidalTranslation(amplitude_m=0.05, frequency_hz=2.0), 1.0, seed=0,
+                   sensor=filtered, mount=None)
+    assert 1.9e-3 < run.latency_s < 2.1e-3
+    ideal = specific_force_readings(lay, run.truth)  # evaluated at t - latency
+    np.testing.assert_allclose(run.accel, ideal, atol=2e-3)
+
+
+# ---------------------------------------------------------------------- figures 4.12-4.20
+
+
+@pytest.mark.parametrize("layout", [rg.marvin_six(), rg.marvin_six_table_4_1()],
+                         ids=["ideal-fig4.12", "misaligned-fig4.13"])
+def test_pure_translation_is_tracked_exactly(layout):
+    motion = SinusoidalTranslation(axis="x", amplitude_m=0.5, frequency_hz=0.5)
+    run, est, dp, dq = _track(layout, motion, 4.0)
+    # the rig really moved a metre, and the estimate follows to micrometres
+    assert np.ptp(run.truth.position[:, 0]) > 0.9
+    assert dp.max() < 1e-5 and dq.max() < 1e-6
+    # no rotation is invented (figure 4.12 c)
+    assert max(np.linalg.norm(e.omega) for e in est) < 1e-9
+
+
+@pytest.mark.parametrize("axis", ["z", "y", "x"], ids=["yaw", "pitch", "roll"])
+@pytest.mark.parametrize("layout", [rg.marvin_six(), rg.marvin_six_table_4_1()],
+                         ids=["ideal-fig4.15-4.17", "misaligned-fig4.18-4.20"])
+def test_pure_rotation_is_tracked_exactly(layout, axis):
+    motion = AxisRotation(axis=axis, amplitude_rad=np.pi / 2, frequency_hz=0.25)
+    run, est, dp, dq = _track(layout, motion, 4.0)
+    theta = np.array([geo.quat_to_rotvec(e.quaternion)["xyz".index(axis)] for e in est])
+    np.testing.assert_allclose(theta, motion.angle(run.truth.t), atol=1e-7)
+    assert dq.max() < 1e-5
+    assert dp.max() < 1e-6  # and no translation is invented (figure 4.16 b)
+
+
+@pytest.mark.parametrize("make", [rg.marvin_six, rg.marvin_six_table_4_1,
+                                  rg.nine_accelerometer])
+def test_combined_head_motion_is_tracked_exactly(make):
+    run, _, dp, dq = _track(make(), HeadTrajectory(3), 3.0, mount=HEAD_TO_ACCEL_RIG,
+                              t0=10.0)
+    assert np.linalg.norm(run.truth.omega_body, axis=1).max() > 0.5  # it does turn
+    assert dp.max() < 1e-5 and dq.max() < 1e-4
+
+
+# ---------------------------------------------------------------------- dead reckoner API
+
+
+def test_dead_reckoner_refuses_bad_samples_without_changing_state():
+    dev = SensorTruth.ideal(rg.marvin_six())
+    dr = DeadReckoner(dev.calibration(), RATE)
+    good = dev.layout.axes @ -GRAVITY  # level and at rest
+    assert dr.update(0.0, good) is None  # no pose before a reset
+    with pytest.raises(ValueError, match="reset it with an absolute pose"):
+        dr.estimate()
+    dr.reset(0.0, np.zeros(3), geo.quat_identity())
+    dr.update(1 / RATE, good)
+    before = dr.estimate()
+    bad = good.copy()
+    bad[2] = np.nan
+    with pytest.raises(ValueError, match="accelerometer 3 is nan"):
+        dr.update(2 / RATE, bad)
+    with pytest.raises(ValueError, match="expected 6 values"):
+        dr.update(2 / RATE, good[:5])
+    with pytest.raises(ValueError, match="not after the previous"):
+        dr.update(1 / RATE, good)
+    with pytest.raises(ValueError, match="not a unit quaternion"):
+        dr.reset(0.0, np.zeros(3), [0, 0, 0, 2.0])
+    after = dr.estimate()
+    assert after.t == before.t
+    np.testing.assert_array_equal(after.position, before.position)
+    # a rig at rest, level, stays put
+    for k in range(2, 300):
+        e = dr.update(k / RATE, good)
+    assert np.linalg.norm(e.position) < 1e-9 and np.linalg.norm(e.velocity) < 1e-9
+
+
+def test_reset_keeps_unreset_velocity_and_takes_pose_covariance():
+    dev = SensorTruth.ideal(rg.marvin_six())
+    dr = DeadReckoner(dev.calibration(), RATE)
+    dr.reset(0.0, [1.0, 2.0, 0.0], geo.quat_identity(), velocity=[0.5, 0.0, 0.0])
+    cov = geo.covariance_from_std(np.array([1.0, 2.0, 0.0]), 0.01, 0.02)
+    dr.reset(0.0, [1.0, 2.0, 0.0], geo.quat_identity(), covariance=cov)
+    e = dr.estimate()
+    np.testing.assert_allclose(e.velocity, [0.5, 0, 0])
+    np.testing.assert_allclose(e.covariance, cov, atol=1e-15)
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        dr.reset(0.0, np.zeros(3), geo.quat_identity(), covariance=-np.eye(6))
