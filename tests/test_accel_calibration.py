@@ -1,0 +1,176 @@
+"""Calibration from static poses (seed 003 §4.4.2), the calibration file, input validation,
+and the honesty of the dead reckoner's covariance (NEES)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from agent.srg import geometry as geo
+from services.accel_rig import sensor as sn
+from services.accel_rig.calibration import (
+    SIX_POSES,
+    THESIS_POSES,
+    StaticRecording,
+    calibrate,
+    calibration_errors,
+)
+from services.accel_rig.integrator import dead_reckon_from_truth
+from services.accel_rig.rig import marvin_six, nine_accelerometer
+from services.accel_rig.simulator import (
+    SensorTruth,
+    axis_down_quaternion,
+    default_device,
+    simulate,
+    simulate_static,
+)
+from services.sim.trajectory import HeadTrajectory
+
+RATE = 300.0
+
+
+def _recordings(device: SensorTruth, labels, seconds: float, seed: int = 0):
+    return [StaticRecording(axis_down_quaternion(lab),
+                            simulate_static(axis_down_quaternion(lab), seconds, RATE,
+                                            seed=seed + i, sensor=device))
+            for i, lab in enumerate(labels)]
+
+
+def _errors(cal: sn.Calibration, device: SensorTruth):
+    return calibration_errors(cal, device.bias_v, device.gain_v_per_mps2, device.layout.axes)
+
+
+def test_axis_down_poses_put_the_named_axis_along_gravity():
+    for lab in SIX_POSES:
+        d = np.zeros(3)
+        d["xyz".index(lab[1])] = 1.0 if lab[0] == "+" else -1.0
+        down = geo.quat_rotate(axis_down_quaternion(lab), d)
+        np.testing.assert_allclose(down, [0, 0, -1], atol=1e-12)
+    with pytest.raises(ValueError, match="expected one of"):
+        axis_down_quaternion("x+")
+
+
+@pytest.mark.parametrize("labels", [THESIS_POSES, SIX_POSES], ids=["four-thesis", "six-lsq"])
+def test_noise_free_calibration_is_exact(labels):
+    device = default_device().noise_free()  # table 4.1 axes, random bias and gain errors
+    cal = calibrate(marvin_six(), _recordings(device, labels, 0.1), RATE, latency_s=0.0)
+    err = _errors(cal, device).worst()
+    assert err["bias_lsb"] < 1e-9 and err["scale_percent"] < 1e-9 and err["axis_deg"] < 1e-9
+    # the calibration was not trivially close already: the device really is off
+    assert np.abs(device.bias_v).max() > 10 * sn.LSB_V
+    assert np.abs(device.scale_error).max() > 0.005
+
+
+def test_noise_free_calibration_of_a_nine_accelerometer_rig():
+    device = SensorTruth.draw(7, nine_accelerometer()).noise_free()
+    cal = calibrate(nine_accelerometer(), _recordings(device, SIX_POSES, 0.1), RATE)
+    assert max(_errors(cal, device).worst().values()) < 1e-9
+
+
+def test_calibration_with_appendix_c_noise_meets_the_tolerances():
+    """Four thesis poses, 2 s each, with noise, 110 Hz response and 12-bit quantisation."""
+    device = default_device()
+    cal = calibrate(marvin_six(), _recordings(device, THESIS_POSES, 2.0, seed=11), RATE,
+                    noise=device.noise_model(), latency_s=device.latency_s(RATE))
+    err = _errors(cal, device).worst()
+    assert err["bias_lsb"] < 1.0 and err["scale_percent"] < 0.5 and err["axis_deg"] < 0.2
+    # and the reported parameter uncertainty is of the size of the actual error
+    sd_bias_lsb = np.sqrt(cal.param_cov[:, 0, 0]) / sn.LSB_V
+    assert np.abs(_errors(cal, device).bias_lsb).max() < 5 * sd_bias_lsb.max()
+
+
+def test_calibration_refuses_bad_recordings_with_reasons():
+    device = default_device()
+    recs = _recordings(device, THESIS_POSES, 0.5)
+    with pytest.raises(ValueError, match="at least 4 static orientations"):
+        calibrate(marvin_six(), recs[:3], RATE)
+    with pytest.raises(ValueError, match="do not determine bias and axis"):
+        calibrate(marvin_six(), [recs[0]] * 4, RATE)
+    moving = simulate(HeadTrajectory(1), 0.5, RATE, seed=1, sensor=device).volts
+    with pytest.raises(ValueError, match=r"pose 2: .*not held still"):
+        calibrate(marvin_six(), [recs[0], StaticRecording(recs[1].quaternion, moving),
+                                 *recs[2:]], RATE)
+    nan = recs[3].volts.copy()
+    nan[5, 2] = np.nan
+    with pytest.raises(ValueError, match="pose 4 voltages: non-finite value nan"):
+        calibrate(marvin_six(), [*recs[:3], StaticRecording(recs[3].quaternion, nan)], RATE)
+    with pytest.raises(ValueError, match=r"pose 1 voltages: 3.5 V .* outside the A/D range"):
+        calibrate(marvin_six(), [StaticRecording(recs[0].quaternion,
+                                                 np.full((10, 6), 3.5)), *recs[1:]], RATE)
+    with pytest.raises(ValueError, match=r"must be \(samples, 6\)"):
+        calibrate(marvin_six(), [StaticRecording(recs[0].quaternion, recs[0].volts[:, :5]),
+                                 *recs[1:]], RATE)
+
+
+def test_voltages_are_validated_before_conversion():
+    cal = default_device().calibration()
+    ok = np.full(6, 0.1)
+    np.testing.assert_allclose(cal.to_volts(cal.to_accel(ok)), ok)
+    with pytest.raises(ValueError, match=r"amplifier rail.*saturated"):
+        cal.to_accel(np.array([0.1, 0.1, 2.0, 0.1, 0.1, 0.1]))
+    with pytest.raises(ValueError, match="outside the A/D range"):
+        cal.to_accel(np.array([0.1, 0.1, 0.1, -9.0, 0.1, 0.1]))
+    with pytest.raises(ValueError, match="non-finite"):
+        cal.to_accel(np.array([0.1, np.inf, 0.1, 0.1, 0.1, 0.1]))
+    with pytest.raises(ValueError, match="5 channels, the calibration has 6"):
+        cal.to_accel(np.full(5, 0.1))
+
+
+def test_calibration_file_round_trip_and_errors(tmp_path):
+    device = default_device()
+    cal = calibrate(marvin_six(), _recordings(device, SIX_POSES, 0.2), RATE,
+                    noise=device.noise_model(), latency_s=device.latency_s(RATE))
+    path = tmp_path / "cal.json"
+    cal.save(path)
+    back = sn.Calibration.load(path)
+    np.testing.assert_array_equal(back.bias_v, cal.bias_v)
+    np.testing.assert_array_equal(back.axes, cal.axes)
+    np.testing.assert_array_equal(back.param_cov, cal.param_cov)
+    assert back.latency_s == cal.latency_s and back.noise == cal.noise
+    d = cal.to_dict()
+    del d["gain_v_per_mps2"]
+    with pytest.raises(ValueError, match="missing field 'gain_v_per_mps2'"):
+        sn.Calibration.from_dict(d)
+    with pytest.raises(ValueError, match="format"):
+        sn.Calibration.from_dict({**cal.to_dict(), "format": "other"})
+    with pytest.raises(ValueError, match="gains are positive"):
+        sn.Calibration.from_dict({**cal.to_dict(), "gain_v_per_mps2": [-1.0] * 6})
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not JSON"):
+        sn.Calibration.load(tmp_path / "bad.json")
+    with pytest.raises(ValueError, match="No such file"):
+        sn.Calibration.load(tmp_path / "missing.json")
+
+
+def _mean_nees(cal: sn.Calibration, device: SensorTruth, runs: int) -> float:
+    """Average 6-dof pose NEES after 1 s over independent runs from random start times."""
+    traj = HeadTrajectory(2)
+    rng = np.random.default_rng(21)
+    nees = []
+    for r in range(runs):
+        run = simulate(traj, 1.0, RATE, seed=500 + r, t0=rng.uniform(0, 50), sensor=device,
+                       calibration=cal)
+        e = dead_reckon_from_truth(cal, run.t, run.accel, run.truth, RATE)[-1]
+        dp = run.truth.position[-1] - e.position
+        dth = geo.quat_to_rotvec(geo.quat_multiply(run.truth.quaternion[-1],
+                                                   geo.quat_conjugate(e.quaternion)))
+        x = np.concatenate([dp, dth])
+        nees.append(x @ np.linalg.solve(e.decoupled_covariance, x))
+    return float(np.mean(nees))
+
+
+def test_reported_covariance_is_honest_nees():
+    """Mean NEES within the two-sided 95 % chi-square bounds; a model that claims 4x less
+    noise than there is fails the same check."""
+    device = default_device()
+    cal = calibrate(marvin_six(), _recordings(device, SIX_POSES, 3.0, seed=40), RATE,
+                    noise=device.noise_model(), latency_s=device.latency_s(RATE))
+    runs = 30
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * runs) / runs
+    honest = _mean_nees(cal, device, runs)
+    assert lo < honest < hi, (lo, honest, hi)
+    overconfident = replace(cal, noise=replace(cal.noise, density_v=cal.noise.density_v / 4))
+    assert _mean_nees(overconfident, device, runs) > hi
