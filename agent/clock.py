@@ -1,0 +1,91 @@
+"""Clock offsets between this process and remote agents, NTP style (DESIGN.md "Time").
+
+Every query round trip to an agent gives four timestamps: ``t1`` we sent (our clock),
+``t2`` the agent received and ``t3`` it replied (its clock), ``t4`` we received (ours).
+Then ``offset = ((t2 - t1) + (t3 - t4)) / 2`` (the agent's clock minus ours) and
+``delay = (t4 - t1) - (t3 - t2)`` (network time).  The offset error is at most half the
+asymmetry of the path, so of several recent samples the one with the smallest delay is
+the most trustworthy: a minimum-delay filter over a short window (NTP's clock filter).
+Samples age out so that a drifting clock is followed.
+
+Tests skew an agent's clock with the environment variable ``UMA_CLOCK_SKEW_NS`` (read by
+``agent.srg_node.SrgNode``): that agent then timestamps as if its clock were that many
+nanoseconds ahead; it exists only to test this module end to end.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+#: environment variable that skews an agent's clock (tests only; see the module docstring)
+SKEW_ENV = "UMA_CLOCK_SKEW_NS"
+
+
+def skew_from_env() -> int:
+    """The test-only clock skew in ns (0 when unset); ``ValueError`` if it is not an int."""
+    raw = os.environ.get(SKEW_ENV, "").strip()
+    if not raw:
+        return 0
+    try:
+        return int(raw)
+    except ValueError:
+        raise ValueError(f"{SKEW_ENV}={raw!r} is not an integer number of nanoseconds") from None
+
+
+@dataclass(frozen=True)
+class ClockSample:
+    offset_ns: int
+    delay_ns: int
+    taken: float  # time.monotonic() when measured
+
+
+class ClockOffsets:
+    """Per remote agent, the offset of its clock from ours (min-delay filtered)."""
+
+    def __init__(self, window: int = 16, max_age_s: float = 60.0) -> None:
+        self.window = window
+        self.max_age_s = max_age_s
+        self._samples: dict[str, deque[ClockSample]] = {}
+        self._lock = threading.Lock()
+
+    def add(self, agent: str, t1: int, t2: int, t3: int, t4: int) -> ClockSample | None:
+        """Record one round trip; returns the sample, or None if its times are impossible
+        (the agent replied before it received, or we received before we sent)."""
+        delay = (t4 - t1) - (t3 - t2)
+        if t4 < t1 or t3 < t2 or delay < 0:
+            return None
+        sample = ClockSample(((t2 - t1) + (t3 - t4)) // 2, delay, time.monotonic())
+        with self._lock:
+            self._samples.setdefault(agent, deque(maxlen=self.window)).append(sample)
+        return sample
+
+    def best(self, agent: str) -> ClockSample | None:
+        """The minimum-delay sample among the recent ones, or None if none is recent."""
+        horizon = time.monotonic() - self.max_age_s
+        with self._lock:
+            samples = [s for s in self._samples.get(agent, ()) if s.taken >= horizon]
+        return min(samples, key=lambda s: s.delay_ns) if samples else None
+
+    def offset(self, agent: str) -> int | None:
+        """The agent's clock minus ours in ns, or None if never measured (recently)."""
+        best = self.best(agent)
+        return None if best is None else best.offset_ns
+
+    def to_remote(self, agent: str, t_local: int) -> int:
+        """Our time ``t_local`` on the agent's clock (unchanged if the offset is unknown)."""
+        return t_local + (self.offset(agent) or 0)
+
+    def to_local(self, agent: str, t_remote: int) -> int:
+        """A timestamp of the agent's clock on ours."""
+        return t_remote - (self.offset(agent) or 0)
+
+    def known(self, agent: str) -> bool:
+        return self.best(agent) is not None
+
+    def forget(self, agent: str) -> None:
+        with self._lock:
+            self._samples.pop(agent, None)

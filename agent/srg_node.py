@@ -1,0 +1,320 @@
+"""The agent's SRG on the network: local graph, supernode summary, query service.
+
+The agent daemon creates one ``SrgNode(session, realm, agent_id, static_edges)`` after
+opening its Zenoh session, feeds it its local services' pose samples
+(``on_local_sample``), tells it when an ability goes away (``on_ability_removed``) and
+calls ``close()`` at shutdown.  The node:
+
+- keeps a :class:`agent.srg.Graph` of the configuration's static edges (source
+  ``config``) and one measured edge per local ``pose6d`` ability (source
+  ``<service_id>/<ability>``, the data key's last two chunks);
+- publishes its supernode summary (:mod:`agent.srg.supernode`) on
+  ``uma/<realm>/agent/<id>/supernode`` whenever its graph's structure or attributes or its
+  boundary (the frames other agents also know, learnt from their summaries) change, and
+  answers queries there with the latest one;
+- answers ``uma/<realm>/agent/<id>/query``.  Messages (``schemas.codec`` msgpack maps):
+
+  ======================================  ==============================================
+  request                                 reply
+  ======================================  ==============================================
+  ``{"op": "clock"}``                     ``{"ok": true, "t2": recv ns, "t3": reply ns}``
+  ``{"op": "segment", "source": S,        ``{"ok": true, "result": PoseResult, "t2", "t3"``
+  "target": T, "t": ns or nil,            ``[, "edges": [edge details]]}`` where result
+  "error": E[, "details": true]}``        is a ``schemas.models.PoseResult`` as a map;
+  (``"op": "pose"`` is the same)          ``details`` adds each edge's data key (measured)
+                                          or value (static), for streaming clients
+  anything malformed or failing           ``{"ok": false, "error": message, "kind":
+                                          exception class, "t2", "t3"}``
+  ======================================  ==============================================
+
+  ``t2``/``t3`` are this agent's clock when the request arrived and when the reply left,
+  for the caller's clock-offset estimate (:mod:`agent.clock`).
+
+Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
+tens of microseconds) and record other agents' frames; one worker thread republishes the
+summary when needed.  A failing query is answered with an error, never raised into Zenoh.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from agent import keys
+from agent.clock import skew_from_env
+from agent.registry import RateLimitedLog
+from agent.srg import Graph
+from agent.srg.result import PoseResult as SrgPose
+from agent.srg.result import finite_or_none
+from agent.srg.supernode import summarize
+from schemas.codec import DecodeError, decode_message, encode_message, unpack_covariance
+
+log = logging.getLogger("uma.srg")
+
+CONFIG_SOURCE = "config"
+#: how often the worker checks whether the summary must be republished
+PUBLISH_CHECK_S = 0.05
+#: edge attributes an ability may carry that the SRG uses
+_SRG_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
+                   "ttl_s", "cost")
+
+
+def ability_attributes(ability: Any) -> dict[str, Any]:
+    """The SRG attributes of a ``schemas.models.Ability`` (unset ones left out)."""
+    attrs = ability.attributes
+    out = {name: getattr(attrs, name) for name in _SRG_ATTRIBUTES
+           if getattr(attrs, name, None) is not None}
+    if getattr(attrs, "covariance", None) is not None:
+        out["covariance"] = unpack_covariance(attrs.covariance)
+    return out
+
+
+def result_to_wire(r: SrgPose, source: str, target: str, owner: str,
+                   t_ns: int) -> dict[str, Any]:
+    """A local result as a ``schemas.models.PoseResult`` map (checked by the receiver)."""
+    stamps = iter(r.stamps)
+    edges = []
+    for e in r.edges:
+        t_edge = t_ns if e["static"] else next(stamps)[1]
+        edges.append({"parent": e["parent"], "child": e["child"], "inverted": not e["forward"],
+                      "owner": owner, "t_ns": int(t_edge)})
+    return {
+        "source": source, "target": target, "t_ns": int(t_ns),
+        "position": [float(x) for x in r.position],
+        "quaternion": [float(x) for x in r.quaternion],
+        "covariance": None if r.covariance is None else r.covariance.ravel().tolist(),
+        "path": list(r.path), "edges": edges,
+        "attributes": finite_or_none(r.attributes),
+        "extrapolated_s": float(r.extrapolated_s),
+    }
+
+
+class SrgNode:
+    """One agent's SRG, its supernode summary and its query service (module docstring)."""
+
+    def __init__(self, session: zenoh.Session, realm: str, agent_id: str,
+                 static_edges: list[dict[str, Any]] | None = None) -> None:
+        self.session = session
+        self.realm = realm
+        self.agent_id = agent_id
+        #: test-only skew of this agent's clock (agent.clock.SKEW_ENV)
+        self.skew_ns = skew_from_env()
+        self.graph = Graph()
+        self._lock = threading.Lock()
+        self._bad = RateLimitedLog(log)
+        self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
+        self._data_keys: dict[str, str] = {}  # edge source -> data key
+        self._remote_frames: dict[str, set[str]] = {}
+        self._boundary: set[str] = set()
+        self._published: tuple[int, frozenset[str]] | None = None
+        self._summary = encode_message({"agent": agent_id, "rev": 0, "frames": [],
+                                        "boundary": [], "components": [], "links": []})
+        self._rev = 0
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        for i, edge in enumerate(static_edges or []):
+            self._add_static(i, edge)
+        self._query_key = keys.agent_query(realm, agent_id)
+        self._summary_key = keys.agent_supernode(realm, agent_id)
+        self._decls = [
+            session.declare_queryable(self._query_key, self._on_query),
+            session.declare_queryable(self._summary_key, self._on_summary_query),
+            session.declare_subscriber(keys.all_agent_supernodes(realm), self._on_summary),
+            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
+                                                    self._on_agent_token, history=True),
+        ]
+        session.get(keys.all_agent_supernodes(realm), self._on_summary_reply, timeout=2.0)
+        self._worker = threading.Thread(target=self._work, name="uma-srg", daemon=True)
+        self._worker.start()
+        self._wake.set()
+
+    def now_ns(self) -> int:
+        """This agent's clock (skewed in tests, see agent.clock)."""
+        return time.time_ns() + self.skew_ns
+
+    # ------------------------------------------------------------------ feeding the graph
+
+    def _add_static(self, i: int, edge: dict[str, Any]) -> None:
+        try:
+            self.graph.add_static(edge["parent"], edge["child"], edge["position"],
+                                  edge["quaternion"], source=CONFIG_SOURCE,
+                                  pos_std_m=edge.get("pos_std_m"),
+                                  rot_std_rad=edge.get("rot_std_rad"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"static edge #{i + 1} ({edge!r}): {exc}") from None
+
+    def on_local_sample(self, service_id: str, ability: Any, measurement: Any) -> None:
+        """A sample of a local pose6d ability: append it to that ability's edge."""
+        key = (service_id, ability.name)
+        with self._lock:
+            known = self._sources.get(key)
+            if known is None or known[0] != ability:
+                source = f"{service_id}/{ability.name}"
+                parent, child = ability.edge
+                self.graph.declare_measured(parent, child, source=source,
+                                            **ability_attributes(ability))
+                self._sources[key] = (ability, source)
+                self._data_keys[source] = keys.data(self.realm, self.agent_id, service_id,
+                                                    ability.name)
+                self._wake.set()
+            else:
+                source = known[1]
+            parent, child = ability.edge
+            self.graph.add_measurement(parent, child, measurement.t_ns, measurement.position,
+                                       measurement.quaternion, measurement.covariance,
+                                       source=source)
+
+    def on_ability_removed(self, service_id: str, ability: Any) -> None:
+        """A local ability went away: its edge leaves the graph (and the summary)."""
+        with self._lock:
+            entry = self._sources.pop((service_id, ability.name), None)
+            if entry is not None:
+                self.graph.remove_source(entry[1])
+                self._data_keys.pop(entry[1], None)
+        self._wake.set()
+
+    # ------------------------------------------------------------------ queries
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        t2 = self.now_ns()
+        try:
+            payload = query.payload
+            msg = decode_message(payload.to_bytes() if payload is not None else b"",
+                                 required=("op",))
+            reply = self.handle(msg)
+        except (DecodeError, ValueError, LookupError, TypeError) as exc:
+            reply = {"ok": False, "error": str(exc), "kind": type(exc).__name__}
+        except Exception as exc:  # never into Zenoh's thread: answer and log
+            self._bad.warning("query", f"{type(exc).__name__}: {exc}")
+            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}",
+                     "kind": "InternalError"}
+        reply["t2"] = t2
+        reply["t3"] = self.now_ns()
+        try:
+            query.reply(self._query_key, encode_message(reply))
+        except (zenoh.ZError, ValueError) as exc:
+            self._bad.warning("query reply", str(exc))
+
+    def handle(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """Answer one decoded query message (see the module docstring)."""
+        op = msg["op"]
+        if op == "clock":
+            return {"ok": True}
+        if op not in ("segment", "pose"):
+            raise ValueError(f"unknown op {op!r} (expected clock, segment or pose)")
+        source, target, error = msg.get("source"), msg.get("target"), msg.get("error", "hops")
+        for name, value in (("source", source), ("target", target), ("error", error)):
+            if not isinstance(value, str) or not value:
+                raise ValueError(f"{op} request: {name} must be a non-empty string, got "
+                                 f"{value!r}")
+        t = msg.get("t")
+        if t is not None and (isinstance(t, bool) or not isinstance(t, int)):
+            raise ValueError(f"{op} request: t must be integer ns or nil, got {t!r}")
+        with self._lock:
+            r = self.graph.pose(source, target, at=t, error=error)
+            out: dict[str, Any] = {"ok": True}
+            t_used = r.t_ns if r.t_ns is not None else (t if t is not None else self.now_ns())
+            out["result"] = result_to_wire(r, source, target, self.agent_id, t_used)
+            if msg.get("details"):
+                out["edges"] = [self._edge_details(e) for e in r.edges]
+        return out
+
+    def _edge_details(self, e: dict[str, Any]) -> dict[str, Any]:
+        """What a streaming client needs to rebuild an edge: its data key or its value."""
+        edge = self.graph.edge(e["parent"], e["child"], e["source"])
+        attrs = {k: v for k, v in edge.attrs.items() if k != "covariance"}
+        out = {"parent": e["parent"], "child": e["child"], "source": e["source"],
+               "static": e["static"], "attributes": attrs}
+        if edge.is_static:
+            p, q, cov = edge.value
+            out.update(position=p.tolist(), quaternion=q.tolist(),
+                       covariance=None if cov is None else cov.ravel().tolist())
+        else:
+            out["key"] = self._data_keys.get(e["source"])
+            if "covariance" in edge.attrs:
+                out["covariance"] = edge.attrs["covariance"].ravel().tolist()
+        return out
+
+    # ------------------------------------------------------------------ summaries
+
+    def _on_summary_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(self._summary_key, self._summary)
+        except zenoh.ZError as exc:
+            self._bad.warning("supernode reply", str(exc))
+
+    def _on_summary(self, sample: zenoh.Sample) -> None:
+        self._learn(str(sample.key_expr), sample.payload.to_bytes())
+
+    def _on_summary_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._learn(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+    def _learn(self, key: str, data: bytes) -> None:
+        """Record the frames another agent knows (they decide our boundary)."""
+        try:
+            msg = decode_message(data, required=("agent", "frames"))
+            agent, frames = msg["agent"], msg["frames"]
+            if not isinstance(agent, str) or not isinstance(frames, list) or not all(
+                    isinstance(f, str) for f in frames):
+                raise DecodeError("agent must be a string and frames a list of strings")
+        except DecodeError as exc:
+            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
+            return
+        if agent == self.agent_id:
+            return
+        with self._lock:
+            self._remote_frames[agent] = set(frames)
+        self._wake.set()
+
+    def _on_agent_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
+        if agent is not None:
+            with self._lock:
+                self._remote_frames.pop(agent, None)
+            self._wake.set()
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(1.0)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self._republish_if_changed()
+            except Exception as exc:  # keep the agent alive; say why once in a while
+                self._bad.warning("supernode", f"{type(exc).__name__}: {exc}")
+            self._stop.wait(PUBLISH_CHECK_S)
+
+    def _republish_if_changed(self) -> None:
+        with self._lock:
+            local = set(self.graph.frames())
+            remote = set().union(*self._remote_frames.values()) if self._remote_frames else set()
+            boundary = frozenset(local & remote)
+            state = (self.graph.version, boundary)
+            if state == self._published:
+                return
+            self._rev += 1
+            summary = summarize(self.graph, boundary)
+            summary.update(agent=self.agent_id, rev=self._rev)
+            data = encode_message(summary)
+            self._summary = data
+            self._published = state
+        self.session.put(self._summary_key, data)
+
+    def close(self) -> None:
+        """Stop publishing and answering (before the agent closes its session)."""
+        self._stop.set()
+        self._wake.set()
+        self._worker.join(2.0)
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()

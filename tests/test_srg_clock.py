@@ -1,0 +1,47 @@
+"""The NTP-style offset estimate with its minimum-delay filter."""
+
+from __future__ import annotations
+
+import pytest
+
+from agent.clock import ClockOffsets, skew_from_env
+
+
+def test_offset_from_a_symmetric_round_trip():
+    c = ClockOffsets()
+    # agent 5 s ahead; 100 us each way; 20 us processing
+    t1 = 1_000_000_000
+    c.add("b", t1, t1 + 100_000 + 5 * 10**9, t1 + 120_000 + 5 * 10**9, t1 + 220_000)
+    assert c.offset("b") == 5 * 10**9
+    assert c.to_remote("b", 10) == 10 + 5 * 10**9 and c.to_local("b", 5 * 10**9) == 0
+    assert c.best("b").delay_ns == 200_000
+
+
+def test_min_delay_sample_wins_over_asymmetric_slow_ones():
+    c = ClockOffsets()
+    skew = -3_000_000
+    # slow round trips with asymmetric delays bias the estimate by up to half the asymmetry
+    c.add("b", 0, 900_000 + skew, 900_000 + skew, 1_000_000)  # biased by +400 us
+    c.add("b", 2_000_000, 2_050_000 + skew, 2_060_000 + skew, 2_110_000)  # symmetric, fast
+    c.add("b", 3_000_000, 3_100_000 + skew, 3_100_000 + skew, 3_800_000)  # biased by -300 us
+    assert c.offset("b") == skew
+
+
+def test_impossible_samples_are_refused_and_unknown_agents_have_no_offset():
+    c = ClockOffsets()
+    assert c.add("b", 10, 5, 4, 20) is None  # replied before receiving
+    assert c.add("b", 10, 5, 6, 9) is None  # received before sending
+    assert c.offset("b") is None and c.to_remote("b", 7) == 7
+    c.add("b", 0, 10, 10, 20)
+    c.forget("b")
+    assert not c.known("b")
+
+
+def test_skew_env(monkeypatch):
+    monkeypatch.setenv("UMA_CLOCK_SKEW_NS", "123")
+    assert skew_from_env() == 123
+    monkeypatch.setenv("UMA_CLOCK_SKEW_NS", "soon")
+    with pytest.raises(ValueError, match="UMA_CLOCK_SKEW_NS"):
+        skew_from_env()
+    monkeypatch.delenv("UMA_CLOCK_SKEW_NS")
+    assert skew_from_env() == 0
