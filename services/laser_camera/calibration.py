@@ -62,6 +62,15 @@ class CameraCalibration:
         """Distorted pixels (n, 2) to screen coordinates (n, 2), metres (eq. 5.39)."""
         return apply_homography(self.H, self.undistort(uv))
 
+    def screen_sigma_m(self, default: float) -> float:
+        """Per-axis error (1 sigma) of the image -> screen map after calibration: the
+        corners' residual RMS (per axis) scaled by sqrt(8 / n), the share of the noise an
+        8-parameter fit to n corners passes on to its predictions."""
+        rms, n = self.quality.get("screen_rms_m"), self.quality.get("corners")
+        if not rms or not n or n <= 8:
+            return default
+        return float(rms / math.sqrt(2) * math.sqrt(8 / n))
+
     def metres_per_pixel(self, uv_undistorted: np.ndarray) -> float:
         """Linear scale of the image -> screen map at an (undistorted) image point."""
         return math.sqrt(abs(np.linalg.det(homography_jacobian(self.H, uv_undistorted))))

@@ -32,7 +32,7 @@ class DetectorParams:
     dark_level: float = 8.0  # DN of a dark pixel
     read_noise: float = 1.5  # DN, std of a dark pixel
     gain: float = 0.1  # DN per electron: shot noise variance = gain * signal
-    floor_px: float = 0.05  # systematic centroid error (sampling, saturation)
+    floor_px: float = 0.02  # systematic centroid error (sampling, saturation)
 
     def __post_init__(self) -> None:
         if not 0 < self.threshold < 255:

@@ -47,20 +47,29 @@ def frame_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Raises ``ValueError`` when P1 and P2 coincide or P3 lies on the line P1P2 (no frame).
     """
-    P1, P2, P3 = P[0], P[1], P[2]
+    P0, R = frames_from_points(np.asarray(P, float)[None])
+    if not np.all(np.isfinite(R)):
+        raise ValueError("pose: P1 and P2 coincide or P3 lies on the line P1P2")
+    return P0[0], R[0]
+
+
+def frames_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``frame_from_points`` for a stack of labeled hits (m, 4, 3): P0 (m, 3), R (m, 3, 3);
+    NaN where no frame exists."""
+    P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]
     d12 = P2 - P1
-    L2 = float(d12 @ d12)
-    if L2 < 1e-12:
-        raise ValueError("pose: P1 and P2 coincide")
-    P0 = P1 + ((P3 - P1) @ d12) / L2 * d12
-    v3 = P3 - P0
-    n = np.cross(P1 - P0, v3)
-    n3, nn = np.linalg.norm(v3), np.linalg.norm(n)
-    if n3 < 1e-9 or nn < 1e-12:
-        raise ValueError("pose: P3 lies on the line P1P2")
-    x = -v3 / n3
-    z = n / nn
-    return P0, np.column_stack([x, np.cross(z, x), z])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.einsum("ij,ij->i", P3 - P1, d12) / np.einsum("ij,ij->i", d12, d12)
+        P0 = P1 + lam[:, None] * d12
+        v3 = P3 - P0
+        n = _cross(P1 - P0, v3)
+        x = -v3 / np.linalg.norm(v3, axis=1, keepdims=True)
+        z = n / np.linalg.norm(n, axis=1, keepdims=True)
+    bad = ~(np.isfinite(x).all(1) & np.isfinite(z).all(1)) \
+        | (np.linalg.norm(v3, axis=1) < 1e-9) | (np.linalg.norm(n, axis=1) < 1e-12)
+    R = np.stack([x, _cross(z, x), z], axis=-1)
+    R[bad] = np.nan
+    return P0, R
 
 
 def labeling_errors(points: np.ndarray) -> np.ndarray:
@@ -78,7 +87,7 @@ def labeling_errors(points: np.ndarray) -> np.ndarray:
         perp = (np.abs(_dot(u4, u1)) + np.abs(_dot(u4, u2)) + np.abs(_dot(u4, u3))
                 + np.abs(_dot(u1, u3)) + np.abs(_dot(u2, u3)))
         D = np.einsum("ij,ij->i", P0 - P0b, P0 - P0b)
-        n = np.cross(P1 - P0, P3 - P0)
+        n = _cross(P1 - P0, P3 - P0)
         F = (_dot(n, P4 - P0) <= 0).astype(float)
         eps = perp + D + F
     return np.where(np.isfinite(eps), eps, np.inf)
@@ -115,3 +124,10 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, b)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (m, 3) arrays (np.cross is slow on small arrays)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])

@@ -35,7 +35,7 @@ from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration
 from services.laser_camera.detection import STD, U, V, detect_dots
 from services.laser_camera.homography import apply_homography
-from services.laser_camera.pose import LabeledPose, candidate_poses, frame_from_points
+from services.laser_camera.pose import LabeledPose, candidate_poses, frames_from_points
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
@@ -57,7 +57,8 @@ class TrackerParams:
     coherence_s: float = 0.3  # beyond this gap without a pose, re-initialise (upright)
     min_upright_cos: float = 0.3  # initialisation needs the rig's z within ~73 deg of up
     init_pool_eps: float = 0.02  # labelings this close to the best compete at initialisation
-    calib_sigma_m: float = 0.0005  # calibration error of a dot on the screen (1 sigma)
+    #: calibration error of a dot on the screen (1 sigma) when the file does not tell
+    calib_sigma_m: float = 0.0005
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
@@ -115,7 +116,8 @@ class NoPose:
 class LaserTracker:
     """Rig poses from synchronous camera images, with temporal coherence between calls."""
 
-    def __init__(self, calibration: Calibration, params: TrackerParams | None = None):
+    def __init__(self, calibration: Calibration | None, params: TrackerParams | None = None):
+        """``calibration`` may be None for a tracker fed world-frame dots (``solve``)."""
         self.calibration = calibration
         self.params = params or TrackerParams()
         self.counts: Counter[str] = Counter()
@@ -144,6 +146,9 @@ class LaserTracker:
 
     def detect(self, images: Mapping[str, np.ndarray]) -> WorldDots:
         """World-frame dots of all images; unknown camera names raise ``ValueError``."""
+        if self.calibration is None:
+            raise ValueError("this tracker has no camera calibration; it can only solve() "
+                             "world-frame dots")
         pts, std, walls, axes, cams = [], [], [], [], []
         guard = self.params.edge_guard_m
         for name, img in images.items():
@@ -154,10 +159,11 @@ class LaserTracker:
             und = cal.undistort(det[:, [U, V]])
             xy = apply_homography(cal.H, und)
             keep = cal.wall.on_screen(xy, guard)
+            sigma_cal = cal.screen_sigma_m(self.params.calib_sigma_m)
             for i in np.flatnonzero(keep):
                 mpp = cal.metres_per_pixel(und[i])
                 pts.append(cal.wall.to_world(xy[i])[0])
-                std.append(float(np.hypot(det[i, STD] * mpp, self.params.calib_sigma_m)))
+                std.append(float(np.hypot(det[i, STD] * mpp, sigma_cal)))
                 walls.append(cal.wall.name)
                 axes.append(cal.wall.rotation[:, :2].T)
                 cams.append(name)
@@ -245,20 +251,20 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
 
 
 def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
-                step_m: float = 1e-4) -> np.ndarray:
+                step_m: float = 1e-5) -> np.ndarray:
     """6x6 pose covariance (xi form) from the dots' in-plane errors, by numeric Jacobian of
     the closed-form solution: each dot moves along its wall's two axes."""
     P = dots.points[idx]
-    base_p, base_R = frame_from_points(P)
-    cols, var = [], []
-    for k, i in enumerate(idx):
-        for axis in dots.axes[i]:
-            Q = P.copy()
-            Q[k] += step_m * axis
-            p, R = frame_from_points(Q)
-            dphi = geo.rodrigues_inverse(R @ base_R.T)  # world-frame (left) rotation error
-            cols.append(np.concatenate([(p - base_p), dphi]) / step_m)
-            var.append(dots.std_m[i] ** 2)
-    J = np.array(cols).T  # (6, 8)
-    C = (J * np.array(var)) @ J.T
+    axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
+    Q = np.repeat(P[None], 9, axis=0)
+    Q[1 + np.arange(8), np.repeat(np.arange(4), 2)] += step_m * axes
+    p, R = frames_from_points(Q)
+    if not np.all(np.isfinite(R)):
+        raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
+    dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
+    dphi = 0.5 * np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
+                           dR[:, 1, 0] - dR[:, 0, 1]], -1)
+    J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
+    var = np.repeat(dots.std_m[idx] ** 2, 2)
+    C = (J * var) @ J.T
     return geo.decoupled_to_se3(p0, 0.5 * (C + C.T))

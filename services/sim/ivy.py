@@ -25,8 +25,9 @@ import numpy as np
 
 from services.sim.trajectory import CUBE_SIDE_M
 
-#: default active screen side: the 2.44 m cube minus a 4 cm frame/seam band at each edge
-SCREEN_SIDE_M = 2.36
+#: default active screen side: "the 2.29m screen" (seed 003 §5.2) in the 2.44 m cube,
+#: leaving a 7.5 cm band of frame and seams at each edge
+SCREEN_SIDE_M = 2.29
 
 # face name -> (screen X axis, screen Y axis, outward normal); X x Y = normal
 _FACES: dict[str, tuple[tuple[float, ...], ...]] = {

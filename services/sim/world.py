@@ -19,7 +19,7 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.sim import mounts
 from services.sim.camera import Camera, place_camera
-from services.sim.ivy import BeamHit, Wall, intersect_beam, make_walls
+from services.sim.ivy import SCREEN_SIDE_M, BeamHit, Wall, intersect_beam, make_walls
 from services.sim.laser_housing import LABELS, beam_directions_world
 from services.sim.render import (
     NoiseBank,
@@ -41,7 +41,7 @@ class WorldConfig:
 
     n_cameras: int = 6  # 6: one per screen; 8: floor and ceiling split in two (the thesis)
     cube_side_m: float = CUBE_SIDE_M
-    screen_side_m: float = 2.36
+    screen_side_m: float = SCREEN_SIDE_M
     beam_sigma_m: float = 0.0015  # 6 mm spot at 5 m (appendix C.2.1)
     diffusion_sigma_m: float = 0.005  # blur of the rear-projection screen
     spot_energy_dn: float = 3000.0  # integrated DN of one spot: head-on spots saturate

@@ -1,0 +1,119 @@
+"""The laser-dot tracker end to end on the simulated display: calibration from rendered
+images, its file, a short accuracy run and the ``uma eval laser-camera`` command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.evaluate import evaluate
+from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate
+from services.sim.world import IvyWorld
+
+
+@pytest.fixture(scope="module")
+def world() -> IvyWorld:
+    return IvyWorld(seed=4)
+
+
+@pytest.fixture(scope="module")
+def calibration(world: IvyWorld) -> Calibration:
+    return calibrate_sim(world)
+
+
+@pytest.fixture(scope="module")
+def calibration_file(calibration: Calibration, tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("laser") / "ivy.json"
+    calibration.save(path)
+    return path
+
+
+def test_calibration_recovers_every_screen_mapping(world, calibration) -> None:
+    rng = np.random.default_rng(0)
+    for cam in world.cameras:
+        cal = calibration.camera(cam.name)
+        assert cal.quality["dlt_vs_opencv_m"] < 1e-4  # same fit as cv2.findHomography
+        assert cal.quality["intrinsic_rms_px"] < 0.3
+        wall = world.walls[cam.wall]
+        xy = rng.uniform(0.05, wall.screen_side_m - 0.05, (300, 2))
+        err = np.linalg.norm(cal.image_to_screen(cam.project(wall.to_world(xy))) - xy, axis=1)
+        assert np.mean(err) < 1e-3 and np.max(err) < 4e-3, (cam.name, err.mean(), err.max())
+
+
+def test_calibration_file_round_trip_and_refusals(calibration, calibration_file,
+                                                  tmp_path) -> None:
+    loaded = Calibration.load(calibration_file)
+    for a, b in zip(calibration.cameras, loaded.cameras, strict=True):
+        assert a.name == b.name and np.array_equal(a.H, b.H) and np.array_equal(a.K, b.K)
+        assert a.detector == b.detector and a.wall.name == b.wall.name
+    with pytest.raises(ValueError, match="cannot read"):
+        Calibration.load(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="not JSON"):
+        Calibration.load(bad)
+    data = json.loads(calibration_file.read_text())
+    data["cameras"][0]["H"] = [[1, 0], [0, 1]]
+    bad.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="H: expected"):
+        Calibration.load(bad)
+    data["cameras"] = []
+    bad.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="no cameras"):
+        Calibration.load(bad)
+
+
+def test_short_run_meets_the_accuracy_goals(world, calibration) -> None:
+    fig = evaluate(world, calibration, seconds=4.0, rate_hz=30.0)
+    assert fig["frames"] == 120 and fig["poses"] >= 100
+    assert fig["labeling_correct_pct"] == 100.0
+    assert fig["orientation_error_deg"]["mean"] <= 0.1
+    assert fig["orientation_error_deg"]["max"] <= 0.35
+    assert fig["position_error_cm"]["mean"] <= 1.0
+    assert 1.0 < fig["nees_mean"] < 20.0  # the covariance is of the right size
+
+
+def test_eval_is_deterministic(world, calibration) -> None:
+    a = evaluate(world, calibration, seconds=1.0)
+    b = evaluate(world, calibration, seconds=1.0)
+    timing = [k for k in a if k.endswith(("_median", "_p99"))]
+    for k in timing:
+        a.pop(k)
+        b.pop(k)
+    assert a == b
+
+
+def test_tracker_survives_lost_dots_and_bad_frames(world, calibration) -> None:
+    tr = LaserTracker(calibration)
+    frame = world.render(1.0)
+    # one camera's image lost: its dot is missing -> no pose, counted, no exception
+    images = dict(frame.images)
+    lost = next(c for c, pts in frame.image_points.items() if pts)
+    images[lost] = np.zeros_like(images[lost])
+    res = tr.process(images, 1.0)
+    assert isinstance(res, NoPose) and res.reason == "too_few_dots"
+    assert isinstance(tr.process(frame.images, 1.0 + 1 / 30), PoseEstimate)
+    with pytest.raises(ValueError, match="no camera 'nope'"):
+        tr.process({"nope": frame.images[lost]}, 2.0)
+
+
+def test_uma_eval_command(calibration_file) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "agent.cli", "eval", "laser-camera", "--seconds", "1",
+         "--seed", "2", "--calibration", str(calibration_file), "--json"],
+        capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    fig = json.loads(out.stdout.strip().splitlines()[-1])
+    assert fig["frames"] == 30 and fig["seed"] == 2
+    assert fig["labeling_correct_pct"] == 100.0
+    bad = subprocess.run(
+        [sys.executable, "-m", "agent.cli", "eval", "laser-camera", "--seconds", "1",
+         "--calibration", "/nonexistent.json"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "cannot read calibration file" in bad.stderr
+    assert "Traceback" not in bad.stderr

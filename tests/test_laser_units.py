@@ -1,0 +1,300 @@
+"""Laser-dot tracker pieces against exact data: DLT vs OpenCV, dot detection, the pose
+solver, the 24 labelings, temporal coherence, gating and the no-pose corner cases."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.srg import geometry as geo
+from services.laser_camera.detection import DetectorParams, detect_dots
+from services.laser_camera.homography import (
+    apply_homography,
+    dlt_homography,
+    homography_jacobian,
+    normalising_transform,
+)
+from services.laser_camera.pose import (
+    PERMUTATIONS,
+    candidate_poses,
+    frame_from_points,
+    labeling_errors,
+    reflection,
+)
+from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, WorldDots
+from services.sim.ivy import intersect_beam, make_walls
+from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
+from services.sim.render import SensorModel
+from services.sim.world import IvyWorld, WorldConfig
+
+RNG_SEED = 1234
+
+
+def random_rig_pose(rng: np.random.Generator, upright: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    p = rng.uniform(-0.8, 0.8, 3)
+    if upright:
+        r = np.radians(rng.uniform([-25, -25, -180], [25, 25, 180]))
+        q = geo.quat_multiply(geo.rotvec_to_quat([0, 0, r[2]]),
+                              geo.rotvec_to_quat([r[0], r[1], 0]))
+    else:
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+    return p, q
+
+
+def exact_hits(world: IvyWorld, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    hits = world.laser_hits(p, q)
+    return np.array([hits[k].point for k in LABELS])
+
+
+def world_dots(points: np.ndarray, std: float = 1e-3) -> WorldDots:
+    n = len(points)
+    return WorldDots(np.asarray(points, float).reshape(-1, 3), np.full(n, std), ["w"] * n,
+                     np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1)), ["c"] * n)
+
+
+@pytest.fixture(scope="module")
+def world() -> IvyWorld:
+    return IvyWorld(seed=3)
+
+
+# ------------------------------------------------------------------ homography (eqs 5.19-5.37)
+
+
+def test_dlt_equals_opencv_on_exact_data() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    for _ in range(20):
+        H0 = np.array([[0.004, 2e-4, -1.2], [1e-4, -0.0041, 1.1], [1e-5, 2e-6, 1.0]])
+        H0[:2] += rng.normal(0, 1e-4, (2, 3))
+        H0[2, :2] += rng.normal(0, 1e-5, 2)
+        src = rng.uniform([0, 0], [640, 480], (int(rng.integers(4, 40)), 2))
+        dst = apply_homography(H0, src)
+        H = dlt_homography(src, dst)
+        H_cv, _ = cv2.findHomography(src, dst, 0)
+        assert np.abs(H - H_cv).max() < 1e-6
+        assert np.abs(H - H0).max() < 1e-9 * np.abs(H0).max()
+
+
+def test_normalisation_centres_and_scales() -> None:
+    pts = np.random.default_rng(1).uniform(100, 600, (30, 2))
+    T = normalising_transform(pts)
+    n = np.column_stack([pts, np.ones(30)]) @ T.T
+    assert np.allclose(n[:, :2].mean(0), 0, atol=1e-12)
+    assert np.linalg.norm(n[:, :2], axis=1).mean() == pytest.approx(np.sqrt(2))
+
+
+def test_homography_jacobian_matches_finite_differences() -> None:
+    H = np.array([[0.004, 2e-4, -1.2], [1e-4, -0.0041, 1.1], [1e-5, 2e-6, 1.0]])
+    x, e = np.array([120.0, 300.0]), 1e-4
+    num = np.column_stack([(apply_homography(H, [x + [e, 0]]) - apply_homography(H, [x]))[0],
+                           (apply_homography(H, [x + [0, e]]) - apply_homography(H, [x]))[0]]
+                          ) / e
+    assert np.allclose(homography_jacobian(H, x), num, rtol=1e-4)
+
+
+@pytest.mark.parametrize("src, dst, msg", [
+    (np.zeros((3, 2)), np.zeros((3, 2)), "at least 4"),
+    ([[0, 0], [1, 0], [2, 0], [3, 0], [4, 0]], np.random.default_rng(0).random((5, 2)),
+     "degenerate"),
+    ([[0, 0], [1, 0], [0, 1], [np.nan, 1]], np.ones((4, 2)), "non-finite"),
+    (np.ones((4, 2)), np.ones((4, 2)), "coincide"),
+    (np.random.default_rng(0).random((5, 2)), np.random.default_rng(1).random((4, 2)),
+     "destination"),
+])
+def test_dlt_refuses_bad_input(src, dst, msg) -> None:
+    with pytest.raises(ValueError, match=msg):
+        dlt_homography(src, dst)
+
+
+# ------------------------------------------------------------------ detection (§5.2.1)
+
+
+def test_detection_is_subpixel_on_noise_free_renders() -> None:
+    quiet = WorldConfig(sensor=SensorModel(read_noise_dn=0.0, gain_dn_per_e=0.0,
+                                           stuck_pixels=0),
+                        exposure_s=0.0, distractor_rate=0.0)
+    w = IvyWorld(seed=5, config=quiet)
+    rng = np.random.default_rng(RNG_SEED)
+    errors = []
+    for _ in range(25):
+        frame = w.render(0.0, pose=random_rig_pose(rng))
+        for cam, truth in frame.image_points.items():
+            dots = detect_dots(frame.images[cam], DetectorParams(read_noise=0.0, gain=0.0))
+            for uv in truth.values():
+                d = np.hypot(*(dots[:, :2] - uv).T)
+                # spots clipped by the screen's edge are biased by design; the tracker
+                # drops them (edge guard), so judge only unclipped ones
+                if d.min() < 2.0:
+                    errors.append(d.min())
+    errors = np.array(errors)
+    assert len(errors) > 50
+    assert np.quantile(errors, 0.98) < 0.1, errors.max()
+
+
+def _blob(img: np.ndarray, u: float, v: float, sigma: float, peak: float) -> None:
+    vv, uu = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    g = peak * np.exp(-((uu - u) ** 2 + (vv - v) ** 2) / (2 * sigma ** 2))
+    np.add(img, g, out=img)
+
+
+def test_detection_merges_fragments_and_ignores_hot_pixels() -> None:
+    img = np.full((480, 640), 8.0)
+    _blob(img, 100.3, 200.7, 1.0, 400)
+    _blob(img, 300.0, 100.0, 0.8, 300)
+    _blob(img, 303.5, 100.0, 0.8, 300)  # a second fragment of the same spot
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    img[50, 50] = 255  # stuck pixel
+    dots = detect_dots(img)
+    assert len(dots) == 2
+    dots = dots[np.argsort(dots[:, 0])]
+    assert np.hypot(dots[0, 0] - 100.3, dots[0, 1] - 200.7) < 0.1  # saturated, point-sampled
+    assert np.hypot(dots[1, 0] - 301.75, dots[1, 1] - 100.0) < 0.1
+    assert detect_dots(np.zeros((480, 640), np.uint8)).shape == (0, 5)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((480, 640)), np.zeros((4, 4, 3), np.uint8), None])
+def test_detection_refuses_non_gray8(bad) -> None:
+    with pytest.raises(ValueError, match="uint8"):
+        detect_dots(bad)
+
+
+# ------------------------------------------------------------------ pose (§5.3)
+
+
+def test_housing_geometry_is_fig_5_4() -> None:
+    d = BEAM_DIRECTIONS
+    assert np.allclose(d[1], -d[2])
+    assert d[3] @ d[1] == 0 and d[4] @ d[1] == 0 and d[3] @ d[4] == 0
+    assert np.cross(d[1], d[3]) @ d[4] > 0  # n = P0P1 x P0P3 points along beam 4
+
+
+def test_pose_solver_is_exact_for_random_poses(world: IvyWorld) -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    for _ in range(200):
+        p, q = random_rig_pose(rng)
+        P0, R = frame_from_points(exact_hits(world, p, q))
+        assert np.linalg.norm(P0 - p) < 1e-9
+        assert geo.quat_angle(geo.matrix_to_quat(R), q) < 1e-9
+
+
+def test_every_permutation_labels_correctly_or_as_the_reflection(world: IvyWorld) -> None:
+    rng = np.random.default_rng(RNG_SEED + 1)
+    for _ in range(30):
+        p, q = random_rig_pose(rng)
+        P = exact_hits(world, p, q)
+        for perm in PERMUTATIONS:
+            shown = P[perm]  # shown[j] is the hit of diode perm[j] + 1
+            truth_order = tuple(int(np.flatnonzero(perm == k)[0]) for k in range(4))
+            cands = candidate_poses(shown, max_error=1e-6)
+            assert {c.order for c in cands[:2]} == {truth_order, reflection(truth_order)}
+            right = next(c for c in cands if c.order == truth_order)
+            assert geo.quat_angle(right.quaternion, q) < 1e-9
+            mirror = next(c for c in cands if c.order == reflection(truth_order))
+            assert np.degrees(geo.quat_angle(mirror.quaternion, q)) == pytest.approx(180, abs=1e-6)
+            assert np.linalg.norm(mirror.position - p) < 1e-9  # same P0, eq. 5.8
+
+
+def test_wrong_labelings_score_high(world: IvyWorld) -> None:
+    p, q = random_rig_pose(np.random.default_rng(7), upright=True)
+    eps = np.sort(labeling_errors(exact_hits(world, p, q)))
+    assert eps[1] < 1e-9 and eps[2] > 0.05
+
+
+def test_degenerate_points_give_no_frame() -> None:
+    with pytest.raises(ValueError, match="P1 and P2|line P1P2"):
+        frame_from_points(np.zeros((4, 3)))
+    assert candidate_poses(np.zeros((4, 3)), 1.0) == []
+    assert candidate_poses(np.outer(np.arange(4.0), [1, 0, 0]), 1.0) == []
+
+
+# ------------------------------------------------------------------ tracker (§5.3.1)
+
+
+def make_tracker() -> LaserTracker:
+    return LaserTracker(calibration=None)  # solve() works on world dots, needs no cameras
+
+
+def test_initialisation_picks_the_upright_solution_and_coherence_keeps_it(world) -> None:
+    tr = make_tracker()
+    t_arr = np.arange(0, 6, 1 / 15)
+    p_all, q_all = world.rig_pose(t_arr)
+    rng = np.random.default_rng(3)
+    for t, p, q in zip(t_arr, p_all, q_all, strict=True):
+        P = exact_hits(world, p, q)[rng.permutation(4)]
+        res = tr.solve(world_dots(P), float(t))
+        assert isinstance(res, PoseEstimate), res
+        assert geo.quat_angle(res.quaternion, q) < 1e-6
+        for k, pt in res.dots.items():
+            assert np.allclose(pt, world.laser_hits(p, q)[k].point)
+    assert tr.counts["pose"] == len(t_arr)
+
+
+def test_upside_down_start_is_refused(world) -> None:
+    p = np.zeros(3)
+    q = geo.rotvec_to_quat([np.pi, 0, 0])  # rolled over: neither solution is upright
+    res = make_tracker().solve(world_dots(exact_hits(world, p, q)), 0.0)
+    assert isinstance(res, NoPose) and res.reason == "not_upright"
+
+
+def test_too_few_dots_and_distractors(world) -> None:
+    p, q = random_rig_pose(np.random.default_rng(11), upright=True)
+    P = exact_hits(world, p, q)
+    tr = make_tracker()
+    res = tr.solve(world_dots(P[:3]), 0.0)
+    assert isinstance(res, NoPose) and res.reason == "too_few_dots" and res.n_dots == 3
+    distractor = np.array([[1.22, 0.3, -0.2]])
+    res = tr.solve(world_dots(np.vstack([P, distractor])), 0.1)
+    assert isinstance(res, PoseEstimate) and geo.quat_angle(res.quaternion, q) < 1e-6
+    res = tr.solve(world_dots(np.vstack([P[:3], distractor])), 0.2)
+    assert isinstance(res, NoPose) and res.reason == "no_consistent_labeling"
+    res = tr.solve(world_dots(np.zeros((0, 3))), 0.3)
+    assert isinstance(res, NoPose) and res.reason == "too_few_dots"
+    res = tr.solve(world_dots(np.random.default_rng(0).random((9, 3))), 0.4)
+    assert isinstance(res, NoPose) and res.reason == "too_many_dots"
+    assert tr.counts["too_few_dots"] == 2 and tr.counts["pose"] == 1
+
+
+def test_gating_refuses_impossible_jumps(world) -> None:
+    p = np.array([0.1, -0.2, 0.3])
+    q = geo.rotvec_to_quat([0.0, 0.1, 0.4])
+    tr = make_tracker()
+    assert tr.solve(world_dots(exact_hits(world, p, q)), 0.0).ok
+    q2 = geo.quat_multiply(geo.rotvec_to_quat([0, 0, np.radians(60)]), q)
+    res = tr.solve(world_dots(exact_hits(world, p, q2)), 1 / 30)  # 1800 deg/s
+    assert isinstance(res, NoPose) and res.reason == "gated_jump"
+    res = tr.solve(world_dots(exact_hits(world, p + [0.3, 0, 0], q)), 2 / 30)  # 4.5 m/s
+    assert isinstance(res, NoPose) and res.reason == "gated_jump"
+    # after the coherence window the tracker re-initialises and accepts the new pose
+    res = tr.solve(world_dots(exact_hits(world, p, q2)), 1.0)
+    assert isinstance(res, PoseEstimate) and res.reinitialised
+
+
+def test_beam_into_an_edge_or_parallel_to_a_wall_gives_no_pose(world) -> None:
+    # facing a vertical edge: beam 3 (backwards) runs into the corner between two walls
+    p = np.array([0.0, 0.0, 0.3])
+    q = geo.rotvec_to_quat([0, 0, np.radians(45)])
+    hits = world.laser_hits(p, q)
+    assert not hits[3].on_screen
+    frame = world.render(0.0, pose=(p, q))
+    assert 3 not in frame.visible_labels
+    dots = frame.visible_labels
+    P = np.array([hits[k].point for k in sorted(dots)])
+    res = make_tracker().solve(world_dots(P), 0.0)
+    assert isinstance(res, NoPose) and res.reason == "too_few_dots"
+    # a beam parallel to walls meets the wall it points at; no division by zero anywhere
+    walls = make_walls()
+    hit = intersect_beam(walls, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    assert hit.wall == "ceiling" and hit.cos_incidence == 1.0
+    hit = intersect_beam(walls, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
+    assert hit.wall == "front" and np.isclose(hit.point[1], 1.0)
+
+
+def test_covariance_is_a_valid_pose_covariance(world) -> None:
+    p, q = random_rig_pose(np.random.default_rng(2), upright=True)
+    res = make_tracker().solve(world_dots(exact_hits(world, p, q), std=1e-3), 0.0)
+    assert isinstance(res, PoseEstimate)
+    C = geo.check_covariance(res.covariance)
+    dec = geo.se3_to_decoupled(res.position, C)
+    assert 1e-7 < dec[0, 0] < 1e-4 and 1e-8 < dec[3, 3] < 1e-4

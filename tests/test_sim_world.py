@@ -1,0 +1,122 @@
+"""The simulated IVY world: walls (eq. 5.40), cameras (OpenCV's model), laser hits, rendering,
+ground truth and its refusal of bad input."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.srg import geometry as geo
+from services.sim import mounts
+from services.sim.ivy import WALL_NAMES, make_walls
+from services.sim.laser_housing import LABELS
+from services.sim.trajectory import CUBE_SIDE_M
+from services.sim.world import IvyWorld
+
+
+@pytest.fixture(scope="module")
+def world() -> IvyWorld:
+    return IvyWorld(seed=2)
+
+
+def test_walls_follow_eq_5_40_and_cover_the_cube() -> None:
+    walls = make_walls()
+    assert set(walls) == set(WALL_NAMES)
+    rng = np.random.default_rng(0)
+    for w in walls.values():
+        assert np.allclose(w.rotation.T @ w.rotation, np.eye(3))
+        assert np.linalg.det(w.rotation) == pytest.approx(1.0)
+        xy = rng.uniform(0, w.screen_side_m, (10, 2))
+        pts = w.to_world(xy)
+        # x = R [X, Y, Pi]^T - T, on the face of the cube
+        manual = (w.rotation @ np.column_stack([xy, np.full(10, w.plane_distance)]).T).T \
+            - w.translation
+        assert np.allclose(pts, manual)
+        assert np.allclose(pts @ w.normal, CUBE_SIDE_M / 2)
+        assert np.allclose(w.to_screen(pts), xy)
+        centre = w.to_world([[w.screen_side_m / 2] * 2])[0]
+        assert np.allclose(centre, w.normal * CUBE_SIDE_M / 2)
+    with pytest.raises(ValueError, match="screen side"):
+        make_walls(screen_side_m=3.0)
+
+
+def test_camera_projection_equals_opencv(world: IvyWorld) -> None:
+    rng = np.random.default_rng(1)
+    for cam in world.cameras:
+        wall = world.walls[cam.wall]
+        pts = wall.to_world(rng.uniform(0, wall.screen_side_m, (50, 2)))
+        rvec, _ = cv2.Rodrigues(cam.R_cw)
+        ref, _ = cv2.projectPoints(pts, rvec, -cam.R_cw @ cam.center, cam.K, cam.dist)
+        assert np.abs(cam.project(pts) - ref[:, 0]).max() < 1e-9
+        # each camera sees its whole screen
+        corners = wall.to_world([[0, 0], [0, 2.29], [2.29, 0], [2.29, 2.29]])
+        assert cam.in_image(cam.project(corners)).all()
+
+
+def test_beams_obey_the_housing_geometry(world: IvyWorld) -> None:
+    t = np.linspace(0, 30, 40)
+    ps, qs = world.rig_pose(t)
+    for p, q in zip(ps, qs, strict=True):
+        hits = world.laser_hits(p, q)
+        P = {k: hits[k].point for k in LABELS}
+        # P0 lies on line P1P2; P3P0 . P1P2 = P4P0 . P1P2 = P3P0 . P4P0 = 0 (fig. 5.4)
+        d12 = P[2] - P[1]
+        assert np.linalg.norm(np.cross(p - P[1], d12)) < 1e-9
+        assert abs((P[3] - p) @ d12) < 1e-9 and abs((P[4] - p) @ d12) < 1e-9
+        assert abs((P[3] - p) @ (P[4] - p)) < 1e-9
+        for h in hits.values():
+            assert np.isclose(np.abs(h.point).max(), CUBE_SIDE_M / 2)
+
+
+def test_rig_pose_is_head_pose_times_the_mounting(world: IvyWorld) -> None:
+    t = np.array([0.0, 1.5, 7.25])
+    ph, qh = world.trajectory.pose(t)
+    pr, qr = world.rig_pose(t)
+    pe, qe = geo.compose(ph, qh, *mounts.HEAD_TO_LASER_RIG)
+    assert np.allclose(pr, pe) and np.allclose(qr, qe)
+
+
+def test_render_is_deterministic_and_realistic(world: IvyWorld) -> None:
+    a, b = world.render(2.5), world.render(2.5)
+    other = IvyWorld(seed=2).render(2.5)
+    for name, img in a.images.items():
+        assert img.dtype == np.uint8 and img.shape == (480, 640)
+        assert np.array_equal(img, b.images[name]) and np.array_equal(img, other.images[name])
+        dark = np.median(img)
+        assert 4 <= dark <= 12  # notch filter: a dark frame
+    # head-on spots saturate (thesis §5.2); every visible diode shows up in some image
+    peaks = [a.images[c][int(round(uv[1])), int(round(uv[0]))]
+             for c, pts in a.image_points.items() for uv in pts.values()]
+    assert len(peaks) == len(a.visible_labels) and max(peaks) == 255
+    assert not np.array_equal(world.render(2.6).images["front"], a.images["front"])
+
+
+def test_eight_camera_layout_splits_floor_and_ceiling() -> None:
+    w = IvyWorld(n_cameras=8, seed=1)
+    names = [c.name for c in w.cameras]
+    assert len(names) == 8 and {"floor1", "floor2", "ceiling1", "ceiling2"} <= set(names)
+    # a spot on the seam is seen by both cameras of the split screen
+    p = np.array([0.0, 0.0, 0.0])
+    q = geo.quat_identity()
+    frame = w.render(0.0, pose=(p, q))
+    seen = [c for c, pts in frame.image_points.items() if 4 in pts]
+    assert sorted(seen) == ["ceiling1", "ceiling2"]
+
+
+@pytest.mark.parametrize("kwargs, msg", [({"n_cameras": 7}, "n_cameras")])
+def test_bad_configuration_is_refused(kwargs, msg) -> None:
+    with pytest.raises(ValueError, match=msg):
+        IvyWorld(**kwargs)
+
+
+def test_bad_poses_are_refused(world: IvyWorld) -> None:
+    q = geo.quat_identity()
+    with pytest.raises(ValueError, match="outside the cube"):
+        world.laser_hits([2.0, 0, 0], q)
+    with pytest.raises(ValueError, match="unit quaternion"):
+        world.laser_hits([0, 0, 0], [0, 0, 0, 2.0])
+    with pytest.raises(ValueError, match="non-finite"):
+        world.render(0.0, pose=([np.nan, 0, 0], q))
+    with pytest.raises(ValueError, match="no camera"):
+        world.camera("nope")
