@@ -86,7 +86,7 @@ def test_render_is_deterministic_and_realistic(world: IvyWorld) -> None:
         dark = np.median(img)
         assert 4 <= dark <= 12  # notch filter: a dark frame
     # head-on spots saturate (thesis §5.2); every visible diode shows up in some image
-    peaks = [a.images[c][int(round(uv[1])), int(round(uv[0]))]
+    peaks = [a.images[c][round(uv[1]), round(uv[0])]
              for c, pts in a.image_points.items() for uv in pts.values()]
     assert len(peaks) == len(a.visible_labels) and max(peaks) == 255
     assert not np.array_equal(world.render(2.6).images["front"], a.images["front"])

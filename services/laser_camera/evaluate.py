@@ -62,7 +62,7 @@ def evaluate(world: IvyWorld, cal: Calibration, seconds: float,
              rate_hz: float = 30.0) -> dict[str, Any]:
     """Run the tracker over ``seconds`` of the world's trajectory; figures as a dict."""
     tracker = LaserTracker(cal)
-    n = int(round(seconds * rate_hz))
+    n = round(seconds * rate_hz)
     rot, pos, nees, t_total, t_detect = [], [], [], [], []
     four_truth = labeled_ok = labeled_bad = 0
     for i in range(n):
