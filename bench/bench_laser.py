@@ -1,0 +1,124 @@
+"""Benchmark of the laser-dot tracker: dot detection per 640x480 image and the whole
+pipeline per six-camera frame set (goals, issue 5: <= 2 ms and <= 15 ms median).
+
+Baseline measured in the same run: detection with ``cv2.findContours`` and intensity
+``cv2.moments`` per contour, the usual OpenCV recipe.  Both detectors are also scored
+against the true spot centres.  By default OpenCV runs on one thread, so the figures are
+per core (``--threads 0`` leaves OpenCV's default).
+
+    python bench/bench_laser.py [--frames 120] [--calibration FILE] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import cv2
+import numpy as np
+
+from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.detection import DetectorParams, detect_dots
+from services.laser_camera.tracker import LaserTracker
+from services.sim.world import IvyWorld
+
+
+def contour_baseline(img: np.ndarray, p: DetectorParams) -> np.ndarray:
+    """Dots by findContours + intensity moments (no fragment merging)."""
+    _, mask = cv2.threshold(img, p.threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        x, y, w, h = cv2.boundingRect(c)
+        roi = img[y:y + h, x:x + w].astype(np.float32) - p.dark_level
+        roi[mask[y:y + h, x:x + w] == 0] = 0
+        m = cv2.moments(roi)
+        if m["m00"] > 0 and cv2.countNonZero(mask[y:y + h, x:x + w]) >= p.min_area:
+            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
+    return np.array(out).reshape(-1, 2)
+
+
+def timed(fn, *args) -> tuple[float, float, object]:
+    """(wall s, cpu s, result) of one call."""
+    w, c = time.perf_counter(), time.process_time()
+    r = fn(*args)
+    return time.perf_counter() - w, time.process_time() - c, r
+
+
+def centroid_errors(found: np.ndarray, truth: dict) -> list[float]:
+    errs = []
+    for uv in truth.values():
+        if len(found):
+            d = np.hypot(*(found[:, :2] - uv).T).min()
+            if d < 3:
+                errs.append(float(d))
+    return errs
+
+
+def stats_ms(x: list[float]) -> dict[str, float]:
+    a = np.array(x) * 1e3
+    return {"median": round(float(np.median(a)), 4), "p99": round(float(np.percentile(a, 99)), 4)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=120, help="frame sets to time (default 120)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--calibration", default=None, metavar="FILE",
+                    help="calibration file (default: calibrate the simulated cameras first)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="OpenCV threads (default 1: figures per core; 0: OpenCV's default)")
+    ap.add_argument("--json", action="store_true", help="last line: one JSON object")
+    args = ap.parse_args()
+    if args.threads > 0:
+        cv2.setNumThreads(args.threads)
+    world = IvyWorld(seed=args.seed)
+    cal = Calibration.load(args.calibration) if args.calibration else calibrate_sim(world)
+    frames = [world.render(i / 30) for i in range(args.frames)]
+
+    det_wall, det_cpu, base_wall, base_cpu, err_ours, err_base = [], [], [], [], [], []
+    for f in frames:
+        for name, img in f.images.items():
+            params = cal.camera(name).detector
+            w, c, ours = timed(detect_dots, img, params)
+            det_wall.append(w)
+            det_cpu.append(c)
+            w, c, base = timed(contour_baseline, img, params)
+            base_wall.append(w)
+            base_cpu.append(c)
+            err_ours += centroid_errors(ours, f.image_points[name])
+            err_base += centroid_errors(base, f.image_points[name])
+
+    tracker = LaserTracker(cal)
+    pipe_wall, pipe_cpu = [], []
+    for f in frames:
+        w, c, _ = timed(tracker.process, f.images, f.t)
+        pipe_wall.append(w)
+        pipe_cpu.append(c)
+
+    det, base = stats_ms(det_wall), stats_ms(base_wall)
+    figures = {
+        "images": len(det_wall),
+        "frame_sets": len(frames),
+        "opencv_threads": cv2.getNumThreads(),
+        "detection_ms_per_image": det,
+        "detection_cpu_ms_per_image_median": stats_ms(det_cpu)["median"],
+        "baseline_contours_ms_per_image": base,
+        "baseline_cpu_ms_per_image_median": stats_ms(base_cpu)["median"],
+        "detection_over_baseline_ratio": round(det["median"] / base["median"], 3),
+        "detection_centroid_error_px_mean": round(float(np.mean(err_ours)), 4),
+        "baseline_centroid_error_px_mean": round(float(np.mean(err_base)), 4),
+        "pipeline_ms_per_frame_set": stats_ms(pipe_wall),
+        "pipeline_cpu_ms_per_frame_set_median": stats_ms(pipe_cpu)["median"],
+        "poses": tracker.counts["pose"],
+    }
+    if args.json:
+        print(json.dumps(figures))
+    else:
+        for k, v in figures.items():
+            print(f"{k}: {v}")
+
+
+if __name__ == "__main__":
+    main()
