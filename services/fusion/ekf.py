@@ -112,6 +112,8 @@ class FusionConfig:
     accel_gate: float = CHI2_999[1]
     pose_gate: float = CHI2_999[6]
     max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
+    adapt_pose_noise: bool = True        # scale the optical covariance so its NIS averages 6
+    pose_noise_rate: float = 0.02        # adaptation gain per optical pose
     max_step_s: float = 0.05             # longer predictions are split (integration accuracy)
 
     def __post_init__(self) -> None:
@@ -125,6 +127,17 @@ class FusionConfig:
                              "omega_dot, v, alpha, spare)")
 
 
+@dataclass(frozen=True)
+class FilterState:
+    """A copy of everything the filter estimates, to rewind to (late measurements)."""
+
+    t: float | None
+    q: Array
+    x: Array
+    P: Array
+    rejected_in_row: int
+
+
 @dataclass
 class FusionStats:
     time_updates: int = 0
@@ -134,6 +147,7 @@ class FusionStats:
     pose_rejected: int = 0
     reinitialised: int = 0
     last_pose_nis: float = float("nan")
+    pose_noise_scale: float = 1.0
 
     @property
     def measurement_updates(self) -> int:
@@ -205,6 +219,16 @@ class FusionEKF:
         p = self.x[P] + self.x[V] * h + 0.5 * self.x[A] * h * h
         q = geo.quat_multiply(self.q, geo.rotvec_to_quat(self.x[W] * h + 0.5 * self.x[WD] * h * h))
         return p, q
+
+    def snapshot(self) -> FilterState:
+        return FilterState(self.t, self.q.copy(), self.x.copy(), self.P.copy(),
+                           self._rejected_in_row)
+
+    def restore(self, s: FilterState) -> None:
+        """Go back to a snapshot (statistics keep counting)."""
+        self.t, self.q, self.x, self.P = s.t, s.q.copy(), s.x.copy(), s.P.copy()
+        self._rejected_in_row = s.rejected_in_row
+        self._R = geo.quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ initialisation
 
@@ -383,9 +407,11 @@ class FusionEKF:
             q, geo.quat_conjugate(self.q)))])
         idx = np.r_[9:12, 0:3]
         PHt = self.P[:, idx]
+        Rm = Rm * self.stats.pose_noise_scale
         S = PHt[idx] + Rm
         nis = float(y @ np.linalg.solve(S, y))
         self.stats.last_pose_nis = nis
+        self._adapt_pose_noise(nis, PHt[idx], Rm)
         if nis > self.config.pose_gate:
             self.stats.pose_rejected += 1
             self._rejected_in_row += 1
@@ -415,6 +441,22 @@ class FusionEKF:
         p, q = geo.compose(p_rig, q_rig, pm, qm)
         cov = geo.se3_to_decoupled(p, geo.check_covariance(cov_rig_se3, "rig pose covariance"))
         return self.update_pose(t, p, q, cov)
+
+    def _adapt_pose_noise(self, nis: float, HPHt: Array, Rm: Array) -> None:
+        """Covariance matching for the optical noise (Mehra's adaptive R, scalar form).
+
+        A tracker's covariance is a model; if it is too large (or too small) the fused
+        covariance is dishonest.  An accepted pose's NIS averages 6 when ``S`` is right;
+        the scale of ``R`` moves by the share of ``S`` that ``R`` makes up, bounded to
+        [0.05, 20] so a run of outliers cannot switch the optics off.
+        """
+        cfg = self.config
+        if not cfg.adapt_pose_noise or nis > cfg.pose_gate:
+            return
+        share = float(np.trace(Rm) / max(np.trace(HPHt + Rm), 1e-300))
+        step = cfg.pose_noise_rate * share * (nis / 6.0 - 1.0)
+        scale = self.stats.pose_noise_scale * (1.0 + max(-0.5, min(step, 0.5)))
+        self.stats.pose_noise_scale = min(20.0, max(0.05, scale))
 
     # ------------------------------------------------------------------ internals
 

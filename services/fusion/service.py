@@ -1,0 +1,203 @@
+"""``uma service run fusion``: MARVIN's EKF/SCAAT fusion as a uma service (seed 003 ch. 6).
+
+Needs (matched by the agent, data straight from the publishing services):
+
+* ``optical``: the absolute pose of the optical rig, ``ivy/world -> */laser_rig``
+  (``pose6d``, 10 Hz or more: the laser-dot camera at 15-60 Hz);
+* ``accel``: the raw accelerometer stream of the inertial rig (``accel_raw``, 100 Hz or
+  more), whose ability attributes carry the rig's calibration (positions, axes, noise,
+  latency: ``services.accel_rig.sensor.Calibration.to_dict``);
+* ``optical_mount`` / ``accel_mount``: the static edges ``marvin/head -> <rig>`` of the
+  SRG (the mountings from calibration or tracker alignment; the simulator publishes the
+  true ones).  Nothing about the rigs is a constant here.
+
+Ability ``head``: the fused ``ivy/world -> marvin/head`` pose at the inertial rate with its
+6x6 covariance, optionally predicted ``--horizon-ms`` ahead (attribute ``predicted_s``).
+Late optical poses are applied at their own time by rewinding (``FusionTracker``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+from typing import Any
+
+import numpy as np
+
+from agent.plugins import ServicePlugin
+from agent.srg import geometry as geo
+from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
+from services.fusion.tracker import FusionTracker
+from services.sim import mounts
+
+log = logging.getLogger("uma.fusion")
+
+#: a laser pose without covariance is taken with these standard deviations
+DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
+    parser.add_argument("--world", default=mounts.WORLD, help="world frame (ivy/world)")
+    parser.add_argument("--head", default=mounts.HEAD, help="fused frame (marvin/head)")
+    parser.add_argument("--optical-rig", default="*/laser_rig",
+                        help="frame pattern of the optical rig (default */laser_rig)")
+    parser.add_argument("--accel-rig", default="*/accel_rig",
+                        help="frame pattern of the inertial rig (default */accel_rig)")
+    parser.add_argument("--horizon-ms", type=float, default=0.0,
+                        help="publish the pose predicted this far ahead (default 0)")
+    parser.add_argument("--model-floor", type=float, default=0.005,
+                        help="extra accelerometer noise std for unmodelled errors, m/s^2")
+
+
+class LiveFusion:
+    """The service's state: builds the filter once calibration and mountings are known,
+    then turns need callbacks into filter updates and publications.  All callbacks run on
+    the SDK's single dispatch thread, so there is no locking."""
+
+    def __init__(self, horizon_s: float, model_floor: float,
+                 publish: Any = None, config: FusionConfig | None = None):
+        self.horizon_s = horizon_s
+        self.model_floor = model_floor
+        self.publish = publish
+        self.config = config or FusionConfig()
+        self.optical_mount: tuple[np.ndarray, np.ndarray] | None = None
+        self.accel_mount: tuple[np.ndarray, np.ndarray] | None = None
+        self.calibration: dict[str, Any] | None = None
+        self.tracker: FusionTracker | None = None
+        self.t0_ns: int | None = None
+        self.dropped: dict[str, int] = {}
+        self.published = 0
+
+    # -- inputs
+    def on_optical_mount(self, m: Any) -> None:
+        self.optical_mount = (np.asarray(m.position, float), np.asarray(m.quaternion, float))
+
+    def on_accel_mount(self, m: Any) -> None:
+        new = (np.asarray(m.position, float), np.asarray(m.quaternion, float))
+        if self.accel_mount is not None and not _same_pose(self.accel_mount, new):
+            self.tracker = None  # the rig moved on the head: rebuild the accelerometer model
+        self.accel_mount = new
+
+    def on_accel(self, m: Any) -> None:
+        if self.tracker is None and not self._build(m):
+            return
+        assert self.tracker is not None
+        t = self._seconds(m.t_ns)
+        if not self.tracker.add_accel(t, np.asarray(m.values, float)):
+            self._drop("accel before the first optical pose or out of order")
+            return
+        if self.publish is not None:
+            p, q = self.tracker.pose(self.horizon_s)
+            shift_s = self.horizon_s - self.tracker.ekf.accel.latency_s
+            t_out = int(m.t_ns) + round(shift_s * 1e9)
+            self.publish(t_out, p, q, self.tracker.ekf.pose_covariance())
+            self.published += 1
+
+    def on_optical(self, m: Any) -> None:
+        if self.tracker is None or self.optical_mount is None:
+            self._drop("optical pose before calibration and mountings are known")
+            return
+        cov = m.covariance
+        if cov is None:
+            cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
+        self.tracker.add_rig_pose(self._seconds(m.t_ns), m.position, m.quaternion, cov,
+                                  self.optical_mount)
+
+    # -- internals
+    def _build(self, m: Any) -> bool:
+        """Create the filter from the accel ability's calibration and the SRG mounting."""
+        if self.accel_mount is None:
+            self._drop("accelerometer mounting (head -> accel rig) not known yet")
+            return False
+        attrs = _attributes(m.attributes)
+        try:
+            model = accel_model_from_attributes(attrs, self.accel_mount, self.model_floor)
+        except ValueError as exc:
+            self._drop(f"accel ability has no usable calibration ({exc})")
+            return False
+        if model.count != len(m.values):
+            self._drop(f"accel sample has {len(m.values)} readings, calibration {model.count}")
+            return False
+        self.tracker = FusionTracker(FusionEKF(model, self.config))
+        log.info("fusion: %d accelerometers, latency %.1f ms; waiting for the optics",
+                 model.count, 1e3 * model.latency_s)
+        return True
+
+    def _seconds(self, t_ns: int) -> float:
+        """Filter time: seconds since the first sample (keeps float precision)."""
+        if self.t0_ns is None:
+            self.t0_ns = int(t_ns)
+        return (int(t_ns) - self.t0_ns) * 1e-9
+
+    def _drop(self, why: str) -> None:
+        n = self.dropped.get(why, 0)
+        self.dropped[why] = n + 1
+        if n == 0 or n in (10, 100, 1000, 10000):
+            log.info("fusion: %s (%d so far)", why, n + 1)
+
+
+def accel_model_from_attributes(attrs: dict[str, Any], mount: tuple[np.ndarray, np.ndarray],
+                                model_floor: float) -> AccelModel:
+    """The accelerometer model from an ``accel_raw`` ability's calibration attributes."""
+    from services.accel_rig.sensor import Calibration
+
+    cal = Calibration.from_dict({k: v for k, v in attrs.items()})
+    rate = float(attrs.get("frequency_hz") or 300.0)
+    return AccelModel.from_layout(cal.layout.positions, cal.layout.axes, mount,
+                                  cal.accel_var(rate), cal.latency_s, model_floor)
+
+
+def _attributes(a: Any) -> dict[str, Any]:
+    if a is None:
+        return {}
+    if isinstance(a, dict):
+        return dict(a)
+    return a.model_dump()
+
+
+def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    dp, dr = geo.pose_error(a[0], a[1], b[0], b[1])
+    return float(dp) < 1e-6 and float(dr) < 1e-6
+
+
+def run(args: argparse.Namespace, stop: threading.Event) -> int:
+    from agent import Service  # imported here: '--help' needs no Zenoh
+
+    if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
+        raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
+    if not (math.isfinite(args.model_floor) and args.model_floor >= 0):
+        raise ValueError(f"--model-floor must be >= 0, got {args.model_floor!r}")
+    live = LiveFusion(args.horizon_ms / 1e3, args.model_floor)
+    rig_head = args.head
+    with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
+                 listen=args.listen or None) as svc:
+        out = svc.ability("head", type="pose6d", edge=(args.world, args.head),
+                          frequency_hz=300.0, latency_s=0.002, fused=True,
+                          predicted_s=args.horizon_ms / 1e3)
+        live.publish = out.publish
+        svc.need("optical", type="pose6d", edge=(args.world, args.optical_rig),
+                 where="frequency_hz >= 10", prefer="latency_s", on_sample=live.on_optical)
+        svc.need("accel", type="accel_raw", edge=("*", args.accel_rig),
+                 where="frequency_hz >= 100", on_sample=live.on_accel)
+        svc.need("optical_mount", type="pose6d", edge=(rig_head, args.optical_rig),
+                 on_sample=live.on_optical_mount)
+        svc.need("accel_mount", type="pose6d", edge=(rig_head, args.accel_rig),
+                 on_sample=live.on_accel_mount)
+        svc.start()
+        log.info("fusion: publishing %s -> %s", args.world, args.head)
+        while not stop.wait(1.0):
+            pass
+    return 0
+
+
+PLUGIN = ServicePlugin(
+    name="fusion",
+    help="EKF/SCAAT fusion of an absolute optical pose (laser rig, 15-60 Hz) and raw "
+         "accelerometers (300 Hz) into the head pose at the inertial rate with covariance "
+         "(seed 003 ch. 6); rig mountings from the SRG's static edges.",
+    add_arguments=add_arguments,
+    run=run,
+)
