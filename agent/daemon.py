@@ -90,6 +90,8 @@ log = logging.getLogger("uma.agent")
 STARTUP_HOLD_S = 2.0
 #: how long a duplicate-id check waits for the first holder of the id to answer
 DUPLICATE_CHECK_S = 0.5
+#: how long start() waits for a first link to its connect endpoints
+LINK_WAIT_S = 1.0
 #: seconds to wait for a snapshot query's replies
 FETCH_TIMEOUT_S = 2.0
 #: bound on queued local pose samples for the SRG
@@ -298,6 +300,11 @@ class Agent:
         """Declare the queryables and subscriptions, then the agent's token."""
         sess, r, a = self.session, self.realm, self.agent_id
         assert sess is not None
+        if self.s.connect:  # give the links a moment, so the check below sees the realm
+            deadline = time.monotonic() + LINK_WAIT_S
+            while (time.monotonic() < deadline and not any(sess.info.peers_zid())
+                   and not any(sess.info.routers_zid())):
+                time.sleep(0.01)
         for reply in sess.liveliness().get(keys.agent_token(r, a), timeout=0.5):
             if reply.ok is not None:
                 raise UmaError(f"an agent with id {a!r} is already running in realm {r!r}; "
@@ -456,12 +463,16 @@ class Agent:
         if agent_id is None:
             self._bad.warning(key, "not an agent services key")
             return
-        if agent_id == self.agent_id:
-            return
         try:
             snap: Snapshot = parse_snapshot(data, agent_id)
         except DecodeError as exc:
             self._bad.warning(f"snapshot {key}", f"dropped: {exc}")
+            return
+        if agent_id == self.agent_id:
+            if snap.epoch != self.epoch:
+                self._bad.warning(f"agent {agent_id}", "another agent with this id runs in "
+                                  f"realm {self.realm} (epoch {snap.epoch}); give each agent "
+                                  "its own --id")
             return
         for err in snap.errors:
             self._bad.warning(f"snapshot {key}", f"service dropped: {err}")
@@ -518,7 +529,9 @@ class Agent:
         self.session.get(keys.service_token(self.realm, self.agent_id, sid),
                          zenoh.handlers.Callback(
                              on_reply, lambda: self._enqueue(self._on_holder_done, sid)),
-                         timeout=DUPLICATE_CHECK_S)
+                         timeout=DUPLICATE_CHECK_S,
+                         # both holders answer on the same key: keep every reply
+                         consolidation=zenoh.ConsolidationMode.NONE)
 
     def _on_holder_reply(self, sid: str, data: bytes) -> None:
         pending = self._pending.get(sid)

@@ -188,7 +188,10 @@ def parse_register_request(data: bytes, agent_id: str) -> Registration:
         raise DecodeError("revision: expected a non-negative integer")
     if not isinstance(msg["descriptor"], bytes):
         raise DecodeError("descriptor: expected encoded descriptor bytes")
-    desc = decode_descriptor(msg["descriptor"])
+    try:
+        desc = decode_descriptor(msg["descriptor"])
+    except DecodeError as exc:
+        raise DecodeError(f"service {_peek_service_id(msg['descriptor'])!r}: {exc}") from None
     if desc.agent_id != agent_id:
         raise DecodeError(f"service {desc.service_id!r} names agent {desc.agent_id!r}, but "
                           f"registered with agent {agent_id!r}")
@@ -198,6 +201,15 @@ def parse_register_request(data: bytes, agent_id: str) -> Registration:
             for k, v in connected.items()):
         raise DecodeError("connected: expected a map of need name -> list of data keys")
     return Registration(desc, instance, revision, connected)
+
+
+def _peek_service_id(desc_bytes: bytes) -> str:
+    """The service id an invalid descriptor claims, to name it in the refusal."""
+    try:
+        sid = decode_message(desc_bytes).get("service_id")
+    except DecodeError:
+        return "?"
+    return sid[:64] if isinstance(sid, str) else "?"
 
 
 def reply_ok(epoch: int) -> bytes:
