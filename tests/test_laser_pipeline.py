@@ -6,15 +6,19 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import endpoint, free_port
 
+from agent.errors import UmaError
+from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.evaluate import evaluate
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate
-from services.sim.world import IvyWorld
+from services.sim.world import IvyWorld, sim_time_s
 
 
 @pytest.fixture(scope="module")
@@ -117,3 +121,31 @@ def test_uma_eval_command(calibration_file) -> None:
          "--calibration", "/nonexistent.json"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 1 and "cannot read calibration file" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_service_pose_reaches_a_client_in_another_process(calibration_file, processes,
+                                                          realm) -> None:
+    from agent import Client
+
+    ep = endpoint(free_port())
+    processes.start("agent", "--realm", realm, "--id", "lab", "--listen", ep)
+    svc = processes.start("service", "run", "laser-camera", "--realm", realm, "--agent", "lab",
+                          "--connect", ep, "--calibration", str(calibration_file), "--seed",
+                          "4", "--rate-hz", "20")
+    deadline = time.monotonic() + 45
+    with Client(realm=realm, connect=[ep]) as client:
+        while True:
+            assert svc.poll() is None, svc.stderr.read()
+            try:
+                r = client.pose("ivy/world", "marvin/laser_rig")
+                break
+            except (UmaError, LookupError) as exc:
+                assert time.monotonic() < deadline, f"no pose from the service: {exc}"
+                time.sleep(0.3)
+    # the pose is the simulated rig's at the sample's time (same seed, same sim clock)
+    p, q = IvyWorld(seed=4).rig_pose(sim_time_s(r.stamps[0][0]))
+    dp, da = geo.pose_error(r.position, r.quaternion, p[0], q[0])
+    assert dp < 0.01 and np.degrees(da) < 0.3, (dp, np.degrees(da))
+    assert r.path == ["ivy/world", "marvin/laser_rig"]
+    geo.check_covariance(r.covariance)
+    assert 5 < r.attributes["frequency_hz"] <= 25  # measured by the service itself

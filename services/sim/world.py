@@ -33,6 +33,14 @@ from services.sim.trajectory import CUBE_SIDE_M, HeadTrajectory
 
 #: overlap (m) of the two cameras sharing the floor or the ceiling in the 8-camera layout
 SPLIT_OVERLAP_M = 0.1
+#: the simulated trajectory's t = 0 in wall-clock time (2026-01-01T00:00:00Z), shared by every
+#: process that simulates the same world, so their ground truths agree
+SIM_EPOCH_NS = 1_767_225_600_000_000_000
+
+
+def sim_time_s(t_ns: int) -> float:
+    """Trajectory time (s) of a wall-clock timestamp (ns since the Unix epoch)."""
+    return (int(t_ns) - SIM_EPOCH_NS) * 1e-9
 
 
 @dataclass(frozen=True)

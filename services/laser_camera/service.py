@@ -1,0 +1,249 @@
+"""``uma service run laser-camera``: MARVIN's laser-dot tracker as a uma service.
+
+Abilities:
+
+* ``pose`` -- ``pose6d`` ``ivy/world -> marvin/laser_rig`` with a 6x6 covariance per
+  sample; its attributes (``frequency_hz``, ``latency_s``, ``pos_std_m``, ``rot_std_rad``,
+  ``confidence`` = share of frame sets with a pose) are measured by the service itself: a
+  warm-up before it advertises, then updated as they drift;
+* ``dots`` -- ``points3d`` on the same edge: the labeled world-frame laser spots of each
+  pose (ids = diode labels 1..4), for one-dot-at-a-time (SCAAT) fusion.
+
+Input is the simulator (default) or one OpenCV capture per camera (``sources``).
+``--calibrate`` calibrates the simulated cameras from rendered checkerboards and writes
+``--calibration``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from agent.plugins import ServicePlugin
+from agent.srg import geometry as geo
+from schemas.codec import Measurement
+from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
+from services.laser_camera.tracker import LaserTracker, PoseEstimate
+from services.sim import mounts
+from services.sim.world import IvyWorld
+
+log = logging.getLogger("uma.laser_camera")
+WARMUP_FRAMES = 10
+ATTRIBUTE_WINDOW = 150  # frame sets over which the advertised attributes are measured
+ATTRIBUTE_UPDATE_S = 5.0
+ATTRIBUTE_CHANGE = 0.25  # re-advertise when a figure drifted by more than this fraction
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", default="laser-camera", help="service id (default: "
+                        "laser-camera)")
+    parser.add_argument("--source", action="append", default=[], metavar="SRC",
+                        help="'sim' (default: the simulated IVY display) or, per camera of "
+                             "the calibration, CAMERA=video:FILE or CAMERA=camera:INDEX "
+                             "(repeatable)")
+    parser.add_argument("--calibration", metavar="FILE", default=None,
+                        help="calibration file to load (required for real sources; with the "
+                             "simulator, missing means: calibrate at start, about 15 s); "
+                             "with --calibrate: where to write it")
+    parser.add_argument("--calibrate", action="store_true",
+                        help="calibrate the simulated cameras from rendered checkerboards, "
+                             "write --calibration (default laser_calibration.json) and exit")
+    parser.add_argument("--rate-hz", type=float, default=30.0,
+                        help="simulated camera frame rate (default 30)")
+    parser.add_argument("--seed", type=int, default=1,
+                        help="simulated trajectory seed (default 1; as the sim service)")
+    parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
+                        help="simulated display: 6 cameras (default) or 8 as in the thesis")
+
+
+def run(args: argparse.Namespace, stop: threading.Event) -> int:
+    specs = parse_sources(args.source)
+    if not 0 < args.rate_hz <= 240:
+        raise ValueError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
+    if args.calibrate:
+        return _calibrate(args, specs)
+    cal, source = _open(args, specs)
+    try:
+        return _serve(args, cal, source, stop)
+    finally:
+        source.close()
+
+
+def _calibrate(args: argparse.Namespace, specs) -> int:
+    if specs is not None:
+        raise ValueError("--calibrate calibrates the simulated display; real cameras need "
+                         "their checkerboard images calibrated with "
+                         "services.laser_camera.calibration (calibrate_intrinsics, "
+                         "calibrate_screen) and saved as a calibration file")
+    path = Path(args.calibration or "laser_calibration.json")
+    cal = calibrate_sim(IvyWorld(n_cameras=args.cameras, seed=args.seed))
+    cal.save(path)
+    for c in cal.cameras:
+        q = c.quality
+        print(f"{c.name:9s} intrinsics rms {q['intrinsic_rms_px']:.3f} px, screen rms "
+              f"{q['screen_rms_m'] * 1000:.2f} mm over {q['corners']} corners, DLT vs "
+              f"OpenCV {q['dlt_vs_opencv_m'] * 1000:.4f} mm")
+    print(f"wrote {path}")
+    return 0
+
+
+def _open(args: argparse.Namespace, specs) -> tuple[Calibration, SimSource | CaptureSource]:
+    if specs is None:
+        world = IvyWorld(n_cameras=args.cameras, seed=args.seed)
+        if args.calibration:
+            cal = Calibration.load(args.calibration)
+        else:
+            log.info("laser-camera: calibrating the simulated cameras (no --calibration)")
+            cal = calibrate_sim(world)
+        missing = {c.name for c in world.cameras} - {c.name for c in cal.cameras}
+        if missing:
+            raise ValueError(f"calibration lacks the simulated cameras {sorted(missing)}")
+        return cal, SimSource(world)
+    if not args.calibration:
+        raise ValueError("real sources need --calibration FILE")
+    cal = Calibration.load(args.calibration)
+    for s in specs:
+        cal.camera(s.camera)  # ValueError naming the unknown camera
+    return cal, CaptureSource(specs)
+
+
+class _Performance:
+    """What the service measures about itself, for its advertised attributes."""
+
+    def __init__(self) -> None:
+        self.times: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)  # frame-set wall times
+        self.latency: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
+        self.got_pose: deque[bool] = deque(maxlen=ATTRIBUTE_WINDOW)
+        self.pos_std: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
+        self.rot_std: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
+
+    def add(self, latency_s: float, result) -> None:
+        self.times.append(time.monotonic())
+        self.latency.append(latency_s)
+        self.got_pose.append(isinstance(result, PoseEstimate))
+        if isinstance(result, PoseEstimate):
+            dec = geo.se3_to_decoupled(result.position, result.covariance)
+            self.pos_std.append(float(np.sqrt(np.trace(dec[:3, :3]) / 3)))
+            self.rot_std.append(float(np.sqrt(np.trace(dec[3:, 3:]) / 3)))
+
+    def attributes(self, nominal_hz: float) -> dict[str, float]:
+        span = self.times[-1] - self.times[0] if len(self.times) > 1 else 0.0
+        hz = (len(self.times) - 1) / span if span > 0 else nominal_hz
+        share = float(np.mean(self.got_pose)) if self.got_pose else 0.0
+        out = {"frequency_hz": round(max(hz * share, 1e-3), 2),
+               "latency_s": round(float(np.median(self.latency)), 4) if self.latency else 0.0,
+               "confidence": round(share, 3)}
+        if self.pos_std:
+            out["pos_std_m"] = float(f"{np.median(self.pos_std):.3g}")
+            out["rot_std_rad"] = float(f"{np.median(self.rot_std):.3g}")
+        return out
+
+
+def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
+    """Track at the source's pace; advertise after a warm-up measured at that pace."""
+    tracker = LaserTracker(cal)
+    perf = _Performance()
+    period = 1.0 / args.rate_hz if isinstance(source, SimSource) else 0.0
+    with contextlib.ExitStack() as stack:
+        outputs = None
+        warmup: list = []
+        next_update = next_tick = time.monotonic()
+        while not stop.is_set():
+            r = _step(tracker, source, perf)
+            if r is None:
+                log.info("laser-camera: input ended")
+                break
+            if outputs is None:
+                warmup.append(r)
+                if len(warmup) == WARMUP_FRAMES:
+                    outputs = _advertise(args, stack, perf.attributes(args.rate_hz))
+                    for t_ns, result in warmup:
+                        _publish(*outputs, t_ns, result)
+                    next_update = time.monotonic() + ATTRIBUTE_UPDATE_S
+            else:
+                _publish(*outputs, *r)
+                if time.monotonic() >= next_update:
+                    outputs = _maybe_update(*outputs, perf.attributes(args.rate_hz))
+                    next_update = time.monotonic() + ATTRIBUTE_UPDATE_S
+            next_tick += period
+            if next_tick < time.monotonic() - 1.0:
+                next_tick = time.monotonic()  # fell far behind (suspended): do not burst
+            stop.wait(max(0.0, next_tick - time.monotonic()))
+    log.info("laser-camera: %s", dict(tracker.counts))
+    return 0
+
+
+def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dict):
+    """Declare the abilities with the measured attributes and start the service."""
+    from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
+
+    svc = stack.enter_context(Service(args.id, realm=args.realm, agent=args.agent,
+                                      connect=args.connect, listen=args.listen or None))
+    pose_out = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.LASER_RIG),
+                           **attrs)
+    dots_out = svc.ability("dots", type="points3d", edge=(mounts.WORLD, mounts.LASER_RIG),
+                           **_dot_attributes(attrs))
+    svc.start()
+    return pose_out, dots_out, attrs
+
+
+def _dot_attributes(attrs: dict) -> dict:
+    """The pose's attributes that also describe the dots stream."""
+    return {k: v for k, v in attrs.items() if k not in ("pos_std_m", "rot_std_rad")}
+
+
+def _step(tracker: LaserTracker, source, perf: _Performance):
+    """Grab and process one frame set: (t_ns, result), or None when the input ended."""
+    grabbed = source.grab()
+    if grabbed is None:
+        return None
+    t_ns, images, t = grabbed
+    try:
+        result = tracker.process(images, t)
+    except ValueError as exc:  # e.g. an image of the wrong format from a capture
+        log.warning("laser-camera: frame set refused: %s", exc)
+        result = None
+    perf.add((time.time_ns() - t_ns) * 1e-9, result)  # capture to result
+    return t_ns, result
+
+
+def _publish(pose_out, dots_out, advertised: dict, t_ns: int, result) -> None:
+    if not isinstance(result, PoseEstimate):
+        return
+    pose_out.publish(t_ns, result.position, result.quaternion, covariance=result.covariance)
+    labels = sorted(result.dots)
+    dots_out.publish_measurement(Measurement(
+        type="points3d", t_ns=t_ns, points=np.array([result.dots[k] for k in labels]),
+        ids=labels))
+
+
+def _maybe_update(pose_out, dots_out, advertised: dict, measured: dict):
+    """Re-advertise the attributes that drifted by more than ``ATTRIBUTE_CHANGE``."""
+    drifted = any(abs(measured[k] - advertised.get(k, 0.0))
+                  > ATTRIBUTE_CHANGE * max(abs(advertised.get(k, 0.0)), 1e-9)
+                  for k in measured)
+    if drifted:
+        pose_out.update(**measured)
+        dots_out.update(**_dot_attributes(measured))
+        advertised = measured
+    return pose_out, dots_out, advertised
+
+
+PLUGIN = ServicePlugin(
+    name="laser-camera",
+    help="MARVIN's laser-dot camera tracker (seed 003 ch. 5): finds the four laser spots in "
+         "the images of the cameras behind IVY's screens and publishes the pose of "
+         "marvin/laser_rig in ivy/world with its covariance, plus the labeled spots as "
+         "points3d. Input: the simulated display (default) or one video/camera per screen "
+         "with a calibration file. '--calibrate' writes the simulated display's calibration.",
+    add_arguments=add_arguments,
+    run=run,
+)
