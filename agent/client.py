@@ -1,0 +1,471 @@
+"""The client SDK: pose queries and streaming subscriptions over every agent of a realm.
+
+::
+
+    from agent import Client
+    with Client(realm="lab", connect=["tcp/127.0.0.1:7447"]) as c:
+        r = c.pose("ivy/world", "alice/head", at=None, error="latency")
+        r.position, r.quaternion, r.matrix, r.covariance, r.path, r.attributes, r.extrapolated_s
+        sub = c.subscribe("ivy/world", "alice/head", on_pose=handle)
+        ...
+        sub.close()
+
+``pose`` plans a route over the agents' supernode summaries (:mod:`agent.planner`), asks
+each owning agent for its segment at ``t`` (all at once, one round trip), and composes the
+answers with their covariances.  ``at`` is on this process's clock; each agent's clock
+offset is estimated from the round trips (:mod:`agent.clock`) and applied both ways.
+``at=None`` means the latest time at which every measured edge of the route has data.
+If an agent does not answer, the next route without it is tried; if none is left the
+error names the missing segment and agent.
+
+``subscribe`` runs the query once with edge details, then mirrors the route's edges in a
+local :class:`agent.srg.Graph`: static edges from the answers, measured ones fed by
+subscribing directly to their services' data keys.  Each sample of the fastest edge pushes
+a composed pose at its time; the other edges are interpolated (or boundedly
+extrapolated) at that time: Ubitrack's push/pull rule.  ``on_pose`` runs on the
+subscription's own thread, never on a Zenoh thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import numpy as np
+import zenoh
+from pydantic import ValidationError
+
+from agent import keys
+from agent.clock import ClockOffsets
+from agent.errors import UmaError
+from agent.planner import (
+    Route,
+    RouteError,
+    Segment,
+    SegmentError,
+    Summary,
+    _attrs_in,
+    compose,
+    parse_summary,
+    plan_routes,
+    usable_routes,
+)
+from agent.registry import RateLimitedLog
+from agent.session import open_session
+from agent.srg import Graph
+from agent.srg.errorfn import ErrorFunction, error_function
+from agent.srg.errors import EdgeUndefinedError, UnknownFrameError
+from agent.srg.result import PoseResult
+from schemas.codec import DecodeError, decode_measurement, decode_message, encode_message
+from schemas.models import PoseResult as PoseModel
+
+log = logging.getLogger("uma.client")
+
+#: routes tried before a query gives up
+MAX_ROUTES = 4
+#: how long the first look at the realm waits for the set of agents to settle
+SETTLE_S = 0.15
+
+
+class NoAgentsError(UmaError):
+    """Nobody in the realm answered."""
+
+
+class Client:
+    """A connection to a realm for pose queries and subscriptions (module docstring)."""
+
+    def __init__(self, realm: str = "default", connect: Iterable[str] = (), *,
+                 listen: Sequence[str] | None = None, mode: str = "peer",
+                 timeout: float = 2.0, session: zenoh.Session | None = None) -> None:
+        keys.check_name("realm", realm)
+        if not timeout > 0:
+            raise ValueError(f"timeout must be > 0 s, got {timeout!r}")
+        self.realm = realm
+        self.timeout = float(timeout)
+        self.connect = list(connect)
+        self._own_session = session is None
+        self.session = session or open_session(mode, listen, self.connect, realm)
+        self.clock = ClockOffsets()
+        self._lock = threading.Lock()
+        self._summaries: dict[str, Summary] = {}
+        self._alive: set[str] = set()
+        self._looked = False
+        self._subscriptions: list[Subscription] = []
+        self._bad = RateLimitedLog(log)
+        self._decls = [
+            self.session.declare_subscriber(keys.all_agent_supernodes(realm),
+                                            self._on_summary),
+            self.session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
+                                                         self._on_token, history=True),
+        ]
+
+    # ------------------------------------------------------------------ life cycle
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for sub in list(self._subscriptions):
+            sub.close()
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()
+        if self._own_session:
+            self.session.close()
+
+    # ------------------------------------------------------------------ the realm
+
+    def _on_summary(self, sample: zenoh.Sample) -> None:
+        self._take_summary(str(sample.key_expr), sample.payload.to_bytes())
+
+    def _take_summary(self, key: str, data: bytes) -> None:
+        try:
+            summary = parse_summary(decode_message(data, required=("agent", "frames")))
+        except ValueError as exc:
+            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
+            return
+        with self._lock:
+            old = self._summaries.get(summary.agent)
+            if old is None or summary.rev >= old.rev or not old.alive:
+                self._summaries[summary.agent] = summary
+            self._alive.add(summary.agent)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
+        if agent is None:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._alive.discard(agent)
+            else:
+                self._alive.add(agent)
+
+    def refresh(self) -> None:
+        """Ask every agent for its summary now (also learns who is alive)."""
+        alive = set()
+        for reply in self.session.liveliness().get(keys.all_agent_tokens(self.realm),
+                                                   timeout=self.timeout):
+            if reply.ok is not None:
+                agent = keys.parse_agent_token(str(reply.ok.key_expr), self.realm)
+                if agent is not None:
+                    alive.add(agent)
+        with self._lock:
+            self._alive |= alive
+        for reply in self.session.get(keys.all_agent_supernodes(self.realm),
+                                      timeout=self.timeout):
+            if reply.ok is not None:
+                self._take_summary(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+    def _look(self) -> None:
+        """The first look at the realm: refresh until the set of agents stops growing
+        (peers learn of each other by gossip within tens of ms), bounded by the timeout."""
+        deadline = time.monotonic() + self.timeout
+        seen: set[str] = set()
+        while True:
+            self.refresh()
+            with self._lock:
+                now = set(self._summaries)
+            if now and now == seen:
+                break
+            seen = now
+            if time.monotonic() + SETTLE_S > deadline:
+                break
+            time.sleep(SETTLE_S)
+        self._looked = True
+
+    def agents(self) -> dict[str, dict[str, Any]]:
+        """The agents this client knows: alive or not, and their frames."""
+        if not self._looked:
+            self._look()
+        with self._lock:
+            return {a: {"alive": a in self._alive, "frames": sorted(s.frames)}
+                    for a, s in self._summaries.items()}
+
+    def _snapshot(self) -> tuple[dict[str, Summary], set[str]]:
+        with self._lock:
+            return dict(self._summaries), set(self._alive)
+
+    # ------------------------------------------------------------------ queries
+
+    def pose(self, source: str, target: str, at: int | None = None,
+             error: str = "latency") -> PoseResult:
+        """The pose of ``target`` in ``source``'s frame at ``at`` (ns on this clock; None:
+        the latest common time), composed across agents (module docstring)."""
+        return self._query(source, target, at, error, details=False)[0]
+
+    def _query(self, source: str, target: str, at: int | None, error: str, details: bool,
+               ) -> tuple[PoseResult, list[tuple[Segment, list[dict[str, Any]]]]]:
+        fn = error_function(error)
+        if at is not None and (isinstance(at, bool) or not isinstance(at, (int, np.integer))):
+            raise ValueError(f"at must be integer ns since the epoch or None, got {at!r}")
+        summaries, alive = self._snapshot()
+        if not self._looked or not summaries:
+            self._look()
+            summaries, alive = self._snapshot()
+        elif alive - set(summaries):  # an agent appeared whose summary we have not seen
+            self.refresh()
+            summaries, alive = self._snapshot()
+        if not summaries:
+            raise NoAgentsError(
+                f"no agent answered in realm {self.realm!r} within {self.timeout:g} s "
+                f"(connected to {', '.join(self.connect) or 'nothing'}); is 'uma agent' "
+                "running there with the same --realm?")
+        try:
+            routes = plan_routes(summaries, source, target, fn)
+        except UnknownFrameError:
+            self.refresh()  # a frame may have appeared since the last summary
+            summaries, alive = self._snapshot()
+            routes = plan_routes(summaries, source, target, fn)
+        causes: list[SegmentError] = []
+        for route in usable_routes(routes, alive, source, target)[:MAX_ROUTES]:
+            try:
+                return self._run(route, None if at is None else int(at), fn, details)
+            except SegmentError as exc:
+                causes.append(exc)
+                if exc.missing:
+                    with self._lock:
+                        self._alive.discard(exc.segment.agent)
+        if len(causes) == 1:
+            raise causes[0]
+        raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
+                         f"tried): " + "; ".join(str(c) for c in causes))
+
+    def _run(self, route: Route, at: int | None, fn: ErrorFunction, details: bool,
+             ) -> tuple[PoseResult, list[tuple[Segment, list[dict[str, Any]]]]]:
+        spec = fn.expr.text if fn.expr is not None else fn.key
+        if at is not None:
+            self._probe_clocks([a for a in route.agents if not self.clock.known(a)])
+        segments = route.segments
+        answers = self._segments(segments, at, spec, details)
+        results = [r for r, _ in answers]
+        if at is None and len(results) > 1:
+            measured = [r.t_ns for r in results if not r.attributes.get("static")]
+            if measured and max(measured) != min(measured):
+                common = min(measured)
+                again = [i for i, r in enumerate(results)
+                         if not r.attributes.get("static") and r.t_ns != common]
+                redo = self._segments([segments[i] for i in again], common, spec, details)
+                for i, answer in zip(again, redo, strict=True):
+                    answers[i] = answer
+                results = [r for r, _ in answers]
+                at = common
+            elif measured:
+                at = measured[0]
+        composed = compose(results, at)
+        return composed, [(s, d) for s, (_, d) in zip(segments, answers, strict=True)]
+
+    def _segments(self, segments: Sequence[Segment], at: int | None, spec: str,
+                  details: bool) -> list[tuple[PoseResult, list[dict[str, Any]]]]:
+        msgs = []
+        for seg in segments:
+            msg = {"op": "segment", "source": seg.source, "target": seg.target, "error": spec,
+                   "t": None if at is None else self.clock.to_remote(seg.agent, at)}
+            if details:
+                msg["details"] = True
+            msgs.append((seg.agent, msg))
+        out = []
+        for seg, (reply, t1, t4) in zip(segments, self._ask(msgs), strict=True):
+            if reply is None:
+                raise SegmentError(seg, f"agent {seg.agent!r} did not answer within "
+                                        f"{self.timeout:g} s (gone or unreachable)", True)
+            self._clock_sample(seg.agent, reply, t1, t4)
+            if not reply.get("ok"):
+                raise SegmentError(seg, str(reply.get("error", "no reason given")), False)
+            try:
+                result = self._to_pose(seg.agent, reply["result"])
+            except (KeyError, TypeError, ValueError, ValidationError) as exc:
+                raise SegmentError(seg, f"malformed answer: {exc}", False) from None
+            out.append((result, reply.get("edges") or []))
+        return out
+
+    def _probe_clocks(self, agents: Sequence[str]) -> None:
+        if not agents:
+            return
+        for agent, (reply, t1, t4) in zip(agents, self._ask([(a, {"op": "clock"})
+                                                             for a in agents]), strict=True):
+            if reply is not None:
+                self._clock_sample(agent, reply, t1, t4)
+
+    def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
+        t2, t3 = reply.get("t2"), reply.get("t3")
+        if isinstance(t2, int) and isinstance(t3, int):
+            self.clock.add(agent, t1, t2, t3, t4)
+
+    def _ask(self, msgs: Sequence[tuple[str, dict[str, Any]]],
+             ) -> list[tuple[dict[str, Any] | None, int, int]]:
+        """Send every request at once; each answer with our send and receive times."""
+        n = len(msgs)
+        answers: list[tuple[dict[str, Any] | None, int, int]] = [(None, 0, 0)] * n
+        pending = [n]
+        done = threading.Event()
+        lock = threading.Lock()
+
+        def callbacks(i: int, t1: int) -> zenoh.handlers.Callback:
+            def on_reply(reply: zenoh.Reply) -> None:
+                t4 = time.time_ns()
+                if reply.ok is None:
+                    return
+                try:
+                    answers[i] = (decode_message(reply.ok.payload.to_bytes()), t1, t4)
+                except DecodeError as exc:
+                    answers[i] = ({"ok": False, "error": f"unreadable answer: {exc}"}, t1, t4)
+
+            def on_done() -> None:
+                with lock:
+                    pending[0] -= 1
+                    if pending[0] == 0:
+                        done.set()
+            return zenoh.handlers.Callback(on_reply, on_done)
+
+        for i, (agent, msg) in enumerate(msgs):
+            payload = encode_message(msg)
+            t1 = time.time_ns()
+            self.session.get(keys.agent_query(self.realm, agent), callbacks(i, t1),
+                             payload=payload, timeout=self.timeout)
+        done.wait(self.timeout + 1.0)
+        return answers
+
+    def _to_pose(self, agent: str, d: dict[str, Any]) -> PoseResult:
+        """A segment answer (a ``schemas.models.PoseResult`` map) on this process's clock."""
+        m = PoseModel.model_validate(d)
+        to_local = self.clock.to_local
+        edges = [{"parent": e.parent, "child": e.child, "forward": not e.inverted,
+                  "owner": e.owner, "t_ns": to_local(agent, e.t_ns)} for e in m.edges]
+        stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
+        cov = None if m.covariance is None else np.array(m.covariance).reshape(6, 6)
+        return PoseResult(np.array(m.position), np.array(m.quaternion), cov, list(m.path),
+                          edges, to_local(agent, m.t_ns), m.extrapolated_s, stamps,
+                          _attrs_in(m.attributes))
+
+    # ------------------------------------------------------------------ streaming
+
+    def subscribe(self, source: str, target: str, on_pose: Callable[[PoseResult], Any],
+                  error: str = "latency") -> Subscription:
+        """Push a composed pose to ``on_pose`` at every sample of the route's fastest edge."""
+        if not callable(on_pose):
+            raise ValueError("on_pose must be callable")
+        first, parts = self._query(source, target, None, error, details=True)
+        sub = Subscription(self, source, target, on_pose, parts, first)
+        self._subscriptions.append(sub)
+        return sub
+
+
+class Subscription:
+    """A running stream of composed poses; ``close()`` stops it."""
+
+    def __init__(self, client: Client, source: str, target: str,
+                 on_pose: Callable[[PoseResult], Any],
+                 parts: list[tuple[Segment, list[dict[str, Any]]]], first: PoseResult) -> None:
+        self.client = client
+        self.source, self.target = source, target
+        self.on_pose = on_pose
+        self.delivered = 0
+        self.failed = 0
+        self.last_error: Exception | None = None
+        self.graph = Graph(buffer_s=5.0)
+        self._q: queue.Queue[tuple[str, str, bytes] | None] = queue.Queue(10_000)
+        self._decls: list[Any] = []
+        self._closed = threading.Event()
+        feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
+        for seg, edges in parts:
+            for e in edges:
+                feeds += self._mirror(seg.agent, e)
+        self.pusher = max(feeds, key=lambda f: f[3])[2] if feeds else None
+        self._feeds = {f[1]: f for f in feeds}
+        self._thread = threading.Thread(target=self._work, name="uma-subscription",
+                                        daemon=True)
+        self._thread.start()
+        for agent, key, _, _ in feeds:
+            self._decls.append(client.session.declare_subscriber(
+                key, lambda smp, a=agent, k=key: self._enqueue(a, k, smp)))
+        if not feeds:  # all static: the one answer is the stream
+            self._deliver(first)
+
+    def _mirror(self, agent: str, e: dict[str, Any]) -> list[tuple[str, str, tuple, float]]:
+        """Copy one edge of the route into the local graph; measured ones become feeds."""
+        source = f"{agent}/{e['source']}"
+        attrs = {k: v for k, v in (e.get("attributes") or {}).items()
+                 if k in ("latency_s", "frequency_hz", "confidence", "pos_std_m",
+                          "rot_std_rad", "ttl_s", "cost")}
+        cov = e.get("covariance")
+        cov = None if cov is None else np.array(cov, dtype=float).reshape(6, 6)
+        if e.get("static"):
+            self.graph.add_static(e["parent"], e["child"], e["position"], e["quaternion"],
+                                  covariance=cov, source=source, **attrs)
+            return []
+        if not e.get("key"):
+            raise UmaError(f"agent {agent!r} gave no data key for edge "
+                           f"{e['parent']}->{e['child']} [{e['source']}]")
+        if cov is not None:
+            attrs["covariance"] = cov
+        key = self.graph.declare_measured(e["parent"], e["child"], source=source, **attrs)
+        return [(agent, e["key"], key, float(attrs.get("frequency_hz", 0.0)))]
+
+    def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
+        try:
+            self._q.put_nowait((agent, key, sample.payload.to_bytes()))
+        except queue.Full:
+            self.client._bad.warning(f"subscription {key}", "queue full; sample dropped")
+
+    def _work(self) -> None:
+        clock = self.client.clock
+        while not self._closed.is_set():
+            try:
+                item = self._q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if item is None:
+                return
+            agent, key, data = item
+            edge_key = self._feeds[key][2]
+            try:
+                m = decode_measurement(data, expected_type="pose6d")
+                t = clock.to_local(agent, m.t_ns)
+                self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
+                                           m.quaternion, m.covariance, source=edge_key[2])
+            except (DecodeError, ValueError) as exc:
+                self.failed += 1
+                self.last_error = exc
+                self.client._bad.warning(f"subscription {key}", f"bad sample: {exc}")
+                continue
+            if edge_key != self.pusher:
+                continue
+            try:
+                result = self.graph.pose(self.source, self.target, at=t, error="hops")
+            except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
+                self.failed += 1
+                self.last_error = exc
+                continue
+            self._deliver(result)
+
+    def _deliver(self, result: PoseResult) -> None:
+        try:
+            self.on_pose(result)
+            self.delivered += 1
+        except Exception as exc:
+            self.failed += 1
+            self.last_error = exc
+            self.client._bad.warning("on_pose", f"{type(exc).__name__}: {exc}")
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()
+        with contextlib.suppress(queue.Full):
+            self._q.put_nowait(None)
+        self._thread.join(1.0)
+        with contextlib.suppress(ValueError):
+            self.client._subscriptions.remove(self)

@@ -1,0 +1,245 @@
+"""Cross-agent pose queries: routes over supernode summaries, composed from segments.
+
+Each agent publishes a summary of its SRG (:mod:`agent.srg.supernode`): its frames, its
+boundary frames and the attributes of its best local paths between them.  A frame id known
+to two agents links them.  The planner joins all summaries into one graph whose edges are
+those links (labelled with their agent), ranks routes from source to target for the error
+function (Dijkstra/Yen as in the local SRG: additive functions sum the links' values,
+path-level ones are evaluated on the joined attributes of k candidate routes), merges
+consecutive links of one agent into a single *segment*, and leaves it to the caller
+(:class:`agent.client.Client`) to ask each owning agent for its segment at ``t`` and to
+:func:`compose` the answers.
+
+Routes through agents that have left the realm are never tried; when only such routes
+exist, :class:`RouteError` names the segments and agents that are missing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from agent.srg import paths
+from agent.srg.attributes import combine
+from agent.srg.errorfn import ErrorFunction
+from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
+from agent.srg.result import PoseResult
+from agent.srg.supernode import SUMMARY_ERRORS
+
+#: candidate routes ranked for path-level error functions
+ROUTE_CANDIDATES = 16
+_INF_WHEN_NONE = ("frequency_hz", "ttl_s")
+
+
+class RouteError(SrgLookupError):
+    """Every route between the frames needs an agent that is gone or failed."""
+
+
+class SegmentError(SrgLookupError):
+    """One agent could not deliver its segment (no answer, or its own lookup failed)."""
+
+    def __init__(self, segment: Segment, reason: str, missing: bool) -> None:
+        self.segment = segment
+        self.missing = missing  # the agent did not answer at all
+        super().__init__(f"segment {segment} failed: {reason}")
+
+
+@dataclass(frozen=True)
+class Segment:
+    """The part of a route one agent computes: ``source -> target`` in its own graph."""
+
+    agent: str
+    source: str
+    target: str
+
+    def __str__(self) -> str:
+        return f"{self.source} -> {self.target} of agent {self.agent!r}"
+
+
+@dataclass
+class Summary:
+    """One agent's supernode summary, as received."""
+
+    agent: str
+    rev: int
+    frames: set[str]
+    components: list[set[str]]
+    links: list[tuple[str, str, dict[str, dict[str, Any]]]]
+    alive: bool = True
+
+
+@dataclass
+class Route:
+    segments: list[Segment]
+    value: float
+    attributes: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def agents(self) -> list[str]:
+        return list(dict.fromkeys(s.agent for s in self.segments))
+
+
+def _attrs_in(d: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(d)
+    for name in _INF_WHEN_NONE:
+        if out.get(name) is None:
+            out[name] = math.inf
+    return out
+
+
+def parse_summary(msg: Mapping[str, Any]) -> Summary:
+    """A decoded supernode message as a :class:`Summary`; ``ValueError`` says what is wrong."""
+    agent, frames = msg.get("agent"), msg.get("frames")
+    if not isinstance(agent, str) or not agent:
+        raise ValueError(f"summary: agent must be a non-empty string, got {agent!r}")
+    if not isinstance(frames, list) or not all(isinstance(f, str) for f in frames):
+        raise ValueError("summary: frames must be a list of strings")
+    components = msg.get("components", [])
+    links_in = msg.get("links", [])
+    if not isinstance(components, list) or not isinstance(links_in, list):
+        raise ValueError("summary: components and links must be lists")
+    links = []
+    for link in links_in:
+        if not (isinstance(link, dict) and isinstance(link.get("a"), str)
+                and isinstance(link.get("b"), str) and isinstance(link.get("attrs"), dict)):
+            raise ValueError(f"summary: malformed link {link!r:.120}")
+        attrs = {k: _attrs_in(v) for k, v in link["attrs"].items()
+                 if k in SUMMARY_ERRORS and isinstance(v, dict)}
+        if set(attrs) != set(SUMMARY_ERRORS):
+            raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "
+                             f"{', '.join(sorted(set(SUMMARY_ERRORS) - set(attrs)))}")
+        links.append((link["a"], link["b"], attrs))
+    rev = msg.get("rev", 0)
+    return Summary(agent, rev if isinstance(rev, int) else 0, set(frames),
+                   [set(c) for c in components if isinstance(c, list)], links)
+
+
+def _link_value(fn: ErrorFunction, attrs: Mapping[str, dict[str, Any]]) -> float:
+    """A link's error: its best local path for a built-in; for an expression, the best of the
+    paths the summary describes."""
+    if fn.key in attrs:
+        return fn.path_value(attrs[fn.key])
+    return min(fn.path_value(a) for a in attrs.values())
+
+
+def _link_attrs(fn: ErrorFunction, attrs: Mapping[str, dict[str, Any]]) -> dict[str, Any]:
+    if fn.key in attrs:
+        return attrs[fn.key]
+    return min(attrs.values(), key=fn.path_value)
+
+
+def joined_attributes(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Attributes of a route from its links' (for ranking; the answer has the exact ones):
+    latencies, costs, hops and covariance traces add, standard deviations add in quadrature."""
+    out = combine(parts, np.zeros(3), None)
+    out["accuracy"] = sum(p.get("accuracy", 0.0) for p in parts)
+    out["pos_std_m"] = math.sqrt(sum(p.get("pos_std_m", 0.0) ** 2 for p in parts))
+    out["rot_std_rad"] = math.sqrt(sum(p.get("rot_std_rad", 0.0) ** 2 for p in parts))
+    return out
+
+
+def plan_routes(summaries: Mapping[str, Summary], source: str, target: str,
+                fn: ErrorFunction, k: int = 8) -> list[Route]:
+    """Routes from ``source`` to ``target``, best first, through every known agent (alive or
+    not: the caller skips the dead ones but names them when nothing else is left)."""
+    known = set().union(*(s.frames for s in summaries.values())) if summaries else set()
+    for frame in (source, target):
+        if frame not in known:
+            raise UnknownFrameError(frame, known)
+    routes: list[Route] = []
+    adj: dict[str, list] = {}
+    link_attrs: dict[tuple, dict] = {}
+    for s in summaries.values():
+        for a, b, attrs in s.links:
+            key = (s.agent, a, b)
+            link_attrs[key] = attrs
+            adj.setdefault(a, []).append((b, key, True))
+            adj.setdefault(b, []).append((a, key, False))
+    if source in adj and target in adj:
+        if fn.additive:
+            found = paths.k_shortest(adj, source, target,
+                                     lambda key: _link_value(fn, link_attrs[key]), k)
+        else:
+            found = paths.k_shortest(adj, source, target, lambda key: 1.0,
+                                     max(k, ROUTE_CANDIDATES))
+        for path in found:
+            parts = [_link_attrs(fn, link_attrs[key]) for key, _ in path.steps]
+            joined = joined_attributes(parts)
+            segments = _merge(path)
+            routes.append(Route(segments, fn.path_value(joined), joined))
+    linked = {tuple(r.segments) for r in routes}
+    for s in summaries.values():
+        # one agent holds both frames but neither is a boundary frame, so no link describes
+        # its local path: that agent answers alone, and a local answer is preferred
+        if any(source in c and target in c for c in s.components):
+            direct = [Segment(s.agent, source, target)]
+            if tuple(direct) not in linked:
+                routes.append(Route(direct, -math.inf))
+    if not routes:
+        raise UnreachableError(source, target, _reach(adj, summaries, source),
+                               _reach(adj, summaries, target))
+    unique: dict[tuple, Route] = {}
+    for route in sorted(routes, key=lambda r: r.value):
+        unique.setdefault(tuple(route.segments), route)
+    return list(unique.values())[: max(k, 1)]
+
+
+def _reach(adj: Mapping, summaries: Mapping[str, Summary], frame: str) -> set[str]:
+    out = paths.reachable(adj, frame) if frame in adj else {frame}
+    for s in summaries.values():
+        for c in s.components:
+            if frame in c:
+                out |= c
+    return out
+
+
+def _merge(path: paths.Path) -> list[Segment]:
+    """Consecutive links of one agent become one segment (that agent finds its best path)."""
+    segments: list[Segment] = []
+    for i, (key, _) in enumerate(path.steps):
+        agent = key[0]
+        a, b = path.frames[i], path.frames[i + 1]
+        if segments and segments[-1].agent == agent:
+            segments[-1] = Segment(agent, segments[-1].source, b)
+        else:
+            segments.append(Segment(agent, a, b))
+    return segments
+
+
+def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
+                  target: str) -> list[Route]:
+    """The routes whose agents are all alive; ``RouteError`` names what is missing if none."""
+    ok = [r for r in routes if set(r.agents) <= alive]
+    if ok:
+        return ok
+    best = routes[0]
+    missing = [str(s) for s in best.segments if s.agent not in alive]
+    gone = sorted({s.agent for s in best.segments if s.agent not in alive})
+    raise RouteError(
+        f"no route from {source!r} to {target!r}: the best route needs segment(s) "
+        f"{'; '.join(missing)}, but agent(s) {list_names(gone)} left the realm, and no "
+        f"other route exists ({len(routes)} considered)")
+
+
+def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
+    """Chain segment answers source -> target, propagating the covariance (first order)."""
+    p, q, cov = np.zeros(3), geo.quat_identity(), None
+    path: list[str] = []
+    edges: list[dict[str, Any]] = []
+    stamps: list[tuple[int, int]] = []
+    extrapolated = 0.0
+    for r in results:
+        cov = geo.compose_covariance(p, q, cov, r.covariance)
+        p, q = geo.compose(p, q, r.position, r.quaternion)
+        path.extend(r.path if not path else r.path[1:])
+        edges.extend(r.edges)
+        stamps.extend(r.stamps)
+        extrapolated = max(extrapolated, r.extrapolated_s)
+    parts = [r.attributes for r in results]
+    return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
+                      lambda: combine(parts, p, cov))
