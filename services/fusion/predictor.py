@@ -30,7 +30,7 @@ Choices the paper leaves open, and why:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
@@ -202,7 +202,6 @@ class PredictorStats:
     restarts: int = 0
     manoeuvres: int = 0
     last_nis: float = float("nan")
-    nis: list[float] = field(default_factory=list)
 
 
 class DorfmullerPredictor:
@@ -215,6 +214,7 @@ class DorfmullerPredictor:
         self._ekf = ExtendedKalmanFilter(dim_x=9, dim_z=9)
         self._ekf.x = np.zeros(9)
         self._last: _Last | None = None
+        self._since_restart = 0
         self.stats = PredictorStats()
         self._reset_covariance()
 
@@ -241,8 +241,8 @@ class DorfmullerPredictor:
 
     @property
     def ready(self) -> bool:
-        """True once two poses have been seen, so motion has been estimated."""
-        return self.stats.updates > 0 and self._last is not None
+        """True once two poses have been seen since the (re)start: motion is estimated."""
+        return self._since_restart > 0
 
     @property
     def last_time_s(self) -> float | None:
@@ -257,6 +257,7 @@ class DorfmullerPredictor:
         self._ekf.x = np.zeros(9)
         self._reset_covariance()
         self._last = None
+        self._since_restart = 0
         self.stats.restarts += 1
 
     # ------------------------------------------------------------------ filtering
@@ -305,6 +306,7 @@ class DorfmullerPredictor:
             self.stats.manoeuvres += 1
         self._iterated_update(z, prev_pts, dt, R)
         self.stats.updates += 1
+        self._since_restart += 1
         self.stats.last_nis = nis
         return nis
 
