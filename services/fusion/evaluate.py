@@ -254,11 +254,30 @@ def _err_figures(ep: np.ndarray, er: np.ndarray) -> dict[str, float]:
             "orientation_max_deg": math.degrees(float(np.nanmax(er)))}
 
 
-def chi2_quantile(p: float, dof: float) -> float:
-    """Wilson-Hilferty approximation of the chi-square quantile (no scipy at run time)."""
+def chi2_quantile(p: float, dof: int) -> float:
+    """Chi-square quantile without scipy: exact (bisection on the closed-form CDF) for small
+    even ``dof``, Wilson-Hilferty beyond 60 degrees of freedom (error < 0.1 % there)."""
+    if dof <= 60 and dof % 2 == 0:
+        lo, hi = 0.0, 10.0 * dof + 50.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            if _chi2_cdf_even(mid, dof) < p:
+                lo = mid
+            else:
+                hi = mid
+        return 0.5 * (lo + hi)
     z = math.sqrt(2.0) * _erfinv(2.0 * p - 1.0)
     h = 2.0 / (9.0 * dof)
     return dof * (1.0 - h + z * math.sqrt(h)) ** 3
+
+
+def _chi2_cdf_even(x: float, dof: int) -> float:
+    """P(X <= x) for chi-square with even dof: 1 - exp(-x/2) sum_{i < dof/2} (x/2)^i / i!."""
+    half, term, total = 0.5 * x, 1.0, 1.0
+    for i in range(1, dof // 2):
+        term *= half / i
+        total += term
+    return 1.0 - math.exp(-half) * total
 
 
 def _erfinv(y: float) -> float:

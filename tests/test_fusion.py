@@ -1,0 +1,258 @@
+"""The fusion EKF (seed 003 ch. 6): measurement model, Jacobians, gating, gaps, honesty,
+late optical poses, the eval's helpers and the live service logic (no network)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from agent.srg import geometry as geo
+from services.accel_rig import simulator as accel_sim
+from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
+from services.fusion import evaluate as fe
+from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
+from services.fusion.service import LiveFusion, accel_model_from_attributes
+from services.fusion.tracker import FusionTracker
+from services.sim.mounts import HEAD_TO_ACCEL_RIG, HEAD_TO_LASER_RIG
+from services.sim.trajectory import HeadTrajectory
+
+OPT_STD = (3e-4, np.radians(0.02))
+
+
+def _model(layout=None, var=3e-4):
+    layout = layout or marvin_six_table_4_1()
+    return AccelModel.from_layout(layout.positions, layout.axes, HEAD_TO_ACCEL_RIG, var)
+
+
+def _set_true_state(ekf: FusionEKF, traj: HeadTrajectory, t: float) -> None:
+    s = traj.state(t)
+    ekf.initialise(t, s.position[0], s.quaternion[0], np.eye(6) * 1e-8)
+    ekf.x[3:6], ekf.x[6:9] = s.omega_body[0], s.alpha_body[0]
+    ekf.x[12:15], ekf.x[15:18] = s.velocity[0], s.acceleration[0]
+
+
+def test_eq613_matches_the_accelerometer_rigs_own_model():
+    """Cross-check with services.accel_rig: the same readings from the rig's kinematics."""
+    layout = marvin_six_table_4_1()
+    traj = HeadTrajectory(4)
+    ekf = FusionEKF(_model(layout))
+    for t in (0.3, 2.0, 7.7):
+        _set_true_state(ekf, traj, t)
+        rig = traj.state(t).rigid_offset(*HEAD_TO_ACCEL_RIG)
+        expected = layout.h(rig.acceleration[0], rig.quaternion[0], rig.omega_body[0],
+                            rig.alpha_body[0])
+        ours = [ekf.predict_reading(j)[0] for j in range(layout.count)]
+        assert np.allclose(ours, expected, atol=1e-10)
+
+
+def test_accelerometer_jacobian_matches_finite_differences():
+    traj = HeadTrajectory(5)
+    ekf = FusionEKF(_model())
+    _set_true_state(ekf, traj, 1.3)
+    ekf.x[18:] = 0.01 * np.arange(6)
+    for j in range(6):
+        h0, H = ekf.predict_reading(j)
+        num = np.zeros(ekf.dim)
+        for k in range(ekf.dim):
+            snap = ekf.snapshot()
+            d = np.zeros(ekf.dim)
+            d[k] = 1e-7
+            ekf._inject(d)
+            num[k] = (ekf.predict_reading(j)[0] - h0) / 1e-7
+            ekf.restore(snap)
+        assert np.allclose(H, num, atol=2e-5), j
+
+
+def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None):
+    """The real accelerometer simulator + optical stand-in (truth + noise) at 15 Hz."""
+    traj = HeadTrajectory(seed)
+    device, cal = fe.calibrated_accelerometers(300.0, seed)
+    run = accel_sim.simulate(traj, seconds, seed=seed, sensor=device, calibration=cal)
+    ekf = FusionEKF(fe.accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, 0.005), config)
+    rng = np.random.default_rng(seed)
+    ps, rs = optical_noise
+    cov = np.diag([ps**2] * 3 + [rs**2] * 3)
+    frames = [k / 15 for k in range(int(seconds * 15))
+              if not any(a <= k / 15 < b for a, b in gaps)]
+    out_t, out_p, out_q, nees = [], [], [], []
+    k = 0
+    for i, t_motion in enumerate(run.t - cal.latency_s):
+        while k < len(frames) and frames[k] <= t_motion:
+            p, q = traj.pose(frames[k])
+            ekf.update_pose(frames[k], p[0] + rng.normal(0, ps, 3),
+                            geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0]),
+                            cov)
+            k += 1
+        if ekf.initialised:
+            ekf.update_accel_sample(run.t[i], run.accel[i])
+            p, q = ekf.pose()
+            pt, qt = traj.pose(ekf.t)
+            e = np.concatenate([pt[0] - p, geo.quat_to_rotvec(
+                geo.quat_multiply(qt[0], geo.quat_conjugate(q)))])
+            idx = np.r_[9:12, 0:3]
+            C = ekf.P[np.ix_(idx, idx)]
+            nees.append(float(e @ np.linalg.solve(C, e)))
+            out_t.append(ekf.t)
+            out_p.append(p)
+            out_q.append(q)
+    t = np.array(out_t)
+    pt, qt = traj.pose(t)
+    ep, er = geo.pose_error(np.array(out_p), np.array(out_q), pt, qt)
+    return t, ep, er, np.array(nees), ekf
+
+
+def test_fusion_tracks_through_a_gap_and_beats_the_optical_rate():
+    t, ep, er, nees, ekf = _simulate(9.0, seed=2, gaps=[(5.0, 5.5)])
+    normal = (t > 2.0) & ((t < 5.0) | (t > 5.8))
+    gap = (t >= 5.0) & (t < 5.55)
+    assert np.sqrt(np.mean(ep[normal] ** 2)) < 2e-3
+    assert np.degrees(np.sqrt(np.mean(er[normal] ** 2))) < 0.1
+    assert ep[gap].max() < 0.02 and np.degrees(er[gap].max()) < 1.0
+    assert ekf.stats.accel_rejected < 0.01 * ekf.stats.accel_updates
+    # honest enough: the mean NEES of the 6-D pose error within a factor of two of 6
+    assert 3.0 < float(np.mean(nees[t > 2.0])) < 12.0
+    assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-12)
+
+
+def test_outlier_poses_are_gated_and_persistent_ones_reinitialise():
+    ekf = FusionEKF(_model(), FusionConfig(max_rejected_poses=3))
+    q = np.array([0.0, 0.0, 0.0, 1.0])
+    cov = np.diag([1e-6] * 3 + [1e-6] * 3)
+    for k in range(30):
+        t = k / 15
+        ekf.update_pose(t, np.zeros(3), q, cov)
+        for i in range(20):
+            reading = [float(ekf.accel.axes[j] @ -np.array([0, 0, -9.80665]))
+                       for j in range(6)]
+            ekf.update_accel_sample(t + (i + 1) / 300, reading)
+    assert ekf.stats.pose_rejected == 0
+    far = np.array([1.0, 0.0, 0.0])
+    assert not ekf.update_pose(2.1, far, q, cov)
+    assert not ekf.update_pose(2.2, far, q, cov)
+    assert ekf.update_pose(2.3, far, q, cov)       # third in a row: the optics win
+    assert np.allclose(ekf.position, far) and ekf.stats.reinitialised == 2
+
+
+def test_late_optical_poses_give_the_same_result_as_in_order():
+    traj = HeadTrajectory(6)
+    device = accel_sim.SensorTruth.ideal(marvin_six())
+    run = accel_sim.simulate(traj, 2.0, seed=6, sensor=device)
+    cal = device.calibration()
+    model = fe.accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, 0.005)
+    in_order, late = FusionTracker(FusionEKF(model)), FusionTracker(FusionEKF(model))
+    frames = [k / 15 + 0.001 for k in range(30)]   # never at a sample's instant
+    cov = geo.covariance_from_std(np.zeros(3), 3e-4, 3e-4)
+
+    def optical(t):
+        p, q = geo.compose(*[a[0] for a in traj.pose(t)], *HEAD_TO_LASER_RIG)
+        return p, q
+
+    pending = []
+    k = 0
+    for i, t in enumerate(run.t):
+        while k < len(frames) and frames[k] <= t:
+            p, q = optical(frames[k])
+            in_order.add_rig_pose(frames[k], p, q, cov, HEAD_TO_LASER_RIG)
+            if k == 0:   # the first pose starts both filters at the same instant
+                late.add_rig_pose(frames[k], p, q, cov, HEAD_TO_LASER_RIG)
+            else:
+                pending.append((t + 0.04, frames[k], p, q))   # arrives 40 ms late
+            k += 1
+        in_order.add_accel(t, run.accel[i])
+        while pending and pending[0][0] <= t:
+            _, tf, p, q = pending.pop(0)
+            late.add_rig_pose(tf, p, q, cov, HEAD_TO_LASER_RIG)
+        late.add_accel(t, run.accel[i])
+    assert late.stats.optical_late > 20
+    p1, q1 = in_order.pose()
+    p2, q2 = late.pose()
+    e_p, e_r = geo.pose_error(p1, q1, p2, q2)
+    assert e_p < 1e-6 and e_r < 1e-6
+
+
+def test_bad_input_is_refused_with_a_reason():
+    ekf = FusionEKF(_model())
+    with pytest.raises(ValueError, match="no pose yet"):
+        ekf.pose()
+    with pytest.raises(ValueError, match="before initialisation"):
+        ekf.predict_to(1.0)
+    ekf.update_pose(1.0, np.zeros(3), [0, 0, 0, 1], np.eye(6) * 1e-6)
+    with pytest.raises(ValueError, match="not all finite"):
+        ekf.update_accel_sample(1.01, [0, 0, np.nan, 0, 0, 0])
+    with pytest.raises(ValueError, match="the model has 6"):
+        ekf.update_accel_sample(1.01, [0, 0, 0])
+    with pytest.raises(ValueError, match="before the filter time"):
+        ekf.update_pose(0.5, np.zeros(3), [0, 0, 0, 1], np.eye(6) * 1e-6)
+    with pytest.raises(ValueError, match="unit quaternion"):
+        ekf.update_pose(1.1, np.zeros(3), [0, 0, 0, 3], np.eye(6) * 1e-6)
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        ekf.update_pose(1.1, np.zeros(3), [0, 0, 0, 1], -np.eye(6))
+    with pytest.raises(ValueError, match="angular_jerk_psd"):
+        FusionConfig(angular_jerk_psd=-1.0)
+
+
+def test_pose_covariance_is_symmetric_positive_and_in_xi_form():
+    ekf = FusionEKF(_model())
+    p = np.array([0.5, -0.2, 0.4])
+    C = np.diag([1e-4, 2e-4, 3e-4, 1e-5, 2e-5, 3e-5])
+    ekf.update_pose(0.0, p, [0, 0, 0, 1], C)
+    out = ekf.pose_covariance()
+    assert np.allclose(out, out.T) and np.all(np.linalg.eigvalsh(out) > 0)
+    assert np.allclose(geo.se3_to_decoupled(p, out), C, atol=1e-12)
+
+
+def test_chi2_quantiles_match_scipy():
+    from scipy.stats import chi2
+
+    for p, k in ((0.025, 6), (0.975, 6), (0.5, 12)):
+        assert fe.chi2_quantile(p, k) == pytest.approx(chi2.ppf(p, k), rel=1e-6)
+    for p, k in ((0.025, 6000), (0.975, 600)):
+        assert fe.chi2_quantile(p, k) == pytest.approx(chi2.ppf(p, k), rel=1e-3)
+
+
+def test_gap_schedule_and_baselines():
+    gaps = fe.gap_schedule(30.0, [0.25, 0.5, 1.0])
+    pattern = [0.25, 0.5, 1.0]
+    assert len(gaps) >= 3
+    assert [round(b - a, 3) for a, b in gaps] == [pattern[i % 3] for i in range(len(gaps))]
+    assert gaps[0][0] >= fe.WARMUP_S and gaps[-1][1] < 29.0
+    rec = SimpleNamespace(
+        t=np.array([0.05, 0.1, 0.15]), optical_t=np.array([0.0, 0.1]),
+        optical_p=np.array([[0.0, 0, 0], [0.1, 0, 0]]),
+        optical_q=np.tile([0.0, 0, 0, 1], (2, 1)))
+    b = fe.optical_baselines(rec)
+    assert np.allclose(b["hold_last"][0][:, 0], [0.0, 0.1, 0.1])
+    assert np.allclose(b["constant_velocity"][0][:, 0], [0.0, 0.1, 0.15])
+
+
+def test_live_fusion_builds_from_attributes_and_publishes():
+    cal = accel_sim.default_device().calibration()
+    published = []
+    live = LiveFusion(0.02, 0.005, publish=lambda *a: published.append(a))
+    attrs = {**cal.to_dict(), "frequency_hz": 300.0}
+    accel = SimpleNamespace(t_ns=1_000_000_000, values=np.zeros(6), attributes=attrs)
+    live.on_accel(accel)
+    assert live.tracker is None and "not known yet" in next(iter(live.dropped))
+    live.on_accel_mount(SimpleNamespace(position=HEAD_TO_ACCEL_RIG[0],
+                                        quaternion=HEAD_TO_ACCEL_RIG[1]))
+    live.on_optical_mount(SimpleNamespace(position=HEAD_TO_LASER_RIG[0],
+                                          quaternion=HEAD_TO_LASER_RIG[1]))
+    live.on_accel(accel)
+    assert live.tracker is not None and not published   # waits for the optics
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    live.on_optical(SimpleNamespace(t_ns=1_002_000_000, position=p, quaternion=q,
+                                    covariance=None))
+    reading = [float(n @ [0, 0, 9.80665]) for n in live.tracker.ekf.accel.axes]
+    for i in range(10):
+        live.on_accel(SimpleNamespace(t_ns=1_005_000_000 + i * 3_333_333,
+                                      values=np.array(reading), attributes=attrs))
+    assert len(published) == 10
+    _, pos, _, cov = published[-1]
+    assert np.linalg.norm(pos) < 1e-3 and cov.shape == (6, 6)
+
+
+def test_accel_model_from_bad_attributes_names_the_problem():
+    with pytest.raises(ValueError, match="format"):
+        accel_model_from_attributes({"frequency_hz": 300.0}, HEAD_TO_ACCEL_RIG, 0.0)
