@@ -93,6 +93,8 @@ class Client:
         self.clock = ClockOffsets()
         self._lock = threading.Lock()
         self._summaries: dict[str, Summary] = {}
+        #: planned routes by (source, target, error), dropped when any summary changes
+        self._routes: dict[tuple[str, str, str], list[Route]] = {}
         self._alive: set[str] = set()
         self._looked = False
         self._subscriptions: list[Subscription] = []
@@ -135,8 +137,10 @@ class Client:
             return
         with self._lock:
             old = self._summaries.get(summary.agent)
-            if old is None or summary.rev >= old.rev or not old.alive:
+            if old is None or summary.rev > old.rev or summary.frames != old.frames or (
+                    summary.links != old.links):
                 self._summaries[summary.agent] = summary
+                self._routes.clear()
             self._alive.add(summary.agent)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -220,11 +224,11 @@ class Client:
                 f"(connected to {', '.join(self.connect) or 'nothing'}); is 'uma agent' "
                 "running there with the same --realm?")
         try:
-            routes = plan_routes(summaries, source, target, fn)
+            routes = self._plan(summaries, source, target, fn)
         except UnknownFrameError:
             self.refresh()  # a frame may have appeared since the last summary
             summaries, alive = self._snapshot()
-            routes = plan_routes(summaries, source, target, fn)
+            routes = self._plan(summaries, source, target, fn)
         causes: list[SegmentError] = []
         for route in usable_routes(routes, alive, source, target)[:MAX_ROUTES]:
             try:
@@ -238,6 +242,16 @@ class Client:
             raise causes[0]
         raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
                          f"tried): " + "; ".join(str(c) for c in causes))
+
+    def _plan(self, summaries: dict[str, Summary], source: str, target: str,
+              fn: ErrorFunction) -> list[Route]:
+        key = (source, target, fn.key)
+        routes = self._routes.get(key)
+        if routes is None:
+            routes = plan_routes(summaries, source, target, fn)
+            with self._lock:
+                self._routes[key] = routes
+        return routes
 
     def _run(self, route: Route, at: int | None, fn: ErrorFunction, details: bool,
              ) -> tuple[PoseResult, list[tuple[Segment, list[dict[str, Any]]]]]:
@@ -265,15 +279,20 @@ class Client:
 
     def _segments(self, segments: Sequence[Segment], at: int | None, spec: str,
                   details: bool) -> list[tuple[PoseResult, list[dict[str, Any]]]]:
-        msgs = []
+        """Ask every owning agent for its segment in one query (see SrgNode "segments")."""
+        parts = {}
         for seg in segments:
-            msg = {"op": "segment", "source": seg.source, "target": seg.target, "error": spec,
-                   "t": None if at is None else self.clock.to_remote(seg.agent, at)}
+            if seg.agent in parts:  # a route visits an agent once (segments are merged)
+                raise ValueError(f"route visits agent {seg.agent!r} twice")
+            part = {"source": seg.source, "target": seg.target, "error": spec,
+                    "t": None if at is None else self.clock.to_remote(seg.agent, at)}
             if details:
-                msg["details"] = True
-            msgs.append((seg.agent, msg))
+                part["details"] = True
+            parts[seg.agent] = part
+        answers = self._ask_all({"op": "segments", "parts": parts})
         out = []
-        for seg, (reply, t1, t4) in zip(segments, self._ask(msgs), strict=True):
+        for seg in segments:
+            reply, t1, t4 = answers.get(seg.agent, (None, 0, 0))
             if reply is None:
                 raise SegmentError(seg, f"agent {seg.agent!r} did not answer within "
                                         f"{self.timeout:g} s (gone or unreachable)", True)
@@ -288,51 +307,49 @@ class Client:
         return out
 
     def _probe_clocks(self, agents: Sequence[str]) -> None:
+        """One clock round trip to every agent (all answer the same query)."""
         if not agents:
             return
-        for agent, (reply, t1, t4) in zip(agents, self._ask([(a, {"op": "clock"})
-                                                             for a in agents]), strict=True):
-            if reply is not None:
-                self._clock_sample(agent, reply, t1, t4)
+        for agent, (reply, t1, t4) in self._ask_all({"op": "clock"}).items():
+            self._clock_sample(agent, reply, t1, t4)
 
     def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
         t2, t3 = reply.get("t2"), reply.get("t3")
         if isinstance(t2, int) and isinstance(t3, int):
             self.clock.add(agent, t1, t2, t3, t4)
 
-    def _ask(self, msgs: Sequence[tuple[str, dict[str, Any]]],
-             ) -> list[tuple[dict[str, Any] | None, int, int]]:
-        """Send every request at once; each answer with our send and receive times."""
-        n = len(msgs)
-        answers: list[tuple[dict[str, Any] | None, int, int]] = [(None, 0, 0)] * n
-        pending = [n]
+    def _ask_all(self, msg: dict[str, Any]) -> dict[str, tuple[dict[str, Any], int, int]]:
+        """One query to every agent's query key; the answers by agent id, each with our send
+        and receive times.  One query rather than one per agent: a ``get`` costs about as
+        much to issue as a loopback round trip."""
+        answers: dict[str, tuple[dict[str, Any], int, int]] = {}
         done = threading.Event()
-        lock = threading.Lock()
+        prefix, suffix = f"{keys.realm_root(self.realm)}/agent/", "/query"
 
-        def callbacks(i: int, t1: int) -> zenoh.handlers.Callback:
-            def on_reply(reply: zenoh.Reply) -> None:
-                t4 = time.time_ns()
-                if reply.ok is None:
-                    return
-                try:
-                    answers[i] = (decode_message(reply.ok.payload.to_bytes()), t1, t4)
-                except DecodeError as exc:
-                    answers[i] = ({"ok": False, "error": f"unreadable answer: {exc}"}, t1, t4)
+        def on_reply(reply: zenoh.Reply) -> None:
+            t4 = time.time_ns()
+            if reply.ok is None:
+                return
+            key = str(reply.ok.key_expr)
+            agent = key[len(prefix):-len(suffix)] if key.startswith(prefix) and key.endswith(
+                suffix) else None
+            if not agent or "/" in agent:
+                self._bad.warning("query reply", f"unexpected key {key!r}")
+                return
+            try:
+                answers[agent] = (decode_message(reply.ok.payload.to_bytes()), t1, t4)
+            except DecodeError as exc:
+                answers[agent] = ({"ok": False, "error": f"unreadable answer: {exc}"}, t1, t4)
 
-            def on_done() -> None:
-                with lock:
-                    pending[0] -= 1
-                    if pending[0] == 0:
-                        done.set()
-            return zenoh.handlers.Callback(on_reply, on_done)
-
-        for i, (agent, msg) in enumerate(msgs):
-            payload = encode_message(msg)
-            t1 = time.time_ns()
-            self.session.get(keys.agent_query(self.realm, agent), callbacks(i, t1),
-                             payload=payload, timeout=self.timeout)
+        payload = encode_message(msg)
+        t1 = time.time_ns()
+        # callbacks run in Zenoh's thread: they only decode, and a thread hop would cost as
+        # much as the round trip
+        self.session.get(prefix + "*" + suffix,
+                         zenoh.handlers.Callback(on_reply, done.set, indirect=False),
+                         payload=payload, timeout=self.timeout)
         done.wait(self.timeout + 1.0)
-        return answers
+        return dict(answers)
 
     def _to_pose(self, agent: str, d: dict[str, Any]) -> PoseResult:
         """A segment answer (a ``schemas.models.PoseResult`` map) on this process's clock."""

@@ -23,6 +23,10 @@ calls ``close()`` at shutdown.  The node:
   "error": E[, "details": true]}``        is a ``schemas.models.PoseResult`` as a map;
   (``"op": "pose"`` is the same)          ``details`` adds each edge's data key (measured)
                                           or value (static), for streaming clients
+  ``{"op": "segments", "parts":           the same answer to this agent's part; no answer
+  {agent id: segment request}}``          at all if there is none (one query sent to
+                                          ``uma/<realm>/agent/*/query`` asks every agent
+                                          of a route at once)
   anything malformed or failing           ``{"ok": false, "error": message, "kind":
                                           exception class, "t2", "t3"}``
   ======================================  ==============================================
@@ -122,7 +126,10 @@ class SrgNode:
         self._query_key = keys.agent_query(realm, agent_id)
         self._summary_key = keys.agent_supernode(realm, agent_id)
         self._decls = [
-            session.declare_queryable(self._query_key, self._on_query),
+            # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
+            # would cost as much as the network round trip)
+            session.declare_queryable(self._query_key,
+                                      zenoh.handlers.Callback(self._on_query, indirect=False)),
             session.declare_queryable(self._summary_key, self._on_summary_query),
             session.declare_subscriber(keys.all_agent_supernodes(realm), self._on_summary),
             session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
@@ -187,6 +194,8 @@ class SrgNode:
             msg = decode_message(payload.to_bytes() if payload is not None else b"",
                                  required=("op",))
             reply = self.handle(msg)
+            if reply is None:
+                return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
             reply = {"ok": False, "error": str(exc), "kind": type(exc).__name__}
         except Exception as exc:  # never into Zenoh's thread: answer and log
@@ -200,11 +209,22 @@ class SrgNode:
         except (zenoh.ZError, ValueError) as exc:
             self._bad.warning("query reply", str(exc))
 
-    def handle(self, msg: dict[str, Any]) -> dict[str, Any]:
-        """Answer one decoded query message (see the module docstring)."""
+    def handle(self, msg: dict[str, Any]) -> dict[str, Any] | None:
+        """Answer one decoded query message (see the module docstring); None: not for us."""
         op = msg["op"]
         if op == "clock":
             return {"ok": True}
+        if op == "segments":
+            parts = msg.get("parts")
+            if not isinstance(parts, dict):
+                raise ValueError("segments request: parts must be a map agent id -> request")
+            part = parts.get(self.agent_id)
+            if part is None:
+                return None
+            if not isinstance(part, dict):
+                raise ValueError(f"segments request: the part for {self.agent_id!r} is not a "
+                                 "map")
+            msg, op = part, "segment"
         if op not in ("segment", "pose"):
             raise ValueError(f"unknown op {op!r} (expected clock, segment or pose)")
         source, target, error = msg.get("source"), msg.get("target"), msg.get("error", "hops")

@@ -1,0 +1,151 @@
+"""Streaming subscriptions across agents, and a deliberately skewed agent clock.
+
+Agent ``A`` runs with ``UMA_CLOCK_SKEW_NS`` (its clock 3 s ahead) and hosts a tracker
+service (this file run as a script) that publishes an analytic head trajectory stamped with
+the same skewed clock, as a service on a skewed host would.  Agent ``B`` holds a static
+edge head -> eye.  The client must estimate A's offset and answer on its own clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import endpoint, free_port
+
+from agent.errors import UmaError
+from agent.srg import geometry as geo
+
+WORLD, HEAD, EYE = "ivy/world", "alice/head", "alice/eye"
+SKEW_NS = 3_000_000_000
+EYE_P, EYE_Q = [0.03, 0.06, 0.05], geo.rotvec_to_quat(np.array([0.0, 0.2, 0.0])).tolist()
+RATE_HZ = 100.0
+
+
+def motion(t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Constant velocity and body rate: lerp + slerp reproduce it exactly."""
+    p = np.array([0.2, 0.1, 1.6]) + np.array([0.05, -0.02, 0.01]) * t_s
+    q = geo.quat_multiply(geo.rotvec_to_quat(np.array([0.0, 0.0, 0.3])),
+                          geo.rotvec_to_quat(np.array([0.1, 0.4, -0.2]) * t_s))
+    return p, q
+
+
+def expected_eye(t_real_ns: int, t0_ns: int) -> np.ndarray:
+    p, q = motion((t_real_ns - t0_ns) / 1e9)
+    return geo.to_matrix(p, q) @ geo.to_matrix(np.array(EYE_P), np.array(EYE_Q))
+
+
+def run_tracker(argv: list[str]) -> None:
+    """The tracker service: publishes ``motion`` at 100 Hz on world -> head."""
+    from agent import Service
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--realm", required=True)
+    ap.add_argument("--agent", required=True)
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--t0", type=int, required=True)
+    ap.add_argument("--skew", type=int, default=0)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    a = ap.parse_args(argv)
+    with Service("tracker", realm=a.realm, agent=a.agent, connect=[a.connect]) as svc:
+        out = svc.ability("head", type="pose6d", edge=(WORLD, HEAD), frequency_hz=RATE_HZ,
+                          latency_s=0.001, pos_std_m=0.002)
+        svc.start()
+        end = time.monotonic() + a.seconds
+        while time.monotonic() < end:
+            t = time.time_ns()
+            p, q = motion((t - a.t0) / 1e9)
+            out.publish(t + a.skew, p, q)
+            time.sleep(1.0 / RATE_HZ)
+
+
+def wait_for(fn, timeout=20.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    last = None
+    for _ in range(500):
+        try:
+            return fn()
+        except (LookupError, AssertionError, UmaError) as exc:
+            last = exc
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
+
+
+@pytest.fixture
+def skewed_world(processes, tmp_path, realm):
+    pa, pb = free_port(), free_port()
+    cfg = tmp_path / "b.toml"
+    cfg.write_text(f'[[static]]\nparent = "{HEAD}"\nchild = "{EYE}"\nposition = {EYE_P}\n'
+                   f"quaternion = {EYE_Q}\npos_std_m = 0.001\n")
+    processes.start("agent", "--realm", realm, "--id", "A", "--listen", endpoint(pa),
+                    env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS)})
+    processes.start("agent", "--realm", realm, "--id", "B", "--listen", endpoint(pb),
+                    "--connect", endpoint(pa), "--config", str(cfg))
+    t0 = time.time_ns()
+    processes.start("--realm", realm, "--agent", "A", "--connect", endpoint(pa),
+                    "--t0", str(t0), "--skew", str(SKEW_NS), module="test_client_stream",
+                    env={"PYTHONPATH": os.pathsep.join([str(Path(__file__).parent),
+                                                        *sys.path])})
+    return [endpoint(pa), endpoint(pb)], t0
+
+
+def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
+    from agent.client import Client
+
+    eps, t0 = skewed_world
+    with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
+        wait_for(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
+        at = time.time_ns() - 50_000_000  # 50 ms ago on the client's (unskewed) clock
+        r = c.pose(WORLD, EYE, at=at, error="hops")
+        assert abs(c.clock.offset("A") - SKEW_NS) < 20_000_000  # loaded CI: within 20 ms
+        assert r.t_ns == at and r.path == [WORLD, HEAD, EYE]
+        # the answer is the pose at `at`, not 3 s away from it: the eye moves < 0.1 m/s,
+        # so 1 mm allows ~10 ms of offset error while an uncorrected 3 s skew is ~0.2 m off
+        T = expected_eye(at, t0)
+        np.testing.assert_allclose(r.position, T[:3, 3], atol=1e-3)
+        assert np.linalg.norm(expected_eye(at + SKEW_NS, t0)[:3, 3] - T[:3, 3]) > 0.05
+        # the remote timestamps came back on our clock too
+        assert abs(r.edges[0]["t_ns"] - at) < 20_000_000
+
+
+def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, realm):
+    from agent.client import Client
+
+    eps, t0 = skewed_world
+    got: list = []
+    enough = threading.Event()
+
+    def on_pose(r):
+        got.append(r)
+        if len(got) >= 20:
+            enough.set()
+
+    with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
+        wait_for(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
+        sub = c.subscribe(WORLD, EYE, on_pose=on_pose, error="hops")
+        assert enough.wait(10.0), f"only {len(got)} poses streamed ({sub.last_error})"
+        sub.close()
+        count = len(got)
+        time.sleep(0.1)
+        assert len(got) <= count + 1  # closed: no more pushes
+    times = [r.t_ns for r in got]
+    assert times == sorted(times) and len(set(times)) == len(times)  # one per new sample
+    for r in got:
+        assert r.path == [WORLD, HEAD, EYE]
+        T = expected_eye(r.t_ns, t0)
+        np.testing.assert_allclose(r.position, T[:3, 3], atol=1e-6 + 2e-3)
+        assert r.covariance is not None
+    # pushed at sample times: the pulled static edge needs no extrapolation
+    assert all(r.extrapolated_s == 0.0 for r in got)
+
+
+if __name__ == "__main__":
+    run_tracker(sys.argv[1:])
