@@ -11,6 +11,7 @@ stream b at the stations' times.  Conventions: ``solvers`` (A, B, X) and ``times
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,12 +35,14 @@ from services.alignment.solvers import (
     all_pairs,
     daniilidis,
     pair_residuals,
+    refine,
     relative_motions,
     tsai_lenz,
 )
 from services.alignment.timesync import PoseSeries, coarse_offset, golden_section
 
 SOLVERS = {"daniilidis": daniilidis, "tsai-lenz": tsai_lenz}
+WeightedSolver = Callable[..., Pose]
 #: Half width (s) of the joint refinement around the correlation estimate, and its tolerance.
 _REFINE_HALF_WIDTH_S = 0.01
 _REFINE_TOL_S = 1e-4
@@ -57,9 +60,10 @@ class AlignmentOptions:
 
     method: str = "daniilidis"
     min_angle_rad: float = DEFAULT_MIN_ANGLE_RAD
-    max_pairs: int | None = 400
+    max_pairs: int | None = 1000
     max_stations: int = 40
     ransac: bool = True
+    refine: bool = True
     ransac_iterations: int = 200
     bootstrap: int = 100
     estimate_offset: bool = True
@@ -74,6 +78,18 @@ class AlignmentOptions:
             raise ValueError(f"max_stations must be >= 3, got {self.max_stations}")
         if self.max_pairs is not None and self.max_pairs < 2:
             raise ValueError(f"max_pairs must be >= 2, got {self.max_pairs}")
+
+
+def solver_for(options: AlignmentOptions) -> WeightedSolver:
+    """``f(pairs, weights=None) -> Pose``: the closed form, then ``refine`` if asked."""
+    closed_form = SOLVERS[options.method]
+    if not options.refine:
+        return closed_form
+
+    def refined(pairs: MotionPairs, weights: np.ndarray | None = None) -> Pose:
+        return refine(pairs, closed_form(pairs, weights), weights)
+
+    return refined
 
 
 @dataclass(frozen=True)
@@ -162,10 +178,11 @@ def fit_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
     """Select motion pairs, eliminate outliers (if ``options.ransac``) and solve."""
     if len(pa) < 3:
         raise AlignmentError(f"need at least 3 stations (2 motions), got {len(pa)}")
-    solver = SOLVERS[options.method]
+    solver = solver_for(options)
     motions, ij, selection = _selected_motions(pa, qa, pb, qb, options)
     if options.ransac and len(motions) >= 3:
-        found = ransac(motions, solver, options.ransac_iterations, rng=rng)
+        found = ransac(motions, SOLVERS[options.method], options.ransac_iterations, rng=rng,
+                       refit=solver)
         return Fit(found.pose, motions, ij, found.inliers, selection)
     return Fit(solver(motions), motions, ij, np.ones(len(motions), dtype=bool), selection)
 
@@ -178,7 +195,7 @@ def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarra
     rng = np.random.default_rng(options.seed)
     fit = fit_stations(pa, qa, pb, qb, options, rng)
     covariance = bootstrap_covariance(pa, qa, pb, qb, fit.pairs_ij[fit.inliers], fit.pose,
-                                      SOLVERS[options.method], options.bootstrap, rng)
+                                      solver_for(options), options.bootstrap, rng)
     return AlignmentResult(
         position=fit.pose.position, quaternion=fit.pose.quaternion, covariance=covariance,
         time_offset_s=time_offset_s, method=options.method, n_stations=len(pa),

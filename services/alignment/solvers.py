@@ -31,7 +31,7 @@ from agent.srg import geometry as geo
 MIN_ANGLE_RAD = np.radians(2.0)
 #: Smallest accepted spread of the motions' rotation axes (see ``axis_spread``).
 MIN_AXIS_SPREAD_RAD = np.radians(3.0)
-_RANK_TOL = 1e-9
+_RANK_TOL = 1e-7
 
 
 class AlignmentError(UmaError, ValueError):
@@ -160,13 +160,25 @@ def check_conditioning(pairs: MotionPairs, min_angle_rad: float = MIN_ANGLE_RAD,
             "rotate about at least two different axes")
 
 
-def _lstsq_full_rank(M: np.ndarray, rhs: np.ndarray, what: str) -> np.ndarray:
-    """Least squares that refuses a rank-deficient system instead of guessing."""
-    sol, _, rank, sv = np.linalg.lstsq(M, rhs, rcond=None)
-    if rank < M.shape[1] or sv[-1] < _RANK_TOL * sv[0]:
+def _normal_matrix(M: np.ndarray, what: str) -> np.ndarray:
+    """``M^T M``, refused if M is rank deficient (smallest/largest singular value < tol).
+
+    Normal equations rather than SVD/QR of the tall M (3n or 6n rows, at most 8 columns):
+    multithreaded LAPACK on tall-thin matrices is 100x slower on a loaded machine, and
+    the rank test keeps the squared condition number harmless.
+    """
+    N = M.T @ M
+    ev = np.linalg.eigvalsh(N)
+    if ev[-1] <= 0 or ev[0] <= _RANK_TOL**2 * ev[-1]:
+        sv = np.sqrt(np.clip(ev[::-1], 0.0, None))
         raise DegenerateMotionError(f"{what}: the equations are rank deficient "
                                     f"(singular values {np.array2string(sv, precision=3)})")
-    return sol
+    return N
+
+
+def _lstsq_full_rank(M: np.ndarray, rhs: np.ndarray, what: str) -> np.ndarray:
+    """Least squares that refuses a rank-deficient system instead of guessing."""
+    return np.linalg.solve(_normal_matrix(M, what), M.T @ rhs)
 
 
 def _row_weights(weights: np.ndarray | None, n: int) -> np.ndarray:
@@ -260,11 +272,13 @@ def daniilidis(pairs: MotionPairs, weights: np.ndarray | None = None,
     """
     check_conditioning(pairs, min_angle_rad, min_axis_spread_rad)
     S = _motion_matrix(pairs) * _row_weights(weights, len(pairs))[:, None, None]
-    _, sv, Vt = np.linalg.svd(S.reshape(-1, 8), full_matrices=False)
-    if sv[5] < _RANK_TOL * sv[0]:
+    # Right singular vectors of T = eigenvectors of T^T T (8 x 8; see _normal_matrix).
+    T = S.reshape(-1, 8)
+    ev, V = np.linalg.eigh(T.T @ T)
+    if ev[-1] <= 0 or ev[2] <= _RANK_TOL**2 * ev[-1]:
         raise DegenerateMotionError(
             "Daniilidis: T has rank < 6 (screw axes parallel); rotate about two different axes")
-    v7, v8 = Vt[6], Vt[7]
+    v7, v8 = V[:, 1], V[:, 0]
     x1, y1, x2, y2 = v7[:4], v7[4:], v8[:4], v8[4:]
     G = np.array([[x1 @ x1, x1 @ x2], [x1 @ x2, x2 @ x2]])
     best = max(_null_directions(x1 @ y1, x1 @ y2 + x2 @ y1, x2 @ y2),
@@ -290,3 +304,42 @@ def pair_residuals(pairs: MotionPairs, x: Pose) -> Residuals:
     p_ax, q_ax = geo.compose(pairs.pa, pairs.qa, x.position, x.quaternion)
     p_xb, q_xb = geo.compose(x.position, x.quaternion, pairs.pb, pairs.qb)
     return Residuals(geo.quat_angle(q_ax, q_xb), np.linalg.norm(p_ax - p_xb, axis=-1))
+
+
+def refine(pairs: MotionPairs, x0: Pose, weights: np.ndarray | None = None,
+           iterations: int = 10) -> Pose:
+    """Gauss-Newton on the geometric residuals of eqs. 3.2 and 3.3, from a closed-form X.
+
+    Tsai-Lenz and Daniilidis minimise algebraic errors, which weigh the motions unevenly;
+    this minimises the rotation residual ``log(R_A R_X R_B^T R_X^T)`` and the translation
+    residual ``R_A t_X + t_A - R_X t_B - t_X`` of all pairs, each group scaled by its RMS
+    (re-estimated every step), over the left perturbation ``X <- Exp(xi) X`` of geometry's
+    convention.  Linearised: ``d rot = (R_A - I) phi`` and
+    ``d pos = (R_A - I) rho + ([R_X t_B]x - (R_A - I)[t_X]x) phi``.
+    """
+    w = _row_weights(weights, len(pairs))
+    p, q = np.asarray(x0.position, float), np.asarray(x0.quaternion, float)
+    D = geo.quat_to_matrix(pairs.qa) - np.eye(3)
+    for _ in range(iterations):
+        rot = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_multiply(pairs.qa, q),
+                                                   geo.quat_conjugate(
+                                                       geo.quat_multiply(q, pairs.qb))))
+        x_tb = geo.quat_rotate(q, pairs.pb)
+        pos = D @ p + pairs.pa - x_tb
+        s_pos = float(np.sqrt(np.mean(pos**2)))
+        s_rot = float(np.sqrt(np.mean(rot**2)))
+        if max(s_pos, s_rot) < 1e-13:
+            break  # exact already: nothing to weigh
+        s_pos, s_rot = max(s_pos, 1e-13), max(s_rot, 1e-13)
+        J = np.zeros((len(pairs), 6, 6))
+        J[:, :3, :3] = D / s_pos
+        J[:, :3, 3:] = (geo.skew(x_tb) - D @ geo.skew(p)) / s_pos
+        J[:, 3:, 3:] = D / s_rot
+        r = np.concatenate([pos / s_pos, rot / s_rot], axis=-1)
+        step = _lstsq_full_rank((J * w[:, None, None]).reshape(-1, 6),
+                                -(r * w[:, None]).reshape(-1), "refinement")
+        dq = geo.rotvec_to_quat(step[3:])
+        p, q = geo.quat_rotate(dq, p) + step[:3], geo.quat_multiply(dq, q)
+        if np.linalg.norm(step) < 1e-10:
+            break  # below 0.1 nm and 0.1 nrad: converged
+    return Pose(p, geo.quat_canonical(q / np.linalg.norm(q)))
