@@ -341,7 +341,8 @@ class Agent:
         parser = argparse.ArgumentParser(prog=f"uma agent --service {name}")
         plugins.add_service_arguments(parser, plugin)
         argv = ["--realm", self.realm, "--agent", self.agent_id]
-        for ep in self.endpoints:
+        # a peer agent: connect to it; a client agent has no listener: use its router
+        for ep in self.endpoints or self.s.connect:
             argv += ["--connect", ep]
         args = parser.parse_args(argv)
         stop = threading.Event()
@@ -400,6 +401,10 @@ class Agent:
             with contextlib.suppress(Exception):
                 self.session.close()
             self.session = None
+        # a worker still inside a blocking put returns once the session is closed; let it
+        # leave Zenoh before the interpreter finalises (else the process may abort)
+        if self._worker is not None:
+            self._worker.join(0.5)
 
     # -- the worker
     def _enqueue(self, fn: Callable[..., None], *args: Any) -> None:

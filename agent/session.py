@@ -97,15 +97,20 @@ def lease_ms_default() -> int:
 
 def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
                  connect: Iterable[str] = (), *, lease_ms: int | None = None,
-                 require_connection: bool = False, adminspace: bool = True) -> zenoh.Config:
+                 require_connection: bool = False, adminspace: bool = True,
+                 base_file: str | None = None) -> zenoh.Config:
     """The Zenoh configuration of a uma process (see the module docstring for each choice).
 
     ``listen=None`` means the mode's default (peers: an ephemeral loopback port, routers:
-    7447, clients: none); ``listen=[]`` means no listener.
+    7447, clients: none) unless ``base_file`` (a Zenoh JSON5 configuration that uma's
+    settings are applied on top of) names listen endpoints; ``listen=[]``: no listener.
     """
     if mode not in MODES:
         raise UmaError(f"unknown Zenoh mode {mode!r} (expected one of {', '.join(MODES)})")
     connect = [check_endpoint(ep) for ep in connect]
+    c = _base_config(base_file)
+    if listen is None and base_file is not None:
+        listen = _configured_listen(c, mode)
     if listen is None:
         listen = {"peer": [DEFAULT_PEER_LISTEN], "router": [DEFAULT_ROUTER_LISTEN],
                   "client": []}[mode]
@@ -113,7 +118,6 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
     if mode == "client" and not connect:
         raise UmaError("client mode needs at least one --connect endpoint (a Zenoh router)")
     lease = lease_ms_default() if lease_ms is None else int(lease_ms)
-    c = zenoh.Config()
     _insert(c, "mode", mode)
     _insert(c, "scouting/multicast/enabled", False)
     _insert(c, "scouting/delay", 0)
@@ -129,6 +133,23 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
         _insert(c, "connect/exit_on_failure", True)
         _insert(c, "connect/timeout_ms", CONNECT_TIMEOUT_MS)
     return c
+
+
+def _base_config(path: str | None) -> zenoh.Config:
+    if path is None:
+        return zenoh.Config()
+    try:
+        return zenoh.Config.from_file(path)
+    except zenoh.ZError as exc:
+        raise UmaError(f"cannot use Zenoh configuration {path!r}: {_short(exc)}") from None
+
+
+def _configured_listen(c: zenoh.Config, mode: str) -> list[str] | None:
+    """The listen endpoints a base configuration names (a list, or a per-mode map)."""
+    found = json.loads(c.get_json("listen/endpoints") or "null")
+    if isinstance(found, dict):
+        found = found.get(mode)
+    return [str(x) for x in found] if isinstance(found, list) and found else None
 
 
 def _insert(c: zenoh.Config, key: str, value: object) -> None:
@@ -147,7 +168,7 @@ def _short(exc: BaseException) -> str:
 def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
                  connect: Iterable[str] = (), realm: str | None = None, *,
                  lease_ms: int | None = None, require_connection: bool = False,
-                 ) -> zenoh.Session:
+                 base_file: str | None = None) -> zenoh.Session:
     """Open a Zenoh session configured for uma; ``UmaError`` if it cannot be opened.
 
     ``realm`` is only validated here (uma keys carry it; see :mod:`agent.keys`), so a bad
@@ -158,7 +179,7 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
         keys.check_name("realm", realm)
     connect = list(connect)
     config = build_config(mode, listen, connect, lease_ms=lease_ms,
-                          require_connection=require_connection)
+                          require_connection=require_connection, base_file=base_file)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
@@ -167,7 +188,7 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
             raise UmaError(f"cannot reach {', '.join(connect)} ({mode} mode): nothing "
                            "answers there; is the agent/router running?") from None
         if "Can not create a new" in text or "listen" in text.lower():
-            raise UmaError(f"cannot listen on {', '.join(listen or [])}: {text}") from None
+            raise UmaError(f"cannot listen: {text}") from None
         raise UmaError(f"cannot open Zenoh session: {text}") from None
 
 

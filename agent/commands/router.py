@@ -2,13 +2,17 @@
 
 Larger sites run agents and clients in *client* mode attached to a router (see
 ``deploy/router.toml`` and ``deploy/start_site.sh``); on one LAN, peers with explicit
-endpoints need none.  Stops cleanly on Ctrl-C / SIGTERM.
+endpoints need none.  If ``ZENOH_CONFIG`` names a Zenoh JSON5 configuration (Zenoh's own
+convention, e.g. ``deploy/router.json5``) it is the base that uma's settings are applied on
+top of, and its listen endpoints are used unless ``--listen`` is given.  Stops cleanly on
+Ctrl-C / SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from agent.cli import stop_on_signals
@@ -22,7 +26,9 @@ def main(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stop = stop_on_signals()
-    session = open_session("router", args.listen or [DEFAULT_ROUTER_LISTEN])
+    base = os.environ.get("ZENOH_CONFIG") or None
+    session = open_session("router", args.listen or (None if base else [DEFAULT_ROUTER_LISTEN]),
+                           base_file=base)
     try:
         endpoints = listening_endpoints(session)
         print(f"uma router {session.zid()} listening on {' '.join(endpoints)}", flush=True)
