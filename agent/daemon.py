@@ -254,7 +254,7 @@ class Agent:
         self.session: zenoh.Session | None = None
         self.srg: Any = None
         self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.Queue()
-        self._feed_q: queue.Queue[tuple[str, Ability, bytes, str] | None] = queue.Queue(
+        self._feed_q: queue.Queue[tuple[tuple[str, str], bytes, str] | None] = queue.Queue(
             FEED_QUEUE)
         self._feeds: dict[tuple[str, str], tuple[Any, Ability]] = {}
         self._decls: list[Any] = []
@@ -618,41 +618,53 @@ class Agent:
 
     # -- SRG feed of local pose abilities
     def _local_abilities_changed(self, sid: str, abilities: list[Ability]) -> None:
-        """Subscribe the SRG to new local pose6d abilities, tell it about removed ones."""
+        """Subscribe the SRG to new local pose6d abilities, tell it about removed ones; an
+        ability whose attributes changed keeps its subscription (the SRG gets the new
+        ``Ability`` with the next sample)."""
         if self.srg is None or self.session is None:
             return
         wanted = {a.name: a for a in abilities if a.type == "pose6d"}
         for (s, name), (sub, ability) in list(self._feeds.items()):
-            if s == sid and (name not in wanted or wanted[name] != ability):
-                sub.undeclare()
-                del self._feeds[(s, name)]
-                self._srg_call("on_ability_removed", sid, ability)
-        for name, ability in wanted.items():
+            if s != sid:
+                continue
+            if name in wanted:
+                self._feeds[(s, name)] = (sub, wanted[name])
+                continue
+            sub.undeclare()
+            del self._feeds[(s, name)]
+            self._srg_call("on_ability_removed", sid, ability)
+        for name in wanted:
             if (sid, name) in self._feeds:
                 continue
             key = keys.data(self.realm, self.agent_id, sid, name)
 
-            def on_sample(smp: zenoh.Sample, a: Ability = ability, k: str = key) -> None:
+            def on_sample(smp: zenoh.Sample, feed: tuple[str, str] = (sid, name),
+                          k: str = key) -> None:
                 try:
-                    self._feed_q.put_nowait((sid, a, smp.payload.to_bytes(), k))
+                    self._feed_q.put_nowait((feed, smp.payload.to_bytes(), k))
                 except queue.Full:
                     self._bad.warning(f"data {k}", "SRG feed queue full; sample dropped")
             self._feeds[(sid, name)] = (self.session.declare_subscriber(key, on_sample),
-                                        ability)
+                                        wanted[name])
 
     def _feed(self) -> None:
         while True:
             item = self._feed_q.get()
             if item is None or self._stopping.is_set():
                 return
-            sid, ability, data, key = item
+            feed, data, key = item
+            entry = self._feeds.get(feed)
+            if entry is None:
+                continue  # the ability went away meanwhile
+            ability = entry[1]
             try:
                 m = decode_measurement(data, expected_type="pose6d")
             except DecodeError as exc:
                 self._bad.warning(f"data {key}", f"dropped a malformed sample: {exc}")
                 continue
-            m.edge, m.source = ability.edge, sid
-            self._srg_call("on_local_sample", sid, ability, m)
+            m.edge, m.source = ability.edge, feed[0]
+            m.attributes = ability.attributes
+            self._srg_call("on_local_sample", feed[0], ability, m)
 
     def _srg_call(self, method: str, *args: Any) -> None:
         node = self.srg

@@ -1,0 +1,211 @@
+"""The Service SDK and the agent's hooks (SRG node, hosted services), in one process:
+an ``Agent`` and ``Service`` objects on loopback with real Zenoh sessions."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+import types
+from collections.abc import Iterator
+from typing import ClassVar
+
+import numpy as np
+import pytest
+from conftest import endpoint, free_port
+
+from agent import plugins
+from agent.daemon import Agent, AgentSettings
+from agent.errors import UmaError
+from agent.service import Service
+from schemas.codec import Measurement
+
+
+class FakeSrgNode:
+    """Records what the agent tells the SRG node."""
+
+    instances: ClassVar[list[FakeSrgNode]] = []
+
+    def __init__(self, session, realm, agent_id, static_edges) -> None:
+        self.args = (realm, agent_id, static_edges)
+        self.samples: list[tuple[str, object, Measurement]] = []
+        self.removed: list[tuple[str, str]] = []
+        self.closed = False
+        FakeSrgNode.instances.append(self)
+
+    def on_local_sample(self, service_id, ability, m) -> None:
+        self.samples.append((service_id, ability, m))
+
+    def on_ability_removed(self, service_id, ability) -> None:
+        self.removed.append((service_id, ability.name))
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def wait_until(cond, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def fake_srg(monkeypatch) -> Iterator[type[FakeSrgNode]]:
+    module = types.ModuleType("agent.srg_node")
+    module.SrgNode = FakeSrgNode
+    monkeypatch.setitem(sys.modules, "agent.srg_node", module)
+    FakeSrgNode.instances = []
+    yield FakeSrgNode
+
+
+STATIC = [{"parent": "ivy/world", "child": "ivy/cam_nw", "position": [0, 0, 2.4],
+           "quaternion": [0, 0, 0, 1], "pos_std_m": 0.001}]
+
+
+def test_srg_hook_receives_local_pose_samples_and_removals(fake_srg, realm) -> None:
+    ep = endpoint(free_port())
+    agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep],
+                                static_edges=STATIC))
+    agent.start()
+    try:
+        node = fake_srg.instances[0]
+        assert node.args == (realm, "hostA", [{**STATIC[0], "position": [0.0, 0.0, 2.4],
+                                               "quaternion": [0.0, 0.0, 0.0, 1.0],
+                                               "pos_std_m": 0.001}])
+        with Service("cam", realm=realm, agent="hostA", connect=[ep]) as svc:
+            out = svc.ability("pose", type="pose6d", edge=("ivy/world", "alice/head"),
+                              frequency_hz=100)
+            svc.ability("dots", type="points3d", key="ivy/dots")
+            svc.start()
+            assert svc.wait_registered(10)
+            for i in range(200):
+                out.publish(1_000_000 + i, [1.0, 2.0, 3.0], [0, 0, 0, 1])
+                if node.samples:
+                    break
+                time.sleep(0.01)
+            wait_until(lambda: node.samples)
+            sid, ability, m = node.samples[0]
+            assert sid == "cam" and ability.name == "pose" and ability.type == "pose6d"
+            assert m.edge == ("ivy/world", "alice/head") and m.source == "cam"
+            np.testing.assert_allclose(m.position, [1, 2, 3])
+            out.update(frequency_hz=50)  # an attribute change keeps the feed
+            assert svc.wait_registered(10)
+            n = len(node.samples)
+
+            def fed_with_new_attributes() -> bool:
+                out.publish(2_000_000, [1, 2, 3], [0, 0, 0, 1])
+                return (len(node.samples) > n
+                        and node.samples[-1][1].attributes.frequency_hz == 50)
+            wait_until(fed_with_new_attributes)
+            assert node.removed == []
+        wait_until(lambda: node.removed == [("cam", "pose")])
+    finally:
+        agent.close()
+    assert node.closed
+
+
+def test_hosted_service_runs_with_the_agents_endpoints_and_stops(monkeypatch,
+                                                                realm) -> None:
+    seen: dict[str, object] = {}
+    stopped = threading.Event()
+
+    def run(args: argparse.Namespace, stop: threading.Event) -> int:
+        seen["args"] = args
+        with Service("hosted", realm=args.realm, agent=args.agent, connect=args.connect) as svc:
+            svc.ability("pose", type="pose6d", edge=("ivy/world", "bob/head"))
+            svc.start()
+            seen["registered"] = svc.wait_registered(10)
+            stop.wait(30)
+        stopped.set()
+        return 0
+
+    fake = plugins.ServicePlugin("fake", "a test service",
+                                 lambda p: p.add_argument("--speed", default=3), run)
+    monkeypatch.setattr(plugins, "load", lambda group, name: fake)
+    ep = endpoint(free_port())
+    agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep],
+                                services=["fake"]))
+    agent.start()
+    try:
+        wait_until(lambda: "registered" in seen)
+        args = seen["args"]
+        assert (args.realm, args.agent, args.connect, args.speed) == (realm, "hostA", [ep], 3)
+        assert seen["registered"] is True
+        wait_until(lambda: agent.view.present("hostA", "hosted"))
+    finally:
+        agent.close()
+    assert stopped.is_set()
+
+
+def test_sdk_matches_delivers_and_reports(realm) -> None:
+    ep = endpoint(free_port())
+    agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep]))
+    agent.start()
+    got: list[Measurement] = []
+    try:
+        with Service("cam", realm=realm, agent="hostA", connect=[ep]) as cam, \
+                Service("fusion", realm=realm, agent="hostA", connect=[ep]) as fusion:
+            out = cam.ability("pose", type="pose6d", edge=("ivy/world", "alice/head"),
+                              frequency_hz=100, pos_std_m=0.01)
+            fusion.need("head", type="pose6d", edge=("ivy/world", "*/head"),
+                        where="frequency_hz >= 30", on_sample=got.append)
+            cam.start()
+            fusion.start()
+            (m,) = fusion.wait_matched("head", timeout=10)
+            assert (m.agent_id, m.service_id, m.ability) == ("hostA", "cam", "pose")
+            assert m.attributes["pos_std_m"] == 0.01
+            cov = np.diag([1e-4] * 3 + [1e-5] * 3)
+            for i in range(500):
+                out.publish(10 + i, [0.5, 0.0, 1.0], [0, 0, 0.6, 0.8], covariance=cov)
+                if got:
+                    break
+                time.sleep(0.01)
+            wait_until(lambda: got)
+            s = got[0]
+            assert s.source == "cam" and s.edge == ("ivy/world", "alice/head")
+            assert s.attributes["frequency_hz"] == 100 and s.seq >= 1
+            np.testing.assert_allclose(s.quaternion, [0, 0, 0.6, 0.8])
+            np.testing.assert_allclose(s.covariance, cov)
+            assert fusion.matches("head")[0].key == m.key
+            with pytest.raises(UmaError, match="no need 'nope'"):
+                fusion.matches("nope")
+            with pytest.raises(TimeoutError, match="need 'head'"):
+                fusion.wait_matched("head", count=2, timeout=0.2)
+    finally:
+        agent.close()
+
+
+def test_sdk_refuses_bad_declarations_and_misuse(realm) -> None:
+    svc = Service("cam", realm=realm, agent="hostA", connect=[endpoint(free_port())])
+    with pytest.raises(ValueError, match=r"need 'head'.*where"):
+        svc.need("head", type="pose6d", edge=("a/b", "*/c"), where="frequency_hz >>= 3")
+    with pytest.raises(ValueError, match=r"ability 'x'.*type"):
+        svc.ability("x", type="teleport", edge=("a/b", "c/d"))
+    with pytest.raises(ValueError, match="edge"):
+        svc.ability("x", type="pose6d", key="a/b")
+    out = svc.ability("pose", type="pose6d", edge=("a/b", "c/d"))
+    with pytest.raises(ValueError, match="already has an ability named 'pose'"):
+        svc.ability("pose", type="pose6d", edge=("a/b", "c/e"))
+    with pytest.raises(UmaError, match="call start"):
+        out.publish(1, [0, 0, 0], [0, 0, 0, 1])
+    with pytest.raises(UmaError, match="service id 'a/b'"):
+        Service("a/b", realm=realm)
+    with pytest.raises(UmaError, match="invalid Zenoh endpoint"):
+        Service("ok", realm=realm, connect=["nonsense"]).start()
+    svc.register_timeout = 0.1
+    svc.start()  # no agent there: starts anyway, registers when one appears
+    try:
+        with pytest.raises(ValueError, match="quaternion"):
+            out.publish(1, [0, 0, 0], [0, 0, 0, 2])
+        with pytest.raises(ValueError, match="position"):
+            out.publish(1, [0, float("nan"), 0], [0, 0, 0, 1])
+        with pytest.raises(UmaError, match="publishes pose6d"):
+            out.publish_measurement(Measurement("position3d", 1, position=np.zeros(3)))
+        assert not svc.wait_registered(0.1)
+    finally:
+        svc.close()
+    with pytest.raises(UmaError, match="closed"):
+        out.publish(1, [0, 0, 0], [0, 0, 0, 1])
