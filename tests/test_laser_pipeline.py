@@ -15,7 +15,7 @@ from conftest import endpoint, free_port
 
 from agent.errors import UmaError
 from agent.srg import geometry as geo
-from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
 from services.laser_camera.evaluate import evaluate
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate
 from services.sim.world import IvyWorld, sim_time_s
@@ -50,9 +50,13 @@ def test_calibration_recovers_every_screen_mapping(world, calibration) -> None:
         assert np.mean(err) < 1e-3 and np.max(err) < 4e-3, (cam.name, err.mean(), err.max())
 
 
-def test_calibration_file_round_trip_and_refusals(calibration, calibration_file,
+def test_calibration_file_round_trip_and_refusals(world, calibration, calibration_file,
                                                   tmp_path) -> None:
     loaded = Calibration.load(calibration_file)
+    assert loaded.meta == {"sim": world.installation}
+    # another trajectory on the same installation reuses the cached file
+    cached = sim_calibration(IvyWorld(seed=9), cache=calibration_file)
+    assert np.array_equal(cached.cameras[0].H, calibration.cameras[0].H)
     for a, b in zip(calibration.cameras, loaded.cameras, strict=True):
         assert a.name == b.name and np.array_equal(a.H, b.H) and np.array_equal(a.K, b.K)
         assert a.detector == b.detector and a.wall.name == b.wall.name

@@ -5,10 +5,15 @@ The pure pipeline (no I/O) for reuse in evaluations and other services::
     from services.laser_camera import Calibration, LaserTracker
     tracker = LaserTracker(Calibration.load("ivy.json"))
     result = tracker.process({"front": img, ...}, t)   # PoseEstimate or NoPose
+
+    # on the simulator (calibrated once, then cached in the file):
+    world = IvyWorld(seed=1)
+    tracker = LaserTracker(sim_calibration(world, cache="/tmp/ivy_calibration.json"))
+    result = tracker.process(world.render(t).images, t)
 """
 
-from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
 
 __all__ = ["Calibration", "LaserTracker", "NoPose", "PoseEstimate", "TrackerParams",
-           "calibrate_sim"]
+           "calibrate_sim", "sim_calibration"]

@@ -107,6 +107,8 @@ class Calibration:
     """The calibration of all cameras of a display."""
 
     cameras: list[CameraCalibration]
+    #: where it came from (e.g. the simulated installation it was made for)
+    meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.cameras:
@@ -124,7 +126,7 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         data = {"format": "uma-laser-camera-calibration", "version": FORMAT_VERSION,
-                "cameras": [c.to_dict() for c in self.cameras]}
+                "meta": self.meta, "cameras": [c.to_dict() for c in self.cameras]}
         Path(path).write_text(json.dumps(data, indent=1))
 
     @classmethod
@@ -141,7 +143,10 @@ class Calibration:
         if data.get("version") != FORMAT_VERSION:
             raise ValueError(f"{p}: calibration format version {data.get('version')} "
                              f"unsupported (this build reads {FORMAT_VERSION})")
-        return cls([CameraCalibration.from_dict(c) for c in data.get("cameras", [])])
+        meta = data.get("meta", {})
+        if not isinstance(meta, dict):
+            raise ValueError(f"{p}: 'meta' must be a map")
+        return cls([CameraCalibration.from_dict(c) for c in data.get("cameras", [])], meta)
 
 
 # --------------------------------------------------------------------------- procedures
@@ -259,7 +264,20 @@ def calibrate_sim(world, n_views: int = 8, seed: int = 0) -> Calibration:
         cams.append(CameraCalibration(
             cam.name, world.walls[cam.wall], K, dist, H, cam.width, cam.height,
             DetectorParams(dark_level=dark_level, read_noise=read_noise), quality))
-    return Calibration(cams)
+    return Calibration(cams, {"sim": world.installation})
+
+
+def sim_calibration(world, cache: str | Path | None = None) -> Calibration:
+    """The calibration of a simulated world, from ``cache`` if that file was made for the
+    same installation, else calibrated (10-20 s) and written to ``cache``."""
+    if cache is not None and Path(cache).exists():
+        cal = Calibration.load(cache)
+        if cal.meta.get("sim") == world.installation:
+            return cal
+    cal = calibrate_sim(world)
+    if cache is not None:
+        cal.save(cache)
+    return cal
 
 
 def _matrix(v, shape: tuple[int, ...], name: str) -> np.ndarray:

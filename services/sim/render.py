@@ -129,11 +129,21 @@ def add_spots(img: np.ndarray, spots: list[Spot], sensor: SensorModel,
 
 def render_plane_pattern(cam: Camera, origin: np.ndarray, axis_a: np.ndarray,
                          axis_b: np.ndarray, pattern, supersample: int = 2,
-                         background: float = 20.0, blur_px: float = 0.7) -> np.ndarray:
+                         background: float = 20.0, blur_px: float = 0.7,
+                         box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """8-bit image of a planar pattern: ``pattern(a, b)`` gives the brightness (0..255, NaN
     where the plane shows nothing) at plane coordinates ``(a, b)`` along the unit axes
-    ``axis_a``, ``axis_b`` from ``origin``, seen through a lens blurring by ``blur_px``."""
-    rays = cam.pixel_rays(supersample)
+    ``axis_a``, ``axis_b`` from ``origin``, seen through a lens blurring by ``blur_px``.
+    ``box`` (u0, u1, v0, v1), if given, is the only part of the image the pattern can
+    cover (saves the ray casting elsewhere)."""
+    k = supersample
+    u0, u1, v0, v1 = box or (0, cam.width, 0, cam.height)
+    u0, v0 = max(0, u0), max(0, v0)
+    u1, v1 = min(cam.width, u1), min(cam.height, v1)
+    out = np.full((cam.height, cam.width), background)
+    if u1 <= u0 or v1 <= v0:
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    rays = cam.pixel_rays(supersample)[v0 * k:v1 * k, u0 * k:u1 * k]
     n = np.cross(axis_a, axis_b)
     denom = rays @ n
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -142,11 +152,10 @@ def render_plane_pattern(cam: Camera, origin: np.ndarray, axis_a: np.ndarray,
     a, b = pts @ axis_a, pts @ axis_b
     val = pattern(a, b)
     val = np.where((s > 0) & np.isfinite(val), val, background)
-    k = supersample
-    val = val.reshape(cam.height, k, cam.width, k).mean(axis=(1, 3))
+    out[v0:v1, u0:u1] = val.reshape(v1 - v0, k, u1 - u0, k).mean(axis=(1, 3))
     if blur_px > 0:  # the lens' point spread; also removes the rest of the aliasing
-        val = cv2.GaussianBlur(val, (0, 0), blur_px)
-    return np.clip(np.rint(val), 0, 255).astype(np.uint8)
+        out = cv2.GaussianBlur(out, (0, 0), blur_px)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def checkerboard(square_m: float, n_squares: tuple[int, int], black: float = 30.0,

@@ -93,6 +93,7 @@ class IvyWorld:
         if config is not None and config.n_cameras != n_cameras and n_cameras != 6:
             raise ValueError("give n_cameras either directly or in config, not both")
         self.seed = seed
+        self.install_seed = install_seed
         self.walls: dict[str, Wall] = make_walls(self.config.cube_side_m,
                                                  self.config.screen_side_m)
         self.cameras: list[Camera] = _install_cameras(self.walls, self.config, install_seed)
@@ -100,6 +101,14 @@ class IvyWorld:
         self._noise = {c.name: NoiseBank(c, self.config.sensor,
                                          np.random.default_rng([install_seed, i, 7]))
                        for i, c in enumerate(self.cameras)}
+
+    @property
+    def installation(self) -> dict:
+        """What fixes the cameras and screens (not the trajectory): a calibration made for
+        one world is valid for every world with the same installation."""
+        c = self.config
+        return {"n_cameras": c.n_cameras, "install_seed": self.install_seed,
+                "cube_side_m": c.cube_side_m, "screen_side_m": c.screen_side_m}
 
     # ------------------------------------------------------------------ ground truth
 
@@ -226,8 +235,14 @@ class IvyWorld:
             corners_w = origin + obj[:, :1] * a_w + obj[:, 1:2] * b_w
             if not cam.in_image(cam.project(corners_w), margin_px=12).all():
                 continue
+            # the board with its white border covers only this part of the image
+            ext = np.array([[-1, -1], [na + 1, -1], [-1, nb + 1], [na + 1, nb + 1]]) * square_m
+            uv = cam.project(origin + ext[:, :1] * a_w + ext[:, 1:] * b_w)
+            box = (int(np.floor(uv[:, 0].min())) - 4, int(np.ceil(uv[:, 0].max())) + 5,
+                   int(np.floor(uv[:, 1].min())) - 4, int(np.ceil(uv[:, 1].max())) + 5)
             img = render_plane_pattern(cam, origin, a_w, b_w,
-                                       checkerboard(square_m, (na, nb), border_m=square_m))
+                                       checkerboard(square_m, (na, nb), border_m=square_m),
+                                       box=box)
             views.append((img, obj.copy()))
         return views
 
