@@ -41,6 +41,25 @@ _HALF_RIGHT_PRODUCT = 0.5 * np.stack(
     [geo.quat_multiply(np.eye(4), np.eye(4)[i]).T for i in range(3)]).reshape(3, 16)
 
 
+def _rotation_quadratic() -> Array:
+    """(16, 9) map from ``vec(q q^T)`` to ``vec(R(q) |q|^2)``: ``R(q) v = q (x) v (x) q*`` is a
+    quadratic form in q.  Built from geometry's Hamilton product; it turns the rotation
+    matrices of the four RK4 stages into one small matrix product."""
+    e = np.eye(4)
+    T = np.zeros((4, 4, 3, 3))
+    for i in range(4):
+        for j in range(4):
+            for col in range(3):  # R v for v = basis vector ``col``
+                v = np.zeros(4)
+                v[col] = 1.0
+                T[i, j, :, col] = geo.quat_multiply(geo.quat_multiply(e[i], v),
+                                                    geo.quat_conjugate(e[j]))[:3]
+    return T.reshape(16, 9)
+
+
+_ROTATION_QUADRATIC = _rotation_quadratic()
+
+
 @dataclass(frozen=True)
 class Estimate:
     """The dead-reckoned state at motion time ``t``.
@@ -238,7 +257,8 @@ class DeadReckoner:
         q1 = q0 + h / 6.0 * (kq1 + 2.0 * kq2 + 2.0 * kq3 + kq4)
         # velocity / position stages: v' = R(q) f + g, p' = v
         qs = np.array([q0, q2, q3, q4])
-        Rs = geo.quat_to_matrix(qs / np.sqrt((qs * qs).sum(axis=1))[:, None])
+        Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
+              / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
         acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
         v0 = self._v
         self._p = self._p + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])

@@ -73,6 +73,7 @@ class RigLayout:
     _pred: Array = field(init=False, repr=False, compare=False)
     _proj: Array = field(init=False, repr=False, compare=False)
     _corr: Array = field(init=False, repr=False, compare=False)
+    _corr_outer: Array = field(init=False, repr=False, compare=False)
     _rows: Array = field(init=False, repr=False, compare=False)
     _cols: Array = field(init=False, repr=False, compare=False)
     _e_rows: Array = field(init=False, repr=False, compare=False)
@@ -153,8 +154,11 @@ class RigLayout:
         pred = np.setdiff1d(np.arange(6), solved)
         proj = np.linalg.pinv(A)[:6]
         rows, cols = _W_ROWS[pred], _W_COLS[pred]
-        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": -proj @ C[:, pred],
-                 "_rows": rows, "_cols": cols,
+        corr = -proj @ C[:, pred]
+        corr_outer = np.zeros((9, 6))  # the same on vec(omega omega^T), one slot per entry
+        corr_outer[rows * 3 + cols] = corr.T
+        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": corr,
+                 "_corr_outer": corr_outer, "_rows": rows, "_cols": cols,
                  "_e_rows": np.eye(3)[rows], "_e_cols": np.eye(3)[cols]}
         for name, value in cache.items():
             object.__setattr__(self, name, value)
@@ -235,7 +239,8 @@ class RigLayout:
     def correction(self, omega: Array) -> Array:
         """What the centripetal terms predicted from ``omega`` add to ``project``, (..., 6)."""
         w = np.asarray(omega, float)
-        return (w[..., self._rows] * w[..., self._cols]) @ self._corr.T
+        outer = w[..., :, None] * w[..., None, :]
+        return outer.reshape(*w.shape[:-1], 9) @ self._corr_outer
 
     def solve(self, readings: Array, omega: Array) -> tuple[Array, Array]:
         """Eq. 4.42: rig-frame specific force and angular acceleration from N readings.

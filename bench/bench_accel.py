@@ -1,0 +1,81 @@
+"""Time to process one 300 Hz accelerometer sample (goal: <= 100 us, >= 30x real time).
+
+Measures ``DeadReckoner.update_volts`` (validation, conversion, eq. 4.42 solve, RK4 step,
+covariance propagation) and the same plus the SE(3) pose covariance a publisher needs,
+per sample over a simulated head motion.  Baseline in the same run: the eq. 4.42 solve of
+the sample alone (``layout.solve`` after ``to_accel``), the least any estimator must do.
+
+    /work/venv/bin/python bench/bench_accel.py [--seconds 10] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from services.accel_rig.integrator import DeadReckoner
+from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simulate
+from services.sim.trajectory import HeadTrajectory
+
+
+def _time_per_sample(fn, t, volts) -> np.ndarray:
+    out = np.empty(len(t))
+    for k in range(len(t)):
+        t0 = time.perf_counter_ns()
+        fn(t[k], volts[k])
+        out[k] = time.perf_counter_ns() - t0
+    return out / 1e3  # microseconds
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0,
+                        help="simulated seconds of 300 Hz samples to process (default 10)")
+    parser.add_argument("--json", action="store_true", help="last line: one JSON object")
+    args = parser.parse_args()
+    device = default_device()
+    cal = device.calibration(DEFAULT_RATE_HZ)
+    sim = simulate(HeadTrajectory(1), args.seconds, DEFAULT_RATE_HZ, seed=1, t0=5.0,
+                   sensor=device)
+    s = sim.truth
+
+    def fresh() -> DeadReckoner:
+        dr = DeadReckoner(cal, DEFAULT_RATE_HZ)
+        dr.reset(s.t[0], s.position[0], s.quaternion[0], velocity=s.velocity[0],
+                 omega=s.omega_body[0])
+        return dr
+
+    omega = np.zeros(3)
+    baseline = _time_per_sample(lambda t, v: cal.layout.solve(cal.to_accel(v), omega),
+                                sim.t, sim.volts)
+    dr = fresh()
+    update = _time_per_sample(dr.update_volts, sim.t, sim.volts)
+    dr = fresh()
+    with_cov = _time_per_sample(lambda t, v: dr.update_volts(t, v).covariance,
+                                sim.t, sim.volts)
+    period_us = 1e6 / DEFAULT_RATE_HZ
+    fig = {
+        "samples": len(sim.t),
+        "update_us": {"median": float(np.median(update)), "p99": float(np.percentile(update, 99))},
+        "update_with_se3_covariance_us": {"median": float(np.median(with_cov)),
+                                          "p99": float(np.percentile(with_cov, 99))},
+        "baseline_solve_only_us": {"median": float(np.median(baseline)),
+                                   "p99": float(np.percentile(baseline, 99))},
+        "ratio_update_to_baseline": float(np.median(update) / np.median(baseline)),
+        "realtime_factor_at_300hz": float(period_us / np.median(update)),
+        "goal_us": 100.0,
+        "meets_goal": bool(np.median(update) <= 100.0),
+    }
+    for key in ("update_us", "update_with_se3_covariance_us", "baseline_solve_only_us"):
+        print(f"{key:32s} median {fig[key]['median']:8.1f}  p99 {fig[key]['p99']:8.1f}")
+    print(f"ratio to baseline {fig['ratio_update_to_baseline']:.1f}, "
+          f"real-time factor at 300 Hz {fig['realtime_factor_at_300hz']:.0f}x")
+    if args.json:
+        print(json.dumps(fig))
+
+
+if __name__ == "__main__":
+    main()
