@@ -103,8 +103,8 @@ class AccelModel:
 class FusionConfig:
     """Noise model and behaviour of the filter (SI units)."""
 
-    angular_jerk_psd: float = 2.0e3      # (rad/s^3)^2 / Hz, white angular jerk
-    linear_jerk_psd: float = 2.0e2       # (m/s^3)^2 / Hz, white linear jerk
+    angular_jerk_psd: float = 500.0      # (rad/s^3)^2 / Hz, white angular jerk
+    linear_jerk_psd: float = 50.0        # (m/s^3)^2 / Hz, white linear jerk
     bias_walk: float = 1e-3              # m/s^2 / sqrt(s), accelerometer bias random walk
     initial_bias_std: float = 0.05       # m/s^2, residual bias after calibration
     estimate_bias: bool = True

@@ -7,9 +7,12 @@ Needs (matched by the agent, data straight from the publishing services):
 * ``accel``: the raw accelerometer stream of the inertial rig (``accel_raw``, 100 Hz or
   more), whose ability attributes carry the rig's calibration (positions, axes, noise,
   latency: ``services.accel_rig.sensor.Calibration.to_dict``);
-* ``optical_mount`` / ``accel_mount``: the static edges ``marvin/head -> <rig>`` of the
-  SRG (the mountings from calibration or tracker alignment; the simulator publishes the
-  true ones).  Nothing about the rigs is a constant here.
+
+The mountings ``marvin/head -> <rig>`` are the SRG's static edges (an agent's
+``[[static]]`` configuration, an alignment result or the simulator's true mountings):
+the service asks the agent's SRG with ``Client.pose`` until it has them and every few
+seconds after (a re-calibrated rig rebuilds the filter).  Nothing about the rigs is a
+constant here.
 
 Ability ``head``: the fused ``ivy/world -> marvin/head`` pose at the inertial rate with its
 6x6 covariance, optionally predicted ``--horizon-ms`` ahead (attribute ``predicted_s``).
@@ -22,6 +25,7 @@ import argparse
 import logging
 import math
 import threading
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -34,6 +38,8 @@ from services.sim import mounts
 
 log = logging.getLogger("uma.fusion")
 
+MOUNT_RETRY_S = 0.5
+MOUNT_REFRESH_S = 5.0
 #: a laser pose without covariance is taken with these standard deviations
 DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
 
@@ -42,10 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
     parser.add_argument("--world", default=mounts.WORLD, help="world frame (ivy/world)")
     parser.add_argument("--head", default=mounts.HEAD, help="fused frame (marvin/head)")
-    parser.add_argument("--optical-rig", default="*/laser_rig",
-                        help="frame pattern of the optical rig (default */laser_rig)")
-    parser.add_argument("--accel-rig", default="*/accel_rig",
-                        help="frame pattern of the inertial rig (default */accel_rig)")
+    parser.add_argument("--optical-rig", default=mounts.LASER_RIG,
+                        help=f"frame of the optical rig (default {mounts.LASER_RIG})")
+    parser.add_argument("--accel-rig", default=mounts.ACCEL_RIG,
+                        help=f"frame of the inertial rig (default {mounts.ACCEL_RIG})")
     parser.add_argument("--horizon-ms", type=float, default=0.0,
                         help="publish the pose predicted this far ahead (default 0)")
     parser.add_argument("--model-floor", type=float, default=0.005,
@@ -70,18 +76,30 @@ class LiveFusion:
         self.t0_ns: int | None = None
         self.dropped: dict[str, int] = {}
         self.published = 0
+        self._lock = threading.Lock()   # mountings arrive from the SRG polling thread
 
     # -- inputs
     def on_optical_mount(self, m: Any) -> None:
-        self.optical_mount = (np.asarray(m.position, float), np.asarray(m.quaternion, float))
+        with self._lock:
+            self.optical_mount = (np.asarray(m.position, float),
+                                  np.asarray(m.quaternion, float))
 
     def on_accel_mount(self, m: Any) -> None:
         new = (np.asarray(m.position, float), np.asarray(m.quaternion, float))
-        if self.accel_mount is not None and not _same_pose(self.accel_mount, new):
-            self.tracker = None  # the rig moved on the head: rebuild the accelerometer model
-        self.accel_mount = new
+        with self._lock:
+            if self.accel_mount is not None and not _same_pose(self.accel_mount, new):
+                self.tracker = None  # the rig moved on the head: rebuild the model
+            self.accel_mount = new
 
     def on_accel(self, m: Any) -> None:
+        with self._lock:
+            self._on_accel(m)
+
+    def on_optical(self, m: Any) -> None:
+        with self._lock:
+            self._on_optical(m)
+
+    def _on_accel(self, m: Any) -> None:
         if self.tracker is None and not self._build(m):
             return
         assert self.tracker is not None
@@ -96,7 +114,7 @@ class LiveFusion:
             self.publish(t_out, p, q, self.tracker.ekf.pose_covariance())
             self.published += 1
 
-    def on_optical(self, m: Any) -> None:
+    def _on_optical(self, m: Any) -> None:
         if self.tracker is None or self.optical_mount is None:
             self._drop("optical pose before calibration and mountings are known")
             return
@@ -171,7 +189,6 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
     if not (math.isfinite(args.model_floor) and args.model_floor >= 0):
         raise ValueError(f"--model-floor must be >= 0, got {args.model_floor!r}")
     live = LiveFusion(args.horizon_ms / 1e3, args.model_floor)
-    rig_head = args.head
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         out = svc.ability("head", type="pose6d", edge=(args.world, args.head),
@@ -182,15 +199,30 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
                  where="frequency_hz >= 10", prefer="latency_s", on_sample=live.on_optical)
         svc.need("accel", type="accel_raw", edge=("*", args.accel_rig),
                  where="frequency_hz >= 100", on_sample=live.on_accel)
-        svc.need("optical_mount", type="pose6d", edge=(rig_head, args.optical_rig),
-                 on_sample=live.on_optical_mount)
-        svc.need("accel_mount", type="pose6d", edge=(rig_head, args.accel_rig),
-                 on_sample=live.on_accel_mount)
         svc.start()
         log.info("fusion: publishing %s -> %s", args.world, args.head)
-        while not stop.wait(1.0):
-            pass
+        poll_mountings(live, args, stop)
     return 0
+
+
+def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:
+    """Ask the agent's SRG for head -> rig until known, then refresh every few seconds."""
+    from agent.client import Client
+    from agent.errors import UmaError
+
+    wanted = ((args.optical_rig, live.on_optical_mount), (args.accel_rig, live.on_accel_mount))
+    with Client(realm=args.realm, connect=args.connect, timeout=1.0) as client:
+        while not stop.is_set():
+            missing = 0
+            for rig, setter in wanted:
+                try:
+                    r = client.pose(args.head, rig, error="hops")
+                except (UmaError, ValueError, LookupError, TimeoutError) as exc:
+                    missing += 1
+                    live._drop(f"mounting {args.head} -> {rig} not in the SRG yet ({exc})")
+                    continue
+                setter(SimpleNamespace(position=r.position, quaternion=r.quaternion))
+            stop.wait(MOUNT_RETRY_S if missing else MOUNT_REFRESH_S)
 
 
 PLUGIN = ServicePlugin(
