@@ -33,6 +33,7 @@ from services.alignment.solvers import (
     Pose,
     Residuals,
     all_pairs,
+    check_conditioning,
     daniilidis,
     pair_residuals,
     refine,
@@ -43,8 +44,10 @@ from services.alignment.timesync import PoseSeries, coarse_offset, golden_sectio
 
 SOLVERS = {"daniilidis": daniilidis, "tsai-lenz": tsai_lenz}
 WeightedSolver = Callable[..., Pose]
-#: Half width (s) of the joint refinement around the correlation estimate, and its tolerance.
-_REFINE_HALF_WIDTH_S = 0.01
+#: Half width (s) of the joint refinement window around the correlation estimate (moved
+#: along if the minimum lies at its edge, at most _REFINE_MAX_SHIFTS times), its tolerance.
+_REFINE_HALF_WIDTH_S = 0.02
+_REFINE_MAX_SHIFTS = 5
 _REFINE_TOL_S = 1e-4
 #: Fraction of the largest misfits ignored by the offset cost (robust to outliers).
 _REFINE_TRIM = 0.2
@@ -180,6 +183,7 @@ def fit_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
         raise AlignmentError(f"need at least 3 stations (2 motions), got {len(pa)}")
     solver = solver_for(options)
     motions, ij, selection = _selected_motions(pa, qa, pb, qb, options)
+    check_conditioning(motions)  # refuse parallel axes before RANSAC samples them
     if options.ransac and len(motions) >= 3:
         found = ransac(motions, SOLVERS[options.method], options.ransac_iterations, rng=rng,
                        refit=solver)
@@ -205,12 +209,13 @@ def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarra
         residuals=pair_residuals(fit.motions.subset(fit.inliers), fit.pose))
 
 
-def station_times(a: PoseSeries, b: PoseSeries, offset_s: float, count: int) -> np.ndarray:
+def station_times(a: PoseSeries, b: PoseSeries, offset_s: float, count: int,
+                  margin: float = 0.0) -> np.ndarray:
     """Up to ``count`` of a's sample times, evenly spread, at which b is defined too.
 
-    A margin of the offset search range keeps the refinement from leaving b's span.
+    b must also be defined ``margin`` seconds earlier and later (room for the offset
+    refinement to move).
     """
-    margin = _REFINE_HALF_WIDTH_S
     _, _, inside = b.at(a.t + offset_s)
     _, _, early = b.at(a.t + offset_s - margin)
     _, _, late = b.at(a.t + offset_s + margin)
@@ -244,7 +249,8 @@ def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
     """The time offset (coarse by correlation, then refined jointly with X) and the coarse one.
     """
     coarse, _ = coarse_offset(a, b, options.max_offset_s)
-    times = station_times(a, b, coarse, _REFINE_STATIONS)
+    times = station_times(a, b, coarse, _REFINE_STATIONS,
+                          margin=_REFINE_HALF_WIDTH_S * (_REFINE_MAX_SHIFTS + 1))
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + coarse)
     ij = np.concatenate([np.stack([np.arange(len(times) - g), np.arange(g, len(times))], -1)
@@ -253,9 +259,16 @@ def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
     if len(ij) < 2:
         raise DegenerateMotionError("the streams hardly rotate; cannot align their time offset")
     cost = _offset_cost(a, b, times, ij, SOLVERS[options.method])
-    refined = golden_section(cost, coarse - _REFINE_HALF_WIDTH_S, coarse + _REFINE_HALF_WIDTH_S,
-                             _REFINE_TOL_S)
-    return refined, coarse
+    centre = coarse
+    for _ in range(_REFINE_MAX_SHIFTS):
+        lo, hi = centre - _REFINE_HALF_WIDTH_S, centre + _REFINE_HALF_WIDTH_S
+        refined = golden_section(cost, lo, hi, _REFINE_TOL_S)
+        if lo + 2 * _REFINE_TOL_S < refined < hi - 2 * _REFINE_TOL_S:
+            return refined, coarse
+        centre = refined  # the minimum lies beyond the window: follow it
+    raise AlignmentError(f"time offset: the misfit keeps falling beyond "
+                         f"{abs(centre - coarse) * 1e3:.0f} ms from the correlation estimate "
+                         f"{coarse * 1e3:.1f} ms; the streams may not move together")
 
 
 def align_streams(a: PoseSeries, b: PoseSeries,

@@ -1,0 +1,319 @@
+"""Tracker alignment AX = XB: solvers, selection, RANSAC, time offset, files."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from agent.daemon import check_static_edge
+from agent.srg import geometry as geo
+from services.alignment import opencv_reference, records
+from services.alignment.pipeline import (
+    AlignmentOptions,
+    align_stations,
+    align_streams,
+    estimate_offset,
+)
+from services.alignment.robust import ransac
+from services.alignment.selection import (
+    angle_mask,
+    axis_criterion,
+    greedy_axis_selection,
+    select_pairs,
+)
+from services.alignment.simulate import (
+    StreamConfig,
+    add_pose_noise,
+    corrupt,
+    random_pose,
+    simulate_streams,
+)
+from services.alignment.solvers import (
+    AlignmentError,
+    DegenerateMotionError,
+    MotionPairs,
+    Pose,
+    all_pairs,
+    daniilidis,
+    pair_residuals,
+    refine,
+    relative_motions,
+    tsai_lenz,
+)
+from services.alignment.timesync import PoseSeries
+from services.sim import mounts
+
+LASER = Pose(*mounts.HEAD_TO_LASER_RIG)
+
+
+def _stations(seed: int, n: int = 8, noise: tuple[float, float] = (0.0, 0.0),
+              ) -> tuple[tuple[np.ndarray, ...], Pose]:
+    """Random stations A_k and B_k = Y A_k X (optionally noisy), and the true X."""
+    rng = np.random.default_rng(seed)
+    x, y = random_pose(rng, 0.3), random_pose(rng, 2.0)
+    pa = rng.uniform(-1, 1, (n, 3))
+    qa = geo.rotvec_to_quat(rng.normal(0, 1.0, (n, 3)))
+    pb, qb = geo.compose(*geo.compose(y.position, y.quaternion, pa, qa), *x)
+    pb, qb = add_pose_noise(pb, qb, *noise, rng)
+    return (pa, qa, pb, qb), x
+
+
+def _trajectory_stations(seed: int, n: int) -> tuple[tuple[np.ndarray, ...], Pose]:
+    """Noisy stations along the simulated head trajectory (1 mm, 0.1 deg per pose)."""
+    rng = np.random.default_rng(seed)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
+    a, b = simulate_streams(seed, LASER, x, world_b, StreamConfig(seconds=40.0, rate_b_hz=60.0))
+    pick = np.linspace(0, len(a) - 1, n).astype(int)
+    stations = (a.position[pick], a.quaternion[pick], *b.at(a.t[pick])[:2])
+    return stations, x
+
+
+def _err(pose: Pose, truth: Pose) -> tuple[float, float]:
+    dp, dr = geo.pose_error(pose.position, pose.quaternion, *truth)
+    return float(dp), float(dr)
+
+
+# --------------------------------------------------------------------------- solvers
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_noise_free_solvers_recover_x_and_agree_with_opencv(seed: int) -> None:
+    stations, x = _stations(seed)
+    motions = relative_motions(*stations, all_pairs(len(stations[0])))
+    for solve, cv_method in ((tsai_lenz, "tsai"), (daniilidis, "daniilidis")):
+        ours = solve(motions)
+        assert max(_err(ours, x)) < 1e-9, solve.__name__
+        cv = opencv_reference.calibrate_hand_eye(*stations, cv_method)
+        assert max(_err(ours, cv)) < 1e-9, f"{solve.__name__} vs cv2 {cv_method}"
+        assert max(_err(refine(motions, ours), x)) < 1e-9
+        r = pair_residuals(motions, ours)
+        assert r.rot_rad.max() < 1e-9 and r.pos_m.max() < 1e-9
+
+
+def test_pipeline_on_noise_free_trajectory_recovers_x() -> None:
+    times = np.linspace(0.0, 30.0, 25)
+    ph, qh = geo.compose(*mounts.HEAD_TO_LASER_RIG, *_head(times))
+    x = Pose(*geo.compose(*geo.inverse(*mounts.HEAD_TO_LASER_RIG), *mounts.HEAD_TO_ACCEL_RIG))
+    pb, qb = geo.compose(*geo.compose(np.array([1.0, -2.0, 0.5]),
+                                      geo.rotvec_to_quat([0.3, -1.0, 2.0]), ph, qh), *x)
+    for method in ("daniilidis", "tsai-lenz"):
+        result = align_stations(ph, qh, pb, qb, AlignmentOptions(method=method, bootstrap=10))
+        assert max(_err(result.pose, x)) < 1e-9, method
+        assert result.n_inliers == result.n_selected  # no pair rejected
+        assert np.abs(result.covariance).max() < 1e-15
+
+
+def _head(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from services.sim.trajectory import HeadTrajectory
+    return HeadTrajectory(3).pose(times)
+
+
+def test_refinement_converges_to_one_optimum_as_good_as_the_best_closed_form() -> None:
+    closed = {name: [] for name in ("tsai_lenz", "daniilidis")}
+    refined = []
+    for seed in range(12):
+        stations, x = _trajectory_stations(seed, n=20)
+        motions = relative_motions(*stations, all_pairs(20))
+        motions = motions.subset(angle_mask(motions))
+        ends = []
+        for solve in (tsai_lenz, daniilidis):
+            start = solve(motions)
+            closed[solve.__name__].append(_err(start, x))
+            ends.append(refine(motions, start))
+        assert max(_err(ends[0], ends[1])) < 1e-8  # same minimum from either start
+        refined.append(_err(ends[1], x))
+    best = np.minimum(*(np.mean(v, axis=0) for v in closed.values()))
+    after = np.mean(refined, axis=0)
+    assert after[0] <= 1.05 * best[0] and after[1] <= 1.05 * best[1]
+    assert after[0] < 4e-3 and after[1] < np.radians(0.25)
+
+
+# --------------------------------------------------------------------------- degenerate
+
+
+def _about_z(n: int, noise: float = 0.0) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(7)
+    pa = rng.uniform(-1, 1, (n, 3))
+    qa = geo.rotvec_to_quat(np.outer(rng.uniform(-2, 2, n), [0, 0, 1.0]))
+    x = random_pose(rng, 0.2)
+    pb, qb = geo.compose(pa, qa, *x)
+    return (pa, qa, *add_pose_noise(pb, qb, noise, noise, rng))
+
+
+@pytest.mark.parametrize("noise", [0.0, 1e-4])
+def test_parallel_rotation_axes_are_refused(noise: float) -> None:
+    stations = _about_z(10, noise)
+    motions = relative_motions(*stations, all_pairs(10))
+    for solve in (tsai_lenz, daniilidis):
+        with pytest.raises(DegenerateMotionError, match="parallel"):
+            solve(motions)
+    with pytest.raises(DegenerateMotionError, match="parallel"):
+        align_stations(*stations, AlignmentOptions(bootstrap=10))
+
+
+def test_fewer_than_two_motions_are_refused() -> None:
+    stations, _ = _stations(0, n=3)
+    one = relative_motions(*stations, [[0, 1]])
+    for solve in (tsai_lenz, daniilidis):
+        with pytest.raises(DegenerateMotionError, match="at least 2"):
+            solve(one)
+    with pytest.raises(AlignmentError, match="at least 3 stations"):
+        align_stations(*(s[:2] for s in stations))
+    assert issubclass(AlignmentError, ValueError)
+
+
+def test_pure_translations_are_refused() -> None:
+    rng = np.random.default_rng(3)
+    pa = rng.uniform(-1, 1, (12, 3))
+    qa = np.tile(geo.rotvec_to_quat([0.1, 0.2, 0.3]), (12, 1))
+    pb, qb = geo.compose(pa, qa, *random_pose(rng, 0.2))
+    pb, qb = add_pose_noise(pb, qb, 1e-3, np.radians(0.1), rng)
+    motions = relative_motions(pa, qa, pb, qb, all_pairs(12))
+    for solve in (tsai_lenz, daniilidis):
+        with pytest.raises(DegenerateMotionError, match="pure translations"):
+            solve(motions)
+    with pytest.raises(DegenerateMotionError, match="rotate by"):
+        align_stations(pa, qa, pb, qb)
+
+
+def test_nan_and_non_unit_poses_are_refused() -> None:
+    (pa, qa, pb, qb), _ = _stations(1)
+    bad = pb.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="B position: non-finite"):
+        relative_motions(pa, qa, bad, qb, all_pairs(8))
+    with pytest.raises(ValueError, match="B position"):
+        align_stations(pa, qa, bad, qb)
+    with pytest.raises(ValueError, match="not a unit quaternion"):
+        relative_motions(pa, qa * 1.1, pb, qb, all_pairs(8))
+    with pytest.raises(ValueError, match="non-finite"):
+        PoseSeries(np.arange(8.0), pa, np.where(np.eye(8, 4) > 0, np.nan, qa), "a")
+    with pytest.raises(AlignmentError, match="strictly increasing"):
+        PoseSeries(np.zeros(8), pa, qa, "a")
+    with pytest.raises(AlignmentError, match="different numbers"):
+        MotionPairs(pa, qa, pb[:3], qb[:3])
+
+
+# --------------------------------------------------------------------------- selection
+
+
+def test_angle_threshold_and_axis_criterion() -> None:
+    axes = np.array([[0, 0, 1.0]] * 6 + [[1.0, 0, 0], [0, 1.0, 0]])
+    chosen = greedy_axis_selection(axes, 3)
+    assert {6, 7} <= set(chosen.tolist())  # the two axes not parallel to the rest
+    assert axis_criterion(axes[[0, 6, 7]]) == pytest.approx(0.0)
+    assert axis_criterion(axes[:3]) == pytest.approx(1.0)
+    angles = np.radians([1.0, 20.0, 90.0, 175.0])
+    q = geo.rotvec_to_quat(angles[:, None] * [0.0, 0.6, 0.8])
+    motions = MotionPairs(np.zeros((4, 3)), q, np.zeros((4, 3)), q)
+    assert angle_mask(motions, np.radians(10)).tolist() == [False, True, True, False]
+    stations, _ = _stations(2, n=12)
+    sel = select_pairs(relative_motions(*stations, all_pairs(12)), max_pairs=20)
+    assert len(sel.index) == 20 and sel.candidates == 66
+    assert sel.axis_spread_rad > np.radians(30)
+
+
+# --------------------------------------------------------------------------- RANSAC
+
+
+def test_ransac_rejects_outlier_stations() -> None:
+    (pa, qa, pb, qb), x = _stations(11, n=30, noise=(0.001, np.radians(0.1)))
+    pb_bad, qb_bad, bad = corrupt(pb, qb, 0.2, np.random.default_rng(4))
+    ij = all_pairs(30)
+    motions = relative_motions(pa, qa, pb_bad, qb_bad, ij)
+    keep = angle_mask(motions)
+    motions, ij = motions.subset(keep), ij[keep]
+    found = ransac(motions, daniilidis, rng=np.random.default_rng(0),
+                   refit=lambda m: refine(m, daniilidis(m)))
+    touches_bad = bad[ij[:, 0]] | bad[ij[:, 1]]
+    assert not np.any(found.inliers & touches_bad)  # every corrupted pair rejected
+    assert found.inliers[~touches_bad].mean() > 0.9  # and few good ones lost
+    clean = _err(refine(motions.subset(~touches_bad), daniilidis(motions.subset(~touches_bad))),
+                 x)
+    robust = _err(found.pose, x)
+    assert robust[0] < 1.5 * clean[0] + 1e-4 and robust[1] < 1.5 * clean[1] + 1e-5
+    plain = _err(daniilidis(motions), x)
+    assert plain[1] > 10 * robust[1]  # without RANSAC the outliers do damage
+
+
+# --------------------------------------------------------------------------- time offset
+
+
+@pytest.mark.parametrize("offset_s", [0.0, 0.037, 0.094])
+def test_time_offset_is_recovered_within_2_ms(offset_s: float) -> None:
+    rng = np.random.default_rng(int(offset_s * 1e3))
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
+    a, b = simulate_streams(int(offset_s * 1e3), LASER, x, world_b,
+                            StreamConfig(seconds=30.0, offset_s=offset_s))
+    estimate, coarse = estimate_offset(a, b, AlignmentOptions())
+    assert abs(estimate - offset_s) < 2e-3
+    assert abs(coarse - offset_s) < 10e-3
+
+
+def test_streams_end_to_end_with_covariance() -> None:
+    rng = np.random.default_rng(21)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
+    a, b = simulate_streams(21, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.05))
+    result = align_streams(a, b, AlignmentOptions(bootstrap=30))
+    dp, dr = _err(result.pose, x)
+    assert dp < 1e-2 and dr < np.radians(0.4)
+    assert abs(result.time_offset_s - 0.05) < 2e-3
+    C = geo.se3_to_decoupled(result.position, geo.check_covariance(result.covariance))
+    d = np.concatenate([x.position - result.position, geo.quat_to_rotvec(
+        geo.quat_multiply(x.quaternion, geo.quat_conjugate(result.quaternion)))])
+    assert d @ np.linalg.solve(C, d) < 22.46  # chi-square(6) 99.9 %: the covariance is honest
+
+
+def test_too_short_overlap_is_refused() -> None:
+    rng = np.random.default_rng(0)
+    a, b = simulate_streams(0, LASER, random_pose(rng, 0.2), random_pose(rng, 1.0),
+                            StreamConfig(seconds=3.0))
+    with pytest.raises(AlignmentError, match="overlap"):
+        estimate_offset(a, b, AlignmentOptions())
+
+
+# --------------------------------------------------------------------------- files
+
+
+def test_pose_pair_csv_round_trip_and_errors(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    a, b = simulate_streams(0, LASER, random_pose(rng, 0.2), random_pose(rng, 1.0),
+                            StreamConfig(seconds=2.0, rate_a_hz=50.0, rate_b_hz=50.0))
+    path = tmp_path / "pairs.csv"
+    records.write_pose_pairs(path, a, b)
+    a2, b2 = records.read_pose_pairs(path)
+    for s, s2 in ((a, a2), (b, b2)):
+        assert np.array_equal(s.t, s2.t) and np.array_equal(s.position, s2.position)
+        assert np.allclose(s.quaternion, s2.quaternion, rtol=0, atol=1e-15)
+    lines = path.read_text().splitlines()
+    (tmp_path / "nan.csv").write_text("\n".join([*lines[:3], lines[3].replace(
+        lines[3].split(",")[5], "nan", 1), *lines[4:]]))
+    with pytest.raises(AlignmentError, match=r"nan.csv:4: qa_y is nan"):
+        records.read_pose_pairs(tmp_path / "nan.csv")
+    (tmp_path / "hdr.csv").write_text(lines[0].replace("qb_w", "w") + "\n" + lines[1])
+    with pytest.raises(AlignmentError, match=r"missing column.*qb_w"):
+        records.read_pose_pairs(tmp_path / "hdr.csv")
+    (tmp_path / "txt.csv").write_text(lines[0] + "\n" + lines[1].replace(
+        lines[1].split(",")[0], "noon", 1))
+    with pytest.raises(AlignmentError, match=r"txt.csv:2: t_a is not a number"):
+        records.read_pose_pairs(tmp_path / "txt.csv")
+    with pytest.raises(AlignmentError, match="cannot read"):
+        records.read_pose_pairs(tmp_path / "absent.csv")
+
+
+def test_calibration_file_is_an_agent_static_edge(tmp_path) -> None:
+    (pa, qa, pb, qb), _ = _stations(3, n=15, noise=(0.001, np.radians(0.1)))
+    result = align_stations(pa, qa, pb, qb, AlignmentOptions(bootstrap=20))
+    path = tmp_path / "calib.toml"
+    records.write_calibration(path, result, "marvin/laser_rig", "marvin/accel_rig")
+    data = tomllib.loads(path.read_text())
+    edge = check_static_edge(data["static"][0], 0)  # the agent's own config check
+    assert edge["parent"] == "marvin/laser_rig" and edge["child"] == "marvin/accel_rig"
+    assert np.allclose(edge["position"], result.position, atol=0, rtol=0)
+    assert np.allclose(edge["quaternion"], result.quaternion, atol=1e-15)
+    assert edge["pos_std_m"] == pytest.approx(result.pos_std_m)
+    assert edge["rot_std_rad"] == pytest.approx(result.rot_std_rad)
+    with pytest.raises(AlignmentError, match="cannot be written"):
+        records.calibration_toml(result, 'a"b', "c")
