@@ -11,6 +11,7 @@ from agent_helpers.harness import (
     matched_to,
     service,
     services_json,
+    spawn,
 )
 from conftest import endpoint, free_port
 
@@ -119,3 +120,20 @@ def test_two_realms_on_the_same_endpoints_never_meet(processes, realm) -> None:
     assert [s["service_id"] for s in mine["agents"][0]["services"]] == ["fusion"]
     assert mine["agents"][0]["services"][0]["needs"][0]["matches"] == []
     assert not any(e.get("event") == "first" for e in consumer.events)
+
+
+def test_client_agents_behind_a_router(processes, realm, tmp_path) -> None:
+    ep_r = endpoint(free_port())
+    router = spawn(processes, ["-m", "agent.cli", "router", "--listen", ep_r])
+    router.wait_line("listening on")
+    for host in ("hostA", "hostB"):
+        cfg = tmp_path / f"{host}.toml"
+        cfg.write_text(f'realm = "{realm}"\nid = "{host}"\nmode = "client"\n'
+                       f'connect = ["{ep_r}"]\n')
+        spawn(processes, ["-m", "agent.cli", "agent", "--config", str(cfg)]).wait_line(
+            "listening on")
+    service(processes, realm, "cam", "hostB", ep_r, *PRODUCER)
+    consumer = service(processes, realm, "fusion", "hostA", ep_r, "--need", "head")
+    consumer.wait_for(lambda e: first_from(e, "cam"))
+    listed = services_json(realm, ep_r)
+    assert [a["agent_id"] for a in listed["agents"]] == ["hostA", "hostB"]

@@ -1,0 +1,151 @@
+"""agent.registry without Zenoh: protocol messages and the realm view's rules."""
+
+from __future__ import annotations
+
+import logging
+
+import msgpack
+import pytest
+
+from agent import keys
+from agent.registry import (
+    PENDING_TIMEOUT_S,
+    Match,
+    RateLimitedLog,
+    RealmView,
+    Registration,
+    control_message,
+    parse_control,
+    parse_register_request,
+    parse_reply,
+    parse_snapshot,
+    register_request,
+    reply_error,
+    reply_ok,
+    snapshot_message,
+)
+from schemas.codec import DecodeError, encode_descriptor
+from schemas.models import ServiceDescriptor
+
+R = "lab"
+
+
+def desc(sid: str, agent: str, *abilities: str, latency: float = 0.01) -> ServiceDescriptor:
+    return ServiceDescriptor(service_id=sid, agent_id=agent, abilities=[
+        {"name": a, "type": "pose6d", "edge": ["ivy/world", "alice/head"],
+         "attributes": {"latency_s": latency}} for a in abilities])
+
+
+def snapshot(agent: str, revision: int, *descs: ServiceDescriptor, epoch: int = 1):
+    data = snapshot_message({"agent_id": agent}, epoch, revision,
+                            [{"descriptor": encode_descriptor(d), "instance": "x"}
+                             for d in descs])
+    return parse_snapshot(data, agent)
+
+
+def test_register_request_round_trip_and_refusals() -> None:
+    d = desc("cam", "hostA", "pose")
+    data = register_request(encode_descriptor(d), "inst1", 3, {"head": ["k1"]})
+    reg = parse_register_request(data, "hostA")
+    assert (reg.descriptor, reg.instance, reg.revision, reg.connected) == (
+        d, "inst1", 3, {"head": ["k1"]})
+    with pytest.raises(DecodeError, match="registered with agent 'hostB'"):
+        parse_register_request(data, "hostB")
+    bad = register_request(msgpack.packb({"v": 1, "service_id": "cam", "agent_id": "hostA",
+                                          "abilities": [{"name": "p"}]}), "i", 1, {})
+    with pytest.raises(DecodeError, match="service 'cam': invalid service descriptor"):
+        parse_register_request(bad, "hostA")
+    with pytest.raises(DecodeError, match="revision"):
+        parse_register_request(register_request(encode_descriptor(d), "i", -1, {}), "hostA")
+    assert parse_reply(reply_ok(5)) == (True, "", False)
+    assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True)
+
+
+def test_control_round_trip_and_keys_outside_the_realm() -> None:
+    m = Match(keys.data(R, "hostB", "cam", "pose"), "hostB", "cam", "pose", "pose6d",
+              ("ivy/world", "alice/head"), {"latency_s": 0.01})
+    ctl = parse_control(control_message(7, 2, "head", [m], True), R)
+    assert (ctl.epoch, ctl.seq, ctl.need, ctl.matches, ctl.satisfied) == (7, 2, "head", (m,),
+                                                                          True)
+    other = Match(keys.data("elsewhere", "hostB", "cam", "pose"), "hostB", "cam", "pose",
+                  "pose6d", None, {})
+    with pytest.raises(DecodeError, match="not a data key of realm 'lab'"):
+        parse_control(control_message(7, 3, "head", [other], True), R)
+    with pytest.raises(DecodeError, match="unknown op"):
+        parse_control(msgpack.packb({"v": 1, "op": "explode", "epoch": 1, "seq": 1,
+                                     "need": "n", "matches": []}), R)
+
+
+def test_snapshot_drops_bad_entries_but_keeps_good_ones() -> None:
+    good = desc("cam", "hostB", "pose")
+    data = snapshot_message({"agent_id": "hostB"}, 1, 4, [
+        {"descriptor": encode_descriptor(good)},
+        {"descriptor": b"junk"},
+        {"descriptor": encode_descriptor(desc("spy", "hostC", "pose"))},
+        "not a map"])
+    snap = parse_snapshot(data, "hostB")
+    assert list(snap.services) == ["cam"] and len(snap.errors) == 3
+    assert "names agent 'hostC'" in snap.errors[1]
+    with pytest.raises(DecodeError, match="published as 'hostX'"):
+        parse_snapshot(data, "hostX")
+
+
+def test_remote_ability_needs_both_snapshot_and_live_token() -> None:
+    view = RealmView(R, "hostA")
+    view.agent_alive("hostB")
+    assert view.apply_snapshot(snapshot("hostB", 1, desc("cam", "hostB", "pose"))) is False
+    assert len(view.index) == 0  # descriptor known, token not seen yet
+    assert view.service_alive("hostB", "cam") is True
+    assert list(view.index.by_key) == [keys.data(R, "hostB", "cam", "pose")]
+    assert view.service_gone("hostB", "cam") is True  # SIGKILL: token DELETE
+    assert len(view.index) == 0
+    view.service_alive("hostB", "cam")
+    assert view.agent_gone("hostB") is True  # the agent takes its services with it
+    assert len(view.index) == 0
+
+
+def test_stale_snapshots_are_ignored_and_changes_applied() -> None:
+    view = RealmView(R, "hostA")
+    view.agent_alive("hostB")
+    view.service_alive("hostB", "cam")
+    view.apply_snapshot(snapshot("hostB", 2, desc("cam", "hostB", "pose", latency=0.02)))
+    assert view.apply_snapshot(snapshot("hostB", 1, desc("cam", "hostB", "pose"))) is False
+    offer = view.index.by_key[keys.data(R, "hostB", "cam", "pose")]
+    assert offer.values["latency_s"] == 0.02
+    assert view.apply_snapshot(snapshot("hostB", 3, desc("cam", "hostB", "pose", "raw")))
+    assert len(view.index) == 2
+    # a restarted agent (new epoch) starts its revisions again
+    assert view.apply_snapshot(snapshot("hostB", 1, desc("cam", "hostB", "raw"), epoch=2))
+    assert list(view.index.by_key) == [keys.data(R, "hostB", "cam", "raw")]
+    # an agent whose token is not (or no longer) alive is not applied
+    assert view.apply_snapshot(snapshot("hostC", 1, desc("x", "hostC", "pose"))) is False
+
+
+def test_local_services_needs_and_pending_registrations() -> None:
+    view = RealmView(R, "hostA")
+    d = ServiceDescriptor(service_id="fusion", agent_id="hostA", needs=[
+        {"name": "head", "type": "pose6d", "edge": ["ivy/world", "*/head"]}],
+        abilities=desc("x", "hostA", "fused").abilities)
+    assert view.register_local(Registration(d, "i1", 1, {}), now=100.0)
+    assert [r.name for r in view.requirements()] == ["head"]
+    assert len(view.index) == 0  # abilities offered only once its token is seen
+    assert view.expired_pending(100.0 + PENDING_TIMEOUT_S + 0.1) == ["fusion"]
+    view.service_alive("hostA", "fusion")
+    assert view.expired_pending(1e9) == []
+    assert len(view.index) == 1
+    assert view.register_local(Registration(d, "i1", 2, {}), now=101.0) is False  # same
+    assert view.service_gone("hostA", "fusion")
+    assert view.local == {} and view.requirements() == [] and len(view.index) == 0
+
+
+def test_rate_limited_log_counts_what_it_swallowed(caplog) -> None:
+    rl = RateLimitedLog(logging.getLogger("uma.test"), interval=60)
+    with caplog.at_level(logging.WARNING, logger="uma.test"):
+        assert rl.warning("key a", "bad") is True
+        assert rl.warning("key a", "bad") is False
+        assert rl.warning("key b", "bad") is True
+    assert [r.getMessage() for r in caplog.records] == ["key a: bad", "key b: bad"]
+    rl.interval = 0
+    with caplog.at_level(logging.WARNING, logger="uma.test"):
+        rl.warning("key a", "bad")
+    assert caplog.records[-1].getMessage() == "key a: bad (1 similar since)"
