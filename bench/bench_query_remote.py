@@ -1,0 +1,194 @@
+"""Cross-agent pose queries and streaming on loopback, against a bare Zenoh get.
+
+Starts three agents (separate processes) whose graphs share frames pairwise,
+``A: ivy/world -> cam/nw``, ``B: cam/nw -> marvin/rig``, ``C: marvin/rig -> alice/head``
+(static edges, plus a measured ``marvin/rig -> alice/head`` published at 100 Hz by a
+tracker service process registered with C), and one bare queryable process.  Measures:
+
+1. ``Client.pose("ivy/world", "alice/head")``: a route over all three agents, answered
+   by one query to the three of them, composed with covariance; median and p99, and the
+   ratio to a bare ``get`` round trip to the bare queryable measured in the same run;
+2. streaming: the time from the tracker's publication of a sample to the composed pose
+   reaching ``on_pose`` in this process; median and p99.
+
+Usage: python bench/bench_query_remote.py [--queries N] [--stream-seconds S] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+WORLD, CAM, RIG, HEAD = "ivy/world", "cam/nw", "marvin/rig", "alice/head"
+EDGES = {
+    "A": [(WORLD, CAM, [1.2, -0.5, 2.3], [0.0, 0.0, 0.38268343, 0.92387953], 0.01)],
+    "B": [(CAM, RIG, [0.3, 0.8, -1.1], [0.0, 0.38268343, 0.0, 0.92387953], 0.002)],
+    "C": [],
+}
+RATE_HZ = 100.0
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stats(us: list[float]) -> dict:
+    a = np.asarray(us)
+    return {"median_us": float(np.median(a)), "p99_us": float(np.percentile(a, 99)),
+            "n": len(a)}
+
+
+def run_echo(args: argparse.Namespace) -> None:
+    """The baseline: a bare queryable that answers every get with a small payload."""
+    from agent.session import open_session
+    with open_session("peer", [args.listen], []) as s:
+        q = s.declare_queryable(args.key, lambda query: query.reply(args.key, b"x" * 64))
+        signal.sigwait({signal.SIGTERM, signal.SIGINT})
+        q.undeclare()
+
+
+def run_tracker(args: argparse.Namespace) -> None:
+    """A tracker service on agent C: publishes rig -> head at 100 Hz, stamped at publication."""
+    from agent import Service
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with Service("tracker", realm=args.realm, agent="C", connect=[args.connect]) as svc:
+        out = svc.ability("head", type="pose6d", edge=(RIG, HEAD), frequency_hz=RATE_HZ,
+                          latency_s=0.001, pos_std_m=0.002)
+        svc.start()
+        k = 0
+        while not stop.is_set():
+            k += 1
+            out.publish(time.time_ns(), [0.0, 0.01 * np.sin(k / 50), 0.12], [0, 0, 0, 1])
+            stop.wait(1.0 / RATE_HZ)
+
+
+def _config(path: Path, edges) -> str:
+    lines = []
+    for parent, child, p, q, std in edges:
+        lines += ["[[static]]", f'parent = "{parent}"', f'child = "{child}"',
+                  f"position = {p}", f"quaternion = {q}", f"pos_std_m = {std}"]
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--queries", type=int, default=1000)
+    ap.add_argument("--stream-seconds", type=float, default=5.0)
+    ap.add_argument("--json", action="store_true", help="last line: one JSON object")
+    ap.add_argument("--role", default="main", choices=["main", "echo", "tracker"],
+                    help=argparse.SUPPRESS)
+    ap.add_argument("--listen", help=argparse.SUPPRESS)
+    ap.add_argument("--connect", help=argparse.SUPPRESS)
+    ap.add_argument("--key", help=argparse.SUPPRESS)
+    ap.add_argument("--realm", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.role == "echo":
+        return run_echo(args)
+    if args.role == "tracker":
+        return run_tracker(args)
+
+    from agent.client import Client
+    from agent.errors import UmaError
+    from agent.session import open_session
+
+    realm = f"bench{uuid.uuid4().hex[:8]}"
+    ports = {name: _port() for name in ("A", "B", "C", "echo")}
+    ep = {name: f"tcp/127.0.0.1:{p}" for name, p in ports.items()}
+    # a long lease: on a loaded machine a process stalled for more than the default 1 s
+    # lease loses its links, and its tokens vanish mid-benchmark (failure detection is not
+    # what this benchmark measures)
+    os.environ.setdefault("UMA_LEASE_MS", "10000")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    procs: list[subprocess.Popen] = []
+    tmp = Path(tempfile.mkdtemp(prefix="uma-bench-"))
+    me = [sys.executable, str(Path(__file__).resolve())]
+    try:
+        for name in ("A", "B", "C"):
+            cmd = [sys.executable, "-m", "agent.cli", "agent", "--realm", realm, "--id", name,
+                   "--listen", ep[name], "--config", _config(tmp / f"{name}.toml", EDGES[name])]
+            if name != "A":
+                cmd += ["--connect", ep["A"]]
+            procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL))
+        key = f"bench/{realm}/echo"
+        procs.append(subprocess.Popen([*me, "--role", "echo", "--listen", ep["echo"], "--key",
+                                       key], env=env))
+        procs.append(subprocess.Popen([*me, "--role", "tracker", "--realm", realm,
+                                       "--connect", ep["C"]], env=env))
+        with Client(realm=realm, connect=[ep["A"]], timeout=2.0) as c, \
+                open_session("peer", None, [ep["echo"]]) as bare:
+            deadline = time.monotonic() + 30
+            while True:
+                try:
+                    r = c.pose(WORLD, HEAD, error="hops")
+                    if r.path == [WORLD, CAM, RIG, HEAD] and any(
+                            list(bare.get(key, timeout=1.0))):
+                        break
+                except (LookupError, ValueError, UmaError) as exc:
+                    if time.monotonic() > deadline:
+                        raise SystemExit(f"setup failed: {exc}") from None
+                time.sleep(0.2)
+            query_us, bare_us = [], []
+            for _ in range(args.queries):  # interleaved: both see the same machine load
+                t0 = time.perf_counter_ns()
+                c.pose(WORLD, HEAD, error="hops")
+                t1 = time.perf_counter_ns()
+                replies = list(bare.get(key, payload=b"q" * 64, timeout=2.0))
+                t2 = time.perf_counter_ns()
+                assert replies and replies[0].ok is not None
+                query_us.append((t1 - t0) / 1000)
+                bare_us.append((t2 - t1) / 1000)
+            latency_us: list[float] = []
+
+            def on_pose(r) -> None:
+                published = c.clock.to_remote("C", r.t_ns)
+                latency_us.append((time.time_ns() - published) / 1000)
+            sub = c.subscribe(WORLD, HEAD, on_pose=on_pose, error="hops")
+            time.sleep(args.stream_seconds)
+            sub.close()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    figures = {
+        "cross_agent_query": _stats(query_us),
+        "bare_zenoh_get": _stats(bare_us),
+        "streaming_publication_to_pose": _stats(latency_us) if latency_us else None,
+    }
+    figures["ratio_query_to_bare_get"] = (figures["cross_agent_query"]["median_us"]
+                                          / figures["bare_zenoh_get"]["median_us"])
+    q, b, s = (figures["cross_agent_query"], figures["bare_zenoh_get"],
+               figures["streaming_publication_to_pose"])
+    print(f"cross-agent query (3 agents): median {q['median_us']:.0f} us, p99 "
+          f"{q['p99_us']:.0f} us; bare get median {b['median_us']:.0f} us, p99 "
+          f"{b['p99_us']:.0f} us; ratio {figures['ratio_query_to_bare_get']:.2f} (goal <= 3)")
+    if s:
+        print(f"streaming, publication -> composed pose: median {s['median_us']:.0f} us, p99 "
+              f"{s['p99_us']:.0f} us ({s['n']} poses)")
+    if args.json:
+        print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
