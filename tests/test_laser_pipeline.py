@@ -17,6 +17,7 @@ from agent.errors import UmaError
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
 from services.laser_camera.evaluate import evaluate
+from services.laser_camera.sources import CaptureSource, parse_sources
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate
 from services.sim.world import IvyWorld, sim_time_s
 
@@ -153,3 +154,43 @@ def test_service_pose_reaches_a_client_in_another_process(calibration_file, proc
     assert r.path == ["ivy/world", "marvin/laser_rig"]
     geo.check_covariance(r.covariance)
     assert 5 < r.attributes["frequency_hz"] <= 25  # measured by the service itself
+
+
+def test_video_sources_feed_the_tracker(world, calibration, tmp_path) -> None:
+    import cv2
+
+    frames = [world.render(2.0 + i / 30) for i in range(6)]
+    values = []
+    for cam in world.cameras:
+        path = tmp_path / f"{cam.name}.avi"
+        out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30, (640, 480),
+                              isColor=False)
+        for f in frames:
+            out.write(f.images[cam.name])
+        out.release()
+        values.append(f"{cam.name}=video:{path}")
+    source = CaptureSource(parse_sources(values))
+    tracker = LaserTracker(calibration)
+    results = []
+    try:
+        while (grabbed := source.grab()) is not None:
+            _, images, _ = grabbed
+            results.append(tracker.process(images, frames[len(results)].t))
+    finally:
+        source.close()
+    assert len(results) == len(frames)  # ends with the videos
+    for f, r in zip(frames, results, strict=True):
+        assert isinstance(r, PoseEstimate)
+        assert np.degrees(geo.quat_angle(r.quaternion, f.rig_quaternion)) < 0.1
+
+
+@pytest.mark.parametrize("values, msg", [
+    (["front=foo"], "expected CAMERA=video"),
+    (["front=camera:x"], "a camera index is a number"),
+    (["sim", "front=camera:0"], "cannot be mixed"),
+    (["front=camera:0", "front=video:a.avi"], "named twice"),
+])
+def test_bad_sources_are_refused(values, msg) -> None:
+    with pytest.raises(ValueError, match=msg):
+        parse_sources(values)
+    assert parse_sources([]) is None and parse_sources(["sim"]) is None
