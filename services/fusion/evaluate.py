@@ -99,19 +99,31 @@ def laser_calibration(world: IvyWorld, cache: bool) -> Any:
     """
     from services.laser_camera.calibration import Calibration, calibrate_sim
 
+    if not cache:
+        return calibrate_sim(world)
+    return Calibration.load(laser_calibration_file(world))
+
+
+def laser_calibration_file(world: IvyWorld, announce: bool = False) -> Path:
+    """The cached calibration file of ``world``'s cameras, calibrating on a cache miss."""
+    from services.laser_camera.calibration import Calibration, calibrate_sim
+
     path = _cache_dir() / f"laser_calibration_{world.config.n_cameras}cam_{_code_hash()}.json"
-    if cache and path.exists():
+    if path.exists():
         try:
-            return Calibration.load(path)
+            Calibration.load(path)
+            return path
         except (ValueError, KeyError, OSError):
             path.unlink(missing_ok=True)
+    if announce:
+        print("calibrating the simulated cameras once (about 20 s; cached in "
+              f"{path.parent})", flush=True)
     cal = calibrate_sim(world)
-    if cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        cal.save(tmp)
-        tmp.replace(path)
-    return cal
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    cal.save(tmp)
+    tmp.replace(path)
+    return path
 
 
 def _code_hash() -> str:

@@ -162,7 +162,8 @@ def accel_model_from_attributes(attrs: dict[str, Any], mount: tuple[np.ndarray, 
     """The accelerometer model from an ``accel_raw`` ability's calibration attributes."""
     from services.accel_rig.sensor import Calibration
 
-    cal = Calibration.from_dict({k: v for k, v in attrs.items()})
+    # attributes cannot carry null: optional calibration fields may be absent
+    cal = Calibration.from_dict({"bandwidth_hz": None, "param_cov": None, **attrs})
     rate = float(attrs.get("frequency_hz") or 300.0)
     return AccelModel.from_layout(cal.layout.positions, cal.layout.axes, mount,
                                   cal.accel_var(rate), cal.latency_s, model_floor)
@@ -197,7 +198,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         live.publish = out.publish
         svc.need("optical", type="pose6d", edge=(args.world, args.optical_rig),
                  where="frequency_hz >= 10", prefer="latency_s", on_sample=live.on_optical)
-        svc.need("accel", type="accel_raw", edge=("*", args.accel_rig),
+        svc.need("accel", type="accel_raw", edge=("*/*", args.accel_rig),
                  where="frequency_hz >= 100", on_sample=live.on_accel)
         svc.start()
         log.info("fusion: publishing %s -> %s", args.world, args.head)

@@ -1,0 +1,313 @@
+"""``uma demo``: the embedded default -- the whole MARVIN tracking system in one command.
+
+With no set-up and no hardware, on loopback with free ports, multicast off and a realm of
+its own, it starts
+
+* two agents in this process: ``tracking`` (the tracking host, whose SRG holds the rig
+  mountings as static edges) and ``application`` (the application host, connected to it);
+* the tracker services as child processes registered with ``tracking``: the laser-dot
+  camera on the rendered IVY display, the accelerometer rig simulator and the fusion;
+* a client on the application host that queries ``ivy/world -> marvin/head`` across the
+  two agents (``Client.pose``) and streams it (``Client.subscribe``), and compares every
+  answer with the simulator's ground truth.
+
+It prints a live line per second and a summary (``--json``: one JSON object), and stops
+every process it started, also on Ctrl-C or an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.errors import UmaError
+from agent.srg import geometry as geo
+from services.sim import mounts
+
+log = logging.getLogger("uma.demo")
+
+SERVICES = ("laser-camera", "accel-rig", "fusion")
+#: how long the fused pose may take to appear after the services start (s)
+FIRST_POSE_TIMEOUT_S = 30.0
+QUERY_HZ = 20.0
+STOP_TIMEOUT_S = 3.0
+
+
+def _free_endpoint() -> str:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def _static_edges() -> list[dict[str, Any]]:
+    """The rig mountings as the tracking host's static SRG edges (its calibration)."""
+    edges = []
+    for child, (p, q) in ((mounts.LASER_RIG, mounts.HEAD_TO_LASER_RIG),
+                          (mounts.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)):
+        edges.append({"parent": mounts.HEAD, "child": child, "position": list(map(float, p)),
+                      "quaternion": list(map(float, q))})
+    return edges
+
+
+@dataclass
+class Tally:
+    """What the client saw."""
+
+    latencies_s: list[float] = field(default_factory=list)
+    pos_err_m: list[float] = field(default_factory=list)
+    rot_err_rad: list[float] = field(default_factory=list)
+    stream_times: list[float] = field(default_factory=list)
+    stream_pos_err_m: list[float] = field(default_factory=list)
+    failures: dict[str, int] = field(default_factory=dict)
+    path: list[str] = field(default_factory=list)
+    last: tuple[np.ndarray, np.ndarray] | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def fail(self, why: str) -> None:
+        with self.lock:
+            self.failures[why] = self.failures.get(why, 0) + 1
+
+
+class Children:
+    """Service child processes, always stopped (SIGTERM, then SIGKILL) by their PID."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, argv: list[str]) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", "agent.cli", "service", "run", name, *argv],
+            env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE, text=True)
+
+    def dead(self) -> dict[str, str]:
+        """Children that exited, with the end of their error output."""
+        out = {}
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                err = (p.stderr.read() if p.stderr else "") or ""
+                out[name] = f"exit {p.returncode}: {err.strip().splitlines()[-1:] or ''}"
+        return out
+
+    def stop(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=STOP_TIMEOUT_S)
+            if p.stderr:
+                p.stderr.close()
+
+
+def main(args: argparse.Namespace) -> int:
+    seconds = float(args.seconds)
+    if not (math.isfinite(seconds) and 0 < seconds <= 3600):
+        raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")
+    logging.getLogger("uma").setLevel(logging.WARNING)
+    report = run_demo(seconds, int(args.seed), live=not args.json)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(format_summary(report))
+    return 0 if report["ok"] else 1
+
+
+def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
+    """Start everything, measure for ``seconds``, stop everything; the figures."""
+    from agent.client import Client
+    from agent.daemon import Agent, AgentSettings
+    from services.fusion.evaluate import laser_calibration_file
+    from services.sim.trajectory import HeadTrajectory
+    from services.sim.world import IvyWorld, sim_time_s
+
+    t_start = time.monotonic()
+    realm = f"demo{uuid.uuid4().hex[:10]}"
+    ep_tracking, ep_app = _free_endpoint(), _free_endpoint()
+    if live:
+        print(f"uma demo: realm {realm}, tracking host on {ep_tracking}, application host on "
+              f"{ep_app}", flush=True)
+    calibration = laser_calibration_file(IvyWorld(seed=seed), announce=live)
+    truth = HeadTrajectory(seed)
+    children = Children()
+    agents: list[Any] = []
+    tally = Tally()
+    sub = None
+    try:
+        tracking = Agent(AgentSettings(realm=realm, agent_id="tracking", listen=[ep_tracking],
+                                       static_edges=_static_edges()))
+        tracking.start()
+        agents.append(tracking)
+        app = Agent(AgentSettings(realm=realm, agent_id="application", listen=[ep_app],
+                                  connect=[ep_tracking]))
+        app.start()
+        agents.append(app)
+        common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]
+        children.start("laser-camera", [*common, "--seed", str(seed), "--calibration",
+                                        str(calibration)])
+        children.start("accel-rig", [*common, "--seed", str(seed)])
+        children.start("fusion", common)
+        with Client(realm=realm, connect=[ep_app], timeout=1.0) as client:
+            t_first = _wait_first_pose(client, children, tally)
+            if live:
+                print(f"first fused pose after {t_first - t_start:.1f} s; measuring for "
+                      f"{seconds:g} s", flush=True)
+
+            def on_pose(r: Any) -> None:
+                p_t, q_t = truth.pose(sim_time_s(r.t_ns))
+                e_p, _ = geo.pose_error(r.position, r.quaternion, p_t[0], q_t[0])
+                with tally.lock:
+                    tally.stream_times.append(time.monotonic())
+                    tally.stream_pos_err_m.append(float(e_p))
+
+            sub = client.subscribe(mounts.WORLD, mounts.HEAD, on_pose=on_pose)
+            _measure(client, truth, sim_time_s, seconds, tally, live)
+            matches = _matches(tracking)
+    finally:
+        if sub is not None:
+            with contextlib.suppress(Exception):
+                sub.close()
+        children.stop()
+        for a in reversed(agents):
+            with contextlib.suppress(Exception):
+                a.close()
+    return _report(tally, matches, seconds, time.monotonic() - t_start,
+                   [p.pid for p in children.procs.values()])
+
+
+def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
+    deadline = time.monotonic() + FIRST_POSE_TIMEOUT_S
+    last = "no answer yet"
+    while time.monotonic() < deadline:
+        dead = children.dead()
+        if dead:
+            raise UmaError("demo: a service stopped: " + "; ".join(
+                f"{k} ({v})" for k, v in dead.items()))
+        try:
+            r = client.pose(mounts.WORLD, mounts.HEAD)
+            if "fusion" in json.dumps(getattr(r, "edges", [])) or len(r.path) == 2:
+                tally.path = list(r.path)
+                return time.monotonic()
+        except (UmaError, ValueError, LookupError, TimeoutError) as exc:
+            last = str(exc)
+        time.sleep(0.2)
+    raise UmaError(f"demo: no fused head pose within {FIRST_POSE_TIMEOUT_S:g} s ({last})")
+
+
+def _measure(client: Any, truth: Any, sim_time_s: Any, seconds: float, tally: Tally,
+             live: bool) -> None:
+    """Query at QUERY_HZ for ``seconds``; a live line per second."""
+    end = time.monotonic() + seconds
+    next_line = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        t0 = time.perf_counter()
+        try:
+            r = client.pose(mounts.WORLD, mounts.HEAD)
+        except (UmaError, ValueError, LookupError, TimeoutError) as exc:
+            tally.fail(type(exc).__name__)
+            time.sleep(1.0 / QUERY_HZ)
+            continue
+        latency = time.perf_counter() - t0
+        p_t, q_t = truth.pose(sim_time_s(r.t_ns))
+        e_p, e_r = geo.pose_error(r.position, r.quaternion, p_t[0], q_t[0])
+        with tally.lock:
+            tally.latencies_s.append(latency)
+            tally.pos_err_m.append(float(e_p))
+            tally.rot_err_rad.append(float(e_r))
+            tally.last = (np.asarray(r.position), np.asarray(r.quaternion))
+        if live and time.monotonic() >= next_line:
+            next_line += 1.0
+            print(_live_line(tally), flush=True)
+        time.sleep(max(0.0, 1.0 / QUERY_HZ - (time.perf_counter() - t0)))
+
+
+def _live_line(t: Tally) -> str:
+    with t.lock:
+        now = time.monotonic()
+        rate = sum(1 for s in t.stream_times if s > now - 1.0)
+        p, q = t.last if t.last is not None else (np.full(3, np.nan), geo.quat_identity())
+        ypr = np.degrees(geo.quat_to_rotvec(q))
+        return (f"stream {rate:4d} Hz | query latency {1e3 * t.latencies_s[-1]:6.2f} ms | "
+                f"head ({p[0]:+.3f}, {p[1]:+.3f}, {p[2]:+.3f}) m rotvec ({ypr[0]:+6.1f}, "
+                f"{ypr[1]:+6.1f}, {ypr[2]:+6.1f}) deg | error {1e3 * t.pos_err_m[-1]:6.2f} mm "
+                f"{np.degrees(t.rot_err_rad[-1]):5.2f} deg")
+
+
+def _matches(agent: Any) -> dict[str, list[str]]:
+    """The tracking agent's current matches: ``service.need -> [data keys]``."""
+    out = {}
+    for (sid, need), state in sorted(getattr(agent, "needs", {}).items()):
+        with contextlib.suppress(Exception):
+            out[f"{sid}.{need}"] = sorted(state.current())
+    return out
+
+
+def _stats(x: list[float], scale: float) -> dict[str, float] | None:
+    if not x:
+        return None
+    a = np.asarray(x) * scale
+    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)),
+            "rms": float(np.sqrt(np.mean(a * a))), "max": float(a.max())}
+
+
+def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: float,
+            pids: list[int]) -> dict[str, Any]:
+    with t.lock:
+        span = (t.stream_times[-1] - t.stream_times[0]) if len(t.stream_times) > 1 else 0.0
+        stream_hz = (len(t.stream_times) - 1) / span if span > 0 else 0.0
+        report = {
+            "seconds": seconds,
+            "wall_s": wall_s,
+            "path": t.path,
+            "matches": matches,
+            "queries": len(t.latencies_s),
+            "query_failures": t.failures,
+            "query_latency_ms": _stats(t.latencies_s, 1e3),
+            "stream_poses": len(t.stream_times),
+            "stream_rate_hz": stream_hz,
+            "position_error_mm": _stats(t.pos_err_m, 1e3),
+            "orientation_error_deg": _stats(t.rot_err_rad, 180.0 / math.pi),
+            "stream_position_error_mm": _stats(t.stream_pos_err_m, 1e3),
+            "child_pids": pids,
+        }
+    report["ok"] = bool(report["queries"] and report["stream_poses"]
+                        and all(matches.values()) and matches)
+    return report
+
+
+def format_summary(r: dict[str, Any]) -> str:
+    def s(d: dict[str, float] | None, unit: str) -> str:
+        return "n/a" if d is None else (f"median {d['median']:.3g} {unit}, p99 {d['p99']:.3g} "
+                                        f"{unit}, max {d['max']:.3g} {unit}")
+    lines = ["", "uma demo summary",
+             f"  ran {r['wall_s']:.1f} s (measured {r['seconds']:g} s); path "
+             f"{' -> '.join(r['path'])}", "  matches made:"]
+    lines += [f"    {k}: {', '.join(v) or 'none'}" for k, v in r["matches"].items()]
+    lines += [f"  queries: {r['queries']} (failures {r['query_failures'] or 'none'}), latency "
+              f"{s(r['query_latency_ms'], 'ms')}",
+              f"  stream: {r['stream_poses']} poses at {r['stream_rate_hz']:.0f} Hz",
+              f"  fused vs ground truth: position {s(r['position_error_mm'], 'mm')}",
+              f"                         orientation {s(r['orientation_error_deg'], 'deg')}",
+              f"  all processes stopped (pids {', '.join(map(str, r['child_pids']))})",
+              f"  {'OK' if r['ok'] else 'FAILED'}"]
+    return "\n".join(lines)
