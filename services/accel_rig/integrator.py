@@ -22,6 +22,7 @@ Times: a reading taken at sample time t describes the motion at ``t - latency_s`
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -33,6 +34,8 @@ from services.sim.trajectory import GRAVITY, KinematicState
 
 Array = np.ndarray
 
+#: Seconds of samples kept to replay after a late reset.
+HISTORY_S = 1.0
 _I3 = np.eye(3)
 _I12 = np.eye(12)
 #: q (x) [omega, 0] / 2 = sum_i omega_i _HALF_RIGHT_PRODUCT[i] @ q: the rate quaternion
@@ -101,7 +104,10 @@ class DeadReckoner:
         self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
         # [1, f] / k_j, the reading error per unit calibration error, f filled in per step
         self._cal_base = np.ones((n, 4)) / calibration.gain_v_per_mps2[:, None]
-        self._samples: list[tuple[float, Array]] = []  # up to 3 (motion time, accel)
+        self._samples: list[tuple[float, Array]] = []  # last 3 (motion time, projected)
+        # recent samples, so a reset that arrives late is replayed up to the newest sample
+        self._history: deque[tuple[float, Array]] = deque(
+            maxlen=max(4, math.ceil(HISTORY_S * rate_hz)))
         self._t: float | None = None
         self._p = np.zeros(3)
         self._q = geo.quat_identity()
@@ -126,10 +132,17 @@ class DeadReckoner:
         ``covariance`` is the pose's 6x6 covariance in geometry's convention (None: exact).
         Velocity (world) and angular velocity (rig frame) keep their current estimate when
         not given; at the first reset they start at zero (a rig at rest, as in §4.3.1).
+        A pose older than the newest sample (it travelled through the network) is applied
+        at its own time and the samples since are integrated again; one older than the
+        kept ``HISTORY_S`` of samples is refused.
         """
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"reset: time must be finite, got {t!r}")
+        if self._history and self._history[0][0] > t and self._history[-1][0] > t \
+                and len(self._history) == self._history.maxlen:
+            raise ValueError(f"reset: pose time {t:.3f} s is older than the kept samples "
+                             f"(from {self._history[0][0]:.3f} s); it cannot be replayed")
         p = geo.check_vector(position, "reset position").reshape(3)
         q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4)
         C = np.zeros((6, 6)) if covariance is None else \
@@ -158,7 +171,10 @@ class DeadReckoner:
                 P[a, b] = P_old[a, b]
             S[a] = S_old[a]
         self._t, self._p, self._q, self._P, self._S = t, p, q, P, S
-        self._samples = [s for s in self._samples if s[0] <= t][-3:]
+        self._samples = [s for s in self._history if s[0] <= t][-3:]
+        for sample in [s for s in self._history if s[0] > t]:
+            self._samples = [*self._samples[-2:], sample]
+            self._step(self._t, sample[0])
 
     def estimate(self) -> Estimate:
         """The current state and its pose covariance (geometry convention)."""
@@ -205,7 +221,9 @@ class DeadReckoner:
         if self._samples and tm <= self._samples[-1][0]:
             raise ValueError(f"accelerometer sample at t={t!r} is not after the previous "
                              f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
-        self._samples = [*self._samples[-2:], (tm, self.layout.project(a))]
+        sample = (tm, self.layout.project(a))
+        self._samples = [*self._samples[-2:], sample]
+        self._history.append(sample)
         if not self.initialised:
             return None
         if tm > self._t:

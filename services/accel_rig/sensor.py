@@ -165,8 +165,9 @@ class Calibration:
     # ------------------------------------------------------------------ JSON
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-serialisable description (also the ``accel_raw`` ability's attributes)."""
-        return {
+        """A JSON-serialisable description (also the ``accel_raw`` ability's attributes, which
+        is why absent optional values are left out rather than null)."""
+        d = {
             "format": CALIBRATION_FORMAT,
             "layout": self.layout.name,
             "positions_m": self.layout.positions.tolist(),
@@ -180,6 +181,7 @@ class Calibration:
             "bandwidth_hz": self.noise.bandwidth_hz,
             "latency_s": self.latency_s,
         }
+        return {k: v for k, v in d.items() if v is not None}
 
     @classmethod
     def from_dict(cls, d: Any) -> Calibration:
@@ -192,7 +194,7 @@ class Calibration:
         try:
             layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
                                name=str(d.get("layout", "custom")))
-            bw = d["bandwidth_hz"]
+            bw = d.get("bandwidth_hz")
             noise = NoiseModel(float(d["noise_density_v_per_rthz"]), float(d["lsb_v"]),
                                bool(d["quantised"]), None if bw is None else float(bw))
             cov = d.get("param_cov")
