@@ -256,3 +256,18 @@ def test_live_fusion_builds_from_attributes_and_publishes():
 def test_accel_model_from_bad_attributes_names_the_problem():
     with pytest.raises(ValueError, match="format"):
         accel_model_from_attributes({"frequency_hz": 300.0}, HEAD_TO_ACCEL_RIG, 0.0)
+
+
+def test_optical_pose_older_than_the_history_is_dropped_not_applied():
+    model = _model()
+    tracker = FusionTracker(FusionEKF(model), history_s=0.1)
+    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    assert tracker.add_rig_pose(0.0, p, q, cov, HEAD_TO_LASER_RIG)
+    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    for i in range(1, 120):
+        tracker.add_accel(i / 300, rest)
+    before = tracker.ekf.snapshot()
+    assert not tracker.add_rig_pose(0.05, p + 0.5, q, cov, HEAD_TO_LASER_RIG)
+    assert tracker.stats.optical_too_old == 1
+    assert np.array_equal(tracker.ekf.x, before.x)

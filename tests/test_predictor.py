@@ -149,3 +149,22 @@ def test_a_long_silence_restarts_the_motion_estimate():
     assert f.ready and abs(f.velocity[0] - 0.5) < 0.05
     f.update(2.0, [0.0, 0.0, 0.0], [0, 0, 0, 1])
     assert f.stats.restarts == 1 and not f.ready
+
+
+def test_live_predictor_publishes_ahead_and_refuses_bad_samples():
+    from types import SimpleNamespace
+
+    from services.fusion.predictor_service import LivePredictor
+
+    out = []
+    live = LivePredictor(0.02, None, publish=lambda *a: out.append(a))
+    for k in range(6):
+        live.on_pose(SimpleNamespace(t_ns=10**9 + k * 10**7, position=[0.01 * k, 0, 0],
+                                     quaternion=[0, 0, 0, 1], attributes={"pos_std_m": 1e-3}))
+    assert len(out) == 5
+    t_ns, p, _, cov = out[-1]
+    assert t_ns == 10**9 + 5 * 10**7 + 2 * 10**7 and cov is None
+    assert p[0] == pytest.approx(0.07, abs=2e-3)      # 1 m/s, 20 ms past 0.05 m
+    live.on_pose(SimpleNamespace(t_ns=10**9, position=[0, 0, 0], quaternion=[0, 0, 0, 1],
+                                 attributes=None))   # older than the last: refused
+    assert live.refused == 1 and len(out) == 5
