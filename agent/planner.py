@@ -28,6 +28,7 @@ from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
 from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
+from agent.srg.plan import quat_product
 from agent.srg.result import PoseResult
 from agent.srg.supernode import SUMMARY_ERRORS
 
@@ -70,7 +71,7 @@ class Summary:
     frames: set[str]
     components: list[set[str]]
     links: list[tuple[str, str, dict[str, dict[str, Any]]]]
-    alive: bool = True
+    instance: str = ""  # the agent process's run id: revisions restart with it
 
 
 @dataclass
@@ -114,9 +115,10 @@ def parse_summary(msg: Mapping[str, Any]) -> Summary:
             raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "
                              f"{', '.join(sorted(set(SUMMARY_ERRORS) - set(attrs)))}")
         links.append((link["a"], link["b"], attrs))
-    rev = msg.get("rev", 0)
+    rev, instance = msg.get("rev", 0), msg.get("instance", "")
     return Summary(agent, rev if isinstance(rev, int) else 0, set(frames),
-                   [set(c) for c in components if isinstance(c, list)], links)
+                   [set(c) for c in components if isinstance(c, list)], links,
+                   instance if isinstance(instance, str) else "")
 
 
 def _link_value(fn: ErrorFunction, attrs: Mapping[str, dict[str, Any]]) -> float:
@@ -227,19 +229,36 @@ def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
 
 
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
-    """Chain segment answers source -> target, propagating the covariance (first order)."""
-    p, q, cov = np.zeros(3), geo.quat_identity(), None
+    """Chain segment answers source -> target, propagating the covariance (first order).
+
+    Batched like a local plan: one ``to_matrix`` and one ``adjoint`` call for all segments,
+    prefix products of 4x4 and 6x6 matrices, a product tree for the quaternion.
+    """
+    P = np.array([r.position for r in results])
+    Q = np.array([r.quaternion for r in results])
+    T = geo.to_matrix(P[:-1], Q[:-1]) if len(results) > 1 else None
+    M = np.eye(4)
+    for i in range(len(results) - 1):
+        M = M @ T[i]
+    p = M[:3, :3] @ P[-1] + M[:3, 3]
+    q = quat_product(Q)
+    cov = None
+    if any(r.covariance is not None for r in results):
+        Ads = geo.adjoint(P, Q)
+        prefix = np.eye(6)
+        cov = np.zeros((6, 6))
+        for i, r in enumerate(results):
+            if r.covariance is not None:
+                cov += prefix @ r.covariance @ prefix.T
+            prefix = prefix @ Ads[i]
     path: list[str] = []
     edges: list[dict[str, Any]] = []
     stamps: list[tuple[int, int]] = []
-    extrapolated = 0.0
     for r in results:
-        cov = geo.compose_covariance(p, q, cov, r.covariance)
-        p, q = geo.compose(p, q, r.position, r.quaternion)
         path.extend(r.path if not path else r.path[1:])
         edges.extend(r.edges)
         stamps.extend(r.stamps)
-        extrapolated = max(extrapolated, r.extrapolated_s)
+    extrapolated = max(r.extrapolated_s for r in results)
     parts = [r.attributes for r in results]
     return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
                       lambda: combine(parts, p, cov))

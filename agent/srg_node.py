@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import secrets
 import threading
 import time
 from typing import Any
@@ -116,6 +117,8 @@ class SrgNode:
         self._remote_frames: dict[str, set[str]] = {}
         self._boundary: set[str] = set()
         self._published: tuple[int, frozenset[str]] | None = None
+        #: distinguishes this run's summary revisions from a restarted agent's
+        self.instance = secrets.token_hex(6)
         self._summary = encode_message({"agent": agent_id, "rev": 0, "frames": [],
                                         "boundary": [], "components": [], "links": []})
         self._rev = 0
@@ -323,7 +326,7 @@ class SrgNode:
                 return
             self._rev += 1
             summary = summarize(self.graph, boundary)
-            summary.update(agent=self.agent_id, rev=self._rev)
+            summary.update(agent=self.agent_id, rev=self._rev, instance=self.instance)
             data = encode_message(summary)
             self._summary = data
             self._published = state

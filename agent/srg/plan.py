@@ -199,7 +199,7 @@ class Chain:
         p = self._const[len(items) - 1][0][:3, 3] if last[0] == "c" else P[last[1]]
         p = p.copy() if M is None else M[:3, :3] @ p + M[:3, 3]
         quats = [self._const[i][1] if it[0] == "c" else Q[it[1]] for i, it in enumerate(items)]
-        q = _product(np.array(quats))
+        q = quat_product(np.array(quats))
         cov = self._propagate(P, Q, P_edge, covs) if self._uncertain else None
         return p, q, cov
 
@@ -250,7 +250,7 @@ class Chain:
 _QUAT_ID = np.array([0.0, 0.0, 0.0, 1.0])
 
 
-def _product(Qs: np.ndarray) -> np.ndarray:
+def quat_product(Qs: np.ndarray) -> np.ndarray:
     """``Qs[0] * Qs[1] * ... * Qs[-1]`` by a pairwise tree: log2(n) batched multiplies."""
     while len(Qs) > 1:
         half = len(Qs) // 2
