@@ -120,3 +120,28 @@ def test_bad_poses_are_refused(world: IvyWorld) -> None:
         world.render(0.0, pose=([np.nan, 0, 0], q))
     with pytest.raises(ValueError, match="no camera"):
         world.camera("nope")
+
+
+def test_installation_imperfections_are_applied_when_asked() -> None:
+    from services.sim.ivy import screen_displacement
+    from services.sim.world import WorldConfig
+
+    ideal = IvyWorld(seed=2)
+    rough = IvyWorld(seed=2, config=WorldConfig(housing_error_deg=0.2, housing_offset_m=0.002,
+                                                screen_bulge_m=0.005))
+    p, q = ideal.rig_pose(3.0)
+    a, b = ideal.laser_hits(p[0], q[0]), rough.laser_hits(p[0], q[0])
+    for k in LABELS:
+        off, d = rough.beams[k]
+        angle = np.degrees(np.arccos(np.clip(d @ ideal.beams[k][1], -1, 1)))
+        assert 0 < angle < 1.5 and 0 < np.linalg.norm(off) < 0.01
+        assert 0 < np.linalg.norm(a[k].point - b[k].point) < 0.05
+        # the hit lies on the bent fabric: inside the wall's plane by the displacement
+        wall = rough.walls[b[k].wall]
+        depth = wall.plane_distance - b[k].point @ wall.normal
+        bend = screen_displacement(wall, b[k].screen_xy, rough.bulge_m[wall.name])
+        assert depth == pytest.approx(bend, abs=1e-9)
+        assert np.allclose(ideal.beams[k][0], 0) and a[k].point @ ideal.walls[a[k].wall].normal \
+            == pytest.approx(CUBE_SIDE_M / 2)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        WorldConfig(screen_bulge_m=-1.0)

@@ -21,7 +21,7 @@ from agent.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.tracker import NO_POSE_REASONS, LaserTracker, PoseEstimate
-from services.sim.world import Frame, IvyWorld
+from services.sim.world import Frame, IvyWorld, WorldConfig
 
 #: a labeled dot farther than this from its diode's true spot is a labeling error
 LABEL_TOLERANCE_M = 0.02
@@ -33,6 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
                         help="6: one camera per screen (default); 8: floor and ceiling split "
                              "in two, as in the thesis")
+    parser.add_argument("--housing-error-deg", type=float, default=0.0, metavar="DEG",
+                        help="simulate a laser housing whose beams are off by this much "
+                             "(std, default 0: ideal)")
+    parser.add_argument("--housing-offset-mm", type=float, default=0.0, metavar="MM",
+                        help="... and whose beams miss the common point P0 by this much "
+                             "(std, default 0)")
+    parser.add_argument("--screen-bulge-mm", type=float, default=0.0, metavar="MM",
+                        help="simulate fabric screens bent inwards by this much at their "
+                             "centres (std, default 0: flat, as when calibrated)")
     parser.add_argument("--calibration", metavar="FILE", default=None,
                         help="load this calibration instead of calibrating the simulated "
                              "cameras first (about 15 s); it must match --cameras")
@@ -41,7 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.rate_hz > 0:
         raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
-    world = IvyWorld(n_cameras=args.cameras, seed=args.seed)
+    config = WorldConfig(n_cameras=args.cameras, housing_error_deg=args.housing_error_deg,
+                         housing_offset_m=args.housing_offset_mm / 1000,
+                         screen_bulge_m=args.screen_bulge_mm / 1000)
+    world = IvyWorld(n_cameras=args.cameras, seed=args.seed, config=config)
     t0 = time.perf_counter()
     if args.calibration:
         cal = Calibration.load(args.calibration)
@@ -55,6 +67,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     figures = evaluate(world, cal, args.seconds, args.rate_hz)
     figures["calibration_s"] = round(calib_s, 2)
     figures["seed"] = args.seed
+    figures["imperfections"] = {"housing_error_deg": args.housing_error_deg,
+                                "housing_offset_mm": args.housing_offset_mm,
+                                "screen_bulge_mm": args.screen_bulge_mm}
     return figures
 
 

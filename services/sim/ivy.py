@@ -117,12 +117,15 @@ class BeamHit:
     on_screen: bool  # inside the active area (a spot is visible)
 
 
-def intersect_beam(walls: dict[str, Wall], origin: np.ndarray,
-                   direction: np.ndarray) -> BeamHit:
+def intersect_beam(walls: dict[str, Wall], origin: np.ndarray, direction: np.ndarray,
+                   bulge_m: dict[str, float] | None = None) -> BeamHit:
     """The first wall a ray from ``origin`` (inside the cube) along ``direction`` meets.
 
     A ray parallel to a wall never meets it; from inside a closed cube it always meets
-    another one, so every ray has a hit (maybe off the active screen).
+    another one, so every ray has a hit (maybe off the active screen).  ``bulge_m`` (wall
+    name -> metres) bends a fabric screen towards the inside, most at its centre
+    (``screen_displacement``); the hit is then on the bent surface, which the tracker's
+    planar calibration does not know.
     """
     o = np.asarray(origin, float)
     d = np.asarray(direction, float)
@@ -139,6 +142,18 @@ def intersect_beam(walls: dict[str, Wall], origin: np.ndarray,
         raise ValueError(f"ray from {o.tolist()} along {d.tolist()} meets no wall; "
                          "is the origin inside the cube?")
     s, wall = best
+    c = float(d @ wall.normal)
+    amp = (bulge_m or {}).get(wall.name, 0.0)
     p = o + s * d
+    for _ in range(4 if amp else 0):  # fixed point: the bend varies slowly over the screen
+        w = screen_displacement(wall, wall.to_screen(p)[0], amp)
+        p = o + (wall.plane_distance - w - float(o @ wall.normal)) / c * d
     xy = wall.to_screen(p)[0]
-    return BeamHit(wall.name, p, d, xy, float(d @ wall.normal), bool(wall.on_screen(xy)[0]))
+    return BeamHit(wall.name, p, d, xy, c, bool(wall.on_screen(xy)[0]))
+
+
+def screen_displacement(wall: Wall, xy: np.ndarray, amplitude_m: float) -> float:
+    """Inward displacement (m) of a fabric screen at screen point ``xy``: a pillow shape,
+    ``amplitude_m`` at the centre, zero at the frame."""
+    u = 2 * np.asarray(xy, float) / wall.screen_side_m - 1
+    return float(amplitude_m * max(0.0, 1 - u[0] ** 2) * max(0.0, 1 - u[1] ** 2))

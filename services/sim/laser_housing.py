@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.srg import geometry as geo
-
 #: diode label -> unit beam direction in the rig frame
 BEAM_DIRECTIONS = {
     1: np.array([0.0, 1.0, 0.0]),
@@ -24,9 +22,3 @@ BEAM_DIRECTIONS = {
 }
 LABELS = (1, 2, 3, 4)
 
-
-def beam_directions_world(q_rig: np.ndarray) -> dict[int, np.ndarray]:
-    """Beam directions in the world for a rig orientation ``q_rig`` (xyzw, rig in world)."""
-    dirs = geo.quat_rotate(np.asarray(q_rig, float)[None, :],
-                           np.stack([BEAM_DIRECTIONS[k] for k in LABELS]))
-    return {k: dirs[i] for i, k in enumerate(LABELS)}

@@ -19,8 +19,15 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.sim import mounts
 from services.sim.camera import Camera, place_camera
-from services.sim.ivy import SCREEN_SIDE_M, BeamHit, Wall, intersect_beam, make_walls
-from services.sim.laser_housing import LABELS, beam_directions_world
+from services.sim.ivy import (
+    SCREEN_SIDE_M,
+    WALL_NAMES,
+    BeamHit,
+    Wall,
+    intersect_beam,
+    make_walls,
+)
+from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import (
     NoiseBank,
     SensorModel,
@@ -57,6 +64,11 @@ class WorldConfig:
     exposure_samples: int = 4
     distractor_rate: float = 0.02  # stray bright blobs per image (reflections, glints)
     sensor: SensorModel = field(default_factory=SensorModel)
+    # Imperfections of a real installation that the tracker cannot know (all off by
+    # default; each drawn once per installation from ``install_seed``):
+    housing_error_deg: float = 0.0  # std of each beam's direction error
+    housing_offset_m: float = 0.0  # std of each beam's miss distance from the common P0
+    screen_bulge_m: float = 0.0  # std of the fabric screens' bend at their centres
 
     def __post_init__(self) -> None:
         if self.n_cameras not in (6, 8):
@@ -64,6 +76,9 @@ class WorldConfig:
                              f"split, as in the thesis), got {self.n_cameras}")
         if self.exposure_samples < 1 or self.exposure_s < 0:
             raise ValueError("exposure_s must be >= 0 and exposure_samples >= 1")
+        if min(self.housing_error_deg, self.housing_offset_m, self.screen_bulge_m) < 0:
+            raise ValueError("housing_error_deg, housing_offset_m and screen_bulge_m must be "
+                             ">= 0")
 
 
 @dataclass
@@ -98,6 +113,7 @@ class IvyWorld:
                                                  self.config.screen_side_m)
         self.cameras: list[Camera] = _install_cameras(self.walls, self.config, install_seed)
         self.trajectory = trajectory or HeadTrajectory(seed)
+        self.beams, self.bulge_m = _imperfections(self.config, install_seed)
         self._noise = {c.name: NoiseBank(c, self.config.sensor,
                                          np.random.default_rng([install_seed, i, 7]))
                        for i, c in enumerate(self.cameras)}
@@ -108,7 +124,8 @@ class IvyWorld:
         one world is valid for every world with the same installation."""
         c = self.config
         return {"n_cameras": c.n_cameras, "install_seed": self.install_seed,
-                "cube_side_m": c.cube_side_m, "screen_side_m": c.screen_side_m}
+                "cube_side_m": c.cube_side_m, "screen_side_m": c.screen_side_m,
+                "screen_bulge_m": c.screen_bulge_m}
 
     # ------------------------------------------------------------------ ground truth
 
@@ -125,8 +142,9 @@ class IvyWorld:
         if np.any(np.abs(p) >= half):
             raise ValueError(f"rig position {p.tolist()} is outside the cube (half side "
                              f"{half} m)")
-        dirs = beam_directions_world(q)
-        return {k: intersect_beam(self.walls, p, dirs[k]) for k in LABELS}
+        R = geo.quat_to_matrix(q)
+        return {k: intersect_beam(self.walls, p + R @ off, R @ d, self.bulge_m)
+                for k, (off, d) in self.beams.items()}
 
     # ------------------------------------------------------------------ rendering
 
@@ -277,6 +295,22 @@ class IvyWorld:
         jj, ii = np.mgrid[0:pattern[1], 0:pattern[0]]
         corners = org_xy + square_m * np.column_stack([ii.ravel() + 1, jj.ravel() + 1])
         return img, pattern, corners
+
+
+def _imperfections(cfg: WorldConfig, seed: int
+                   ) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict[str, float]]:
+    """Per beam (offset of its line from P0, direction) in the rig frame, and per wall the
+    bend of its screen -- ideal unless the configuration asks for errors."""
+    rng = np.random.default_rng([seed, 13])
+    beams = {}
+    for k in LABELS:
+        d = BEAM_DIRECTIONS[k]
+        tilt = rng.normal(0, np.radians(cfg.housing_error_deg), 3)
+        d = geo.quat_rotate(geo.rotvec_to_quat(tilt - (tilt @ d) * d), d)
+        off = rng.normal(0, cfg.housing_offset_m, 3)
+        beams[k] = (off - (off @ d) * d, d / np.linalg.norm(d))
+    bulge = {name: abs(rng.normal(0, cfg.screen_bulge_m)) for name in sorted(WALL_NAMES)}
+    return beams, bulge
 
 
 def _install_cameras(walls: dict[str, Wall], cfg: WorldConfig, seed: int) -> list[Camera]:
