@@ -26,7 +26,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
@@ -140,9 +140,7 @@ class LaserTracker:
         t1 = time.perf_counter()
         result = self.solve(dots, t)
         t2 = time.perf_counter()
-        timing = {"detect": t1 - t0, "pose": t2 - t1, "total": t2 - t0}
-        object.__setattr__(result, "timing_s", timing)
-        return result
+        return replace(result, timing_s={"detect": t1 - t0, "pose": t2 - t1, "total": t2 - t0})
 
     def detect(self, images: Mapping[str, np.ndarray]) -> WorldDots:
         """World-frame dots of all images; unknown camera names raise ``ValueError``."""
