@@ -14,7 +14,8 @@ Abilities (edge ``ivy/world -> marvin/accel_rig``):
 Need ``reset`` -- ``pose6d`` of the head (``ivy/world -> */head``, composed with the
 head-to-rig mounting) or of the rig itself: an absolute pose to restart from, at most every
 ``--reset-every`` seconds.  Velocity and angular velocity at a reset come from the last
-three absolute poses when they are more certain than the integrator's own.
+three absolute poses when they are more certain than the integrator's own; the first reset
+waits for them (a moving head is not at rest).
 
 Input: the simulator (default), ``csv:FILE`` (replayed) or ``serial:DEVICE`` (a line per
 sample, ``t v_1 .. v_N``), converted with a calibration file.  ``--calibrate`` runs the
@@ -81,7 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and exit")
     parser.add_argument("--pose", action="append", default=[], metavar="LABEL=CSV",
                         help="with --calibrate: a recording of the rig held still with axis "
-                             "LABEL (+x -x +y -y +z -z) pointing down; at least 4 (repeatable)")
+                             "LABEL (+x -x +y -y +z -z) pointing down, lines 't v1 .. vN'; at "
+                             "least 4 (repeatable; write --pose=-x=FILE for a minus sign)")
     parser.add_argument("--pose-seconds", type=float, default=20.0,
                         help="seconds per simulated calibration pose (default 20)")
     parser.add_argument("--layout", default="marvin-six", choices=sorted(LAYOUTS),
@@ -313,6 +315,9 @@ class LiveRig:
             return
         t, p, q, C = latest
         velocity, omega = self._rates()
+        if not self.dr.initialised and not (velocity and omega):
+            self._count("first reset waits for three absolute poses (for the velocities)")
+            return
         try:
             self.dr.reset(t, p, q, covariance=C, **velocity, **omega)
         except ValueError as exc:
