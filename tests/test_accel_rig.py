@@ -238,3 +238,22 @@ def test_reset_keeps_unreset_velocity_and_takes_pose_covariance():
     np.testing.assert_allclose(e.covariance, cov, atol=1e-15)
     with pytest.raises(ValueError, match="positive semi-definite"):
         dr.reset(0.0, np.zeros(3), geo.quat_identity(), covariance=-np.eye(6))
+
+
+def test_a_late_reset_is_applied_at_its_time_and_the_samples_since_replayed():
+    device = SensorTruth.ideal(rg.marvin_six_table_4_1())
+    run = simulate(HeadTrajectory(4), 1.0, RATE, seed=0, t0=20.0, sensor=device)
+    s = run.truth
+    dr = DeadReckoner(device.calibration(), RATE)
+    for k in range(200):  # samples arrive before any absolute pose
+        assert dr.update(run.t[k], run.accel[k]) is None
+    k0 = 120  # the pose of sample 120 arrives when sample 199 is already in
+    dr.reset(s.t[k0], s.position[k0], s.quaternion[k0], velocity=s.velocity[k0],
+             omega=s.omega_body[k0])
+    e = dr.estimate()
+    assert e.t == pytest.approx(s.t[199])  # replayed up to the newest sample
+    dp, dq = geo.pose_error(e.position, e.quaternion, s.position[199], s.quaternion[199])
+    assert dp < 1e-6 and np.degrees(dq) < 1e-5
+    e = dr.update(run.t[200], run.accel[200])
+    dp, _ = geo.pose_error(e.position, e.quaternion, s.position[200], s.quaternion[200])
+    assert dp < 1e-6

@@ -4,6 +4,7 @@ service under a real agent (abilities in ``uma services``, pose through ``Client
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
@@ -172,7 +173,6 @@ def test_bad_command_lines_give_clear_errors(args, msg):
     r = _uma("service", "run", "accel-rig", *args)
     assert r.returncode == 1, (r.returncode, r.stderr)
     assert "Traceback" not in r.stderr
-    import re
     assert re.search(msg, r.stderr), r.stderr
 
 
