@@ -463,6 +463,29 @@ class Agent:
                 self._enqueue(self._on_snapshot, key, reply.ok.payload.to_bytes())
         self.session.get(key, on_reply, timeout=FETCH_TIMEOUT_S)
 
+    def _resync_tokens(self) -> None:
+        """Anti-entropy: ask for the live agent and service tokens and handle any this agent
+        missed (a liveliness subscription declared before its links were up may not get
+        the tokens that existed then)."""
+        assert self.session is not None
+        r = self.realm
+
+        def on_agent(reply: zenoh.Reply) -> None:
+            ok = reply.ok
+            if ok is not None:
+                agent_id = keys.parse_agent_token(str(ok.key_expr), r)
+                if agent_id and agent_id != self.agent_id \
+                        and agent_id not in self.view.live_agents:
+                    self._enqueue(self._on_agent_token, ok)
+
+        def on_service(reply: zenoh.Reply) -> None:
+            ok = reply.ok
+            if ok is not None and keys.parse_service_token(str(ok.key_expr), r) \
+                    not in self.view.live_services:
+                self._enqueue(self._on_service_token, ok)
+        self.session.liveliness().get(keys.all_agent_tokens(r), on_agent, timeout=1.0)
+        self.session.liveliness().get(keys.service_tokens(r), on_service, timeout=1.0)
+
     def _on_snapshot(self, key: str, data: bytes) -> None:
         agent_id = keys.parse_agent_services(key, self.realm)
         if agent_id is None:
@@ -749,6 +772,7 @@ class Agent:
             self._drop_needs(sid)
         if now - self._last_resend >= RESEND_S:
             self._last_resend = now
+            self._resync_tokens()
             for state in self.needs.values():
                 if state.result is not None and state.sent is not None:
                     self._send(state, state.sent, now)

@@ -70,6 +70,8 @@ SAMPLE_QUEUE = 10_000
 #: registration query timeout, and the retry back-off bounds
 REGISTER_TIMEOUT_S = 2.0
 RETRY_MIN_S, RETRY_MAX_S = 0.1, 1.0
+#: while the agent's token is not seen, ask for it this often
+PROBE_S = 1.0
 
 OnSample = Callable[[Measurement], Any]
 
@@ -182,6 +184,7 @@ class Service:
         self._agent_present = False
         self._registering = False
         self._next_try = 0.0
+        self._next_probe = time.monotonic() + PROBE_S
         self._backoff = RETRY_MIN_S
         self._outcome = threading.Event()
         self._token: Any = None
@@ -406,6 +409,10 @@ class Service:
             except Exception:
                 log.exception("service %s: %s failed", self.service_id, fn.__name__)
 
+    def _on_agent_found(self) -> None:
+        if not self._agent_present:
+            self._on_agent_token(zenoh.SampleKind.PUT)
+
     def _on_agent_token(self, kind: zenoh.SampleKind) -> None:
         if kind == zenoh.SampleKind.PUT:
             self._agent_present = True
@@ -419,10 +426,24 @@ class Service:
                         "register again when it is back", self.service_id, self.agent_id)
 
     def _retry(self) -> None:
+        now = time.monotonic()
+        if not self._agent_present and now >= self._next_probe:
+            self._probe_agent()
+            self._next_probe = now + PROBE_S
         if (self._agent_present and not self._registering and self.error is None
-                and self._registered_revision != self._revision
-                and time.monotonic() >= self._next_try):
+                and self._registered_revision != self._revision and now >= self._next_try):
             self._register()
+
+    def _probe_agent(self) -> None:
+        """Ask for the agent's token (a liveliness subscription declared before the links
+        were up may never report a token that already existed)."""
+        assert self.session is not None
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._enqueue(self._on_agent_found)
+        self.session.liveliness().get(keys.agent_token(self.realm, self.agent_id), on_reply,
+                                      timeout=1.0)
 
     def _register(self) -> None:
         if self._registering or self.error is not None or not self._agent_present:
