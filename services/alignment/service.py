@@ -1,0 +1,450 @@
+"""``uma service run alignment``: two pose streams in, a calibrated static SRG edge out.
+
+Online (``--a PARENT:CHILD --b PARENT:CHILD``): needs two ``pose6d`` streams of sensors
+that move rigidly together, ``A: world_a -> sensor_a`` and ``B: world_b -> sensor_b``
+(edge patterns may use ``*``).  It buffers the last ``--window-s`` seconds of both and,
+once the motions are well conditioned (at least ``--min-pairs`` motion pairs rotating by
+``--min-angle-deg`` or more, rotation axes spread by ``--min-spread-deg``), estimates the
+time offset and X (``services.alignment.pipeline``); it publishes once the bootstrap
+standard deviations are within ``--max-pos-std-mm`` / ``--max-rot-std-deg`` (else it keeps
+collecting and tries again).  The result is published as the
+static ``pose6d`` ability ``calibration`` on the edge ``sensor_a -> sensor_b`` (attributes
+``static: true``, ``pos_std_m``, ``rot_std_rad``, the 21-float ``covariance``, residuals,
+time offset, pair counts; re-published every second for late subscribers) and written to
+``--output``, a TOML ``[[static]]`` fragment agents load at start.
+
+Re-calibration: on request (a Zenoh query to ``uma/<realm>/svc/<agent>/<service>/
+recalibrate``, see ``request_recalibration``), the buffers are emptied and the service
+collects fresh motions (the mounting may have changed) before solving again; with
+``--recalibrate-every S`` it also re-solves on its sliding window every S seconds.
+
+Offline (``--from-file CSV``): aligns recorded pose pairs (``services.alignment.records``
+documents the columns), prints the result and writes ``--output``; no network.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import re
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from agent.errors import UmaError
+from agent.plugins import ServicePlugin
+from agent.srg import geometry as geo
+from services.alignment import records
+from services.alignment.pipeline import (
+    AlignmentOptions,
+    AlignmentResult,
+    align_stations,
+    align_streams,
+)
+from services.alignment.selection import select_pairs
+from services.alignment.solvers import AlignmentError, all_pairs, relative_motions
+from services.alignment.timesync import PoseSeries
+
+log = logging.getLogger("uma.alignment")
+
+STATIC_REPUBLISH_S = 1.0
+_TICK_S = 0.2
+#: seconds between attempts while the motions are not yet good enough
+_RETRY_S = 2.0
+#: stations examined by the readiness check (A's motions only: b moves rigidly with a)
+_READINESS_STATIONS = 30
+_FRAME = r"[A-Za-z0-9_.\-*]+(/[A-Za-z0-9_.\-*]+)*"
+
+
+def parse_edge(text: str, option: str) -> tuple[str, str]:
+    """``PARENT:CHILD`` (frame ids or patterns with ``*``) -> (parent, child)."""
+    parts = text.split(":")
+    if len(parts) != 2 or not all(re.fullmatch(_FRAME, p) for p in parts):
+        raise UmaError(f"{option} {text!r}: expected PARENT:CHILD, e.g. "
+                       "ivy/world:marvin/laser_rig (patterns may use *)")
+    return parts[0], parts[1]
+
+
+def recalibrate_key(realm: str, agent_id: str, service_id: str) -> str:
+    """Where the service answers re-calibration requests."""
+    from agent import keys
+    return keys.service_token(realm, agent_id, service_id) + "/recalibrate"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", default="alignment", help="service id (default: alignment)")
+    parser.add_argument("--a", required=True, metavar="PARENT:CHILD",
+                        help="edge (pattern) of tracker a's pose stream, world_a:sensor_a")
+    parser.add_argument("--b", required=True, metavar="PARENT:CHILD",
+                        help="edge (pattern) of tracker b's pose stream, world_b:sensor_b")
+    parser.add_argument("--from-file", metavar="CSV", default=None,
+                        help="align recorded pose pairs instead of live streams (columns: "
+                             + ",".join(records.COLUMNS) + "); no network")
+    parser.add_argument("--stations", action="store_true",
+                        help="with --from-file: each row is one synchronous station (a robot "
+                             "stopped at a pose); no time offset is estimated")
+    parser.add_argument("--output", default="alignment.toml", metavar="FILE",
+                        help="calibration file to write ([[static]] TOML for 'uma agent "
+                             "--config'; default alignment.toml)")
+    parser.add_argument("--method", default="daniilidis", choices=["daniilidis", "tsai-lenz"],
+                        help="closed-form solver before refinement (default daniilidis)")
+    parser.add_argument("--min-angle-deg", type=float, default=10.0,
+                        help="motion pairs must rotate by at least this (default 10)")
+    parser.add_argument("--min-spread-deg", type=float, default=30.0,
+                        help="rotation axes must spread by at least this before solving "
+                             "(default 30)")
+    parser.add_argument("--min-pairs", type=int, default=50,
+                        help="motion pairs needed before solving (default 50)")
+    parser.add_argument("--max-pos-std-mm", type=float, default=2.0,
+                        help="publish only when the position std (bootstrap, RMS per axis) "
+                             "is at most this; otherwise keep collecting (default 2)")
+    parser.add_argument("--max-rot-std-deg", type=float, default=0.2,
+                        help="likewise for the rotation std (default 0.2)")
+    parser.add_argument("--max-stations", type=int, default=40,
+                        help="stations used per solve (default 40: 780 motion pairs)")
+    parser.add_argument("--max-offset-ms", type=float, default=500.0,
+                        help="largest clock offset searched between the streams (default 500)")
+    parser.add_argument("--offset-ms", type=float, default=None,
+                        help="use this clock offset (t_b = t_a + offset) instead of "
+                             "estimating it")
+    parser.add_argument("--window-s", type=float, default=120.0,
+                        help="seconds of both streams kept (default 120)")
+    parser.add_argument("--recalibrate-every", type=float, default=0.0, metavar="S",
+                        help="also re-solve on the sliding window every S seconds (default 0: "
+                             "only on request)")
+    parser.add_argument("--bootstrap", type=int, default=100,
+                        help="resamples for the covariance (default 100)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, bootstrap)")
+    parser.add_argument("--json", action="store_true",
+                        help="with --from-file: print one JSON object")
+
+
+def options_from(args: argparse.Namespace) -> AlignmentOptions:
+    """The pipeline options of the command line (``ValueError`` names a bad one)."""
+    for name in ("min_angle_deg", "min_spread_deg", "max_offset_ms", "window_s",
+                 "recalibrate_every", "max_pos_std_mm", "max_rot_std_deg"):
+        value = getattr(args, name)
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite number >= 0, "
+                             f"got {value}")
+    if not 0 < args.min_angle_deg < 90:
+        raise ValueError(f"--min-angle-deg must lie in (0, 90), got {args.min_angle_deg}")
+    if args.min_pairs < 2 or args.bootstrap < 2:
+        raise ValueError("--min-pairs and --bootstrap must be >= 2")
+    if args.offset_ms is not None and not math.isfinite(args.offset_ms):
+        raise ValueError(f"--offset-ms must be finite, got {args.offset_ms}")
+    return AlignmentOptions(
+        method=args.method, min_angle_rad=math.radians(args.min_angle_deg),
+        max_stations=args.max_stations, bootstrap=args.bootstrap,
+        estimate_offset=args.offset_ms is None,
+        offset_s=(args.offset_ms or 0.0) / 1e3, max_offset_s=args.max_offset_ms / 1e3,
+        seed=args.seed)
+
+
+def static_attributes(result: AlignmentResult) -> dict[str, Any]:
+    """The ability attributes that carry the calibration's quality."""
+    return {
+        "static": True,
+        "pos_std_m": result.pos_std_m,
+        "rot_std_rad": result.rot_std_rad,
+        "covariance": geo.pack_covariance(result.covariance),
+        "residual_rot_rad": result.residual_rot_rad,
+        "residual_pos_m": result.residual_pos_m,
+        "time_offset_s": float(result.time_offset_s),
+        "pairs_inlier": result.n_inliers,
+        "pairs_selected": result.n_selected,
+        "method": result.method,
+    }
+
+
+# --------------------------------------------------------------------------- offline
+
+
+def run_from_file(args: argparse.Namespace) -> int:
+    """``--from-file``: align recorded pose pairs, print, write the calibration file."""
+    (_, sensor_a), (_, sensor_b) = parse_edge(args.a, "--a"), parse_edge(args.b, "--b")
+    _concrete(sensor_a, "--a")
+    _concrete(sensor_b, "--b")
+    options = options_from(args)
+    a, b = records.read_pose_pairs(args.from_file)
+    if args.stations:
+        result = align_stations(a.position, a.quaternion, b.position, b.quaternion, options,
+                                time_offset_s=options.offset_s)
+    else:
+        result = align_streams(a, b, options)
+    records.write_calibration(args.output, result, sensor_a, sensor_b)
+    summary = {"parent": sensor_a, "child": sensor_b, **result.summary(),
+               "output": args.output}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for key, value in summary.items():
+            print(f"{key}: {value}")
+    return 0
+
+
+def _concrete(frame: str, option: str) -> None:
+    if "*" in frame:
+        raise UmaError(f"{option}: the sensor frame {frame!r} must be a concrete frame id "
+                       "to name the calibrated edge")
+
+
+# --------------------------------------------------------------------------- online
+
+
+class StreamBuffer:
+    """The last ``window_s`` seconds of one pose stream; thread-safe appends.
+
+    Samples that are out of order, repeated, non-finite or not unit quaternions are
+    dropped (counted, logged at most once per reason); a change of the stream's edge
+    (the agent re-matched the need to another sensor) restarts the buffer.
+    """
+
+    def __init__(self, name: str, window_s: float) -> None:
+        self.name = name
+        self.window_ns = int(window_s * 1e9)
+        self.samples: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
+        self.edge: tuple[str, str] | None = None
+        self.dropped: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def add(self, m: Any) -> None:
+        try:
+            p = geo.check_vector(m.position, f"{self.name} position")
+            q = geo.check_quaternion(m.quaternion, f"{self.name} quaternion")
+            t = int(m.t_ns)
+        except (TypeError, ValueError) as exc:
+            self._drop(str(exc).split(":")[0], str(exc))
+            return
+        with self._lock:
+            edge = tuple(m.edge) if m.edge is not None else None
+            if edge != self.edge:
+                if self.edge is not None:
+                    log.info("%s: stream now %s -> %s; restarting its buffer", self.name,
+                             *edge or ("?", "?"))
+                self.samples.clear()
+                self.edge = edge
+            if self.samples and t <= self.samples[-1][0]:
+                self._drop("out of order", f"{self.name}: sample at {t} ns not after "
+                                           f"{self.samples[-1][0]} ns")
+                return
+            self.samples.append((t, p, q))
+            while self.samples and self.samples[0][0] < t - self.window_ns:
+                self.samples.popleft()
+
+    def _drop(self, reason: str, message: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+        if self.dropped[reason] == 1:
+            log.warning("%s (dropping such samples; counted in 'dropped')", message)
+
+    def clear(self) -> None:
+        with self._lock:
+            self.samples.clear()
+
+    def first_ns(self) -> int | None:
+        """Time of the oldest buffered sample."""
+        with self._lock:
+            return self.samples[0][0] if self.samples else None
+
+    def series(self, t0_ns: int) -> PoseSeries | None:
+        """The buffer as seconds since ``t0_ns``, or None with fewer than 3 samples."""
+        with self._lock:
+            if len(self.samples) < 3:
+                return None
+            t = np.array([s[0] for s in self.samples], dtype=np.int64)
+            p = np.array([s[1] for s in self.samples])
+            q = np.array([s[2] for s in self.samples])
+        return PoseSeries((t - t0_ns) / 1e9, p, q, self.name)
+
+
+def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOptions,
+              min_pairs: int, min_spread_rad: float) -> tuple[bool, str]:
+    """Whether the buffered motions condition X well enough to solve, and why not."""
+    if a is None or b is None:
+        return False, "waiting for both streams"
+    overlap = min(a.t[-1], b.t[-1]) - max(a.t[0], b.t[0])
+    needed = 10 * options.max_offset_s if options.estimate_offset else 0.0
+    if overlap < max(needed, 1.0):
+        return False, f"streams overlap {max(overlap, 0):.1f} s of the {max(needed, 1):.1f} needed"
+    pick = np.unique(np.linspace(0, len(a) - 1, _READINESS_STATIONS).astype(int))
+    motions = relative_motions(a.position[pick], a.quaternion[pick], a.position[pick],
+                               a.quaternion[pick], all_pairs(len(pick)))
+    sel = select_pairs(motions, options.min_angle_rad)
+    if len(sel.index) < min_pairs:
+        return False, (f"{len(sel.index)} of {min_pairs} motion pairs rotate by "
+                       f"{math.degrees(options.min_angle_rad):.0f} deg or more: keep moving")
+    if sel.axis_spread_rad < min_spread_rad:
+        return False, (f"rotation axes spread {math.degrees(sel.axis_spread_rad):.0f} of "
+                       f"{math.degrees(min_spread_rad):.0f} deg: rotate about other axes")
+    return True, "ready"
+
+
+class LiveAlignment:
+    """The online service's state: buffers, readiness, solving, publishing, persisting."""
+
+    def __init__(self, args: argparse.Namespace, options: AlignmentOptions) -> None:
+        self.args = args
+        self.options = options
+        self.a = StreamBuffer("stream a", args.window_s)
+        self.b = StreamBuffer("stream b", args.window_s)
+        self.result: AlignmentResult | None = None
+        self.edge: tuple[str, str] | None = None
+        self.status = "waiting for both streams"
+        self.requested = threading.Event()
+        self.last_solve = 0.0
+        self.last_attempt = -math.inf
+
+    def request(self) -> None:
+        """Start over: forget the buffered motions, collect new ones, solve again."""
+        self.a.clear()
+        self.b.clear()
+        self.requested.set()
+
+    def due(self) -> bool:
+        """Whether to try solving now (first result, request, or periodic)."""
+        now = time.monotonic()
+        if self.result is None or self.requested.is_set():
+            return now - self.last_attempt >= _RETRY_S
+        every = self.args.recalibrate_every
+        return every > 0 and now - self.last_solve >= every
+
+    def try_solve(self) -> AlignmentResult | None:
+        """Solve if the buffers are ready; the new result, or None (``status`` says why)."""
+        if self.a.edge is None or self.b.edge is None:
+            self.status = "waiting for both streams"
+            return None
+        firsts = [f for f in (self.a.first_ns(), self.b.first_ns()) if f is not None]
+        t0 = min(firsts) if firsts else 0
+        sa, sb = self.a.series(t0), self.b.series(t0)
+        ready, self.status = readiness(sa, sb, self.options, self.args.min_pairs,
+                                       math.radians(self.args.min_spread_deg))
+        if not ready:
+            return None
+        self.last_attempt = time.monotonic()
+        try:
+            result = align_streams(sa, sb, self.options)
+        except (AlignmentError, ValueError) as exc:
+            self.status = f"solve failed: {exc}"
+            log.warning("alignment: %s", self.status)
+            return None
+        if (result.pos_std_m > self.args.max_pos_std_mm / 1e3
+                or result.rot_std_rad > math.radians(self.args.max_rot_std_deg)):
+            self.status = (f"std {result.pos_std_m * 1e3:.2f} mm / "
+                           f"{math.degrees(result.rot_std_rad):.3f} deg not yet within "
+                           f"{self.args.max_pos_std_mm} mm / {self.args.max_rot_std_deg} deg: "
+                           "keep moving")
+            log.info("alignment: %s", self.status)
+            return None
+        self.requested.clear()
+        self.last_solve = time.monotonic()
+        self.result, self.edge = result, (self.a.edge[1], self.b.edge[1])
+        self.status = "calibrated"
+        log.info("alignment: %s -> %s calibrated: %s", *self.edge, result.summary())
+        return result
+
+
+def run(args: argparse.Namespace, stop: threading.Event) -> int:
+    if args.from_file:
+        return run_from_file(args)
+    from agent import Service  # here: '--help' and --from-file need no Zenoh
+
+    a_edge, b_edge = parse_edge(args.a, "--a"), parse_edge(args.b, "--b")
+    live = LiveAlignment(args, options_from(args))
+    with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
+                 listen=args.listen or None) as svc:
+        svc.need("a", type="pose6d", edge=a_edge, on_sample=live.a.add)
+        svc.need("b", type="pose6d", edge=b_edge, on_sample=live.b.add)
+        svc.start()
+        queryable = svc.session.declare_queryable(
+            recalibrate_key(svc.realm, svc.agent_id, svc.service_id),
+            lambda q: _answer_request(q, live))
+        try:
+            _serve(svc, live, stop)
+        finally:
+            queryable.undeclare()
+    return 0
+
+
+def _serve(svc: Any, live: LiveAlignment, stop: threading.Event) -> None:
+    """Solve when due and ready, publish the static edge, persist it."""
+    out = None
+    next_static = 0.0
+    while not stop.is_set():
+        if live.due():
+            result = live.try_solve()
+            if result is not None:
+                attrs = static_attributes(result)
+                if out is None:
+                    out = svc.ability("calibration", type="pose6d", edge=live.edge, **attrs)
+                else:
+                    out.update(**attrs)  # a new sensor pair (re-matched) keeps this edge
+                _persist(live)
+                next_static = 0.0
+        if out is not None and live.result is not None and time.monotonic() >= next_static:
+            out.publish(time.time_ns(), live.result.position, live.result.quaternion,
+                        live.result.covariance)
+            next_static = time.monotonic() + STATIC_REPUBLISH_S
+        stop.wait(_TICK_S)
+
+
+def _persist(live: LiveAlignment) -> None:
+    try:
+        records.write_calibration(live.args.output, live.result, *live.edge)
+    except AlignmentError as exc:  # keep serving the edge; say why the file is missing
+        log.error("alignment: %s", exc)
+
+
+def _answer_request(query: Any, live: LiveAlignment) -> None:
+    """Reply at once: the request is taken; the new result follows when motions allow."""
+    live.request()
+    reply = {"ok": True, "status": "collecting new motions",
+             "previous": None if live.result is None else live.result.summary()}
+    try:
+        query.reply(query.key_expr, json.dumps(reply).encode())
+    except Exception as exc:  # never raise into Zenoh's thread
+        log.warning("alignment: cannot answer re-calibration request: %s", exc)
+
+
+def request_recalibration(realm: str, agent_id: str, service_id: str = "alignment",
+                          connect: list[str] | None = None, timeout: float = 2.0,
+                          ) -> dict[str, Any]:
+    """Ask a running alignment service to re-calibrate; its acknowledgement.
+
+    A new session learns the service's queryable only after connecting, and a ``get`` that
+    reaches no queryable returns at once: retry until ``timeout``.
+    """
+    from agent.session import open_session
+
+    session = open_session("peer", None, connect or [], realm,
+                           require_connection=bool(connect))
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            left = max(deadline - time.monotonic(), 0.05)
+            for reply in session.get(recalibrate_key(realm, agent_id, service_id),
+                                     timeout=left):
+                if reply.ok is not None:
+                    return json.loads(reply.ok.payload.to_bytes())
+            time.sleep(0.1)
+    finally:
+        session.close()
+    raise TimeoutError(f"alignment service {service_id!r} of agent {agent_id!r} did not "
+                       f"answer within {timeout} s")
+
+
+PLUGIN = ServicePlugin(
+    name="alignment",
+    help="Tracker alignment (AX = XB, seed 000 ch. 3): needs two pose6d streams of rigidly "
+         "joined sensors (--a world_a:sensor_a, --b world_b:sensor_b), estimates their clock "
+         "offset and the pose of sensor_b in sensor_a once the motions are well conditioned, "
+         "publishes it as the static edge sensor_a -> sensor_b with residuals and covariance, "
+         "and writes it to a [[static]] TOML file for agents. --from-file aligns recorded "
+         "pose pairs offline.",
+    add_arguments=add_arguments,
+    run=run,
+)
