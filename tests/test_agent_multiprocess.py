@@ -4,6 +4,7 @@ loopback, a unique realm and fresh ports per test."""
 from __future__ import annotations
 
 import signal
+import time
 
 from agent_helpers.harness import (
     agent,
@@ -59,9 +60,11 @@ def test_preferred_ability_failover_on_sigkill_and_move_to_a_better_one(processe
     consumer.wait_for(lambda e: first_from(e, "fast"))
 
     mark = consumer.mark
+    t_kill = time.time_ns()
     processes.kill(fast.popen, signal.SIGKILL)
     consumer.wait_for(lambda e: matched_to(e, "head", "slow"), after=mark)
-    consumer.wait_for(lambda e: first_from(e, "slow"), after=mark)
+    ev = consumer.wait_for(lambda e: first_from(e, "slow"), after=mark)
+    print(f"SIGKILL -> first sample from the backup: {(ev['recv_ns'] - t_kill) / 1e6:.1f} ms")
 
     mark = consumer.mark
     service(processes, realm, "best", "hostB", ep_b, *PRODUCER, "--attr", "latency_s=0.001")
@@ -137,3 +140,27 @@ def test_client_agents_behind_a_router(processes, realm, tmp_path) -> None:
     consumer.wait_for(lambda e: first_from(e, "cam"))
     listed = services_json(realm, ep_r)
     assert [a["agent_id"] for a in listed["agents"]] == ["hostA", "hostB"]
+
+
+def test_frozen_producer_is_dropped_after_its_lease_and_regained(processes, realm) -> None:
+    ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
+    agent(processes, realm, "hostA", ep_a)
+    agent(processes, realm, "hostB", ep_b, connect=(ep_a,))
+    frozen = service(processes, realm, "fast", "hostB", ep_b, *PRODUCER,
+                     "--attr", "latency_s=0.002")
+    service(processes, realm, "slow", "hostA", ep_a, *PRODUCER, "--attr", "latency_s=0.02")
+    consumer = service(processes, realm, "fusion", "hostA", ep_a, "--need", "head",
+                       "--prefer", "latency_s")
+    consumer.wait_for(lambda e: first_from(e, "fast"))
+    mark = consumer.mark
+    frozen.popen.send_signal(signal.SIGSTOP)  # silent death: no socket closes
+    try:
+        t_stop = time.time_ns()
+        ev = consumer.wait_for(lambda e: first_from(e, "slow"), after=mark)
+        print(f"frozen producer -> backup sample after {(ev['recv_ns'] - t_stop) / 1e9:.3f} s "
+              "(lease 1 s)")
+        mark = consumer.mark
+    finally:
+        frozen.popen.send_signal(signal.SIGCONT)
+    # it wakes up, re-links, registers again and, being better, is taken back
+    consumer.wait_for(lambda e: first_from(e, "fast"), after=mark)
