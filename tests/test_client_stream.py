@@ -103,17 +103,20 @@ def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
     eps, t0 = skewed_world
     with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
         wait_for(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
+        for _ in range(5):  # a few round trips for the minimum-delay filter
+            c.pose(WORLD, EYE)
         at = time.time_ns() - 50_000_000  # 50 ms ago on the client's (unskewed) clock
         r = c.pose(WORLD, EYE, at=at, error="hops")
         assert abs(c.clock.offset("A") - SKEW_NS) < 20_000_000  # loaded CI: within 20 ms
         assert r.t_ns == at and r.path == [WORLD, HEAD, EYE]
         # the answer is the pose at `at`, not 3 s away from it: the eye moves < 0.1 m/s,
-        # so 1 mm allows ~10 ms of offset error while an uncorrected 3 s skew is ~0.2 m off
+        # so 2 mm allows ~20 ms of offset error while an uncorrected 3 s skew is ~0.2 m off
         T = expected_eye(at, t0)
-        np.testing.assert_allclose(r.position, T[:3, 3], atol=1e-3)
+        np.testing.assert_allclose(r.position, T[:3, 3], atol=2e-3)
         assert np.linalg.norm(expected_eye(at + SKEW_NS, t0)[:3, 3] - T[:3, 3]) > 0.05
-        # the remote timestamps came back on our clock too
-        assert abs(r.edges[0]["t_ns"] - at) < 20_000_000
+        # the remote timestamps came back on our clock too (the sample after `at`: 10 ms
+        # later at 100 Hz, more if the loaded machine delayed the tracker)
+        assert -20_000_000 < r.edges[0]["t_ns"] - at < 300_000_000
 
 
 def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, realm):
