@@ -26,6 +26,9 @@ WORLD, HEAD, EYE = "ivy/world", "alice/head", "alice/eye"
 SKEW_NS = 3_000_000_000
 EYE_P, EYE_Q = [0.03, 0.06, 0.05], geo.rotvec_to_quat(np.array([0.0, 0.2, 0.0])).tolist()
 RATE_HZ = 100.0
+#: a lease longer than the default 1 s: on a loaded CI machine a process stalled for a
+#: second would otherwise lose its links and its tokens (not what these tests are about)
+LEASE = {"UMA_LEASE_MS": "5000"}
 
 
 def motion(t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -86,14 +89,14 @@ def skewed_world(processes, tmp_path, realm):
     cfg.write_text(f'[[static]]\nparent = "{HEAD}"\nchild = "{EYE}"\nposition = {EYE_P}\n'
                    f"quaternion = {EYE_Q}\npos_std_m = 0.001\n")
     processes.start("agent", "--realm", realm, "--id", "A", "--listen", endpoint(pa),
-                    env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS)})
+                    env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS), **LEASE})
     processes.start("agent", "--realm", realm, "--id", "B", "--listen", endpoint(pb),
-                    "--connect", endpoint(pa), "--config", str(cfg))
+                    "--connect", endpoint(pa), "--config", str(cfg), env=LEASE)
     t0 = time.time_ns()
     processes.start("--realm", realm, "--agent", "A", "--connect", endpoint(pa),
                     "--t0", str(t0), "--skew", str(SKEW_NS), module="test_client_stream",
                     env={"PYTHONPATH": os.pathsep.join([str(Path(__file__).parent),
-                                                        *sys.path])})
+                                                        *sys.path]), **LEASE})
     return [endpoint(pa), endpoint(pb)], t0
 
 

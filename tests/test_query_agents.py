@@ -86,7 +86,9 @@ def start_agents(processes, tmp_path, realm, configs):
                 "--config", str(write_config(tmp_path / f"{name}.toml", edges))]
         if first is not None:
             args += ["--connect", endpoint(ports[first])]
-        procs[name] = processes.start(*args)
+        # a 5 s lease: a loaded machine must not make a stalled agent look gone (a killed
+        # one is still seen at once: its sockets close)
+        procs[name] = processes.start(*args, env={"UMA_LEASE_MS": "5000"})
         first = first or name
     return procs, [endpoint(p) for p in ports.values()]
 
