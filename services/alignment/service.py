@@ -268,9 +268,11 @@ def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOpti
     if a is None or b is None:
         return False, "waiting for both streams"
     overlap = min(a.t[-1], b.t[-1]) - max(a.t[0], b.t[0])
-    needed = 10 * options.max_offset_s if options.estimate_offset else 0.0
-    if overlap < max(needed, 1.0):
-        return False, f"streams overlap {max(overlap, 0):.1f} s of the {max(needed, 1):.1f} needed"
+    # the offset search needs 10x its range (timesync.coarse_offset), plus a margin for the
+    # stream ends
+    needed = (10 * options.max_offset_s if options.estimate_offset else 0.0) + 1.0
+    if overlap < needed:
+        return False, f"streams overlap {max(overlap, 0):.1f} s of the {needed:.1f} s needed"
     pick = np.unique(np.linspace(0, len(a) - 1, _READINESS_STATIONS).astype(int))
     motions = relative_motions(a.position[pick], a.quaternion[pick], a.position[pick],
                                a.quaternion[pick], all_pairs(len(pick)))
