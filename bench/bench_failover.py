@@ -10,10 +10,11 @@ One agent (``uma agent``, its own process) and pose producers (this script with
   the transport alone costs, without registration and matching).
 - **failover**: the preferred producer is SIGKILLed; time from the kill to the first sample
   from the backup.  Baseline: the time to the DELETE of the killed service's liveliness
-  token as a plain Zenoh subscriber sees it (the detection floor Zenoh gives).
+  token as a plain Zenoh subscriber sees it (the detection floor Zenoh gives).  Then the
+  same with a *frozen* producer (SIGSTOP: no socket closes, the 1 s lease decides).
   After each run a new preferred producer is started and the consumer moves back to it.
 
-    python bench/bench_failover.py [--runs 12] [--json]
+    python bench/bench_failover.py [--runs 12] [--freeze-runs 5] [--json]
 """
 
 from __future__ import annotations
@@ -142,7 +143,10 @@ def measure_connect(b: Bench, runs: int) -> tuple[list[float], list[float], list
     return to_match, to_sample, direct
 
 
-def measure_failover(b: Bench, runs: int) -> tuple[list[float], list[float]]:
+def measure_failover(b: Bench, runs: int, sig: int = signal.SIGKILL, tag: str = "best",
+                     ) -> tuple[list[float], list[float]]:
+    """Kill (or freeze, ``SIGSTOP``) the preferred producer ``runs`` times; returns the
+    times to the backup's first sample and to the token's DELETE."""
     import zenoh
 
     from agent import keys
@@ -160,7 +164,7 @@ def measure_failover(b: Bench, runs: int) -> tuple[list[float], list[float]]:
     c.svc.start()
     try:
         for i in range(runs):
-            best = f"best{i}"
+            best = f"{tag}{i}"
             p = b.start_producer(best, latency=0.001)
             c.svc.wait_matched("head", timeout=20,
                                until=lambda ms, s=best: [m.service_id for m in ms] == [s])
@@ -168,8 +172,9 @@ def measure_failover(b: Bench, runs: int) -> tuple[list[float], list[float]]:
             time.sleep(0.2)  # samples of the backup from before the move are delivered
             c.first.pop("cam0", None)
             t_kill = time.perf_counter()
-            p.send_signal(signal.SIGKILL)
+            p.send_signal(sig)
             t_backup = c.wait_first("cam0")
+            p.kill()  # a frozen one too (SIGKILL ends stopped processes)
             p.wait(5)
             failover.append(t_backup - t_kill)
             deadline = time.monotonic() + 5
@@ -197,6 +202,8 @@ def stats(name: str, xs: list[float], out: dict[str, float]) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=12, help="runs per measurement (>= 10)")
+    ap.add_argument("--freeze-runs", type=int, default=5,
+                    help="runs with a frozen (SIGSTOP) producer, ~1 s each (lease)")
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     ap.add_argument("--producer", help=argparse.SUPPRESS)
     ap.add_argument("--realm", help=argparse.SUPPRESS)
@@ -218,6 +225,7 @@ def main() -> int:
         to_sample.pop(0)
         direct.pop(0)
         failover, detect = measure_failover(b, args.runs)
+        frozen, lease = measure_failover(b, args.freeze_runs, signal.SIGSTOP, "frozen")
     finally:
         b.stop_all()
     figures: dict[str, float] = {"runs": args.runs, "cold_start_to_connected_ms": 1e3 * cold}
@@ -226,6 +234,9 @@ def main() -> int:
     stats("baseline_direct_subscribe_first_sample", direct, figures)
     stats("failover_sigkill_to_backup_sample", failover, figures)
     stats("baseline_zenoh_token_delete", detect, figures)
+    if frozen:
+        stats("failover_sigstop_to_backup_sample", frozen, figures)
+        stats("sigstop_token_delete_lease", lease, figures)
     figures["failover_over_detection_ratio"] = (
         figures["failover_sigkill_to_backup_sample_median_ms"]
         / figures["baseline_zenoh_token_delete_median_ms"])
