@@ -373,7 +373,12 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 
 def _serve(svc: Any, live: LiveAlignment, stop: threading.Event) -> None:
-    """Solve when due and ready, publish the static edge, persist it."""
+    """Solve when due and ready, publish the static edge, persist it.
+
+    One ability per calibrated edge (``calibration``, then ``calibration_2``... if a need
+    was re-matched to other sensors); a re-calibration updates its attributes.
+    """
+    outs: dict[tuple[str, str], Any] = {}
     out = None
     next_static = 0.0
     while not stop.is_set():
@@ -381,10 +386,13 @@ def _serve(svc: Any, live: LiveAlignment, stop: threading.Event) -> None:
             result = live.try_solve()
             if result is not None:
                 attrs = static_attributes(result)
+                out = outs.get(live.edge)
                 if out is None:
-                    out = svc.ability("calibration", type="pose6d", edge=live.edge, **attrs)
+                    name = "calibration" + (f"_{len(outs) + 1}" if outs else "")
+                    out = outs[live.edge] = svc.ability(name, type="pose6d", edge=live.edge,
+                                                        **attrs)
                 else:
-                    out.update(**attrs)  # a new sensor pair (re-matched) keeps this edge
+                    out.update(**attrs)
                 _persist(live)
                 next_static = 0.0
         if out is not None and live.result is not None and time.monotonic() >= next_static:
