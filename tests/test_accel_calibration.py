@@ -174,3 +174,30 @@ def test_reported_covariance_is_honest_nees():
     assert lo < honest < hi, (lo, honest, hi)
     overconfident = replace(cal, noise=replace(cal.noise, density_v=cal.noise.density_v / 4))
     assert _mean_nees(overconfident, device, runs) > hi
+
+
+def test_eval_plugin_reports_every_figure():
+    """A short ``uma eval accel-rig`` (the full one is run by hand: 100 runs per seed)."""
+    from argparse import Namespace
+
+    from services.accel_rig.evaluate import PLUGIN
+
+    fig = PLUGIN.run(Namespace(seconds=10.0, seed=1, json=True, runs=4, layout="marvin-six",
+                               poses="thesis", pose_seconds=2.0))
+    cal = fig["calibration"]
+    assert cal["poses"] == list(THESIS_POSES)
+    assert cal["bias_lsb_max"] < 1.0 and cal["scale_percent_max"] < 0.5
+    assert cal["axis_deg_max"] < 0.2 and cal["uncalibrated_bias_lsb_max"] > 5
+    for key in ("0.25s", "0.5s", "1s", "2s"):
+        assert 0 < fig["orientation_error_deg"][key]["median"] <= \
+            fig["orientation_error_deg"][key]["p95"] < 20
+        assert 0 < fig["position_error_m"][key]["median"] < 2
+        assert np.isfinite(fig["nees"][key]["mean"])
+    # drift grows with time, as inertial drift must
+    assert fig["position_error_m"]["2s"]["median"] > 10 * fig["position_error_m"]["0.25s"][
+        "median"]
+    lo, hi = fig["nees"]["bounds_95"]
+    assert lo < 6 < hi and set(fig["goals"]) >= {"median_orientation_error_1s_le_1deg"}
+    with pytest.raises(ValueError, match="--seconds must exceed"):
+        PLUGIN.run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
+                             poses="six", pose_seconds=2.0))
