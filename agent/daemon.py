@@ -271,6 +271,7 @@ class Agent:
         self._started_mono = time.monotonic()
         self._last_resend = time.monotonic()
         self._measured: dict[str, dict[str, float]] = {}
+        self._hold_over = False
 
     # -- life cycle
     def start(self) -> None:
@@ -607,8 +608,10 @@ class Agent:
                 self._dirty = True
             if new_instance:
                 # what the service is subscribed to right now (agent restart): keep it
-                known = [self.view.index.by_key.get(k) for k in reg.connected.get(need.name, ())]
-                self.needs[(sid, need.name)].sent = tuple(Match.of(o) for o in known if o)
+                self.needs[(sid, need.name)].sent = tuple(
+                    Match.of(offer) if offer else Match.unknown(k, need.type, self.realm)
+                    for k in reg.connected.get(need.name, ())
+                    for offer in [self.view.index.by_key.get(k)])
         for (s, name) in [k for k in self.needs if k[0] == sid]:
             if name not in {n.name for n in reg.descriptor.needs}:
                 del self.needs[(s, name)]
@@ -716,12 +719,12 @@ class Agent:
             self._send_if_changed(state, now)
         self._sync_monitors(now)
 
-    def _send_if_changed(self, state: NeedState, now: float, force: bool = False) -> None:
+    def _send_if_changed(self, state: NeedState, now: float) -> None:
         assert state.result is not None
         matches = tuple(Match.of(c.offer) for c in state.result.chosen)
-        if not force and state.sent is not None and matches == state.sent:
+        if state.sent is not None and matches == state.sent:
             return
-        if (not matches and state.sent and now - self._started_mono < STARTUP_HOLD_S):
+        if state.sent and now - self._started_mono < STARTUP_HOLD_S:
             return  # the view may still be filling up: keep what the service has
         self._send(state, matches, now)
 
@@ -762,6 +765,9 @@ class Agent:
         measured = {k: m for k, m in ((k, mon.measure(now)) for k, mon in self.monitors.items())
                     if m is not None}
         self._measured = measured  # shown in snapshots (uma services)
+        if not self._hold_over and now - self._started_mono >= STARTUP_HOLD_S:
+            self._hold_over = True
+            self._dirty = True  # send what was held back
         for state in self.needs.values():
             self._judge(state, measured, now)
         for sid in self.view.expired_pending(now):

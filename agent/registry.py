@@ -127,6 +127,13 @@ class Match:
                    None if a.edge is None else (a.edge[0], a.edge[1]),
                    a.attributes.model_dump(mode="json", exclude_none=True))
 
+    @classmethod
+    def unknown(cls, key: str, type_: str, realm: str) -> Match:
+        """A data key a service reports being subscribed to that this agent does not know
+        (yet): what the key itself says."""
+        parts = keys.parse_data(key, realm) or ("?", "?", "?")
+        return cls(key, parts[0], parts[1], parts[2], type_, None, {})
+
     def to_wire(self) -> dict[str, Any]:
         return {"key": self.key, "agent_id": self.agent_id, "service_id": self.service_id,
                 "ability": self.ability, "type": self.type,

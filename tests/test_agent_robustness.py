@@ -152,6 +152,15 @@ def test_services_wait_for_their_agent_and_survive_its_restart(processes, realm)
     assert not any(matched_to(e, "head") for e in consumer.events[mark:])
     assert cam.popen.poll() is None
 
+    # an ability that vanished while the agent was down is disconnected once it is back
+    host = next(p for p in processes.procs[::-1] if "agent" in p.args)
+    processes.kill(host, signal.SIGKILL)
+    host.wait(timeout=10)
+    processes.kill(cam.popen, signal.SIGKILL)
+    mark = consumer.mark
+    agent(processes, realm, "hostA", ep)
+    consumer.wait_for(lambda e: matched_to(e, "head"), after=mark)
+
 
 def test_agent_cli_errors_and_clean_shutdown(processes, realm, tmp_path) -> None:
     import subprocess
