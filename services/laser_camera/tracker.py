@@ -56,7 +56,7 @@ class TrackerParams:
     gate_margin_m: float = 0.05
     coherence_s: float = 0.3  # beyond this gap without a pose, re-initialise (upright)
     min_upright_cos: float = 0.3  # initialisation needs the rig's z within ~73 deg of up
-    init_pool_eps: float = 0.02  # labelings this close to the best compete at initialisation
+    pool_eps: float = 0.02  # labelings this close to the best fit compete for the choice
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
 
@@ -185,11 +185,15 @@ class LaserTracker:
             return self._fail(t, "no_consistent_labeling", n,
                               f"no labeling of {n} dots fits the housing (eps > "
                               f"{p.max_labeling_error})")
+        # the true labeling and its reflection score alike up to noise; worse fits (a
+        # distractor in the subset, a lost dot) compete only if they are nearly as good
+        eps_min = min(c.error for c, _ in cands)
+        pool = [(c, s) for c, s in cands if c.error <= eps_min + p.pool_eps]
         last = self._last
         tracking = last is not None and 0 <= t - last.t <= p.coherence_s
-        if tracking:
-            angles = [float(geo.quat_angle(last.quaternion, c.quaternion)) for c, _ in cands]
-            best, subset = cands[int(np.argmin(angles))]
+        if tracking:  # temporal coherence: the smallest error quaternion (eqs. 5.10-5.11)
+            angles = [float(geo.quat_angle(last.quaternion, c.quaternion)) for c, _ in pool]
+            best, subset = pool[int(np.argmin(angles))]
             dt = t - last.t
             turn = np.degrees(min(angles))
             move = float(np.linalg.norm(best.position - last.position))
@@ -197,10 +201,7 @@ class LaserTracker:
                     or move > p.max_speed_mps * dt + p.gate_margin_m:
                 return self._fail(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
                                   f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
-        else:
-            # the true labeling and its reflection score alike up to noise
-            eps_min = min(c.error for c, _ in cands)
-            pool = [(c, s) for c, s in cands if c.error <= eps_min + p.init_pool_eps]
+        else:  # initialisation: the user stands upright (thesis §5.3)
             ups = [float(geo.quat_rotate(c.quaternion, [0.0, 0.0, 1.0])[2]) for c, _ in pool]
             k = int(np.argmax(ups))
             if ups[k] < p.min_upright_cos:
