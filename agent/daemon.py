@@ -35,6 +35,12 @@ What it does, in one Zenoh peer session:
 Threads: Zenoh callbacks only enqueue; one worker thread owns all state (no locks), does
 the matching and all Zenoh calls; a feed thread decodes local pose samples for the SRG.
 
+Robustness: every ``RESEND_S`` (5 s) the agent re-sends each need's set (idempotent) and
+asks for all live tokens, handling any its liveliness subscriptions missed.  After a
+restart it holds back changes to the connections its services report for
+``STARTUP_HOLD_S`` (2 s), while its view of the realm fills up, so restarting an agent
+never interrupts data; what vanished meanwhile is disconnected after that.
+
 Timing defaults (``[matching]`` / ``[zenoh]`` in the TOML config): ``grace_s`` 0.5,
 ``rate_window_s`` 0.5, lease 1000 ms (``agent.session``).  A SIGKILLed service is noticed in
 ~2 ms (its sockets close), a frozen one after the lease; a rate drop after about
@@ -469,23 +475,22 @@ class Agent:
         missed (a liveliness subscription declared before its links were up may not get
         the tokens that existed then)."""
         assert self.session is not None
-        r = self.realm
 
-        def on_agent(reply: zenoh.Reply) -> None:
-            ok = reply.ok
-            if ok is not None:
-                agent_id = keys.parse_agent_token(str(ok.key_expr), r)
-                if agent_id and agent_id != self.agent_id \
-                        and agent_id not in self.view.live_agents:
-                    self._enqueue(self._on_agent_token, ok)
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._enqueue(self._on_resync_token, reply.ok)
+        liveliness = self.session.liveliness()
+        liveliness.get(keys.all_agent_tokens(self.realm), on_reply, timeout=1.0)
+        liveliness.get(keys.service_tokens(self.realm), on_reply, timeout=1.0)
 
-        def on_service(reply: zenoh.Reply) -> None:
-            ok = reply.ok
-            if ok is not None and keys.parse_service_token(str(ok.key_expr), r) \
-                    not in self.view.live_services:
-                self._enqueue(self._on_service_token, ok)
-        self.session.liveliness().get(keys.all_agent_tokens(r), on_agent, timeout=1.0)
-        self.session.liveliness().get(keys.service_tokens(r), on_service, timeout=1.0)
+    def _on_resync_token(self, smp: zenoh.Sample) -> None:
+        key = str(smp.key_expr)
+        agent_id = keys.parse_agent_token(key, self.realm)
+        if agent_id is not None:
+            if agent_id != self.agent_id and agent_id not in self.view.live_agents:
+                self._on_agent_token(smp)
+        elif keys.parse_service_token(key, self.realm) not in self.view.live_services:
+            self._on_service_token(smp)
 
     def _on_snapshot(self, key: str, data: bytes) -> None:
         agent_id = keys.parse_agent_services(key, self.realm)
