@@ -271,3 +271,22 @@ def test_optical_pose_older_than_the_history_is_dropped_not_applied():
     assert not tracker.add_rig_pose(0.05, p + 0.5, q, cov, HEAD_TO_LASER_RIG)
     assert tracker.stats.optical_too_old == 1
     assert np.array_equal(tracker.ekf.x, before.x)
+
+
+def test_a_lagging_inertial_stream_stays_the_clock_and_a_stalled_one_is_bypassed():
+    model = _model()
+    tracker = FusionTracker(FusionEKF(model), max_wait_s=0.1)
+    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    tracker.add_rig_pose(0.0, p, q, cov, HEAD_TO_LASER_RIG, now=0.0)
+    accepted = 0
+    for i in range(1, 300):              # accelerometers arrive 0.3 s behind the optics
+        wall = i / 300 + 0.3
+        if i % 20 == 0:
+            tracker.add_rig_pose(wall, p, q, cov, HEAD_TO_LASER_RIG, now=wall)
+        accepted += tracker.add_accel(i / 300, rest, now=wall)
+    assert accepted == 299 and tracker.stats.optical_waited_out == 0
+    assert tracker.ekf.stats.pose_updates > 5          # applied when the stream got there
+    tracker.add_rig_pose(1.5, p, q, cov, HEAD_TO_LASER_RIG, now=5.0)   # no accel for 4 s
+    assert tracker.stats.optical_waited_out >= 1 and tracker.ekf.t == pytest.approx(1.5)

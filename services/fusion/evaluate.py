@@ -106,38 +106,52 @@ def laser_calibration(world: IvyWorld, cache: bool) -> Any:
 
 def laser_calibration_file(world: IvyWorld, announce: bool = False) -> Path:
     """The cached calibration file of ``world``'s cameras, calibrating on a cache miss."""
+    import services.laser_camera
+    import services.sim
     from services.laser_camera.calibration import Calibration, calibrate_sim
 
-    path = _cache_dir() / f"laser_calibration_{world.config.n_cameras}cam_{_code_hash()}.json"
+    return cached_file(f"laser_calibration_{world.config.n_cameras}cam",
+                       (services.sim, services.laser_camera), Calibration.load,
+                       lambda path: calibrate_sim(world).save(path),
+                       "calibrating the simulated cameras once (about 20 s)" if announce else "")
+
+
+def accel_calibration_file(seed: int = 0, announce: bool = False) -> Path:
+    """The cached static calibration (§4.4.2) of the simulated accelerometer device."""
+    import services.accel_rig
+    from services.accel_rig.sensor import Calibration
+
+    return cached_file(f"accel_calibration_{seed}", (services.accel_rig,), Calibration.load,
+                       lambda path: calibrated_accelerometers(
+                           accel_sim.DEFAULT_RATE_HZ, seed)[1].save(path),
+                       "calibrating the simulated accelerometers once" if announce else "")
+
+
+def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
+                announce: str = "") -> Path:
+    """``~/.cache/uma/<name>_<hash>.json``, made by ``make(path)`` unless a file that
+    ``load`` accepts exists.  The hash covers the sources of ``packages``, so a file made by
+    other code is never reused; written atomically (concurrent runs are safe)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for pkg in packages:
+        for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
+            h.update(f.read_bytes())
+    path = _cache_dir() / f"{name}_{h.hexdigest()[:12]}.json"
     if path.exists():
         try:
-            Calibration.load(path)
+            load(path)
             return path
         except (ValueError, KeyError, OSError):
             path.unlink(missing_ok=True)
     if announce:
-        print("calibrating the simulated cameras once (about 20 s; cached in "
-              f"{path.parent})", flush=True)
-    cal = calibrate_sim(world)
+        print(f"{announce}; cached in {path.parent}", flush=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    cal.save(tmp)
+    make(tmp)
     tmp.replace(path)
     return path
-
-
-def _code_hash() -> str:
-    """Hash of the simulator and laser-tracker sources (the calibration's inputs)."""
-    import hashlib
-
-    import services.laser_camera
-    import services.sim
-
-    h = hashlib.sha1()
-    for pkg in (services.sim, services.laser_camera):
-        for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
-            h.update(f.read_bytes())
-    return h.hexdigest()[:12]
 
 
 def _cache_dir() -> Path:

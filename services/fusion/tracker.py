@@ -1,11 +1,18 @@
 """Live fusion: the EKF fed by asynchronous streams whose samples arrive late and out of order.
 
-The accelerometer stream arrives within a millisecond of sampling; a laser-camera pose
-arrives tens of milliseconds after the instant it describes (exposure, image transfer,
-dot detection).  SCAAT needs every measurement applied at its own time, so the tracker
-keeps snapshots of the filter and the recent accelerometer samples: a late optical pose
-rewinds to the last snapshot before it, is applied at its time, and the accelerometer
-samples after it are replayed.  The fused output therefore never waits for the optics.
+SCAAT needs every measurement applied at its own time, but the streams arrive with their
+own delays.  The accelerometer stream is the filter's clock:
+
+* an optical pose older than the filter (it arrived late: exposure, transfer, dot
+  detection) rewinds to the last snapshot before it, is applied at its time, and the
+  accelerometer samples after it are replayed -- the fused output never waits for the
+  optics;
+* an optical pose newer than the filter (the accelerometer samples of that instant are
+  still on their way: a busy or distant inertial service lags) waits until the inertial
+  stream reaches its time; only when no accelerometer sample has *arrived* for
+  ``max_wait_s`` of wall-clock time (the inertial stream stalled) is it applied at once.
+  Judging the stall by arrival, not by timestamps, keeps a lagging inertial stream the
+  clock instead of locking it out.
 
 Pure computation (no I/O): the fusion service feeds it from its need callbacks.
 """
@@ -13,6 +20,8 @@ Pure computation (no I/O): the fusion service feeds it from its need callbacks.
 from __future__ import annotations
 
 import bisect
+import math
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -24,6 +33,8 @@ from services.fusion.ekf import FilterState, FusionEKF
 HISTORY_S = 0.5
 #: snapshot every this many accelerometer samples (replay cost vs memory)
 SNAPSHOT_EVERY = 8
+#: without an accelerometer sample for this long (wall clock), optical poses go in alone
+MAX_WAIT_S = 0.1
 
 
 @dataclass
@@ -32,6 +43,7 @@ class TrackerStats:
     optical_poses: int = 0
     optical_late: int = 0      # applied by rewinding and replaying
     optical_too_old: int = 0   # older than the history: dropped
+    optical_waited_out: int = 0  # applied without waiting longer for the inertial stream
     replayed_samples: int = 0
 
 
@@ -39,21 +51,30 @@ class FusionTracker:
     """``add_accel(t, readings)`` and ``add_rig_pose(t, p, q, cov, mount)`` in arrival
     order; ``pose(horizon)`` is the latest fused head pose."""
 
-    def __init__(self, ekf: FusionEKF, history_s: float = HISTORY_S):
+    def __init__(self, ekf: FusionEKF, history_s: float = HISTORY_S,
+                 max_wait_s: float = MAX_WAIT_S):
         self.ekf = ekf
         self.history_s = float(history_s)
+        self.max_wait_s = float(max_wait_s)
         self.stats = TrackerStats()
+        self._pending: list[tuple[float, tuple]] = []   # optical poses ahead of the filter
+        self._last_accel_wall = -math.inf
         self._samples: deque[tuple[float, float, np.ndarray]] = deque()  # (motion t, t, a)
         self._snapshots: deque[FilterState] = deque()
 
-    def add_accel(self, t: float, readings: np.ndarray) -> bool:
+    def add_accel(self, t: float, readings: np.ndarray, now: float | None = None) -> bool:
         """One accelerometer sample (all axes) taken at ``t``; False before initialisation
         or if the sample is older than the filter (a duplicate or a reordered packet)."""
         ekf = self.ekf
         readings = np.asarray(readings, float).reshape(-1)
+        self._last_accel_wall = time.monotonic() if now is None else now
         if not ekf.initialised:
             return False
         motion_t = t - ekf.accel.latency_s
+        if motion_t < ekf.t:
+            return False
+        while self._pending and self._pending[0][0] <= motion_t:
+            self._apply_now(*self._pending.pop(0))
         if motion_t < ekf.t:
             return False
         ekf.update_accel_sample(t, readings)
@@ -65,15 +86,21 @@ class FusionTracker:
         return True
 
     def add_rig_pose(self, t: float, p: np.ndarray, q: np.ndarray, cov_se3: np.ndarray,
-                     mount: tuple[np.ndarray, np.ndarray]) -> bool:
+                     mount: tuple[np.ndarray, np.ndarray], now: float | None = None) -> bool:
         """An optical rig pose for time ``t``, however late it arrives; False if gated or
         older than the history."""
         ekf = self.ekf
         self.stats.optical_poses += 1
-        if not ekf.initialised or t >= ekf.t:
-            ok = ekf.update_rig_pose(t, p, q, cov_se3, mount)
-            self._snapshot()
-            return ok
+        if not ekf.initialised:
+            return self._apply_now(t, (p, q, cov_se3, mount))
+        if t >= ekf.t:
+            bisect.insort(self._pending, (t, (p, q, cov_se3, mount)), key=lambda e: e[0])
+            now = time.monotonic() if now is None else now
+            if now - self._last_accel_wall > self.max_wait_s:   # inertial stream stalled
+                while self._pending:
+                    self.stats.optical_waited_out += 1
+                    self._apply_now(*self._pending.pop(0))
+            return True
         times = [s.t for s in self._snapshots]
         k = bisect.bisect_right(times, t) - 1
         if k < 0:
@@ -96,6 +123,11 @@ class FusionTracker:
             if (i + 1) % SNAPSHOT_EVERY == 0:
                 self._snapshot()
         self.stats.replayed_samples += len(replay)
+        return ok
+
+    def _apply_now(self, t: float, pose: tuple) -> bool:
+        ok = self.ekf.update_rig_pose(t, *pose)
+        self._snapshot()
         return ok
 
     def pose(self, horizon_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
