@@ -262,7 +262,8 @@ class Agent:
         self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.Queue()
         self._feed_q: queue.Queue[tuple[tuple[str, str], bytes, str] | None] = queue.Queue(
             FEED_QUEUE)
-        self._feeds: dict[tuple[str, str], tuple[Any, Ability]] = {}
+        # (service id, ability name) -> (subscriber, ability, its attributes as a dict)
+        self._feeds: dict[tuple[str, str], tuple[Any, Ability, dict[str, Any]]] = {}
         self._decls: list[Any] = []
         self._token: Any = None
         self._pending: dict[str, PendingRegistration] = {}
@@ -397,7 +398,7 @@ class Agent:
                 log.exception("closing the SRG node failed")
             self.srg = None
         for obj in [self._token, *self._decls, *(m.subscriber for m in self.monitors.values()),
-                    *(sub for sub, _ in self._feeds.values())]:
+                    *(feed[0] for feed in self._feeds.values())]:
             if obj is not None:
                 with contextlib.suppress(Exception):
                     obj.undeclare()
@@ -655,11 +656,11 @@ class Agent:
         if self.srg is None or self.session is None:
             return
         wanted = {a.name: a for a in abilities if a.type == "pose6d"}
-        for (s, name), (sub, ability) in list(self._feeds.items()):
+        for (s, name), (sub, ability, _) in list(self._feeds.items()):
             if s != sid:
                 continue
             if name in wanted:
-                self._feeds[(s, name)] = (sub, wanted[name])
+                self._feeds[(s, name)] = (sub, wanted[name], _attributes(wanted[name]))
                 continue
             sub.undeclare()
             del self._feeds[(s, name)]
@@ -676,7 +677,7 @@ class Agent:
                 except queue.Full:
                     self._bad.warning(f"data {k}", "SRG feed queue full; sample dropped")
             self._feeds[(sid, name)] = (self.session.declare_subscriber(key, on_sample),
-                                        wanted[name])
+                                        wanted[name], _attributes(wanted[name]))
 
     def _feed(self) -> None:
         while True:
@@ -687,14 +688,14 @@ class Agent:
             entry = self._feeds.get(feed)
             if entry is None:
                 continue  # the ability went away meanwhile
-            ability = entry[1]
+            _, ability, attributes = entry
             try:
                 m = decode_measurement(data, expected_type="pose6d")
             except DecodeError as exc:
                 self._bad.warning(f"data {key}", f"dropped a malformed sample: {exc}")
                 continue
             m.edge, m.source = ability.edge, feed[0]
-            m.attributes = ability.attributes
+            m.attributes = attributes
             self._srg_call("on_local_sample", feed[0], ability, m)
 
     def _srg_call(self, method: str, *args: Any) -> None:
@@ -868,6 +869,11 @@ def _choice_status(c: Choice, measured: dict[str, float] | None) -> dict[str, An
     return {"key": o.key, "agent_id": o.agent_id, "service_id": o.service_id,
             "ability": o.ability.name, "score": c.score if math.isfinite(c.score) else None,
             "local": c.local, "measured": dict(measured or {})}
+
+
+def _attributes(ability: Ability) -> dict[str, Any]:
+    """An ability's attributes as the plain dict samples carry (as in the service SDK)."""
+    return ability.attributes.model_dump(mode="json", exclude_none=True)
 
 
 def _fmt(values: Mapping[str, float]) -> str:

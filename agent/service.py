@@ -20,7 +20,9 @@ never on a Zenoh thread; an exception in a callback is logged, not fatal.
 The service registers with its local agent (``agent.registry`` documents the protocol): if
 the agent is not running yet, ``start()`` waits ``register_timeout`` seconds, then returns
 and the service registers as soon as the agent appears (and again whenever the agent
-restarts).  A duplicate service id is refused: ``start()`` raises ``UmaError``.  The agent
+restarts).  A duplicate service id is refused: ``start()`` raises ``UmaError`` (a refusal
+that arrives after ``start()`` returned, because the agent appeared later, is logged and
+kept in ``svc.error``).  The agent
 then tells the service which data keys each need subscribes to; the service subscribes
 directly (agents are not in the data path) and follows every re-match without any action
 by the code using it.  ``svc.matches(name)`` and ``svc.wait_matched(name)`` expose them.

@@ -90,6 +90,7 @@ def test_srg_hook_receives_local_pose_samples_and_removals(fake_srg, realm) -> N
             sid, ability, m = node.samples[0]
             assert sid == "cam" and ability.name == "pose" and ability.type == "pose6d"
             assert m.edge == ("ivy/world", "alice/head") and m.source == "cam"
+            assert m.attributes["frequency_hz"] == 100
             np.testing.assert_allclose(m.position, [1, 2, 3])
             out.update(frequency_hz=50)  # an attribute change keeps the feed
             assert svc.wait_registered(10)
