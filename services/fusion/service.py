@@ -25,6 +25,7 @@ import argparse
 import logging
 import math
 import threading
+import time
 from types import SimpleNamespace
 from typing import Any
 
@@ -40,6 +41,7 @@ log = logging.getLogger("uma.fusion")
 
 MOUNT_RETRY_S = 0.5
 MOUNT_REFRESH_S = 5.0
+STATUS_EVERY_S = 2.0
 #: a laser pose without covariance is taken with these standard deviations
 DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
 
@@ -123,6 +125,15 @@ class LiveFusion:
             cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
         self.tracker.add_rig_pose(self._seconds(m.t_ns), m.position, m.quaternion, cov,
                                   self.optical_mount)
+
+    def status(self) -> dict[str, Any]:
+        """Counters for the log: what came in, what went out, what was dropped and why."""
+        with self._lock:
+            out: dict[str, Any] = {"published": self.published, "dropped": dict(self.dropped)}
+            if self.tracker is not None:
+                out["tracker"] = vars(self.tracker.stats).copy()
+                out["filter"] = vars(self.tracker.ekf.stats).copy()
+            return out
 
     # -- internals
     def _build(self, m: Any) -> bool:
@@ -212,6 +223,7 @@ def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.E
     from agent.errors import UmaError
 
     wanted = ((args.optical_rig, live.on_optical_mount), (args.accel_rig, live.on_accel_mount))
+    next_status = time.monotonic() + STATUS_EVERY_S
     with Client(realm=args.realm, connect=args.connect, timeout=1.0) as client:
         while not stop.is_set():
             missing = 0
@@ -223,7 +235,12 @@ def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.E
                     live._drop(f"mounting {args.head} -> {rig} not in the SRG yet ({exc})")
                     continue
                 setter(SimpleNamespace(position=r.position, quaternion=r.quaternion))
-            stop.wait(MOUNT_RETRY_S if missing else MOUNT_REFRESH_S)
+            deadline = time.monotonic() + (MOUNT_RETRY_S if missing else MOUNT_REFRESH_S)
+            while not stop.is_set() and time.monotonic() < deadline:
+                if time.monotonic() >= next_status:
+                    log.info("fusion: %s", live.status())
+                    next_status = time.monotonic() + STATUS_EVERY_S
+                stop.wait(min(0.5, max(0.0, deadline - time.monotonic())))
 
 
 PLUGIN = ServicePlugin(
