@@ -113,9 +113,10 @@ def test_two_realms_on_the_same_endpoints_never_meet(processes, realm) -> None:
     ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
     agent(processes, realm, "hostA", ep_a)
     agent(processes, other, "hostA", ep_b, connect=(ep_a,))
-    service(processes, other, "cam", "hostA", ep_b, *PRODUCER)
+    cam = service(processes, other, "cam", "hostA", ep_b, *PRODUCER)
     consumer = service(processes, realm, "fusion", "hostA", ep_a, "--need", "head")
-    consumer.wait_for(lambda e: e.get("event") == "started")
+    for proc in (cam, consumer):
+        proc.wait_for(lambda e: e.get("event") == "started" and e["registered"])
     seen_other = services_json(other, ep_a)  # same endpoint, other realm
     assert [a["agent_id"] for a in seen_other["agents"]] == ["hostA"]
     assert [s["service_id"] for s in seen_other["agents"][0]["services"]] == ["cam"]
