@@ -36,6 +36,13 @@ def register_raw(session: zenoh.Session, realm: str, agent_id: str, payload: byt
     raise AssertionError("the agent did not answer the registration")
 
 
+def wait_token(session: zenoh.Session, key: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not any(r.ok is not None for r in session.liveliness().get(key, timeout=1.0)):
+        assert time.monotonic() < deadline, f"token {key} not seen"
+        time.sleep(0.05)
+
+
 def descriptor(**fields) -> bytes:
     return msgpack.packb({"v": 1, "service_id": "evil", "agent_id": "hostA", **fields})
 
@@ -49,7 +56,11 @@ def test_bad_input_is_refused_with_reasons_and_the_agent_keeps_working(processes
     consumer.wait_for(lambda e: first_from(e, "cam"))
 
     with open_session(connect=[ep]) as s:
-        time.sleep(0.3)  # let gossip link this peer to the services
+        # linked to the agent and (by gossip) to the services before sending them anything
+        for token in (keys.agent_token(realm, "hostA"),
+                      keys.service_token(realm, "hostA", "fusion"),
+                      keys.service_token(realm, "hostA", "cam")):
+            wait_token(s, token)
         cases = {
             b"\xc1garbage": "not valid msgpack",
             register_request(descriptor(needs=[{"name": "n", "type": "pose6d",
