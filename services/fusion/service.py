@@ -207,10 +207,13 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
                           frequency_hz=300.0, latency_s=0.002, fused=True,
                           predicted_s=args.horizon_ms / 1e3)
         live.publish = out.publish
+        # Mild predicates: the agent re-matches on *measured* rates, and on a busy host a
+        # strict one (e.g. >= 100 Hz for 300 Hz accelerometers) would disconnect the only
+        # source during a hiccup.  The filter copes with slow or irregular streams itself.
         svc.need("optical", type="pose6d", edge=(args.world, args.optical_rig),
-                 where="frequency_hz >= 10", prefer="latency_s", on_sample=live.on_optical)
+                 where="frequency_hz >= 2", prefer="latency_s", on_sample=live.on_optical)
         svc.need("accel", type="accel_raw", edge=("*/*", args.accel_rig),
-                 where="frequency_hz >= 100", on_sample=live.on_accel)
+                 where="frequency_hz >= 20", prefer="latency_s", on_sample=live.on_accel)
         svc.start()
         log.info("fusion: publishing %s -> %s", args.world, args.head)
         poll_mountings(live, args, stop)
