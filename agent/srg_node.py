@@ -115,6 +115,7 @@ class SrgNode:
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
         self._remote_frames: dict[str, set[str]] = {}
+        self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
         self._published: tuple[int, frozenset[str]] | None = None
         #: distinguishes this run's summary revisions from a restarted agent's
@@ -296,13 +297,18 @@ class SrgNode:
         self._wake.set()
 
     def _on_agent_token(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.DELETE:
-            return
+        """An agent appeared (fetch its summary: it may have published before we were
+        linked) or left (forget its frames)."""
         agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
-        if agent is not None:
-            with self._lock:
+        if agent is None or agent == self.agent_id:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
                 self._remote_frames.pop(agent, None)
-            self._wake.set()
+                self._to_fetch.discard(agent)
+            else:
+                self._to_fetch.add(agent)
+        self._wake.set()
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -311,10 +317,18 @@ class SrgNode:
             if self._stop.is_set():
                 return
             try:
+                self._fetch_new()
                 self._republish_if_changed()
             except Exception as exc:  # keep the agent alive; say why once in a while
                 self._bad.warning("supernode", f"{type(exc).__name__}: {exc}")
             self._stop.wait(PUBLISH_CHECK_S)
+
+    def _fetch_new(self) -> None:
+        with self._lock:
+            agents, self._to_fetch = self._to_fetch, set()
+        for agent in sorted(agents):
+            self.session.get(keys.agent_supernode(self.realm, agent), self._on_summary_reply,
+                             timeout=2.0)
 
     def _republish_if_changed(self) -> None:
         with self._lock:
