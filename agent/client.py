@@ -357,8 +357,10 @@ class Client:
         """One query to the query key of every agent (or of the only one in ``agents``);
         the answers by agent id, each with our send and receive times.  One query rather
         than one per agent: a ``get`` costs about as much to issue as a loopback round
-        trip."""
+        trip.  Returns as soon as every agent in ``agents`` has answered (else when the
+        query ends: all agents are done, or the timeout)."""
         answers: dict[str, tuple[dict[str, Any], int, int]] = {}
+        expected = set(agents)
         done = threading.Event()
         prefix, suffix = f"{keys.realm_root(self.realm)}/agent/", "/query"
 
@@ -376,6 +378,8 @@ class Client:
                 answers[agent] = (decode_message(reply.ok.payload.to_bytes()), t1, t4)
             except DecodeError as exc:
                 answers[agent] = ({"ok": False, "error": f"unreadable answer: {exc}"}, t1, t4)
+            if expected and expected.issubset(answers):
+                done.set()  # no need to wait for agents that have nothing to say
 
         payload = encode_message(msg)
         t1 = time.time_ns()
