@@ -163,17 +163,31 @@ def test_calibrate_command_with_simulator_and_with_recordings(tmp_path):
 
 @pytest.mark.parametrize("args, msg", [
     (["--source", "csv:/nonexistent.csv"], "real input needs --calibration"),
-    (["--calibration", "/nonexistent.json"], "cannot read|No such file"),
+    (["--calibration", "/nonexistent.json"], "No such file"),
     (["--rate-hz", "0"], "--rate-hz must be within"),
     (["--calibrate", "--pose", "+x=/nonexistent.csv"], "cannot read"),
     (["--calibrate", "--pose", "up=/x.csv"], "expected one of"),
     (["--pose", "+x=a.csv"], "--pose is for --calibrate"),
+    (["--mount", "1,2"], "expected 7 numbers"),
 ])
-def test_bad_command_lines_give_clear_errors(args, msg):
-    r = _uma("service", "run", "accel-rig", *args)
-    assert r.returncode == 1, (r.returncode, r.stderr)
-    assert "Traceback" not in r.stderr
-    assert re.search(msg, r.stderr), r.stderr
+def test_bad_options_are_refused_with_the_reason(args, msg):
+    import argparse
+    import threading
+
+    from agent import plugins
+    from services.accel_rig.service import PLUGIN
+
+    parser = argparse.ArgumentParser()
+    plugins.add_service_arguments(parser, PLUGIN)
+    with pytest.raises(ValueError, match=re.escape(msg)):
+        PLUGIN.run(parser.parse_args(args), threading.Event())
+
+
+def test_the_command_line_prints_errors_without_traceback():
+    r = _uma("service", "run", "accel-rig", "--source", "serial:/nonexistent/tty",
+             "--calibration", "/nonexistent.json")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert "calibration file '/nonexistent.json'" in r.stderr
 
 
 def test_service_runs_under_an_agent_and_is_listed(processes, realm):
@@ -199,10 +213,13 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
         *mounts.HEAD_TO_ACCEL_RIG)
     dp, dq = geo.pose_error(r.position, r.quaternion, true.position[0], true.quaternion[0])
     assert dp < 0.05 and np.degrees(dq) < 2.0, (dp, np.degrees(dq))
-    listing = _uma("services", "--realm", realm, "--connect", ep, "--json", timeout=60)
-    assert listing.returncode == 0, listing.stderr
-    services = {s["service_id"]: s for a in json.loads(listing.stdout)["agents"]
-                for s in a["services"]}
+    services: dict = {}
+    while "accel-rig" not in services:  # under heavy load a listing can miss a service
+        assert time.monotonic() < deadline + 30, f"accel-rig never listed: {services}"
+        listing = _uma("services", "--realm", realm, "--connect", ep, "--json", timeout=60)
+        assert listing.returncode == 0, listing.stderr
+        services = {s["service_id"]: s for a in json.loads(listing.stdout)["agents"]
+                    for s in a["services"]}
     rig = services["accel-rig"]
     kinds = {a["name"]: (a["type"], tuple(a["edge"])) for a in rig["abilities"]}
     assert kinds == {"accel": ("accel_raw", (mounts.WORLD, mounts.ACCEL_RIG)),

@@ -112,6 +112,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
     _check_args(args)
+    parse_mount(args.mount)  # refuse a bad mounting before any work
     nominal = layout_by_name(args.layout, args.delta)
     if args.calibrate:
         return _calibrate(args, nominal)
