@@ -49,7 +49,7 @@ from agent.planner import (
     Segment,
     SegmentError,
     Summary,
-    _attrs_in,
+    attributes_from_wire,
     compose,
     parse_summary,
     plan_routes,
@@ -58,6 +58,7 @@ from agent.planner import (
 from agent.registry import RateLimitedLog
 from agent.session import open_session
 from agent.srg import Graph
+from agent.srg.attributes import EDGE_ATTRIBUTES
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.errors import EdgeUndefinedError, UnknownFrameError
 from agent.srg.result import PoseResult
@@ -402,7 +403,7 @@ class Client:
         cov = None if m.covariance is None else np.array(m.covariance).reshape(6, 6)
         return PoseResult(np.array(m.position), np.array(m.quaternion), cov, list(m.path),
                           edges, to_local(agent, m.t_ns), m.extrapolated_s, stamps,
-                          _attrs_in(m.attributes))
+                          attributes_from_wire(m.attributes))
 
     # ------------------------------------------------------------------ streaming
 
@@ -452,8 +453,7 @@ class Subscription:
         """Copy one edge of the route into the local graph; measured ones become feeds."""
         source = f"{agent}/{e['source']}"
         attrs = {k: v for k, v in (e.get("attributes") or {}).items()
-                 if k in ("latency_s", "frequency_hz", "confidence", "pos_std_m",
-                          "rot_std_rad", "ttl_s", "cost")}
+                 if k in EDGE_ATTRIBUTES and k not in ("covariance", "static")}
         cov = e.get("covariance")
         cov = None if cov is None else np.array(cov, dtype=float).reshape(6, 6)
         if e.get("static"):

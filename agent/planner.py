@@ -85,7 +85,8 @@ class Route:
         return list(dict.fromkeys(s.agent for s in self.segments))
 
 
-def _attrs_in(d: Mapping[str, Any]) -> dict[str, Any]:
+def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
+    """Path attributes as received: None stands for an infinite rate or time to live."""
     out = dict(d)
     for name in _INF_WHEN_NONE:
         if out.get(name) is None:
@@ -109,7 +110,7 @@ def parse_summary(msg: Mapping[str, Any]) -> Summary:
         if not (isinstance(link, dict) and isinstance(link.get("a"), str)
                 and isinstance(link.get("b"), str) and isinstance(link.get("attrs"), dict)):
             raise ValueError(f"summary: malformed link {link!r:.120}")
-        attrs = {k: _attrs_in(v) for k, v in link["attrs"].items()
+        attrs = {k: attributes_from_wire(v) for k, v in link["attrs"].items()
                  if k in SUMMARY_ERRORS and isinstance(v, dict)}
         if set(attrs) != set(SUMMARY_ERRORS):
             raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "

@@ -157,3 +157,14 @@ def test_uma_query_command(three_agents, realm):
     assert bad.returncode == 1
     assert "unknown frame 'nowhere/frame'" in bad.stderr and "ivy/world" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_uma_query_without_agents_is_a_clear_error(realm):
+    out = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--realm",
+                          realm, "--timeout", "0.3", "--connect",
+                          endpoint(free_port())], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1
+    assert f"no agent answered in realm {realm!r}" in out.stderr and "Traceback" not in out.stderr
+    bad = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--at",
+                          "yesterday"], capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 1 and "--at 'yesterday'" in bad.stderr

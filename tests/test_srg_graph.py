@@ -139,6 +139,15 @@ def test_too_old_and_no_samples_are_distinguished():
         g.pose("a", "c")
 
 
+def test_buffers_are_bounded_in_length():
+    g = Graph(max_samples=10)
+    feed(g, "a", "b", np.arange(0.0, 1.0, 0.01))
+    buf = g.edge("a", "b").buffer
+    assert len(buf) == 10 and buf.times[0] == round(0.9 * S)
+    with pytest.raises(DataTooOldError):
+        g.pose("a", "b", at=round(0.5 * S))
+
+
 def test_at_none_is_the_latest_common_time():
     g = Graph()
     feed(g, "a", "b", [0.0, 0.1, 0.2, 0.3])
