@@ -444,8 +444,11 @@ class Subscription:
                                         daemon=True)
         self._thread.start()
         for agent, key, _, _ in feeds:
+            # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
+            # composed and delivered on this subscription's own thread
             self._decls.append(client.session.declare_subscriber(
-                key, lambda smp, a=agent, k=key: self._enqueue(a, k, smp)))
+                key, zenoh.handlers.Callback(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
+                                             indirect=False)))
         if not feeds:  # all static: the one answer is the stream
             self._deliver(first)
 
