@@ -61,6 +61,7 @@ from agent.srg import Graph
 from agent.srg.attributes import EDGE_ATTRIBUTES
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.errors import EdgeUndefinedError, UnknownFrameError
+from agent.srg.graph import identity
 from agent.srg.result import PoseResult
 from schemas.codec import DecodeError, decode_measurement, decode_message, encode_message
 from schemas.models import PoseResult as PoseModel
@@ -228,6 +229,8 @@ class Client:
                 f"no agent answered in realm {self.realm!r} within {self.timeout:g} s "
                 f"(connected to {', '.join(self.connect) or 'nothing'}); is 'uma agent' "
                 "running there with the same --realm?")
+        if source == target and any(source in s.frames for s in summaries.values()):
+            return identity(source, None if at is None else int(at)), []
         try:
             routes = self._plan(summaries, source, target, fn)
         except UnknownFrameError:

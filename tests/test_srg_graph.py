@@ -17,7 +17,6 @@ from agent.srg.errors import (
     BadErrorFunctionError,
     DataNotYetArrivedError,
     DataTooOldError,
-    EdgeUndefinedError,
     NoSamplesError,
     NoValidPathError,
     UnknownEdgeError,
@@ -135,8 +134,18 @@ def test_too_old_and_no_samples_are_distinguished():
     g.declare_measured("b", "c", source="cam", frequency_hz=30.0)
     with pytest.raises(NoSamplesError, match=r"b->c \[cam\].*no sample has arrived"):
         g.pose("a", "c", at=round(2.9 * S))
-    with pytest.raises(EdgeUndefinedError):
+    with pytest.raises(NoSamplesError, match=r"b->c \[cam\]"):
         g.pose("a", "c")
+
+
+def test_a_frame_in_itself_is_the_identity():
+    g = Graph()
+    g.add_static("a", "b", [1, 2, 3], [0, 0, 0, 1])
+    r = g.pose("b", "b", at=5)
+    assert r.path == ["b"] and r.t_ns == 5 and r.covariance is None
+    np.testing.assert_array_equal(r.matrix, np.eye(4))
+    with pytest.raises(UnknownFrameError):
+        g.pose("z", "z")
 
 
 def test_buffers_are_bounded_in_length():

@@ -20,7 +20,7 @@ import numpy as np
 
 from agent.srg import geometry as geo
 from agent.srg import paths
-from agent.srg.attributes import check_attributes, same_attributes
+from agent.srg.attributes import aggregate, check_attributes, same_attributes
 from agent.srg.edge import Edge, EdgeKey, edge_name
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.errors import UnknownEdgeError, UnknownFrameError, UnreachableError
@@ -45,6 +45,13 @@ def _time(t_ns: Any) -> int:
     if isinstance(t_ns, bool) or not isinstance(t_ns, numbers.Integral):
         raise ValueError(f"time must be integer nanoseconds since the epoch, got {t_ns!r}")
     return int(t_ns)
+
+
+def identity(frame: str, t_ns: int | None) -> PoseResult:
+    """The pose of a frame in itself (as tf2 answers it): exact, no edges."""
+    p = np.zeros(3)
+    return PoseResult(p, geo.quat_identity(), None, [frame], [], t_ns, 0.0, [],
+                      aggregate([], p, None))
 
 
 class Graph:
@@ -236,6 +243,8 @@ class Graph:
         fn = error_function(error)
         plan = self._plans.get((source, target, fn.key))
         if plan is None:
+            if source == target and source in self._adj:
+                return identity(source, None if at is None else _time(at))
             plan = self._build_plan(source, target, fn)
         return plan.evaluate(None if at is None else _time(at))
 
@@ -253,9 +262,6 @@ class Graph:
         component = paths.reachable(self._adj, source)
         if target not in component:
             raise UnreachableError(source, target, component, paths.reachable(self._adj, target))
-        if source == target:
-            raise ValueError(f"source and target are the same frame {source!r}; the pose "
-                             "is the identity")
         edges = self._edges
         if fn.additive:
             found = paths.k_shortest(self._adj, source, target,

@@ -18,7 +18,7 @@ import numpy as np
 from agent.srg import geometry as geo
 from agent.srg.attributes import aggregate
 from agent.srg.edge import Edge, EdgeKey
-from agent.srg.errors import EdgeUndefinedError, NoValidPathError
+from agent.srg.errors import EdgeUndefinedError, NoSamplesError, NoValidPathError
 from agent.srg.result import PoseResult
 
 _EYE6 = np.eye(6)
@@ -102,9 +102,9 @@ class Chain:
         P = Q = P_edge = None
         covs: list = []
         if m:
-            if t_ns is None:
-                raise EdgeUndefinedError(measured[0][0].name, None,
-                                    "no time given and no sample has arrived")
+            if t_ns is None:  # latest_time() found an edge without samples
+                empty = next(e for e, _, _ in measured if not len(e.buffer))
+                raise NoSamplesError(empty.name, None)
             P0 = np.empty((m, 3))
             P1 = np.empty((m, 3))
             Q0 = np.empty((m, 4))
