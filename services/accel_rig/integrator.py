@@ -9,7 +9,9 @@ consecutive samples, with the readings inside a step interpolated by the parabol
 the last three samples (third-order accurate, no extra latency).
 
 The covariance is the linearised error propagation of that ODE, error state
-``[dtheta (world-frame rotation), dp, dv, domega (rig frame)]``, driven by the reading
+``[phi, rho, dv, domega]``: ``(rho, phi)`` the pose error in geometry's SE(3) convention
+(left perturbation, so the reported covariance needs no conversion), ``dv`` the world
+velocity error and ``domega`` the rig-frame angular-velocity error; driven by the reading
 noise of the calibration's noise model, plus the calibration's own uncertainty (bias, gain
 and axis of each accelerometer act as constant reading errors, carried as a sensitivity
 matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
@@ -67,9 +69,10 @@ _ROTATION_QUADRATIC = _rotation_quadratic()
 class Estimate:
     """The dead-reckoned state at motion time ``t``.
 
-    ``velocity`` is world-frame, ``omega`` rig-frame.  ``decoupled_covariance`` is the 6x6
-    covariance of ``[position error, world-frame rotation error]``; ``covariance`` the same
-    in geometry's SE(3) convention (left perturbation ``[rho, phi]``), computed on first use.
+    ``velocity`` is world-frame, ``omega`` rig-frame.  ``covariance`` is the 6x6 pose
+    covariance in geometry's SE(3) convention (left perturbation, ``[rho, phi]``);
+    ``decoupled_covariance`` the same over ``[position error, world-frame rotation error]``,
+    computed on first use.
     """
 
     t: float
@@ -77,11 +80,11 @@ class Estimate:
     quaternion: Array
     velocity: Array
     omega: Array
-    decoupled_covariance: Array
+    covariance: Array
 
     @cached_property
-    def covariance(self) -> Array:
-        return geo.decoupled_to_se3(self.position, self.decoupled_covariance)
+    def decoupled_covariance(self) -> Array:
+        return geo.se3_to_decoupled(self.position, self.covariance)
 
 
 class DeadReckoner:
@@ -146,7 +149,7 @@ class DeadReckoner:
         p = geo.check_vector(position, "reset position").reshape(3)
         q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4)
         C = np.zeros((6, 6)) if covariance is None else \
-            geo.se3_to_decoupled(p, geo.check_covariance(covariance, "reset covariance"))
+            geo.check_covariance(covariance, "reset covariance")
         P_old = self._P if self.initialised else np.zeros((12, 12))
         S_old = self._S
         P = np.zeros((12, 12))
@@ -189,7 +192,7 @@ class DeadReckoner:
                         self._w.copy(), 0.5 * (C + C.T))
 
     def state_covariance(self) -> Array:
-        """Full 12x12 covariance of ``[dtheta, dp, dv, domega]`` (noise + calibration)."""
+        """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
         if self._cal_cov is None:
             return self._P.copy()
         return self._P + self._S @ self._cal_cov @ self._S.T
@@ -278,24 +281,29 @@ class DeadReckoner:
         Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
               / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
         acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
-        v0 = self._v
+        v0, p_old = self._v, self._p
         self._p = self._p + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
         self._v = v0 + h / 6.0 * (acc[0] + 2.0 * acc[1] + 2.0 * acc[2] + acc[3])
         self._w = w0 + h / 6.0 * (s1[3:] + 2.0 * s2[3:] + 2.0 * s3[3:] + s4[3:])
         self._q = q1 / math.sqrt(q1 @ q1)
         self._t = t1
-        self._propagate(h, Rs[1], s2[:3], w2)
+        self._propagate(h, Rs[1], s2[:3], w2, 0.5 * (self._p + p_old), 0.5 * (self._v + v0))
 
-    def _propagate(self, h: float, R: Array, f: Array, w: Array) -> None:
-        """Error-state propagation over one step, linearised at the step's midpoint."""
+    def _propagate(self, h: float, R: Array, f: Array, w: Array, p: Array, v: Array) -> None:
+        """Error-state propagation over one step, linearised at the step's midpoint.
+
+        phi' = R domega;  rho' = dv + [p]x R domega + [v]x phi  (rho = dp - phi x p);
+        dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
+        """
         G, Jw = self.layout.solve_jacobians(w)  # d(f, wd)/d(readings), d(f, wd)/d(omega)
         A = np.zeros((12, 12))
         A[0:3, 9:12] = R
         A[3:6, 6:9] = _I3
-        u = R @ f  # d(v')/d(dtheta) = -[R f]x
-        A[6, 1], A[6, 2] = u[2], -u[1]
-        A[7, 0], A[7, 2] = -u[2], u[0]
-        A[8, 0], A[8, 1] = u[1], -u[0]
+        _put_cross(A, 3, 0, v)
+        px = np.zeros((3, 3))
+        _put_cross(px, 0, 0, p)
+        A[3:6, 9:12] = px @ R
+        _put_cross(A, 6, 0, -(R @ f))
         A[6:9, 9:12] = R @ Jw[:3]
         A[9:12, 9:12] = Jw[3:]
         Ah = A * h
@@ -310,6 +318,16 @@ class DeadReckoner:
             c = self._cal_base.copy()
             c[:, 1:] *= f
             self._S = F @ self._S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+
+
+def _put_cross(A: Array, r: int, c: int, u: Array) -> None:
+    """Write the cross-product matrix ``[u]x`` into the zero block ``A[r:r+3, c:c+3]``.
+
+    ``geo.skew`` builds it by stacking, which costs more than the rest of this step's
+    arithmetic; six scalar writes into a zeroed block cost nothing."""
+    A[r, c + 1], A[r, c + 2] = -u[2], u[1]
+    A[r + 1, c], A[r + 1, c + 2] = u[2], -u[0]
+    A[r + 2, c], A[r + 2, c + 1] = -u[1], u[0]
 
 
 def _calibration_cov_in_accel(cal: Calibration) -> Array | None:
