@@ -27,6 +27,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -91,21 +92,27 @@ class Children:
 
     def __init__(self) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
+        self.logs: dict[str, Any] = {}
 
     def start(self, name: str, argv: list[str]) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # a file, not a pipe: a chatty child must never block on a full pipe
+        log_file = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in stop())
+        self.logs[name] = log_file
         self.procs[name] = subprocess.Popen(
             [sys.executable, "-m", "agent.cli", "service", "run", name, *argv],
             env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE, text=True)
+            stderr=log_file, text=True)
 
     def dead(self) -> dict[str, str]:
-        """Children that exited, with the end of their error output."""
+        """Children that exited, with the last line of their error output."""
         out = {}
         for name, p in self.procs.items():
             if p.poll() is not None:
-                err = (p.stderr.read() if p.stderr else "") or ""
-                out[name] = f"exit {p.returncode}: {err.strip().splitlines()[-1:] or ''}"
+                f = self.logs[name]
+                f.seek(0)
+                lines = f.read().strip().splitlines()
+                out[name] = f"exit {p.returncode}: {lines[-1] if lines else 'no output'}"
         return out
 
     def stop(self) -> None:
@@ -119,8 +126,8 @@ class Children:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait(timeout=STOP_TIMEOUT_S)
-            if p.stderr:
-                p.stderr.close()
+        for f in self.logs.values():
+            f.close()
 
 
 def main(args: argparse.Namespace) -> int:
