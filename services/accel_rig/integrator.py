@@ -156,23 +156,21 @@ class DeadReckoner:
         S = np.zeros_like(S_old)
         P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
         P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
-        kept = []
+        rates, kept = {}, []  # everything is checked before the state changes
         for name, sl, value, cov in (("velocity", slice(6, 9), velocity, velocity_cov),
                                      ("omega", slice(9, 12), omega, omega_cov)):
             if value is None:
                 kept.append(sl)
                 continue
-            val = geo.check_vector(value, f"reset {name}").reshape(3)
-            if sl.start == 6:
-                self._v = val
-            else:
-                self._w = val
+            rates[name] = geo.check_vector(value, f"reset {name}").reshape(3)
             if cov is not None:
                 P[sl, sl] = geo.check_covariance(cov, f"reset {name} covariance", dim=3)
         for a in kept:  # keep what was not reset, including its calibration sensitivity
             for b in kept:
                 P[a, b] = P_old[a, b]
             S[a] = S_old[a]
+        self._v = rates.get("velocity", self._v)
+        self._w = rates.get("omega", self._w)
         self._t, self._p, self._q, self._P, self._S = t, p, q, P, S
         self._samples = [s for s in self._history if s[0] <= t][-3:]
         for sample in [s for s in self._history if s[0] > t]:
