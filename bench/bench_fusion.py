@@ -187,10 +187,13 @@ def main() -> None:
                         help="also measure accelerometer -> remote client latency")
     parser.add_argument("--json", action="store_true", help="last line: one JSON object")
     args = parser.parse_args()
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     with contextlib.suppress(AttributeError, OSError):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})   # one core
+        os.sched_setaffinity(0, {min(cores)})   # the filter on one core
     scaat = bench_filter(args.seconds, batch=False)
     base = bench_filter(args.seconds, batch=True)
+    with contextlib.suppress(AttributeError, OSError, TypeError):
+        os.sched_setaffinity(0, cores)          # the distributed part: all cores again
     out = {"scaat": scaat, "baseline_filterpy_batch": base,
            "ratio_updates_per_s": scaat["updates_per_s"] / base["updates_per_s"],
            "ratio_sample_time": base["sample_median_us"] / scaat["sample_median_us"],
