@@ -120,6 +120,11 @@ def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
         # the remote timestamps came back on our clock too (the sample after `at`: 10 ms
         # later at 100 Hz, more if the loaded machine delayed the tracker)
         assert -20_000_000 < r.edges[0]["t_ns"] - at < 300_000_000
+        # a time the tracker has not reached: the error names the agent's segment, the edge
+        # and why (the data has not arrived yet)
+        with pytest.raises(LookupError, match=r"ivy/world -> alice/head of agent 'A'.*"
+                                              r"tracker/head.*not yet arrived"):
+            c.pose(WORLD, EYE, at=time.time_ns() + 10_000_000_000, error="hops")
 
 
 def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, realm):
