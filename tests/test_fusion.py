@@ -290,3 +290,30 @@ def test_a_lagging_inertial_stream_stays_the_clock_and_a_stalled_one_is_bypassed
     assert tracker.ekf.stats.pose_updates > 5          # applied when the stream got there
     tracker.add_rig_pose(1.5, p, q, cov, HEAD_TO_LASER_RIG, now=5.0)   # no accel for 4 s
     assert tracker.stats.optical_waited_out >= 1 and tracker.ekf.t == pytest.approx(1.5)
+
+
+def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
+    from services.sim.laser_housing import BEAM_DIRECTIONS
+    from services.sim.world import IvyWorld
+
+    world = IvyWorld(seed=3)
+    traj = world.trajectory
+    ekf = FusionEKF(_model())
+    _set_true_state(ekf, traj, 2.0)
+    p_rig, q_rig = world.rig_pose(2.0)
+    hits = world.laser_hits(p_rig[0], q_rig[0])
+    for label, hit in hits.items():
+        wall = world.walls[hit.wall]
+        plane = (wall.normal, float(wall.normal @ hit.point))
+        pred, J = ekf.predict_dot(BEAM_DIRECTIONS[label], plane, HEAD_TO_LASER_RIG)
+        assert np.allclose(pred, hit.point, atol=1e-9)
+        num = np.zeros((3, ekf.dim))
+        for k in list(range(0, 3)) + list(range(9, 12)):
+            snap = ekf.snapshot()
+            d = np.zeros(ekf.dim)
+            d[k] = 1e-7
+            ekf._inject(d)
+            num[:, k] = (ekf.predict_dot(BEAM_DIRECTIONS[label], plane, HEAD_TO_LASER_RIG)[0]
+                         - pred) / 1e-7
+            ekf.restore(snap)
+        assert np.allclose(J, num, atol=1e-5), label

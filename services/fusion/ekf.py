@@ -44,7 +44,7 @@ TH, W, WD, P, V, A = (slice(3 * i, 3 * i + 3) for i in range(6))
 CORE = 18
 
 #: chi-square quantiles used as gates (99.9 %): a measurement further out is an outlier
-CHI2_999 = {1: 10.828, 3: 16.266, 6: 22.458}
+CHI2_999 = {1: 10.828, 2: 13.816, 3: 16.266, 6: 22.458}
 
 
 @dataclass(frozen=True)
@@ -111,6 +111,7 @@ class FusionConfig:
     initial_std: tuple[float, ...] = (3.0, 5.0, 1.0, 2.0, 10.0)  # omega, omega_dot, v, alpha..
     accel_gate: float = CHI2_999[1]
     pose_gate: float = CHI2_999[6]
+    dot_gate: float = CHI2_999[2]
     max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
     adapt_pose_noise: bool = True        # scale the optical covariance so its NIS averages 6
     pose_noise_rate: float = 0.02        # adaptation gain per optical pose
@@ -145,13 +146,15 @@ class FusionStats:
     accel_rejected: int = 0
     pose_updates: int = 0
     pose_rejected: int = 0
+    dot_updates: int = 0
+    dot_rejected: int = 0
     reinitialised: int = 0
     last_pose_nis: float = float("nan")
     pose_noise_scale: float = 1.0
 
     @property
     def measurement_updates(self) -> int:
-        return self.accel_updates + self.pose_updates
+        return self.accel_updates + self.pose_updates + self.dot_updates
 
 
 class FusionEKF:
@@ -457,6 +460,67 @@ class FusionEKF:
         step = cfg.pose_noise_rate * share * (nis / 6.0 - 1.0)
         scale = self.stats.pose_noise_scale * (1.0 + max(-0.5, min(step, 0.5)))
         self.stats.pose_noise_scale = min(20.0, max(0.05, scale))
+
+    # ------------------------------------------------------------------ SCAAT: one laser dot
+
+    def predict_dot(self, beam_rig: Array, plane: tuple[Array, float],
+                    mount: tuple[Array, Array]) -> tuple[Array, Array]:
+        """Where one laser beam of the predicted pose meets a wall, and d point / d state.
+
+        The rig sits at ``mount`` (head -> rig) on the head; its beam ``beam_rig`` (rig
+        frame) leaves the rig origin; the wall is the plane ``n . x = c`` (world).  With
+        ``M = I - d n^T / (n . d)`` (moving the origin or turning the beam slides the hit
+        along the wall): ``dx/dp = M``, ``dx/dtheta = -M ([R p_m]x + s [d]x)``.
+        """
+        n, c = np.asarray(plane[0], float), float(plane[1])
+        R = self._R
+        arm = R @ np.asarray(mount[0], float)
+        origin = self.x[P] + arm
+        d = R @ geo.quat_rotate(mount[1], np.asarray(beam_rig, float))
+        nd = float(n @ d)
+        if nd <= 1e-6:
+            raise ValueError("fusion: the predicted beam does not reach that wall")
+        s = (c - float(n @ origin)) / nd
+        if s <= 0:
+            raise ValueError("fusion: the wall is behind the predicted beam")
+        M = np.eye(3) - np.outer(d, n) / nd
+        J = np.zeros((3, self.dim))
+        J[:, P] = M
+        J[:, TH] = -M @ (_skew(arm) + s * _skew(d))
+        return origin + s * d, J
+
+    def update_dot(self, t: float, point: Array, std_m: float, beam_rig: Array,
+                   plane: tuple[Array, float], axes: Array,
+                   mount: tuple[Array, Array]) -> bool:
+        """SCAAT update with one labeled laser dot (seed 003 ch. 6: "intersect the laser beam
+        with the walls of IVY"): a 2-D constraint in the wall's in-plane ``axes`` (2, 3).
+        False if gated or if the predicted beam misses that wall."""
+        point = geo.check_vector(point, "laser dot").reshape(3)
+        if not (math.isfinite(std_m) and std_m > 0):
+            raise ValueError(f"fusion: laser dot std {std_m!r} must be positive")
+        if not self.initialised:
+            raise ValueError("fusion: a laser dot needs an initialised filter (a pose first)")
+        self.predict_to(t)
+        self._R = geo.quat_to_matrix(self.q)
+        try:
+            pred, J = self.predict_dot(beam_rig, plane, mount)
+        except ValueError:
+            self.stats.dot_rejected += 1
+            return False
+        A2 = np.asarray(axes, float).reshape(2, 3)
+        H = A2 @ J
+        y = A2 @ (point - pred)
+        PHt = self.P @ H.T
+        S = H @ PHt + np.eye(2) * std_m**2
+        if float(y @ np.linalg.solve(S, y)) > self.config.dot_gate:
+            self.stats.dot_rejected += 1
+            return False
+        K = np.linalg.solve(S, PHt.T).T
+        self._inject(K @ y)
+        self.P = self.P - K @ H @ self.P
+        self.P = 0.5 * (self.P + self.P.T)
+        self.stats.dot_updates += 1
+        return True
 
     # ------------------------------------------------------------------ internals
 

@@ -49,6 +49,8 @@ GAP_SPACING_S = 4.0
 #: output error within which the filter counts as recovered: a few times its normal error
 RECOVERY_FACTOR = 3.0
 RECOVERY_HOLD_S = 0.1
+#: a dot seen without a pose is labeled with the nearest predicted beam hit within this
+DOT_LABEL_GATE_M = 0.05
 
 
 # ---------------------------------------------------------------------- set-up
@@ -192,8 +194,14 @@ class Recording:
 
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
-               config: FusionConfig, model_floor: float, cache: bool) -> Recording:
-    """Render, track, simulate and fuse ``seconds`` of motion; record everything."""
+               config: FusionConfig, model_floor: float, cache: bool,
+               dots: bool = False) -> Recording:
+    """Render, track, simulate and fuse ``seconds`` of motion; record everything.
+
+    ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
+    pose only initialises the filter); frames where the tracker found fewer than four dots
+    still contribute the dots it sees, labeled by the nearest predicted beam hit.
+    """
     from services.laser_camera.tracker import LaserTracker
 
     world = IvyWorld(seed=seed)
@@ -217,14 +225,20 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
         while k_frame < len(frames) and frames[k_frame] <= motion_t[i]:
             t_f = frames[k_frame]
             k_frame += 1
-            result = tracker.process(world.render(t_f).images, t_f)
+            images = world.render(t_f).images
+            result = tracker.process(images, t_f)
+            if dots and ekf.initialised:
+                c0 = time.process_time()
+                _dot_updates(ekf, world, tracker, images, result, t_f, head_to_laser)
+                cpu += time.process_time() - c0
             if not result.ok:
                 failures[result.reason] = failures.get(result.reason, 0) + 1
                 continue
-            c0 = time.process_time()
-            ekf.update_rig_pose(t_f, result.position, result.quaternion, result.covariance,
-                                head_to_laser)
-            cpu += time.process_time() - c0
+            if not dots or not ekf.initialised:
+                c0 = time.process_time()
+                ekf.update_rig_pose(t_f, result.position, result.quaternion,
+                                    result.covariance, head_to_laser)
+                cpu += time.process_time() - c0
             hp, hq = geo.compose(result.position, result.quaternion, pm, qm)
             opt_t.append(t_f)
             opt_p.append(hp)
@@ -247,6 +261,44 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                      np.array(opt_t), np.array(opt_p).reshape(-1, 3),
                      np.array(opt_q).reshape(-1, 4), cpu,
                      ekf.stats.measurement_updates + ekf.stats.time_updates, failures)
+
+
+def _dot_updates(ekf: FusionEKF, world: IvyWorld, tracker: Any, images: Any, result: Any,
+                 t: float, mount: tuple[np.ndarray, np.ndarray]) -> int:
+    """One SCAAT update per laser dot; the walls are the display's geometry."""
+    from services.sim.laser_housing import BEAM_DIRECTIONS
+
+    if result.ok:
+        labeled = [(k, p, result.dot_std_m[k]) for k, p in result.dots.items()]
+    else:  # fewer than four dots: label each by the nearest predicted beam hit
+        found = tracker.detect(images)
+        labeled = []
+        for point, std in zip(found.points, found.std_m, strict=True):
+            wall = _wall_of(world, point)
+            plane = (wall.normal, float(wall.normal @ point))
+            best = None
+            for k, beam in BEAM_DIRECTIONS.items():
+                try:
+                    pred, _ = ekf.predict_dot(beam, plane, mount)
+                except ValueError:
+                    continue
+                dist = float(np.linalg.norm(pred - point))
+                if dist < DOT_LABEL_GATE_M and (best is None or dist < best[0]):
+                    best = (dist, k)
+            if best is not None:
+                labeled.append((best[1], point, float(std)))
+    accepted = 0
+    for k, point, std in labeled:
+        wall = _wall_of(world, point)
+        accepted += ekf.update_dot(t, point, std, BEAM_DIRECTIONS[k],
+                                   (wall.normal, float(wall.normal @ point)),
+                                   wall.rotation[:, :2].T, mount)
+    return accepted
+
+
+def _wall_of(world: IvyWorld, point: np.ndarray) -> Any:
+    """The wall whose plane the point lies on (the cube face it is closest to)."""
+    return max(world.walls.values(), key=lambda w: float(w.normal @ point))
 
 
 # ---------------------------------------------------------------------- baselines
@@ -387,14 +439,14 @@ def recovery_figures(rec: Recording, ep: np.ndarray, er: np.ndarray,
 
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
              config: FusionConfig | None = None, model_floor: float = 0.005,
-             cache: bool = True) -> dict[str, Any]:
+             cache: bool = True, dots: bool = False) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure."""
     if seconds < WARMUP_S + 2.0:
         raise ValueError(f"--seconds must be at least {WARMUP_S + 2.0:g} (warm-up "
                          f"{WARMUP_S:g} s plus some tracking)")
     gaps = gap_schedule(seconds, gap_lengths)
     rec = run_fusion(seconds, seed, gaps, horizon_s, config or FusionConfig(), model_floor,
-                     cache)
+                     cache, dots)
     if rec.t.size == 0:
         raise ValueError("fusion never started: the laser tracker found no pose")
     traj = IvyWorld(seed=seed).trajectory
@@ -407,7 +459,7 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     normal = after & ~in_gap
     ep, er = geo.pose_error(rec.p, rec.q, p_true, q_true)
     figures: dict[str, Any] = {
-        "seconds": seconds, "seed": seed,
+        "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
         "output_rate_hz": float(rec.t.size / (rec.t[-1] - rec.t[0])),
         "optical_poses": int(rec.optical_t.size),
         "optical_failures": rec.optical_failures,
@@ -463,7 +515,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     return evaluate(float(args.seconds), int(args.seed), lengths, args.horizon_ms / 1e3,
-                    cache=not args.no_cache)
+                    cache=not args.no_cache, dots=args.optical == "dots")
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -472,6 +524,10 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{GAP_SPACING_S:g} s after the warm-up (default 0.25,0.5,1)")
     parser.add_argument("--horizon-ms", type=float, default=20.0,
                         help="prediction horizon evaluated (default 20 ms)")
+    parser.add_argument("--optical", choices=("pose", "dots"), default="pose",
+                        help="optical update: the tracker's pose (default) or SCAAT with "
+                             "each labeled laser dot (predicted dot = beam of the predicted "
+                             "pose intersected with the wall)")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")
