@@ -297,3 +297,49 @@ def test_covariance_is_a_valid_pose_covariance(world) -> None:
     C = geo.check_covariance(res.covariance)
     dec = geo.se3_to_decoupled(res.position, C)
     assert 1e-7 < dec[0, 0] < 1e-4 and 1e-8 < dec[3, 3] < 1e-4
+
+
+def test_dots_seen_by_two_overlapping_cameras_are_merged() -> None:
+    from services.laser_camera.tracker import _merge_duplicates
+
+    axes = np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (3, 1, 1))
+    d = WorldDots(np.array([[0.1, 0.2, 1.22], [0.104, 0.2, 1.22], [0.5, 0.2, 1.22]]),
+                  np.array([1e-3, 2e-3, 1e-3]), ["ceiling", "ceiling", "ceiling"], axes,
+                  ["ceiling1", "ceiling2", "ceiling2"])
+    m = _merge_duplicates(d, 0.03)
+    assert len(m.points) == 2
+    assert m.points[0][0] == pytest.approx(0.1 + 0.004 * 0.2)  # inverse-variance weights
+    assert m.std_m[0] == pytest.approx(1 / np.sqrt(1e6 + 0.25e6))
+    other_wall = WorldDots(d.points[:2], d.std_m[:2], ["ceiling", "front"], axes[:2],
+                           ["ceiling1", "front"])
+    assert len(_merge_duplicates(other_wall, 0.03).points) == 2
+
+
+def test_service_measures_and_readvertises_its_attributes() -> None:
+    from services.laser_camera import service
+
+    class Out:
+        def __init__(self) -> None:
+            self.updates: list[dict] = []
+
+        def update(self, **kw) -> None:
+            self.updates.append(kw)
+
+    perf = service._Performance()
+    est = PoseEstimate(0.0, np.zeros(3), geo.quat_identity(), np.diag([1e-6] * 3 + [4e-6] * 3),
+                       {}, {}, 0.0, 4, False)
+    for i in range(20):
+        perf.add(0.01, est if i % 4 else NoPose(0.0, "too_few_dots", 3))
+        perf.times[-1] = i / 30.0  # as if taken at 30 Hz
+    a = perf.attributes(30.0)
+    assert a["confidence"] == pytest.approx(0.75)
+    assert a["frequency_hz"] == pytest.approx(30 * 0.75, rel=1e-6)
+    assert a["latency_s"] == pytest.approx(0.01)
+    assert a["pos_std_m"] == pytest.approx(1e-3) and a["rot_std_rad"] == pytest.approx(2e-3)
+    pose_out, dots_out = Out(), Out()
+    *_, adv = service._maybe_update(pose_out, dots_out, a, dict(a))
+    assert adv == a and not pose_out.updates  # nothing drifted
+    slower = dict(a, latency_s=0.05)
+    *_, adv = service._maybe_update(pose_out, dots_out, a, slower)
+    assert adv == slower and pose_out.updates == [slower]
+    assert "pos_std_m" not in dots_out.updates[0]
