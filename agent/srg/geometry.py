@@ -232,10 +232,12 @@ def rodrigues_inverse(R: Array) -> Array:
 def skew(v: Array) -> Array:
     """Cross-product matrices ``[v]x`` (..., 3, 3) with ``[v]x @ u == cross(v, u)``."""
     v = np.asarray(v, dtype=float)
-    x, y, z = np.moveaxis(v, -1, 0)
-    o = np.zeros_like(x)
-    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1),
-                     np.stack([-y, x, o], -1)], -2)
+    S = np.zeros((*v.shape[:-1], 3, 3))  # filled in place: stacking costs ~10x on small inputs
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    S[..., 0, 1], S[..., 0, 2] = -z, y
+    S[..., 1, 0], S[..., 1, 2] = z, -x
+    S[..., 2, 0], S[..., 2, 1] = -y, x
+    return S
 
 
 def quat_angle(a: Array, b: Array) -> Array:
