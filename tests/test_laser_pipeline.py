@@ -111,6 +111,10 @@ def test_tracker_survives_lost_dots_and_bad_frames(world, calibration) -> None:
     assert isinstance(tr.process(frame.images, 1.0 + 1 / 30), PoseEstimate)
     with pytest.raises(ValueError, match="no camera 'nope'"):
         tr.process({"nope": frame.images[lost]}, 2.0)
+    with pytest.raises(ValueError, match="calibrated for"):
+        tr.process({lost: np.zeros((240, 320), np.uint8)}, 2.0)
+    with pytest.raises(ValueError, match="uint8"):
+        tr.process({lost: np.zeros((480, 640), np.float32)}, 2.0)
 
 
 def test_uma_eval_command(calibration_file) -> None:

@@ -151,6 +151,9 @@ class LaserTracker:
         guard = self.params.edge_guard_m
         for name, img in images.items():
             cal = self.calibration.camera(name)
+            if getattr(img, "shape", None) != (cal.height, cal.width):
+                raise ValueError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
+                                 f" but calibrated for ({cal.height}, {cal.width}) gray")
             det = detect_dots(img, cal.detector)
             if not len(det):
                 continue
