@@ -84,7 +84,7 @@ from agent.registry import (
     reply_ok,
     snapshot_message,
 )
-from agent.session import listening_endpoints, open_session
+from agent.session import listening_endpoints, open_session, query
 from agent.srg.geometry import check_quaternion, check_vector
 from schemas.codec import DecodeError, decode_measurement, encode_descriptor
 from schemas.models import Ability, AgentInfo
@@ -289,7 +289,8 @@ class Agent:
                                     lease_ms=s.lease_ms)
         try:
             self._join()
-            self.endpoints = listening_endpoints(self.session)
+            if s.mode == "peer" or s.listen:  # a client without listeners has none
+                self.endpoints = listening_endpoints(self.session)
             self._start_srg()
             self._worker = threading.Thread(target=self._work, name="uma-agent", daemon=True)
             self._worker.start()
@@ -313,7 +314,7 @@ class Agent:
             while (time.monotonic() < deadline and not any(sess.info.peers_zid())
                    and not any(sess.info.routers_zid())):
                 time.sleep(0.01)
-        for reply in sess.liveliness().get(keys.agent_token(r, a), timeout=0.5):
+        for reply in query(sess, keys.agent_token(r, a), 0.5, liveliness=True):
             if reply.ok is not None:
                 raise UmaError(f"an agent with id {a!r} is already running in realm {r!r}; "
                                "give this one another --id")

@@ -28,6 +28,7 @@ import json
 import os
 import re
 import socket
+import threading
 from collections.abc import Iterable, Sequence
 
 import zenoh
@@ -192,6 +193,24 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
         raise UmaError(f"cannot open Zenoh session: {text}") from None
 
 
+def query(session: zenoh.Session, selector: str, timeout: float, *,
+          liveliness: bool = False, **options: object) -> list[zenoh.Reply]:
+    """The replies of a ``get`` (or a liveliness ``get``), waiting at most ``timeout`` s.
+
+    Iterating a ``get``'s handler blocks until Zenoh finishes the query, and a query routed
+    through a router has been seen never to finish; this bounds the wait on our side.
+    """
+    replies: list[zenoh.Reply] = []
+    done = threading.Event()
+    handler = zenoh.handlers.Callback(replies.append, done.set)
+    if liveliness:
+        session.liveliness().get(selector, handler, timeout=timeout)
+    else:
+        session.get(selector, handler, timeout=timeout, **options)
+    done.wait(timeout + 0.25)
+    return list(replies)
+
+
 def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[str]:
     """The endpoints this session really listens on (``:0`` resolved to the real port).
 
@@ -200,7 +219,7 @@ def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[st
     """
     zid = str(session.zid())
     found: list[str] = []
-    for reply in session.get(f"@/{zid}/**", timeout=timeout):
+    for reply in query(session, f"@/{zid}/**", timeout):
         if reply.ok is None:
             continue
         try:

@@ -20,7 +20,7 @@ from conftest import endpoint, free_port
 
 from agent import keys
 from agent.registry import parse_reply, register_request
-from agent.session import open_session
+from agent.session import open_session, query
 
 PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
 
@@ -28,8 +28,7 @@ PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
 def register_raw(session: zenoh.Session, realm: str, agent_id: str, payload: bytes,
                  ) -> tuple[bool, str]:
     """Send a registration and return the agent's (ok, error)."""
-    for reply in session.get(keys.agent_register(realm, agent_id), payload=payload,
-                             timeout=10.0):
+    for reply in query(session, keys.agent_register(realm, agent_id), 10.0, payload=payload):
         data = reply.ok.payload.to_bytes() if reply.ok else reply.err.payload.to_bytes()
         ok, error, _ = parse_reply(data)
         return ok, error
@@ -38,7 +37,7 @@ def register_raw(session: zenoh.Session, realm: str, agent_id: str, payload: byt
 
 def wait_token(session: zenoh.Session, key: str, timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
-    while not any(r.ok is not None for r in session.liveliness().get(key, timeout=1.0)):
+    while not any(r.ok is not None for r in query(session, key, 1.0, liveliness=True)):
         assert time.monotonic() < deadline, f"token {key} not seen"
         time.sleep(0.05)
 

@@ -17,7 +17,7 @@ import zenoh
 from agent import keys
 from agent.errors import UmaError
 from agent.registry import parse_snapshot
-from agent.session import open_session
+from agent.session import open_session, query
 from schemas.codec import DecodeError
 from schemas.models import ServiceDescriptor
 
@@ -28,7 +28,7 @@ SETTLE_S = 0.15
 def live_agents(session: zenoh.Session, realm: str, timeout: float) -> set[str]:
     """Agent ids whose liveliness token is visible now."""
     found = set()
-    for reply in session.liveliness().get(keys.all_agent_tokens(realm), timeout=timeout):
+    for reply in query(session, keys.all_agent_tokens(realm), timeout, liveliness=True):
         if reply.ok is not None:
             agent_id = keys.parse_agent_token(str(reply.ok.key_expr), realm)
             if agent_id:
@@ -51,7 +51,7 @@ def collect(session: zenoh.Session, realm: str, timeout: float) -> dict[str, Any
     agents: dict[str, Any] = {}
     problems: list[str] = []
     left = max(0.2, deadline - time.monotonic())
-    for reply in session.get(keys.all_agent_services(realm), timeout=left):
+    for reply in query(session, keys.all_agent_services(realm), left):
         if reply.ok is None:
             problems.append(f"an agent answered with an error: {_text(reply.err.payload)}")
             continue
