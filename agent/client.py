@@ -287,26 +287,42 @@ class Client:
 
     def _segments(self, segments: Sequence[Segment], at: int | None, spec: str,
                   details: bool) -> list[tuple[PoseResult, list[dict[str, Any]]]]:
-        """Ask every owning agent for its segment in one query (see SrgNode "segments")."""
+        """Every segment's answer, in route order.  Cached static segments are not asked
+        for; the others go out in one query per round, a round holding at most one segment
+        per agent (a route may pass through an agent twice)."""
+        answers: dict[int, tuple[PoseResult, list[dict[str, Any]]]] = {}
+        pending: list[int] = []
+        for i, seg in enumerate(segments):
+            hit = None if details else self._cached_static(seg, spec)
+            if hit is not None:
+                answers[i] = (hit, [])
+            else:
+                pending.append(i)
+        while pending:
+            round_, later, agents = [], [], set()
+            for i in pending:
+                (later if segments[i].agent in agents else round_).append(i)
+                agents.add(segments[i].agent)
+            answers.update(self._ask_round([(i, segments[i]) for i in round_], at, spec,
+                                           details))
+            pending = later
+        return [answers[i] for i in range(len(segments))]
+
+    def _ask_round(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
+                   details: bool) -> dict[int, tuple[PoseResult, list[dict[str, Any]]]]:
+        """One query to the agents of ``todo`` (one segment each); SegmentError names the
+        first segment that failed."""
         parts = {}
-        for seg in segments:
-            if seg.agent in parts:  # a route visits an agent once (segments are merged)
-                raise ValueError(f"route visits agent {seg.agent!r} twice")
+        for _, seg in todo:
             part = {"source": seg.source, "target": seg.target, "error": spec,
                     "t": None if at is None else self.clock.to_remote(seg.agent, at)}
             if details:
                 part["details"] = True
             parts[seg.agent] = part
-        cached = {} if details else self._cached_static(segments, spec)
-        for agent in cached:
-            del parts[agent]
-        answers = self._ask_all({"op": "segments", "parts": parts}, list(parts)) if parts else {}
-        out = []
-        for seg in segments:
-            if seg.agent in cached:
-                out.append((cached[seg.agent], []))
-                continue
-            reply, t1, t4 = answers.get(seg.agent, (None, 0, 0))
+        replies = self._ask_all({"op": "segments", "parts": parts}, list(parts))
+        out = {}
+        for i, seg in todo:
+            reply, t1, t4 = replies.get(seg.agent, (None, 0, 0))
             if reply is None:
                 raise SegmentError(seg, f"agent {seg.agent!r} did not answer within "
                                         f"{self.timeout:g} s (gone or unreachable)", True)
@@ -317,7 +333,7 @@ class Client:
                 result = self._to_pose(seg.agent, reply["result"])
             except (KeyError, TypeError, ValueError, ValidationError) as exc:
                 raise SegmentError(seg, f"malformed answer: {exc}", False) from None
-            out.append((result, reply.get("edges") or []))
+            out[i] = (result, reply.get("edges") or [])
             if result.attributes.get("static"):
                 self._remember_static(seg, spec, result)
         return out
@@ -327,17 +343,15 @@ class Client:
             s = self._summaries.get(agent)
             return None if s is None else (s.instance, s.rev)
 
-    def _cached_static(self, segments: Sequence[Segment], spec: str) -> dict[str, PoseResult]:
-        """Answers of static segments still valid: the owning agent's summary has not
+    def _cached_static(self, seg: Segment, spec: str) -> PoseResult | None:
+        """The answer of a static segment if still valid: the owning agent's summary has not
         changed since (any change of its edges or their attributes republishes it)."""
         if not self.cache_static_segments:
-            return {}
-        out = {}
-        for seg in segments:
-            hit = self._static.get((seg.agent, seg.source, seg.target, spec))
-            if hit is not None and hit[0] == self._summary_version(seg.agent):
-                out[seg.agent] = hit[1]
-        return out
+            return None
+        hit = self._static.get((seg.agent, seg.source, seg.target, spec))
+        if hit is not None and hit[0] == self._summary_version(seg.agent):
+            return hit[1]
+        return None
 
     def _remember_static(self, seg: Segment, spec: str, result: PoseResult) -> None:
         version = self._summary_version(seg.agent)

@@ -1,0 +1,128 @@
+"""The client's query logic with in-process agents (their query handlers called directly,
+no network): routes that pass through an agent twice, the static-segment cache, at=None."""
+
+from __future__ import annotations
+
+import time
+from unittest import mock
+
+import numpy as np
+import pytest
+
+from agent.client import Client
+from agent.srg import Graph
+from agent.srg import geometry as geo
+from agent.srg_node import SrgNode
+from schemas.codec import decode_message, encode_message
+
+S = 1_000_000_000
+EDGES = {  # A holds both ends of the route, B the middle: the route is A, B, A
+    "A": [("w", "cam", [1.0, 0.0, 2.0], 0.2), ("rig", "head", [0.0, 0.0, 0.1], 0.5)],
+    "B": [("cam", "rig", [0.5, 0.5, 0.0], -0.3)],
+}
+
+
+def static(parent, child, p, yaw):
+    return {"parent": parent, "child": child, "position": p,
+            "quaternion": geo.rotvec_to_quat(np.array([0.0, 0.0, yaw])).tolist(),
+            "pos_std_m": 0.01, "rot_std_rad": 0.002}
+
+
+class Realm:
+    """SrgNodes on mock sessions, and a client whose queries reach them directly."""
+
+    def __init__(self, edges):
+        self.nodes = {name: SrgNode(mock.MagicMock(), "lab", name, [static(*e) for e in es])
+                      for name, es in edges.items()}
+        self.client = Client(realm="lab", session=mock.MagicMock())
+        self.asked: list[set[str]] = []
+        self.client._ask_all = self.ask
+        self.publish()
+
+    def publish(self):
+        frames = {n: set(node.graph.frames()) for n, node in self.nodes.items()}
+        for name, node in self.nodes.items():
+            node._remote_frames = {o: f for o, f in frames.items() if o != name}
+            node._republish_if_changed()
+            self.client._take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
+        self.client._looked = True
+
+    def ask(self, msg, agents=()):
+        """What the agents' query handlers answer (without t2/t3: same clock, no offset)."""
+        self.asked.append(set(agents))
+        out = {}
+        for name in agents or self.nodes:
+            t1 = time.time_ns()
+            reply = self.nodes[name].handle(msg)
+            if reply is not None:
+                out[name] = (decode_message(encode_message(reply)), t1, time.time_ns())
+        return out
+
+    def close(self):
+        for node in self.nodes.values():
+            node.close()
+
+
+@pytest.fixture
+def realm_ab():
+    r = Realm(EDGES)
+    yield r
+    r.close()
+
+
+def test_a_route_through_an_agent_twice_is_asked_in_two_rounds(realm_ab):
+    r = realm_ab.client.pose("w", "head", error="hops")
+    assert r.path == ["w", "cam", "rig", "head"]
+    assert [e["owner"] for e in r.edges] == ["A", "B", "A"]
+    assert realm_ab.asked == [{"A", "B"}, {"A"}]
+    whole = Graph()
+    for es in EDGES.values():
+        for e in es:
+            s = static(*e)
+            whole.add_static(s["parent"], s["child"], s["position"], s["quaternion"],
+                             pos_std_m=0.01, rot_std_rad=0.002)
+    ref = whole.pose("w", "head")
+    np.testing.assert_allclose(r.position, ref.position, atol=1e-12)
+    np.testing.assert_allclose(r.covariance, ref.covariance, rtol=1e-9, atol=1e-16)
+
+
+def test_static_segments_are_cached_until_the_agent_summary_changes(realm_ab):
+    c = realm_ab.client
+    c.pose("w", "head", error="hops")
+    realm_ab.asked.clear()
+    c.pose("w", "head", error="hops")
+    assert realm_ab.asked == []  # every segment static and unchanged: nobody asked
+    realm_ab.nodes["B"].graph.set_attributes("cam", "rig", "config", pos_std_m=0.05)
+    realm_ab.publish()
+    r = c.pose("w", "head", error="hops")
+    assert realm_ab.asked == [{"B"}]  # only the agent whose summary changed
+    assert r.attributes["pos_std_m"] > 0.05
+    c.cache_static_segments = False
+    realm_ab.asked.clear()
+    c.pose("w", "head", error="hops")
+    assert realm_ab.asked == [{"A", "B"}, {"A"}]
+
+
+def test_at_none_composes_measured_segments_at_their_latest_common_time():
+    realm = Realm({"A": [("w", "cam", [1.0, 0.0, 2.0], 0.2)], "B": []})
+    try:
+        b = realm.nodes["B"]
+        ability = mock.MagicMock(edge=("cam", "head"), attributes=mock.MagicMock(
+            latency_s=0.001, frequency_hz=100.0, confidence=None, pos_std_m=0.01,
+            rot_std_rad=None, ttl_s=None, cost=None, covariance=None))
+        ability.name = "pose"
+        for k in range(5):
+            m = mock.MagicMock(t_ns=k * S // 100, position=np.array([0.0, k * 0.1, 0.0]),
+                               quaternion=np.array([0.0, 0.0, 0.0, 1.0]), covariance=None)
+            b.on_local_sample("tracker", ability, m)
+        realm.publish()
+        r = realm.client.pose("w", "head", error="hops")
+        assert r.t_ns == 4 * S // 100 and r.edges[1]["t_ns"] == r.t_ns
+        r = realm.client.pose("w", "head", at=3 * S // 100 - S // 200, error="hops")
+        assert r.extrapolated_s == 0.0
+        np.testing.assert_allclose(
+            r.position, geo.compose(*[np.array(x) for x in (
+                [1.0, 0.0, 2.0], geo.rotvec_to_quat(np.array([0, 0, 0.2])), [0.0, 0.25, 0.0],
+                [0, 0, 0, 1])])[0], atol=1e-12)
+    finally:
+        realm.close()
