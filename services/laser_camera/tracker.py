@@ -12,7 +12,9 @@ for having none out.
 3. the choice among the survivors -- the true labeling and its reflection always score
    alike -- by temporal coherence: the smallest error-quaternion angle to the previous
    pose (eqs. 5.10-5.11); with no recent pose, by the upright assumption of the thesis'
-   initialisation (the head's up axis, the rig's z, is the one closer to the world's up);
+   initialisation (the head's up axis, the rig's z, is the one closer to the world's up;
+   the reflection turns that axis to the horizontal, so knowing which wall the user faces,
+   the thesis' second assumption, is not needed with this housing);
 4. gating: a pose that moved or turned faster than a head can is refused;
 5. a 6x6 covariance by first-order propagation of each dot's measured uncertainty.
 
