@@ -456,6 +456,10 @@ class Subscription:
             for e in edges:
                 feeds += self._mirror(seg.agent, e)
         self.pusher = max(feeds, key=lambda f: f[3])[2] if feeds else None
+        rates = [f[3] for f in feeds if f[3] > 0]
+        if rates:  # a pulled edge may be extrapolated up to two of its sample periods
+            self.graph.max_extrapolation_s = max(self.graph.max_extrapolation_s,
+                                                 2.0 / min(rates))
         self._feeds = {f[1]: f for f in feeds}
         self._thread = threading.Thread(target=self._work, name="uma-subscription",
                                         daemon=True)
