@@ -165,3 +165,20 @@ def test_frozen_producer_is_dropped_after_its_lease_and_regained(processes, real
         frozen.popen.send_signal(signal.SIGCONT)
     # it wakes up, re-links, registers again and, being better, is taken back
     consumer.wait_for(lambda e: first_from(e, "fast"), after=mark)
+
+
+def test_abilities_of_a_vanished_agent_are_dropped_and_regained(processes, realm) -> None:
+    ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
+    agent(processes, realm, "hostA", ep_a)
+    host_b = agent(processes, realm, "hostB", ep_b, connect=(ep_a,))
+    service(processes, realm, "remote", "hostB", ep_b, *PRODUCER, "--attr", "latency_s=0.001")
+    service(processes, realm, "local", "hostA", ep_a, *PRODUCER, "--attr", "latency_s=0.01")
+    consumer = service(processes, realm, "fusion", "hostA", ep_a, "--need", "head",
+                       "--prefer", "latency_s")
+    consumer.wait_for(lambda e: first_from(e, "remote"))
+    mark = consumer.mark
+    processes.kill(host_b.popen, signal.SIGKILL)  # the service lives on, its agent does not
+    consumer.wait_for(lambda e: first_from(e, "local"), after=mark)
+    mark = consumer.mark
+    agent(processes, realm, "hostB", ep_b, connect=(ep_a,))  # the service registers again
+    consumer.wait_for(lambda e: first_from(e, "remote"), after=mark)
