@@ -3,6 +3,12 @@
 Joins the realm as a listening peer (so Zenoh's gossip links it to every agent, not only
 to the one it connects to), waits until the set of live agents is stable, then asks every
 agent's ``uma/R/agent/A/services`` queryable for its snapshot (``agent.registry``).
+
+``--json`` prints one object: ``{"realm", "agents": [{agent_id, realm, version, started_ns,
+endpoints, "services": [{service_id, instance, attributes, "abilities": [Ability...],
+"needs": [{...Need, "matches": [{key, agent_id, service_id, ability, score, local,
+"measured": {measured_frequency_hz, measured_latency_s}}], "satisfied", "excluded":
+{data key: reason}}]}]}], "problems": [text...]}`` (agents sorted by id).
 """
 
 from __future__ import annotations
