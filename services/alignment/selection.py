@@ -16,7 +16,7 @@ import numpy as np
 from services.alignment.solvers import MotionPairs, axis_spread
 
 #: Default angle threshold of the preselection (seed 000: "a threshold angle theta").
-DEFAULT_MIN_ANGLE_RAD = np.radians(10.0)
+DEFAULT_MIN_ANGLE_RAD = np.radians(5.0)
 
 
 def angle_mask(pairs: MotionPairs, min_angle_rad: float = DEFAULT_MIN_ANGLE_RAD) -> np.ndarray:

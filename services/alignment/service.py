@@ -3,8 +3,9 @@
 Online (``--a PARENT:CHILD --b PARENT:CHILD``): needs two ``pose6d`` streams of sensors
 that move rigidly together, ``A: world_a -> sensor_a`` and ``B: world_b -> sensor_b``
 (edge patterns may use ``*``).  It buffers the last ``--window-s`` seconds of both and,
-once the motions are well conditioned (at least ``--min-pairs`` motion pairs rotating by
-``--min-angle-deg`` or more, rotation axes spread by ``--min-spread-deg``), estimates the
+once the motions are well conditioned (``--min-seconds`` of data, at least ``--min-pairs``
+motion pairs rotating by ``--min-angle-deg`` or more, rotation axes spread by
+``--min-spread-deg``), estimates the
 time offset and X (``services.alignment.pipeline``); it publishes once the bootstrap
 standard deviations are within ``--max-pos-std-mm`` / ``--max-rot-std-deg`` (else it keeps
 collecting and tries again).  The result is published as the
@@ -93,11 +94,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--config'; default alignment.toml)")
     parser.add_argument("--method", default="daniilidis", choices=["daniilidis", "tsai-lenz"],
                         help="closed-form solver before refinement (default daniilidis)")
-    parser.add_argument("--min-angle-deg", type=float, default=10.0,
-                        help="motion pairs must rotate by at least this (default 10)")
+    parser.add_argument("--min-angle-deg", type=float, default=5.0,
+                        help="motion pairs must rotate by at least this (default 5)")
     parser.add_argument("--min-spread-deg", type=float, default=30.0,
                         help="rotation axes must spread by at least this before solving "
                              "(default 30)")
+    parser.add_argument("--min-seconds", type=float, default=20.0,
+                        help="seconds of overlapping data needed before solving (default 20)")
     parser.add_argument("--min-pairs", type=int, default=50,
                         help="motion pairs needed before solving (default 50)")
     parser.add_argument("--max-pos-std-mm", type=float, default=2.0,
@@ -126,7 +129,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def options_from(args: argparse.Namespace) -> AlignmentOptions:
     """The pipeline options of the command line (``ValueError`` names a bad one)."""
-    for name in ("min_angle_deg", "min_spread_deg", "max_offset_ms", "window_s",
+    for name in ("min_angle_deg", "min_spread_deg", "max_offset_ms", "window_s", "min_seconds",
                  "recalibrate_every", "max_pos_std_mm", "max_rot_std_deg"):
         value = getattr(args, name)
         if not math.isfinite(value) or value < 0:
@@ -263,14 +266,16 @@ class StreamBuffer:
 
 
 def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOptions,
-              min_pairs: int, min_spread_rad: float) -> tuple[bool, str]:
+              min_pairs: int, min_spread_rad: float, min_seconds: float = 0.0,
+              ) -> tuple[bool, str]:
     """Whether the buffered motions condition X well enough to solve, and why not."""
     if a is None or b is None:
         return False, "waiting for both streams"
     overlap = min(a.t[-1], b.t[-1]) - max(a.t[0], b.t[0])
     # the offset search needs 10x its range (timesync.coarse_offset), plus a margin for the
     # stream ends
-    needed = (10 * options.max_offset_s if options.estimate_offset else 0.0) + 1.0
+    needed = max((10 * options.max_offset_s if options.estimate_offset else 0.0) + 1.0,
+                 min_seconds)
     if overlap < needed:
         return False, f"streams overlap {max(overlap, 0):.1f} s of the {needed:.1f} s needed"
     pick = np.unique(np.linspace(0, len(a) - 1, _READINESS_STATIONS).astype(int))
@@ -324,7 +329,8 @@ class LiveAlignment:
         t0 = min(firsts) if firsts else 0
         sa, sb = self.a.series(t0), self.b.series(t0)
         ready, self.status = readiness(sa, sb, self.options, self.args.min_pairs,
-                                       math.radians(self.args.min_spread_deg))
+                                       math.radians(self.args.min_spread_deg),
+                                       self.args.min_seconds)
         if not ready:
             return None
         self.last_attempt = time.monotonic()
