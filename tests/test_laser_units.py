@@ -343,3 +343,18 @@ def test_service_measures_and_readvertises_its_attributes() -> None:
     *_, adv = service._maybe_update(pose_out, dots_out, a, slower)
     assert adv == slower and pose_out.updates == [slower]
     assert "pos_std_m" not in dots_out.updates[0]
+
+
+def test_model_error_is_added_to_the_covariance(world) -> None:
+    from services.laser_camera.tracker import TrackerParams
+
+    p, q = random_rig_pose(np.random.default_rng(2), upright=True)
+    dots = world_dots(exact_hits(world, p, q), std=1e-3)
+    plain = make_tracker().solve(dots, 0.0)
+    tr = LaserTracker(None, TrackerParams(model_pos_std_m=0.002, model_rot_std_rad=0.001))
+    inflated = tr.solve(dots, 0.0)
+    a = geo.se3_to_decoupled(plain.position, plain.covariance)
+    b = geo.se3_to_decoupled(inflated.position, inflated.covariance)
+    assert np.allclose(b - a, np.diag([4e-6] * 3 + [1e-6] * 3), atol=1e-12)
+    with pytest.raises(ValueError, match=">= 0"):
+        TrackerParams(model_rot_std_rad=-1.0)

@@ -20,7 +20,12 @@ import numpy as np
 from agent.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim
-from services.laser_camera.tracker import NO_POSE_REASONS, LaserTracker, PoseEstimate
+from services.laser_camera.tracker import (
+    NO_POSE_REASONS,
+    LaserTracker,
+    PoseEstimate,
+    TrackerParams,
+)
 from services.sim.world import Frame, IvyWorld, WorldConfig
 
 #: a labeled dot farther than this from its diode's true spot is a labeling error
@@ -42,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--screen-bulge-mm", type=float, default=0.0, metavar="MM",
                         help="simulate fabric screens bent inwards by this much at their "
                              "centres (std, default 0: flat, as when calibrated)")
+    parser.add_argument("--model-rot-std-deg", type=float, default=0.0, metavar="DEG",
+                        help="rotation error the tracker adds to its covariance for what the "
+                             "dots cannot show (default 0)")
+    parser.add_argument("--model-pos-std-mm", type=float, default=0.0, metavar="MM",
+                        help="the same for position (default 0)")
     parser.add_argument("--calibration", metavar="FILE", default=None,
                         help="load this calibration instead of calibrating the simulated "
                              "cameras first (about 15 s); it must match --cameras")
@@ -64,7 +74,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     else:
         cal = calibrate_sim(world)
     calib_s = time.perf_counter() - t0
-    figures = evaluate(world, cal, args.seconds, args.rate_hz)
+    params = TrackerParams(model_pos_std_m=args.model_pos_std_mm / 1000,
+                           model_rot_std_rad=np.radians(args.model_rot_std_deg))
+    figures = evaluate(world, cal, args.seconds, args.rate_hz, params)
     figures["calibration_s"] = round(calib_s, 2)
     figures["seed"] = args.seed
     figures["imperfections"] = {"housing_error_deg": args.housing_error_deg,
@@ -73,10 +85,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return figures
 
 
-def evaluate(world: IvyWorld, cal: Calibration, seconds: float,
-             rate_hz: float = 30.0) -> dict[str, Any]:
+def evaluate(world: IvyWorld, cal: Calibration, seconds: float, rate_hz: float = 30.0,
+             params: TrackerParams | None = None) -> dict[str, Any]:
     """Run the tracker over ``seconds`` of the world's trajectory; figures as a dict."""
-    tracker = LaserTracker(cal)
+    tracker = LaserTracker(cal, params)
     n = round(seconds * rate_hz)
     rot, pos, nees, t_total, t_detect = [], [], [], [], []
     four_truth = labeled_ok = labeled_bad = 0

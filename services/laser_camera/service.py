@@ -31,7 +31,7 @@ from agent.srg import geometry as geo
 from schemas.codec import Measurement
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
-from services.laser_camera.tracker import LaserTracker, PoseEstimate
+from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams
 from services.sim import mounts
 from services.sim.world import IvyWorld
 
@@ -62,6 +62,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated trajectory seed (default 1; as the sim service)")
     parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
                         help="simulated display: 6 cameras (default) or 8 as in the thesis")
+    parser.add_argument("--model-rot-std-deg", type=float, default=0.0, metavar="DEG",
+                        help="rotation error added to every covariance for what the dots "
+                             "cannot show, e.g. the housing's tolerance (default 0)")
+    parser.add_argument("--model-pos-std-mm", type=float, default=0.0, metavar="MM",
+                        help="the same for position (default 0)")
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -149,7 +154,9 @@ class _Performance:
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
     """Track at the source's pace; advertise after a warm-up measured at that pace."""
-    tracker = LaserTracker(cal)
+    tracker = LaserTracker(cal, TrackerParams(
+        model_pos_std_m=args.model_pos_std_mm / 1000,
+        model_rot_std_rad=float(np.radians(args.model_rot_std_deg))))
     perf = _Performance()
     period = 1.0 / args.rate_hz if isinstance(source, SimSource) else 0.0
     with contextlib.ExitStack() as stack:

@@ -61,12 +61,18 @@ class TrackerParams:
     pool_eps: float = 0.02  # labelings this close to the best fit compete for the choice
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
+    #: errors the dots cannot reveal -- the housing's manufacturing tolerance, screens that
+    #: bend -- added to every pose covariance (1 sigma, per axis; default: none)
+    model_pos_std_m: float = 0.0
+    model_rot_std_rad: float = 0.0
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
             raise ValueError("max_dots must be at least 4")
         if self.coherence_s <= 0 or self.max_labeling_error <= 0:
             raise ValueError("coherence_s and max_labeling_error must be positive")
+        if self.model_pos_std_m < 0 or self.model_rot_std_rad < 0:
+            raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -215,7 +221,7 @@ class LaserTracker:
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
-            cov = _covariance(dots, idx, best.position)
+            cov = _covariance(dots, idx, best.position, p.model_pos_std_m, p.model_rot_std_rad)
         except ValueError as exc:
             return self._fail(t, "degenerate", n, str(exc))
         est = PoseEstimate(
@@ -254,10 +260,11 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
                      [d.cameras[i] for i in k])
 
 
-def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
-                step_m: float = 1e-5) -> np.ndarray:
+def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, model_pos_std_m: float = 0.0,
+                model_rot_std_rad: float = 0.0, step_m: float = 1e-5) -> np.ndarray:
     """6x6 pose covariance (xi form) from the dots' in-plane errors, by numeric Jacobian of
-    the closed-form solution: each dot moves along its wall's two axes."""
+    the closed-form solution (each dot moves along its wall's two axes), plus the model
+    error the dots cannot show."""
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
@@ -270,5 +277,5 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
                            dR[:, 1, 0] - dR[:, 0, 1]], -1)
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
     var = np.repeat(dots.std_m[idx] ** 2, 2)
-    C = (J * var) @ J.T
+    C = (J * var) @ J.T + np.diag([model_pos_std_m ** 2] * 3 + [model_rot_std_rad ** 2] * 3)
     return geo.decoupled_to_se3(p0, 0.5 * (C + C.T))
