@@ -105,8 +105,9 @@ class IvyWorld:
     def __init__(self, n_cameras: int = 6, seed: int = 0, install_seed: int = 0,
                  trajectory: HeadTrajectory | None = None, config: WorldConfig | None = None):
         self.config = config or WorldConfig(n_cameras=n_cameras)
-        if config is not None and config.n_cameras != n_cameras and n_cameras != 6:
-            raise ValueError("give n_cameras either directly or in config, not both")
+        if config is not None and n_cameras != 6 and config.n_cameras != n_cameras:
+            raise ValueError(f"n_cameras={n_cameras} disagrees with config.n_cameras="
+                             f"{config.n_cameras}; give it in one place")
         self.seed = seed
         self.install_seed = install_seed
         self.walls: dict[str, Wall] = make_walls(self.config.cube_side_m,
