@@ -337,6 +337,9 @@ def test_attribute_change_invalidates_plans_that_use_the_edge_only():
     g.pose("w", "y", at=0, error="latency")
     feed(g, "w", "x", [0.4], latency_s=0.03)  # an attribute change carried by a sample
     assert not g.has_plan("w", "y", "latency")
+    g.set_attributes("w", "x", latency_s=0.5)
+    feed(g, "w", "x", [0.5], latency_s=0.03)  # the sample's attributes win again
+    assert g.edge("w", "x").attrs["latency_s"] == 0.03
 
 
 def test_added_and_removed_edges_invalidate_and_reroute():

@@ -22,7 +22,7 @@ def edge_name(key: EdgeKey) -> str:
 class Edge:
     """The pose of ``child`` in ``parent``: either one static value or a buffer of samples."""
 
-    __slots__ = ("attrs", "buffer", "key", "name", "std_cov", "value")
+    __slots__ = ("attrs", "buffer", "key", "last_kwargs", "name", "std_cov", "value")
 
     def __init__(self, key: EdgeKey, attrs: dict[str, Any], *, static_value: tuple | None = None,
                  buffer_s: float = 10.0, max_samples: int = 1000) -> None:
@@ -33,6 +33,8 @@ class Edge:
         self.buffer = None if static_value is not None else SampleBuffer(
             self.name, buffer_s, max_samples)
         self.std_cov = self._std_covariance()
+        #: the attribute arguments of the last add_measurement (repeats are not re-checked)
+        self.last_kwargs: dict[str, Any] | None = None
 
     @property
     def parent(self) -> str:
@@ -53,6 +55,7 @@ class Edge:
     def set_attributes(self, attrs: dict[str, Any]) -> None:
         self.attrs = attrs
         self.std_cov = self._std_covariance()
+        self.last_kwargs = None  # the next sample's attributes are checked again
 
     def _std_covariance(self) -> tuple[np.ndarray, bool] | None:
         """The decoupled covariance of the std attributes and whether it has a rotation part.

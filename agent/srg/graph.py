@@ -47,6 +47,17 @@ def _time(t_ns: Any) -> int:
     return int(t_ns)
 
 
+def _same_kwargs(a: dict[str, Any], b: dict[str, Any] | None) -> bool:
+    """Whether a sample repeats the attributes of the previous one (the common case:
+    checking them again per sample would cost more than the sample)."""
+    if b is None or a.keys() != b.keys():
+        return False
+    try:
+        return all(a[k] is b[k] or bool(a[k] == b[k]) for k in a)
+    except ValueError:  # arrays (a covariance): compare properly
+        return same_attributes(a, b)
+
+
 def identity(frame: str, t_ns: int | None) -> PoseResult:
     """The pose of a frame in itself (as tf2 answers it): exact, no edges."""
     p = np.zeros(3)
@@ -126,9 +137,10 @@ class Graph:
         """
         key = (parent, child, source)
         edge = self._edges.get(key)
-        if edge is None or attributes:
+        if edge is None or (attributes and not _same_kwargs(attributes, edge.last_kwargs)):
             edge = self._edges[self.declare_measured(parent, child, source=source,
                                                      **attributes)]
+            edge.last_kwargs = attributes
         elif edge.buffer is None:
             raise ValueError(f"edge {edge.name} is static; it takes no measurements")
         t = _time(t_ns)
