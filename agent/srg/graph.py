@@ -5,9 +5,12 @@ frames (distinguished by their ``source``, e.g. the service and ability that mea
 are all fine, unlike tf2's tree.  Edges are walked both ways (inverse pose and covariance).
 Static edges hold one value; measured edges hold a bounded time buffer that is
 interpolated (lerp + slerp) at the query time and extrapolated, boundedly and visibly, past
-its ends.  Queries compile to cached plans (:mod:`agent.srg.plan`); a new sample never
-invalidates a plan, a change of structure or attributes invalidates exactly the plans whose
-searched component it touches (a change elsewhere cannot alter their best path).
+its ends.  Queries compile to cached plans (:mod:`agent.srg.plan`).  A new sample never
+invalidates a plan.  Removing an edge invalidates the plans whose candidate paths use it.
+Adding an edge, or changing an edge's attributes or static value, invalidates the plans
+whose searched component contains it: the plans that use it, and those for which it might
+now be part of a better path; plans of other components are kept (nothing there can change
+their best path).
 """
 
 from __future__ import annotations
