@@ -115,6 +115,7 @@ class FusionConfig:
     max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
     adapt_pose_noise: bool = True        # scale the optical covariance so its NIS averages 6
     pose_noise_rate: float = 0.02        # adaptation gain per optical pose
+    pose_noise_min_scale: float = 0.5    # never trust the optics beyond twice their std
     max_step_s: float = 0.05             # longer predictions are split (integration accuracy)
 
     def __post_init__(self) -> None:
@@ -459,7 +460,7 @@ class FusionEKF:
         share = float(np.trace(Rm) / max(np.trace(HPHt + Rm), 1e-300))
         step = cfg.pose_noise_rate * share * (nis / 6.0 - 1.0)
         scale = self.stats.pose_noise_scale * (1.0 + max(-0.5, min(step, 0.5)))
-        self.stats.pose_noise_scale = min(20.0, max(0.05, scale))
+        self.stats.pose_noise_scale = min(20.0, max(cfg.pose_noise_min_scale, scale))
 
     # ------------------------------------------------------------------ SCAAT: one laser dot
 
