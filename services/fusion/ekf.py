@@ -452,7 +452,9 @@ class FusionEKF:
         A tracker's covariance is a model; if it is too large (or too small) the fused
         covariance is dishonest.  An accepted pose's NIS averages 6 when ``S`` is right;
         the scale of ``R`` moves by the share of ``S`` that ``R`` makes up, bounded to
-        [0.05, 20] so a run of outliers cannot switch the optics off.
+        [pose_noise_min_scale, 20]: an optical tracker's errors are correlated from frame
+        to frame (calibration, screen geometry), which makes the NIS look smaller than the
+        error is, and a run of outliers must not switch the optics off.
         """
         cfg = self.config
         if not cfg.adapt_pose_noise or nis > cfg.pose_gate:
