@@ -16,7 +16,10 @@ What it does, in one Zenoh peer session:
   is *excluded* for that need and the need re-matched to the next best; the agent keeps
   watching the excluded stream, and once it satisfies the predicate again for ``grace_s``
   the exclusion is lifted (so the need moves back if it ranks better).  Disappearance
-  (token DELETE of the service or of its agent) re-matches at once;
+  (token DELETE of the service or of its agent) re-matches at once, once a service whose
+  token went has been asked whether it still answers (``agent.registry`` step 4: a killed
+  service has no queryable left, so the check costs one local lookup; one that answers is
+  kept, and a local service whose token comes back after it was dropped is re-adopted);
 - **SRG hook**: after opening its session it creates
   ``agent.srg_node.SrgNode(session, realm, agent_id, static_edges)`` (``static_edges``: the
   config file's ``[[static]]`` tables as dicts with ``parent``, ``child``, ``position``
@@ -77,6 +80,7 @@ from agent.registry import (
     Registration,
     Snapshot,
     control_message,
+    parse_descriptor_answer,
     parse_descriptor_reply,
     parse_register_request,
     parse_snapshot,
@@ -100,6 +104,9 @@ DUPLICATE_CHECK_S = 0.5
 LINK_WAIT_S = 1.0
 #: seconds to wait for a snapshot query's replies
 FETCH_TIMEOUT_S = 2.0
+#: how long a departure check waits for a service whose token went to answer on its
+#: descriptor queryable (a killed or unreachable one has no queryable: the get ends at once)
+DEPARTURE_CHECK_S = 1.0
 #: bound on queued local pose samples for the SRG
 FEED_QUEUE = 10_000
 
@@ -267,6 +274,11 @@ class Agent:
         self._decls: list[Any] = []
         self._token: Any = None
         self._pending: dict[str, PendingRegistration] = {}
+        #: services whose token went, being checked: (agent, service) -> check number
+        self._checking: dict[tuple[str, str], int] = {}
+        self._checks = 0
+        #: local services whose descriptor is being re-fetched (their token came back)
+        self._adopting: set[str] = set()
         self._desc_bytes: dict[str, bytes] = {}
         self._dirty = False           # re-match needed
         self._snapshot_dirty = False  # publish a new snapshot
@@ -473,26 +485,49 @@ class Agent:
         self.session.get(key, on_reply, timeout=FETCH_TIMEOUT_S)
 
     def _resync_tokens(self) -> None:
-        """Anti-entropy: ask for the live agent and service tokens and handle any this agent
-        missed (a liveliness subscription declared before its links were up may not get
-        the tokens that existed then)."""
+        """Anti-entropy: ask for the live agent and service tokens and reconcile (a
+        liveliness subscription declared before its links were up may not get the tokens
+        that existed then; a DELETE and a PUT may have crossed)."""
         assert self.session is not None
 
-        def on_reply(reply: zenoh.Reply) -> None:
+        def on_agent(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
-                self._enqueue(self._on_resync_token, reply.ok)
+                self._enqueue(self._on_resync_agent_token, reply.ok)
         liveliness = self.session.liveliness()
-        liveliness.get(keys.all_agent_tokens(self.realm), on_reply, timeout=1.0)
-        liveliness.get(keys.service_tokens(self.realm), on_reply, timeout=1.0)
+        liveliness.get(keys.all_agent_tokens(self.realm), on_agent, timeout=1.0)
+        found: list[str] = []
 
-    def _on_resync_token(self, smp: zenoh.Sample) -> None:
-        key = str(smp.key_expr)
-        agent_id = keys.parse_agent_token(key, self.realm)
-        if agent_id is not None:
-            if agent_id != self.agent_id and agent_id not in self.view.live_agents:
-                self._on_agent_token(smp)
-        elif keys.parse_service_token(key, self.realm) not in self.view.live_services:
-            self._on_service_token(smp)
+        def on_service(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                found.append(str(reply.ok.key_expr))
+        liveliness.get(keys.service_tokens(self.realm), zenoh.handlers.Callback(
+            on_service, lambda: self._enqueue(self._on_resync_service_tokens, found)),
+            timeout=1.0)
+
+    def _on_resync_agent_token(self, smp: zenoh.Sample) -> None:
+        agent_id = keys.parse_agent_token(str(smp.key_expr), self.realm)
+        if agent_id is not None and agent_id != self.agent_id and (
+                agent_id not in self.view.live_agents):
+            self._on_agent_token(smp)
+
+    def _on_resync_service_tokens(self, token_keys: list[str]) -> None:
+        """Tokens we missed count as PUTs; a local service with a live token but no
+        registration is re-adopted; a service we believe alive whose token is not there
+        is checked (it is dropped only if it does not answer)."""
+        live: set[tuple[str, str]] = set()
+        for key in token_keys:
+            parsed = keys.parse_service_token(key, self.realm)
+            if parsed is None:
+                self._bad.warning(f"liveliness {key}", "not a service token key")
+                continue
+            live.add(parsed)
+        for agent_id, sid in live:
+            if (agent_id, sid) not in self.view.live_services:
+                self._service_token_put(agent_id, sid)
+            elif agent_id == self.agent_id and sid not in self.view.local:
+                self._adopt(sid)
+        for agent_id, sid in self.view.live_services - live:
+            self._check_departure(agent_id, sid)
 
     def _on_snapshot(self, key: str, data: bytes) -> None:
         agent_id = keys.parse_agent_services(key, self.realm)
@@ -522,19 +557,111 @@ class Agent:
             return
         agent_id, sid = parsed
         if smp.kind == zenoh.SampleKind.PUT:
-            changed = self.view.service_alive(agent_id, sid)
+            self._service_token_put(agent_id, sid)
         else:
-            local = agent_id == self.agent_id and sid in self.view.local
-            if local:
-                self._local_abilities_changed(sid, [])
-            changed = self.view.service_gone(agent_id, sid)
-            if local:
-                log.info("service %s left agent %s", sid, self.agent_id)
-                self._drop_needs(sid)
+            self._check_departure(agent_id, sid)
+
+    def _service_token_put(self, agent_id: str, sid: str) -> None:
+        self._checking.pop((agent_id, sid), None)  # back: a pending check is moot
+        if self.view.service_alive(agent_id, sid):
+            self._dirty = True
+        if agent_id == self.agent_id:
+            self._snapshot_dirty = True
+            if sid not in self.view.local:
+                self._adopt(sid)  # we dropped it meanwhile: take it back
+
+    def _check_departure(self, agent_id: str, sid: str) -> None:
+        """A service token's DELETE: ask the service itself before tearing anything down
+        (see ``agent.registry``, step 4: a DELETE may be spurious)."""
+        k = (agent_id, sid)
+        if k not in self.view.live_services and not (
+                agent_id == self.agent_id and sid in self.view.local):
+            return  # nothing to tear down
+        if k in self._checking:
+            return
+        assert self.session is not None
+        self._checks += 1
+        check, answers = self._checks, []
+        self._checking[k] = check
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                answers.append(reply.ok.payload.to_bytes())
+        self.session.get(keys.service_token(self.realm, agent_id, sid), zenoh.handlers.Callback(
+            on_reply, lambda: self._enqueue(self._on_departure_checked, k, check, answers)),
+            timeout=DEPARTURE_CHECK_S, consolidation=zenoh.ConsolidationMode.NONE)
+
+    def _on_departure_checked(self, k: tuple[str, str], check: int,
+                              answers: list[bytes]) -> None:
+        if self._checking.get(k) != check:
+            return  # the token came back meanwhile, or a newer check runs
+        del self._checking[k]
+        agent_id, sid = k
+        expected = self._instance_of(agent_id, sid)
+        for data in answers:
+            try:
+                instance = parse_descriptor_reply(data)
+            except DecodeError as exc:
+                self._bad.warning(f"service {agent_id}/{sid}", f"bad descriptor reply: {exc}")
+                continue
+            if expected is None or instance == expected:
+                self._bad.warning(f"service {agent_id}/{sid}",
+                                  "its liveliness token went but it still answers; kept")
+                return
+        self._service_gone(agent_id, sid)
+
+    def _instance_of(self, agent_id: str, sid: str) -> str | None:
+        """The process instance this agent knows for a service (None: unknown)."""
+        if agent_id == self.agent_id:
+            entry = self.view.local.get(sid)
+            return entry.instance if entry else None
+        snap = self.view.remote.get(agent_id)
+        instance = snap.status.get(sid, {}).get("instance") if snap else None
+        return instance if isinstance(instance, str) else None
+
+    def _service_gone(self, agent_id: str, sid: str) -> None:
+        local = agent_id == self.agent_id and sid in self.view.local
+        if local:
+            self._local_abilities_changed(sid, [])
+        changed = self.view.service_gone(agent_id, sid)
+        if local:
+            log.info("service %s left agent %s", sid, self.agent_id)
+            self._drop_needs(sid)
         if changed:
             self._dirty = True
         if agent_id == self.agent_id:
             self._snapshot_dirty = True
+
+    def _adopt(self, sid: str) -> None:
+        """Re-fetch a live local service's descriptor from the service itself."""
+        if sid in self._adopting:
+            return
+        assert self.session is not None
+        self._adopting.add(sid)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._enqueue(self._on_adopt_reply, sid, reply.ok.payload.to_bytes())
+        self.session.get(keys.service_token(self.realm, self.agent_id, sid),
+                         zenoh.handlers.Callback(
+                             on_reply, lambda: self._enqueue(self._adopting.discard, sid)),
+                         timeout=FETCH_TIMEOUT_S)
+
+    def _on_adopt_reply(self, sid: str, data: bytes) -> None:
+        if sid in self.view.local or (self.agent_id, sid) not in self.view.live_services:
+            return  # registered by itself meanwhile, or gone again
+        try:
+            reg = parse_descriptor_answer(data, self.agent_id)
+        except DecodeError as exc:
+            self._bad.warning(f"service {sid}", f"cannot re-adopt it: {exc}")
+            return
+        if reg.descriptor.service_id != sid:
+            self._bad.warning(f"service {sid}", "cannot re-adopt it: it answers as "
+                              f"{reg.descriptor.service_id!r}")
+            return
+        self._admit(reg)
+        log.info("service %s re-adopted by agent %s: its token came back (revision %d)",
+                 sid, self.agent_id, reg.revision)
 
     def _on_register(self, query: zenoh.Query, data: bytes | None) -> None:
         try:
@@ -599,6 +726,16 @@ class Agent:
             query.drop()
 
     def _accept(self, query: zenoh.Query, reg: Registration) -> None:
+        self._admit(reg)
+        try:
+            query.reply(query.key_expr, reply_ok(self.epoch))
+        finally:
+            query.drop()
+        log.info("service %s registered with agent %s (revision %d)",
+                 reg.descriptor.service_id, self.agent_id, reg.revision)
+
+    def _admit(self, reg: Registration) -> None:
+        """Take a registration in: the view, the SRG feed, the needs."""
         sid = reg.descriptor.service_id
         old = self.view.local.get(sid)
         new_instance = old is None or old.instance != reg.instance
@@ -623,12 +760,6 @@ class Agent:
             if name not in {n.name for n in reg.descriptor.needs}:
                 del self.needs[(s, name)]
         self._snapshot_dirty = True
-        try:
-            query.reply(query.key_expr, reply_ok(self.epoch))
-        finally:
-            query.drop()
-        log.info("service %s registered with agent %s (revision %d)", sid, self.agent_id,
-                 reg.revision)
 
     def _requirement(self, sid: str, need_name: str) -> Requirement:
         for req in self.view.requirements():

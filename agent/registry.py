@@ -22,8 +22,18 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    ``retry: true`` is temporary (a check for that id is in progress).
 4. On the first acceptance the service declares its liveliness token ``uma/R/svc/A/S``
    (only then, so a refused duplicate never merges with the original's token).  The agent
-   advertises a local service's abilities once it has seen that token; the token's DELETE
-   (undeclared, process killed: ~2 ms; frozen process: the lease, 1 s) removes it.
+   advertises a local service's abilities once it has seen that token.  A token's DELETE
+   (undeclared, process killed: ~2 ms; frozen process: the lease, 1 s) is *checked*
+   before anything is torn down: the agent asks ``uma/R/svc/A/S``; a service that still
+   answers with the same ``instance`` is kept (a DELETE can be spurious: a transport whose
+   lease expired between starved processes, re-established at once, gives DELETE then PUT,
+   and the two can reach the agent out of order with the service's own re-registration).
+   A killed or unreachable service has no queryable left, so that get ends at once and
+   failover stays fast.  If a local service's token comes back after the agent dropped
+   it, the agent **re-adopts** it from its answer on ``uma/R/svc/A/S`` (descriptor,
+   instance, revision, connected: :func:`parse_descriptor_answer`), with no action by the
+   service.  Every ``RESEND_S`` the agent compares the live service tokens with what it
+   believes and checks or re-adopts the differences.
    A registration whose token never shows up is dropped after ``PENDING_TIMEOUT_S``.
 5. Attribute changes (``ability.update(...)``) are re-registrations with a higher revision.
    If the agent restarts (its token goes and comes back) the service registers again;
@@ -188,6 +198,19 @@ def parse_register_request(data: bytes, agent_id: str) -> Registration:
     msg = decode_message(data, required=("op", "instance", "revision", "descriptor"))
     if msg["op"] != "register":
         raise DecodeError(f"unknown op {msg['op']!r} (expected 'register')")
+    return _registration(msg, agent_id)
+
+
+def parse_descriptor_answer(data: bytes, agent_id: str) -> Registration:
+    """A service's answer on ``uma/R/svc/A/S`` (:func:`descriptor_reply`) as the
+    registration it stands for: how an agent re-adopts a local service whose token came
+    back after the agent had dropped it, without any action by the service."""
+    return _registration(decode_message(data, required=("instance", "revision", "descriptor")),
+                         agent_id)
+
+
+def _registration(msg: dict[str, Any], agent_id: str) -> Registration:
+    """Check the fields a register request and a descriptor answer share."""
     instance, revision = msg["instance"], msg["revision"]
     if not isinstance(instance, str) or not 0 < len(instance) <= 64:
         raise DecodeError("instance: expected a short string")
