@@ -24,12 +24,19 @@ subscribing directly to their services' data keys.  Each sample of the fastest e
 a composed pose at its time; the other edges are interpolated (or boundedly
 extrapolated) at that time: Ubitrack's push/pull rule.  ``on_pose`` runs on the
 subscription's own thread, never on a Zenoh thread.
+
+A subscription follows the realm: whenever an agent leaves or joins or a supernode summary
+changes, it plans again, and if the best route (or any edge of it) differs it rebuilds its
+mirror on the new route and goes on delivering.  When no route is left it says so (a log
+line, ``status == "no route"``, ``last_error``, and ``on_error(exc)`` once per outage),
+stops delivering, and retries every ``RETRY_S`` and at every change until a route is back.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import queue
 import threading
 import time
@@ -72,6 +79,8 @@ log = logging.getLogger("uma.client")
 MAX_ROUTES = 4
 #: how long the first look at the realm waits for the set of agents to settle
 SETTLE_S = 0.15
+#: how often a subscription without a route tries again (besides at every realm change)
+RETRY_S = 1.0
 
 
 class NoAgentsError(UmaError):
@@ -103,6 +112,9 @@ class Client:
         #: False: ask for every segment every time (the benchmark's uncached figure)
         self.cache_static_segments = True
         self._alive: set[str] = set()
+        #: bumped whenever the summaries or the set of live agents change (subscriptions
+        #: re-plan when it moves)
+        self.topology = 0
         self._looked = False
         self._subscriptions: list[Subscription] = []
         self._bad = RateLimitedLog(log)
@@ -147,17 +159,21 @@ class Client:
             if old is None or summary.rev > old.rev or summary.instance != old.instance:
                 self._summaries[summary.agent] = summary
                 self._routes.clear()
-            self._alive.add(summary.agent)
+                self.topology += 1
+            self._mark_alive(summary.agent, True)
+
+    def _mark_alive(self, agent: str, alive: bool) -> None:
+        """Update the live set (lock held); a change moves ``topology``."""
+        if (agent in self._alive) != alive:
+            self.topology += 1
+            (self._alive.add if alive else self._alive.discard)(agent)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
         if agent is None:
             return
         with self._lock:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                self._alive.discard(agent)
-            else:
-                self._alive.add(agent)
+            self._mark_alive(agent, sample.kind != zenoh.SampleKind.DELETE)
 
     def refresh(self) -> None:
         """Ask every agent for its summary now (also learns who is alive)."""
@@ -169,7 +185,8 @@ class Client:
                 if agent is not None:
                     alive.add(agent)
         with self._lock:
-            self._alive |= alive
+            for agent in alive:
+                self._mark_alive(agent, True)
         for reply in self.session.get(keys.all_agent_supernodes(self.realm),
                                       timeout=self.timeout):
             if reply.ok is not None:
@@ -245,7 +262,7 @@ class Client:
                 causes.append(exc)
                 if exc.missing:
                     with self._lock:
-                        self._alive.discard(exc.segment.agent)
+                        self._mark_alive(exc.segment.agent, False)
         if len(causes) == 1:
             raise causes[0]
         raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
@@ -425,32 +442,81 @@ class Client:
     # ------------------------------------------------------------------ streaming
 
     def subscribe(self, source: str, target: str, on_pose: Callable[[PoseResult], Any],
-                  error: str = "latency") -> Subscription:
-        """Push a composed pose to ``on_pose`` at every sample of the route's fastest edge."""
+                  error: str = "latency",
+                  on_error: Callable[[Exception], Any] | None = None) -> Subscription:
+        """Push a composed pose to ``on_pose`` at every sample of the route's fastest edge,
+        following route changes; ``on_error(exc)`` is told when no route is left (module
+        docstring).  Raises like :meth:`pose` if there is no route to begin with."""
         if not callable(on_pose):
             raise ValueError("on_pose must be callable")
+        if on_error is not None and not callable(on_error):
+            raise ValueError("on_error must be callable or None")
+        seen = self.topology
         first, parts = self._query(source, target, None, error, details=True)
-        sub = Subscription(self, source, target, on_pose, parts, first)
+        sub = Subscription(self, source, target, on_pose, error, on_error, parts, first, seen)
         self._subscriptions.append(sub)
         return sub
 
 
+#: what a route's mirror is made of: per segment, its agent and each edge's identity and
+#: value (a different data key, attribute or static value means a different mirror)
+Signature = tuple[tuple[str, tuple[tuple[Any, ...], ...]], ...]
+
+
+def _signature(parts: list[tuple[Segment, list[dict[str, Any]]]]) -> Signature:
+    def frozen(v: Any) -> Any:
+        if isinstance(v, dict):
+            return tuple(sorted((k, frozen(x)) for k, x in v.items()))
+        if isinstance(v, list | tuple):
+            return tuple(frozen(x) for x in v)
+        return v
+    return tuple((seg.agent, tuple(frozen(e) for e in edges)) for seg, edges in parts)
+
+
 class Subscription:
-    """A running stream of composed poses; ``close()`` stops it."""
+    """A running stream of composed poses that follows route changes; ``close()`` stops it.
+
+    ``status``: ``"streaming"``, ``"no route"`` or ``"closed"``; ``route``: the segments
+    in use; ``replans``: how many times it moved to another route; ``last_error``: the
+    latest failure (bad sample, undefined pull, no route).
+    """
 
     def __init__(self, client: Client, source: str, target: str,
-                 on_pose: Callable[[PoseResult], Any],
-                 parts: list[tuple[Segment, list[dict[str, Any]]]], first: PoseResult) -> None:
+                 on_pose: Callable[[PoseResult], Any], error: str,
+                 on_error: Callable[[Exception], Any] | None,
+                 parts: list[tuple[Segment, list[dict[str, Any]]]], first: PoseResult,
+                 topology: int) -> None:
         self.client = client
         self.source, self.target = source, target
         self.on_pose = on_pose
+        self.on_error = on_error
+        self.error = error
         self.delivered = 0
         self.failed = 0
+        self.replans = 0
         self.last_error: Exception | None = None
+        self.status = "streaming"
+        self.route: list[Segment] = []
         self.graph = Graph(buffer_s=5.0)
+        self.pusher: tuple | None = None
         self._q: queue.Queue[tuple[str, str, bytes] | None] = queue.Queue(10_000)
         self._decls: list[Any] = []
+        self._feeds: dict[str, tuple[str, str, tuple, float]] = {}
+        self._signature: Signature | None = None
+        self._topology = topology
+        self._next_retry = math.inf
         self._closed = threading.Event()
+        self._build(parts, first)
+        self._thread = threading.Thread(target=self._work, name="uma-subscription",
+                                        daemon=True)
+        self._thread.start()
+
+    # -- the mirror of one route
+    def _build(self, parts: list[tuple[Segment, list[dict[str, Any]]]],
+               first: PoseResult) -> None:
+        """Mirror the route of ``parts`` (dropping any previous mirror) and subscribe."""
+        self._unsubscribe()
+        self.graph = Graph(buffer_s=5.0)
         feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
         for seg, edges in parts:
             for e in edges:
@@ -461,17 +527,26 @@ class Subscription:
             self.graph.max_extrapolation_s = max(self.graph.max_extrapolation_s,
                                                  2.0 / min(rates))
         self._feeds = {f[1]: f for f in feeds}
-        self._thread = threading.Thread(target=self._work, name="uma-subscription",
-                                        daemon=True)
-        self._thread.start()
+        self.route = [seg for seg, _ in parts]
+        self._signature = _signature(parts)
+        self.status = "streaming"
+        self._next_retry = math.inf
+        session = self.client.session
         for agent, key, _, _ in feeds:
             # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
             # composed and delivered on this subscription's own thread
-            self._decls.append(client.session.declare_subscriber(
+            self._decls.append(session.declare_subscriber(
                 key, zenoh.handlers.Callback(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
                                              indirect=False)))
         if not feeds:  # all static: the one answer is the stream
             self._deliver(first)
+
+    def _unsubscribe(self) -> None:
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()
+        self._feeds = {}
 
     def _mirror(self, agent: str, e: dict[str, Any]) -> list[tuple[str, str, tuple, float]]:
         """Copy one edge of the route into the local graph; measured ones become feeds."""
@@ -492,6 +567,55 @@ class Subscription:
         key = self.graph.declare_measured(e["parent"], e["child"], source=source, **attrs)
         return [(agent, e["key"], key, float(attrs.get("frequency_hz", 0.0)))]
 
+    # -- following the realm
+    def _follow(self) -> None:
+        """Plan again if the realm changed (or, without a route, when it is time to retry);
+        move to the new route if it differs from the mirrored one."""
+        topology = self.client.topology
+        if topology == self._topology and time.monotonic() < self._next_retry:
+            return
+        self._topology = topology
+        try:
+            first, parts = self.client._query(self.source, self.target, None, self.error,
+                                              details=True)
+            if self._closed.is_set() or (_signature(parts) == self._signature
+                                         and self.status == "streaming"):
+                return
+            was = [s.agent for s in self.route] if self.status == "streaming" else None
+            self._build(parts, first)
+        except (LookupError, UmaError, ValueError) as exc:
+            self._lost(exc)
+            return
+        self.replans += 1
+        log.info("subscription %s -> %s: now via %s (%s)", self.source, self.target,
+                 ", ".join(str(s) for s in self.route),
+                 "no route before" if was is None else f"was via agents {', '.join(was)}")
+
+    def _lost(self, exc: Exception) -> None:
+        """Planning failed.  A segment that failed while every agent of the mirrored route
+        is alive may be transient (an answer late on a loaded machine): keep streaming.
+        Otherwise stop delivering, say so once, and retry."""
+        self.last_error = exc
+        self._next_retry = time.monotonic() + RETRY_S
+        alive = self.client._snapshot()[1]
+        if (self.status == "streaming" and isinstance(exc, SegmentError)
+                and {s.agent for s in self.route} <= alive):
+            self.client._bad.warning(f"subscription {self.source} -> {self.target}",
+                                     f"re-planning failed, route kept: {exc}")
+            return
+        if self.status == "no route":
+            return
+        self._unsubscribe()
+        self.status = "no route"
+        log.warning("subscription %s -> %s: no route (%s); will resume when one appears",
+                    self.source, self.target, exc)
+        if self.on_error is not None:
+            try:
+                self.on_error(exc)
+            except Exception as cb_exc:
+                self.client._bad.warning("on_error", f"{type(cb_exc).__name__}: {cb_exc}")
+
+    # -- samples
     def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
         try:
             self._q.put_nowait((agent, key, sample.payload.to_bytes()))
@@ -499,35 +623,45 @@ class Subscription:
             self.client._bad.warning(f"subscription {key}", "queue full; sample dropped")
 
     def _work(self) -> None:
-        clock = self.client.clock
         while not self._closed.is_set():
             try:
                 item = self._q.get(timeout=0.2)
             except queue.Empty:
-                continue
+                item = ()
             if item is None:
                 return
-            agent, key, data = item
-            edge_key = self._feeds[key][2]
             try:
-                m = decode_measurement(data, expected_type="pose6d")
-                t = clock.to_local(agent, m.t_ns)
-                self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
-                                           m.quaternion, m.covariance, source=edge_key[2])
-            except (DecodeError, ValueError) as exc:
-                self.failed += 1
-                self.last_error = exc
-                self.client._bad.warning(f"subscription {key}", f"bad sample: {exc}")
-                continue
-            if edge_key != self.pusher:
-                continue
-            try:
-                result = self.graph.pose(self.source, self.target, at=t, error="hops")
-            except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
-                self.failed += 1
-                self.last_error = exc
-                continue
-            self._deliver(result)
+                self._follow()
+            except Exception:  # a bug must not stop the stream; log it with its traceback
+                log.exception("subscription %s -> %s: re-planning failed", self.source,
+                              self.target)
+            if item:
+                self._on_sample(*item)
+
+    def _on_sample(self, agent: str, key: str, data: bytes) -> None:
+        feed = self._feeds.get(key)
+        if feed is None:
+            return  # a sample of a route left meanwhile
+        edge_key = feed[2]
+        try:
+            m = decode_measurement(data, expected_type="pose6d")
+            t = self.client.clock.to_local(agent, m.t_ns)
+            self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
+                                       m.quaternion, m.covariance, source=edge_key[2])
+        except (DecodeError, ValueError) as exc:
+            self.failed += 1
+            self.last_error = exc
+            self.client._bad.warning(f"subscription {key}", f"bad sample: {exc}")
+            return
+        if edge_key != self.pusher:
+            return
+        try:
+            result = self.graph.pose(self.source, self.target, at=t, error="hops")
+        except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
+            self.failed += 1
+            self.last_error = exc
+            return
+        self._deliver(result)
 
     def _deliver(self, result: PoseResult) -> None:
         try:
@@ -542,12 +676,10 @@ class Subscription:
         if self._closed.is_set():
             return
         self._closed.set()
-        for decl in self._decls:
-            with contextlib.suppress(zenoh.ZError):
-                decl.undeclare()
-        self._decls.clear()
         with contextlib.suppress(queue.Full):
             self._q.put_nowait(None)
-        self._thread.join(1.0)
+        self._thread.join(1.0 + self.client.timeout)
+        self._unsubscribe()
+        self.status = "closed"
         with contextlib.suppress(ValueError):
             self.client._subscriptions.remove(self)

@@ -1,0 +1,158 @@
+"""A streaming subscription follows its route: the agent of the route in use dies, and the
+poses keep coming over the other route; with no route left it says so, and it resumes when
+a route comes back.
+
+Agents A and B both know ``ivy/world -> marvin/rig`` (A's survey is the more accurate);
+agent C hosts a tracker (this file run as a script) publishing ``marvin/rig -> alice/head``
+at 100 Hz.  The composed position tells which route a pose came over.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+WORLD, RIG, HEAD = "ivy/world", "marvin/rig", "alice/head"
+RATE_HZ = 100.0
+HEAD_IN_RIG = [0.0, 0.0, 0.12]
+RIG_IN_WORLD = {"A": ([1.0, 0.0, 0.0], 0.001), "B": ([0.0, 1.0, 0.0], 0.05)}
+
+
+def run_tracker(argv: list[str]) -> int:
+    """A tracker on RIG -> HEAD at 100 Hz, registered with agent ``argv[1]``."""
+    import argparse
+    import signal
+
+    from agent import Service
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--realm", required=True)
+    ap.add_argument("--agent", required=True)
+    ap.add_argument("--connect", required=True)
+    a = ap.parse_args(argv)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with Service("tracker", realm=a.realm, agent=a.agent, connect=[a.connect]) as svc:
+        out = svc.ability("head", type="pose6d", edge=(RIG, HEAD), frequency_hz=RATE_HZ,
+                          latency_s=0.001, pos_std_m=0.002)
+        svc.start()
+        while not stop.is_set():
+            out.publish(time.time_ns(), HEAD_IN_RIG, [0.0, 0.0, 0.0, 1.0])
+            stop.wait(1.0 / RATE_HZ)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_tracker(sys.argv[1:]))
+
+
+import numpy as np  # noqa: E402
+from agent_helpers.harness import agent, spawn  # noqa: E402
+from conftest import endpoint, free_port  # noqa: E402
+
+from agent.client import Client  # noqa: E402
+
+WAIT_S = 20.0
+
+
+def config(tmp_path, name: str) -> str:
+    p, std = RIG_IN_WORLD[name]
+    path = tmp_path / f"{name}.toml"
+    path.write_text(f'[[static]]\nparent = "{WORLD}"\nchild = "{RIG}"\nposition = {p}\n'
+                    f"quaternion = [0.0, 0.0, 0.0, 1.0]\npos_std_m = {std}\n")
+    return str(path)
+
+
+class Poses:
+    """What the subscription delivered, and when (bounded waits on new deliveries)."""
+
+    def __init__(self) -> None:
+        self.got: list = []
+        self.errors: list[Exception] = []
+        self.cond = threading.Condition()
+
+    def on_pose(self, r) -> None:
+        with self.cond:
+            self.got.append(r)
+            self.cond.notify_all()
+
+    def on_error(self, exc: Exception) -> None:
+        with self.cond:
+            self.errors.append(exc)
+            self.cond.notify_all()
+
+    def wait(self, test, what: str, timeout: float = WAIT_S):
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not test():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = self.got[-1].position if self.got else None
+                    raise AssertionError(f"{what} not seen within {timeout} s ({len(self.got)} "
+                                         f"poses, last at {last}; errors {self.errors})")
+                self.cond.wait(min(left, 0.2))
+
+    def via(self, name: str, after: int, count: int = 20) -> None:
+        """``count`` poses delivered after index ``after``, all over agent ``name``'s route."""
+        expected = np.add(RIG_IN_WORLD[name][0], HEAD_IN_RIG)
+
+        def enough() -> bool:
+            new = [r for r in self.got[after:]
+                   if np.allclose(r.position, expected, atol=1e-9)]
+            return len(new) >= count
+        self.wait(enough, f"{count} poses over agent {name}'s route")
+
+
+def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
+        processes, realm, tmp_path, monkeypatch) -> None:
+    # a long lease: only the killed agents may look gone (a SIGKILL is seen at once)
+    monkeypatch.setenv("UMA_LEASE_MS", "5000")
+    ep = {name: endpoint(free_port()) for name in "ABC"}
+    procs = {"C": agent(processes, realm, "C", ep["C"])}
+    for name in "AB":
+        procs[name] = agent(processes, realm, name, ep[name], connect=(ep["C"],),
+                            extra=("--config", config(tmp_path, name)))
+    spawn(processes, [__file__, "--realm", realm, "--agent", "C", "--connect", ep["C"]])
+    poses = Poses()
+    with Client(realm=realm, connect=[ep["C"]], timeout=2.0) as client:
+        deadline = time.monotonic() + WAIT_S
+        while True:  # until the tracker's edge and both surveys are in the realm
+            try:
+                sub = client.subscribe(WORLD, HEAD, on_pose=poses.on_pose,
+                                       on_error=poses.on_error, error="accuracy")
+                if [s.agent for s in sub.route] == ["A", "C"]:
+                    break
+                sub.close()
+            except LookupError:
+                if time.monotonic() > deadline:
+                    raise
+            assert time.monotonic() < deadline, "no route over A and C"
+            time.sleep(0.2)
+        poses.via("A", 0)
+
+        # the route's agent dies: the other route takes over
+        procs["A"].popen.kill()
+        procs["A"].popen.wait(10)
+        mark = len(poses.got)
+        poses.via("B", mark)
+        assert [s.agent for s in sub.route] == ["B", "C"] and sub.status == "streaming"
+        assert sub.replans >= 1 and poses.errors == []
+
+        # no route at all: reported once, nothing delivered meanwhile
+        procs["B"].popen.kill()
+        procs["B"].popen.wait(10)
+        poses.wait(lambda: poses.errors, "on_error")
+        assert sub.status == "no route"
+        assert "marvin/rig" in str(poses.errors[0]) or "left the realm" in str(poses.errors[0])
+        time.sleep(0.3)  # poses already queued may still arrive; then none
+        quiet = len(poses.got)
+        time.sleep(0.5)
+        assert len(poses.got) == quiet
+
+        # a route comes back (A restarts): the stream resumes over it
+        agent(processes, realm, "A", ep["A"], connect=(ep["C"],),
+              extra=("--config", config(tmp_path, "A")))
+        poses.via("A", quiet)
+        assert sub.status == "streaming" and len(poses.errors) == 1
+        sub.close()
+        assert sub.status == "closed"
