@@ -39,7 +39,9 @@ Threads: Zenoh callbacks only enqueue; one worker thread owns all state (no lock
 the matching and all Zenoh calls; a feed thread decodes local pose samples for the SRG.
 
 Robustness: every ``RESEND_S`` (5 s) the agent re-sends each need's set (idempotent) and
-asks for all live tokens, handling any its liveliness subscriptions missed.  After a
+asks for all live tokens: tokens its liveliness subscriptions missed count as PUTs, a live
+local service it holds no registration for is re-adopted, and a service it believes alive
+whose token is absent is checked (dropped only if it does not answer).  After a
 restart it holds back changes to the connections its services report for
 ``STARTUP_HOLD_S`` (2 s), while its view of the realm fills up, so restarting an agent
 never interrupts data; what vanished meanwhile is disconnected after that.
