@@ -27,6 +27,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,8 +37,17 @@ from services.sim.trajectory import GRAVITY, KinematicState
 
 Array = np.ndarray
 
-#: Seconds of samples kept to replay after a late reset.
+#: Seconds of samples kept to replay after a late reset; a reset further ahead of the newest
+#: sample than this is refused too (the clocks of pose and samples disagree).
 HISTORY_S = 1.0
+#: A head turns at a few rad/s; at 50 rad/s the centripetal terms alone would saturate
+#: MARVIN's +/-5 g accelerometers 5 cm from the centre.  An angular velocity beyond it is
+#: not a motion the rig can have measured: a reset carrying one is refused, and a state
+#: that reaches it has diverged (the six-accelerometer rig's omega feedback, seed 003 §4.2).
+MAX_OMEGA_RAD_S = 50.0
+#: Beyond 1000 m, m/s, rad or rad/s of standard deviation the linearised covariance
+#: describes nothing: the dead reckoning has diverged (and would overflow soon after).
+MAX_VARIANCE = 1e6
 _I3 = np.eye(3)
 _I12 = np.eye(12)
 #: q (x) [omega, 0] / 2 = sum_i omega_i _HALF_RIGHT_PRODUCT[i] @ q: the rate quaternion
@@ -87,11 +97,37 @@ class Estimate:
         return geo.se3_to_decoupled(self.position, self.covariance)
 
 
+class _DivergedError(ValueError):
+    """A step whose result is no longer a dead-reckoned state (see ``_divergence``)."""
+
+
+class _State(NamedTuple):
+    """One committed integrator state.  Never mutated, so keeping a reference is a snapshot:
+    a late reset restarts from the state at its own time, a refused one changes nothing."""
+
+    t: float  # motion time, s
+    p: Array
+    q: Array
+    v: Array  # world frame
+    w: Array  # rig frame
+    P: Array  # (12, 12) covariance of [phi, rho, dv, domega] from the reading noise
+    S: Array  # (12, 4N) sensitivity of that error to the calibration parameters
+
+
+_Sample = tuple[float, Array]  # (motion time, projected readings)
+
+
 class DeadReckoner:
     """Step-by-step inertial integrator: ``reset(...)`` with an absolute pose, then
     ``update(t, accel)`` for every sample.
 
     ``rate_hz`` is the nominal sample rate; it scales the per-sample noise variance.
+
+    Every call either succeeds or raises ``ValueError`` naming the input and the reason,
+    and the state stays usable: a refused reset leaves it as it was; a sample whose step
+    diverges (non-finite, beyond ``MAX_OMEGA_RAD_S`` or ``MAX_VARIANCE``) is kept for
+    replay, but the pose is dropped (``initialised`` turns False) until the next reset,
+    which then starts like the first one.
     """
 
     def __init__(self, calibration: Calibration, rate_hz: float = 300.0,
@@ -107,24 +143,22 @@ class DeadReckoner:
         self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
         # [1, f] / k_j, the reading error per unit calibration error, f filled in per step
         self._cal_base = np.ones((n, 4)) / calibration.gain_v_per_mps2[:, None]
-        self._samples: list[tuple[float, Array]] = []  # last 3 (motion time, projected)
-        # recent samples, so a reset that arrives late is replayed up to the newest sample
-        self._history: deque[tuple[float, Array]] = deque(
-            maxlen=max(4, math.ceil(HISTORY_S * rate_hz)))
-        self._t: float | None = None
-        self._p = np.zeros(3)
-        self._q = geo.quat_identity()
-        self._v = np.zeros(3)
-        self._w = np.zeros(3)
-        self._P = np.zeros((12, 12))
-        self._S = np.zeros((12, 4 * n))
+        self._samples: list[_Sample] = []  # the last 3, for the next step's parabola
+        keep = max(4, math.ceil(HISTORY_S * rate_hz))
+        # recent samples and the states after them, so that a reset arriving late is applied
+        # at its own time (with the velocities of that time) and the samples since replayed
+        self._history: deque[_Sample] = deque(maxlen=keep)
+        self._states: deque[_State] = deque(maxlen=keep)
+        self._x: _State | None = None
+        self._rest = _State(0.0, np.zeros(3), geo.quat_identity(), np.zeros(3), np.zeros(3),
+                            np.zeros((12, 12)), np.zeros((12, 4 * n)))
 
     # ------------------------------------------------------------------ state
 
     @property
     def initialised(self) -> bool:
-        """True once an absolute pose has been given; before that there is no pose."""
-        return self._t is not None
+        """True while there is a pose: after a reset, until the dead reckoning diverges."""
+        return self._x is not None
 
     def reset(self, t: float, position: Array, quaternion: Array,
               covariance: Array | None = None, velocity: Array | None = None,
@@ -133,67 +167,91 @@ class DeadReckoner:
         """Restart from an absolute pose at motion time ``t`` (seconds).
 
         ``covariance`` is the pose's 6x6 covariance in geometry's convention (None: exact).
-        Velocity (world) and angular velocity (rig frame) keep their current estimate when
-        not given; at the first reset they start at zero (a rig at rest, as in §4.3.1).
+        Velocity (world) and angular velocity (rig frame) keep the estimate the integrator
+        had at time ``t`` when not given (with their covariance and calibration
+        sensitivity); at the first reset they start at zero (a rig at rest, as in §4.3.1).
         A pose older than the newest sample (it travelled through the network) is applied
         at its own time and the samples since are integrated again; one older than the
-        kept ``HISTORY_S`` of samples is refused.
+        kept ``HISTORY_S`` of samples, or more than that ahead of the newest, is refused,
+        and so is one whose replay diverges (then nothing changes).
         """
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"reset: time must be finite, got {t!r}")
-        if self._history and self._history[0][0] > t and self._history[-1][0] > t \
-                and len(self._history) == self._history.maxlen:
-            raise ValueError(f"reset: pose time {t:.3f} s is older than the kept samples "
-                             f"(from {self._history[0][0]:.3f} s); it cannot be replayed")
+        self._check_reset_time(t)
         p = geo.check_vector(position, "reset position").reshape(3)
         q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4)
         C = np.zeros((6, 6)) if covariance is None else \
             geo.check_covariance(covariance, "reset covariance")
-        P_old = self._P if self.initialised else np.zeros((12, 12))
-        S_old = self._S
-        P = np.zeros((12, 12))
-        S = np.zeros_like(S_old)
-        P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
-        P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
-        rates, kept = {}, []  # everything is checked before the state changes
-        for name, sl, value, cov in (("velocity", slice(6, 9), velocity, velocity_cov),
-                                     ("omega", slice(9, 12), omega, omega_cov)):
-            if value is None:
-                kept.append(sl)
-                continue
-            rates[name] = geo.check_vector(value, f"reset {name}").reshape(3)
-            if cov is not None:
-                P[sl, sl] = geo.check_covariance(cov, f"reset {name} covariance", dim=3)
-        for a in kept:  # keep what was not reset, including its calibration sensitivity
-            for b in kept:
-                P[a, b] = P_old[a, b]
-            S[a] = S_old[a]
-        self._v = rates.get("velocity", self._v)
-        self._w = rates.get("omega", self._w)
-        self._t, self._p, self._q, self._P, self._S = t, p, q, P, S
-        self._samples = [s for s in self._history if s[0] <= t][-3:]
-        for sample in [s for s in self._history if s[0] > t]:
-            self._samples = [*self._samples[-2:], sample]
-            self._step(self._t, sample[0])
+        rates = {name: _checked_rate(name, value, cov) for name, value, cov in
+                 (("velocity", velocity, velocity_cov), ("omega", omega, omega_cov))}
+        kept = len(self._states)  # the states up to t stay, the later ones are replaced
+        while kept and self._states[kept - 1].t > t:
+            kept -= 1
+        upto = [s for s in self._history if s[0] <= t][-3:]
+        after = [s for s in self._history if s[0] > t]
+        try:
+            base = self._base_at(t, kept, upto, after, rates)
+            x = _reset_state(base, t, p, q, C, rates)
+            states, window = [x], upto
+            for sample in after:
+                window = [*window[-2:], sample]
+                x = self._step(x, window, sample[0])
+                states.append(x)
+        except _DivergedError as exc:
+            raise ValueError(f"reset at t={t:.3f} s refused: replaying the {len(after)} "
+                             f"samples since it diverged {exc}") from None
+        while len(self._states) > kept:
+            self._states.pop()
+        self._states.extend(states)
+        self._x, self._samples = x, window
+
+    def _check_reset_time(self, t: float) -> None:
+        if not self._history:
+            return
+        first, last = self._history[0][0], self._history[-1][0]
+        if t < first and len(self._history) == self._history.maxlen:
+            raise ValueError(f"reset: pose time {t:.3f} s is older than the kept samples "
+                             f"(from {first:.3f} s); it cannot be replayed")
+        if t > last + HISTORY_S:
+            raise ValueError(f"reset: pose time {t:.3f} s is {t - last:.3f} s after the newest "
+                             f"sample ({last:.3f} s); the clocks of poses and samples disagree")
+
+    def _base_at(self, t: float, kept: int, upto: list[_Sample], after: list[_Sample],
+                 rates: dict[str, tuple[Array, Array] | None]) -> _State:
+        """The state whose velocities a reset at ``t`` keeps: the newest one not after
+        ``t``, stepped on to ``t`` when a sample after ``t`` allows it (a late reset); the
+        oldest kept one if all are newer; the rig at rest when there is no pose."""
+        if self._x is None:
+            return self._rest
+        if not kept:
+            return self._states[0] if self._states else self._x
+        base = self._states[kept - 1]
+        if base.t < t and after and any(r is None for r in rates.values()):
+            base = self._step(base, [*upto[-2:], after[0]], t)
+        return base
 
     def estimate(self) -> Estimate:
         """The current state and its pose covariance (geometry convention)."""
-        if not self.initialised:
-            raise ValueError("dead reckoner: no pose yet; reset it with an absolute pose first")
-        P = self._P if self._cal_cov is None else \
-            self._P + self._S @ self._cal_cov @ self._S.T
+        x = self._x
+        if x is None:
+            raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
+        P = self._full_covariance(x)
         C = np.empty((6, 6))
         C[:3, :3], C[3:, 3:] = P[3:6, 3:6], P[0:3, 0:3]
         C[:3, 3:], C[3:, :3] = P[3:6, 0:3], P[0:3, 3:6]
-        return Estimate(self._t, self._p.copy(), self._q.copy(), self._v.copy(),
-                        self._w.copy(), 0.5 * (C + C.T))
+        return Estimate(x.t, x.p.copy(), x.q.copy(), x.v.copy(), x.w.copy(), 0.5 * (C + C.T))
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
+        if self._x is None:
+            raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
+        return self._full_covariance(self._x).copy()
+
+    def _full_covariance(self, x: _State) -> Array:
         if self._cal_cov is None:
-            return self._P.copy()
-        return self._P + self._S @ self._cal_cov @ self._S.T
+            return x.P
+        return x.P + x.S @ self._cal_cov @ x.S.T
 
     # ------------------------------------------------------------------ integration
 
@@ -204,9 +262,10 @@ class DeadReckoner:
     def update(self, t: float, accel: Array) -> Estimate | None:
         """Integrate up to the sample taken at time ``t`` with accelerations ``accel`` (N,).
 
-        Returns the estimate at motion time ``t - latency_s``, or None before the first
-        reset.  NaN or wrongly sized samples and non-increasing times are refused without
-        touching the state.
+        Returns the estimate at motion time ``t - latency_s``, or None without a pose.
+        NaN or wrongly sized samples and non-increasing times are refused without touching
+        the state.  A step that diverges drops the pose (the sample is kept for replay) and
+        raises ``ValueError`` saying so.
         """
         a = np.asarray(accel, dtype=float)
         if a.shape != (self.layout.count,):
@@ -225,35 +284,30 @@ class DeadReckoner:
         sample = (tm, self.layout.project(a))
         self._samples = [*self._samples[-2:], sample]
         self._history.append(sample)
-        if not self.initialised:
+        if self._x is None:
             return None
-        if tm > self._t:
-            self._step(self._t, tm)
+        if tm > self._x.t:
+            try:
+                x = self._step(self._x, self._samples, tm)
+            except _DivergedError as exc:
+                self._x = None
+                self._states.clear()
+                raise ValueError(f"accelerometer sample at t={t!r}: the dead reckoning "
+                                 f"diverged {exc}; no pose until the next reset") from None
+            self._x = x
+            self._states.append(x)
         return self.estimate()
 
-    def _interpolate(self, taus: tuple[float, ...]) -> Array:
-        """Projected readings (``layout.project``) at motion times ``taus``, (len, 6), by
-        Lagrange interpolation over the kept samples (a parabola once three are kept)."""
-        ts = [t for t, _ in self._samples]
-        W = []
-        for tau in taus:
-            row = []
-            for i, ti in enumerate(ts):
-                w = 1.0
-                for j, tj in enumerate(ts):
-                    if j != i:
-                        w *= (tau - tj) / (ti - tj)
-                row.append(w)
-            W.append(row)
-        return np.array(W) @ np.array([x for _, x in self._samples])
-
-    def _step(self, t0: float, t1: float) -> None:
-        """One RK4 step of the coupled (q, omega, v, p) ODE and its error propagation."""
+    def _step(self, x: _State, samples: list[_Sample], t1: float) -> _State:
+        """One RK4 step of the coupled (q, omega, v, p) ODE from ``x`` to ``t1`` and its
+        error propagation, the readings interpolated over ``samples``; ``_DivergedError`` if
+        the result is no dead-reckoned state any more."""
+        t0 = x.t
         h = t1 - t0
-        x0, xm, x1 = self._interpolate((t0, t0 + 0.5 * h, t1))
+        x0, xm, x1 = _interpolate(samples, (t0, t0 + 0.5 * h, t1))
         corr = self.layout.correction
         # omega stages (omega_dot depends on omega through the centripetal terms only)
-        w0 = self._w
+        w0 = x.w
         s1 = x0 + corr(w0)
         w2 = w0 + 0.5 * h * s1[3:]
         s2 = xm + corr(w2)
@@ -265,7 +319,7 @@ class DeadReckoner:
         xs = np.array([s1, s2, s3, s4])  # [f, omega_dot] per stage
         # quaternion stages: q' = 1/2 q (x) [omega, 0] = M(omega) q, linear in q
         M = (ws @ _HALF_RIGHT_PRODUCT).reshape(4, 4, 4)
-        q0 = self._q
+        q0 = x.q
         kq1 = M[0] @ q0
         q2 = q0 + 0.5 * h * kq1
         kq2 = M[1] @ q2
@@ -279,16 +333,22 @@ class DeadReckoner:
         Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
               / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
         acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
-        v0, p_old = self._v, self._p
-        self._p = self._p + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
-        self._v = v0 + h / 6.0 * (acc[0] + 2.0 * acc[1] + 2.0 * acc[2] + acc[3])
-        self._w = w0 + h / 6.0 * (s1[3:] + 2.0 * s2[3:] + 2.0 * s3[3:] + s4[3:])
-        self._q = q1 / math.sqrt(q1 @ q1)
-        self._t = t1
-        self._propagate(h, Rs[1], s2[:3], w2, 0.5 * (self._p + p_old), 0.5 * (self._v + v0))
+        v0, p0 = x.v, x.p
+        p1 = p0 + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
+        v1 = v0 + h / 6.0 * (acc[0] + 2.0 * acc[1] + 2.0 * acc[2] + acc[3])
+        w1 = w0 + h / 6.0 * (s1[3:] + 2.0 * s2[3:] + 2.0 * s3[3:] + s4[3:])
+        P, S = self._propagate(x.P, x.S, h, Rs[1], s2[:3], w2, 0.5 * (p1 + p0),
+                               0.5 * (v1 + v0))
+        norm = math.sqrt(q1 @ q1)
+        reason = _divergence(norm, w1, P)
+        if reason:
+            raise _DivergedError(f"at t={t1:.3f} s: {reason}")
+        return _State(t1, p1, q1 / norm, v1, w1, P, S)
 
-    def _propagate(self, h: float, R: Array, f: Array, w: Array, p: Array, v: Array) -> None:
-        """Error-state propagation over one step, linearised at the step's midpoint.
+    def _propagate(self, P: Array, S: Array, h: float, R: Array, f: Array, w: Array, p: Array,
+                   v: Array) -> tuple[Array, Array]:
+        """Error-state propagation of ``P`` and ``S`` over one step, linearised at the
+        step's midpoint.
 
         phi' = R domega;  rho' = dv + [p]x R domega + [v]x phi  (rho = dp - phi x p);
         dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
@@ -310,12 +370,94 @@ class DeadReckoner:
         B[6:9] = R @ G[:3]
         B[9:12] = G[3:]
         Bs = B * self._noise_std
-        self._P = F @ self._P @ F.T + (h / self.rate_hz) * (Bs @ Bs.T)
+        P = F @ P @ F.T + (h / self.rate_hz) * (Bs @ Bs.T)
         if self._cal_cov is not None:
             # a reading error from calibration: da_j = ([1, f_j] / k_j) . [dB_j, dm_j]
             c = self._cal_base.copy()
             c[:, 1:] *= f
-            self._S = F @ self._S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+            S = F @ S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+        return P, S
+
+
+def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \
+        tuple[Array, Array] | None:
+    """A reset's velocity or angular velocity and its 3x3 covariance (zero when not
+    given), or None when the reset does not set it."""
+    if value is None:
+        if cov is not None:
+            raise ValueError(f"reset: {name} covariance given without a {name}")
+        return None
+    v = geo.check_vector(value, f"reset {name}").reshape(3)
+    if name == "omega" and float(v @ v) > MAX_OMEGA_RAD_S**2:
+        raise ValueError(f"reset omega: {math.sqrt(v @ v):.4g} rad/s is beyond the "
+                         f"{MAX_OMEGA_RAD_S:g} rad/s a head-mounted rig can measure")
+    C = np.zeros((3, 3)) if cov is None else \
+        geo.check_covariance(cov, f"reset {name} covariance", dim=3)
+    if float(C.max(initial=0.0)) > MAX_VARIANCE:
+        raise ValueError(f"reset {name} covariance: variance {C.max():.3g} is beyond "
+                         f"{MAX_VARIANCE:g} (no information)")
+    return v, C
+
+
+def _reset_state(base: _State, t: float, p: Array, q: Array, C: Array,
+                 rates: dict[str, tuple[Array, Array] | None]) -> _State:
+    """The state right after a reset: the absolute pose with its covariance; each rate
+    given with its own covariance, or kept from ``base`` with its covariance,
+    cross-covariance with the other kept rate and calibration sensitivity (the new pose
+    is independent of the old estimate)."""
+    P = np.zeros_like(base.P)
+    S = np.zeros_like(base.S)
+    P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
+    P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
+    values, kept = {}, []
+    for name, sl, current in (("velocity", slice(6, 9), base.v), ("omega", slice(9, 12), base.w)):
+        given = rates[name]
+        if given is None:
+            values[name] = current
+            kept.append(sl)
+        else:
+            values[name], P[sl, sl] = given
+    for a in kept:
+        for b in kept:
+            P[a, b] = base.P[a, b]
+        S[a] = base.S[a]
+    return _State(t, p, q, values["velocity"], values["omega"], P, S)
+
+
+def _divergence(q_norm: float, w: Array, P: Array) -> str:
+    """Why a stepped state is no dead-reckoned state any more ('' when it still is).
+
+    A NaN or an overflow anywhere in the step reaches the diagonal of ``P``: the stage
+    rotations and specific force and the midpoint position and velocity all enter F."""
+    var = float(P.diagonal().max())
+    ww = float(w @ w)
+    if not math.isfinite(var + ww + q_norm):
+        return "to non-finite values"
+    if q_norm < 1e-6:
+        return "to a zero quaternion"
+    if ww > MAX_OMEGA_RAD_S**2:
+        return (f"to an angular velocity of {math.sqrt(ww):.4g} rad/s (beyond "
+                f"{MAX_OMEGA_RAD_S:g} rad/s)")
+    if var > MAX_VARIANCE:
+        return f"to a variance of {var:.3g} (beyond {MAX_VARIANCE:g})"
+    return ""
+
+
+def _interpolate(samples: list[_Sample], taus: tuple[float, ...]) -> Array:
+    """Projected readings (``layout.project``) at motion times ``taus``, (len, 6), by
+    Lagrange interpolation over ``samples`` (a parabola through three)."""
+    ts = [t for t, _ in samples]
+    W = []
+    for tau in taus:
+        row = []
+        for i, ti in enumerate(ts):
+            w = 1.0
+            for j, tj in enumerate(ts):
+                if j != i:
+                    w *= (tau - tj) / (ti - tj)
+            row.append(w)
+        W.append(row)
+    return np.array(W) @ np.array([x for _, x in samples])
 
 
 def _put_cross(A: Array, r: int, c: int, u: Array) -> None:

@@ -28,6 +28,7 @@ import argparse
 import logging
 import math
 import threading
+import time
 from collections import Counter, deque
 from typing import Any
 
@@ -43,6 +44,7 @@ from services.accel_rig.calibration import (
     calibration_errors,
 )
 from services.accel_rig.integrator import DeadReckoner
+from services.accel_rig.pose_rates import AbsolutePoses, Rates
 from services.accel_rig.rig import DEFAULT_DELTA_M, LAYOUTS, layout_by_name
 from services.accel_rig.sensor import Calibration
 from services.accel_rig.simulator import (
@@ -58,12 +60,8 @@ from services.sim.trajectory import HeadTrajectory
 
 log = logging.getLogger("uma.accel_rig")
 
-#: Finite-difference velocities from absolute poses get at least this standard deviation
-#: (truncation error of a three-point derivative on head motion at >= 30 Hz).
-FD_VELOCITY_FLOOR = 0.01  # m/s
-FD_OMEGA_FLOOR = 0.01  # rad/s
-#: Absolute poses further apart than this are not differentiated.
-FD_MAX_SPAN_S = 0.25
+#: A kind of refused input is logged at most once per this many seconds (with its count).
+LOG_INTERVAL_S = 10.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -242,45 +240,62 @@ def _open(args: argparse.Namespace, nominal) -> tuple[Calibration, Any]:
 
 
 class LiveRig:
-    """The service's state between samples: dead reckoner, pending resets, counters.
+    """The service's state between samples: dead reckoner, absolute poses, refusals.
 
-    ``on_reset`` runs on the SDK's dispatch thread and only queues; ``process`` (the
-    sample loop) applies resets, so the integrator is touched by one thread only.
+    ``on_reset`` runs on the SDK's dispatch thread and only validates and queues;
+    ``process`` (the sample loop) applies resets, so the integrator is touched by one
+    thread only.  Neither ever raises for a bad input: a sample or absolute pose that
+    cannot be used is counted and logged (``Refusals``) and the service keeps running.
     """
 
     def __init__(self, cal: Calibration, rate_hz: float, mount: tuple[np.ndarray, np.ndarray] |
-                 None, reset_every_s: float):
+                 None, reset_every_s: float, reset_name: str = "reset pose"):
         self.cal = cal
         self.dr = DeadReckoner(cal, rate_hz)
         self.mount = mount
         self.reset_every_s = reset_every_s
+        self.reset_name = reset_name
         self.origin_ns: int | None = None
         self.pending: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = deque(
             maxlen=64)
-        self.recent: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray | None]] = deque(
-            maxlen=3)
+        self.poses = AbsolutePoses()
         self.last_reset: float | None = None
-        self.counts: Counter[str] = Counter()
+        self.refusals = Refusals()
+        self.counts = self.refusals.counts
         self.raw_out: Any = None
         self.pose_out: Any = None
 
     # -- absolute poses (SDK thread)
     def on_reset(self, m: Measurement) -> None:
+        try:
+            self.pending.append(self._rig_pose(m))
+        except (ValueError, TypeError, ArithmeticError) as exc:
+            self.refusals.add(f"{self.reset_name} refused", exc)
+
+    def _rig_pose(self, m: Measurement) -> tuple[int, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The absolute pose of the rig from a reset sample, validated: ``ValueError``
+        naming the sample and what is wrong with it."""
+        t_ns = m.t_ns
+        if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)):
+            raise ValueError(f"time stamp {t_ns!r} is not an integer of nanoseconds")
+        where = f"at t_ns={int(t_ns)}"
         if m.position is None or m.quaternion is None:
-            self._count("reset sample without a pose")
-            return
-        p, q, C = m.position, m.quaternion, m.covariance
-        if self.mount is not None:
+            raise ValueError(f"sample {where} carries no pose")
+        p = geo.check_vector(m.position, f"position {where}").reshape(3)
+        q = geo.check_quaternion(m.quaternion, f"quaternion {where}").reshape(4)
+        C = None if m.covariance is None else \
+            geo.check_covariance(m.covariance, f"covariance {where}")
+        if self.mount is not None:  # the mounting is exact: the covariance carries over
             C = geo.compose_covariance(p, q, C, None)
             p, q = geo.compose(p, q, *self.mount)
-        self.pending.append((int(m.t_ns), np.asarray(p, float), np.asarray(q, float), C))
+        return int(t_ns), p, q, C
 
     # -- samples (main thread)
     def process(self, t_ns: int, volts: np.ndarray) -> None:
         try:
             accel = self.cal.to_accel(volts)
         except ValueError as exc:
-            self._count("sample refused", exc)
+            self.refusals.add("accelerometer sample refused", exc)
             return
         if self.origin_ns is None:
             self.origin_ns = t_ns
@@ -290,80 +305,94 @@ class LiveRig:
         try:
             est = self.dr.update((t_ns - self.origin_ns) * 1e-9, accel)
         except ValueError as exc:
-            self._count("sample refused", exc)
+            self.refusals.add("accelerometer sample refused", exc)
             return
         if est is None:
-            self._count("no absolute pose yet to reset from")
+            self.refusals.add("no pose to publish: waiting for an absolute pose to reset from")
             return
-        self.pose_out.publish(self.origin_ns + round(est.t * 1e9), est.position,
-                              est.quaternion, covariance=est.covariance)
+        try:
+            self.pose_out.publish(self.origin_ns + round(est.t * 1e9), est.position,
+                                  est.quaternion, covariance=est.covariance)
+        except ValueError as exc:
+            self.refusals.add("dead-reckoned pose not published", exc)
+            return
         self.counts["poses"] += 1
 
     def _apply_resets(self) -> None:
         latest = None
         while self.pending:
             t_ns, p, q, C = self.pending.popleft()
-            if self.origin_ns is None:
+            t = (t_ns - self.origin_ns) * 1e-9  # set by the first sample, before this
+            try:
+                self.poses.add(t, p, q, C)
+            except ValueError as exc:
+                self.refusals.add(f"{self.reset_name} refused", exc)
                 continue
-            t = (t_ns - self.origin_ns) * 1e-9
-            if self.recent and t <= self.recent[-1][0]:
-                continue  # out of order: not newer than what we have
-            self.recent.append((t, p, q, C))
-            latest = self.recent[-1]
+            latest = (t, p, q, C)
         if latest is None:
             return
-        if self.last_reset is not None and latest[0] - self.last_reset < self.reset_every_s:
-            return
         t, p, q, C = latest
-        velocity, omega = self._rates()
-        if not self.dr.initialised and not (velocity and omega):
-            self._count("first reset waits for three absolute poses (for the velocities)")
+        if self.last_reset is not None and t - self.last_reset < self.reset_every_s:
             return
+        rates = self.poses.rates()
+        velocity, omega = self._rates_to_use(rates)
+        if not self.dr.initialised and not (velocity and omega):
+            self.refusals.add("first reset waits for three absolute poses (for the "
+                              "velocities)")
+            return
+        if C is None and rates is not None:
+            if not rates.settled:
+                self.refusals.add("a reset without covariance waits for a full window of "
+                                  "absolute poses (to estimate their noise)")
+                return
+            # no covariance given: the scatter of the source's poses around the fit (none
+            # for a slow source, whose three poses fit exactly: then exact, as it says)
+            C = geo.covariance_from_std(p, math.sqrt(rates.position_var),
+                                        math.sqrt(rates.rotation_var))
         try:
             self.dr.reset(t, p, q, covariance=C, **velocity, **omega)
         except ValueError as exc:
-            self._count("reset refused", exc)
+            self.refusals.add(f"{self.reset_name} refused", exc)
             return
         self.last_reset = t
         self.counts["resets"] += 1
 
-    def _rates(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Velocity and body angular velocity at the newest absolute pose by the derivative
-        of the parabola through the last three, when that beats the integrator's own."""
-        if len(self.recent) < 3 or self.recent[-1][0] - self.recent[0][0] > FD_MAX_SPAN_S:
+    def _rates_to_use(self, rates: Rates | None) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Velocity and angular velocity from the absolute poses, each when it is more
+        certain than the integrator's own (always at a first reset)."""
+        if rates is None:
             return {}, {}
-        (t0, p0, q0, C0), (t1, p1, q1, C1), (t2, p2, q2, C2) = self.recent
-        w = np.array([(t2 - t1) / ((t0 - t1) * (t0 - t2)), (t2 - t0) / ((t1 - t0) * (t1 - t2)),
-                      (2 * t2 - t0 - t1) / ((t2 - t0) * (t2 - t1))])
-        v = w[0] * p0 + w[1] * p1 + w[2] * p2
-        # rotation vectors of each pose relative to the newest, in the rig frame
-        qi = geo.quat_conjugate(q2)
-        r0 = geo.quat_to_rotvec(geo.quat_multiply(qi, q0))
-        r1 = geo.quat_to_rotvec(geo.quat_multiply(qi, q1))
-        omega = w[0] * r0 + w[1] * r1
-        var_p = var_r = 0.0
-        for C, p in ((C0, p0), (C1, p1), (C2, p2)):
-            if C is not None:
-                dec = geo.se3_to_decoupled(p, C)
-                var_p = max(var_p, float(np.trace(dec[:3, :3]) / 3))
-                var_r = max(var_r, float(np.trace(dec[3:, 3:]) / 3))
-        k = float(w @ w)
-        v_var = k * var_p + FD_VELOCITY_FLOOR**2
-        w_var = k * var_r + FD_OMEGA_FLOOR**2
-        velocity, rate = {}, {}
-        if not self.dr.initialised or v_var < float(np.trace(self.dr.state_covariance()[6:9, 6:9])
-                                                    / 3):
-            velocity = {"velocity": v, "velocity_cov": v_var * np.eye(3)}
-        if not self.dr.initialised or w_var < float(np.trace(
-                self.dr.state_covariance()[9:12, 9:12]) / 3):
-            rate = {"omega": omega, "omega_cov": w_var * np.eye(3)}
-        return velocity, rate
+        own = self.dr.state_covariance() if self.dr.initialised else None
+        velocity, omega = {}, {}
+        if own is None or rates.velocity_var < float(np.trace(own[6:9, 6:9])) / 3.0:
+            velocity = {"velocity": rates.velocity,
+                        "velocity_cov": rates.velocity_var * np.eye(3)}
+        if own is None or rates.omega_var < float(np.trace(own[9:12, 9:12])) / 3.0:
+            omega = {"omega": rates.omega, "omega_cov": rates.omega_var * np.eye(3)}
+        return velocity, omega
 
-    def _count(self, what: str, exc: Exception | None = None) -> None:
-        n = self.counts[what]
-        self.counts[what] = n + 1
-        if n in (0, 10, 100, 1000) or n % 10000 == 0:
-            log.warning("accel-rig: %s%s (%d so far)", what, f": {exc}" if exc else "", n + 1)
+
+class Refusals:
+    """Counts what happened by kind and logs it rate-limited: the first of a kind at once,
+    then at most one line per kind every ``LOG_INTERVAL_S`` with the count, so a stream of
+    bad input at 300 Hz neither floods the log nor goes unnoticed.  Thread-safe (the SDK
+    thread refuses reset poses, the sample loop samples)."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+        self._logged_at: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def add(self, what: str, exc: Exception | None = None) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.counts[what] += 1
+            n = self.counts[what]
+            last = self._logged_at.get(what)
+            if last is not None and now - last < LOG_INTERVAL_S:
+                return
+            self._logged_at[what] = now
+        log.warning("accel-rig: %s%s (%d so far)", what, f": {exc}" if exc else "", n)
 
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
@@ -371,7 +400,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
 
     is_rig = args.reset_frame == mounts.ACCEL_RIG
     live = LiveRig(cal, args.rate_hz, None if is_rig else parse_mount(args.mount),
-                   args.reset_every)
+                   args.reset_every, reset_name=f"reset pose of {args.reset_frame}")
     attrs = {k: v for k, v in cal.to_dict().items() if k != "latency_s"}
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
@@ -390,7 +419,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
             if stop.is_set():
                 break
             if isinstance(item, ValueError):
-                live._count("bad input line", item)
+                live.refusals.add("input line refused", item)
                 continue
             live.process(*item)
         else:
