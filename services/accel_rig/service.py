@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import re
 import threading
 import time
 from collections import Counter, deque
@@ -62,6 +63,8 @@ log = logging.getLogger("uma.accel_rig")
 
 #: A kind of refused input is logged at most once per this many seconds (with its count).
 LOG_INTERVAL_S = 10.0
+#: Distinct reasons remembered for that; beyond, each kind shares one line per interval.
+MAX_LOGGED_REASONS = 256
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -373,26 +376,33 @@ class LiveRig:
 
 
 class Refusals:
-    """Counts what happened by kind and logs it rate-limited: the first of a kind at once,
-    then at most one line per kind every ``LOG_INTERVAL_S`` with the count, so a stream of
-    bad input at 300 Hz neither floods the log nor goes unnoticed.  Thread-safe (the SDK
-    thread refuses reset poses, the sample loop samples)."""
+    """Counts what happened by kind and logs it rate-limited: the first of each kind and
+    reason at once, then at most one line per kind and reason every ``LOG_INTERVAL_S``
+    with the count, so a stream of bad input at 300 Hz neither floods the log nor goes
+    unnoticed.  Thread-safe (the SDK thread refuses reset poses, the sample loop samples).
+    """
 
     def __init__(self) -> None:
         self.counts: Counter[str] = Counter()
-        self._logged_at: dict[str, float] = {}
+        self._logged_at: dict[tuple[str, str], float] = {}
         self._lock = threading.Lock()
 
     def add(self, what: str, exc: Exception | None = None) -> None:
+        # the reason without its numbers: one line for "NaN at t_ns=1", "NaN at t_ns=2", ...
+        reason = _DIGITS.sub("#", str(exc)) if exc is not None else ""
         now = time.monotonic()
         with self._lock:
             self.counts[what] += 1
             n = self.counts[what]
-            last = self._logged_at.get(what)
+            key = (what, reason if len(self._logged_at) < MAX_LOGGED_REASONS else "")
+            last = self._logged_at.get(key)
             if last is not None and now - last < LOG_INTERVAL_S:
                 return
-            self._logged_at[what] = now
+            self._logged_at[key] = now
         log.warning("accel-rig: %s%s (%d so far)", what, f": {exc}" if exc else "", n)
+
+
+_DIGITS = re.compile(r"\d+")
 
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
