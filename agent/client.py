@@ -286,7 +286,7 @@ class Client:
         segments = route.segments
         answers = self._segments(segments, at, spec, details)
         results = [r for r, _ in answers]
-        if at is None and len(results) > 1:
+        if at is None:  # the latest time every measured segment has data
             measured = [r.t_ns for r in results if not r.attributes.get("static")]
             if measured and max(measured) != min(measured):
                 common = min(measured)

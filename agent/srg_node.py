@@ -114,6 +114,7 @@ class SrgNode:
         self._bad = RateLimitedLog(log)
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
+        self._static_values: dict[str, tuple[bytes, bytes, bytes | None]] = {}
         self._remote_frames: dict[str, set[str]] = {}
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
@@ -160,25 +161,47 @@ class SrgNode:
             raise ValueError(f"static edge #{i + 1} ({edge!r}): {exc}") from None
 
     def on_local_sample(self, service_id: str, ability: Any, measurement: Any) -> None:
-        """A sample of a local pose6d ability: append it to that ability's edge."""
+        """A sample of a local pose6d ability.  A static ability (a calibration, e.g. the
+        result of tracker alignment) sets its static edge, valid at all times; any other
+        appends the sample to its measured edge."""
         key = (service_id, ability.name)
+        source = f"{service_id}/{ability.name}"
+        parent, child = ability.edge
         with self._lock:
             known = self._sources.get(key)
+            if known is not None and known[0] != ability and (
+                    known[0].attributes.static != ability.attributes.static):
+                self.graph.remove_source(source)  # measured <-> static: a different edge kind
+                known = None
+            if ability.attributes.static:
+                self._set_static(key, source, ability, measurement, known)
+                return
             if known is None or known[0] != ability:
-                source = f"{service_id}/{ability.name}"
-                parent, child = ability.edge
                 self.graph.declare_measured(parent, child, source=source,
                                             **ability_attributes(ability))
                 self._sources[key] = (ability, source)
                 self._data_keys[source] = keys.data(self.realm, self.agent_id, service_id,
                                                     ability.name)
                 self._wake.set()
-            else:
-                source = known[1]
-            parent, child = ability.edge
             self.graph.add_measurement(parent, child, measurement.t_ns, measurement.position,
                                        measurement.quaternion, measurement.covariance,
                                        source=source)
+
+    def _set_static(self, key: tuple[str, str], source: str, ability: Any, measurement: Any,
+                    known: tuple[Any, str] | None) -> None:
+        """Replace a static edge only when its value or attributes change: a replacement
+        invalidates the query plans that use it, and calibrations are re-published often."""
+        value = (measurement.position.tobytes(), measurement.quaternion.tobytes(),
+                 None if measurement.covariance is None else measurement.covariance.tobytes())
+        if known is not None and known[0] == ability and self._static_values.get(source) == value:
+            return
+        parent, child = ability.edge
+        self.graph.add_static(parent, child, measurement.position, measurement.quaternion,
+                              measurement.covariance, source=source,
+                              **ability_attributes(ability))
+        self._sources[key] = (ability, source)
+        self._static_values[source] = value
+        self._wake.set()
 
     def on_ability_removed(self, service_id: str, ability: Any) -> None:
         """A local ability went away: its edge leaves the graph (and the summary)."""
@@ -187,6 +210,7 @@ class SrgNode:
             if entry is not None:
                 self.graph.remove_source(entry[1])
                 self._data_keys.pop(entry[1], None)
+                self._static_values.pop(entry[1], None)
         self._wake.set()
 
     # ------------------------------------------------------------------ queries

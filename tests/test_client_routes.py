@@ -107,14 +107,10 @@ def test_at_none_composes_measured_segments_at_their_latest_common_time():
     realm = Realm({"A": [("w", "cam", [1.0, 0.0, 2.0], 0.2)], "B": []})
     try:
         b = realm.nodes["B"]
-        ability = mock.MagicMock(edge=("cam", "head"), attributes=mock.MagicMock(
-            latency_s=0.001, frequency_hz=100.0, confidence=None, pos_std_m=0.01,
-            rot_std_rad=None, ttl_s=None, cost=None, covariance=None))
-        ability.name = "pose"
+        ability = _ability("pose", "cam", "head", latency_s=0.001, frequency_hz=100.0,
+                           pos_std_m=0.01)
         for k in range(5):
-            m = mock.MagicMock(t_ns=k * S // 100, position=np.array([0.0, k * 0.1, 0.0]),
-                               quaternion=np.array([0.0, 0.0, 0.0, 1.0]), covariance=None)
-            b.on_local_sample("tracker", ability, m)
+            b.on_local_sample("tracker", ability, _sample(k * S // 100, [0.0, k * 0.1, 0.0], 0))
         realm.publish()
         r = realm.client.pose("w", "head", error="hops")
         assert r.t_ns == 4 * S // 100 and r.edges[1]["t_ns"] == r.t_ns
@@ -126,3 +122,52 @@ def test_at_none_composes_measured_segments_at_their_latest_common_time():
                 [0, 0, 0, 1])])[0], atol=1e-12)
     finally:
         realm.close()
+
+
+def _ability(name, parent, child, **attributes):
+    from schemas.models import Ability
+
+    return Ability(name=name, type="pose6d", edge=(parent, child), attributes=attributes)
+
+
+def _sample(t_ns, p, yaw):
+    from schemas.codec import Measurement
+
+    return Measurement(type="pose6d", t_ns=t_ns, position=np.array(p, float),
+                       quaternion=geo.rotvec_to_quat(np.array([0.0, 0.0, yaw])),
+                       covariance=None)
+
+
+def test_a_single_measured_segment_at_none_reports_its_sample_time():
+    r = Realm({"A": []})
+    try:
+        node = r.nodes["A"]
+        ability = _ability("pose", "w", "head", frequency_hz=100)
+        for k in range(5):
+            node.on_local_sample("tracker", ability, _sample(k * 10_000_000, [0, 0, k], 0.0))
+        r.publish()
+        res = r.client.pose("w", "head", at=None)
+        assert res.t_ns == 40_000_000
+        assert np.allclose(res.position, [0, 0, 4])
+    finally:
+        r.close()
+
+
+def test_a_static_ability_becomes_a_static_edge_replaced_only_when_it_changes():
+    node = SrgNode(mock.MagicMock(), "lab", "A", [])
+    try:
+        calib = _ability("calibration", "laser", "accel", static=True, pos_std_m=0.002)
+        node.on_local_sample("alignment", calib, _sample(5 * S, [0.1, 0, 0], 0.3))
+        edge = node.graph.edge("laser", "accel", "alignment/calibration")
+        assert edge.is_static
+        r = node.graph.pose("laser", "accel", at=123)  # valid at any time
+        assert np.allclose(r.position, [0.1, 0, 0])
+        assert node.graph.has_plan("laser", "accel")
+        node.on_local_sample("alignment", calib, _sample(6 * S, [0.1, 0, 0], 0.3))
+        assert node.graph.has_plan("laser", "accel"), "the same value must not invalidate plans"
+        node.on_local_sample("alignment", calib, _sample(7 * S, [0.2, 0, 0], 0.3))
+        assert np.allclose(node.graph.pose("laser", "accel", at=1).position, [0.2, 0, 0])
+        node.on_ability_removed("alignment", calib)
+        assert "laser" not in node.graph.frames()
+    finally:
+        node.close()
