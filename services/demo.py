@@ -176,10 +176,10 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
         common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]
         children.start("laser-camera", [*common, "--seed", str(seed), "--calibration",
                                         str(calibration)])
-        # The fusion uses the raw accelerometer stream; the rig's own dead reckoning is not
-        # reset from the fused head (its reset path overflowed on 300 Hz fused input).
+        # The fusion uses the raw accelerometer stream; the rig's own dead reckoning is reset
+        # from the fused head pose (its default reset frame, */head): MARVIN's loop.
         children.start("accel-rig", [*common, "--seed", str(seed), "--calibration",
-                                     str(accel_calibration), "--reset-frame", mounts.ACCEL_RIG])
+                                     str(accel_calibration)])
         children.start("fusion", common)
         with Client(realm=realm, connect=[ep_app], timeout=1.0) as client:
             t_first = _wait_first_pose(client, children, tally)
