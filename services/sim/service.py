@@ -24,12 +24,22 @@ log = logging.getLogger("uma.sim")
 STATIC_REPUBLISH_S = 1.0
 
 
+_LASER = ("head_to_laser_rig", mounts.LASER_RIG, mounts.HEAD_TO_LASER_RIG)
+_ACCEL = ("head_to_accel_rig", mounts.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)
+#: --mountings choice -> the static mounting abilities published
+MOUNTINGS = {"all": (_LASER, _ACCEL), "laser": (_LASER,), "none": ()}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="sim", help="service id (default: sim)")
     parser.add_argument("--seed", type=int, default=1,
                         help="trajectory seed (default 1); other simulators must use the same")
     parser.add_argument("--rate-hz", type=float, default=100.0,
                         help="ground-truth publication rate (default 100)")
+    parser.add_argument("--mountings", choices=sorted(MOUNTINGS), default="all",
+                        help="which true rig mountings to publish as static edges: all "
+                             "(default), laser (the accelerometer rig's must then come from "
+                             "tracker alignment), none")
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -47,9 +57,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         statics = [
             (svc.ability(name, type="pose6d", edge=(mounts.HEAD, child), static=True,
                          ground_truth=True), pose)
-            for name, child, pose in (
-                ("head_to_laser_rig", mounts.LASER_RIG, mounts.HEAD_TO_LASER_RIG),
-                ("head_to_accel_rig", mounts.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG))]
+            for name, child, pose in MOUNTINGS[args.mountings]]
         svc.start()
         log.info("sim: publishing ground truth of seed %d at %.0f Hz", args.seed, args.rate_hz)
         next_static = 0.0
