@@ -7,7 +7,9 @@ The pure API (numpy only, no I/O) the fusion service and the evaluation share:
 * ``sensor``: appendix C.1 electronics constants and the ``Calibration`` (JSON file);
 * ``simulator``: ``simulate(trajectory, seconds, rate_hz, seed, ...)`` (seed 003 §4.5);
 * ``calibration``: ``calibrate(layout, recordings, rate_hz)`` from static poses (§4.4.2);
-* ``integrator``: ``DeadReckoner`` (§4.3), ``reset(...)`` then ``update(t, accel)``.
+* ``integrator``: ``DeadReckoner`` (§4.3), ``reset(...)`` then ``update(t, accel)``;
+* ``pose_rates``: ``AbsolutePoses``, the velocities a reset restarts with, fitted to the
+  recent absolute poses.
 
 ``service`` and ``evaluate`` wrap them for ``uma service run accel-rig`` and
 ``uma eval accel-rig``.
@@ -21,6 +23,7 @@ from services.accel_rig.calibration import (
     calibration_errors,
 )
 from services.accel_rig.integrator import DeadReckoner, Estimate
+from services.accel_rig.pose_rates import AbsolutePoses, Rates
 from services.accel_rig.rig import (
     RigLayout,
     layout_by_name,
@@ -42,10 +45,12 @@ from services.accel_rig.simulator import (
 __all__ = [
     "SIX_POSES",
     "THESIS_POSES",
+    "AbsolutePoses",
     "Calibration",
     "DeadReckoner",
     "Estimate",
     "NoiseModel",
+    "Rates",
     "RigLayout",
     "SensorTruth",
     "SimulatedRun",

@@ -148,7 +148,7 @@ class DeadReckoner:
         # recent samples and the states after them, so that a reset arriving late is applied
         # at its own time (with the velocities of that time) and the samples since replayed
         self._history: deque[_Sample] = deque(maxlen=keep)
-        self._states: deque[_State] = deque(maxlen=keep)
+        self._states: deque[_State] = deque(maxlen=2 * keep)  # resets add states too
         self._x: _State | None = None
         self._rest = _State(0.0, np.zeros(3), geo.quat_identity(), np.zeros(3), np.zeros(3),
                             np.zeros((12, 12)), np.zeros((12, 4 * n)))

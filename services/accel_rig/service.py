@@ -12,10 +12,13 @@ Abilities (edge ``ivy/world -> marvin/accel_rig``):
   published before the first reset: without one there is no pose.
 
 Need ``reset`` -- ``pose6d`` of the head (``ivy/world -> */head``, composed with the
-head-to-rig mounting) or of the rig itself: an absolute pose to restart from, at most every
-``--reset-every`` seconds.  Velocity and angular velocity at a reset come from the last
-three absolute poses when they are more certain than the integrator's own; the first reset
-waits for them (a moving head is not at rest).
+head-to-rig mounting; in ``uma demo`` the 300 Hz fused head pose) or of the rig itself: an
+absolute pose to restart from, at most every ``--reset-every`` seconds (0: every pose).
+Velocity and angular velocity at a reset come from a least-squares fit to the recent
+absolute poses (``pose_rates``) when they are more certain than the integrator's own; the
+first reset waits for them (a moving head is not at rest).  A pose without covariance gets
+the scatter the fit sees.  A bad sample or absolute pose is refused with a rate-limited log
+line naming it and the reason; the service keeps running.
 
 Input: the simulator (default), ``csv:FILE`` (replayed) or ``serial:DEVICE`` (a line per
 sample, ``t v_1 .. v_N``), converted with a calibration file.  ``--calibrate`` runs the
@@ -103,7 +106,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "a head (pattern, composed with --mount; default */head) or "
                              f"{mounts.ACCEL_RIG} itself")
     parser.add_argument("--reset-every", type=float, default=1.0,
-                        help="seconds between resets from the absolute pose (default 1)")
+                        help="seconds between resets from the absolute pose (default 1; 0: "
+                             "at every absolute pose)")
     parser.add_argument("--mount", default=None, metavar="X,Y,Z,QX,QY,QZ,QW",
                         help="pose of the rig in the head frame (default: the simulated "
                              "head mounting)")
