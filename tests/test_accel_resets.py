@@ -275,3 +275,31 @@ def test_the_service_refuses_bad_resets_with_one_log_line_each_and_keeps_publish
     n = len(live.pose_out.poses)
     assert n > 150  # published from the first good reset on, also while bad ones came in
     assert all(np.linalg.norm(p) < 0.01 for _, p, _, _ in live.pose_out.poses)
+
+
+def test_the_service_survives_a_dead_reckoning_that_diverges(caplog):
+    """Absolute poses claiming a 40 rad/s spin (within what a rig could measure) while the
+    rig lies still: the dead reckoning diverges, the pose is dropped with a log line, and
+    the next good poses bring it back at once (not a ``--reset-every`` later)."""
+    live = _live(1.0, mount=None)
+    q_down = axis_down_quaternion("-z")
+    volts = simulate_static(q_down, 1.0, RATE, sensor=default_device())
+    t_ns = SIM_EPOCH_NS + np.round(np.arange(len(volts)) / RATE * 1e9).astype(np.int64)
+    axis = -np.ones(3) / np.sqrt(3.0)
+    caplog.set_level(logging.WARNING, logger="uma.accel_rig")
+    published_while_spinning = 0
+    for k in range(len(volts)):
+        q = geo.quat_multiply(geo.rotvec_to_quat(axis * 40.0 * k / RATE), q_down) \
+            if k < 60 else q_down
+        if k < 60 or k >= 150:  # a pause, so that the fit window holds good poses only
+            live.on_reset(SimpleNamespace(t_ns=int(t_ns[k]), position=np.zeros(3),
+                                          quaternion=q, covariance=None))
+        live.process(int(t_ns[k]), volts[k])
+        if k == 149:
+            published_while_spinning = len(live.pose_out.poses)
+    lost = [r.getMessage() for r in caplog.records if "dead reckoning lost" in r.getMessage()]
+    assert lost and "diverged" in lost[0] and "no pose until the next reset" in lost[0], lost
+    assert live.counts["dead reckoning lost"] >= 1
+    good = live.pose_out.poses[published_while_spinning:]
+    assert len(good) > 100  # back after the good poses came
+    assert all(np.linalg.norm(p) < 0.01 and np.all(np.isfinite(C)) for _, p, _, C in good)

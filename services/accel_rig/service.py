@@ -252,7 +252,7 @@ class LiveRig:
     ``on_reset`` runs on the SDK's dispatch thread and only validates and queues;
     ``process`` (the sample loop) applies resets, so the integrator is touched by one
     thread only.  Neither ever raises for a bad input: a sample or absolute pose that
-    cannot be used is counted and logged (``Refusals``) and the service keeps running.
+    cannot be used is counted and logged (``EventLog``) and the service keeps running.
     """
 
     def __init__(self, cal: Calibration, rate_hz: float, mount: tuple[np.ndarray, np.ndarray] |
@@ -267,8 +267,8 @@ class LiveRig:
             maxlen=64)
         self.poses = AbsolutePoses()
         self.last_reset: float | None = None
-        self.refusals = Refusals()
-        self.counts = self.refusals.counts
+        self.events = EventLog()
+        self.counts = self.events.counts
         self.raw_out: Any = None
         self.pose_out: Any = None
 
@@ -277,7 +277,7 @@ class LiveRig:
         try:
             self.pending.append(self._rig_pose(m))
         except (ValueError, TypeError, ArithmeticError) as exc:
-            self.refusals.add(f"{self.reset_name} refused", exc)
+            self.events.warn(f"{self.reset_name} refused", exc)
 
     def _rig_pose(self, m: Measurement) -> tuple[int, np.ndarray, np.ndarray, np.ndarray | None]:
         """The absolute pose of the rig from a reset sample, validated: ``ValueError``
@@ -302,28 +302,31 @@ class LiveRig:
         try:
             accel = self.cal.to_accel(volts)
         except ValueError as exc:
-            self.refusals.add("accelerometer sample refused", exc)
+            self.events.warn("accelerometer sample refused", exc)
             return
         if self.origin_ns is None:
             self.origin_ns = t_ns
         self.raw_out.publish_measurement(Measurement(type="accel_raw", t_ns=t_ns,
                                                      values=accel))
         self._apply_resets()
+        had_pose = self.dr.initialised
         try:
             est = self.dr.update((t_ns - self.origin_ns) * 1e-9, accel)
         except ValueError as exc:
-            self.refusals.add("accelerometer sample refused", exc)
+            lost = had_pose and not self.dr.initialised
+            self.events.warn("dead reckoning lost" if lost else "accelerometer sample refused",
+                             exc)
             return
         if est is None:
-            self.refusals.add("no pose to publish: waiting for an absolute pose to reset from")
+            self.events.warn("no pose to publish: waiting for an absolute pose to reset from")
             return
         try:
             self.pose_out.publish(self.origin_ns + round(est.t * 1e9), est.position,
                                   est.quaternion, covariance=est.covariance)
         except ValueError as exc:
-            self.refusals.add("dead-reckoned pose not published", exc)
+            self.events.warn("dead-reckoned pose not published", exc)
             return
-        self.counts["poses"] += 1
+        self.events.count("poses")
 
     def _apply_resets(self) -> None:
         latest = None
@@ -333,24 +336,25 @@ class LiveRig:
             try:
                 self.poses.add(t, p, q, C)
             except ValueError as exc:
-                self.refusals.add(f"{self.reset_name} refused", exc)
+                self.events.warn(f"{self.reset_name} refused", exc)
                 continue
             latest = (t, p, q, C)
         if latest is None:
             return
         t, p, q, C = latest
-        if self.last_reset is not None and t - self.last_reset < self.reset_every_s:
-            return
+        if self.dr.initialised and self.last_reset is not None \
+                and t - self.last_reset < self.reset_every_s:
+            return  # without a pose (diverged), the next usable pose resets at once
         rates = self.poses.rates()
         velocity, omega = self._rates_to_use(rates)
         if not self.dr.initialised and not (velocity and omega):
-            self.refusals.add("first reset waits for three absolute poses (for the "
-                              "velocities)")
+            self.events.warn("without a pose, a reset waits for three absolute poses close "
+                             "together (for the velocities)")
             return
         if C is None and rates is not None:
             if not rates.settled:
-                self.refusals.add("a reset without covariance waits for a full window of "
-                                  "absolute poses (to estimate their noise)")
+                self.events.warn("a reset without covariance waits for a full window of "
+                                 "absolute poses (to estimate their noise)")
                 return
             # no covariance given: the scatter of the source's poses around the fit (none
             # for a slow source, whose three poses fit exactly: then exact, as it says)
@@ -359,10 +363,10 @@ class LiveRig:
         try:
             self.dr.reset(t, p, q, covariance=C, **velocity, **omega)
         except ValueError as exc:
-            self.refusals.add(f"{self.reset_name} refused", exc)
+            self.events.warn(f"{self.reset_name} refused", exc)
             return
         self.last_reset = t
-        self.counts["resets"] += 1
+        self.events.count("resets")
 
     def _rates_to_use(self, rates: Rates | None) -> tuple[dict[str, Any], dict[str, Any]]:
         """Velocity and angular velocity from the absolute poses, each when it is more
@@ -379,11 +383,12 @@ class LiveRig:
         return velocity, omega
 
 
-class Refusals:
-    """Counts what happened by kind and logs it rate-limited: the first of each kind and
-    reason at once, then at most one line per kind and reason every ``LOG_INTERVAL_S``
-    with the count, so a stream of bad input at 300 Hz neither floods the log nor goes
-    unnoticed.  Thread-safe (the SDK thread refuses reset poses, the sample loop samples).
+class EventLog:
+    """Counts what happened by kind; ``warn`` also logs it, rate-limited: the first of each
+    kind and reason at once, then at most one line per kind and reason every
+    ``LOG_INTERVAL_S`` with the count, so a stream of bad input at 300 Hz neither floods
+    the log nor goes unnoticed.  Thread-safe (the SDK thread refuses reset poses, the
+    sample loop samples).
     """
 
     def __init__(self) -> None:
@@ -391,7 +396,11 @@ class Refusals:
         self._logged_at: dict[tuple[str, str], float] = {}
         self._lock = threading.Lock()
 
-    def add(self, what: str, exc: Exception | None = None) -> None:
+    def count(self, what: str) -> None:
+        with self._lock:
+            self.counts[what] += 1
+
+    def warn(self, what: str, exc: Exception | None = None) -> None:
         # the reason without its numbers: one line for "NaN at t_ns=1", "NaN at t_ns=2", ...
         reason = _DIGITS.sub("#", str(exc)) if exc is not None else ""
         now = time.monotonic()
@@ -433,7 +442,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
             if stop.is_set():
                 break
             if isinstance(item, ValueError):
-                live.refusals.add("input line refused", item)
+                live.events.warn("input line refused", item)
                 continue
             live.process(*item)
         else:
