@@ -261,12 +261,14 @@ def test_the_service_refuses_bad_resets_with_one_log_line_each_and_keeps_publish
             live.on_reset(bad[k % len(bad)])
         elif 140 <= k < 260:
             live.on_reset(pose(100))  # an old pose: not after the ones before
+            if k == 200:  # a pose from a clock an hour ahead: refused, blocks nothing
+                live.on_reset(pose(k, t_ns=int(t_ns[k]) + 3_600_000_000_000))
         live.process(int(t_ns[k]), volts[k])
     refused = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
     assert any("beyond the 50 rad/s" in m for m in refused), refused
     for reason in ("non-finite value nan", "not a unit quaternion", "not symmetric",
                    "not an integer of nanoseconds", "carries no pose",
-                   "is not after the previous one"):
+                   "is not after the previous one", "ahead of the samples"):
         assert any(reason in m for m in refused), (reason, refused)
     # rate-limited: one line per kind although hundreds were refused
     assert live.counts["reset pose refused"] > 100

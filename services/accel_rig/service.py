@@ -47,7 +47,7 @@ from services.accel_rig.calibration import (
     calibrate,
     calibration_errors,
 )
-from services.accel_rig.integrator import DeadReckoner
+from services.accel_rig.integrator import HISTORY_S, DeadReckoner
 from services.accel_rig.pose_rates import AbsolutePoses, Rates
 from services.accel_rig.rig import DEFAULT_DELTA_M, LAYOUTS, layout_by_name
 from services.accel_rig.sensor import Calibration
@@ -308,7 +308,7 @@ class LiveRig:
             self.origin_ns = t_ns
         self.raw_out.publish_measurement(Measurement(type="accel_raw", t_ns=t_ns,
                                                      values=accel))
-        self._apply_resets()
+        self._apply_resets((t_ns - self.origin_ns) * 1e-9)
         had_pose = self.dr.initialised
         try:
             est = self.dr.update((t_ns - self.origin_ns) * 1e-9, accel)
@@ -328,12 +328,16 @@ class LiveRig:
             return
         self.events.count("poses")
 
-    def _apply_resets(self) -> None:
+    def _apply_resets(self, t_sample: float) -> None:
+        """Take the queued absolute poses; reset from the newest when it is time to."""
         latest = None
         while self.pending:
             t_ns, p, q, C = self.pending.popleft()
             t = (t_ns - self.origin_ns) * 1e-9  # set by the first sample, before this
             try:
+                if t > t_sample + HISTORY_S:  # kept, it would block every later pose
+                    raise ValueError(f"absolute pose at t_ns={t_ns} is {t - t_sample:.3f} s "
+                                     "ahead of the samples; the clocks disagree")
                 self.poses.add(t, p, q, C)
             except ValueError as exc:
                 self.events.warn(f"{self.reset_name} refused", exc)
