@@ -429,10 +429,12 @@ def _divergence(q_norm: float, w: Array, P: Array) -> str:
 
     A NaN or an overflow anywhere in the step reaches the diagonal of ``P``: the stage
     rotations and specific force and the midpoint position and velocity all enter F."""
-    var = float(P.diagonal().max())
-    ww = float(w @ w)
-    if not math.isfinite(var + ww + q_norm):
+    variances = P.diagonal().tolist()  # plain floats: this runs at every sample
+    x, y, z = w.tolist()
+    ww = x * x + y * y + z * z
+    if not math.isfinite(sum(variances) + ww + q_norm):
         return "to non-finite values"
+    var = max(variances)
     if q_norm < 1e-6:
         return "to a zero quaternion"
     if ww > MAX_OMEGA_RAD_S**2:
