@@ -228,3 +228,57 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
     assert len(accel["attributes"]["axes"]) == 6 and accel["attributes"]["frequency_hz"] == 300
     reset = rig["needs"][0]
     assert reset["name"] == "reset" and reset["matches"][0]["service_id"] == "sim"
+
+
+def test_the_sample_loop_logs_an_internal_error_and_goes_on(monkeypatch, caplog):
+    """Whatever goes wrong on one sample (here a simulated bug), the service keeps serving."""
+    import argparse
+    import logging
+    import threading
+
+    import agent
+    from services.accel_rig import service
+
+    class FakeService:
+        def __init__(self, *args, **kw) -> None:
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc) -> None:
+            pass
+
+        def ability(self, *args, **kw):
+            return _Out()
+
+        def need(self, *args, **kw) -> None:
+            pass
+
+        def start(self) -> None:
+            pass
+
+    device = default_device()
+    volts = simulate_static(axis_down_quaternion("-z"), 0.1, RATE, sensor=device)
+    source = SimpleNamespace(name="test", samples=lambda: iter(
+        [(SIM_EPOCH_NS + round(k * 1e9 / RATE), v) for k, v in enumerate(volts)]))
+    processed = []
+    real_process = service.LiveRig.process
+
+    def process(self, t_ns, v):
+        if len(processed) == 3:
+            processed.append("bug")
+            raise KeyError("simulated bug")
+        processed.append(t_ns)
+        real_process(self, t_ns, v)
+
+    monkeypatch.setattr(agent, "Service", FakeService)
+    monkeypatch.setattr(service.LiveRig, "process", process)
+    caplog.set_level(logging.WARNING, logger="uma.accel_rig")
+    args = argparse.Namespace(reset_frame="*/head", rate_hz=RATE, mount=None, reset_every=1.0,
+                              id="accel-rig", realm="r", agent=None, connect=[], listen=[],
+                              ttl_s=1.0)
+    assert service._serve(args, device.calibration(RATE), source, threading.Event()) == 0
+    assert len(processed) == len(volts)  # every sample after the failing one as well
+    bug = [r.getMessage() for r in caplog.records if "internal error" in r.getMessage()]
+    assert len(bug) == 1 and "KeyError" in bug[0] and "simulated bug" in bug[0]

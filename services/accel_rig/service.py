@@ -448,7 +448,11 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
             if isinstance(item, ValueError):
                 live.events.warn("input line refused", item)
                 continue
-            live.process(*item)
+            try:
+                live.process(*item)
+            except Exception as exc:  # a bug must not stop the tracker: say it, go on
+                live.events.warn("internal error on a sample (a bug; please report it)",
+                                 RuntimeError(f"{type(exc).__name__}: {exc}"))
         else:
             log.info("accel-rig: input %s ended", source.name)
     log.info("accel-rig: %s", dict(live.counts))
