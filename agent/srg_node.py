@@ -196,9 +196,11 @@ class SrgNode:
         if known is not None and known[0] == ability and self._static_values.get(source) == value:
             return
         parent, child = ability.edge
+        attrs = ability_attributes(ability)
+        advertised = attrs.pop("covariance", None)  # the sample's own covariance wins
+        cov = measurement.covariance if measurement.covariance is not None else advertised
         self.graph.add_static(parent, child, measurement.position, measurement.quaternion,
-                              measurement.covariance, source=source,
-                              **ability_attributes(ability))
+                              cov, source=source, **attrs)
         self._sources[key] = (ability, source)
         self._static_values[source] = value
         self._wake.set()

@@ -156,12 +156,15 @@ def test_a_single_measured_segment_at_none_reports_its_sample_time():
 def test_a_static_ability_becomes_a_static_edge_replaced_only_when_it_changes():
     node = SrgNode(mock.MagicMock(), "lab", "A", [])
     try:
-        calib = _ability("calibration", "laser", "accel", static=True, pos_std_m=0.002)
+        calib = _ability("calibration", "laser", "accel", static=True, pos_std_m=0.002,
+                         covariance=[1e-6 if i in (0, 6, 11, 15, 18, 20) else 0.0
+                                     for i in range(21)])  # as alignment advertises it
         node.on_local_sample("alignment", calib, _sample(5 * S, [0.1, 0, 0], 0.3))
         edge = node.graph.edge("laser", "accel", "alignment/calibration")
         assert edge.is_static
         r = node.graph.pose("laser", "accel", at=123)  # valid at any time
         assert np.allclose(r.position, [0.1, 0, 0])
+        assert np.allclose(np.diag(r.covariance), 1e-6)
         assert node.graph.has_plan("laser", "accel")
         node.on_local_sample("alignment", calib, _sample(6 * S, [0.1, 0, 0], 0.3))
         assert node.graph.has_plan("laser", "accel"), "the same value must not invalidate plans"
