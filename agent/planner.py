@@ -17,7 +17,8 @@ exist, :class:`RouteError` names the segments and agents that are missing.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +32,14 @@ from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError
 from agent.srg.plan import quat_product
 from agent.srg.result import PoseResult
 from agent.srg.supernode import SUMMARY_ERRORS
+from schemas.models import (
+    FRAME_PATTERN,
+    ID_PATTERN,
+    MAX_FRAME_LENGTH,
+    MAX_NAME_LENGTH,
+    QUAT_NORM_TOL,
+    check_plain,
+)
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
@@ -92,6 +101,126 @@ def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
         if out.get(name) is None:
             out[name] = math.inf
     return out
+
+
+_FRAME_RE = re.compile(FRAME_PATTERN)
+_ID_RE = re.compile(ID_PATTERN)
+_WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", "covariance",
+                          "path", "edges", "attributes", "extrapolated_s"))
+_EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
+
+
+def _wire_id(value: Any, where: str, regex: re.Pattern[str], max_length: int) -> str:
+    if not isinstance(value, str) or len(value) > max_length or not regex.match(value):
+        raise ValueError(f"{where}: {value!r:.60} is not a valid id")
+    return value
+
+
+def _wire_int(value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{where}: expected integer ns, got {value!r:.60}")
+    return value
+
+
+def _wire_floats(value: Any, n: int, where: str) -> list[float]:
+    """``n`` finite numbers (a list or tuple, as msgpack gives them)."""
+    if not isinstance(value, list | tuple) or len(value) != n:
+        raise ValueError(f"{where}: expected {n} numbers, got {value!r:.80}")
+    for x in value:
+        if isinstance(x, bool) or not isinstance(x, float | int) or not math.isfinite(x):
+            raise ValueError(f"{where}: {x!r:.40} is not a finite number")
+    return [float(x) for x in value]
+
+
+def _wire_covariance(value: Any) -> np.ndarray:
+    """36 finite numbers as a 6x6 matrix.  Numpy converts and checks them (36 is too many
+    for a Python loop); like the model's lax floats it takes bools and numeric strings."""
+    if not isinstance(value, list | tuple) or len(value) != 36:
+        raise ValueError(f"covariance: expected 36 numbers or null, got {value!r:.80}")
+    try:
+        cov = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        cov = None
+    if cov is None or cov.shape != (36,) or not np.isfinite(cov).all():
+        raise ValueError(f"covariance: expected 36 finite numbers, got {value!r:.80}")
+    return cov.reshape(6, 6)
+
+
+def _wire_attributes(value: Any) -> dict[str, Any]:
+    """A flat map of plain values; anything nested goes through ``check_plain``."""
+    if not isinstance(value, dict):
+        raise ValueError(f"attributes: expected a map, got {value!r:.60}")
+    for k, v in value.items():
+        if not isinstance(k, str):
+            raise ValueError(f"attributes: key {k!r:.40} is not a string")
+        if type(v) is float:
+            if not math.isfinite(v):
+                raise ValueError(f"attributes.{k}: non-finite value {v!r}")
+        elif v is not None and type(v) not in (int, bool, str):
+            check_plain(v, f"attributes.{k}", 1)
+    return value
+
+
+def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
+    """A segment answer (a ``schemas.models.PoseResult`` map) as a result, timestamps mapped
+    by ``to_local``; ``ValueError`` names the first field that is wrong.
+
+    The hot-path twin of ``PoseResult.model_validate`` (the documented contract; DESIGN.md:
+    pydantic validates descriptors and API results, not per-message hot paths): the same
+    fields, shapes, ids, finiteness and unit quaternion (renormalized), at a tenth of the
+    cost.  ``tests/test_client_wire.py`` holds the two to the same verdicts.
+    """
+    if not isinstance(d, dict):
+        raise ValueError(f"pose result: expected a map, got {type(d).__name__}")
+    extra = d.keys() - _WIRE_FIELDS
+    if extra:
+        raise ValueError(f"pose result: unexpected field(s) {', '.join(sorted(map(str, extra)))}")
+    for name in ("source", "target", "t_ns", "position", "quaternion"):
+        if name not in d:
+            raise ValueError(f"pose result: missing field {name!r}")
+    _wire_id(d["source"], "source", _FRAME_RE, MAX_FRAME_LENGTH)
+    _wire_id(d["target"], "target", _FRAME_RE, MAX_FRAME_LENGTH)
+    t_ns = _wire_int(d["t_ns"], "t_ns")
+    position = _wire_floats(d["position"], 3, "position")
+    q = _wire_floats(d["quaternion"], 4, "quaternion")
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise ValueError(f"quaternion: norm {norm:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
+                         "quaternions are x, y, z, w")
+    cov = d.get("covariance")
+    if cov is not None:
+        cov = _wire_covariance(cov)
+    path = d.get("path", [])
+    if not isinstance(path, list):
+        raise ValueError(f"path: expected a list of frame ids, got {path!r:.60}")
+    for i, frame in enumerate(path):
+        _wire_id(frame, f"path[{i}]", _FRAME_RE, MAX_FRAME_LENGTH)
+    edges = d.get("edges", [])
+    if not isinstance(edges, list):
+        raise ValueError(f"edges: expected a list, got {edges!r:.60}")
+    edges = [_wire_edge(e, i, to_local) for i, e in enumerate(edges)]
+    extrapolated = d.get("extrapolated_s", 0.0)
+    if (isinstance(extrapolated, bool) or not isinstance(extrapolated, float | int)
+            or not math.isfinite(extrapolated) or extrapolated < 0):
+        raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {extrapolated!r}")
+    attributes = attributes_from_wire(_wire_attributes(d.get("attributes", {})))
+    stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
+    return PoseResult(np.array(position), np.array(q) / norm, cov, list(path), edges,
+                      to_local(t_ns), float(extrapolated), stamps, attributes)
+
+
+def _wire_edge(e: Any, i: int, to_local: Callable[[int], int]) -> dict[str, Any]:
+    where = f"edges[{i}]"
+    if not isinstance(e, dict) or e.keys() != _EDGE_FIELDS:
+        raise ValueError(f"{where}: expected a map with exactly {', '.join(sorted(_EDGE_FIELDS))}"
+                         f", got {e!r:.100}")
+    if not isinstance(e["inverted"], bool):
+        raise ValueError(f"{where}.inverted: expected a bool, got {e['inverted']!r:.40}")
+    return {"parent": _wire_id(e["parent"], f"{where}.parent", _FRAME_RE, MAX_FRAME_LENGTH),
+            "child": _wire_id(e["child"], f"{where}.child", _FRAME_RE, MAX_FRAME_LENGTH),
+            "forward": not e["inverted"],
+            "owner": _wire_id(e["owner"], f"{where}.owner", _ID_RE, MAX_NAME_LENGTH),
+            "t_ns": to_local(_wire_int(e["t_ns"], f"{where}.t_ns"))}
 
 
 def parse_summary(msg: Mapping[str, Any]) -> Summary:

@@ -1,0 +1,145 @@
+"""The client's light check of segment answers (``agent.planner.pose_from_wire``) against the
+documented contract, ``schemas.models.PoseResult``: the same verdict on valid answers and on
+each kind of damage, and the same values where both accept."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from agent.planner import pose_from_wire
+from agent.srg import Graph
+from agent.srg import geometry as geo
+from agent.srg_node import result_to_wire
+from schemas.models import PoseResult as PoseModel
+
+S = 1_000_000_000
+
+
+def answers() -> list[dict]:
+    """Real answers of an agent's graph: static, measured, inverted, with and without
+    covariance."""
+    g = Graph()
+    g.add_static("w", "cam", [1.0, 2.0, 3.0], geo.rotvec_to_quat(np.array([0.1, 0.2, 0.3])),
+                 pos_std_m=0.01, rot_std_rad=0.002)
+    g.add_static("cam", "rig", [0.0, 0.5, 0.0], [0.0, 0.0, 0.0, 1.0])
+    for k in range(3):
+        g.add_measurement("rig", "head", k * S // 10, [0.1 * k, 0.0, 0.2],
+                          geo.rotvec_to_quat(np.array([0.0, 0.05 * k, 0.0])),
+                          frequency_hz=10.0, latency_s=0.004)
+    out = []
+    for src, dst, at in (("w", "cam", None), ("cam", "rig", None), ("head", "w", S // 20),
+                         ("w", "head", S // 10)):
+        r = g.pose(src, dst, at=at, error="hops")
+        out.append(result_to_wire(r, src, dst, "agent-1", r.t_ns if r.t_ns is not None else 7))
+    return out
+
+
+def model_accepts(d: dict) -> bool:
+    try:
+        PoseModel.model_validate(d)
+    except ValidationError:
+        return False
+    return True
+
+
+def light_accepts(d: dict) -> bool:
+    try:
+        pose_from_wire(d)
+    except ValueError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_valid_answers_give_what_the_model_gives(i):
+    d = answers()[i]
+    m = PoseModel.model_validate(d)
+    r = pose_from_wire(d, lambda t: t - 5)
+    np.testing.assert_array_equal(r.position, m.position)
+    np.testing.assert_allclose(r.quaternion, m.quaternion, rtol=0, atol=1e-15)
+    if m.covariance is None:
+        assert r.covariance is None
+    else:
+        np.testing.assert_array_equal(r.covariance, np.array(m.covariance).reshape(6, 6))
+    assert r.path == m.path and r.t_ns == m.t_ns - 5 and r.extrapolated_s == m.extrapolated_s
+    assert [(e["parent"], e["child"], not e["forward"], e["owner"], e["t_ns"] + 5)
+            for e in r.edges] == [(e.parent, e.child, e.inverted, e.owner, e.t_ns)
+                                  for e in m.edges]
+    for k, v in m.attributes.items():  # None on the wire stands for an infinite rate or ttl
+        assert r.attributes[k] == (math.inf if v is None and k in ("frequency_hz", "ttl_s")
+                                   else v)
+
+
+def test_a_slightly_denormalized_quaternion_is_renormalized_like_the_model():
+    d = answers()[0]
+    d["quaternion"] = [x * 1.0004 for x in d["quaternion"]]
+    np.testing.assert_allclose(pose_from_wire(d).quaternion,
+                               PoseModel.model_validate(d).quaternion, atol=1e-15)
+
+
+def _set(path, value):
+    def damage(d):
+        target = d
+        for key in path[:-1]:
+            target = target[key]
+        if value is _DELETE:
+            del target[path[-1]]
+        else:
+            target[path[-1]] = value
+    return damage
+
+
+_DELETE = object()
+DAMAGES = {
+    "nan position": _set(["position", 1], math.nan),
+    "inf position": _set(["position", 0], math.inf),
+    "2 position values": _set(["position"], [0.0, 1.0]),
+    "string in position": _set(["position", 2], "x"),
+    "nan quaternion": _set(["quaternion", 3], math.nan),
+    "non-unit quaternion": _set(["quaternion"], [0.0, 0.0, 0.0, 2.0]),
+    "zero quaternion": _set(["quaternion"], [0.0, 0.0, 0.0, 0.0]),
+    "3 quaternion values": _set(["quaternion"], [0.0, 0.0, 1.0]),
+    "35 covariance values": _set(["covariance"], [0.0] * 35),
+    "nan in covariance": _set(["covariance"], [math.nan] + [0.0] * 35),
+    "covariance as a map": _set(["covariance"], {"a": 1}),
+    "missing position": _set(["position"], _DELETE),
+    "missing t_ns": _set(["t_ns"], _DELETE),
+    "float t_ns": _set(["t_ns"], 1.5),
+    "string t_ns": _set(["t_ns"], "soon"),
+    "unknown field": _set(["bogus"], 1),
+    "bad source id": _set(["source"], "a//b"),
+    "non-string target": _set(["target"], 3),
+    "bad frame in path": _set(["path", 0], "has space"),
+    "path not a list": _set(["path"], "w"),
+    "negative extrapolation": _set(["extrapolated_s"], -1.0),
+    "nan extrapolation": _set(["extrapolated_s"], math.nan),
+    "nan attribute": _set(["attributes", "latency_s"], math.nan),
+    "object attribute": _set(["attributes", "latency_s"], {1, 2}),
+    "attributes not a map": _set(["attributes"], [1]),
+    "edge missing owner": _set(["edges", 0, "owner"], _DELETE),
+    "edge extra field": _set(["edges", 0, "extra"], 1),
+    "edge bad owner id": _set(["edges", 0, "owner"], "a/b"),
+    "edge float t_ns": _set(["edges", 0, "t_ns"], 0.5),
+    "edge inverted not a bool": _set(["edges", 0, "inverted"], [1]),
+    "edge not a map": _set(["edges", 0], "w->cam"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(DAMAGES))
+def test_damaged_answers_are_refused_by_both(name):
+    d = copy.deepcopy(answers()[0])
+    DAMAGES[name](d)
+    assert not model_accepts(d), "the damage must break the contract"
+    with pytest.raises(ValueError) as err:
+        pose_from_wire(d)
+    assert str(err.value)  # says what is wrong
+
+
+def test_not_a_map_is_refused():
+    for bad in (None, [1, 2], "pose"):
+        assert not light_accepts(bad)
