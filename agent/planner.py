@@ -361,20 +361,22 @@ def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
     """Chain segment answers source -> target, propagating the covariance (first order).
 
-    Batched like a local plan: one ``to_matrix`` and one ``adjoint`` call for all segments,
-    prefix products of 4x4 and 6x6 matrices, a product tree for the quaternion.
+    One ``adjoint`` call for all segments gives their rotations (its diagonal blocks) and,
+    when a covariance is known, the maps that carry it; prefix products of 3x3 and 6x6
+    matrices chain them, a product tree gives the quaternion.  Numpy calls on arrays this
+    small cost microseconds each, so the count of calls is what is kept down.
     """
     P = np.array([r.position for r in results])
     Q = np.array([r.quaternion for r in results])
-    T = geo.to_matrix(P[:-1], Q[:-1]) if len(results) > 1 else None
-    M = np.eye(4)
-    for i in range(len(results) - 1):
-        M = M @ T[i]
-    p = M[:3, :3] @ P[-1] + M[:3, 3]
+    Ads = geo.adjoint(P, Q)
+    p = P[0].copy()
+    R = Ads[0, :3, :3]
+    for i in range(1, len(results)):
+        p += R @ P[i]
+        R = R @ Ads[i, :3, :3]
     q = quat_product(Q)
     cov = None
     if any(r.covariance is not None for r in results):
-        Ads = geo.adjoint(P, Q)
         prefix = np.eye(6)
         cov = np.zeros((6, 6))
         for i, r in enumerate(results):
