@@ -99,6 +99,15 @@ def result_to_wire(r: SrgPose, source: str, target: str, owner: str,
     }
 
 
+def at_time(result: dict[str, Any], t_ns: int) -> dict[str, Any]:
+    """A wire answer of an all-static path restamped at ``t_ns`` (a static edge is used at
+    the query's time); the cached original is not modified."""
+    out = dict(result)
+    out["t_ns"] = t_ns
+    out["edges"] = [{**e, "t_ns": t_ns} for e in result["edges"]]
+    return out
+
+
 class SrgNode:
     """One agent's SRG, its supernode summary and its query service (module docstring)."""
 
@@ -115,6 +124,9 @@ class SrgNode:
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
         self._static_values: dict[str, tuple[bytes, bytes, bytes | None]] = {}
+        #: wire answers of all-static paths by (source, target, error), with the graph
+        #: version they were computed at
+        self._static_answers: dict[tuple[str, str, str], tuple[int, dict[str, Any]]] = {}
         self._remote_frames: dict[str, set[str]] = {}
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
@@ -265,14 +277,31 @@ class SrgNode:
         t = msg.get("t")
         if t is not None and (isinstance(t, bool) or not isinstance(t, int)):
             raise ValueError(f"{op} request: t must be integer ns or nil, got {t!r}")
+        details = bool(msg.get("details"))
         with self._lock:
+            cached = None if details else self._static_answer(source, target, error)
+            if cached is not None:
+                return {"ok": True, "result": at_time(cached, t if t is not None
+                                                      else self.now_ns())}
             r = self.graph.pose(source, target, at=t, error=error)
             out: dict[str, Any] = {"ok": True}
             t_used = r.t_ns if r.t_ns is not None else (t if t is not None else self.now_ns())
             out["result"] = result_to_wire(r, source, target, self.agent_id, t_used)
-            if msg.get("details"):
+            if details:
                 out["edges"] = [self._edge_details(e) for e in r.edges]
+            elif out["result"]["attributes"].get("static"):
+                self._static_answers[(source, target, error)] = (self.graph.version,
+                                                                 out["result"])
         return out
+
+    def _static_answer(self, source: str, target: str, error: str) -> dict[str, Any] | None:
+        """The wire answer of an all-static path, valid at every time until the graph's
+        structure or attributes change (``graph.version``): the path search, composition
+        and attribute aggregation are skipped (most of an answer's cost).  Lock held."""
+        hit = self._static_answers.get((source, target, error))
+        if hit is None or hit[0] != self.graph.version:
+            return None
+        return hit[1]
 
     def _edge_details(self, e: dict[str, Any]) -> dict[str, Any]:
         """What a streaming client needs to rebuild an edge: its data key or its value."""

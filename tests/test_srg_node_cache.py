@@ -1,0 +1,59 @@
+"""The agent's cache of all-static answers: the same answer as a fresh computation at any
+time, and dropped when a static edge changes."""
+
+from __future__ import annotations
+
+from unittest import mock
+
+import numpy as np
+
+from agent.srg_node import SrgNode
+
+S = 1_000_000_000
+
+
+def node() -> SrgNode:
+    edges = [{"parent": "w", "child": "cam", "position": [1.0, 0.0, 2.0],
+              "quaternion": [0.0, 0.0, 0.38268343, 0.92387953], "pos_std_m": 0.01},
+             {"parent": "cam", "child": "rig", "position": [0.0, 0.5, 0.0],
+              "quaternion": [0.0, 0.0, 0.0, 1.0]}]
+    return SrgNode(mock.MagicMock(), "lab", "A", edges)
+
+
+def ask(n: SrgNode, t, source="rig", target="w"):
+    return n.handle({"op": "segment", "source": source, "target": target, "t": t,
+                     "error": "hops"})
+
+
+def test_a_cached_static_answer_equals_a_fresh_one_at_every_time():
+    n = node()
+    first = ask(n, 5 * S)
+    assert n._static_answers, "an all-static answer is cached"
+    for t in (5 * S, 7 * S + 3, None):
+        with mock.patch.object(n, "now_ns", return_value=9 * S):
+            cached = ask(n, t)
+            n._static_answers.clear()
+            fresh = ask(n, t)
+        assert cached == fresh
+        assert cached["result"]["t_ns"] == (t if t is not None else 9 * S)
+        assert all(e["t_ns"] == cached["result"]["t_ns"] for e in cached["result"]["edges"])
+    assert first["result"]["t_ns"] == 5 * S  # restamping did not touch the cached original
+
+
+def test_changing_a_static_edge_drops_the_cached_answer():
+    n = node()
+    before = ask(n, S)["result"]["position"]
+    n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
+    after = ask(n, S)["result"]["position"]
+    assert not np.allclose(before, after)
+    n._static_answers.clear()
+    assert ask(n, S)["result"]["position"] == after
+
+
+def test_measured_and_detailed_answers_are_not_cached():
+    n = node()
+    n.graph.add_measurement("rig", "head", S, [0.0, 0.0, 0.1], [0.0, 0.0, 0.0, 1.0])
+    ask(n, S, "w", "head")
+    n.handle({"op": "segment", "source": "w", "target": "rig", "t": S, "error": "hops",
+              "details": True})
+    assert not n._static_answers
