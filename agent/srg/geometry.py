@@ -118,12 +118,49 @@ def quat_identity(shape: tuple[int, ...] = ()) -> Array:
     return q
 
 
+def _bilinear(pairs: dict[int, list[tuple[int, int, float]]], width: int) -> Array:
+    """The (16, width) matrix taking the flattened outer product ``a_i * b_j`` (index
+    ``4 i + j``) to ``out[k] = sum of coefficient * a_i * b_j`` over ``pairs[k]``."""
+    K = np.zeros((16, width))
+    for k, terms in pairs.items():
+        for i, j, c in terms:
+            K[4 * i + j, k] = c
+    return K
+
+
+_X, _Y, _Z, _W = range(4)
+#: up to this many numbers in, the outer-product forms below are the fast ones (measured:
+#: 3-4x faster for a few quaternions, 10x slower for 1e5)
+_SMALL = 256
+#: the Hamilton product as one outer product and one matrix product: a handful of numpy
+#: calls, where one call per component and term cost more than the arithmetic on the few
+#: quaternions of a query (exact coefficients: the same products, summed in another order)
+_HAMILTON = _bilinear({
+    0: [(_W, _X, 1), (_X, _W, 1), (_Y, _Z, 1), (_Z, _Y, -1)],
+    1: [(_W, _Y, 1), (_X, _Z, -1), (_Y, _W, 1), (_Z, _X, 1)],
+    2: [(_W, _Z, 1), (_X, _Y, 1), (_Y, _X, -1), (_Z, _W, 1)],
+    3: [(_W, _W, 1), (_X, _X, -1), (_Y, _Y, -1), (_Z, _Z, -1)],
+}, 4)
+#: ``R - I`` of a unit quaternion, row-major, from the outer product ``q q^T``
+_ROTATION = _bilinear({
+    0: [(_Y, _Y, -2), (_Z, _Z, -2)], 1: [(_X, _Y, 2), (_Z, _W, -2)], 2: [(_X, _Z, 2), (_Y, _W, 2)],
+    3: [(_X, _Y, 2), (_Z, _W, 2)], 4: [(_X, _X, -2), (_Z, _Z, -2)], 5: [(_Y, _Z, 2), (_X, _W, -2)],
+    6: [(_X, _Z, 2), (_Y, _W, -2)], 7: [(_Y, _Z, 2), (_X, _W, 2)], 8: [(_X, _X, -2), (_Y, _Y, -2)],
+}, 9)
+
+
+def _outer_flat(a: Array, b: Array) -> Array:
+    outer = a[..., :, None] * b[..., None, :]
+    return outer.reshape(*outer.shape[:-2], 16)
+
+
 def quat_multiply(a: Array, b: Array) -> Array:
     """Hamilton product ``a * b`` (apply b first, then a), xyzw."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    # components by indexing and one preallocated output: np.moveaxis and np.stack cost
-    # more than the arithmetic on the few quaternions of a query
+    if a.size + b.size <= _SMALL:
+        return _outer_flat(a, b) @ _HAMILTON
+    # a large batch: per component (the matrix product above is slower there)
     ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
@@ -159,6 +196,11 @@ def quat_rotate(q: Array, v: Array) -> Array:
 def quat_to_matrix(q: Array) -> Array:
     """Unit quaternion(s) (..., 4) to rotation matrices (..., 3, 3)."""
     q = np.asarray(q, dtype=float)
+    if q.size <= _SMALL:
+        R = _outer_flat(q, q) @ _ROTATION
+        R = R.reshape(*R.shape[:-1], 3, 3)
+        R += _EYE3
+        return R
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     R = np.empty((*q.shape[:-1], 3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)
@@ -171,6 +213,9 @@ def quat_to_matrix(q: Array) -> Array:
     R[..., 2, 1] = 2 * (y * z + x * w)
     R[..., 2, 2] = 1 - 2 * (x * x + y * y)
     return R
+
+
+_EYE3 = np.eye(3)
 
 
 def matrix_to_quat(R: Array) -> Array:

@@ -1,0 +1,31 @@
+"""quat_multiply and quat_to_matrix take one numpy form for a few quaternions and another
+for large batches (agent.srg.geometry._SMALL): both must give the same results."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+
+
+def test_small_and_large_batch_forms_agree():
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(200, 4))
+    b = rng.normal(size=(200, 4))
+    assert a.size > geo._SMALL  # the whole batch takes the large form, each row the small one
+    big_mul, big_rot = geo.quat_multiply(a, b), geo.quat_to_matrix(a)
+    for i in range(len(a)):
+        np.testing.assert_allclose(geo.quat_multiply(a[i], b[i]), big_mul[i], rtol=0,
+                                   atol=1e-14)
+        np.testing.assert_array_equal(geo.quat_to_matrix(a[i]), big_rot[i])
+    small = geo.quat_multiply(a[:3], b[:3])
+    np.testing.assert_allclose(small, big_mul[:3], rtol=0, atol=1e-14)
+    assert geo.quat_multiply(a[0], b[:3]).shape == (3, 4)  # broadcasting kept
+
+
+def test_hamilton_product_of_basis_quaternions():
+    i, j, k, one = np.eye(4)
+    np.testing.assert_array_equal(geo.quat_multiply(i, j), k)
+    np.testing.assert_array_equal(geo.quat_multiply(j, i), -k)
+    np.testing.assert_array_equal(geo.quat_multiply(i, i), -one)
+    np.testing.assert_array_equal(geo.quat_to_matrix(one), np.eye(3))
