@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -27,6 +26,7 @@ import numpy as np
 
 from agent.commands.daemon import load_config
 from agent.daemon import check_static_edge
+from agent.processes import stop_processes
 from agent.srg import geometry as geo
 from services.sim import mounts
 
@@ -71,14 +71,7 @@ def run(timeout: float, extra: list[str]) -> dict[str, Any]:
             time.sleep(0.5)
         elapsed = time.monotonic() - start
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs, 10.0)
     edge = check_static_edge(load_config(str(out))["static"][0], 0)
     true_p, true_q = geo.compose(*geo.inverse(*mounts.HEAD_TO_LASER_RIG),
                                  *mounts.HEAD_TO_ACCEL_RIG)

@@ -32,6 +32,8 @@ import time
 import uuid
 from pathlib import Path
 
+from agent.processes import stop_processes
+
 ROOT = str(Path(__file__).resolve().parents[1])
 RATE_HZ = 200.0
 
@@ -81,15 +83,7 @@ class Bench:
                           self.ep, "--latency", str(latency), wait_for="ready")
 
     def stop_all(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
+        stop_processes(self.procs)
 
 
 class Consumer:

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from agent.processes import stop_processes
+
 WORLD, CAM, RIG, HEAD = "ivy/world", "cam/nw", "marvin/rig", "alice/head"
 EDGES = {
     "A": [(WORLD, CAM, [1.2, -0.5, 2.3], [0.0, 0.0, 0.38268343, 0.92387953], 0.01)],
@@ -167,14 +169,7 @@ def main() -> None:
             time.sleep(args.stream_seconds)
             sub.close()
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs)
     figures = {
         "cross_agent_query": _stats(query_us),
         "cross_agent_query_static_segments_cached": _stats(cached_us),

@@ -23,7 +23,6 @@ import json
 import logging
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -37,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
+from agent.processes import stop_processes
 from agent.srg import geometry as geo
 from services.sim import mounts
 
@@ -116,16 +116,7 @@ class Children:
         return out
 
     def stop(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_TIMEOUT_S
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=STOP_TIMEOUT_S)
+        stop_processes(self.procs.values(), STOP_TIMEOUT_S)
         for f in self.logs.values():
             f.close()
 

@@ -14,6 +14,8 @@ from collections.abc import Iterator
 import pytest
 from hypothesis import settings
 
+from agent.processes import stop_processes
+
 # Repeatable property tests (the same examples on every run and machine) with no per-example
 # deadline: CI machines are shared and slow, and a deadline there fails for the wrong reason.
 settings.register_profile("uma", derandomize=True, deadline=None)
@@ -59,15 +61,8 @@ class Processes:
             p.send_signal(sig)
 
     def stop_all(self, timeout: float = 5.0) -> None:
+        stop_processes(self.procs, timeout)
         for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=timeout)
             for stream in (p.stdout, p.stderr):
                 if stream:
                     stream.close()
