@@ -51,12 +51,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _methods(options: AlignmentOptions, rng: np.random.Generator) -> dict[str, Method]:
     """Every method under test, each a function of the stations (pa, qa, pb, qb)."""
-    def ours(method: str, refine: bool, ransac: bool) -> Method:
-        o = replace(options, method=method, refine=refine, ransac=ransac)
+    def ours(method: str, refine: bool, ransac: bool, **select: Any) -> Method:
+        o = replace(options, method=method, refine=refine, ransac=ransac, **select)
         return lambda s: fit_stations(*s, o, rng).pose
 
     return {
         "daniilidis": ours("daniilidis", False, False),
+        # the solver alone, on the motions OpenCV uses (every two stations, none dropped by
+        # the angle threshold): the like-for-like comparison with cv2's DANIILIDIS
+        "daniilidis_all_pairs": ours("daniilidis", False, False, min_angle_rad=0.0,
+                                     max_pairs=None),
         "tsai_lenz": ours("tsai-lenz", False, False),
         "daniilidis_refined": ours("daniilidis", True, False),
         "daniilidis_ransac_refined": ours("daniilidis", True, True),
@@ -146,6 +150,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return figures
 
 
+_SAME = 1e-9  # relative difference below which two medians are the same figure
+
+
 def _goals(f: dict[str, Any]) -> dict[str, Any]:
     """The issue's acceptance figures, computed from the medians."""
     cv = f["clean"]["cv2_daniilidis"]
@@ -154,13 +161,15 @@ def _goals(f: dict[str, Any]) -> dict[str, Any]:
     rot_ratio = dirty["rot_deg_median"] / clean["rot_deg_median"]
     pos_ratio = dirty["pos_mm_median"] / clean["pos_mm_median"]
     goals: dict[str, Any] = {}
-    for name in ("daniilidis", "daniilidis_refined"):
+    for name in ("daniilidis", "daniilidis_all_pairs", "daniilidis_refined"):
         ours = f["clean"][name]
         goals[f"{name}_over_cv2_daniilidis_rot"] = ours["rot_deg_median"] / cv["rot_deg_median"]
         goals[f"{name}_over_cv2_daniilidis_pos"] = ours["pos_mm_median"] / cv["pos_mm_median"]
+        # equal to within rounding (the same algorithm on the same motions agrees with
+        # OpenCV to ~1e-13) counts as not worse
         goals[f"{name}_le_cv2_daniilidis"] = bool(
-            ours["rot_deg_median"] <= cv["rot_deg_median"]
-            and ours["pos_mm_median"] <= cv["pos_mm_median"])
+            ours["rot_deg_median"] <= cv["rot_deg_median"] * (1 + _SAME)
+            and ours["pos_mm_median"] <= cv["pos_mm_median"] * (1 + _SAME))
     return {
         **goals,
         "ransac_outlier_over_clean_rot": rot_ratio,
