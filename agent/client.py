@@ -40,7 +40,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -66,7 +66,13 @@ from agent.session import open_session
 from agent.srg import Graph
 from agent.srg.attributes import EDGE_ATTRIBUTES
 from agent.srg.errorfn import ErrorFunction, error_function
-from agent.srg.errors import EdgeUndefinedError, UnknownFrameError
+from agent.srg.errors import (
+    EdgeUndefinedError,
+    SrgLookupError,
+    UnknownFrameError,
+    UnreachableError,
+    list_names,
+)
 from agent.srg.graph import identity
 from agent.srg.result import PoseResult
 from schemas.codec import DecodeError, decode_measurement, decode_message, encode_message
@@ -252,6 +258,8 @@ class Client:
             self.refresh()  # a frame may have appeared since the last summary
             summaries, alive = self._snapshot()
             routes = self._plan(summaries, source, target, fn)
+        except UnreachableError as exc:
+            raise _with_departed(exc, summaries, alive) from None
         causes: list[SegmentError] = []
         for route in usable_routes(routes, alive, source, target)[:MAX_ROUTES]:
             try:
@@ -670,3 +678,15 @@ class Subscription:
         self.status = "closed"
         with contextlib.suppress(ValueError):
             self.client._subscriptions.remove(self)
+
+
+def _with_departed(exc: UnreachableError, summaries: Mapping[str, Summary],
+                   alive: set[str]) -> SrgLookupError:
+    """An unreachable pair, naming the departed agents that held frames of either side: the
+    link between the two sides was most likely one of their segments."""
+    sides = exc.source_side | exc.target_side
+    gone = sorted(a for a, s in summaries.items() if a not in alive and s.frames & sides)
+    if not gone:
+        return exc
+    return RouteError(f"{exc}; agent(s) {list_names(gone)} left the realm and held frames "
+                      f"of these parts: the missing segment was probably theirs")

@@ -174,3 +174,21 @@ def test_a_static_ability_becomes_a_static_edge_replaced_only_when_it_changes():
         assert "laser" not in node.graph.frames()
     finally:
         node.close()
+
+
+def test_an_unreachable_pair_names_the_departed_agents_that_held_its_frames():
+    from types import SimpleNamespace
+
+    from agent.client import _with_departed
+    from agent.planner import RouteError
+    from agent.srg.errors import UnreachableError
+
+    summaries = {"A": SimpleNamespace(frames={"w", "cam"}),
+                 "B": SimpleNamespace(frames={"cam", "head"}),
+                 "C": SimpleNamespace(frames={"elsewhere"})}
+    exc = UnreachableError("w", "head", {"w", "cam"}, {"head"})
+    named = _with_departed(exc, summaries, alive={"A"})
+    assert isinstance(named, RouteError)
+    assert "B" in str(named) and "left the realm" in str(named)
+    assert "C" not in str(named).split("left the realm")[0].split("agent(s)")[1]
+    assert _with_departed(exc, summaries, alive={"A", "B"}) is exc

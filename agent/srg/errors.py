@@ -53,6 +53,8 @@ class UnreachableError(SrgLookupError):
                  target_side: Iterable[str]) -> None:
         self.source = source
         self.target = target
+        self.source_side = frozenset(source_side)
+        self.target_side = frozenset(target_side)
         super().__init__(
             f"no path from {source!r} to {target!r}: they are in unconnected parts of the "
             f"graph; {source!r} reaches {list_names(source_side)}; {target!r} reaches "
