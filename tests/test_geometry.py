@@ -401,3 +401,11 @@ def test_adjoint_moves_a_perturbation_across_a_pose(pose, xi) -> None:
     left = se3_exp((Ad @ xi)[None])[0] @ T
     right = T @ se3_exp(xi[None])[0]
     np.testing.assert_allclose(left, right, atol=1e-9)
+
+
+def test_single_vector_hot_path_forms_agree_with_the_broadcasting_ones() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        assert np.allclose(g.skew3(a), g.skew(a))
+        assert np.allclose(g.cross3(a, b), np.cross(a, b))

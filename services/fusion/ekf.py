@@ -351,7 +351,7 @@ class FusionEKF:
         pred = (float(Rn @ u) + float(x[WD] @ self.accel.cross[j])
                 + wn * wr - float(w @ w) * self.accel.n_dot_r[j])
         H = np.zeros(self.dim)
-        H[TH] = _cross(Rn, u)                   # n^T R^T [u]x, the left rotation error
+        H[TH] = geo.cross3(Rn, u)                   # n^T R^T [u]x, the left rotation error
         H[W] = wn * r + wr * n - 2.0 * self.accel.n_dot_r[j] * w
         H[WD] = self.accel.cross[j]
         H[A] = Rn
@@ -374,7 +374,7 @@ class FusionEKF:
         dx = PH * (y / s)
         # small rotation: keep R current to first order, fold into q once per sample
         self._dtheta += dx[TH]
-        self._R += _skew(dx[TH]) @ self._R
+        self._R += geo.skew3(dx[TH]) @ self._R
         self.x[3:] += dx[3:]
         self.P -= np.outer(PH, PH / s)
         self.stats.accel_updates += 1
@@ -494,7 +494,7 @@ class FusionEKF:
         M = np.eye(3) - np.outer(d, n) / nd
         J = np.zeros((3, self.dim))
         J[:, P] = M
-        J[:, TH] = -M @ (_skew(arm) + s * _skew(d))
+        J[:, TH] = -M @ (geo.skew3(arm) + s * geo.skew3(d))
         return origin + s * d, J
 
     def update_dot(self, t: float, point: Array, std_m: float, beam_rig: Array,
@@ -554,14 +554,3 @@ class FusionEKF:
             self.q /= np.linalg.norm(self.q)
         self._dtheta = np.zeros(3)
         self._R = geo.quat_to_matrix(self.q)
-
-
-# Single-vector forms of cross product and skew matrix for the scalar-update hot path:
-# numpy's broadcasting versions (np.cross, geo.skew) cost more than the whole update.
-def _cross(a: Array, b: Array) -> Array:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
-                     a[0] * b[1] - a[1] * b[0]])
-
-
-def _skew(v: Array) -> Array:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
