@@ -438,22 +438,3 @@ def covariance_from_std(p: Array, pos_std_m: float | None,
     d[:3] = (pos_std_m or 0.0) ** 2
     d[3:] = (rot_std_rad or 0.0) ** 2
     return decoupled_to_se3(p, np.diag(d))
-
-
-# Upper-triangular packing of a symmetric 6x6 matrix (the wire format's 21 floats).
-_TRIU = np.triu_indices(6)
-
-
-def pack_covariance(C: Array) -> list[float]:
-    """The 21 upper-triangular entries of a symmetric 6x6 covariance, row by row."""
-    return np.asarray(C, float)[_TRIU].tolist()
-
-
-def unpack_covariance(values: Any) -> Array:
-    """Rebuild a symmetric 6x6 matrix from its 21 upper-triangular entries."""
-    v = np.asarray(values, dtype=float)
-    if v.shape != (21,):
-        raise ValueError(f"covariance: expected 21 upper-triangular values, got shape {v.shape}")
-    C = np.zeros((6, 6))
-    C[_TRIU] = v
-    return C + np.triu(C, 1).T

@@ -40,6 +40,7 @@ import numpy as np
 from agent.errors import UmaError
 from agent.plugins import ServicePlugin
 from agent.srg import geometry as geo
+from schemas.codec import pack_covariance
 from services.alignment import records
 from services.alignment.pipeline import (
     AlignmentOptions,
@@ -155,7 +156,7 @@ def static_attributes(result: AlignmentResult) -> dict[str, Any]:
         "static": True,
         "pos_std_m": result.pos_std_m,
         "rot_std_rad": result.rot_std_rad,
-        "covariance": geo.pack_covariance(result.covariance),
+        "covariance": pack_covariance(result.covariance),
         "residual_rot_rad": result.residual_rot_rad,
         "residual_pos_m": result.residual_pos_m,
         "time_offset_s": float(result.time_offset_s),
