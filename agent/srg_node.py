@@ -181,14 +181,17 @@ class SrgNode:
         parent, child = ability.edge
         with self._lock:
             known = self._sources.get(key)
-            if known is not None and known[0] != ability and (
+            # the daemon passes the same Ability object until it changes: `is` spares the
+            # per-sample model comparison
+            changed = known is None or (known[0] is not ability and known[0] != ability)
+            if changed and known is not None and (
                     known[0].attributes.static != ability.attributes.static):
                 self.graph.remove_source(source)  # measured <-> static: a different edge kind
                 known = None
             if ability.attributes.static:
                 self._set_static(key, source, ability, measurement, known)
                 return
-            if known is None or known[0] != ability:
+            if changed:
                 self.graph.declare_measured(parent, child, source=source,
                                             **ability_attributes(ability))
                 self._sources[key] = (ability, source)
