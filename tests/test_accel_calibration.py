@@ -3,6 +3,7 @@ and the honesty of the dead reckoner's covariance (NEES)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -80,6 +81,21 @@ def test_calibration_with_appendix_c_noise_meets_the_tolerances():
     # and the reported parameter uncertainty is of the size of the actual error
     sd_bias_lsb = np.sqrt(cal.param_cov[:, 0, 0]) / sn.LSB_V
     assert np.abs(_errors(cal, device).bias_lsb).max() < 5 * sd_bias_lsb.max()
+
+
+def test_calibration_of_a_quiet_device_reports_what_quantisation_leaves():
+    """At 10 uV/sqrt(Hz) the 1 mV steps are barely dithered: averaging a static pose cannot
+    get below the quantisation error, and the reported bias uncertainty says so."""
+    device = replace(default_device(), noise_density_v=10e-6)
+    cal = calibrate(marvin_six(), _recordings(device, SIX_POSES, 3.0, seed=12), RATE,
+                    noise=device.noise_model(), latency_s=device.latency_s(RATE))
+    sd_bias_lsb = np.sqrt(cal.param_cov[:, 0, 0]) / sn.LSB_V
+    white_only = math.sqrt(device.noise_model().per_sample_var_v2(RATE) / (3.0 * RATE)
+                           / len(SIX_POSES)) / sn.LSB_V
+    assert sd_bias_lsb.min() > 5 * white_only  # averaging alone would promise far less
+    errors = np.abs(_errors(cal, device).bias_lsb)
+    assert errors.max() > 3 * white_only  # and the error really is that large
+    assert errors.max() < 4 * sd_bias_lsb.max()
 
 
 def test_calibration_refuses_bad_recordings_with_reasons():

@@ -48,7 +48,8 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     """Estimate every accelerometer's bias, gain and axis from >= 4 static recordings.
 
     ``layout`` supplies the positions (its axes are replaced by the calibrated ones).  The
-    parameter covariance follows from the noise model and the number of samples averaged;
+    parameter covariance follows from the noise model, the number of samples averaged and
+    what quantisation leaves in an average;
     a recording where the rig visibly moved, or a set of orientations that does not
     determine the axes, is refused with the reason.
     """
@@ -80,8 +81,11 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     bias, m = X[0], X[1:].T
     gain = np.linalg.norm(m, axis=1)
     axes = m / gain[:, None]
-    var = noise.per_sample_var_v2(rate_hz)
-    cov = np.broadcast_to(var * normal_inv, (n, 4, 4)).copy()
+    # each pose's mean carries white noise (var / samples) and a quantisation error that
+    # averaging does not remove; the weighted least squares maps both onto the parameters
+    mean_var = noise.per_sample_var_v2(rate_hz) / W + noise.static_mean_bias_var_v2(rate_hz)
+    G = normal_inv @ (A.T * W)
+    cov = np.broadcast_to(G @ (mean_var[:, None] * G.T), (n, 4, 4)).copy()
     calibrated = RigLayout(layout.positions, axes, name=layout.name)
     return sn.Calibration(calibrated, bias, gain, cov, noise, latency_s)
 
