@@ -40,7 +40,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -334,32 +334,46 @@ class Client:
     def _ask_round(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
                    details: bool) -> dict[int, tuple[PoseResult, list[dict[str, Any]]]]:
         """One query to the agents of ``todo`` (one segment each); SegmentError names the
-        first segment that failed."""
-        parts = {}
-        for _, seg in todo:
+        first segment (in route order) that failed.  Each answer is checked as it arrives,
+        while the slower agents are still computing theirs."""
+        parts, index = {}, {}
+        for i, seg in todo:
             part = {"source": seg.source, "target": seg.target, "error": spec,
                     "t": None if at is None else self.clock.to_remote(seg.agent, at)}
             if details:
                 part["details"] = True
             parts[seg.agent] = part
-        replies = self._ask_all({"op": "segments", "parts": parts}, list(parts))
+            index[seg.agent] = (i, seg)
+        got: dict[int, tuple[PoseResult, list[dict[str, Any]]] | SegmentError] = {}
+        for agent, reply, t1, t4 in self._answers({"op": "segments", "parts": parts},
+                                                  list(parts)):
+            if agent in index:
+                i, seg = index[agent]
+                got[i] = self._segment_answer(seg, spec, reply, t1, t4)
         out = {}
         for i, seg in todo:
-            reply, t1, t4 = replies.get(seg.agent, (None, 0, 0))
-            if reply is None:
+            answer = got.get(i)
+            if answer is None:
                 raise SegmentError(seg, f"agent {seg.agent!r} did not answer within "
                                         f"{self.timeout:g} s (gone or unreachable)", True)
-            self._clock_sample(seg.agent, reply, t1, t4)
-            if not reply.get("ok"):
-                raise SegmentError(seg, str(reply.get("error", "no reason given")), False)
-            try:
-                result = self._to_pose(seg.agent, reply["result"])
-            except (KeyError, TypeError, ValueError) as exc:
-                raise SegmentError(seg, f"malformed answer: {exc}", False) from None
-            out[i] = (result, reply.get("edges") or [])
-            if result.attributes.get("static"):
-                self._remember_static(seg, spec, result)
+            if isinstance(answer, SegmentError):
+                raise answer
+            out[i] = answer
         return out
+
+    def _segment_answer(self, seg: Segment, spec: str, reply: dict[str, Any], t1: int,
+                        t4: int) -> tuple[PoseResult, list[dict[str, Any]]] | SegmentError:
+        """One agent's answer to its segment, or the error saying why it is unusable."""
+        self._clock_sample(seg.agent, reply, t1, t4)
+        if not reply.get("ok"):
+            return SegmentError(seg, str(reply.get("error", "no reason given")), False)
+        try:
+            result = self._to_pose(seg.agent, reply["result"])
+        except (KeyError, TypeError, ValueError) as exc:
+            return SegmentError(seg, f"malformed answer: {exc}", False)
+        if result.attributes.get("static"):
+            self._remember_static(seg, spec, result)
+        return result, reply.get("edges") or []
 
     def _summary_version(self, agent: str) -> tuple[str, int] | None:
         with self._lock:
@@ -385,7 +399,7 @@ class Client:
         """One clock round trip to every agent (all answer the same query)."""
         if not agents:
             return
-        for agent, (reply, t1, t4) in self._ask_all({"op": "clock"}).items():
+        for agent, reply, t1, t4 in self._answers({"op": "clock"}):
             self._clock_sample(agent, reply, t1, t4)
 
     def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
@@ -393,24 +407,26 @@ class Client:
         if isinstance(t2, int) and isinstance(t3, int):
             self.clock.add(agent, t1, t2, t3, t4)
 
-    def _ask_all(self, msg: dict[str, Any], agents: Sequence[str] = (),
-                 ) -> dict[str, tuple[dict[str, Any], int, int]]:
+    def _answers(self, msg: dict[str, Any], agents: Sequence[str] = (),
+                 ) -> Iterator[tuple[str, dict[str, Any], int, int]]:
         """One query to the query key of every agent (or of the only one in ``agents``);
-        the answers by agent id, each with our send and receive times.  One query rather
-        than one per agent: a ``get`` costs about as much to issue as a loopback round
-        trip.  Returns as soon as every agent in ``agents`` has answered (else when the
-        query ends: all agents are done, or the timeout)."""
-        answers: dict[str, tuple[dict[str, Any], int, int]] = {}
-        expected = set(agents)
+        yields each answer as it arrives: (agent id, decoded answer, our send time, our
+        receive time).  One query rather than one per agent: a ``get`` costs about as much
+        to issue as a loopback round trip.  Ends as soon as every agent in ``agents`` has
+        answered (else when the query ends: all agents are done, or the timeout)."""
+        expected, seen = set(agents), set()
         prefix, suffix = f"{keys.realm_root(self.realm)}/agent/", "/query"
         payload = encode_message(msg)
         target = agents[0] if len(agents) == 1 else "*"
         t1 = time.time_ns()
         # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
-        # that wakes this thread through an Event (the GIL hand-off costs that much). The
-        # query's timeout closes the channel, so the loop always ends.
+        # that wakes this thread through an Event (the GIL hand-off costs that much).  No
+        # consolidation: every agent replies on its own key, so there is nothing to merge,
+        # and the default would hold every answer back until the slowest agent is done.
+        # The query's timeout closes the channel, so the loop always ends.
         for reply in self.session.get(prefix + target + suffix, payload=payload,
-                                      timeout=self.timeout):
+                                      timeout=self.timeout,
+                                      consolidation=zenoh.ConsolidationMode.NONE):
             t4 = time.time_ns()
             if reply.ok is None:
                 continue
@@ -421,12 +437,13 @@ class Client:
                 self._bad.warning("query reply", f"unexpected key {key!r}")
                 continue
             try:
-                answers[agent] = (decode_message(reply.ok.payload.to_bytes()), t1, t4)
+                answer = decode_message(reply.ok.payload.to_bytes())
             except DecodeError as exc:
-                answers[agent] = ({"ok": False, "error": f"unreadable answer: {exc}"}, t1, t4)
-            if expected and expected.issubset(answers):
-                break  # no need to wait for agents that have nothing to say
-        return dict(answers)
+                answer = {"ok": False, "error": f"unreadable answer: {exc}"}
+            yield agent, answer, t1, t4
+            seen.add(agent)
+            if expected and expected <= seen:
+                return  # no need to wait for agents that have nothing to say
 
     def _to_pose(self, agent: str, d: dict[str, Any]) -> PoseResult:
         """A segment answer (a ``schemas.models.PoseResult`` map) on this process's clock,

@@ -36,7 +36,7 @@ class Realm:
                       for name, es in edges.items()}
         self.client = Client(realm="lab", session=mock.MagicMock())
         self.asked: list[set[str]] = []
-        self.client._ask_all = self.ask
+        self.client._answers = self.ask
         self.publish()
 
     def publish(self):
@@ -50,13 +50,11 @@ class Realm:
     def ask(self, msg, agents=()):
         """What the agents' query handlers answer (without t2/t3: same clock, no offset)."""
         self.asked.append(set(agents))
-        out = {}
         for name in agents or self.nodes:
             t1 = time.time_ns()
             reply = self.nodes[name].handle(msg)
             if reply is not None:
-                out[name] = (decode_message(encode_message(reply)), t1, time.time_ns())
-        return out
+                yield name, decode_message(encode_message(reply)), t1, time.time_ns()
 
     def close(self):
         for node in self.nodes.values():
