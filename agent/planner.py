@@ -43,6 +43,7 @@ from schemas.models import (
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
+_EYE6 = np.eye(6)
 _INF_WHEN_NONE = ("frequency_hz", "ttl_s")
 
 
@@ -103,22 +104,42 @@ def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-_FRAME_RE = re.compile(FRAME_PATTERN)
-_ID_RE = re.compile(ID_PATTERN)
 _WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", "covariance",
                           "path", "edges", "attributes", "extrapolated_s"))
 _EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
 
 
-def _wire_id(value: Any, where: str, regex: re.Pattern[str], max_length: int) -> str:
-    if not isinstance(value, str) or len(value) > max_length or not regex.match(value):
-        raise ValueError(f"{where}: {value!r:.60} is not a valid id")
-    return value
+class _IdCheck:
+    """One kind of id (frame or agent id): its pattern and length limit.  Answers carry the
+    same few ids again and again, so those already found valid are remembered (a set lookup
+    costs a tenth of a regex match), at most ``limit`` of them.  ``where % args`` names the
+    field in the error; it is only formatted when the id is wrong."""
+
+    def __init__(self, pattern: str, max_length: int, limit: int = 4096) -> None:
+        self._regex = re.compile(pattern)
+        self._max_length = max_length
+        self._limit = limit
+        self._valid: set[str] = set()
+
+    def __call__(self, value: Any, where: str, *args: object) -> str:
+        if type(value) is str and value in self._valid:
+            return value
+        if (not isinstance(value, str) or len(value) > self._max_length
+                or not self._regex.match(value)):
+            raise ValueError(f"{where % args}: {value!r:.60} is not a valid id")
+        if len(self._valid) >= self._limit:
+            self._valid.clear()
+        self._valid.add(value)
+        return value
 
 
-def _wire_int(value: Any, where: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError(f"{where}: expected integer ns, got {value!r:.60}")
+_frame_id = _IdCheck(FRAME_PATTERN, MAX_FRAME_LENGTH)
+_agent_id = _IdCheck(ID_PATTERN, MAX_NAME_LENGTH)
+
+
+def _wire_int(value: Any, where: str, *args: object) -> int:
+    if type(value) is not int and (isinstance(value, bool) or not isinstance(value, int)):
+        raise ValueError(f"{where % args}: expected integer ns, got {value!r:.60}")
     return value
 
 
@@ -127,7 +148,8 @@ def _wire_floats(value: Any, n: int, where: str) -> list[float]:
     if not isinstance(value, list | tuple) or len(value) != n:
         raise ValueError(f"{where}: expected {n} numbers, got {value!r:.80}")
     for x in value:
-        if isinstance(x, bool) or not isinstance(x, float | int) or not math.isfinite(x):
+        if ((type(x) is not float and (isinstance(x, bool) or not isinstance(x, float | int)))
+                or not math.isfinite(x)):
             raise ValueError(f"{where}: {x!r:.40} is not a finite number")
     return [float(x) for x in value]
 
@@ -147,7 +169,8 @@ def _wire_covariance(value: Any) -> np.ndarray:
 
 
 def _wire_attributes(value: Any) -> dict[str, Any]:
-    """A flat map of plain values; anything nested goes through ``check_plain``."""
+    """A flat map of plain values (anything nested goes through ``check_plain``), as
+    :func:`attributes_from_wire` reads it."""
     if not isinstance(value, dict):
         raise ValueError(f"attributes: expected a map, got {value!r:.60}")
     for k, v in value.items():
@@ -158,7 +181,7 @@ def _wire_attributes(value: Any) -> dict[str, Any]:
                 raise ValueError(f"attributes.{k}: non-finite value {v!r}")
         elif v is not None and type(v) not in (int, bool, str):
             check_plain(v, f"attributes.{k}", 1)
-    return value
+    return attributes_from_wire(value)
 
 
 def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
@@ -172,14 +195,14 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> Pose
     """
     if not isinstance(d, dict):
         raise ValueError(f"pose result: expected a map, got {type(d).__name__}")
-    extra = d.keys() - _WIRE_FIELDS
-    if extra:
-        raise ValueError(f"pose result: unexpected field(s) {', '.join(sorted(map(str, extra)))}")
+    if not d.keys() <= _WIRE_FIELDS:
+        extra = sorted(map(str, d.keys() - _WIRE_FIELDS))
+        raise ValueError(f"pose result: unexpected field(s) {', '.join(extra)}")
     for name in ("source", "target", "t_ns", "position", "quaternion"):
         if name not in d:
             raise ValueError(f"pose result: missing field {name!r}")
-    _wire_id(d["source"], "source", _FRAME_RE, MAX_FRAME_LENGTH)
-    _wire_id(d["target"], "target", _FRAME_RE, MAX_FRAME_LENGTH)
+    _frame_id(d["source"], "source")
+    _frame_id(d["target"], "target")
     t_ns = _wire_int(d["t_ns"], "t_ns")
     position = _wire_floats(d["position"], 3, "position")
     q = _wire_floats(d["quaternion"], 4, "quaternion")
@@ -194,7 +217,7 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> Pose
     if not isinstance(path, list):
         raise ValueError(f"path: expected a list of frame ids, got {path!r:.60}")
     for i, frame in enumerate(path):
-        _wire_id(frame, f"path[{i}]", _FRAME_RE, MAX_FRAME_LENGTH)
+        _frame_id(frame, "path[%d]", i)
     edges = d.get("edges", [])
     if not isinstance(edges, list):
         raise ValueError(f"edges: expected a list, got {edges!r:.60}")
@@ -203,24 +226,23 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> Pose
     if (isinstance(extrapolated, bool) or not isinstance(extrapolated, float | int)
             or not math.isfinite(extrapolated) or extrapolated < 0):
         raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {extrapolated!r}")
-    attributes = attributes_from_wire(_wire_attributes(d.get("attributes", {})))
+    attributes = _wire_attributes(d.get("attributes", {}))
     stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
     return PoseResult(np.array(position), np.array(q) / norm, cov, list(path), edges,
                       to_local(t_ns), float(extrapolated), stamps, attributes)
 
 
 def _wire_edge(e: Any, i: int, to_local: Callable[[int], int]) -> dict[str, Any]:
-    where = f"edges[{i}]"
     if not isinstance(e, dict) or e.keys() != _EDGE_FIELDS:
-        raise ValueError(f"{where}: expected a map with exactly {', '.join(sorted(_EDGE_FIELDS))}"
-                         f", got {e!r:.100}")
+        raise ValueError(f"edges[{i}]: expected a map with exactly "
+                         f"{', '.join(sorted(_EDGE_FIELDS))}, got {e!r:.100}")
     if not isinstance(e["inverted"], bool):
-        raise ValueError(f"{where}.inverted: expected a bool, got {e['inverted']!r:.40}")
-    return {"parent": _wire_id(e["parent"], f"{where}.parent", _FRAME_RE, MAX_FRAME_LENGTH),
-            "child": _wire_id(e["child"], f"{where}.child", _FRAME_RE, MAX_FRAME_LENGTH),
+        raise ValueError(f"edges[{i}].inverted: expected a bool, got {e['inverted']!r:.40}")
+    return {"parent": _frame_id(e["parent"], "edges[%d].parent", i),
+            "child": _frame_id(e["child"], "edges[%d].child", i),
             "forward": not e["inverted"],
-            "owner": _wire_id(e["owner"], f"{where}.owner", _ID_RE, MAX_NAME_LENGTH),
-            "t_ns": to_local(_wire_int(e["t_ns"], f"{where}.t_ns"))}
+            "owner": _agent_id(e["owner"], "edges[%d].owner", i),
+            "t_ns": to_local(_wire_int(e["t_ns"], "edges[%d].t_ns", i))}
 
 
 def parse_summary(msg: Mapping[str, Any]) -> Summary:
@@ -361,28 +383,30 @@ def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
     """Chain segment answers source -> target, propagating the covariance (first order).
 
-    One ``adjoint`` call for all segments gives their rotations (its diagonal blocks) and,
-    when a covariance is known, the maps that carry it; prefix products of 3x3 and 6x6
-    matrices chain them, a product tree gives the quaternion.  Numpy calls on arrays this
-    small cost microseconds each, so the count of calls is what is kept down.
+    ``J[i]``, the adjoint of the chain before segment ``i``, does both jobs: its rotation
+    block carries segment ``i``'s position to the source frame, and it maps segment ``i``'s
+    covariance there (``sum J C J^T``).  All of them come from one batched ``adjoint`` and
+    ``n - 1`` products; numpy calls on arrays this small cost microseconds each, so the
+    count of calls is what is kept down (one batched product per step, no per-segment loop
+    over the covariances).
     """
+    n = len(results)
     P = np.array([r.position for r in results])
-    Q = np.array([r.quaternion for r in results])
-    Ads = geo.adjoint(P, Q)
-    p = P[0].copy()
-    R = Ads[0, :3, :3]
-    for i in range(1, len(results)):
-        p += R @ P[i]
-        R = R @ Ads[i, :3, :3]
-    q = quat_product(Q)
+    Ads = geo.adjoint(P, np.array([r.quaternion for r in results]))
+    J = np.empty((n, 6, 6))
+    J[0] = _EYE6
+    if n > 1:
+        J[1] = Ads[0]
+    for i in range(2, n):
+        np.matmul(J[i - 1], Ads[i - 1], out=J[i])
+    p = (J[:, :3, :3] @ P[:, :, None]).sum(axis=0)[:, 0]
+    q = quat_product(np.array([r.quaternion for r in results]))
+    uncertain = [i for i, r in enumerate(results) if r.covariance is not None]
     cov = None
-    if any(r.covariance is not None for r in results):
-        prefix = np.eye(6)
-        cov = np.zeros((6, 6))
-        for i, r in enumerate(results):
-            if r.covariance is not None:
-                cov += prefix @ r.covariance @ prefix.T
-            prefix = prefix @ Ads[i]
+    if uncertain:
+        Jc = J[uncertain]
+        C = np.array([results[i].covariance for i in uncertain])
+        cov = (Jc @ C @ Jc.transpose(0, 2, 1)).sum(axis=0)
     path: list[str] = []
     edges: list[dict[str, Any]] = []
     stamps: list[tuple[int, int]] = []

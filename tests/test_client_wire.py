@@ -143,3 +143,25 @@ def test_damaged_answers_are_refused_by_both(name):
 def test_not_a_map_is_refused():
     for bad in (None, [1, 2], "pose"):
         assert not light_accepts(bad)
+
+
+def test_remembered_ids_change_no_verdict():
+    """Ids found valid are remembered: a damaged id is still refused after the same answer
+    passed, and the memory stays bounded."""
+    from agent.planner import _IdCheck
+
+    d = answers()[0]
+    pose_from_wire(d)
+    pose_from_wire(d)
+    bad = copy.deepcopy(d)
+    bad["path"][0] = "has space"
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"path\[0\]"):
+            pose_from_wire(bad)
+    check = _IdCheck(r"^[a-z]+$", 5, limit=2)
+    for name in ("a", "b", "c", "a"):
+        assert check(name, "id") == name
+    assert len(check._valid) <= 2
+    for wrong in ("toolong", "B", 3, ["a"]):
+        with pytest.raises(ValueError, match="id"):
+            check(wrong, "id")
