@@ -121,6 +121,8 @@ class Client:
         self.topology = 0
         self._looked = False
         self._subscriptions: list[Subscription] = []
+        #: declared queriers by query key (every agent's, or one agent's)
+        self._queriers: dict[str, zenoh.Querier] = {}
         self._bad = RateLimitedLog(log)
         self._decls = [
             self.session.declare_subscriber(keys.all_agent_supernodes(realm),
@@ -140,10 +142,11 @@ class Client:
     def close(self) -> None:
         for sub in list(self._subscriptions):
             sub.close()
-        for decl in self._decls:
+        for decl in [*self._decls, *self._queriers.values()]:
             with contextlib.suppress(zenoh.ZError):
                 decl.undeclare()
         self._decls.clear()
+        self._queriers.clear()
         if self._own_session:
             self.session.close()
 
@@ -420,13 +423,9 @@ class Client:
         target = agents[0] if len(agents) == 1 else "*"
         t1 = time.time_ns()
         # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
-        # that wakes this thread through an Event (the GIL hand-off costs that much).  No
-        # consolidation: every agent replies on its own key, so there is nothing to merge,
-        # and the default would hold every answer back until the slowest agent is done.
-        # The query's timeout closes the channel, so the loop always ends.
-        for reply in self.session.get(prefix + target + suffix, payload=payload,
-                                      timeout=self.timeout,
-                                      consolidation=zenoh.ConsolidationMode.NONE):
+        # that wakes this thread through an Event (the GIL hand-off costs that much).  The
+        # query's timeout closes the channel, so the loop always ends.
+        for reply in self._querier(prefix + target + suffix).get(payload=payload):
             t4 = time.time_ns()
             if reply.ok is None:
                 continue
@@ -444,6 +443,19 @@ class Client:
             seen.add(agent)
             if expected and expected <= seen:
                 return  # no need to wait for agents that have nothing to say
+
+    def _querier(self, key: str) -> zenoh.Querier:
+        """The querier of one query key, declared once: Zenoh then resolves the key
+        expression once rather than at every get.  No consolidation: every agent replies on
+        its own key, so there is nothing to merge, and the default would hold every answer
+        back until the slowest agent is done."""
+        with self._lock:
+            querier = self._queriers.get(key)
+            if querier is None:
+                querier = self.session.declare_querier(
+                    key, timeout=self.timeout, consolidation=zenoh.ConsolidationMode.NONE)
+                self._queriers[key] = querier
+        return querier
 
     def _to_pose(self, agent: str, d: dict[str, Any]) -> PoseResult:
         """A segment answer (a ``schemas.models.PoseResult`` map) on this process's clock,
