@@ -50,12 +50,12 @@ from agent import keys
 from agent.clock import ClockOffsets
 from agent.errors import UmaError
 from agent.planner import (
+    Composition,
     Route,
     RouteError,
     Segment,
     SegmentError,
     Summary,
-    compose,
     parse_summary,
     plan_routes,
     pose_from_wire,
@@ -293,7 +293,8 @@ class Client:
         if at is not None:
             self._probe_clocks([a for a in route.agents if not self.clock.known(a)])
         segments = route.segments
-        answers = self._segments(segments, at, spec, details)
+        chain = Composition(len(segments))
+        answers = self._segments(segments, at, spec, details, chain)
         results = [r for r, _ in answers]
         if at is None:  # the latest time every measured segment has data
             measured = [r.t_ns for r in results if not r.attributes.get("static")]
@@ -306,22 +307,28 @@ class Client:
                     answers[i] = answer
                 results = [r for r, _ in answers]
                 at = common
+                chain = Composition(len(segments))
+                for i, r in enumerate(results):
+                    chain.add(i, r)
             elif measured:
                 at = measured[0]
-        composed = compose(results, at)
-        return composed, [(s, d) for s, (_, d) in zip(segments, answers, strict=True)]
+        return chain.result(at), [(s, d) for s, (_, d) in zip(segments, answers, strict=True)]
 
     def _segments(self, segments: Sequence[Segment], at: int | None, spec: str,
-                  details: bool) -> list[tuple[PoseResult, list[dict[str, Any]]]]:
-        """Every segment's answer, in route order.  Cached static segments are not asked
-        for; the others go out in one query per round, a round holding at most one segment
-        per agent (a route may pass through an agent twice)."""
+                  details: bool, chain: Composition | None = None,
+                  ) -> list[tuple[PoseResult, list[dict[str, Any]]]]:
+        """Every segment's answer, in route order (each also added to ``chain`` as soon as
+        it is in).  Cached static segments are not asked for; the others go out in one
+        query per round, a round holding at most one segment per agent (a route may pass
+        through an agent twice)."""
         answers: dict[int, tuple[PoseResult, list[dict[str, Any]]]] = {}
         pending: list[int] = []
         for i, seg in enumerate(segments):
             hit = None if details else self._cached_static(seg, spec)
             if hit is not None:
                 answers[i] = (hit, [])
+                if chain is not None:
+                    chain.add(i, hit)
             else:
                 pending.append(i)
         while pending:
@@ -330,12 +337,13 @@ class Client:
                 (later if segments[i].agent in agents else round_).append(i)
                 agents.add(segments[i].agent)
             answers.update(self._ask_round([(i, segments[i]) for i in round_], at, spec,
-                                           details))
+                                           details, chain))
             pending = later
         return [answers[i] for i in range(len(segments))]
 
     def _ask_round(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
-                   details: bool) -> dict[int, tuple[PoseResult, list[dict[str, Any]]]]:
+                   details: bool, chain: Composition | None,
+                   ) -> dict[int, tuple[PoseResult, list[dict[str, Any]]]]:
         """One query to the agents of ``todo`` (one segment each); SegmentError names the
         first segment (in route order) that failed.  Each answer is checked as it arrives,
         while the slower agents are still computing theirs."""
@@ -350,9 +358,11 @@ class Client:
         got: dict[int, tuple[PoseResult, list[dict[str, Any]]] | SegmentError] = {}
         for agent, reply, t1, t4 in self._answers({"op": "segments", "parts": parts},
                                                   list(parts)):
-            if agent in index:
+            if agent in index and index[agent][0] not in got:
                 i, seg = index[agent]
-                got[i] = self._segment_answer(seg, spec, reply, t1, t4)
+                got[i] = answer = self._segment_answer(seg, spec, reply, t1, t4)
+                if chain is not None and not isinstance(answer, SegmentError):
+                    chain.add(i, answer[0])
         out = {}
         for i, seg in todo:
             answer = got.get(i)

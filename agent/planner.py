@@ -29,7 +29,6 @@ from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
 from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
-from agent.srg.plan import quat_product
 from agent.srg.result import PoseResult
 from agent.srg.supernode import SUMMARY_ERRORS
 from schemas.models import (
@@ -43,7 +42,6 @@ from schemas.models import (
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
-_EYE6 = np.eye(6)
 _INF_WHEN_NONE = ("frequency_hz", "ttl_s")
 
 
@@ -381,40 +379,72 @@ def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
 
 
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
-    """Chain segment answers source -> target, propagating the covariance (first order).
+    """Chain segment answers source -> target, propagating the covariance (first order)."""
+    chain = Composition(len(results))
+    for i, r in enumerate(results):
+        chain.add(i, r)
+    return chain.result(t_ns)
 
-    ``J[i]``, the adjoint of the chain before segment ``i``, does both jobs: its rotation
-    block carries segment ``i``'s position to the source frame, and it maps segment ``i``'s
-    covariance there (``sum J C J^T``).  All of them come from one batched ``adjoint`` and
-    ``n - 1`` products; numpy calls on arrays this small cost microseconds each, so the
-    count of calls is what is kept down (one batched product per step, no per-segment loop
-    over the covariances).
+
+class Composition:
+    """Segment answers chained source -> target as they arrive, covariance propagated (first
+    order): the answers in hand from the first segment on are folded at once, so when the
+    slowest agent answers only its own segment is left to fold (the others were composed
+    while it computed).
+
+    The fold keeps ``J``, the adjoint of the chain so far: its rotation block carries the
+    next segment's position to the source frame, and it maps that segment's covariance
+    there (``C += J C_i J^T``).  The last segment's own adjoint is never needed.
     """
-    n = len(results)
-    P = np.array([r.position for r in results])
-    Ads = geo.adjoint(P, np.array([r.quaternion for r in results]))
-    J = np.empty((n, 6, 6))
-    J[0] = _EYE6
-    if n > 1:
-        J[1] = Ads[0]
-    for i in range(2, n):
-        np.matmul(J[i - 1], Ads[i - 1], out=J[i])
-    p = (J[:, :3, :3] @ P[:, :, None]).sum(axis=0)[:, 0]
-    q = quat_product(np.array([r.quaternion for r in results]))
-    uncertain = [i for i, r in enumerate(results) if r.covariance is not None]
-    cov = None
-    if uncertain:
-        Jc = J[uncertain]
-        C = np.array([results[i].covariance for i in uncertain])
-        cov = (Jc @ C @ Jc.transpose(0, 2, 1)).sum(axis=0)
-    path: list[str] = []
-    edges: list[dict[str, Any]] = []
-    stamps: list[tuple[int, int]] = []
-    for r in results:
-        path.extend(r.path if not path else r.path[1:])
-        edges.extend(r.edges)
-        stamps.extend(r.stamps)
-    extrapolated = max(r.extrapolated_s for r in results)
-    parts = [r.attributes for r in results]
-    return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
-                      lambda: combine(parts, p, cov))
+
+    def __init__(self, n: int) -> None:
+        if n < 1:
+            raise ValueError("a composition needs at least one segment")
+        self._results: list[PoseResult | None] = [None] * n
+        self._folded = 0
+        self._p = self._q = self._J = self._cov = None
+
+    def add(self, i: int, result: PoseResult) -> None:
+        """Segment ``i``'s answer (a later answer for the same index is refused: the
+        prefix it belongs to may be folded already)."""
+        if self._results[i] is not None:
+            raise ValueError(f"segment {i} was already added")
+        self._results[i] = result
+        n = len(self._results)
+        while self._folded < n and self._results[self._folded] is not None:
+            self._fold(self._results[self._folded], last=self._folded == n - 1)
+            self._folded += 1
+
+    def _fold(self, r: PoseResult, last: bool) -> None:
+        if self._J is None:  # the first segment (copied: the result must not alias it)
+            self._p, self._q = r.position.copy(), r.quaternion.copy()
+            self._cov = None if r.covariance is None else r.covariance.copy()
+        else:
+            J = self._J
+            if r.covariance is not None:
+                mapped = J @ r.covariance @ J.T
+                self._cov = mapped if self._cov is None else self._cov + mapped
+            self._p = self._p + J[:3, :3] @ r.position
+            self._q = geo.quat_multiply(self._q, r.quaternion)
+        if not last:
+            Ad = geo.adjoint(r.position, r.quaternion)
+            self._J = Ad if self._J is None else self._J @ Ad
+
+    def result(self, t_ns: int | None) -> PoseResult:
+        """The composed pose at ``t_ns``; ``ValueError`` if a segment is still missing."""
+        missing = [i for i, r in enumerate(self._results) if r is None]
+        if missing:
+            raise ValueError(f"segment(s) {missing} missing from the composition")
+        results: list[PoseResult] = self._results  # type: ignore[assignment]
+        path: list[str] = []
+        edges: list[dict[str, Any]] = []
+        stamps: list[tuple[int, int]] = []
+        for r in results:
+            path.extend(r.path if not path else r.path[1:])
+            edges.extend(r.edges)
+            stamps.extend(r.stamps)
+        extrapolated = max(r.extrapolated_s for r in results)
+        parts = [r.attributes for r in results]
+        p, cov = self._p, self._cov
+        return PoseResult(p, self._q, cov, path, edges, t_ns, extrapolated, stamps,
+                          lambda: combine(parts, p, cov))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from agent.planner import (
+    Composition,
     RouteError,
     Segment,
     compose,
@@ -162,3 +163,29 @@ def test_node_turns_query_failures_into_error_replies(node):
     assert [r["ok"] for r in replies] == [False, False]
     assert "unknown frame 'nowhere'" in replies[1]["error"]
     assert all(isinstance(r["t2"], int) and r["t3"] >= r["t2"] for r in replies)
+
+
+def test_a_composition_fed_in_any_order_equals_compose():
+    rng = np.random.default_rng(9)
+    parts = []
+    for i in range(4):
+        g = Graph()
+        g.add_static(f"f{i}", f"f{i + 1}", rng.normal(size=3),
+                     geo.rotvec_to_quat(rng.normal(size=3)), pos_std_m=0.01 if i != 2 else None)
+        parts.append(g.pose(f"f{i}", f"f{i + 1}"))
+    whole = compose(parts, 3)
+    chain = Composition(4)
+    for i in (2, 0, 3):
+        chain.add(i, parts[i])
+    with pytest.raises(ValueError, match=r"\[1\] missing"):
+        chain.result(3)
+    chain.add(1, parts[1])
+    with pytest.raises(ValueError, match="already added"):
+        chain.add(1, parts[1])
+    r = chain.result(3)
+    np.testing.assert_allclose(r.position, whole.position, atol=1e-12)
+    np.testing.assert_allclose(r.covariance, whole.covariance, atol=1e-15)
+    assert r.path == whole.path == [f"f{i}" for i in range(5)]
+    single = compose(parts[:1], 3)
+    single.position[0] += 1.0  # the composed result does not alias its segment
+    assert not np.allclose(single.position, parts[0].position)
