@@ -256,11 +256,14 @@ class Client:
         if source == target and any(source in s.frames for s in summaries.values()):
             return identity(source, None if at is None else int(at)), []
         try:
-            routes = self._plan(summaries, source, target, fn)
-        except UnknownFrameError:
-            self.refresh()  # a frame may have appeared since the last summary
-            summaries, alive = self._snapshot()
-            routes = self._plan(summaries, source, target, fn)
+            try:
+                routes = self._plan(summaries, source, target, fn)
+            except (UnknownFrameError, UnreachableError):
+                # a frame or a link may be in a summary published before this client's
+                # subscription reached its agent (nothing re-sends it): ask for them all
+                self.refresh()
+                summaries, alive = self._snapshot()
+                routes = self._plan(summaries, source, target, fn)
         except UnreachableError as exc:
             raise _with_departed(exc, summaries, alive) from None
         causes: list[SegmentError] = []

@@ -10,8 +10,11 @@ import numpy as np
 import pytest
 
 from agent.client import Client
+from agent.planner import parse_summary, plan_routes
 from agent.srg import Graph
 from agent.srg import geometry as geo
+from agent.srg.errorfn import error_function
+from agent.srg.errors import UnreachableError
 from agent.srg_node import SrgNode
 from schemas.codec import decode_message, encode_message
 
@@ -190,3 +193,23 @@ def test_an_unreachable_pair_names_the_departed_agents_that_held_its_frames():
     assert "B" in str(named) and "left the realm" in str(named)
     assert "C" not in str(named).split("left the realm")[0].split("agent(s)")[1]
     assert _with_departed(exc, summaries, alive={"A", "B"}) is exc
+
+
+def test_a_summary_the_client_missed_is_fetched_when_the_pair_looks_unreachable(realm_ab):
+    """An agent's newer summary published before the client's subscription reached it is
+    never sent again: an unreachable pair makes the client ask every agent for its summary
+    before giving up."""
+    c = realm_ab.client
+    fresh = realm_ab.nodes["B"]._summary
+    stale = decode_message(fresh)
+    stale.update(rev=stale["rev"] - 1, links=[], boundary=[])
+    c._summaries["B"] = parse_summary(stale)
+    c._routes.clear()
+    with pytest.raises(UnreachableError):
+        plan_routes(c._summaries, "w", "head", error_function("hops"))
+    reply = mock.MagicMock()
+    reply.ok.key_expr = "uma/lab/agent/B/supernode"
+    reply.ok.payload.to_bytes.return_value = fresh
+    c.session.get.return_value = [reply]
+    c.session.liveliness.return_value.get.return_value = []
+    assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
