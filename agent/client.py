@@ -110,6 +110,10 @@ class Client:
         self._summaries: dict[str, Summary] = {}
         #: planned routes by (source, target, error), dropped when any summary changes
         self._routes: dict[tuple[str, str, str], list[Route]] = {}
+        #: encoded requests for the latest time (the same for every query of a round's
+        #: segments), dropped with the routes
+        self._requests: dict[tuple[tuple[Segment, ...], str, bool], bytes] = {}
+        self._query_prefix = f"{keys.realm_root(realm)}/agent/"
         #: answers of all-static segments (valid at all times) by (agent, source, target,
         #: error), with the (instance, revision) of the agent's summary they belong to
         self._static: dict[tuple[str, str, str, str], tuple[tuple[str, int], PoseResult]] = {}
@@ -166,6 +170,7 @@ class Client:
             if old is None or summary.rev > old.rev or summary.instance != old.instance:
                 self._summaries[summary.agent] = summary
                 self._routes.clear()
+                self._requests.clear()
                 self.topology += 1
             self._mark_alive(summary.agent, True)
 
@@ -350,17 +355,22 @@ class Client:
         """One query to the agents of ``todo`` (one segment each); SegmentError names the
         first segment (in route order) that failed.  Each answer is checked as it arrives,
         while the slower agents are still computing theirs."""
-        parts, index = {}, {}
-        for i, seg in todo:
-            part = {"source": seg.source, "target": seg.target, "error": spec,
-                    "t": None if at is None else self.clock.to_remote(seg.agent, at)}
-            if details:
-                part["details"] = True
-            parts[seg.agent] = part
-            index[seg.agent] = (i, seg)
+        index = {seg.agent: (i, seg) for i, seg in todo}
+        key = (tuple(seg for _, seg in todo), spec, details)
+        request = self._requests.get(key) if at is None else None
+        if request is None:
+            parts = {}
+            for _, seg in todo:
+                part = {"source": seg.source, "target": seg.target, "error": spec,
+                        "t": None if at is None else self.clock.to_remote(seg.agent, at)}
+                if details:
+                    part["details"] = True
+                parts[seg.agent] = part
+            request = encode_message({"op": "segments", "parts": parts})
+            if at is None:
+                self._requests[key] = request
         got: dict[int, tuple[PoseResult, list[dict[str, Any]]] | SegmentError] = {}
-        for agent, reply, t1, t4 in self._answers({"op": "segments", "parts": parts},
-                                                  list(parts)):
+        for agent, reply, t1, t4 in self._answers(request, list(index)):
             if agent in index and index[agent][0] not in got:
                 i, seg = index[agent]
                 got[i] = answer = self._segment_answer(seg, spec, reply, t1, t4)
@@ -415,7 +425,7 @@ class Client:
         """One clock round trip to every agent (all answer the same query)."""
         if not agents:
             return
-        for agent, reply, t1, t4 in self._answers({"op": "clock"}):
+        for agent, reply, t1, t4 in self._answers(encode_message({"op": "clock"})):
             self._clock_sample(agent, reply, t1, t4)
 
     def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
@@ -423,22 +433,22 @@ class Client:
         if isinstance(t2, int) and isinstance(t3, int):
             self.clock.add(agent, t1, t2, t3, t4)
 
-    def _answers(self, msg: dict[str, Any], agents: Sequence[str] = (),
+    def _answers(self, request: bytes, agents: Sequence[str] = (),
                  ) -> Iterator[tuple[str, dict[str, Any], int, int]]:
-        """One query to the query key of every agent (or of the only one in ``agents``);
+        """One query (an encoded message) to the query key of every agent (or of the only
+        one in ``agents``);
         yields each answer as it arrives: (agent id, decoded answer, our send time, our
         receive time).  One query rather than one per agent: a ``get`` costs about as much
         to issue as a loopback round trip.  Ends as soon as every agent in ``agents`` has
         answered (else when the query ends: all agents are done, or the timeout)."""
         expected, seen = set(agents), set()
-        prefix, suffix = f"{keys.realm_root(self.realm)}/agent/", "/query"
-        payload = encode_message(msg)
+        prefix, suffix = self._query_prefix, "/query"
         target = agents[0] if len(agents) == 1 else "*"
         t1 = time.time_ns()
         # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
         # that wakes this thread through an Event (the GIL hand-off costs that much).  The
         # query's timeout closes the channel, so the loop always ends.
-        for reply in self._querier(prefix + target + suffix).get(payload=payload):
+        for reply in self._querier(prefix + target + suffix).get(payload=request):
             t4 = time.time_ns()
             if reply.ok is None:
                 continue

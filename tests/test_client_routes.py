@@ -50,9 +50,10 @@ class Realm:
             self.client._take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
         self.client._looked = True
 
-    def ask(self, msg, agents=()):
+    def ask(self, request, agents=()):
         """What the agents' query handlers answer (without t2/t3: same clock, no offset)."""
         self.asked.append(set(agents))
+        msg = decode_message(request)
         for name in agents or self.nodes:
             t1 = time.time_ns()
             reply = self.nodes[name].handle(msg)
