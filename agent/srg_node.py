@@ -64,6 +64,8 @@ log = logging.getLogger("uma.srg")
 CONFIG_SOURCE = "config"
 #: how often the worker checks whether the summary must be republished
 PUBLISH_CHECK_S = 0.05
+#: how often every agent is asked for its summary again (see ``_resync_if_due``)
+RESYNC_S = 2.0
 #: edge attributes an ability may carry that the SRG uses
 _SRG_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost")
@@ -138,6 +140,7 @@ class SrgNode:
         self._rev = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._next_resync = time.monotonic() + RESYNC_S
         for i, edge in enumerate(static_edges or []):
             self._add_static(i, edge)
         self._query_key = keys.agent_query(realm, agent_id)
@@ -375,11 +378,23 @@ class SrgNode:
             if self._stop.is_set():
                 return
             try:
+                self._resync_if_due()
                 self._fetch_new()
                 self._republish_if_changed()
             except Exception as exc:  # keep the agent alive; say why once in a while
                 self._bad.warning("supernode", f"{type(exc).__name__}: {exc}")
             self._stop.wait(PUBLISH_CHECK_S)
+
+    def _resync_if_due(self) -> None:
+        """Ask every agent for its summary every ``RESYNC_S``: a summary put before this
+        agent's subscription reached its author is not sent again, and a boundary that
+        misses it hides a link from every planner (bench setups were seen stuck on it)."""
+        now = time.monotonic()
+        if now < self._next_resync:
+            return
+        self._next_resync = now + RESYNC_S
+        self.session.get(keys.all_agent_supernodes(self.realm), self._on_summary_reply,
+                         timeout=2.0)
 
     def _fetch_new(self) -> None:
         with self._lock:

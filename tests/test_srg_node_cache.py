@@ -57,3 +57,25 @@ def test_measured_and_detailed_answers_are_not_cached():
     n.handle({"op": "segment", "source": "w", "target": "rig", "t": S, "error": "hops",
               "details": True})
     assert not n._static_answers
+
+
+def test_summaries_are_asked_for_again_periodically(monkeypatch):
+    """A summary put before this agent's subscription reached its author is never sent
+    again: the worker asks every agent for its summary every RESYNC_S."""
+    import time
+
+    from agent import srg_node
+
+    monkeypatch.setattr(srg_node, "RESYNC_S", 0.05)
+    n = node()
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            asked = [c for c in n.session.get.call_args_list
+                     if c.args and c.args[0] == "uma/lab/agent/*/supernode"]
+            if len(asked) >= 2:  # the one at start and a resync
+                break
+            time.sleep(0.05)
+        assert len(asked) >= 2
+    finally:
+        n.close()
