@@ -388,47 +388,43 @@ def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
 
 class Composition:
     """Segment answers chained source -> target as they arrive, covariance propagated (first
-    order): the answers in hand from the first segment on are folded at once, so when the
-    slowest agent answers only its own segment is left to fold (the others were composed
-    while it computed).
+    order).  Answers of neighbouring segments are merged into runs at once, in whatever
+    order they come, so when the slowest agent answers only its own segment is left to
+    merge with the runs beside it (the others were composed while it computed).
 
-    The fold keeps ``J``, the adjoint of the chain so far: its rotation block carries the
-    next segment's position to the source frame, and it maps that segment's covariance
-    there (``C += J C_i J^T``).  The last segment's own adjoint is never needed.
+    Merging run ``X`` with the run ``Y`` right of it uses ``X``'s adjoint: its rotation
+    block carries ``Y``'s position into ``X``'s source frame and it maps ``Y``'s covariance
+    there (``C = C_X + Ad_X C_Y Ad_X^T``).  A run that ends at the last segment never needs
+    its adjoint.
     """
 
     def __init__(self, n: int) -> None:
         if n < 1:
             raise ValueError("a composition needs at least one segment")
         self._results: list[PoseResult | None] = [None] * n
-        self._folded = 0
-        self._p = self._q = self._J = self._cov = None
+        self._starting: dict[int, _Run] = {}  # runs by their first segment
+        self._ending: dict[int, _Run] = {}  # the same runs by their last segment
 
     def add(self, i: int, result: PoseResult) -> None:
-        """Segment ``i``'s answer (a later answer for the same index is refused: the
-        prefix it belongs to may be folded already)."""
+        """Segment ``i``'s answer (each segment once)."""
         if self._results[i] is not None:
             raise ValueError(f"segment {i} was already added")
         self._results[i] = result
-        n = len(self._results)
-        while self._folded < n and self._results[self._folded] is not None:
-            self._fold(self._results[self._folded], last=self._folded == n - 1)
-            self._folded += 1
-
-    def _fold(self, r: PoseResult, last: bool) -> None:
-        if self._J is None:  # the first segment (copied: the result must not alias it)
-            self._p, self._q = r.position.copy(), r.quaternion.copy()
-            self._cov = None if r.covariance is None else r.covariance.copy()
-        else:
-            J = self._J
-            if r.covariance is not None:
-                mapped = J @ r.covariance @ J.T
-                self._cov = mapped if self._cov is None else self._cov + mapped
-            self._p = self._p + J[:3, :3] @ r.position
-            self._q = geo.quat_multiply(self._q, r.quaternion)
-        if not last:
-            Ad = geo.adjoint(r.position, r.quaternion)
-            self._J = Ad if self._J is None else self._J @ Ad
+        last = len(self._results) - 1
+        cov = result.covariance
+        run = _Run(i, i, result.position.copy(), result.quaternion.copy(),
+                   None if cov is None else cov.copy(),
+                   None if i == last else geo.adjoint(result.position, result.quaternion))
+        left = self._ending.pop(i - 1, None)
+        if left is not None:
+            del self._starting[left.first]
+            run = left.then(run, last)
+        right = self._starting.pop(i + 1, None)
+        if right is not None:
+            del self._ending[right.final]
+            run = run.then(right, last)
+        self._starting[run.first] = run
+        self._ending[run.final] = run
 
     def result(self, t_ns: int | None) -> PoseResult:
         """The composed pose at ``t_ns``; ``ValueError`` if a segment is still missing."""
@@ -436,6 +432,7 @@ class Composition:
         if missing:
             raise ValueError(f"segment(s) {missing} missing from the composition")
         results: list[PoseResult] = self._results  # type: ignore[assignment]
+        whole = self._starting[0]
         path: list[str] = []
         edges: list[dict[str, Any]] = []
         stamps: list[tuple[int, int]] = []
@@ -445,6 +442,30 @@ class Composition:
             stamps.extend(r.stamps)
         extrapolated = max(r.extrapolated_s for r in results)
         parts = [r.attributes for r in results]
-        p, cov = self._p, self._cov
-        return PoseResult(p, self._q, cov, path, edges, t_ns, extrapolated, stamps,
+        p, cov = whole.p, whole.cov
+        return PoseResult(p, whole.q, cov, path, edges, t_ns, extrapolated, stamps,
                           lambda: combine(parts, p, cov))
+
+
+@dataclass
+class _Run:
+    """Segments ``first..final`` composed: pose, covariance, and adjoint (None when the run
+    ends at the last segment: nothing is ever right of it)."""
+
+    first: int
+    final: int
+    p: np.ndarray
+    q: np.ndarray
+    cov: np.ndarray | None
+    Ad: np.ndarray | None
+
+    def then(self, right: _Run, last: int) -> _Run:
+        """This run followed by the one right of it."""
+        J = self.Ad
+        cov = self.cov
+        if right.cov is not None:
+            mapped = J @ right.cov @ J.T
+            cov = mapped if cov is None else cov + mapped
+        return _Run(self.first, right.final, self.p + J[:3, :3] @ right.p,
+                    geo.quat_multiply(self.q, right.q), cov,
+                    None if right.final == last else J @ right.Ad)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from unittest import mock
 
@@ -182,10 +183,15 @@ def test_a_composition_fed_in_any_order_equals_compose():
     chain.add(1, parts[1])
     with pytest.raises(ValueError, match="already added"):
         chain.add(1, parts[1])
-    r = chain.result(3)
-    np.testing.assert_allclose(r.position, whole.position, atol=1e-12)
-    np.testing.assert_allclose(r.covariance, whole.covariance, atol=1e-15)
-    assert r.path == whole.path == [f"f{i}" for i in range(5)]
+    assert chain.result(3).path == whole.path == [f"f{i}" for i in range(5)]
+    for order in itertools.permutations(range(4)):
+        chain = Composition(4)
+        for i in order:
+            chain.add(i, parts[i])
+        r = chain.result(3)
+        np.testing.assert_allclose(r.position, whole.position, atol=1e-12)
+        assert geo.quat_angle(r.quaternion, whole.quaternion) < 1e-12
+        np.testing.assert_allclose(r.covariance, whole.covariance, atol=1e-15)
     single = compose(parts[:1], 3)
     single.position[0] += 1.0  # the composed result does not alias its segment
     assert not np.allclose(single.position, parts[0].position)
