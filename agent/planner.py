@@ -411,9 +411,7 @@ class Composition:
             raise ValueError(f"segment {i} was already added")
         self._results[i] = result
         last = len(self._results) - 1
-        cov = result.covariance
-        run = _Run(i, i, result.position.copy(), result.quaternion.copy(),
-                   None if cov is None else cov.copy(),
+        run = _Run(i, i, result.position, result.quaternion, result.covariance,
                    None if i == last else geo.adjoint(result.position, result.quaternion))
         left = self._ending.pop(i - 1, None)
         if left is not None:
@@ -442,8 +440,13 @@ class Composition:
             stamps.extend(r.stamps)
         extrapolated = max(r.extrapolated_s for r in results)
         parts = [r.attributes for r in results]
-        p, cov = whole.p, whole.cov
-        return PoseResult(p, whole.q, cov, path, edges, t_ns, extrapolated, stamps,
+        # runs start from the segments' own arrays: the result must not alias them
+        p, q, cov = whole.p, whole.q, whole.cov
+        if len(results) == 1:
+            p, q = p.copy(), q.copy()
+        if cov is not None and any(cov is r.covariance for r in results):
+            cov = cov.copy()
+        return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
                           lambda: combine(parts, p, cov))
 
 

@@ -193,5 +193,7 @@ def test_a_composition_fed_in_any_order_equals_compose():
         assert geo.quat_angle(r.quaternion, whole.quaternion) < 1e-12
         np.testing.assert_allclose(r.covariance, whole.covariance, atol=1e-15)
     single = compose(parts[:1], 3)
-    single.position[0] += 1.0  # the composed result does not alias its segment
+    single.position[0] += 1.0  # the composed result does not alias its segments
     assert not np.allclose(single.position, parts[0].position)
+    exact = [parts[1], parts[2]]  # only the first has a covariance: it passes through
+    assert compose(exact, 3).covariance is not parts[1].covariance
