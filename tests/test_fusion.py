@@ -65,15 +65,17 @@ def test_accelerometer_jacobian_matches_finite_differences():
         assert np.allclose(H, num, atol=2e-5), j
 
 
-def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None):
-    """The real accelerometer simulator + optical stand-in (truth + noise) at 15 Hz."""
+def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claimed=None):
+    """The real accelerometer simulator + optical stand-in (truth + noise) at 15 Hz; the
+    optical covariance says ``claimed`` (default: the true ``optical_noise``)."""
     traj = HeadTrajectory(seed)
     device, cal = fe.calibrated_accelerometers(300.0, seed)
     run = accel_sim.simulate(traj, seconds, seed=seed, sensor=device, calibration=cal)
     ekf = FusionEKF(fe.accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, 0.005), config)
     rng = np.random.default_rng(seed)
     ps, rs = optical_noise
-    cov = np.diag([ps**2] * 3 + [rs**2] * 3)
+    cps, crs = claimed or optical_noise
+    cov = np.diag([cps**2] * 3 + [crs**2] * 3)
     frames = [k / 15 for k in range(int(seconds * 15))
               if not any(a <= k / 15 < b for a, b in gaps)]
     out_t, out_p, out_q, nees = [], [], [], []
@@ -203,13 +205,17 @@ def test_pose_covariance_is_symmetric_positive_and_in_xi_form():
     assert np.allclose(geo.se3_to_decoupled(p, out), C, atol=1e-12)
 
 
-def test_chi2_quantiles_match_scipy():
-    from scipy.stats import chi2
-
-    for p, k in ((0.025, 6), (0.975, 6), (0.5, 12)):
-        assert fe.chi2_quantile(p, k) == pytest.approx(chi2.ppf(p, k), rel=1e-6)
-    for p, k in ((0.025, 6000), (0.975, 600)):
-        assert fe.chi2_quantile(p, k) == pytest.approx(chi2.ppf(p, k), rel=1e-3)
+def test_autocorrelation_time_of_known_series():
+    """White noise has tau = 1; an AR(1) series x_k = a x_k-1 + w_k has (1 + a) / (1 - a)."""
+    rng = np.random.default_rng(3)
+    assert fe.autocorrelation_time(rng.standard_normal(20000)) == pytest.approx(1.0, abs=0.1)
+    a, w = 0.9, rng.standard_normal(50000)
+    x = np.empty_like(w)
+    x[0] = w[0]
+    for k in range(1, w.size):
+        x[k] = a * x[k - 1] + w[k]
+    assert fe.autocorrelation_time(x) == pytest.approx((1 + a) / (1 - a), rel=0.15)
+    assert fe.autocorrelation_time(np.ones(10)) == 1.0  # constant: nothing to correlate
 
 
 def test_gap_schedule_and_baselines():
@@ -317,3 +323,34 @@ def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
                          - pred) / 1e-7
             ekf.restore(snap)
         assert np.allclose(J, num, atol=1e-5), label
+
+
+def test_short_eval_measures_gaps_from_the_last_optical_pose():
+    """A 9 s ``uma eval fusion`` (the 60 s runs are by hand): one 1 s gap, every figure."""
+    f = fe.evaluate(9.0, seed=1, gap_lengths=[1.0], horizon_s=0.02)
+    gap = f["gaps_by_length"]["1s"]
+    assert gap["gaps"] == 1 and gap["outage_s_max"] >= 1.0  # 15 Hz: at least 16 frames
+    assert gap["orientation_per_gap_deg"][0] == pytest.approx(gap["orientation_max_deg"],
+                                                              abs=1e-3)
+    assert 0 < gap["position_max_mm"] < 50 and gap["recovery_optical_frames_worst"] <= 3
+    nees = f["nees"]
+    assert 1 < nees["autocorrelation_time_s"] * 300 < 0.5 * 6 * 300  # correlated, not all
+    lo, hi = nees["bounds_95"]
+    flo, fhi = nees["bounds_95_one_sample_per_optical_frame"]
+    assert lo < flo < 6 < fhi < hi  # fewer effective samples than optical frames: wider
+    for regime in ("tracking", "optical_gap"):
+        r = nees["by_regime"][regime]
+        assert 0 < r["share"] < 1 and r["position_mean"] > 0 and r["rotation_mean"] > 0
+    assert f["output_rate_hz"] > 290
+
+
+def test_optical_covariance_is_matched_per_block():
+    """A tracker that overstates its rotation noise 4x gets that block scaled down; its
+    position block never goes below the claim (correlated errors), and one that
+    understates its position noise gets that block scaled up."""
+    ps, rs = OPT_STD
+    *_, ekf = _simulate(12.0, seed=3, optical_noise=(ps, rs / 4), claimed=(ps, rs))
+    pos_scale, rot_scale = ekf.stats.pose_noise_scale
+    assert pos_scale == 1.0 and rot_scale < 0.8
+    *_, ekf = _simulate(12.0, seed=3, optical_noise=(4 * ps, rs), claimed=(ps, rs))
+    assert ekf.stats.pose_noise_scale[0] > 1.2  # rising (slowly: the optics are 1 in 15)
