@@ -25,7 +25,6 @@ from agent.srg import geometry as geo
 WORLD, HEAD, EYE = "ivy/world", "alice/head", "alice/eye"
 SKEW_NS = 3_000_000_000
 EYE_P, EYE_Q = [0.03, 0.06, 0.05], geo.rotvec_to_quat(np.array([0.0, 0.2, 0.0])).tolist()
-RATE_HZ = 100.0
 #: a lease longer than the default 1 s: on a loaded CI machine a process stalled for a
 #: second would otherwise lose its links and its tokens (not what these tests are about)
 LEASE = {"UMA_LEASE_MS": "5000"}
@@ -45,27 +44,17 @@ def expected_eye(t_real_ns: int, t0_ns: int) -> np.ndarray:
 
 
 def run_tracker(argv: list[str]) -> None:
-    """The tracker service: publishes ``motion`` at 100 Hz on world -> head."""
-    from agent import Service
+    """The tracker service: publishes ``motion`` at 100 Hz on world -> head, its stamps
+    ``--skew`` ns off (a tracker on a skewed host clock)."""
+    from agent_helpers.tracker import options, pose_tracker, publish_until
 
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--realm", required=True)
-    ap.add_argument("--agent", required=True)
-    ap.add_argument("--connect", required=True)
-    ap.add_argument("--t0", type=int, required=True)
-    ap.add_argument("--skew", type=int, default=0)
-    ap.add_argument("--seconds", type=float, default=60.0)
-    a = ap.parse_args(argv)
-    with Service("tracker", realm=a.realm, agent=a.agent, connect=[a.connect]) as svc:
-        out = svc.ability("head", type="pose6d", edge=(WORLD, HEAD), frequency_hz=RATE_HZ,
-                          latency_s=0.001, pos_std_m=0.002)
-        svc.start()
-        end = time.monotonic() + a.seconds
-        while time.monotonic() < end:
-            t = time.time_ns()
-            p, q = motion((t - a.t0) / 1e9)
-            out.publish(t + a.skew, p, q)
-            time.sleep(1.0 / RATE_HZ)
+    def extra(ap: argparse.ArgumentParser) -> None:
+        ap.add_argument("--t0", type=int, required=True)
+        ap.add_argument("--skew", type=int, default=0)
+        ap.add_argument("--seconds", type=float, default=60.0)
+    a = options(argv, extra)
+    with pose_tracker(a, (WORLD, HEAD)) as (_, out, stop):
+        publish_until(out, stop, lambda t: motion((t - a.t0) / 1e9), a.seconds, a.skew)
 
 
 def wait_for(fn, timeout=20.0, what="condition"):

@@ -12,14 +12,12 @@ one whose token comes back after it dropped it.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import threading
 import time
 
 WORLD, HEAD = "ivy/world", "alice/head"
-RATE_HZ = 100.0
 
 
 def emit(**event: object) -> None:
@@ -51,20 +49,9 @@ def flap(svc, gap_s: float, with_queryable: bool) -> None:
 
 def run_tracker(argv: list[str]) -> int:
     """A tracker on WORLD -> HEAD at 100 Hz; stdin ``flap-token GAP`` / ``flap-all GAP``."""
-    import signal
+    from agent_helpers.tracker import options, pose_tracker, publish_until
 
-    from agent import Service
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--realm", required=True)
-    ap.add_argument("--agent", required=True)
-    ap.add_argument("--connect", required=True)
-    a = ap.parse_args(argv)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with Service("tracker", realm=a.realm, agent=a.agent, connect=[a.connect]) as svc:
-        out = svc.ability("head", type="pose6d", edge=(WORLD, HEAD), frequency_hz=RATE_HZ,
-                          latency_s=0.001, pos_std_m=0.002)
-        svc.start()
+    with pose_tracker(options(argv), (WORLD, HEAD)) as (svc, out, stop):
         emit(event="started", registered=svc.wait_registered(10.0))
 
         def commands() -> None:
@@ -74,9 +61,7 @@ def run_tracker(argv: list[str]) -> int:
                     flap(svc, float(words[1]), words[0] == "flap-all")
                     emit(event="flapped", command=words[0], t_ns=time.time_ns())
         threading.Thread(target=commands, daemon=True).start()
-        while not stop.is_set():
-            out.publish(time.time_ns(), [0.1, 0.2, 1.6], [0.0, 0.0, 0.0, 1.0])
-            stop.wait(1.0 / RATE_HZ)
+        publish_until(out, stop, lambda t: ([0.1, 0.2, 1.6], [0.0, 0.0, 0.0, 1.0]))
     return 0
 
 

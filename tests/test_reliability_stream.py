@@ -14,31 +14,16 @@ import threading
 import time
 
 WORLD, RIG, HEAD = "ivy/world", "marvin/rig", "alice/head"
-RATE_HZ = 100.0
 HEAD_IN_RIG = [0.0, 0.0, 0.12]
 RIG_IN_WORLD = {"A": ([1.0, 0.0, 0.0], 0.001), "B": ([0.0, 1.0, 0.0], 0.05)}
 
 
 def run_tracker(argv: list[str]) -> int:
-    """A tracker on RIG -> HEAD at 100 Hz, registered with agent ``argv[1]``."""
-    import argparse
-    import signal
+    """A tracker on RIG -> HEAD at 100 Hz, registered with agent ``--agent``."""
+    from agent_helpers.tracker import options, pose_tracker, publish_until
 
-    from agent import Service
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--realm", required=True)
-    ap.add_argument("--agent", required=True)
-    ap.add_argument("--connect", required=True)
-    a = ap.parse_args(argv)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with Service("tracker", realm=a.realm, agent=a.agent, connect=[a.connect]) as svc:
-        out = svc.ability("head", type="pose6d", edge=(RIG, HEAD), frequency_hz=RATE_HZ,
-                          latency_s=0.001, pos_std_m=0.002)
-        svc.start()
-        while not stop.is_set():
-            out.publish(time.time_ns(), HEAD_IN_RIG, [0.0, 0.0, 0.0, 1.0])
-            stop.wait(1.0 / RATE_HZ)
+    with pose_tracker(options(argv), (RIG, HEAD)) as (_, out, stop):
+        publish_until(out, stop, lambda t: (HEAD_IN_RIG, [0.0, 0.0, 0.0, 1.0]))
     return 0
 
 
