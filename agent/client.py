@@ -120,6 +120,8 @@ class Client:
         #: False: ask for every segment every time (the benchmark's uncached figure)
         self.cache_static_segments = True
         self._alive: set[str] = set()
+        #: agents whose token the subscription saw removed (and not declared again)
+        self._departed: set[str] = set()
         #: bumped whenever the summaries or the set of live agents change (subscriptions
         #: re-plan when it moves)
         self.topology = 0
@@ -185,7 +187,9 @@ class Client:
         if agent is None:
             return
         with self._lock:
-            self._mark_alive(agent, sample.kind != zenoh.SampleKind.DELETE)
+            gone = sample.kind == zenoh.SampleKind.DELETE
+            (self._departed.add if gone else self._departed.discard)(agent)
+            self._mark_alive(agent, not gone)
 
     def refresh(self) -> None:
         """Ask every agent for its summary now (also learns who is alive)."""
@@ -197,7 +201,9 @@ class Client:
                 if agent is not None:
                     alive.add(agent)
         with self._lock:
-            for agent in alive:
+            # a token whose removal the subscription has seen can still be in the answer
+            # (a peer not yet done with the departure): only a new token brings it back
+            for agent in alive - self._departed:
                 self._mark_alive(agent, True)
         for reply in self.session.get(keys.all_agent_supernodes(self.realm),
                                       timeout=self.timeout):
@@ -397,7 +403,7 @@ class Client:
             result = self._to_pose(seg.agent, reply["result"])
         except (KeyError, TypeError, ValueError) as exc:
             return SegmentError(seg, f"malformed answer: {exc}", False)
-        if result.attributes.get("static"):
+        if self.cache_static_segments and result.attributes.get("static"):
             self._remember_static(seg, spec, result)
         return result, reply.get("edges") or []
 

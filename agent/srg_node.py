@@ -92,8 +92,8 @@ def result_to_wire(r: SrgPose, source: str, target: str, owner: str,
                       "owner": owner, "t_ns": int(t_edge)})
     return {
         "source": source, "target": target, "t_ns": int(t_ns),
-        "position": [float(x) for x in r.position],
-        "quaternion": [float(x) for x in r.quaternion],
+        "position": r.position.tolist(),  # numpy float64 -> Python floats, 10x faster
+        "quaternion": r.quaternion.tolist(),
         "covariance": None if r.covariance is None else r.covariance.ravel().tolist(),
         "path": list(r.path), "edges": edges,
         "attributes": finite_or_none(r.attributes),

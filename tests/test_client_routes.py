@@ -8,6 +8,7 @@ from unittest import mock
 
 import numpy as np
 import pytest
+import zenoh
 
 from agent.client import Client
 from agent.planner import parse_summary, plan_routes
@@ -214,3 +215,25 @@ def test_a_summary_the_client_missed_is_fetched_when_the_pair_looks_unreachable(
     c.session.get.return_value = [reply]
     c.session.liveliness.return_value.get.return_value = []
     assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
+
+
+def test_refresh_does_not_revive_an_agent_whose_token_was_removed(realm_ab):
+    """A liveliness answer can still list a departed agent (a peer not yet done with its
+    departure): only a new token of that agent makes it alive again."""
+    c = realm_ab.client
+
+    def token(kind):
+        s = mock.MagicMock()
+        s.key_expr = "uma/lab/agent/B"
+        s.kind = kind
+        return s
+
+    c._on_token(token(zenoh.SampleKind.DELETE))
+    listed = mock.MagicMock()
+    listed.ok.key_expr = "uma/lab/agent/B"
+    c.session.liveliness.return_value.get.return_value = [listed]
+    c.session.get.return_value = []
+    c.refresh()
+    assert "B" not in c._alive
+    c._on_token(token(zenoh.SampleKind.PUT))
+    assert "B" in c._alive
