@@ -36,7 +36,9 @@ calls ``close()`` at shutdown.  The node:
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
 tens of microseconds) and record other agents' frames; one worker thread republishes the
-summary when needed.  A failing query is answered with an error, never raised into Zenoh.
+summary when needed and asks every agent for its summary every ``RESYNC_S`` (a summary put
+before our subscription reached its author is never sent again).  A failing query is
+answered with an error, never raised into Zenoh.
 """
 
 from __future__ import annotations
