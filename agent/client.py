@@ -442,11 +442,11 @@ class Client:
     def _answers(self, request: bytes, agents: Sequence[str] = (),
                  ) -> Iterator[tuple[str, dict[str, Any], int, int]]:
         """One query (an encoded message) to the query key of every agent (or of the only
-        one in ``agents``);
-        yields each answer as it arrives: (agent id, decoded answer, our send time, our
-        receive time).  One query rather than one per agent: a ``get`` costs about as much
-        to issue as a loopback round trip.  Ends as soon as every agent in ``agents`` has
-        answered (else when the query ends: all agents are done, or the timeout)."""
+        one in ``agents``); yields each answer as it arrives: (agent id, decoded answer, our
+        send time, our receive time).  One query rather than one per agent: a ``get`` costs
+        about as much to issue as a loopback round trip.  Ends as soon as every agent in
+        ``agents`` has answered (else when the query ends: all agents are done, or the
+        timeout)."""
         expected, seen = set(agents), set()
         prefix, suffix = self._query_prefix, "/query"
         target = agents[0] if len(agents) == 1 else "*"
