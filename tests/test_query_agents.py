@@ -129,7 +129,11 @@ def test_query_across_three_agents_and_reroute_when_the_middle_one_dies(
         p, q, cov = chain([survey_edge(), EDGES["C"][0]])
         np.testing.assert_allclose(r.position, p, atol=1e-12)
         np.testing.assert_allclose(r.covariance, cov, rtol=1e-9, atol=1e-18)
-        # only B knew the IMU: every route needs it, and the error says which segment
+        # only B knew the IMU: every route needs it, and once the client has seen B leave
+        # (its token's removal can lag on a loaded machine) the error says which segment
+        def b_left():
+            assert not c.agents()["B"]["alive"]
+        wait_for(b_left, what="B's departure seen by the client")
         with pytest.raises(RouteError,
                            match=r"segment\(s\) \S+ -> marvin/imu of agent 'B'.*left the realm"):
             c.pose(WORLD, IMU, error="accuracy")
