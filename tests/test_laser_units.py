@@ -358,3 +358,32 @@ def test_model_error_is_added_to_the_covariance(world) -> None:
     assert np.allclose(b - a, np.diag([4e-6] * 3 + [1e-6] * 3), atol=1e-12)
     with pytest.raises(ValueError, match=">= 0"):
         TrackerParams(model_rot_std_rad=-1.0)
+
+
+def test_advertised_rate_stays_positive_when_no_frame_gave_a_pose() -> None:
+    """A warm-up without a single pose (no dots seen yet) must not advertise 0 Hz, which
+    the ability schema refuses and which stopped the service in a loaded CI run."""
+    from schemas.models import Attributes
+    from services.laser_camera.service import MIN_RATE_HZ, _Performance
+
+    perf = _Performance()
+    for k in range(10):
+        perf.times.append(100.0 + k / 30)
+        perf.latency.append(0.004)
+        perf.got_pose.append(False)
+    attrs = perf.attributes(30.0)
+    assert attrs["frequency_hz"] == MIN_RATE_HZ and attrs["confidence"] == 0.0
+    Attributes(**attrs)  # valid for the ability it is advertised on
+    perf.got_pose[-1] = True
+    assert perf.attributes(30.0)["frequency_hz"] == pytest.approx(3.0)
+
+
+def test_warm_up_waits_for_a_first_pose_but_not_forever() -> None:
+    from services.laser_camera import service as ls
+
+    pose = PoseEstimate.__new__(PoseEstimate)  # only its type matters here
+    none = [(k, None) for k in range(ls.WARMUP_FRAMES)]
+    assert not ls._warmed_up([*none[:-2], (8, pose)])  # too few frames to measure a rate
+    assert ls._warmed_up([*none[:-1], (9, pose)])
+    assert not ls._warmed_up(none)  # no pose yet: keep waiting
+    assert ls._warmed_up([(k, None) for k in range(ls.MAX_WARMUP_FRAMES)])

@@ -37,6 +37,9 @@ from services.sim.world import IvyWorld
 
 log = logging.getLogger("uma.laser_camera")
 WARMUP_FRAMES = 10
+#: the warm-up waits for a first pose (a start with the head in a corner or upside down
+#: gives none) at most this many frame sets, then advertises what it measured
+MAX_WARMUP_FRAMES = 150
 ATTRIBUTE_WINDOW = 150  # frame sets over which the advertised attributes are measured
 ATTRIBUTE_UPDATE_S = 5.0
 ATTRIBUTE_CHANGE = 0.25  # re-advertise when a figure drifted by more than this fraction
@@ -120,6 +123,11 @@ def _open(args: argparse.Namespace, specs) -> tuple[Calibration, SimSource | Cap
     return cal, CaptureSource(specs)
 
 
+#: the rate advertised when (almost) no frame gives a pose, the smallest the two-decimal
+#: attribute can state
+MIN_RATE_HZ = 0.01
+
+
 class _Performance:
     """What the service measures about itself, for its advertised attributes."""
 
@@ -143,7 +151,9 @@ class _Performance:
         span = self.times[-1] - self.times[0] if len(self.times) > 1 else 0.0
         hz = (len(self.times) - 1) / span if span > 0 else nominal_hz
         share = float(np.mean(self.got_pose)) if self.got_pose else 0.0
-        out = {"frequency_hz": round(max(hz * share, 1e-3), 2),
+        # the rate of poses, not of frames; never 0 (the schema wants a positive rate):
+        # a warm-up in which no frame gave a pose advertises the lowest rate it can state
+        out = {"frequency_hz": max(round(hz * share, 2), MIN_RATE_HZ),
                "latency_s": round(float(np.median(self.latency)), 4) if self.latency else 0.0,
                "confidence": round(share, 3)}
         if self.pos_std:
@@ -170,7 +180,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
                 break
             if outputs is None:
                 warmup.append(r)
-                if len(warmup) == WARMUP_FRAMES:
+                if _warmed_up(warmup):
                     outputs = _advertise(args, stack, perf.attributes(args.rate_hz))
                     for t_ns, result in warmup:
                         _publish(*outputs, t_ns, result)
@@ -205,6 +215,15 @@ def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dic
 def _dot_attributes(attrs: dict) -> dict:
     """The pose's attributes that also describe the dots stream."""
     return {k: v for k, v in attrs.items() if k not in ("pos_std_m", "rot_std_rad")}
+
+
+def _warmed_up(warmup: list) -> bool:
+    """Enough frame sets to measure the rate and, unless that takes too long, a pose among
+    them: an ability advertised at the rate of no poses would not match any need."""
+    if len(warmup) < WARMUP_FRAMES:
+        return False
+    got_pose = any(isinstance(result, PoseEstimate) for _, result in warmup)
+    return got_pose or len(warmup) >= MAX_WARMUP_FRAMES
 
 
 def _step(tracker: LaserTracker, source, perf: _Performance):
