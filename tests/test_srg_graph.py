@@ -306,6 +306,22 @@ def test_covariance_matches_sequential_geometry_propagation():
     assert_same_pose(r.position, r.quaternion, geo.to_matrix(p, q))
 
 
+def test_single_measured_edge_covariance_in_both_directions():
+    """The one-edge fast path (a tracker's own segment) agrees with geometry, walked
+    forwards and backwards, with std attributes and with a sample covariance."""
+    rng = np.random.default_rng(4)
+    (p1, q1), (p2, q2) = random_pose(rng), random_pose(rng)
+    C = np.diag([1e-4, 2e-4, 3e-4, 1e-5, 2e-5, 3e-5])
+    g = Graph()
+    g.add_measurement("a", "b", 0, p1, q1, pos_std_m=0.003, rot_std_rad=0.004)
+    g.add_measurement("c", "d", 0, p2, q2, covariance=C)
+    std = geo.covariance_from_std(p1, 0.003, 0.004)
+    np.testing.assert_allclose(g.pose("a", "b", at=0).covariance, std, rtol=1e-12)
+    np.testing.assert_allclose(g.pose("b", "a", at=0).covariance,
+                               geo.inverse_covariance(p1, q1, std), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(g.pose("c", "d", at=0).covariance, C, rtol=1e-12)
+
+
 # ------------------------------------------------------------------ plans
 
 

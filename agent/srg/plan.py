@@ -101,6 +101,7 @@ class Chain:
         stamps: list[tuple[int, int]] = []
         P = Q = P_edge = None
         covs: list = []
+        uncertain = self._uncertain
         if m:
             if t_ns is None:  # latest_time() found an edge without samples
                 empty = next(e for e, _, _ in measured if not len(e.buffer))
@@ -139,14 +140,18 @@ class Chain:
                 P = P0 + (P1 - P0) * A
                 Q = geo.quat_multiply(Q0, geo.rotvec_to_quat(D * A))
             P_edge = P
-            if self._uncertain:
+            # samples may carry covariances the edge's attributes did not announce
+            uncertain = uncertain or any(
+                buf.covs[i0] is not None or buf.covs[i1] is not None
+                for buf, i0, i1, _ in brackets)
+            if uncertain:
                 covs = [self._edge_cov(edge, br) for (edge, _, _), br in zip(measured, brackets,
                                                                                strict=True)]
             if self._any_backward:
                 bw = self._backward
                 P = P.copy()
                 P[bw], Q[bw] = geo.inverse(P[bw], Q[bw])
-        p, q, cov = self._compose_items(P, Q, P_edge, covs)
+        p, q, cov = self._compose_items(P, Q, P_edge, covs if uncertain else None)
         attrs = self.edge_attrs
         return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
                           lambda: aggregate(attrs, p, cov))
@@ -181,9 +186,10 @@ class Chain:
         return ("std", cov) if rotates else ("se3", cov)
 
     def _compose_items(self, P: np.ndarray | None, Q: np.ndarray | None,
-                       P_edge: np.ndarray | None, covs: list,
+                       P_edge: np.ndarray | None, covs: list | None,
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Compose the items in order; covariance by the adjoint of each prefix.
+        """Compose the items in order; covariance by the adjoint of each prefix (None:
+        nothing on the path is uncertain).
 
         The position only needs the rotation matrices of the items before the last one,
         so the last measured edge (often the only one) costs no matrix conversion.
@@ -200,7 +206,7 @@ class Chain:
         p = p.copy() if M is None else M[:3, :3] @ p + M[:3, 3]
         quats = [self._const[i][1] if it[0] == "c" else Q[it[1]] for i, it in enumerate(items)]
         q = quat_product(np.array(quats))
-        cov = self._propagate(P, Q, P_edge, covs) if self._uncertain else None
+        cov = None if covs is None else self._propagate(P, Q, P_edge, covs)
         return p, q, cov
 
     def _propagate(self, P: np.ndarray | None, Q: np.ndarray | None,
@@ -213,6 +219,13 @@ class Chain:
         translation by the adjoint of that pure translation (``decoupled_to_se3``).
         """
         m = 0 if P is None else len(P)
+        if m == 1 and len(self._items) == 1 and not self._backward[0]:
+            # one measured edge walked forwards (a tracker's own segment, the most frequent
+            # query): its covariance needs no prefix, only the "std" translation
+            if covs[0] is None:
+                return None
+            kind, c = covs[0]
+            return c if kind == "se3" else geo.decoupled_to_se3(P_edge[0], c)
         std_rows = [j for j in range(m) if covs[j] is not None and covs[j][0] == "std"]
         if m:
             Pa = P if not std_rows else np.concatenate([P, P_edge[std_rows]])
