@@ -107,9 +107,9 @@ def aggregate(edge_attrs: Sequence[Mapping[str, Any]], position: Any,
     if covariance is None:
         pos_std = rot_std = accuracy = 0.0
     else:
-        dec = geo.se3_to_decoupled(position, covariance)
-        pos_std = math.sqrt(max(float(np.trace(dec[:3, :3])), 0.0) / 3.0)
-        rot_std = math.sqrt(max(float(np.trace(dec[3:, 3:])), 0.0) / 3.0)
+        pos_trace, rot_trace = geo.decoupled_traces(position, covariance)
+        pos_std = math.sqrt(max(pos_trace, 0.0) / 3.0)
+        rot_std = math.sqrt(max(rot_trace, 0.0) / 3.0)
         accuracy = float(np.trace(covariance))
     return {
         "hops": len(edge_attrs),

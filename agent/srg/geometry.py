@@ -429,6 +429,24 @@ def se3_to_decoupled(p: Array, C: Array) -> Array:
     return J @ np.asarray(C, float) @ J.T
 
 
+def decoupled_traces(p: Array, C: Array) -> tuple[float, float]:
+    """Traces of the position and rotation blocks of ``se3_to_decoupled(p, C)``, without
+    building it: path attributes need only these two numbers, once per answer.
+
+    With ``dp = rho - [p]x phi``: tr Cov(dp) = tr C_rr - 2 tr([p]x C_fr) + |p|^2 tr C_ff
+    - p^T C_ff p (``[p]x^T [p]x = |p|^2 I - p p^T``); the rotation block is unchanged.
+    """
+    c = np.asarray(C, float).tolist()
+    x, y, z = np.asarray(p, float).reshape(3).tolist()
+    rot = c[3][3] + c[4][4] + c[5][5]
+    # tr([p]x M) with M = C_fr (rows phi, columns rho)
+    cross = (x * (c[4][2] - c[5][1]) + y * (c[5][0] - c[3][2]) + z * (c[3][1] - c[4][0]))
+    pCp = (x * x * c[3][3] + y * y * c[4][4] + z * z * c[5][5] + x * y * (c[3][4] + c[4][3])
+           + x * z * (c[3][5] + c[5][3]) + y * z * (c[4][5] + c[5][4]))
+    pos = c[0][0] + c[1][1] + c[2][2] - 2.0 * cross + (x * x + y * y + z * z) * rot - pCp
+    return pos, rot
+
+
 def covariance_from_std(p: Array, pos_std_m: float | None,
                         rot_std_rad: float | None) -> Array | None:
     """A 6x6 ``xi`` covariance from isotropic position and rotation standard deviations."""
