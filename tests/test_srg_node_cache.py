@@ -1,5 +1,6 @@
-"""The agent's cache of all-static answers: the same answer as a fresh computation at any
-time, and dropped when a static edge changes."""
+"""The agent's caches of answers: all-static answers, the same as a fresh computation at any
+time and dropped when a static edge changes; answers at the latest time, kept only until
+the next sample or change."""
 
 from __future__ import annotations
 
@@ -57,6 +58,22 @@ def test_measured_and_detailed_answers_are_not_cached():
     n.handle({"op": "segment", "source": "w", "target": "rig", "t": S, "error": "hops",
               "details": True})
     assert not n._static_answers
+
+
+def test_a_latest_answer_is_reused_only_until_the_next_sample():
+    n = node()
+    n.graph.add_measurement("rig", "head", S, [0.0, 0.0, 0.1], [0.0, 0.0, 0.0, 1.0])
+    first = ask(n, None, "w", "head")["result"]
+    assert ask(n, None, "w", "head")["result"] is first  # nothing new: the same answer
+    assert ask(n, S, "w", "head")["result"] is not first  # an explicit time is computed
+    n.graph.add_measurement("rig", "head", 2 * S, [0.0, 0.0, 0.2], [0.0, 0.0, 0.0, 1.0])
+    second = ask(n, None, "w", "head")["result"]
+    assert second["t_ns"] == 2 * S and second["position"] != first["position"]
+    n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
+    third = ask(n, None, "w", "head")["result"]  # a changed edge: computed again
+    assert third["t_ns"] == 2 * S and third["position"] != second["position"]
+    n._latest_answers.clear()
+    assert ask(n, None, "w", "head")["result"] == third
 
 
 def test_summaries_are_asked_for_again_periodically(monkeypatch):

@@ -98,6 +98,8 @@ class Graph:
         self.plans_built = 0
         #: incremented on every structural or attribute change (summaries watch it)
         self.version = 0
+        #: samples ever added: with ``version``, what an answer at the latest time depends on
+        self.samples = 0
 
     # ------------------------------------------------------------------ edges
 
@@ -151,6 +153,7 @@ class Graph:
         q = geo.check_quaternion(quaternion, "quaternion").reshape(4)
         cov = None if covariance is None else geo.check_covariance(covariance)
         edge.buffer.add(t, p, q, cov)
+        self.samples += 1
         return key
 
     def declare_measured(self, parent: str, child: str, *,
