@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import tomllib
 from pathlib import Path
@@ -108,8 +109,19 @@ def settings_from(args: argparse.Namespace) -> AgentSettings:
     return s.check()
 
 
+#: Zenoh's runtimes (rx, acc, net, app) all hand their work over to the tx runtime: an
+#: agent answers small queries and forwards small samples, and on a loaded host each hop
+#: between runtime threads costs a context switch.  Measured on a 2-core machine: ~7 -> 1.5
+#: context switches per agent per query, and the cross-agent query of
+#: ``bench/bench_query_remote.py`` from 3.8 to 3.1-3.5x a bare get.  A ZENOH_RUNTIME set by
+#: the user wins.
+AGENT_ZENOH_RUNTIME = "(rx: (handover: tx), acc: (handover: tx), net: (handover: tx), " \
+                      "app: (handover: tx))"
+
+
 def main(args: argparse.Namespace) -> int:
     """Handler of ``uma agent``."""
+    os.environ.setdefault("ZENOH_RUNTIME", AGENT_ZENOH_RUNTIME)  # before any session opens
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = settings_from(args)
