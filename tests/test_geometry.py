@@ -106,6 +106,9 @@ def test_exp_log_round_trip(r: np.ndarray) -> None:
     # relative accuracy also for tiny angles; absolute ~1e-9 near pi where w -> 0
     np.testing.assert_allclose(back, r, rtol=1e-9, atol=1e-15 if theta < 1 else 1e-8)
     assert g.quat_angle(g.quat_identity(), q) == pytest.approx(theta, rel=1e-9, abs=1e-15)
+    # the single-vector path and the batched one agree (shapes (3,), (1, 3), (2, 3))
+    np.testing.assert_allclose(g.rotvec_to_quat(r[None]), q[None], rtol=0, atol=1e-16)
+    np.testing.assert_allclose(g.rotvec_to_quat(np.stack([r, r]))[1], q, rtol=0, atol=1e-15)
 
 
 @given(quats)

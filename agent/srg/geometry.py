@@ -21,6 +21,7 @@ Inputs that cross a trust boundary go through the ``check_*`` functions, which r
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -245,6 +246,12 @@ def matrix_to_quat(R: Array) -> Array:
 def rotvec_to_quat(r: Array) -> Array:
     """Exponential map: rotation vector(s) (..., 3) to unit quaternion(s)."""
     r = np.asarray(r, dtype=float)
+    if r.size == 3:  # one vector, the interpolation of a tracker's segment: plain floats
+        x, y, z = r.ravel().tolist()
+        th = math.sqrt(x * x + y * y + z * z)
+        k1 = 0.5 - th * th / 48.0 if th < _SMALL_ANGLE else math.sin(0.5 * th) / th
+        q = np.array([x * k1, y * k1, z * k1, math.cos(0.5 * th)])
+        return q.reshape((*r.shape[:-1], 4))
     theta = np.linalg.norm(r, axis=-1, keepdims=True)
     half = 0.5 * theta
     small = theta < _SMALL_ANGLE
