@@ -145,7 +145,11 @@ def test_functions_vectorise_like_a_loop(pose_list) -> None:
         np.testing.assert_allclose(qc[i], qi, atol=1e-12)
         np.testing.assert_allclose(T[i], g.to_matrix(p, q), atol=0)
         np.testing.assert_allclose(R[i], g.quat_to_matrix(q), atol=1e-9)
-    assert g.adjoint(P, Q).shape == (len(P), 6, 6)
+    Ads = g.adjoint(P, Q)
+    assert Ads.shape == (len(P), 6, 6)
+    for i, (p, q) in enumerate(pose_list):  # one pose (plain floats) equals the batch
+        np.testing.assert_allclose(g.adjoint(p, q), Ads[i], rtol=1e-14, atol=1e-15)
+    assert g.adjoint(P[:1], Q[:1]).shape == (1, 6, 6)  # a batch of one stays a batch
 
 
 # --------------------------------------------------------------------------- interpolation

@@ -385,12 +385,29 @@ def pose_error(p_est: Array, q_est: Array, p_true: Array, q_true: Array) -> tupl
 
 def adjoint(p: Array, q: Array) -> Array:
     """SE(3) adjoint (6x6) of a pose for ``xi = [rho, phi]``: ``Exp(Ad xi) T = T Exp(xi)``."""
+    if np.ndim(q) == 1 and np.ndim(p) == 1:
+        return _adjoint_one(p, q)
     R = quat_to_matrix(q)
     Ad = np.zeros((*R.shape[:-2], 6, 6))
     Ad[..., :3, :3] = R
     Ad[..., 3:, 3:] = R
     Ad[..., :3, 3:] = skew(p) @ R
     return Ad
+
+
+def _adjoint_one(p: Array, q: Array) -> Array:
+    """``adjoint`` of one pose in plain floats: a client composes one per segment answer,
+    and numpy's per-call overhead is most of the batched form's cost for a single pose."""
+    x, y, z, w = np.asarray(q, float).ravel().tolist()
+    px, py, pz = np.asarray(p, float).ravel().tolist()
+    r = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    s = [[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]]
+    sr = [[s[i][0] * r[0][j] + s[i][1] * r[1][j] + s[i][2] * r[2][j] for j in range(3)]
+          for i in range(3)]
+    zero = [0.0, 0.0, 0.0]
+    return np.array([r[i] + sr[i] for i in range(3)] + [zero + r[i] for i in range(3)])
 
 
 def compose_covariance(p1: Array, q1: Array, C1: Array | None,
