@@ -50,6 +50,10 @@ class ClockOffsets:
         self.window = window
         self.max_age_s = max_age_s
         self._samples: dict[str, deque[ClockSample]] = {}
+        #: per agent, the best sample and until when it stays the best unless a sample
+        #: arrives (the first moment one of the window's samples ages out): a query asks
+        #: for offsets several times per agent, and a scan of the window each time showed
+        self._best: dict[str, tuple[ClockSample | None, float]] = {}
         self._lock = threading.Lock()
 
     def add(self, agent: str, t1: int, t2: int, t3: int, t4: int) -> ClockSample | None:
@@ -61,14 +65,21 @@ class ClockOffsets:
         sample = ClockSample(((t2 - t1) + (t3 - t4)) // 2, delay, time.monotonic())
         with self._lock:
             self._samples.setdefault(agent, deque(maxlen=self.window)).append(sample)
+            self._best.pop(agent, None)
         return sample
 
     def best(self, agent: str) -> ClockSample | None:
         """The minimum-delay sample among the recent ones, or None if none is recent."""
-        horizon = time.monotonic() - self.max_age_s
+        now = time.monotonic()
         with self._lock:
-            samples = [s for s in self._samples.get(agent, ()) if s.taken >= horizon]
-        return min(samples, key=lambda s: s.delay_ns) if samples else None
+            cached = self._best.get(agent)
+            if cached is not None and now < cached[1]:
+                return cached[0]
+            samples = [s for s in self._samples.get(agent, ()) if s.taken >= now - self.max_age_s]
+            best = min(samples, key=lambda s: s.delay_ns) if samples else None
+            expires = min(s.taken for s in samples) + self.max_age_s if samples else now
+            self._best[agent] = (best, expires)
+            return best
 
     def offset(self, agent: str) -> int | None:
         """The agent's clock minus ours in ns, or None if never measured (recently)."""
@@ -89,3 +100,4 @@ class ClockOffsets:
     def forget(self, agent: str) -> None:
         with self._lock:
             self._samples.pop(agent, None)
+            self._best.pop(agent, None)

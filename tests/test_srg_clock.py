@@ -37,6 +37,24 @@ def test_impossible_samples_are_refused_and_unknown_agents_have_no_offset():
     assert not c.known("b")
 
 
+def test_old_samples_age_out_even_when_nothing_new_arrives(monkeypatch):
+    """The remembered best sample gives way when it (or any sample of the window) ages
+    out, without a new sample to trigger it."""
+    import agent.clock as clock
+
+    now = [100.0]
+    monkeypatch.setattr(clock.time, "monotonic", lambda: now[0])
+    c = ClockOffsets(max_age_s=10.0)
+    c.add("b", 0, 50, 50, 100)  # fast: the best, offset 0
+    now[0] = 105.0
+    c.add("b", 1000, 1600 + 7, 1600 + 7, 2200)  # slow, offset 7
+    assert c.offset("b") == 0
+    now[0] = 111.0  # the first sample is 11 s old now
+    assert c.offset("b") == 7
+    now[0] = 116.0
+    assert c.offset("b") is None and not c.known("b")
+
+
 def test_skew_env(monkeypatch):
     monkeypatch.setenv("UMA_CLOCK_SKEW_NS", "123")
     assert skew_from_env() == 123
