@@ -98,31 +98,37 @@ def aggregate(edge_attrs: Sequence[Mapping[str, Any]], position: Any,
     ``position`` is the translation of the composed pose; it turns the SE(3) covariance
     into per-axis position and rotation standard deviations.
     """
+    return {**path_constants(edge_attrs), **uncertainty(position, covariance)}
+
+
+def path_constants(edge_attrs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The attributes of a path that its edges' attributes alone decide (a query plan
+    computes them once, not at every answer)."""
     freq = [a["frequency_hz"] for a in edge_attrs
             if not a.get("static") and "frequency_hz" in a]
     ttl = [a["ttl_s"] for a in edge_attrs if "ttl_s" in a]
     confidence = 1.0
     for a in edge_attrs:
         confidence *= a.get("confidence", 1.0)
-    if covariance is None:
-        pos_std = rot_std = accuracy = 0.0
-    else:
-        pos_trace, rot_trace = geo.decoupled_traces(position, covariance)
-        pos_std = math.sqrt(max(pos_trace, 0.0) / 3.0)
-        rot_std = math.sqrt(max(rot_trace, 0.0) / 3.0)
-        accuracy = float(np.trace(covariance))
     return {
         "hops": len(edge_attrs),
         "latency_s": sum(a.get("latency_s", 0.0) for a in edge_attrs),
         "frequency_hz": min(freq) if freq else math.inf,
         "confidence": confidence,
-        "pos_std_m": pos_std,
-        "rot_std_rad": rot_std,
-        "accuracy": accuracy,
         "ttl_s": min(ttl) if ttl else math.inf,
         "cost": sum(a.get("cost", 0.0) for a in edge_attrs),
         "static": all(a.get("static", False) for a in edge_attrs),
     }
+
+
+def uncertainty(position: Any, covariance: np.ndarray | None) -> dict[str, float]:
+    """``pos_std_m``, ``rot_std_rad`` and ``accuracy`` (the trace) of a path's covariance."""
+    if covariance is None:
+        return {"pos_std_m": 0.0, "rot_std_rad": 0.0, "accuracy": 0.0}
+    pos_trace, rot_trace = geo.decoupled_traces(position, covariance)
+    return {"pos_std_m": math.sqrt(max(pos_trace, 0.0) / 3.0),
+            "rot_std_rad": math.sqrt(max(rot_trace, 0.0) / 3.0),
+            "accuracy": float(np.trace(covariance))}
 
 
 def combine(segments: Sequence[Mapping[str, Any]], position: Any,

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from agent.srg import geometry as geo
-from agent.srg.attributes import aggregate
+from agent.srg.attributes import aggregate, path_constants, uncertainty
 from agent.srg.edge import Edge, EdgeKey
 from agent.srg.errors import EdgeUndefinedError, NoSamplesError, NoValidPathError
 from agent.srg.result import PoseResult
@@ -78,6 +78,7 @@ class Chain:
             e.attrs.get("covariance") is not None or e.std_cov is not None
             for e, _, _ in self._measured)
         self.attributes = self._nominal_attributes(steps)
+        self._constant_attrs = path_constants(self.edge_attrs)
 
     def _nominal_attributes(self, steps: Sequence[tuple[Edge, bool]]) -> dict[str, Any]:
         """Attributes for ranking: the covariance propagated through the nominal values."""
@@ -152,9 +153,9 @@ class Chain:
                 P = P.copy()
                 P[bw], Q[bw] = geo.inverse(P[bw], Q[bw])
         p, q, cov = self._compose_items(P, Q, P_edge, covs if uncertain else None)
-        attrs = self.edge_attrs
+        constant = self._constant_attrs
         return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
-                          lambda: aggregate(attrs, p, cov))
+                          lambda: {**constant, **uncertainty(p, cov)})
 
     @staticmethod
     def _fill_deltas(brackets: list, missing: list[int], D: np.ndarray) -> None:
