@@ -116,6 +116,8 @@ def main() -> None:
     from agent.errors import UmaError
     from agent.session import open_session
 
+    # a SIGTERM ends the run through `finally`, which stops the agents it started
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     realm = f"bench{uuid.uuid4().hex[:8]}"
     ports = {name: _port() for name in ("A", "B", "C", "echo")}
     ep = {name: f"tcp/127.0.0.1:{p}" for name, p in ports.items()}
