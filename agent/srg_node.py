@@ -128,13 +128,10 @@ class SrgNode:
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
         self._static_values: dict[str, tuple[bytes, bytes, bytes | None]] = {}
-        #: wire answers of all-static paths by (source, target, error), with the graph
-        #: version they were computed at
-        self._static_answers: dict[tuple[str, str, str], tuple[int, dict[str, Any]]] = {}
-        #: wire answers at the latest time (``t`` nil) by (source, target, error), with the
-        #: graph's version and sample count when they were computed: the latest pose
-        #: changes only with a new sample, and clients may poll faster than trackers publish
-        self._latest_answers: dict[tuple[str, str, str], tuple[int, int, dict[str, Any]]] = {}
+        #: wire answers by (source, target, error) with the graph version and sample count
+        #: they were computed at (see ``_cached_answer``); the count is None for an
+        #: all-static path, whose answer holds at every time
+        self._answers: dict[tuple[str, str, str], tuple[int, int | None, dict[str, Any]]] = {}
         self._remote_frames: dict[str, set[str]] = {}
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
@@ -292,13 +289,9 @@ class SrgNode:
         details = bool(msg.get("details"))
         with self._lock:
             key = (source, target, error)
-            cached = None if details else self._static_answer(key)
+            cached = None if details else self._cached_answer(key, t)
             if cached is not None:
-                return {"ok": True, "result": at_time(cached, t if t is not None
-                                                      else self.now_ns())}
-            latest = None if details or t is not None else self._latest_answer(key)
-            if latest is not None:
-                return {"ok": True, "result": latest}
+                return {"ok": True, "result": cached}
             r = self.graph.pose(source, target, at=t, error=error)
             out: dict[str, Any] = {"ok": True}
             t_used = r.t_ns if r.t_ns is not None else (t if t is not None else self.now_ns())
@@ -306,28 +299,28 @@ class SrgNode:
             if details:
                 out["edges"] = [self._edge_details(e) for e in r.edges]
             elif out["result"]["attributes"].get("static"):
-                self._static_answers[key] = (self.graph.version, out["result"])
+                self._answers[key] = (self.graph.version, None, out["result"])
             elif t is None:
-                self._latest_answers[key] = (self.graph.version, self.graph.samples,
-                                             out["result"])
+                self._answers[key] = (self.graph.version, self.graph.samples, out["result"])
         return out
 
-    def _static_answer(self, key: tuple[str, str, str]) -> dict[str, Any] | None:
-        """The wire answer of an all-static path, valid at every time until the graph's
-        structure or attributes change (``graph.version``): the path search, composition
-        and attribute aggregation are skipped (most of an answer's cost).  Lock held."""
-        hit = self._static_answers.get(key)
+    def _cached_answer(self, key: tuple[str, str, str], t: int | None,
+                       ) -> dict[str, Any] | None:
+        """A wire answer computed before that still holds, or None.  Lock held.
+
+        Any change of the graph's structure or attributes (``graph.version``) drops them
+        all.  An all-static path's answer holds at every time (restamped at ``t``): the
+        path search, composition and attribute aggregation are skipped, most of an
+        answer's cost.  An answer at the latest time (``t`` nil) holds until the graph
+        takes its next sample: clients may poll faster than trackers publish.
+        """
+        hit = self._answers.get(key)
         if hit is None or hit[0] != self.graph.version:
             return None
-        return hit[1]
-
-    def _latest_answer(self, key: tuple[str, str, str]) -> dict[str, Any] | None:
-        """The wire answer at the latest time, while no sample arrived and nothing in the
-        graph changed since it was computed (the same answer, not recomputed).  Lock held."""
-        hit = self._latest_answers.get(key)
-        if hit is None or (hit[0], hit[1]) != (self.graph.version, self.graph.samples):
-            return None
-        return hit[2]
+        _, samples, result = hit
+        if samples is None:
+            return at_time(result, t if t is not None else self.now_ns())
+        return result if t is None and samples == self.graph.samples else None
 
     def _edge_details(self, e: dict[str, Any]) -> dict[str, Any]:
         """What a streaming client needs to rebuild an edge: its data key or its value."""

@@ -29,11 +29,11 @@ def ask(n: SrgNode, t, source="rig", target="w"):
 def test_a_cached_static_answer_equals_a_fresh_one_at_every_time():
     n = node()
     first = ask(n, 5 * S)
-    assert n._static_answers, "an all-static answer is cached"
+    assert [h[1] for h in n._answers.values()] == [None], "an all-static answer is cached"
     for t in (5 * S, 7 * S + 3, None):
         with mock.patch.object(n, "now_ns", return_value=9 * S):
             cached = ask(n, t)
-            n._static_answers.clear()
+            n._answers.clear()
             fresh = ask(n, t)
         assert cached == fresh
         assert cached["result"]["t_ns"] == (t if t is not None else 9 * S)
@@ -47,7 +47,7 @@ def test_changing_a_static_edge_drops_the_cached_answer():
     n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
     after = ask(n, S)["result"]["position"]
     assert not np.allclose(before, after)
-    n._static_answers.clear()
+    n._answers.clear()
     assert ask(n, S)["result"]["position"] == after
 
 
@@ -57,7 +57,7 @@ def test_measured_and_detailed_answers_are_not_cached():
     ask(n, S, "w", "head")
     n.handle({"op": "segment", "source": "w", "target": "rig", "t": S, "error": "hops",
               "details": True})
-    assert not n._static_answers
+    assert not n._answers
 
 
 def test_a_latest_answer_is_reused_only_until_the_next_sample():
@@ -72,7 +72,7 @@ def test_a_latest_answer_is_reused_only_until_the_next_sample():
     n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
     third = ask(n, None, "w", "head")["result"]  # a changed edge: computed again
     assert third["t_ns"] == 2 * S and third["position"] != second["position"]
-    n._latest_answers.clear()
+    n._answers.clear()
     assert ask(n, None, "w", "head")["result"] == third
 
 
