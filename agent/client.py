@@ -113,7 +113,6 @@ class Client:
         #: encoded requests for the latest time (the same for every query of a round's
         #: segments), dropped with the routes
         self._requests: dict[tuple[tuple[Segment, ...], str, bool], bytes] = {}
-        self._query_prefix = f"{keys.realm_root(realm)}/agent/"
         #: answers of all-static segments (valid at all times) by (agent, source, target,
         #: error), with the (instance, revision) of the agent's summary they belong to
         self._static: dict[tuple[str, str, str, str], tuple[tuple[str, int], PoseResult]] = {}
@@ -448,20 +447,19 @@ class Client:
         ``agents`` has answered (else when the query ends: all agents are done, or the
         timeout)."""
         expected, seen = set(agents), set()
-        prefix, suffix = self._query_prefix, "/query"
-        target = agents[0] if len(agents) == 1 else "*"
+        selector = (keys.agent_query(self.realm, agents[0]) if len(agents) == 1
+                    else keys.all_agent_queries(self.realm))
         t1 = time.time_ns()
         # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
         # that wakes this thread through an Event (the GIL hand-off costs that much).  The
         # query's timeout closes the channel, so the loop always ends.
-        for reply in self._querier(prefix + target + suffix).get(payload=request):
+        for reply in self._querier(selector).get(payload=request):
             t4 = time.time_ns()
             if reply.ok is None:
                 continue
             key = str(reply.ok.key_expr)
-            agent = key[len(prefix):-len(suffix)] if key.startswith(prefix) and key.endswith(
-                suffix) else None
-            if not agent or "/" in agent:
+            agent = keys.parse_agent_query(key, self.realm)
+            if agent is None:
                 self._bad.warning("query reply", f"unexpected key {key!r}")
                 continue
             try:

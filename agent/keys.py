@@ -94,6 +94,11 @@ def agent_query(realm: str, agent_id: str) -> str:
     return f"{agent_token(realm, agent_id)}/query"
 
 
+def all_agent_queries(realm: str) -> str:
+    """Selector of every agent's query queryable (a client asks all in one get)."""
+    return f"{realm_root(realm)}/agent/*/query"
+
+
 def service_token(realm: str, agent_id: str, service_id: str) -> str:
     """Liveliness token (and descriptor queryable) of a service."""
     return (f"{realm_root(realm)}/svc/{check_name('agent id', agent_id)}/"
@@ -146,6 +151,12 @@ def parse_agent_services(key: str, realm: str) -> str | None:
     """Agent id of ``uma/R/agent/A/services``."""
     parts = _parts(key, realm, "agent", 2)
     return parts[0] if parts and parts[1] == "services" else None
+
+
+def parse_agent_query(key: str, realm: str) -> str | None:
+    """Agent id of ``uma/R/agent/A/query``."""
+    parts = _parts(key, realm, "agent", 2)
+    return parts[0] if parts and parts[1] == "query" else None
 
 
 def parse_service_token(key: str, realm: str) -> tuple[str, str] | None:

@@ -149,3 +149,13 @@ def test_rate_limited_log_counts_what_it_swallowed(caplog) -> None:
     with caplog.at_level(logging.WARNING, logger="uma.test"):
         rl.warning("key a", "bad")
     assert caplog.records[-1].getMessage() == "key a: bad (1 similar since)"
+
+
+def test_agent_query_keys_round_trip() -> None:
+    """The client's selector of every agent's queryable and the parse of a reply's key."""
+    sel = keys.all_agent_queries(R)
+    assert keys.agent_query(R, "hostB") == sel.replace("*", "hostB")
+    assert keys.parse_agent_query(keys.agent_query(R, "hostB"), R) == "hostB"
+    for other in (keys.agent_supernode(R, "hostB"), keys.agent_query("elsewhere", "hostB"),
+                  keys.agent_token(R, "hostB"), f"{keys.realm_root(R)}/agent/a/b/query"):
+        assert keys.parse_agent_query(other, R) is None, other
