@@ -51,8 +51,9 @@ class ClockOffsets:
         self.max_age_s = max_age_s
         self._samples: dict[str, deque[ClockSample]] = {}
         #: per agent, the best sample and until when it stays the best unless a sample
-        #: arrives (the first moment one of the window's samples ages out): a query asks
-        #: for offsets several times per agent, and a scan of the window each time showed
+        #: arrives (the first moment one of the window's samples ages out): a query at a
+        #: given time asks for each agent's offset several times, and scanning the window
+        #: every time was a visible share of a query's CPU time
         self._best: dict[str, tuple[ClockSample | None, float]] = {}
         self._lock = threading.Lock()
 

@@ -122,7 +122,9 @@ class FusionConfig:
     pose_gate: float = CHI2_999[6]
     dot_gate: float = CHI2_999[2]
     max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
-    adapt_pose_noise: bool = True        # scale the optical covariance so its NIS averages 6
+    #: scale the optical covariance's position and rotation blocks so that each block's NIS
+    #: averages 3 (see ``_adapt_pose_noise``)
+    adapt_pose_noise: bool = True
     pose_noise_rate: float = 0.02        # adaptation gain per optical pose
     #: lowest scale of the optical (position, rotation) covariance: an optical tracker's
     #: position errors are correlated from frame to frame (calibration, screen geometry), so
