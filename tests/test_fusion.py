@@ -65,9 +65,10 @@ def test_accelerometer_jacobian_matches_finite_differences():
         assert np.allclose(H, num, atol=2e-5), j
 
 
-def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claimed=None):
-    """The real accelerometer simulator + optical stand-in (truth + noise) at 15 Hz; the
-    optical covariance says ``claimed`` (default: the true ``optical_noise``)."""
+def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claimed=None,
+              optical_offset=(0.0, 0.0, 0.0)):
+    """The real accelerometer simulator + optical stand-in (truth + offset + noise) at 15 Hz;
+    the optical covariance says ``claimed`` (default: the true ``optical_noise``)."""
     traj = HeadTrajectory(seed)
     device, cal = fe.calibrated_accelerometers(300.0, seed)
     run = accel_sim.simulate(traj, seconds, seed=seed, sensor=device, calibration=cal)
@@ -83,7 +84,7 @@ def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claime
     for i, t_motion in enumerate(run.t - cal.latency_s):
         while k < len(frames) and frames[k] <= t_motion:
             p, q = traj.pose(frames[k])
-            ekf.update_pose(frames[k], p[0] + rng.normal(0, ps, 3),
+            ekf.update_pose(frames[k], p[0] + np.asarray(optical_offset) + rng.normal(0, ps, 3),
                             geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0]),
                             cov)
             k += 1
@@ -354,3 +355,25 @@ def test_optical_covariance_is_matched_per_block():
     assert pos_scale == 1.0 and rot_scale < 0.8
     *_, ekf = _simulate(12.0, seed=3, optical_noise=(4 * ps, rs), claimed=(ps, rs))
     assert ekf.stats.pose_noise_scale[0] > 1.2  # rising (slowly: the optics are 1 in 15)
+
+
+def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
+    """An optical tracker whose position is off by a constant (calibration) keeps a white
+    filter overconfident: averaging frames shrinks its covariance but not the offset.  With
+    the offset modelled as the tracker's bias state, the position covariance stays at the
+    bias's size (the offset is unobservable) and the position NEES is honest."""
+    ps = OPT_STD[0]
+    offset = (4e-4, -4e-4, 4e-4)
+    white = FusionConfig(adapt_pose_noise=False)
+    t, ep, _, nees_white, _ = _simulate(10.0, seed=3, optical_offset=offset, config=white)
+    biased = FusionConfig(adapt_pose_noise=False, optical_bias_std=4e-4,
+                          optical_bias_tau_s=30.0)
+    t, ep_b, _, nees_b, ekf = _simulate(10.0, seed=3, optical_offset=offset, config=biased)
+    late = t > 3.0
+    assert float(np.mean(nees_white[late])) > 1.5 * float(np.mean(nees_b[late]))
+    assert 3.0 < float(np.mean(nees_b[late])) < 9.0
+    pos_std = np.sqrt(np.diag(ekf.P)[9:12])
+    assert np.all(pos_std > 0.8 * 4e-4)  # never below the unobservable offset
+    assert np.all(np.abs(ekf.optical_bias) < 3 * 4e-4)
+    # the tracker's noise still averages out: the fused position is no worse than it
+    assert np.sqrt(np.mean(ep_b[late] ** 2)) < np.sqrt(np.mean(ep[late] ** 2)) + ps

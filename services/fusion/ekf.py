@@ -132,13 +132,24 @@ class FusionConfig:
     #: to trust them more; its rotation covariance may shrink to half
     pose_noise_min_scale: tuple[float, float] = (1.0, 0.5)
     max_step_s: float = 0.05             # longer predictions are split (integration accuracy)
+    #: the optical position error's slowly varying part (m, per axis; 0: none), a
+    #: Gauss-Markov state with correlation time ``optical_bias_tau_s``.  An optical tracker's
+    #: errors come from its calibration and the screen geometry as much as from pixel
+    #: noise, so they persist while the head moves over the walls; modelling them as white
+    #: lets consecutive poses "average out" in position and makes the velocity, which comes
+    #: from their differences, look far worse than it is
+    optical_bias_std: float = 0.0
+    optical_bias_tau_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
-                     "max_step_s", "initial_bias_std"):
+                     "max_step_s", "initial_bias_std", "optical_bias_tau_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"fusion config: {name} must be positive, got {value!r}")
+        if not (math.isfinite(self.optical_bias_std) and self.optical_bias_std >= 0):
+            raise ValueError("fusion config: optical_bias_std must be >= 0, got "
+                             f"{self.optical_bias_std!r}")
         if len(self.initial_std) != 5 or not all(s > 0 for s in self.initial_std):
             raise ValueError("fusion config: initial_std needs 5 positive numbers (omega, "
                              "omega_dot, v, alpha, spare)")
@@ -183,7 +194,10 @@ class FusionEKF:
         self.accel = accel
         self.gravity = np.asarray(gravity, float)
         self.n_bias = accel.count if self.config.estimate_bias else 0
-        self.dim = CORE + self.n_bias
+        #: the optical position bias follows the accelerometer biases (3 states or none)
+        self._ob = slice(CORE + self.n_bias, CORE + self.n_bias
+                         + (3 if self.config.optical_bias_std > 0 else 0))
+        self.dim = self._ob.stop
         self.t: float | None = None
         self.q = geo.quat_identity()
         self.x = np.zeros(self.dim)  # [dtheta slot (always 0), omega, omega_dot, p, v, alpha, b]
@@ -222,7 +236,13 @@ class FusionEKF:
 
     @property
     def bias(self) -> Array:
-        return self.x[CORE:].copy()
+        """The accelerometers' residual biases (m/s^2)."""
+        return self.x[CORE:CORE + self.n_bias].copy()
+
+    @property
+    def optical_bias(self) -> Array:
+        """The optical position error the filter attributes to the tracker now (m)."""
+        return self.x[self._ob].copy()
 
     def pose_covariance(self) -> Array:
         """6x6 covariance of the head pose in geometry's ``xi = [rho, phi]`` convention."""
@@ -258,17 +278,25 @@ class FusionEKF:
         so, sod, sv, sa, _ = cfg.initial_std
         self.t = float(t)
         self.q = geo.check_quaternion(q, "fusion initial quaternion").reshape(4)
-        bias = self.x[CORE:].copy()
+        ab = slice(CORE, CORE + self.n_bias)
+        bias = self.x[ab].copy()
         self.x = np.zeros(self.dim)
         self.x[P] = geo.check_vector(p, "fusion initial position").reshape(3)
-        self.x[CORE:] = bias
+        self.x[ab] = bias
+        n_ob = self._ob.stop - self._ob.start
         diag = np.concatenate([np.zeros(3), [so**2] * 3, [sod**2] * 3, np.zeros(3),
-                               [sv**2] * 3, [sa**2] * 3, [cfg.initial_bias_std**2] * self.n_bias])
+                               [sv**2] * 3, [sa**2] * 3, [cfg.initial_bias_std**2] * self.n_bias,
+                               [cfg.optical_bias_std**2] * n_ob])
         P0 = np.diag(diag)
         if self.stats.reinitialised and self.n_bias:
-            P0[CORE:, CORE:] = self.P[CORE:, CORE:]
+            P0[ab, ab] = self.P[ab, ab]
         idx = np.r_[9:12, 0:3]
         P0[np.ix_(idx, idx)] = cov_decoupled
+        if n_ob:  # the pose carries the tracker's bias: position error = -(bias + noise)
+            var = cfg.optical_bias_std**2
+            P0[self._ob, self._ob] = np.eye(3) * var
+            P0[P, P] += np.eye(3) * var
+            P0[P, self._ob] = P0[self._ob, P] = -np.eye(3) * var
         self.P = P0
         self._R = geo.quat_to_matrix(self.q)
         self.stats.reinitialised += 1
@@ -297,9 +325,10 @@ class FusionEKF:
         x[W] += x[WD] * dt
         x[P] += x[V] * dt + 0.5 * x[A] * dt * dt
         x[V] += x[A] * dt
+        F, Q, qa = self._step_matrices(dt)
+        x[self._ob] *= F[self._ob, self._ob].diagonal()
         R = geo.quat_to_matrix(self.q)
         self._R = R
-        F, Q, qa = self._step_matrices(dt)
         F = F.copy()
         F[TH, W] = R * dt                       # dtheta' = dtheta + R (domega dt + ...)
         F[TH, WD] = R * (0.5 * dt * dt)
@@ -337,7 +366,12 @@ class FusionEKF:
             for j, sj in enumerate((P, V, A)):
                 Q[si, sj] = ql[i, j] * eye
         if self.n_bias:
-            Q[CORE:, CORE:] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
+            ab = slice(CORE, CORE + self.n_bias)
+            Q[ab, ab] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
+        if self._ob.stop > self._ob.start:  # first-order Gauss-Markov, stationary variance
+            decay = math.exp(-dt / cfg.optical_bias_tau_s)
+            F[self._ob, self._ob] = eye * decay
+            Q[self._ob, self._ob] = eye * (cfg.optical_bias_std**2 * (1.0 - decay**2))
         if len(self._step_cache) > 64:
             self._step_cache.clear()
         self._step_cache[key] = (F, Q, qa)
@@ -423,13 +457,14 @@ class FusionEKF:
             self.initialise(t, p, q, Rm)
             return True
         self.predict_to(t)
-        y = np.concatenate([p - self.x[P], geo.quat_to_rotvec(geo.quat_multiply(
-            q, geo.quat_conjugate(self.q)))])
-        idx = np.r_[9:12, 0:3]
-        PHt = self.P[:, idx]
+        H = self._pose_jacobian()
+        seen = self.x[P] + self.x[self._ob] if self._ob.stop > self._ob.start else self.x[P]
+        y = np.concatenate([p - seen, geo.quat_to_rotvec(
+            geo.quat_multiply(q, geo.quat_conjugate(self.q)))])
+        PHt = self.P @ H.T
         d = np.sqrt(np.repeat(self.stats.pose_noise_scale, 3))
         Rm = Rm * np.outer(d, d)
-        S = PHt[idx] + Rm
+        S = H @ PHt + Rm
         nis = float(y @ np.linalg.solve(S, y))
         self.stats.last_pose_nis = nis
         self._adapt_pose_noise(nis, y, S, Rm)
@@ -444,8 +479,7 @@ class FusionEKF:
         K = np.linalg.solve(S, PHt.T).T
         self._inject(K @ y)
         # Joseph form: the 6-D update is large enough for rounding to matter
-        I_KH = np.eye(self.dim)
-        I_KH[:, idx] -= K
+        I_KH = np.eye(self.dim) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
         self.stats.pose_updates += 1
         return True
@@ -462,6 +496,14 @@ class FusionEKF:
         p, q = geo.compose(p_rig, q_rig, pm, qm)
         cov = geo.se3_to_decoupled(p, geo.check_covariance(cov_rig_se3, "rig pose covariance"))
         return self.update_pose(t, p, q, cov)
+
+    def _pose_jacobian(self) -> Array:
+        """d [position, rotation] of the optical pose / d error state (6, dim): the head
+        pose plus, in position, the tracker's bias when the filter models one."""
+        H = np.zeros((6, self.dim))
+        H[0:3, P] = H[3:6, TH] = np.eye(3)
+        H[0:3, self._ob] = np.eye(3)[:, : self._ob.stop - self._ob.start]
+        return H
 
     def _adapt_pose_noise(self, nis: float, y: Array, S: Array, Rm: Array) -> None:
         """Covariance matching for the optical noise (Mehra's adaptive R, per block).
