@@ -283,13 +283,14 @@ class IvyWorld:
         origin = wall.to_world(org_xy)[0]
         ex, ey = wall.rotation[:, 0], wall.rotation[:, 1]
         side = wall.screen_side_m
-        board = checkerboard(square_m, (na, nb), border_m=margin * 0.9)
+        # the projector lights the rest of the screen dimly; beyond the screen is the frame
+        board = checkerboard(square_m, (na, nb), border_m=margin * 0.9, outside=60.0)
 
-        def on_screen(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        def on_screen(a: np.ndarray, b: np.ndarray, blur_a: np.ndarray,
+                      blur_b: np.ndarray) -> np.ndarray:
             X, Y = a + org_xy[0], b + org_xy[1]
-            val = board(a, b)
             lit = (np.minimum(X, Y) >= 0) & (np.maximum(X, Y) <= side)
-            return np.where(lit, np.where(np.isnan(val), 60.0, val), np.nan)
+            return np.where(lit, board(a, b, blur_a, blur_b), np.nan)
 
         img = render_plane_pattern(cam, origin, ex, ey, on_screen)
         pattern = (na - 1, nb - 1)
