@@ -58,6 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="publish the pose predicted this far ahead (default 0)")
     parser.add_argument("--model-floor", type=float, default=0.005,
                         help="extra accelerometer noise std for unmodelled errors, m/s^2")
+    parser.add_argument("--optical-bias-mm", type=float, default=0.0,
+                        help="std of the optical tracker's persistent position error (its "
+                             "calibration error), estimated as a slowly varying bias; 0: "
+                             "the tracker's errors are white (default)")
+    parser.add_argument("--optical-bias-tau-s", type=float, default=30.0,
+                        help="how long that error persists, seconds (default 30)")
 
 
 class LiveFusion:
@@ -200,7 +206,13 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     if not (math.isfinite(args.model_floor) and args.model_floor >= 0):
         raise ValueError(f"--model-floor must be >= 0, got {args.model_floor!r}")
-    live = LiveFusion(args.horizon_ms / 1e3, args.model_floor)
+    if not (math.isfinite(args.optical_bias_mm) and args.optical_bias_mm >= 0):
+        raise ValueError(f"--optical-bias-mm must be >= 0, got {args.optical_bias_mm!r}")
+    if not (math.isfinite(args.optical_bias_tau_s) and args.optical_bias_tau_s > 0):
+        raise ValueError(f"--optical-bias-tau-s must be positive, got {args.optical_bias_tau_s!r}")
+    config = FusionConfig(optical_bias_std=args.optical_bias_mm / 1e3,
+                          optical_bias_tau_s=args.optical_bias_tau_s)
+    live = LiveFusion(args.horizon_ms / 1e3, args.model_floor, config=config)
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         out = svc.ability("head", type="pose6d", edge=(args.world, args.head),
