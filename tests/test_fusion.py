@@ -51,7 +51,7 @@ def test_accelerometer_jacobian_matches_finite_differences():
     traj = HeadTrajectory(5)
     ekf = FusionEKF(_model())
     _set_true_state(ekf, traj, 1.3)
-    ekf.x[18:] = 0.01 * np.arange(6)
+    ekf.x[18:24] = 0.01 * np.arange(6)  # the accelerometer biases
     for j in range(6):
         h0, H = ekf.predict_reading(j)
         num = np.zeros(ekf.dim)
@@ -393,3 +393,55 @@ def test_service_refuses_bad_noise_flags_by_name(argv, flag):
     service.add_arguments(parser)
     with pytest.raises(ValueError, match=flag):
         service.run(parser.parse_args(argv), threading.Event())
+
+
+def _error_between(a: FusionEKF, b: FusionEKF) -> np.ndarray:
+    """b's state minus a's in the filter's error-state form (world rotation vector first)."""
+    d = b.x - a.x
+    d[0:3] = geo.quat_to_rotvec(geo.quat_multiply(b.q, geo.quat_conjugate(a.q)))
+    return d
+
+
+def test_time_update_jacobian_matches_finite_differences():
+    """F of one 300 Hz step, jerk states and the optical bias included, against perturbing
+    each error-state component of a moving state and integrating."""
+    traj = HeadTrajectory(6)
+    ekf = FusionEKF(_model(), FusionConfig(optical_bias_std=2e-4))
+    _set_true_state(ekf, traj, 2.1)
+    ekf.x[18:] = 0.01 * np.arange(ekf.dim - 18) + 0.02  # biases, optical bias, jerks
+    dt = 1.0 / 300.0
+    nominal = ekf.snapshot()
+    ekf.predict_to(ekf.t + dt)
+    after = FusionEKF(_model(), ekf.config)
+    after.restore(ekf.snapshot())
+    F = ekf._step_matrices(dt)[0].copy()
+    R = geo.quat_to_matrix(ekf.q)
+    F[0:3, 3:6], F[0:3, 6:9] = R * dt, R * (0.5 * dt * dt)
+    F[0:3, ekf._ang_jerk] = R * dt**3 / 6.0
+    for k in range(ekf.dim):
+        ekf.restore(nominal)
+        d = np.zeros(ekf.dim)
+        d[k] = 1e-6
+        ekf._inject(d)
+        ekf.predict_to(ekf.t + dt)
+        num = _error_between(after, ekf) / 1e-6
+        # the rotation rows are first order (R after the step stands for the right Jacobian
+        # of the turn); everything else moves linearly
+        assert np.allclose(num[:3], F[:3, k], atol=1e-5), k
+        assert np.allclose(num[3:], F[3:, k], rtol=1e-6, atol=1e-8), k
+
+
+def test_jerk_states_move_the_acceleration_smoothly():
+    """A Gauss-Markov jerk j0 (time constant tau) adds j0 tau (1 - exp(-t / tau)) to the
+    acceleration: the mean of the time update follows it, linear and angular alike."""
+    cfg = FusionConfig()
+    ekf = FusionEKF(_model(), cfg)
+    ekf.initialise(0.0, np.zeros(3), geo.quat_identity(), np.eye(6) * 1e-8)
+    j_lin, j_ang = np.array([3.0, -2.0, 1.0]), np.array([-5.0, 4.0, 8.0])
+    ekf.x[ekf._jerk], ekf.x[ekf._ang_jerk] = j_lin, j_ang
+    for _ in range(90):
+        ekf.predict_to(ekf.t + 1.0 / 300.0)
+    for got, j0, tau in ((ekf.acceleration, j_lin, cfg.linear_jerk_tau_s),
+                         (ekf.omega_dot, j_ang, cfg.angular_jerk_tau_s)):
+        assert np.allclose(got, j0 * tau * (1.0 - np.exp(-0.3 / tau)), rtol=0.01)
+    assert np.all(np.linalg.eigvalsh(ekf.P) > 0)

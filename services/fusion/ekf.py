@@ -2,8 +2,11 @@
 
 State (eq. 6.1) of the *head* frame: orientation ``q`` (head in world, xyzw), body angular
 velocity ``omega`` and acceleration ``omega_dot`` (head axes), position ``p``, velocity
-``v`` and acceleration ``alpha`` (world), and, optionally, one residual bias per
-accelerometer (SCAAT's autocalibration, seed 003 appendix B.3).
+``v`` and acceleration ``alpha`` (world); then one residual bias per accelerometer (SCAAT's
+autocalibration, seed 003 appendix B.3) and three optional Gauss-Markov triples: the
+optical tracker's persistent position error, and the linear and angular jerk, which make
+the motion model smooth at the 300 Hz step and random over a quarter second, as heads move
+(``FusionConfig`` says why eq. 6.1's white jerk alone cannot be both).
 
 Where and why the model has its own form instead of filterpy's ``ExtendedKalmanFilter``:
 
@@ -18,9 +21,8 @@ Where and why the model has its own form instead of filterpy's ``ExtendedKalmanF
   6-D filterpy update per sample: about the same speed, both far above 3000 updates/s).
 * The time update (eq. 6.2-6.5) integrates the quaternion on the manifold.
 
-filterpy provides the process noise: ``Q_continuous_white_noise`` for the
-(angle, rate, acceleration) and (position, velocity, acceleration) chains driven by white
-jerk.
+filterpy provides the white part of the process noise: ``Q_continuous_white_noise`` for
+the (angle, rate, acceleration) and (position, velocity, acceleration) chains.
 
 The static mountings (head -> accelerometer rig, head -> laser rig) are inputs
 (``AccelModel.from_layout``, the ``mount`` of ``update_rig_pose``), which callers take from
@@ -103,19 +105,25 @@ class AccelModel:
 class FusionConfig:
     """Noise model and behaviour of the filter (SI units)."""
 
-    #: (rad/s^3)^2 / Hz, white angular jerk.  The accelerometers measure omega_dot at 300 Hz,
-    #: so this sets how fast the filter believes its rotation uncertainty grows between
-    #: optical frames and in gaps: 500 made the rotation NEES 0.6-1.0 (of 3) in 1 s gaps,
-    #: 30 gives 1.6-2.8 there and 2.8-3.1 while tracking (seeds 1 and 3), with the same errors
-    angular_jerk_psd: float = 30.0
-    #: (m/s^3)^2 / Hz, white linear jerk: 2 sigma^2 / tau of a head's acceleration taken as
-    #: a Gauss-Markov process (Singer's model); the simulated heads have sigma^2 = 1.1-1.4
-    #: (m/s^2)^2 per axis and tau = 0.22-0.24 s, so 9-13 (and the angular chain 29-46).  A
-    #: larger value lets velocity diffuse between optical frames faster than a head's does
-    #: (50 made the position NEES 0.7-0.9 of 3 in optical gaps); a much smaller one holds the
-    #: acceleration too stiff and the specific force leaks into the tilt (1: 1 s gap
-    #: orientation errors up to 20 % larger)
-    linear_jerk_psd: float = 10.0
+    #: The head's jerk, linear (m/s^3, world axes) and angular (rad/s^3, head axes), as
+    #: first-order Gauss-Markov states: std and correlation time (0 std: no such states,
+    #: white jerk only, as in eq. 6.1).  Head motion is smooth: over one 300 Hz step its
+    #: acceleration barely changes, over a quarter second it is as good as new.  White jerk
+    #: alone cannot say both -- tuned for the long scale it lets velocity and angular
+    #: velocity diffuse between samples far faster than a head's do (position NEES 0.7-0.9
+    #: of 3 in optical gaps), tuned for the short one it holds the acceleration so stiff that
+    #: the specific force leaks into the tilt (1 s gap orientation errors up to 20 % larger).
+    #: The simulated heads have jerk stds 5.3-6.6 m/s^3 and 9-12 rad/s^3 per axis, with
+    #: correlation times 0.21-0.24 s.
+    linear_jerk_std: float = 6.0
+    linear_jerk_tau_s: float = 0.22
+    angular_jerk_std: float = 11.0
+    angular_jerk_tau_s: float = 0.23
+    #: White jerk on top, (m/s^3)^2/Hz and (rad/s^3)^2/Hz: what the Gauss-Markov jerk misses
+    #: (without those states, 2 sigma^2 / tau of the acceleration as in Singer's model: about
+    #: 10 and 30 for the simulated heads).
+    linear_jerk_psd: float = 0.5
+    angular_jerk_psd: float = 1.0
     #: m/s^2 / sqrt(s), accelerometer bias random walk.  The residual bias after the static
     #: calibration is nearly constant (thermal drift only); a faster walk lets the bias
     #: states follow the reading noise between optical frames, and the omega_dot error they
@@ -151,13 +159,15 @@ class FusionConfig:
 
     def __post_init__(self) -> None:
         for name in ("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
-                     "max_step_s", "initial_bias_std", "optical_bias_tau_s"):
+                     "max_step_s", "initial_bias_std", "optical_bias_tau_s",
+                     "linear_jerk_tau_s", "angular_jerk_tau_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"fusion config: {name} must be positive, got {value!r}")
-        if not (math.isfinite(self.optical_bias_std) and self.optical_bias_std >= 0):
-            raise ValueError("fusion config: optical_bias_std must be >= 0, got "
-                             f"{self.optical_bias_std!r}")
+        for name in ("optical_bias_std", "linear_jerk_std", "angular_jerk_std"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"fusion config: {name} must be >= 0, got {value!r}")
         if len(self.initial_std) != 5 or not all(s > 0 for s in self.initial_std):
             raise ValueError("fusion config: initial_std needs 5 positive numbers (omega, "
                              "omega_dot, v, alpha, spare)")
@@ -201,14 +211,19 @@ class FusionEKF:
         self.config = config or FusionConfig()
         self.accel = accel
         self.gravity = np.asarray(gravity, float)
-        self.n_bias = accel.count if self.config.estimate_bias else 0
-        #: the optical position bias follows the accelerometer biases (3 states or none)
-        self._ob = slice(CORE + self.n_bias, CORE + self.n_bias
-                         + (3 if self.config.optical_bias_std > 0 else 0))
-        self.dim = self._ob.stop
+        cfg = self.config
+        self.n_bias = accel.count if cfg.estimate_bias else 0
+        # after eq. 6.1's 18 and the accelerometer biases, the optional Gauss-Markov states:
+        # the optical position bias, the linear jerk, the angular jerk (3 each, or none)
+        self._ob, self._jerk, self._ang_jerk = _consecutive(
+            CORE + self.n_bias, [3 * (std > 0) for std in (
+                cfg.optical_bias_std, cfg.linear_jerk_std, cfg.angular_jerk_std)])
+        self.dim = self._ang_jerk.stop
         self.t: float | None = None
         self.q = geo.quat_identity()
-        self.x = np.zeros(self.dim)  # [dtheta slot (always 0), omega, omega_dot, p, v, alpha, b]
+        # [dtheta slot (always 0), omega, omega_dot, p, v, alpha, accelerometer biases,
+        #  optical bias, linear jerk, angular jerk]
+        self.x = np.zeros(self.dim)
         self.P = np.eye(self.dim)
         self.stats = FusionStats()
         self._rejected_in_row = 0
@@ -294,7 +309,10 @@ class FusionEKF:
         n_ob = self._ob.stop - self._ob.start
         diag = np.concatenate([np.zeros(3), [so**2] * 3, [sod**2] * 3, np.zeros(3),
                                [sv**2] * 3, [sa**2] * 3, [cfg.initial_bias_std**2] * self.n_bias,
-                               [cfg.optical_bias_std**2] * n_ob])
+                               [cfg.optical_bias_std**2] * n_ob,
+                               [cfg.linear_jerk_std**2] * (self._jerk.stop - self._jerk.start),
+                               [cfg.angular_jerk_std**2]
+                               * (self._ang_jerk.stop - self._ang_jerk.start)])
         P0 = np.diag(diag)
         if self.stats.reinitialised and self.n_bias:
             P0[ab, ab] = self.P[ab, ab]
@@ -327,26 +345,31 @@ class FusionEKF:
         self.t = max(self.t, float(t))
 
     def _predict_step(self, dt: float) -> None:
-        x = self.x
-        # q(t+dt) = q Exp(omega dt + omega_dot dt^2 / 2): body-frame increment (eq. 6.5)
-        self.q = geo.quat_multiply(self.q, geo.rotvec_to_quat(x[W] * dt + 0.5 * x[WD] * dt * dt))
-        x[W] += x[WD] * dt
-        x[P] += x[V] * dt + 0.5 * x[A] * dt * dt
-        x[V] += x[A] * dt
         F, Q, qa = self._step_matrices(dt)
-        x[self._ob] *= F[self._ob, self._ob].diagonal()
+        x = self.x
+        # q(t+dt) = q Exp(omega dt + omega_dot dt^2 / 2 [+ jerk dt^3 / 6]): body-frame
+        # increment (eq. 6.5); everything else moves linearly, by F
+        turn = x[W] * dt + x[WD] * (0.5 * dt * dt)
+        if self._ang_jerk.stop > self._ang_jerk.start:
+            turn += x[self._ang_jerk] * (dt**3 / 6.0)
+        self.q = geo.quat_multiply(self.q, geo.rotvec_to_quat(turn))
+        x[3:] = F[3:, 3:] @ x[3:]
         R = geo.quat_to_matrix(self.q)
         self._R = R
         F = F.copy()
         F[TH, W] = R * dt                       # dtheta' = dtheta + R (domega dt + ...)
         F[TH, WD] = R * (0.5 * dt * dt)
+        F[TH, self._ang_jerk] = R[:, : self._ang_jerk.stop - self._ang_jerk.start] * dt**3 / 6.0
         Q = Q.copy()
         # angular chain: dtheta is world-frame, omega and omega_dot body-frame
         Q[TH, W] = qa[0, 1] * R
         Q[TH, WD] = qa[0, 2] * R
         Q[W, TH] = qa[1, 0] * R.T
         Q[WD, TH] = qa[2, 0] * R.T
-        self.P = F @ self.P @ F.T + Q
+        P = F @ self.P @ F.T + Q
+        # the scalar updates subtract outer products; with the stiff jerk states rounding
+        # would otherwise make P drift from symmetric to indefinite within seconds
+        self.P = 0.5 * (P + P.T)
         self.t += dt
         self.stats.time_updates += 1
 
@@ -376,10 +399,16 @@ class FusionEKF:
         if self.n_bias:
             ab = slice(CORE, CORE + self.n_bias)
             Q[ab, ab] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
-        if self._ob.stop > self._ob.start:  # first-order Gauss-Markov, stationary variance
-            decay = math.exp(-dt / cfg.optical_bias_tau_s)
-            F[self._ob, self._ob] = eye * decay
-            Q[self._ob, self._ob] = eye * (cfg.optical_bias_std**2 * (1.0 - decay**2))
+        # the Gauss-Markov states: decay, stationary variance, and what they drive
+        _gauss_markov(F, Q, self._ob, cfg.optical_bias_std, cfg.optical_bias_tau_s, dt)
+        if _gauss_markov(F, Q, self._jerk, cfg.linear_jerk_std, cfg.linear_jerk_tau_s, dt):
+            F[P, self._jerk] = eye * dt**3 / 6.0
+            F[V, self._jerk] = eye * (0.5 * dt * dt)
+            F[A, self._jerk] = eye * dt
+        if _gauss_markov(F, Q, self._ang_jerk, cfg.angular_jerk_std, cfg.angular_jerk_tau_s,
+                         dt):
+            F[W, self._ang_jerk] = eye * (0.5 * dt * dt)
+            F[WD, self._ang_jerk] = eye * dt
         if len(self._step_cache) > 64:
             self._step_cache.clear()
         self._step_cache[key] = (F, Q, qa)
@@ -624,3 +653,25 @@ class FusionEKF:
             self.q /= np.linalg.norm(self.q)
         self._dtheta = np.zeros(3)
         self._R = geo.quat_to_matrix(self.q)
+
+
+def _consecutive(start: int, sizes: list[int]) -> list[slice]:
+    """Slices of the given sizes, one after the other from ``start``."""
+    out = []
+    for n in sizes:
+        out.append(slice(start, start + n))
+        start += n
+    return out
+
+
+def _gauss_markov(F: Array, Q: Array, block: slice, std: float, tau_s: float,
+                  dt: float) -> bool:
+    """First-order Gauss-Markov states over ``dt``: decay ``exp(-dt / tau)``, driving noise
+    that keeps their variance at ``std^2``.  False (and nothing set) for an empty block."""
+    n = block.stop - block.start
+    if n == 0:
+        return False
+    decay = math.exp(-dt / tau_s)
+    F[block, block] = np.eye(n) * decay
+    Q[block, block] = np.eye(n) * (std**2 * (1.0 - decay**2))
+    return True
