@@ -306,13 +306,12 @@ class FusionEKF:
         self.x = np.zeros(self.dim)
         self.x[P] = geo.check_vector(p, "fusion initial position").reshape(3)
         self.x[ab] = bias
-        n_ob = self._ob.stop - self._ob.start
+        n_ob = _size(self._ob)
         diag = np.concatenate([np.zeros(3), [so**2] * 3, [sod**2] * 3, np.zeros(3),
                                [sv**2] * 3, [sa**2] * 3, [cfg.initial_bias_std**2] * self.n_bias,
                                [cfg.optical_bias_std**2] * n_ob,
-                               [cfg.linear_jerk_std**2] * (self._jerk.stop - self._jerk.start),
-                               [cfg.angular_jerk_std**2]
-                               * (self._ang_jerk.stop - self._ang_jerk.start)])
+                               [cfg.linear_jerk_std**2] * _size(self._jerk),
+                               [cfg.angular_jerk_std**2] * _size(self._ang_jerk)])
         P0 = np.diag(diag)
         if self.stats.reinitialised and self.n_bias:
             P0[ab, ab] = self.P[ab, ab]
@@ -350,7 +349,8 @@ class FusionEKF:
         # q(t+dt) = q Exp(omega dt + omega_dot dt^2 / 2 [+ jerk dt^3 / 6]): body-frame
         # increment (eq. 6.5); everything else moves linearly, by F
         turn = x[W] * dt + x[WD] * (0.5 * dt * dt)
-        if self._ang_jerk.stop > self._ang_jerk.start:
+        ang_jerk = _size(self._ang_jerk) > 0
+        if ang_jerk:
             turn += x[self._ang_jerk] * (dt**3 / 6.0)
         self.q = geo.quat_multiply(self.q, geo.rotvec_to_quat(turn))
         x[3:] = F[3:, 3:] @ x[3:]
@@ -359,7 +359,8 @@ class FusionEKF:
         F = F.copy()
         F[TH, W] = R * dt                       # dtheta' = dtheta + R (domega dt + ...)
         F[TH, WD] = R * (0.5 * dt * dt)
-        F[TH, self._ang_jerk] = R[:, : self._ang_jerk.stop - self._ang_jerk.start] * dt**3 / 6.0
+        if ang_jerk:
+            F[TH, self._ang_jerk] = R * (dt**3 / 6.0)
         Q = Q.copy()
         # angular chain: dtheta is world-frame, omega and omega_dot body-frame
         Q[TH, W] = qa[0, 1] * R
@@ -495,8 +496,7 @@ class FusionEKF:
             return True
         self.predict_to(t)
         H = self._pose_jacobian()
-        seen = self.x[P] + self.x[self._ob] if self._ob.stop > self._ob.start else self.x[P]
-        y = np.concatenate([p - seen, geo.quat_to_rotvec(
+        y = np.concatenate([p - H[0:3] @ self.x, geo.quat_to_rotvec(
             geo.quat_multiply(q, geo.quat_conjugate(self.q)))])
         PHt = self.P @ H.T
         d = np.sqrt(np.repeat(self.stats.pose_noise_scale, 3))
@@ -539,7 +539,8 @@ class FusionEKF:
         pose plus, in position, the tracker's bias when the filter models one."""
         H = np.zeros((6, self.dim))
         H[0:3, P] = H[3:6, TH] = np.eye(3)
-        H[0:3, self._ob] = np.eye(3)[:, : self._ob.stop - self._ob.start]
+        if _size(self._ob):
+            H[0:3, self._ob] = np.eye(3)
         return H
 
     def _adapt_pose_noise(self, nis: float, y: Array, S: Array, Rm: Array) -> None:
@@ -655,6 +656,10 @@ class FusionEKF:
         self._R = geo.quat_to_matrix(self.q)
 
 
+def _size(block: slice) -> int:
+    return block.stop - block.start
+
+
 def _consecutive(start: int, sizes: list[int]) -> list[slice]:
     """Slices of the given sizes, one after the other from ``start``."""
     out = []
@@ -668,7 +673,7 @@ def _gauss_markov(F: Array, Q: Array, block: slice, std: float, tau_s: float,
                   dt: float) -> bool:
     """First-order Gauss-Markov states over ``dt``: decay ``exp(-dt / tau)``, driving noise
     that keeps their variance at ``std^2``.  False (and nothing set) for an empty block."""
-    n = block.stop - block.start
+    n = _size(block)
     if n == 0:
         return False
     decay = math.exp(-dt / tau_s)
