@@ -334,6 +334,12 @@ def test_short_eval_measures_gaps_from_the_last_optical_pose():
     assert gap["orientation_per_gap_deg"][0] == pytest.approx(gap["orientation_max_deg"],
                                                               abs=1e-3)
     assert 0 < gap["position_max_mm"] < 50 and gap["recovery_optical_frames_worst"] <= 3
+    # the filter's own 1-sigma after 1 s on the accelerometers: millimetres and about a
+    # degree, of the size of the error it has then
+    (pos_std,), (rot_std,) = gap["filter_position_std_at_end_mm"], \
+        gap["filter_orientation_std_at_end_deg"]
+    assert 1 < pos_std < 50 and 0.2 < rot_std < 3
+    assert 0.2 < gap["orientation_per_gap_deg"][0] / rot_std < 3
     nees = f["nees"]
     assert 1 < nees["autocorrelation_time_s"] * 300 < 0.5 * 6 * 300  # correlated, not all
     lo, hi = nees["bounds_95"]

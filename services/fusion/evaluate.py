@@ -428,13 +428,19 @@ def recovery_figures(rec: Recording, ep: np.ndarray, er: np.ndarray,
 
     Recovered = the fused error is back within RECOVERY_FACTOR times the 95th percentile
     of the normal (no-gap) error and stays there for RECOVERY_HOLD_S.
+
+    Each gap also reports the filter's own standard deviation (position, orientation;
+    root of the covariance's trace) at the end of its L seconds: the error the sensors'
+    noise leaves after L seconds on the accelerometers alone, if the filter is honest
+    there (the ``optical_gap`` NEES says whether it is).
     """
     p_lim = RECOVERY_FACTOR * float(np.percentile(ep[normal], 95))
     r_lim = RECOVERY_FACTOR * float(np.percentile(er[normal], 95))
     by_length: dict[str, dict[str, list[float]]] = {}
     for a, b_sched in gaps:
         length = b_sched - a
-        d = by_length.setdefault(f"{length:g}s", {"pos": [], "rot": [], "rec": [], "out": []})
+        d = by_length.setdefault(f"{length:g}s", {"pos": [], "rot": [], "rec": [], "out": [],
+                                                   "pos_std": [], "rot_std": []})
         k = np.searchsorted(rec.optical_t, a)
         if k == 0:
             continue  # no optical pose before the gap: nothing to coast from
@@ -448,6 +454,9 @@ def recovery_figures(rec: Recording, ep: np.ndarray, er: np.ndarray,
         d["out"].append(b - start)
         d["pos"].append(float(ep[inside].max()))
         d["rot"].append(float(er[inside].max()))
+        end = rec.cov[np.flatnonzero(inside)[-1]]
+        d["pos_std"].append(math.sqrt(float(np.trace(end[:3, :3]))))
+        d["rot_std"].append(math.sqrt(float(np.trace(end[3:, 3:]))))
         d["rec"].append(_recovery_s(rec, ep, er, b, p_lim, r_lim))
     out: dict[str, Any] = {}
     for key, d in by_length.items():
@@ -460,6 +469,9 @@ def recovery_figures(rec: Recording, ep: np.ndarray, er: np.ndarray,
                     "orientation_max_deg": math.degrees(max(d["rot"])),
                     "position_per_gap_mm": [round(1e3 * x, 2) for x in d["pos"]],
                     "orientation_per_gap_deg": [round(math.degrees(x), 3) for x in d["rot"]],
+                    "filter_position_std_at_end_mm": [round(1e3 * x, 2) for x in d["pos_std"]],
+                    "filter_orientation_std_at_end_deg": [round(math.degrees(x), 3)
+                                                          for x in d["rot_std"]],
                     "recovery_s_worst": worst_rec,
                     "recovery_optical_frames_worst": (
                         math.ceil(worst_rec * OPTICAL_HZ + 1e-9)
