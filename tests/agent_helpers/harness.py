@@ -7,8 +7,10 @@ Waits are bounded by both a time limit and the events seen (no sleeps that assum
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -31,7 +33,8 @@ class Proc:
         self.log: list[str] = []
         self._cond = threading.Condition()
         threading.Thread(target=self._read_out, daemon=True).start()
-        threading.Thread(target=self._read_err, daemon=True).start()
+        self._err_reader = threading.Thread(target=self._read_err, daemon=True)
+        self._err_reader.start()
 
     def _read_out(self) -> None:
         for line in self.popen.stdout:
@@ -77,9 +80,22 @@ class Proc:
                         return line
                 left = deadline - time.monotonic()
                 if left <= 0 or self.popen.poll() is not None:
-                    raise AssertionError(f"no line with {text!r}; exit={self.popen.poll()}; "
-                                         f"log tail: {self.log[-15:]}")
+                    break
                 self._cond.wait(min(left, 0.2))
+        raise AssertionError(f"no line with {text!r} within {timeout} s; {self._post_mortem()}")
+
+    def _post_mortem(self) -> str:
+        """Exit status and log tail; a process still running is hung, so it is aborted
+        first and (PYTHONFAULTHANDLER, set by ``spawn``) prints every thread's stack."""
+        status = self.popen.poll()
+        if status is None:
+            self.popen.send_signal(signal.SIGABRT)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.popen.wait(5)
+            self._err_reader.join(2)
+            status = f"hung, aborted ({self.popen.poll()})"
+        with self._cond:
+            return f"exit={status}; log tail: {self.log[-60:]}"
 
     def wait_log(self, text: str, timeout: float = WAIT_S) -> str:
         deadline = time.monotonic() + timeout
@@ -106,7 +122,7 @@ class Proc:
 
 def spawn(processes: Any, args: list[str]) -> Proc:
     """``python ARGS`` with pipes, registered with the ``processes`` fixture."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1",
+    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1",
                PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
     p = subprocess.Popen([sys.executable, *args], env=env, cwd=ROOT, stdin=subprocess.PIPE,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
