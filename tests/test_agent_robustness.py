@@ -209,3 +209,25 @@ def test_agent_cli_errors_and_clean_shutdown(processes, realm, tmp_path) -> None
     assert r.returncode == 1 and "already running" in r.stderr
     host.popen.send_signal(signal.SIGTERM)
     assert host.popen.wait(timeout=20) == 0
+
+
+def test_an_agent_whose_start_stalls_says_so_and_exits() -> None:
+    """A start stuck inside Zenoh (a known deadlock when peers reconnect during start-up)
+    ends the daemon with a message naming it, instead of a silent hang."""
+    import subprocess
+    import sys
+
+    from agent.commands.daemon import STALLED_START
+
+    script = ("import time\n"
+              "from agent.commands import daemon\n"
+              "daemon.START_LIMIT_S = 0.3\n"
+              "class Stuck:\n"
+              "    def start(self):\n"
+              "        time.sleep(30)\n"
+              "daemon._start_or_exit(Stuck())\n")
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 1 and STALLED_START in out.stderr
+    assert time.monotonic() - t0 < 25  # the watchdog, not the 30 s sleep, ended it
