@@ -214,11 +214,11 @@ class FusionEKF:
         self.gravity = np.asarray(gravity, float)
         cfg = self.config
         self.n_bias = accel.count if cfg.estimate_bias else 0
-        # after eq. 6.1's 18 and the accelerometer biases, the optional Gauss-Markov states:
-        # the optical position bias, the linear jerk, the angular jerk (3 each, or none)
-        self._ob, self._jerk, self._ang_jerk = _consecutive(
-            CORE + self.n_bias, [3 * (std > 0) for std in (
-                cfg.optical_bias_std, cfg.linear_jerk_std, cfg.angular_jerk_std)])
+        # after eq. 6.1's 18: the accelerometer biases, then the optional Gauss-Markov
+        # states: the optical position bias, the linear jerk, the angular jerk (3 or none)
+        self._ab, self._ob, self._jerk, self._ang_jerk = _consecutive(
+            CORE, [self.n_bias, *(3 * (std > 0) for std in (
+                cfg.optical_bias_std, cfg.linear_jerk_std, cfg.angular_jerk_std))])
         self.dim = self._ang_jerk.stop
         self.t: float | None = None
         self.q = geo.quat_identity()
@@ -261,7 +261,7 @@ class FusionEKF:
     @property
     def bias(self) -> Array:
         """The accelerometers' residual biases (m/s^2)."""
-        return self.x[CORE:CORE + self.n_bias].copy()
+        return self.x[self._ab].copy()
 
     @property
     def optical_bias(self) -> Array:
@@ -302,7 +302,7 @@ class FusionEKF:
         so, sod, sv, sa, _ = cfg.initial_std
         self.t = float(t)
         self.q = geo.check_quaternion(q, "fusion initial quaternion").reshape(4)
-        ab = slice(CORE, CORE + self.n_bias)
+        ab = self._ab
         bias = self.x[ab].copy()
         self.x = np.zeros(self.dim)
         self.x[P] = geo.check_vector(p, "fusion initial position").reshape(3)
@@ -398,9 +398,7 @@ class FusionEKF:
         for i, si in enumerate((P, V, A)):
             for j, sj in enumerate((P, V, A)):
                 Q[si, sj] = ql[i, j] * eye
-        if self.n_bias:
-            ab = slice(CORE, CORE + self.n_bias)
-            Q[ab, ab] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
+        Q[self._ab, self._ab] = np.eye(self.n_bias) * (cfg.bias_walk**2 * dt)
         # the Gauss-Markov states: decay, stationary variance, and what they drive
         _gauss_markov(F, Q, self._ob, cfg.optical_bias_std, cfg.optical_bias_tau_s, dt)
         if _gauss_markov(F, Q, self._jerk, cfg.linear_jerk_std, cfg.linear_jerk_tau_s, dt):
@@ -440,8 +438,8 @@ class FusionEKF:
         H[WD] = self.accel.cross[j]
         H[A] = Rn
         if self.n_bias:
-            pred += x[CORE + j]
-            H[CORE + j] = 1.0
+            pred += x[self._ab.start + j]
+            H[self._ab.start + j] = 1.0
         return pred, H
 
     def update_accel(self, j: int, reading: float) -> bool:
