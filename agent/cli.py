@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import logging
 import os
 import signal
 import sys
@@ -181,6 +182,9 @@ def _run_service(args: argparse.Namespace) -> int:
                                      description=plugin.help)
     plugins.add_service_arguments(parser, plugin)
     sargs = parser.parse_args(_plugin_args(args))
+    # a service is a daemon like the agent: its status and refusals go to stderr
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
     return plugin.run(sargs, stop_on_signals())
 
 
