@@ -33,6 +33,16 @@ def _set_true_state(ekf: FusionEKF, traj: HeadTrajectory, t: float) -> None:
     ekf.x[12:15], ekf.x[15:18] = s.velocity[0], s.acceleration[0]
 
 
+def _start(f: FusionEKF | FusionTracker, t: float, p, q, cov, **kw) -> None:
+    """Start a filter (or tracker, of rig poses) at ``t``, the head still: two poses."""
+    for ti in (t - 1 / 15, t):
+        if isinstance(f, FusionTracker):
+            assert f.add_rig_pose(ti, p, q, cov, HEAD_TO_LASER_RIG, **kw)
+        else:
+            f.update_pose(ti, p, q, cov)
+    assert (f.ekf if isinstance(f, FusionTracker) else f).start_t == t
+
+
 def test_eq613_matches_the_accelerometer_rigs_own_model():
     """Cross-check with services.accel_rig: the same readings from the rig's kinematics."""
     layout = marvin_six_table_4_1()
@@ -126,7 +136,8 @@ def test_outlier_poses_are_gated_and_persistent_ones_reinitialise():
     for k in range(30):
         t = k / 15
         ekf.update_pose(t, np.zeros(3), q, cov)
-        for i in range(20):
+        assert ekf.initialised == (k > 0)           # two poses start the filter
+        for i in range(20 if k else 0):
             reading = [float(ekf.accel.axes[j] @ -np.array([0, 0, -9.80665]))
                        for j in range(6)]
             ekf.update_accel_sample(t + (i + 1) / 300, reading)
@@ -135,7 +146,104 @@ def test_outlier_poses_are_gated_and_persistent_ones_reinitialise():
     assert not ekf.update_pose(2.1, far, q, cov)
     assert not ekf.update_pose(2.2, far, q, cov)
     assert ekf.update_pose(2.3, far, q, cov)       # third in a row: the optics win
+    # restarted from the last two of them: there, and not moving
     assert np.allclose(ekf.position, far) and ekf.stats.reinitialised == 2
+    assert ekf.start_t == 2.3 and np.allclose(ekf.velocity, 0.0, atol=1e-9)
+
+
+def test_two_poses_start_the_filter_with_their_motion_and_an_honest_covariance():
+    """The difference of two optical poses gives v and omega; what it misses (the rate
+    changes within the interval, the poses' own noise) is in the covariance: over many
+    starts on a moving head the NEES of [omega, v] averages about its 6 dimensions."""
+    traj = HeadTrajectory(7)
+    rng = np.random.default_rng(7)
+    ps, rs = 3e-4, np.radians(0.02)
+    cov = np.diag([ps**2] * 3 + [rs**2] * 3)
+    nees = []
+    for t in np.linspace(1.0, 40.0, 120):
+        ekf = FusionEKF(_model())
+        for ti in (t - 1 / 15, t):
+            p, q = traj.pose(ti)
+            ekf.update_pose(ti, p[0] + rng.normal(0, ps, 3),
+                            geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0]),
+                            cov)
+        s = traj.state(t)
+        e = np.concatenate([ekf.omega - s.omega_body[0], ekf.velocity - s.velocity[0]])
+        idx = np.r_[3:6, 12:15]
+        nees.append(float(e @ np.linalg.solve(ekf.P[np.ix_(idx, idx)], e)))
+    assert 2.0 < np.mean(nees) < 9.0
+
+
+def test_poses_too_far_apart_do_not_start_the_filter():
+    ekf = FusionEKF(_model(), FusionConfig(start_max_gap_s=0.2))
+    cov = np.eye(6) * 1e-6
+    ekf.update_pose(0.0, np.zeros(3), [0, 0, 0, 1], cov)
+    ekf.update_pose(0.5, np.ones(3), [0, 0, 0, 1], cov)       # 0.5 s later: too far
+    assert not ekf.initialised
+    ekf.update_pose(0.6, np.ones(3), [0, 0, 0, 1], cov)       # pairs with the newer one
+    assert ekf.initialised and ekf.start_t == 0.6 and np.allclose(ekf.velocity, 0.0)
+    with pytest.raises(ValueError, match="start_max_gap_s"):
+        FusionConfig(start_max_gap_s=0.0)
+
+
+def test_a_restart_cuts_the_history_a_late_pose_cannot_reach_behind_it():
+    model = _model()
+    tracker = FusionTracker(FusionEKF(model, FusionConfig(max_rejected_poses=2)))
+    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    _start(tracker, 0.0, p, q, cov)
+    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    for i in range(1, 60):
+        tracker.add_accel(i / 300, rest)
+    far = p + np.array([0.5, 0.0, 0.0])
+    assert not tracker.add_rig_pose(0.1, far, q, cov, HEAD_TO_LASER_RIG)
+    assert tracker.add_rig_pose(0.15, far, q, cov, HEAD_TO_LASER_RIG)  # the optics win
+    assert tracker.ekf.start_t == 0.15
+    for i in range(46, 90):
+        tracker.add_accel(i / 300, rest)
+    # a pose from before the restart would rewind into the state the filter gave up on
+    assert not tracker.add_rig_pose(0.12, p, q, cov, HEAD_TO_LASER_RIG)
+    assert tracker.stats.optical_too_old == 1
+    assert np.linalg.norm(tracker.pose()[0] - far) < 0.5
+
+
+def test_a_busy_host_slow_late_optics_and_bursty_accelerometers_stay_on_track():
+    """What ``uma demo`` met on an overloaded CI machine: the laser tracker at 4 Hz, its
+    poses 0.3 s late, the accelerometer samples in bursts up to 0.3 s apart.  A filter
+    started from one pose used to dead-reckon into tens of degrees before the next
+    correction, refuse it at the gate and restart, again and again; and once started it
+    must end up where the same data in time order takes it."""
+    traj = HeadTrajectory(3)
+    device, cal = fe.calibrated_accelerometers(300.0, 3)
+    run = accel_sim.simulate(traj, 8.0, seed=3, sensor=device, calibration=cal)
+    rng = np.random.default_rng(3)
+    cov = geo.covariance_from_std(np.zeros(3), 3e-4, np.radians(0.02))
+    frames = np.arange(0.0, 8.0, 0.25) + rng.uniform(0, 0.05, 32)
+    bursts = np.cumsum(rng.uniform(0.02, 0.3, 100))      # when the host lets samples out
+    released = bursts[np.searchsorted(bursts, run.t)]
+
+    def run_with(optical_delay, accel_arrival):
+        tracker = FusionTracker(FusionEKF(fe.accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, 0.005)))
+        arrivals = sorted([(f + optical_delay, 0, f) for f in frames]
+                          + [(accel_arrival[i] + 1e-6, 1, i) for i in range(run.t.size)])
+        errors = []
+        for now, kind, x in arrivals:
+            if kind == 0:
+                p, q = geo.compose(*[a[0] for a in traj.pose(x)], *HEAD_TO_LASER_RIG)
+                tracker.add_rig_pose(x, p, q, cov, HEAD_TO_LASER_RIG, now=now)
+            elif tracker.add_accel(run.t[x], run.accel[x], now=now):
+                pt, qt = traj.pose(tracker.ekf.t)
+                errors.append(geo.pose_error(*tracker.pose(), pt[0], qt[0]))
+        return tracker, np.array(errors).T
+
+    in_order, (ep, er) = run_with(0.0, run.t)
+    assert in_order.ekf.stats.reinitialised == 1 and in_order.ekf.stats.pose_updates > 25
+    assert np.median(ep) < 1e-3 and np.degrees(np.median(er)) < 0.1
+    busy, (ep, er) = run_with(0.3, released)
+    assert busy.ekf.stats.reinitialised == 1 and busy.stats.optical_late > 25
+    assert np.median(ep) < 2e-3 and np.degrees(np.median(er)) < 0.3
+    e_p, e_r = geo.pose_error(*in_order.pose(), *busy.pose())
+    assert e_p < 1e-6 and e_r < 1e-6
 
 
 def test_late_optical_poses_give_the_same_result_as_in_order():
@@ -158,7 +266,7 @@ def test_late_optical_poses_give_the_same_result_as_in_order():
         while k < len(frames) and frames[k] <= t:
             p, q = optical(frames[k])
             in_order.add_rig_pose(frames[k], p, q, cov, HEAD_TO_LASER_RIG)
-            if k == 0:   # the first pose starts both filters at the same instant
+            if k <= 1:   # the first two poses start both filters at the same instant
                 late.add_rig_pose(frames[k], p, q, cov, HEAD_TO_LASER_RIG)
             else:
                 pending.append((t + 0.04, frames[k], p, q))   # arrives 40 ms late
@@ -181,7 +289,7 @@ def test_bad_input_is_refused_with_a_reason():
         ekf.pose()
     with pytest.raises(ValueError, match="before initialisation"):
         ekf.predict_to(1.0)
-    ekf.update_pose(1.0, np.zeros(3), [0, 0, 0, 1], np.eye(6) * 1e-6)
+    _start(ekf, 1.0, np.zeros(3), [0, 0, 0, 1], np.eye(6) * 1e-6)
     with pytest.raises(ValueError, match="not all finite"):
         ekf.update_accel_sample(1.01, [0, 0, np.nan, 0, 0, 0])
     with pytest.raises(ValueError, match="the model has 6"):
@@ -200,10 +308,12 @@ def test_pose_covariance_is_symmetric_positive_and_in_xi_form():
     ekf = FusionEKF(_model())
     p = np.array([0.5, -0.2, 0.4])
     C = np.diag([1e-4, 2e-4, 3e-4, 1e-5, 2e-5, 3e-5])
-    ekf.update_pose(0.0, p, [0, 0, 0, 1], C)
+    _start(ekf, 0.0, p, [0, 0, 0, 1], C)
     out = ekf.pose_covariance()
     assert np.allclose(out, out.T) and np.all(np.linalg.eigvalsh(out) > 0)
-    assert np.allclose(geo.se3_to_decoupled(p, out), C, atol=1e-12)
+    idx = np.r_[9:12, 0:3]
+    assert np.allclose(geo.se3_to_decoupled(p, out), ekf.P[np.ix_(idx, idx)], atol=1e-12)
+    assert np.all(np.diag(ekf.P[np.ix_(idx, idx)]) < np.diag(C))   # two poses fused
 
 
 def test_autocorrelation_time_of_known_series():
@@ -249,8 +359,8 @@ def test_live_fusion_builds_from_attributes_and_publishes():
     live.on_accel(accel)
     assert live.tracker is not None and not published   # waits for the optics
     p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    live.on_optical(SimpleNamespace(t_ns=1_002_000_000, position=p, quaternion=q,
-                                    covariance=None))
+    for t_ns in (1_001_000_000, 1_002_000_000):     # two poses start the filter
+        live.on_optical(SimpleNamespace(t_ns=t_ns, position=p, quaternion=q, covariance=None))
     reading = [float(n @ [0, 0, 9.80665]) for n in live.tracker.ekf.accel.axes]
     for i in range(10):
         live.on_accel(SimpleNamespace(t_ns=1_005_000_000 + i * 3_333_333,
@@ -270,7 +380,7 @@ def test_optical_pose_older_than_the_history_is_dropped_not_applied():
     tracker = FusionTracker(FusionEKF(model), history_s=0.1)
     cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
     p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    assert tracker.add_rig_pose(0.0, p, q, cov, HEAD_TO_LASER_RIG)
+    _start(tracker, 0.0, p, q, cov)
     rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
     for i in range(1, 120):
         tracker.add_accel(i / 300, rest)
@@ -286,7 +396,7 @@ def test_a_lagging_inertial_stream_stays_the_clock_and_a_stalled_one_is_bypassed
     cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
     p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
     rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
-    tracker.add_rig_pose(0.0, p, q, cov, HEAD_TO_LASER_RIG, now=0.0)
+    _start(tracker, 0.0, p, q, cov, now=0.0)
     accepted = 0
     for i in range(1, 300):              # accelerometers arrive 0.3 s behind the optics
         wall = i / 300 + 0.3
@@ -355,13 +465,14 @@ def test_optical_covariance_is_matched_per_block():
     """A tracker that overstates its rotation noise 4x gets that block scaled down, never
     below half (the NIS cannot tell overstated noise from persistent errors), while its
     honest position block stays; one that understates its position noise gets that block
-    scaled up."""
+    scaled up towards the truth."""
     ps, rs = OPT_STD
     *_, ekf = _simulate(12.0, seed=3, optical_noise=(ps, rs / 4), claimed=(ps, rs))
     pos_scale, rot_scale = ekf.stats.pose_noise_scale
     assert 0.7 < pos_scale < 1.3 and 0.5 <= rot_scale < 0.8
-    *_, ekf = _simulate(12.0, seed=3, optical_noise=(4 * ps, rs), claimed=(ps, rs))
-    assert ekf.stats.pose_noise_scale[0] > 1.2  # rising (slowly: the optics are 1 in 15)
+    # 2x understated (4x in variance): far enough to show, near enough for the gate
+    *_, ekf = _simulate(12.0, seed=3, optical_noise=(2 * ps, rs), claimed=(ps, rs))
+    assert 2.0 < ekf.stats.pose_noise_scale[0] < 6.0
 
 
 def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():

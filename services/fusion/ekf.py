@@ -137,7 +137,13 @@ class FusionConfig:
     accel_gate: float = CHI2_999[1]
     pose_gate: float = CHI2_999[6]
     dot_gate: float = CHI2_999[2]
-    max_rejected_poses: int = 3          # then the optical pose re-initialises the filter
+    max_rejected_poses: int = 3          # then the optical poses re-initialise the filter
+    #: the filter starts from two optical poses at most this far apart (s): their difference
+    #: gives the velocity and angular velocity.  From one pose alone the motion is unknown,
+    #: and the first tenths of a second of dead reckoning turn a head's 1-2 rad/s into tens
+    #: of degrees of tilt, so gravity leaks into the position before a slow or late optical
+    #: stream (a busy host) corrects it -- and the gate then refuses every correction.
+    start_max_gap_s: float = 0.5
     #: scale the optical covariance's position and rotation blocks so that each block's NIS
     #: averages 3 (see ``_adapt_pose_noise``)
     adapt_pose_noise: bool = True
@@ -161,7 +167,7 @@ class FusionConfig:
     def __post_init__(self) -> None:
         for name in ("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
                      "max_step_s", "initial_bias_std", "optical_bias_tau_s",
-                     "linear_jerk_tau_s", "angular_jerk_tau_s"):
+                     "linear_jerk_tau_s", "angular_jerk_tau_s", "start_max_gap_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"fusion config: {name} must be positive, got {value!r}")
@@ -175,6 +181,16 @@ class FusionConfig:
 
 
 @dataclass(frozen=True)
+class OpticalPose:
+    """A head pose from the optics, kept to start the filter from (with the next one)."""
+
+    t: float
+    p: Array
+    q: Array
+    cov: Array  # over [dp, dtheta]
+
+
+@dataclass(frozen=True)
 class FilterState:
     """A copy of everything the filter estimates, to rewind to (late measurements)."""
 
@@ -183,6 +199,7 @@ class FilterState:
     x: Array
     P: Array
     rejected_in_row: int
+    last_rejected: OpticalPose | None
 
 
 @dataclass
@@ -228,6 +245,9 @@ class FusionEKF:
         self.P = np.eye(self.dim)
         self.stats = FusionStats()
         self._rejected_in_row = 0
+        #: the newest optical pose that was not used: the candidate to start from
+        self._last_rejected: OpticalPose | None = None
+        self.start_t: float | None = None  # when the filter last (re)started
         self._R = geo.quat_to_matrix(self.q)
         self._dtheta = np.zeros(3)
         self._step_cache: dict[float, tuple[Array, Array, Array]] = {}
@@ -286,12 +306,13 @@ class FusionEKF:
 
     def snapshot(self) -> FilterState:
         return FilterState(self.t, self.q.copy(), self.x.copy(), self.P.copy(),
-                           self._rejected_in_row)
+                           self._rejected_in_row, self._last_rejected)
 
     def restore(self, s: FilterState) -> None:
         """Go back to a snapshot (statistics keep counting)."""
         self.t, self.q, self.x, self.P = s.t, s.q.copy(), s.x.copy(), s.P.copy()
         self._rejected_in_row = s.rejected_in_row
+        self._last_rejected = s.last_rejected
         self._R = geo.quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ initialisation
@@ -327,6 +348,42 @@ class FusionEKF:
         self._R = geo.quat_to_matrix(self.q)
         self.stats.reinitialised += 1
         self._rejected_in_row = 0
+        self._last_rejected = None
+        self.start_t = self.t
+
+    def start_from_poses(self, a: OpticalPose, b: OpticalPose) -> None:
+        """Start from two poses: at their midpoint with the motion between them, then ``b``.
+
+        A difference quotient is the rate at the interval's midpoint to second order: its
+        error there is the jerk times dt^2 / 24, where at either end it is the acceleration
+        times dt / 2 -- ten times more at 4 Hz, and the accelerometers' omega_dot cannot
+        tell how much of that to remove.  So the filter starts at the midpoint
+        (``v = (p_b - p_a) / dt``, ``w = R^T (theta_b - theta_a) / dt`` in body axes, the
+        pose halfway, off by the acceleration times dt^2 / 8), and the motion model carries
+        it to ``b``, whose pose is then an ordinary update.
+        """
+        dt = b.t - a.t
+        if not dt > 0:
+            raise ValueError(f"fusion: a start needs two poses in time order, got {a.t} and {b.t}")
+        cfg = self.config
+        _, sod, _, sa, _ = cfg.initial_std
+        q_mid = geo.slerp(a.q, b.q, 0.5)
+        self.initialise(a.t + 0.5 * dt, 0.5 * (a.p + b.p), q_mid, 0.25 * (a.cov + b.cov))
+        R = self._R
+        self.x[W] = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_conjugate(a.q), b.q)) / dt
+        self.x[V] = (b.p - a.p) / dt
+        eye = np.eye(3)
+        blocks = ((P, V, 0, eye, sa, cfg.linear_jerk_std, cfg.linear_jerk_psd),
+                  (TH, W, 3, R, sod, cfg.angular_jerk_std, cfg.angular_jerk_psd))
+        for pos, rate, k, rot, s_acc, s_jerk, psd in blocks:  # rot: the rate's axes
+            ca, cb = a.cov[k:k + 3, k:k + 3], b.cov[k:k + 3, k:k + 3]
+            jerk = s_jerk or math.sqrt(psd / dt)   # white jerk averaged over the interval
+            self.P[pos, pos] += eye * (s_acc * dt * dt / 8) ** 2
+            self.P[pos, rate] = (cb - ca) @ rot / (2 * dt)
+            self.P[rate, pos] = self.P[pos, rate].T
+            self.P[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
+        self.update_pose(b.t, b.p, b.q, b.cov)
+        self.start_t = b.t
 
     # ------------------------------------------------------------------ time update
 
@@ -483,15 +540,16 @@ class FusionEKF:
     def update_pose(self, t: float, p: Array, q: Array, cov_decoupled: Array) -> bool:
         """Absolute head pose (world) with its covariance over ``[dp, dtheta]``; False if gated.
 
-        The first pose initialises the filter.  A pose far outside the predicted
-        uncertainty is rejected (Mahalanobis gate); after ``max_rejected_poses`` rejections in
-        a row the filter trusts the optics again and re-initialises from it.
+        The first two poses close enough in time start the filter (``start_max_gap_s``).  A
+        pose far outside the predicted uncertainty is rejected (Mahalanobis gate); after
+        ``max_rejected_poses`` rejections in a row the filter trusts the optics again and
+        restarts from the last two of them.
         """
         p = geo.check_vector(p, "optical position").reshape(3)
         q = geo.check_quaternion(q, "optical quaternion").reshape(4)
         Rm = geo.check_covariance(cov_decoupled, "optical covariance")
         if not self.initialised:
-            self.initialise(t, p, q, Rm)
+            self._start_with(OpticalPose(float(t), p, q, Rm))
             return True
         self.predict_to(t)
         H = self._pose_jacobian()
@@ -507,11 +565,15 @@ class FusionEKF:
         if nis > self.config.pose_gate:
             self.stats.pose_rejected += 1
             self._rejected_in_row += 1
+            pose = OpticalPose(float(t), p, q, Rm)
             if self._rejected_in_row >= self.config.max_rejected_poses:
-                self.initialise(t, p, q, Rm)
+                self.t = self.start_t = None     # the optics win: start again from them
+                self._start_with(pose)
                 return True
+            self._last_rejected = pose
             return False
         self._rejected_in_row = 0
+        self._last_rejected = None
         K = np.linalg.solve(S, PHt.T).T
         self._inject(K @ y)
         # Joseph form: the 6-D update is large enough for rounding to matter
@@ -519,6 +581,18 @@ class FusionEKF:
         self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
         self.stats.pose_updates += 1
         return True
+
+    def _start_with(self, pose: OpticalPose) -> None:
+        """Start from ``pose`` and the previous unused one if they are close enough in time;
+        otherwise keep the newer as the candidate and stay uninitialised."""
+        prev, self._last_rejected = self._last_rejected, pose
+        if prev is None:
+            return
+        a, b = sorted((prev, pose), key=lambda e: e.t)
+        if 0 < b.t - a.t <= self.config.start_max_gap_s:
+            self.start_from_poses(a, b)
+        else:
+            self._last_rejected = b
 
     def update_rig_pose(self, t: float, p_rig: Array, q_rig: Array, cov_rig_se3: Array,
                         mount: tuple[Array, Array]) -> bool:

@@ -7,6 +7,10 @@ own delays.  The accelerometer stream is the filter's clock:
   detection) rewinds to the last snapshot before it, is applied at its time, and the
   accelerometer samples after it are replayed -- the fused output never waits for the
   optics;
+* a (re)start of the filter (the first optical poses, or the optics overruling the gate)
+  cuts the history: nothing is rewound across it, since the state before it is the one
+  the filter gave up on, but the accelerometer samples after it (kept while the filter
+  waited for its second pose) are replayed;
 * an optical pose newer than the filter (the accelerometer samples of that instant are
   still on their way: a busy or distant inertial service lags) waits until the inertial
   stream reaches its time; only when no accelerometer sample has *arrived* for
@@ -33,8 +37,12 @@ from services.fusion.ekf import FilterState, FusionEKF
 HISTORY_S = 0.5
 #: snapshot every this many accelerometer samples (replay cost vs memory)
 SNAPSHOT_EVERY = 8
-#: without an accelerometer sample for this long (wall clock), optical poses go in alone
-MAX_WAIT_S = 0.1
+#: without an accelerometer sample for this long (wall clock), optical poses go in alone.
+#: The output follows the accelerometers, so waiting costs no fused pose; giving up too
+#: early costs many: on a busy host the inertial stream arrives in bursts, and once an
+#: optical pose has moved the filter ahead every sample behind it is dropped (seen with
+#: 0.1 s: two thirds of a lagging stream lost)
+MAX_WAIT_S = 0.5
 
 
 @dataclass
@@ -61,6 +69,7 @@ class FusionTracker:
         self._last_accel_wall = -math.inf
         self._samples: deque[tuple[float, float, np.ndarray]] = deque()  # (motion t, t, a)
         self._snapshots: deque[FilterState] = deque()
+        self._start_t: float | None = None   # the filter start the history belongs to
 
     def add_accel(self, t: float, readings: np.ndarray, now: float | None = None) -> bool:
         """One accelerometer sample (all axes) taken at ``t``; False before initialisation
@@ -68,14 +77,17 @@ class FusionTracker:
         ekf = self.ekf
         readings = np.asarray(readings, float).reshape(-1)
         self._last_accel_wall = time.monotonic() if now is None else now
-        if not ekf.initialised:
-            return False
         motion_t = t - ekf.accel.latency_s
+        if not ekf.initialised:   # kept for the start, which may lie before them
+            if not self._samples or motion_t > self._samples[-1][0]:
+                self._samples.append((motion_t, t, readings))
+                self._forget(motion_t - self.history_s)
+            return False
         if motion_t < ekf.t:
             return False
         while self._pending and self._pending[0][0] <= motion_t:
             self._apply_now(*self._pending.pop(0))
-        if motion_t < ekf.t:
+        if not ekf.initialised or motion_t < ekf.t:
             return False
         ekf.update_accel_sample(t, readings)
         self._samples.append((motion_t, t, readings))
@@ -116,19 +128,40 @@ class FusionTracker:
         after = [s for s in replay if s[0] > t]
         for _, t_s, a in before:
             ekf.update_accel_sample(t_s, a)
+        self.stats.replayed_samples += len(before)
         ok = ekf.update_rig_pose(t, p, q, cov_se3, mount)
-        self._snapshot()
-        for i, (_, t_s, a) in enumerate(after):
-            ekf.update_accel_sample(t_s, a)
-            if (i + 1) % SNAPSHOT_EVERY == 0:
-                self._snapshot()
-        self.stats.replayed_samples += len(replay)
+        if not self._new_start():
+            self._snapshot()
+            self._replay(after)
         return ok
 
     def _apply_now(self, t: float, pose: tuple) -> bool:
         ok = self.ekf.update_rig_pose(t, *pose)
-        self._snapshot()
+        if not self._new_start() and self.ekf.initialised:
+            self._snapshot()
         return ok
+
+    def _new_start(self) -> bool:
+        """After a (re)start the history begins again there, and the samples after it are
+        replayed; True if there was one."""
+        if self.ekf.start_t == self._start_t:
+            return False
+        self._start_t = self.ekf.start_t
+        self._snapshots.clear()
+        if self.ekf.initialised:
+            after = [s for s in self._samples if s[0] > self.ekf.t]
+            self._samples.clear()
+            self._snapshot()
+            self._samples.extend(after)
+            self._replay(after)
+        return True
+
+    def _replay(self, samples: list[tuple[float, float, np.ndarray]]) -> None:
+        for i, (_, t_s, a) in enumerate(samples):
+            self.ekf.update_accel_sample(t_s, a)
+            if (i + 1) % SNAPSHOT_EVERY == 0:
+                self._snapshot()
+        self.stats.replayed_samples += len(samples)
 
     def pose(self, horizon_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         return self.ekf.pose(horizon_s)
