@@ -497,6 +497,20 @@ def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
     assert np.sqrt(np.mean(ep_b[late] ** 2)) < np.sqrt(np.mean(ep[late] ** 2)) + ps
 
 
+def test_eval_what_if_accel_noise_reaches_the_device_and_the_filter_model():
+    from dataclasses import replace
+
+    quiet = replace(accel_sim.default_device(), noise_density_v=10e-6)
+    _, cal = fe.calibrated_accelerometers(300.0, 1, quiet)
+    _, cal_marvin = fe.calibrated_accelerometers(300.0, 1)
+    assert cal.noise.density_v == 10e-6
+    assert np.all(cal.accel_var(300.0) < 0.5 * cal_marvin.accel_var(300.0))
+    args = SimpleNamespace(gaps="1", horizon_ms=20.0, no_cache=False, optical="pose",
+                           accel_noise_uv=-1.0, seconds=9.0, seed=1)
+    with pytest.raises(ValueError, match="--accel-noise-uv"):
+        fe.run(args)
+
+
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),
                                         (["--optical-bias-tau-s", "0"], "--optical-bias-tau-s"),
                                         (["--model-floor", "nan"], "--model-floor")])

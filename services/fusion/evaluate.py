@@ -27,7 +27,7 @@ import argparse
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,7 @@ from agent.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from services.accel_rig import calibration as accel_cal
+from services.accel_rig import sensor as accel_sensor
 from services.accel_rig import simulator as accel_sim
 from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
 from services.sim import mounts
@@ -73,9 +74,11 @@ def simulation_graph() -> Graph:
     return g
 
 
-def calibrated_accelerometers(rate_hz: float, seed: int) -> tuple[Any, Any]:
-    """The simulated device and its calibration from six static orientations (§4.4.2)."""
-    device = accel_sim.default_device()
+def calibrated_accelerometers(rate_hz: float, seed: int,
+                               device: Any = None) -> tuple[Any, Any]:
+    """The simulated device (MARVIN's by default) and its calibration from six static
+    orientations (§4.4.2)."""
+    device = device or accel_sim.default_device()
     recordings = [
         accel_cal.StaticRecording(
             accel_sim.axis_down_quaternion(label),
@@ -196,7 +199,7 @@ class Recording:
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
                config: FusionConfig, model_floor: float, cache: bool,
-               dots: bool = False) -> Recording:
+               dots: bool = False, device: Any = None) -> Recording:
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
@@ -208,7 +211,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     world = IvyWorld(seed=seed)
     head_to_accel, head_to_laser = static_mounts(simulation_graph())
     rate = accel_sim.DEFAULT_RATE_HZ
-    device, cal = calibrated_accelerometers(rate, seed)
+    device, cal = calibrated_accelerometers(rate, seed, device)
     accel = accel_sim.simulate(world.trajectory, seconds, rate, seed=seed, sensor=device,
                                calibration=cal)
     tracker = LaserTracker(laser_calibration(world, cache))
@@ -496,14 +499,16 @@ def _recovery_s(rec: Recording, ep: np.ndarray, er: np.ndarray, b: float, p_lim:
 
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
              config: FusionConfig | None = None, model_floor: float = 0.005,
-             cache: bool = True, dots: bool = False) -> dict[str, Any]:
-    """Run the simulated MARVIN once and compute every figure."""
+             cache: bool = True, dots: bool = False, device: Any = None) -> dict[str, Any]:
+    """Run the simulated MARVIN once and compute every figure (``device``: another
+    simulated accelerometer device than MARVIN's)."""
     if seconds < WARMUP_S + 2.0:
         raise ValueError(f"--seconds must be at least {WARMUP_S + 2.0:g} (warm-up "
                          f"{WARMUP_S:g} s plus some tracking)")
     gaps = gap_schedule(seconds, gap_lengths)
+    device = device or accel_sim.default_device()
     rec = run_fusion(seconds, seed, gaps, horizon_s, config or FusionConfig(), model_floor,
-                     cache, dots)
+                     cache, dots, device)
     if rec.t.size == 0:
         raise ValueError("fusion never started: the laser tracker found no pose")
     traj = IvyWorld(seed=seed).trajectory
@@ -517,6 +522,7 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     ep, er = geo.pose_error(rec.p, rec.q, p_true, q_true)
     figures: dict[str, Any] = {
         "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
+        "accel_noise_uv_per_sqrt_hz": 1e6 * device.noise_density_v,
         "output_rate_hz": float(rec.t.size / (rec.t[-1] - rec.t[0])),
         "optical_poses": int(rec.optical_t.size),
         "optical_failures": rec.optical_failures,
@@ -571,8 +577,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--gaps: gap lengths must be positive seconds, got {args.gaps!r}")
     if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
+    device = accel_sim.default_device()
+    if args.accel_noise_uv is not None:
+        if not (math.isfinite(args.accel_noise_uv) and 0 <= args.accel_noise_uv <= 1000):
+            raise ValueError(f"--accel-noise-uv must be within 0..1000, got "
+                             f"{args.accel_noise_uv!r}")
+        device = replace(device, noise_density_v=args.accel_noise_uv * 1e-6)
     return evaluate(float(args.seconds), int(args.seed), lengths, args.horizon_ms / 1e3,
-                    cache=not args.no_cache, dots=args.optical == "dots")
+                    cache=not args.no_cache, dots=args.optical == "dots", device=device)
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -585,6 +597,11 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="optical update: the tracker's pose (default) or SCAAT with "
                              "each labeled laser dot (predicted dot = beam of the predicted "
                              "pose intersected with the wall)")
+    parser.add_argument("--accel-noise-uv", type=float, default=None, metavar="UV",
+                        help="what-if: the accelerometers' analog noise density in "
+                             "uV/sqrt(Hz) instead of the simulated MARVIN's "
+                             f"{1e6 * accel_sensor.NOISE_DENSITY_V:g} (appendix C gives none; "
+                             "the signal chain alone suggests 6-19)")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")
