@@ -207,6 +207,26 @@ def test_a_restart_cuts_the_history_a_late_pose_cannot_reach_behind_it():
     assert np.linalg.norm(tracker.pose()[0] - far) < 0.5
 
 
+def test_without_optics_the_output_stops_after_max_coast_and_the_optics_restart_it():
+    """Inertial-only poses for ``max_coast_s`` after the last optical pose, then none (the
+    sample says why) until two optical poses start the filter again."""
+    model = _model()
+    tracker = FusionTracker(FusionEKF(model), max_coast_s=0.5)
+    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    _start(tracker, 0.0, p, q, cov)
+    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    published = [tracker.add_accel(i / 300, rest) for i in range(1, 300)]
+    assert all(published[:150]) and not any(published[152:])   # 0.5 s, then nothing
+    assert "no optical measurement for over 0.5 s" in tracker.refusal
+    assert tracker.stats.coast_stops == 1 and not tracker.ekf.initialised
+    _start(tracker, 1.05, p, q, cov)
+    assert tracker.add_accel(1.06, rest) and tracker.stats.coast_stops == 1
+    assert np.linalg.norm(tracker.pose()[0]) < 1e-3
+    with pytest.raises(ValueError, match="max_coast_s"):
+        FusionTracker(FusionEKF(model), max_coast_s=float("nan"))
+
+
 def test_a_busy_host_slow_late_optics_and_bursty_accelerometers_stay_on_track():
     """What ``uma demo`` met on an overloaded CI machine: the laser tracker at 4 Hz, its
     poses 0.3 s late, the accelerometer samples in bursts up to 0.3 s apart.  A filter
@@ -513,7 +533,8 @@ def test_eval_what_if_accel_noise_reaches_the_device_and_the_filter_model():
 
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),
                                         (["--optical-bias-tau-s", "0"], "--optical-bias-tau-s"),
-                                        (["--model-floor", "nan"], "--model-floor")])
+                                        (["--model-floor", "nan"], "--model-floor"),
+                                        (["--max-coast-s", "0"], "--max-coast-s")])
 def test_service_refuses_bad_noise_flags_by_name(argv, flag):
     import argparse
     import threading

@@ -200,6 +200,7 @@ class FilterState:
     P: Array
     rejected_in_row: int
     last_rejected: OpticalPose | None
+    last_optical_t: float | None
 
 
 @dataclass
@@ -248,6 +249,7 @@ class FusionEKF:
         #: the newest optical pose that was not used: the candidate to start from
         self._last_rejected: OpticalPose | None = None
         self.start_t: float | None = None  # when the filter last (re)started
+        self.last_optical_t: float | None = None  # the newest optical measurement it used
         self._R = geo.quat_to_matrix(self.q)
         self._dtheta = np.zeros(3)
         self._step_cache: dict[float, tuple[Array, Array, Array]] = {}
@@ -306,13 +308,14 @@ class FusionEKF:
 
     def snapshot(self) -> FilterState:
         return FilterState(self.t, self.q.copy(), self.x.copy(), self.P.copy(),
-                           self._rejected_in_row, self._last_rejected)
+                           self._rejected_in_row, self._last_rejected, self.last_optical_t)
 
     def restore(self, s: FilterState) -> None:
         """Go back to a snapshot (statistics keep counting)."""
         self.t, self.q, self.x, self.P = s.t, s.q.copy(), s.x.copy(), s.P.copy()
         self._rejected_in_row = s.rejected_in_row
         self._last_rejected = s.last_rejected
+        self.last_optical_t = s.last_optical_t
         self._R = geo.quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ initialisation
@@ -349,7 +352,14 @@ class FusionEKF:
         self.stats.reinitialised += 1
         self._rejected_in_row = 0
         self._last_rejected = None
-        self.start_t = self.t
+        self.start_t = self.last_optical_t = self.t
+
+    def stop(self) -> None:
+        """Forget the state (keeping what was learnt of the accelerometer biases): the next
+        optical poses start the filter again, as at the beginning."""
+        self.t = self.start_t = self.last_optical_t = None
+        self._last_rejected = None
+        self._rejected_in_row = 0
 
     def start_from_poses(self, a: OpticalPose, b: OpticalPose) -> None:
         """Start from two poses: at their midpoint with the motion between them, then ``b``.
@@ -567,7 +577,9 @@ class FusionEKF:
             self._rejected_in_row += 1
             pose = OpticalPose(float(t), p, q, Rm)
             if self._rejected_in_row >= self.config.max_rejected_poses:
-                self.t = self.start_t = None     # the optics win: start again from them
+                previous = self._last_rejected
+                self.stop()                      # the optics win: start again from them
+                self._last_rejected = previous
                 self._start_with(pose)
                 return True
             self._last_rejected = pose
@@ -580,6 +592,7 @@ class FusionEKF:
         I_KH = np.eye(self.dim) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
         self.stats.pose_updates += 1
+        self.last_optical_t = self.t
         return True
 
     def _start_with(self, pose: OpticalPose) -> None:
@@ -701,6 +714,7 @@ class FusionEKF:
         self.P = self.P - K @ H @ self.P
         self.P = 0.5 * (self.P + self.P.T)
         self.stats.dot_updates += 1
+        self.last_optical_t = self.t
         return True
 
     # ------------------------------------------------------------------ internals

@@ -34,7 +34,7 @@ import numpy as np
 from agent.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
-from services.fusion.tracker import FusionTracker
+from services.fusion.tracker import MAX_COAST_S, FusionTracker
 from services.sim import mounts
 
 log = logging.getLogger("uma.fusion")
@@ -64,6 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the tracker's errors are white (default)")
     parser.add_argument("--optical-bias-tau-s", type=float, default=30.0,
                         help="how long that error persists, seconds (default 30)")
+    parser.add_argument("--max-coast-s", type=float, default=MAX_COAST_S,
+                        help="publish accelerometer-only poses for at most this long after "
+                             "the last optical pose, then none until the optics return "
+                             f"(default {MAX_COAST_S:g} s)")
 
 
 class LiveFusion:
@@ -72,8 +76,10 @@ class LiveFusion:
     the SDK's single dispatch thread, so there is no locking."""
 
     def __init__(self, horizon_s: float, model_floor: float,
-                 publish: Any = None, config: FusionConfig | None = None):
+                 publish: Any = None, config: FusionConfig | None = None,
+                 max_coast_s: float = MAX_COAST_S):
         self.horizon_s = horizon_s
+        self.max_coast_s = max_coast_s
         self.model_floor = model_floor
         self.publish = publish
         self.config = config or FusionConfig()
@@ -113,7 +119,7 @@ class LiveFusion:
         assert self.tracker is not None
         t = self._seconds(m.t_ns)
         if not self.tracker.add_accel(t, np.asarray(m.values, float)):
-            self._drop("accel before the first optical pose or out of order")
+            self._drop(self.tracker.refusal)
             return
         if self.publish is not None:
             p, q = self.tracker.pose(self.horizon_s)
@@ -156,7 +162,8 @@ class LiveFusion:
         if model.count != len(m.values):
             self._drop(f"accel sample has {len(m.values)} readings, calibration {model.count}")
             return False
-        self.tracker = FusionTracker(FusionEKF(model, self.config))
+        self.tracker = FusionTracker(FusionEKF(model, self.config),
+                                     max_coast_s=self.max_coast_s)
         log.info("fusion: %d accelerometers, latency %.1f ms; waiting for the optics",
                  model.count, 1e3 * model.latency_s)
         return True
@@ -210,9 +217,12 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         raise ValueError(f"--optical-bias-mm must be >= 0, got {args.optical_bias_mm!r}")
     if not (math.isfinite(args.optical_bias_tau_s) and args.optical_bias_tau_s > 0):
         raise ValueError(f"--optical-bias-tau-s must be positive, got {args.optical_bias_tau_s!r}")
+    if not (math.isfinite(args.max_coast_s) and args.max_coast_s > 0):
+        raise ValueError(f"--max-coast-s must be positive seconds, got {args.max_coast_s!r}")
     config = FusionConfig(optical_bias_std=args.optical_bias_mm / 1e3,
                           optical_bias_tau_s=args.optical_bias_tau_s)
-    live = LiveFusion(args.horizon_ms / 1e3, args.model_floor, config=config)
+    live = LiveFusion(args.horizon_ms / 1e3, args.model_floor, config=config,
+                      max_coast_s=args.max_coast_s)
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         out = svc.ability("head", type="pose6d", edge=(args.world, args.head),

@@ -16,7 +16,11 @@ own delays.  The accelerometer stream is the filter's clock:
   stream reaches its time; only when no accelerometer sample has *arrived* for
   ``max_wait_s`` of wall-clock time (the inertial stream stalled) is it applied at once.
   Judging the stall by arrival, not by timestamps, keeps a lagging inertial stream the
-  clock instead of locking it out.
+  clock instead of locking it out;
+* without any optical measurement for ``max_coast_s`` the filter stops: the accelerometers
+  alone are good for about a second (seed 003 §6), after that the pose is a guess, and a
+  client is better told "no pose" than given one off by decimetres.  The next two optical
+  poses start it again.
 
 Pure computation (no I/O): the fusion service feeds it from its need callbacks.
 """
@@ -43,6 +47,10 @@ SNAPSHOT_EVERY = 8
 #: optical pose has moved the filter ahead every sample behind it is dropped (seen with
 #: 0.1 s: two thirds of a lagging stream lost)
 MAX_WAIT_S = 0.5
+#: inertial-only output for at most this long after the last optical measurement (s).  The
+#: simulated MARVIN is off by up to 2 cm and 1.3 deg after 1 s, by 1-24 cm and 0.8-5 deg
+#: after 2 s (its own std then: 16 cm, 2.7 deg; ``uma eval fusion --gaps 2``, seeds 1-2)
+MAX_COAST_S = 2.0
 
 
 @dataclass
@@ -53,6 +61,7 @@ class TrackerStats:
     optical_too_old: int = 0   # older than the history: dropped
     optical_waited_out: int = 0  # applied without waiting longer for the inertial stream
     replayed_samples: int = 0
+    coast_stops: int = 0        # the optics were gone for longer than max_coast_s
 
 
 class FusionTracker:
@@ -60,11 +69,17 @@ class FusionTracker:
     order; ``pose(horizon)`` is the latest fused head pose."""
 
     def __init__(self, ekf: FusionEKF, history_s: float = HISTORY_S,
-                 max_wait_s: float = MAX_WAIT_S):
+                 max_wait_s: float = MAX_WAIT_S, max_coast_s: float = MAX_COAST_S):
+        if not (math.isfinite(max_coast_s) and max_coast_s > 0):
+            raise ValueError(f"max_coast_s must be positive seconds, got {max_coast_s!r}")
         self.ekf = ekf
         self.history_s = float(history_s)
         self.max_wait_s = float(max_wait_s)
+        self.max_coast_s = float(max_coast_s)
         self.stats = TrackerStats()
+        #: why the last ``add_accel`` gave no pose (for the service's log)
+        self.refusal = ""
+        self._coasted_out = False
         self._pending: list[tuple[float, tuple]] = []   # optical poses ahead of the filter
         self._last_accel_wall = -math.inf
         self._samples: deque[tuple[float, float, np.ndarray]] = deque()  # (motion t, t, a)
@@ -72,22 +87,29 @@ class FusionTracker:
         self._start_t: float | None = None   # the filter start the history belongs to
 
     def add_accel(self, t: float, readings: np.ndarray, now: float | None = None) -> bool:
-        """One accelerometer sample (all axes) taken at ``t``; False before initialisation
-        or if the sample is older than the filter (a duplicate or a reordered packet)."""
+        """One accelerometer sample (all axes) taken at ``t``; False, with the reason in
+        ``refusal``, while the filter waits for optical poses or if the sample is older than
+        the filter (a duplicate or a reordered packet)."""
         ekf = self.ekf
         readings = np.asarray(readings, float).reshape(-1)
         self._last_accel_wall = time.monotonic() if now is None else now
         motion_t = t - ekf.accel.latency_s
+        if ekf.initialised and motion_t >= ekf.t:
+            while self._pending and self._pending[0][0] <= motion_t:
+                self._apply_now(*self._pending.pop(0))
+        if ekf.initialised and ekf.last_optical_t is not None \
+                and motion_t - ekf.last_optical_t > self.max_coast_s:
+            self._coast_out()
         if not ekf.initialised:   # kept for the start, which may lie before them
             if not self._samples or motion_t > self._samples[-1][0]:
                 self._samples.append((motion_t, t, readings))
                 self._forget(motion_t - self.history_s)
+            self.refusal = (f"no optical measurement for over {self.max_coast_s:g} s: the "
+                            "filter stopped until two optical poses restart it"
+                            if self._coasted_out else "waiting for two optical poses to start")
             return False
         if motion_t < ekf.t:
-            return False
-        while self._pending and self._pending[0][0] <= motion_t:
-            self._apply_now(*self._pending.pop(0))
-        if not ekf.initialised or motion_t < ekf.t:
+            self.refusal = "older than the filter (a duplicate or a reordered sample)"
             return False
         ekf.update_accel_sample(t, readings)
         self._samples.append((motion_t, t, readings))
@@ -141,6 +163,13 @@ class FusionTracker:
             self._snapshot()
         return ok
 
+    def _coast_out(self) -> None:
+        self.ekf.stop()
+        self.stats.coast_stops += 1
+        self._coasted_out = True
+        self._pending.clear()
+        self._new_start()
+
     def _new_start(self) -> bool:
         """After a (re)start the history begins again there, and the samples after it are
         replayed; True if there was one."""
@@ -149,6 +178,7 @@ class FusionTracker:
         self._start_t = self.ekf.start_t
         self._snapshots.clear()
         if self.ekf.initialised:
+            self._coasted_out = False
             after = [s for s in self._samples if s[0] > self.ekf.t]
             self._samples.clear()
             self._snapshot()
