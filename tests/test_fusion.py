@@ -43,6 +43,17 @@ def _start(f: FusionEKF | FusionTracker, t: float, p, q, cov, **kw) -> None:
     assert (f.ekf if isinstance(f, FusionTracker) else f).start_t == t
 
 
+def _still_rig(config: FusionConfig | None = None, now: float | None = None, **tracker_kw):
+    """A tracker started at t = 0 on a head at rest at the origin: the tracker, the rig pose
+    (p, q) and covariance its optics report, and the accelerometer readings at rest."""
+    model = _model()
+    tracker = FusionTracker(FusionEKF(model, config), **tracker_kw)
+    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    _start(tracker, 0.0, p, q, cov, **({} if now is None else {"now": now}))
+    return tracker, p, q, cov, [float(n @ [0, 0, 9.80665]) for n in model.axes]
+
+
 def test_eq613_matches_the_accelerometer_rigs_own_model():
     """Cross-check with services.accel_rig: the same readings from the rig's kinematics."""
     layout = marvin_six_table_4_1()
@@ -187,12 +198,7 @@ def test_poses_too_far_apart_do_not_start_the_filter():
 
 
 def test_a_restart_cuts_the_history_a_late_pose_cannot_reach_behind_it():
-    model = _model()
-    tracker = FusionTracker(FusionEKF(model, FusionConfig(max_rejected_poses=2)))
-    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
-    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    _start(tracker, 0.0, p, q, cov)
-    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    tracker, p, q, cov, rest = _still_rig(FusionConfig(max_rejected_poses=2))
     for i in range(1, 60):
         tracker.add_accel(i / 300, rest)
     far = p + np.array([0.5, 0.0, 0.0])
@@ -210,12 +216,7 @@ def test_a_restart_cuts_the_history_a_late_pose_cannot_reach_behind_it():
 def test_without_optics_the_output_stops_after_max_coast_and_the_optics_restart_it():
     """Inertial-only poses for ``max_coast_s`` after the last optical pose, then none (the
     sample says why) until two optical poses start the filter again."""
-    model = _model()
-    tracker = FusionTracker(FusionEKF(model), max_coast_s=0.5)
-    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
-    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    _start(tracker, 0.0, p, q, cov)
-    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    tracker, p, q, cov, rest = _still_rig(max_coast_s=0.5)
     published = [tracker.add_accel(i / 300, rest) for i in range(1, 300)]
     assert all(published[:150]) and not any(published[152:])   # 0.5 s, then nothing
     assert "no optical measurement for over 0.5 s" in tracker.refusal
@@ -224,7 +225,7 @@ def test_without_optics_the_output_stops_after_max_coast_and_the_optics_restart_
     assert tracker.add_accel(1.06, rest) and tracker.stats.coast_stops == 1
     assert np.linalg.norm(tracker.pose()[0]) < 1e-3
     with pytest.raises(ValueError, match="max_coast_s"):
-        FusionTracker(FusionEKF(model), max_coast_s=float("nan"))
+        FusionTracker(tracker.ekf, max_coast_s=float("nan"))
 
 
 def test_a_busy_host_slow_late_optics_and_bursty_accelerometers_stay_on_track():
@@ -396,12 +397,7 @@ def test_accel_model_from_bad_attributes_names_the_problem():
 
 
 def test_optical_pose_older_than_the_history_is_dropped_not_applied():
-    model = _model()
-    tracker = FusionTracker(FusionEKF(model), history_s=0.1)
-    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
-    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    _start(tracker, 0.0, p, q, cov)
-    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
+    tracker, p, q, cov, rest = _still_rig(history_s=0.1)
     for i in range(1, 120):
         tracker.add_accel(i / 300, rest)
     before = tracker.ekf.snapshot()
@@ -411,12 +407,7 @@ def test_optical_pose_older_than_the_history_is_dropped_not_applied():
 
 
 def test_a_lagging_inertial_stream_stays_the_clock_and_a_stalled_one_is_bypassed():
-    model = _model()
-    tracker = FusionTracker(FusionEKF(model), max_wait_s=0.1)
-    cov = geo.covariance_from_std(np.zeros(3), 1e-3, 1e-3)
-    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
-    rest = [float(n @ [0, 0, 9.80665]) for n in model.axes]
-    _start(tracker, 0.0, p, q, cov, now=0.0)
+    tracker, p, q, cov, rest = _still_rig(now=0.0, max_wait_s=0.1)
     accepted = 0
     for i in range(1, 300):              # accelerometers arrive 0.3 s behind the optics
         wall = i / 300 + 0.3
