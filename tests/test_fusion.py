@@ -224,6 +224,12 @@ def test_without_optics_the_output_stops_after_max_coast_and_the_optics_restart_
     _start(tracker, 1.05, p, q, cov)
     assert tracker.add_accel(1.06, rest) and tracker.stats.coast_stops == 1
     assert np.linalg.norm(tracker.pose()[0]) < 1e-3
+    # poses that wait for a lagging inertial stream when it runs out of coast start it again
+    for t_opt in (5.0, 5.05):
+        tracker.add_rig_pose(t_opt, p, q, cov, HEAD_TO_LASER_RIG, now=0.0)
+    assert not tracker.add_accel(4.0, rest, now=0.0)       # 3 s of coast: stop
+    assert tracker.stats.coast_stops == 2 and tracker.ekf.start_t == 5.05
+    assert tracker.add_accel(5.06, rest, now=0.0)
     with pytest.raises(ValueError, match="max_coast_s"):
         FusionTracker(tracker.ekf, max_coast_s=float("nan"))
 

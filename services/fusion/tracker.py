@@ -164,11 +164,15 @@ class FusionTracker:
         return ok
 
     def _coast_out(self) -> None:
+        """Stop the filter; optical poses that were waiting for the inertial stream become
+        the candidates to start it again."""
         self.ekf.stop()
         self.stats.coast_stops += 1
         self._coasted_out = True
-        self._pending.clear()
         self._new_start()
+        pending, self._pending = self._pending, []
+        for t, pose in pending:
+            self._apply_now(t, pose)
 
     def _new_start(self) -> bool:
         """After a (re)start the history begins again there, and the samples after it are
