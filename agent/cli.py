@@ -124,6 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
     p.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--logs", default=None, metavar="DIR",
+                   help="keep each service's log as DIR/<service>.log (default: discarded)")
 
     evals = plugins.names(plugins.EVAL_GROUP)
     p = sub.add_parser("eval", help="measure a tracker's accuracy against simulated ground truth",

@@ -31,6 +31,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -88,16 +89,19 @@ class Tally:
 
 
 class Children:
-    """Service child processes, always stopped (SIGTERM, then SIGKILL) by their PID."""
+    """Service child processes, always stopped (SIGTERM, then SIGKILL) by their PID; their
+    logs go to ``log_dir/<name>.log`` if given, else to temporary files."""
 
-    def __init__(self) -> None:
+    def __init__(self, log_dir: Path | None = None) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: dict[str, Any] = {}
+        self.log_dir = log_dir
 
     def start(self, name: str, argv: list[str]) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        # a file, not a pipe: a chatty child must never block on a full pipe
-        log_file = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in stop())
+        # a file, not a pipe: a chatty child must never block on a full pipe (closed in stop())
+        log_file = (tempfile.TemporaryFile("w+") if self.log_dir is None  # noqa: SIM115
+                    else open(self.log_dir / f"{name}.log", "w+"))  # noqa: SIM115
         self.logs[name] = log_file
         self.procs[name] = subprocess.Popen(
             [sys.executable, "-m", "agent.cli", "service", "run", name, *argv],
@@ -126,7 +130,13 @@ def main(args: argparse.Namespace) -> int:
     if not (math.isfinite(seconds) and 0 < seconds <= 3600):
         raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")
     logging.getLogger("uma").setLevel(logging.WARNING)
-    report = run_demo(seconds, int(args.seed), live=not args.json)
+    log_dir = None
+    if args.logs is not None:
+        log_dir = Path(args.logs)
+        if log_dir.exists() and not log_dir.is_dir():
+            raise UmaError(f"--logs {args.logs}: exists and is not a directory")
+        log_dir.mkdir(parents=True, exist_ok=True)
+    report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir)
     if args.json:
         print(json.dumps(report))
     else:
@@ -134,8 +144,10 @@ def main(args: argparse.Namespace) -> int:
     return 0 if report["ok"] else 1
 
 
-def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
-    """Start everything, measure for ``seconds``, stop everything; the figures."""
+def run_demo(seconds: float, seed: int, live: bool = True,
+             log_dir: Path | None = None) -> dict[str, Any]:
+    """Start everything, measure for ``seconds``, stop everything; the figures (the
+    services' logs kept in ``log_dir`` if given)."""
     from agent.client import Client
     from agent.daemon import Agent, AgentSettings
     from services.fusion.evaluate import accel_calibration_file, laser_calibration_file
@@ -151,7 +163,7 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
     calibration = laser_calibration_file(IvyWorld(seed=seed), announce=live)
     accel_calibration = accel_calibration_file(announce=live)
     truth = HeadTrajectory(seed)
-    children = Children()
+    children = Children(log_dir)
     agents: list[Any] = []
     tally = Tally()
     sub = None
@@ -200,8 +212,10 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
         for a in reversed(agents):
             with contextlib.suppress(Exception):
                 a.close()
-    return _report(tally, matches, seconds, time.monotonic() - t_start,
-                   [p.pid for p in children.procs.values()])
+    report = _report(tally, matches, seconds, time.monotonic() - t_start,
+                     [p.pid for p in children.procs.values()])
+    report["logs"] = None if log_dir is None else str(log_dir)
+    return report
 
 
 def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
@@ -332,5 +346,6 @@ def format_summary(r: dict[str, Any]) -> str:
               f"  fused vs ground truth: position {s(r['position_error_mm'], 'mm')}",
               f"                         orientation {s(r['orientation_error_deg'], 'deg')}",
               f"  all processes stopped (pids {', '.join(map(str, r['child_pids']))})",
+              *([f"  service logs in {r['logs']}"] if r.get("logs") else []),
               f"  {'OK' if r['ok'] else 'FAILED'}"]
     return "\n".join(lines)
