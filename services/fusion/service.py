@@ -72,8 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 class LiveFusion:
     """The service's state: builds the filter once calibration and mountings are known,
-    then turns need callbacks into filter updates and publications.  All callbacks run on
-    the SDK's single dispatch thread, so there is no locking."""
+    then turns need callbacks into filter updates and publications.  The need callbacks
+    run on the SDK's single dispatch thread; the lock is for the mountings, which the SRG
+    polling thread sets."""
 
     def __init__(self, horizon_s: float, model_floor: float,
                  publish: Any = None, config: FusionConfig | None = None,
