@@ -12,6 +12,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.errors import UmaError
@@ -194,7 +195,7 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
     from agent import Client
 
     ep = endpoint(free_port())
-    processes.start("agent", "--realm", realm, "--id", "lab", "--listen", ep)
+    agent(processes, realm, "lab", ep)  # up before its services start
     processes.start("service", "run", "sim", "--realm", realm, "--agent", "lab", "--connect",
                     ep, "--seed", "2")
     acc = processes.start("service", "run", "accel-rig", "--realm", realm, "--agent", "lab",

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.cli import main
@@ -158,7 +159,7 @@ def test_live_service_publishes_the_static_edge_and_recalibrates(processes, real
 
     ep = endpoint(free_port())
     out = tmp_path / "alignment.toml"
-    processes.start("agent", "--realm", realm, "--id", "lab", "--listen", ep)
+    agent(processes, realm, "lab", ep)  # up before its services start
     svc = processes.start("service", "run", "alignment", "--realm", realm, "--agent", "lab",
                           "--connect", ep, "--a", A_EDGE, "--b", B_EDGE, "--output", str(out),
                           "--max-offset-ms", "200", "--bootstrap", "20",

@@ -13,6 +13,7 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent import Service
@@ -49,7 +50,7 @@ class MountingsSeen:
 
 def test_fusion_takes_the_aligned_mounting_from_the_srg(processes, realm) -> None:
     ep = endpoint(free_port())
-    processes.start("agent", "--realm", realm, "--id", "host", "--listen", ep)
+    agent(processes, realm, "host", ep)  # up before its services start
     processes.start("service", "run", "sim", "--realm", realm, "--agent", "host",
                     "--connect", ep, "--mountings", "laser")
     # the alignment result: pose of the accelerometer rig in the laser rig

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.errors import UmaError
@@ -77,10 +78,10 @@ def skewed_world(processes, tmp_path, realm):
     cfg = tmp_path / "b.toml"
     cfg.write_text(f'[[static]]\nparent = "{HEAD}"\nchild = "{EYE}"\nposition = {EYE_P}\n'
                    f"quaternion = {EYE_Q}\npos_std_m = 0.001\n")
-    processes.start("agent", "--realm", realm, "--id", "A", "--listen", endpoint(pa),
-                    env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS), **LEASE})
-    processes.start("agent", "--realm", realm, "--id", "B", "--listen", endpoint(pb),
-                    "--connect", endpoint(pa), "--config", str(cfg), env=LEASE)
+    # each agent up (and started once more if its Zenoh session stalled) before the next
+    agent(processes, realm, "A", endpoint(pa), env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS), **LEASE})
+    agent(processes, realm, "B", endpoint(pb), connect=(endpoint(pa),),
+          extra=("--config", str(cfg)), env=LEASE)
     t0 = time.time_ns()
     processes.start("--realm", realm, "--agent", "A", "--connect", endpoint(pa),
                     "--t0", str(t0), "--skew", str(SKEW_NS), module="test_client_stream",

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.errors import UmaError
@@ -150,7 +151,7 @@ def test_services_reach_a_client_in_another_process(calibration_file, processes,
     from agent import Client
 
     ep = endpoint(free_port())
-    processes.start("agent", "--realm", realm, "--id", "lab", "--listen", ep)
+    agent(processes, realm, "lab", ep)  # up before its services start
     svc = processes.start("service", "run", "laser-camera", "--realm", realm, "--agent", "lab",
                           "--connect", ep, "--calibration", str(calibration_file), "--seed",
                           "4", "--rate-hz", "20")

@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -40,7 +41,7 @@ def test_service_and_client_examples_run_against_an_agent(processes, realm) -> N
     def adapt(code: str) -> str:
         return code.replace("tcp/127.0.0.1:7447", ep).replace('realm="lab"', f'realm="{realm}"')
 
-    processes.start("agent", "--realm", realm, "--id", "hostA", "--listen", ep)
+    agent(processes, realm, "hostA", ep)  # up before its services start
     svc = subprocess.Popen([sys.executable, "-c", adapt(_block("Service("))],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

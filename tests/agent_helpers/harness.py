@@ -124,10 +124,12 @@ class Proc:
             return len(self.events)
 
 
-def spawn(processes: Any, args: list[str]) -> Proc:
-    """``python ARGS`` with pipes, registered with the ``processes`` fixture."""
+def spawn(processes: Any, args: list[str], env: dict[str, str] | None = None) -> Proc:
+    """``python ARGS`` with pipes (and ``env`` on top of ours), registered with the
+    ``processes`` fixture."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1",
-               PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]))
+               PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]),
+               **(env or {}))
     p = subprocess.Popen([sys.executable, *args], env=env, cwd=ROOT, stdin=subprocess.PIPE,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     processes.procs.append(p)
@@ -135,7 +137,8 @@ def spawn(processes: Any, args: list[str]) -> Proc:
 
 
 def agent(processes: Any, realm: str, agent_id: str, endpoint: str,
-          connect: tuple[str, ...] = (), extra: tuple[str, ...] = ()) -> Proc:
+          connect: tuple[str, ...] = (), extra: tuple[str, ...] = (),
+          env: dict[str, str] | None = None) -> Proc:
     """``uma agent`` listening on ``endpoint``; returns once it says it listens.
 
     An agent whose Zenoh session stalled at start (it says so and exits) is started once
@@ -144,13 +147,13 @@ def agent(processes: Any, realm: str, agent_id: str, endpoint: str,
             "--listen", endpoint]
     for ep in connect:
         args += ["--connect", ep]
-    proc = spawn(processes, [*args, *extra])
+    proc = spawn(processes, [*args, *extra], env)
     try:
         proc.wait_line("listening on", START_WAIT_S)
     except AssertionError as exc:
         if STALLED_START not in str(exc):
             raise
-        proc = spawn(processes, [*args, *extra])
+        proc = spawn(processes, [*args, *extra], env)
         proc.wait_line("listening on", START_WAIT_S)
     return proc
 
