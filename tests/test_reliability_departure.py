@@ -12,16 +12,13 @@ one whose token comes back after it dropped it.
 
 from __future__ import annotations
 
-import json
 import sys
 import threading
 import time
 
+from agent_helpers.svc import emit
+
 WORLD, HEAD = "ivy/world", "alice/head"
-
-
-def emit(**event: object) -> None:
-    print(json.dumps(event), flush=True)
 
 
 def flap(svc, gap_s: float, with_queryable: bool) -> None:

@@ -26,9 +26,17 @@ import time
 from agent.errors import UmaError
 from agent.service import Service
 
+_EMIT_LOCK = threading.Lock()
+
 
 def emit(**event: object) -> None:
-    print(json.dumps(event), flush=True)
+    """One JSON line.  Samples arrive on the SDK's thread while the main loop reports: one
+    write per line under a lock, or two threads' ``print`` interleave their text and
+    newlines and the harness loses both events (seen once: a 'first' never arrived)."""
+    line = json.dumps(event) + "\n"
+    with _EMIT_LOCK:
+        sys.stdout.write(line)
+        sys.stdout.flush()
 
 
 def attr(text: str) -> tuple[str, object]:
