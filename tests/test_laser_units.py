@@ -387,3 +387,12 @@ def test_warm_up_waits_for_a_first_pose_but_not_forever() -> None:
     assert ls._warmed_up([*none[:-1], (9, pose)])
     assert not ls._warmed_up(none)  # no pose yet: keep waiting
     assert ls._warmed_up([(k, None) for k in range(ls.MAX_WARMUP_FRAMES)])
+
+
+def test_simulated_cameras_skip_the_frames_an_overrun_missed() -> None:
+    from services.laser_camera.service import next_frame_time
+
+    assert next_frame_time(1.0, 0.05, 1.01) == pytest.approx(1.05)  # on time: next frame
+    # 120 ms late: the frames at 1.05 and 1.10 are gone, the next one is at 1.15, not now
+    assert next_frame_time(1.0, 0.05, 1.12) == pytest.approx(1.15)
+    assert next_frame_time(1.0, 0.0, 5.0) == 1.0  # a capture paces itself

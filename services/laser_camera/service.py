@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -190,12 +191,23 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
                 if time.monotonic() >= next_update:
                     outputs = _maybe_update(*outputs, perf.attributes(args.rate_hz))
                     next_update = time.monotonic() + ATTRIBUTE_UPDATE_S
-            next_tick += period
-            if next_tick < time.monotonic() - 1.0:
-                next_tick = time.monotonic()  # fell far behind (suspended): do not burst
+            next_tick = next_frame_time(next_tick, period, time.monotonic())
             stop.wait(max(0.0, next_tick - time.monotonic()))
     log.info("laser-camera: %s", dict(tracker.counts))
     return 0
+
+
+def next_frame_time(tick: float, period: float, now: float) -> float:
+    """When the simulated cameras take their next frame set after the one at ``tick``.
+
+    They run free, as real ones: a frame set missed while the tracker overran is gone, not
+    taken late in a burst (which also made the measured rate, and so the advertised
+    ``frequency_hz``, twice the cameras' on a loaded host).  ``period`` 0: no pacing.
+    """
+    tick += period
+    if period and tick < now:
+        tick += period * math.ceil((now - tick) / period)
+    return tick
 
 
 def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dict):
