@@ -28,7 +28,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from agent.srg import geometry as geo
 from services.accel_rig import simulator as accel_sim
-from services.fusion.ekf import FusionEKF
+from services.fusion.ekf import MODEL_FLOOR, FusionEKF
 from services.fusion.evaluate import accel_model, calibrated_accelerometers
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
 from services.sim.trajectory import HeadTrajectory
@@ -61,7 +61,7 @@ def _batch_update(ekf: FusionEKF, t: float, readings: np.ndarray,
 
 def bench_filter(seconds: float, batch: bool) -> dict[str, float]:
     cal, run, frames, p_opt, q_opt = _inputs(seconds)
-    ekf = FusionEKF(accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, 0.005))
+    ekf = FusionEKF(accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, MODEL_FLOOR))
     kf = ExtendedKalmanFilter(dim_x=ekf.dim, dim_z=ekf.accel.count)
     cov = np.diag([OPT_STD[0] ** 2] * 3 + [OPT_STD[1] ** 2] * 3)
     per_sample = []

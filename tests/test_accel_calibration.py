@@ -84,9 +84,10 @@ def test_calibration_with_appendix_c_noise_meets_the_tolerances():
 
 
 def test_calibration_of_a_quiet_device_reports_what_quantisation_leaves():
-    """At 10 uV/sqrt(Hz) the 1 mV steps are barely dithered: averaging a static pose cannot
-    get below the quantisation error, and the reported bias uncertainty says so."""
-    device = replace(default_device(), noise_density_v=10e-6)
+    """At 10 uV/sqrt(Hz) and without the converter's own noise the 1 mV steps are barely
+    dithered: averaging a static pose cannot get below the quantisation error, and the
+    reported bias uncertainty says so."""
+    device = replace(default_device(), noise_density_v=10e-6, converter_noise_lsb=0.0)
     cal = calibrate(marvin_six(), _recordings(device, SIX_POSES, 3.0, seed=12), RATE,
                     noise=device.noise_model(), latency_s=device.latency_s(RATE))
     sd_bias_lsb = np.sqrt(cal.param_cov[:, 0, 0]) / sn.LSB_V
@@ -154,6 +155,13 @@ def test_calibration_file_round_trip_and_errors(tmp_path):
         sn.Calibration.from_dict({**cal.to_dict(), "format": "other"})
     with pytest.raises(ValueError, match="gains are positive"):
         sn.Calibration.from_dict({**cal.to_dict(), "gain_v_per_mps2": [-1.0] * 6})
+    with pytest.raises(ValueError, match="conversions must be a whole number"):
+        sn.Calibration.from_dict({**cal.to_dict(), "adc_conversions": 0})
+    # a file from before the averaging A/D: one conversion per reading, no converter noise
+    old = {k: v for k, v in cal.to_dict().items()
+           if k not in ("adc_conversions", "converter_noise_lsb")}
+    noise = sn.Calibration.from_dict(old).noise
+    assert noise.conversions == 1 and noise.converter_noise_lsb == 0.0
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(ValueError, match="not JSON"):
         sn.Calibration.load(tmp_path / "bad.json")

@@ -7,6 +7,9 @@ to micrometres and thousandths of a degree, not to plotting accuracy).
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -131,7 +134,9 @@ def test_simulator_is_deterministic_and_seeded():
     c = simulate(traj, 0.2, seed=8)
     np.testing.assert_array_equal(a.counts, b.counts)
     assert np.any(a.counts != c.counts)
-    assert a.counts.dtype == np.int16 and a.counts.shape == (60, 6)
+    assert a.counts.shape == (60, 6)
+    # each reading averages eight whole-count conversions
+    np.testing.assert_array_equal(a.counts * 8, np.round(a.counts * 8))
     np.testing.assert_allclose(a.t[1] - a.t[0], 1 / 300)
 
 
@@ -142,19 +147,40 @@ def test_simulator_applies_appendix_c_electronics():
     f = -GRAVITY  # z up, at rest
     expect = dev.bias_v + dev.gain_v_per_mps2 * (dev.layout.axes @ f)
     np.testing.assert_allclose(still.volts.mean(axis=0), expect, atol=2e-4)
-    np.testing.assert_allclose(still.volts, still.counts * 1e-3)  # volts are whole mV
-    assert 0.3e-3 < still.volts.std(axis=0).mean() < 1.0e-3  # ~0.55 mV rms + quantisation
+    np.testing.assert_allclose(still.volts, still.counts * 1e-3)  # volts are counts of 1 mV
+    # 0.22 mV rms analog, 0.5 LSB converter noise and quantisation over 8 conversions
+    assert 0.2e-3 < still.volts.std(axis=0).mean() < 0.4e-3
     # a z-sensing accelerometer at rest reads about 1 g = 400 mV away from its bias
     assert abs(abs(expect[0] - dev.bias_v[0]) - 0.4) < 0.02
 
 
+@pytest.mark.parametrize("conversions", [1, 2, 8])
+def test_simulated_readings_have_the_noise_the_model_reports(conversions):
+    """A still rig's readings scatter as ``NoiseModel.per_sample_var_v2`` says, for each number
+    of averaged conversions (converter noise only: the analog part's low-frequency power,
+    which the model reports, is not its per-sample variance)."""
+    dev = replace(default_device(), noise_density_v=0.0, conversions=conversions)
+    still = simulate(AxisRotation(amplitude_rad=0.0), 20.0, seed=3, sensor=dev, mount=None)
+    expected = math.sqrt(dev.noise_model().per_sample_var_v2(300.0))
+    np.testing.assert_allclose(still.volts.std(axis=0), expected, rtol=0.05)
+    # and the averaged quantisation leaves no visible error in the mean
+    bias_free = dev.bias_v + dev.gain_v_per_mps2 * (dev.layout.axes @ -GRAVITY)
+    assert np.abs(still.volts.mean(axis=0) - bias_free).max() < 0.02e-3
+
+
+def test_device_refuses_conversions_that_do_not_divide_the_analog_steps():
+    with pytest.raises(ValueError, match=r"conversions \(3\) must divide"):
+        replace(default_device(), conversions=3)
+
+
 def test_simulator_bandwidth_delays_by_the_reported_latency():
-    """The 0-110 Hz response is a 2 ms delay for head motion; ``truth`` accounts for it."""
+    """The 0-110 Hz response (2 ms) and the averaging of eight conversions over the sample
+    period (1.5 ms) delay head motion; ``truth`` accounts for it."""
     lay = rg.marvin_six()
     filtered = SensorTruth(lay, np.zeros(6), np.zeros(6), noise_density_v=0.0, quantise=False)
     run = simulate(SinusoidalTranslation(amplitude_m=0.05, frequency_hz=2.0), 1.0, seed=0,
                    sensor=filtered, mount=None)
-    assert 1.9e-3 < run.latency_s < 2.1e-3
+    assert 3.4e-3 < run.latency_s < 3.6e-3
     ideal = specific_force_readings(lay, run.truth)  # evaluated at t - latency
     np.testing.assert_allclose(run.accel, ideal, atol=2e-3)
 

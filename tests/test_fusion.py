@@ -10,9 +10,10 @@ import pytest
 
 from agent.srg import geometry as geo
 from services.accel_rig import simulator as accel_sim
+from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
 from services.fusion import evaluate as fe
-from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
+from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
 from services.fusion.service import LiveFusion, accel_model_from_attributes
 from services.fusion.tracker import FusionTracker
 from services.sim.mounts import HEAD_TO_ACCEL_RIG, HEAD_TO_LASER_RIG
@@ -376,7 +377,7 @@ def test_gap_schedule_and_baselines():
 def test_live_fusion_builds_from_attributes_and_publishes():
     cal = accel_sim.default_device().calibration()
     published = []
-    live = LiveFusion(0.02, 0.005, publish=lambda *a: published.append(a))
+    live = LiveFusion(0.02, MODEL_FLOOR, publish=lambda *a: published.append(a))
     attrs = {**cal.to_dict(), "frequency_hz": 300.0}
     accel = SimpleNamespace(t_ns=1_000_000_000, values=np.zeros(6), attributes=attrs)
     live.on_accel(accel)
@@ -392,7 +393,7 @@ def test_live_fusion_builds_from_attributes_and_publishes():
         live.on_optical(SimpleNamespace(t_ns=t_ns, position=p, quaternion=q, covariance=None))
     reading = [float(n @ [0, 0, 9.80665]) for n in live.tracker.ekf.accel.axes]
     for i in range(10):
-        live.on_accel(SimpleNamespace(t_ns=1_005_000_000 + i * 3_333_333,
+        live.on_accel(SimpleNamespace(t_ns=1_010_000_000 + i * 3_333_333,
                                       values=np.array(reading), attributes=attrs))
     assert len(published) == 10
     _, pos, _, cov = published[-1]
@@ -516,18 +517,20 @@ def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
     assert np.sqrt(np.mean(ep_b[late] ** 2)) < np.sqrt(np.mean(ep[late] ** 2)) + ps
 
 
-def test_eval_what_if_accel_noise_reaches_the_device_and_the_filter_model():
-    from dataclasses import replace
-
-    quiet = replace(accel_sim.default_device(), noise_density_v=10e-6)
+def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
+    args = SimpleNamespace(accel_noise_uv=10.0, adc_conversions=4, converter_noise_lsb=0.1)
+    quiet = device_from_args(accel_sim.default_device(), args)
+    assert device_figures(quiet) == {"accel_noise_uv_per_sqrt_hz": 10.0, "adc_conversions": 4,
+                                     "converter_noise_lsb": 0.1}
     _, cal = fe.calibrated_accelerometers(300.0, 1, quiet)
     _, cal_marvin = fe.calibrated_accelerometers(300.0, 1)
-    assert cal.noise.density_v == 10e-6
+    assert cal.noise.density_v == pytest.approx(10e-6) and cal.noise.conversions == 4
     assert np.all(cal.accel_var(300.0) < 0.5 * cal_marvin.accel_var(300.0))
-    args = SimpleNamespace(gaps="1", horizon_ms=20.0, no_cache=False, optical="pose",
-                           accel_noise_uv=-1.0, seconds=9.0, seed=1)
-    with pytest.raises(ValueError, match="--accel-noise-uv"):
-        fe.run(args)
+    base = dict(gaps="1", horizon_ms=20.0, no_cache=False, optical="pose", seconds=9.0, seed=1)
+    for flag, value in (("accel_noise_uv", -1.0), ("adc_conversions", 3),
+                        ("converter_noise_lsb", float("nan"))):
+        with pytest.raises(ValueError, match="--" + flag.replace("_", "-")):
+            fe.run(SimpleNamespace(**base, **{flag: value}))
 
 
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),

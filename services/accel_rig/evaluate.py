@@ -1,8 +1,8 @@
 """``uma eval accel-rig``: calibration and dead-reckoning accuracy against simulated truth.
 
 1. Calibrate a simulated device (random bias and gain errors, table 4.1 axes, appendix C
-   noise, 110 Hz response, 12-bit A/D) from static poses, as seed 003 §4.4.2, and compare
-   with the device's true parameters.
+   noise, 110 Hz response, 12-bit A/D averaging 8 conversions) from static poses, as seed
+   003 §4.4.2, and compare with the device's true parameters.
 2. From random starting points of the head trajectory, reset the dead reckoner to the true
    state and integrate the simulated samples for 2 s (seed 003 §4.3); measure orientation
    and position error after 0.25, 0.5, 1 and 2 s, and the normalised estimation error
@@ -26,6 +26,11 @@ from services.accel_rig.calibration import (
     StaticRecording,
     calibrate,
     calibration_errors,
+)
+from services.accel_rig.device_options import (
+    add_device_arguments,
+    device_figures,
+    device_from_args,
 )
 from services.accel_rig.integrator import dead_reckon_from_truth
 from services.accel_rig.rig import LAYOUTS, layout_by_name
@@ -57,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds held still per calibration pose (default 20: the "
                              "calibration error is shared by every run, so it is kept well "
                              "below the noise of one run)")
+    add_device_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -73,12 +79,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     nominal = layout_by_name(args.layout)
     truth_layout = layout_by_name("marvin-six-table-4.1") if args.layout == "marvin-six" \
         else nominal
-    device = SensorTruth.draw(1000 + args.seed, truth_layout)
+    device = device_from_args(SensorTruth.draw(1000 + args.seed, truth_layout), args)
     cal, cal_figures = _calibrate(device, nominal, POSE_SETS[args.poses], args.pose_seconds,
                                   rate, args.seed)
     errors = _dead_reckon(device, cal, args.seed, args.runs, args.seconds - horizon, rate)
     return {"seed": args.seed, "runs": args.runs, "rate_hz": rate, "layout": args.layout,
-            "calibration": cal_figures, **errors}
+            "accel_device": device_figures(device), "calibration": cal_figures, **errors}
 
 
 def _calibrate(device: SensorTruth, nominal, labels, seconds: float, rate: float,

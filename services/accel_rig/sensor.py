@@ -5,7 +5,8 @@ Signal chain per accelerometer (Kyowa AS-5GA, RHC amplifier, VIPS 10 A/D):
     volts = bias + gain * (n_true . specific force at r_j) + noise     (eq. 4.2, §4.4.1)
     amplifier clips at +/-2.0 V (1 g = 400 mV, so +/-5 g)
     frequency response 0-110 Hz: a 2nd-order Butterworth low-pass at 110 Hz
-    12-bit A/D, bipolar +/-2.048 V, 1 LSB = 1 mV
+    12-bit A/D, bipolar +/-2.048 V, 1 LSB = 1 mV, with its own noise per conversion
+    each reading averages 8 conversions spread over its sample period
 
 A ``Calibration`` holds what seed 003 §4.4.2 estimates for each accelerometer (bias B_j,
 scale, sensing axis n_j) together with the layout positions, the noise model and the
@@ -40,15 +41,22 @@ LSB_V = ADC_REF_V / 2**ADC_BITS  # 1 mV
 ADC_MIN_COUNT = -(2 ** (ADC_BITS - 1))
 ADC_MAX_COUNT = 2 ** (ADC_BITS - 1) - 1
 BANDWIDTH_HZ = 110.0  # table C.1 frequency response 0-110 Hz
-#: White noise density at the amplifier output.  Appendix C gives no noise figure; table C.2
-#: promises +/-1 LSB relative accuracy, so the analog noise is set to about half an LSB rms
-#: over the 110 Hz band (50 uV/sqrt(Hz) * sqrt(122 Hz noise bandwidth) = 0.55 mV).  The
-#: signal chain alone would be quieter (0.64 mV/g from the AS-5GA bridge at 5 V, amplified
-#: 625 times; 9-30 nV/sqrt(Hz) of instrumentation amplifier noise make 6-19 uV/sqrt(Hz)),
-#: but then the 1 mV steps are not dithered: quantisation errors stay correlated while the
-#: head moves slowly, and the white-noise model of every estimator here turns overconfident
-#: (dead-reckoning NEES ~10 instead of 6 at 20 uV/sqrt(Hz)).  Half an LSB keeps them honest.
-NOISE_DENSITY_V = 50e-6
+#: White noise density at the amplifier output.  Appendix C gives no noise figure; the
+#: signal chain's own is 6-19 uV/sqrt(Hz) (0.64 mV/g from the AS-5GA bridge at 5 V, amplified
+#: 625 times; 9-30 nV/sqrt(Hz) of instrumentation amplifier noise), rounded up.
+NOISE_DENSITY_V = 20e-6
+#: A/D conversions averaged into each reading.  The VIPS 10 converts a channel in 20 us
+#: (table C.2), so scanning the six channels takes 120 us of each 3.3 ms period at 300 Hz;
+#: the driver scans eight times per period, evenly spaced, and averages.  Alone, 20 uV/sqrt(Hz)
+#: (0.2 LSB rms) would not dither the 1 mV steps: a still rig's quantisation error would
+#: persist, bias the static calibration by up to 0.1 LSB and make the dead reckoner
+#: overconfident; one conversion per reading with the noise raised to half an LSB (50
+#: uV/sqrt(Hz), this model's earlier default) dithers, at 2.3 times the noise.
+ADC_CONVERSIONS = 8
+#: rms noise of one conversion (LSB), white from conversion to conversion.  Table C.2 gives
+#: no figure; 0.5 LSB is within its +/-1 LSB relative accuracy and dithers every conversion:
+#: what quantisation leaves in a static average falls to 0.001 LSB.
+CONVERTER_NOISE_LSB = 0.5
 #: Readings this close to the amplifier rail are clipped and carry no information.
 SATURATION_MARGIN_V = 0.5 * LSB_V
 
@@ -89,41 +97,60 @@ def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
 class NoiseModel:
     """What the estimator assumes about a reading's random error (volts).
 
+    A reading averages ``conversions`` A/D conversions spread evenly over its sample period;
+    each conversion sees the analog noise (``density_v`` through the 0-110 Hz response) and
+    the converter's own white noise (``converter_noise_lsb``), and is quantised.
+
     ``per_sample_var_v2(rate)`` is the variance of a white sequence at that rate with the
-    same low-frequency power as the sampled analog noise (including what the 0-110 Hz
-    response lets alias down from above the Nyquist frequency) plus the quantisation
-    error: what matters once readings are integrated twice.
+    same low-frequency power as the readings' noise (including what the 0-110 Hz response
+    and the averaging let alias down from above the Nyquist frequency) plus the
+    quantisation error: what matters once readings are integrated twice.
     """
 
     density_v: float = NOISE_DENSITY_V
     lsb_v: float = LSB_V
     quantised: bool = True
     bandwidth_hz: float | None = BANDWIDTH_HZ
+    conversions: int = ADC_CONVERSIONS
+    converter_noise_lsb: float = CONVERTER_NOISE_LSB
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.conversions, int) and self.conversions >= 1):
+            raise ValueError(f"noise model: conversions must be a whole number >= 1, got "
+                             f"{self.conversions!r}")
+        for name in ("density_v", "converter_noise_lsb"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"noise model: {name} must be >= 0, got {value!r}")
 
     def per_sample_var_v2(self, rate_hz: float) -> float:
         q = self.lsb_v**2 / 12.0 if self.quantised else 0.0
+        converter = (self.converter_noise_lsb * self.lsb_v) ** 2
         alias = 0.0
-        if self.bandwidth_hz is not None:  # 2nd-order Butterworth |H(f)|^2 at k * rate
-            k = np.arange(1, 64)
-            alias = float(np.sum(2.0 / (1.0 + (k * rate_hz / self.bandwidth_hz) ** 4)))
-        return self.density_v**2 * rate_hz / 2.0 * (1.0 + alias) + q
+        if self.bandwidth_hz is not None:
+            # averaging N conversions spread over the period cancels every alias of the
+            # rate except those of N * rate (2nd-order Butterworth |H(f)|^2 there)
+            f = np.arange(1, 64) * self.conversions * rate_hz
+            alias = float(np.sum(2.0 / (1.0 + (f / self.bandwidth_hz) ** 4)))
+        return (self.density_v**2 * rate_hz / 2.0 * (1.0 + alias)
+                + (q + converter) / self.conversions)
 
     def static_mean_bias_var_v2(self, rate_hz: float) -> float:
         """Variance of the error quantisation leaves in the *mean* of a static recording.
 
-        Averaging removes quantisation error only as far as the analog noise dithers it:
-        a constant input x read through steps of one LSB with Gaussian noise of rms sigma
-        averages to x plus a periodic error whose first harmonic has amplitude
-        (LSB / pi) exp(-2 pi^2 sigma^2 / LSB^2).  Over the unknown position of x within a
-        step its mean square is half the amplitude squared, and no number of samples
-        reduces it.  Negligible at the default noise (0.55 LSB rms), it dominates a
-        calibration of a quieter device.
+        Averaging removes quantisation error only as far as the noise dithers it: a
+        constant input x read through steps of one LSB with Gaussian noise of rms sigma
+        (analog and converter, per conversion) averages to x plus a periodic error whose
+        first harmonic has amplitude (LSB / pi) exp(-2 pi^2 sigma^2 / LSB^2).  Over the
+        unknown position of x within a step its mean square is half the amplitude squared,
+        and no number of samples or conversions reduces it.  Negligible with the default
+        device (0.5 LSB of converter noise), it dominated a quieter one without it.
         """
         if not self.quantised:
             return 0.0
         bw = (math.pi / (2.0 * math.sqrt(2.0)) * self.bandwidth_hz
               if self.bandwidth_hz is not None else rate_hz / 2.0)  # noise bandwidth
-        sigma2 = self.density_v**2 * bw
+        sigma2 = self.density_v**2 * bw + (self.converter_noise_lsb * self.lsb_v) ** 2
         amp = self.lsb_v / math.pi * math.exp(-2.0 * math.pi**2 * sigma2 / self.lsb_v**2)
         return 0.5 * amp**2
 
@@ -203,6 +230,8 @@ class Calibration:
             "lsb_v": self.noise.lsb_v,
             "quantised": self.noise.quantised,
             "bandwidth_hz": self.noise.bandwidth_hz,
+            "adc_conversions": self.noise.conversions,
+            "converter_noise_lsb": self.noise.converter_noise_lsb,
             "latency_s": self.latency_s,
         }
         return {k: v for k, v in d.items() if v is not None}
@@ -219,8 +248,11 @@ class Calibration:
             layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
                                name=str(d.get("layout", "custom")))
             bw = d.get("bandwidth_hz")
+            # files from before the averaging A/D describe one conversion per reading
             noise = NoiseModel(float(d["noise_density_v_per_rthz"]), float(d["lsb_v"]),
-                               bool(d["quantised"]), None if bw is None else float(bw))
+                               bool(d["quantised"]), None if bw is None else float(bw),
+                               int(d.get("adc_conversions", 1)),
+                               float(d.get("converter_noise_lsb", 0.0)))
             cov = d.get("param_cov")
             return cls(layout, np.asarray(d["bias_v"], float),
                        np.asarray(d["gain_v_per_mps2"], float),

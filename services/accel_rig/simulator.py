@@ -5,7 +5,8 @@ the rig frame (``KinematicState.rigid_offset`` of the ground-truth head trajecto
 eq. 4.72 with gravity, then the device of appendix C.1: per-accelerometer bias, scale error
 and misaligned axis (table 4.1 by default), white noise, the 0-110 Hz response (2nd-order
 Butterworth, run at 8x the output rate so the analog filter is faithful), the +/-2 V
-amplifier rail and the 12-bit A/D converter.  Everything is deterministic from a seed.
+amplifier rail and the 12-bit A/D converter, which converts each channel eight times per
+sample period, with its own noise, and averages.  Everything is deterministic from a seed.
 
 ``SensorTruth`` is the device (fixed errors); ``seed`` draws the noise of one run.
 """
@@ -50,8 +51,19 @@ class SensorTruth:
     scale_error: Array
     noise_density_v: float = sn.NOISE_DENSITY_V
     bandwidth_hz: float | None = sn.BANDWIDTH_HZ
+    #: the A/D: quantisation and its own noise per conversion (False: an ideal converter)
     quantise: bool = True
+    #: steps of the analog simulation per sample period (the 0-110 Hz filter's fidelity)
     oversample: int = 8
+    #: A/D conversions averaged into each reading, spread evenly over the sample period
+    conversions: int = sn.ADC_CONVERSIONS
+    converter_noise_lsb: float = sn.CONVERTER_NOISE_LSB
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.conversions, int) and self.conversions >= 1
+                and self.oversample % self.conversions == 0):
+            raise ValueError(f"simulated device: conversions ({self.conversions!r}) must divide "
+                             f"the analog steps per sample ({self.oversample})")
 
     @classmethod
     def draw(cls, seed: int = DEVICE_SEED, layout: RigLayout | None = None) -> SensorTruth:
@@ -74,17 +86,27 @@ class SensorTruth:
         return replace(self, noise_density_v=0.0, bandwidth_hz=None, quantise=False)
 
     @property
+    def conversions_per_reading(self) -> int:
+        """Conversions averaged per reading (one without the analog filter's finer steps)."""
+        return self.conversions if self.bandwidth_hz is not None else 1
+
+    @property
     def gain_v_per_mps2(self) -> Array:
         return sn.NOMINAL_GAIN * (1.0 + np.asarray(self.scale_error, float))
 
     def latency_s(self, rate_hz: float = DEFAULT_RATE_HZ) -> float:
-        """Group delay of the 0-110 Hz response at low frequency (0 without the filter)."""
+        """Low-frequency group delay of the 0-110 Hz response and of the averaging of the
+        conversions (0 without the filter)."""
         if self.bandwidth_hz is None:
             return 0.0
-        return _group_delay_s(self.bandwidth_hz, self.oversample * rate_hz)
+        fs = self.oversample * rate_hz
+        spread = (self.conversions - 1) * (self.oversample // self.conversions)
+        return _group_delay_s(self.bandwidth_hz, fs) + 0.5 * spread / fs
 
     def noise_model(self) -> sn.NoiseModel:
-        return sn.NoiseModel(self.noise_density_v, sn.LSB_V, self.quantise, self.bandwidth_hz)
+        return sn.NoiseModel(self.noise_density_v, sn.LSB_V, self.quantise, self.bandwidth_hz,
+                             self.conversions_per_reading,
+                             self.converter_noise_lsb if self.quantise else 0.0)
 
     def calibration(self, rate_hz: float = DEFAULT_RATE_HZ) -> sn.Calibration:
         """The exact calibration of this device (what a perfect §4.4.2 run would give)."""
@@ -102,7 +124,7 @@ class SimulatedRun:
     """
 
     t: Array  # (n,) s
-    counts: Array | None  # (n, N) int A/D counts, None without quantisation
+    counts: Array | None  # (n, N) A/D counts averaged over the conversions, None: ideal A/D
     volts: Array  # (n, N)
     accel: Array  # (n, N) m/s^2 along each calibrated axis
     truth: KinematicState
@@ -127,13 +149,16 @@ def simulate(trajectory: Trajectory, seconds: float, rate_hz: float = DEFAULT_RA
     n = round(seconds * rate_hz)
     t = t0 + np.arange(n) / rate_hz
     rng = np.random.default_rng(seed)
-    volts = _analog_volts(trajectory, mount, sensor, t, rate_hz, rng)
-    volts = np.clip(volts, -sn.AMP_RAIL_V, sn.AMP_RAIL_V)
+    volts = np.clip(_analog_volts(trajectory, mount, sensor, t, rate_hz, rng),
+                    -sn.AMP_RAIL_V, sn.AMP_RAIL_V)  # (n, conversions, N)
     counts = None
     if sensor.quantise:
-        counts = np.clip(np.round(volts / sn.LSB_V), sn.ADC_MIN_COUNT,
-                         sn.ADC_MAX_COUNT).astype(np.int16)
+        noise = sensor.converter_noise_lsb * rng.standard_normal(volts.shape)
+        counts = np.clip(np.round(volts / sn.LSB_V + noise), sn.ADC_MIN_COUNT,
+                         sn.ADC_MAX_COUNT).mean(axis=1)
         volts = sn.counts_to_volts(counts)
+    else:
+        volts = volts.mean(axis=1)
     cal = sensor.calibration(rate_hz) if calibration is None else calibration
     accel = (volts - cal.bias_v) / cal.gain_v_per_mps2
     latency = sensor.latency_s(rate_hz)
@@ -206,20 +231,23 @@ def _rig_state(trajectory: Trajectory, mount: tuple[Array, Array] | None,
 def _analog_volts(trajectory: Trajectory, mount: tuple[Array, Array] | None,
                   sensor: SensorTruth, t: Array, rate_hz: float,
                   rng: np.random.Generator) -> Array:
-    """Amplifier output at the sample times: signal + noise through the 0-110 Hz response."""
+    """Amplifier output (n, conversions, N) at each sample's conversion instants, the last
+    at the sample time: signal + noise through the 0-110 Hz response."""
     gain, bias = sensor.gain_v_per_mps2, np.asarray(sensor.bias_v, float)
     if sensor.bandwidth_hz is None:
         ideal = specific_force_readings(sensor.layout, _rig_state(trajectory, mount, t))
         std = sensor.noise_density_v * math.sqrt(rate_hz / 2.0)
-        return bias + gain * ideal + std * rng.standard_normal(ideal.shape)
+        return (bias + gain * ideal + std * rng.standard_normal(ideal.shape))[:, None, :]
     fs = sensor.oversample * rate_hz
-    warm = math.ceil(_FILTER_WARMUP_S * fs)
+    warm = max(math.ceil(_FILTER_WARMUP_S * fs), sensor.oversample)  # + one period's conversions
     ti = t[0] + (np.arange(warm + len(t) * sensor.oversample) - warm) / fs
     ideal = specific_force_readings(sensor.layout, _rig_state(trajectory, mount, ti))
     x = bias + gain * ideal
     x = x + sensor.noise_density_v * math.sqrt(fs / 2.0) * rng.standard_normal(x.shape)
     y = _butterworth2(x, sensor.bandwidth_hz, fs)
-    return y[warm::sensor.oversample][: len(t)]
+    step = sensor.oversample // sensor.conversions
+    ends = warm + sensor.oversample * np.arange(len(t))
+    return y[ends[:, None] - step * np.arange(sensor.conversions - 1, -1, -1)[None, :]]
 
 
 def _biquad(fc: float, fs: float) -> tuple[Array, Array]:

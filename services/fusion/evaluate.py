@@ -27,7 +27,7 @@ import argparse
 import math
 import os
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +38,13 @@ from agent.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from services.accel_rig import calibration as accel_cal
-from services.accel_rig import sensor as accel_sensor
 from services.accel_rig import simulator as accel_sim
-from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
+from services.accel_rig.device_options import (
+    add_device_arguments,
+    device_figures,
+    device_from_args,
+)
+from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
 from services.sim import mounts
 from services.sim.world import IvyWorld
 
@@ -498,7 +502,7 @@ def _recovery_s(rec: Recording, ep: np.ndarray, er: np.ndarray, b: float, p_lim:
 
 
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
-             config: FusionConfig | None = None, model_floor: float = 0.005,
+             config: FusionConfig | None = None, model_floor: float = MODEL_FLOOR,
              cache: bool = True, dots: bool = False, device: Any = None) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure (``device``: another
     simulated accelerometer device than MARVIN's)."""
@@ -522,7 +526,7 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     ep, er = geo.pose_error(rec.p, rec.q, p_true, q_true)
     figures: dict[str, Any] = {
         "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
-        "accel_noise_uv_per_sqrt_hz": 1e6 * device.noise_density_v,
+        "accel_device": device_figures(device),
         "output_rate_hz": float(rec.t.size / (rec.t[-1] - rec.t[0])),
         "optical_poses": int(rec.optical_t.size),
         "optical_failures": rec.optical_failures,
@@ -577,12 +581,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--gaps: gap lengths must be positive seconds, got {args.gaps!r}")
     if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
-    device = accel_sim.default_device()
-    if args.accel_noise_uv is not None:
-        if not (math.isfinite(args.accel_noise_uv) and 0 <= args.accel_noise_uv <= 1000):
-            raise ValueError(f"--accel-noise-uv must be within 0..1000, got "
-                             f"{args.accel_noise_uv!r}")
-        device = replace(device, noise_density_v=args.accel_noise_uv * 1e-6)
+    device = device_from_args(accel_sim.default_device(), args)
     return evaluate(float(args.seconds), int(args.seed), lengths, args.horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device)
 
@@ -597,11 +596,7 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="optical update: the tracker's pose (default) or SCAAT with "
                              "each labeled laser dot (predicted dot = beam of the predicted "
                              "pose intersected with the wall)")
-    parser.add_argument("--accel-noise-uv", type=float, default=None, metavar="UV",
-                        help="what-if: the accelerometers' analog noise density in "
-                             "uV/sqrt(Hz) instead of the simulated MARVIN's "
-                             f"{1e6 * accel_sensor.NOISE_DENSITY_V:g} (appendix C gives none; "
-                             "the signal chain alone suggests 6-19)")
+    add_device_arguments(parser)
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")

@@ -33,7 +33,7 @@ import numpy as np
 
 from agent.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from services.fusion.ekf import AccelModel, FusionConfig, FusionEKF
+from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
 from services.fusion.tracker import MAX_COAST_S, FusionTracker
 from services.sim import mounts
 
@@ -56,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"frame of the inertial rig (default {mounts.ACCEL_RIG})")
     parser.add_argument("--horizon-ms", type=float, default=0.0,
                         help="publish the pose predicted this far ahead (default 0)")
-    parser.add_argument("--model-floor", type=float, default=0.005,
-                        help="extra accelerometer noise std for unmodelled errors, m/s^2")
+    parser.add_argument("--model-floor", type=float, default=MODEL_FLOOR,
+                        help="extra accelerometer noise std for what the calibration does "
+                             f"not capture, m/s^2 (default {MODEL_FLOOR:g})")
     parser.add_argument("--optical-bias-mm", type=float, default=0.0,
                         help="std of the optical tracker's persistent position error (its "
                              "calibration error), estimated as a slowly varying bias; 0: "
