@@ -137,9 +137,10 @@ class FusionConfig:
     #: m/s^2 / sqrt(s), accelerometer bias random walk.  The residual bias after the static
     #: calibration is nearly constant (thermal drift only); a faster walk lets the bias
     #: states follow the reading noise between optical frames, and the omega_dot error they
-    #: trade it for becomes angular drift in optical gaps (measured with white jerk only and
-    #: the older, biased laser calibration: 1e-3 made 1 s gaps end at 1.04 deg RMS over 33
-    #: gaps of seeds 1-3, 1e-4 at 0.97 deg, where the sensor noise alone leaves about 0.8)
+    #: trade it for becomes angular drift in optical gaps (measured on the earlier, noisier
+    #: device model, one conversion per reading, with white jerk only and the older, biased
+    #: laser calibration: 1e-3 made 1 s gaps end at 1.04 deg RMS over 33 gaps of seeds 1-3,
+    #: 1e-4 at 0.97 deg, where the sensor noise alone left about 0.8)
     bias_walk: float = 1e-4
     initial_bias_std: float = 0.05       # m/s^2, residual bias after calibration
     estimate_bias: bool = True

@@ -6,8 +6,9 @@ Pipeline, all real components:
   them into laser-rig poses with covariance (its calibration from the simulated
   calibration images, cached on disk because it takes ~20 s);
 * inertial: the accelerometer simulator (appendix C.1 device: bias, gain and axis errors,
-  noise, 110 Hz response, 12-bit A/D) at 300 Hz, calibrated by the static procedure of
-  §4.4.2 before the run;
+  noise, 110 Hz response, 12-bit A/D averaging 8 conversions) at 300 Hz, calibrated by
+  the static procedure of §4.4.2 before the run (``--accel-noise-uv`` and friends run
+  another device of the same design);
 * the static mountings head -> laser rig and head -> accelerometer rig come from an SRG
   (``agent.srg.Graph`` static edges), as in the service;
 * optical dropouts: the laser frames of scheduled gaps (0.25, 0.5, 1 s by default) are
