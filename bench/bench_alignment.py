@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from summary import median_p99
 
 from services.alignment import opencv_reference
 from services.alignment.pipeline import AlignmentOptions, align_stations
@@ -42,8 +43,7 @@ def _time(fn: Callable[[], Any], repeats: int) -> dict[str, float]:
         t0 = time.perf_counter()
         fn()
         samples.append(time.perf_counter() - t0)
-    s = np.array(samples) * 1e3
-    return {"median_ms": float(np.median(s)), "p99_ms": float(np.percentile(s, 99))}
+    return median_p99(np.array(samples) * 1e3, "ms")
 
 
 def _row(n: int, repeats: int) -> dict[str, Any]:
@@ -77,8 +77,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=100, help="timed runs per contender")
     parser.add_argument("--json", action="store_true", help="last line: one JSON object")
     args = parser.parse_args()
-    if args.repeats < 1 or min(args.sizes) < 3:
-        parser.error("--repeats must be >= 1 and every size >= 3")
+    if args.repeats < 1 or min(args.sizes) < 4:
+        # three stations give three pairs: too few for the full pipeline's bootstrap
+        parser.error("--repeats must be >= 1 and every size >= 4")
     figures = run(args.sizes, args.repeats)
     for size, row in figures.items():
         print(f"{size} ({row['pairs']} pairs):")

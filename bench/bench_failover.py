@@ -24,13 +24,14 @@ import json
 import os
 import signal
 import socket
-import statistics
 import subprocess
 import sys
 import threading
 import time
 import uuid
 from pathlib import Path
+
+from summary import median_p99
 
 from agent.processes import stop_processes
 
@@ -183,14 +184,10 @@ def measure_failover(b: Bench, runs: int, sig: int = signal.SIGKILL, tag: str = 
     return failover, detect
 
 
-def p99(xs: list[float]) -> float:
-    s = sorted(xs)
-    return s[min(len(s) - 1, round(0.99 * (len(s) - 1)))]
-
-
 def stats(name: str, xs: list[float], out: dict[str, float]) -> None:
-    out[f"{name}_median_ms"] = 1e3 * statistics.median(xs)
-    out[f"{name}_p99_ms"] = 1e3 * p99(xs)
+    """Adds ``<name>_median_ms`` and ``<name>_p99_ms`` of durations ``xs`` in seconds."""
+    for k, v in median_p99([1e3 * x for x in xs], "ms").items():
+        out[f"{name}_{k}"] = v
 
 
 def main() -> int:

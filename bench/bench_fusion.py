@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
+from summary import median_p99
 
 from agent.srg import geometry as geo
 from services.accel_rig import simulator as accel_sim
@@ -86,7 +87,7 @@ def bench_filter(seconds: float, batch: bool) -> dict[str, float]:
         len(per_sample) * ekf.accel.count if batch else s.accel_updates)
     us = np.array(per_sample) / 1e3
     return {"updates_per_s": updates / cpu, "samples_per_s": len(us) / cpu,
-            "sample_median_us": float(np.median(us)), "sample_p99_us": float(np.percentile(us, 99))}
+            **{f"sample_{k}": v for k, v in median_p99(us, "us").items()}}
 
 
 def bench_e2e(seconds: float) -> dict[str, float]:
@@ -152,8 +153,8 @@ def bench_e2e(seconds: float) -> dict[str, float]:
     warm = latencies[len(latencies) // 5:]
     if not warm:
         raise RuntimeError("no fused pose reached the client: is the fusion service working?")
-    return {"samples": len(warm), "latency_median_ms": float(np.median(warm)),
-            "latency_p99_ms": float(np.percentile(warm, 99))}
+    return {"samples": len(warm),
+            **{f"latency_{k}": v for k, v in median_p99(warm, "ms").items()}}
 
 
 def _feed(optical, accel, run, frames, p_opt, q_opt, seconds, sent, lock) -> None:

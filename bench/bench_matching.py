@@ -17,8 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import random
-import statistics
 import time
+
+from summary import median_p99
 
 from agent.matching import Offer, OfferIndex, Requirement, match_all
 from schemas import expr
@@ -86,11 +87,6 @@ def timed(fn, repeat: int) -> list[float]:
     return times
 
 
-def p99(xs: list[float]) -> float:
-    s = sorted(xs)
-    return s[min(len(s) - 1, round(0.99 * (len(s) - 1)))]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--abilities", type=int, default=1000)
@@ -119,14 +115,12 @@ def main() -> None:
     matched = sum(1 for r in fast_result.values() if r.chosen)
     figures = {
         "abilities": args.abilities, "needs": args.needs, "needs_matched": matched,
-        "index_build_median_ms": 1e3 * statistics.median(build),
-        "match_all_cold_median_ms": 1e3 * statistics.median(cold),
-        "match_all_cold_p99_ms": 1e3 * p99(cold),
-        "match_all_warm_median_ms": 1e3 * statistics.median(warm),
-        "match_all_warm_p99_ms": 1e3 * p99(warm),
-        "baseline_naive_median_ms": 1e3 * statistics.median(base),
-        "baseline_naive_p99_ms": 1e3 * p99(base),
+        "index_build_median_ms": median_p99([1e3 * x for x in build], "ms")["median_ms"],
     }
+    for name, xs in (("match_all_cold", cold), ("match_all_warm", warm),
+                     ("baseline_naive", base)):
+        for k, v in median_p99([1e3 * x for x in xs], "ms").items():
+            figures[f"{name}_{k}"] = v
     figures["speedup_cold"] = (figures["baseline_naive_median_ms"]
                                / figures["match_all_cold_median_ms"])
     figures["speedup_warm"] = (figures["baseline_naive_median_ms"]

@@ -36,6 +36,7 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+from summary import median_p99
 
 from agent.processes import stop_processes
 
@@ -56,9 +57,7 @@ def _port() -> int:
 
 
 def _stats(us: list[float]) -> dict:
-    a = np.asarray(us)
-    return {"median_us": float(np.median(a)), "p99_us": float(np.percentile(a, 99)),
-            "n": len(a)}
+    return {**median_p99(us, "us"), "n": len(us)}
 
 
 def run_echo(args: argparse.Namespace) -> None:

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 from pytransform3d.transform_manager import TransformManager
+from summary import median_p99
 
 from agent.srg import Graph
 from agent.srg import geometry as geo
@@ -33,10 +34,6 @@ def _timed(fn, n: int) -> np.ndarray:
         fn(i)
         out[i] = time.perf_counter_ns() - t0
     return out / 1000.0  # microseconds
-
-
-def _stats(us: np.ndarray) -> dict:
-    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99))}
 
 
 def _random_pose(rng):
@@ -63,13 +60,14 @@ def bench_path4(n: int, rng: np.random.Generator) -> dict:
         g.pose(frames[0], frames[4], at=int(times[0]))  # build the plan once
         for i in range(min(n, 2000)):  # warm the per-sample slerp logs as a running system does
             g.pose(frames[0], frames[4], at=int(times[i]))
-        out[label] = _stats(_timed(lambda i, g=g: g.pose(frames[0], frames[4],
-                                                          at=int(times[i])), n))
+        out[label] = median_p99(_timed(lambda i, g=g: g.pose(frames[0], frames[4],
+                                                             at=int(times[i])), n), "us")
     for label, check in (("pytransform3d_default", True), ("pytransform3d_check_false", False)):
         tm = TransformManager(check=check)
         for e in range(4):
             tm.add_transform(frames[e + 1], frames[e], geo.to_matrix(*series[e][50]))
-        out[label] = _stats(_timed(lambda i, tm=tm: tm.get_transform(frames[4], frames[0]), n))
+        out[label] = median_p99(
+            _timed(lambda i, tm=tm: tm.get_transform(frames[4], frames[0]), n), "us")
     base = out["pytransform3d_default"]["median_us"]
     out["ratio_to_pytransform3d"] = out["no_covariance"]["median_us"] / base
     out["ratio_with_covariance_to_pytransform3d"] = out["with_covariance"]["median_us"] / base
@@ -108,11 +106,11 @@ def bench_update_1000(n: int, seed: int) -> dict:
     mats = [geo.to_matrix(*v) for v in new]
 
     def theirs_prebuilt(i: int) -> None:
-        tm.add_transform(dst, upd_parent, mats[i])
+        tm.add_transform(dst, upd_parent, mats[i % n])
         tm.get_transform(dst, src)
 
-    out = {"frames": count, "path_hops": hops, "srg": _stats(_timed(ours, n)),
-           "pytransform3d": _stats(_timed(theirs_prebuilt, max(50, n // 4)))}
+    out = {"frames": count, "path_hops": hops, "srg": median_p99(_timed(ours, n), "us"),
+           "pytransform3d": median_p99(_timed(theirs_prebuilt, max(50, n // 4)), "us")}
     out["speedup_vs_pytransform3d"] = out["pytransform3d"]["median_us"] / out["srg"]["median_us"]
     return out
 

@@ -1,0 +1,94 @@
+"""The benchmarks still run, and report their figures through ``bench/summary.py``.
+
+Only the pure-computation benchmarks that finish in seconds with tiny options run here;
+the ones that start agents or services (failover, query_remote, alignment_e2e, fusion
+``--e2e``) and the slow ones (laser: camera calibration first; srg_local: a 1,000-frame
+pytransform3d graph to build) are left out.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
+
+
+def _load_summary():
+    spec = importlib.util.spec_from_file_location("bench_summary", BENCH / "summary.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+median_p99 = _load_summary().median_p99
+
+
+def test_median_p99_values_and_unit_naming() -> None:
+    out = median_p99(list(range(101)), "ms")
+    assert out == {"median_ms": 50.0, "p99_ms": 99.0}
+    assert all(type(v) is float for v in out.values())  # JSON-ready, not numpy scalars
+    samples = np.array([4.0, 1.0, 3.0, 2.0])
+    assert median_p99(samples, "us") == {
+        "median_us": pytest.approx(2.5), "p99_us": pytest.approx(np.percentile(samples, 99))}
+    assert median_p99([7.0], "s") == {"median_s": 7.0, "p99_s": 7.0}
+
+
+@pytest.mark.parametrize("empty", [[], np.array([])])
+def test_median_p99_rejects_no_samples(empty) -> None:
+    with pytest.raises(ValueError, match="no samples"):
+        median_p99(empty, "ms")
+
+
+# bench file, tiny options, and where its median/p99 figures are: (path to a dict in the
+# JSON, the keys that dict must have)
+BENCHES = {
+    "bench_accel.py": (["--seconds", "0.5"], [
+        (("update_us",), ("median_us", "p99_us")),
+        (("baseline_solve_only_us",), ("median_us", "p99_us")),
+    ]),
+    "bench_matching.py": (["--abilities", "50", "--needs", "10", "--repeat", "3"], [
+        ((), ("index_build_median_ms",
+              "match_all_cold_median_ms", "match_all_cold_p99_ms",
+              "match_all_warm_median_ms", "match_all_warm_p99_ms",
+              "baseline_naive_median_ms", "baseline_naive_p99_ms")),
+    ]),
+    "bench_fusion.py": (["--seconds", "1"], [
+        (("scaat",), ("sample_median_us", "sample_p99_us")),
+        (("baseline_filterpy_batch",), ("sample_median_us", "sample_p99_us")),
+    ]),
+    "bench_alignment.py": (["--sizes", "10", "--repeats", "1"], [
+        (("stations_10", name), ("median_ms", "p99_ms"))
+        for name in ("daniilidis", "tsai_lenz", "cv2_daniilidis", "cv2_tsai",
+                     "align_stations_full")
+    ]),
+}
+
+
+@pytest.mark.parametrize("bench", sorted(BENCHES))
+def test_bench_runs_and_reports_median_p99(bench: str) -> None:
+    options, expected = BENCHES[bench]
+    # the working tree's packages, whatever is installed
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p))
+    proc = subprocess.run([sys.executable, f"bench/{bench}", *options, "--json"], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [line for line in proc.stdout.splitlines() if line.strip()]
+    assert lines, f"{bench} printed nothing"
+    figures = json.loads(lines[-1])  # --json: the last line is one JSON object
+    for path, keys in expected:
+        node = figures
+        for part in path:
+            node = node[part]
+        for key in keys:
+            assert isinstance(node[key], float), (bench, path, key, node)
+            assert node[key] >= 0.0, (bench, path, key, node)
