@@ -30,6 +30,11 @@ changes, it plans again, and if the best route (or any edge of it) differs it re
 mirror on the new route and goes on delivering.  When no route is left it says so (a log
 line, ``status == "no route"``, ``last_error``, and ``on_error(exc)`` once per outage),
 stops delivering, and retries every ``RETRY_S`` and at every change until a route is back.
+A route that is alive but silent -- its fastest edge sent nothing for ``stall_s`` (by default
+``STALL_PERIODS`` of its sample periods, at least ``STALL_MIN_S``): the tracker lost its
+target or hung, or the network drops its data -- is a different outage, since no other route
+would do better: the subscription stays on it, says so once (a log line,
+``status == "stalled"``, ``stalls``) and goes back to ``"streaming"`` at the next sample.
 """
 
 from __future__ import annotations
@@ -85,6 +90,12 @@ MAX_ROUTES = 4
 SETTLE_S = 0.15
 #: how often a subscription without a route tries again (besides at every realm change)
 RETRY_S = 1.0
+#: a subscription's fastest edge silent this many of its sample periods, and at least
+#: STALL_MIN_S, is a stall (a route change takes up to a lease, 1 s, without samples)
+STALL_PERIODS = 10
+STALL_MIN_S = 1.5
+#: the states in which a subscription holds a route's mirror
+_ON_ROUTE = ("streaming", "stalled")
 
 
 class NoAgentsError(UmaError):
@@ -494,17 +505,24 @@ class Client:
 
     def subscribe(self, source: str, target: str, on_pose: Callable[[PoseResult], Any],
                   error: str = "latency",
-                  on_error: Callable[[Exception], Any] | None = None) -> Subscription:
+                  on_error: Callable[[Exception], Any] | None = None,
+                  stall_s: float | None = None) -> Subscription:
         """Push a composed pose to ``on_pose`` at every sample of the route's fastest edge,
-        following route changes; ``on_error(exc)`` is told when no route is left (module
-        docstring).  Raises like :meth:`pose` if there is no route to begin with."""
+        following route changes; ``on_error(exc)`` is told when no route is left, and a
+        route silent for ``stall_s`` is reported as stalled (module docstring).  Raises like
+        :meth:`pose` if there is no route to begin with."""
         if not callable(on_pose):
             raise ValueError("on_pose must be callable")
         if on_error is not None and not callable(on_error):
             raise ValueError("on_error must be callable or None")
+        if stall_s is not None and not (isinstance(stall_s, int | float)
+                                        and math.isfinite(stall_s) and stall_s > 0):
+            raise ValueError(f"stall_s must be a positive number of seconds or None, got "
+                             f"{stall_s!r}")
         seen = self.topology
         first, parts = self._query(source, target, None, error, details=True)
-        sub = Subscription(self, source, target, on_pose, error, on_error, parts, first, seen)
+        sub = Subscription(self, source, target, on_pose, error, on_error, parts, first, seen,
+                           stall_s)
         self._subscriptions.append(sub)
         return sub
 
@@ -527,16 +545,18 @@ def _signature(parts: list[tuple[Segment, list[dict[str, Any]]]]) -> Signature:
 class Subscription:
     """A running stream of composed poses that follows route changes; ``close()`` stops it.
 
-    ``status``: ``"streaming"``, ``"no route"`` or ``"closed"``; ``route``: the segments
-    in use; ``replans``: how many times it moved to another route; ``last_error``: the
-    latest failure (bad sample, undefined pull, no route).
+    ``status``: ``"streaming"``, ``"stalled"`` (on a route, but no sample of its fastest
+    edge for ``stall_limit_s``), ``"no route"`` or ``"closed"``; ``route``: the segments
+    in use; ``replans``: how many times it moved to another route; ``stalls``: how many
+    times its route fell silent; ``last_error``: the latest failure (bad sample, undefined
+    pull, stall, no route).
     """
 
     def __init__(self, client: Client, source: str, target: str,
                  on_pose: Callable[[PoseResult], Any], error: str,
                  on_error: Callable[[Exception], Any] | None,
                  parts: list[tuple[Segment, list[dict[str, Any]]]], first: PoseResult,
-                 topology: int) -> None:
+                 topology: int, stall_s: float | None = None) -> None:
         self.client = client
         self.source, self.target = source, target
         self.on_pose = on_pose
@@ -545,8 +565,12 @@ class Subscription:
         self.delivered = 0
         self.failed = 0
         self.replans = 0
+        self.stalls = 0
         self.last_error: Exception | None = None
         self.status = "streaming"
+        self.stall_s = stall_s
+        self.stall_limit_s = math.inf  # set for each route by _build
+        self._last_push = time.monotonic()
         self.route: list[Segment] = []
         self.graph = Graph(buffer_s=5.0)
         self.pusher: tuple | None = None
@@ -573,6 +597,8 @@ class Subscription:
             for e in edges:
                 feeds += self._mirror(seg.agent, e)
         self.pusher = max(feeds, key=lambda f: f[3])[2] if feeds else None
+        self.stall_limit_s = self._stall_limit(max((f[3] for f in feeds), default=0.0))
+        self._last_push = time.monotonic()
         rates = [f[3] for f in feeds if f[3] > 0]
         if rates:  # a pulled edge may be extrapolated up to two of its sample periods
             self.graph.max_extrapolation_s = max(self.graph.max_extrapolation_s,
@@ -591,6 +617,15 @@ class Subscription:
                                              indirect=False)))
         if not feeds:  # all static: the one answer is the stream
             self._deliver(first)
+
+    def _stall_limit(self, pusher_hz: float) -> float:
+        """How long the fastest edge may be silent: ``stall_s``, or ``STALL_PERIODS`` of its
+        advertised periods (never for a route without measured edges or stated rate)."""
+        if self.pusher is None:
+            return math.inf
+        if self.stall_s is not None:
+            return self.stall_s
+        return max(STALL_MIN_S, STALL_PERIODS / pusher_hz) if pusher_hz > 0 else math.inf
 
     def _unsubscribe(self) -> None:
         for decl in self._decls:
@@ -630,9 +665,9 @@ class Subscription:
             first, parts = self.client._query(self.source, self.target, None, self.error,
                                               details=True)
             if self._closed.is_set() or (_signature(parts) == self._signature
-                                         and self.status == "streaming"):
+                                         and self.status in _ON_ROUTE):
                 return
-            was = [s.agent for s in self.route] if self.status == "streaming" else None
+            was = [s.agent for s in self.route] if self.status in _ON_ROUTE else None
             self._build(parts, first)
         except (LookupError, UmaError, ValueError) as exc:
             self._lost(exc)
@@ -649,7 +684,7 @@ class Subscription:
         self.last_error = exc
         self._next_retry = time.monotonic() + RETRY_S
         alive = self.client._snapshot()[1]
-        if (self.status == "streaming" and isinstance(exc, SegmentError)
+        if (self.status in _ON_ROUTE and isinstance(exc, SegmentError)
                 and {s.agent for s in self.route} <= alive):
             self.client._bad.warning(f"subscription {self.source} -> {self.target}",
                                      f"re-planning failed, route kept: {exc}")
@@ -688,6 +723,30 @@ class Subscription:
                               self.target)
             if item:
                 self._on_sample(*item)
+            self._check_stall()
+
+    def _check_stall(self) -> None:
+        """On a route whose fastest edge has been silent too long: say so, once."""
+        silent = time.monotonic() - self._last_push
+        if self.status != "streaming" or silent <= self.stall_limit_s:
+            return
+        self.status = "stalled"
+        self.stalls += 1
+        edge = f"{self.pusher[0]} -> {self.pusher[1]}" if self.pusher else "?"
+        self.last_error = UmaError(
+            f"subscription {self.source} -> {self.target}: no sample of its fastest edge "
+            f"{edge} for {silent:.1f} s, though the agents of its route "
+            f"({', '.join(s.agent for s in self.route)}) are alive")
+        log.warning("%s; staying on the route", self.last_error)
+
+    def _pushed(self) -> None:
+        """A sample of the fastest edge arrived: a stalled route streams again."""
+        now = time.monotonic()
+        if self.status == "stalled":
+            self.status = "streaming"
+            log.info("subscription %s -> %s: samples again after %.1f s", self.source,
+                     self.target, now - self._last_push)
+        self._last_push = now
 
     def _on_sample(self, agent: str, key: str, data: bytes) -> None:
         feed = self._feeds.get(key)
@@ -706,6 +765,7 @@ class Subscription:
             return
         if edge_key != self.pusher:
             return
+        self._pushed()
         try:
             result = self.graph.pose(self.source, self.target, at=t, error="hops")
         except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet

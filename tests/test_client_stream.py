@@ -53,9 +53,13 @@ def run_tracker(argv: list[str]) -> None:
         ap.add_argument("--t0", type=int, required=True)
         ap.add_argument("--skew", type=int, default=0)
         ap.add_argument("--seconds", type=float, default=60.0)
+        ap.add_argument("--pause-file", type=Path, default=None,
+                        help="publish nothing while this file exists")
     a = options(argv, extra)
+    paused = (lambda: a.pause_file.exists()) if a.pause_file else None
     with pose_tracker(a, (WORLD, HEAD)) as (_, out, stop):
-        publish_until(out, stop, lambda t: motion((t - a.t0) / 1e9), a.seconds, a.skew)
+        publish_until(out, stop, lambda t: motion((t - a.t0) / 1e9), a.seconds, a.skew,
+                      paused)
 
 
 def wait_for(fn, timeout=20.0, what="condition"):
@@ -72,6 +76,21 @@ def wait_for(fn, timeout=20.0, what="condition"):
     raise AssertionError(f"{what} not reached within {timeout} s: {last}")
 
 
+def until(test, what: str, timeout: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout
+    for _ in range(1000):
+        if test():
+            return
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    raise AssertionError(f"{what} not seen within {timeout} s")
+
+
+def tracker_env() -> dict[str, str]:
+    return {"PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path]), **LEASE}
+
+
 @pytest.fixture
 def skewed_world(processes, tmp_path, realm):
     pa, pb = free_port(), free_port()
@@ -85,8 +104,7 @@ def skewed_world(processes, tmp_path, realm):
     t0 = time.time_ns()
     processes.start("--realm", realm, "--agent", "A", "--connect", endpoint(pa),
                     "--t0", str(t0), "--skew", str(SKEW_NS), module="test_client_stream",
-                    env={"PYTHONPATH": os.pathsep.join([str(Path(__file__).parent),
-                                                        *sys.path]), **LEASE})
+                    env=tracker_env())
     return [endpoint(pa), endpoint(pb)], t0
 
 
@@ -146,6 +164,44 @@ def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, rea
         assert r.covariance is not None
     # pushed at sample times: the pulled static edge needs no extrapolation
     assert all(r.extrapolated_s == 0.0 for r in got)
+
+
+def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, realm, tmp_path):
+    """The tracker stays alive (its route with it) but publishes nothing: no other route would
+    do better, so the subscription stays, says "stalled" once, and resumes by itself."""
+    from agent.client import STALL_MIN_S, Client
+
+    ep = endpoint(free_port())
+    agent(processes, realm, "A", ep, env=LEASE)
+    pause = tmp_path / "pause"
+    processes.start("--realm", realm, "--agent", "A", "--connect", ep, "--t0",
+                    str(time.time_ns()), "--pause-file", str(pause),
+                    module="test_client_stream", env=tracker_env())
+    got: list = []
+    errors: list = []
+    with Client(realm=realm, connect=[ep], timeout=2.0) as c:
+        wait_for(lambda: c.pose(WORLD, HEAD), what="the tracker's edge")
+        with pytest.raises(ValueError, match="stall_s must be a positive number"):
+            c.subscribe(WORLD, HEAD, on_pose=got.append, stall_s=0)
+        default = c.subscribe(WORLD, HEAD, on_pose=lambda r: None)
+        assert default.stall_limit_s == STALL_MIN_S  # 10 periods of 100 Hz are less
+        default.close()
+        sub = c.subscribe(WORLD, HEAD, on_pose=got.append, on_error=errors.append,
+                          error="hops", stall_s=1.0)
+        until(lambda: len(got) >= 20, "20 poses")
+        stalls = sub.stalls  # a loaded machine may already have paused the tracker once
+        pause.touch()
+        until(lambda: sub.status == "stalled", "status 'stalled'")
+        assert sub.stalls > stalls and sub.route[0].agent == "A"
+        assert "no sample of its fastest edge ivy/world -> alice/head for" in str(
+            sub.last_error) and "(A) are alive" in str(sub.last_error)
+        quiet = len(got)
+        pause.unlink()
+        until(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
+              "streaming again")
+        assert errors == []  # not an outage of the route: on_error is not told
+        sub.close()
+        assert sub.status == "closed"
 
 
 if __name__ == "__main__":

@@ -48,11 +48,13 @@ def pose_tracker(a: argparse.Namespace, edge: tuple[str, str],
 
 def publish_until(out: Any, stop: threading.Event,
                   pose_at: Callable[[int], tuple[Sequence[float], Sequence[float]]],
-                  seconds: float = 600.0, skew_ns: int = 0) -> None:
+                  seconds: float = 600.0, skew_ns: int = 0,
+                  paused: Callable[[], bool] | None = None) -> None:
     """Publish ``pose_at(now_ns)`` at RATE_HZ, stamped now + ``skew_ns``, until stopped
-    (or ``seconds``)."""
+    (or ``seconds``); nothing while ``paused()`` (a tracker alive but silent)."""
     end = time.monotonic() + seconds
     while not stop.is_set() and time.monotonic() < end:
         t = time.time_ns()
-        out.publish(t + skew_ns, *pose_at(t))
+        if paused is None or not paused():
+            out.publish(t + skew_ns, *pose_at(t))
         stop.wait(1.0 / RATE_HZ)
