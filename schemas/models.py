@@ -7,7 +7,7 @@ beside this file.
 
 Identifiers:
 
-* **Frame ids** are ``site/object`` strings (``ivy/world``, ``marvin/head``): one or more
+* **Frame ids** are ``site/object`` strings (``ivy/world``, ``alice/head``): one or more
   non-empty segments of ``[A-Za-z0-9_.-]`` separated by ``/``.  They end up inside Zenoh key
   expressions, so ``* $ # ? @`` and spaces are refused.
 * **Edge patterns** of needs may use ``*`` as a whole segment or inside one; ``*`` never

@@ -7,7 +7,7 @@ its own, it starts
   mountings as static edges) and ``application`` (the application host, connected to it);
 * the tracker services as child processes registered with ``tracking``: the laser-dot
   camera on the rendered IVY display, the accelerometer rig simulator and the fusion;
-* a client on the application host that queries ``ivy/world -> marvin/head`` across the
+* a client on the application host that queries ``ivy/world -> alice/head`` across the
   two agents (``Client.pose``) and streams it (``Client.subscribe``), and compares every
   answer with the simulator's ground truth.
 

@@ -42,7 +42,7 @@ def test_demo_runs_end_to_end_and_stops_everything(tmp_path):
     assert len(lines) == 1, p.stdout
     r = json.loads(lines[0])
     why = f"{r}\n{_tails(logs)}"
-    assert r["ok"] and r["path"] == ["ivy/world", "marvin/head"], why
+    assert r["ok"] and r["path"] == ["ivy/world", "alice/head"], why
     assert r["matches"]["fusion.optical"] and r["matches"]["fusion.accel"], why
     assert r["queries"] > 10 and r["stream_poses"] > 100, why
     assert r["position_error_mm"]["median"] < 5.0, why

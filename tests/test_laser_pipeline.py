@@ -170,13 +170,13 @@ def test_services_reach_a_client_in_another_process(calibration_file, processes,
         # now: with it first, the laser rig would also be reachable through the head)
         sim = processes.start("service", "run", "sim", "--realm", realm, "--agent", "lab",
                               "--connect", ep, "--seed", "4", "--rate-hz", "50")
-        h = _wait_pose(client, "ivy/world", "marvin/head", sim, deadline)
+        h = _wait_pose(client, "ivy/world", "alice/head", sim, deadline)
         ph, qh = truth.trajectory.pose(sim_time_s(h.stamps[0][0]))
         # stamps come back on this process' clock through an estimated offset: allow for
         # a millisecond of head motion (1 m/s, 200 deg/s)
         assert np.allclose(h.position, ph[0], atol=1e-3)
         assert geo.quat_angle(h.quaternion, qh[0]) < 4e-3
-        m = _wait_pose(client, "marvin/head", "marvin/laser_rig", sim, deadline)
+        m = _wait_pose(client, "alice/head", "marvin/laser_rig", sim, deadline)
         assert np.allclose(m.position, mounts.HEAD_TO_LASER_RIG[0], atol=1e-9)
         assert geo.quat_angle(m.quaternion, mounts.HEAD_TO_LASER_RIG[1]) < 1e-9
 

@@ -8,13 +8,13 @@ Needs (matched by the agent, data straight from the publishing services):
   more), whose ability attributes carry the rig's calibration (positions, axes, noise,
   latency: ``services.accel_rig.sensor.Calibration.to_dict``);
 
-The mountings ``marvin/head -> <rig>`` are the SRG's static edges (an agent's
+The mountings ``alice/head -> <rig>`` are the SRG's static edges (an agent's
 ``[[static]]`` configuration, an alignment result or the simulator's true mountings):
 the service asks the agent's SRG with ``Client.pose`` until it has them and every few
 seconds after (a re-calibrated rig rebuilds the filter).  Nothing about the rigs is a
 constant here.
 
-Ability ``head``: the fused ``ivy/world -> marvin/head`` pose at the inertial rate with its
+Ability ``head``: the fused ``ivy/world -> alice/head`` pose at the inertial rate with its
 6x6 covariance, optionally predicted ``--horizon-ms`` ahead (attribute ``predicted_s``).
 Late optical poses are applied at their own time by rewinding (``FusionTracker``).
 """
@@ -49,7 +49,7 @@ DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
     parser.add_argument("--world", default=mounts.WORLD, help="world frame (ivy/world)")
-    parser.add_argument("--head", default=mounts.HEAD, help="fused frame (marvin/head)")
+    parser.add_argument("--head", default=mounts.HEAD, help="fused frame (alice/head)")
     parser.add_argument("--optical-rig", default=mounts.LASER_RIG,
                         help=f"frame of the optical rig (default {mounts.LASER_RIG})")
     parser.add_argument("--accel-rig", default=mounts.ACCEL_RIG,

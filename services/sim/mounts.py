@@ -3,11 +3,11 @@
 Frames (shared by every service, the SRG and the evaluations):
 
 * ``ivy/world``         the IVY cube, origin at its centre, z up
-* ``marvin/head``       the user's head (x forward, y left, z up); the trajectory's frame
+* ``alice/head``        the user's head (x forward, y left, z up); the trajectory's frame
 * ``marvin/laser_rig``  the laser-diode housing of the optical tracker (seed 003 ch. 5)
 * ``marvin/accel_rig``  the six-accelerometer rig (seed 003 ch. 4)
 
-Each mounting is the pose of the rig in the head frame (the SRG edge ``marvin/head ->
+Each mounting is the pose of the rig in the head frame (the SRG edge ``alice/head ->
 marvin/<rig>``).  They are deliberately not axis-aligned, so alignment and fusion cannot
 succeed by assuming identity.  Real systems get them from tracker alignment (AX = XB).
 """
@@ -19,7 +19,7 @@ import numpy as np
 from agent.srg import geometry as geo
 
 WORLD = "ivy/world"
-HEAD = "marvin/head"
+HEAD = "alice/head"
 LASER_RIG = "marvin/laser_rig"
 ACCEL_RIG = "marvin/accel_rig"
 

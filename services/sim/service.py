@@ -1,8 +1,8 @@
 """``uma service run sim``: the simulated world's ground truth as abilities.
 
-Publishes the true head pose ``ivy/world -> marvin/head`` (``pose6d``, attribute
-``ground_truth: true``) at ``--rate-hz``, and the true rig mountings ``marvin/head ->
-marvin/laser_rig`` and ``marvin/head -> marvin/accel_rig`` as static abilities
+Publishes the true head pose ``ivy/world -> alice/head`` (``pose6d``, attribute
+``ground_truth: true``) at ``--rate-hz``, and the true rig mountings ``alice/head ->
+marvin/laser_rig`` and ``alice/head -> marvin/accel_rig`` as static abilities
 (``static: true``, re-published every second so late subscribers get them).  Trajectory
 time is wall-clock time since ``SIM_EPOCH_NS``, so every process simulating the same seed
 (the laser-camera service's default source, for one) agrees on where the head is.
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 PLUGIN = ServicePlugin(
     name="sim",
-    help="The simulated IVY world's ground truth: the head pose ivy/world -> marvin/head "
+    help="The simulated IVY world's ground truth: the head pose ivy/world -> alice/head "
          "(ground_truth: true) of a seeded random trajectory, and the true laser and "
          "accelerometer rig mountings as static edges.",
     add_arguments=add_arguments,
