@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.client import Client
@@ -78,17 +79,19 @@ def wait_for(fn, timeout=15.0, what="condition"):
 
 
 def start_agents(processes, tmp_path, realm, configs):
+    """Each agent up (the harness waits for it, and starts a stalled one once more) before
+    the next; the first is everybody's peer."""
     ports = {name: free_port() for name in configs}
     procs = {}
     first = None
     for name, edges in configs.items():
-        args = ["agent", "--realm", realm, "--id", name, "--listen", endpoint(ports[name]),
-                "--config", str(write_config(tmp_path / f"{name}.toml", edges))]
-        if first is not None:
-            args += ["--connect", endpoint(ports[first])]
         # a 5 s lease: a loaded machine must not make a stalled agent look gone (a killed
         # one is still seen at once: its sockets close)
-        procs[name] = processes.start(*args, env={"UMA_LEASE_MS": "5000"})
+        procs[name] = agent(processes, realm, name, endpoint(ports[name]),
+                            connect=() if first is None else (endpoint(ports[first]),),
+                            extra=("--config", str(write_config(tmp_path / f"{name}.toml",
+                                                                edges))),
+                            env={"UMA_LEASE_MS": "5000"}).popen
         first = first or name
     return procs, [endpoint(p) for p in ports.values()]
 
