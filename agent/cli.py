@@ -94,6 +94,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-h", "--help", dest="show_help", action="store_true")
     sp.add_argument("name", metavar="NAME", nargs="?", help="service name")
     sp.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    rp = ssub.add_parser("recalibrate", help="ask a running alignment service to calibrate "
+                                             "again",
+                         description="Ask a running alignment service to drop the motions it "
+                                     "collected and calibrate again from fresh ones (after a "
+                                     "tracker's mounting changed). Prints its acknowledgement "
+                                     "and the calibration it had; the new one follows when the "
+                                     "motions allow (see its log or 'uma services').")
+    rp.add_argument("service_id", metavar="SERVICE", nargs="?", default="alignment",
+                    help="the service's id (default alignment)")
+    rp.add_argument("--agent", required=True, metavar="ID",
+                    help="the agent the service is registered with")
+    _add_network(rp, listen=False)
+    rp.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                    help="seconds to wait for the service's answer (default 5)")
+    rp.add_argument("--json", action="store_true", help="print the answer as one JSON object")
 
     p = sub.add_parser("services", help="list agents, services, needs, abilities and matches",
                        description="Ask every agent of the realm for its services and print "
@@ -232,6 +247,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uma`` console script."""
     args = build_parser().parse_args(argv)
     try:
+        if args.command == "service" and args.service_command == "recalibrate":
+            return _call("services.alignment.service:recalibrate_command", args)
         if args.command == "service":
             return _run_service(args)
         if args.command == "eval":

@@ -22,7 +22,7 @@ from agent.commands.daemon import load_config
 from agent.daemon import check_static_edge
 from agent.srg import geometry as geo
 from services.alignment import records
-from services.alignment.service import StreamBuffer, request_recalibration
+from services.alignment.service import StreamBuffer
 from services.alignment.simulate import StreamConfig, simulate_streams
 from services.alignment.solvers import Pose
 from services.sim import mounts
@@ -185,7 +185,13 @@ def test_live_service_publishes_the_static_edge_and_recalibrates(processes, real
         assert np.allclose(r.position, first["position"], atol=1e-9)
         assert r.attributes.get("pos_std_m") == pytest.approx(first["pos_std_m"])
         written = out.stat().st_mtime_ns
-        ack = request_recalibration(realm, "lab", connect=[ep])
+        # what a user types: the command asks the service through request_recalibration
+        asked = subprocess.run(
+            [sys.executable, "-m", "agent.cli", "service", "recalibrate", "--agent", "lab",
+             "--realm", realm, "--connect", ep, "--timeout", "10", "--json"],
+            capture_output=True, text=True, timeout=60)
+        assert asked.returncode == 0, asked.stderr
+        ack = json.loads(asked.stdout)
         assert ack["ok"] and ack["previous"]["pairs_inlier"] > 0
         while out.stat().st_mtime_ns == written:
             assert svc.poll() is None, svc.stderr.read()
@@ -196,3 +202,14 @@ def test_live_service_publishes_the_static_edge_and_recalibrates(processes, real
     finally:
         stop.set()
         feeder.join(timeout=10)
+
+
+def test_recalibrate_command_names_what_it_could_not_reach(realm) -> None:
+    base = [sys.executable, "-m", "agent.cli", "service", "recalibrate", "--agent", "lab",
+            "--realm", realm, "--timeout", "1"]
+    down = subprocess.run([*base, "--connect", endpoint(free_port())], capture_output=True,
+                          text=True, timeout=60)
+    assert down.returncode == 1 and "cannot reach tcp/127.0.0.1:" in down.stderr
+    bad = subprocess.run([*base[:-1], "0"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "--timeout must be positive" in bad.stderr
+    assert "Traceback" not in down.stderr + bad.stderr

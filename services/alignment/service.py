@@ -454,6 +454,22 @@ def request_recalibration(realm: str, agent_id: str, service_id: str = "alignmen
                        f"answer within {timeout} s")
 
 
+def recalibrate_command(args: argparse.Namespace) -> int:
+    """``uma service recalibrate [SERVICE] --agent ID``: ``request_recalibration`` for people."""
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise ValueError(f"--timeout must be positive seconds, got {args.timeout!r}")
+    ack = request_recalibration(args.realm, args.agent, args.service_id, args.connect,
+                                args.timeout)
+    if args.json:
+        print(json.dumps(ack))
+        return 0
+    print(f"{args.service_id} (agent {args.agent}): {ack.get('status', ack)}")
+    previous = ack.get("previous")
+    print("  previous calibration: " + (", ".join(f"{k}={v}" for k, v in previous.items())
+                                        if previous else "none yet"))
+    return 0
+
+
 PLUGIN = ServicePlugin(
     name="alignment",
     help="Tracker alignment (AX = XB, seed 000 ch. 3): needs two pose6d streams of rigidly "
