@@ -38,6 +38,7 @@ import numpy as np
 
 from agent.errors import UmaError
 from agent.processes import stop_processes
+from agent.session import lease_ms_default
 from agent.srg import geometry as geo
 from services.sim import mounts
 
@@ -51,6 +52,12 @@ QUERY_HZ = 20.0
 #: through a rig's static mounting (two hops)
 ERROR = "hops"
 STOP_TIMEOUT_S = 3.0
+#: the Zenoh lease of the demo's agents and services (ms), unless UMA_LEASE_MS says
+#: otherwise.  Everything runs on this host, where a process that dies is seen at once (its
+#: sockets close); the lease only decides when a *frozen* one counts as gone.  The default
+#: 1 s lapsed on a host loaded to three demos per two cores, and the application host lost
+#: its route for a moment.  The demo shows no failover, so it waits longer.
+DEMO_LEASE_MS = 5000
 
 
 def _free_endpoint() -> str:
@@ -92,13 +99,14 @@ class Children:
     """Service child processes, always stopped (SIGTERM, then SIGKILL) by their PID; their
     logs go to ``log_dir/<name>.log`` if given, else to temporary files."""
 
-    def __init__(self, log_dir: Path | None = None) -> None:
+    def __init__(self, log_dir: Path | None = None, lease_ms: int = DEMO_LEASE_MS) -> None:
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: dict[str, Any] = {}
         self.log_dir = log_dir
+        self.lease_ms = lease_ms
 
     def start(self, name: str, argv: list[str]) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = dict(os.environ, PYTHONUNBUFFERED="1", UMA_LEASE_MS=str(self.lease_ms))
         # a file, not a pipe: a chatty child must never block on a full pipe (closed in stop())
         log_file = (tempfile.TemporaryFile("w+") if self.log_dir is None  # noqa: SIM115
                     else open(self.log_dir / f"{name}.log", "w+"))  # noqa: SIM115
@@ -163,17 +171,18 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     calibration = laser_calibration_file(IvyWorld(seed=seed), announce=live)
     accel_calibration = accel_calibration_file(announce=live)
     truth = HeadTrajectory(seed)
-    children = Children(log_dir)
+    lease_ms = lease_ms_default() if "UMA_LEASE_MS" in os.environ else DEMO_LEASE_MS
+    children = Children(log_dir, lease_ms)
     agents: list[Any] = []
     tally = Tally()
     sub = None
     try:
         tracking = Agent(AgentSettings(realm=realm, agent_id="tracking", listen=[ep_tracking],
-                                       static_edges=_static_edges()))
+                                       static_edges=_static_edges(), lease_ms=lease_ms))
         tracking.start()
         agents.append(tracking)
         app = Agent(AgentSettings(realm=realm, agent_id="application", listen=[ep_app],
-                                  connect=[ep_tracking]))
+                                  connect=[ep_tracking], lease_ms=lease_ms))
         app.start()
         agents.append(app)
         common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]
