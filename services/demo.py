@@ -85,6 +85,9 @@ class Tally:
     rot_err_rad: list[float] = field(default_factory=list)
     stream_times: list[float] = field(default_factory=list)
     stream_pos_err_m: list[float] = field(default_factory=list)
+    #: the subscription's own count of silent spells and route moves
+    stream_stalls: int = 0
+    stream_replans: int = 0
     failures: dict[str, int] = field(default_factory=dict)
     path: list[str] = field(default_factory=list)
     last: tuple[np.ndarray, np.ndarray] | None = None
@@ -212,6 +215,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
 
             sub = client.subscribe(mounts.WORLD, mounts.HEAD, on_pose=on_pose)
             _measure(client, truth, sim_time_s, seconds, tally, live)
+            tally.stream_stalls, tally.stream_replans = sub.stalls, sub.replans
             matches = _matches(tracking)
     finally:
         if sub is not None:
@@ -331,6 +335,8 @@ def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: flo
             "query_latency_ms": _stats(t.latencies_s, 1e3),
             "stream_poses": len(t.stream_times),
             "stream_rate_hz": stream_hz,
+            "stream_stalls": t.stream_stalls,
+            "stream_route_changes": t.stream_replans,
             "position_error_mm": _stats(t.pos_err_m, 1e3),
             "orientation_error_deg": _stats(t.rot_err_rad, 180.0 / math.pi),
             "stream_position_error_mm": _stats(t.stream_pos_err_m, 1e3),
@@ -351,7 +357,8 @@ def format_summary(r: dict[str, Any]) -> str:
     lines += [f"    {k}: {', '.join(v) or 'none'}" for k, v in r["matches"].items()]
     lines += [f"  queries: {r['queries']} (failures {r['query_failures'] or 'none'}), latency "
               f"{s(r['query_latency_ms'], 'ms')}",
-              f"  stream: {r['stream_poses']} poses at {r['stream_rate_hz']:.0f} Hz",
+              f"  stream: {r['stream_poses']} poses at {r['stream_rate_hz']:.0f} Hz, stalled "
+              f"{r['stream_stalls']} times, {r['stream_route_changes']} route changes",
               f"  fused vs ground truth: position {s(r['position_error_mm'], 'mm')}",
               f"                         orientation {s(r['orientation_error_deg'], 'deg')}",
               f"  all processes stopped (pids {', '.join(map(str, r['child_pids']))})",

@@ -45,6 +45,8 @@ def test_demo_runs_end_to_end_and_stops_everything(tmp_path):
     assert r["ok"] and r["path"] == ["ivy/world", "alice/head"], why
     assert r["matches"]["fusion.optical"] and r["matches"]["fusion.accel"], why
     assert r["queries"] > 10 and r["stream_poses"] > 100, why
+    # the subscription's health is part of the report (a loaded host may stall it)
+    assert isinstance(r["stream_stalls"], int) and isinstance(r["stream_route_changes"], int)
     assert r["position_error_mm"]["median"] < 5.0, why
     assert r["orientation_error_deg"]["median"] < 0.5, why
     assert r["wall_s"] < wall + 1.0
