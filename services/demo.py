@@ -87,7 +87,7 @@ class Tally:
     stream_pos_err_m: list[float] = field(default_factory=list)
     #: the subscription's own count of silent spells and route moves
     stream_stalls: int = 0
-    stream_replans: int = 0
+    stream_route_changes: int = 0
     failures: dict[str, int] = field(default_factory=dict)
     path: list[str] = field(default_factory=list)
     last: tuple[np.ndarray, np.ndarray] | None = None
@@ -215,7 +215,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
 
             sub = client.subscribe(mounts.WORLD, mounts.HEAD, on_pose=on_pose)
             _measure(client, truth, sim_time_s, seconds, tally, live)
-            tally.stream_stalls, tally.stream_replans = sub.stalls, sub.replans
+            tally.stream_stalls, tally.stream_route_changes = sub.stalls, sub.replans
             matches = _matches(tracking)
     finally:
         if sub is not None:
@@ -336,7 +336,7 @@ def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: flo
             "stream_poses": len(t.stream_times),
             "stream_rate_hz": stream_hz,
             "stream_stalls": t.stream_stalls,
-            "stream_route_changes": t.stream_replans,
+            "stream_route_changes": t.stream_route_changes,
             "position_error_mm": _stats(t.pos_err_m, 1e3),
             "orientation_error_deg": _stats(t.rot_err_rad, 180.0 / math.pi),
             "stream_position_error_mm": _stats(t.stream_pos_err_m, 1e3),

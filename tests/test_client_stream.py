@@ -63,28 +63,20 @@ def run_tracker(argv: list[str]) -> None:
 
 
 def wait_for(fn, timeout=20.0, what="condition"):
+    """``fn()``'s value once it neither raises nor returns False (bounded in time and count)."""
     deadline = time.monotonic() + timeout
     last = None
     for _ in range(500):
         try:
-            return fn()
+            result = fn()
+            if result is not False:
+                return result
         except (LookupError, AssertionError, UmaError) as exc:
             last = exc
         if time.monotonic() > deadline:
             break
-        time.sleep(0.1)
-    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
-
-
-def until(test, what: str, timeout: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout
-    for _ in range(1000):
-        if test():
-            return
-        if time.monotonic() > deadline:
-            break
         time.sleep(0.05)
-    raise AssertionError(f"{what} not seen within {timeout} s")
+    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
 
 
 def tracker_env() -> dict[str, str]:
@@ -188,17 +180,17 @@ def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, real
         default.close()
         sub = c.subscribe(WORLD, HEAD, on_pose=got.append, on_error=errors.append,
                           error="hops", stall_s=1.0)
-        until(lambda: len(got) >= 20, "20 poses")
+        wait_for(lambda: len(got) >= 20, what="20 poses")
         stalls = sub.stalls  # a loaded machine may already have paused the tracker once
         pause.touch()
-        until(lambda: sub.status == "stalled", "status 'stalled'")
+        wait_for(lambda: sub.status == "stalled", what="status 'stalled'")
         assert sub.stalls > stalls and sub.route[0].agent == "A"
         assert "no sample of its fastest edge ivy/world -> alice/head for" in str(
             sub.last_error) and "(A) are alive" in str(sub.last_error)
         quiet = len(got)
         pause.unlink()
-        until(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
-              "streaming again")
+        wait_for(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
+                 what="streaming again")
         assert errors == []  # not an outage of the route: on_error is not told
         sub.close()
         assert sub.status == "closed"

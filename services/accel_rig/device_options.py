@@ -56,7 +56,9 @@ def device_from_args(device: SensorTruth, args: argparse.Namespace) -> SensorTru
 
 
 def device_figures(device: SensorTruth) -> dict[str, float]:
-    """The simulated electronics an evaluation ran with (to put beside its figures)."""
-    return {"accel_noise_uv_per_sqrt_hz": 1e6 * device.noise_density_v,
-            "adc_conversions": device.conversions_per_reading,
-            "converter_noise_lsb": device.converter_noise_lsb if device.quantise else 0.0}
+    """The simulated electronics an evaluation ran with (to put beside its figures): what
+    the device's noise model says, so an ideal A/D reports no converter noise."""
+    noise = device.noise_model()
+    return {"accel_noise_uv_per_sqrt_hz": 1e6 * noise.density_v,
+            "adc_conversions": noise.conversions,
+            "converter_noise_lsb": noise.converter_noise_lsb}
