@@ -130,6 +130,9 @@ class Client:
         #: False: ask for every segment every time (the benchmark's uncached figure)
         self.cache_static_segments = True
         self._alive: set[str] = set()
+        #: when each agent last showed life (its token or a summary; monotonic s): a missed
+        #: answer marks it gone only if that came before the query went out
+        self._heard: dict[str, float] = {}
         #: agents whose token the subscription saw removed (and not declared again)
         self._departed: set[str] = set()
         #: bumped whenever the summaries or the set of live agents change (subscriptions
@@ -188,6 +191,8 @@ class Client:
 
     def _mark_alive(self, agent: str, alive: bool) -> None:
         """Update the live set (lock held); a change moves ``topology``."""
+        if alive:
+            self._heard[agent] = time.monotonic()
         if (agent in self._alive) != alive:
             self.topology += 1
             (self._alive.add if alive else self._alive.discard)(agent)
@@ -200,6 +205,16 @@ class Client:
             gone = sample.kind == zenoh.SampleKind.DELETE
             (self._departed.add if gone else self._departed.discard)(agent)
             self._mark_alive(agent, not gone)
+
+    def _missed(self, agent: str, asked: float) -> None:
+        """``agent`` did not answer a query sent at ``asked``: count it as gone, unless it
+        showed life since.  A restarting agent declares its token before its query handler
+        and then publishes its summary; a query that reached it in between, or its old self,
+        gets no answer, and marking it gone then would outlive the token and summary that
+        already said it is back (nothing else would bring it back)."""
+        with self._lock:
+            if self._heard.get(agent, -math.inf) < asked:
+                self._mark_alive(agent, False)
 
     def refresh(self) -> None:
         """Ask every agent for its summary now (also learns who is alive)."""
@@ -276,30 +291,39 @@ class Client:
                 "running there with the same --realm?")
         if source == target and any(source in s.frames for s in summaries.values()):
             return identity(source, None if at is None else int(at)), []
-        try:
-            try:
-                routes = self._plan(summaries, source, target, fn)
-            except (UnknownFrameError, UnreachableError):
-                # a frame or a link may be in a summary published before this client's
-                # subscription reached its agent (nothing re-sends it): ask for them all
-                self.refresh()
-                summaries, alive = self._snapshot()
-                routes = self._plan(summaries, source, target, fn)
-        except UnreachableError as exc:
-            raise _with_departed(exc, summaries, alive) from None
+        usable = self._usable(summaries, alive, source, target, fn)
         causes: list[SegmentError] = []
-        for route in usable_routes(routes, alive, source, target)[:MAX_ROUTES]:
+        for route in usable[:MAX_ROUTES]:
+            asked = time.monotonic()
             try:
                 return self._run(route, None if at is None else int(at), fn, details)
             except SegmentError as exc:
                 causes.append(exc)
                 if exc.missing:
-                    with self._lock:
-                        self._mark_alive(exc.segment.agent, False)
+                    self._missed(exc.segment.agent, asked)
         if len(causes) == 1:
             raise causes[0]
         raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
                          f"tried): " + "; ".join(str(c) for c in causes))
+
+    def _usable(self, summaries: dict[str, Summary], alive: set[str], source: str,
+                target: str, fn: ErrorFunction) -> list[Route]:
+        """The planned routes whose agents are all alive, best first.  Before giving up it
+        asks every agent once (``refresh``): a frame or a link may be in a summary published
+        before this client's subscription reached its agent (nothing re-sends it), and an
+        agent marked gone after a missed answer may only have been slow (its token is still
+        there)."""
+        try:
+            return usable_routes(self._plan(summaries, source, target, fn), alive, source,
+                                 target)
+        except (UnknownFrameError, UnreachableError, RouteError):
+            self.refresh()
+        summaries, alive = self._snapshot()
+        try:
+            return usable_routes(self._plan(summaries, source, target, fn), alive, source,
+                                 target)
+        except UnreachableError as exc:
+            raise _with_departed(exc, summaries, alive) from None
 
     def _plan(self, summaries: dict[str, Summary], source: str, target: str,
               fn: ErrorFunction) -> list[Route]:

@@ -11,7 +11,7 @@ import pytest
 import zenoh
 
 from agent.client import Client
-from agent.planner import parse_summary, plan_routes
+from agent.planner import RouteError, SegmentError, parse_summary, plan_routes
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
@@ -237,3 +237,52 @@ def test_refresh_does_not_revive_an_agent_whose_token_was_removed(realm_ab):
     assert "B" not in c._alive
     c._on_token(token(zenoh.SampleKind.PUT))
     assert "B" in c._alive
+
+
+def _silent(realm, agent, meanwhile=lambda: None):
+    """Make ``agent`` miss its next answer (``meanwhile`` runs while it is being asked)."""
+    answer = realm.client._answers
+
+    def ask(request, agents=()):
+        realm.client._answers = answer
+        meanwhile()
+        yield from (a for a in answer(request, [n for n in agents or realm.nodes
+                                                if n != agent]))
+    realm.client._answers = ask
+
+
+def test_an_agent_that_restarts_while_it_is_asked_is_not_marked_gone(realm_ab):
+    """A restarting agent declares its token before its query handler, then publishes its
+    summary: a query that reached it in between goes unanswered.  Its new summary, come in
+    meanwhile, says it is back; the missed answer must not mark it gone after that."""
+    c = realm_ab.client
+    restarted = decode_message(realm_ab.nodes["B"]._summary)
+    restarted.update(instance="new-instance", rev=0)
+    _silent(realm_ab, "B", lambda: c._take_summary("uma/lab/agent/B/supernode",
+                                                   encode_message(restarted)))
+    with pytest.raises(SegmentError, match="'B' did not answer"):
+        c.pose("w", "head", error="hops")
+    assert "B" in c._alive
+    assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
+
+
+def test_an_agent_that_missed_an_answer_is_asked_again_while_its_token_is_there(realm_ab):
+    """An agent that missed an answer (frozen for a moment) counts as gone; the next query
+    that finds no route without it asks the realm who is there, and tries it again."""
+    c = realm_ab.client
+    c.cache_static_segments = False  # B is asked every time
+    _silent(realm_ab, "B")
+    with pytest.raises(SegmentError, match="'B' did not answer"):
+        c.pose("w", "head", error="hops")
+    assert "B" not in c._alive
+    listed = mock.MagicMock()
+    listed.ok.key_expr = "uma/lab/agent/B"
+    c.session.liveliness.return_value.get.return_value = [listed]
+    c.session.get.return_value = []
+    assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
+    c.session.liveliness.return_value.get.return_value = []  # and now it is really gone
+    _silent(realm_ab, "B")
+    with pytest.raises(SegmentError):
+        c.pose("w", "head", error="hops")
+    with pytest.raises(RouteError, match="agent\\(s\\) B left the realm"):
+        c.pose("w", "head", error="hops")

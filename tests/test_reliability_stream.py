@@ -55,6 +55,7 @@ class Poses:
         self.got: list = []
         self.errors: list[Exception] = []
         self.cond = threading.Condition()
+        self.sub = None  # the subscription, named in a failure
 
     def on_pose(self, r) -> None:
         with self.cond:
@@ -73,8 +74,11 @@ class Poses:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     last = self.got[-1].position if self.got else None
+                    state = (None if self.sub is None
+                             else (self.sub.status, self.sub.last_error))
                     raise AssertionError(f"{what} not seen within {timeout} s ({len(self.got)} "
-                                         f"poses, last at {last}; errors {self.errors})")
+                                         f"poses, last at {last}; errors {self.errors}; "
+                                         f"subscription's status and last error {state})")
                 self.cond.wait(min(left, 0.2))
 
     def via(self, name: str, after: int, count: int = 20) -> None:
