@@ -306,6 +306,10 @@ class Agent:
             if s.mode == "peer" or s.listen:  # a client without listeners has none
                 self.endpoints = listening_endpoints(self.session)
             self._start_srg()
+            # last: the token tells clients and agents this one is here, so its query
+            # handlers must already be up (a query between the two would go unanswered)
+            self._token = self.session.liveliness().declare_token(
+                keys.agent_token(self.realm, self.agent_id))
             self._worker = threading.Thread(target=self._work, name="uma-agent", daemon=True)
             self._worker.start()
             self._feeder = threading.Thread(target=self._feed, name="uma-agent-srg",
@@ -320,7 +324,7 @@ class Agent:
                  self.realm, self.epoch, ", ".join(self.endpoints) or "nothing")
 
     def _join(self) -> None:
-        """Declare the queryables and subscriptions, then the agent's token."""
+        """Check that the id is free; declare the queryables and subscriptions."""
         sess, r, a = self.session, self.realm, self.agent_id
         assert sess is not None
         if self.s.connect:  # give the links a moment, so the check below sees the realm
@@ -348,7 +352,6 @@ class Agent:
                 keys.service_tokens(r), lambda smp: put(self._on_service_token, smp),
                 history=True),
         ]
-        self._token = sess.liveliness().declare_token(keys.agent_token(r, a))
 
     def _start_srg(self) -> None:
         try:
