@@ -16,7 +16,9 @@ answers with their covariances.  ``at`` is on this process's clock; each agent's
 offset is estimated from the round trips (:mod:`agent.clock`) and applied both ways.
 ``at=None`` means the latest time at which every measured edge of the route has data.
 If an agent does not answer, the next route without it is tried; if none is left the
-error names the missing segment and agent.
+error names the missing segment and agent.  An agent that missed an answer counts as gone
+until it shows life again (its token, a summary); a query that finds no route without it
+first asks the realm who is there, so one that was only slow for a moment is asked again.
 
 ``subscribe`` runs the query once with edge details, then mirrors the route's edges in a
 local :class:`agent.srg.Graph`: static edges from the answers, measured ones fed by
