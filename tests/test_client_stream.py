@@ -17,10 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from agent_helpers.harness import agent
+from agent_helpers.harness import agent, poll
 from conftest import endpoint, free_port
 
-from agent.errors import UmaError
 from agent.srg import geometry as geo
 
 WORLD, HEAD, EYE = "ivy/world", "alice/head", "alice/eye"
@@ -62,23 +61,6 @@ def run_tracker(argv: list[str]) -> None:
                       paused)
 
 
-def wait_for(fn, timeout=20.0, what="condition"):
-    """``fn()``'s value once it neither raises nor returns False (bounded in time and count)."""
-    deadline = time.monotonic() + timeout
-    last = None
-    for _ in range(500):
-        try:
-            result = fn()
-            if result is not False:
-                return result
-        except (LookupError, AssertionError, UmaError) as exc:
-            last = exc
-        if time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
-
-
 def tracker_env() -> dict[str, str]:
     return {"PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path]), **LEASE}
 
@@ -105,7 +87,7 @@ def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
 
     eps, t0 = skewed_world
     with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
-        wait_for(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
+        poll(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
         for _ in range(5):  # a few round trips for the minimum-delay filter
             c.pose(WORLD, EYE)
         at = time.time_ns() - 50_000_000  # 50 ms ago on the client's (unskewed) clock
@@ -140,7 +122,7 @@ def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, rea
             enough.set()
 
     with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
-        wait_for(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
+        poll(lambda: c.pose(WORLD, EYE), what="a pose across A and B")
         sub = c.subscribe(WORLD, EYE, on_pose=on_pose, error="hops")
         assert enough.wait(10.0), f"only {len(got)} poses streamed ({sub.last_error})"
         sub.close()
@@ -172,7 +154,7 @@ def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, real
     got: list = []
     errors: list = []
     with Client(realm=realm, connect=[ep], timeout=2.0) as c:
-        wait_for(lambda: c.pose(WORLD, HEAD), what="the tracker's edge")
+        poll(lambda: c.pose(WORLD, HEAD), what="the tracker's edge")
         with pytest.raises(ValueError, match="stall_s must be a positive number"):
             c.subscribe(WORLD, HEAD, on_pose=got.append, stall_s=0)
         default = c.subscribe(WORLD, HEAD, on_pose=lambda r: None)
@@ -180,16 +162,16 @@ def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, real
         default.close()
         sub = c.subscribe(WORLD, HEAD, on_pose=got.append, on_error=errors.append,
                           error="hops", stall_s=1.0)
-        wait_for(lambda: len(got) >= 20, what="20 poses")
+        poll(lambda: len(got) >= 20, what="20 poses")
         stalls = sub.stalls  # a loaded machine may already have paused the tracker once
         pause.touch()
-        wait_for(lambda: sub.status == "stalled", what="status 'stalled'")
+        poll(lambda: sub.status == "stalled", what="status 'stalled'")
         assert sub.stalls > stalls and sub.route[0].agent == "A"
         assert "no sample of its fastest edge ivy/world -> alice/head for" in str(
             sub.last_error) and "(A) are alive" in str(sub.last_error)
         quiet = len(got)
         pause.unlink()
-        wait_for(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
+        poll(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
                  what="streaming again")
         assert errors == []  # not an outage of the route: on_error is not told
         sub.close()

@@ -7,16 +7,14 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from agent_helpers.harness import agent
+from agent_helpers.harness import agent, poll
 from conftest import endpoint, free_port
 
 from agent.client import Client
-from agent.errors import UmaError
 from agent.planner import RouteError
 from agent.srg import geometry as geo
 
@@ -63,21 +61,6 @@ def survey_edge():
     return (SURVEY[0], SURVEY[1], (p + 0.02).tolist(), q.tolist(), SURVEY[4], SURVEY[5])
 
 
-def wait_for(fn, timeout=15.0, what="condition"):
-    """Poll ``fn`` until it returns without raising (bounded by time and count)."""
-    deadline = time.monotonic() + timeout
-    last = None
-    for _ in range(400):
-        try:
-            return fn()
-        except (LookupError, UmaError, AssertionError) as exc:
-            last = exc
-        if time.monotonic() > deadline:
-            break
-        time.sleep(0.1)
-    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
-
-
 def start_agents(processes, tmp_path, realm, configs):
     """Each agent up (the harness waits for it, and starts a stalled one once more) before
     the next; the first is everybody's peer."""
@@ -111,7 +94,7 @@ def test_query_across_three_agents_and_reroute_when_the_middle_one_dies(
             r = c.pose(WORLD, HEAD, error="accuracy")
             assert r.path == [WORLD, CAM, RIG, HEAD], r.path
             return r
-        r = wait_for(across, what="a route across A, B and C")
+        r = poll(across, what="a route across A, B and C")
         p, q, cov = chain([EDGES["A"][0], EDGES["B"][0], EDGES["C"][0]])
         np.testing.assert_allclose(r.position, p, atol=1e-12)
         assert geo.quat_angle(r.quaternion, q) < 1e-9
@@ -128,7 +111,7 @@ def test_query_across_three_agents_and_reroute_when_the_middle_one_dies(
             r = c.pose(WORLD, HEAD, error="accuracy")
             assert r.path == [WORLD, RIG, HEAD], r.path
             return r
-        r = wait_for(rerouted, what="the route around B")
+        r = poll(rerouted, what="the route around B")
         p, q, cov = chain([survey_edge(), EDGES["C"][0]])
         np.testing.assert_allclose(r.position, p, atol=1e-12)
         np.testing.assert_allclose(r.covariance, cov, rtol=1e-9, atol=1e-18)
@@ -136,7 +119,7 @@ def test_query_across_three_agents_and_reroute_when_the_middle_one_dies(
         # (its token's removal can lag on a loaded machine) the error says which segment
         def b_left():
             assert not c.agents()["B"]["alive"]
-        wait_for(b_left, what="B's departure seen by the client")
+        poll(b_left, what="B's departure seen by the client")
         with pytest.raises(RouteError,
                            match=r"segment\(s\) \S+ -> marvin/imu of agent 'B'.*left the realm"):
             c.pose(WORLD, IMU, error="accuracy")
@@ -155,7 +138,7 @@ def test_uma_query_command(three_agents, realm):
         if d["path"] != [WORLD, CAM, RIG, HEAD]:
             raise LookupError(f"path {d['path']}")
         return d
-    d = wait_for(run, what="uma query across three agents")
+    d = poll(run, what="uma query across three agents")
     p, _, cov = chain([EDGES["A"][0], EDGES["B"][0], EDGES["C"][0]])
     np.testing.assert_allclose(d["position"], p, atol=1e-12)
     np.testing.assert_allclose(np.array(d["covariance"]), cov, rtol=1e-9, atol=1e-18)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from agent.commands.daemon import STALLED_START, START_LIMIT_S
+from agent.errors import UmaError
 
 ROOT = str(Path(__file__).resolve().parents[2])
 WAIT_S = 20.0  # generous: 2 shared cores, many test processes
@@ -122,6 +123,24 @@ class Proc:
     def mark(self) -> int:
         with self._cond:
             return len(self.events)
+
+
+def poll(fn: Callable[[], Any], timeout: float = WAIT_S, what: str = "condition") -> Any:
+    """``fn()``'s value once it neither raises (a lookup, an assertion, an uma error) nor
+    returns False; bounded in time and in count."""
+    deadline = time.monotonic() + timeout
+    last: Exception | None = None
+    for _ in range(500):
+        try:
+            result = fn()
+            if result is not False:
+                return result
+        except (LookupError, AssertionError, UmaError) as exc:
+            last = exc
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    raise AssertionError(f"{what} not reached within {timeout} s: {last}")
 
 
 def spawn(processes: Any, args: list[str], env: dict[str, str] | None = None) -> Proc:
