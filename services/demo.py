@@ -203,15 +203,13 @@ def run_demo(seconds: float, seed: int, live: bool = True,
                       f"{seconds:g} s", flush=True)
 
             def on_pose(r: Any) -> None:
-                t_ns = _answer_time(r)
-                if t_ns is None:
+                err = _error_vs_truth(r, truth, sim_time_s)
+                if err is None:
                     tally.fail("streamed pose without a time")
                     return
-                p_t, q_t = truth.pose(sim_time_s(t_ns))
-                e_p, _ = geo.pose_error(r.position, r.quaternion, p_t[0], q_t[0])
                 with tally.lock:
                     tally.stream_times.append(time.monotonic())
-                    tally.stream_pos_err_m.append(float(e_p))
+                    tally.stream_pos_err_m.append(err[0])
 
             sub = client.subscribe(mounts.WORLD, mounts.HEAD, on_pose=on_pose)
             _measure(client, truth, sim_time_s, seconds, tally, live)
@@ -265,21 +263,30 @@ def _measure(client: Any, truth: Any, sim_time_s: Any, seconds: float, tally: Ta
             time.sleep(1.0 / QUERY_HZ)
             continue
         latency = time.perf_counter() - t0
-        t_ns = _answer_time(r)
-        if t_ns is None:
+        err = _error_vs_truth(r, truth, sim_time_s)
+        if err is None:
             tally.fail("answer without a time")
             continue
-        p_t, q_t = truth.pose(sim_time_s(t_ns))
-        e_p, e_r = geo.pose_error(r.position, r.quaternion, p_t[0], q_t[0])
         with tally.lock:
             tally.latencies_s.append(latency)
-            tally.pos_err_m.append(float(e_p))
-            tally.rot_err_rad.append(float(e_r))
+            tally.pos_err_m.append(err[0])
+            tally.rot_err_rad.append(err[1])
             tally.last = (np.asarray(r.position), np.asarray(r.quaternion))
         if live and time.monotonic() >= next_line:
             next_line += 1.0
             print(_live_line(tally), flush=True)
         time.sleep(max(0.0, 1.0 / QUERY_HZ - (time.perf_counter() - t0)))
+
+
+def _error_vs_truth(r: Any, truth: Any, sim_time_s: Any) -> tuple[float, float] | None:
+    """Position (m) and rotation (rad) error of a pose answer against the simulated truth
+    at the time it describes; None if it names no time."""
+    t_ns = _answer_time(r)
+    if t_ns is None:
+        return None
+    p_t, q_t = truth.pose(sim_time_s(t_ns))
+    e_p, e_r = geo.pose_error(r.position, r.quaternion, p_t[0], q_t[0])
+    return float(e_p), float(e_r)
 
 
 def _answer_time(r: Any) -> int | None:
