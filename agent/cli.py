@@ -11,6 +11,7 @@ import argparse
 import importlib
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -221,8 +222,8 @@ def _run_eval(args: argparse.Namespace) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     plugin.add_arguments(parser)
     eargs = parser.parse_args(_plugin_args(args))
-    if eargs.seconds <= 0:
-        parser.error("--seconds must be positive")
+    if not (math.isfinite(eargs.seconds) and eargs.seconds > 0):
+        parser.error(f"--seconds must be a positive number, got {eargs.seconds!r}")
     figures = plugin.run(eargs)
     print(json.dumps(figures) if eargs.json else format_figures(figures))
     return 0

@@ -60,6 +60,8 @@ def test_version() -> None:
     (["query"], "required: SOURCE, TARGET"),
     (["query", "a/b", "c/d", "--timeout", "soon"], "invalid float value: 'soon'"),
     (["demo", "--seconds", "x"], "invalid float value: 'x'"),
+    (["eval", "fusion", "--seconds", "nan"], "--seconds must be a positive number, got nan"),
+    (["eval", "predictor", "--seconds", "-1"], "--seconds must be a positive number, got -1"),
     (["schemas"], "required: ACTION"),
     (["schemas", "export"], "required: DIR"),
     (["agent", "--bogus"], "unrecognized arguments: --bogus"),
