@@ -80,7 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a Zenoh router in this process so agents and clients in "
                                    "client mode can meet through it (larger sites).")
     p.add_argument("--listen", action="append", default=[], metavar="EP",
-                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+                   help="endpoint to listen on (repeatable; default: the --config file's, "
+                        "else tcp/127.0.0.1:7447)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="Zenoh JSON5 configuration to start from (default: $ZENOH_CONFIG if "
+                        "set; example in deploy/router.json5); uma's settings (mode, lease, "
+                        "no multicast scouting) are applied on top")
 
     p = sub.add_parser("service", help="run one tracker service on its own",
                        description="Run a tracker service as its own process; it registers with "

@@ -22,7 +22,7 @@ stop() {
 trap stop EXIT
 trap 'exit 130' INT TERM
 
-ZENOH_CONFIG="$here/router.json5" "${uma[@]}" router &
+"${uma[@]}" router --config "$here/router.json5" &
 pids+=($!)
 for _ in $(seq 50); do  # until the router accepts connections (at most ~5 s)
   (exec 3<>/dev/tcp/127.0.0.1/7447) 2>/dev/null && break

@@ -143,6 +143,14 @@ def test_client_agents_behind_a_router(processes, realm, tmp_path) -> None:
     assert [a["agent_id"] for a in listed["agents"]] == ["hostA", "hostB"]
 
 
+def test_a_router_listens_where_its_config_file_says(processes, tmp_path) -> None:
+    ep = endpoint(free_port())
+    cfg = tmp_path / "router.json5"
+    cfg.write_text(f'{{ listen: {{ endpoints: ["{ep}"] }} }}')
+    router = spawn(processes, ["-m", "agent.cli", "router", "--config", str(cfg)])
+    assert router.wait_line("listening on").split("listening on ")[1].split() == [ep]
+
+
 def test_frozen_producer_is_dropped_after_its_lease_and_regained(processes, realm) -> None:
     ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
     agent(processes, realm, "hostA", ep_a)

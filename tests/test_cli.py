@@ -84,6 +84,17 @@ def test_unknown_plugins_exit_1_with_a_message(args: list[str], fragment: str) -
     assert "Traceback" not in r.stderr + r.stdout
 
 
+@pytest.mark.parametrize("content", [None, "{ listen: ["])
+def test_a_router_config_that_cannot_be_used_is_named(tmp_path: Path, content) -> None:
+    cfg = tmp_path / "router.json5"
+    if content is not None:
+        cfg.write_text(content)
+    r = uma("router", "--config", str(cfg))
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert r.stderr.startswith(f"uma router: error: cannot use Zenoh configuration '{cfg}'")
+    assert "Traceback" not in r.stderr
+
+
 def test_schemas_export_writes_the_committed_schemas(tmp_path: Path) -> None:
     out = tmp_path / "new" / "dir"
     r = uma("schemas", "export", str(out))

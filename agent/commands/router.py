@@ -1,9 +1,9 @@
 """``uma router``: a Zenoh router in this Python process.
 
 Larger sites run agents and clients in *client* mode attached to a router (see
-``deploy/router.toml`` and ``deploy/start_site.sh``); on one LAN, peers with explicit
-endpoints need none.  If ``ZENOH_CONFIG`` names a Zenoh JSON5 configuration (Zenoh's own
-convention, e.g. ``deploy/router.json5``) it is the base that uma's settings are applied on
+``deploy/router.json5`` and ``deploy/start_site.sh``); on one LAN, peers with explicit
+endpoints need none.  A Zenoh JSON5 configuration given by ``--config`` (else by
+``ZENOH_CONFIG``, Zenoh's own convention) is the base that uma's settings are applied on
 top of, and its listen endpoints are used unless ``--listen`` is given.  Stops cleanly on
 Ctrl-C / SIGTERM.
 """
@@ -26,7 +26,7 @@ def main(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stop = stop_on_signals()
-    base = os.environ.get("ZENOH_CONFIG") or None
+    base = args.config or os.environ.get("ZENOH_CONFIG") or None
     session = open_session("router", args.listen or (None if base else [DEFAULT_ROUTER_LISTEN]),
                            base_file=base)
     try:
