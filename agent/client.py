@@ -17,8 +17,9 @@ offset is estimated from the round trips (:mod:`agent.clock`) and applied both w
 ``at=None`` means the latest time at which every measured edge of the route has data.
 If an agent does not answer, the next route without it is tried; if none is left the
 error names the missing segment and agent.  An agent that missed an answer counts as gone
-until it shows life again (its token, a summary); a query that finds no route without it
-first asks the realm who is there, so one that was only slow for a moment is asked again.
+until it shows life again: a new token or summary, or an answer to the probe it gets every
+``PROBE_S`` while its token is still there (it may only have been slow); a query that finds
+no route without it first asks the realm who is there.
 
 ``subscribe`` runs the query once with edge details, then mirrors the route's edges in a
 local :class:`agent.srg.Graph`: static edges from the answers, measured ones fed by
@@ -92,6 +93,9 @@ MAX_ROUTES = 4
 SETTLE_S = 0.15
 #: how often a subscription without a route tries again (besides at every realm change)
 RETRY_S = 1.0
+#: how often an agent that missed an answer, its token still there, is asked whether it
+#: answers again
+PROBE_S = 2.0
 #: a subscription's fastest edge silent this many of its sample periods, and at least
 #: STALL_MIN_S, is a stall (a route change takes up to a lease, 1 s, without samples)
 STALL_PERIODS = 10
@@ -137,6 +141,11 @@ class Client:
         self._heard: dict[str, float] = {}
         #: agents whose token the subscription saw removed (and not declared again)
         self._departed: set[str] = set()
+        #: agents marked gone after a missed answer, not by their token: probed every
+        #: PROBE_S by a thread that runs while there are any
+        self._suspects: set[str] = set()
+        self._prober: threading.Thread | None = None
+        self._closing = threading.Event()
         #: bumped whenever the summaries or the set of live agents change (subscriptions
         #: re-plan when it moves)
         self.topology = 0
@@ -161,8 +170,12 @@ class Client:
         self.close()
 
     def close(self) -> None:
+        self._closing.set()
         for sub in list(self._subscriptions):
             sub.close()
+        prober = self._prober
+        if prober is not None:
+            prober.join(PROBE_S + self.timeout)
         for decl in [*self._decls, *self._queriers.values()]:
             with contextlib.suppress(zenoh.ZError):
                 decl.undeclare()
@@ -195,6 +208,7 @@ class Client:
         """Update the live set (lock held); a change moves ``topology``."""
         if alive:
             self._heard[agent] = time.monotonic()
+            self._suspects.discard(agent)
         if (agent in self._alive) != alive:
             self.topology += 1
             (self._alive.add if alive else self._alive.discard)(agent)
@@ -206,17 +220,49 @@ class Client:
         with self._lock:
             gone = sample.kind == zenoh.SampleKind.DELETE
             (self._departed.add if gone else self._departed.discard)(agent)
+            self._suspects.discard(agent)  # its token says what it is now
             self._mark_alive(agent, not gone)
 
     def _missed(self, agent: str, asked: float) -> None:
         """``agent`` did not answer a query sent at ``asked``: count it as gone, unless it
-        showed life since.  A restarting agent declares its token before its query handler
-        and then publishes its summary; a query that reached it in between, or its old self,
-        gets no answer, and marking it gone then would outlive the token and summary that
-        already said it is back (nothing else would bring it back)."""
+        showed life since (a query that reached a restarting agent's old self gets no
+        answer, and marking it gone after its new token and summary came would outlive them:
+        nothing else would bring it back).  Unless its token is gone too, it is probed
+        until it answers again: it may only have been slow."""
         with self._lock:
-            if self._heard.get(agent, -math.inf) < asked:
-                self._mark_alive(agent, False)
+            if self._heard.get(agent, -math.inf) >= asked:
+                return
+            self._mark_alive(agent, False)
+            if agent in self._departed:
+                return
+            self._suspects.add(agent)
+            if self._prober is None and not self._closing.is_set():
+                self._prober = threading.Thread(target=self._probe_suspects,
+                                                name="uma-client-probe", daemon=True)
+                self._prober.start()
+
+    def _probe_suspects(self) -> None:
+        """Ask the agents that missed an answer whether they answer now; one that does is
+        alive again, and subscriptions re-plan (and move back to it if it is on their best
+        route).  Runs on its own thread: an agent still too slow costs a query timeout."""
+        request = encode_message({"op": "clock"})
+        while not self._closing.wait(PROBE_S):
+            with self._lock:
+                if not self._suspects:
+                    self._prober = None
+                    return
+                suspects = sorted(self._suspects)
+            for agent in suspects:
+                try:
+                    for who, reply, t1, t4 in self._answers(request, [agent]):
+                        self._clock_sample(who, reply, t1, t4)
+                        with self._lock:
+                            if who in self._suspects:
+                                self._mark_alive(who, True)
+                except zenoh.ZError as exc:
+                    self._bad.warning("probe", f"asking agent {agent!r}: {exc}")
+        with self._lock:
+            self._prober = None
 
     def refresh(self) -> None:
         """Ask every agent for its summary now (also learns who is alive)."""

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from agent import client as client_module
 from agent.client import Client
 from agent.planner import RouteError, SegmentError, parse_summary, plan_routes
 from agent.srg import Graph
@@ -221,21 +222,14 @@ def test_refresh_does_not_revive_an_agent_whose_token_was_removed(realm_ab):
     """A liveliness answer can still list a departed agent (a peer not yet done with its
     departure): only a new token of that agent makes it alive again."""
     c = realm_ab.client
-
-    def token(kind):
-        s = mock.MagicMock()
-        s.key_expr = "uma/lab/agent/B"
-        s.kind = kind
-        return s
-
-    c._on_token(token(zenoh.SampleKind.DELETE))
+    c._on_token(_token(zenoh.SampleKind.DELETE))
     listed = mock.MagicMock()
     listed.ok.key_expr = "uma/lab/agent/B"
     c.session.liveliness.return_value.get.return_value = [listed]
     c.session.get.return_value = []
     c.refresh()
     assert "B" not in c._alive
-    c._on_token(token(zenoh.SampleKind.PUT))
+    c._on_token(_token(zenoh.SampleKind.PUT))
     assert "B" in c._alive
 
 
@@ -286,3 +280,42 @@ def test_an_agent_that_missed_an_answer_is_asked_again_while_its_token_is_there(
         c.pose("w", "head", error="hops")
     with pytest.raises(RouteError, match="agent\\(s\\) B left the realm"):
         c.pose("w", "head", error="hops")
+
+
+def _token(kind):
+    s = mock.MagicMock()
+    s.key_expr = "uma/lab/agent/B"
+    s.kind = kind
+    return s
+
+
+def test_an_agent_that_missed_an_answer_is_probed_until_it_answers(realm_ab, monkeypatch):
+    """Alive again as soon as it answers a probe, with no query of the application's: a
+    subscription that moved off its route then moves back."""
+    monkeypatch.setattr(client_module, "PROBE_S", 0.05)
+    c = realm_ab.client
+    _silent(realm_ab, "B")
+    with pytest.raises(SegmentError):
+        c.pose("w", "head", error="hops")
+    assert "B" not in c._alive
+    before = c.topology
+    deadline = time.monotonic() + 10.0
+    while "B" not in c._alive and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert "B" in c._alive and c.topology > before
+    assert {"B"} in realm_ab.asked  # the probe, to B alone
+    c.close()
+    assert c._prober is None
+
+
+def test_an_agent_whose_token_went_is_not_probed(realm_ab, monkeypatch):
+    monkeypatch.setattr(client_module, "PROBE_S", 0.05)
+    c = realm_ab.client
+    _silent(realm_ab, "B")
+    with pytest.raises(SegmentError):
+        c.pose("w", "head", error="hops")
+    c._on_token(_token(zenoh.SampleKind.DELETE))
+    asked = len(realm_ab.asked)
+    time.sleep(0.3)
+    assert "B" not in c._alive and len(realm_ab.asked) == asked
+    assert c._prober is None

@@ -9,6 +9,7 @@ at 100 Hz.  The composed position tells which route a pose came over.
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 import time
@@ -92,32 +93,44 @@ class Poses:
         self.wait(enough, f"{count} poses over agent {name}'s route")
 
 
-def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
-        processes, realm, tmp_path, monkeypatch) -> None:
-    # a long lease: only the killed agents may look gone (a SIGKILL is seen at once)
-    monkeypatch.setenv("UMA_LEASE_MS", "5000")
+def start_site(processes, realm: str, tmp_path) -> tuple[dict, dict]:
+    """Agents C (with the tracker), A and B (each with its survey): processes, endpoints."""
     ep = {name: endpoint(free_port()) for name in "ABC"}
     procs = {"C": agent(processes, realm, "C", ep["C"])}
     for name in "AB":
         procs[name] = agent(processes, realm, name, ep[name], connect=(ep["C"],),
                             extra=("--config", config(tmp_path, name)))
     spawn(processes, [__file__, "--realm", realm, "--agent", "C", "--connect", ep["C"]])
+    return procs, ep
+
+
+def subscribe_via_a(client: Client, poses: Poses):
+    """A subscription on the better route, over A and C (once the realm is complete)."""
+    deadline = time.monotonic() + WAIT_S
+    while True:  # until the tracker's edge and both surveys are in the realm
+        try:
+            sub = client.subscribe(WORLD, HEAD, on_pose=poses.on_pose,
+                                   on_error=poses.on_error, error="accuracy")
+            if [s.agent for s in sub.route] == ["A", "C"]:
+                poses.sub = sub
+                poses.via("A", 0)
+                return sub
+            sub.close()
+        except LookupError:
+            if time.monotonic() > deadline:
+                raise
+        assert time.monotonic() < deadline, "no route over A and C"
+        time.sleep(0.2)
+
+
+def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
+        processes, realm, tmp_path, monkeypatch) -> None:
+    # a long lease: only the killed agents may look gone (a SIGKILL is seen at once)
+    monkeypatch.setenv("UMA_LEASE_MS", "5000")
+    procs, ep = start_site(processes, realm, tmp_path)
     poses = Poses()
     with Client(realm=realm, connect=[ep["C"]], timeout=2.0) as client:
-        deadline = time.monotonic() + WAIT_S
-        while True:  # until the tracker's edge and both surveys are in the realm
-            try:
-                sub = client.subscribe(WORLD, HEAD, on_pose=poses.on_pose,
-                                       on_error=poses.on_error, error="accuracy")
-                if [s.agent for s in sub.route] == ["A", "C"]:
-                    break
-                sub.close()
-            except LookupError:
-                if time.monotonic() > deadline:
-                    raise
-            assert time.monotonic() < deadline, "no route over A and C"
-            time.sleep(0.2)
-        poses.via("A", 0)
+        sub = subscribe_via_a(client, poses)
 
         # the route's agent dies: the other route takes over
         procs["A"].popen.kill()
@@ -155,3 +168,27 @@ def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
         assert sub.status == "streaming" and len(poses.errors) == 1
         sub.close()
         assert sub.status == "closed"
+
+
+def test_an_agent_that_was_only_slow_gets_the_stream_back(
+        processes, realm, tmp_path, monkeypatch) -> None:
+    """Agent A freezes for a few seconds, well within its lease: a query finds it silent and
+    goes over B, and the stream follows; once A answers the client's probe again the stream
+    moves back to the better route over A."""
+    monkeypatch.setenv("UMA_LEASE_MS", "20000")  # A keeps its token while frozen
+    procs, ep = start_site(processes, realm, tmp_path)
+    poses = Poses()
+    with Client(realm=realm, connect=[ep["C"]], timeout=2.0) as client:
+        sub = subscribe_via_a(client, poses)
+        client.cache_static_segments = False  # else A's static segment is not asked for
+        procs["A"].popen.send_signal(signal.SIGSTOP)
+        try:
+            r = client.pose(WORLD, HEAD, error="accuracy")  # A does not answer: over B
+            assert [e["owner"] for e in r.edges] == ["B", "C"], r.edges
+            assert client.agents()["A"]["alive"] is False
+            poses.via("B", len(poses.got))
+        finally:
+            procs["A"].popen.send_signal(signal.SIGCONT)
+        poses.via("A", len(poses.got))
+        assert [s.agent for s in sub.route] == ["A", "C"] and sub.status == "streaming"
+        assert sub.replans >= 2 and poses.errors == []
