@@ -33,7 +33,7 @@ if __name__ == "__main__":
 
 
 import numpy as np  # noqa: E402
-from agent_helpers.harness import agent, spawn  # noqa: E402
+from agent_helpers.harness import agent, freeze, spawn  # noqa: E402
 from conftest import endpoint, free_port  # noqa: E402
 
 from agent.client import Client  # noqa: E402
@@ -181,7 +181,7 @@ def test_an_agent_that_was_only_slow_gets_the_stream_back(
     with Client(realm=realm, connect=[ep["C"]], timeout=2.0) as client:
         sub = subscribe_via_a(client, poses)
         client.cache_static_segments = False  # else A's static segment is not asked for
-        procs["A"].popen.send_signal(signal.SIGSTOP)
+        freeze(procs["A"])
         try:
             r = client.pose(WORLD, HEAD, error="accuracy")  # A does not answer: over B
             assert [e["owner"] for e in r.edges] == ["B", "C"], r.edges

@@ -143,6 +143,26 @@ def poll(fn: Callable[[], Any], timeout: float = WAIT_S, what: str = "condition"
     raise AssertionError(f"{what} not reached within {timeout} s: {last}")
 
 
+def freeze(proc: Proc, timeout: float = WAIT_S) -> None:
+    """SIGSTOP ``proc`` and return once every one of its threads has stopped: a process's
+    threads stop one after the other, and on a loaded machine a Zenoh thread may still
+    answer a query for a while after the signal was sent."""
+    os.kill(proc.popen.pid, signal.SIGSTOP)
+    tasks = Path(f"/proc/{proc.popen.pid}/task")
+    deadline = time.monotonic() + timeout
+    for _ in range(10_000):
+        states = []
+        for stat in tasks.glob("*/stat"):
+            with contextlib.suppress(OSError):  # a thread that just ended
+                states.append(stat.read_text().rsplit(")", 1)[1].split()[0])
+        if states and all(state in "tT" for state in states):
+            return
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.005)
+    raise AssertionError(f"pid {proc.popen.pid} not stopped within {timeout} s: {states}")
+
+
 def spawn(processes: Any, args: list[str], env: dict[str, str] | None = None) -> Proc:
     """``python ARGS`` with pipes (and ``env`` on top of ours), registered with the
     ``processes`` fixture."""
