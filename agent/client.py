@@ -246,23 +246,29 @@ class Client:
         alive again, and subscriptions re-plan (and move back to it if it is on their best
         route).  Runs on its own thread: an agent still too slow costs a query timeout."""
         request = encode_message({"op": "clock"})
-        while not self._closing.wait(PROBE_S):
+        try:
+            while not self._closing.wait(PROBE_S):
+                with self._lock:
+                    suspects = sorted(self._suspects)
+                    if not suspects:  # done, in the lock in which _missed would start one
+                        self._prober = None
+                        return
+                for agent in suspects:
+                    self._probe(agent, request)
+        finally:
             with self._lock:
-                if not self._suspects:
+                if self._prober is threading.current_thread():
                     self._prober = None
-                    return
-                suspects = sorted(self._suspects)
-            for agent in suspects:
-                try:
-                    for who, reply, t1, t4 in self._answers(request, [agent]):
-                        self._clock_sample(who, reply, t1, t4)
-                        with self._lock:
-                            if who in self._suspects:
-                                self._mark_alive(who, True)
-                except zenoh.ZError as exc:
-                    self._bad.warning("probe", f"asking agent {agent!r}: {exc}")
-        with self._lock:
-            self._prober = None
+
+    def _probe(self, agent: str, request: bytes) -> None:
+        try:
+            for who, reply, t1, t4 in self._answers(request, [agent]):
+                self._clock_sample(who, reply, t1, t4)
+                with self._lock:
+                    if who in self._suspects:
+                        self._mark_alive(who, True)
+        except zenoh.ZError as exc:
+            self._bad.warning("probe", f"asking agent {agent!r}: {exc}")
 
     def refresh(self) -> None:
         """Ask every agent for its summary now (also learns who is alive)."""
