@@ -18,8 +18,7 @@ offset is estimated from the round trips (:mod:`agent.clock`) and applied both w
 If an agent does not answer, the next route without it is tried; if none is left the
 error names the missing segment and agent.  An agent that missed an answer counts as gone
 until it shows life again: a new token or summary, or an answer to the probe it gets every
-``PROBE_S`` while its token is still there (it may only have been slow); a query that finds
-no route without it first asks the realm who is there.
+``PROBE_S`` while its token is still there (it may only have been slow).
 
 ``subscribe`` runs the query once with edge details, then mirrors the route's edges in a
 local :class:`agent.srg.Graph`: static edges from the answers, measured ones fed by
@@ -345,9 +344,19 @@ class Client:
                 "running there with the same --realm?")
         if source == target and any(source in s.frames for s in summaries.values()):
             return identity(source, None if at is None else int(at)), []
-        usable = self._usable(summaries, alive, source, target, fn)
+        try:
+            try:
+                routes = self._plan(summaries, source, target, fn)
+            except (UnknownFrameError, UnreachableError):
+                # a frame or a link may be in a summary published before this client's
+                # subscription reached its agent (nothing re-sends it): ask for them all
+                self.refresh()
+                summaries, alive = self._snapshot()
+                routes = self._plan(summaries, source, target, fn)
+        except UnreachableError as exc:
+            raise _with_departed(exc, summaries, alive) from None
         causes: list[SegmentError] = []
-        for route in usable[:MAX_ROUTES]:
+        for route in usable_routes(routes, alive, source, target)[:MAX_ROUTES]:
             asked = time.monotonic()
             try:
                 return self._run(route, None if at is None else int(at), fn, details)
@@ -359,25 +368,6 @@ class Client:
             raise causes[0]
         raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
                          f"tried): " + "; ".join(str(c) for c in causes))
-
-    def _usable(self, summaries: dict[str, Summary], alive: set[str], source: str,
-                target: str, fn: ErrorFunction) -> list[Route]:
-        """The planned routes whose agents are all alive, best first.  Before giving up it
-        asks every agent once (``refresh``): a frame or a link may be in a summary published
-        before this client's subscription reached its agent (nothing re-sends it), and an
-        agent marked gone after a missed answer may only have been slow (its token is still
-        there)."""
-        try:
-            return usable_routes(self._plan(summaries, source, target, fn), alive, source,
-                                 target)
-        except (UnknownFrameError, UnreachableError, RouteError):
-            self.refresh()
-        summaries, alive = self._snapshot()
-        try:
-            return usable_routes(self._plan(summaries, source, target, fn), alive, source,
-                                 target)
-        except UnreachableError as exc:
-            raise _with_departed(exc, summaries, alive) from None
 
     def _plan(self, summaries: dict[str, Summary], source: str, target: str,
               fn: ErrorFunction) -> list[Route]:

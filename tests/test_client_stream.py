@@ -172,7 +172,7 @@ def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, real
         quiet = len(got)
         pause.unlink()
         poll(lambda: sub.status == "streaming" and len(got) >= quiet + 20,
-                 what="streaming again")
+             what="streaming again")
         assert errors == []  # not an outage of the route: on_error is not told
         sub.close()
         assert sub.status == "closed"
