@@ -10,7 +10,7 @@ from typing import Any
 
 __all__ = ["Client", "Service"]
 
-_LAZY = {"Service": "agent.service", "Client": "agent.client"}
+_LAZY = {"Service": "agent.sdk.service", "Client": "agent.sdk.client"}
 
 
 def __getattr__(name: str) -> Any:

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from agent.commands.daemon import load_config
-from agent.daemon import check_static_edge
-from agent.processes import stop_processes
+from agent.cli.agent import load_config
+from agent.daemon.agent import check_static_edge
+from agent.runtime.processes import stop_processes
 from agent.srg import geometry as geo
 from services.sim import mounts
 

@@ -33,7 +33,7 @@ from pathlib import Path
 
 from summary import median_p99
 
-from agent.processes import stop_processes
+from agent.runtime.processes import stop_processes
 
 ROOT = str(Path(__file__).resolve().parents[1])
 RATE_HZ = 200.0
@@ -47,7 +47,7 @@ def free_endpoint() -> str:
 
 def producer(args: argparse.Namespace) -> int:
     """Child mode: publish a pose at RATE_HZ until killed."""
-    from agent.service import Service
+    from agent.sdk.service import Service
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with Service(args.producer, realm=args.realm, agent="bench", connect=[args.connect]) as svc:
@@ -91,7 +91,7 @@ class Consumer:
     """A consumer Service in this process that timestamps the first sample per source."""
 
     def __init__(self, sid: str, realm: str, ep: str) -> None:
-        from agent.service import Service
+        from agent.sdk.service import Service
         self.first: dict[str, float] = {}
         self.event = threading.Event()
         self.svc = Service(sid, realm=realm, agent="bench", connect=[ep])
@@ -114,8 +114,8 @@ class Consumer:
 
 
 def measure_connect(b: Bench, runs: int) -> tuple[list[float], list[float], list[float]]:
-    from agent import keys
-    from agent.session import open_session
+    from agent.protocol import keys
+    from agent.runtime.session import open_session
     to_match, to_sample, direct = [], [], []
     key = keys.data(b.realm, "bench", "cam0", "pose")
     for i in range(runs):
@@ -144,8 +144,8 @@ def measure_failover(b: Bench, runs: int, sig: int = signal.SIGKILL, tag: str = 
     times to the backup's first sample and to the token's DELETE."""
     import zenoh
 
-    from agent import keys
-    from agent.session import open_session
+    from agent.protocol import keys
+    from agent.runtime.session import open_session
     failover, detect = [], []
     deleted: dict[str, float] = {}
     watcher = open_session(connect=[b.ep])

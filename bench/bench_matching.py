@@ -21,7 +21,7 @@ import time
 
 from summary import median_p99
 
-from agent.matching import Offer, OfferIndex, Requirement, match_all
+from agent.daemon.matching import Offer, OfferIndex, Requirement, match_all
 from schemas import expr
 from schemas.models import Ability, Need, frame_matches
 

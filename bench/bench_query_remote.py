@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from summary import median_p99
 
-from agent.processes import stop_processes
+from agent.runtime.processes import stop_processes
 
 WORLD, CAM, RIG, HEAD = "ivy/world", "cam/nw", "marvin/rig", "alice/head"
 EDGES = {
@@ -62,7 +62,7 @@ def _stats(us: list[float]) -> dict:
 
 def run_echo(args: argparse.Namespace) -> None:
     """The baseline: a bare queryable that answers every get with a small payload."""
-    from agent.session import open_session
+    from agent.runtime.session import open_session
     with open_session("peer", [args.listen], []) as s:
         q = s.declare_queryable(args.key, lambda query: query.reply(args.key, b"x" * 64))
         signal.sigwait({signal.SIGTERM, signal.SIGINT})
@@ -111,9 +111,9 @@ def main() -> None:
     if args.role == "tracker":
         return run_tracker(args)
 
-    from agent.client import Client
     from agent.errors import UmaError
-    from agent.session import open_session
+    from agent.runtime.session import open_session
+    from agent.sdk.client import Client
 
     # a SIGTERM ends the run through `finally`, which stops the agents it started
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))

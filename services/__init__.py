@@ -1,4 +1,4 @@
 """Tracker services (MARVIN): ``sim`` (the simulated IVY world), ``laser_camera``,
 ``accel_rig``, ``fusion`` and ``alignment``.  Each registers as a plug-in (see
-``agent.plugins`` and the entry points in pyproject.toml).
+``agent.runtime.plugins`` and the entry points in pyproject.toml).
 """

@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
-from agent.processes import stop_processes
-from agent.session import lease_ms_default
+from agent.runtime.processes import stop_processes
+from agent.runtime.session import lease_ms_default
 from agent.srg import geometry as geo
 from services.sim import mounts
 
@@ -159,8 +159,8 @@ def run_demo(seconds: float, seed: int, live: bool = True,
              log_dir: Path | None = None) -> dict[str, Any]:
     """Start everything, measure for ``seconds``, stop everything; the figures (the
     services' logs kept in ``log_dir`` if given)."""
-    from agent.client import Client
-    from agent.daemon import Agent, AgentSettings
+    from agent.daemon.agent import Agent, AgentSettings
+    from agent.sdk.client import Client
     from services.fusion.evaluate import accel_calibration_file, laser_calibration_file
     from services.sim.trajectory import HeadTrajectory
     from services.sim.world import IvyWorld, sim_time_s

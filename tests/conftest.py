@@ -14,7 +14,7 @@ from collections.abc import Iterator
 import pytest
 from hypothesis import settings
 
-from agent.processes import stop_processes
+from agent.runtime.processes import stop_processes
 
 # Repeatable property tests (the same examples on every run and machine) with no per-example
 # deadline: CI machines are shared and slow, and a deadline there fails for the wrong reason.

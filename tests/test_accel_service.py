@@ -175,7 +175,7 @@ def test_bad_options_are_refused_with_the_reason(args, msg):
     import argparse
     import threading
 
-    from agent import plugins
+    from agent.runtime import plugins
     from services.accel_rig.service import PLUGIN
 
     parser = argparse.ArgumentParser()

@@ -7,12 +7,11 @@ import logging
 import msgpack
 import pytest
 
-from agent import keys
-from agent.registry import (
+from agent.daemon.realm_view import RealmView
+from agent.protocol import keys
+from agent.protocol.registration import (
     PENDING_TIMEOUT_S,
     Match,
-    RateLimitedLog,
-    RealmView,
     Registration,
     control_message,
     parse_control,
@@ -24,6 +23,7 @@ from agent.registry import (
     reply_ok,
     snapshot_message,
 )
+from agent.runtime.logs import RateLimitedLog
 from schemas.codec import DecodeError, encode_descriptor
 from schemas.models import ServiceDescriptor
 

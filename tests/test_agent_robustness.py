@@ -18,9 +18,9 @@ from agent_helpers.harness import (
 )
 from conftest import endpoint, free_port
 
-from agent import keys
-from agent.registry import parse_reply, register_request
-from agent.session import open_session, query
+from agent.protocol import keys
+from agent.protocol.registration import parse_reply, register_request
+from agent.runtime.session import open_session, query
 
 PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
 
@@ -217,10 +217,10 @@ def test_an_agent_whose_start_stalls_says_so_and_exits() -> None:
     import subprocess
     import sys
 
-    from agent.commands.daemon import STALLED_START
+    from agent.cli.agent import STALLED_START
 
     script = ("import time\n"
-              "from agent.commands import daemon\n"
+              "from agent.cli import agent as daemon\n"
               "daemon.START_LIMIT_S = 0.3\n"
               "class Stuck:\n"
               "    def start(self):\n"

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from conftest import endpoint, free_port
 
-from agent import plugins
-from agent.daemon import Agent, AgentSettings
+from agent.daemon.agent import Agent, AgentSettings
 from agent.errors import UmaError
-from agent.service import Service
+from agent.runtime import plugins
+from agent.sdk.service import Service
 from schemas.codec import Measurement
 
 
@@ -54,9 +54,9 @@ def wait_until(cond, timeout: float = 20.0) -> None:
 
 @pytest.fixture
 def fake_srg(monkeypatch) -> Iterator[type[FakeSrgNode]]:
-    module = types.ModuleType("agent.srg_node")
+    module = types.ModuleType("agent.daemon.srg_node")
     module.SrgNode = FakeSrgNode
-    monkeypatch.setitem(sys.modules, "agent.srg_node", module)
+    monkeypatch.setitem(sys.modules, "agent.daemon.srg_node", module)
     FakeSrgNode.instances = []
     yield FakeSrgNode
 

@@ -18,8 +18,8 @@ from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent.cli import main
-from agent.commands.daemon import load_config
-from agent.daemon import check_static_edge
+from agent.cli.agent import load_config
+from agent.daemon.agent import check_static_edge
 from agent.srg import geometry as geo
 from services.alignment import records
 from services.alignment.service import StreamBuffer

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from agent import client as client_module
-from agent.client import Client
-from agent.planner import RouteError, SegmentError, parse_summary, plan_routes
+from agent.daemon.srg_node import SrgNode
+from agent.sdk import client as client_module
+from agent.sdk.client import Client
+from agent.sdk.planner import RouteError, SegmentError, parse_summary, plan_routes
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
 from agent.srg.errors import UnreachableError
-from agent.srg_node import SrgNode
 from schemas.codec import decode_message, encode_message
 
 S = 1_000_000_000
@@ -184,8 +184,8 @@ def test_a_static_ability_becomes_a_static_edge_replaced_only_when_it_changes():
 def test_an_unreachable_pair_names_the_departed_agents_that_held_its_frames():
     from types import SimpleNamespace
 
-    from agent.client import _with_departed
-    from agent.planner import RouteError
+    from agent.sdk.client import _with_departed
+    from agent.sdk.planner import RouteError
     from agent.srg.errors import UnreachableError
 
     summaries = {"A": SimpleNamespace(frames={"w", "cam"}),

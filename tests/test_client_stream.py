@@ -83,7 +83,7 @@ def skewed_world(processes, tmp_path, realm):
 
 
 def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
-    from agent.client import Client
+    from agent.sdk.client import Client
 
     eps, t0 = skewed_world
     with Client(realm=realm, connect=eps[1:], timeout=2.0) as c:
@@ -110,7 +110,7 @@ def test_skewed_agent_clock_is_estimated_and_applied(skewed_world, realm):
 
 
 def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, realm):
-    from agent.client import Client
+    from agent.sdk.client import Client
 
     eps, t0 = skewed_world
     got: list = []
@@ -143,7 +143,7 @@ def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, rea
 def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, realm, tmp_path):
     """The tracker stays alive (its route with it) but publishes nothing: no other route would
     do better, so the subscription stays, says "stalled" once, and resumes by itself."""
-    from agent.client import STALL_MIN_S, Client
+    from agent.sdk.client import STALL_MIN_S, Client
 
     ep = endpoint(free_port())
     agent(processes, realm, "A", ep, env=LEASE)

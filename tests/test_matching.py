@@ -1,4 +1,4 @@
-"""Unit tests of agent.matching: the rules of DESIGN.md, one at a time."""
+"""Unit tests of agent.daemon.matching: the rules of DESIGN.md, one at a time."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from agent.matching import (
+from agent.daemon.matching import (
     Offer,
     OfferIndex,
     Requirement,

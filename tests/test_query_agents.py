@@ -14,8 +14,8 @@ import pytest
 from agent_helpers.harness import agent, poll
 from conftest import endpoint, free_port
 
-from agent.client import Client
-from agent.planner import RouteError
+from agent.sdk.client import Client
+from agent.sdk.planner import RouteError
 from agent.srg import geometry as geo
 
 WORLD, CAM, RIG, IMU, HEAD = "ivy/world", "cam/nw", "marvin/rig", "marvin/imu", "alice/head"

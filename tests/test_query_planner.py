@@ -9,7 +9,8 @@ from unittest import mock
 import numpy as np
 import pytest
 
-from agent.planner import (
+from agent.daemon.srg_node import SrgNode
+from agent.sdk.planner import (
     Composition,
     RouteError,
     Segment,
@@ -23,7 +24,6 @@ from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
 from agent.srg.errors import UnknownFrameError, UnreachableError
 from agent.srg.supernode import summarize
-from agent.srg_node import SrgNode
 
 
 def graph(*edges) -> Graph:

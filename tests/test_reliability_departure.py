@@ -29,7 +29,7 @@ def flap(svc, gap_s: float, with_queryable: bool) -> None:
     """
     import zenoh
 
-    from agent import keys
+    from agent.protocol import keys
     key = keys.service_token(svc.realm, svc.agent_id, svc.service_id)
     queryables = [d for d in svc._decls if isinstance(d, zenoh.Queryable)]
     assert len(queryables) == 1, svc._decls
@@ -69,8 +69,8 @@ if __name__ == "__main__":
 from agent_helpers.harness import agent, matched_to, service, spawn  # noqa: E402
 from conftest import endpoint, free_port  # noqa: E402
 
-from agent.client import Client  # noqa: E402
 from agent.errors import UmaError  # noqa: E402
+from agent.sdk.client import Client  # noqa: E402
 
 
 def fresh_pose(client: Client, since_ns: int, timeout: float = 20.0):

@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 from agent_helpers.harness import agent, freeze, spawn  # noqa: E402
 from conftest import endpoint, free_port  # noqa: E402
 
-from agent.client import Client  # noqa: E402
+from agent.sdk.client import Client  # noqa: E402
 
 WAIT_S = 20.0
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from agent.clock import ClockOffsets, skew_from_env
+from agent.sdk.clock import ClockOffsets, skew_from_env
 
 
 def test_offset_from_a_symmetric_round_trip():
@@ -40,7 +40,7 @@ def test_impossible_samples_are_refused_and_unknown_agents_have_no_offset():
 def test_old_samples_age_out_even_when_nothing_new_arrives(monkeypatch):
     """The remembered best sample gives way when it (or any sample of the window) ages
     out, without a new sample to trigger it."""
-    import agent.clock as clock
+    import agent.sdk.clock as clock
 
     now = [100.0]
     monkeypatch.setattr(clock.time, "monotonic", lambda: now[0])

@@ -8,7 +8,7 @@ from unittest import mock
 
 import numpy as np
 
-from agent.srg_node import SrgNode
+from agent.daemon.srg_node import SrgNode
 
 S = 1_000_000_000
 
@@ -81,7 +81,7 @@ def test_summaries_are_asked_for_again_periodically(monkeypatch):
     again: the worker asks every agent for its summary every RESYNC_S."""
     import time
 
-    from agent import srg_node
+    from agent.daemon import srg_node
 
     monkeypatch.setattr(srg_node, "RESYNC_S", 0.05)
     n = node()

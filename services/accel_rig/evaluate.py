@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import EvalPlugin
+from agent.runtime.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.calibration import (

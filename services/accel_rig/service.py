@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
 from services.accel_rig.calibration import (

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import EvalPlugin
+from agent.runtime.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import pack_covariance
 from services.alignment import records
@@ -74,7 +74,7 @@ def parse_edge(text: str, option: str) -> tuple[str, str]:
 
 def recalibrate_key(realm: str, agent_id: str, service_id: str) -> str:
     """Where the service answers re-calibration requests."""
-    from agent import keys
+    from agent.protocol import keys
     return keys.service_token(realm, agent_id, service_id) + "/recalibrate"
 
 
@@ -435,7 +435,7 @@ def request_recalibration(realm: str, agent_id: str, service_id: str = "alignmen
     A new session learns the service's queryable only after connecting, and a ``get`` that
     reaches no queryable returns at once: retry until ``timeout``.
     """
-    from agent.session import open_session
+    from agent.runtime.session import open_session
 
     session = open_session("peer", None, connect or [], realm,
                            require_connection=bool(connect))

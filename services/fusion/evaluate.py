@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from agent.plugins import EvalPlugin
+from agent.runtime.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from services.accel_rig import calibration as accel_cal

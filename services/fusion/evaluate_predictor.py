@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import EvalPlugin
+from agent.runtime.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig, motion_matrices
 from services.sim.trajectory import HeadTrajectory

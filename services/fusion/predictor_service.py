@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
 from services.sim import mounts
 

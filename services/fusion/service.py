@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
 from services.fusion.tracker import MAX_COAST_S, FusionTracker
@@ -246,8 +246,8 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:
     """Ask the agent's SRG for head -> rig until known, then refresh every few seconds."""
-    from agent.client import Client
     from agent.errors import UmaError
+    from agent.sdk.client import Client
 
     wanted = ((args.optical_rig, live.on_optical_mount), (args.accel_rig, live.on_accel_mount))
     next_status = time.monotonic() + STATUS_EVERY_S

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.plugins import EvalPlugin
+from agent.runtime.plugins import EvalPlugin
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.tracker import (

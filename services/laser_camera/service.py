@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
 from services.laser_camera.calibration import Calibration, calibrate_sim

@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 
-from agent.plugins import ServicePlugin
+from agent.runtime.plugins import ServicePlugin
 from services.sim import mounts
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import sim_time_s

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from agent.commands.daemon import STALLED_START, START_LIMIT_S
+from agent.cli.agent import STALLED_START, START_LIMIT_S
 from agent.errors import UmaError
 
 ROOT = str(Path(__file__).resolve().parents[2])

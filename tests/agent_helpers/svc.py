@@ -24,7 +24,7 @@ import threading
 import time
 
 from agent.errors import UmaError
-from agent.service import Service
+from agent.sdk.service import Service
 
 _EMIT_LOCK = threading.Lock()
 

@@ -7,7 +7,7 @@ those links (labelled with their agent), ranks routes from source to target for 
 function (Dijkstra/Yen as in the local SRG: additive functions sum the links' values,
 path-level ones are evaluated on the joined attributes of k candidate routes), merges
 consecutive links of one agent into a single *segment*, and leaves it to the caller
-(:class:`agent.client.Client`) to ask each owning agent for its segment at ``t`` and to
+(:class:`agent.sdk.client.Client`) to ask each owning agent for its segment at ``t`` and to
 :func:`compose` the answers.
 
 Routes through agents that have left the realm are never tried; when only such routes

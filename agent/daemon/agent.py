@@ -6,7 +6,7 @@ What it does, in one Zenoh peer session:
   services' registrations on ``uma/R/agent/A/register``, refuses duplicates, advertises them
   through its snapshot ``uma/R/agent/A/services`` (queryable + publication on change), and
   learns every other agent's services through their tokens and snapshots;
-- **matching** (``agent.matching``): re-matches all local needs whenever the realm changes
+- **matching** (``agent.daemon.matching``): re-matches all local needs whenever the realm changes
   and tells each service, on ``uma/R/ctl/A/S``, the complete set of data keys each need
   must subscribe to.  Data then flows service to service;
 - **measuring and re-matching**: it subscribes to every stream its local needs are
@@ -21,7 +21,7 @@ What it does, in one Zenoh peer session:
   service has no queryable left, so the check costs one local lookup; one that answers is
   kept, and a local service whose token comes back after it was dropped is re-adopted);
 - **SRG hook**: after opening its session it creates
-  ``agent.srg_node.SrgNode(session, realm, agent_id, static_edges)`` (``static_edges``: the
+  ``agent.daemon.srg_node.SrgNode(session, realm, agent_id, static_edges)`` (``static_edges``: the
   config file's ``[[static]]`` tables as dicts with ``parent``, ``child``, ``position``
   [3], ``quaternion`` [4] xyzw and optional ``pos_std_m``, ``rot_std_rad``).  For every
   local ``pose6d`` ability it subscribes to the data key and calls
@@ -29,7 +29,7 @@ What it does, in one Zenoh peer session:
   ``schemas.codec.Measurement``) from its own feed thread; when a local ability goes away
   (service gone or ability dropped by a re-registration) it calls
   ``node.on_ability_removed(service_id, ability)``; at shutdown ``node.close()`` before the
-  session closes.  If ``agent.srg_node`` cannot be imported the agent runs without an SRG
+  session closes.  If ``agent.daemon.srg_node`` cannot be imported the agent runs without an SRG
   and says so once;
 - **hosted services**: ``--service NAME`` runs the ``uma.services`` plug-in NAME in a thread
   with the plug-in's default options and ``realm``/``agent``/``connect`` pointing at this
@@ -47,7 +47,7 @@ restart it holds back changes to the connections its services report for
 never interrupts data; what vanished meanwhile is disconnected after that.
 
 Timing defaults (``[matching]`` / ``[zenoh]`` in the TOML config): ``grace_s`` 0.5,
-``rate_window_s`` 0.5, lease 1000 ms (``agent.session``).  A SIGKILLed service is noticed in
+``rate_window_s`` 0.5, lease 1000 ms (``agent.runtime.session``).  A SIGKILLed service is noticed in
 ~2 ms (its sockets close), a frozen one after the lease; a rate drop after about
 ``rate_window_s`` (for the window to reflect it) + ``grace_s``.
 """
@@ -71,14 +71,13 @@ from typing import Any
 
 import zenoh
 
-from agent import keys, plugins
+from agent.daemon.matching import Choice, MatchResult, Offer, Requirement, judge, match
+from agent.daemon.realm_view import RealmView
 from agent.errors import UmaError
-from agent.matching import Choice, MatchResult, Offer, Requirement, judge, match
-from agent.registry import (
+from agent.protocol import keys
+from agent.protocol.registration import (
     RESEND_S,
     Match,
-    RateLimitedLog,
-    RealmView,
     Registration,
     Snapshot,
     control_message,
@@ -90,7 +89,9 @@ from agent.registry import (
     reply_ok,
     snapshot_message,
 )
-from agent.session import listening_endpoints, open_session, query
+from agent.runtime import plugins
+from agent.runtime.logs import RateLimitedLog
+from agent.runtime.session import listening_endpoints, open_session, query
 from agent.srg.geometry import check_quaternion, check_vector
 from schemas.codec import DecodeError, decode_measurement, encode_descriptor
 from schemas.models import Ability, AgentInfo
@@ -355,9 +356,9 @@ class Agent:
 
     def _start_srg(self) -> None:
         try:
-            from agent.srg_node import SrgNode
+            from agent.daemon.srg_node import SrgNode
         except ImportError as exc:
-            log.warning("agent %s runs without a spatial relationship graph: agent.srg_node "
+            log.warning("agent %s runs without a spatial relationship graph: agent.daemon.srg_node "
                         "is not available (%s)", self.agent_id, exc)
             return
         self.srg = SrgNode(self.session, self.realm, self.agent_id, self.s.static_edges)
@@ -758,7 +759,7 @@ class Agent:
             if new_instance:
                 # what the service is subscribed to right now (agent restart): keep it
                 self.needs[(sid, need.name)].sent = tuple(
-                    Match.of(offer) if offer else Match.unknown(k, need.type, self.realm)
+                    _match(offer) if offer else Match.unknown(k, need.type, self.realm)
                     for k in reg.connected.get(need.name, ())
                     for offer in [self.view.index.by_key.get(k)])
         for (s, name) in [k for k in self.needs if k[0] == sid]:
@@ -864,7 +865,7 @@ class Agent:
 
     def _send_if_changed(self, state: NeedState, now: float) -> None:
         assert state.result is not None
-        matches = tuple(Match.of(c.offer) for c in state.result.chosen)
+        matches = tuple(_match(c.offer) for c in state.result.chosen)
         if state.sent is not None and matches == state.sent:
             return
         if state.sent and now - self._started_mono < STARTUP_HOLD_S:
@@ -995,6 +996,11 @@ class Agent:
         assert self.session is not None
         self.session.put(keys.agent_services(self.realm, self.agent_id), self._build_snapshot(),
                          congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+def _match(offer: Offer) -> Match:
+    """What a service is told of an ability its need is connected to."""
+    return Match.of(offer.key, offer.agent_id, offer.service_id, offer.ability)
 
 
 def _payload(query: zenoh.Query) -> bytes | None:

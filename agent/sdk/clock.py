@@ -9,7 +9,7 @@ the most trustworthy: a minimum-delay filter over a short window (NTP's clock fi
 Samples age out so that a drifting clock is followed.
 
 Tests skew an agent's clock with the environment variable ``UMA_CLOCK_SKEW_NS`` (read by
-``agent.srg_node.SrgNode``): that agent then timestamps as if its clock were that many
+``agent.daemon.srg_node.SrgNode``): that agent then timestamps as if its clock were that many
 nanoseconds ahead; it exists only to test this module end to end.
 """
 

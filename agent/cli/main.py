@@ -20,15 +20,15 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from agent import plugins
 from agent.errors import UmaError
+from agent.runtime import plugins
 
 # command -> "module:function"; the function takes the parsed arguments, returns an exit code
 HANDLERS = {
-    "agent": "agent.commands.daemon:main",
-    "router": "agent.commands.router:main",
-    "services": "agent.commands.services:main",
-    "query": "agent.commands.query:main",
+    "agent": "agent.cli.agent:main",
+    "router": "agent.cli.router:main",
+    "services": "agent.cli.services:main",
+    "query": "agent.cli.query:main",
     "demo": "services.demo:main",
     "schemas": "schemas.export:main",
 }
@@ -272,6 +272,3 @@ def main(argv: Sequence[str] | None = None) -> int:
               "(set UMA_DEBUG=1 for the traceback)", file=sys.stderr)
         return 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -33,8 +33,8 @@ from collections.abc import Iterable, Sequence
 
 import zenoh
 
-from agent import keys
 from agent.errors import UmaError
+from agent.protocol import keys
 
 MODES = ("peer", "client", "router")
 DEFAULT_LEASE_MS = 1000
@@ -172,7 +172,7 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
                  base_file: str | None = None) -> zenoh.Session:
     """Open a Zenoh session configured for uma; ``UmaError`` if it cannot be opened.
 
-    ``realm`` is only validated here (uma keys carry it; see :mod:`agent.keys`), so a bad
+    ``realm`` is only validated here (uma keys carry it; see :mod:`agent.protocol.keys`), so a bad
     realm fails before any network activity.  ``require_connection`` makes a peer fail
     when none of its ``connect`` endpoints answers within 2 s (a client always does).
     """

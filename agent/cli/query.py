@@ -1,6 +1,6 @@
 """``uma query SOURCE TARGET``: the pose of TARGET in SOURCE's frame across the realm.
 
-Opens a short-lived client (:class:`agent.client.Client`), plans a route over every agent's
+Opens a short-lived client (:class:`agent.sdk.client.Client`), plans a route over every agent's
 supernode summary, asks the owning agents for their segments and prints the composed pose,
 its covariance, the path and the path's attributes.  Unknown frames, unreachable pairs,
 missing agents and edges without data at the requested time are errors (exit 1) that name
@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from agent.client import Client
+from agent.sdk.client import Client
 from agent.srg.result import PoseResult
 
 

@@ -43,17 +43,17 @@ from typing import Any
 import zenoh
 from pydantic import ValidationError
 
-from agent import keys
 from agent.errors import UmaError
-from agent.registry import (
+from agent.protocol import keys
+from agent.protocol.registration import (
     Match,
-    RateLimitedLog,
     descriptor_reply,
     parse_control,
     parse_reply,
     register_request,
 )
-from agent.session import open_session
+from agent.runtime.logs import RateLimitedLog
+from agent.runtime.session import open_session
 from schemas.codec import (
     DecodeError,
     Measurement,

@@ -40,8 +40,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from agent.cli import stop_on_signals
-from agent.daemon import Agent, AgentSettings
+from agent.cli.main import stop_on_signals
+from agent.daemon.agent import Agent, AgentSettings
 from agent.errors import UmaError
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}

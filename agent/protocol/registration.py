@@ -63,7 +63,7 @@ re-sends every need's set every ``RESEND_S`` (anti-entropy, in case a put was lo
 
 **Measuring** (the consuming side): the agent of the consuming service subscribes itself
 to every data key its local needs are connected to, measures rate and latency over a
-sliding window, and judges them against the need's predicate (``agent.daemon``).  The SDK
+sliding window, and judges them against the need's predicate (``agent.daemon.agent``).  The SDK
 only receives; it reports nothing.
 
 Bad input anywhere (undecodable bytes, invalid descriptors, unknown types, invalid
@@ -73,14 +73,11 @@ key or service and the reason; nothing else is affected.
 
 from __future__ import annotations
 
-import logging
-import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from agent import keys
-from agent.matching import Offer, OfferIndex, Requirement
+from agent.protocol import keys
 from schemas.codec import DecodeError, decode_descriptor, decode_message, encode_message
 from schemas.models import Ability, ServiceDescriptor
 
@@ -88,31 +85,6 @@ from schemas.models import Ability, ServiceDescriptor
 PENDING_TIMEOUT_S = 5.0
 #: seconds between re-sends of every need's match set (anti-entropy)
 RESEND_S = 5.0
-
-
-class RateLimitedLog:
-    """One log line per (subject, reason) per ``interval`` seconds, with a count of the
-    repeats it swallowed: bad input from a peer must not flood the log."""
-
-    def __init__(self, logger: logging.Logger, interval: float = 10.0) -> None:
-        self.logger = logger
-        self.interval = interval
-        self._last: dict[tuple[str, str], tuple[float, int]] = {}
-
-    def warning(self, subject: str, reason: str) -> bool:
-        """Log ``subject: reason`` unless logged recently; True if it was logged."""
-        now = time.monotonic()
-        k = (subject, reason[:200])
-        last, swallowed = self._last.get(k, (-1e18, 0))
-        if now - last < self.interval:
-            self._last[k] = (last, swallowed + 1)
-            return False
-        if len(self._last) > 10_000:
-            self._last.clear()
-        self._last[k] = (now, 0)
-        more = f" ({swallowed} similar since)" if swallowed else ""
-        self.logger.warning("%s: %s%s", subject, reason, more)
-        return True
 
 
 # --------------------------------------------------------------------------- matches
@@ -131,9 +103,9 @@ class Match:
     attributes: dict[str, Any]
 
     @classmethod
-    def of(cls, offer: Offer) -> Match:
-        a = offer.ability
-        return cls(offer.key, offer.agent_id, offer.service_id, a.name, a.type,
+    def of(cls, key: str, agent_id: str, service_id: str, a: Ability) -> Match:
+        """The match of the ability ``a`` published on ``key``."""
+        return cls(key, agent_id, service_id, a.name, a.type,
                    None if a.edge is None else (a.edge[0], a.edge[1]),
                    a.attributes.model_dump(mode="json", exclude_none=True))
 
@@ -352,146 +324,3 @@ def parse_snapshot(data: bytes, agent_id: str | None = None) -> Snapshot:
         snap.services[desc.service_id] = desc
         snap.status[desc.service_id] = {k: v for k, v in entry.items() if k != "descriptor"}
     return snap
-
-
-# --------------------------------------------------------------------------- the realm view
-
-
-@dataclass
-class LocalService:
-    """A service registered with this agent."""
-
-    descriptor: ServiceDescriptor
-    instance: str
-    revision: int
-    registered: float  # monotonic time of the (last) registration
-    connected: dict[str, list[str]]
-
-
-class RealmView:
-    """What this agent knows: its local services, other agents' snapshots, live tokens.
-
-    Keeps ``index`` (every offer of the realm that is present, see the module docstring)
-    up to date; every mutator returns whether the offers or the local needs changed, so
-    the daemon re-matches only when something did.
-    """
-
-    def __init__(self, realm: str, agent_id: str) -> None:
-        self.realm = realm
-        self.agent_id = agent_id
-        self.index = OfferIndex()
-        self.local: dict[str, LocalService] = {}
-        self.remote: dict[str, Snapshot] = {}
-        self.live_agents: set[str] = set()
-        self.live_services: set[tuple[str, str]] = set()
-        self._offered: dict[tuple[str, str], dict[str, Offer]] = {}
-        self._requirements: list[Requirement] | None = None
-
-    # -- queries
-    def descriptor(self, agent_id: str, service_id: str) -> ServiceDescriptor | None:
-        if agent_id == self.agent_id:
-            entry = self.local.get(service_id)
-            return entry.descriptor if entry else None
-        snap = self.remote.get(agent_id)
-        return snap.services.get(service_id) if snap else None
-
-    def present(self, agent_id: str, service_id: str) -> bool:
-        """Known descriptor and live token: its abilities may be matched."""
-        return ((agent_id, service_id) in self.live_services
-                and self.descriptor(agent_id, service_id) is not None)
-
-    def requirements(self) -> list[Requirement]:
-        """The needs of the local services, compiled (cached until a local change)."""
-        if self._requirements is None:
-            self._requirements = [Requirement.of(sid, n) for sid, e in self.local.items()
-                                  for n in e.descriptor.needs]
-        return self._requirements
-
-    def local_abilities(self, service_id: str) -> list[Ability]:
-        entry = self.local.get(service_id)
-        return list(entry.descriptor.abilities) if entry else []
-
-    def expired_pending(self, now: float) -> list[str]:
-        """Local services registered long ago whose token never appeared."""
-        return [sid for sid, e in self.local.items()
-                if (self.agent_id, sid) not in self.live_services
-                and now - e.registered > PENDING_TIMEOUT_S]
-
-    # -- mutators (each returns True if offers or local needs changed)
-    def register_local(self, reg: Registration, now: float) -> bool:
-        sid = reg.descriptor.service_id
-        old = self.local.get(sid)
-        self.local[sid] = LocalService(reg.descriptor, reg.instance, reg.revision, now,
-                                       reg.connected)
-        if old is not None and old.descriptor == reg.descriptor:
-            return False
-        self._requirements = None
-        self._sync(self.agent_id, sid)
-        return True
-
-    def remove_local(self, service_id: str) -> bool:
-        if self.local.pop(service_id, None) is None:
-            return False
-        self._requirements = None
-        self._sync(self.agent_id, service_id)
-        return True
-
-    def service_alive(self, agent_id: str, service_id: str) -> bool:
-        self.live_services.add((agent_id, service_id))
-        return self._sync(agent_id, service_id)
-
-    def service_gone(self, agent_id: str, service_id: str) -> bool:
-        self.live_services.discard((agent_id, service_id))
-        changed = self._sync(agent_id, service_id)
-        if agent_id == self.agent_id:
-            changed |= self.remove_local(service_id)
-        return changed
-
-    def apply_snapshot(self, snap: Snapshot) -> bool:
-        """Apply a remote agent's snapshot unless older than the one applied."""
-        if snap.agent_id == self.agent_id or snap.agent_id not in self.live_agents:
-            return False
-        old = self.remote.get(snap.agent_id)
-        if old is not None and snap.version <= old.version:
-            return False
-        self.remote[snap.agent_id] = snap
-        changed = False
-        for sid in set(snap.services) | set(old.services if old else ()):
-            changed |= self._sync(snap.agent_id, sid)
-        return changed
-
-    def agent_alive(self, agent_id: str) -> None:
-        self.live_agents.add(agent_id)
-
-    def agent_gone(self, agent_id: str) -> bool:
-        self.live_agents.discard(agent_id)
-        old = self.remote.pop(agent_id, None)
-        if old is None:
-            return False
-        changed = False
-        for sid in old.services:
-            changed |= self._sync(agent_id, sid)
-        return changed
-
-    def _sync(self, agent_id: str, service_id: str) -> bool:
-        """Make the index hold exactly the offers of this service if it is present."""
-        k = (agent_id, service_id)
-        want: dict[str, Offer] = {}
-        desc = self.descriptor(agent_id, service_id) if self.present(*k) else None
-        if desc is not None:
-            for a in desc.abilities:
-                key = keys.data(self.realm, agent_id, service_id, a.name)
-                want[key] = Offer.of(key, agent_id, service_id, a)
-        have = self._offered.get(k, {})
-        if have.keys() == want.keys() and all(
-                have[x].ability == want[x].ability for x in want):
-            return False
-        for key in have.keys() - want.keys():
-            self.index.remove(key)
-        for offer in want.values():
-            self.index.add(offer)
-        if want:
-            self._offered[k] = want
-        else:
-            self._offered.pop(k, None)
-        return True

@@ -15,8 +15,8 @@ import logging
 import os
 import sys
 
-from agent.cli import stop_on_signals
-from agent.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
+from agent.cli.main import stop_on_signals
+from agent.runtime.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
 
 log = logging.getLogger("uma.router")
 

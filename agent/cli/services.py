@@ -20,10 +20,10 @@ from typing import Any
 
 import zenoh
 
-from agent import keys
 from agent.errors import UmaError
-from agent.registry import parse_snapshot
-from agent.session import open_session, query
+from agent.protocol import keys
+from agent.protocol.registration import parse_snapshot
+from agent.runtime.session import open_session, query
 from schemas.codec import DecodeError
 from schemas.models import ServiceDescriptor
 

@@ -10,10 +10,10 @@
         ...
         sub.close()
 
-``pose`` plans a route over the agents' supernode summaries (:mod:`agent.planner`), asks
+``pose`` plans a route over the agents' supernode summaries (:mod:`agent.sdk.planner`), asks
 each owning agent for its segment at ``t`` (all at once, one round trip), and composes the
 answers with their covariances.  ``at`` is on this process's clock; each agent's clock
-offset is estimated from the round trips (:mod:`agent.clock`) and applied both ways.
+offset is estimated from the round trips (:mod:`agent.sdk.clock`) and applied both ways.
 ``at=None`` means the latest time at which every measured edge of the route has data.
 If an agent does not answer, the next route without it is tried; if none is left the
 error names the missing segment and agent.  An agent that missed an answer counts as gone
@@ -53,10 +53,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from agent import keys
-from agent.clock import ClockOffsets
 from agent.errors import UmaError
-from agent.planner import (
+from agent.protocol import keys
+from agent.runtime.logs import RateLimitedLog
+from agent.runtime.session import open_session
+from agent.sdk.clock import ClockOffsets
+from agent.sdk.planner import (
     Composition,
     Route,
     RouteError,
@@ -68,8 +70,6 @@ from agent.planner import (
     pose_from_wire,
     usable_routes,
 )
-from agent.registry import RateLimitedLog
-from agent.session import open_session
 from agent.srg import Graph
 from agent.srg.attributes import EDGE_ATTRIBUTES
 from agent.srg.errorfn import ErrorFunction, error_function

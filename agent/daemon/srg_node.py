@@ -32,7 +32,7 @@ calls ``close()`` at shutdown.  The node:
   ======================================  ==============================================
 
   ``t2``/``t3`` are this agent's clock when the request arrived and when the reply left,
-  for the caller's clock-offset estimate (:mod:`agent.clock`).
+  for the caller's clock-offset estimate (:mod:`agent.sdk.clock`).
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
 tens of microseconds) and record other agents' frames; one worker thread republishes the
@@ -52,9 +52,9 @@ from typing import Any
 
 import zenoh
 
-from agent import keys
-from agent.clock import skew_from_env
-from agent.registry import RateLimitedLog
+from agent.protocol import keys
+from agent.runtime.logs import RateLimitedLog
+from agent.sdk.clock import skew_from_env
 from agent.srg import Graph
 from agent.srg.result import PoseResult as SrgPose
 from agent.srg.result import finite_or_none
@@ -120,7 +120,7 @@ class SrgNode:
         self.session = session
         self.realm = realm
         self.agent_id = agent_id
-        #: test-only skew of this agent's clock (agent.clock.SKEW_ENV)
+        #: test-only skew of this agent's clock (agent.sdk.clock.SKEW_ENV)
         self.skew_ns = skew_from_env()
         self.graph = Graph()
         self._lock = threading.Lock()
@@ -164,7 +164,7 @@ class SrgNode:
         self._wake.set()
 
     def now_ns(self) -> int:
-        """This agent's clock (skewed in tests, see agent.clock)."""
+        """This agent's clock (skewed in tests, see agent.sdk.clock)."""
         return time.time_ns() + self.skew_ns
 
     # ------------------------------------------------------------------ feeding the graph
