@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from agent.cli.agent import load_config
-from agent.daemon.agent import check_static_edge
+from agent.daemon.settings import check_static_edge
 from agent.runtime.processes import stop_processes
 from agent.srg import geometry as geo
 from services.sim import mounts

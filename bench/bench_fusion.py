@@ -99,7 +99,8 @@ def bench_e2e(seconds: float) -> dict[str, float]:
     import uuid
 
     from agent import Service
-    from agent.daemon.agent import Agent, AgentSettings
+    from agent.daemon.agent import Agent
+    from agent.daemon.settings import AgentSettings
     from agent.runtime.session import open_session
     from services.demo import _static_edges
     from services.sim import mounts

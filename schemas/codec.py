@@ -448,6 +448,44 @@ def decode_measurement(data: bytes, expected_type: str | None = None) -> Measure
     return m
 
 
+def peek_time(data: bytes, expected_type: str | None = None) -> int:
+    """The sample time ``t`` (ns) of an encoded measurement, without decoding the rest.
+
+    For whoever needs only the time of every sample (the agent measuring a stream's
+    latency): the other values are skipped unread, so an image or a point cloud costs
+    about what a pose does.  Checks the envelope (``v``, ``k``, ``t``) as
+    :func:`decode_measurement` does, not the body; ``DecodeError`` says what was wrong.
+    """
+    if not isinstance(data, bytes | bytearray | memoryview) or not data:
+        raise DecodeError("expected a non-empty message")
+    if len(data) > MAX_IMAGE_BYTES:
+        raise DecodeError(f"message of {len(data)} bytes exceeds the limit of "
+                          f"{MAX_IMAGE_BYTES}")
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=len(data),
+                                max_ext_len=0)
+    unpacker.feed(data)
+    head: dict[str, Any] = {}
+    try:
+        for _ in range(unpacker.read_map_header()):
+            key = unpacker.unpack()
+            if key in ("v", "k", "t"):
+                head[key] = unpacker.unpack()
+            else:
+                unpacker.skip()
+    except Exception as exc:  # msgpack raises many types (ValueError, StackError, ...)
+        raise DecodeError(f"not a valid msgpack map: {str(exc) or type(exc).__name__}") from None
+    _root(head)
+    kind = head.get("k")
+    if type(kind) is not str or kind not in _FIELDS:
+        raise DecodeError(f"field 'k': unknown measurement type {kind!r}")
+    if expected_type is not None and kind != expected_type:
+        raise DecodeError(f"expected a {expected_type} measurement, got {kind}")
+    if kind != "image" and len(data) > MAX_MESSAGE_BYTES:
+        raise DecodeError(f"message of {len(data)} bytes exceeds the limit of "
+                          f"{MAX_MESSAGE_BYTES}")
+    return _int_in(head, "t", kind)
+
+
 def _extra_in(x: Any, kind: str) -> dict[str, Any]:
     if not isinstance(x, dict):
         raise DecodeError(f"{kind} field 'x': expected a map, got {type(x).__name__}")

@@ -159,7 +159,8 @@ def run_demo(seconds: float, seed: int, live: bool = True,
              log_dir: Path | None = None) -> dict[str, Any]:
     """Start everything, measure for ``seconds``, stop everything; the figures (the
     services' logs kept in ``log_dir`` if given)."""
-    from agent.daemon.agent import Agent, AgentSettings
+    from agent.daemon.agent import Agent
+    from agent.daemon.settings import AgentSettings
     from agent.sdk.client import Client
     from services.fusion.evaluate import accel_calibration_file, laser_calibration_file
     from services.sim.trajectory import HeadTrajectory

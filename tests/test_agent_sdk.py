@@ -15,11 +15,14 @@ import numpy as np
 import pytest
 from conftest import endpoint, free_port
 
-from agent.daemon.agent import Agent, AgentSettings
+from agent.daemon.agent import Agent
+from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
+from agent.protocol import keys
 from agent.runtime import plugins
 from agent.sdk.service import Service
 from schemas.codec import Measurement
+from schemas.models import Ability
 
 
 class FakeSrgNode:
@@ -27,18 +30,15 @@ class FakeSrgNode:
 
     instances: ClassVar[list[FakeSrgNode]] = []
 
-    def __init__(self, session, realm, agent_id, static_edges) -> None:
+    def __init__(self, session, realm, agent_id, static_edges, streams) -> None:
         self.args = (realm, agent_id, static_edges)
-        self.samples: list[tuple[str, object, Measurement]] = []
-        self.removed: list[tuple[str, str]] = []
+        self.streams = streams
+        self.told: list[tuple[str, list[Ability]]] = []
         self.closed = False
         FakeSrgNode.instances.append(self)
 
-    def on_local_sample(self, service_id, ability, m) -> None:
-        self.samples.append((service_id, ability, m))
-
-    def on_ability_removed(self, service_id, ability) -> None:
-        self.removed.append((service_id, ability.name))
+    def set_local_abilities(self, service_id, abilities) -> None:
+        self.told.append((service_id, list(abilities)))
 
     def close(self) -> None:
         self.closed = True
@@ -65,7 +65,7 @@ STATIC = [{"parent": "ivy/world", "child": "ivy/cam_nw", "position": [0, 0, 2.4]
            "quaternion": [0, 0, 0, 1], "pos_std_m": 0.001}]
 
 
-def test_srg_hook_receives_local_pose_samples_and_removals(fake_srg, realm) -> None:
+def test_srg_hook_is_told_the_local_abilities_and_their_changes(fake_srg, realm) -> None:
     ep = endpoint(free_port())
     agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep],
                                 static_edges=STATIC))
@@ -75,37 +75,63 @@ def test_srg_hook_receives_local_pose_samples_and_removals(fake_srg, realm) -> N
         assert node.args == (realm, "hostA", [{**STATIC[0], "position": [0.0, 0.0, 2.4],
                                                "quaternion": [0.0, 0.0, 0.0, 1.0],
                                                "pos_std_m": 0.001}])
+        assert node.streams is agent.streams  # one subscription per key with the monitor
         with Service("cam", realm=realm, agent="hostA", connect=[ep]) as svc:
             out = svc.ability("pose", type="pose6d", edge=("ivy/world", "alice/head"),
                               frequency_hz=100)
             svc.ability("dots", type="points3d", key="ivy/dots")
             svc.start()
             assert svc.wait_registered(10)
-            for i in range(200):
-                out.publish(1_000_000 + i, [1.0, 2.0, 3.0], [0, 0, 0, 1])
-                if node.samples:
-                    break
-                time.sleep(0.01)
-            wait_until(lambda: node.samples)
-            sid, ability, m = node.samples[0]
-            assert sid == "cam" and ability.name == "pose" and ability.type == "pose6d"
-            assert m.edge == ("ivy/world", "alice/head") and m.source == "cam"
-            assert m.attributes["frequency_hz"] == 100
-            np.testing.assert_allclose(m.position, [1, 2, 3])
-            out.update(frequency_hz=50)  # an attribute change keeps the feed
+            wait_until(lambda: node.told)
+            sid, abilities = node.told[-1]
+            assert sid == "cam" and {a.name for a in abilities} == {"pose", "dots"}
+            pose = next(a for a in abilities if a.name == "pose")
+            assert pose.edge == ("ivy/world", "alice/head") and pose.type == "pose6d"
+            assert pose.attributes.frequency_hz == 100
+            out.update(frequency_hz=50)  # an attribute change: told again
             assert svc.wait_registered(10)
-            n = len(node.samples)
-
-            def fed_with_new_attributes() -> bool:
-                out.publish(2_000_000, [1, 2, 3], [0, 0, 0, 1])
-                return (len(node.samples) > n
-                        and node.samples[-1][1].attributes.frequency_hz == 50)
-            wait_until(fed_with_new_attributes)
-            assert node.removed == []
-        wait_until(lambda: node.removed == [("cam", "pose")])
+            wait_until(lambda: any(a.name == "pose" and a.attributes.frequency_hz == 50
+                                   for a in node.told[-1][1]))
+            assert all(abilities for _, abilities in node.told)
+        wait_until(lambda: node.told[-1] == ("cam", []))
     finally:
         agent.close()
     assert node.closed
+
+
+def test_srg_node_subscribes_to_local_pose_streams_itself(realm) -> None:
+    ep = endpoint(free_port())
+    agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep]))
+    agent.start()
+    pose = {"op": "pose", "source": "ivy/world", "target": "alice/head", "error": "hops"}
+    try:
+        with Service("cam", realm=realm, agent="hostA", connect=[ep]) as svc:
+            out = svc.ability("pose", type="pose6d", edge=("ivy/world", "alice/head"),
+                              frequency_hz=100)
+            svc.start()
+            assert svc.wait_registered(10)
+            data_key = keys.data(realm, "hostA", "cam", "pose")
+
+            def in_graph() -> bool:
+                out.publish(1_000_000, [1.0, 2.0, 3.0], [0, 0, 0, 1])
+                return "alice/head" in agent.srg.graph.frames()
+            wait_until(in_graph)
+            np.testing.assert_allclose(agent.srg.handle(pose)["result"]["position"], [1, 2, 3])
+            assert data_key in agent.streams.subscribed()
+            edge = agent.srg.graph.edge("ivy/world", "alice/head", "cam/pose")
+            assert edge.attrs["frequency_hz"] == 100
+            out.update(frequency_hz=50)  # the next sample brings the new attributes
+            assert svc.wait_registered(10)
+
+            def updated() -> bool:
+                out.publish(2_000_000, [1.0, 2.0, 3.0], [0, 0, 0, 1])
+                edge = agent.srg.graph.edge("ivy/world", "alice/head", "cam/pose")
+                return edge.attrs["frequency_hz"] == 50
+            wait_until(updated)
+        wait_until(lambda: "alice/head" not in agent.srg.graph.frames())
+        assert data_key not in agent.streams.subscribed()  # the node stopped listening
+    finally:
+        agent.close()
 
 
 def test_hosted_service_runs_with_the_agents_endpoints_and_stops(monkeypatch,

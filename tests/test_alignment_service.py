@@ -19,7 +19,7 @@ from conftest import endpoint, free_port
 
 from agent.cli import main
 from agent.cli.agent import load_config
-from agent.daemon.agent import check_static_edge
+from agent.daemon.settings import check_static_edge
 from agent.srg import geometry as geo
 from services.alignment import records
 from services.alignment.service import StreamBuffer

@@ -24,6 +24,7 @@ from schemas.codec import (
     encode_measurement,
     encode_message,
     encode_pose,
+    peek_time,
 )
 from schemas.models import Ability, Need, ServiceDescriptor
 
@@ -200,6 +201,37 @@ def test_expected_type_and_size_limits() -> None:
                               "image").image.shape == img.shape
 
 
+def test_peek_time_reads_the_time_alone() -> None:
+    t = 1_700_000_000_123_456_789
+    assert peek_time(encode_pose(t, [1, 2, 3], [0, 0, 0, 1], _spd(6), seq=3)) == t
+    img = encode_measurement(Measurement("image", t, image=np.zeros((480, 640, 3), np.uint8)))
+    assert peek_time(img, "image") == t
+    # the body is not looked at: the time of a sample whose pose is bad is still read
+    assert peek_time(_packed(t=5, q=[0.0, 0.0, 0.0, 2.0])) == 5
+    # the time comes first when we encode, but the map's order is not part of the format
+    assert peek_time(msgpack.packb({"p": [1.0, 2.0, 3.0], "t": 7, "k": "pose6d", "v": 1})) == 7
+
+
+@pytest.mark.parametrize(("data", "fragment"), [
+    (b"", "non-empty"),
+    (msgpack.packb([1, 2]), "msgpack map"),
+    (_packed(v=2), "schema version"),
+    (_packed(k="nope"), "unknown measurement type"),
+    (_packed(t=-1), "outside"),
+    (_packed(t=_DROP), "'t'"),
+    (_packed(t="1"), "expected an integer"),
+    (_packed()[:9], "msgpack map"),  # cut short before the time
+])
+def test_peek_time_errors_say_why(data: bytes, fragment: str) -> None:
+    with pytest.raises(DecodeError, match=fragment):
+        peek_time(data)
+
+
+def test_peek_time_checks_the_expected_type() -> None:
+    with pytest.raises(DecodeError, match="expected a points3d"):
+        peek_time(_packed(), "points3d")
+
+
 def test_every_truncation_is_a_decode_error() -> None:
     for data in (encode_pose(1, [1, 2, 3], [0, 0, 0, 1], _spd(6), seq=3),
                  encode_measurement(Measurement("points3d", 1, points=np.ones((3, 3)),
@@ -212,7 +244,7 @@ def test_every_truncation_is_a_decode_error() -> None:
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=200))
 def test_random_bytes_raise_only_decode_error(data: bytes) -> None:
-    for decode in (decode_measurement, decode_descriptor, decode_message):
+    for decode in (decode_measurement, decode_descriptor, decode_message, peek_time):
         with contextlib.suppress(DecodeError):  # anything else fails the test
             decode(data)
 
@@ -233,10 +265,13 @@ _plain = st.recursive(
 def test_structured_garbage_raises_only_decode_error(obj: dict[str, Any], kind: str) -> None:
     obj = {"v": 1, "k": kind, "t": 1, **obj}
     data = msgpack.packb(obj)
+    with contextlib.suppress(DecodeError):  # anything else fails the test
+        peek_time(data)
     try:
         m = decode_measurement(data)
     except DecodeError:
         return
+    assert peek_time(data, kind) == m.t_ns  # whatever decodes has the time peek_time reads
     # whatever was accepted is valid and re-encodes
     assert decode_measurement(encode_measurement(m)).type == m.type
 

@@ -41,7 +41,8 @@ from pathlib import Path
 from typing import Any
 
 from agent.cli.main import stop_on_signals
-from agent.daemon.agent import Agent, AgentSettings
+from agent.daemon.agent import Agent
+from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}

@@ -1,5 +1,7 @@
 """Code that runs in the agent daemon, one process per host (``uma agent``).
 
-:mod:`agent.daemon.agent` is the daemon itself; the other modules are the parts it owns:
-matching needs to abilities, its view of the realm, and its SRG node.
+:mod:`agent.daemon.agent` is the daemon itself, the wiring of the parts the other modules
+are: its settings, the registrar of its local services, its view of the realm and its
+snapshot, matching needs to abilities, stream monitoring, one subscription per data key
+(streams) and its SRG node.
 """

@@ -9,7 +9,7 @@ An agent matches each need of its local services against every ability of the re
 3. **predicate** (``where``) true over the ability's advertised numeric attributes.  The
    names ``measured_frequency_hz`` / ``measured_latency_s`` stand for the advertised
    ``frequency_hz`` / ``latency_s`` here; what was really measured on a connected stream is
-   judged by the agent (``agent.daemon.agent``), with a grace period, through ``judge``: there the
+   judged by the agent (``agent.daemon.monitor``), with a grace period, through ``judge``: there the
    measured values *replace* ``frequency_hz`` / ``latency_s``, so ``frequency_hz >= 30``
    holds the rate really delivered to account.  An ability lacking a name the predicate uses
    does not qualify;

@@ -1,13 +1,30 @@
-"""What one agent knows of its realm: local services, other agents' snapshots, live tokens."""
+"""What one agent knows of its realm (local services, other agents' snapshots, live tokens)
+and what it tells the realm of its own services: its snapshot.
+
+:class:`RealmView` keeps the offers of every present service; :func:`build_snapshot`
+builds the snapshot ``uma/R/agent/A/services`` (``agent.protocol.registration``) of this
+agent's live local services with their needs' current matches, exclusions and the rates
+and latencies measured here.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
-from agent.daemon.matching import Offer, OfferIndex, Requirement
+from agent.daemon.matching import Choice, Offer, OfferIndex, Requirement
 from agent.protocol import keys
-from agent.protocol.registration import PENDING_TIMEOUT_S, Registration, Snapshot
-from schemas.models import Ability, ServiceDescriptor
+from agent.protocol.registration import (
+    PENDING_TIMEOUT_S,
+    Registration,
+    Snapshot,
+    snapshot_message,
+)
+from schemas.codec import encode_descriptor
+from schemas.models import AgentInfo, ServiceDescriptor
 
 
 @dataclass
@@ -19,6 +36,11 @@ class LocalService:
     revision: int
     registered: float  # monotonic time of the (last) registration
     connected: dict[str, list[str]]
+    #: the descriptor as snapshots carry it (encoded once per registration)
+    encoded: bytes = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.encoded = encode_descriptor(self.descriptor)
 
 
 class RealmView:
@@ -59,10 +81,6 @@ class RealmView:
             self._requirements = [Requirement.of(sid, n) for sid, e in self.local.items()
                                   for n in e.descriptor.needs]
         return self._requirements
-
-    def local_abilities(self, service_id: str) -> list[Ability]:
-        entry = self.local.get(service_id)
-        return list(entry.descriptor.abilities) if entry else []
 
     def expired_pending(self, now: float) -> list[str]:
         """Local services registered long ago whose token never appeared."""
@@ -148,3 +166,61 @@ class RealmView:
         else:
             self._offered.pop(k, None)
         return True
+
+
+# --------------------------------------------------------------------------- snapshots
+
+
+@dataclass(frozen=True)
+class NeedStatus:
+    """What a snapshot says of one local need."""
+
+    chosen: tuple[Choice, ...] = ()
+    satisfied: bool = False
+    excluded: Mapping[str, str] = field(default_factory=dict)  # key -> why
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who this agent is, as its snapshot says."""
+
+    agent_id: str
+    realm: str
+    epoch: int
+    endpoints: list[str]
+
+
+def build_snapshot(view: RealmView, me: Identity, revision: int,
+                   need_status: Callable[[str, str], NeedStatus],
+                   measured: Mapping[str, dict[str, float]]) -> bytes:
+    """The snapshot of the live local services: descriptors, needs' matches with their
+    measured values, satisfaction and exclusions."""
+    present = [sid for sid in sorted(view.local) if view.present(me.agent_id, sid)]
+    services = []
+    for sid in present:
+        entry = view.local[sid]
+        status = {need.name: need_status(sid, need.name) for need in entry.descriptor.needs}
+        services.append({
+            "descriptor": entry.encoded, "instance": entry.instance,
+            "matches": {name: [choice_status(c, measured.get(c.offer.key))
+                               for c in st.chosen] for name, st in status.items()},
+            "satisfied": {name: st.satisfied for name, st in status.items()},
+            "excluded": {name: dict(st.excluded) for name, st in status.items()}})
+    info = AgentInfo(agent_id=me.agent_id, realm=me.realm, version=_version(),
+                     started_ns=me.epoch, endpoints=me.endpoints, services=present)
+    return snapshot_message(info.model_dump(mode="json"), me.epoch, revision, services)
+
+
+def choice_status(c: Choice, measured: dict[str, float] | None) -> dict[str, Any]:
+    """A need's chosen ability as a snapshot shows it."""
+    o: Offer = c.offer
+    return {"key": o.key, "agent_id": o.agent_id, "service_id": o.service_id,
+            "ability": o.ability.name, "score": c.score if math.isfinite(c.score) else None,
+            "local": c.local, "measured": dict(measured or {})}
+
+
+def _version() -> str:
+    try:
+        return version("uma-tracking")
+    except PackageNotFoundError:
+        return "unknown"

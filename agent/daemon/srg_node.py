@@ -1,9 +1,14 @@
 """The agent's SRG on the network: local graph, supernode summary, query service.
 
-The agent daemon creates one ``SrgNode(session, realm, agent_id, static_edges)`` after
-opening its Zenoh session, feeds it its local services' pose samples
-(``on_local_sample``), tells it when an ability goes away (``on_ability_removed``) and
-calls ``close()`` at shutdown.  The node:
+The agent daemon creates one ``SrgNode(session, realm, agent_id, static_edges, streams)``
+after opening its Zenoh session (``static_edges``: the config file's ``[[static]]`` tables
+as checked by ``agent.daemon.settings.check_static_edge``; ``streams``: the daemon's
+``agent.daemon.streams.StreamHub``, so the node and the stream monitor share one
+subscription per data key), tells it which abilities each local service has
+(``set_local_abilities``: on every registration, and with none when the service goes)
+and calls ``close()`` at shutdown.  The node subscribes to its local ``pose6d`` streams
+itself and puts each sample into its graph (``on_local_sample``), as tf2's
+``TransformListener`` feeds its buffer: the daemon never handles a pose.  The node:
 
 - keeps a :class:`agent.srg.Graph` of the configuration's static edges (source
   ``config``) and one measured edge per local ``pose6d`` ability (source
@@ -35,7 +40,8 @@ calls ``close()`` at shutdown.  The node:
   for the caller's clock-offset estimate (:mod:`agent.sdk.clock`).
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
-tens of microseconds) and record other agents' frames; one worker thread republishes the
+tens of microseconds), decode local samples into the graph under the same lock (a pose
+costs a few microseconds) and record other agents' frames; one worker thread republishes the
 summary when needed and asks every agent for its summary every ``RESYNC_S`` (a summary put
 before our subscription reached its author is never sent again).  A failing query is
 answered with an error, never raised into Zenoh.
@@ -48,10 +54,12 @@ import logging
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
 
+from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.runtime.logs import RateLimitedLog
 from agent.sdk.clock import skew_from_env
@@ -59,7 +67,13 @@ from agent.srg import Graph
 from agent.srg.result import PoseResult as SrgPose
 from agent.srg.result import finite_or_none
 from agent.srg.supernode import summarize
-from schemas.codec import DecodeError, decode_message, encode_message, unpack_covariance
+from schemas.codec import (
+    DecodeError,
+    decode_measurement,
+    decode_message,
+    encode_message,
+    unpack_covariance,
+)
 
 log = logging.getLogger("uma.srg")
 
@@ -116,8 +130,12 @@ class SrgNode:
     """One agent's SRG, its supernode summary and its query service (module docstring)."""
 
     def __init__(self, session: zenoh.Session, realm: str, agent_id: str,
-                 static_edges: list[dict[str, Any]] | None = None) -> None:
+                 static_edges: list[dict[str, Any]] | None = None,
+                 streams: StreamHub | None = None) -> None:
         self.session = session
+        self._streams = streams if streams is not None else StreamHub(session)
+        #: local pose6d abilities -> (the ability, stop listening to its data key)
+        self._local: dict[tuple[str, str], tuple[Any, Callable[[], None]]] = {}
         self.realm = realm
         self.agent_id = agent_id
         #: test-only skew of this agent's clock (agent.sdk.clock.SKEW_ENV)
@@ -178,6 +196,41 @@ class SrgNode:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"static edge #{i + 1} ({edge!r}): {exc}") from None
 
+    def set_local_abilities(self, service_id: str, abilities: list[Any]) -> None:
+        """The abilities a local service has now (none: it went): listen to the data of
+        its new ``pose6d`` ones, stop listening to the ones it dropped (their edges leave
+        the graph).  An ability whose attributes changed keeps its subscription; its next
+        sample brings the new attributes into the graph."""
+        wanted = {a.name: a for a in abilities if a.type == "pose6d"}
+        for (sid, name), (ability, stop) in list(self._local.items()):
+            if sid != service_id:
+                continue
+            if name in wanted:
+                self._local[(sid, name)] = (wanted[name], stop)
+                continue
+            stop()
+            del self._local[(sid, name)]
+            self.on_ability_removed(sid, ability)
+        for name, ability in wanted.items():
+            if (service_id, name) not in self._local:
+                key = keys.data(self.realm, self.agent_id, service_id, name)
+                stop = self._streams.listen(
+                    key, lambda data, k=(service_id, name): self._on_local_data(k, data))
+                self._local[(service_id, name)] = (ability, stop)
+
+    def _on_local_data(self, local: tuple[str, str], data: bytes) -> None:
+        """A local pose sample (Zenoh's thread): decode it and put it into the graph."""
+        entry = self._local.get(local)
+        if entry is None:
+            return  # the ability went away meanwhile
+        try:
+            m = decode_measurement(data, expected_type="pose6d")
+        except DecodeError as exc:
+            key = keys.data(self.realm, self.agent_id, *local)
+            self._bad.warning(f"data {key}", f"dropped a malformed sample: {exc}")
+            return
+        self.on_local_sample(local[0], entry[0], m)
+
     def on_local_sample(self, service_id: str, ability: Any, measurement: Any) -> None:
         """A sample of a local pose6d ability.  A static ability (a calibration, e.g. the
         result of tracker alignment) sets its static edge, valid at all times; any other
@@ -187,8 +240,8 @@ class SrgNode:
         parent, child = ability.edge
         with self._lock:
             known = self._sources.get(key)
-            # the daemon passes the same Ability object until it changes: `is` spares the
-            # per-sample model comparison
+            # the same Ability object comes with every sample until it changes (see
+            # set_local_abilities): `is` spares the per-sample model comparison
             changed = known is None or (known[0] is not ability and known[0] != ability)
             if changed and known is not None and (
                     known[0].attributes.static != ability.attributes.static):
@@ -433,10 +486,13 @@ class SrgNode:
         self.session.put(self._summary_key, data)
 
     def close(self) -> None:
-        """Stop publishing and answering (before the agent closes its session)."""
+        """Stop publishing, answering and listening (before the agent closes its session)."""
         self._stop.set()
         self._wake.set()
         self._worker.join(2.0)
+        for _, stop in self._local.values():
+            stop()
+        self._local.clear()
         for decl in self._decls:
             with contextlib.suppress(zenoh.ZError):
                 decl.undeclare()

@@ -63,7 +63,7 @@ re-sends every need's set every ``RESEND_S`` (anti-entropy, in case a put was lo
 
 **Measuring** (the consuming side): the agent of the consuming service subscribes itself
 to every data key its local needs are connected to, measures rate and latency over a
-sliding window, and judges them against the need's predicate (``agent.daemon.agent``).  The SDK
+sliding window, and judges them against the need's predicate (``agent.daemon.monitor``).  The SDK
 only receives; it reports nothing.
 
 Bad input anywhere (undecodable bytes, invalid descriptors, unknown types, invalid

@@ -54,6 +54,7 @@ from agent.protocol.registration import (
 )
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.session import open_session
+from agent.runtime.worker import Worker
 from schemas.codec import (
     DecodeError,
     Measurement,
@@ -74,6 +75,8 @@ REGISTER_TIMEOUT_S = 2.0
 RETRY_MIN_S, RETRY_MAX_S = 0.1, 1.0
 #: while the agent's token is not seen, ask for it this often
 PROBE_S = 1.0
+#: how often the worker sees whether to probe for the agent or register again
+RETRY_TICK_S = 0.05
 
 OnSample = Callable[[Measurement], Any]
 
@@ -191,8 +194,9 @@ class Service:
         self._outcome = threading.Event()
         self._token: Any = None
         self._decls: list[Any] = []
-        self._events: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = (
-            queue.Queue())
+        #: owns registration and subscriptions; retries every RETRY_TICK_S
+        self._worker = Worker(f"uma-service-{self.service_id}-worker",
+                              f"service {self.service_id}", log, self._retry, RETRY_TICK_S)
         self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
             SAMPLE_QUEUE)
         self._threads: list[threading.Thread] = []
@@ -295,10 +299,11 @@ class Service:
         assert sess is not None
         for handle in self._abilities.values():
             handle._publisher = sess.declare_publisher(handle.key)
-        for target, name in ((self._work, "worker"), (self._dispatch, "dispatch")):
-            t = threading.Thread(target=target, name=f"uma-service-{s}-{name}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._worker.start()
+        t = threading.Thread(target=self._dispatch, name=f"uma-service-{s}-dispatch",
+                             daemon=True)
+        t.start()
+        self._threads.append(t)
         put = self._enqueue
         self._decls += [
             sess.declare_subscriber(keys.control(r, a, s),
@@ -330,7 +335,7 @@ class Service:
                 with contextlib.suppress(Exception):
                     handle._publisher.undeclare()
                 handle._publisher = None
-        self._events.put(None)
+        self._worker.stop(1.0)
         with contextlib.suppress(queue.Full):
             self._samples.put_nowait(None)
         for t in self._threads:
@@ -392,24 +397,7 @@ class Service:
 
     # -- the worker (owns registration and subscriptions)
     def _enqueue(self, fn: Callable[..., None], *args: Any) -> None:
-        self._events.put((fn, args))
-
-    def _work(self) -> None:
-        while not self.closed:
-            try:
-                item = self._events.get(timeout=0.05)
-            except queue.Empty:
-                item = (self._retry, ())
-            if item is None:
-                return
-            fn, args = item
-            try:
-                fn(*args)
-            except zenoh.ZError as exc:
-                if not self.closed:
-                    self._bad.warning(f"service {self.service_id}", f"Zenoh: {exc}")
-            except Exception:
-                log.exception("service %s: %s failed", self.service_id, fn.__name__)
+        self._worker.put(fn, *args)
 
     def _on_agent_found(self) -> None:
         if not self._agent_present:

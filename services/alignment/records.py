@@ -12,7 +12,7 @@ time offset is estimated (``t_b = t_a + offset``).  For static stations (a robot
 at each pose), write the same time in both, one row per station.
 
 Calibration file: a TOML fragment with one ``[[static]]`` table (the agent configuration's
-format, ``agent.daemon.agent.check_static_edge``), loadable by ``uma agent --config FILE`` or
+format, ``agent.daemon.settings.check_static_edge``), loadable by ``uma agent --config FILE`` or
 pasted into a host's config; the fit's figures are kept as comments.
 """
 

@@ -1,0 +1,362 @@
+"""The agent's registrar: the daemon's side of the registration protocol
+(``agent.protocol.registration``, whose docstring specifies it, steps 2 to 4).
+
+- **registration** (``uma/R/agent/A/register``): a valid registration is admitted into the
+  agent's ``RealmView`` and the agent is told (:meth:`RegistrarHost.service_admitted`);
+  an invalid one is refused, saying why;
+- **duplicates**: a second process registering a service id already held by another
+  instance is *pending* while the holder is asked on ``uma/R/svc/A/S`` whether it still
+  answers (``DUPLICATE_CHECK_S``): refused if it does, else it replaces the holder.  A
+  registration for an id being checked is refused with ``retry``;
+- **token watch**: every service token ``uma/R/svc/*/*`` (local and remote): a PUT makes
+  the service present; a DELETE is a **departure check** first: the service is asked on
+  ``uma/R/svc/A/S`` (``DEPARTURE_CHECK_S``), and only one that does not answer with the
+  instance we know is dropped (a killed service has no queryable left: the check costs one
+  local lookup and failover stays fast; a spurious DELETE keeps a live one);
+- **adoption**: a live local service the agent holds no registration for (dropped
+  meanwhile, or the agent restarted before it re-registered) is re-adopted from its own
+  answer on ``uma/R/svc/A/S``;
+- **anti-entropy** (:meth:`Registrar.resync`, every ``RESEND_S``): the live service tokens
+  are asked for; tokens the subscription missed count as PUTs, a service believed alive
+  whose token is absent is checked; a registration whose token never came is dropped after
+  ``PENDING_TIMEOUT_S`` (:meth:`Registrar.expire_pending`).
+
+Everything runs in the agent's worker: Zenoh callbacks and replies are handed to it with
+``put``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import zenoh
+
+from agent.daemon.realm_view import RealmView
+from agent.protocol import keys
+from agent.protocol.registration import (
+    Registration,
+    parse_descriptor_answer,
+    parse_descriptor_reply,
+    parse_register_request,
+    reply_error,
+    reply_ok,
+)
+from agent.runtime.logs import RateLimitedLog
+from schemas.codec import DecodeError
+
+log = logging.getLogger("uma.agent")
+
+#: how long a duplicate-id check waits for the first holder of the id to answer
+DUPLICATE_CHECK_S = 0.5
+#: how long a departure check waits for a service whose token went to answer on its
+#: descriptor queryable (a killed or unreachable one has no queryable: the get ends at once)
+DEPARTURE_CHECK_S = 1.0
+#: seconds to wait for a service's descriptor answer when adopting it
+ADOPT_TIMEOUT_S = 2.0
+
+
+class RegistrarHost(Protocol):
+    """What the registrar tells the agent."""
+
+    def service_admitted(self, reg: Registration, new_instance: bool) -> None:
+        """A local service registered (again; ``new_instance``: by another process)."""
+
+    def service_left(self, service_id: str) -> None:
+        """A local service is gone."""
+
+    def realm_changed(self) -> None:
+        """The offers or the local needs changed: re-match."""
+
+    def snapshot_changed(self) -> None:
+        """The local services changed: publish a new snapshot."""
+
+
+@dataclass
+class PendingRegistration:
+    """A registration waiting for the duplicate check (does the first holder answer?)."""
+
+    query: zenoh.Query
+    reg: Registration
+    old_instance: str
+    holder_answered: bool = False
+
+
+class Registrar:
+    """Registrations, duplicates, service tokens, departures, adoption (module docstring)."""
+
+    def __init__(self, view: RealmView, epoch: int, put: Callable[..., None],
+                 host: RegistrarHost, bad: RateLimitedLog) -> None:
+        self.view = view
+        self.realm, self.agent_id = view.realm, view.agent_id
+        self.epoch = epoch
+        self._put = put
+        self._host = host
+        self._bad = bad
+        self._session: zenoh.Session | None = None
+        self._decls: list[Any] = []
+        self._pending: dict[str, PendingRegistration] = {}
+        #: services whose token went, being checked: (agent, service) -> check number
+        self._checking: dict[tuple[str, str], int] = {}
+        self._checks = 0
+        #: local services whose descriptor is being re-fetched (their token came back)
+        self._adopting: set[str] = set()
+
+    def declare(self, session: zenoh.Session) -> None:
+        """Answer registrations and watch the service tokens from now on."""
+        self._session = session
+        put = self._put
+        self._decls += [
+            session.declare_queryable(keys.agent_register(self.realm, self.agent_id),
+                                      lambda q: put(self.on_register, q, _payload(q))),
+            session.liveliness().declare_subscriber(
+                keys.service_tokens(self.realm), lambda smp: put(self._on_service_token, smp),
+                history=True),
+        ]
+
+    def close(self) -> None:
+        for decl in self._decls:
+            with contextlib.suppress(Exception):
+                decl.undeclare()
+        self._decls = []
+
+    def _get(self, key: str, on_reply: Callable[[zenoh.Reply], None],
+             on_done: Callable[[], None], timeout: float, every_reply: bool = False) -> None:
+        """Ask ``key``; ``on_reply`` (Zenoh's thread) for each reply, then ``on_done`` in
+        the worker.  ``every_reply``: two processes may answer on one key, keep both."""
+        assert self._session is not None
+        extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
+        self._session.get(key, zenoh.handlers.Callback(on_reply, lambda: self._put(on_done)),
+                          timeout=timeout, **extra)
+
+    # -- registrations and duplicates
+    def on_register(self, query: zenoh.Query, data: bytes | None) -> None:
+        try:
+            if data is None:
+                raise DecodeError("empty registration")
+            reg = parse_register_request(data, self.agent_id)
+        except DecodeError as exc:
+            self._bad.warning(f"registration on {query.key_expr}", f"refused: {exc}")
+            _refuse(query, f"registration refused: {exc}")
+            return
+        sid = reg.descriptor.service_id
+        if sid in self._pending:
+            _refuse(query, f"service id {sid!r}: a registration is being checked; retry",
+                    retry=True)
+            return
+        entry = self.view.local.get(sid)
+        if entry is None or entry.instance == reg.instance:
+            self._accept(query, reg)
+            return
+        # another process holds this id: refuse if it still answers, else replace it
+        self._pending[sid] = PendingRegistration(query, reg, entry.instance)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._put(self._on_holder_reply, sid, reply.ok.payload.to_bytes())
+        self._get(keys.service_token(self.realm, self.agent_id, sid), on_reply,
+                  lambda: self._on_holder_done(sid), DUPLICATE_CHECK_S, every_reply=True)
+
+    def _on_holder_reply(self, sid: str, data: bytes) -> None:
+        pending = self._pending.get(sid)
+        if pending is None:
+            return
+        try:
+            if parse_descriptor_reply(data) == pending.old_instance:
+                pending.holder_answered = True
+        except DecodeError as exc:
+            self._bad.warning(f"service {sid}", f"bad descriptor reply: {exc}")
+
+    def _on_holder_done(self, sid: str) -> None:
+        pending = self._pending.pop(sid, None)
+        if pending is None:
+            return
+        if pending.holder_answered:
+            error = (f"duplicate service id {sid!r} on agent {self.agent_id!r} in realm "
+                     f"{self.realm!r}: another process already runs it")
+            self._bad.warning(f"service {sid}", f"second registration refused ({error})")
+            _refuse(pending.query, error)
+        else:
+            log.info("service %s: previous instance does not answer; replaced", sid)
+            self._accept(pending.query, pending.reg)
+
+    def _accept(self, query: zenoh.Query, reg: Registration) -> None:
+        self._admit(reg)
+        try:
+            query.reply(query.key_expr, reply_ok(self.epoch))
+        finally:
+            query.drop()
+        log.info("service %s registered with agent %s (revision %d)",
+                 reg.descriptor.service_id, self.agent_id, reg.revision)
+
+    def _admit(self, reg: Registration) -> None:
+        """Take a registration into the view, and tell the agent."""
+        old = self.view.local.get(reg.descriptor.service_id)
+        new_instance = old is None or old.instance != reg.instance
+        if self.view.register_local(reg, time.monotonic()):
+            self._host.realm_changed()
+        self._host.service_admitted(reg, new_instance)
+        self._host.snapshot_changed()
+
+    def expire_pending(self, now: float) -> None:
+        """Drop registrations whose token never appeared."""
+        for sid in self.view.expired_pending(now):
+            log.warning("service %s registered but never declared its liveliness token; "
+                        "dropped", sid)
+            self.view.remove_local(sid)
+            self._host.service_left(sid)
+
+    # -- service tokens and departures
+    def _on_service_token(self, smp: zenoh.Sample) -> None:
+        parsed = keys.parse_service_token(str(smp.key_expr), self.realm)
+        if parsed is None:
+            self._bad.warning(f"liveliness {smp.key_expr}", "not a service token key")
+            return
+        if smp.kind == zenoh.SampleKind.PUT:
+            self._service_token_put(*parsed)
+        else:
+            self._check_departure(*parsed)
+
+    def _service_token_put(self, agent_id: str, sid: str) -> None:
+        self._checking.pop((agent_id, sid), None)  # back: a pending check is moot
+        if self.view.service_alive(agent_id, sid):
+            self._host.realm_changed()
+        if agent_id == self.agent_id:
+            self._host.snapshot_changed()
+            if sid not in self.view.local:
+                self._adopt(sid)  # we dropped it meanwhile: take it back
+
+    def resync(self) -> None:
+        """Anti-entropy: ask for the live service tokens and reconcile (a liveliness
+        subscription declared before its links were up may not get the tokens that
+        existed then; a DELETE and a PUT may have crossed)."""
+        assert self._session is not None
+        found: list[str] = []
+
+        def on_service(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                found.append(str(reply.ok.key_expr))
+        self._session.liveliness().get(keys.service_tokens(self.realm), zenoh.handlers.Callback(
+            on_service, lambda: self._put(self._on_resync_service_tokens, found)),
+            timeout=1.0)
+
+    def _on_resync_service_tokens(self, token_keys: list[str]) -> None:
+        """Tokens we missed count as PUTs; a local service with a live token but no
+        registration is re-adopted; a service we believe alive whose token is not there
+        is checked (it is dropped only if it does not answer)."""
+        live: set[tuple[str, str]] = set()
+        for key in token_keys:
+            parsed = keys.parse_service_token(key, self.realm)
+            if parsed is None:
+                self._bad.warning(f"liveliness {key}", "not a service token key")
+                continue
+            live.add(parsed)
+        for agent_id, sid in live:
+            if (agent_id, sid) not in self.view.live_services:
+                self._service_token_put(agent_id, sid)
+            elif agent_id == self.agent_id and sid not in self.view.local:
+                self._adopt(sid)
+        for agent_id, sid in self.view.live_services - live:
+            self._check_departure(agent_id, sid)
+
+    def _check_departure(self, agent_id: str, sid: str) -> None:
+        """A service token's DELETE: ask the service itself before tearing anything down
+        (a DELETE may be spurious)."""
+        k = (agent_id, sid)
+        if k not in self.view.live_services and not (
+                agent_id == self.agent_id and sid in self.view.local):
+            return  # nothing to tear down
+        if k in self._checking:
+            return
+        self._checks += 1
+        check, answers = self._checks, []
+        self._checking[k] = check
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                answers.append(reply.ok.payload.to_bytes())
+        self._get(keys.service_token(self.realm, agent_id, sid), on_reply,
+                  lambda: self._on_departure_checked(k, check, answers), DEPARTURE_CHECK_S,
+                  every_reply=True)
+
+    def _on_departure_checked(self, k: tuple[str, str], check: int,
+                              answers: list[bytes]) -> None:
+        if self._checking.get(k) != check:
+            return  # the token came back meanwhile, or a newer check runs
+        del self._checking[k]
+        agent_id, sid = k
+        expected = self._instance_of(agent_id, sid)
+        for data in answers:
+            try:
+                instance = parse_descriptor_reply(data)
+            except DecodeError as exc:
+                self._bad.warning(f"service {agent_id}/{sid}", f"bad descriptor reply: {exc}")
+                continue
+            if expected is None or instance == expected:
+                self._bad.warning(f"service {agent_id}/{sid}",
+                                  "its liveliness token went but it still answers; kept")
+                return
+        self._service_gone(agent_id, sid)
+
+    def _instance_of(self, agent_id: str, sid: str) -> str | None:
+        """The process instance this agent knows for a service (None: unknown)."""
+        if agent_id == self.agent_id:
+            entry = self.view.local.get(sid)
+            return entry.instance if entry else None
+        snap = self.view.remote.get(agent_id)
+        instance = snap.status.get(sid, {}).get("instance") if snap else None
+        return instance if isinstance(instance, str) else None
+
+    def _service_gone(self, agent_id: str, sid: str) -> None:
+        local = agent_id == self.agent_id and sid in self.view.local
+        if self.view.service_gone(agent_id, sid):
+            self._host.realm_changed()
+        if local:
+            log.info("service %s left agent %s", sid, self.agent_id)
+            self._host.service_left(sid)
+        if agent_id == self.agent_id:
+            self._host.snapshot_changed()
+
+    # -- adoption
+    def _adopt(self, sid: str) -> None:
+        """Re-fetch a live local service's descriptor from the service itself."""
+        if sid in self._adopting:
+            return
+        self._adopting.add(sid)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self._put(self._on_adopt_reply, sid, reply.ok.payload.to_bytes())
+        self._get(keys.service_token(self.realm, self.agent_id, sid), on_reply,
+                  lambda: self._adopting.discard(sid), ADOPT_TIMEOUT_S)
+
+    def _on_adopt_reply(self, sid: str, data: bytes) -> None:
+        if sid in self.view.local or (self.agent_id, sid) not in self.view.live_services:
+            return  # registered by itself meanwhile, or gone again
+        try:
+            reg = parse_descriptor_answer(data, self.agent_id)
+        except DecodeError as exc:
+            self._bad.warning(f"service {sid}", f"cannot re-adopt it: {exc}")
+            return
+        if reg.descriptor.service_id != sid:
+            self._bad.warning(f"service {sid}", "cannot re-adopt it: it answers as "
+                              f"{reg.descriptor.service_id!r}")
+            return
+        self._admit(reg)
+        log.info("service %s re-adopted by agent %s: its token came back (revision %d)",
+                 sid, self.agent_id, reg.revision)
+
+
+def _refuse(query: zenoh.Query, error: str, retry: bool = False) -> None:
+    try:
+        query.reply_err(reply_error(error, retry))
+    finally:
+        query.drop()
+
+
+def _payload(query: zenoh.Query) -> bytes | None:
+    return None if query.payload is None else query.payload.to_bytes()

@@ -1,0 +1,103 @@
+"""One Zenoh subscriber per data key in the daemon process, shared by all who listen.
+
+Two parts of the daemon read the same local streams: the stream monitor (the time of
+every sample, ``agent.daemon.monitor``) and the SRG node (every local pose sample,
+``agent.daemon.srg_node``).  Subscribing twice to one key would have Zenoh deliver and
+copy every sample twice; a :class:`StreamHub` declares one subscriber per key, takes each
+sample's bytes once and hands them to every listener of that key, in Zenoh's thread.
+Listeners must therefore be quick (append to a queue, or a few microseconds of work) and
+should not raise: what one raises is logged (rate-limited) and the others still get the
+sample.  The subscriber goes when the key's last listener stops listening.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from agent.runtime.logs import RateLimitedLog
+
+log = logging.getLogger("uma.agent")
+
+#: what a listener is given: the sample's payload
+Listener = Callable[[bytes], None]
+
+
+class _Key:
+    """One key's subscriber and listeners (a tuple, replaced on change: Zenoh's thread
+    iterates it without a lock)."""
+
+    def __init__(self) -> None:
+        self.listeners: tuple[Listener, ...] = ()
+        self.subscriber: Any = None
+
+
+class StreamHub:
+    """Data keys of this process and who listens to each (module docstring)."""
+
+    def __init__(self, session: zenoh.Session | None = None) -> None:
+        self._session = session
+        self._keys: dict[str, _Key] = {}
+        self._lock = threading.Lock()
+        self._bad = RateLimitedLog(log)
+
+    def open(self, session: zenoh.Session) -> None:
+        """Subscribe with ``session`` from now on (the daemon opens it after creating us)."""
+        self._session = session
+
+    def listen(self, key: str, listener: Listener) -> Callable[[], None]:
+        """Call ``listener(payload)`` for every sample on ``key`` until the returned
+        function is called."""
+        if self._session is None:
+            raise RuntimeError("StreamHub.listen before open(session)")
+        with self._lock:
+            entry = self._keys.get(key)
+            if entry is None:
+                entry = self._keys[key] = _Key()
+                entry.subscriber = self._session.declare_subscriber(
+                    key, lambda sample: self._dispatch(key, entry, sample))
+            entry.listeners = (*entry.listeners, listener)
+        return lambda: self._stop_listening(key, entry, listener)
+
+    def subscribed(self) -> set[str]:
+        """The keys subscribed to now."""
+        with self._lock:
+            return set(self._keys)
+
+    def close(self) -> None:
+        """Undeclare every subscriber (before the session closes)."""
+        with self._lock:
+            entries, self._keys = list(self._keys.values()), {}
+        for entry in entries:
+            _undeclare(entry)
+
+    def _stop_listening(self, key: str, entry: _Key, listener: Listener) -> None:
+        with self._lock:
+            rest = list(entry.listeners)
+            if listener in rest:
+                rest.remove(listener)
+            entry.listeners = tuple(rest)
+            if rest or self._keys.get(key) is not entry:
+                return
+            del self._keys[key]
+        _undeclare(entry)
+
+    def _dispatch(self, key: str, entry: _Key, sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        for listener in entry.listeners:
+            try:
+                listener(data)
+            except Exception as exc:  # never into Zenoh's thread
+                self._bad.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
+
+
+def _undeclare(entry: _Key) -> None:
+    if entry.subscriber is not None:
+        with contextlib.suppress(zenoh.ZError):
+            entry.subscriber.undeclare()
+        entry.subscriber = None

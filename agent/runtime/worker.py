@@ -1,0 +1,98 @@
+"""One worker thread that owns a component's state, used by the agent daemon and the SDK's
+``Service``.
+
+Zenoh calls its callbacks on its own threads, concurrently.  Rather than lock every piece
+of state, a component lets its callbacks only :meth:`Worker.put` calls; the worker thread
+runs them in arrival order, so all state is touched by one thread.  Between batches of
+calls it runs ``tick`` every ``tick_s`` (time-driven work: retries, measurements,
+re-sends) and then each ``settle`` callable (work a batch may have made due, done once per
+batch rather than once per call, e.g. a re-match).  A call that raises is logged and the
+worker goes on: one bug or one Zenoh error must not stop the component.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import zenoh
+
+from agent.runtime.logs import RateLimitedLog
+
+#: calls run per batch at most before ``tick`` and ``settle`` get their turn
+BATCH = 1000
+
+
+class Worker:
+    """The thread that runs a component's calls, ticks and settles (module docstring)."""
+
+    def __init__(self, name: str, owner: str, log: logging.Logger, tick: Callable[[], None],
+                 tick_s: float, settle: Sequence[Callable[[], None]] = ()) -> None:
+        self.owner = owner  # who, in log lines ("agent A", "service S")
+        self._log = log
+        self._bad = RateLimitedLog(log)
+        self._tick, self._tick_s, self._settle = tick, tick_s, tuple(settle)
+        self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = queue.Queue()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def put(self, fn: Callable[..., None], *args: Any) -> None:
+        """Have the worker call ``fn(*args)`` (from any thread)."""
+        self._q.put((fn, args))
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout: float) -> None:
+        """Stop after the current call; wait for it up to ``timeout`` s (not from itself)."""
+        self._stopping.set()
+        self._q.put(None)
+        self.join(timeout)
+
+    def join(self, timeout: float) -> None:
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+    def call(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run one call; log what it raises (a Zenoh error while stopping is expected)."""
+        try:
+            fn(*args)
+        except zenoh.ZError as exc:
+            if not self._stopping.is_set():
+                self._bad.warning(self.owner, f"{_name(fn)}: Zenoh: {exc}")
+        except Exception:  # a bug must not stop the component; log it with its traceback
+            self._log.exception("%s: %s failed", self.owner, _name(fn))
+
+    def _run(self) -> None:
+        next_tick = time.monotonic()
+        while not self._stopping.is_set():
+            self._run_batch(max(0.0, next_tick - time.monotonic()))
+            now = time.monotonic()
+            if now >= next_tick:
+                self.call(self._tick)
+                next_tick = now + self._tick_s
+            for fn in self._settle:
+                self.call(fn)
+
+    def _run_batch(self, wait_s: float) -> None:
+        """The calls that arrive within ``wait_s``, and those queued meanwhile."""
+        try:
+            item = self._q.get(timeout=wait_s)
+            for _ in range(BATCH):
+                if item is None or self._stopping.is_set():
+                    return
+                self.call(item[0], *item[1])
+                item = self._q.get_nowait()
+        except queue.Empty:
+            pass
+
+
+def _name(fn: Callable[..., None]) -> str:
+    return getattr(fn, "__name__", repr(fn))

@@ -1,0 +1,92 @@
+"""Unit tests of the daemon's small shared parts: the StreamHub (one subscriber per data
+key, fanned out) and the Worker loop (agent.runtime.worker)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from unittest import mock
+
+from agent.daemon.streams import StreamHub
+from agent.runtime.worker import Worker
+
+
+def _sample(data: bytes) -> mock.Mock:
+    sample = mock.Mock()
+    sample.payload.to_bytes.return_value = data
+    return sample
+
+
+def test_one_subscriber_per_key_fans_out_to_every_listener() -> None:
+    session = mock.MagicMock()
+    hub = StreamHub(session)
+    a: list[bytes] = []
+    b: list[bytes] = []
+    stop_a = hub.listen("uma/r/data/A/s/pose", a.append)
+    stop_b = hub.listen("uma/r/data/A/s/pose", b.append)
+    assert session.declare_subscriber.call_count == 1  # the second listener shares it
+    deliver = session.declare_subscriber.call_args[0][1]
+    deliver(_sample(b"x"))
+    assert a == [b"x"] and b == [b"x"]
+    stop_a()
+    deliver(_sample(b"y"))
+    assert a == [b"x"] and b == [b"x", b"y"]
+    assert not session.declare_subscriber.return_value.undeclare.called
+    stop_b()  # the last listener: the subscriber goes
+    assert session.declare_subscriber.return_value.undeclare.called
+    assert hub.subscribed() == set()
+
+
+def test_a_listener_that_raises_does_not_starve_the_others() -> None:
+    session = mock.MagicMock()
+    hub = StreamHub(session)
+    got: list[bytes] = []
+
+    def broken(data: bytes) -> None:
+        raise ValueError("bug")
+    hub.listen("k", broken)
+    hub.listen("k", got.append)
+    session.declare_subscriber.call_args[0][1](_sample(b"z"))
+    assert got == [b"z"]
+
+
+def _wait(cond, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.005)
+
+
+def test_worker_runs_calls_in_order_ticks_and_settles_after_each_batch() -> None:
+    log: list[str] = []
+    ticks = threading.Event()
+    worker = Worker("test-worker", "test", mock.Mock(), ticks.set, 0.01,
+                    settle=(lambda: log.append("settle"),))
+    worker.start()
+    try:
+        for i in range(3):
+            worker.put(log.append, f"call {i}")
+        _wait(lambda: "call 2" in log and "settle" in log[log.index("call 2"):]
+              and ticks.is_set())
+        calls = [x for x in log if x.startswith("call")]
+        assert calls == ["call 0", "call 1", "call 2"]
+    finally:
+        worker.stop(1.0)
+    assert not worker.alive()
+
+
+def test_worker_logs_a_failing_call_and_goes_on() -> None:
+    logger = mock.Mock()
+    done = threading.Event()
+
+    def fails() -> None:
+        raise RuntimeError("bug")
+    worker = Worker("test-worker", "test", logger, lambda: None, 1.0)
+    worker.start()
+    try:
+        worker.put(fails)
+        worker.put(done.set)
+        assert done.wait(5.0)
+        logger.exception.assert_called_once_with("%s: %s failed", "test", "fails")
+    finally:
+        worker.stop(1.0)
