@@ -7,6 +7,7 @@ import signal
 import time
 
 import msgpack
+import pytest
 import zenoh
 from agent_helpers.harness import (
     agent,
@@ -20,7 +21,7 @@ from conftest import endpoint, free_port
 
 from agent.protocol import keys
 from agent.protocol.registration import parse_reply, register_request
-from agent.runtime.session import open_session, query
+from agent.runtime.session import SDK_MODE_ENV, open_session, query
 
 PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
 
@@ -135,10 +136,13 @@ def test_duplicate_service_id_is_refused_and_the_first_keeps_running(processes,
                       after=mark)
 
 
-def test_services_wait_for_their_agent_and_survive_its_restart(processes, realm) -> None:
+@pytest.mark.parametrize("topology", ["client", "peer"])
+def test_services_wait_for_their_agent_and_survive_its_restart(processes, realm,
+                                                               topology) -> None:
     ep = endpoint(free_port())
-    cam = service(processes, realm, "cam", "hostA", ep, *PRODUCER)
-    consumer = service(processes, realm, "fusion", "hostA", ep, "--need", "head")
+    env = {SDK_MODE_ENV: topology}
+    cam = service(processes, realm, "cam", "hostA", ep, *PRODUCER, env=env)
+    consumer = service(processes, realm, "fusion", "hostA", ep, "--need", "head", env=env)
     consumer.wait_for(lambda e: e.get("event") == "started")  # no agent yet: started anyway
     host = agent(processes, realm, "hostA", ep)
     consumer.wait_for(lambda e: first_from(e, "cam"))
@@ -146,10 +150,14 @@ def test_services_wait_for_their_agent_and_survive_its_restart(processes, realm)
     processes.kill(host.popen, signal.SIGKILL)
     host.popen.wait(timeout=10)
     mark = consumer.mark
-    # agents are not in the data path: samples keep flowing without the agent
+    if topology == "peer":
+        # peers link to each other: samples keep flowing without the agent
+        consumer.wait_for(lambda e: e.get("event") == "counts" and e["counts"]["cam"] > 50,
+                          after=mark)
+    agent(processes, realm, "hostA", ep)
+    # clients of the agent are routed by it: their samples flow again once it is back
     consumer.wait_for(lambda e: e.get("event") == "counts" and e["counts"]["cam"] > 50,
                       after=mark)
-    agent(processes, realm, "hostA", ep)
     listed = {}
     for _ in range(50):
         listed = services_json(realm, ep)

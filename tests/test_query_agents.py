@@ -3,10 +3,12 @@ one is killed: another route if one exists, else an error naming the missing seg
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -149,10 +151,31 @@ def test_uma_query_command(three_agents, realm):
     assert "Traceback" not in bad.stderr
 
 
+@contextlib.contextmanager
+def zenoh_peer(ep: str) -> Iterator[None]:
+    """A bare Zenoh peer listening on ``ep``: reachable, but no agent of any realm."""
+    from agent.runtime.session import open_session
+    s = open_session("peer", [ep], [])
+    try:
+        yield
+    finally:
+        s.close()
+
+
 def test_uma_query_without_agents_is_a_clear_error(realm):
+    ep = endpoint(free_port())
     out = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--realm",
-                          realm, "--timeout", "0.3", "--connect",
-                          endpoint(free_port())], capture_output=True, text=True, timeout=30)
+                          realm, "--timeout", "0.3", "--connect", ep],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1
+    # a client of its host's agent: nothing at the endpoint is named as such
+    assert f"cannot reach {ep}" in out.stderr and "is the agent" in out.stderr
+    assert "Traceback" not in out.stderr
+    # a listening peer that finds the endpoint but no agent of the realm says so
+    with zenoh_peer(ep):
+        out = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD,
+                              "--realm", realm, "--timeout", "0.3", "--connect", ep],
+                             capture_output=True, text=True, timeout=30)
     assert out.returncode == 1
     assert f"no agent answered in realm {realm!r}" in out.stderr and "Traceback" not in out.stderr
     bad = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--at",

@@ -69,6 +69,7 @@ if __name__ == "__main__":
 from agent_helpers.harness import agent, matched_to, service, spawn  # noqa: E402
 from conftest import endpoint, free_port  # noqa: E402
 
+from agent.daemon.agent import STARTUP_HOLD_S  # noqa: E402
 from agent.errors import UmaError  # noqa: E402
 from agent.sdk.client import Client  # noqa: E402
 
@@ -97,6 +98,7 @@ def test_lost_token_of_a_live_service_is_kept_or_readopted(processes, realm,
     monkeypatch.setenv("UMA_LEASE_MS", "5000")
     ep = {name: endpoint(free_port()) for name in "ABC"}
     agent(processes, realm, "A", ep["A"])
+    a_up = time.monotonic()
     agent(processes, realm, "B", ep["B"], connect=(ep["A"],))
     agent_c = agent(processes, realm, "C", ep["C"], connect=(ep["A"],))
     tracker = spawn(processes, [__file__, "--realm", realm, "--agent", "C",
@@ -115,7 +117,9 @@ def test_lost_token_of_a_live_service_is_kept_or_readopted(processes, realm,
         agent_c.wait_log("still answers; kept")
         assert not [line for line in agent_c.log if "left agent C" in line]
 
-        # 2. token and queryable gone (unreachable), then back: dropped, then re-adopted
+        # 2. token and queryable gone (unreachable), then back: dropped, then re-adopted.
+        # Agent A must be past its start-up hold, or it keeps the consumer's connection
+        time.sleep(max(0.0, STARTUP_HOLD_S + 0.2 - (time.monotonic() - a_up)))
         mark = consumer.mark
         tracker.send("flap-all 0.5")
         done = tracker.wait_for(lambda e: e.get("event") == "flapped"

@@ -1,8 +1,9 @@
 """``uma services``: every agent, service, need, ability and current match of a realm.
 
-Joins the realm as a listening peer (so Zenoh's gossip links it to every agent, not only
-to the one it connects to), waits until the set of live agents is stable, then asks every
-agent's ``uma/R/agent/A/services`` queryable for its snapshot (``agent.registry``).
+Attaches to the agent (or router) it connects to as a Zenoh client, which routes its
+questions to every agent of the realm; waits until the set of live agents is stable, then
+asks every agent's ``uma/R/agent/A/services`` queryable for its snapshot
+(:mod:`agent.protocol.registration`).  Without ``--connect`` it is a listening peer.
 
 ``--json`` prints one object: ``{"realm", "agents": [{agent_id, realm, version, started_ns,
 endpoints, "services": [{service_id, instance, attributes, "abilities": [Ability...],
@@ -23,7 +24,7 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.registration import parse_snapshot
-from agent.runtime.session import open_session, query
+from agent.runtime.session import close_session, open_session, query, sdk_mode
 from schemas.codec import DecodeError
 from schemas.models import ServiceDescriptor
 
@@ -137,11 +138,11 @@ def main(args: argparse.Namespace) -> int:
     """Handler of ``uma services``."""
     if args.timeout <= 0:
         raise UmaError(f"--timeout must be positive, got {args.timeout}")
-    session = open_session("peer", None, args.connect, args.realm,
+    session = open_session(sdk_mode(None, args.connect), None, args.connect, args.realm,
                            require_connection=bool(args.connect))
     try:
         realm = collect(session, args.realm, args.timeout)
     finally:
-        session.close()
+        close_session(session)
     print(json.dumps(realm) if args.json else format_realm(realm))
     return 0

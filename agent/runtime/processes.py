@@ -1,4 +1,5 @@
-"""Stopping child processes: the one way uma's commands, tests and benchmarks end them."""
+"""Child processes: the one way uma's commands, tests and benchmarks end them, and how many
+network links one holds (the measure of the realm's topology)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import signal
 import subprocess
 import time
 from collections.abc import Iterable
+from pathlib import Path
 
 
 def stop_processes(procs: Iterable[subprocess.Popen], timeout: float = 5.0) -> None:
@@ -25,3 +27,27 @@ def stop_processes(procs: Iterable[subprocess.Popen], timeout: float = 5.0) -> N
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(timeout=timeout)
+
+
+def established_tcp(pid: int) -> int:
+    """How many ESTABLISHED TCP connections process ``pid`` holds (IPv4 and IPv6), read from
+    ``/proc``: its socket inodes, looked up in its network namespace's connection tables."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = fd.readlink().name if fd.is_symlink() else ""
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    count = 0
+    for table in ("tcp", "tcp6"):
+        try:
+            lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            if len(fields) > 9 and fields[3] == "01" and fields[9] in inodes:  # 01: ESTABLISHED
+                count += 1
+    return count

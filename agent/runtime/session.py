@@ -14,8 +14,19 @@ behave alike (see ``shared/ZENOH_NOTES.md`` for the measurements behind each cho
 - **scouting/delay 0**: otherwise ``open()`` of a router waits 0.5 s.
 - **connect retry 250 ms doubling to 1 s**: a service whose agent restarts is linked again
   within ~1 s (Zenoh's default back-off reaches 4 s).
-- **client mode** for processes behind a Zenoh router; a router that cannot be reached is
-  an error at open, as it is for ``require_connection=True`` peers.
+- **client mode** for every service and client that names its agent (``connect``): the
+  host's agent, a listening peer, routes for the processes of its host, so a realm holds
+  one Zenoh link per process plus the agents' mesh, instead of a link between every pair of
+  peers (``docs/ARCHITECTURE.md``, "Topology").  A router or agent that cannot be reached
+  is an error at open (:class:`UnreachableEndpointError`), as it is for ``require_connection=True``
+  peers.
+- **one session per process and configuration**: :func:`acquire_session` hands every
+  ``Service`` and ``Client`` of a process that asks for the same settings the same session
+  (and its Zenoh runtime threads), and :func:`release_session` closes it when the last one
+  leaves.  ``shared=False`` opts out.
+- **closing never raises**: a session that cannot close in time (a starved host) is logged
+  and left to the process's exit, so a ``with`` block or a command's result is never lost
+  to a close error.
 
 Bad endpoints (wrong syntax, port out of range, unknown host, nothing listening when a
 connection is required) become an :class:`agent.errors.UmaError` naming the endpoint.
@@ -25,18 +36,24 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import logging
 import os
 import re
 import socket
 import threading
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import zenoh
 
 from agent.errors import UmaError
 from agent.protocol import keys
 
+log = logging.getLogger("uma.session")
+
 MODES = ("peer", "client", "router")
+#: environment variable: the Zenoh mode of services and clients that are not told one
+SDK_MODE_ENV = "UMA_SDK_MODE"
 DEFAULT_LEASE_MS = 1000
 DEFAULT_PEER_LISTEN = "tcp/127.0.0.1:0"
 DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
@@ -186,11 +203,86 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     except zenoh.ZError as exc:
         text = _short(exc)
         if "Unable to connect" in text:
-            raise UmaError(f"cannot reach {', '.join(connect)} ({mode} mode): nothing "
-                           "answers there; is the agent/router running?") from None
+            raise UnreachableEndpointError(
+                f"cannot reach {', '.join(connect)} ({mode} mode): nothing answers there; "
+                "is the agent/router running?") from None
         if "Can not create a new" in text or "listen" in text.lower():
             raise UmaError(f"cannot listen: {text}") from None
         raise UmaError(f"cannot open Zenoh session: {text}") from None
+
+
+class UnreachableEndpointError(UmaError):
+    """Nothing answers at the endpoints a client-mode session (or a peer that requires a
+    connection) was told to connect to."""
+
+
+@dataclass
+class _Shared:
+    session: zenoh.Session
+    users: int
+
+
+_shared: dict[tuple[object, ...], _Shared] = {}
+_shared_lock = threading.Lock()
+
+
+def sdk_mode(mode: str | None, connect: Sequence[str]) -> str:
+    """The Zenoh mode of a service or client: given explicitly (or by ``UMA_SDK_MODE``,
+    so a whole host can keep the all-peers topology without changing code), else a client
+    of the endpoint it names (its host's agent), else a listening peer."""
+    if mode is None:
+        mode = os.environ.get(SDK_MODE_ENV) or ("client" if connect else "peer")
+    if mode not in ("peer", "client"):
+        raise UmaError(f"mode {mode!r}: a service or client runs as 'client' (of its "
+                       f"host's agent) or 'peer' (from {SDK_MODE_ENV} or mode=)")
+    return mode
+
+
+def acquire_session(mode: str, listen: Sequence[str] | None, connect: Sequence[str],
+                    realm: str | None = None, *, shared: bool = True) -> zenoh.Session:
+    """This process's session for these settings, opened on first use.
+
+    Every ``acquire_session`` must be paired with one :func:`release_session`.
+    """
+    if not shared:
+        return open_session(mode, listen, connect, realm)
+    if realm is not None:
+        keys.check_name("realm", realm)
+    key = (mode, None if listen is None else tuple(listen), tuple(connect),
+           lease_ms_default())
+    with _shared_lock:
+        entry = _shared.get(key)
+        if entry is None:
+            entry = _shared[key] = _Shared(open_session(mode, listen, connect), 0)
+        entry.users += 1
+        return entry.session
+
+
+def release_session(session: zenoh.Session) -> None:
+    """Give back a session from :func:`acquire_session`; the last user closes it.  A
+    session opened with ``shared=False`` is closed at once."""
+    with _shared_lock:
+        for key, entry in _shared.items():
+            if entry.session is session:
+                entry.users -= 1
+                if entry.users > 0:
+                    return
+                del _shared[key]
+                break
+    close_session(session)
+
+
+def close_session(session: zenoh.Session) -> None:
+    """Close ``session``, never raising.
+
+    Zenoh's close times out on a CPU-starved host ("close operation timed out!"); what the
+    caller did with the session is done by then, so the failure is logged, not raised.
+    """
+    try:
+        session.close()
+    except zenoh.ZError as exc:
+        log.warning("the Zenoh session did not close cleanly (%s); it ends with the process",
+                    _short(exc))
 
 
 def query(session: zenoh.Session, selector: str, timeout: float, *,

@@ -56,7 +56,7 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.runtime.logs import RateLimitedLog
-from agent.runtime.session import open_session
+from agent.runtime.session import acquire_session, release_session, sdk_mode
 from agent.sdk.clock import ClockOffsets
 from agent.sdk.planner import (
     Composition,
@@ -111,8 +111,9 @@ class Client:
     """A connection to a realm for pose queries and subscriptions (module docstring)."""
 
     def __init__(self, realm: str = "default", connect: Iterable[str] = (), *,
-                 listen: Sequence[str] | None = None, mode: str = "peer",
-                 timeout: float = 2.0, session: zenoh.Session | None = None) -> None:
+                 listen: Sequence[str] | None = None, mode: str | None = None,
+                 timeout: float = 2.0, session: zenoh.Session | None = None,
+                 shared: bool = True) -> None:
         keys.check_name("realm", realm)
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout!r}")
@@ -120,7 +121,8 @@ class Client:
         self.timeout = float(timeout)
         self.connect = list(connect)
         self._own_session = session is None
-        self.session = session or open_session(mode, listen, self.connect, realm)
+        self.session = session or acquire_session(sdk_mode(mode, self.connect), listen,
+                                                  self.connect, realm, shared=shared)
         self.clock = ClockOffsets()
         self._lock = threading.Lock()
         self._summaries: dict[str, Summary] = {}
@@ -169,6 +171,10 @@ class Client:
         self.close()
 
     def close(self) -> None:
+        """Stop every subscription and leave; never raises (a session that cannot close in
+        time is logged, see :func:`agent.runtime.session.close_session`)."""
+        if self._closing.is_set():
+            return
         self._closing.set()
         for sub in list(self._subscriptions):
             sub.close()
@@ -181,7 +187,7 @@ class Client:
         self._decls.clear()
         self._queriers.clear()
         if self._own_session:
-            self.session.close()
+            release_session(self.session)
 
     # ------------------------------------------------------------------ the realm
 

@@ -24,8 +24,15 @@ restarts).  A duplicate service id is refused: ``start()`` raises ``UmaError`` (
 that arrives after ``start()`` returned, because the agent appeared later, is logged and
 kept in ``svc.error``).  The agent
 then tells the service which data keys each need subscribes to; the service subscribes
-directly (agents are not in the data path) and follows every re-match without any action
-by the code using it.  ``svc.matches(name)`` and ``svc.wait_matched(name)`` expose them.
+and follows every re-match without any action by the code using it.
+
+A service that names its agent's endpoint (``connect``) is a Zenoh *client* of that agent,
+which routes its samples (``docs/ARCHITECTURE.md``, "Topology"); every ``Service`` and
+``Client`` of one process shares one session (``shared=False`` opts out, ``mode="peer"``
+makes the service a listening peer of its own, as before).  When the agent is not
+reachable yet, the service connects as soon as it is; samples published meanwhile have no
+receiver and are counted in ``handle.unsent``.  ``svc.matches(name)`` and
+``svc.wait_matched(name)`` expose the matches.
 """
 
 from __future__ import annotations
@@ -53,7 +60,12 @@ from agent.protocol.registration import (
     register_request,
 )
 from agent.runtime.logs import RateLimitedLog
-from agent.runtime.session import open_session
+from agent.runtime.session import (
+    UnreachableEndpointError,
+    acquire_session,
+    release_session,
+    sdk_mode,
+)
 from agent.runtime.worker import Worker
 from schemas.codec import (
     DecodeError,
@@ -77,6 +89,8 @@ RETRY_MIN_S, RETRY_MAX_S = 0.1, 1.0
 PROBE_S = 1.0
 #: how often the worker sees whether to probe for the agent or register again
 RETRY_TICK_S = 0.05
+#: seconds between attempts to reach an agent that did not answer at start()
+OPEN_RETRY_S = 0.25
 
 OnSample = Callable[[Measurement], Any]
 
@@ -98,6 +112,8 @@ class AbilityHandle:
         self.key = keys.data(svc.realm, svc.agent_id, svc.service_id, ability.name)
         self._publisher: Any = None
         self._seq = 0
+        #: samples published while the service had no session (its agent unreachable)
+        self.unsent = 0
 
     @property
     def name(self) -> str:
@@ -129,6 +145,9 @@ class AbilityHandle:
 
     def _put(self, payload: bytes) -> None:
         pub = self._publisher
+        if pub is None and self._svc.connecting:
+            self.unsent += 1
+            return
         if pub is None:
             raise UmaError(f"service {self._svc.service_id!r}: call start() before publishing "
                            f"on {self.name!r}" if not self._svc.closed else
@@ -166,12 +185,15 @@ class Service:
     def __init__(self, service_id: str, realm: str = "default", agent: str | None = None,
                  connect: Iterable[str] = (), listen: Sequence[str] | None = None, *,
                  attributes: dict[str, Any] | None = None,
-                 register_timeout: float = 3.0) -> None:
+                 register_timeout: float = 3.0, mode: str | None = None,
+                 shared: bool = True) -> None:
         self.service_id = keys.check_name("service id", service_id)
         self.realm = keys.check_name("realm", realm)
         self.agent_id = keys.check_name("agent id", agent or keys.default_agent_id())
         self.connect = list(connect)
         self.listen = None if listen is None else list(listen)
+        self.mode = sdk_mode(mode, self.connect)
+        self.shared = shared
         self.attributes = dict(attributes or {})
         self.register_timeout = register_timeout
         _checked(ServiceDescriptor, f"service {service_id!r}", service_id=service_id,
@@ -190,6 +212,8 @@ class Service:
         self._registering = False
         self._next_try = 0.0
         self._next_probe = time.monotonic() + PROBE_S
+        self._next_open = 0.0
+        self._attaching = threading.Lock()
         self._backoff = RETRY_MIN_S
         self._outcome = threading.Event()
         self._token: Any = None
@@ -216,8 +240,9 @@ class Service:
             handle = AbilityHandle(self, ab)
             self._abilities[name] = handle
             self._revision += 1
+            if self.session is not None:
+                handle._publisher = self.session.declare_publisher(handle.key)
         if self.session is not None:
-            handle._publisher = self.session.declare_publisher(handle.key)
             self._enqueue(self._register)
         return handle
 
@@ -274,14 +299,17 @@ class Service:
         """
         if self.closed:
             raise UmaError(f"service {self.service_id!r} is closed; create a new one")
-        if self.session is not None:
+        if self._threads:
             return self
         if not self.connect:
             log.warning("service %s: no connect endpoint given; it will only find agent %s "
                         "if that agent connects to it", self.service_id, self.agent_id)
-        self.session = open_session("peer", self.listen, self.connect, self.realm)
+        self._start_threads()
         try:
-            self._declare()
+            if not self._attach():
+                log.warning("service %s: nothing answers at %s yet; connecting as soon as "
+                            "agent %s is there", self.service_id, ", ".join(self.connect),
+                            self.agent_id)
         except BaseException:
             self.close()
             raise
@@ -294,16 +322,44 @@ class Service:
             raise UmaError(error)
         return self
 
-    def _declare(self) -> None:
-        sess, r, a, s = self.session, self.realm, self.agent_id, self.service_id
-        assert sess is not None
-        for handle in self._abilities.values():
-            handle._publisher = sess.declare_publisher(handle.key)
+    @property
+    def connecting(self) -> bool:
+        """Started, but not attached to a session yet (its agent was unreachable)."""
+        return bool(self._threads) and self.session is None and not self.closed
+
+    def _start_threads(self) -> None:
         self._worker.start()
-        t = threading.Thread(target=self._dispatch, name=f"uma-service-{s}-dispatch",
-                             daemon=True)
+        t = threading.Thread(target=self._dispatch, name=f"uma-service-{self.service_id}-"
+                             "dispatch", daemon=True)
         t.start()
         self._threads.append(t)
+
+    def _attach(self) -> bool:
+        """Take this process's session and declare everything on it; False if a client's
+        agent does not answer yet (the worker tries again every ``OPEN_RETRY_S``).  Both
+        ``start()`` and the worker call it, so it holds its own lock: one session each."""
+        with self._attaching:
+            if self.session is not None:
+                return True
+            try:
+                sess = acquire_session(self.mode, self.listen, self.connect, self.realm,
+                                       shared=self.shared)
+            except UnreachableEndpointError:
+                if self.mode != "client":
+                    raise
+                return False
+            with self._lock:
+                if self.closed:
+                    release_session(sess)
+                    return False
+                self.session = sess
+                for handle in self._abilities.values():
+                    handle._publisher = sess.declare_publisher(handle.key)
+            self._declare(sess)
+            return True
+
+    def _declare(self, sess: zenoh.Session) -> None:
+        r, a, s = self.realm, self.agent_id, self.service_id
         put = self._enqueue
         self._decls += [
             sess.declare_subscriber(keys.control(r, a, s),
@@ -342,8 +398,7 @@ class Service:
             if t is not threading.current_thread():
                 t.join(1.0)
         if self.session is not None:
-            with contextlib.suppress(Exception):
-                self.session.close()
+            release_session(self.session)
             self.session = None
         self._outcome.set()
         with self._cond:
@@ -417,6 +472,11 @@ class Service:
 
     def _retry(self) -> None:
         now = time.monotonic()
+        if self.session is None:
+            if now >= self._next_open:
+                self._next_open = now + OPEN_RETRY_S
+                self._attach()
+            return
         if not self._agent_present and now >= self._next_probe:
             self._probe_agent()
             self._next_probe = now + PROBE_S

@@ -198,10 +198,10 @@ def agent(processes: Any, realm: str, agent_id: str, endpoint: str,
 
 
 def service(processes: Any, realm: str, sid: str, agent_id: str, endpoint: str,
-            *extra: str) -> Proc:
+            *extra: str, env: dict[str, str] | None = None) -> Proc:
     """The scripted test service registered with ``agent_id`` at ``endpoint``."""
     return spawn(processes, ["-m", "tests.agent_helpers.svc", "--id", sid, "--realm", realm,
-                             "--agent", agent_id, "--connect", endpoint, *extra])
+                             "--agent", agent_id, "--connect", endpoint, *extra], env)
 
 
 def services_json(realm: str, endpoint: str) -> dict[str, Any]:
