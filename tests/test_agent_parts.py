@@ -90,3 +90,36 @@ def test_worker_logs_a_failing_call_and_goes_on() -> None:
         logger.exception.assert_called_once_with("%s: %s failed", "test", "fails")
     finally:
         worker.stop(1.0)
+
+
+def test_the_agents_own_keys_share_one_wildcard_subscriber() -> None:
+    """Real Zenoh: local keys come through one ``uma/r/data/A/*/*`` subscriber, remote ones
+    through their own; a local key nobody listens to is not delivered."""
+    from agent.runtime.session import open_session
+
+    session = open_session("peer", [], [])
+    try:
+        hub = StreamHub(session, local="uma/r/data/A/*/*")
+        got: dict[str, list[bytes]] = {"a": [], "b": [], "remote": []}
+        stops = [hub.listen("uma/r/data/A/s/a", got["a"].append),
+                 hub.listen("uma/r/data/A/s/b", got["b"].append),
+                 hub.listen("uma/r/data/B/s/x", got["remote"].append)]
+        assert hub._local_subscriber is not None
+        assert hub._keys["uma/r/data/A/s/a"].subscriber is None  # served by the wildcard
+        assert hub._keys["uma/r/data/B/s/x"].subscriber is not None
+        for key, data in (("uma/r/data/A/s/a", b"1"), ("uma/r/data/A/s/b", b"2"),
+                          ("uma/r/data/A/s/unheard", b"3"), ("uma/r/data/B/s/x", b"4")):
+            session.put(key, data)
+        _wait(lambda: got == {"a": [b"1"], "b": [b"2"], "remote": [b"4"]})
+        stops[0]()
+        assert hub._local_subscriber is not None  # b still listens
+        stops[1]()
+        assert hub._local_subscriber is None  # the last local listener took it along
+        session.put("uma/r/data/A/s/b", b"5")
+        stops[2]()
+        assert hub.subscribed() == set()
+        time.sleep(0.05)
+        assert got["b"] == [b"2"]
+    finally:
+        hub.close()
+        session.close()

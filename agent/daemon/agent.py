@@ -122,7 +122,7 @@ class Agent:
                               self.s.tick_s, settle=(self._rematch_if_dirty,
                                                      self._publish_if_dirty))
         self.registrar = Registrar(self.view, self.epoch, self._worker.put, self, self._bad)
-        self.streams = StreamHub()
+        self.streams = StreamHub(local=keys.all_data(self.realm, self.agent_id))
         self.monitor = StreamMonitor(self.streams, self.s.grace_s, self.s.rate_window_s,
                                      self._bad)
         self._decls: list[Any] = []

@@ -8,6 +8,13 @@ sample's bytes once and hands them to every listener of that key, in Zenoh's thr
 Listeners must therefore be quick (append to a queue, or a few microseconds of work) and
 should not raise: what one raises is logged (rate-limited) and the others still get the
 sample.  The subscriber goes when the key's last listener stops listening.
+
+The agent's own services' keys (``uma/R/data/A/*/*``, given as ``local``) share a single
+wildcard subscriber instead, declared while any of them is listened to: Zenoh calls one
+subscriber's callback at a fraction of the cost of a hundred (measured: 10,000 pose
+samples/s from 100 keys into the SRG cost a receiving process 42 % of a core with one
+subscriber per key, 23 % with one wildcard).  Samples of local keys nobody listens to
+(images, raw accelerometer data) are dropped by key before their payload is read.
 """
 
 from __future__ import annotations
@@ -40,11 +47,15 @@ class _Key:
 class StreamHub:
     """Data keys of this process and who listens to each (module docstring)."""
 
-    def __init__(self, session: zenoh.Session | None = None) -> None:
+    def __init__(self, session: zenoh.Session | None = None, local: str | None = None) -> None:
         self._session = session
         self._keys: dict[str, _Key] = {}
         self._lock = threading.Lock()
         self._bad = RateLimitedLog(log)
+        #: the key expression of this agent's own data (``uma/R/data/A/*/*``), if any
+        self._local = local
+        self._local_prefix = None if local is None else local.split("*", 1)[0]
+        self._local_subscriber: Any = None
 
     def open(self, session: zenoh.Session) -> None:
         """Subscribe with ``session`` from now on (the daemon opens it after creating us)."""
@@ -59,10 +70,28 @@ class StreamHub:
             entry = self._keys.get(key)
             if entry is None:
                 entry = self._keys[key] = _Key()
-                entry.subscriber = self._session.declare_subscriber(
-                    key, lambda sample: self._dispatch(key, entry, sample))
+                if self._is_local(key):
+                    self._declare_local()
+                else:
+                    entry.subscriber = self._session.declare_subscriber(
+                        key, lambda sample: self._dispatch(key, entry, sample))
             entry.listeners = (*entry.listeners, listener)
         return lambda: self._stop_listening(key, entry, listener)
+
+    def _is_local(self, key: str) -> bool:
+        return self._local_prefix is not None and key.startswith(self._local_prefix)
+
+    def _declare_local(self) -> None:
+        if self._local_subscriber is None:
+            assert self._session is not None and self._local is not None
+            self._local_subscriber = self._session.declare_subscriber(self._local,
+                                                                      self._dispatch_local)
+
+    def _dispatch_local(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        entry = self._keys.get(key)
+        if entry is not None:
+            self._dispatch(key, entry, sample)
 
     def subscribed(self) -> set[str]:
         """The keys subscribed to now."""
@@ -73,8 +102,10 @@ class StreamHub:
         """Undeclare every subscriber (before the session closes)."""
         with self._lock:
             entries, self._keys = list(self._keys.values()), {}
+            local, self._local_subscriber = self._local_subscriber, None
         for entry in entries:
             _undeclare(entry)
+        _undeclare_subscriber(local)
 
     def _stop_listening(self, key: str, entry: _Key, listener: Listener) -> None:
         with self._lock:
@@ -85,7 +116,11 @@ class StreamHub:
             if rest or self._keys.get(key) is not entry:
                 return
             del self._keys[key]
+            local = None
+            if self._is_local(key) and not any(map(self._is_local, self._keys)):
+                local, self._local_subscriber = self._local_subscriber, None
         _undeclare(entry)
+        _undeclare_subscriber(local)
 
     def _dispatch(self, key: str, entry: _Key, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
@@ -97,7 +132,11 @@ class StreamHub:
 
 
 def _undeclare(entry: _Key) -> None:
-    if entry.subscriber is not None:
+    _undeclare_subscriber(entry.subscriber)
+    entry.subscriber = None
+
+
+def _undeclare_subscriber(subscriber: Any) -> None:
+    if subscriber is not None:
         with contextlib.suppress(zenoh.ZError):
-            entry.subscriber.undeclare()
-        entry.subscriber = None
+            subscriber.undeclare()
