@@ -23,8 +23,9 @@ from services.accel_rig.simulator import (
     simulate,
     specific_force_readings,
 )
+from services.frames import GRAVITY
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
-from services.sim.trajectory import GRAVITY, HeadTrajectory
+from services.sim.trajectory import HeadTrajectory
 
 RATE = 300.0
 

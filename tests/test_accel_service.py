@@ -17,6 +17,7 @@ from conftest import endpoint, free_port
 
 from agent.errors import UmaError
 from agent.srg import geometry as geo
+from services import frames
 from services.accel_rig.calibration import THESIS_POSES
 from services.accel_rig.service import LiveRig, parse_mount
 from services.accel_rig.simulator import (
@@ -205,7 +206,7 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
         while True:
             assert acc.poll() is None, acc.stderr.read()
             try:
-                r = client.pose(mounts.WORLD, mounts.ACCEL_RIG)
+                r = client.pose(frames.WORLD, frames.ACCEL_RIG)
                 break
             except (UmaError, LookupError) as exc:
                 assert time.monotonic() < deadline, f"no accel-rig pose: {exc}"
@@ -223,8 +224,8 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
                     for s in a["services"]}
     rig = services["accel-rig"]
     kinds = {a["name"]: (a["type"], tuple(a["edge"])) for a in rig["abilities"]}
-    assert kinds == {"accel": ("accel_raw", (mounts.WORLD, mounts.ACCEL_RIG)),
-                     "pose": ("pose6d", (mounts.WORLD, mounts.ACCEL_RIG))}
+    assert kinds == {"accel": ("accel_raw", (frames.WORLD, frames.ACCEL_RIG)),
+                     "pose": ("pose6d", (frames.WORLD, frames.ACCEL_RIG))}
     accel = next(a for a in rig["abilities"] if a["name"] == "accel")
     assert len(accel["attributes"]["axes"]) == 6 and accel["attributes"]["frequency_hz"] == 300
     reset = rig["needs"][0]

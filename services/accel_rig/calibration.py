@@ -22,7 +22,7 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 

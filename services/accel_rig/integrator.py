@@ -33,7 +33,8 @@ import numpy as np
 
 from agent.srg import geometry as geo
 from services.accel_rig.sensor import Calibration
-from services.sim.trajectory import GRAVITY, KinematicState
+from services.frames import GRAVITY
+from services.sim.trajectory import KinematicState
 
 Array = np.ndarray
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.srg import geometry as geo
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from services.accel_rig.rig import RigLayout
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 

@@ -41,6 +41,7 @@ import numpy as np
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
+from services import frames
 from services.accel_rig.calibration import (
     SIX_POSES,
     StaticRecording,
@@ -104,7 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reset-frame", default="*/head", metavar="FRAME",
                         help="frame whose absolute pose in ivy/world resets the integrator: "
                              "a head (pattern, composed with --mount; default */head) or "
-                             f"{mounts.ACCEL_RIG} itself")
+                             f"{frames.ACCEL_RIG} itself")
     parser.add_argument("--reset-every", type=float, default=1.0,
                         help="seconds between resets from the absolute pose (default 1; 0: "
                              "at every absolute pose)")
@@ -425,19 +426,19 @@ _DIGITS = re.compile(r"\d+")
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
     from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
 
-    is_rig = args.reset_frame == mounts.ACCEL_RIG
+    is_rig = args.reset_frame == frames.ACCEL_RIG
     live = LiveRig(cal, args.rate_hz, None if is_rig else parse_mount(args.mount),
                    args.reset_every, reset_name=f"reset pose of {args.reset_frame}")
     attrs = {k: v for k, v in cal.to_dict().items() if k != "latency_s"}
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         live.raw_out = svc.ability("accel", type="accel_raw",
-                                   edge=(mounts.WORLD, mounts.ACCEL_RIG),
+                                   edge=(frames.WORLD, frames.ACCEL_RIG),
                                    frequency_hz=args.rate_hz, latency_s=cal.latency_s, **attrs)
-        live.pose_out = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.ACCEL_RIG),
+        live.pose_out = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.ACCEL_RIG),
                                     frequency_hz=args.rate_hz, latency_s=cal.latency_s,
                                     ttl_s=args.ttl_s, dead_reckoned=True)
-        svc.need("reset", type="pose6d", edge=(mounts.WORLD, args.reset_frame),
+        svc.need("reset", type="pose6d", edge=(frames.WORLD, args.reset_frame),
                  where="frequency_hz >= 1", prefer="latency_s", on_sample=live.on_reset)
         svc.start()
         log.info("accel-rig: %d accelerometers from %s at %g Hz", cal.layout.count,

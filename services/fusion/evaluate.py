@@ -38,6 +38,7 @@ from scipy.stats import chi2
 from agent.runtime.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
+from services import frames
 from services.accel_rig import calibration as accel_cal
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import (
@@ -45,7 +46,8 @@ from services.accel_rig.device_options import (
     device_figures,
     device_from_args,
 )
-from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
+from services.fusion.ekf import FusionEKF
+from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
 from services.sim.world import IvyWorld
 
@@ -66,16 +68,16 @@ DOT_LABEL_GATE_M = 0.05
 def static_mounts(graph: Graph) -> tuple[tuple[np.ndarray, np.ndarray],
                                          tuple[np.ndarray, np.ndarray]]:
     """Head -> accelerometer rig and head -> laser rig, queried from the SRG."""
-    a = graph.pose(mounts.HEAD, mounts.ACCEL_RIG)
-    laser = graph.pose(mounts.HEAD, mounts.LASER_RIG)
+    a = graph.pose(frames.HEAD, frames.ACCEL_RIG)
+    laser = graph.pose(frames.HEAD, frames.LASER_RIG)
     return (a.position, a.quaternion), (laser.position, laser.quaternion)
 
 
 def simulation_graph() -> Graph:
     """The SRG of the simulated set-up: the rig mountings as static edges."""
     g = Graph()
-    g.add_static(mounts.HEAD, mounts.ACCEL_RIG, *mounts.HEAD_TO_ACCEL_RIG)
-    g.add_static(mounts.HEAD, mounts.LASER_RIG, *mounts.HEAD_TO_LASER_RIG)
+    g.add_static(frames.HEAD, frames.ACCEL_RIG, *mounts.HEAD_TO_ACCEL_RIG)
+    g.add_static(frames.HEAD, frames.LASER_RIG, *mounts.HEAD_TO_LASER_RIG)
     return g
 
 

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
+from services import frames
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
-from services.sim import mounts
 
 log = logging.getLogger("uma.predictor")
 
@@ -30,9 +30,9 @@ HEAD_MOTION = {"omega_walk": 20.0, "velocity_walk": 3.0, "accel_walk": 30.0,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="predictor", help="service id (default: predictor)")
-    parser.add_argument("--source", default=mounts.WORLD, help="parent frame (ivy/world)")
-    parser.add_argument("--target", default=mounts.HEAD,
-                        help=f"frame whose pose is predicted (default {mounts.HEAD})")
+    parser.add_argument("--source", default=frames.WORLD, help="parent frame (ivy/world)")
+    parser.add_argument("--target", default=frames.HEAD,
+                        help=f"frame whose pose is predicted (default {frames.HEAD})")
     parser.add_argument("--output", default=None,
                         help="frame of the predicted pose (default: <target>_predicted)")
     parser.add_argument("--horizon-ms", type=float, default=20.0,

@@ -33,9 +33,10 @@ import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
+from services import frames
+from services.fusion.ekf import FusionEKF
+from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import MAX_COAST_S, FusionTracker
-from services.sim import mounts
 
 log = logging.getLogger("uma.fusion")
 
@@ -48,12 +49,12 @@ DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
-    parser.add_argument("--world", default=mounts.WORLD, help="world frame (ivy/world)")
-    parser.add_argument("--head", default=mounts.HEAD, help="fused frame (alice/head)")
-    parser.add_argument("--optical-rig", default=mounts.LASER_RIG,
-                        help=f"frame of the optical rig (default {mounts.LASER_RIG})")
-    parser.add_argument("--accel-rig", default=mounts.ACCEL_RIG,
-                        help=f"frame of the inertial rig (default {mounts.ACCEL_RIG})")
+    parser.add_argument("--world", default=frames.WORLD, help="world frame (ivy/world)")
+    parser.add_argument("--head", default=frames.HEAD, help="fused frame (alice/head)")
+    parser.add_argument("--optical-rig", default=frames.LASER_RIG,
+                        help=f"frame of the optical rig (default {frames.LASER_RIG})")
+    parser.add_argument("--accel-rig", default=frames.ACCEL_RIG,
+                        help=f"frame of the inertial rig (default {frames.ACCEL_RIG})")
     parser.add_argument("--horizon-ms", type=float, default=0.0,
                         help="publish the pose predicted this far ahead (default 0)")
     parser.add_argument("--model-floor", type=float, default=MODEL_FLOOR,

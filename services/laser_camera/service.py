@@ -30,10 +30,10 @@ import numpy as np
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
+from services import frames
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
 from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams
-from services.sim import mounts
 from services.sim.world import IvyWorld
 
 log = logging.getLogger("uma.laser_camera")
@@ -216,9 +216,9 @@ def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dic
 
     svc = stack.enter_context(Service(args.id, realm=args.realm, agent=args.agent,
                                       connect=args.connect, listen=args.listen or None))
-    pose_out = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.LASER_RIG),
+    pose_out = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.LASER_RIG),
                            **attrs)
-    dots_out = svc.ability("dots", type="points3d", edge=(mounts.WORLD, mounts.LASER_RIG),
+    dots_out = svc.ability("dots", type="points3d", edge=(frames.WORLD, frames.LASER_RIG),
                            **_dot_attributes(attrs))
     svc.start()
     return pose_out, dots_out, attrs

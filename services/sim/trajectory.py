@@ -19,7 +19,6 @@ import numpy as np
 from agent.srg import geometry as geo
 
 CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (seed 003 ch. 5)
-GRAVITY = np.array([0.0, 0.0, -9.80665])
 
 
 @dataclass(frozen=True)
