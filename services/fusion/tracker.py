@@ -47,9 +47,8 @@ SNAPSHOT_EVERY = 8
 #: optical pose has moved the filter ahead every sample behind it is dropped (seen with
 #: 0.1 s: two thirds of a lagging stream lost)
 MAX_WAIT_S = 0.5
-#: inertial-only output for at most this long after the last optical measurement (s).  The
-#: simulated MARVIN is off by up to 2 cm and 1.3 deg after 1 s, by 1-24 cm and 0.8-5 deg
-#: after 2 s (its own std then: 16 cm, 2.7 deg; ``uma eval fusion --gaps 2``, seeds 1-2)
+#: inertial-only output for at most this long after the last optical measurement (s):
+#: beyond it the dead-reckoned pose is off by decimetres (docs/FUSION_TUNING.md)
 MAX_COAST_S = 2.0
 
 
