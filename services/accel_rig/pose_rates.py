@@ -73,10 +73,6 @@ class AbsolutePoses:
     def __len__(self) -> int:
         return len(self._poses)
 
-    @property
-    def newest_t(self) -> float | None:
-        return self._poses[-1][0] if self._poses else None
-
     def add(self, t: float, position: Array, quaternion: Array,
             covariance: Array | None) -> None:
         """Keep one pose (validated); ``ValueError`` if it is not newer than the last."""

@@ -111,11 +111,6 @@ class RigLayout:
         return np.hstack([self.axes, np.cross(self.positions, self.axes)])
 
     @property
-    def centripetal_matrix(self) -> Array:
-        """N x 6 map from the entries (xx yy zz xy yz xz) of ``omega omega^T`` to Omega_j."""
-        return self._cent.copy()
-
-    @property
     def omega_free(self) -> bool:
         """True if the angular acceleration is solved without an angular-velocity estimate."""
         return self._pred.size < 6

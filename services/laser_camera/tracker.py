@@ -135,10 +135,6 @@ class LaserTracker:
         """Forget the previous pose: the next one is chosen by the upright rule."""
         self._last = None
 
-    @property
-    def last_pose(self) -> PoseEstimate | None:
-        return self._last
-
     # ------------------------------------------------------------------ pipeline
 
     def process(self, images: Mapping[str, np.ndarray], t: float) -> PoseEstimate | NoPose:
