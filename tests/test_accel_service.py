@@ -1,5 +1,9 @@
 """The accel-rig service: its sample loop without a network, its command line, and the
-service under a real agent (abilities in ``uma services``, pose through ``Client.pose``)."""
+service under a real agent (abilities in ``uma services``, pose through ``Client.pose``).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
+"""
 
 from __future__ import annotations
 
@@ -80,7 +84,7 @@ def test_live_rig_resets_from_head_poses_and_tracks_the_rig():
     err = np.array(errors)
     fresh = err[err[:, 0] < 0.05]  # just after a reset: the absolute pose itself
     assert len(fresh) > 20 and fresh[:, 1].max() < 0.002 and fresh[:, 2].max() < 0.1
-    # then inertial drift, within a second (seed 003 ch. 4: reliable for about a second)
+    # then inertial drift, within a second (Hogue 2003, ch. 4: reliable for about a second)
     assert err[:, 1].max() < 0.05 and err[:, 2].max() < 2.5, err.max(axis=0)
 
 

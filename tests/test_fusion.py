@@ -1,5 +1,9 @@
-"""The fusion EKF (seed 003 ch. 6): measurement model, Jacobians, gating, gaps, honesty,
-late optical poses, the eval's helpers and the live service logic (no network)."""
+"""The fusion EKF (Hogue 2003, ch. 6): measurement model, Jacobians, gating, gaps, honesty,
+late optical poses, the eval's helpers and the live service logic (no network).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
+"""
 
 from __future__ import annotations
 

@@ -6,9 +6,9 @@ Abilities (edge ``ivy/world -> marvin/accel_rig``):
   axis).  Its attributes carry the rig geometry and calibration
   (``services.accel_rig.sensor.Calibration.to_dict``: positions, axes, biases, gains, their
   covariance, noise model, latency), so a fusion service can run its own model (SCAAT);
-* ``pose`` -- ``pose6d``: the dead-reckoned pose (seed 003 §4.3) relative to the absolute
+* ``pose`` -- ``pose6d``: the dead-reckoned pose (Hogue 2003, §4.3) relative to the absolute
   pose it was last reset to, with its covariance; ``ttl_s`` is short because inertial
-  drift grows quickly (about a second of useful pose, seed 003 ch. 6).  Nothing is
+  drift grows quickly (about a second of useful pose, Hogue 2003, ch. 6).  Nothing is
   published before the first reset: without one there is no pose.
 
 Need ``reset`` -- ``pose6d`` of the head (``ivy/world -> */head``, composed with the
@@ -22,7 +22,10 @@ line naming it and the reason; the service keeps running.
 
 Input: the simulator (default), ``csv:FILE`` (replayed) or ``serial:DEVICE`` (a line per
 sample, ``t v_1 .. v_N``), converted with a calibration file.  ``--calibrate`` runs the
-static calibration of seed 003 §4.4.2 (simulated, or recorded poses) and writes the file.
+static calibration of Hogue 2003, §4.4.2 (simulated, or recorded poses) and writes the file.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with the simulator, missing means: calibrate at start; with "
                              "--calibrate: where to write it (default accel_calibration.json)")
     parser.add_argument("--calibrate", action="store_true",
-                        help="run the static calibration (seed 003 §4.4.2): the simulated "
+                        help="run the static calibration (Hogue 2003, §4.4.2): the simulated "
                              "rig, or the recordings given by --pose; write --calibration "
                              "and exit")
     parser.add_argument("--pose", action="append", default=[], metavar="LABEL=CSV",
@@ -462,7 +465,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
 
 PLUGIN = ServicePlugin(
     name="accel-rig",
-    help="MARVIN's six-accelerometer inertial tracker (seed 003 ch. 4): publishes each "
+    help="MARVIN's six-accelerometer inertial tracker (Hogue 2003, ch. 4): publishes each "
          "sample's accelerations (accel_raw, with the rig geometry and calibration as "
          "attributes) and the dead-reckoned pose of marvin/accel_rig in ivy/world since the "
          "last absolute pose (need 'reset'). Input: the simulated rig (default), a CSV replay "

@@ -1,4 +1,4 @@
-"""``uma eval fusion``: the whole simulated MARVIN against ground truth (seed 003 ch. 6).
+"""``uma eval fusion``: the whole simulated MARVIN against ground truth (Hogue 2003, ch. 6).
 
 Pipeline, all real components:
 
@@ -20,6 +20,9 @@ baselines (hold the last optical pose; constant-velocity extrapolation of the la
 the worst error inside each gap length, the time to recover after each gap, the error of
 the pose predicted +20 ms ahead, NEES against chi-square bounds, and the filter's
 updates per second of CPU time.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

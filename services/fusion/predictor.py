@@ -1,4 +1,4 @@
-"""Dorfmüller's motion predictor: an EKF over (omega, v, a) on the exponential map (seed 001).
+"""Dorfmüller-Ulhaas's motion predictor: an EKF over (omega, v, a) on the exponential map.
 
 The filter does not hold the pose.  It holds the *relative* motion of a rigid body:
 angular velocity ``omega``, translational velocity ``v`` and constant translational
@@ -26,6 +26,9 @@ Choices the paper leaves open, and why:
 * An abrupt change of motion (figs. 12-14) shows as an innovation far outside its
   covariance.  The filter then re-opens its covariance to the initial one (a manoeuvre
   detector), so it re-converges in a few frames instead of trusting the old motion.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
 """
 
 from __future__ import annotations

@@ -1,10 +1,13 @@
-"""``uma service run predictor``: Dorfmüller's predictor on any pose stream (seed 001).
+"""``uma service run predictor``: Dorfmüller-Ulhaas's predictor on any pose stream.
 
 Need ``pose``: any ``pose6d`` ability on ``--source -> --target`` (by default the head of
 any user in IVY).  Ability ``predicted``: the same motion predicted ``--horizon-ms`` ahead,
 on the edge ``--source -> --output`` (default ``<target>_predicted``: a frame of its own,
 so the predictor never matches its own output and a client chooses explicitly).  Each
 sample is stamped with the time it predicts; ``predicted_s`` says how far ahead it looks.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
 """
 
 from __future__ import annotations
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 PLUGIN = ServicePlugin(
     name="predictor",
-    help="Dorfmüller's EKF motion predictor (seed 001) on any pose6d stream: publishes the "
+    help="Dorfmüller-Ulhaas's EKF motion predictor on any pose6d stream: publishes the "
          "pose predicted --horizon-ms ahead on <target>_predicted.",
     add_arguments=add_arguments,
     run=run,

@@ -1,4 +1,4 @@
-"""``uma service run fusion``: MARVIN's EKF/SCAAT fusion as a uma service (seed 003 ch. 6).
+"""``uma service run fusion``: MARVIN's EKF/SCAAT fusion as a uma service (Hogue 2003, ch. 6).
 
 Needs (matched by the agent, data straight from the publishing services):
 
@@ -17,6 +17,9 @@ constant here.
 Ability ``head``: the fused ``ivy/world -> alice/head`` pose at the inertial rate with its
 6x6 covariance, optionally predicted ``--horizon-ms`` ahead (attribute ``predicted_s``).
 Late optical poses are applied at their own time by rewinding (``FusionTracker``).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -275,7 +278,7 @@ PLUGIN = ServicePlugin(
     name="fusion",
     help="EKF/SCAAT fusion of an absolute optical pose (laser rig, 15-60 Hz) and raw "
          "accelerometers (300 Hz) into the head pose at the inertial rate with covariance "
-         "(seed 003 ch. 6); rig mountings from the SRG's static edges.",
+         "(Hogue 2003, ch. 6); rig mountings from the SRG's static edges.",
     add_arguments=add_arguments,
     run=run,
 )

@@ -18,11 +18,14 @@ own delays.  The accelerometer stream is the filter's clock:
   Judging the stall by arrival, not by timestamps, keeps a lagging inertial stream the
   clock instead of locking it out;
 * without any optical measurement for ``max_coast_s`` the filter stops: the accelerometers
-  alone are good for about a second (seed 003 §6), after that the pose is a guess, and a
+  alone are good for about a second (Hogue 2003, §6), after that the pose is a guess, and a
   client is better told "no pose" than given one off by decimetres.  The next two optical
   poses start it again.
 
 Pure computation (no I/O): the fusion service feeds it from its need callbacks.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

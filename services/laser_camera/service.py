@@ -12,6 +12,9 @@ Abilities:
 Input is the simulator (default) or one OpenCV capture per camera (``sources``).
 ``--calibrate`` calibrates the simulated cameras from rendered checkerboards and writes
 ``--calibration``.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -277,7 +280,7 @@ def _maybe_update(pose_out, dots_out, advertised: dict, measured: dict):
 
 PLUGIN = ServicePlugin(
     name="laser-camera",
-    help="MARVIN's laser-dot camera tracker (seed 003 ch. 5): finds the four laser spots in "
+    help="MARVIN's laser-dot camera tracker (Hogue 2003, ch. 5): finds the four laser spots in "
          "the images of the cameras behind IVY's screens and publishes the pose of "
          "marvin/laser_rig in ivy/world with its covariance, plus the labeled spots as "
          "points3d. Input: the simulated display (default) or one video/camera per screen "
