@@ -28,6 +28,7 @@ from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
 from agent.runtime.processes import stop_processes
 from agent.srg import geometry as geo
+from services import frames
 from services.sim import mounts
 
 
@@ -56,8 +57,8 @@ def run(timeout: float, extra: list[str]) -> dict[str, Any]:
         _start(work, "laser", "service", "run", "laser-camera", *net),
         _start(work, "accel", "service", "run", "accel-rig", *net),
         _start(work, "alignment", "service", "run", "alignment", *net,
-               "--a", f"{mounts.WORLD}:{mounts.LASER_RIG}",
-               "--b", f"{mounts.WORLD}:{mounts.ACCEL_RIG}", "--output", str(out), *extra),
+               "--a", f"{frames.WORLD}:{frames.LASER_RIG}",
+               "--b", f"{frames.WORLD}:{frames.ACCEL_RIG}", "--output", str(out), *extra),
     ]
     start = time.monotonic()
     try:

@@ -29,8 +29,9 @@ from summary import median_p99
 
 from agent.srg import geometry as geo
 from services.accel_rig import simulator as accel_sim
-from services.fusion.ekf import MODEL_FLOOR, FusionEKF
+from services.fusion.ekf import FusionEKF
 from services.fusion.evaluate import accel_model, calibrated_accelerometers
+from services.fusion.state import MODEL_FLOOR
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
 from services.sim.trajectory import HeadTrajectory
 
@@ -103,7 +104,6 @@ def bench_e2e(seconds: float) -> dict[str, float]:
     from agent.daemon.settings import AgentSettings
     from agent.runtime.session import open_session
     from services.demo import _static_edges
-    from services.sim import mounts
 
     with socket.socket() as s1, socket.socket() as s2:
         s1.bind(("127.0.0.1", 0))
@@ -123,11 +123,11 @@ def bench_e2e(seconds: float) -> dict[str, float]:
     try:
         with Service("bench-inputs", realm=realm, agent="bench", connect=[ep]) as svc, \
                 open_session("peer", [ep_client], [ep], realm) as session:
-            optical = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.LASER_RIG),
+            optical = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.LASER_RIG),
                                   frequency_hz=15.0, latency_s=0.03)
             attrs = {k: v for k, v in cal.to_dict().items() if v is not None}
             attrs.update(frequency_hz=300.0, latency_s=0.0)
-            accel = svc.ability("accel", type="accel_raw", edge=(mounts.WORLD, mounts.ACCEL_RIG),
+            accel = svc.ability("accel", type="accel_raw", edge=(frames.WORLD, frames.ACCEL_RIG),
                                 **attrs)
             svc.start()
             key = f"uma/{realm}/data/bench/fusion/head"

@@ -22,6 +22,9 @@ declaring service cannot know — and a name that an ability lacks is reported w
 matcher evaluates it (``ExprError``), i.e. that ability does not satisfy the need.  The names
 the matcher provides are ``ATTRIBUTE_NAMES``, the ability's extra numeric attributes, and
 ``MEASURED_NAMES`` (rates and latencies the agent measures on the stream).
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations
@@ -168,7 +171,7 @@ PlainDict = Annotated[dict[str, Any], AfterValidator(_plain_dict)]
 
 
 class Attributes(BaseModel):
-    """Quality-of-service attributes of an ability (seed 000, §1.3.2).
+    """Quality-of-service attributes of an ability (Klinker, Bauer 2005, §1.3.2).
 
     Besides the named ones, any extra attribute is allowed (``ground_truth=True``, a rig's
     geometry as lists of numbers); its name must be an identifier so expressions can use it,

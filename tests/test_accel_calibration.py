@@ -1,5 +1,9 @@
-"""Calibration from static poses (seed 003 §4.4.2), the calibration file, input validation,
-and the honesty of the dead reckoner's covariance (NEES)."""
+"""Calibration from static poses (Hogue 2003, §4.4.2), the calibration file, input validation,
+and the honesty of the dead reckoner's covariance (NEES).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
+"""
 
 from __future__ import annotations
 

@@ -1,8 +1,11 @@
-"""The accelerometer rig model, the simulator and the dead reckoner (seed 003 ch. 4).
+"""The accelerometer rig model, the simulator and the dead reckoner (Hogue 2003, ch. 4).
 
 The thesis' figures 4.12-4.20 become tests: on noise-free data the estimator must follow
 the simulator's ground truth (it uses RK4 where the thesis used Euler, so "follows" means
 to micrometres and thousandths of a degree, not to plotting accuracy).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -23,8 +26,9 @@ from services.accel_rig.simulator import (
     simulate,
     specific_force_readings,
 )
+from services.frames import GRAVITY
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
-from services.sim.trajectory import GRAVITY, HeadTrajectory
+from services.sim.trajectory import HeadTrajectory
 
 RATE = 300.0
 

@@ -1,5 +1,9 @@
 """The accel-rig service: its sample loop without a network, its command line, and the
-service under a real agent (abilities in ``uma services``, pose through ``Client.pose``)."""
+service under a real agent (abilities in ``uma services``, pose through ``Client.pose``).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ from conftest import endpoint, free_port
 
 from agent.errors import UmaError
 from agent.srg import geometry as geo
+from services import frames
 from services.accel_rig.calibration import THESIS_POSES
 from services.accel_rig.service import LiveRig, parse_mount
 from services.accel_rig.simulator import (
@@ -79,7 +84,7 @@ def test_live_rig_resets_from_head_poses_and_tracks_the_rig():
     err = np.array(errors)
     fresh = err[err[:, 0] < 0.05]  # just after a reset: the absolute pose itself
     assert len(fresh) > 20 and fresh[:, 1].max() < 0.002 and fresh[:, 2].max() < 0.1
-    # then inertial drift, within a second (seed 003 ch. 4: reliable for about a second)
+    # then inertial drift, within a second (Hogue 2003, ch. 4: reliable for about a second)
     assert err[:, 1].max() < 0.05 and err[:, 2].max() < 2.5, err.max(axis=0)
 
 
@@ -205,7 +210,7 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
         while True:
             assert acc.poll() is None, acc.stderr.read()
             try:
-                r = client.pose(mounts.WORLD, mounts.ACCEL_RIG)
+                r = client.pose(frames.WORLD, frames.ACCEL_RIG)
                 break
             except (UmaError, LookupError) as exc:
                 assert time.monotonic() < deadline, f"no accel-rig pose: {exc}"
@@ -223,8 +228,8 @@ def test_service_runs_under_an_agent_and_is_listed(processes, realm):
                     for s in a["services"]}
     rig = services["accel-rig"]
     kinds = {a["name"]: (a["type"], tuple(a["edge"])) for a in rig["abilities"]}
-    assert kinds == {"accel": ("accel_raw", (mounts.WORLD, mounts.ACCEL_RIG)),
-                     "pose": ("pose6d", (mounts.WORLD, mounts.ACCEL_RIG))}
+    assert kinds == {"accel": ("accel_raw", (frames.WORLD, frames.ACCEL_RIG)),
+                     "pose": ("pose6d", (frames.WORLD, frames.ACCEL_RIG))}
     accel = next(a for a in rig["abilities"] if a["name"] == "accel")
     assert len(accel["attributes"]["axes"]) == 6 and accel["attributes"]["frequency_hz"] == 300
     reset = rig["needs"][0]

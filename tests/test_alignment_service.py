@@ -21,6 +21,7 @@ from agent.cli import main
 from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
 from agent.srg import geometry as geo
+from services import frames
 from services.alignment import records
 from services.alignment.service import StreamBuffer
 from services.alignment.simulate import StreamConfig, simulate_streams
@@ -28,8 +29,8 @@ from services.alignment.solvers import Pose
 from services.sim import mounts
 
 WORLD_B = "lab/world_b"
-A_EDGE = f"{mounts.WORLD}:{mounts.LASER_RIG}"
-B_EDGE = f"{WORLD_B}:{mounts.ACCEL_RIG}"
+A_EDGE = f"{frames.WORLD}:{frames.LASER_RIG}"
+B_EDGE = f"{WORLD_B}:{frames.ACCEL_RIG}"
 #: the truth: accelerometer rig in the laser rig (both on the simulated head)
 TRUE_X = Pose(*geo.compose(*geo.inverse(*mounts.HEAD_TO_LASER_RIG), *mounts.HEAD_TO_ACCEL_RIG))
 TRUE_WORLD_B = Pose(np.array([0.4, -1.2, 0.9]), geo.rotvec_to_quat([0.2, -0.3, 1.7]))
@@ -49,7 +50,7 @@ def _uma(capsys, *args: str) -> SimpleNamespace:
 
 def _check_calibration_file(path) -> dict:
     edge = check_static_edge(load_config(str(path))["static"][0], 0)  # the agent's loader
-    assert (edge["parent"], edge["child"]) == (mounts.LASER_RIG, mounts.ACCEL_RIG)
+    assert (edge["parent"], edge["child"]) == (frames.LASER_RIG, frames.ACCEL_RIG)
     dp, dr = geo.pose_error(np.array(edge["position"]), np.array(edge["quaternion"]), *TRUE_X)
     assert dp < 5e-3 and np.degrees(dr) < 0.5, (dp, np.degrees(dr))
     return edge
@@ -137,9 +138,9 @@ def _feed(realm: str, ep: str, stop: threading.Event, speed: float = 20.0) -> No
                                                               enumerate(b.t)])
     t0_ns = 1_700_000_000_000_000_000
     with Service("feeder", realm=realm, agent="lab", connect=[ep]) as svc:
-        outs = [svc.ability("a", type="pose6d", edge=(mounts.WORLD, mounts.LASER_RIG),
+        outs = [svc.ability("a", type="pose6d", edge=(frames.WORLD, frames.LASER_RIG),
                             frequency_hz=60.0),
-                svc.ability("b", type="pose6d", edge=(WORLD_B, mounts.ACCEL_RIG),
+                svc.ability("b", type="pose6d", edge=(WORLD_B, frames.ACCEL_RIG),
                             frequency_hz=100.0)]
         svc.start()
         start = time.monotonic()
@@ -177,7 +178,7 @@ def test_live_service_publishes_the_static_edge_and_recalibrates(processes, real
         with Client(realm=realm, connect=[ep]) as client:  # the edge is in the SRG
             while True:
                 try:
-                    r = client.pose(mounts.LASER_RIG, mounts.ACCEL_RIG)
+                    r = client.pose(frames.LASER_RIG, frames.ACCEL_RIG)
                     break
                 except (LookupError, ValueError) as exc:
                     assert time.monotonic() < deadline, f"edge not in the SRG: {exc}"
@@ -198,7 +199,7 @@ def test_live_service_publishes_the_static_edge_and_recalibrates(processes, real
             assert time.monotonic() < deadline + 30, "no re-calibration"
             time.sleep(0.2)
         _check_calibration_file(out)
-        assert tomllib.loads(out.read_text())["static"][0]["parent"] == mounts.LASER_RIG
+        assert tomllib.loads(out.read_text())["static"][0]["parent"] == frames.LASER_RIG
     finally:
         stop.set()
         feeder.join(timeout=10)

@@ -18,6 +18,7 @@ from conftest import endpoint, free_port
 
 from agent import Service
 from agent.srg import geometry as geo
+from services import frames
 from services.fusion.service import poll_mountings
 from services.sim import mounts
 
@@ -57,11 +58,11 @@ def test_fusion_takes_the_aligned_mounting_from_the_srg(processes, realm) -> Non
     p, q = geo.compose(*geo.inverse(*mounts.HEAD_TO_LASER_RIG), *mounts.HEAD_TO_ACCEL_RIG)
     seen = MountingsSeen()
     stop = threading.Event()
-    args = SimpleNamespace(realm=realm, connect=[ep], head=mounts.HEAD,
-                           optical_rig=mounts.LASER_RIG, accel_rig=mounts.ACCEL_RIG)
+    args = SimpleNamespace(realm=realm, connect=[ep], head=frames.HEAD,
+                           optical_rig=frames.LASER_RIG, accel_rig=frames.ACCEL_RIG)
     with Service("alignment", realm=realm, agent="host", connect=[ep]) as svc:
         calib = svc.ability("calibration", type="pose6d",
-                            edge=(mounts.LASER_RIG, mounts.ACCEL_RIG), static=True,
+                            edge=(frames.LASER_RIG, frames.ACCEL_RIG), static=True,
                             pos_std_m=0.002, rot_std_rad=0.002)
         svc.start()
         poller = threading.Thread(target=poll_mountings, args=(seen, args, stop), daemon=True)

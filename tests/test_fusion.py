@@ -1,5 +1,9 @@
-"""The fusion EKF (seed 003 ch. 6): measurement model, Jacobians, gating, gaps, honesty,
-late optical poses, the eval's helpers and the live service logic (no network)."""
+"""The fusion EKF (Hogue 2003, ch. 6): measurement model, Jacobians, gating, gaps, honesty,
+late optical poses, the eval's helpers and the live service logic (no network).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
+"""
 
 from __future__ import annotations
 
@@ -13,8 +17,9 @@ from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
 from services.fusion import evaluate as fe
-from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
+from services.fusion.ekf import FusionEKF
 from services.fusion.service import LiveFusion, accel_model_from_attributes
+from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import FusionTracker
 from services.sim.mounts import HEAD_TO_ACCEL_RIG, HEAD_TO_LASER_RIG
 from services.sim.trajectory import HeadTrajectory
@@ -568,10 +573,10 @@ def test_time_update_jacobian_matches_finite_differences():
     ekf.predict_to(ekf.t + dt)
     after = FusionEKF(_model(), ekf.config)
     after.restore(ekf.snapshot())
-    F = ekf._step_matrices(dt)[0].copy()
+    F = ekf.process.matrices(dt)[0].copy()
     R = geo.quat_to_matrix(ekf.q)
     F[0:3, 3:6], F[0:3, 6:9] = R * dt, R * (0.5 * dt * dt)
-    F[0:3, ekf._ang_jerk] = R * dt**3 / 6.0
+    F[0:3, ekf.layout.angular_jerk] = R * dt**3 / 6.0
     for k in range(ekf.dim):
         ekf.restore(nominal)
         d = np.zeros(ekf.dim)
@@ -592,7 +597,7 @@ def test_jerk_states_move_the_acceleration_smoothly():
     ekf = FusionEKF(_model(), cfg)
     ekf.initialise(0.0, np.zeros(3), geo.quat_identity(), np.eye(6) * 1e-8)
     j_lin, j_ang = np.array([3.0, -2.0, 1.0]), np.array([-5.0, 4.0, 8.0])
-    ekf.x[ekf._jerk], ekf.x[ekf._ang_jerk] = j_lin, j_ang
+    ekf.x[ekf.layout.linear_jerk], ekf.x[ekf.layout.angular_jerk] = j_lin, j_ang
     for _ in range(90):
         ekf.predict_to(ekf.t + 1.0 / 300.0)
     for got, j0, tau in ((ekf.acceleration, j_lin, cfg.linear_jerk_tau_s),

@@ -1,4 +1,4 @@
-"""Unit tests of agent.daemon.matching: the rules of DESIGN.md, one at a time."""
+"""Unit tests of agent.daemon.matching, one rule at a time."""
 
 from __future__ import annotations
 

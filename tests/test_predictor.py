@@ -1,4 +1,8 @@
-"""Dorfmüller's predictor (seed 001): Jacobians, ω -> 0 limits, the §3.3 experiments."""
+"""Dorfmüller-Ulhaas's predictor: Jacobians, ω -> 0 limits, the §3.3 experiments.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
+"""
 
 from __future__ import annotations
 

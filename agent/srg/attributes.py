@@ -1,4 +1,4 @@
-"""Edge attributes (seed 000, §1.3.2) and how they aggregate along a path.
+"""Edge attributes (Klinker, Bauer 2005, §1.3.2) and how they aggregate along a path.
 
 An edge carries ``latency_s``, ``frequency_hz``, ``confidence`` [0, 1], ``pos_std_m``,
 ``rot_std_rad`` (or a full 6x6 ``covariance``), ``ttl_s``, ``cost`` and ``static``.
@@ -6,6 +6,9 @@ A path's attributes are what an error function ranks: latencies and costs add up
 update rate is the slowest edge's, confidences multiply (independent detections), the time
 to live is the shortest, and the covariance is propagated through the chain (first order,
 see :mod:`agent.srg.geometry`); ``accuracy`` is the trace of that propagated covariance.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

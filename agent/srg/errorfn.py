@@ -1,4 +1,4 @@
-"""Error functions: what "best path" means for a query (seed 000, "Optimal paths").
+"""Error functions: what "best path" means for a query (Klinker, Bauer 2005, "Optimal paths").
 
 Built-ins: ``hops``, ``latency`` (sum of latencies), ``cost`` (sum of costs), ``confidence``
 (-log of the product of confidences) are additive over edges, so Dijkstra/Yen rank paths
@@ -7,6 +7,9 @@ path attributes (``latency_s + 10 * pos_std_m``, parsed by :mod:`schemas.expr`, 
 ``eval``) are path-level, evaluated on the aggregated attributes of candidate paths.
 Every error function can score an already aggregated path (``path_value``), which is what
 the cross-agent planner uses on the segments of supernode summaries.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

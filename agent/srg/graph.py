@@ -1,4 +1,4 @@
-"""The spatial relationship graph of seed 000 §1.3: frames, edges, and pose queries.
+"""The spatial relationship graph of Klinker, Bauer 2005, §1.3: frames, edges, and pose queries.
 
 A general directed multigraph: cycles, several parents and parallel edges between the same
 frames (distinguished by their ``source``, e.g. the service and ability that measure them)
@@ -11,6 +11,9 @@ Adding an edge, or changing an edge's attributes or static value, invalidates th
 whose searched component contains it: the plans that use it, and those for which it might
 now be part of a better path; plans of other components are kept (nothing there can change
 their best path).
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

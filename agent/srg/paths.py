@@ -3,8 +3,11 @@
 The SRG and the planner's graph of supernode summaries both use these: nodes are frame
 ids, each edge has a key (parallel edges between the same frames are distinct keys) and
 may be walked forwards or backwards.  Additive error functions rank paths by the sum of
-per-edge weights (Dijkstra); path-level ones (seed 000: e : A* -> R) are evaluated on the
-k shortest simple paths found by Yen's algorithm.
+per-edge weights (Dijkstra); path-level ones (Klinker, Bauer 2005: e : A* -> R) are
+evaluated on the k shortest simple paths found by Yen's algorithm.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Query plans as data-flow graphs (seed 000, §1.3.3 "Data flow graphs").
+"""Query plans as data-flow graphs (Klinker, Bauer 2005, §1.3.3 "Data flow graphs").
 
 A plan is what a query compiles to once: the ranked candidate paths between two frames for
 one error function, each a chain whose leaves are edges and whose root is the inferred
@@ -6,6 +6,9 @@ relation.  Runs of static edges are folded into one constant when the plan is bu
 evaluating a plan at ``t`` only touches measured edges: find each one's samples around
 ``t``, interpolate them all in one batched call, and compose (with first-order covariance
 propagation).  The graph caches plans and drops exactly those an edge change can affect.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

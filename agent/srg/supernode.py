@@ -1,4 +1,4 @@
-"""Supernode summaries (seed 000, §1.3.3 "Super Nodes"): an agent's SRG condensed.
+"""Supernode summaries (Klinker, Bauer 2005, §1.3.3 "Super Nodes"): an agent's SRG condensed.
 
 Other agents need not see every edge of a host, only how well the host can link the frames
 that matter across hosts.  A summary lists the agent's frames, its *boundary* frames (those
@@ -7,6 +7,9 @@ frame and every boundary frame of the same connected part, the attributes of the
 path between them under each built-in error function.  A planner joins summaries into a
 graph whose edges are these links, finds a route, and asks each owning agent for its
 segment at the query time.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""MARVIN's inertial tracker (seed 003 ch. 4): the six-accelerometer rig.
+"""MARVIN's inertial tracker (Hogue 2003, ch. 4): the six-accelerometer rig.
 
 The pure API (numpy only, no I/O) the fusion service and the evaluation share:
 
 * ``rig``: ``RigLayout`` (positions, axes, the eq. 4.42 solve, the measurement model ``h``
   and its Jacobian), ``marvin_six``, ``marvin_six_table_4_1``, ``nine_accelerometer``;
 * ``sensor``: appendix C.1 electronics constants and the ``Calibration`` (JSON file);
-* ``simulator``: ``simulate(trajectory, seconds, rate_hz, seed, ...)`` (seed 003 §4.5);
+* ``simulator``: ``simulate(trajectory, seconds, rate_hz, seed, ...)`` (Hogue 2003, §4.5);
 * ``calibration``: ``calibrate(layout, recordings, rate_hz)`` from static poses (§4.4.2);
 * ``integrator``: ``DeadReckoner`` (§4.3), ``reset(...)`` then ``update(t, accel)``;
 * ``pose_rates``: ``AbsolutePoses``, the velocities a reset restarts with, fitted to the
@@ -13,6 +13,9 @@ The pure API (numpy only, no I/O) the fusion service and the evaluation share:
 
 ``service`` and ``evaluate`` wrap them for ``uma service run accel-rig`` and
 ``uma eval accel-rig``.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from services.accel_rig.calibration import (

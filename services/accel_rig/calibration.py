@@ -1,4 +1,4 @@
-"""Calibration from static orientations, seed 003 §4.4.2 (eqs. 4.49-4.63), in least squares.
+"""Calibration from static orientations, Hogue 2003, §4.4.2 (eqs. 4.49-4.63), in least squares.
 
 Held still at a known orientation R_i (rig in world), accelerometer j reads
 
@@ -10,6 +10,9 @@ the mean of the +X/-X readings (eq. 4.53) and the axis follows from the normal e
 (eq. 4.63).  With more poses the same normal equations give the least-squares solution.
 Then ``k_j = |m_j|`` (scale, eq. 4.60) and ``n_j = m_j / k_j`` (axis, misalignment
 included).  Positions are not observable from static poses; they come from the drawing.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 
@@ -56,7 +59,7 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     noise = sn.NoiseModel() if noise is None else noise
     if len(recordings) < 4:
         raise ValueError(f"calibration needs at least 4 static orientations "
-                         f"(seed 003 §4.4.2), got {len(recordings)}")
+                         f"(Hogue 2003, §4.4.2), got {len(recordings)}")
     n = layout.count
     forces, means, weights = [], [], []
     for i, rec in enumerate(recordings):
@@ -75,7 +78,7 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     if np.linalg.cond(normal) > 1e10:
         raise ValueError("calibration orientations do not determine bias and axis: the "
                          "specific forces must span 3D and not all lie on one plane through "
-                         "the origin (use e.g. +x -x +y -z down, seed 003 §4.4.2)")
+                         "the origin (use e.g. +x -x +y -z down, Hogue 2003, §4.4.2)")
     normal_inv = np.linalg.inv(normal)
     X = normal_inv @ (A.T @ (W[:, None] * np.array(means)))  # (4, N): [B; m]
     bias, m = X[0], X[1:].T

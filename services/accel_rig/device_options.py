@@ -1,11 +1,14 @@
 """What-if flags for the simulated accelerometer electronics, shared by the evaluations.
 
-Appendix C of seed 003 names the parts but gives no noise figures, so the simulated device's
+Appendix C of Hogue 2003 names the parts but gives no noise figures, so the simulated device's
 noise is an assumption (``sensor``'s constants say which).  These flags let an evaluation
 run another device of the same design, e.g. the earlier model of this project, one
 conversion per reading with the noise raised to dither it:
 
     uma eval fusion --accel-noise-uv 50 --adc-conversions 1 --converter-noise-lsb 0
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

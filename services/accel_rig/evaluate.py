@@ -4,9 +4,12 @@
    noise, 110 Hz response, 12-bit A/D averaging 8 conversions) from static poses, as seed
    003 §4.4.2, and compare with the device's true parameters.
 2. From random starting points of the head trajectory, reset the dead reckoner to the true
-   state and integrate the simulated samples for 2 s (seed 003 §4.3); measure orientation
+   state and integrate the simulated samples for 2 s (Hogue 2003, §4.3); measure orientation
    and position error after 0.25, 0.5, 1 and 2 s, and the normalised estimation error
    squared (NEES) of the reported 6-dof pose covariance against its chi-square bounds.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -162,7 +165,7 @@ def _chi2_bounds_95(dof: int) -> tuple[float, float]:
 
 PLUGIN = EvalPlugin(
     name="accel-rig",
-    help="Accuracy of MARVIN's six-accelerometer tracker (seed 003 ch. 4) on simulated data: "
+    help="Accuracy of MARVIN's six-accelerometer tracker (Hogue 2003, ch. 4) on simulated data: "
          "calibration errors from static poses, then orientation/position drift after "
          "0.25/0.5/1/2 s of dead reckoning from random starting points, and the NEES of the "
          "reported covariance. --seconds is the span of trajectory the runs start in.",

@@ -1,4 +1,4 @@
-"""Pose from accelerations, seed 003 §4.3: dead reckoning with an honest covariance.
+"""Pose from accelerations, Hogue 2003, §4.3: dead reckoning with an honest covariance.
 
 Each sample's N accelerations give the rig-frame specific force and angular acceleration
 by the linear system of eq. 4.42 (``RigLayout.solve``); the angular acceleration is
@@ -19,6 +19,9 @@ error feeds back through the centripetal terms of eq. 4.42.
 
 Times: a reading taken at sample time t describes the motion at ``t - latency_s`` (the
 0-110 Hz response), so the state and the reported pose carry that motion time.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ import numpy as np
 
 from agent.srg import geometry as geo
 from services.accel_rig.sensor import Calibration
-from services.sim.trajectory import GRAVITY, KinematicState
+from services.frames import GRAVITY
+from services.sim.trajectory import KinematicState
 
 Array = np.ndarray
 
@@ -43,7 +47,7 @@ HISTORY_S = 1.0
 #: A head turns at a few rad/s; at 50 rad/s the centripetal terms alone would saturate
 #: MARVIN's +/-5 g accelerometers 5 cm from the centre.  An angular velocity beyond it is
 #: not a motion the rig can have measured: a reset carrying one is refused, and a state
-#: that reaches it has diverged (the six-accelerometer rig's omega feedback, seed 003 §4.2).
+#: that reaches it has diverged (the six-accelerometer rig's omega feedback, Hogue 2003, §4.2).
 MAX_OMEGA_RAD_S = 50.0
 #: Beyond 1000 m, m/s, rad or rad/s of standard deviation the linearised covariance
 #: describes nothing: the dead reckoning has diverged (and would overflow soon after).

@@ -1,10 +1,13 @@
-"""The thesis' test motions (seed 003 §4.6) with exact derivatives, for the simulator.
+"""The thesis' test motions (Hogue 2003, §4.6) with exact derivatives, for the simulator.
 
 Figure 4.12/4.13: the rig oscillates sinusoidally along one axis without turning.
 Figures 4.15-4.20: the rig turns +/-90 degrees about one of its axes (yaw, pitch, roll)
 without moving.  Both have the ``state(t) -> KinematicState`` shape of
 ``services.sim.trajectory.HeadTrajectory``, so ``simulate(..., mount=None)`` takes them as
 the rig's own motion.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

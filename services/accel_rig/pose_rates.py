@@ -3,7 +3,7 @@
 A reset gives the dead reckoner an absolute pose; the velocity and angular velocity it
 restarts with must come from the absolute poses too.  They have to be good: the
 six-accelerometer rig cannot tell an angular-velocity error from the centripetal terms it
-removes (seed 003 §4.2), an error ``e`` feeds back as ``e' ~ e^2`` and the dead reckoning
+removes (Hogue 2003, §4.2), an error ``e`` feeds back as ``e' ~ e^2`` and the dead reckoning
 diverges within about ``1 / |e|`` seconds.  The three-point derivative that was used
 multiplies the pose noise by ``~2.5 / dt``: about 760 for 300 Hz fused head poses, so
 1 mrad of orientation noise became 0.8 rad/s of angular-velocity error, and the service
@@ -18,6 +18,9 @@ head motion.  The per-pose noise is the larger of what the poses report and what
 residuals show, so a source without a covariance, or one that understates it, still gives
 honest variances (white-noise assumption: the smooth, correlated errors of a filtered
 source make this conservative).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -72,10 +75,6 @@ class AbsolutePoses:
 
     def __len__(self) -> int:
         return len(self._poses)
-
-    @property
-    def newest_t(self) -> float | None:
-        return self._poses[-1][0] if self._poses else None
 
     def add(self, t: float, position: Array, quaternion: Array,
             covariance: Array | None) -> None:

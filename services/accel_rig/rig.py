@@ -13,12 +13,15 @@ the left gives the general linear system of eq. 4.42,
 
 which handles misaligned axes and any layout whose N x 6 matrix has rank 6.  The
 centripetal term is linear in the six entries of ``W = omega omega^T``; with nine or more
-accelerometers placed like Padgaonkar's 3-2-2-2 rig (seed 003 §4.2, [50]) the off-diagonal
-entries of W can be solved for together with ``f`` and ``omega_dot``, so the angular
-acceleration no longer needs an angular-velocity estimate (``RigLayout.omega_free``).
+accelerometers placed like Padgaonkar's 3-2-2-2 rig (Hogue 2003, §4.2, its ref. [50]) the
+off-diagonal entries of W can be solved for together with ``f`` and ``omega_dot``, so the
+angular acceleration no longer needs an angular-velocity estimate (``RigLayout.omega_free``).
 
 This module is pure computation (numpy only): the measurement model ``h`` and its Jacobian
 are what the fusion EKF's SCAAT update uses one accelerometer at a time.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.srg import geometry as geo
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 
@@ -109,11 +112,6 @@ class RigLayout:
     def system_matrix(self) -> Array:
         """The N x 6 matrix of eq. 4.42: rows ``[n_j^T, (r_j x n_j)^T]``."""
         return np.hstack([self.axes, np.cross(self.positions, self.axes)])
-
-    @property
-    def centripetal_matrix(self) -> Array:
-        """N x 6 map from the entries (xx yy zz xy yz xz) of ``omega omega^T`` to Omega_j."""
-        return self._cent.copy()
 
     @property
     def omega_free(self) -> bool:
@@ -266,7 +264,7 @@ class RigLayout:
 
 
 def marvin_six(delta: float = DEFAULT_DELTA_M, axes: Array | None = None) -> RigLayout:
-    """MARVIN's rig (seed 003 §4.1, figure 4.7): three orthogonal pairs at distance delta.
+    """MARVIN's rig (Hogue 2003, §4.1, figure 4.7): three orthogonal pairs at distance delta.
 
     A1, A2 at -/+delta on y sense z; A3, A4 at +/-delta on x sense y; A5, A6 at -/+delta on
     z sense x (eqs. 4.20-4.25).  ``axes`` replaces the ideal sensing axes, e.g. with

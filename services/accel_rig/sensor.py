@@ -1,4 +1,5 @@
-"""The accelerometer electronics of seed 003 appendix C.1 and the calibration that inverts them.
+"""The accelerometer electronics (Hogue 2003, appendix C.1) and the calibration that inverts
+them.
 
 Signal chain per accelerometer (Kyowa AS-5GA, RHC amplifier, VIPS 10 A/D):
 
@@ -8,12 +9,15 @@ Signal chain per accelerometer (Kyowa AS-5GA, RHC amplifier, VIPS 10 A/D):
     12-bit A/D, bipolar +/-2.048 V, 1 LSB = 1 mV, with its own noise per conversion
     each reading averages 8 conversions spread over its sample period
 
-A ``Calibration`` holds what seed 003 §4.4.2 estimates for each accelerometer (bias B_j,
+A ``Calibration`` holds what Hogue 2003, §4.4.2 estimates for each accelerometer (bias B_j,
 scale, sensing axis n_j) together with the layout positions, the noise model and the
 filter latency, so a reading in volts becomes an acceleration along n_j and the dead
 reckoner knows how much to trust it.  It is serialised as JSON (the calibration file of
 ``uma service run accel-rig --calibrate``) and copied into the ``accel_raw`` ability's
 attributes for the fusion service.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from services.accel_rig.rig import RigLayout
-from services.sim.trajectory import GRAVITY
+from services.frames import GRAVITY
 
 Array = np.ndarray
 

@@ -6,9 +6,9 @@ Abilities (edge ``ivy/world -> marvin/accel_rig``):
   axis).  Its attributes carry the rig geometry and calibration
   (``services.accel_rig.sensor.Calibration.to_dict``: positions, axes, biases, gains, their
   covariance, noise model, latency), so a fusion service can run its own model (SCAAT);
-* ``pose`` -- ``pose6d``: the dead-reckoned pose (seed 003 §4.3) relative to the absolute
+* ``pose`` -- ``pose6d``: the dead-reckoned pose (Hogue 2003, §4.3) relative to the absolute
   pose it was last reset to, with its covariance; ``ttl_s`` is short because inertial
-  drift grows quickly (about a second of useful pose, seed 003 ch. 6).  Nothing is
+  drift grows quickly (about a second of useful pose, Hogue 2003, ch. 6).  Nothing is
   published before the first reset: without one there is no pose.
 
 Need ``reset`` -- ``pose6d`` of the head (``ivy/world -> */head``, composed with the
@@ -22,7 +22,10 @@ line naming it and the reason; the service keeps running.
 
 Input: the simulator (default), ``csv:FILE`` (replayed) or ``serial:DEVICE`` (a line per
 sample, ``t v_1 .. v_N``), converted with a calibration file.  ``--calibrate`` runs the
-static calibration of seed 003 §4.4.2 (simulated, or recorded poses) and writes the file.
+static calibration of Hogue 2003, §4.4.2 (simulated, or recorded poses) and writes the file.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ import numpy as np
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
+from services import frames
 from services.accel_rig.calibration import (
     SIX_POSES,
     StaticRecording,
@@ -81,7 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with the simulator, missing means: calibrate at start; with "
                              "--calibrate: where to write it (default accel_calibration.json)")
     parser.add_argument("--calibrate", action="store_true",
-                        help="run the static calibration (seed 003 §4.4.2): the simulated "
+                        help="run the static calibration (Hogue 2003, §4.4.2): the simulated "
                              "rig, or the recordings given by --pose; write --calibration "
                              "and exit")
     parser.add_argument("--pose", action="append", default=[], metavar="LABEL=CSV",
@@ -104,7 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reset-frame", default="*/head", metavar="FRAME",
                         help="frame whose absolute pose in ivy/world resets the integrator: "
                              "a head (pattern, composed with --mount; default */head) or "
-                             f"{mounts.ACCEL_RIG} itself")
+                             f"{frames.ACCEL_RIG} itself")
     parser.add_argument("--reset-every", type=float, default=1.0,
                         help="seconds between resets from the absolute pose (default 1; 0: "
                              "at every absolute pose)")
@@ -425,19 +429,19 @@ _DIGITS = re.compile(r"\d+")
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
     from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
 
-    is_rig = args.reset_frame == mounts.ACCEL_RIG
+    is_rig = args.reset_frame == frames.ACCEL_RIG
     live = LiveRig(cal, args.rate_hz, None if is_rig else parse_mount(args.mount),
                    args.reset_every, reset_name=f"reset pose of {args.reset_frame}")
     attrs = {k: v for k, v in cal.to_dict().items() if k != "latency_s"}
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         live.raw_out = svc.ability("accel", type="accel_raw",
-                                   edge=(mounts.WORLD, mounts.ACCEL_RIG),
+                                   edge=(frames.WORLD, frames.ACCEL_RIG),
                                    frequency_hz=args.rate_hz, latency_s=cal.latency_s, **attrs)
-        live.pose_out = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.ACCEL_RIG),
+        live.pose_out = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.ACCEL_RIG),
                                     frequency_hz=args.rate_hz, latency_s=cal.latency_s,
                                     ttl_s=args.ttl_s, dead_reckoned=True)
-        svc.need("reset", type="pose6d", edge=(mounts.WORLD, args.reset_frame),
+        svc.need("reset", type="pose6d", edge=(frames.WORLD, args.reset_frame),
                  where="frequency_hz >= 1", prefer="latency_s", on_sample=live.on_reset)
         svc.start()
         log.info("accel-rig: %d accelerometers from %s at %g Hz", cal.layout.count,
@@ -461,7 +465,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
 
 PLUGIN = ServicePlugin(
     name="accel-rig",
-    help="MARVIN's six-accelerometer inertial tracker (seed 003 ch. 4): publishes each "
+    help="MARVIN's six-accelerometer inertial tracker (Hogue 2003, ch. 4): publishes each "
          "sample's accelerations (accel_raw, with the rig geometry and calibration as "
          "attributes) and the dead-reckoned pose of marvin/accel_rig in ivy/world since the "
          "last absolute pose (need 'reset'). Input: the simulated rig (default), a CSV replay "

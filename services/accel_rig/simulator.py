@@ -1,4 +1,4 @@
-"""The inertial simulator of seed 003 §4.5: what each accelerometer outputs for a motion.
+"""The inertial simulator of Hogue 2003, §4.5: what each accelerometer outputs for a motion.
 
 Instead of the thesis' finite differences (eqs. 4.66-4.69) it takes the exact kinematics of
 the rig frame (``KinematicState.rigid_offset`` of the ground-truth head trajectory), applies
@@ -9,6 +9,9 @@ amplifier rail and the 12-bit A/D converter, which converts each channel eight t
 sample period, with its own noise, and averages.  Everything is deterministic from a seed.
 
 ``SensorTruth`` is the device (fixed errors); ``seed`` draws the noise of one run.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout, marvin_six_table_4_1
+from services.frames import GRAVITY
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
-from services.sim.trajectory import GRAVITY, KinematicState
+from services.sim.trajectory import KinematicState
 
 Array = np.ndarray
 
@@ -198,7 +202,7 @@ class StaticPose:
 
 def axis_down_quaternion(label: str) -> Array:
     """Orientation (rig in world) with the rig axis ``label`` ('+x', '-z', ...) pointing
-    along gravity, the calibration poses of seed 003 §4.4.2."""
+    along gravity, the calibration poses of Hogue 2003, §4.4.2."""
     axes = {"x": 0, "y": 1, "z": 2}
     if len(label) != 2 or label[0] not in "+-" or label[1] not in axes:
         raise ValueError(f"calibration pose {label!r}: expected one of +x -x +y -y +z -z")

@@ -1,4 +1,5 @@
-"""RANSAC outlier elimination for ``A X = X B`` (seed 000, §3.4.3, "Eliminating Outliers").
+"""RANSAC outlier elimination for ``A X = X B`` (Klinker, Bauer 2005, §3.4.3,
+"Eliminating Outliers").
 
 Hypotheses come from random minimal samples of two motions (as many as an all-inlier
 sample needs at 99.9 % confidence, at least 50, at most ``iterations``); each is scored by
@@ -11,6 +12,9 @@ final inlier set is judged against a fit that outliers did not pull.
 A pair's misfit combines its two residuals into one length:
 ``sqrt(pos^2 + (L rot)^2)`` with ``L`` the median translation of the motions, the lever at
 which a rotation error of the size ``rot`` displaces points by ``L rot``.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations

@@ -1,10 +1,13 @@
-"""Movement-pair selection (seed 000, §3.4.3, after Tsai-Lenz and Schmidt et al.).
+"""Movement-pair selection (Klinker, Bauer 2005, §3.4.3, after Tsai-Lenz and Schmidt et al.).
 
 Motions taken in temporal order differ little, and small rotations have axes dominated by
 noise.  Two filters: the angle threshold ``theta <= alpha <= pi - theta`` (near pi the
 rotation axis flips sign under noise and the dual quaternions of a and b may disagree in
 sign), then Schmidt's axis criterion (eq. 3.12): keep the subset whose rotation axes are
 least parallel, i.e. with the smallest sum of ``|a_ij . a_kl|``.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 
 from services.alignment.solvers import MotionPairs, axis_spread
 
-#: Default angle threshold of the preselection (seed 000: "a threshold angle theta").
+#: Default angle threshold of the preselection (Klinker, Bauer 2005: "a threshold angle theta").
 DEFAULT_MIN_ANGLE_RAD = np.radians(5.0)
 
 

@@ -21,6 +21,9 @@ collects fresh motions (the mounting may have changed) before solving again; wit
 
 Offline (``--from-file CSV``): aligns recorded pose pairs (``services.alignment.records``
 documents the columns), prints the result and writes ``--output``; no network.
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations
@@ -472,12 +475,12 @@ def recalibrate_command(args: argparse.Namespace) -> int:
 
 PLUGIN = ServicePlugin(
     name="alignment",
-    help="Tracker alignment (AX = XB, seed 000 ch. 3): needs two pose6d streams of rigidly "
-         "joined sensors (--a world_a:sensor_a, --b world_b:sensor_b), estimates their clock "
-         "offset and the pose of sensor_b in sensor_a once the motions are well conditioned, "
-         "publishes it as the static edge sensor_a -> sensor_b with residuals and covariance, "
-         "and writes it to a [[static]] TOML file for agents. --from-file aligns recorded "
-         "pose pairs offline.",
+    help="Tracker alignment (AX = XB, Klinker, Bauer 2005, ch. 3): needs two pose6d streams of "
+         "rigidly joined sensors (--a world_a:sensor_a, --b world_b:sensor_b), estimates their "
+         "clock offset and the pose of sensor_b in sensor_a once the motions are well "
+         "conditioned, publishes it as the static edge sensor_a -> sensor_b with residuals and "
+         "covariance, and writes it to a [[static]] TOML file for agents. --from-file aligns "
+         "recorded pose pairs offline.",
     add_arguments=add_arguments,
     run=run,
 )

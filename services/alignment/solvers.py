@@ -1,4 +1,5 @@
-"""Closed-form solvers of the tracker-alignment equation ``A X = X B`` (seed 000, §3.4).
+"""Closed-form solvers of the tracker-alignment equation ``A X = X B`` (Klinker, Bauer
+2005, §3.4).
 
 Convention (used by every module of ``services.alignment``):
 
@@ -15,6 +16,9 @@ Convention (used by every module of ``services.alignment``):
   ``R/t_target2cam = B_k^-1``; its ``R/t_cam2gripper`` is ``X``.
 
 All quaternion and pose arithmetic goes through ``agent.srg.geometry`` (xyzw, Hamilton).
+
+Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
+JASS 2005.
 """
 
 from __future__ import annotations
@@ -128,7 +132,7 @@ def axis_spread(axes: np.ndarray) -> float:
 
     For two axes it is the angle between them (sign ignored); for many it is the angle of
     the two-axis set with the same middle eigenvalue of the scatter ``mean(a a^T)``.  X is
-    determined only if at least two axes are not parallel (seed 000, §3.4.3).
+    determined only if at least two axes are not parallel (Klinker, Bauer 2005, §3.4.3).
     """
     if len(axes) < 2:
         return 0.0
@@ -194,7 +198,7 @@ def _row_weights(weights: np.ndarray | None, n: int) -> np.ndarray:
 def tsai_lenz(pairs: MotionPairs, weights: np.ndarray | None = None,
               min_angle_rad: float = MIN_ANGLE_RAD,
               min_axis_spread_rad: float = MIN_AXIS_SPREAD_RAD) -> Pose:
-    """Tsai and Lenz's two-step solution (seed 000, §3.4.1, eqs. 3.2-3.5).
+    """Tsai and Lenz's two-step solution (Klinker, Bauer 2005, §3.4.1, eqs. 3.2-3.5).
 
     Rotation first, with the modified Rodrigues vector ``r = 2 sin(theta/2) n`` (for a
     canonical quaternion that is twice its vector part): ``[r_A + r_B]x r'_X = r_B - r_A``
@@ -227,7 +231,7 @@ def _dual_parts(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _motion_matrix(pairs: MotionPairs) -> np.ndarray:
-    """The 6n x 8 matrix T of stacked 6 x 8 blocks S (seed 000, §3.4.2).
+    """The 6n x 8 matrix T of stacked 6 x 8 blocks S (Klinker, Bauer 2005, §3.4.2).
 
     Unknown ordering ``(q_w, q_x, q_y, q_z, q'_w, q'_x, q'_y, q'_z)`` (scalar first, as in
     the seed); the result is converted to xyzw afterwards.
@@ -261,7 +265,8 @@ def _null_directions(a: float, b: float, c: float) -> list[np.ndarray]:
 def daniilidis(pairs: MotionPairs, weights: np.ndarray | None = None,
                min_angle_rad: float = MIN_ANGLE_RAD,
                min_axis_spread_rad: float = MIN_AXIS_SPREAD_RAD) -> Pose:
-    """Daniilidis' simultaneous dual-quaternion solution (seed 000, §3.4.2, eqs. 3.8-3.11).
+    """Daniilidis' simultaneous dual-quaternion solution (Klinker, Bauer 2005, §3.4.2,
+    eqs. 3.8-3.11).
 
     Stacks ``S_i (q, q')^T = 0`` into T (6n x 8), takes the two right singular vectors of
     the smallest singular values, ``(q, q') = l1 v7 + l2 v8`` (eq. 3.8), and fixes

@@ -1,4 +1,4 @@
-"""``uma eval fusion``: the whole simulated MARVIN against ground truth (seed 003 ch. 6).
+"""``uma eval fusion``: the whole simulated MARVIN against ground truth (Hogue 2003, ch. 6).
 
 Pipeline, all real components:
 
@@ -20,6 +20,9 @@ baselines (hold the last optical pose; constant-velocity extrapolation of the la
 the worst error inside each gap length, the time to recover after each gap, the error of
 the pose predicted +20 ms ahead, NEES against chi-square bounds, and the filter's
 updates per second of CPU time.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from scipy.stats import chi2
 from agent.runtime.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
+from services import frames
 from services.accel_rig import calibration as accel_cal
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import (
@@ -45,7 +49,8 @@ from services.accel_rig.device_options import (
     device_figures,
     device_from_args,
 )
-from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
+from services.fusion.ekf import FusionEKF
+from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
 from services.sim.world import IvyWorld
 
@@ -66,16 +71,16 @@ DOT_LABEL_GATE_M = 0.05
 def static_mounts(graph: Graph) -> tuple[tuple[np.ndarray, np.ndarray],
                                          tuple[np.ndarray, np.ndarray]]:
     """Head -> accelerometer rig and head -> laser rig, queried from the SRG."""
-    a = graph.pose(mounts.HEAD, mounts.ACCEL_RIG)
-    laser = graph.pose(mounts.HEAD, mounts.LASER_RIG)
+    a = graph.pose(frames.HEAD, frames.ACCEL_RIG)
+    laser = graph.pose(frames.HEAD, frames.LASER_RIG)
     return (a.position, a.quaternion), (laser.position, laser.quaternion)
 
 
 def simulation_graph() -> Graph:
     """The SRG of the simulated set-up: the rig mountings as static edges."""
     g = Graph()
-    g.add_static(mounts.HEAD, mounts.ACCEL_RIG, *mounts.HEAD_TO_ACCEL_RIG)
-    g.add_static(mounts.HEAD, mounts.LASER_RIG, *mounts.HEAD_TO_LASER_RIG)
+    g.add_static(frames.HEAD, frames.ACCEL_RIG, *mounts.HEAD_TO_ACCEL_RIG)
+    g.add_static(frames.HEAD, frames.LASER_RIG, *mounts.HEAD_TO_LASER_RIG)
     return g
 
 

@@ -1,4 +1,4 @@
-"""``uma eval predictor``: Dorfmüller's simulated experiments of §3.3 (seed 001, figs. 9-15).
+"""``uma eval predictor``: the simulated experiments of Dorfmüller-Ulhaas, §3.3 (figs. 9-15).
 
 Three experiments, each a table of the estimates per filter iteration (the paper's
 figures, printed):
@@ -21,6 +21,9 @@ figure is whether the error stays inside the filter's own 3 sigma (reported, not
 A fourth figure runs the predictor on the simulated head trajectory (``--seconds``,
 ``--seed``) at 60 Hz with 1 mm / 0.1 deg pose noise and compares its +20 ms prediction
 with holding the last pose.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from services.sim.trajectory import HeadTrajectory
 PAPER_DT = 0.02
 FRAMES = 20
 CHANGE_FRAME = 10
-#: uniform perturbation half-ranges of omega, v, a (seed 001 §3.3)
+#: uniform perturbation half-ranges of omega, v, a (Dorfmüller-Ulhaas, §3.3)
 PERTURBATION = (1e-3, 1e-2, 1e-5)
 #: numerical floor of the point noise for exact data: the covariance's dynamic range must
 #: stay well inside double precision
@@ -261,7 +264,7 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
 
 PLUGIN = EvalPlugin(
     name="predictor",
-    help="Dorfmüller's EKF motion predictor (seed 001 §3.3): convergence of omega, v and a "
+    help="Dorfmüller-Ulhaas's EKF motion predictor (§3.3): convergence of omega, v and a "
          "on exact and perturbed simulated rigid-body motion, re-convergence after an "
          "abrupt change (figs. 9-15), and +20 ms prediction on the simulated head "
          "trajectory for --seconds. --seed drives the perturbations.",

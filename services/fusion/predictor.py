@@ -1,4 +1,4 @@
-"""Dorfmüller's motion predictor: an EKF over (omega, v, a) on the exponential map (seed 001).
+"""Dorfmüller-Ulhaas's motion predictor: an EKF over (omega, v, a) on the exponential map.
 
 The filter does not hold the pose.  It holds the *relative* motion of a rigid body:
 angular velocity ``omega``, translational velocity ``v`` and constant translational
@@ -26,6 +26,9 @@ Choices the paper leaves open, and why:
 * An abrupt change of motion (figs. 12-14) shows as an innovation far outside its
   covariance.  The filter then re-opens its covariance to the initial one (a manoeuvre
   detector), so it re-converges in a few frames instead of trusting the old motion.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
 """
 
 from __future__ import annotations
@@ -244,10 +247,6 @@ class DorfmullerPredictor:
         """True once two poses have been seen since the (re)start: motion is estimated."""
         return self._since_restart > 0
 
-    @property
-    def last_time_s(self) -> float | None:
-        return None if self._last is None else self._last.t_s
-
     def _reset_covariance(self) -> None:
         so, sv, sa = self.config.initial_std
         self._ekf.P = np.diag([so**2] * 3 + [sv**2] * 3 + [sa**2] * 3)
@@ -365,12 +364,3 @@ class DorfmullerPredictor:
         q = geo.quat_multiply(geo.matrix_to_quat(W), self._last.q)
         p = self._last.p + V @ x[3:6] + A @ x[6:9]
         return p, q / np.linalg.norm(q)
-
-    def predict_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """The pose at absolute time ``t_s`` (not before the last measurement)."""
-        if self._last is None:
-            raise ValueError("predictor: no pose received yet")
-        if t_s < self._last.t_s:
-            raise ValueError(f"predictor: {t_s:.6f} s is before the last pose "
-                             f"({self._last.t_s:.6f} s); the predictor only looks ahead")
-        return self.predict(t_s - self._last.t_s)

@@ -1,10 +1,13 @@
-"""``uma service run predictor``: Dorfmüller's predictor on any pose stream (seed 001).
+"""``uma service run predictor``: Dorfmüller-Ulhaas's predictor on any pose stream.
 
 Need ``pose``: any ``pose6d`` ability on ``--source -> --target`` (by default the head of
 any user in IVY).  Ability ``predicted``: the same motion predicted ``--horizon-ms`` ahead,
 on the edge ``--source -> --output`` (default ``<target>_predicted``: a frame of its own,
 so the predictor never matches its own output and a client chooses explicitly).  Each
 sample is stamped with the time it predicts; ``predicted_s`` says how far ahead it looks.
+
+Dorfmüller-Ulhaas: Dorfmüller-Ulhaas, *Robust Optical User Motion Tracking Using a Kalman
+Filter*.
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
+from services import frames
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
-from services.sim import mounts
 
 log = logging.getLogger("uma.predictor")
 
@@ -30,9 +33,9 @@ HEAD_MOTION = {"omega_walk": 20.0, "velocity_walk": 3.0, "accel_walk": 30.0,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="predictor", help="service id (default: predictor)")
-    parser.add_argument("--source", default=mounts.WORLD, help="parent frame (ivy/world)")
-    parser.add_argument("--target", default=mounts.HEAD,
-                        help=f"frame whose pose is predicted (default {mounts.HEAD})")
+    parser.add_argument("--source", default=frames.WORLD, help="parent frame (ivy/world)")
+    parser.add_argument("--target", default=frames.HEAD,
+                        help=f"frame whose pose is predicted (default {frames.HEAD})")
     parser.add_argument("--output", default=None,
                         help="frame of the predicted pose (default: <target>_predicted)")
     parser.add_argument("--horizon-ms", type=float, default=20.0,
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 PLUGIN = ServicePlugin(
     name="predictor",
-    help="Dorfmüller's EKF motion predictor (seed 001) on any pose6d stream: publishes the "
+    help="Dorfmüller-Ulhaas's EKF motion predictor on any pose6d stream: publishes the "
          "pose predicted --horizon-ms ahead on <target>_predicted.",
     add_arguments=add_arguments,
     run=run,

@@ -1,4 +1,4 @@
-"""``uma service run fusion``: MARVIN's EKF/SCAAT fusion as a uma service (seed 003 ch. 6).
+"""``uma service run fusion``: MARVIN's EKF/SCAAT fusion as a uma service (Hogue 2003, ch. 6).
 
 Needs (matched by the agent, data straight from the publishing services):
 
@@ -17,6 +17,9 @@ constant here.
 Ability ``head``: the fused ``ivy/world -> alice/head`` pose at the inertial rate with its
 6x6 covariance, optionally predicted ``--horizon-ms`` ahead (attribute ``predicted_s``).
 Late optical poses are applied at their own time by rewinding (``FusionTracker``).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -33,9 +36,10 @@ import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from services.fusion.ekf import MODEL_FLOOR, AccelModel, FusionConfig, FusionEKF
+from services import frames
+from services.fusion.ekf import FusionEKF
+from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import MAX_COAST_S, FusionTracker
-from services.sim import mounts
 
 log = logging.getLogger("uma.fusion")
 
@@ -48,12 +52,12 @@ DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
-    parser.add_argument("--world", default=mounts.WORLD, help="world frame (ivy/world)")
-    parser.add_argument("--head", default=mounts.HEAD, help="fused frame (alice/head)")
-    parser.add_argument("--optical-rig", default=mounts.LASER_RIG,
-                        help=f"frame of the optical rig (default {mounts.LASER_RIG})")
-    parser.add_argument("--accel-rig", default=mounts.ACCEL_RIG,
-                        help=f"frame of the inertial rig (default {mounts.ACCEL_RIG})")
+    parser.add_argument("--world", default=frames.WORLD, help="world frame (ivy/world)")
+    parser.add_argument("--head", default=frames.HEAD, help="fused frame (alice/head)")
+    parser.add_argument("--optical-rig", default=frames.LASER_RIG,
+                        help=f"frame of the optical rig (default {frames.LASER_RIG})")
+    parser.add_argument("--accel-rig", default=frames.ACCEL_RIG,
+                        help=f"frame of the inertial rig (default {frames.ACCEL_RIG})")
     parser.add_argument("--horizon-ms", type=float, default=0.0,
                         help="publish the pose predicted this far ahead (default 0)")
     parser.add_argument("--model-floor", type=float, default=MODEL_FLOOR,
@@ -274,7 +278,7 @@ PLUGIN = ServicePlugin(
     name="fusion",
     help="EKF/SCAAT fusion of an absolute optical pose (laser rig, 15-60 Hz) and raw "
          "accelerometers (300 Hz) into the head pose at the inertial rate with covariance "
-         "(seed 003 ch. 6); rig mountings from the SRG's static edges.",
+         "(Hogue 2003, ch. 6); rig mountings from the SRG's static edges.",
     add_arguments=add_arguments,
     run=run,
 )

@@ -18,11 +18,14 @@ own delays.  The accelerometer stream is the filter's clock:
   Judging the stall by arrival, not by timestamps, keeps a lagging inertial stream the
   clock instead of locking it out;
 * without any optical measurement for ``max_coast_s`` the filter stops: the accelerometers
-  alone are good for about a second (seed 003 §6), after that the pose is a guess, and a
+  alone are good for about a second (Hogue 2003, §6), after that the pose is a guess, and a
   client is better told "no pose" than given one off by decimetres.  The next two optical
   poses start it again.
 
 Pure computation (no I/O): the fusion service feeds it from its need callbacks.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -47,9 +50,8 @@ SNAPSHOT_EVERY = 8
 #: optical pose has moved the filter ahead every sample behind it is dropped (seen with
 #: 0.1 s: two thirds of a lagging stream lost)
 MAX_WAIT_S = 0.5
-#: inertial-only output for at most this long after the last optical measurement (s).  The
-#: simulated MARVIN is off by up to 2 cm and 1.3 deg after 1 s, by 1-24 cm and 0.8-5 deg
-#: after 2 s (its own std then: 16 cm, 2.7 deg; ``uma eval fusion --gaps 2``, seeds 1-2)
+#: inertial-only output for at most this long after the last optical measurement (s):
+#: beyond it the dead-reckoned pose is off by decimetres (docs/FUSION_TUNING.md)
 MAX_COAST_S = 2.0
 
 

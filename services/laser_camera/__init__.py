@@ -1,4 +1,4 @@
-"""MARVIN's laser-dot camera tracker (seed 003 ch. 5).
+"""MARVIN's laser-dot camera tracker (Hogue 2003, ch. 5).
 
 The pure pipeline (no I/O) for reuse in evaluations and other services::
 
@@ -10,6 +10,9 @@ The pure pipeline (no I/O) for reuse in evaluations and other services::
     world = IvyWorld(seed=1)
     tracker = LaserTracker(sim_calibration(world, cache="/tmp/ivy_calibration.json"))
     result = tracker.process(world.render(t).images, t)
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration

@@ -1,4 +1,4 @@
-"""Calibration of the laser-dot cameras (seed 003 §5.4) and its file format.
+"""Calibration of the laser-dot cameras (Hogue 2003, §5.4) and its file format.
 
 Per camera, three steps of the thesis:
 
@@ -14,6 +14,9 @@ Per camera, three steps of the thesis:
 The thesis' second extrinsic step (a homography for the camera moving while a notch filter
 is screwed on, §5.4.2) is not simulated: the simulated cameras have no filter to fit.
 A dark frame gives the sensor's dark level and noise for the detector.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Laser dot detection in one 8-bit image (seed 003 §5.2.1, listings 5.1-5.4).
+"""Laser dot detection in one 8-bit image (Hogue 2003, §5.2.1, listings 5.1-5.4).
 
 The thesis labels bright pixels in one pass, accumulates intensity-weighted sums per
 label (eqs. 5.1-5.3), divides (5.4-5.5) and merges candidates closer than ``delta_x``.
@@ -8,6 +8,9 @@ bounding box, so the Python work scales with the number of dots, not pixels.  We
 intensities minus the sensor's dark level, which removes the pull of the threshold's cut
 towards the geometric centre of the region.  Fragments of one spot (a smeared or clipped
 spot can break apart) closer than ``merge_px`` are merged with intensity weights.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

@@ -4,9 +4,12 @@ The simulated IVY display is calibrated from its rendered calibration images (or
 calibration file is loaded), then the head trajectory of ``--seed`` is rendered at
 ``--rate-hz`` and every frame set goes through ``LaserTracker``: detection, homographies,
 labeling, temporal coherence, gating.  The figures compare each pose with the true pose of
-``marvin/laser_rig`` (seed 003 tables 5.2-5.3 report 0.1 deg mean / 0.3-0.35 deg max
+``marvin/laser_rig`` (Hogue 2003, tables 5.2-5.3 report 0.1 deg mean / 0.3-0.35 deg max
 orientation error and 1.13 cm mean position error on the real IVY).  Deterministic for a
 seed: rendering depends only on (seed, t).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Plane-to-plane homography by the normalised Direct Linear Transformation (seed 003
+"""Plane-to-plane homography by the normalised Direct Linear Transformation (Hogue 2003
 §5.4.1, eqs. 5.19-5.37; Hartley and Zisserman's algorithm 4.2).
 
 Both point clouds are first moved to their centroid and scaled to a mean distance of
@@ -8,6 +8,9 @@ correspondence contributes the two independent rows of ``P' x H P = 0`` (eq. 5.3
 solution is the right singular vector of the smallest singular value, de-normalised by
 ``H = T'^-1 H_n T``.  (The thesis prints eq. 5.37 as ``T'^T H T``; only the inverse maps
 normalised screen points back, so that is what is computed.)
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

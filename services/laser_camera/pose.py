@@ -1,4 +1,4 @@
-"""Pose of the laser housing from its four wall hits (seed 003 §5.3, fig. 5.4, eqs. 5.6-5.9).
+"""Pose of the laser housing from its four wall hits (Hogue 2003, §5.3, fig. 5.4, eqs. 5.6-5.9).
 
 With the hits labeled P1..P4 (beams 1 and 2 opposite, 3 and 4 orthogonal to them and to
 each other, all through P0):
@@ -16,6 +16,9 @@ P0' found from P4 instead of P3 (eq. 5.8), ``F`` is 1 when the normal points awa
 (eq. 5.9).  The correct labeling and its reflection (2, 1, 4, 3) -- the housing turned
 180 degrees about the bisector of beams 3 and 4 -- score exactly alike; the tracker picks
 between them by temporal coherence (``tracker``).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

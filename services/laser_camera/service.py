@@ -12,6 +12,9 @@ Abilities:
 Input is the simulator (default) or one OpenCV capture per camera (``sources``).
 ``--calibrate`` calibrates the simulated cameras from rendered checkerboards and writes
 ``--calibration``.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -30,10 +33,10 @@ import numpy as np
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import Measurement
+from services import frames
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
 from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams
-from services.sim import mounts
 from services.sim.world import IvyWorld
 
 log = logging.getLogger("uma.laser_camera")
@@ -216,9 +219,9 @@ def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dic
 
     svc = stack.enter_context(Service(args.id, realm=args.realm, agent=args.agent,
                                       connect=args.connect, listen=args.listen or None))
-    pose_out = svc.ability("pose", type="pose6d", edge=(mounts.WORLD, mounts.LASER_RIG),
+    pose_out = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.LASER_RIG),
                            **attrs)
-    dots_out = svc.ability("dots", type="points3d", edge=(mounts.WORLD, mounts.LASER_RIG),
+    dots_out = svc.ability("dots", type="points3d", edge=(frames.WORLD, frames.LASER_RIG),
                            **_dot_attributes(attrs))
     svc.start()
     return pose_out, dots_out, attrs
@@ -277,7 +280,7 @@ def _maybe_update(pose_out, dots_out, advertised: dict, measured: dict):
 
 PLUGIN = ServicePlugin(
     name="laser-camera",
-    help="MARVIN's laser-dot camera tracker (seed 003 ch. 5): finds the four laser spots in "
+    help="MARVIN's laser-dot camera tracker (Hogue 2003, ch. 5): finds the four laser spots in "
          "the images of the cameras behind IVY's screens and publishes the pose of "
          "marvin/laser_rig in ivy/world with its covariance, plus the labeled spots as "
          "points3d. Input: the simulated display (default) or one video/camera per screen "

@@ -1,7 +1,7 @@
 """The laser-dot tracker pipeline, pure (no I/O): camera images in, a rig pose or a reason
 for having none out.
 
-``LaserTracker(calibration).process(images, t)`` runs, per frame set (seed 003 fig. 5.2):
+``LaserTracker(calibration).process(images, t)`` runs, per frame set (Hogue 2003, fig. 5.2):
 
 1. dot detection in every image (``detection``), undistortion, image -> screen
    homography, screen -> world (eq. 5.40); dots near a screen's edge are dropped (a spot
@@ -21,6 +21,9 @@ for having none out.
 Anything that prevents a pose (fewer than four dots, no consistent labeling, a gated
 jump, ...) yields ``NoPose`` with the reason, counted in ``tracker.counts`` -- never an
 exception.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -134,10 +137,6 @@ class LaserTracker:
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule."""
         self._last = None
-
-    @property
-    def last_pose(self) -> PoseEstimate | None:
-        return self._last
 
     # ------------------------------------------------------------------ pipeline
 

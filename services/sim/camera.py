@@ -1,10 +1,13 @@
 """Cameras behind IVY's screens: a pinhole with OpenCV's radial/tangential distortion.
 
 Each camera sits outside the cube behind one screen (or one half of the floor/ceiling in
-the thesis' eight-camera layout) and looks at it (seed 003 §5.1).  The model is exactly
+the thesis' eight-camera layout) and looks at it (Hogue 2003, §5.1).  The model is exactly
 OpenCV's (``K``, ``dist = [k1, k2, p1, p2, k3]``), so the tracker's ``cv2.undistortPoints``
 inverts the simulator's projection; ``project`` is a numpy copy of ``cv2.projectPoints``
 (cross-checked in the tests) because it runs for a handful of points per frame.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

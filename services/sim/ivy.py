@@ -15,6 +15,9 @@ corners).
 Only the active area of a screen (``screen_side_m``, centred on its face) shows a laser
 spot; the remaining band at the edges is the frame and seams of the cube, where a beam
 gives no spot -- the "holes" of thesis fig. 5.14.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import numpy as np
 
 from services.sim.trajectory import CUBE_SIDE_M
 
-#: default active screen side: "the 2.29m screen" (seed 003 §5.2) in the 2.44 m cube,
+#: default active screen side: "the 2.29m screen" (Hogue 2003, §5.2) in the 2.44 m cube,
 #: leaving a 7.5 cm band of frame and seams at each edge
 SCREEN_SIDE_M = 2.29
 

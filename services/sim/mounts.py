@@ -1,15 +1,9 @@
 """Where the trackers sit on the simulated user: the ground truth of the rig mountings.
 
-Frames (shared by every service, the SRG and the evaluations):
-
-* ``ivy/world``         the IVY cube, origin at its centre, z up
-* ``alice/head``        the user's head (x forward, y left, z up); the trajectory's frame
-* ``marvin/laser_rig``  the laser-diode housing of the optical tracker (seed 003 ch. 5)
-* ``marvin/accel_rig``  the six-accelerometer rig (seed 003 ch. 4)
-
-Each mounting is the pose of the rig in the head frame (the SRG edge ``alice/head ->
-marvin/<rig>``).  They are deliberately not axis-aligned, so alignment and fusion cannot
-succeed by assuming identity.  Real systems get them from tracker alignment (AX = XB).
+The frames they join are ``services.frames``'s.  Each mounting is the pose of the rig in
+the head frame (the SRG edge ``alice/head -> marvin/<rig>``).  They are deliberately not
+axis-aligned, so alignment and fusion cannot succeed by assuming identity.  Real systems
+get them from tracker alignment (AX = XB).
 """
 
 from __future__ import annotations
@@ -18,10 +12,9 @@ import numpy as np
 
 from agent.srg import geometry as geo
 
-WORLD = "ivy/world"
-HEAD = "alice/head"
-LASER_RIG = "marvin/laser_rig"
-ACCEL_RIG = "marvin/accel_rig"
+# services/demo.py still reads the frame names from here (its owner moves it to
+# services.frames); nothing else does
+from services.frames import ACCEL_RIG, HEAD, LASER_RIG, WORLD  # noqa: F401
 
 #: laser housing on top of the head, pitched 5 degrees forward
 HEAD_TO_LASER_RIG = (np.array([0.02, 0.0, 0.12]),

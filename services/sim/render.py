@@ -1,6 +1,6 @@
 """Rendering of 8-bit camera images: laser spots on a dark background, and checkerboards.
 
-Behind the 650 nm notch filter (seed 003 §5.2) a camera sees a dark frame with a few
+Behind the 650 nm notch filter (Hogue 2003, §5.2) a camera sees a dark frame with a few
 bright laser spots.  A spot is the beam's footprint on the translucent screen: the beam's
 Gaussian cross-section stretched by ``1 / cos(incidence)`` along its in-plane direction,
 blurred by the screen's diffusion, mapped into the image by the local affine map of the
@@ -16,6 +16,9 @@ lens' point spread is applied to the pattern itself, analytically, before it is 
 a hard edge point-sampled 2x2 per pixel and blurred afterwards sits at a position rounded
 to half a pixel, which moved the corners ``cv2.cornerSubPix`` finds by up to 0.35 px
 (0.15 px RMS, 1-2 mm on a screen) and biased every calibration made from the images.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ import threading
 import time
 
 from agent.runtime.plugins import ServicePlugin
+from services import frames
 from services.sim import mounts
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import sim_time_s
@@ -24,8 +25,8 @@ log = logging.getLogger("uma.sim")
 STATIC_REPUBLISH_S = 1.0
 
 
-_LASER = ("head_to_laser_rig", mounts.LASER_RIG, mounts.HEAD_TO_LASER_RIG)
-_ACCEL = ("head_to_accel_rig", mounts.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)
+_LASER = ("head_to_laser_rig", frames.LASER_RIG, mounts.HEAD_TO_LASER_RIG)
+_ACCEL = ("head_to_accel_rig", frames.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)
 #: --mountings choice -> the static mounting abilities published
 MOUNTINGS = {"all": (_LASER, _ACCEL), "laser": (_LASER,), "none": ()}
 
@@ -51,11 +52,11 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
     period = 1.0 / args.rate_hz
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
-        head = svc.ability("head", type="pose6d", edge=(mounts.WORLD, mounts.HEAD),
+        head = svc.ability("head", type="pose6d", edge=(frames.WORLD, frames.HEAD),
                            ground_truth=True, frequency_hz=args.rate_hz, latency_s=0.0,
                            pos_std_m=0.0, rot_std_rad=0.0, seed=args.seed)
         statics = [
-            (svc.ability(name, type="pose6d", edge=(mounts.HEAD, child), static=True,
+            (svc.ability(name, type="pose6d", edge=(frames.HEAD, child), static=True,
                          ground_truth=True), pose)
             for name, child, pose in MOUNTINGS[args.mountings]]
         svc.start()

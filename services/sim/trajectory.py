@@ -2,12 +2,15 @@
 
 Position and the yaw/pitch/roll angles are sums of sinusoids drawn from a seed, so
 velocity, acceleration, angular velocity and angular acceleration are analytic (the
-accelerometer simulator needs them exactly, seed 003 §4.5).  Amplitudes are scaled so the
+accelerometer simulator needs them exactly, Hogue 2003, §4.5).  Amplitudes are scaled so the
 motion stays inside the IVY cube and never exceeds the configured linear and angular
 speeds (defaults: 1 m/s and 200 deg/s, fast human head motion).
 
 Frames: ``ivy/world`` has its origin at the centre of the cube, z up.  The trajectory is
 the pose of the head frame in the world (x forward, y left, z up).
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -18,8 +21,7 @@ import numpy as np
 
 from agent.srg import geometry as geo
 
-CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (seed 003 ch. 5)
-GRAVITY = np.array([0.0, 0.0, -9.80665])
+CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (Hogue 2003, ch. 5)
 
 
 @dataclass(frozen=True)

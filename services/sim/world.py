@@ -8,6 +8,9 @@ pose ``(p, q)`` meet the walls.  Rendering is deterministic in ``(seed, t)``, wh
 order of calls.  Everything the tracker may know comes from calibration images
 (``intrinsic_views``, ``screen_board``, ``dark_frame``) and the walls' measured geometry,
 never from the ``Camera`` objects themselves.
+
+Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
+system*, MSc thesis, York University 2003.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ def sim_time_s(t_ns: int) -> float:
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Physical parameters of the simulation (defaults: seed 003 ch. 5 and appendix C)."""
+    """Physical parameters of the simulation (defaults: Hogue 2003, ch. 5 and appendix C)."""
 
     n_cameras: int = 6  # 6: one per screen; 8: floor and ceiling split in two (the thesis)
     cube_side_m: float = CUBE_SIDE_M

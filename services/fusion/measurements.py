@@ -1,0 +1,88 @@
+"""The fusion filter's measurement models, each a pure ``h(x) -> (prediction, H)`` (the
+``Hx`` / ``HJacobian`` pair of filterpy's ``ExtendedKalmanFilter`` in one call, since both
+share their intermediate products).
+
+``x`` is the error-state vector's nominal part (its rotation slot unused), ``q`` / ``R``
+the head's orientation kept outside it; ``H`` is over the error state, whose rotation
+error is the world-frame (left) ``dtheta`` of ``q_true = Exp(dtheta) q``.  Equation
+numbers are those of Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial
+tracking system* (MSc thesis, York University 2003).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.srg import geometry as geo
+from services.fusion.state import TH, WD, A, AccelModel, Array, P, StateLayout, W, size
+
+
+def accel_reading(x: Array, R: Array, accel: AccelModel, j: int, gravity: Array,
+                  layout: StateLayout) -> tuple[float, Array]:
+    """Eq. 6.13 for accelerometer ``j`` and its Jacobian row over the error state.
+
+    ``a_j = n_j . (R^T (alpha - g) + omega_dot x r_j + omega x (omega x r_j)) + b_j``,
+    all in head axes (specific force: a resting head reads -g).  Written with dot
+    products of precomputed vectors: this runs 1800 times a second.
+    """
+    r, n = accel.positions[j], accel.axes[j]
+    w = x[W]
+    u = x[A] - gravity
+    Rn = R @ n                              # R n: the axis in world coordinates
+    wr = float(w @ r)
+    wn = float(w @ n)
+    pred = (float(Rn @ u) + float(x[WD] @ accel.cross[j])
+            + wn * wr - float(w @ w) * accel.n_dot_r[j])
+    H = np.zeros(layout.dim)
+    H[TH] = geo.cross3(Rn, u)               # n^T R^T [u]x, the left rotation error
+    H[W] = wn * r + wr * n - 2.0 * accel.n_dot_r[j] * w
+    H[WD] = accel.cross[j]
+    H[A] = Rn
+    if layout.n_bias:
+        pred += x[layout.accel_bias.start + j]
+        H[layout.accel_bias.start + j] = 1.0
+    return pred, H
+
+
+def optical_pose(x: Array, q: Array, layout: StateLayout) -> tuple[tuple[Array, Array], Array]:
+    """The head pose an optical tracker should report, ``(p, q)``, and d [position,
+    rotation] / d error state (6, dim): the head pose plus, in position, the tracker's
+    persistent error when the filter models one."""
+    H = np.zeros((6, layout.dim))
+    H[0:3, P] = H[3:6, TH] = np.eye(3)
+    if size(layout.optical_bias):
+        H[0:3, layout.optical_bias] = np.eye(3)
+    return (H[0:3] @ x, q), H
+
+
+def pose_residual(p: Array, q: Array, predicted: tuple[Array, Array]) -> Array:
+    """Measured minus predicted pose as ``[dp, dtheta]``, the rotation on the manifold."""
+    return np.concatenate([p - predicted[0], geo.quat_to_rotvec(
+        geo.quat_multiply(q, geo.quat_conjugate(predicted[1])))])
+
+
+def laser_dot(x: Array, R: Array, layout: StateLayout, beam_rig: Array,
+              plane: tuple[Array, float], mount: tuple[Array, Array]) -> tuple[Array, Array]:
+    """Where one laser beam of the pose meets a wall, and d point / d error state (3, dim).
+
+    The rig sits at ``mount`` (head -> rig) on the head; its beam ``beam_rig`` (rig
+    frame) leaves the rig origin; the wall is the plane ``n . x = c`` (world).  With
+    ``M = I - d n^T / (n . d)`` (moving the origin or turning the beam slides the hit
+    along the wall): ``dx/dp = M``, ``dx/dtheta = -M ([R p_m]x + s [d]x)``.  A beam that
+    runs parallel to the wall or away from it is a ``ValueError``.
+    """
+    n, c = np.asarray(plane[0], float), float(plane[1])
+    arm = R @ np.asarray(mount[0], float)
+    origin = x[P] + arm
+    d = R @ geo.quat_rotate(mount[1], np.asarray(beam_rig, float))
+    nd = float(n @ d)
+    if nd <= 1e-6:
+        raise ValueError("fusion: the predicted beam does not reach that wall")
+    s = (c - float(n @ origin)) / nd
+    if s <= 0:
+        raise ValueError("fusion: the wall is behind the predicted beam")
+    M = np.eye(3) - np.outer(d, n) / nd
+    J = np.zeros((3, layout.dim))
+    J[:, P] = M
+    J[:, TH] = -M @ (geo.skew3(arm) + s * geo.skew3(d))
+    return origin + s * d, J
