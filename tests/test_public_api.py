@@ -1,0 +1,32 @@
+"""The public API: what ``agent.__all__`` promises resolves, and importing the pure parts
+pulls in no Zenoh."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import agent
+
+
+def test_every_public_name_resolves() -> None:
+    for name in agent.__all__:
+        assert getattr(agent, name).__name__ == name
+
+
+def test_an_unknown_name_is_a_clear_attribute_error() -> None:
+    try:
+        agent.Agent  # noqa: B018  (the daemon is not public API)
+    except AttributeError as exc:
+        assert "'agent' has no attribute 'Agent'" in str(exc)
+    else:
+        raise AssertionError("agent.Agent resolved")
+
+
+def test_the_srg_alone_imports_no_zenoh() -> None:
+    code = ("import sys, agent, agent.srg\n"
+            "from agent.srg import Graph\n"
+            "assert 'zenoh' not in sys.modules, 'zenoh imported'\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
