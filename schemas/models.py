@@ -45,7 +45,7 @@ from pydantic import (
     model_validator,
 )
 
-from schemas import expr
+from schemas import expr, ids
 
 ATTRIBUTE_NAMES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost", "static")
@@ -59,17 +59,13 @@ MeasurementType = Literal["pose6d", "position3d", "rotation3d", "points3d", "acc
 
 FRAME_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 EDGE_PATTERN = r"^[A-Za-z0-9_.\-*]+(/[A-Za-z0-9_.\-*]+)*$"
-NAME_PATTERN = r"^[A-Za-z0-9_\-]+$"
-ID_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 ATTRIBUTE_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*$"
 _FRAME_RE = re.compile(FRAME_PATTERN)
 _EDGE_RE = re.compile(EDGE_PATTERN)
-_NAME_RE = re.compile(NAME_PATTERN)
-_ID_RE = re.compile(ID_PATTERN)
 _ATTRIBUTE_NAME_RE = re.compile(ATTRIBUTE_NAME_PATTERN)
 
 MAX_FRAME_LENGTH = 200
-MAX_NAME_LENGTH = 64
+MAX_NAME_LENGTH = ids.MAX_LENGTH
 #: Bounds on free-form attribute values (lists of numbers such as rig geometry, nesting).
 MAX_LIST_LENGTH = 1024
 MAX_PLAIN_DEPTH = 4
@@ -97,8 +93,15 @@ _check_pattern = _checker(_EDGE_RE, "frame pattern", "like a frame id, '*' allow
                           "segments, e.g. '*/head'", MAX_FRAME_LENGTH)
 _check_key = _checker(_FRAME_RE, "key", "non-empty segments of letters, digits, '_', '.', "
                       "'-' separated by '/', e.g. 'marvin/rig'", MAX_FRAME_LENGTH)
-_check_name = _checker(_NAME_RE, "name", "letters, digits, '_' and '-' only", MAX_NAME_LENGTH)
-_check_id = _checker(_ID_RE, "id", "letters, digits, '_', '.' and '-' only", MAX_NAME_LENGTH)
+
+
+def _check_name(value: str) -> str:
+    return ids.check_name("name", value)
+
+
+def _check_id(value: str) -> str:
+    return ids.check_id("id", value)
+
 
 FrameId = Annotated[str, AfterValidator(_check_frame),
                     Field(json_schema_extra={"pattern": FRAME_PATTERN,
@@ -110,10 +113,10 @@ StreamKey = Annotated[str, AfterValidator(_check_key),
                       Field(json_schema_extra={"pattern": FRAME_PATTERN,
                                                "maxLength": MAX_FRAME_LENGTH})]
 Name = Annotated[str, AfterValidator(_check_name),
-                 Field(json_schema_extra={"pattern": NAME_PATTERN,
+                 Field(json_schema_extra={"pattern": ids.NAME_PATTERN,
                                           "maxLength": MAX_NAME_LENGTH})]
 Id = Annotated[str, AfterValidator(_check_id),
-               Field(json_schema_extra={"pattern": ID_PATTERN, "maxLength": MAX_NAME_LENGTH})]
+               Field(json_schema_extra={"pattern": ids.ID_PATTERN, "maxLength": MAX_NAME_LENGTH})]
 
 
 def frame_matches(pattern: str, frame: str) -> bool:

@@ -239,3 +239,32 @@ def test_export_writes_parseable_schemas(tmp_path: Path) -> None:
     assert need["additionalProperties"] is False
     assert {"name", "type", "edge"} <= set(need["required"])
     assert need["properties"]["edge"]["prefixItems"][0]["pattern"]
+
+
+@pytest.mark.parametrize("bad", ["host:1", "a/b", "a b", "*", "@x", "x" * 65, ""])
+def test_one_id_rule_for_keys_models_and_the_agent(bad: str) -> None:
+    """An id refused by one layer is refused by all: `uma agent --id host:1` used to pass
+    the agent's check and then have its snapshot rejected by the model."""
+    from agent.daemon.settings import AgentSettings
+    from agent.errors import UmaError
+    from agent.protocol import keys
+    from schemas.ids import check_id
+
+    with pytest.raises(ValueError):
+        check_id("agent id", bad)
+    with pytest.raises(UmaError, match="agent id"):
+        keys.check_name("agent id", bad)
+    with pytest.raises(UmaError, match="agent id"):
+        AgentSettings(realm="lab", agent_id=bad).check()
+    with pytest.raises(ValidationError):
+        AgentInfo(agent_id=bad, realm="lab", version="1", started_ns=0)
+
+
+def test_uma_agent_refuses_an_id_the_models_would_refuse() -> None:
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "agent.cli", "agent", "--realm", "lab", "--id",
+                        "host:1"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "agent id 'host:1' is not valid" in r.stderr
+    assert "Traceback" not in r.stderr

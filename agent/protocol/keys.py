@@ -27,22 +27,22 @@ import re
 import socket
 
 from agent.errors import UmaError
+from schemas import ids
 
 ROOT = "uma"
-_NAME = re.compile(r"^[A-Za-z0-9_.\-+:=~,]+$")
-_FORBIDDEN_START = ("@",)  # '@' at the start of a chunk is Zenoh's admin/verbatim space
 
 
 def check_name(kind: str, value: object) -> str:
-    """``value`` if it can be one key chunk, else ``UmaError`` naming ``kind`` and the reason."""
-    if not isinstance(value, str) or not value:
-        raise UmaError(f"{kind} must be a non-empty string, got {value!r}")
-    if len(value) > 128:
-        raise UmaError(f"{kind} {value[:40]!r}... is longer than 128 characters")
-    if value.startswith(_FORBIDDEN_START) or not _NAME.match(value):
-        raise UmaError(f"{kind} {value!r} may only contain letters, digits and _ . - + : = ~ , "
-                       "(no '/', '*', '$', '#', '?', spaces; not starting with '@')")
-    return value
+    """``value`` if it can be one key chunk, else ``UmaError`` naming ``kind`` and the reason.
+
+    ``kind`` says which rule of :mod:`schemas.ids` applies: an ability or need name
+    (``kind`` ends in "name") or an id (realms, agents, services).
+    """
+    check = ids.check_name if kind.endswith("name") else ids.check_id
+    try:
+        return check(kind, value)
+    except ValueError as exc:
+        raise UmaError(str(exc)) from None
 
 
 def default_agent_id() -> str:
@@ -136,7 +136,7 @@ def _parts(key: str, realm: str, kind: str, n: int) -> list[str] | None:
     if not str(key).startswith(prefix):
         return None
     rest = str(key)[len(prefix):].split("/")
-    if len(rest) != n or not all(_NAME.match(p) and not p.startswith("@") for p in rest):
+    if len(rest) != n or not all(map(ids.is_id, rest)):
         return None
     return rest
 

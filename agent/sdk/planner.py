@@ -31,14 +31,8 @@ from agent.srg.errorfn import ErrorFunction
 from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
 from agent.srg.result import PoseResult
 from agent.srg.supernode import SUMMARY_ERRORS
-from schemas.models import (
-    FRAME_PATTERN,
-    ID_PATTERN,
-    MAX_FRAME_LENGTH,
-    MAX_NAME_LENGTH,
-    QUAT_NORM_TOL,
-    check_plain,
-)
+from schemas import ids
+from schemas.models import FRAME_PATTERN, MAX_FRAME_LENGTH, QUAT_NORM_TOL, check_plain
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
@@ -132,7 +126,7 @@ class _IdCheck:
 
 
 _frame_id = _IdCheck(FRAME_PATTERN, MAX_FRAME_LENGTH)
-_agent_id = _IdCheck(ID_PATTERN, MAX_NAME_LENGTH)
+_agent_id = _IdCheck(ids.ID_PATTERN, ids.MAX_LENGTH)  # the rule of schemas.ids, cached
 
 
 def _wire_int(value: Any, where: str, *args: object) -> int:
