@@ -30,3 +30,28 @@ def test_the_srg_alone_imports_no_zenoh() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 0, out.stderr
+
+
+def test_the_agent_never_imports_a_service() -> None:
+    """Dependencies go one way (schemas -> agent -> services): the agent finds services,
+    evaluations and the commands they add only through plug-in entry points."""
+    import re
+    from pathlib import Path
+
+    root = Path(agent.__file__).parent
+    offenders = [f"{path.relative_to(root.parent)}:{n}"
+                 for path in root.rglob("*.py")
+                 for n, line in enumerate(path.read_text().splitlines(), 1)
+                 if re.match(r"\s*(from|import)\s+services\b", line)
+                 or re.search(r"[\"']services\.[a-z_.]+:", line)]
+    assert offenders == []
+
+
+def test_commands_added_by_plugins_are_in_uma_help() -> None:
+    from agent.cli.main import build_parser
+
+    text = build_parser().format_help()
+    assert "demo" in text
+    out = subprocess.run([sys.executable, "-m", "agent.cli", "service", "recalibrate",
+                          "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "--agent ID" in out.stdout

@@ -29,7 +29,6 @@ HANDLERS = {
     "router": "agent.cli.router:main",
     "services": "agent.cli.services:main",
     "query": "agent.cli.query:main",
-    "demo": "services.demo:main",
     "schemas": "schemas.export:main",
 }
 
@@ -39,16 +38,6 @@ def _version() -> str:
         return version("uma-tracking")
     except PackageNotFoundError:
         return "unknown (not installed)"
-
-
-def _add_network(p: argparse.ArgumentParser, listen: bool = True) -> None:
-    p.add_argument("--realm", default="default",
-                   help="deployment namespace; agents of one realm only meet each other")
-    p.add_argument("--connect", action="append", default=[], metavar="EP",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    if listen:
-        p.add_argument("--listen", action="append", default=[], metavar="EP",
-                       help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "their needs to abilities in the realm, keeps the host's "
                                    "spatial relationship graph and answers pose queries. "
                                    "Stops cleanly on Ctrl-C / SIGTERM.")
-    _add_network(p)
+    plugins.add_network_arguments(p)
     p.add_argument("--id", default=None, help="agent id (default: this host's name)")
     p.add_argument("--service", action="append", default=[], metavar="NAME",
                    help="host a service inside the agent process (repeatable; see "
@@ -100,26 +89,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-h", "--help", dest="show_help", action="store_true")
     sp.add_argument("name", metavar="NAME", nargs="?", help="service name")
     sp.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
-    rp = ssub.add_parser("recalibrate", help="ask a running alignment service to calibrate "
-                                             "again",
-                         description="Ask a running alignment service to drop the motions it "
-                                     "collected and calibrate again from fresh ones (after a "
-                                     "tracker's mounting changed). Prints its acknowledgement "
-                                     "and the calibration it had; the new one follows when the "
-                                     "motions allow (see its log or 'uma services').")
-    rp.add_argument("service_id", metavar="SERVICE", nargs="?", default="alignment",
-                    help="the service's id (default alignment)")
-    rp.add_argument("--agent", required=True, metavar="ID",
-                    help="the agent the service is registered with")
-    _add_network(rp, listen=False)
-    rp.add_argument("--timeout", type=float, default=5.0, metavar="S",
-                    help="seconds to wait for the service's answer (default 5)")
-    rp.add_argument("--json", action="store_true", help="print the answer as one JSON object")
+    for command in plugins.load_all(plugins.SERVICE_COMMAND_GROUP):
+        _add_command(ssub, command)
 
     p = sub.add_parser("services", help="list agents, services, needs, abilities and matches",
                        description="Ask every agent of the realm for its services and print "
                                    "each agent, service, need, ability and current match.")
-    _add_network(p, listen=False)
+    plugins.add_network_arguments(p, listen=False)
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -133,20 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--error", default="hops", metavar="E",
                    help="error function to minimise: hops, latency, accuracy, confidence, cost, "
                         "or an expression over attributes (default: hops)")
-    _add_network(p, listen=False)
+    plugins.add_network_arguments(p, listen=False)
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the answer")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-
-    p = sub.add_parser("demo", help="run everything in one command (agent, simulated trackers, "
-                                    "fusion, a query)",
-                       description="The embedded default: an agent, the simulated IVY world, the "
-                                   "laser-dot camera and accelerometer trackers, their fusion and "
-                                   "pose queries, all on loopback; prints a summary.")
-    p.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
-    p.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--logs", default=None, metavar="DIR",
-                   help="keep each service's log as DIR/<service>.log (default: discarded)")
 
     evals = plugins.names(plugins.EVAL_GROUP)
     p = sub.add_parser("eval", help="measure a tracker's accuracy against simulated ground truth",
@@ -167,7 +132,17 @@ def build_parser() -> argparse.ArgumentParser:
                                      "results) into DIR, for validating messages in other "
                                      "languages.")
     xp.add_argument("dir", metavar="DIR", help="output directory (created if missing)")
+
+    for command in plugins.load_all(plugins.COMMAND_GROUP):
+        _add_command(sub, command)
     return top
+
+
+def _add_command(sub: Any, command: plugins.CommandPlugin) -> None:
+    """A plug-in's command: its parser, and what runs it (``args.plugin_run``)."""
+    p = sub.add_parser(command.name, help=command.help, description=command.description)
+    command.add_arguments(p)
+    p.set_defaults(plugin_run=command.run)
 
 
 def _call(target: str, args: argparse.Namespace) -> int:
@@ -253,8 +228,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uma`` console script."""
     args = build_parser().parse_args(argv)
     try:
-        if args.command == "service" and args.service_command == "recalibrate":
-            return _call("services.alignment.service:recalibrate_command", args)
+        if getattr(args, "plugin_run", None):
+            return _call(args.plugin_run, args)
         if args.command == "service":
             return _run_service(args)
         if args.command == "eval":

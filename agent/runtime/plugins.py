@@ -2,14 +2,18 @@
 
 A tracker service is a module exposing ``PLUGIN = ServicePlugin(...)`` and registered in
 ``pyproject.toml`` under ``[project.entry-points."uma.services"]``; an accuracy evaluation
-likewise under ``"uma.evals"``.  The CLI (``uma service run NAME``, ``uma eval NAME``) and
-the agent (``uma agent --service NAME``) look them up here, so the agent never imports a
-service by hand and a third-party package can add its own.
+likewise under ``"uma.evals"``; a command that a package adds to ``uma`` (``uma demo``) is a
+:class:`CommandPlugin` under ``"uma.commands"``, and one under ``uma service`` (``uma
+service recalibrate``) under ``"uma.service_commands"``.  The CLI (``uma service run NAME``,
+``uma eval NAME``, the added commands) and the agent (``uma agent --service NAME``) look
+them up here, so the agent never imports a service by hand and a third-party package can
+add its own.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,8 +22,12 @@ from typing import Any
 
 from agent.errors import UmaError
 
+log = logging.getLogger("uma.plugins")
+
 SERVICE_GROUP = "uma.services"
 EVAL_GROUP = "uma.evals"
+COMMAND_GROUP = "uma.commands"
+SERVICE_COMMAND_GROUP = "uma.service_commands"
 
 
 @dataclass(frozen=True)
@@ -51,6 +59,35 @@ class EvalPlugin:
     run: Callable[[argparse.Namespace], dict[str, Any]]
 
 
+@dataclass(frozen=True)
+class CommandPlugin:
+    """A command a package adds to ``uma``.
+
+    ``uma --help`` builds every command's parser, so the module that defines the plug-in
+    must be light to import: ``run`` is ``"module:function"``, imported only when the
+    command runs, and the function takes the parsed arguments and returns an exit code.
+    """
+
+    name: str
+    help: str
+    description: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: str
+
+
+def load_all(group: str) -> list[Any]:
+    """Every plug-in of ``group`` (for commands, whose parsers are built up front); one that
+    cannot be imported is skipped with a warning, so one broken package does not break
+    ``uma``."""
+    found = []
+    for name in names(group):
+        try:
+            found.append(load(group, name))
+        except UmaError as exc:
+            log.warning("skipping %s plug-in %s: %s", group, name, exc)
+    return found
+
+
 def names(group: str) -> list[str]:
     """Registered plug-in names of a group, sorted, without importing them."""
     return sorted(ep.name for ep in entry_points(group=group))
@@ -68,14 +105,20 @@ def load(group: str, name: str) -> Any:
         raise UmaError(f"{name!r} is registered but not built yet ({exc})") from None
 
 
+def add_network_arguments(p: argparse.ArgumentParser, listen: bool = True) -> None:
+    """``--realm``, ``--connect`` (and ``--listen``): every command that joins a realm."""
+    p.add_argument("--realm", default="default",
+                   help="deployment namespace; agents of one realm only meet each other")
+    p.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    if listen:
+        p.add_argument("--listen", action="append", default=[], metavar="EP",
+                       help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
+
+
 def add_service_arguments(parser: argparse.ArgumentParser, service: ServicePlugin) -> None:
     """The options every service takes, then the service's own."""
-    parser.add_argument("--realm", default="default",
-                        help="deployment namespace; only agents of the same realm meet")
+    add_network_arguments(parser)
     parser.add_argument("--agent", default=None,
                         help="id of the local agent to register with (default: host name)")
-    parser.add_argument("--connect", action="append", default=[], metavar="EP",
-                        help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    parser.add_argument("--listen", action="append", default=[], metavar="EP",
-                        help="Zenoh endpoint to listen on (default: tcp/127.0.0.1:0)")
     service.add_arguments(parser)

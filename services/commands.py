@@ -1,0 +1,52 @@
+"""The ``uma`` commands that uma's own services add: ``uma demo`` and ``uma service
+recalibrate``, as plug-ins (``uma.commands`` / ``uma.service_commands`` entry points), so
+the agent's command line never names a service.
+
+Only their grammar lives here, so that ``uma --help`` stays fast; their work is imported
+when they run (``run`` names it).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from agent.runtime.plugins import CommandPlugin, add_network_arguments
+
+
+def _demo_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
+    p.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--logs", default=None, metavar="DIR",
+                   help="keep each service's log as DIR/<service>.log (default: discarded)")
+
+
+def _recalibrate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("service_id", metavar="SERVICE", nargs="?", default="alignment",
+                   help="the service's id (default alignment)")
+    p.add_argument("--agent", required=True, metavar="ID",
+                   help="the agent the service is registered with")
+    add_network_arguments(p, listen=False)
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for the service's answer (default 5)")
+    p.add_argument("--json", action="store_true", help="print the answer as one JSON object")
+
+
+DEMO = CommandPlugin(
+    name="demo",
+    help="run everything in one command (agent, simulated trackers, fusion, a query)",
+    description="The embedded default: an agent, the simulated IVY world, the laser-dot "
+                "camera and accelerometer trackers, their fusion and pose queries, all on "
+                "loopback; prints a summary.",
+    add_arguments=_demo_arguments,
+    run="services.demo:main")
+
+RECALIBRATE = CommandPlugin(
+    name="recalibrate",
+    help="ask a running alignment service to calibrate again",
+    description="Ask a running alignment service to drop the motions it collected and "
+                "calibrate again from fresh ones (after a tracker's mounting changed). Prints "
+                "its acknowledgement and the calibration it had; the new one follows when the "
+                "motions allow (see its log or 'uma services').",
+    add_arguments=_recalibrate_arguments,
+    run="services.alignment.service:recalibrate_command")
