@@ -1,4 +1,4 @@
-"""agent.registry without Zenoh: protocol messages and the realm view's rules."""
+"""The registration protocol and the realm view without Zenoh: messages and rules."""
 
 from __future__ import annotations
 

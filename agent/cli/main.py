@@ -1,4 +1,4 @@
-"""The ``uma`` command line: argument parsing and dispatch (the contract of DESIGN.md).
+"""The ``uma`` command line: argument parsing and dispatch.
 
 Each command's work lives in its own module, imported only when the command runs, so
 ``uma --help`` stays fast and one command's dependencies never slow another.

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import secrets
 import threading
 import time
@@ -62,7 +63,6 @@ import zenoh
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.runtime.logs import RateLimitedLog
-from agent.sdk.clock import skew_from_env
 from agent.srg import Graph
 from agent.srg.result import PoseResult as SrgPose
 from agent.srg.result import finite_or_none
@@ -126,6 +126,21 @@ def at_time(result: dict[str, Any], t_ns: int) -> dict[str, Any]:
     return out
 
 
+#: environment variable that skews an agent's clock (tests only; see the module docstring)
+SKEW_ENV = "UMA_CLOCK_SKEW_NS"
+
+
+def skew_from_env() -> int:
+    """The test-only clock skew in ns (0 when unset); ``ValueError`` if it is not an int."""
+    raw = os.environ.get(SKEW_ENV, "").strip()
+    if not raw:
+        return 0
+    try:
+        return int(raw)
+    except ValueError:
+        raise ValueError(f"{SKEW_ENV}={raw!r} is not an integer number of nanoseconds") from None
+
+
 class SrgNode:
     """One agent's SRG, its supernode summary and its query service (module docstring)."""
 
@@ -138,7 +153,7 @@ class SrgNode:
         self._local: dict[tuple[str, str], tuple[Any, Callable[[], None]]] = {}
         self.realm = realm
         self.agent_id = agent_id
-        #: test-only skew of this agent's clock (agent.sdk.clock.SKEW_ENV)
+        #: test-only skew of this agent's clock (SKEW_ENV)
         self.skew_ns = skew_from_env()
         self.graph = Graph()
         self._lock = threading.Lock()

@@ -1,4 +1,4 @@
-"""The uma key space (DESIGN.md, "Processes and key space"), in one place.
+"""The uma key space (``docs/ARCHITECTURE.md``, "Key space"), in one place.
 
 Every key lives under ``uma/<realm>/``; realms, agent ids, service ids and ability names are
 single key chunks, so they are checked here (no ``/``, no Zenoh wildcard or reserved

@@ -1,4 +1,5 @@
-"""The registry: what one agent knows of its realm, and the protocol that keeps it true.
+"""The registration protocol: how services join their agent and agents learn each other's
+services (what one agent then knows of its realm is :mod:`agent.daemon.realm_view`).
 
 Registration protocol (all messages are msgpack maps with ``"v": 1``, built and checked by
 the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
@@ -36,9 +37,10 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    believes and checks or re-adopts the differences.
    A registration whose token never shows up is dropped after ``PENDING_TIMEOUT_S``.
 5. Attribute changes (``ability.update(...)``) are re-registrations with a higher revision.
-   If the agent restarts (its token goes and comes back) the service registers again;
-   its data subscriptions stay up meanwhile (agents are not in the data path), and the new
-   agent learns them from ``connected``, so nothing is torn down needlessly.
+   If the agent restarts (its token goes and comes back) the service registers again; its
+   data subscriptions stay declared meanwhile (a client-mode service's samples flow again
+   as soon as its agent, which routes them, is back; a peer-mode one's never stop), and the
+   new agent learns them from ``connected``, so nothing is torn down needlessly.
 
 **Agent -> its local services** (``uma/R/ctl/A/S``, put, congestion control BLOCK)
 

@@ -180,8 +180,8 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> Pose
     """A segment answer (a ``schemas.models.PoseResult`` map) as a result, timestamps mapped
     by ``to_local``; ``ValueError`` names the first field that is wrong.
 
-    The hot-path twin of ``PoseResult.model_validate`` (the documented contract; DESIGN.md:
-    pydantic validates descriptors and API results, not per-message hot paths): the same
+    The hot-path twin of ``PoseResult.model_validate`` (the documented contract; pydantic
+    validates descriptors and API results, not per-message hot paths): the same
     fields, shapes, ids, finiteness and unit quaternion (renormalized), at a tenth of the
     cost.  ``tests/test_client_wire.py`` holds the two to the same verdicts.
     """

@@ -17,7 +17,7 @@
 attributes) filled in.  Callbacks run on the service's own dispatch thread, one at a time,
 never on a Zenoh thread; an exception in a callback is logged, not fatal.
 
-The service registers with its local agent (``agent.registry`` documents the protocol): if
+The service registers with its local agent (:mod:`agent.protocol.registration`): if
 the agent is not running yet, ``start()`` waits ``register_timeout`` seconds, then returns
 and the service registers as soon as the agent appears (and again whenever the agent
 restarts).  A duplicate service id is refused: ``start()`` raises ``UmaError`` (a refusal
