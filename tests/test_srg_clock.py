@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from agent.sdk.clock import ClockOffsets, skew_from_env
+from agent.protocol.query import skew_from_env
+from agent.sdk.clock import ClockOffsets
 
 
 def test_offset_from_a_symmetric_round_trip():

@@ -8,32 +8,16 @@ asymmetry of the path, so of several recent samples the one with the smallest de
 the most trustworthy: a minimum-delay filter over a short window (NTP's clock filter).
 Samples age out so that a drifting clock is followed.
 
-Tests skew an agent's clock with the environment variable ``UMA_CLOCK_SKEW_NS`` (read by
-``agent.daemon.srg_node.SrgNode``): that agent then timestamps as if its clock were that many
-nanoseconds ahead; it exists only to test this module end to end.
+Tests skew an agent's clock (``agent.protocol.query.SKEW_ENV``) to test this module end to
+end.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-
-#: environment variable that skews an agent's clock (tests only; see the module docstring)
-SKEW_ENV = "UMA_CLOCK_SKEW_NS"
-
-
-def skew_from_env() -> int:
-    """The test-only clock skew in ns (0 when unset); ``ValueError`` if it is not an int."""
-    raw = os.environ.get(SKEW_ENV, "").strip()
-    if not raw:
-        return 0
-    try:
-        return int(raw)
-    except ValueError:
-        raise ValueError(f"{SKEW_ENV}={raw!r} is not an integer number of nanoseconds") from None
 
 
 @dataclass(frozen=True)
