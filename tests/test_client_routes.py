@@ -315,3 +315,15 @@ def test_an_agent_whose_token_went_is_not_probed(realm_ab, monkeypatch):
     time.sleep(0.3)
     assert not c.tracker.is_alive("B") and len(realm_ab.asked) == asked
     assert c.tracker._prober is None
+
+
+def test_routes_are_planned_again_only_when_a_summary_changes(realm_ab):
+    c = realm_ab.client
+    c.pose("w", "head", error="hops")
+    with mock.patch("agent.sdk.query.plan_routes", wraps=plan_routes) as plan:
+        c.pose("w", "head", error="hops")
+        assert plan.call_count == 0
+        realm_ab.nodes["B"].graph.set_attributes("cam", "rig", "config", pos_std_m=0.05)
+        realm_ab.publish()
+        c.pose("w", "head", error="hops")
+        assert plan.call_count == 1
