@@ -11,9 +11,10 @@ import pytest
 import zenoh
 
 from agent.daemon.srg_node import SrgNode
-from agent.sdk import client as client_module
+from agent.protocol.query import parse_summary
+from agent.sdk import realm as realm_module
 from agent.sdk.client import Client
-from agent.sdk.planner import RouteError, SegmentError, parse_summary, plan_routes
+from agent.sdk.planner import RouteError, SegmentError, plan_routes
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
@@ -41,7 +42,7 @@ class Realm:
                       for name, es in edges.items()}
         self.client = Client(realm="lab", session=mock.MagicMock())
         self.asked: list[set[str]] = []
-        self.client._answers = self.ask
+        self.client.queries.answers = self.ask
         self.publish()
 
     def publish(self):
@@ -49,8 +50,8 @@ class Realm:
         for name, node in self.nodes.items():
             node._remote_frames = {o: f for o, f in frames.items() if o != name}
             node._republish_if_changed()
-            self.client._take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
-        self.client._looked = True
+            self.client.tracker.take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
+        self.client.tracker._looked = True
 
     def ask(self, request, agents=()):
         """What the agents' query handlers answer (without t2/t3: same clock, no offset)."""
@@ -184,19 +185,18 @@ def test_a_static_ability_becomes_a_static_edge_replaced_only_when_it_changes():
 def test_an_unreachable_pair_names_the_departed_agents_that_held_its_frames():
     from types import SimpleNamespace
 
-    from agent.sdk.client import _with_departed
-    from agent.sdk.planner import RouteError
+    from agent.sdk.planner import RouteError, with_departed
     from agent.srg.errors import UnreachableError
 
     summaries = {"A": SimpleNamespace(frames={"w", "cam"}),
                  "B": SimpleNamespace(frames={"cam", "head"}),
                  "C": SimpleNamespace(frames={"elsewhere"})}
     exc = UnreachableError("w", "head", {"w", "cam"}, {"head"})
-    named = _with_departed(exc, summaries, alive={"A"})
+    named = with_departed(exc, summaries, alive={"A"})
     assert isinstance(named, RouteError)
     assert "B" in str(named) and "left the realm" in str(named)
     assert "C" not in str(named).split("left the realm")[0].split("agent(s)")[1]
-    assert _with_departed(exc, summaries, alive={"A", "B"}) is exc
+    assert with_departed(exc, summaries, alive={"A", "B"}) is exc
 
 
 def test_a_summary_the_client_missed_is_fetched_when_the_pair_looks_unreachable(realm_ab):
@@ -207,10 +207,10 @@ def test_a_summary_the_client_missed_is_fetched_when_the_pair_looks_unreachable(
     fresh = realm_ab.nodes["B"]._summary
     stale = decode_message(fresh)
     stale.update(rev=stale["rev"] - 1, links=[], boundary=[])
-    c._summaries["B"] = parse_summary(stale)
-    c._routes.clear()
+    c.tracker._summaries["B"] = parse_summary(stale)
+    c.queries._routes.clear()
     with pytest.raises(UnreachableError):
-        plan_routes(c._summaries, "w", "head", error_function("hops"))
+        plan_routes(c.tracker._summaries, "w", "head", error_function("hops"))
     reply = mock.MagicMock()
     reply.ok.key_expr = "uma/lab/agent/B/supernode"
     reply.ok.payload.to_bytes.return_value = fresh
@@ -223,27 +223,27 @@ def test_refresh_does_not_revive_an_agent_whose_token_was_removed(realm_ab):
     """A liveliness answer can still list a departed agent (a peer not yet done with its
     departure): only a new token of that agent makes it alive again."""
     c = realm_ab.client
-    c._on_token(_token(zenoh.SampleKind.DELETE))
+    c.tracker._on_token(_token(zenoh.SampleKind.DELETE))
     listed = mock.MagicMock()
     listed.ok.key_expr = "uma/lab/agent/B"
     c.session.liveliness.return_value.get.return_value = [listed]
     c.session.get.return_value = []
     c.refresh()
-    assert "B" not in c._alive
-    c._on_token(_token(zenoh.SampleKind.PUT))
-    assert "B" in c._alive
+    assert not c.tracker.is_alive("B")
+    c.tracker._on_token(_token(zenoh.SampleKind.PUT))
+    assert c.tracker.is_alive("B")
 
 
 def _silent(realm, agent, meanwhile=lambda: None):
     """Make ``agent`` miss its next answer (``meanwhile`` runs while it is being asked)."""
-    answer = realm.client._answers
+    answer = realm.client.queries.answers
 
     def ask(request, agents=()):
-        realm.client._answers = answer
+        realm.client.queries.answers = answer
         meanwhile()
         yield from (a for a in answer(request, [n for n in agents or realm.nodes
                                                 if n != agent]))
-    realm.client._answers = ask
+    realm.client.queries.answers = ask
 
 
 def test_an_agent_that_restarts_while_it_is_asked_is_not_marked_gone(realm_ab):
@@ -253,11 +253,11 @@ def test_an_agent_that_restarts_while_it_is_asked_is_not_marked_gone(realm_ab):
     c = realm_ab.client
     restarted = decode_message(realm_ab.nodes["B"]._summary)
     restarted.update(instance="new-instance", rev=0)
-    _silent(realm_ab, "B", lambda: c._take_summary("uma/lab/agent/B/supernode",
+    _silent(realm_ab, "B", lambda: c.tracker.take_summary("uma/lab/agent/B/supernode",
                                                    encode_message(restarted)))
     with pytest.raises(SegmentError, match="'B' did not answer"):
         c.pose("w", "head", error="hops")
-    assert "B" in c._alive
+    assert c.tracker.is_alive("B")
     assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
 
 
@@ -269,12 +269,12 @@ def test_an_agent_that_missed_an_answer_is_not_asked_until_it_shows_life(realm_a
     _silent(realm_ab, "B")
     with pytest.raises(SegmentError, match="'B' did not answer"):
         c.pose("w", "head", error="hops")
-    assert "B" not in c._alive
+    assert not c.tracker.is_alive("B")
     asked = len(realm_ab.asked)
     with pytest.raises(RouteError, match="agent\\(s\\) B left the realm"):
         c.pose("w", "head", error="hops")
     assert len(realm_ab.asked) == asked
-    c._take_summary("uma/lab/agent/B/supernode", realm_ab.nodes["B"]._summary)
+    c.tracker.take_summary("uma/lab/agent/B/supernode", realm_ab.nodes["B"]._summary)
     assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
 
 
@@ -288,30 +288,42 @@ def _token(kind):
 def test_an_agent_that_missed_an_answer_is_probed_until_it_answers(realm_ab, monkeypatch):
     """Alive again as soon as it answers a probe, with no query of the application's: a
     subscription that moved off its route then moves back."""
-    monkeypatch.setattr(client_module, "PROBE_S", 0.05)
+    monkeypatch.setattr(realm_module, "PROBE_S", 0.05)
     c = realm_ab.client
     _silent(realm_ab, "B")
     with pytest.raises(SegmentError):
         c.pose("w", "head", error="hops")
-    assert "B" not in c._alive
+    assert not c.tracker.is_alive("B")
     before = c.topology
     deadline = time.monotonic() + 10.0
-    while "B" not in c._alive and time.monotonic() < deadline:
+    while not c.tracker.is_alive("B") and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert "B" in c._alive and c.topology > before
+    assert c.tracker.is_alive("B") and c.topology > before
     assert {"B"} in realm_ab.asked  # the probe, to B alone
     c.close()
-    assert c._prober is None
+    assert c.tracker._prober is None
 
 
 def test_an_agent_whose_token_went_is_not_probed(realm_ab, monkeypatch):
-    monkeypatch.setattr(client_module, "PROBE_S", 0.05)
+    monkeypatch.setattr(realm_module, "PROBE_S", 0.05)
     c = realm_ab.client
     _silent(realm_ab, "B")
     with pytest.raises(SegmentError):
         c.pose("w", "head", error="hops")
-    c._on_token(_token(zenoh.SampleKind.DELETE))
+    c.tracker._on_token(_token(zenoh.SampleKind.DELETE))
     asked = len(realm_ab.asked)
     time.sleep(0.3)
-    assert "B" not in c._alive and len(realm_ab.asked) == asked
-    assert c._prober is None
+    assert not c.tracker.is_alive("B") and len(realm_ab.asked) == asked
+    assert c.tracker._prober is None
+
+
+def test_routes_are_planned_again_only_when_a_summary_changes(realm_ab):
+    c = realm_ab.client
+    c.pose("w", "head", error="hops")
+    with mock.patch("agent.sdk.query.plan_routes", wraps=plan_routes) as plan:
+        c.pose("w", "head", error="hops")
+        assert plan.call_count == 0
+        realm_ab.nodes["B"].graph.set_attributes("cam", "rig", "config", pos_std_m=0.05)
+        realm_ab.publish()
+        c.pose("w", "head", error="hops")
+        assert plan.call_count == 1

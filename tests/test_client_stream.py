@@ -143,7 +143,8 @@ def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, rea
 def test_a_silent_route_is_reported_as_stalled_and_streams_again(processes, realm, tmp_path):
     """The tracker stays alive (its route with it) but publishes nothing: no other route would
     do better, so the subscription stays, says "stalled" once, and resumes by itself."""
-    from agent.sdk.client import STALL_MIN_S, Client
+    from agent.sdk.client import Client
+    from agent.sdk.subscription import STALL_MIN_S
 
     ep = endpoint(free_port())
     agent(processes, realm, "A", ep, env=LEASE)

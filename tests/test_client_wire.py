@@ -1,4 +1,4 @@
-"""The client's light check of segment answers (``agent.sdk.planner.pose_from_wire``) against the
+"""The client's light check of segment answers (``agent.protocol.query.pose_from_wire``) against the
 documented contract, ``schemas.models.PoseResult``: the same verdict on valid answers and on
 each kind of damage, and the same values where both accept."""
 
@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from agent.daemon.srg_node import result_to_wire
-from agent.sdk.planner import pose_from_wire
+from agent.protocol.query import pose_from_wire, result_to_wire
 from agent.srg import Graph
 from agent.srg import geometry as geo
 from schemas.models import PoseResult as PoseModel
@@ -148,7 +147,7 @@ def test_not_a_map_is_refused():
 def test_remembered_ids_change_no_verdict():
     """Ids found valid are remembered: a damaged id is still refused after the same answer
     passed, and the memory stays bounded."""
-    from agent.sdk.planner import _IdCheck
+    from agent.protocol.query import _IdCheck
 
     d = answers()[0]
     pose_from_wire(d)

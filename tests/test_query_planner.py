@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from agent.daemon.srg_node import SrgNode
+from agent.protocol.query import parse_summary
 from agent.sdk.planner import (
     Composition,
     RouteError,
     Segment,
     compose,
-    parse_summary,
     plan_routes,
     usable_routes,
 )

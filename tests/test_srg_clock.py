@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from agent.daemon.srg_node import skew_from_env
+from agent.protocol.query import skew_from_env
 from agent.sdk.clock import ClockOffsets
 
 

@@ -17,27 +17,7 @@ itself and puts each sample into its graph (``on_local_sample``), as tf2's
   ``uma/<realm>/agent/<id>/supernode`` whenever its graph's structure or attributes or its
   boundary (the frames other agents also know, learnt from their summaries) change, and
   answers queries there with the latest one;
-- answers ``uma/<realm>/agent/<id>/query``.  Messages (``schemas.codec`` msgpack maps):
-
-  ======================================  ==============================================
-  request                                 reply
-  ======================================  ==============================================
-  ``{"op": "clock"}``                     ``{"ok": true, "t2": recv ns, "t3": reply ns}``
-  ``{"op": "segment", "source": S,        ``{"ok": true, "result": PoseResult, "t2", "t3"``
-  "target": T, "t": ns or nil,            ``[, "edges": [edge details]]}`` where result
-  "error": E[, "details": true]}``        is a ``schemas.models.PoseResult`` as a map;
-  (``"op": "pose"`` is the same)          ``details`` adds each edge's data key (measured)
-                                          or value (static), for streaming clients
-  ``{"op": "segments", "parts":           the same answer to this agent's part; no answer
-  {agent id: segment request}}``          at all if there is none (one query sent to
-                                          ``uma/<realm>/agent/*/query`` asks every agent
-                                          of a route at once)
-  anything malformed or failing           ``{"ok": false, "error": message, "kind":
-                                          exception class, "t2", "t3"}``
-  ======================================  ==============================================
-
-  ``t2``/``t3`` are this agent's clock when the request arrived and when the reply left,
-  for the caller's clock-offset estimate (:mod:`agent.sdk.clock`).
+- answers ``uma/<realm>/agent/<id>/query`` (the messages: :mod:`agent.protocol.query`).
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
 tens of microseconds), decode local samples into the graph under the same lock (a pose
@@ -51,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import secrets
 import threading
 import time
@@ -62,10 +41,9 @@ import zenoh
 
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
+from agent.protocol import query as proto
 from agent.runtime.logs import RateLimitedLog
 from agent.srg import Graph
-from agent.srg.result import PoseResult as SrgPose
-from agent.srg.result import finite_or_none
 from agent.srg.supernode import summarize
 from schemas.codec import (
     DecodeError,
@@ -97,50 +75,6 @@ def ability_attributes(ability: Any) -> dict[str, Any]:
     return out
 
 
-def result_to_wire(r: SrgPose, source: str, target: str, owner: str,
-                   t_ns: int) -> dict[str, Any]:
-    """A local result as a ``schemas.models.PoseResult`` map (checked by the receiver)."""
-    stamps = iter(r.stamps)
-    edges = []
-    for e in r.edges:
-        t_edge = t_ns if e["static"] else next(stamps)[1]
-        edges.append({"parent": e["parent"], "child": e["child"], "inverted": not e["forward"],
-                      "owner": owner, "t_ns": int(t_edge)})
-    return {
-        "source": source, "target": target, "t_ns": int(t_ns),
-        "position": r.position.tolist(),  # numpy float64 -> Python floats, 10x faster
-        "quaternion": r.quaternion.tolist(),
-        "covariance": None if r.covariance is None else r.covariance.ravel().tolist(),
-        "path": list(r.path), "edges": edges,
-        "attributes": finite_or_none(r.attributes),
-        "extrapolated_s": float(r.extrapolated_s),
-    }
-
-
-def at_time(result: dict[str, Any], t_ns: int) -> dict[str, Any]:
-    """A wire answer of an all-static path restamped at ``t_ns`` (a static edge is used at
-    the query's time); the cached original is not modified."""
-    out = dict(result)
-    out["t_ns"] = t_ns
-    out["edges"] = [{**e, "t_ns": t_ns} for e in result["edges"]]
-    return out
-
-
-#: environment variable that skews an agent's clock (tests only; see the module docstring)
-SKEW_ENV = "UMA_CLOCK_SKEW_NS"
-
-
-def skew_from_env() -> int:
-    """The test-only clock skew in ns (0 when unset); ``ValueError`` if it is not an int."""
-    raw = os.environ.get(SKEW_ENV, "").strip()
-    if not raw:
-        return 0
-    try:
-        return int(raw)
-    except ValueError:
-        raise ValueError(f"{SKEW_ENV}={raw!r} is not an integer number of nanoseconds") from None
-
-
 class SrgNode:
     """One agent's SRG, its supernode summary and its query service (module docstring)."""
 
@@ -153,8 +87,8 @@ class SrgNode:
         self._local: dict[tuple[str, str], tuple[Any, Callable[[], None]]] = {}
         self.realm = realm
         self.agent_id = agent_id
-        #: test-only skew of this agent's clock (SKEW_ENV)
-        self.skew_ns = skew_from_env()
+        #: test-only skew of this agent's clock (agent.protocol.query.SKEW_ENV)
+        self.skew_ns = proto.skew_from_env()
         self.graph = Graph()
         self._lock = threading.Lock()
         self._bad = RateLimitedLog(log)
@@ -197,7 +131,7 @@ class SrgNode:
         self._wake.set()
 
     def now_ns(self) -> int:
-        """This agent's clock (skewed in tests, see agent.sdk.clock)."""
+        """This agent's clock (skewed in tests, see agent.protocol.query.SKEW_ENV)."""
         return time.time_ns() + self.skew_ns
 
     # ------------------------------------------------------------------ feeding the graph
@@ -310,67 +244,47 @@ class SrgNode:
         t2 = self.now_ns()
         try:
             payload = query.payload
-            msg = decode_message(payload.to_bytes() if payload is not None else b"",
-                                 required=("op",))
-            reply = self.handle(msg)
+            reply = self.handle(proto.decode_request(
+                payload.to_bytes() if payload is not None else b""))
             if reply is None:
                 return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
-            reply = {"ok": False, "error": str(exc), "kind": type(exc).__name__}
+            reply = proto.error_reply(exc)
         except Exception as exc:  # never into Zenoh's thread: answer and log
             self._bad.warning("query", f"{type(exc).__name__}: {exc}")
-            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}",
-                     "kind": "InternalError"}
-        reply["t2"] = t2
-        reply["t3"] = self.now_ns()
+            reply = proto.internal_error_reply(exc)
         try:
-            query.reply(self._query_key, encode_message(reply))
+            query.reply(self._query_key, proto.stamped(reply, t2, self.now_ns()))
         except (zenoh.ZError, ValueError) as exc:
             self._bad.warning("query reply", str(exc))
 
     def handle(self, msg: dict[str, Any]) -> dict[str, Any] | None:
-        """Answer one decoded query message (see the module docstring); None: not for us."""
-        op = msg["op"]
-        if op == "clock":
-            return {"ok": True}
-        if op == "segments":
-            parts = msg.get("parts")
-            if not isinstance(parts, dict):
-                raise ValueError("segments request: parts must be a map agent id -> request")
-            part = parts.get(self.agent_id)
-            if part is None:
-                return None
-            if not isinstance(part, dict):
-                raise ValueError(f"segments request: the part for {self.agent_id!r} is not a "
-                                 "map")
-            msg, op = part, "segment"
-        if op not in ("segment", "pose"):
-            raise ValueError(f"unknown op {op!r} (expected clock, segment or pose)")
-        source, target, error = msg.get("source"), msg.get("target"), msg.get("error", "hops")
-        for name, value in (("source", source), ("target", target), ("error", error)):
-            if not isinstance(value, str) or not value:
-                raise ValueError(f"{op} request: {name} must be a non-empty string, got "
-                                 f"{value!r}")
-        t = msg.get("t")
-        if t is not None and (isinstance(t, bool) or not isinstance(t, int)):
-            raise ValueError(f"{op} request: t must be integer ns or nil, got {t!r}")
-        details = bool(msg.get("details"))
+        """Answer one decoded query message (:mod:`agent.protocol.query`); None: not for us."""
+        request = proto.parse_request(msg, self.agent_id)
+        if request is None:
+            return None
+        if isinstance(request, proto.ClockRequest):
+            return proto.clock_reply()
+        return self._segment(request)
+
+    def _segment(self, req: proto.SegmentRequest) -> dict[str, Any]:
+        """One segment's answer, from the cache when it still holds (``_cached_answer``)."""
         with self._lock:
-            key = (source, target, error)
-            cached = None if details else self._cached_answer(key, t)
+            key = (req.source, req.target, req.error)
+            cached = None if req.details else self._cached_answer(key, req.t)
             if cached is not None:
-                return {"ok": True, "result": cached}
-            r = self.graph.pose(source, target, at=t, error=error)
-            out: dict[str, Any] = {"ok": True}
-            t_used = r.t_ns if r.t_ns is not None else (t if t is not None else self.now_ns())
-            out["result"] = result_to_wire(r, source, target, self.agent_id, t_used)
-            if details:
-                out["edges"] = [self._edge_details(e) for e in r.edges]
-            elif out["result"]["attributes"].get("static"):
-                self._answers[key] = (self.graph.version, None, out["result"])
-            elif t is None:
-                self._answers[key] = (self.graph.version, self.graph.samples, out["result"])
-        return out
+                return proto.segment_reply(cached)
+            r = self.graph.pose(req.source, req.target, at=req.t, error=req.error)
+            t_used = r.t_ns if r.t_ns is not None else (
+                req.t if req.t is not None else self.now_ns())
+            result = proto.result_to_wire(r, req.source, req.target, self.agent_id, t_used)
+            if req.details:
+                return proto.segment_reply(result, [self._edge_details(e) for e in r.edges])
+            if result["attributes"].get("static"):
+                self._answers[key] = (self.graph.version, None, result)
+            elif req.t is None:
+                self._answers[key] = (self.graph.version, self.graph.samples, result)
+        return proto.segment_reply(result)
 
     def _cached_answer(self, key: tuple[str, str, str], t: int | None,
                        ) -> dict[str, Any] | None:
@@ -387,24 +301,13 @@ class SrgNode:
             return None
         _, samples, result = hit
         if samples is None:
-            return at_time(result, t if t is not None else self.now_ns())
+            return proto.at_time(result, t if t is not None else self.now_ns())
         return result if t is None and samples == self.graph.samples else None
 
     def _edge_details(self, e: dict[str, Any]) -> dict[str, Any]:
         """What a streaming client needs to rebuild an edge: its data key or its value."""
-        edge = self.graph.edge(e["parent"], e["child"], e["source"])
-        attrs = {k: v for k, v in edge.attrs.items() if k != "covariance"}
-        out = {"parent": e["parent"], "child": e["child"], "source": e["source"],
-               "static": e["static"], "attributes": attrs}
-        if edge.is_static:
-            p, q, cov = edge.value
-            out.update(position=p.tolist(), quaternion=q.tolist(),
-                       covariance=None if cov is None else cov.ravel().tolist())
-        else:
-            out["key"] = self._data_keys.get(e["source"])
-            if "covariance" in edge.attrs:
-                out["covariance"] = edge.attrs["covariance"].ravel().tolist()
-        return out
+        return proto.edge_details(e, self.graph.edge(e["parent"], e["child"], e["source"]),
+                                  self._data_keys.get(e["source"]))
 
     # ------------------------------------------------------------------ summaries
 

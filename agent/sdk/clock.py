@@ -9,9 +9,8 @@ asymmetry of the path, so of several recent samples the one with the smallest de
 the most trustworthy: a minimum-delay filter over a short window (NTP's clock filter).
 Samples age out so that a drifting clock is followed.
 
-Tests skew an agent's clock with the environment variable ``UMA_CLOCK_SKEW_NS``
-(:func:`agent.daemon.srg_node.skew_from_env`): that agent then timestamps as if its clock
-were that many nanoseconds ahead; it exists only to test this module end to end.
+Tests skew an agent's clock (``agent.protocol.query.SKEW_ENV``) to test this module end to
+end.
 """
 
 from __future__ import annotations

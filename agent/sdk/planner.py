@@ -7,8 +7,9 @@ those links (labelled with their agent), ranks routes from source to target for 
 function (Dijkstra/Yen as in the local SRG: additive functions sum the links' values,
 path-level ones are evaluated on the joined attributes of k candidate routes), merges
 consecutive links of one agent into a single *segment*, and leaves it to the caller
-(:class:`agent.sdk.client.Client`) to ask each owning agent for its segment at ``t`` and to
-:func:`compose` the answers.
+(:mod:`agent.sdk.query`) to ask each owning agent for its segment at ``t`` and to
+:func:`compose` the answers.  Pure: no I/O, no wire format (summaries arrive parsed, by
+:mod:`agent.protocol.query`).
 
 Routes through agents that have left the realm are never tried; when only such routes
 exist, :class:`RouteError` names the segments and agents that are missing.
@@ -17,26 +18,22 @@ exist, :class:`RouteError` names the segments and agents that are missing.
 from __future__ import annotations
 
 import math
-import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from agent.protocol.query import Summary
 from agent.srg import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
 from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
 from agent.srg.result import PoseResult
-from agent.srg.supernode import SUMMARY_ERRORS
-from schemas import ids
-from schemas.models import FRAME_PATTERN, MAX_FRAME_LENGTH, QUAT_NORM_TOL, check_plain
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
-_INF_WHEN_NONE = ("frequency_hz", "ttl_s")
 
 
 class RouteError(SrgLookupError):
@@ -65,18 +62,6 @@ class Segment:
 
 
 @dataclass
-class Summary:
-    """One agent's supernode summary, as received."""
-
-    agent: str
-    rev: int
-    frames: set[str]
-    components: list[set[str]]
-    links: list[tuple[str, str, dict[str, dict[str, Any]]]]
-    instance: str = ""  # the agent process's run id: revisions restart with it
-
-
-@dataclass
 class Route:
     segments: list[Segment]
     value: float
@@ -85,184 +70,6 @@ class Route:
     @property
     def agents(self) -> list[str]:
         return list(dict.fromkeys(s.agent for s in self.segments))
-
-
-def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
-    """Path attributes as received: None stands for an infinite rate or time to live."""
-    out = dict(d)
-    for name in _INF_WHEN_NONE:
-        if out.get(name) is None:
-            out[name] = math.inf
-    return out
-
-
-_WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", "covariance",
-                          "path", "edges", "attributes", "extrapolated_s"))
-_EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
-
-
-class _IdCheck:
-    """One kind of id (frame or agent id): its pattern and length limit.  Answers carry the
-    same few ids again and again, so those already found valid are remembered (a set lookup
-    costs a tenth of a regex match), at most ``limit`` of them.  ``where % args`` names the
-    field in the error; it is only formatted when the id is wrong."""
-
-    def __init__(self, pattern: str, max_length: int, limit: int = 4096) -> None:
-        self._regex = re.compile(pattern)
-        self._max_length = max_length
-        self._limit = limit
-        self._valid: set[str] = set()
-
-    def __call__(self, value: Any, where: str, *args: object) -> str:
-        if type(value) is str and value in self._valid:
-            return value
-        if (not isinstance(value, str) or len(value) > self._max_length
-                or not self._regex.match(value)):
-            raise ValueError(f"{where % args}: {value!r:.60} is not a valid id")
-        if len(self._valid) >= self._limit:
-            self._valid.clear()
-        self._valid.add(value)
-        return value
-
-
-_frame_id = _IdCheck(FRAME_PATTERN, MAX_FRAME_LENGTH)
-_agent_id = _IdCheck(ids.ID_PATTERN, ids.MAX_LENGTH)  # the rule of schemas.ids, cached
-
-
-def _wire_int(value: Any, where: str, *args: object) -> int:
-    if type(value) is not int and (isinstance(value, bool) or not isinstance(value, int)):
-        raise ValueError(f"{where % args}: expected integer ns, got {value!r:.60}")
-    return value
-
-
-def _wire_floats(value: Any, n: int, where: str) -> list[float]:
-    """``n`` finite numbers (a list or tuple, as msgpack gives them)."""
-    if not isinstance(value, list | tuple) or len(value) != n:
-        raise ValueError(f"{where}: expected {n} numbers, got {value!r:.80}")
-    for x in value:
-        if ((type(x) is not float and (isinstance(x, bool) or not isinstance(x, float | int)))
-                or not math.isfinite(x)):
-            raise ValueError(f"{where}: {x!r:.40} is not a finite number")
-    return [float(x) for x in value]
-
-
-def _wire_covariance(value: Any) -> np.ndarray:
-    """36 finite numbers as a 6x6 matrix.  Numpy converts and checks them (36 is too many
-    for a Python loop); like the model's lax floats it takes bools and numeric strings."""
-    if not isinstance(value, list | tuple) or len(value) != 36:
-        raise ValueError(f"covariance: expected 36 numbers or null, got {value!r:.80}")
-    try:
-        cov = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        cov = None
-    if cov is None or cov.shape != (36,) or not np.isfinite(cov).all():
-        raise ValueError(f"covariance: expected 36 finite numbers, got {value!r:.80}")
-    return cov.reshape(6, 6)
-
-
-def _wire_attributes(value: Any) -> dict[str, Any]:
-    """A flat map of plain values (anything nested goes through ``check_plain``), as
-    :func:`attributes_from_wire` reads it."""
-    if not isinstance(value, dict):
-        raise ValueError(f"attributes: expected a map, got {value!r:.60}")
-    for k, v in value.items():
-        if not isinstance(k, str):
-            raise ValueError(f"attributes: key {k!r:.40} is not a string")
-        if type(v) is float:
-            if not math.isfinite(v):
-                raise ValueError(f"attributes.{k}: non-finite value {v!r}")
-        elif v is not None and type(v) not in (int, bool, str):
-            check_plain(v, f"attributes.{k}", 1)
-    return attributes_from_wire(value)
-
-
-def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
-    """A segment answer (a ``schemas.models.PoseResult`` map) as a result, timestamps mapped
-    by ``to_local``; ``ValueError`` names the first field that is wrong.
-
-    The hot-path twin of ``PoseResult.model_validate`` (the documented contract; pydantic
-    validates descriptors and API results, not per-message hot paths): the same
-    fields, shapes, ids, finiteness and unit quaternion (renormalized), at a tenth of the
-    cost.  ``tests/test_client_wire.py`` holds the two to the same verdicts.
-    """
-    if not isinstance(d, dict):
-        raise ValueError(f"pose result: expected a map, got {type(d).__name__}")
-    if not d.keys() <= _WIRE_FIELDS:
-        extra = sorted(map(str, d.keys() - _WIRE_FIELDS))
-        raise ValueError(f"pose result: unexpected field(s) {', '.join(extra)}")
-    for name in ("source", "target", "t_ns", "position", "quaternion"):
-        if name not in d:
-            raise ValueError(f"pose result: missing field {name!r}")
-    _frame_id(d["source"], "source")
-    _frame_id(d["target"], "target")
-    t_ns = _wire_int(d["t_ns"], "t_ns")
-    position = _wire_floats(d["position"], 3, "position")
-    q = _wire_floats(d["quaternion"], 4, "quaternion")
-    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if abs(norm - 1.0) > QUAT_NORM_TOL:
-        raise ValueError(f"quaternion: norm {norm:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
-                         "quaternions are x, y, z, w")
-    cov = d.get("covariance")
-    if cov is not None:
-        cov = _wire_covariance(cov)
-    path = d.get("path", [])
-    if not isinstance(path, list):
-        raise ValueError(f"path: expected a list of frame ids, got {path!r:.60}")
-    for i, frame in enumerate(path):
-        _frame_id(frame, "path[%d]", i)
-    edges = d.get("edges", [])
-    if not isinstance(edges, list):
-        raise ValueError(f"edges: expected a list, got {edges!r:.60}")
-    edges = [_wire_edge(e, i, to_local) for i, e in enumerate(edges)]
-    extrapolated = d.get("extrapolated_s", 0.0)
-    if (isinstance(extrapolated, bool) or not isinstance(extrapolated, float | int)
-            or not math.isfinite(extrapolated) or extrapolated < 0):
-        raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {extrapolated!r}")
-    attributes = _wire_attributes(d.get("attributes", {}))
-    stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
-    return PoseResult(np.array(position), np.array(q) / norm, cov, list(path), edges,
-                      to_local(t_ns), float(extrapolated), stamps, attributes)
-
-
-def _wire_edge(e: Any, i: int, to_local: Callable[[int], int]) -> dict[str, Any]:
-    if not isinstance(e, dict) or e.keys() != _EDGE_FIELDS:
-        raise ValueError(f"edges[{i}]: expected a map with exactly "
-                         f"{', '.join(sorted(_EDGE_FIELDS))}, got {e!r:.100}")
-    if not isinstance(e["inverted"], bool):
-        raise ValueError(f"edges[{i}].inverted: expected a bool, got {e['inverted']!r:.40}")
-    return {"parent": _frame_id(e["parent"], "edges[%d].parent", i),
-            "child": _frame_id(e["child"], "edges[%d].child", i),
-            "forward": not e["inverted"],
-            "owner": _agent_id(e["owner"], "edges[%d].owner", i),
-            "t_ns": to_local(_wire_int(e["t_ns"], "edges[%d].t_ns", i))}
-
-
-def parse_summary(msg: Mapping[str, Any]) -> Summary:
-    """A decoded supernode message as a :class:`Summary`; ``ValueError`` says what is wrong."""
-    agent, frames = msg.get("agent"), msg.get("frames")
-    if not isinstance(agent, str) or not agent:
-        raise ValueError(f"summary: agent must be a non-empty string, got {agent!r}")
-    if not isinstance(frames, list) or not all(isinstance(f, str) for f in frames):
-        raise ValueError("summary: frames must be a list of strings")
-    components = msg.get("components", [])
-    links_in = msg.get("links", [])
-    if not isinstance(components, list) or not isinstance(links_in, list):
-        raise ValueError("summary: components and links must be lists")
-    links = []
-    for link in links_in:
-        if not (isinstance(link, dict) and isinstance(link.get("a"), str)
-                and isinstance(link.get("b"), str) and isinstance(link.get("attrs"), dict)):
-            raise ValueError(f"summary: malformed link {link!r:.120}")
-        attrs = {k: attributes_from_wire(v) for k, v in link["attrs"].items()
-                 if k in SUMMARY_ERRORS and isinstance(v, dict)}
-        if set(attrs) != set(SUMMARY_ERRORS):
-            raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "
-                             f"{', '.join(sorted(set(SUMMARY_ERRORS) - set(attrs)))}")
-        links.append((link["a"], link["b"], attrs))
-    rev, instance = msg.get("rev", 0), msg.get("instance", "")
-    return Summary(agent, rev if isinstance(rev, int) else 0, set(frames),
-                   [set(c) for c in components if isinstance(c, list)], links,
-                   instance if isinstance(instance, str) else "")
 
 
 def _link_value(fn: ErrorFunction, attrs: Mapping[str, dict[str, Any]]) -> float:
@@ -372,6 +179,18 @@ def usable_routes(routes: Sequence[Route], alive: set[str], source: str,
         f"other route exists ({len(routes)} considered)")
 
 
+def with_departed(exc: UnreachableError, summaries: Mapping[str, Summary],
+                  alive: set[str]) -> SrgLookupError:
+    """An unreachable pair, naming the departed agents that held frames of either side: the
+    link between the two sides was most likely one of their segments."""
+    sides = exc.source_side | exc.target_side
+    gone = sorted(a for a, s in summaries.items() if a not in alive and s.frames & sides)
+    if not gone:
+        return exc
+    return RouteError(f"{exc}; agent(s) {list_names(gone)} left the realm and held frames "
+                      f"of these parts: the missing segment was probably theirs")
+
+
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
     """Chain segment answers source -> target, propagating the covariance (first order)."""
     chain = Composition(len(results))
@@ -466,3 +285,4 @@ class _Run:
         return _Run(self.first, right.final, self.p + J[:3, :3] @ right.p,
                     geo.quat_multiply(self.q, right.q), cov,
                     None if right.final == last else J @ right.Ad)
+

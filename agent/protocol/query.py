@@ -1,0 +1,489 @@
+"""The pose-query protocol: every message on an agent's query and supernode keys, built and
+checked here (``R`` = realm, ``A`` = agent id; all messages are ``schemas.codec`` msgpack
+maps).  A client asks, an agent answers; both sides import this module and nothing of the
+other's.
+
+**Queries** (``uma/R/agent/A/query``, a queryable of every agent)
+
+======================================  ==============================================
+request                                 reply
+======================================  ==============================================
+``{"op": "clock"}``                     ``{"ok": true, "t2": recv ns, "t3": reply ns}``
+``{"op": "segment", "source": S,        ``{"ok": true, "result": PoseResult, "t2", "t3"``
+"target": T, "t": ns or nil,            ``[, "edges": [edge details]]}`` where result
+"error": E[, "details": true]}``        is a ``schemas.models.PoseResult`` as a map;
+(``"op": "pose"`` is the same)          ``details`` adds each edge's data key (measured)
+                                        or value (static), for streaming clients
+``{"op": "segments", "parts":           the same answer to this agent's part; no answer
+{agent id: segment request}}``          at all if there is none (one query sent to
+                                        ``uma/R/agent/*/query`` asks every agent
+                                        of a route at once)
+anything malformed or failing           ``{"ok": false, "error": message, "kind":
+                                        exception class, "t2", "t3"}``
+======================================  ==============================================
+
+``t2``/``t3`` are the agent's clock when the request arrived and when the reply left, for
+the caller's clock-offset estimate (:mod:`agent.sdk.clock`).  An edge detail is ``{parent,
+child, source, static, attributes}`` plus ``key`` (the data key) and maybe ``covariance``
+for a measured edge, ``position``, ``quaternion``, ``covariance`` for a static one.
+
+**Summaries** (``uma/R/agent/A/supernode``, a queryable and a publication on change)
+
+``{"agent": A, "rev": n, "instance": run id, "frames": [...], "boundary": [...],
+"components": [[frame...]...], "links": [{"a", "b", "attrs": {error: path attributes}}]}``:
+the agent's supernode summary (:mod:`agent.srg.supernode`); ``rev`` counts its revisions
+within one run (``instance``), and a path attribute that is infinite travels as nil.
+
+A segment answer is read by :func:`pose_from_wire`, the hot-path twin of
+``schemas.models.PoseResult.model_validate``: answers arrive at tracking rates, and the
+model costs ten times as much (pydantic validates descriptors and API results, not
+per-message hot paths).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from agent.srg.result import PoseResult, finite_or_none
+from agent.srg.supernode import SUMMARY_ERRORS
+from schemas import ids
+from schemas.codec import DecodeError, decode_message, encode_message
+from schemas.models import FRAME_PATTERN, MAX_FRAME_LENGTH, QUAT_NORM_TOL, check_plain
+
+#: environment variable that skews an agent's clock, as its ``t2``/``t3`` show it: the agent
+#: then stamps as if its clock were that many ns ahead (tests only: it exists to test the
+#: clients' offset estimate end to end)
+SKEW_ENV = "UMA_CLOCK_SKEW_NS"
+
+
+def skew_from_env() -> int:
+    """The test-only clock skew in ns (0 when unset); ``ValueError`` if it is not an int."""
+    raw = os.environ.get(SKEW_ENV, "").strip()
+    if not raw:
+        return 0
+    try:
+        return int(raw)
+    except ValueError:
+        raise ValueError(f"{SKEW_ENV}={raw!r} is not an integer number of nanoseconds") from None
+
+
+# ---------------------------------------------------------------------- requests
+
+@dataclass(frozen=True)
+class ClockRequest:
+    """``{"op": "clock"}``: only the timestamps of the reply are wanted."""
+
+
+@dataclass(frozen=True)
+class SegmentRequest:
+    """One agent's segment: ``source -> target`` in its graph at ``t`` (its clock; None:
+    the latest time), ranked by ``error``; ``details`` asks for every edge's details."""
+
+    source: str
+    target: str
+    error: str
+    t: int | None = None
+    details: bool = False
+
+    def to_wire(self) -> dict[str, Any]:
+        part: dict[str, Any] = {"source": self.source, "target": self.target,
+                                "error": self.error, "t": self.t}
+        if self.details:
+            part["details"] = True
+        return part
+
+
+def clock_request() -> bytes:
+    return encode_message({"op": "clock"})
+
+
+def segments_request(parts: Mapping[str, SegmentRequest]) -> bytes:
+    """One request for several agents' segments (one per agent id)."""
+    return encode_message({"op": "segments",
+                           "parts": {agent: p.to_wire() for agent, p in parts.items()}})
+
+
+def decode_request(data: bytes) -> dict[str, Any]:
+    """A request's map; ``DecodeError`` if it is not a message with an ``op``."""
+    return decode_message(data, required=("op",))
+
+
+def parse_request(msg: Mapping[str, Any], agent_id: str,
+                  ) -> ClockRequest | SegmentRequest | None:
+    """What a decoded request asks of agent ``agent_id`` (None: a ``segments`` request with
+    no part for it); ``ValueError`` names what is wrong."""
+    op = msg["op"]
+    if op == "clock":
+        return ClockRequest()
+    if op == "segments":
+        parts = msg.get("parts")
+        if not isinstance(parts, dict):
+            raise ValueError("segments request: parts must be a map agent id -> request")
+        part = parts.get(agent_id)
+        if part is None:
+            return None
+        if not isinstance(part, dict):
+            raise ValueError(f"segments request: the part for {agent_id!r} is not a map")
+        msg, op = part, "segment"
+    if op not in ("segment", "pose"):
+        raise ValueError(f"unknown op {op!r} (expected clock, segment or pose)")
+    source, target, error = msg.get("source"), msg.get("target"), msg.get("error", "hops")
+    for name, value in (("source", source), ("target", target), ("error", error)):
+        if not isinstance(value, str) or not value:
+            raise ValueError(f"{op} request: {name} must be a non-empty string, got "
+                             f"{value!r}")
+    t = msg.get("t")
+    if t is not None and (isinstance(t, bool) or not isinstance(t, int)):
+        raise ValueError(f"{op} request: t must be integer ns or nil, got {t!r}")
+    return SegmentRequest(source, target, error, t, bool(msg.get("details")))
+
+
+# ---------------------------------------------------------------------- replies (agent side)
+
+def clock_reply() -> dict[str, Any]:
+    return {"ok": True}
+
+
+def segment_reply(result: dict[str, Any],
+                  edges: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """A segment's answer: ``result`` from :func:`result_to_wire`, ``edges`` from
+    :func:`edge_details` when details were asked for."""
+    reply = {"ok": True, "result": result}
+    if edges is not None:
+        reply["edges"] = edges
+    return reply
+
+
+def error_reply(exc: Exception) -> dict[str, Any]:
+    """A request that was malformed or whose lookup failed."""
+    return {"ok": False, "error": str(exc), "kind": type(exc).__name__}
+
+
+def internal_error_reply(exc: Exception) -> dict[str, Any]:
+    """A request that hit a bug of the agent's: the caller still gets an answer."""
+    return {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}",
+            "kind": "InternalError"}
+
+
+def stamped(reply: dict[str, Any], t2: int, t3: int) -> bytes:
+    """A reply as sent, with the agent's receive and send times."""
+    return encode_message({**reply, "t2": t2, "t3": t3})
+
+
+def result_to_wire(r: PoseResult, source: str, target: str, owner: str,
+                   t_ns: int) -> dict[str, Any]:
+    """A local result as a ``schemas.models.PoseResult`` map (checked by the receiver)."""
+    stamps = iter(r.stamps)
+    edges = []
+    for e in r.edges:
+        t_edge = t_ns if e["static"] else next(stamps)[1]
+        edges.append({"parent": e["parent"], "child": e["child"], "inverted": not e["forward"],
+                      "owner": owner, "t_ns": int(t_edge)})
+    return {
+        "source": source, "target": target, "t_ns": int(t_ns),
+        "position": r.position.tolist(),  # numpy float64 -> Python floats, 10x faster
+        "quaternion": r.quaternion.tolist(),
+        "covariance": None if r.covariance is None else r.covariance.ravel().tolist(),
+        "path": list(r.path), "edges": edges,
+        "attributes": finite_or_none(r.attributes),
+        "extrapolated_s": float(r.extrapolated_s),
+    }
+
+
+def at_time(result: dict[str, Any], t_ns: int) -> dict[str, Any]:
+    """A wire answer of an all-static path restamped at ``t_ns`` (a static edge is used at
+    the query's time); the cached original is not modified."""
+    out = dict(result)
+    out["t_ns"] = t_ns
+    out["edges"] = [{**e, "t_ns": t_ns} for e in result["edges"]]
+    return out
+
+
+def edge_details(e: Mapping[str, Any], edge: Any, data_key: str | None) -> dict[str, Any]:
+    """What a streaming client needs to rebuild an edge of a path (``e``, an entry of a
+    result's ``edges``; ``edge``, the graph's edge): its data key or its value."""
+    attrs = {k: v for k, v in edge.attrs.items() if k != "covariance"}
+    out = {"parent": e["parent"], "child": e["child"], "source": e["source"],
+           "static": e["static"], "attributes": attrs}
+    if edge.is_static:
+        p, q, cov = edge.value
+        out.update(position=p.tolist(), quaternion=q.tolist(),
+                   covariance=None if cov is None else cov.ravel().tolist())
+    else:
+        out["key"] = data_key
+        if "covariance" in edge.attrs:
+            out["covariance"] = edge.attrs["covariance"].ravel().tolist()
+    return out
+
+
+# ---------------------------------------------------------------------- replies (client side)
+
+class RefusedError(Exception):
+    """The agent answered, but with ``ok: false`` (its lookup failed, or the request)."""
+
+
+def decode_reply(data: bytes) -> dict[str, Any]:
+    """A reply's map; an unreadable one reads as a refusal saying so."""
+    try:
+        return decode_message(data)
+    except DecodeError as exc:
+        return {"ok": False, "error": f"unreadable answer: {exc}"}
+
+
+def reply_times(reply: Mapping[str, Any]) -> tuple[int, int] | None:
+    """The agent's ``(t2, t3)`` of a reply, or None if it has none."""
+    t2, t3 = reply.get("t2"), reply.get("t3")
+    return (t2, t3) if isinstance(t2, int) and isinstance(t3, int) else None
+
+
+def read_segment_reply(reply: Mapping[str, Any], to_local: Callable[[int], int],
+                       ) -> tuple[PoseResult, list[dict[str, Any]]]:
+    """A segment's answer on the caller's clock (``to_local``) and its edge details (as
+    sent; :func:`edge_from_wire` reads each); ``RefusedError`` if the agent could not answer,
+    ``ValueError`` if the answer is malformed."""
+    if not reply.get("ok"):
+        raise RefusedError(str(reply.get("error", "no reason given")))
+    if "result" not in reply:
+        raise ValueError("no result")
+    return pose_from_wire(reply["result"], to_local), reply.get("edges") or []
+
+
+_INF_WHEN_NONE = ("frequency_hz", "ttl_s")
+_WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", "covariance",
+                          "path", "edges", "attributes", "extrapolated_s"))
+_EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
+
+
+def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
+    """Path attributes as received: None stands for an infinite rate or time to live."""
+    out = dict(d)
+    for name in _INF_WHEN_NONE:
+        if out.get(name) is None:
+            out[name] = math.inf
+    return out
+
+
+class _IdCheck:
+    """One kind of id (frame or agent id): its pattern and length limit.  Answers carry the
+    same few ids again and again, so those already found valid are remembered (a set lookup
+    costs a tenth of a regex match), at most ``limit`` of them.  ``where % args`` names the
+    field in the error; it is only formatted when the id is wrong."""
+
+    def __init__(self, pattern: str, max_length: int, limit: int = 4096) -> None:
+        self._regex = re.compile(pattern)
+        self._max_length = max_length
+        self._limit = limit
+        self._valid: set[str] = set()
+
+    def __call__(self, value: Any, where: str, *args: object) -> str:
+        if type(value) is str and value in self._valid:
+            return value
+        if (not isinstance(value, str) or len(value) > self._max_length
+                or not self._regex.match(value)):
+            raise ValueError(f"{where % args}: {value!r:.60} is not a valid id")
+        if len(self._valid) >= self._limit:
+            self._valid.clear()
+        self._valid.add(value)
+        return value
+
+
+_frame_id = _IdCheck(FRAME_PATTERN, MAX_FRAME_LENGTH)
+_agent_id = _IdCheck(ids.ID_PATTERN, ids.MAX_LENGTH)  # the rule of schemas.ids, cached
+
+
+def _wire_int(value: Any, where: str, *args: object) -> int:
+    if type(value) is not int and (isinstance(value, bool) or not isinstance(value, int)):
+        raise ValueError(f"{where % args}: expected integer ns, got {value!r:.60}")
+    return value
+
+
+def _wire_floats(value: Any, n: int, where: str) -> list[float]:
+    """``n`` finite numbers (a list or tuple, as msgpack gives them)."""
+    if not isinstance(value, list | tuple) or len(value) != n:
+        raise ValueError(f"{where}: expected {n} numbers, got {value!r:.80}")
+    for x in value:
+        if ((type(x) is not float and (isinstance(x, bool) or not isinstance(x, float | int)))
+                or not math.isfinite(x)):
+            raise ValueError(f"{where}: {x!r:.40} is not a finite number")
+    return [float(x) for x in value]
+
+
+def _wire_covariance(value: Any) -> np.ndarray:
+    """36 finite numbers as a 6x6 matrix.  Numpy converts and checks them (36 is too many
+    for a Python loop); like the model's lax floats it takes bools and numeric strings."""
+    if not isinstance(value, list | tuple) or len(value) != 36:
+        raise ValueError(f"covariance: expected 36 numbers or null, got {value!r:.80}")
+    try:
+        cov = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        cov = None
+    if cov is None or cov.shape != (36,) or not np.isfinite(cov).all():
+        raise ValueError(f"covariance: expected 36 finite numbers, got {value!r:.80}")
+    return cov.reshape(6, 6)
+
+
+def _wire_attributes(value: Any) -> dict[str, Any]:
+    """A flat map of plain values (anything nested goes through ``check_plain``), as
+    :func:`attributes_from_wire` reads it."""
+    if not isinstance(value, dict):
+        raise ValueError(f"attributes: expected a map, got {value!r:.60}")
+    for k, v in value.items():
+        if not isinstance(k, str):
+            raise ValueError(f"attributes: key {k!r:.40} is not a string")
+        if type(v) is float:
+            if not math.isfinite(v):
+                raise ValueError(f"attributes.{k}: non-finite value {v!r}")
+        elif v is not None and type(v) not in (int, bool, str):
+            check_plain(v, f"attributes.{k}", 1)
+    return attributes_from_wire(value)
+
+
+def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
+    """A segment answer (a ``schemas.models.PoseResult`` map) as a result, timestamps mapped
+    by ``to_local``; ``ValueError`` names the first field that is wrong.
+
+    The same fields, shapes, ids, finiteness and unit quaternion (renormalized) as the
+    model, at a tenth of the cost (module docstring).  ``tests/test_client_wire.py`` holds
+    the two to the same verdicts.
+    """
+    if not isinstance(d, dict):
+        raise ValueError(f"pose result: expected a map, got {type(d).__name__}")
+    if not d.keys() <= _WIRE_FIELDS:
+        extra = sorted(map(str, d.keys() - _WIRE_FIELDS))
+        raise ValueError(f"pose result: unexpected field(s) {', '.join(extra)}")
+    for name in ("source", "target", "t_ns", "position", "quaternion"):
+        if name not in d:
+            raise ValueError(f"pose result: missing field {name!r}")
+    _frame_id(d["source"], "source")
+    _frame_id(d["target"], "target")
+    t_ns = _wire_int(d["t_ns"], "t_ns")
+    position = _wire_floats(d["position"], 3, "position")
+    q = _wire_floats(d["quaternion"], 4, "quaternion")
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise ValueError(f"quaternion: norm {norm:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
+                         "quaternions are x, y, z, w")
+    cov = d.get("covariance")
+    if cov is not None:
+        cov = _wire_covariance(cov)
+    path = d.get("path", [])
+    if not isinstance(path, list):
+        raise ValueError(f"path: expected a list of frame ids, got {path!r:.60}")
+    for i, frame in enumerate(path):
+        _frame_id(frame, "path[%d]", i)
+    edges = d.get("edges", [])
+    if not isinstance(edges, list):
+        raise ValueError(f"edges: expected a list, got {edges!r:.60}")
+    edges = [_wire_edge(e, i, to_local) for i, e in enumerate(edges)]
+    extrapolated = d.get("extrapolated_s", 0.0)
+    if (isinstance(extrapolated, bool) or not isinstance(extrapolated, float | int)
+            or not math.isfinite(extrapolated) or extrapolated < 0):
+        raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {extrapolated!r}")
+    attributes = _wire_attributes(d.get("attributes", {}))
+    stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
+    return PoseResult(np.array(position), np.array(q) / norm, cov, list(path), edges,
+                      to_local(t_ns), float(extrapolated), stamps, attributes)
+
+
+def _wire_edge(e: Any, i: int, to_local: Callable[[int], int]) -> dict[str, Any]:
+    if not isinstance(e, dict) or e.keys() != _EDGE_FIELDS:
+        raise ValueError(f"edges[{i}]: expected a map with exactly "
+                         f"{', '.join(sorted(_EDGE_FIELDS))}, got {e!r:.100}")
+    if not isinstance(e["inverted"], bool):
+        raise ValueError(f"edges[{i}].inverted: expected a bool, got {e['inverted']!r:.40}")
+    return {"parent": _frame_id(e["parent"], "edges[%d].parent", i),
+            "child": _frame_id(e["child"], "edges[%d].child", i),
+            "forward": not e["inverted"],
+            "owner": _agent_id(e["owner"], "edges[%d].owner", i),
+            "t_ns": to_local(_wire_int(e["t_ns"], "edges[%d].t_ns", i))}
+
+
+@dataclass(frozen=True)
+class EdgeDetail:
+    """One edge of a route as a streaming client mirrors it (:func:`edge_details`)."""
+
+    parent: str
+    child: str
+    source: str
+    static: bool
+    attributes: dict[str, Any]
+    covariance: np.ndarray | None
+    position: list[float] | None = None  # static edges only
+    quaternion: list[float] | None = None
+    key: str | None = None  # measured edges only (None: the agent gave none)
+
+
+def edge_from_wire(e: Any) -> EdgeDetail:
+    """An edge detail as received; ``ValueError`` names what is wrong."""
+    if not isinstance(e, dict):
+        raise ValueError(f"edge details: expected a map, got {e!r:.60}")
+    parent = _frame_id(e.get("parent"), "edge details: parent")
+    child = _frame_id(e.get("child"), "edge details: child")
+    source, attrs = e.get("source"), e.get("attributes") or {}
+    if not isinstance(source, str) or not isinstance(attrs, dict):
+        raise ValueError(f"edge details of {parent}->{child}: source must be a string and "
+                         "attributes a map")
+    cov = e.get("covariance")
+    cov = None if cov is None else _wire_covariance(cov)
+    if e.get("static"):
+        return EdgeDetail(parent, child, source, True, attrs, cov,
+                          _wire_floats(e.get("position"), 3, "position"),
+                          _wire_floats(e.get("quaternion"), 4, "quaternion"))
+    key = e.get("key")
+    return EdgeDetail(parent, child, source, False, attrs, cov,
+                      key=key if isinstance(key, str) and key else None)
+
+
+# ---------------------------------------------------------------------- summaries
+
+@dataclass
+class Summary:
+    """One agent's supernode summary, as received."""
+
+    agent: str
+    rev: int
+    frames: set[str]
+    components: list[set[str]]
+    links: list[tuple[str, str, dict[str, dict[str, Any]]]]
+    instance: str = ""  # the agent process's run id: revisions restart with it
+
+
+def decode_summary(data: bytes) -> Summary:
+    """A summary as published; ``ValueError`` (``DecodeError`` included) says what is
+    wrong."""
+    return parse_summary(decode_message(data, required=("agent", "frames")))
+
+
+def parse_summary(msg: Mapping[str, Any]) -> Summary:
+    """A decoded supernode message as a :class:`Summary`; ``ValueError`` says what is wrong."""
+    agent, frames = msg.get("agent"), msg.get("frames")
+    if not isinstance(agent, str) or not agent:
+        raise ValueError(f"summary: agent must be a non-empty string, got {agent!r}")
+    if not isinstance(frames, list) or not all(isinstance(f, str) for f in frames):
+        raise ValueError("summary: frames must be a list of strings")
+    components = msg.get("components", [])
+    links_in = msg.get("links", [])
+    if not isinstance(components, list) or not isinstance(links_in, list):
+        raise ValueError("summary: components and links must be lists")
+    links = []
+    for link in links_in:
+        if not (isinstance(link, dict) and isinstance(link.get("a"), str)
+                and isinstance(link.get("b"), str) and isinstance(link.get("attrs"), dict)):
+            raise ValueError(f"summary: malformed link {link!r:.120}")
+        attrs = {k: attributes_from_wire(v) for k, v in link["attrs"].items()
+                 if k in SUMMARY_ERRORS and isinstance(v, dict)}
+        if set(attrs) != set(SUMMARY_ERRORS):
+            raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "
+                             f"{', '.join(sorted(set(SUMMARY_ERRORS) - set(attrs)))}")
+        links.append((link["a"], link["b"], attrs))
+    rev, instance = msg.get("rev", 0), msg.get("instance", "")
+    return Summary(agent, rev if isinstance(rev, int) else 0, set(frames),
+                   [set(c) for c in components if isinstance(c, list)], links,
+                   instance if isinstance(instance, str) else "")

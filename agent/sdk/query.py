@@ -1,0 +1,381 @@
+"""One pose query's life, top to bottom: plan, ask, compose, retry.
+
+:meth:`Queries.ask` plans routes over the agents' supernode summaries
+(:mod:`agent.sdk.planner`), asks each owning agent of the best live route for its segment
+at ``t`` (all at once, one round trip; the messages are :mod:`agent.protocol.query`'s),
+composes the answers with their covariances as they arrive, and, if an agent does not
+answer or cannot, tries the next route without it.  ``at`` is on this process's clock;
+each agent's clock offset is estimated from the round trips (:mod:`agent.sdk.clock`) and
+applied both ways.  ``at=None`` means the latest time at which every measured segment of
+the route has data: segments answered at a later time are asked again at that one.
+
+What queries share lives here too: planned routes (until a summary changes), encoded
+requests for the latest time, the answers of all-static segments (until their agent's
+summary changes), and one declared querier per query key.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from agent.errors import UmaError
+from agent.protocol import keys
+from agent.protocol import query as proto
+from agent.runtime.logs import RateLimitedLog
+from agent.sdk.clock import ClockOffsets
+from agent.sdk.planner import (
+    Composition,
+    Route,
+    RouteError,
+    Segment,
+    SegmentError,
+    compose,
+    plan_routes,
+    usable_routes,
+    with_departed,
+)
+from agent.sdk.realm import RealmTracker, RealmView
+from agent.srg.errorfn import ErrorFunction, error_function
+from agent.srg.errors import UnknownFrameError, UnreachableError
+from agent.srg.graph import identity
+from agent.srg.result import PoseResult
+
+log = logging.getLogger("uma.client")
+
+#: routes tried before a query gives up
+MAX_ROUTES = 4
+
+#: one segment's answer: its pose and (when asked for) its edges' details, as sent
+Answer = tuple[PoseResult, list[dict[str, Any]]]
+#: one agent's reply as it arrives: (agent id, decoded reply, our send time, receive time)
+Reply = tuple[str, dict[str, Any], int, int]
+
+
+class NoAgentsError(UmaError):
+    """Nobody in the realm answered."""
+
+
+@dataclass
+class Outcome:
+    """A query's composed pose, and per segment of its route the edges' details (empty
+    unless asked for: a subscription mirrors them)."""
+
+    pose: PoseResult
+    parts: list[tuple[Segment, list[dict[str, Any]]]]
+
+
+class Queries:
+    """Pose queries over one realm (module docstring)."""
+
+    def __init__(self, session: zenoh.Session, realm: str, timeout: float,
+                 tracker: RealmTracker, clock: ClockOffsets, connect: Sequence[str]) -> None:
+        self.session = session
+        self.realm = realm
+        self.timeout = timeout
+        self.tracker = tracker
+        self.clock = clock
+        self.connect = list(connect)
+        self._lock = threading.Lock()
+        self._bad = RateLimitedLog(log)
+        #: planned routes by (source, target, error), for summaries of ``_planned_on``
+        self._routes: dict[tuple[str, str, str], list[Route]] = {}
+        #: encoded requests for the latest time (the same for every query of a round's
+        #: segments), dropped with the routes
+        self._requests: dict[tuple[tuple[Segment, ...], str, bool], bytes] = {}
+        self._planned_on = 0
+        #: answers of all-static segments (valid at all times) by (agent, source, target,
+        #: error), with the (instance, revision) of the agent's summary they belong to
+        self._static: dict[tuple[str, str, str, str], tuple[tuple[str, int], PoseResult]] = {}
+        #: False: ask for every segment every time (the benchmark's uncached figure)
+        self.cache_static_segments = True
+        #: declared queriers by query key (every agent's, or one agent's)
+        self._queriers: dict[str, zenoh.Querier] = {}
+
+    def close(self) -> None:
+        with self._lock:
+            queriers, self._queriers = list(self._queriers.values()), {}
+        for querier in queriers:
+            with contextlib.suppress(zenoh.ZError):
+                querier.undeclare()
+
+    # ------------------------------------------------------------------ one query
+
+    def ask(self, source: str, target: str, at: int | None, error: str,
+            details: bool = False) -> Outcome:
+        """The pose of ``target`` in ``source``'s frame at ``at`` (ns on this clock; None:
+        the latest common time): plan, ask each segment's agent, compose; on to the next
+        route when an agent fails.  ``details``: with every edge's details."""
+        fn = error_function(error)
+        if at is not None and (isinstance(at, bool) or not isinstance(at, (int, np.integer))):
+            raise ValueError(f"at must be integer ns since the epoch or None, got {at!r}")
+        at = None if at is None else int(at)
+        view = self._realm()
+        if source == target and any(source in s.frames for s in view.summaries.values()):
+            return Outcome(identity(source, at), [])
+        view, routes = self._plan(view, source, target, fn)
+        causes: list[SegmentError] = []
+        for route in usable_routes(routes, view.alive, source, target)[:MAX_ROUTES]:
+            asked = time.monotonic()
+            try:
+                return self._along(route, at, fn, details)
+            except SegmentError as exc:
+                causes.append(exc)
+                if exc.missing:
+                    self.tracker.missed(exc.segment.agent, asked)
+        if len(causes) == 1:
+            raise causes[0]
+        raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
+                         f"tried): " + "; ".join(str(c) for c in causes))
+
+    def _realm(self) -> RealmView:
+        """The realm to plan on; ``NoAgentsError`` if nobody is in it."""
+        view = self.tracker.current()
+        if not view.summaries:
+            raise NoAgentsError(
+                f"no agent answered in realm {self.realm!r} within {self.timeout:g} s "
+                f"(connected to {', '.join(self.connect) or 'nothing'}); is 'uma agent' "
+                "running there with the same --realm?")
+        return view
+
+    def _plan(self, view: RealmView, source: str, target: str, fn: ErrorFunction,
+              ) -> tuple[RealmView, list[Route]]:
+        """The routes, best first, and the realm they were planned on.  A frame or a link
+        may be in a summary published before this client's subscription reached its agent
+        (nothing re-sends it): before saying a frame is unknown or the pair unreachable,
+        every agent is asked for its summary."""
+        try:
+            try:
+                return view, self._routes_on(view, source, target, fn)
+            except (UnknownFrameError, UnreachableError):
+                self.tracker.refresh()
+                view = self.tracker.view()
+                return view, self._routes_on(view, source, target, fn)
+        except UnreachableError as exc:
+            raise with_departed(exc, view.summaries, view.alive) from None
+
+    def _routes_on(self, view: RealmView, source: str, target: str,
+                   fn: ErrorFunction) -> list[Route]:
+        with self._lock:
+            if view.summaries_rev != self._planned_on:
+                self._routes.clear()
+                self._requests.clear()
+                self._planned_on = view.summaries_rev
+            routes = self._routes.get((source, target, fn.key))
+        if routes is None:
+            routes = plan_routes(view.summaries, source, target, fn)
+            with self._lock:
+                self._routes[(source, target, fn.key)] = routes
+        return routes
+
+    def _along(self, route: Route, at: int | None, fn: ErrorFunction,
+               details: bool) -> Outcome:
+        """Every segment of ``route`` asked at ``at`` and composed as the answers arrive;
+        at None, at the latest time every measured segment has data."""
+        spec = fn.expr.text if fn.expr is not None else fn.key
+        if at is not None:
+            self._sync_clocks([a for a in route.agents if not self.clock.known(a)])
+        segments = route.segments
+        chain = Composition(len(segments))
+        answers = self._segments(segments, at, spec, details, chain)
+        if at is not None:
+            pose = chain.result(at)
+        else:
+            at, asked_again = self._at_latest_common_time(segments, answers, spec, details)
+            pose = compose([r for r, _ in answers], at) if asked_again else chain.result(at)
+        return Outcome(pose, [(s, edges) for s, (_, edges) in zip(segments, answers,
+                                                                  strict=True)])
+
+    def _at_latest_common_time(self, segments: Sequence[Segment], answers: list[Answer],
+                               spec: str, details: bool) -> tuple[int | None, bool]:
+        """The latest time every measured segment has data (None: none is measured);
+        segments answered at a later one are asked again at it (``answers`` updated in
+        place).  True if any was: the chain composed as they arrived is then stale."""
+        measured = [r.t_ns for r, _ in answers if not r.attributes.get("static")]
+        if not measured:
+            return None, False
+        common = min(measured)
+        again = [i for i, (r, _) in enumerate(answers)
+                 if not r.attributes.get("static") and r.t_ns != common]
+        if again:
+            redo = self._segments([segments[i] for i in again], common, spec, details)
+            for i, answer in zip(again, redo, strict=True):
+                answers[i] = answer
+        return common, bool(again)
+
+    # ------------------------------------------------------------------ asking the agents
+
+    def _segments(self, segments: Sequence[Segment], at: int | None, spec: str,
+                  details: bool, chain: Composition | None = None) -> list[Answer]:
+        """Every segment's answer, in route order (each also added to ``chain`` as soon as
+        it is in).  Cached static segments are not asked for; the others go out in one
+        query per round, a round holding at most one segment per agent (a route may pass
+        through an agent twice)."""
+        answers: dict[int, Answer] = {}
+        pending: list[int] = []
+        for i, seg in enumerate(segments):
+            hit = None if details else self._cached_static(seg, spec)
+            if hit is not None:
+                answers[i] = (hit, [])
+                if chain is not None:
+                    chain.add(i, hit)
+            else:
+                pending.append(i)
+        while pending:
+            round_, later, agents = [], [], set()
+            for i in pending:
+                (later if segments[i].agent in agents else round_).append(i)
+                agents.add(segments[i].agent)
+            answers.update(self._round([(i, segments[i]) for i in round_], at, spec,
+                                       details, chain))
+            pending = later
+        return [answers[i] for i in range(len(segments))]
+
+    def _round(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
+               details: bool, chain: Composition | None) -> dict[int, Answer]:
+        """One query to the agents of ``todo`` (one segment each); SegmentError names the
+        first segment (in route order) that failed.  Each answer is checked as it arrives,
+        while the slower agents are still computing theirs."""
+        index = {seg.agent: (i, seg) for i, seg in todo}
+        got: dict[int, Answer | SegmentError] = {}
+        request = self._request([seg for _, seg in todo], at, spec, details)
+        for agent, reply, t1, t4 in self.answers(request, list(index)):
+            if agent in index and index[agent][0] not in got:
+                i, seg = index[agent]
+                got[i] = answer = self._segment_answer(seg, spec, reply, t1, t4)
+                if chain is not None and not isinstance(answer, SegmentError):
+                    chain.add(i, answer[0])
+        out = {}
+        for i, seg in todo:
+            answer = got.get(i)
+            if answer is None:
+                raise SegmentError(seg, f"agent {seg.agent!r} did not answer within "
+                                        f"{self.timeout:g} s (gone or unreachable)", True)
+            if isinstance(answer, SegmentError):
+                raise answer
+            out[i] = answer
+        return out
+
+    def _request(self, segments: Sequence[Segment], at: int | None, spec: str,
+                 details: bool) -> bytes:
+        """The request for one round; one for the latest time is encoded once."""
+        key = (tuple(segments), spec, details)
+        with self._lock:
+            request = self._requests.get(key) if at is None else None
+        if request is None:
+            request = proto.segments_request({
+                seg.agent: proto.SegmentRequest(
+                    seg.source, seg.target, spec,
+                    None if at is None else self.clock.to_remote(seg.agent, at), details)
+                for seg in segments})
+            if at is None:
+                with self._lock:
+                    self._requests[key] = request
+        return request
+
+    def _segment_answer(self, seg: Segment, spec: str, reply: dict[str, Any], t1: int,
+                        t4: int) -> Answer | SegmentError:
+        """One agent's answer to its segment, or the error saying why it is unusable."""
+        self._clock_sample(seg.agent, reply, t1, t4)
+        offset = self.clock.offset(seg.agent) or 0
+        try:
+            answer = proto.read_segment_reply(reply, lambda t: t - offset)
+        except proto.RefusedError as exc:
+            return SegmentError(seg, str(exc), False)
+        except (KeyError, TypeError, ValueError) as exc:
+            return SegmentError(seg, f"malformed answer: {exc}", False)
+        if self.cache_static_segments and answer[0].attributes.get("static"):
+            self._remember_static(seg, spec, answer[0])
+        return answer
+
+    # ------------------------------------------------------------------ static segments
+
+    def _cached_static(self, seg: Segment, spec: str) -> PoseResult | None:
+        """The answer of a static segment if still valid: the owning agent's summary has not
+        changed since (any change of its edges or their attributes republishes it)."""
+        if not self.cache_static_segments:
+            return None
+        hit = self._static.get((seg.agent, seg.source, seg.target, spec))
+        if hit is not None and hit[0] == self.tracker.summary_version(seg.agent):
+            return hit[1]
+        return None
+
+    def _remember_static(self, seg: Segment, spec: str, result: PoseResult) -> None:
+        version = self.tracker.summary_version(seg.agent)
+        if version is not None:
+            self._static[(seg.agent, seg.source, seg.target, spec)] = (version, result)
+
+    # ------------------------------------------------------------------ clocks
+
+    def _sync_clocks(self, agents: Sequence[str]) -> None:
+        """One clock round trip to every agent (all answer the same query)."""
+        if not agents:
+            return
+        for agent, reply, t1, t4 in self.answers(proto.clock_request()):
+            self._clock_sample(agent, reply, t1, t4)
+
+    def probe(self, agent: str) -> bool:
+        """One clock round trip to ``agent`` alone; True if it answered."""
+        answered = False
+        try:
+            for who, reply, t1, t4 in self.answers(proto.clock_request(), [agent]):
+                self._clock_sample(who, reply, t1, t4)
+                answered = answered or who == agent
+        except zenoh.ZError as exc:
+            self._bad.warning("probe", f"asking agent {agent!r}: {exc}")
+        return answered
+
+    def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
+        times = proto.reply_times(reply)
+        if times is not None:
+            self.clock.add(agent, t1, times[0], times[1], t4)
+
+    # ------------------------------------------------------------------ transport
+
+    def answers(self, request: bytes, agents: Sequence[str] = ()) -> Iterator[Reply]:
+        """One query (an encoded request) to the query key of every agent (or of the only
+        one in ``agents``); yields each answer as it arrives.  One query rather than one
+        per agent: a ``get`` costs about as much to issue as a loopback round trip.  Ends
+        as soon as every agent in ``agents`` has answered (else when the query ends: all
+        agents are done, or the timeout)."""
+        expected, seen = set(agents), set()
+        selector = (keys.agent_query(self.realm, agents[0]) if len(agents) == 1
+                    else keys.all_agent_queries(self.realm))
+        t1 = time.time_ns()
+        # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
+        # that wakes this thread through an Event (the GIL hand-off costs that much).  The
+        # query's timeout closes the channel, so the loop always ends.
+        for reply in self._querier(selector).get(payload=request):
+            t4 = time.time_ns()
+            if reply.ok is None:
+                continue
+            key = str(reply.ok.key_expr)
+            agent = keys.parse_agent_query(key, self.realm)
+            if agent is None:
+                self._bad.warning("query reply", f"unexpected key {key!r}")
+                continue
+            yield agent, proto.decode_reply(reply.ok.payload.to_bytes()), t1, t4
+            seen.add(agent)
+            if expected and expected <= seen:
+                return  # no need to wait for agents that have nothing to say
+
+    def _querier(self, key: str) -> zenoh.Querier:
+        """The querier of one query key, declared once: Zenoh then resolves the key
+        expression once rather than at every get.  No consolidation: every agent replies on
+        its own key, so there is nothing to merge, and the default would hold every answer
+        back until the slowest agent is done."""
+        with self._lock:
+            querier = self._queriers.get(key)
+            if querier is None:
+                querier = self.session.declare_querier(
+                    key, timeout=self.timeout, consolidation=zenoh.ConsolidationMode.NONE)
+                self._queriers[key] = querier
+        return querier

@@ -1,0 +1,249 @@
+"""What a client knows of its realm: the agents' supernode summaries and which agents are
+alive, kept true by their tokens and summaries, and by probing agents that missed an answer.
+
+An agent is alive while its token is there, and as soon as it shows life (a new token or
+summary).  One that missed an answer counts as gone until it shows life again, or answers
+the probe it gets every ``PROBE_S`` while its token is still there (it may only have been
+slow).  ``topology`` moves whenever a summary or the set of live agents changes (the
+subscriptions re-plan when it does); ``summaries_rev`` only when a summary does (routes
+planned before are stale).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from agent.protocol import keys
+from agent.protocol.query import Summary, decode_summary
+from agent.runtime.logs import RateLimitedLog
+
+log = logging.getLogger("uma.client")
+
+#: how long the first look at the realm waits for the set of agents to settle
+SETTLE_S = 0.15
+#: how often an agent that missed an answer, its token still there, is asked whether it
+#: answers again
+PROBE_S = 2.0
+
+
+@dataclass(frozen=True)
+class RealmView:
+    """The summaries and live agents at one moment; ``summaries_rev`` tells whether routes
+    planned on them are stale."""
+
+    summaries: dict[str, Summary]
+    alive: set[str]
+    summaries_rev: int
+
+
+class RealmTracker:
+    """The summaries, live agents and suspects of one realm (module docstring), under one
+    lock.  ``probe(agent)`` asks one agent whether it answers (True if it did)."""
+
+    def __init__(self, session: zenoh.Session, realm: str, timeout: float,
+                 probe: Callable[[str], bool]) -> None:
+        self.session = session
+        self.realm = realm
+        self.timeout = timeout
+        self._probe = probe
+        self._lock = threading.Lock()
+        self._bad = RateLimitedLog(log)
+        self._summaries: dict[str, Summary] = {}
+        self._alive: set[str] = set()
+        #: when each agent last showed life (its token or a summary; monotonic s): a missed
+        #: answer marks it gone only if that came before the query went out
+        self._heard: dict[str, float] = {}
+        #: agents whose token was seen removed (and not declared again)
+        self._departed: set[str] = set()
+        #: agents marked gone after a missed answer, not by their token: probed every
+        #: PROBE_S by a thread that runs while there are any
+        self._suspects: set[str] = set()
+        self._prober: threading.Thread | None = None
+        self._closing = threading.Event()
+        self.topology = 0
+        self.summaries_rev = 0
+        self._looked = False
+        self._decls = [
+            session.declare_subscriber(keys.all_agent_supernodes(realm), self._on_summary),
+            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
+                                                    self._on_token, history=True),
+        ]
+
+    def close(self) -> None:
+        """Stop probing and listening (the session stays open)."""
+        self._closing.set()
+        prober = self._prober
+        if prober is not None:
+            prober.join(PROBE_S + self.timeout)
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()
+
+    # ------------------------------------------------------------------ what is known
+
+    def view(self) -> RealmView:
+        with self._lock:
+            return RealmView(dict(self._summaries), set(self._alive), self.summaries_rev)
+
+    def current(self) -> RealmView:
+        """The realm to plan a query on: looked at first if it never was or nobody is
+        known, refreshed if an agent appeared whose summary has not come yet."""
+        view = self.view()
+        if not self._looked or not view.summaries:
+            self.look()
+        elif view.alive - set(view.summaries):
+            self.refresh()
+        else:
+            return view
+        return self.view()
+
+    def is_alive(self, agent: str) -> bool:
+        with self._lock:
+            return agent in self._alive
+
+    def summary_version(self, agent: str) -> tuple[str, int] | None:
+        """``(instance, rev)`` of the agent's summary (any change of its edges or their
+        attributes moves it), None if unknown."""
+        with self._lock:
+            s = self._summaries.get(agent)
+            return None if s is None else (s.instance, s.rev)
+
+    def agents(self) -> dict[str, dict[str, Any]]:
+        """The agents known: alive or not, and their frames."""
+        if not self._looked:
+            self.look()
+        with self._lock:
+            return {a: {"alive": a in self._alive, "frames": sorted(s.frames)}
+                    for a, s in self._summaries.items()}
+
+    # ------------------------------------------------------------------ asking the realm
+
+    def refresh(self) -> None:
+        """Ask every agent for its summary now (also learns who is alive)."""
+        alive = set()
+        for reply in self.session.liveliness().get(keys.all_agent_tokens(self.realm),
+                                                   timeout=self.timeout):
+            if reply.ok is not None:
+                agent = keys.parse_agent_token(str(reply.ok.key_expr), self.realm)
+                if agent is not None:
+                    alive.add(agent)
+        with self._lock:
+            # a token whose removal was seen can still be in the answer (a peer not yet
+            # done with the departure): only a new token brings it back
+            for agent in alive - self._departed:
+                self._mark_alive(agent, True)
+        for reply in self.session.get(keys.all_agent_supernodes(self.realm),
+                                      timeout=self.timeout):
+            if reply.ok is not None:
+                self.take_summary(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+    def look(self) -> None:
+        """The first look at the realm: refresh until the set of agents stops growing
+        (peers learn of each other by gossip within tens of ms), bounded by the timeout."""
+        deadline = time.monotonic() + self.timeout
+        seen: set[str] = set()
+        while True:
+            self.refresh()
+            with self._lock:
+                now = set(self._summaries)
+            if now and now == seen:
+                break
+            seen = now
+            if time.monotonic() + SETTLE_S > deadline:
+                break
+            time.sleep(SETTLE_S)
+        self._looked = True
+
+    # ------------------------------------------------------------------ what comes in
+
+    def _on_summary(self, sample: zenoh.Sample) -> None:
+        self.take_summary(str(sample.key_expr), sample.payload.to_bytes())
+
+    def take_summary(self, key: str, data: bytes) -> None:
+        """A summary published or answered on ``key``: newer ones replace the known one."""
+        try:
+            summary = decode_summary(data)
+        except ValueError as exc:
+            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
+            return
+        with self._lock:
+            old = self._summaries.get(summary.agent)
+            if old is None or summary.rev > old.rev or summary.instance != old.instance:
+                self._summaries[summary.agent] = summary
+                self.summaries_rev += 1
+                self.topology += 1
+            self._mark_alive(summary.agent, True)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
+        if agent is None:
+            return
+        with self._lock:
+            gone = sample.kind == zenoh.SampleKind.DELETE
+            (self._departed.add if gone else self._departed.discard)(agent)
+            self._suspects.discard(agent)  # its token says what it is now
+            self._mark_alive(agent, not gone)
+
+    def _mark_alive(self, agent: str, alive: bool) -> None:
+        """Update the live set (lock held); a change moves ``topology``."""
+        if alive:
+            self._heard[agent] = time.monotonic()
+            self._suspects.discard(agent)
+        if (agent in self._alive) != alive:
+            self.topology += 1
+            (self._alive.add if alive else self._alive.discard)(agent)
+
+    # ------------------------------------------------------------------ missed answers
+
+    def missed(self, agent: str, asked: float) -> None:
+        """``agent`` did not answer a query sent at ``asked``: count it as gone, unless it
+        showed life since (a query that reached a restarting agent's old self gets no
+        answer, and marking it gone after its new token and summary came would outlive them:
+        nothing else would bring it back).  Unless its token is gone too, it is probed
+        until it answers again: it may only have been slow."""
+        with self._lock:
+            if self._heard.get(agent, -math.inf) >= asked:
+                return
+            self._mark_alive(agent, False)
+            if agent in self._departed:
+                return
+            self._suspects.add(agent)
+            if self._prober is None and not self._closing.is_set():
+                self._prober = threading.Thread(target=self._probe_suspects,
+                                                name="uma-client-probe", daemon=True)
+                self._prober.start()
+
+    def _probe_suspects(self) -> None:
+        """Ask the agents that missed an answer whether they answer now; one that does is
+        alive again, and subscriptions re-plan (and move back to it if it is on their best
+        route).  Runs on its own thread: an agent still too slow costs a query timeout."""
+        try:
+            while not self._closing.wait(PROBE_S):
+                with self._lock:
+                    suspects = sorted(self._suspects)
+                    if not suspects:  # done, in the lock in which missed would start one
+                        self._prober = None
+                        return
+                for agent in suspects:
+                    self._probe_one(agent)
+        finally:
+            with self._lock:
+                if self._prober is threading.current_thread():
+                    self._prober = None
+
+    def _probe_one(self, agent: str) -> None:
+        if not self._probe(agent):
+            return
+        with self._lock:
+            if agent in self._suspects:
+                self._mark_alive(agent, True)

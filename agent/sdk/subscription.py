@@ -1,0 +1,320 @@
+"""A subscription: a stream of composed poses that follows route changes.
+
+:meth:`agent.sdk.client.Client.subscribe` runs the query once with edge details, then a
+:class:`Subscription` mirrors the route's edges in a local :class:`agent.srg.Graph`: static
+edges from the answers, measured ones fed by subscribing directly to their services' data
+keys.  Each sample of the fastest edge pushes a composed pose at its time; the other edges
+are interpolated (or boundedly extrapolated) at that time: Ubitrack's push/pull rule.
+``on_pose`` runs on the subscription's own thread, never on a Zenoh thread.
+
+It follows the realm: whenever the client's ``topology`` moves it plans again, and if the
+best route (or any edge of it) differs it rebuilds its mirror on the new route.  Of its
+client it uses only the :class:`agent.sdk.query.Queries` (the query with details, the
+session, the clock) and that one's :class:`agent.sdk.realm.RealmTracker` (``topology``,
+who is alive); the client's own docstring describes outages and stalls.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from agent.errors import UmaError
+from agent.protocol.query import edge_from_wire
+from agent.runtime.logs import RateLimitedLog
+from agent.sdk.planner import Segment, SegmentError
+from agent.sdk.query import Outcome, Queries
+from agent.srg import Graph
+from agent.srg.attributes import EDGE_ATTRIBUTES
+from agent.srg.errors import EdgeUndefinedError
+from agent.srg.result import PoseResult
+from schemas.codec import DecodeError, decode_measurement
+
+log = logging.getLogger("uma.client")
+
+#: how often a subscription without a route tries again (besides at every realm change)
+RETRY_S = 1.0
+#: a subscription's fastest edge silent this many of its sample periods, and at least
+#: STALL_MIN_S, is a stall (a route change takes up to a lease, 1 s, without samples)
+STALL_PERIODS = 10
+STALL_MIN_S = 1.5
+#: the states in which a subscription holds a route's mirror
+_ON_ROUTE = ("streaming", "stalled")
+
+
+#: what a route's mirror is made of: per segment, its agent and each edge's identity and
+#: value (a different data key, attribute or static value means a different mirror)
+Signature = tuple[tuple[str, tuple[tuple[Any, ...], ...]], ...]
+
+
+def _signature(parts: list[tuple[Segment, list[dict[str, Any]]]]) -> Signature:
+    """What the mirror of ``parts`` is made of, comparable and hashable."""
+    def frozen(v: Any) -> Any:
+        if isinstance(v, dict):
+            return tuple(sorted((k, frozen(x)) for k, x in v.items()))
+        if isinstance(v, list | tuple):
+            return tuple(frozen(x) for x in v)
+        return v
+    return tuple((seg.agent, tuple(frozen(e) for e in edges)) for seg, edges in parts)
+
+
+class Subscription:
+    """A running stream of composed poses that follows route changes; ``close()`` stops it.
+
+    ``status``: ``"streaming"``, ``"stalled"`` (on a route, but no sample of its fastest
+    edge for ``stall_limit_s``), ``"no route"`` or ``"closed"``; ``route``: the segments
+    in use; ``replans``: how many times it moved to another route; ``stalls``: how many
+    times its route fell silent; ``last_error``: the latest failure (bad sample, undefined
+    pull, stall, no route).
+    """
+
+    def __init__(self, queries: Queries, source: str, target: str,
+                 on_pose: Callable[[PoseResult], Any], error: str,
+                 on_error: Callable[[Exception], Any] | None, first: Outcome,
+                 topology: int, stall_s: float | None = None,
+                 on_close: Callable[[Subscription], Any] = lambda sub: None) -> None:
+        self.queries = queries
+        self._on_close = on_close
+        self._bad = RateLimitedLog(log)
+        self.source, self.target = source, target
+        self.on_pose = on_pose
+        self.on_error = on_error
+        self.error = error
+        self.delivered = 0
+        self.failed = 0
+        self.replans = 0
+        self.stalls = 0
+        self.last_error: Exception | None = None
+        self.status = "streaming"
+        self.stall_s = stall_s
+        self.stall_limit_s = math.inf  # set for each route by _build
+        self._last_push = time.monotonic()
+        self.route: list[Segment] = []
+        self.graph = Graph(buffer_s=5.0)
+        self.pusher: tuple | None = None
+        self._q: queue.Queue[tuple[str, str, bytes] | None] = queue.Queue(10_000)
+        self._decls: list[Any] = []
+        self._feeds: dict[str, tuple[str, str, tuple, float]] = {}
+        self._signature: Signature | None = None
+        self._topology = topology
+        self._next_retry = math.inf
+        self._closed = threading.Event()
+        self._build(first)
+        self._thread = threading.Thread(target=self._work, name="uma-subscription",
+                                        daemon=True)
+        self._thread.start()
+
+    # -- the mirror of one route
+    def _build(self, outcome: Outcome) -> None:
+        """Mirror the route of a query with details (dropping any previous mirror) and
+        subscribe."""
+        parts = outcome.parts
+        self._unsubscribe()
+        self.graph = Graph(buffer_s=5.0)
+        feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
+        for seg, edges in parts:
+            for e in edges:
+                feeds += self._mirror(seg.agent, e)
+        self.pusher = max(feeds, key=lambda f: f[3])[2] if feeds else None
+        self.stall_limit_s = self._stall_limit(max((f[3] for f in feeds), default=0.0))
+        self._last_push = time.monotonic()
+        rates = [f[3] for f in feeds if f[3] > 0]
+        if rates:  # a pulled edge may be extrapolated up to two of its sample periods
+            self.graph.max_extrapolation_s = max(self.graph.max_extrapolation_s,
+                                                 2.0 / min(rates))
+        self._feeds = {f[1]: f for f in feeds}
+        self.route = [seg for seg, _ in parts]
+        self._signature = _signature(parts)
+        self.status = "streaming"
+        self._next_retry = math.inf
+        session = self.queries.session
+        for agent, key, _, _ in feeds:
+            # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
+            # composed and delivered on this subscription's own thread
+            self._decls.append(session.declare_subscriber(
+                key, zenoh.handlers.Callback(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
+                                             indirect=False)))
+        if not feeds:  # all static: the one answer is the stream
+            self._deliver(outcome.pose)
+
+    def _stall_limit(self, pusher_hz: float) -> float:
+        """How long the fastest edge may be silent: ``stall_s``, or ``STALL_PERIODS`` of its
+        advertised periods (never for a route without measured edges or stated rate)."""
+        if self.pusher is None:
+            return math.inf
+        if self.stall_s is not None:
+            return self.stall_s
+        return max(STALL_MIN_S, STALL_PERIODS / pusher_hz) if pusher_hz > 0 else math.inf
+
+    def _unsubscribe(self) -> None:
+        for decl in self._decls:
+            with contextlib.suppress(zenoh.ZError):
+                decl.undeclare()
+        self._decls.clear()
+        self._feeds = {}
+
+    def _mirror(self, agent: str, wire: dict[str, Any]) -> list[tuple[str, str, tuple, float]]:
+        """Copy one edge of the route into the local graph; measured ones become feeds."""
+        e = edge_from_wire(wire)
+        source = f"{agent}/{e.source}"
+        attrs = {k: v for k, v in e.attributes.items()
+                 if k in EDGE_ATTRIBUTES and k not in ("covariance", "static")}
+        if e.static:
+            self.graph.add_static(e.parent, e.child, e.position, e.quaternion,
+                                  covariance=e.covariance, source=source, **attrs)
+            return []
+        if e.key is None:
+            raise UmaError(f"agent {agent!r} gave no data key for edge "
+                           f"{e.parent}->{e.child} [{e.source}]")
+        if e.covariance is not None:
+            attrs["covariance"] = e.covariance
+        key = self.graph.declare_measured(e.parent, e.child, source=source, **attrs)
+        return [(agent, e.key, key, float(attrs.get("frequency_hz", 0.0)))]
+
+    # -- following the realm
+    def _follow(self) -> None:
+        """Plan again if the realm changed (or, without a route, when it is time to retry);
+        move to the new route if it differs from the mirrored one."""
+        topology = self.queries.tracker.topology
+        if topology == self._topology and time.monotonic() < self._next_retry:
+            return
+        self._topology = topology
+        try:
+            outcome = self.queries.ask(self.source, self.target, None, self.error,
+                                       details=True)
+            if self._closed.is_set() or (_signature(outcome.parts) == self._signature
+                                         and self.status in _ON_ROUTE):
+                return
+            was = [s.agent for s in self.route] if self.status in _ON_ROUTE else None
+            self._build(outcome)
+        except (LookupError, UmaError, ValueError) as exc:
+            self._lost(exc)
+            return
+        self.replans += 1
+        log.info("subscription %s -> %s: now via %s (%s)", self.source, self.target,
+                 ", ".join(str(s) for s in self.route),
+                 "no route before" if was is None else f"was via agents {', '.join(was)}")
+
+    def _lost(self, exc: Exception) -> None:
+        """Planning failed.  A segment that failed while every agent of the mirrored route
+        is alive may be transient (an answer late on a loaded machine): keep streaming.
+        Otherwise stop delivering, say so once, and retry."""
+        self.last_error = exc
+        self._next_retry = time.monotonic() + RETRY_S
+        if (self.status in _ON_ROUTE and isinstance(exc, SegmentError)
+                and all(self.queries.tracker.is_alive(s.agent) for s in self.route)):
+            self._bad.warning(f"subscription {self.source} -> {self.target}",
+                                     f"re-planning failed, route kept: {exc}")
+            return
+        if self.status == "no route":
+            return
+        self._unsubscribe()
+        self.status = "no route"
+        log.warning("subscription %s -> %s: no route (%s); will resume when one appears",
+                    self.source, self.target, exc)
+        if self.on_error is not None:
+            try:
+                self.on_error(exc)
+            except Exception as cb_exc:
+                self._bad.warning("on_error", f"{type(cb_exc).__name__}: {cb_exc}")
+
+    # -- samples
+    def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
+        try:
+            self._q.put_nowait((agent, key, sample.payload.to_bytes()))
+        except queue.Full:
+            self._bad.warning(f"subscription {key}", "queue full; sample dropped")
+
+    def _work(self) -> None:
+        while not self._closed.is_set():
+            try:
+                item = self._q.get(timeout=0.2)
+            except queue.Empty:
+                item = ()
+            if item is None:
+                return
+            try:
+                self._follow()
+            except Exception:  # a bug must not stop the stream; log it with its traceback
+                log.exception("subscription %s -> %s: re-planning failed", self.source,
+                              self.target)
+            if item:
+                self._on_sample(*item)
+            self._check_stall()
+
+    def _check_stall(self) -> None:
+        """On a route whose fastest edge has been silent too long: say so, once."""
+        silent = time.monotonic() - self._last_push
+        if self.status != "streaming" or silent <= self.stall_limit_s:
+            return
+        self.status = "stalled"
+        self.stalls += 1
+        edge = f"{self.pusher[0]} -> {self.pusher[1]}" if self.pusher else "?"
+        self.last_error = UmaError(
+            f"subscription {self.source} -> {self.target}: no sample of its fastest edge "
+            f"{edge} for {silent:.1f} s, though the agents of its route "
+            f"({', '.join(s.agent for s in self.route)}) are alive")
+        log.warning("%s; staying on the route", self.last_error)
+
+    def _pushed(self) -> None:
+        """A sample of the fastest edge arrived: a stalled route streams again."""
+        now = time.monotonic()
+        if self.status == "stalled":
+            self.status = "streaming"
+            log.info("subscription %s -> %s: samples again after %.1f s", self.source,
+                     self.target, now - self._last_push)
+        self._last_push = now
+
+    def _on_sample(self, agent: str, key: str, data: bytes) -> None:
+        feed = self._feeds.get(key)
+        if feed is None:
+            return  # a sample of a route left meanwhile
+        edge_key = feed[2]
+        try:
+            m = decode_measurement(data, expected_type="pose6d")
+            t = self.queries.clock.to_local(agent, m.t_ns)
+            self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
+                                       m.quaternion, m.covariance, source=edge_key[2])
+        except (DecodeError, ValueError) as exc:
+            self.failed += 1
+            self.last_error = exc
+            self._bad.warning(f"subscription {key}", f"bad sample: {exc}")
+            return
+        if edge_key != self.pusher:
+            return
+        self._pushed()
+        try:
+            result = self.graph.pose(self.source, self.target, at=t, error="hops")
+        except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
+            self.failed += 1
+            self.last_error = exc
+            return
+        self._deliver(result)
+
+    def _deliver(self, result: PoseResult) -> None:
+        try:
+            self.on_pose(result)
+            self.delivered += 1
+        except Exception as exc:
+            self.failed += 1
+            self.last_error = exc
+            self._bad.warning("on_pose", f"{type(exc).__name__}: {exc}")
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        with contextlib.suppress(queue.Full):
+            self._q.put_nowait(None)
+        self._thread.join(1.0 + self.queries.timeout)
+        self._unsubscribe()
+        self.status = "closed"
+        self._on_close(self)
