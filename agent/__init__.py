@@ -18,7 +18,7 @@ __all__ = ["Client", "Graph", "Match", "Measurement", "PoseResult", "Service", "
 _LAZY = {
     "Service": "agent.sdk.service",            # declare needs and abilities, publish
     "Client": "agent.sdk.client",              # pose queries and subscriptions
-    "Subscription": "agent.sdk.client",        # what Client.subscribe returns
+    "Subscription": "agent.sdk.subscription",  # what Client.subscribe returns
     "Match": "agent.protocol.registration",    # an ability a need is connected to
     "Measurement": "schemas.codec",            # what a need's on_sample receives
     "PoseResult": "agent.srg.result",          # what a query returns

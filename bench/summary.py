@@ -23,3 +23,17 @@ def median_p99(samples: ArrayLike, unit: str) -> dict[str, float]:
     if a.size == 0:
         raise ValueError(f"median_p99: no samples to summarise (unit {unit!r})")
     return {f"median_{unit}": float(np.median(a)), f"p99_{unit}": float(np.percentile(a, 99))}
+
+
+def cpu_model() -> str:
+    """The CPU the figures were measured on (``/proc/cpuinfo``'s model name, and the count
+    of CPUs this process may use): figures of different machines do not compare."""
+    import os
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next((line.split(":", 1)[1].strip() for line in f
+                         if line.startswith("model name")), "unknown")
+    except OSError:
+        name = "unknown"
+    return f"{name} ({len(os.sched_getaffinity(0))} CPUs)"
