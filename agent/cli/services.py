@@ -28,7 +28,8 @@ from agent.runtime.session import close_session, open_session, query, sdk_mode
 from schemas.codec import DecodeError
 from schemas.models import ServiceDescriptor
 
-#: how long the set of live agents must stay unchanged before asking them
+#: how long the set of live agents must stay unchanged before asking them, for a peer that
+#: just joined (gossip still links it to agents); a client sees what its agent knows at once
 SETTLE_S = 0.15
 
 
@@ -43,7 +44,8 @@ def live_agents(session: zenoh.Session, realm: str, timeout: float) -> set[str]:
     return found
 
 
-def collect(session: zenoh.Session, realm: str, timeout: float) -> dict[str, Any]:
+def collect(session: zenoh.Session, realm: str, timeout: float,
+            settle_s: float = SETTLE_S) -> dict[str, Any]:
     """The realm as one JSON-able dict (agents sorted by id)."""
     deadline = time.monotonic() + timeout
     seen: set[str] = set()
@@ -52,7 +54,7 @@ def collect(session: zenoh.Session, realm: str, timeout: float) -> dict[str, Any
         now_seen = live_agents(session, realm, min(0.5, max(0.05, deadline - time.monotonic())))
         if now_seen != seen:
             seen, stable_since = now_seen, time.monotonic()
-        elif seen and time.monotonic() - stable_since >= SETTLE_S:
+        if seen and time.monotonic() - stable_since >= settle_s:
             break
         time.sleep(0.03)
     agents: dict[str, Any] = {}
@@ -138,10 +140,12 @@ def main(args: argparse.Namespace) -> int:
     """Handler of ``uma services``."""
     if args.timeout <= 0:
         raise UmaError(f"--timeout must be positive, got {args.timeout}")
-    session = open_session(sdk_mode(None, args.connect), None, args.connect, args.realm,
+    mode = sdk_mode(None, args.connect)
+    session = open_session(mode, None, args.connect, args.realm,
                            require_connection=bool(args.connect))
     try:
-        realm = collect(session, args.realm, args.timeout)
+        realm = collect(session, args.realm, args.timeout,
+                        settle_s=0.0 if mode == "client" else SETTLE_S)
     finally:
         close_session(session)
     print(json.dumps(realm) if args.json else format_realm(realm))
