@@ -39,6 +39,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from agent.srg import geometry as geo
+from services.fusion.state import check_config
 
 #: below this rotation per step (rad) the coefficient functions use their Taylor series
 _SERIES_BELOW = 0.2
@@ -81,18 +82,10 @@ class PredictorConfig:
     max_gap_s: float = 0.5             # a longer silence restarts the filter
 
     def __post_init__(self) -> None:
-        for name in ("point_std_m", "lever_m", "max_gap_s", "manoeuvre_nis"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"predictor config: {name} must be a positive number, "
-                                 f"got {value!r}")
-        for name in ("omega_walk", "velocity_walk", "accel_walk"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"predictor config: {name} must be >= 0, got {value!r}")
-        if len(self.initial_std) != 3 or not all(s > 0 for s in self.initial_std):
-            raise ValueError("predictor config: initial_std needs three positive numbers "
-                             f"(omega, v, a), got {self.initial_std!r}")
+        check_config(self, "predictor config",
+                     positive=("point_std_m", "lever_m", "max_gap_s", "manoeuvre_nis"),
+                     non_negative=("omega_walk", "velocity_walk", "accel_walk"),
+                     initial_std="omega, v, a")
 
 
 @dataclass(frozen=True)

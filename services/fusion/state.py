@@ -88,6 +88,26 @@ class AccelModel:
         return cls(r, n, var, latency_s)
 
 
+def check_config(config: object, what: str, positive: tuple[str, ...],
+                 non_negative: tuple[str, ...], initial_std: str) -> None:
+    """The checks every filter configuration needs: finite positive and non-negative
+    settings, and one positive initial standard deviation per state block (``initial_std``
+    names the blocks); ``ValueError`` names the setting."""
+    for name in positive:
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{what}: {name} must be a positive number, got {value!r}")
+    for name in non_negative:
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{what}: {name} must be >= 0, got {value!r}")
+    blocks = initial_std.split(", ")
+    stds = config.initial_std  # type: ignore[attr-defined]
+    if len(stds) != len(blocks) or not all(x > 0 for x in stds):
+        raise ValueError(f"{what}: initial_std needs {len(blocks)} positive numbers "
+                         f"({initial_std}), got {stds!r}")
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Noise model and behaviour of the filter (SI units); docs/FUSION_TUNING.md has the
@@ -144,19 +164,12 @@ class FusionConfig:
     optical_bias_tau_s: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
-                     "max_step_s", "initial_bias_std", "optical_bias_tau_s",
-                     "linear_jerk_tau_s", "angular_jerk_tau_s", "start_max_gap_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"fusion config: {name} must be positive, got {value!r}")
-        for name in ("optical_bias_std", "linear_jerk_std", "angular_jerk_std"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"fusion config: {name} must be >= 0, got {value!r}")
-        if len(self.initial_std) != 5 or not all(s > 0 for s in self.initial_std):
-            raise ValueError("fusion config: initial_std needs 5 positive numbers (omega, "
-                             "omega_dot, v, alpha, spare)")
+        check_config(self, "fusion config",
+                     positive=("angular_jerk_psd", "linear_jerk_psd", "accel_gate", "pose_gate",
+                               "max_step_s", "initial_bias_std", "optical_bias_tau_s",
+                               "linear_jerk_tau_s", "angular_jerk_tau_s", "start_max_gap_s"),
+                     non_negative=("optical_bias_std", "linear_jerk_std", "angular_jerk_std"),
+                     initial_std="omega, omega_dot, v, alpha, spare")
 
 
 @dataclass(frozen=True)
