@@ -25,7 +25,11 @@ import time
 import uuid
 from pathlib import Path
 
+from summary import median_p99, report
+
 ROOT = Path(__file__).resolve().parents[1]
+#: the harness (tests/agent_helpers) is imported by the functions that use it, so that the
+#: probe mode, which times the imports of `uma services`, does not count its imports
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 CPU_WINDOW_S = 5.0
 
@@ -40,8 +44,7 @@ def process_age_s() -> float:
 def probe(realm: str, connect: str) -> int:
     """Child mode, run on the client host: the phases of one ``uma services``, in s (this
     mode imports only what ``uma services`` does)."""
-    # what `uma services` imports (main: its grammar); imported here so that the harness
-    # imported by the other mode does not count
+    # what `uma services` imports (main: its grammar)
     from agent.cli import main, services  # noqa: F401
     from agent.protocol import keys
     from agent.runtime.session import close_session, open_session, query
@@ -74,15 +77,14 @@ def cpu_model() -> str:
 
 
 def spread(name: str, values: list[float], unit: str) -> dict[str, float]:
-    """Mean and max of per-process figures, keyed ``<name>_mean_<unit>``, ``_max_``."""
-    return {f"{name}_mean_{unit}": statistics.fmean(values), f"{name}_max_{unit}": max(values)}
+    """Mean, max and total of per-process figures, keyed ``<name>_mean_<unit>`` etc."""
+    return {f"{name}_mean_{unit}": statistics.fmean(values), f"{name}_max_{unit}": max(values),
+            f"{name}_total_{unit}": sum(values)}
 
 
 def measure(args: argparse.Namespace) -> dict[str, object]:
     from agent_helpers import scale
     from agent_helpers.site import Site
-    from summary import median_p99
-
     realm = f"bench{uuid.uuid4().hex[:8]}"
     site = Site(args.agents + 1).build()
     try:
@@ -132,11 +134,7 @@ def main() -> int:
     if reason:
         print(f"bench_site_scale: {reason}", file=sys.stderr)
         return 2
-    figures = measure(args)
-    for k, v in figures.items():
-        print(f"{k:40s} {v:.3f}" if isinstance(v, float) else f"{k:40s} {v}")
-    if args.json:
-        print(json.dumps(figures))
+    report(measure(args), args.json)
     return 0
 
 

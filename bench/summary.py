@@ -9,6 +9,8 @@ import it as ``from summary import median_p99``.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -23,3 +25,12 @@ def median_p99(samples: ArrayLike, unit: str) -> dict[str, float]:
     if a.size == 0:
         raise ValueError(f"median_p99: no samples to summarise (unit {unit!r})")
     return {f"median_{unit}": float(np.median(a)), f"p99_{unit}": float(np.percentile(a, 99))}
+
+
+def report(figures: dict[str, object], as_json: bool) -> None:
+    """Print a benchmark's figures one per line (floats to 3 decimals) and, with
+    ``as_json``, all of them as one JSON object on the last line (``--json``)."""
+    for k, v in figures.items():
+        print(f"{k:40s} {v:.3f}" if isinstance(v, float) else f"{k:40s} {v}")
+    if as_json:
+        print(json.dumps(figures))

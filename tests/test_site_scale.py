@@ -30,5 +30,7 @@ def test_twenty_hosts_form_one_realm_that_lists_all_services(site, realm) -> Non
         assert [svc["service_id"] for svc in a["services"]] == \
             sorted(f"s{i}" for i in range(SERVICES_PER_AGENT))
         assert a["endpoints"] == [s.hosts[int(a["agent_id"][1:])].endpoint()]
+        assert all([(ab["name"], ab["type"]) for ab in svc["abilities"]] == [("pose", "pose6d")]
+                   for svc in a["services"])
     print(f"\n{AGENTS} agents x {SERVICES_PER_AGENT} services: realm formed in "
           f"{formed_s:.1f} s; `uma services` listed all in {wall_s:.2f} s")
