@@ -19,7 +19,8 @@ RATE_HZ = 2.0
 def test_twenty_hosts_form_one_realm_that_lists_all_services(site, realm) -> None:
     s = site(AGENTS + 1)  # the last host runs only the client
     started = time.monotonic()
-    realm_ = scale.start(s, realm, SERVICES_PER_AGENT, RATE_HZ)
+    realm_ = scale.start(s, realm)
+    scale.add_services(realm_, SERVICES_PER_AGENT, RATE_HZ)
     realm_.wait_listed(SERVICES_PER_AGENT)
     formed_s = time.monotonic() - started
 

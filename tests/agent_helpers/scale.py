@@ -62,19 +62,21 @@ class ScaleRealm:
                              f"{summary(listing)}")
 
 
-def start(site: Site, realm: str, services_per_agent: int, rate_hz: float) -> ScaleRealm:
-    """An agent on every host but the last (the client's), then one process of
-    ``services_per_agent`` services per agent; returns once every process has started."""
-    agent_hosts = site.hosts[:-1]
-    scale = ScaleRealm(site, realm, site.start_agents(realm, agent_hosts))
-    for host in agent_hosts:
-        scale.services.append(site.spawn(host, [
-            "-m", "tests.agent_helpers.many_services", "--realm", realm, "--agent", host.name,
-            "--connect", host.endpoint(), "--count", str(services_per_agent),
-            "--rate", str(rate_hz)]))
+def start(site: Site, realm: str) -> ScaleRealm:
+    """An agent on every host but the last (the client's); returns once all listen."""
+    return ScaleRealm(site, realm, site.start_agents(realm, site.hosts[:-1]))
+
+
+def add_services(scale: ScaleRealm, services_per_agent: int, rate_hz: float) -> None:
+    """One process of ``services_per_agent`` services per agent; returns once every process
+    has started them."""
+    for host in scale.site.hosts[:len(scale.agents)]:
+        scale.services.append(scale.site.spawn(host, [
+            "-m", "tests.agent_helpers.many_services", "--realm", scale.realm,
+            "--agent", host.name, "--connect", host.endpoint(),
+            "--count", str(services_per_agent), "--rate", str(rate_hz)]))
     for proc in scale.services:
         proc.wait_for(lambda ev: ev.get("event") == "started", FORM_TIMEOUT_S)
-    return scale
 
 
 def complete(listing: dict[str, Any], agents: int, services_per_agent: int) -> bool:
