@@ -9,6 +9,8 @@ import it as ``from summary import median_p99``.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -37,3 +39,12 @@ def cpu_model() -> str:
     except OSError:
         name = "unknown"
     return f"{name} ({len(os.sched_getaffinity(0))} CPUs)"
+
+
+def report(figures: dict[str, object], as_json: bool) -> None:
+    """Print a benchmark's figures one per line (floats to 3 decimals) and, with
+    ``as_json``, all of them as one JSON object on the last line (``--json``)."""
+    for k, v in figures.items():
+        print(f"{k:40s} {v:.3f}" if isinstance(v, float) else f"{k:40s} {v}")
+    if as_json:
+        print(json.dumps(figures))

@@ -9,9 +9,10 @@ import socket
 import subprocess
 import sys
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
+from agent_helpers.site import Site, unavailable
 from hypothesis import settings
 
 from agent.runtime.processes import stop_processes
@@ -76,3 +77,24 @@ def processes() -> Iterator[Processes]:
         yield procs
     finally:
         procs.stop_all()
+
+
+@pytest.fixture
+def site() -> Iterator[Callable[[int], Site]]:
+    """``site(n)`` builds a site of ``n`` hosts in network namespaces
+    (:mod:`agent_helpers.site`); every site is torn down when the test ends, also on failure.
+    Skips when this machine cannot build one (not root, no ``ip``)."""
+    reason = unavailable()
+    if reason:
+        pytest.skip(reason)
+    built: list[Site] = []
+
+    def build(n: int) -> Site:
+        built.append(Site(n))
+        return built[-1].build()
+
+    try:
+        yield build
+    finally:
+        for s in built:
+            s.close()

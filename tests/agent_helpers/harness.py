@@ -15,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -163,38 +163,57 @@ def freeze(proc: Proc, timeout: float = WAIT_S) -> None:
     raise AssertionError(f"pid {proc.popen.pid} not stopped within {timeout} s: {states}")
 
 
-def spawn(processes: Any, args: list[str], env: dict[str, str] | None = None) -> Proc:
+def spawn(processes: Any, args: list[str], env: dict[str, str] | None = None,
+          prefix: Sequence[str] = ()) -> Proc:
     """``python ARGS`` with pipes (and ``env`` on top of ours), registered with the
-    ``processes`` fixture."""
+    ``processes`` fixture; ``prefix`` runs it through another command (``ip netns exec
+    NS``, which execs python in place, so the PID registered is python's)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1",
                PYTHONPATH=os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")]),
                **(env or {}))
-    p = subprocess.Popen([sys.executable, *args], env=env, cwd=ROOT, stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen([*prefix, sys.executable, *args], env=env, cwd=ROOT,
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
     processes.procs.append(p)
     return Proc(p)
+
+
+def agent_command(realm: str, agent_id: str, endpoint: str, connect: Sequence[str] = (),
+                  extra: Sequence[str] = ()) -> list[str]:
+    """The arguments of ``python`` that run ``uma agent`` listening on ``endpoint``."""
+    args = ["-m", "agent.cli", "agent", "--realm", realm, "--id", agent_id,
+            "--listen", endpoint]
+    for ep in connect:
+        args += ["--connect", ep]
+    return [*args, *extra]
+
+
+def start_agents(processes: Any, commands: Sequence[tuple[list[str], Sequence[str]]],
+                 env: dict[str, str] | None = None) -> list[Proc]:
+    """Start every ``(agent_command, prefix)`` at once (their imports overlap), then return
+    once each says it listens.
+
+    An agent whose Zenoh session stalled at start (it says so and exits) is started once
+    more, as its supervisor would: the stall is Zenoh's, not the test's subject."""
+    procs = [spawn(processes, args, env, prefix) for args, prefix in commands]
+    for i, (args, prefix) in enumerate(commands):
+        try:
+            procs[i].wait_line("listening on", START_WAIT_S)
+        except AssertionError as exc:
+            if STALLED_START not in str(exc):
+                raise
+            procs[i] = spawn(processes, args, env, prefix)
+            procs[i].wait_line("listening on", START_WAIT_S)
+    return procs
 
 
 def agent(processes: Any, realm: str, agent_id: str, endpoint: str,
           connect: tuple[str, ...] = (), extra: tuple[str, ...] = (),
           env: dict[str, str] | None = None) -> Proc:
-    """``uma agent`` listening on ``endpoint``; returns once it says it listens.
-
-    An agent whose Zenoh session stalled at start (it says so and exits) is started once
-    more, as its supervisor would: the stall is Zenoh's, not the test's subject."""
-    args = ["-m", "agent.cli", "agent", "--realm", realm, "--id", agent_id,
-            "--listen", endpoint]
-    for ep in connect:
-        args += ["--connect", ep]
-    proc = spawn(processes, [*args, *extra], env)
-    try:
-        proc.wait_line("listening on", START_WAIT_S)
-    except AssertionError as exc:
-        if STALLED_START not in str(exc):
-            raise
-        proc = spawn(processes, [*args, *extra], env)
-        proc.wait_line("listening on", START_WAIT_S)
-    return proc
+    """``uma agent`` listening on ``endpoint``; returns once it says it listens (see
+    :func:`start_agents`)."""
+    command = agent_command(realm, agent_id, endpoint, connect, extra)
+    return start_agents(processes, [(command, ())], env)[0]
 
 
 def service(processes: Any, realm: str, sid: str, agent_id: str, endpoint: str,
