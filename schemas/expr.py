@@ -115,10 +115,6 @@ class _Node:
         self.type, self.fn, self.pos = type_, fn, pos
 
 
-def _truth(v: Value) -> bool:
-    return bool(v)
-
-
 class _Parser:
     def __init__(self, text: str, names: Collection[str] | None) -> None:
         self.text = text

@@ -40,6 +40,7 @@ from agent.errors import UmaError
 from agent.runtime.processes import stop_processes
 from agent.runtime.session import lease_ms_default
 from agent.srg import geometry as geo
+from services import frames
 from services.sim import mounts
 
 log = logging.getLogger("uma.demo")
@@ -69,9 +70,9 @@ def _free_endpoint() -> str:
 def _static_edges() -> list[dict[str, Any]]:
     """The rig mountings as the tracking host's static SRG edges (its calibration)."""
     edges = []
-    for child, (p, q) in ((mounts.LASER_RIG, mounts.HEAD_TO_LASER_RIG),
-                          (mounts.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)):
-        edges.append({"parent": mounts.HEAD, "child": child, "position": list(map(float, p)),
+    for child, (p, q) in ((frames.LASER_RIG, mounts.HEAD_TO_LASER_RIG),
+                          (frames.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)):
+        edges.append({"parent": frames.HEAD, "child": child, "position": list(map(float, p)),
                       "quaternion": list(map(float, q))})
     return edges
 
@@ -212,7 +213,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
                     tally.stream_times.append(time.monotonic())
                     tally.stream_pos_err_m.append(err[0])
 
-            sub = client.subscribe(mounts.WORLD, mounts.HEAD, on_pose=on_pose)
+            sub = client.subscribe(frames.WORLD, frames.HEAD, on_pose=on_pose)
             _measure(client, truth, sim_time_s, seconds, tally, live)
             tally.stream_stalls, tally.stream_route_changes = sub.stalls, sub.replans
             matches = _matches(tracking)
@@ -239,8 +240,8 @@ def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
             raise UmaError("demo: a service stopped: " + "; ".join(
                 f"{k} ({v})" for k, v in dead.items()))
         try:
-            r = client.pose(mounts.WORLD, mounts.HEAD, error=ERROR)
-            if list(r.path) == [mounts.WORLD, mounts.HEAD]:   # the fused edge itself
+            r = client.pose(frames.WORLD, frames.HEAD, error=ERROR)
+            if list(r.path) == [frames.WORLD, frames.HEAD]:   # the fused edge itself
                 tally.path = list(r.path)
                 return time.monotonic()
             last = f"only the path {' -> '.join(r.path)} so far"
@@ -258,7 +259,7 @@ def _measure(client: Any, truth: Any, sim_time_s: Any, seconds: float, tally: Ta
     while time.monotonic() < end:
         t0 = time.perf_counter()
         try:
-            r = client.pose(mounts.WORLD, mounts.HEAD, error=ERROR)
+            r = client.pose(frames.WORLD, frames.HEAD, error=ERROR)
         except (UmaError, ValueError, LookupError, TimeoutError) as exc:
             tally.fail(type(exc).__name__)
             time.sleep(1.0 / QUERY_HZ)

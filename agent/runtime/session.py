@@ -41,6 +41,7 @@ import os
 import re
 import socket
 import threading
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -239,11 +240,27 @@ def sdk_mode(mode: str | None, connect: Sequence[str]) -> str:
 
 
 def acquire_session(mode: str, listen: Sequence[str] | None, connect: Sequence[str],
-                    realm: str | None = None, *, shared: bool = True) -> zenoh.Session:
+                    realm: str | None = None, *, shared: bool = True,
+                    wait_s: float = 0.0) -> zenoh.Session:
     """This process's session for these settings, opened on first use.
 
-    Every ``acquire_session`` must be paired with one :func:`release_session`.
+    A client whose agent does not answer yet is tried again every 0.1 s for ``wait_s``
+    seconds (an agent started together with its clients listens a moment later), then
+    :class:`UnreachableEndpointError`.  Every ``acquire_session`` must be paired with one
+    :func:`release_session`.
     """
+    deadline = time.monotonic() + wait_s
+    while True:  # bounded by wait_s
+        try:
+            return _acquire(mode, listen, connect, realm, shared)
+        except UnreachableEndpointError:
+            if time.monotonic() >= deadline:
+                raise
+        time.sleep(0.1)
+
+
+def _acquire(mode: str, listen: Sequence[str] | None, connect: Sequence[str],
+             realm: str | None, shared: bool) -> zenoh.Session:
     if not shared:
         return open_session(mode, listen, connect, realm)
     if realm is not None:

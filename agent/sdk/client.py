@@ -80,8 +80,10 @@ class Client:
         self.timeout = float(timeout)
         self.connect = list(connect)
         self._own_session = session is None
+        # an agent started a moment ago may not listen yet: wait for it as for an answer
         self.session = session or acquire_session(sdk_mode(mode, self.connect), listen,
-                                                  self.connect, realm, shared=shared)
+                                                  self.connect, realm, shared=shared,
+                                                  wait_s=self.timeout)
         self.clock = ClockOffsets()
         self.tracker = RealmTracker(self.session, realm, self.timeout,
                                     probe=lambda agent: self.queries.probe(agent))

@@ -12,10 +12,6 @@ import numpy as np
 
 from agent.srg import geometry as geo
 
-# services/demo.py still reads the frame names from here (its owner moves it to
-# services.frames); nothing else does
-from services.frames import ACCEL_RIG, HEAD, LASER_RIG, WORLD  # noqa: F401
-
 #: laser housing on top of the head, pitched 5 degrees forward
 HEAD_TO_LASER_RIG = (np.array([0.02, 0.0, 0.12]),
                      geo.rotvec_to_quat(np.radians([0.0, 5.0, 0.0])))
