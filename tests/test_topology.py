@@ -110,3 +110,34 @@ def test_a_client_block_never_raises_on_exit(processes, realm) -> None:
         poll(lambda: len(client.agents()) > 0, 10.0, "the agent in the client's view")
         client.session.close()  # closed under the client's feet
     client.close()  # and twice: still nothing raised
+
+
+def test_an_agent_whose_token_lapses_but_still_answers_keeps_its_services(realm) -> None:
+    """A token is not the only sign of life: agent B's token goes (as a lease lapses on a
+    starved host) while B still answers; agent A keeps B's services matched.  Once B is
+    really gone (closed), A drops them."""
+    from agent.daemon.agent import Agent
+    from agent.daemon.settings import AgentSettings
+
+    ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
+    a = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep_a]))
+    b = Agent(AgentSettings(realm=realm, agent_id="hostB", listen=[ep_b], connect=[ep_a]))
+    a.start()
+    b.start()
+    try:
+        with Service("cam", realm=realm, agent="hostB", connect=[ep_b]) as cam, \
+                Service("fusion", realm=realm, agent="hostA", connect=[ep_a]) as fusion:
+            cam.ability("pose", type="pose6d", edge=(WORLD, HEAD), frequency_hz=100)
+            fusion.need("head", type="pose6d", edge=(WORLD, "*/head"))
+            cam.start()
+            fusion.start()
+            fusion.wait_matched("head", timeout=15.0)
+            b._token.undeclare()  # the token lapses; B itself runs on
+            time.sleep(2.5)  # A's check (1 s) and a few re-matches
+            assert [m.service_id for m in fusion.matches("head")] == ["cam"]
+            assert "hostB" in a.view.live_agents
+            b.close()  # now B is gone for real: its services go with it
+            fusion.wait_matched("head", timeout=15.0, until=lambda ms: not ms)
+    finally:
+        b.close()
+        a.close()

@@ -59,7 +59,7 @@ import zenoh
 from agent.daemon.matching import MatchResult, Offer, Requirement, match
 from agent.daemon.monitor import NeedId, StreamMonitor
 from agent.daemon.realm_view import Identity, NeedStatus, RealmView, build_snapshot
-from agent.daemon.registrar import Registrar
+from agent.daemon.registrar import DEPARTURE_CHECK_S, Registrar
 from agent.daemon.settings import AgentSettings
 from agent.daemon.streams import StreamHub
 from agent.errors import UmaError
@@ -127,6 +127,9 @@ class Agent:
                                      self._bad)
         self._decls: list[Any] = []
         self._token: Any = None
+        #: agents whose token went, being asked whether they still answer (check number)
+        self._agent_checks: dict[str, int] = {}
+        self._checks = 0
         self._dirty = False           # re-match needed
         self._snapshot_dirty = False  # publish a new snapshot
         self._hosted: list[tuple[str, threading.Thread, threading.Event]] = []
@@ -321,9 +324,47 @@ class Agent:
         if agent_id == self.agent_id:
             return
         if smp.kind == zenoh.SampleKind.PUT:
+            self._agent_checks.pop(agent_id, None)  # back: a pending check is moot
             self.view.agent_alive(agent_id)
             self._fetch_snapshot(agent_id)
-        elif self.view.agent_gone(agent_id):
+        else:
+            self._check_agent_departure(agent_id)
+
+    def _check_agent_departure(self, agent_id: str) -> None:
+        """An agent token's DELETE: ask the agent for its snapshot before dropping its
+        services.  A token is not the only sign of life: on a CPU-starved host a lease can
+        lapse while the agent's links and its services' data are up, and tearing down every
+        match of its services then would cut streams that still flow.  A killed agent has
+        no queryable left, so the answer is "nobody" at once and failover stays fast."""
+        if agent_id not in self.view.live_agents or agent_id in self._agent_checks:
+            return
+        assert self.session is not None
+        self._checks += 1
+        check, answers = self._checks, []
+        self._agent_checks[agent_id] = check
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                answers.append(reply.ok.payload.to_bytes())
+        self.session.get(keys.agent_services(self.realm, agent_id), zenoh.handlers.Callback(
+            on_reply, lambda: self._worker.put(self._on_agent_checked, agent_id, check,
+                                               answers)), timeout=DEPARTURE_CHECK_S)
+
+    def _on_agent_checked(self, agent_id: str, check: int, answers: list[bytes]) -> None:
+        if self._agent_checks.get(agent_id) != check:
+            return  # its token came back meanwhile, or a newer check runs
+        del self._agent_checks[agent_id]
+        known = self.view.remote.get(agent_id)
+        for data in answers:
+            try:
+                snap = parse_snapshot(data, agent_id)
+            except DecodeError:
+                continue
+            if known is None or snap.epoch == known.epoch:
+                self._bad.warning(f"agent {agent_id}",
+                                  "its liveliness token went but it still answers; kept")
+                return
+        if self.view.agent_gone(agent_id):
             log.info("agent %s left realm %s", agent_id, self.realm)
             self._dirty = True
 

@@ -61,7 +61,9 @@ re-sends every need's set every ``RESEND_S`` (anti-entropy, in case a put was lo
 - Every agent also watches all service tokens ``uma/R/svc/*/*``: a killed remote service is
   dropped on its own token's DELETE, without waiting for its agent's next snapshot.  A
   remote ability is offered to matching only while its descriptor is known (snapshot) *and*
-  its service token is alive; when an agent's token goes, all its services go with it.
+  its service token is alive; when an agent's token goes, all its services go with it,
+  once the agent does not answer on ``uma/R/agent/A/services`` either (a lease can lapse on
+  a starved host while the agent and its services' data are up).
 
 **Measuring** (the consuming side): the agent of the consuming service subscribes itself
 to every data key its local needs are connected to, measures rate and latency over a
