@@ -19,8 +19,8 @@ args = parser.parse_args()
 
 with Client(realm=args.realm, connect=args.connect or ["tcp/127.0.0.1:7447"]) as client:
     r = client.pose(args.source, args.target, at=None, error=args.error)
-    print("position", [round(x, 4) for x in r.position])
-    print("quaternion", [round(x, 4) for x in r.quaternion])
+    print("position", ", ".join(f"{x:.4f}" for x in r.position))
+    print("quaternion", ", ".join(f"{x:.4f}" for x in r.quaternion))
     print("path", " -> ".join(r.path))
     print("agents", ", ".join(dict.fromkeys(e["owner"] for e in r.edges)))
     print("extrapolated", f"{r.extrapolated_s:.4f} s")

@@ -23,8 +23,11 @@ seen = []
 
 
 def on_pose(r):  # the subscription's thread
+    if done.is_set():
+        return
     seen.append(r)
-    print(f"pose at {r.t_ns} ns: {[round(x, 3) for x in r.position]}", flush=True)
+    position = ", ".join(f"{x:.3f}" for x in r.position)
+    print(f"pose at {r.t_ns} ns: [{position}]", flush=True)
     if len(seen) >= args.count:
         done.set()
 
