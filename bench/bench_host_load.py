@@ -8,7 +8,8 @@ registered with the first agent; the others join it as peers.  Per configuration
 - CPU (% of one core, from /proc/<pid>/stat utime+stime, children included, over the
   window): each agent, and the service processes in total;
 - RSS of the service processes, in total and per service beyond one process's base (a
-  process started the same way that holds zero services);
+  process started the same way that holds zero services: the SDK imported, no session
+  open, so a process's session counts towards its services);
 - Zenoh links: ESTABLISHED TCP sockets of every process started (/proc/<pid>/fd socket
   inodes looked up in /proc/<pid>/net/tcp*); a loopback connection between two of them
   counts at both ends, so the total is twice the connections;
@@ -259,7 +260,7 @@ def new_need(realm: str, ep: str, seconds: float) -> dict:
     def on_sample(m) -> None:
         got.append(m.seq)
         first.set()
-    latency_ms = None
+    latency_ms, window_s = None, 0.0
     try:
         with Service("newneed", realm=realm, agent="h0", connect=[ep]) as svc:
             svc.need("obj", type="pose6d", edge=(WORLD, "obj/0"), on_sample=on_sample)
@@ -268,11 +269,14 @@ def new_need(realm: str, ep: str, seconds: float) -> dict:
             if first.wait(FIRST_SAMPLE_LIMIT_S):
                 latency_ms = (time.perf_counter() - t) * 1e3
                 time.sleep(seconds)
+                window_s = time.perf_counter() - t - latency_ms / 1e3
     except UmaError as exc:  # reported as a missing figure, the run goes on
         print(f"new need: {exc}", file=sys.stderr)
     span = (max(got) - min(got) + 1) if got else 0
+    # the source's rate as published (the issue saw 100 Hz sources fall to 43 Hz)
     return {"new_need_first_sample_ms": latency_ms, "need_received": len(got),
-            "need_published": span, "need_lost": span - len(set(got))}
+            "need_published": span, "need_lost": span - len(set(got)),
+            "need_source_hz": (span - 1) / window_s if window_s else None}
 
 
 def run_anchor(n: int, k: int, rate: float, seconds: float) -> dict:

@@ -37,6 +37,7 @@ def test_bench_host_load_reports_every_figure() -> None:
     assert 0 < row["client_pose_median_ms"] <= row["client_pose_p99_ms"]
     assert row["new_need_first_sample_ms"] > 0 and row["need_received"] > 0
     assert row["need_lost"] == 0 and row["need_received"] == row["need_published"]
+    assert 5 < row["need_source_hz"] < 15  # the source's 10 Hz
     assert isinstance(row["goals_missed"], list)
 
 
