@@ -25,7 +25,9 @@ registered with the first agent; the others join it as peers.  Per configuration
   checked.  "Above publishing" is uma's CPU (agents + services) minus the bare publishers'
   alone, the issue's strict reading (the bare subscriber's CPU is reported beside it).
 
-Each row ends with the issue's goals it misses (``goals_missed``).
+Each row ends with the issue's goals it misses (``goals_missed``).  The goals are the
+issue's for 100 services at 100 Hz; at 10 Hz a new need's first sample alone may wait
+up to 100 ms for the next publication, so that goal is out of reach by construction.
 
     python bench/bench_host_load.py [--services 100] [--per-process 10] [--rate 100]
         [--agents 3] [--seconds 10] [--needs] [--table] [--json]
