@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from agent.runtime.session import sdk_mode
 from agent.sdk.client import Client
 from agent.srg.result import PoseResult
 
@@ -57,6 +58,8 @@ def format_result(source: str, target: str, r: PoseResult) -> str:
 def main(args: argparse.Namespace) -> int:
     at = parse_at(args.at)
     with Client(realm=args.realm, connect=args.connect, timeout=args.timeout) as client:
+        if sdk_mode(None, args.connect) == "client":  # its agent's answer is the realm
+            client.tracker.settle_s = 0.0
         r = client.pose(args.source, args.target, at=at, error=args.error)
     if args.json:
         print(json.dumps({"source": args.source, "target": args.target, **r.to_dict()}))

@@ -50,11 +50,14 @@ class RealmTracker:
     lock.  ``probe(agent)`` asks one agent whether it answers (True if it did)."""
 
     def __init__(self, session: zenoh.Session, realm: str, timeout: float,
-                 probe: Callable[[str], bool]) -> None:
+                 probe: Callable[[str], bool], settle_s: float = SETTLE_S) -> None:
         self.session = session
         self.realm = realm
         self.timeout = timeout
         self._probe = probe
+        #: how long the first look waits for the set of agents to stop growing: a peer's
+        #: gossip is still linking it to agents; a client's agent answers for all at once (0)
+        self.settle_s = settle_s
         self._lock = threading.Lock()
         self._bad = RateLimitedLog(log)
         self._summaries: dict[str, Summary] = {}
@@ -149,19 +152,20 @@ class RealmTracker:
 
     def look(self) -> None:
         """The first look at the realm: refresh until the set of agents stops growing
-        (peers learn of each other by gossip within tens of ms), bounded by the timeout."""
+        (peers learn of each other by gossip within tens of ms; ``settle_s`` 0: the first
+        answer is the whole realm), bounded by the timeout."""
         deadline = time.monotonic() + self.timeout
         seen: set[str] = set()
         while True:
             self.refresh()
             with self._lock:
                 now = set(self._summaries)
-            if now and now == seen:
+            if now and (now == seen or not self.settle_s):
                 break
             seen = now
-            if time.monotonic() + SETTLE_S > deadline:
+            if time.monotonic() + self.settle_s > deadline:
                 break
-            time.sleep(SETTLE_S)
+            time.sleep(self.settle_s)
         self._looked = True
 
     # ------------------------------------------------------------------ what comes in
