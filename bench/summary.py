@@ -23,3 +23,16 @@ def median_p99(samples: ArrayLike, unit: str) -> dict[str, float]:
     if a.size == 0:
         raise ValueError(f"median_p99: no samples to summarise (unit {unit!r})")
     return {f"median_{unit}": float(np.median(a)), f"p99_{unit}": float(np.percentile(a, 99))}
+
+
+def cpu_model() -> str:
+    """The CPU the figures were measured on (``/proc/cpuinfo`` model name): absolute timings
+    compare only on the same CPU, so every benchmark prints it next to its ratios."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"

@@ -12,6 +12,7 @@ spot can break apart) closer than ``merge_px`` are merged with intensity weights
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -54,21 +55,42 @@ def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) ->
     return _merge(_components(image, 0, 0, params), params)
 
 
-def detect_dots_in(image: np.ndarray, box: tuple[int, int, int, int],
+def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
                    params: DetectorParams = DetectorParams()) -> tuple[np.ndarray, bool]:
-    """``detect_dots`` inside the window ``box = (x0, y0, x1, y1)`` (clipped to the image):
-    the dots, and whether they are whole -- False when a bright region touches a window
-    edge inside the image, where a spot cut by the window would have a biased centroid."""
+    """``detect_dots`` inside windows ``(x0, y0, x1, y1)`` (clipped to the image; overlapping
+    ones are joined, so no dot is found twice): the dots, and whether they are whole --
+    False when a bright pixel lies on a window's edge inside the image, where a spot cut by
+    the window would have a biased centroid."""
     _check_gray8(image)
     h, w = image.shape
-    x0, y0, x1, y1 = max(box[0], 0), max(box[1], 0), min(box[2], w), min(box[3], h)
-    if x1 <= x0 or y1 <= y0:
-        return np.zeros((0, 5)), True
-    win = image[y0:y1, x0:x1]
-    thr = params.threshold
-    whole = not ((x0 > 0 and win[:, 0].max() > thr) or (x1 < w and win[:, -1].max() > thr)
-                 or (y0 > 0 and win[0].max() > thr) or (y1 < h and win[-1].max() > thr))
-    return _merge(_components(win, x0, y0, params), params), whole
+    rows, whole = [], True
+    for x0, y0, x1, y1 in _joined([(max(b[0], 0), max(b[1], 0), min(b[2], w), min(b[3], h))
+                                   for b in boxes]):
+        if x1 <= x0 or y1 <= y0:
+            continue
+        win = image[y0:y1, x0:x1]
+        whole = whole and not any(inner and int(edge.max()) > params.threshold for inner, edge in
+                                  ((x0 > 0, win[:, 0]), (x1 < w, win[:, -1]),
+                                   (y0 > 0, win[0]), (y1 < h, win[-1])))
+        rows.append(_components(win, x0, y0, params))
+    return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
+
+
+def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """The boxes with every overlapping pair replaced by its bounding box, until none
+    overlap."""
+    out = list(boxes)
+    i = 0
+    while i < len(out):
+        for j in range(i + 1, len(out)):
+            a, b = out[i], out[j]
+            if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                out[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                del out[j]
+                i = -1  # the grown box may now overlap an earlier one
+                break
+        i += 1
+    return out
 
 
 def _check_gray8(image: np.ndarray) -> None:
@@ -126,26 +148,26 @@ def _box_components(roi: np.ndarray, x0: int, y0: int, p: DetectorParams) -> lis
 
 def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
               p: DetectorParams) -> list[float]:
-    """Intensity-weighted centroid (eqs. 5.1-5.5) of one component and its noise std."""
+    """Intensity-weighted centroid (eqs. 5.1-5.5) of one component and its noise std.
+
+    ``cv2.moments`` takes every sum in one C pass (in double precision, about the box's
+    corner, where the coordinates are small)."""
     signal = roi.astype(np.float64)
     signal -= p.dark_level
     signal *= sel
     np.maximum(signal, 0.0, out=signal)
-    cols, rows = signal.sum(axis=0), signal.sum(axis=1)
-    flux = float(cols.sum())
-    us = np.arange(roi.shape[1], dtype=np.float64)
-    vs = np.arange(roi.shape[0], dtype=np.float64)
-    u = float(cols @ us) / flux
-    v = float(rows @ vs) / flux
-    # var(u_hat) = sum (u_i - u)^2 var(I_i) / flux^2; saturated pixels carry no noise;
-    # the sum of r^2 = du^2 + dv^2 separates into column and row sums
+    m = cv2.moments(signal)
+    flux = m["m00"]
+    u, v = m["m10"] / flux, m["m01"] / flux
+    # var(u_hat) = sum (u_i - u)^2 var(I_i) / flux^2; saturated pixels carry no noise
     var_i = signal * p.gain
     var_i += p.read_noise ** 2
     var_i *= sel & (roi < 255)
-    us -= u
-    vs -= v
-    var = 0.5 * float(var_i.sum(axis=0) @ (us * us) + var_i.sum(axis=1) @ (vs * vs)) / flux ** 2
-    return [x0 + u, y0 + v, flux, float(area), float(np.sqrt(var + p.floor_px ** 2))]
+    mv = cv2.moments(var_i)
+    r2 = (mv["m20"] + mv["m02"] - 2.0 * (u * mv["m10"] + v * mv["m01"])
+          + (u * u + v * v) * mv["m00"])
+    var = 0.5 * r2 / flux ** 2
+    return [x0 + u, y0 + v, flux, float(area), math.sqrt(var + p.floor_px ** 2)]
 
 
 def _merge(rows: np.ndarray, p: DetectorParams) -> np.ndarray:
