@@ -163,22 +163,24 @@ class LaserTracker:
         gives no pose, or the last full pass is older than ``roi_refresh_s``."""
         t0 = time.perf_counter()
         result: PoseEstimate | NoPose | None = None
+        pose_s = 0.0
         if self._roi_due(t):
             self.passes["roi"] += 1
             found = self._detect_windows(images, t)
             if found is not None:
-                result = self._solve(self._to_world(found), t)
+                result, pose_s = self._solve(self._to_world(found), t)
                 if result.ok:
                     self._seen.update(found, t, full=False)
         if result is None or not result.ok:
             self.passes["full"] += 1
             found = self._detections(images)
             self._seen.update(found, t, full=True)
-            result = self._solve(self._to_world(found), t)
+            result, full_pose_s = self._solve(self._to_world(found), t)
+            pose_s += full_pose_s
         t1 = time.perf_counter()
         self._count(result)
-        return replace(result, timing_s={"detect": t1 - t0 - result.timing_s["pose"],
-                                         "pose": result.timing_s["pose"], "total": t1 - t0})
+        return replace(result, timing_s={"detect": t1 - t0 - pose_s, "pose": pose_s,
+                                         "total": t1 - t0})
 
     def detect(self, images: Mapping[str, np.ndarray]) -> WorldDots:
         """World-frame dots of all images, searched in full; unknown camera names raise
@@ -252,21 +254,20 @@ class LaserTracker:
 
     def solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """The pose from world-frame dots (``detect``'s output), with temporal coherence."""
-        result = self._solve(dots, t)
+        result = self._choose(dots, t)
         self._count(result)
         return result
 
     def _count(self, result: PoseEstimate | NoPose) -> None:
         self.counts["pose" if result.ok else result.reason] += 1
 
-    def _solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
-        """``solve`` without counting the result (a window pass may be retried in full);
-        its time spent is ``timing_s["pose"]``."""
+    def _solve(self, dots: WorldDots, t: float) -> tuple[PoseEstimate | NoPose, float]:
+        """``_choose`` and the seconds it took."""
         t0 = time.perf_counter()
-        result = self._choose(dots, t)
-        return replace(result, timing_s={"pose": time.perf_counter() - t0})
+        return self._choose(dots, t), time.perf_counter() - t0
 
     def _choose(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
+        """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
         n = len(dots.points)
         if n < 4:
