@@ -74,10 +74,7 @@ class RigLayout:
     _proj: Array = field(init=False, repr=False, compare=False)
     _corr: Array = field(init=False, repr=False, compare=False)
     _corr_outer: Array = field(init=False, repr=False, compare=False)
-    _rows: Array = field(init=False, repr=False, compare=False)
-    _cols: Array = field(init=False, repr=False, compare=False)
-    _e_rows: Array = field(init=False, repr=False, compare=False)
-    _e_cols: Array = field(init=False, repr=False, compare=False)
+    _dcorr: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -157,9 +154,11 @@ class RigLayout:
         corr = -proj @ C[:, pred]
         corr_outer = np.zeros((9, 6))  # the same on vec(omega omega^T), one slot per entry
         corr_outer[rows * 3 + cols] = corr.T
+        # the correction is the quadratic form w^T D_k w / 2 per output k, so its Jacobian
+        # w.r.t. omega is D @ w: (6, 3, 3) with D_k[a, b] = C_k[a, b] + C_k[b, a]
+        quad = corr_outer.T.reshape(6, 3, 3)
         cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": corr,
-                 "_corr_outer": corr_outer, "_rows": rows, "_cols": cols,
-                 "_e_rows": np.eye(3)[rows], "_e_cols": np.eye(3)[cols]}
+                 "_corr_outer": corr_outer, "_dcorr": quad + quad.transpose(0, 2, 1)}
         for name, value in cache.items():
             object.__setattr__(self, name, value)
 
@@ -256,10 +255,7 @@ class RigLayout:
     def solve_jacobians(self, omega: Array) -> tuple[Array, Array]:
         """Derivatives of ``solve``'s (f, omega_dot) = (6,): w.r.t. the readings (6 x N) and
         w.r.t. omega (6 x 3); the dead reckoner propagates its covariance with them."""
-        w = np.asarray(omega, float)
-        # d(w_a w_b)/dw = w_b e_a + w_a e_b for each predicted entry (a, b)
-        dW = self._e_rows * w[self._cols][:, None] + self._e_cols * w[self._rows][:, None]
-        return self._proj, self._corr @ dW
+        return self._proj, self._dcorr @ np.asarray(omega, float)
 
 
 # ---------------------------------------------------------------------- standard layouts
