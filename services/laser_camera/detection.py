@@ -2,9 +2,11 @@
 
 The thesis labels bright pixels in one pass, accumulates intensity-weighted sums per
 label (eqs. 5.1-5.3), divides (5.4-5.5) and merges candidates closer than ``delta_x``.
-Here OpenCV does the pass: a binary threshold and ``connectedComponentsWithStats`` label
-the bright pixels in C; the weighted sums are then taken only inside each component's
-bounding box, so the Python work scales with the number of dots, not pixels.  Weights are
+Here OpenCV does the pass in C: row and column maxima find the boxes holding bright
+pixels, ``connectedComponentsWithStats`` labels only those, and the weighted sums are taken
+inside each component's bounding box, so the Python work scales with the number of dots,
+not pixels.  ``detect_dots_in`` does the same in windows only (the tracker's regions of
+interest).  Weights are
 intensities minus the sensor's dark level, which removes the pull of the threshold's cut
 towards the geometric centre of the region.  Fragments of one spot (a smeared or clipped
 spot can break apart) closer than ``merge_px`` are merged with intensity weights.

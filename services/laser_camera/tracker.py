@@ -280,8 +280,8 @@ class LaserTracker:
                 cands.append((c, subset))
         if not cands:
             return NoPose(t, "no_consistent_labeling", n,
-                              f"no labeling of {n} dots fits the housing (eps > "
-                              f"{p.max_labeling_error})")
+                          f"no labeling of {n} dots fits the housing (eps > "
+                          f"{p.max_labeling_error})")
         # the true labeling and its reflection score alike up to noise; worse fits (a
         # distractor in the subset, a lost dot) compete only if they are nearly as good
         eps_min = min(c.error for c, _ in cands)
@@ -297,13 +297,13 @@ class LaserTracker:
             if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
                     or move > p.max_speed_mps * dt + p.gate_margin_m:
                 return NoPose(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
-                                  f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
+                              f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
         else:  # initialisation: the user stands upright (thesis §5.3)
             ups = [float(geo.quat_rotate(c.quaternion, [0.0, 0.0, 1.0])[2]) for c, _ in pool]
             k = int(np.argmax(ups))
             if ups[k] < p.min_upright_cos:
                 return NoPose(t, "not_upright", n, "initialisation needs an upright head "
-                                  f"(best up-axis cosine {ups[k]:.2f})")
+                              f"(best up-axis cosine {ups[k]:.2f})")
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
