@@ -22,7 +22,13 @@ from services.laser_camera.pose import (
     labeling_errors,
     reflection,
 )
-from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, WorldDots
+from services.laser_camera.tracker import (
+    LaserTracker,
+    NoPose,
+    PoseEstimate,
+    TrackerParams,
+    WorldDots,
+)
 from services.sim.ivy import intersect_beam, make_walls
 from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import SensorModel
@@ -199,6 +205,12 @@ def test_detection_in_windows_is_detection_in_full_where_the_windows_are() -> No
     assert detect_dots_in(img, [(580, -20, 660, 80)])[1]
     assert not detect_dots_in(img, [(401, 280, 440, 320)])[1]
     assert detect_dots_in(img, [(200, 200, 240, 240)])[0].shape == (0, 5)
+
+
+@pytest.mark.parametrize("bad", [{"roi_half_px": -1}, {"roi_refresh_s": -0.1}])
+def test_negative_window_parameters_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="roi_half_px and roi_refresh_s must be >= 0"):
+        TrackerParams(**bad)
 
 
 @pytest.mark.parametrize("bad", [np.zeros((480, 640)), np.zeros((4, 4, 3), np.uint8), None])
