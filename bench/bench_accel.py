@@ -1,4 +1,4 @@
-"""Time to process one 300 Hz accelerometer sample (goal: <= 100 us, >= 30x real time).
+"""Time to process one 300 Hz accelerometer sample (goal, issue 19: <= 2x the bare solve).
 
 Measures ``DeadReckoner.update_volts`` per sample over a simulated head motion: validation,
 conversion, eq. 4.42 solve, RK4 step, covariance propagation and the pose estimate with its
@@ -17,11 +17,14 @@ import json
 import time
 
 import numpy as np
-from summary import median_p99
+from summary import cpu_model, median_p99
 
 from services.accel_rig.integrator import DeadReckoner
 from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simulate
 from services.sim.trajectory import HeadTrajectory
+
+#: issue 19: a sample may cost at most this many times the bare eq. 4.42 solve of the same run
+GOAL_RATIO = 2.0
 
 
 def _time_per_sample(fn, t, volts) -> np.ndarray:
@@ -59,17 +62,19 @@ def main() -> None:
     period_us = 1e6 / DEFAULT_RATE_HZ
     upd, base = median_p99(update, "us"), median_p99(baseline, "us")
     fig = {
+        "cpu": cpu_model(),
         "samples": len(sim.t),
         "update_us": upd,
         "baseline_solve_only_us": base,
         "ratio_update_to_baseline": upd["median_us"] / base["median_us"],
         "realtime_factor_at_300hz": period_us / upd["median_us"],
-        "goal_us": 100.0,
-        "meets_goal": upd["median_us"] <= 100.0,
+        "goal_ratio": GOAL_RATIO,
+        "meets_goal": upd["median_us"] <= GOAL_RATIO * base["median_us"],
     }
+    print(f"cpu {fig['cpu']}")
     for key in ("update_us", "baseline_solve_only_us"):
         print(f"{key:24s} median {fig[key]['median_us']:8.1f}  p99 {fig[key]['p99_us']:8.1f}")
-    print(f"ratio to baseline {fig['ratio_update_to_baseline']:.1f}, "
+    print(f"ratio to baseline {fig['ratio_update_to_baseline']:.2f} (goal <= {GOAL_RATIO:g}), "
           f"real-time factor at 300 Hz {fig['realtime_factor_at_300hz']:.0f}x")
     if args.json:
         print(json.dumps(fig))

@@ -29,7 +29,8 @@ def _load_summary():
     return module
 
 
-median_p99 = _load_summary().median_p99
+SUMMARY = _load_summary()
+median_p99 = SUMMARY.median_p99
 
 
 def test_median_p99_values_and_unit_naming() -> None:
@@ -46,6 +47,13 @@ def test_median_p99_values_and_unit_naming() -> None:
 def test_median_p99_rejects_no_samples(empty) -> None:
     with pytest.raises(ValueError, match="no samples"):
         median_p99(empty, "ms")
+
+
+def test_cpu_model_is_the_model_name_of_proc_cpuinfo() -> None:
+    names = [line.split(":", 1)[1].strip() for line in
+             Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")]
+    assert SUMMARY.cpu_model().startswith(names[0] if names else "unknown")
+    assert SUMMARY.cpu_model().endswith(" CPUs)")  # and how many this process may use
 
 
 # bench file, tiny options, and where its median/p99 figures are: (path to a dict in the

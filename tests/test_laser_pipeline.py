@@ -19,7 +19,7 @@ from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
 from services.laser_camera.evaluate import evaluate
 from services.laser_camera.sources import CaptureSource, parse_sources
-from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate
+from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
 from services.sim import mounts
 from services.sim.world import IvyWorld, sim_time_s
 
@@ -118,6 +118,35 @@ def test_tracker_survives_lost_dots_and_bad_frames(world, calibration) -> None:
         tr.process({lost: np.zeros((240, 320), np.uint8)}, 2.0)
     with pytest.raises(ValueError, match="uint8"):
         tr.process({lost: np.zeros((480, 640), np.float32)}, 2.0)
+
+
+def test_windows_track_like_the_full_frame_and_reacquire_after_a_loss(world,
+                                                                        calibration) -> None:
+    frames = [world.render(i / 30) for i in range(24)]
+    full = LaserTracker(calibration, TrackerParams(roi_half_px=0))
+    roi = LaserTracker(calibration)
+    for k, f in enumerate(frames):
+        a, b = full.process(f.images, f.t), roi.process(f.images, f.t)
+        assert a.ok and b.ok, (k, a, b)
+        assert geo.quat_angle(a.quaternion, b.quaternion) < 1e-9
+        np.testing.assert_allclose(a.position, b.position, atol=1e-12)
+        np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=1e-15)
+    assert full.passes == {"full": 24}
+    assert roi.passes["roi"] >= 20 and roi.passes["full"] < 4  # the first, and refreshes
+    # a camera goes dark: its window finds nothing, the full frames are searched
+    f = world.render(24 / 30)
+    lost = next(c for c, pts in f.image_points.items() if pts)
+    dark = {**f.images, lost: np.zeros_like(f.images[lost])}
+    before = dict(roi.passes)
+    assert roi.process(dark, f.t).reason == "too_few_dots"
+    assert roi.passes["roi"] == before["roi"] + 1 and roi.passes["full"] == before["full"] + 1
+    # the camera is back: its dot is not where any window looks, the window pass gives too
+    # few dots and the full pass re-acquires it; then the windows track again
+    for k in (25, 26):
+        f = world.render(k / 30)
+        assert roi.process(f.images, f.t).ok
+    assert roi.passes["full"] == before["full"] + 2
+    assert roi.passes["roi"] == before["roi"] + 3
 
 
 def test_uma_eval_command(calibration_file) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agent.srg import geometry as geo
-from services.laser_camera.detection import DetectorParams, detect_dots
+from services.laser_camera.detection import DetectorParams, detect_dots, detect_dots_in
 from services.laser_camera.homography import (
     apply_homography,
     dlt_homography,
@@ -22,7 +22,13 @@ from services.laser_camera.pose import (
     labeling_errors,
     reflection,
 )
-from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, WorldDots
+from services.laser_camera.tracker import (
+    LaserTracker,
+    NoPose,
+    PoseEstimate,
+    TrackerParams,
+    WorldDots,
+)
 from services.sim.ivy import intersect_beam, make_walls
 from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import SensorModel
@@ -151,6 +157,60 @@ def test_detection_merges_fragments_and_ignores_hot_pixels() -> None:
     assert np.hypot(dots[0, 0] - 100.3, dots[0, 1] - 200.7) < 0.1  # saturated, point-sampled
     assert np.hypot(dots[1, 0] - 301.75, dots[1, 1] - 100.0) < 0.1
     assert detect_dots(np.zeros((480, 640), np.uint8)).shape == (0, 5)
+
+
+def _full_frame_components(img: np.ndarray, p: DetectorParams) -> np.ndarray:
+    """Reference: every component's (u, v, flux, area) from labelling the whole frame."""
+    _, mask = cv2.threshold(img, p.threshold, 255, cv2.THRESH_BINARY)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    vv, uu = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    rows = []
+    for k in range(1, n):
+        if p.min_area <= stats[k, 4] <= p.max_area:
+            s = np.where(labels == k, np.maximum(img - p.dark_level, 0.0), 0.0)
+            rows.append([(s * uu).sum() / s.sum(), (s * vv).sum() / s.sum(), s.sum(),
+                         stats[k, 4]])
+    return np.array(rows).reshape(-1, 4)
+
+
+def test_banded_labelling_finds_what_full_frame_labelling_finds() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    p = DetectorParams(merge_px=0.0)  # compare components, not merged spots
+    for _ in range(10):
+        img = np.full((120, 160), 8.0)
+        for u, v in rng.uniform([0, 0], [160, 120], (12, 2)):  # some touch, some at edges
+            _blob(img, u, v, rng.uniform(0.6, 2.5), rng.uniform(60, 400))
+        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        img[rng.integers(0, 120, 5), rng.integers(0, 160, 5)] = 200  # hot pixels
+        img[40:60, 30] = img[40, 30:50] = 250  # an L: one component spanning rows and columns
+        ours, ref = detect_dots(img, p), _full_frame_components(img, p)
+        assert len(ours) == len(ref)
+        ours = ours[np.lexsort(ours[:, :2].T)]
+        ref = ref[np.lexsort(ref[:, :2].T)]
+        np.testing.assert_allclose(ours[:, :4], ref, rtol=1e-12, atol=1e-9)
+
+
+def test_detection_in_windows_is_detection_in_full_where_the_windows_are() -> None:
+    img = np.full((480, 640), 8.0)
+    for u, v in ((100.3, 200.7), (120.0, 204.0), (400.0, 300.0), (600.0, 50.0)):
+        _blob(img, u, v, 1.0, 300)
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    full = detect_dots(img)
+    # two overlapping windows around the close pair (joined, not counted twice), one more
+    dots, whole = detect_dots_in(img, [(80, 180, 130, 230), (100, 180, 150, 230),
+                                       (380, 280, 420, 320)])
+    assert whole and len(dots) == 3
+    np.testing.assert_allclose(dots[np.argsort(dots[:, 0])], full[np.argsort(full[:, 0])][:3])
+    # a window clipped by the image is whole; one cutting a spot is not
+    assert detect_dots_in(img, [(580, -20, 660, 80)])[1]
+    assert not detect_dots_in(img, [(401, 280, 440, 320)])[1]
+    assert detect_dots_in(img, [(200, 200, 240, 240)])[0].shape == (0, 5)
+
+
+@pytest.mark.parametrize("bad", [{"roi_half_px": -1}, {"roi_refresh_s": -0.1}])
+def test_negative_window_parameters_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="roi_half_px and roi_refresh_s must be >= 0"):
+        TrackerParams(**bad)
 
 
 @pytest.mark.parametrize("bad", [np.zeros((480, 640)), np.zeros((4, 4, 3), np.uint8), None])

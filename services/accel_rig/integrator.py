@@ -77,6 +77,14 @@ def _rotation_quadratic() -> Array:
 
 
 _ROTATION_QUADRATIC = _rotation_quadratic()
+#: classical RK4's weights of its four stages (times h / 6), as one product over the stages
+#: instead of a chain of 3-vector operations (each costs a numpy call, at this size all
+#: overhead); position, integrated twice, weighs the first three stages' accelerations alike
+_RK4_WEIGHTS = np.array([1.0, 2.0, 2.0, 1.0])
+_RK4_POSITION_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.0])
+#: rows and columns of the 12x12 state covariance that make the pose's 6x6 in geometry's
+#: order [rho, phi] (the state holds [phi, rho, ...])
+_POSE_BLOCKS = np.ix_([3, 4, 5, 0, 1, 2], [3, 4, 5, 0, 1, 2])
 
 
 @dataclass(frozen=True)
@@ -240,10 +248,7 @@ class DeadReckoner:
         x = self._x
         if x is None:
             raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
-        P = self._full_covariance(x)
-        C = np.empty((6, 6))
-        C[:3, :3], C[3:, 3:] = P[3:6, 3:6], P[0:3, 0:3]
-        C[:3, 3:], C[3:, :3] = P[3:6, 0:3], P[0:3, 3:6]
+        C = self._full_covariance(x)[_POSE_BLOCKS]  # [phi, rho] -> [rho, phi]
         return Estimate(x.t, x.p.copy(), x.q.copy(), x.v.copy(), x.w.copy(), 0.5 * (C + C.T))
 
     def state_covariance(self) -> Array:
@@ -275,7 +280,7 @@ class DeadReckoner:
         if a.shape != (self.layout.count,):
             raise ValueError(f"accelerometer sample: expected {self.layout.count} values, "
                              f"got shape {a.shape}")
-        if not np.all(np.isfinite(a)):
+        if not np.isfinite(a).all():
             j = int(np.flatnonzero(~np.isfinite(a))[0])
             raise ValueError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
                              f"{float(a[j])} (NaN samples are refused)")
@@ -331,16 +336,16 @@ class DeadReckoner:
         kq3 = M[2] @ q3
         q4 = q0 + h * kq3
         kq4 = M[3] @ q4
-        q1 = q0 + h / 6.0 * (kq1 + 2.0 * kq2 + 2.0 * kq3 + kq4)
+        q1 = q0 + h / 6.0 * (_RK4_WEIGHTS @ np.array([kq1, kq2, kq3, kq4]))
         # velocity / position stages: v' = R(q) f + g, p' = v
         qs = np.array([q0, q2, q3, q4])
         Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
               / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
         acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
         v0, p0 = x.v, x.p
-        p1 = p0 + h * v0 + h * h / 6.0 * (acc[0] + acc[1] + acc[2])
-        v1 = v0 + h / 6.0 * (acc[0] + 2.0 * acc[1] + 2.0 * acc[2] + acc[3])
-        w1 = w0 + h / 6.0 * (s1[3:] + 2.0 * s2[3:] + 2.0 * s3[3:] + s4[3:])
+        p1 = p0 + h * v0 + h * h / 6.0 * (_RK4_POSITION_WEIGHTS @ acc)
+        v1 = v0 + h / 6.0 * (_RK4_WEIGHTS @ acc)
+        w1 = w0 + h / 6.0 * (_RK4_WEIGHTS @ xs[:, 3:])
         P, S = self._propagate(x.P, x.S, h, Rs[1], s2[:3], w2, 0.5 * (p1 + p0),
                                0.5 * (v1 + v0))
         norm = math.sqrt(q1 @ q1)
@@ -471,9 +476,10 @@ def _put_cross(A: Array, r: int, c: int, u: Array) -> None:
 
     ``geo.skew`` builds it by stacking, which costs more than the rest of this step's
     arithmetic; six scalar writes into a zeroed block cost nothing."""
-    A[r, c + 1], A[r, c + 2] = -u[2], u[1]
-    A[r + 1, c], A[r + 1, c + 2] = u[2], -u[0]
-    A[r + 2, c], A[r + 2, c + 1] = -u[1], u[0]
+    x, y, z = u.tolist()
+    A[r, c + 1], A[r, c + 2] = -z, y
+    A[r + 1, c], A[r + 1, c + 2] = z, -x
+    A[r + 2, c], A[r + 2, c + 1] = -y, x
 
 
 def _calibration_cov_in_accel(cal: Calibration) -> Array | None:

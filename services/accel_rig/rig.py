@@ -75,12 +75,8 @@ class RigLayout:
     _cent: Array = field(init=False, repr=False, compare=False)
     _pred: Array = field(init=False, repr=False, compare=False)
     _proj: Array = field(init=False, repr=False, compare=False)
-    _corr: Array = field(init=False, repr=False, compare=False)
     _corr_outer: Array = field(init=False, repr=False, compare=False)
-    _rows: Array = field(init=False, repr=False, compare=False)
-    _cols: Array = field(init=False, repr=False, compare=False)
-    _e_rows: Array = field(init=False, repr=False, compare=False)
-    _e_cols: Array = field(init=False, repr=False, compare=False)
+    _dcorr: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -129,8 +125,9 @@ class RigLayout:
     def _build_solver(self) -> None:
         """Choose the unknowns and precompute the pseudo-inverse of the linear system.
 
-        Caches ``_proj`` (6 x N: readings to [f; omega_dot]) and ``_corr`` (6 x P: the
-        correction for the P entries of omega omega^T that must be predicted from omega).
+        Caches ``_proj`` (6 x N: readings to [f; omega_dot]), ``_corr_outer`` (9 x 6: the
+        correction for the entries of omega omega^T that must be predicted from omega) and
+        ``_dcorr`` (its Jacobian's coefficients).
         """
         H = self.system_matrix
         rank = np.linalg.matrix_rank(H, tol=1e-9 * max(1.0, np.abs(H).max()))
@@ -152,12 +149,13 @@ class RigLayout:
         pred = np.setdiff1d(np.arange(6), solved)
         proj = np.linalg.pinv(A)[:6]
         rows, cols = _W_ROWS[pred], _W_COLS[pred]
-        corr = -proj @ C[:, pred]
-        corr_outer = np.zeros((9, 6))  # the same on vec(omega omega^T), one slot per entry
-        corr_outer[rows * 3 + cols] = corr.T
-        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": corr,
-                 "_corr_outer": corr_outer, "_rows": rows, "_cols": cols,
-                 "_e_rows": np.eye(3)[rows], "_e_cols": np.eye(3)[cols]}
+        corr_outer = np.zeros((9, 6))  # on vec(omega omega^T), one slot per predicted entry
+        corr_outer[rows * 3 + cols] = (-proj @ C[:, pred]).T
+        # the correction is the quadratic form w^T D_k w / 2 per output k, so its Jacobian
+        # w.r.t. omega is D @ w: (6, 3, 3) with D_k[a, b] = C_k[a, b] + C_k[b, a]
+        quad = corr_outer.T.reshape(6, 3, 3)
+        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr_outer": corr_outer,
+                 "_dcorr": quad + quad.transpose(0, 2, 1)}
         for name, value in cache.items():
             object.__setattr__(self, name, value)
 
@@ -254,10 +252,7 @@ class RigLayout:
     def solve_jacobians(self, omega: Array) -> tuple[Array, Array]:
         """Derivatives of ``solve``'s (f, omega_dot) = (6,): w.r.t. the readings (6 x N) and
         w.r.t. omega (6 x 3); the dead reckoner propagates its covariance with them."""
-        w = np.asarray(omega, float)
-        # d(w_a w_b)/dw = w_b e_a + w_a e_b for each predicted entry (a, b)
-        dW = self._e_rows * w[self._cols][:, None] + self._e_cols * w[self._rows][:, None]
-        return self._proj, self._corr @ dW
+        return self._proj, self._dcorr @ np.asarray(omega, float)
 
 
 # ---------------------------------------------------------------------- standard layouts

@@ -2,9 +2,11 @@
 
 The thesis labels bright pixels in one pass, accumulates intensity-weighted sums per
 label (eqs. 5.1-5.3), divides (5.4-5.5) and merges candidates closer than ``delta_x``.
-Here OpenCV does the pass: a binary threshold and ``connectedComponentsWithStats`` label
-the bright pixels in C; the weighted sums are then taken only inside each component's
-bounding box, so the Python work scales with the number of dots, not pixels.  Weights are
+Here OpenCV does the pass in C: row and column maxima find the boxes holding bright
+pixels, ``connectedComponentsWithStats`` labels only those, and the weighted sums are taken
+inside each component's bounding box, so the Python work scales with the number of dots,
+not pixels.  ``detect_dots_in`` does the same in windows only (the tracker's regions of
+interest).  Weights are
 intensities minus the sensor's dark level, which removes the pull of the threshold's cut
 towards the geometric centre of the region.  Fragments of one spot (a smeared or clipped
 spot can break apart) closer than ``merge_px`` are merged with intensity weights.
@@ -15,6 +17,7 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -53,40 +56,123 @@ def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) ->
     summed intensity above the dark level, ``std_px`` the centroid's standard deviation
     from sensor noise (with a floor for systematic effects).
     """
+    _check_gray8(image)
+    return _merge(_components(image, 0, 0, params), params)
+
+
+def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
+                   params: DetectorParams = DetectorParams()) -> tuple[np.ndarray, bool]:
+    """``detect_dots`` inside windows ``(x0, y0, x1, y1)`` (clipped to the image; overlapping
+    ones are joined, so no dot is found twice): the dots, and whether they are whole --
+    False when a bright pixel lies on a window's edge inside the image, where a spot cut by
+    the window would have a biased centroid."""
+    _check_gray8(image)
+    h, w = image.shape
+    rows, whole = [], True
+    for x0, y0, x1, y1 in _joined([(max(b[0], 0), max(b[1], 0), min(b[2], w), min(b[3], h))
+                                   for b in boxes]):
+        if x1 <= x0 or y1 <= y0:
+            continue
+        win = image[y0:y1, x0:x1]
+        whole = whole and not any(inner and int(edge.max()) > params.threshold for inner, edge in
+                                  ((x0 > 0, win[:, 0]), (x1 < w, win[:, -1]),
+                                   (y0 > 0, win[0]), (y1 < h, win[-1])))
+        rows.append(_components(win, x0, y0, params))
+    return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
+
+
+def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """The boxes with every overlapping pair replaced by its bounding box, until none
+    overlap."""
+    out = list(boxes)
+    i = 0
+    while i < len(out):
+        for j in range(i + 1, len(out)):
+            a, b = out[i], out[j]
+            if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                out[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                del out[j]
+                i = -1  # the grown box may now overlap an earlier one
+                break
+        i += 1
+    return out
+
+
+def _check_gray8(image: np.ndarray) -> None:
     if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
         raise ValueError("image must be a 2-D uint8 array (grayscale, 8 bit), got "
                          f"{getattr(image, 'dtype', type(image))} "
                          f"{getattr(image, 'shape', '')}")
-    _, mask = cv2.threshold(image, params.threshold, 255, cv2.THRESH_BINARY)
+
+
+def _components(image: np.ndarray, x0: int, y0: int, p: DetectorParams) -> np.ndarray:
+    """Centroid rows of the bright components of ``image`` (offset ``x0, y0``).
+
+    Labelling the whole frame writes a label for each of its 307,200 pixels, nearly all
+    dark.  Instead the row maxima find the bands of consecutive rows holding a bright pixel,
+    the column maxima of each band its runs of bright columns, and only those boxes are
+    labelled.  This is exact: an 8-connected component's rows are consecutive and each holds
+    one of its pixels, so it lies in one band, likewise in one column run of that band, and
+    any bright pixel touching it lies in the same box.
+    """
+    rows = []
+    for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold):
+        band = image[r0:r1]
+        for c0, c1 in _runs(cv2.reduce(band, 0, cv2.REDUCE_MAX).ravel() > p.threshold):
+            if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
+                rows += _box_components(band[:, c0:c1], x0 + c0, y0 + r0, p)
+    return np.array(rows).reshape(-1, 5)
+
+
+def _runs(bright: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each run of True in a 1-D boolean array (a few True at most:
+    a Python pass over them costs less than numpy's ``diff``)."""
+    runs: list[tuple[int, int]] = []
+    for i in bright.nonzero()[0].tolist():
+        if runs and runs[-1][1] == i:
+            runs[-1] = (runs[-1][0], i + 1)
+        else:
+            runs.append((i, i + 1))
+    return runs
+
+
+def _box_components(roi: np.ndarray, x0: int, y0: int, p: DetectorParams) -> list[list[float]]:
+    """Centroid rows of the 8-connected components in one box of bright rows and columns."""
+    mask = (roi > p.threshold).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
                                                            ltype=cv2.CV_32S)
-    rows = []
+    out = []
     for k in range(1, n):
-        x, y, w, h, area = stats[k]
-        if area < params.min_area or area > params.max_area:
-            continue
-        rows.append(_centroid(image[y:y + h, x:x + w], labels[y:y + h, x:x + w] == k,
-                              x, y, int(area), params))
-    if not rows:
-        return np.zeros((0, 5))
-    return _merge(np.array(rows), params)
+        x, y, w, h, area = stats[k].tolist()
+        if p.min_area <= area <= p.max_area:
+            box = slice(y, y + h), slice(x, x + w)
+            sel = mask[box].view(bool) if n == 2 else labels[box] == k
+            out.append(_centroid(roi[box], sel, x0 + x, y0 + y, area, p))
+    return out
 
 
 def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
               p: DetectorParams) -> list[float]:
-    """Intensity-weighted centroid (eqs. 5.1-5.5) of one component and its noise std."""
-    signal = np.where(sel, roi.astype(np.float64) - p.dark_level, 0.0)
+    """Intensity-weighted centroid (eqs. 5.1-5.5) of one component and its noise std.
+
+    ``cv2.moments`` takes every sum in one C pass (in double precision, about the box's
+    corner, where the coordinates are small)."""
+    signal = roi.astype(np.float64)
+    signal -= p.dark_level
+    signal *= sel
     np.maximum(signal, 0.0, out=signal)
-    flux = float(signal.sum())
-    us = np.arange(x0, x0 + roi.shape[1], dtype=np.float64)
-    vs = np.arange(y0, y0 + roi.shape[0], dtype=np.float64)
-    u = float(signal.sum(axis=0) @ us) / flux
-    v = float(signal.sum(axis=1) @ vs) / flux
+    m = cv2.moments(signal)
+    flux = m["m00"]
+    u, v = m["m10"] / flux, m["m01"] / flux
     # var(u_hat) = sum (u_i - u)^2 var(I_i) / flux^2; saturated pixels carry no noise
-    var_i = np.where(sel & (roi < 255), p.read_noise ** 2 + p.gain * signal, 0.0)
-    r2 = (us[None, :] - u) ** 2 + (vs[:, None] - v) ** 2
-    var = 0.5 * float((r2 * var_i).sum()) / flux ** 2
-    return [u, v, flux, float(area), float(np.sqrt(var + p.floor_px ** 2))]
+    var_i = signal * p.gain
+    var_i += p.read_noise ** 2
+    var_i *= sel & (roi < 255)
+    mv = cv2.moments(var_i)
+    r2 = (mv["m20"] + mv["m02"] - 2.0 * (u * mv["m10"] + v * mv["m01"])
+          + (u * u + v * v) * mv["m00"])
+    var = 0.5 * r2 / flux ** 2
+    return [x0 + u, y0 + v, flux, float(area), math.sqrt(var + p.floor_px ** 2)]
 
 
 def _merge(rows: np.ndarray, p: DetectorParams) -> np.ndarray:

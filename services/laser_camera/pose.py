@@ -103,17 +103,16 @@ def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
     if points.shape != (4, 3) or not np.all(np.isfinite(points)):
         raise ValueError(f"pose: need four finite 3-D points, got shape {points.shape}")
     eps = labeling_errors(points)
-    out = []
-    for i in np.argsort(eps, kind="stable"):
-        if not eps[i] <= max_error:
-            break
-        order = tuple(int(k) for k in PERMUTATIONS[i])
-        try:
-            P0, R = frame_from_points(points[list(order)])
-        except ValueError:
-            continue
-        out.append(LabeledPose(P0, geo.matrix_to_quat(R), order, float(eps[i])))
-    return out
+    best = np.argsort(eps, kind="stable")
+    best = best[eps[best] <= max_error]
+    if not len(best):
+        return []
+    # all frames in one batch: per labeling, numpy's call overhead is the cost
+    P0, R = frames_from_points(points[PERMUTATIONS[best]])
+    found = np.isfinite(R).all(axis=(1, 2))  # the others define no frame
+    q = geo.matrix_to_quat(R[found])
+    return [LabeledPose(p0, qk, tuple(PERMUTATIONS[i].tolist()), float(eps[i]))
+            for p0, qk, i in zip(P0[found], q, best[found], strict=True)]
 
 
 def reflection(order: tuple[int, int, int, int]) -> tuple[int, int, int, int]:

@@ -28,6 +28,7 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Mapping
@@ -37,8 +38,8 @@ from itertools import combinations
 import numpy as np
 
 from agent.srg import geometry as geo
-from services.laser_camera.calibration import Calibration
-from services.laser_camera.detection import STD, U, V, detect_dots
+from services.laser_camera.calibration import Calibration, CameraCalibration
+from services.laser_camera.detection import STD, U, V, detect_dots, detect_dots_in
 from services.laser_camera.homography import apply_homography
 from services.laser_camera.pose import LabeledPose, candidate_poses, frames_from_points
 
@@ -68,6 +69,12 @@ class TrackerParams:
     #: bend -- added to every pose covariance (1 sigma, per axis; default: none)
     model_pos_std_m: float = 0.0
     model_rot_std_rad: float = 0.0
+    #: while tracking, each dot is looked for only in a window of this half-size (pixels)
+    #: around its predicted position (Dorfmueller-Ulhaas §2); 0: always the full frame
+    roi_half_px: int = 24
+    #: a full-frame pass at least this often picks up dots the windows cannot (a dot
+    #: entering a camera's view, a second camera seeing a dot in an overlap)
+    roi_refresh_s: float = 0.5
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
@@ -76,6 +83,8 @@ class TrackerParams:
             raise ValueError("coherence_s and max_labeling_error must be positive")
         if self.model_pos_std_m < 0 or self.model_rot_std_rad < 0:
             raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
+        if self.roi_half_px < 0 or self.roi_refresh_s < 0:
+            raise ValueError("roi_half_px and roi_refresh_s must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -132,38 +141,101 @@ class LaserTracker:
         self.calibration = calibration
         self.params = params or TrackerParams()
         self.counts: Counter[str] = Counter()
+        #: detection passes: "full" frame or "roi" (predicted windows only)
+        self.passes: Counter[str] = Counter()
         self._last: PoseEstimate | None = None
+        self._seen = _SeenDots()
 
     def reset(self) -> None:
-        """Forget the previous pose: the next one is chosen by the upright rule."""
+        """Forget the previous pose: the next one is chosen by the upright rule (and its
+        dots found in the full frames)."""
         self._last = None
+        self._seen = _SeenDots()
 
     # ------------------------------------------------------------------ pipeline
 
     def process(self, images: Mapping[str, np.ndarray], t: float) -> PoseEstimate | NoPose:
-        """One frame set (camera name -> 8-bit image) taken at ``t`` seconds."""
+        """One frame set (camera name -> 8-bit image) taken at ``t`` seconds.
+
+        While tracking, the dots are looked for only in windows around their predicted
+        positions; the full frames are searched when that finds less than it expects,
+        gives no pose, or the last full pass is older than ``roi_refresh_s``."""
         t0 = time.perf_counter()
-        dots = self.detect(images)
+        result: PoseEstimate | NoPose | None = None
+        pose_s = 0.0
+        if self._roi_due(t):
+            self.passes["roi"] += 1
+            found = self._detect_windows(images, t)
+            if found is not None:
+                result, pose_s = self._solve(self._to_world(found), t)
+                if result.ok:
+                    self._seen.update(found, t, full=False)
+        if result is None or not result.ok:
+            self.passes["full"] += 1
+            found = self._detections(images)
+            self._seen.update(found, t, full=True)
+            result, full_pose_s = self._solve(self._to_world(found), t)
+            pose_s += full_pose_s
         t1 = time.perf_counter()
-        result = self.solve(dots, t)
-        t2 = time.perf_counter()
-        return replace(result, timing_s={"detect": t1 - t0, "pose": t2 - t1, "total": t2 - t0})
+        self._count(result)
+        return replace(result, timing_s={"detect": t1 - t0 - pose_s, "pose": pose_s,
+                                         "total": t1 - t0})
 
     def detect(self, images: Mapping[str, np.ndarray]) -> WorldDots:
-        """World-frame dots of all images; unknown camera names raise ``ValueError``."""
+        """World-frame dots of all images, searched in full; unknown camera names raise
+        ``ValueError``."""
+        return self._to_world(self._detections(images))
+
+    def _detections(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Each camera's pixel dots, searched in the full frame."""
+        return {name: detect_dots(img, self._camera(name, img).detector)
+                for name, img in images.items()}
+
+    def _roi_due(self, t: float) -> bool:
+        """Whether this frame set may be searched in windows only: tracking, with a recent
+        full pass."""
+        p, last = self.params, self._last
+        return (p.roi_half_px > 0 and last is not None and 0 <= t - last.t <= p.coherence_s
+                and 0 <= t - self._seen.full_t < p.roi_refresh_s)
+
+    def _detect_windows(self, images: Mapping[str, np.ndarray],
+                        t: float) -> dict[str, np.ndarray] | None:
+        """Each camera's pixel dots found in the windows around its predicted dots, or None
+        when a window lost its dot or cut a spot (then the full frames are searched)."""
+        half = self.params.roi_half_px
+        found = {}
+        for name, img in images.items():
+            cal = self._camera(name, img)
+            centres = self._seen.predict(name, t, half)
+            if not len(centres):
+                continue
+            boxes = [(round(u) - half, round(v) - half, round(u) + half + 1, round(v) + half + 1)
+                     for u, v in centres.tolist()]
+            det, whole = detect_dots_in(img, boxes, cal.detector)
+            if not whole or not _all_found(centres, det, half):
+                return None
+            found[name] = det
+        return found
+
+    def _camera(self, name: str, img: np.ndarray) -> CameraCalibration:
+        """The calibration of camera ``name``, checked against its image."""
         if self.calibration is None:
             raise ValueError("this tracker has no camera calibration; it can only solve() "
                              "world-frame dots")
+        cal = self.calibration.camera(name)
+        if getattr(img, "shape", None) != (cal.height, cal.width):
+            raise ValueError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
+                             f" but calibrated for ({cal.height}, {cal.width}) gray")
+        return cal
+
+    def _to_world(self, detections: Mapping[str, np.ndarray]) -> WorldDots:
+        """World-frame dots of each camera's detected pixel dots."""
         pts, std, walls, axes, cams = [], [], [], [], []
         guard = self.params.edge_guard_m
-        for name, img in images.items():
-            cal = self.calibration.camera(name)
-            if getattr(img, "shape", None) != (cal.height, cal.width):
-                raise ValueError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
-                                 f" but calibrated for ({cal.height}, {cal.width}) gray")
-            det = detect_dots(img, cal.detector)
+        for name, det in detections.items():
             if not len(det):
                 continue
+            cal = self.calibration.camera(name)
             und = cal.undistort(det[:, [U, V]])
             xy = apply_homography(cal.H, und)
             keep = cal.wall.on_screen(xy, guard)
@@ -181,20 +253,34 @@ class LaserTracker:
 
     def solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """The pose from world-frame dots (``detect``'s output), with temporal coherence."""
+        result = self._choose(dots, t)
+        self._count(result)
+        return result
+
+    def _count(self, result: PoseEstimate | NoPose) -> None:
+        self.counts["pose" if result.ok else result.reason] += 1
+
+    def _solve(self, dots: WorldDots, t: float) -> tuple[PoseEstimate | NoPose, float]:
+        """``_choose`` and the seconds it took."""
+        t0 = time.perf_counter()
+        return self._choose(dots, t), time.perf_counter() - t0
+
+    def _choose(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
+        """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
         n = len(dots.points)
         if n < 4:
-            return self._fail(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
+            return NoPose(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
         if n > p.max_dots:
-            return self._fail(t, "too_many_dots", n, f"{n} candidates > max_dots {p.max_dots}")
+            return NoPose(t, "too_many_dots", n, f"{n} candidates > max_dots {p.max_dots}")
         cands: list[tuple[LabeledPose, tuple[int, ...]]] = []
         for subset in combinations(range(n), 4):
             for c in candidate_poses(dots.points[list(subset)], p.max_labeling_error):
                 cands.append((c, subset))
         if not cands:
-            return self._fail(t, "no_consistent_labeling", n,
-                              f"no labeling of {n} dots fits the housing (eps > "
-                              f"{p.max_labeling_error})")
+            return NoPose(t, "no_consistent_labeling", n,
+                          f"no labeling of {n} dots fits the housing (eps > "
+                          f"{p.max_labeling_error})")
         # the true labeling and its reflection score alike up to noise; worse fits (a
         # distractor in the subset, a lost dot) compete only if they are nearly as good
         eps_min = min(c.error for c, _ in cands)
@@ -209,32 +295,67 @@ class LaserTracker:
             move = float(np.linalg.norm(best.position - last.position))
             if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
                     or move > p.max_speed_mps * dt + p.gate_margin_m:
-                return self._fail(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
-                                  f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
+                return NoPose(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
+                              f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
         else:  # initialisation: the user stands upright (thesis §5.3)
             ups = [float(geo.quat_rotate(c.quaternion, [0.0, 0.0, 1.0])[2]) for c, _ in pool]
             k = int(np.argmax(ups))
             if ups[k] < p.min_upright_cos:
-                return self._fail(t, "not_upright", n, "initialisation needs an upright head "
-                                  f"(best up-axis cosine {ups[k]:.2f})")
+                return NoPose(t, "not_upright", n, "initialisation needs an upright head "
+                              f"(best up-axis cosine {ups[k]:.2f})")
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
             cov = _covariance(dots, idx, best.position, p.model_pos_std_m, p.model_rot_std_rad)
         except ValueError as exc:
-            return self._fail(t, "degenerate", n, str(exc))
+            return NoPose(t, "degenerate", n, str(exc))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
             {k + 1: float(dots.std_m[i]) for k, i in enumerate(idx)},
             best.error, n, not tracking)
         self._last = est
-        self.counts["pose"] += 1
         return est
 
-    def _fail(self, t: float, reason: str, n: int, detail: str) -> NoPose:
-        self.counts[reason] += 1
-        return NoPose(t, reason, n, detail)
+
+class _SeenDots:
+    """Each camera's pixel dots in the last two frame sets: where to look next."""
+
+    def __init__(self) -> None:
+        self.full_t = -math.inf  # time of the last full-frame pass
+        self._last: dict[str, np.ndarray] = {}
+        self._last_t = -math.inf
+        self._prev: dict[str, np.ndarray] = {}
+        self._prev_t = -math.inf
+
+    def update(self, detections: Mapping[str, np.ndarray], t: float, full: bool) -> None:
+        self._prev, self._prev_t = self._last, self._last_t
+        self._last = {name: d[:, [U, V]] for name, d in detections.items() if len(d)}
+        self._last_t = t
+        if full:
+            self.full_t = t
+
+    def predict(self, name: str, t: float, gate_px: float) -> np.ndarray:
+        """Where camera ``name``'s dots will be at ``t`` (n, 2): each moves on at its pixel
+        velocity since the nearest dot of the frame set before, if one was that near."""
+        last = self._last.get(name, np.zeros((0, 2)))
+        prev = self._prev.get(name)
+        if prev is None or not len(last) or not self._prev_t < self._last_t:
+            return last
+        step = last[:, None, :] - prev[None, :, :]
+        dist = np.hypot(step[..., 0], step[..., 1])
+        j = dist.argmin(axis=1)
+        rows = np.arange(len(last))
+        step = np.where((dist[rows, j] <= gate_px)[:, None], step[rows, j], 0.0)
+        return last + step * ((t - self._last_t) / (self._last_t - self._prev_t))
+
+
+def _all_found(centres: np.ndarray, det: np.ndarray, half: float) -> bool:
+    """Whether every window (``half`` around each centre) holds a detected dot."""
+    if not len(det):
+        return False
+    d = np.abs(centres[:, None, :] - det[None, :, :2]).max(axis=2)
+    return bool((d.min(axis=1) <= half + 0.5).all())
 
 
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
