@@ -74,7 +74,7 @@ from agent.protocol.registration import (
 )
 from agent.runtime import plugins
 from agent.runtime.logs import RateLimitedLog
-from agent.runtime.session import listening_endpoints, open_session, query
+from agent.runtime.session import ask_all, listening_endpoints, open_session, query
 from agent.runtime.worker import Worker
 from schemas.codec import DecodeError
 
@@ -340,15 +340,10 @@ class Agent:
             return
         assert self.session is not None
         self._checks += 1
-        check, answers = self._checks, []
-        self._agent_checks[agent_id] = check
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                answers.append(reply.ok.payload.to_bytes())
-        self.session.get(keys.agent_services(self.realm, agent_id), zenoh.handlers.Callback(
-            on_reply, lambda: self._worker.put(self._on_agent_checked, agent_id, check,
-                                               answers)), timeout=DEPARTURE_CHECK_S)
+        check = self._agent_checks[agent_id] = self._checks
+        ask_all(self.session, keys.agent_services(self.realm, agent_id), DEPARTURE_CHECK_S,
+                lambda answers: self._worker.put(self._on_agent_checked, agent_id, check,
+                                                 answers))
 
     def _on_agent_checked(self, agent_id: str, check: int, answers: list[bytes]) -> None:
         if self._agent_checks.get(agent_id) != check:

@@ -47,6 +47,7 @@ from agent.protocol.registration import (
     reply_ok,
 )
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.session import ask_all
 from schemas.codec import DecodeError
 
 log = logging.getLogger("uma.agent")
@@ -273,15 +274,11 @@ class Registrar:
         if k in self._checking:
             return
         self._checks += 1
-        check, answers = self._checks, []
-        self._checking[k] = check
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                answers.append(reply.ok.payload.to_bytes())
-        self._get(keys.service_token(self.realm, agent_id, sid), on_reply,
-                  lambda: self._on_departure_checked(k, check, answers), DEPARTURE_CHECK_S,
-                  every_reply=True)
+        check = self._checking[k] = self._checks
+        assert self._session is not None
+        ask_all(self._session, keys.service_token(self.realm, agent_id, sid), DEPARTURE_CHECK_S,
+                lambda answers: self._put(lambda: self._on_departure_checked(k, check, answers)),
+                every_reply=True)
 
     def _on_departure_checked(self, k: tuple[str, str], check: int,
                               answers: list[bytes]) -> None:

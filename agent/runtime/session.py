@@ -42,7 +42,7 @@ import re
 import socket
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import zenoh
@@ -318,6 +318,21 @@ def query(session: zenoh.Session, selector: str, timeout: float, *,
         session.get(selector, handler, timeout=timeout, **options)
     done.wait(timeout + 0.25)
     return list(replies)
+
+
+def ask_all(session: zenoh.Session, selector: str, timeout: float,
+            done: Callable[[list[bytes]], None], *, every_reply: bool = False) -> None:
+    """Ask ``selector`` without waiting: ``done(payloads)`` with the payloads of every
+    successful reply once the query ends (in Zenoh's thread: hand over, do not block).
+    ``every_reply``: keep the replies of two processes answering on one key."""
+    answers: list[bytes] = []
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            answers.append(reply.ok.payload.to_bytes())
+    extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
+    session.get(selector, zenoh.handlers.Callback(on_reply, lambda: done(answers)),
+                timeout=timeout, **extra)
 
 
 def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[str]:
