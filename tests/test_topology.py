@@ -136,8 +136,12 @@ def test_an_agent_whose_token_lapses_but_still_answers_keeps_its_services(realm)
             time.sleep(2.5)  # A's check (1 s) and a few re-matches
             assert [m.service_id for m in fusion.matches("head")] == ["cam"]
             assert "hostB" in a.view.live_agents
-            b.close()  # now B is gone for real: its services go with it
+            b.close()  # now B is gone for real: its services go with it, and so does B
             fusion.wait_matched("head", timeout=15.0, until=lambda ms: not ms)
+            deadline = time.monotonic() + 15.0  # A's next resync (every 5 s) checks again
+            while "hostB" in a.view.live_agents and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert "hostB" not in a.view.live_agents
     finally:
         b.close()
         a.close()

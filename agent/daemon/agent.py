@@ -374,13 +374,24 @@ class Agent:
 
     def _resync_agent_tokens(self) -> None:
         """Anti-entropy: ask for the live agent tokens (a liveliness subscription declared
-        before its links were up may not get the tokens that existed then)."""
+        before its links were up may not get the tokens that existed then), and check again
+        every agent kept without a token (it may have gone since it last answered)."""
         assert self.session is not None
+        seen: set[str] = set()
 
         def on_agent(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
+                seen.add(str(reply.ok.key_expr))
                 self._worker.put(self._on_resync_agent_token, reply.ok)
-        self.session.liveliness().get(keys.all_agent_tokens(self.realm), on_agent, timeout=1.0)
+        self.session.liveliness().get(
+            keys.all_agent_tokens(self.realm), zenoh.handlers.Callback(
+                on_agent, lambda: self._worker.put(self._recheck_tokenless, seen)),
+            timeout=1.0)
+
+    def _recheck_tokenless(self, token_keys: set[str]) -> None:
+        for agent_id in self.view.live_agents - {self.agent_id}:
+            if keys.agent_token(self.realm, agent_id) not in token_keys:
+                self._check_agent_departure(agent_id)
 
     def _on_resync_agent_token(self, smp: zenoh.Sample) -> None:
         agent_id = keys.parse_agent_token(str(smp.key_expr), self.realm)
