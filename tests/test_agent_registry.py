@@ -13,7 +13,9 @@ from agent.protocol.registration import (
     PENDING_TIMEOUT_S,
     Match,
     Registration,
+    UnverifiedControlError,
     control_message,
+    control_need,
     parse_control,
     parse_register_request,
     parse_reply,
@@ -57,23 +59,45 @@ def test_register_request_round_trip_and_refusals() -> None:
         parse_register_request(bad, "hostA")
     with pytest.raises(DecodeError, match="revision"):
         parse_register_request(register_request(encode_descriptor(d), "i", -1, {}), "hostA")
-    assert parse_reply(reply_ok(5)) == (True, "", False)
-    assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True)
+    key = bytes(range(16))
+    assert parse_reply(reply_ok(5, key)) == (True, "", False, 5, key)
+    assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True, None, None)
+    with pytest.raises(DecodeError, match="control key"):
+        parse_reply(msgpack.packb({"v": 1, "ok": True, "epoch": 5}))
 
 
 def test_control_round_trip_and_keys_outside_the_realm() -> None:
     m = Match(keys.data(R, "hostB", "cam", "pose"), "hostB", "cam", "pose", "pose6d",
               ("ivy/world", "alice/head"), {"latency_s": 0.01})
-    ctl = parse_control(control_message(7, 2, "head", [m], True), R)
+    key = bytes(range(16))
+    ctl = parse_control(control_message(key, 7, 2, "head", [m], True), R, key)
     assert (ctl.epoch, ctl.seq, ctl.need, ctl.matches, ctl.satisfied) == (7, 2, "head", (m,),
                                                                           True)
     other = Match(keys.data("elsewhere", "hostB", "cam", "pose"), "hostB", "cam", "pose",
                   "pose6d", None, {})
     with pytest.raises(DecodeError, match="not a data key of realm 'lab'"):
-        parse_control(control_message(7, 3, "head", [other], True), R)
-    with pytest.raises(DecodeError, match="unknown op"):
-        parse_control(msgpack.packb({"v": 1, "op": "explode", "epoch": 1, "seq": 1,
-                                     "need": "n", "matches": []}), R)
+        parse_control(control_message(key, 7, 3, "head", [other], True), R, key)
+    with pytest.raises(DecodeError, match="expected a signed envelope"):
+        parse_control(msgpack.packb({"v": 1, "op": "explode", "body": b"", "mac": 1}), R, key)
+
+
+def test_control_must_be_signed_with_the_services_key() -> None:
+    m = Match(keys.data(R, "hostB", "cam", "pose"), "hostB", "cam", "pose", "pose6d",
+              None, {})
+    key, wrong = bytes(range(16)), bytes(16)
+    data = control_message(key, 7, 2, "head", [m], True)
+    assert control_need(data) == "head"
+    for k in (wrong, None):
+        with pytest.raises(UnverifiedControlError):
+            parse_control(data, R, k)
+    with pytest.raises(UnverifiedControlError):
+        parse_control(control_message(None, 7, 2, "head", [m], True), R, key)
+    tampered = msgpack.unpackb(data)
+    tampered["body"] = tampered["body"].replace(b"head", b"hexd")
+    with pytest.raises(UnverifiedControlError):
+        parse_control(msgpack.packb(tampered), R, key)
+    with pytest.raises(DecodeError, match="more than 64"):
+        parse_control(control_message(key, 7, 3, "head", [m] * 65, True), R, key)
 
 
 def test_snapshot_drops_bad_entries_but_keeps_good_ones() -> None:

@@ -20,7 +20,7 @@ from agent_helpers.harness import (
 from conftest import endpoint, free_port
 
 from agent.protocol import keys
-from agent.protocol.registration import parse_reply, register_request
+from agent.protocol.registration import control_message, parse_reply, register_request
 from agent.runtime.session import SDK_MODE_ENV, open_session, query
 
 PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
@@ -31,8 +31,8 @@ def register_raw(session: zenoh.Session, realm: str, agent_id: str, payload: byt
     """Send a registration and return the agent's (ok, error)."""
     for reply in query(session, keys.agent_register(realm, agent_id), 10.0, payload=payload):
         data = reply.ok.payload.to_bytes() if reply.ok else reply.err.payload.to_bytes()
-        ok, error, _ = parse_reply(data)
-        return ok, error
+        reply = parse_reply(data)
+        return reply.ok, reply.error
     raise AssertionError("the agent did not answer the registration")
 
 
@@ -87,6 +87,8 @@ def test_bad_input_is_refused_with_reasons_and_the_agent_keeps_working(processes
         s.put(keys.control(realm, "hostA", "fusion"), b"not msgpack at all")
         s.put(keys.control(realm, "hostA", "fusion"), msgpack.packb(
             {"v": 1, "op": "connect", "epoch": 1, "seq": 1, "need": "nope", "matches": []}))
+        s.put(keys.control(realm, "hostA", "fusion"),
+              control_message(bytes(16), 1, 1, "head", [], True))
         s.put(keys.data(realm, "hostA", "cam", "pose"), msgpack.packb({"v": 1, "k": "pose6d"}))
         token = s.liveliness().declare_token(f"uma/{realm}/agent/evil")
         answer = s.declare_queryable(keys.agent_services(realm, "evil"),
@@ -95,7 +97,8 @@ def test_bad_input_is_refused_with_reasons_and_the_agent_keeps_working(processes
         host.wait_log("snapshot uma/" + realm + "/agent/evil/services")
         host.wait_log("malformed sample")
         consumer.wait_log("control uma/" + realm + "/ctl/hostA/fusion")
-        consumer.wait_log("unknown need 'nope'")
+        consumer.wait_log("lacks field(s) body, mac")
+        consumer.wait_log("refused (signature")
         consumer.wait_log("data uma/" + realm + "/data/hostA/cam/pose")
         answer.undeclare()
         token.undeclare()

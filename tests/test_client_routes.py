@@ -4,6 +4,7 @@ no network): routes that pass through an agent twice, the static-segment cache, 
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 from unittest import mock
 
 import numpy as np
@@ -50,6 +51,8 @@ class Realm:
         for name, node in self.nodes.items():
             node._remote_frames = {o: f for o, f in frames.items() if o != name}
             node._republish_if_changed()
+            self.client.tracker._on_token(SimpleNamespace(key_expr=f"uma/lab/agent/{name}",
+                                                          kind=zenoh.SampleKind.PUT))
             self.client.tracker.take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
         self.client.tracker._looked = True
 

@@ -37,7 +37,7 @@ def node():
 
 def _sent(reply):
     """A reply as the client gets it: stamped, encoded, decoded."""
-    return proto.decode_reply(proto.stamped(reply, 10, 12))
+    return proto.decode_reply(proto.stamped(reply, "hostA", 10, 12))
 
 
 def test_an_agents_answer_reads_back_with_its_edge_details(node):

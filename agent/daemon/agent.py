@@ -452,8 +452,8 @@ class Agent:
         assert self.session is not None and state.result is not None
         state.seq += 1
         sid = state.req.service_id
-        payload = control_message(self.epoch, state.seq, state.req.name, matches,
-                                  state.result.satisfied)
+        payload = control_message(self.registrar.control_key(sid), self.epoch, state.seq,
+                                  state.req.name, matches, state.result.satisfied)
         self.session.put(keys.control(self.realm, self.agent_id, sid), payload,
                          congestion_control=zenoh.CongestionControl.BLOCK)
         if matches != state.sent:

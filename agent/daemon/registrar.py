@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import secrets
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -39,6 +41,7 @@ import zenoh
 from agent.daemon.realm_view import RealmView
 from agent.protocol import keys
 from agent.protocol.registration import (
+    CONTROL_KEY_BYTES,
     Registration,
     parse_descriptor_answer,
     parse_descriptor_reply,
@@ -59,6 +62,8 @@ DUPLICATE_CHECK_S = 0.5
 DEPARTURE_CHECK_S = 1.0
 #: seconds to wait for a service's descriptor answer when adopting it
 ADOPT_TIMEOUT_S = 2.0
+#: control keys kept (per service instance, also after it left: it may come back)
+MAX_CONTROL_KEYS = 4096
 
 
 class RegistrarHost(Protocol):
@@ -106,6 +111,10 @@ class Registrar:
         self._checks = 0
         #: local services whose descriptor is being re-fetched (their token came back)
         self._adopting: set[str] = set()
+        #: (service id, instance) -> the key control messages to it are signed with
+        self._control_keys: OrderedDict[tuple[str, str], bytes] = OrderedDict()
+        #: registrations refused for an instance id without its key
+        self.hijacks_refused = 0
 
     def declare(self, session: zenoh.Session) -> None:
         """Answer registrations and watch the service tokens from now on."""
@@ -150,6 +159,14 @@ class Registrar:
                     retry=True)
             return
         entry = self.view.local.get(sid)
+        if entry is not None and entry.instance == reg.instance and not self._proven(reg):
+            self.hijacks_refused += 1
+            self._bad.warning(f"service {sid}", "registration refused: it names the running "
+                              "instance's id without that instance's key "
+                              f"({self.hijacks_refused} refused so far)")
+            _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is registered "
+                    "and this registration does not carry its key")
+            return
         if entry is None or entry.instance == reg.instance:
             self._accept(query, reg)
             return
@@ -185,10 +202,34 @@ class Registrar:
             log.info("service %s: previous instance does not answer; replaced", sid)
             self._accept(pending.query, pending.reg)
 
+    def _proven(self, reg: Registration) -> bool:
+        """Whether a registration of a known instance carries the key it was given (an
+        instance this agent never gave a key, e.g. one it re-adopted, needs none)."""
+        key = self._control_keys.get((reg.descriptor.service_id, reg.instance))
+        return key is None or reg.proof == key
+
+    def control_key(self, sid: str) -> bytes | None:
+        """The key control messages to local service ``sid`` are signed with (None: it
+        never registered with this agent, e.g. re-adopted: it registers on the first
+        message it cannot verify)."""
+        entry = self.view.local.get(sid)
+        return None if entry is None else self._control_keys.get((sid, entry.instance))
+
+    def _issue_key(self, sid: str, instance: str) -> bytes:
+        k = (sid, instance)
+        key = self._control_keys.get(k)
+        if key is None:
+            key = self._control_keys[k] = secrets.token_bytes(CONTROL_KEY_BYTES)
+            while len(self._control_keys) > MAX_CONTROL_KEYS:
+                self._control_keys.popitem(last=False)
+        self._control_keys.move_to_end(k)
+        return key
+
     def _accept(self, query: zenoh.Query, reg: Registration) -> None:
         self._admit(reg)
+        key = self._issue_key(reg.descriptor.service_id, reg.instance)
         try:
-            query.reply(query.key_expr, reply_ok(self.epoch))
+            query.reply(query.key_expr, reply_ok(self.epoch, key))
         finally:
             query.drop()
         log.info("service %s registered with agent %s (revision %d)",

@@ -254,7 +254,7 @@ class SrgNode:
             self._bad.warning("query", f"{type(exc).__name__}: {exc}")
             reply = proto.internal_error_reply(exc)
         try:
-            query.reply(self._query_key, proto.stamped(reply, t2, self.now_ns()))
+            query.reply(self._query_key, proto.stamped(reply, self.agent_id, t2, self.now_ns()))
         except (zenoh.ZError, ValueError) as exc:
             self._bad.warning("query reply", str(exc))
 
@@ -332,6 +332,8 @@ class SrgNode:
             if not isinstance(agent, str) or not isinstance(frames, list) or not all(
                     isinstance(f, str) for f in frames):
                 raise DecodeError("agent must be a string and frames a list of strings")
+            if agent != keys.parse_agent_supernode(key, self.realm):
+                raise DecodeError(f"it names agent {agent[:64]!r}, not the agent of its key")
         except DecodeError as exc:
             self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
             return

@@ -153,6 +153,12 @@ def parse_agent_services(key: str, realm: str) -> str | None:
     return parts[0] if parts and parts[1] == "services" else None
 
 
+def parse_agent_supernode(key: str, realm: str) -> str | None:
+    """Agent id of ``uma/R/agent/A/supernode``."""
+    parts = _parts(key, realm, "agent", 2)
+    return parts[0] if parts and parts[1] == "supernode" else None
+
+
 def parse_agent_query(key: str, realm: str) -> str | None:
     """Agent id of ``uma/R/agent/A/query``."""
     parts = _parts(key, realm, "agent", 2)

@@ -172,9 +172,10 @@ def internal_error_reply(exc: Exception) -> dict[str, Any]:
             "kind": "InternalError"}
 
 
-def stamped(reply: dict[str, Any], t2: int, t3: int) -> bytes:
-    """A reply as sent, with the agent's receive and send times."""
-    return encode_message({**reply, "t2": t2, "t3": t3})
+def stamped(reply: dict[str, Any], agent: str, t2: int, t3: int) -> bytes:
+    """A reply as sent, naming the agent that answers (the client checks it against the
+    key the reply came on) and its receive and send times."""
+    return encode_message({**reply, "agent": agent, "t2": t2, "t3": t3})
 
 
 def result_to_wire(r: PoseResult, source: str, target: str, owner: str,

@@ -16,10 +16,15 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    bytes, ``instance`` a random id of this process, ``revision`` a counter bumped by every
    attribute change, ``connected`` the data keys each need is subscribed to right now.
 3. The agent validates the descriptor (``agent_id`` must be A) and replies ``{ok: true,
-   epoch}``, or ``reply_err {ok: false, error}``.  A second process registering a service
-   id that is already registered (different ``instance``) is refused with "duplicate
-   service id" *if the first one still answers* on ``uma/R/svc/A/S``; if it does not
-   (it died and its lease has not expired yet) the newcomer replaces it.  A refusal with
+   epoch, key}``, or ``reply_err {ok: false, error}``.  ``key`` (random, per service
+   instance, kept by the agent for its lifetime) signs the agent's control messages to the
+   service; a query reply reaches only the querier, so no other peer learns it.  A
+   re-registration of an instance the agent holds a key for must carry that key as
+   ``proof``: a process that merely copies another's instance id is refused.  A second
+   process registering a service id that is already registered (different ``instance``)
+   is refused with "duplicate service id" *if the first one still answers* on
+   ``uma/R/svc/A/S``; if it does not (it died and its lease has not expired yet) the
+   newcomer replaces it.  A refusal with
    ``retry: true`` is temporary (a check for that id is in progress).
 4. On the first acceptance the service declares its liveliness token ``uma/R/svc/A/S``
    (only then, so a refused duplicate never merges with the original's token).  The agent
@@ -44,11 +49,16 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
 
 **Agent -> its local services** (``uma/R/ctl/A/S``, put, congestion control BLOCK)
 
-``{op: "connect", epoch, seq, need, matches: [match...], satisfied}``: the complete set of
-abilities the need must be subscribed to now (``match`` = ``{key, agent_id, service_id,
-ability, type, edge, attributes}``).  Set semantics make messages idempotent; the service
-ignores a message older (same ``epoch``, lower ``seq``) than one it applied, and the agent
-re-sends every need's set every ``RESEND_S`` (anti-entropy, in case a put was lost).
+``{op: "signed", body, mac}`` with ``body`` = ``{op: "connect", epoch, seq, need, matches:
+[match...], satisfied}``: the complete set of abilities the need must be subscribed to now
+(``match`` = ``{key, agent_id, service_id, ability, type, edge, attributes}``, at most
+``MAX_CONTROL_MATCHES``), and ``mac`` = HMAC-SHA256 of ``body`` with the service's key
+(first 16 bytes).  The service applies only a message that verifies, whose ``epoch`` is the
+one its agent replied with, and whose ``seq`` is newer than the last applied but by at most
+``SEQ_WINDOW`` of the service; one that does not verify makes it register again (its key
+may be one the agent has not given it yet).  Set semantics make messages idempotent, and the
+agent re-sends every need's set every ``RESEND_S`` with the next ``seq`` (anti-entropy, in
+case a put was lost).
 
 **Agent <-> agents**
 
@@ -77,9 +87,11 @@ key or service and the reason; nothing else is affected.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from agent.protocol import keys
 from schemas.codec import DecodeError, decode_descriptor, decode_message, encode_message
@@ -89,6 +101,10 @@ from schemas.models import Ability, ServiceDescriptor
 PENDING_TIMEOUT_S = 5.0
 #: seconds between re-sends of every need's match set (anti-entropy)
 RESEND_S = 5.0
+#: length of the key an agent signs its control messages to one service instance with
+CONTROL_KEY_BYTES = 16
+#: most matches one control message may name (a need's max_count is far lower)
+MAX_CONTROL_MATCHES = 64
 
 
 # --------------------------------------------------------------------------- matches
@@ -160,13 +176,19 @@ class Registration:
     instance: str
     revision: int
     connected: dict[str, list[str]]
+    #: the control key this agent gave the instance before (None: never given one)
+    proof: bytes | None = None
 
 
 def register_request(desc_bytes: bytes, instance: str, revision: int,
-                     connected: Mapping[str, Iterable[str]]) -> bytes:
-    return encode_message({"op": "register", "instance": instance, "revision": revision,
+                     connected: Mapping[str, Iterable[str]],
+                     proof: bytes | None = None) -> bytes:
+    msg: dict[str, Any] = {"op": "register", "instance": instance, "revision": revision,
                            "descriptor": desc_bytes,
-                           "connected": {k: list(v) for k, v in connected.items()}})
+                           "connected": {k: list(v) for k, v in connected.items()}}
+    if proof is not None:
+        msg["proof"] = proof
+    return encode_message(msg)
 
 
 def parse_register_request(data: bytes, agent_id: str) -> Registration:
@@ -174,7 +196,11 @@ def parse_register_request(data: bytes, agent_id: str) -> Registration:
     msg = decode_message(data, required=("op", "instance", "revision", "descriptor"))
     if msg["op"] != "register":
         raise DecodeError(f"unknown op {msg['op']!r} (expected 'register')")
-    return _registration(msg, agent_id)
+    reg = _registration(msg, agent_id)
+    proof = msg.get("proof")
+    if proof is not None and not (isinstance(proof, bytes) and len(proof) == CONTROL_KEY_BYTES):
+        raise DecodeError(f"proof: expected {CONTROL_KEY_BYTES} bytes")
+    return Registration(reg.descriptor, reg.instance, reg.revision, reg.connected, proof)
 
 
 def parse_descriptor_answer(data: bytes, agent_id: str) -> Registration:
@@ -218,8 +244,10 @@ def _peek_service_id(desc_bytes: bytes) -> str:
     return sid[:64] if isinstance(sid, str) else "?"
 
 
-def reply_ok(epoch: int) -> bytes:
-    return encode_message({"ok": True, "epoch": epoch})
+def reply_ok(epoch: int, control_key: bytes) -> bytes:
+    """An accepted registration: the agent's epoch and the key its control messages to
+    this service are signed with (a query reply reaches only the querier)."""
+    return encode_message({"ok": True, "epoch": epoch, "key": control_key})
 
 
 def reply_error(error: str, retry: bool = False) -> bytes:
@@ -227,17 +255,49 @@ def reply_error(error: str, retry: bool = False) -> bytes:
     return encode_message({"ok": False, "error": error, "retry": retry})
 
 
-def parse_reply(data: bytes) -> tuple[bool, str, bool]:
-    """``(ok, error, retry)`` of a register reply (a reply_err payload included)."""
+class RegisterReply(NamedTuple):
+    """A register reply: accepted (with the agent's epoch and control key) or refused."""
+
+    ok: bool
+    error: str = ""
+    retry: bool = False
+    epoch: int | None = None
+    key: bytes | None = None
+
+
+def parse_reply(data: bytes) -> RegisterReply:
+    """A register reply (a reply_err payload included); ``DecodeError`` if an acceptance
+    lacks the epoch or the control key."""
     msg = decode_message(data, required=("ok",))
-    return bool(msg["ok"]), str(msg.get("error", "")), bool(msg.get("retry", False))
+    if not msg["ok"]:
+        return RegisterReply(False, str(msg.get("error", ""))[:500],
+                             bool(msg.get("retry", False)))
+    epoch, key = msg.get("epoch"), msg.get("key")
+    if type(epoch) is not int or not (isinstance(key, bytes) and len(key) == CONTROL_KEY_BYTES):
+        raise DecodeError("accepted registration without an integer epoch and a "
+                          f"{CONTROL_KEY_BYTES}-byte control key")
+    return RegisterReply(True, epoch=epoch, key=key)
 
 
-def control_message(epoch: int, seq: int, need: str, matches: Iterable[Match],
-                    satisfied: bool) -> bytes:
-    return encode_message({"op": "connect", "epoch": epoch, "seq": seq, "need": need,
+class UnverifiedControlError(DecodeError):
+    """A control message whose signature does not verify with the key this service holds
+    (forged, or signed with a key it was not given yet)."""
+
+
+def _mac(key: bytes, body: bytes) -> bytes:
+    return hmac.new(key, body, hashlib.sha256).digest()[:16]
+
+
+def control_message(key: bytes | None, epoch: int, seq: int, need: str,
+                    matches: Iterable[Match], satisfied: bool) -> bytes:
+    """A need's match set, signed with the service's control ``key`` (HMAC-SHA256, RFC
+    2104); ``key`` None (the service never registered with this agent) sends it unsigned:
+    the service refuses it and registers, which gives it a key."""
+    body = encode_message({"op": "connect", "epoch": epoch, "seq": seq, "need": need,
                            "matches": [m.to_wire() for m in matches],
                            "satisfied": satisfied})
+    return encode_message({"op": "signed", "body": body,
+                           "mac": b"" if key is None else _mac(key, body)})
 
 
 @dataclass(frozen=True)
@@ -249,14 +309,36 @@ class Control:
     satisfied: bool
 
 
-def parse_control(data: bytes, realm: str) -> Control:
-    msg = decode_message(data, required=("op", "epoch", "seq", "need", "matches"))
+def control_need(data: bytes) -> str | None:
+    """The need a control message names, unverified (to keep the newest unverified message
+    of each of the service's own needs until its key arrives); None if unreadable."""
+    try:
+        body = decode_message(decode_message(data, required=("body",))["body"])
+    except (DecodeError, TypeError):
+        return None
+    need = body.get("need")
+    return need if isinstance(need, str) else None
+
+
+def parse_control(data: bytes, realm: str, key: bytes | None) -> Control:
+    """A control message verified with ``key``: ``UnverifiedControlError`` if its signature does
+    not match (or there is no key yet), ``DecodeError`` if it is malformed."""
+    env = decode_message(data, required=("op", "body", "mac"))
+    body, mac = env["body"], env["mac"]
+    if env["op"] != "signed" or not isinstance(body, bytes) or not isinstance(mac, bytes):
+        raise DecodeError("expected a signed envelope {op: 'signed', body, mac}")
+    if key is None or not hmac.compare_digest(mac, _mac(key, body)):
+        raise UnverifiedControlError("signature does not verify with this service's control key"
+                                if key is not None else "no control key yet (not registered)")
+    msg = decode_message(body, required=("op", "epoch", "seq", "need", "matches"))
     if msg["op"] != "connect":
         raise DecodeError(f"unknown op {msg['op']!r} (expected 'connect')")
     if type(msg["epoch"]) is not int or type(msg["seq"]) is not int:
         raise DecodeError("epoch and seq must be integers")
     if not isinstance(msg["need"], str) or not isinstance(msg["matches"], list):
         raise DecodeError("need must be a string and matches a list")
+    if len(msg["matches"]) > MAX_CONTROL_MATCHES:
+        raise DecodeError(f"{len(msg['matches'])} matches, more than {MAX_CONTROL_MATCHES}")
     matches = tuple(Match.from_wire(m, realm) for m in msg["matches"])
     return Control(msg["epoch"], msg["seq"], msg["need"], matches,
                    bool(msg.get("satisfied", True)))

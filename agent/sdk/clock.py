@@ -31,9 +31,13 @@ class ClockSample:
 class ClockOffsets:
     """Per remote agent, the offset of its clock from ours (min-delay filtered)."""
 
-    def __init__(self, window: int = 16, max_age_s: float = 60.0) -> None:
+    def __init__(self, window: int = 16, max_age_s: float = 60.0,
+                 max_agents: int = 1000) -> None:
         self.window = window
         self.max_age_s = max_age_s
+        #: agents kept (the least recently measured is forgotten first): answers under
+        #: forged agent keys must not grow a client without bound
+        self.max_agents = max_agents
         self._samples: dict[str, deque[ClockSample]] = {}
         #: per agent, the best sample and until when it stays the best unless a sample
         #: arrives (the first moment one of the window's samples ages out): a query at a
@@ -50,8 +54,14 @@ class ClockOffsets:
             return None
         sample = ClockSample(((t2 - t1) + (t3 - t4)) // 2, delay, time.monotonic())
         with self._lock:
-            self._samples.setdefault(agent, deque(maxlen=self.window)).append(sample)
+            samples = self._samples.pop(agent, None) or deque(maxlen=self.window)
+            samples.append(sample)
+            self._samples[agent] = samples  # last: the dict's order is recency
             self._best.pop(agent, None)
+            while len(self._samples) > self.max_agents:
+                oldest = next(iter(self._samples))
+                del self._samples[oldest]
+                self._best.pop(oldest, None)
         return sample
 
     def best(self, agent: str) -> ClockSample | None:

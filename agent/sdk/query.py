@@ -86,6 +86,8 @@ class Queries:
         self.connect = list(connect)
         self._lock = threading.Lock()
         self._bad = RateLimitedLog(log)
+        #: answers refused: they came on one agent's key naming another (or none)
+        self.refused = 0
         #: planned routes by (source, target, error), for summaries of ``_planned_on``
         self._routes: dict[tuple[str, str, str], list[Route]] = {}
         #: encoded requests for the latest time (the same for every query of a round's
@@ -362,7 +364,15 @@ class Queries:
             if agent is None:
                 self._bad.warning("query reply", f"unexpected key {key!r}")
                 continue
-            yield agent, proto.decode_reply(reply.ok.payload.to_bytes()), t1, t4
+            answer = proto.decode_reply(reply.ok.payload.to_bytes())
+            if answer.get("agent") != agent:
+                self.refused += 1
+                self._bad.warning("query reply", f"on {key} names agent "
+                                  f"{str(answer.get('agent'))[:64]!r} "
+                                  f"({answer.get('error', 'not the agent of its key')}): "
+                                  f"refused ({self.refused} so far)")
+                continue
+            yield agent, answer, t1, t4
             seen.add(agent)
             if expected and expected <= seen:
                 return  # no need to wait for agents that have nothing to say

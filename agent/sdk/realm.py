@@ -33,6 +33,9 @@ SETTLE_S = 0.15
 #: how often an agent that missed an answer, its token still there, is asked whether it
 #: answers again
 PROBE_S = 2.0
+#: most agents a client keeps summaries of (a realm of real hosts has tens; a flood of
+#: forged summaries must not grow a client without bound)
+MAX_AGENTS = 1000
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,8 @@ class RealmTracker:
         self.settle_s = settle_s
         self._lock = threading.Lock()
         self._bad = RateLimitedLog(log)
+        #: summaries refused: malformed, under another agent's key, or beyond MAX_AGENTS
+        self.refused = 0
         self._summaries: dict[str, Summary] = {}
         self._alive: set[str] = set()
         #: when each agent last showed life (its token or a summary; monotonic s): a missed
@@ -67,6 +72,8 @@ class RealmTracker:
         self._heard: dict[str, float] = {}
         #: agents whose token was seen removed (and not declared again)
         self._departed: set[str] = set()
+        #: agents whose token was seen at some time, oldest first (an ordered set)
+        self._tokens: dict[str, None] = {}
         #: agents marked gone after a missed answer, not by their token: probed every
         #: PROBE_S by a thread that runs while there are any
         self._suspects: set[str] = set()
@@ -144,6 +151,7 @@ class RealmTracker:
             # a token whose removal was seen can still be in the answer (a peer not yet
             # done with the departure): only a new token brings it back
             for agent in alive - self._departed:
+                self._saw_token(agent)
                 self._mark_alive(agent, True)
         for reply in self.session.get(keys.all_agent_supernodes(self.realm),
                                       timeout=self.timeout):
@@ -177,16 +185,40 @@ class RealmTracker:
         """A summary published or answered on ``key``: newer ones replace the known one."""
         try:
             summary = decode_summary(data)
+            if summary.agent != keys.parse_agent_supernode(key, self.realm):
+                raise ValueError(f"it names agent {summary.agent[:64]!r}, not the agent of "
+                                 "its key")
         except ValueError as exc:
-            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
+            self.refused += 1
+            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc} "
+                              f"({self.refused} refused so far)")
             return
         with self._lock:
+            if not self._room_for(summary.agent):
+                return
             old = self._summaries.get(summary.agent)
             if old is None or summary.rev > old.rev or summary.instance != old.instance:
                 self._summaries[summary.agent] = summary
                 self.summaries_rev += 1
                 self.topology += 1
-            self._mark_alive(summary.agent, True)
+            if summary.agent in self._tokens:  # no token ever: not an agent (yet)
+                self._mark_alive(summary.agent, True)
+
+    def _room_for(self, agent: str) -> bool:
+        """Whether a summary of ``agent`` may be kept (lock held): a known agent always; a
+        new one while fewer than ``MAX_AGENTS`` are kept, making room by forgetting one not
+        alive if needed."""
+        if agent in self._summaries or len(self._summaries) < MAX_AGENTS:
+            return True
+        dead = next((a for a in self._summaries if a not in self._alive), None)
+        if dead is not None:
+            del self._summaries[dead]
+            self._heard.pop(dead, None)
+            return True
+        self.refused += 1
+        self._bad.warning("supernode", f"more than {MAX_AGENTS} agents; summary of {agent!r} "
+                          f"dropped ({self.refused} refused so far)")
+        return False
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
@@ -194,12 +226,29 @@ class RealmTracker:
             return
         with self._lock:
             gone = sample.kind == zenoh.SampleKind.DELETE
+            if not gone:
+                self._saw_token(agent)
             (self._departed.add if gone else self._departed.discard)(agent)
             self._suspects.discard(agent)  # its token says what it is now
             self._mark_alive(agent, not gone)
 
+    def _saw_token(self, agent: str) -> None:
+        """Remember that ``agent`` had a token (lock held): only such an agent is made
+        alive by its summary; bounded, the oldest forgotten first."""
+        self._tokens.pop(agent, None)
+        self._tokens[agent] = None
+        while len(self._tokens) > MAX_AGENTS:
+            oldest = next(iter(self._tokens))
+            del self._tokens[oldest]
+            self._departed.discard(oldest)
+
     def _mark_alive(self, agent: str, alive: bool) -> None:
         """Update the live set (lock held); a change moves ``topology``."""
+        if alive and agent not in self._alive and len(self._alive) >= MAX_AGENTS:
+            self.refused += 1
+            self._bad.warning("liveliness", f"more than {MAX_AGENTS} live agents; {agent!r} "
+                              f"ignored ({self.refused} refused so far)")
+            return
         if alive:
             self._heard[agent] = time.monotonic()
             self._suspects.discard(agent)

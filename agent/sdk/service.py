@@ -54,6 +54,9 @@ from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.registration import (
     Match,
+    RegisterReply,
+    UnverifiedControlError,
+    control_need,
     descriptor_reply,
     parse_control,
     parse_reply,
@@ -91,6 +94,11 @@ PROBE_S = 1.0
 RETRY_TICK_S = 0.05
 #: seconds between attempts to reach an agent that did not answer at start()
 OPEN_RETRY_S = 0.25
+#: how far a control message's seq may run ahead of the last one applied (the agent counts
+#: one per message; more than this many lost in a row would be a forged or broken sender)
+SEQ_WINDOW = 1000
+#: seconds between registrations prompted by control messages that do not verify
+REVERIFY_S = 1.0
 
 OnSample = Callable[[Measurement], Any]
 
@@ -225,6 +233,15 @@ class Service:
             SAMPLE_QUEUE)
         self._threads: list[threading.Thread] = []
         self._bad = RateLimitedLog(log)
+        #: the agent's epoch and the key it signs control messages with (register reply)
+        self._agent_epoch: int | None = None
+        self._control_key: bytes | None = None
+        #: the newest control message per own need that did not verify yet (kept until
+        #: the next registration gives a key: the agent may have sent it first)
+        self._unverified: dict[str, bytes] = {}
+        self._next_reverify = 0.0
+        #: control messages refused, by reason ("signature", "epoch", "seq")
+        self.control_refused: dict[str, int] = {}
 
     # -- declaring
     def ability(self, name: str, type: str, edge: tuple[str, str] | None = None,
@@ -516,15 +533,21 @@ class Service:
             self._enqueue(self._on_register_done, bool(answered))
         self.session.get(keys.agent_register(self.realm, self.agent_id),
                          zenoh.handlers.Callback(on_reply, on_done),
-                         payload=register_request(desc, self.instance, revision, connected),
+                         payload=register_request(desc, self.instance, revision, connected,
+                                                  self._control_key),
                          timeout=REGISTER_TIMEOUT_S)
 
     def _on_register_reply(self, revision: int, data: bytes, ok_reply: bool) -> None:
         try:
-            ok, error, retry = parse_reply(data)
+            reply = parse_reply(data)
         except DecodeError as exc:
-            ok, error, retry = False, f"unreadable reply from agent ({exc})", True
+            reply = RegisterReply(False, f"unreadable reply from agent ({exc})", True)
+        ok, error, retry = reply.ok, reply.error, reply.retry
         if ok and ok_reply:
+            self._agent_epoch, self._control_key = reply.epoch, reply.key
+            for data in self._unverified.values():
+                self._on_control(data)
+            self._unverified.clear()
             first = self._token is None
             if first:
                 assert self.session is not None
@@ -567,20 +590,51 @@ class Service:
             query.drop()
 
     def _on_control(self, data: bytes) -> None:
-        ctl_key = keys.control(self.realm, self.agent_id, self.service_id)
+        """Apply a control message that comes from this service's agent: signed with the key
+        it gave us, of its current epoch, the next in sequence (``agent.protocol.
+        registration``, "Agent -> its local services")."""
         try:
-            ctl = parse_control(data, self.realm)
+            ctl = parse_control(data, self.realm, self._control_key)
+        except UnverifiedControlError as exc:
+            self._unverified_control(data, str(exc))
+            return
         except DecodeError as exc:
-            self._bad.warning(f"control {ctl_key}", f"dropped: {exc}")
+            self._refuse_control("malformed", f"dropped: {exc}")
+            return
+        if ctl.epoch != self._agent_epoch:
+            self._refuse_control("epoch", f"epoch {ctl.epoch} is not agent {self.agent_id}'s "
+                                 f"current one ({self._agent_epoch})")
             return
         need = self._needs.get(ctl.need)
         if need is None:
-            self._bad.warning(f"control {ctl_key}", f"names unknown need {ctl.need!r}")
+            self._refuse_control("need", f"names unknown need {ctl.need!r}")
             return
-        if ctl.epoch == need.last[0] and ctl.seq <= need.last[1]:
+        if ctl.epoch == need.last[0] and not need.last[1] < ctl.seq <= need.last[1] + SEQ_WINDOW:
+            if ctl.seq > need.last[1]:
+                self._refuse_control("seq", f"seq {ctl.seq} jumps ahead of {need.last[1]}")
             return  # older than what was applied
         need.last = (ctl.epoch, ctl.seq)
         self._apply(need, ctl.matches, ctl.satisfied)
+
+    def _unverified_control(self, data: bytes, reason: str) -> None:
+        """Keep it until the next registration gives a key (the agent may have signed it
+        with a key whose reply has not arrived), and register again to get one."""
+        need = control_need(data)
+        if need in self._needs:
+            self._unverified[need] = data
+        if self._control_key is None:  # the usual race with the register reply: no warning
+            self.control_refused["no key yet"] = self.control_refused.get("no key yet", 0) + 1
+        else:
+            self._refuse_control("signature", reason)
+        now = time.monotonic()
+        if now >= self._next_reverify and self._agent_present:
+            self._next_reverify = now + REVERIFY_S
+            self._registered_revision = -1
+
+    def _refuse_control(self, reason: str, detail: str) -> None:
+        n = self.control_refused[reason] = self.control_refused.get(reason, 0) + 1
+        self._bad.warning(f"control {keys.control(self.realm, self.agent_id, self.service_id)}",
+                          f"refused ({reason}, {n} so far): {detail}")
 
     def _apply(self, need: NeedHandle, matches: tuple[Match, ...], satisfied: bool) -> None:
         """Subscribe to exactly ``matches`` (keeping links that stay)."""

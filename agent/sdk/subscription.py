@@ -28,6 +28,7 @@ from typing import Any
 import zenoh
 
 from agent.errors import UmaError
+from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
 from agent.runtime.logs import RateLimitedLog
 from agent.sdk.planner import Segment, SegmentError
@@ -174,6 +175,10 @@ class Subscription:
         if e.key is None:
             raise UmaError(f"agent {agent!r} gave no data key for edge "
                            f"{e.parent}->{e.child} [{e.source}]")
+        owner = keys.parse_data(e.key, self.queries.realm)
+        if owner is None or owner[0] != agent:
+            raise UmaError(f"agent {agent!r} gave {e.key[:200]!r} as the data key of edge "
+                           f"{e.parent}->{e.child}: not a stream of its own services")
         if e.covariance is not None:
             attrs["covariance"] = e.covariance
         key = self.graph.declare_measured(e.parent, e.child, source=source, **attrs)
