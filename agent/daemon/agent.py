@@ -130,6 +130,9 @@ class Agent:
         #: agents whose token went, being asked whether they still answer (check number)
         self._agent_checks: dict[str, int] = {}
         self._checks = 0
+        #: agents whose snapshot is being fetched; published snapshots held for confirmation
+        self._fetching: set[str] = set()
+        self.snapshots_suspect = 0
         self._dirty = False           # re-match needed
         self._snapshot_dirty = False  # publish a new snapshot
         self._hosted: list[tuple[str, threading.Thread, threading.Event]] = []
@@ -364,13 +367,27 @@ class Agent:
             self._dirty = True
 
     def _fetch_snapshot(self, agent_id: str) -> None:
+        """Ask the agent for its snapshot (it appeared, or a published one needs its
+        confirmation); its answers are applied as confirmed unless they disagree."""
+        if agent_id in self._fetching:
+            return
         assert self.session is not None
+        self._fetching.add(agent_id)
         key = keys.agent_services(self.realm, agent_id)
+        ask_all(self.session, key, FETCH_TIMEOUT_S,
+                lambda answers: self._worker.put(self._on_fetched, key, answers),
+                every_reply=True)
 
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                self._worker.put(self._on_snapshot, key, reply.ok.payload.to_bytes())
-        self.session.get(key, on_reply, timeout=FETCH_TIMEOUT_S)
+    def _on_fetched(self, key: str, answers: list[bytes]) -> None:
+        agent_id = keys.parse_agent_services(key, self.realm)
+        self._fetching.discard(agent_id)
+        snaps = [s for s in (self._parse_snapshot(key, data) for data in answers) if s]
+        if len({s.epoch for s in snaps}) > 1:
+            self._bad.warning(f"agent {agent_id}", "answers with snapshots of different "
+                              "epochs: two processes claim its id; kept what was applied")
+            return
+        for snap in snaps:
+            self._apply_snapshot(key, snap, confirmed=True)
 
     def _resync_agent_tokens(self) -> None:
         """Anti-entropy: ask for the live agent tokens (a liveliness subscription declared
@@ -400,15 +417,33 @@ class Agent:
             self._on_agent_token(smp)
 
     def _on_snapshot(self, key: str, data: bytes) -> None:
+        """A published snapshot: applied, or confirmed with its agent first if its version
+        is suspect (``RealmView.suspect``)."""
+        snap = self._parse_snapshot(key, data)
+        if snap is None:
+            return
+        if self.view.suspect(snap):
+            self.snapshots_suspect += 1
+            self._bad.warning(f"snapshot {key}", f"epoch {snap.epoch} revision "
+                              f"{snap.revision} is not the agent's current run; asking it "
+                              f"({self.snapshots_suspect} so far)")
+            self._fetch_snapshot(snap.agent_id)
+            return
+        self._apply_snapshot(key, snap)
+
+    def _parse_snapshot(self, key: str, data: bytes) -> Snapshot | None:
         agent_id = keys.parse_agent_services(key, self.realm)
         if agent_id is None:
             self._bad.warning(key, "not an agent services key")
-            return
+            return None
         try:
-            snap: Snapshot = parse_snapshot(data, agent_id)
+            return parse_snapshot(data, agent_id)
         except DecodeError as exc:
             self._bad.warning(f"snapshot {key}", f"dropped: {exc}")
-            return
+            return None
+
+    def _apply_snapshot(self, key: str, snap: Snapshot, confirmed: bool = False) -> None:
+        agent_id = snap.agent_id
         if agent_id == self.agent_id:
             if snap.epoch != self.epoch:
                 self._bad.warning(f"agent {agent_id}", "another agent with this id runs in "
@@ -417,7 +452,7 @@ class Agent:
             return
         for err in snap.errors:
             self._bad.warning(f"snapshot {key}", f"service dropped: {err}")
-        if self.view.apply_snapshot(snap):
+        if self.view.apply_snapshot(snap, confirmed):
             self._dirty = True
 
     # -- matching

@@ -26,6 +26,10 @@ from agent.protocol.registration import (
 from schemas.codec import encode_descriptor
 from schemas.models import AgentInfo, ServiceDescriptor
 
+#: how far ahead of the applied revision a published snapshot may be before it is confirmed
+#: with the agent (an agent publishes one revision per change of its services)
+MAX_REVISION_JUMP = 10_000
+
 
 @dataclass
 class LocalService:
@@ -118,12 +122,23 @@ class RealmView:
             changed |= self.remove_local(service_id)
         return changed
 
-    def apply_snapshot(self, snap: Snapshot) -> bool:
-        """Apply a remote agent's snapshot unless older than the one applied."""
+    def suspect(self, snap: Snapshot) -> bool:
+        """Whether a published snapshot must be confirmed by asking its agent before it is
+        applied: another epoch than the one its agent's token came with (an agent's epoch
+        is fixed for its token's life; a forged far-future epoch would otherwise outrank
+        every real update), or a revision far ahead of the applied one."""
+        old = self.remote.get(snap.agent_id)
+        return old is not None and (snap.epoch != old.epoch
+                                    or snap.revision > old.revision + MAX_REVISION_JUMP)
+
+    def apply_snapshot(self, snap: Snapshot, confirmed: bool = False) -> bool:
+        """Apply a remote agent's snapshot unless older than the one applied;
+        ``confirmed`` (the agent's own answer to a fetch) may also change the epoch."""
         if snap.agent_id == self.agent_id or snap.agent_id not in self.live_agents:
             return False
         old = self.remote.get(snap.agent_id)
-        if old is not None and snap.version <= old.version:
+        if old is not None and snap.version <= old.version and not (
+                confirmed and snap.epoch != old.epoch):
             return False
         self.remote[snap.agent_id] = snap
         changed = False

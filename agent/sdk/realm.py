@@ -36,6 +36,8 @@ PROBE_S = 2.0
 #: most agents a client keeps summaries of (a realm of real hosts has tens; a flood of
 #: forged summaries must not grow a client without bound)
 MAX_AGENTS = 1000
+#: how far a published summary's revision may run ahead of the known one
+MAX_REVISION_JUMP = 10_000
 
 
 @dataclass(frozen=True)
@@ -156,7 +158,8 @@ class RealmTracker:
         for reply in self.session.get(keys.all_agent_supernodes(self.realm),
                                       timeout=self.timeout):
             if reply.ok is not None:
-                self.take_summary(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                self.take_summary(str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                                  answered=True)
 
     def look(self) -> None:
         """The first look at the realm: refresh until the set of agents stops growing
@@ -181,8 +184,10 @@ class RealmTracker:
     def _on_summary(self, sample: zenoh.Sample) -> None:
         self.take_summary(str(sample.key_expr), sample.payload.to_bytes())
 
-    def take_summary(self, key: str, data: bytes) -> None:
-        """A summary published or answered on ``key``: newer ones replace the known one."""
+    def take_summary(self, key: str, data: bytes, answered: bool = False) -> None:
+        """A summary published or answered on ``key``: newer ones replace the known one.  A
+        published one more than ``MAX_REVISION_JUMP`` revisions ahead is refused (a forged
+        revision would outrank every real one); an answer to our own ask is taken."""
         try:
             summary = decode_summary(data)
             if summary.agent != keys.parse_agent_supernode(key, self.realm):
@@ -197,7 +202,14 @@ class RealmTracker:
             if not self._room_for(summary.agent):
                 return
             old = self._summaries.get(summary.agent)
-            if old is None or summary.rev > old.rev or summary.instance != old.instance:
+            if (old is not None and not answered and summary.instance == old.instance
+                    and summary.rev > old.rev + MAX_REVISION_JUMP):
+                self.refused += 1
+                self._bad.warning(f"supernode {key}", f"revision {summary.rev} jumps from "
+                                  f"{old.rev}: refused ({self.refused} refused so far)")
+                return
+            if (old is None or summary.rev > old.rev or summary.instance != old.instance
+                    or (answered and summary.rev != old.rev)):
                 self._summaries[summary.agent] = summary
                 self.summaries_rev += 1
                 self.topology += 1
