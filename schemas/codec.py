@@ -449,7 +449,13 @@ def decode_measurement(data: bytes, expected_type: str | None = None) -> Measure
 
 
 def peek_time(data: bytes, expected_type: str | None = None) -> int:
-    """The sample time ``t`` (ns) of an encoded measurement, without decoding the rest.
+    """The sample time ``t`` (ns) of an encoded measurement (:func:`peek_time_seq`)."""
+    return peek_time_seq(data, expected_type)[0]
+
+
+def peek_time_seq(data: bytes, expected_type: str | None = None) -> tuple[int, int | None]:
+    """The sample time ``t`` (ns) and sequence number ``s`` (None if the publisher sent
+    none) of an encoded measurement, without decoding the rest.
 
     For whoever needs only the time of every sample (the agent measuring a stream's
     latency): the other values are skipped unread, so an image or a point cloud costs
@@ -468,7 +474,7 @@ def peek_time(data: bytes, expected_type: str | None = None) -> int:
     try:
         for _ in range(unpacker.read_map_header()):
             key = unpacker.unpack()
-            if key in ("v", "k", "t"):
+            if key in ("v", "k", "t", "s"):
                 head[key] = unpacker.unpack()
             else:
                 unpacker.skip()
@@ -483,7 +489,7 @@ def peek_time(data: bytes, expected_type: str | None = None) -> int:
     if kind != "image" and len(data) > MAX_MESSAGE_BYTES:
         raise DecodeError(f"message of {len(data)} bytes exceeds the limit of "
                           f"{MAX_MESSAGE_BYTES}")
-    return _int_in(head, "t", kind)
+    return _int_in(head, "t", kind), _int_in(head, "s", kind) if "s" in head else None
 
 
 def _extra_in(x: Any, kind: str) -> dict[str, Any]:

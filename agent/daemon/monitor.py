@@ -15,7 +15,10 @@ best, and back if the stream recovers and ranks better).
 
 A rate drop is noticed after about ``rate_window_s`` (for the window to reflect it) +
 ``grace_s``.  All methods run in the agent's worker thread but ``_Stream.on_sample``, which
-Zenoh calls: it only appends to a deque.
+Zenoh calls: it only counts the arrival and keeps the payload in a bounded inbox
+(``INBOX``: a flood must not grow the agent; the rate counts every arrival, also those the
+inbox had no room for).  Samples lost on the way (gaps in their sequence numbers,
+``agent.protocol.sequence``) are counted and shown as ``measured_lost``.
 """
 
 from __future__ import annotations
@@ -29,13 +32,17 @@ from dataclasses import dataclass, field
 
 from agent.daemon.matching import OfferIndex, Requirement, judge
 from agent.daemon.streams import StreamHub
+from agent.protocol.sequence import SequenceGaps
 from agent.runtime.logs import RateLimitedLog
-from schemas.codec import DecodeError, peek_time
+from schemas.codec import DecodeError, peek_time_seq
 
 log = logging.getLogger("uma.agent")
 
 #: a local need: (service id, need name)
 NeedId = tuple[str, str]
+#: payloads a stream keeps between two measurements (the worker's tick); more are counted,
+#: not kept
+INBOX = 2000
 
 
 class _Stream:
@@ -48,32 +55,52 @@ class _Stream:
         self.type = type_
         self.window_s = window_s
         self.started = now
-        self.inbox: deque[tuple[float, int, bytes]] = deque(maxlen=20_000)
-        self.window: deque[tuple[float, float]] = deque()  # (arrival mono, latency s)
+        self.inbox: deque[tuple[float, int, bytes]] = deque()
+        #: arrivals the inbox had no room for (Zenoh's thread counts, the worker reads)
+        self.overflow = 0
+        self._overflow_seen = 0
+        #: (arrival mono, samples, latency s or None for uninspected overflow)
+        self.window: deque[tuple[float, int, float | None]] = deque()
+        self.gaps = SequenceGaps()
         self.stop_listening: Callable[[], None] = lambda: None
         self._bad = bad
 
     def on_sample(self, data: bytes) -> None:
-        self.inbox.append((time.monotonic(), time.time_ns(), data))
+        if len(self.inbox) < INBOX:
+            self.inbox.append((time.monotonic(), time.time_ns(), data))
+        else:
+            self.overflow += 1
 
     def measure(self, now: float) -> dict[str, float] | None:
         """Measured values, or ``None`` until the stream was watched for a full window."""
-        while self.inbox:
-            mono, wall_ns, data = self.inbox.popleft()
-            try:
-                t_ns = peek_time(data, expected_type=self.type)
-            except DecodeError as exc:
-                self._bad.warning(f"data {self.key}", f"dropped a malformed sample: {exc}")
-                continue
-            self.window.append((mono, (wall_ns - t_ns) / 1e9))
+        self._take_inbox(now)
         while self.window and self.window[0][0] <= now - self.window_s:
             self.window.popleft()
         if now - self.started < self.window_s:
             return None
-        out = {"measured_frequency_hz": len(self.window) / self.window_s}
-        if self.window:
-            out["measured_latency_s"] = statistics.median(lat for _, lat in self.window)
+        out = {"measured_frequency_hz": sum(n for _, n, _ in self.window) / self.window_s,
+               "measured_lost": float(max(0, self.gaps.lost - self.overflow))}
+        latencies = [lat for _, _, lat in self.window if lat is not None]
+        if latencies:
+            out["measured_latency_s"] = statistics.median(latencies)
         return out
+
+    def _take_inbox(self, now: float) -> None:
+        for _ in range(len(self.inbox)):
+            mono, wall_ns, data = self.inbox.popleft()
+            try:
+                t_ns, seq = peek_time_seq(data, expected_type=self.type)
+            except DecodeError as exc:
+                self._bad.warning(f"data {self.key}", f"dropped a malformed sample: {exc}")
+                continue
+            self.gaps.see(seq)
+            self.window.append((mono, 1, (wall_ns - t_ns) / 1e9))
+        overflow = self.overflow
+        if overflow > self._overflow_seen:
+            self.window.append((now, overflow - self._overflow_seen, None))
+            self._bad.warning(f"data {self.key}", f"{overflow} samples arrived faster than "
+                              "the monitor reads them: counted in the rate, not inspected")
+            self._overflow_seen = overflow
 
 
 @dataclass

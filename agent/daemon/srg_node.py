@@ -42,6 +42,7 @@ import zenoh
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.protocol import query as proto
+from agent.protocol.sequence import too_far_ahead
 from agent.runtime.logs import RateLimitedLog
 from agent.srg import Graph
 from agent.srg.supernode import summarize
@@ -100,6 +101,8 @@ class SrgNode:
         #: all-static path, whose answer holds at every time
         self._answers: dict[tuple[str, str, str], tuple[int, int | None, dict[str, Any]]] = {}
         self._remote_frames: dict[str, set[str]] = {}
+        #: local samples refused: stamped too far ahead of this host's clock
+        self.refused = 0
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
         self._published: tuple[int, frozenset[str]] | None = None
@@ -174,6 +177,10 @@ class SrgNode:
             return  # the ability went away meanwhile
         try:
             m = decode_measurement(data, expected_type="pose6d")
+            if too_far_ahead(m.t_ns, self.now_ns()):
+                self.refused += 1
+                raise DecodeError(f"stamped {(m.t_ns - self.now_ns()) / 1e9:.3g} s ahead of "
+                                  f"this host's clock ({self.refused} refused so far)")
         except DecodeError as exc:
             key = keys.data(self.realm, self.agent_id, *local)
             self._bad.warning(f"data {key}", f"dropped a malformed sample: {exc}")

@@ -30,6 +30,7 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
+from agent.protocol.sequence import SequenceGaps, too_far_ahead
 from agent.runtime.logs import RateLimitedLog
 from agent.sdk.planner import Segment, SegmentError
 from agent.sdk.query import Outcome, Queries
@@ -73,8 +74,10 @@ class Subscription:
     ``status``: ``"streaming"``, ``"stalled"`` (on a route, but no sample of its fastest
     edge for ``stall_limit_s``), ``"no route"`` or ``"closed"``; ``route``: the segments
     in use; ``replans``: how many times it moved to another route; ``stalls``: how many
-    times its route fell silent; ``last_error``: the latest failure (bad sample, undefined
-    pull, stall, no route).
+    times its route fell silent; ``lost``: samples of its edges lost on the way (gaps in
+    their sequence numbers); ``refused``: samples refused (stamped more than
+    ``agent.protocol.sequence.MAX_AHEAD_NS`` ahead of this clock); ``last_error``: the
+    latest failure (bad sample, undefined pull, stall, no route).
     """
 
     def __init__(self, queries: Queries, source: str, target: str,
@@ -93,6 +96,8 @@ class Subscription:
         self.failed = 0
         self.replans = 0
         self.stalls = 0
+        self.refused = 0
+        self._gaps: dict[str, SequenceGaps] = {}
         self.last_error: Exception | None = None
         self.status = "streaming"
         self.stall_s = stall_s
@@ -286,6 +291,11 @@ class Subscription:
         try:
             m = decode_measurement(data, expected_type="pose6d")
             t = self.queries.clock.to_local(agent, m.t_ns)
+            if too_far_ahead(t, time.time_ns()):
+                self.refused += 1
+                raise ValueError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
+                                 f"clock: refused ({self.refused} so far)")
+            self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
             self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
                                        m.quaternion, m.covariance, source=edge_key[2])
         except (DecodeError, ValueError) as exc:
@@ -303,6 +313,11 @@ class Subscription:
             self.last_error = exc
             return
         self._deliver(result)
+
+    @property
+    def lost(self) -> int:
+        """Samples of the route's edges lost on the way (since the subscription began)."""
+        return sum(g.lost for g in list(self._gaps.values()))
 
     def _deliver(self, result: PoseResult) -> None:
         try:

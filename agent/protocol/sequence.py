@@ -1,0 +1,38 @@
+"""What a receiver checks of each sample's stamps: samples lost on the way, counted from
+the sequence number ``s`` every publisher stamps on its samples (``schemas.codec``; one
+counter per ability, from 1), and times too far ahead to be true.
+
+Zenoh delivers one publisher's samples in order, and uma publishes with congestion control
+DROP (a slow link must not stall the tracker), so a jump in ``s`` is samples dropped on
+the way.  A lower number than the last one is a restarted publisher: counting starts again.
+"""
+
+from __future__ import annotations
+
+#: how far ahead of the receiver's clock (after the sender's estimated offset) a sample may
+#: be stamped: predictions reach tens of ms ahead; a sample a day ahead would stay the
+#: newest of its edge and make every honest one look too old
+MAX_AHEAD_NS = 1_000_000_000
+
+
+def too_far_ahead(t_ns: int, now_ns: int) -> bool:
+    """Whether a sample stamped ``t_ns`` (receiver's clock) is refused at ``now_ns``."""
+    return t_ns > now_ns + MAX_AHEAD_NS
+
+
+class SequenceGaps:
+    """The samples missing from one stream's sequence so far."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.lost = 0
+
+    def see(self, seq: int | None) -> int:
+        """Take a sample's ``s`` (None: its publisher numbers none); returns how many were
+        lost just before it."""
+        if seq is None:
+            return 0
+        gap = seq - self.last - 1 if self.last is not None and seq > self.last + 1 else 0
+        self.lost += gap
+        self.last = seq
+        return gap
