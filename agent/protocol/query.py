@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from agent.srg.attributes import EDGE_ATTRIBUTES, check_attributes
 from agent.srg.result import PoseResult, finite_or_none
 from agent.srg.supernode import SUMMARY_ERRORS
 from schemas import ids
@@ -262,6 +263,24 @@ _WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", 
 _EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
 
 
+#: most frames (and links) one agent's summary may carry: a host's SRG has tens to
+#: hundreds; a forged summary of many more would make every client's planning slow
+MAX_SUMMARY_FRAMES = 5000
+
+
+def _link_attributes(link: Mapping[str, Any], d: Mapping[str, Any]) -> dict[str, Any]:
+    """A summary link's path attributes, checked as a local edge's are (a negative latency
+    or a string would otherwise fail deep inside a client's planning)."""
+    try:
+        check_attributes({k: v for k, v in d.items() if k in EDGE_ATTRIBUTES})
+        for k, v in d.items():  # the path's own figures (hops, accuracy, ...)
+            if k not in EDGE_ATTRIBUTES and not (type(v) in (int, float) and v >= 0):
+                raise ValueError(f"attribute {k}: expected a number >= 0, got {v!r:.40}")
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"summary: link {link['a']}-{link['b']}: {exc}") from None
+    return attributes_from_wire(d)
+
+
 def attributes_from_wire(d: Mapping[str, Any]) -> dict[str, Any]:
     """Path attributes as received: None stands for an infinite rate or time to live."""
     out = dict(d)
@@ -465,20 +484,24 @@ def decode_summary(data: bytes) -> Summary:
 def parse_summary(msg: Mapping[str, Any]) -> Summary:
     """A decoded supernode message as a :class:`Summary`; ``ValueError`` says what is wrong."""
     agent, frames = msg.get("agent"), msg.get("frames")
-    if not isinstance(agent, str) or not agent:
-        raise ValueError(f"summary: agent must be a non-empty string, got {agent!r}")
+    _agent_id(agent, "summary: agent")
     if not isinstance(frames, list) or not all(isinstance(f, str) for f in frames):
         raise ValueError("summary: frames must be a list of strings")
     components = msg.get("components", [])
     links_in = msg.get("links", [])
     if not isinstance(components, list) or not isinstance(links_in, list):
         raise ValueError("summary: components and links must be lists")
+    if len(frames) > MAX_SUMMARY_FRAMES or len(links_in) > MAX_SUMMARY_FRAMES:
+        raise ValueError(f"summary: {len(frames)} frames and {len(links_in)} links, more "
+                         f"than {MAX_SUMMARY_FRAMES}")
+    for i, frame in enumerate(frames):
+        _frame_id(frame, "summary: frames[%d]", i)
     links = []
     for link in links_in:
         if not (isinstance(link, dict) and isinstance(link.get("a"), str)
                 and isinstance(link.get("b"), str) and isinstance(link.get("attrs"), dict)):
             raise ValueError(f"summary: malformed link {link!r:.120}")
-        attrs = {k: attributes_from_wire(v) for k, v in link["attrs"].items()
+        attrs = {k: _link_attributes(link, v) for k, v in link["attrs"].items()
                  if k in SUMMARY_ERRORS and isinstance(v, dict)}
         if set(attrs) != set(SUMMARY_ERRORS):
             raise ValueError(f"summary: link {link['a']}-{link['b']} lacks attributes for "

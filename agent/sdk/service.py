@@ -545,9 +545,9 @@ class Service:
         ok, error, retry = reply.ok, reply.error, reply.retry
         if ok and ok_reply:
             self._agent_epoch, self._control_key = reply.epoch, reply.key
-            for data in self._unverified.values():
-                self._on_control(data)
-            self._unverified.clear()
+            pending, self._unverified = self._unverified, {}
+            for kept in pending.values():
+                self._on_control(kept)
             first = self._token is None
             if first:
                 assert self.session is not None

@@ -1,0 +1,204 @@
+"""Hostile peers: a plain Zenoh session in the test forges what an agent, a service or a
+realm would say.  The realm keeps serving the honest services, no need is redirected, and
+every refusal is counted and said."""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+import pytest
+import zenoh
+from agent_helpers.harness import agent, first_from, poll, service
+from conftest import endpoint, free_port
+from test_agent_robustness import register_raw, wait_token
+
+from agent import Client
+from agent.protocol import keys
+from agent.protocol import query as proto
+from agent.protocol.registration import (
+    Match,
+    control_message,
+    parse_snapshot,
+    register_request,
+    reply_ok,
+    snapshot_message,
+)
+from agent.runtime.session import open_session, query
+from agent.sdk import realm as realm_module
+from agent.sdk.service import SEQ_WINDOW, Service
+from schemas.codec import encode_descriptor, encode_pose
+from schemas.models import ServiceDescriptor
+
+PRODUCER = ("--ability", "pose", "--edge", "ivy/world", "alice/head")
+
+
+def snapshot(session: zenoh.Session, realm: str, agent_id: str):
+    """The agent's snapshot, asked once its token is seen (a new session's links)."""
+    wait_token(session, keys.agent_token(realm, agent_id))
+    for reply in query(session, keys.agent_services(realm, agent_id), 5.0):
+        if reply.ok is not None:
+            return parse_snapshot(reply.ok.payload.to_bytes(), agent_id)
+    raise AssertionError(f"agent {agent_id} did not answer with its snapshot")
+
+
+def counts_grow(proc, source: str) -> None:
+    """The consumer's count of samples from ``source`` grows from now on."""
+    mark = proc.mark
+    first = proc.wait_for(lambda e: e.get("event") == "counts", after=mark)["counts"]
+    proc.wait_for(lambda e: e.get("event") == "counts"
+                  and e["counts"].get(source, 0) > first.get(source, 0) + 20, after=proc.mark)
+
+
+@pytest.fixture
+def honest(processes, realm):
+    """An agent, a producer ``cam`` and a consumer ``fusion`` connected to it."""
+    ep = endpoint(free_port())
+    host = agent(processes, realm, "hostA", ep)
+    cam = service(processes, realm, "cam", "hostA", ep, *PRODUCER)
+    consumer = service(processes, realm, "fusion", "hostA", ep, "--need", "head")
+    consumer.wait_for(lambda e: first_from(e, "cam"))
+    return ep, host, cam, consumer
+
+
+def test_forged_control_never_redirects_a_need(honest, realm) -> None:
+    ep, _, _, consumer = honest
+    evil = Match(keys.data(realm, "evil", "x", "pose"), "evil", "x", "pose", "pose6d",
+                 ("ivy/world", "alice/head"), {})
+    with open_session(connect=[ep]) as s:
+        epoch = snapshot(s, realm, "hostA").epoch
+        ctl = keys.control(realm, "hostA", "fusion")
+        # the audit's message (real epoch, seq 2**62) signed with guessed keys, unsigned,
+        # and in the old unsigned format
+        for key in (bytes(16), None, b"k" * 16):
+            s.put(ctl, control_message(key, epoch, 2**62, "head", [evil], True))
+            s.put(ctl, control_message(key, epoch, 2**62, "head", [], False))
+        s.put(ctl, msgpack.packb({"v": 1, "op": "connect", "epoch": epoch, "seq": 2**62,
+                                  "need": "head", "matches": [evil.to_wire()]}))
+        consumer.wait_log("refused (signature")
+        publisher = s.declare_publisher(evil.key)
+        for _ in range(50):
+            publisher.put(encode_pose(time.time_ns(), [9, 9, 9], [0, 0, 0, 1]))
+            time.sleep(0.01)
+        counts_grow(consumer, "cam")
+    assert not any(e.get("event") == "match" and evil.key in e["keys"]
+                   for e in consumer.events)
+    assert not any(e.get("event") == "first" and e.get("source") == "x"
+                   for e in consumer.events)
+
+
+def test_reregistering_a_running_instance_needs_its_key(honest, realm) -> None:
+    ep, host, _, consumer = honest
+    with open_session(connect=[ep]) as s:
+        instance = snapshot(s, realm, "hostA").status["cam"]["instance"]
+        forged = ServiceDescriptor(service_id="cam", agent_id="hostA", abilities=[
+            {"name": "pose", "type": "pose6d", "edge": ["ivy/world", "alice/head"],
+             "attributes": {"frequency_hz": 10_000, "latency_s": 0.0}}])
+        ok, error = register_raw(s, realm, "hostA", register_request(
+            encode_descriptor(forged), instance, 99, {}, proof=bytes(16)))
+        assert not ok and "does not carry its key" in error, error
+        ok, error = register_raw(s, realm, "hostA", register_request(
+            encode_descriptor(forged), instance, 99, {}))
+        assert not ok and "does not carry its key" in error, error
+        attrs = snapshot(s, realm, "hostA").services["cam"].abilities[0].attributes
+        assert attrs.frequency_hz != 10_000
+    host.wait_log("2 refused so far")
+    counts_grow(consumer, "cam")
+
+
+def test_forged_summaries_and_replies_are_refused_and_bounded(honest, realm,
+                                                              monkeypatch) -> None:
+    ep, _, _, _ = honest
+    monkeypatch.setattr(realm_module, "MAX_AGENTS", 50)
+    with open_session(connect=[ep]) as s, Client(realm=realm, connect=[ep]) as c:
+        assert c.pose("ivy/world", "alice/head").position[0] == pytest.approx(0.1)
+        # a summary naming another agent than its key's, and a flood of distinct agents
+        s.put(keys.agent_supernode(realm, "evil"), msgpack.packb(
+            {"v": 1, "agent": "hostA", "frames": ["ivy/world"], "rev": 2**62}))
+        for i in range(300):
+            s.put(keys.agent_supernode(realm, f"ghost{i}"), msgpack.packb(
+                {"v": 1, "agent": f"ghost{i}", "frames": [f"g{i}/x"], "rev": 1}))
+        # a reply on hostA's query key that names another agent
+        fake = s.declare_queryable(keys.all_agent_queries(realm), lambda q: (
+            q.reply(keys.agent_query(realm, "hostA"), msgpack.packb(
+                {"v": 1, "ok": True, "agent": "evil", "t2": 1, "t3": 2})), q.drop()))
+        poll(lambda: c.tracker.refused >= 1, what="the mismatched summary refused")
+        for _ in range(20):
+            r = c.pose("ivy/world", "alice/head", at=None)
+            assert r.position[0] == pytest.approx(0.1)
+        answers = list(c.queries.answers(proto.clock_request()))
+        assert [(a, r.get("agent")) for a, r, _, _ in answers] == [("hostA", "hostA")]
+        fake.undeclare()
+        view = c.tracker.view()
+        assert len(view.summaries) <= 50 and not any(a.startswith("ghost") for a in view.alive)
+        assert c.queries.refused > 0
+
+
+def test_a_sample_a_day_ahead_does_not_poison_the_edge(honest, realm) -> None:
+    ep, host, _, _ = honest
+    with open_session(connect=[ep]) as s, Client(realm=realm, connect=[ep]) as c:
+        s.put(keys.data(realm, "hostA", "cam", "pose"),
+              encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
+        host.wait_log("ahead of this host's clock")
+        for _ in range(10):
+            r = c.pose("ivy/world", "alice/head")
+            assert r.position[0] == pytest.approx(0.1)
+            assert abs(r.t_ns - time.time_ns()) < 5 * 10**9
+        got: list = []
+        sub = c.subscribe("ivy/world", "alice/head", got.append)
+        s.put(keys.data(realm, "hostA", "cam", "pose"),
+              encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
+        poll(lambda: sub.refused >= 1 and len(got) > 50, what="the stream going on")
+        assert sub.status == "streaming"
+        assert all(p.position[0] == pytest.approx(0.1) for p in got)
+
+
+def test_a_forged_snapshot_epoch_does_not_freeze_the_realm(processes, realm) -> None:
+    ea, eb = endpoint(free_port()), endpoint(free_port())
+    host_a = agent(processes, realm, "hostA", ea)
+    agent(processes, realm, "hostB", eb, connect=(ea,))
+    consumer = service(processes, realm, "fusion", "hostA", ea, "--need", "head")
+    with open_session(connect=[ea]) as s:
+        wait_token(s, keys.agent_token(realm, "hostB"))
+        real = snapshot(s, realm, "hostB")
+        for epoch, revision in ((2**63 - 1, 1), (real.epoch, 2**62)):
+            s.put(keys.agent_services(realm, "hostB"), snapshot_message(
+                real.info, epoch, revision, []))
+        host_a.wait_log("is not the agent's current run; asking it")
+    # a real update of hostB after the forgeries still reaches hostA's matching
+    service(processes, realm, "cam", "hostB", eb, *PRODUCER)
+    consumer.wait_for(lambda e: first_from(e, "cam"))
+
+
+class _Recorder(Service):
+    """A Service whose control handling is driven by the test (no session)."""
+
+    def __init__(self) -> None:
+        super().__init__("fusion", realm="lab", agent="hostA")
+        self.need("head", type="pose6d", edge=("ivy/world", "*/head"))
+        self.applied: list[tuple[str, ...]] = []
+        self._token = object()  # as if declared: the test has no session
+
+    def _apply(self, need, matches, satisfied) -> None:
+        self.applied.append(tuple(m.key for m in matches))
+
+
+def test_control_needs_the_key_the_epoch_and_the_next_seq() -> None:
+    svc, key = _Recorder(), bytes(range(16))
+    m = Match(keys.data("lab", "hostB", "cam", "pose"), "hostB", "cam", "pose", "pose6d",
+              None, {})
+    # before the register reply: kept, applied once the reply gives the key
+    svc._on_control(control_message(key, 7, 1, "head", [m], True))
+    assert svc.applied == [] and svc.control_refused == {"no key yet": 1}
+    svc._agent_present = True
+    svc._on_register_reply(0, reply_ok(7, key), True)
+    assert svc.applied == [(m.key,)]
+    svc._on_control(control_message(key, 8, 2, "head", [], True))         # another epoch
+    svc._on_control(control_message(key, 7, 2 + SEQ_WINDOW, "head", [], True))  # a jump
+    svc._on_control(control_message(bytes(16), 7, 2, "head", [], True))   # a wrong key
+    svc._on_control(control_message(key, 7, 1, "head", [], True))         # a replay
+    assert svc.applied == [(m.key,)]
+    assert svc.control_refused == {"no key yet": 1, "epoch": 1, "seq": 1, "signature": 1}
+    svc._on_control(control_message(key, 7, 5, "head", [], False))  # a few lost: fine
+    assert svc.applied == [(m.key,), ()]
+    svc.close()
