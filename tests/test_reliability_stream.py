@@ -94,14 +94,19 @@ class Poses:
 
 
 def start_site(processes, realm: str, tmp_path) -> tuple[dict, dict]:
-    """Agents C (with the tracker), A and B (each with its survey): processes, endpoints."""
+    """Agents C (with the tracker), A and B (each with its survey): processes (the
+    tracker's under "tracker"), endpoints."""
     ep = {name: endpoint(free_port()) for name in "ABC"}
     procs = {"C": agent(processes, realm, "C", ep["C"])}
     for name in "AB":
         procs[name] = agent(processes, realm, name, ep[name], connect=(ep["C"],),
                             extra=("--config", config(tmp_path, name)))
-    spawn(processes, [__file__, "--realm", realm, "--agent", "C", "--connect", ep["C"]])
+    procs["tracker"] = start_tracker(processes, realm, ep["C"])
     return procs, ep
+
+
+def start_tracker(processes, realm: str, ep: str):
+    return spawn(processes, [__file__, "--realm", realm, "--agent", "C", "--connect", ep])
 
 
 def subscribe_via_a(client: Client, poses: Poses):
@@ -146,24 +151,34 @@ def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
         poses.via("A", len(poses.got))
         assert [s.agent for s in sub.route] == ["A", "C"] and poses.errors == []
 
-        # no route at all: reported once, nothing delivered meanwhile
+        # the route's agents die but its samples still arrive (the tracker's agent lives):
+        # no new plan, but the working stream goes on over the mirrored route
         for name in "AB":
             procs[name].popen.kill()
             procs[name].popen.wait(10)
+        mark = len(poses.got)
+        poses.via("A", mark, count=200)  # 2 s at 100 Hz: longer than a lease
+        assert sub.status == "streaming" and poses.errors == []
+
+        # and its samples stop too: no route, reported once, nothing delivered meanwhile
+        procs["tracker"].popen.kill()
+        procs["tracker"].popen.wait(10)
         poses.wait(lambda: poses.errors, "on_error")
         assert sub.status == "no route"
-        # the dead agents' segment is named (as gone, or as not answering: which one
-        # depends on whether the second death was already known)
-        assert isinstance(poses.errors[0], LookupError) and "ivy/world -> marvin/rig" in str(
-            poses.errors[0]), poses.errors
+        # the last planning failure is reported: the tracker's frame is gone (or, if its
+        # departure was not known yet, the dead agents' segment)
+        assert isinstance(poses.errors[0], LookupError) and any(
+            text in str(poses.errors[0]) for text in ("alice/head", "ivy/world -> marvin/rig")
+        ), poses.errors
         time.sleep(0.3)  # poses already queued may still arrive; then none
         quiet = len(poses.got)
         time.sleep(0.5)
         assert len(poses.got) == quiet
 
-        # a route comes back (B restarts): the stream resumes over it
+        # a route comes back (B and the tracker restart): the stream resumes over it
         agent(processes, realm, "B", ep["B"], connect=(ep["C"],),
               extra=("--config", config(tmp_path, "B")))
+        start_tracker(processes, realm, ep["C"])
         poses.via("B", quiet)
         assert sub.status == "streaming" and len(poses.errors) == 1
         sub.close()

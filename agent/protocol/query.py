@@ -269,15 +269,20 @@ MAX_SUMMARY_FRAMES = 5000
 
 
 def _link_attributes(link: Mapping[str, Any], d: Mapping[str, Any]) -> dict[str, Any]:
-    """A summary link's path attributes, checked as a local edge's are (a negative latency
-    or a string would otherwise fail deep inside a client's planning)."""
-    try:
-        check_attributes({k: v for k, v in d.items() if k in EDGE_ATTRIBUTES})
-        for k, v in d.items():  # the path's own figures (hops, accuracy, ...)
-            if k not in EDGE_ATTRIBUTES and not (type(v) in (int, float) and v >= 0):
+    """A summary link's path attributes: numbers >= 0 (None: an infinite rate or time to
+    live), a confidence in [0, 1]; a negative latency or a string would otherwise fail deep
+    inside a client's planning.  The few non-numbers go through ``check_attributes``."""
+    for k, v in d.items():
+        if type(v) in (int, float) and v >= 0 and (k != "confidence" or v <= 1):
+            continue  # the common case, checked inline: a summary has thousands of these
+        if v is None and k in _INF_WHEN_NONE:
+            continue
+        try:
+            if k not in EDGE_ATTRIBUTES or type(v) in (int, float):
                 raise ValueError(f"attribute {k}: expected a number >= 0, got {v!r:.40}")
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"summary: link {link['a']}-{link['b']}: {exc}") from None
+            check_attributes({k: v})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"summary: link {link['a']}-{link['b']}: {exc}") from None
     return attributes_from_wire(d)
 
 

@@ -112,6 +112,8 @@ class Subscription:
         self._signature: Signature | None = None
         self._topology = topology
         self._next_retry = math.inf
+        #: why the last re-planning failed while the route was kept (it still streamed)
+        self._replan_failed: Exception | None = None
         self._closed = threading.Event()
         self._build(first)
         self._thread = threading.Thread(target=self._work, name="uma-subscription",
@@ -123,6 +125,7 @@ class Subscription:
         """Mirror the route of a query with details (dropping any previous mirror) and
         subscribe."""
         parts = outcome.parts
+        self._replan_failed = None
         self._unsubscribe()
         self.graph = Graph(buffer_s=5.0)
         feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
@@ -202,6 +205,7 @@ class Subscription:
                                        details=True)
             if self._closed.is_set() or (_signature(outcome.parts) == self._signature
                                          and self.status in _ON_ROUTE):
+                self._replan_failed = None
                 return
             was = [s.agent for s in self.route] if self.status in _ON_ROUTE else None
             self._build(outcome)
@@ -214,16 +218,28 @@ class Subscription:
                  "no route before" if was is None else f"was via agents {', '.join(was)}")
 
     def _lost(self, exc: Exception) -> None:
-        """Planning failed.  A segment that failed while every agent of the mirrored route
-        is alive may be transient (an answer late on a loaded machine): keep streaming.
+        """Planning failed.  While the mirrored route's samples still arrive, keep
+        delivering them: an agent's absence (its token lapsed on a frozen host, a
+        partition) stops new plans, not a working stream; the stream ends only when it
+        also stalls (:meth:`_check_stall`).  A segment that failed while every agent of the
+        route is alive may be transient too (an answer late on a loaded machine).
         Otherwise stop delivering, say so once, and retry."""
         self.last_error = exc
         self._next_retry = time.monotonic() + RETRY_S
-        if (self.status in _ON_ROUTE and isinstance(exc, SegmentError)
-                and all(self.queries.tracker.is_alive(s.agent) for s in self.route)):
+        flowing = (self.status == "streaming"
+                   and time.monotonic() - self._last_push <= self.stall_limit_s)
+        if self.status in _ON_ROUTE and (flowing or (
+                isinstance(exc, SegmentError)
+                and all(self.queries.tracker.is_alive(s.agent) for s in self.route))):
+            self._replan_failed = exc
             self._bad.warning(f"subscription {self.source} -> {self.target}",
-                                     f"re-planning failed, route kept: {exc}")
+                              f"re-planning failed, route kept while it streams: {exc}")
             return
+        self._no_route(exc)
+
+    def _no_route(self, exc: Exception) -> None:
+        """Stop delivering, say so once (the worker retries every ``RETRY_S``)."""
+        self._replan_failed = None
         if self.status == "no route":
             return
         self._unsubscribe()
@@ -264,6 +280,9 @@ class Subscription:
         """On a route whose fastest edge has been silent too long: say so, once."""
         silent = time.monotonic() - self._last_push
         if self.status != "streaming" or silent <= self.stall_limit_s:
+            return
+        if self._replan_failed is not None:  # kept only while it streamed: no longer
+            self._no_route(self._replan_failed)
             return
         self.status = "stalled"
         self.stalls += 1
