@@ -17,7 +17,7 @@ from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
 from services.fusion import evaluate as fe
-from services.fusion.ekf import FusionEKF
+from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.service import LiveFusion, accel_model_from_attributes
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import FusionTracker
@@ -377,6 +377,81 @@ def test_gap_schedule_and_baselines():
     b = fe.optical_baselines(rec)
     assert np.allclose(b["hold_last"][0][:, 0], [0.0, 0.1, 0.1])
     assert np.allclose(b["constant_velocity"][0][:, 0], [0.0, 0.1, 0.15])
+    # the extrapolation stops one optical frame past the last pose (1 m/s here)
+    rec.t = np.array([0.1 + 0.5 / fe.OPTICAL_HZ, 0.1 + 1 / fe.OPTICAL_HZ, 0.9])
+    b = fe.optical_baselines(rec)
+    assert np.allclose(b["constant_velocity"][0][:, 0],
+                       [0.1 + 0.5 / fe.OPTICAL_HZ, 0.1 + 1 / fe.OPTICAL_HZ,
+                        0.1 + 1 / fe.OPTICAL_HZ])
+    rec.t = np.array([-0.01])
+    with pytest.raises(ValueError, match="before the first optical pose"):
+        fe.optical_baselines(rec)
+
+
+def _recording_off_by(traj: HeadTrajectory, dp, angle: float, horizon_s: float,
+                      gap: tuple[float, float]) -> fe.Recording:
+    """A run whose outputs are the truth moved by ``dp`` (world) and turned by ``angle``
+    about a fixed axis, with a covariance that makes each part's NEES exactly 3; its
+    predictions are off by 2 mm; its optical poses are the truth at 15 Hz, none in
+    ``gap``; 30 inertial samples came before the filter started."""
+    t = np.arange(600, 2400) / 300.0
+    p, q = traj.pose(t)
+    turn = geo.rotvec_to_quat(angle * np.array([2.0, -1.0, 2.0]) / 3.0)
+    p_f, q_f = traj.pose(t + horizon_s)
+    opt_t = np.array([k / fe.OPTICAL_HZ for k in range(int(8 * fe.OPTICAL_HZ))
+                      if not gap[0] <= k / fe.OPTICAL_HZ < gap[1]])
+    opt_p, opt_q = traj.pose(opt_t)
+    var = np.r_[[float(np.dot(dp, dp)) / 3] * 3, [angle**2 / 3] * 3]
+    return fe.Recording(t, p + dp, geo.quat_multiply(turn, q),
+                        np.tile(np.diag(var), (t.size, 1, 1)),
+                        p_f + np.array([0.0, 0.0, 2e-3]), q_f, opt_t, opt_p, opt_q,
+                        cpu_s=1.0, stats=FusionStats(reinitialised=2),
+                        optical_failures={}, uninitialised_t=np.linspace(0.0, 0.1, 30))
+
+
+def test_eval_figures_report_a_known_injected_error():
+    """The fusion eval's figures of a run whose error is known: 5 mm (3, 4, 0) and 0.01 rad
+    everywhere, 2 mm for the prediction, NEES 6; one NaN output makes the RMSE NaN and is
+    counted, not skipped."""
+    traj = HeadTrajectory(2)
+    gap = (5.0, 6.0)
+    rec = _recording_off_by(traj, np.array([3e-3, 4e-3, 0.0]), 0.01, 0.02, gap)
+    f = fe.figures_of(rec, traj, [gap], 0.02)
+    for key in ("fused", "fused_inside_gaps", "fused_outside_gaps"):
+        fig = f[key]
+        assert fig["position_rmse_mm"] == pytest.approx(5.0, rel=1e-9)
+        assert fig["position_max_mm"] == pytest.approx(5.0, rel=1e-9)
+        assert fig["orientation_rmse_deg"] == pytest.approx(np.degrees(0.01), rel=1e-9)
+        assert fig["orientation_max_deg"] == pytest.approx(np.degrees(0.01), rel=1e-9)
+    assert f["prediction_20ms"]["position_rmse_mm"] == pytest.approx(2.0, rel=1e-9)
+    assert f["prediction_20ms"]["orientation_max_deg"] < 1e-6
+    assert f["nees"]["mean"] == pytest.approx(6.0, rel=1e-9)
+    for part in ("position_mean", "rotation_mean"):
+        assert f["nees"]["by_regime"]["optical_gap"][part] == pytest.approx(3.0, rel=1e-9)
+    inside = int(np.sum((rec.t >= 5.0) & (rec.t < 6.0 + fe.RECOVERY_FRAMES / fe.OPTICAL_HZ)))
+    assert f["samples"] == {"inertial": 1830, "filter_not_running": 30,
+                            "filter_not_running_after_warmup": 0, "warmup": 300,
+                            "scored": 1500, "scored_inside_gaps": inside,
+                            "scored_outside_gaps": 1500 - inside, "non_finite_outputs": 0}
+    assert f["fused_inside_gaps"]["samples"] == inside
+    assert f["filter_events"]["starts"] == 2 and f["filter_events"]["restarts"] == 1
+    # the baselines of exact optical poses: the hold is off by the motion since the last
+    # pose, worst inside the gap; the capped extrapolation is better outside it
+    hold, cv = f["baseline_hold_last"], f["baseline_constant_velocity"]
+    assert hold["inside_gaps"]["position_max_mm"] > 10 * hold["outside_gaps"][
+        "position_rmse_mm"]
+    assert cv["outside_gaps"]["position_rmse_mm"] < 0.5 * hold["outside_gaps"][
+        "position_rmse_mm"]
+    # 5 mm is a quarter of the baselines' RMSE over all samples, but not half of the
+    # extrapolation's outside the gaps: the goal asks for each region
+    assert f["fused"]["position_rmse_mm"] < 0.25 * min(
+        hold["all"]["position_rmse_mm"], cv["all"]["position_rmse_mm"])
+    assert fe.goals({**f, "output_rate_hz": 300.0})["rmse_le_half_best_baseline"] is False
+
+    rec.p[1000] = np.nan
+    f = fe.figures_of(rec, traj, [gap], 0.02)
+    assert f["samples"]["non_finite_outputs"] == 1
+    assert np.isnan(f["fused"]["position_rmse_mm"]) and np.isnan(f["fused"]["position_max_mm"])
 
 
 def test_live_fusion_builds_from_attributes_and_publishes():
@@ -484,6 +559,20 @@ def test_short_eval_measures_gaps_from_the_last_optical_pose():
         r = nees["by_regime"][regime]
         assert 0 < r["share"] < 1 and r["position_mean"] > 0 and r["rotation_mean"] > 0
     assert f["output_rate_hz"] > 290
+    # every goal is met, in each region (run by hand at 60 s: docs/FUSION_TUNING.md)
+    assert f["goals"] == dict.fromkeys(f["goals"], True) and len(f["goals"]) == 5
+    n = f["samples"]
+    assert n["inertial"] == 9 * 300 and n["non_finite_outputs"] == 0
+    assert n["inertial"] == n["filter_not_running"] + n["warmup"] + n["scored"]
+    assert n["scored"] == n["scored_inside_gaps"] + n["scored_outside_gaps"]
+    assert 0 < n["filter_not_running"] < 0.2 * 300 and n["filter_not_running_after_warmup"] == 0
+    assert f["filter_events"]["starts"] == 1 and f["filter_events"]["restarts"] == 0
+    assert f["filter_events"]["pose_updates"] + f["filter_events"]["pose_rejected"] >= 100
+    assert f["given_by_simulator"]["accel_latency_s"] == \
+        accel_sim.default_device().latency_s(accel_sim.DEFAULT_RATE_HZ)
+    hold, cv = f["baseline_hold_last"], f["baseline_constant_velocity"]
+    assert hold["inside_gaps"]["samples"] == n["scored_inside_gaps"]
+    assert cv["outside_gaps"]["position_rmse_mm"] < hold["outside_gaps"]["position_rmse_mm"]
 
 
 def test_optical_covariance_is_matched_per_block():
