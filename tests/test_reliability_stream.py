@@ -156,9 +156,15 @@ def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
         # depends on whether the second death was already known)
         assert isinstance(poses.errors[0], LookupError) and "ivy/world -> marvin/rig" in str(
             poses.errors[0]), poses.errors
-        time.sleep(0.3)  # poses already queued may still arrive; then none
+        # the tracker's samples still reach this process (a witness subscriber): poses
+        # already queued may still arrive during the first 30, then none during 50 more
+        seen = threading.Semaphore(0)
+        witness = client.session.declare_subscriber(f"uma/{realm}/data/C/**",
+                                                    lambda s: seen.release())
+        assert all(seen.acquire(timeout=WAIT_S) for _ in range(30))
         quiet = len(poses.got)
-        time.sleep(0.5)
+        assert all(seen.acquire(timeout=WAIT_S) for _ in range(50))
+        witness.undeclare()
         assert len(poses.got) == quiet
 
         # a route comes back (B restarts): the stream resumes over it
