@@ -24,7 +24,7 @@ from services.accel_rig.calibration import (
     calibration_errors,
 )
 from services.accel_rig.integrator import dead_reckon_from_truth
-from services.accel_rig.rig import marvin_six, nine_accelerometer
+from services.accel_rig.rig import layout_by_name, marvin_six, nine_accelerometer
 from services.accel_rig.simulator import (
     SensorTruth,
     axis_down_quaternion,
@@ -216,16 +216,25 @@ def test_eval_plugin_reports_every_figure():
     assert cal["poses"] == list(THESIS_POSES)
     assert cal["bias_lsb_max"] < 1.0 and cal["scale_percent_max"] < 0.5
     assert cal["axis_deg_max"] < 0.2 and cal["uncalibrated_bias_lsb_max"] > 5
-    for key in ("0.25s", "0.5s", "1s", "2s"):
-        assert 0 < fig["orientation_error_deg"][key]["median"] <= \
-            fig["orientation_error_deg"][key]["p95"] < 20
-        assert 0 < fig["position_error_m"][key]["median"] < 2
-        assert np.isfinite(fig["nees"][key]["mean"])
+    # with these seeds the 4 runs give an orientation p95 of 0.059, 0.158, 0.367, 1.28 deg
+    # and a median position error of 0.073, 0.62, 4.6, 50 mm; another draw of 4 runs'
+    # noise moves such figures by tens of percent, so the bounds are half and twice them
+    measured = {"0.25s": (0.059, 7.3e-5), "0.5s": (0.158, 6.2e-4), "1s": (0.367, 4.6e-3),
+                "2s": (1.28, 0.050)}
+    for key, (ori_p95, pos_median) in measured.items():
+        ori, pos = fig["orientation_error_deg"][key], fig["position_error_m"][key]
+        assert 0 < ori["median"] <= ori["p95"] and 0.5 < ori["p95"] / ori_p95 < 2, (key, ori)
+        assert 0 < pos["median"] <= pos["p95"] and 0.5 < pos["median"] / pos_median < 2, \
+            (key, pos)
+        assert fig["nees"][key]["within_bounds"], (key, fig["nees"][key])
+    assert fig["goals"] == dict.fromkeys(fig["goals"], True) and len(fig["goals"]) == 3
+    device = SensorTruth.draw(1001, layout_by_name("marvin-six-table-4.1"))   # seed 1's
+    assert fig["given_by_simulator"]["accel_latency_s"] == device.latency_s(fig["rate_hz"]) > 0
     # drift grows with time, as inertial drift must
     assert fig["position_error_m"]["2s"]["median"] > 10 * fig["position_error_m"]["0.25s"][
         "median"]
     lo, hi = fig["nees"]["bounds_95"]
-    assert lo < 6 < hi and set(fig["goals"]) >= {"median_orientation_error_1s_le_1deg"}
+    assert lo < 6 < hi
     with pytest.raises(ValueError, match="--seconds must exceed"):
         PLUGIN.run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
                              poses="six", pose_seconds=2.0))

@@ -112,11 +112,18 @@ def test_resets_at_300_hz_from_a_noisy_pose_stream_stay_finite_and_honest(with_c
 def test_resets_once_a_second_from_a_300_hz_pose_stream_stay_finite_and_honest():
     """The default ``--reset-every 1``: a second of dead reckoning from rates fitted to the
     300 Hz poses (the three-point difference made them diverge within two seconds)."""
-    for seed in (1, 2):
+    # the worst errors these seeds give: 0.47 m and 26.4 deg (seed 1: its first reset
+    # fits the rates to the first three poses, 3.3 ms apart; the orientation error then
+    # grows 25 deg/s, and the covariance says so: NEES ~0.8), 0.37 m and 8.1 deg (seed 2).
+    # The runs are deterministic; 1.5x leaves room for another noise stream of the
+    # simulator, not for a reset that goes wrong (the bounds were 2 m and 45 deg)
+    worst = {1: (0.47, 26.4), 2: (0.37, 8.1)}
+    for seed, (pos_m, ori_deg) in worst.items():
         live, err = _run_fused_stream(1.0, True, lag_samples=2, seed=seed)
         assert len(live.pose_out.poses) > 1150 and live.counts["resets"] == 4
         assert np.all(np.isfinite(err))
-        assert err[:, 0].max() < 2.0 and err[:, 1].max() < 45.0, err.max(axis=0)
+        assert err[:, 0].max() < 1.5 * pos_m and err[:, 1].max() < 1.5 * ori_deg, \
+            err.max(axis=0)
         assert 1.0 < err[:, 2].mean() < 12.0, err[:, 2].mean()
 
 

@@ -115,10 +115,16 @@ def test_the_agents_own_keys_share_one_wildcard_subscriber() -> None:
         assert hub._local_subscriber is not None  # b still listens
         stops[1]()
         assert hub._local_subscriber is None  # the last local listener took it along
+        # a witness on the same key and session: once it has the sample, the hub would
+        # have had it too if it still listened
+        seen: list[bytes] = []
+        witness = session.declare_subscriber("uma/r/data/A/s/b",
+                                             lambda s: seen.append(s.payload.to_bytes()))
         session.put("uma/r/data/A/s/b", b"5")
         stops[2]()
         assert hub.subscribed() == set()
-        time.sleep(0.05)
+        _wait(lambda: seen == [b"5"])
+        witness.undeclare()
         assert got["b"] == [b"2"]
     finally:
         hub.close()

@@ -315,9 +315,13 @@ def test_an_agent_whose_token_went_is_not_probed(realm_ab, monkeypatch):
         c.pose("w", "head", error="hops")
     c.tracker._on_token(_token(zenoh.SampleKind.DELETE))
     asked = len(realm_ab.asked)
-    time.sleep(0.3)
-    assert not c.tracker.is_alive("B") and len(realm_ab.asked) == asked
+    # the prober ends only when it wakes and finds no suspect: once it has, B's probe
+    # would have gone out had B still been one
+    deadline = time.monotonic() + 10.0
+    while c.tracker._prober is not None and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert c.tracker._prober is None
+    assert not c.tracker.is_alive("B") and len(realm_ab.asked) == asked
 
 
 def test_routes_are_planned_again_only_when_a_summary_changes(realm_ab):

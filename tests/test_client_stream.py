@@ -129,8 +129,13 @@ def test_streaming_delivers_composed_poses_as_the_edges_update(skewed_world, rea
         assert enough.wait(10.0), f"only {len(got)} poses streamed ({sub.last_error})"
         sub.close()
         count = len(got)
-        time.sleep(0.1)
-        assert len(got) <= count + 1  # closed: no more pushes
+        # a second subscription to the same poses as witness: once it has had five, the
+        # closed one would have had more too if it still pushed
+        witnessed = threading.Semaphore(0)
+        witness = c.subscribe(WORLD, EYE, on_pose=lambda r: witnessed.release(), error="hops")
+        assert all(witnessed.acquire(timeout=10.0) for _ in range(5)), witness.last_error
+        witness.close()
+        assert len(got) <= count + 1  # closed: no more pushes (one may have been under way)
     times = [r.t_ns for r in got]
     assert times == sorted(times) and len(set(times)) == len(times)  # one per new sample
     for r in got:

@@ -97,6 +97,16 @@ def test_multiplicity_min_and_max() -> None:
     assert not r.satisfied
 
 
+def test_exactly_min_count_qualified_satisfies_and_one_fewer_does_not() -> None:
+    """The boundary of the multiplicity rule: ``qualified == min_count`` is enough."""
+    idx = OfferIndex([offer(f"s{i}", cost=i) for i in range(5)])
+    r = match(need(where="cost >= 3", min_count=2, max_count=3), idx, "a")
+    assert r.qualified == 2 and r.satisfied
+    assert chosen_services(r) == ["s3", "s4"]
+    r = match(need(where="cost >= 3", min_count=3, max_count=3), idx, "a")
+    assert r.qualified == 2 and not r.satisfied
+
+
 def test_measured_values_judge_a_connected_stream() -> None:
     o = offer("cam", frequency_hz=100, latency_s=0.001)
     req = need(where="frequency_hz >= 30 and latency_s < 0.1")

@@ -4,6 +4,7 @@ share one session per process, so a realm's links grow with processes, not servi
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import pytest
@@ -132,8 +133,16 @@ def test_an_agent_whose_token_lapses_but_still_answers_keeps_its_services(realm)
             cam.start()
             fusion.start()
             fusion.wait_matched("head", timeout=15.0)
+            checks = a._checks
             b._token.undeclare()  # the token lapses; B itself runs on
-            time.sleep(2.5)  # A's check (1 s) and a few re-matches
+            deadline = time.monotonic() + 15.0  # until A has asked B and heard its answer
+            while ((a._checks == checks or "hostB" in a._agent_checks)
+                   and time.monotonic() < deadline):
+                time.sleep(0.05)
+            assert a._checks > checks and "hostB" not in a._agent_checks
+            handled = threading.Event()  # A's worker is past the answer's handling
+            a._worker.put(handled.set)
+            assert handled.wait(10.0)
             assert [m.service_id for m in fusion.matches("head")] == ["cam"]
             assert "hostB" in a.view.live_agents
             b.close()  # now B is gone for real: its services go with it, and so does B

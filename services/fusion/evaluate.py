@@ -16,10 +16,19 @@ Pipeline, all real components:
 
 Figures, evaluated at every inertial sample (300 Hz) after a warm-up: RMSE and max of
 position and orientation for the fused pose and for the two causal optical-only
-baselines (hold the last optical pose; constant-velocity extrapolation of the last two),
-the worst error inside each gap length, the time to recover after each gap, the error of
-the pose predicted +20 ms ahead, NEES against chi-square bounds, and the filter's
-updates per second of CPU time.
+baselines (hold the last optical pose; constant-velocity extrapolation of the last two,
+at most one optical frame beyond the last), each over all samples, inside the gaps (a
+scheduled gap and the RECOVERY_FRAMES frames after it) and outside them; the worst error
+inside each gap length, the time to recover after each gap, the error of the pose
+predicted +20 ms ahead, NEES against chi-square bounds, and the filter's updates per second
+of CPU time.  What is left out is counted (``samples``: inertial samples while the filter
+was not running, the warm-up, non-finite outputs; ``filter_events``: starts, restarts and
+rejected measurements); no figure skips a NaN.
+
+What the run is handed from the simulator instead of measuring it is listed under
+``given_by_simulator``: the accelerometer calibration gets the device's true noise model
+and latency (``calibrated_accelerometers``) and its true positions (it calibrates biases,
+gains and axes); the rig mountings are the simulator's.
 
 Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
 system*, MSc thesis, York University 2003.
@@ -49,7 +58,7 @@ from services.accel_rig.device_options import (
     device_figures,
     device_from_args,
 )
-from services.fusion.ekf import FusionEKF
+from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
 from services.sim.world import IvyWorld
@@ -58,6 +67,8 @@ OPTICAL_HZ = 15.0
 WARMUP_S = 3.0
 #: seconds of normal tracking between two scheduled gaps
 GAP_SPACING_S = 4.0
+#: optical frames after a scheduled gap still counted inside it (the filter recovering)
+RECOVERY_FRAMES = 3
 #: output error within which the filter counts as recovered: a few times its normal error
 RECOVERY_FACTOR = 3.0
 RECOVERY_HOLD_S = 0.1
@@ -87,7 +98,12 @@ def simulation_graph() -> Graph:
 def calibrated_accelerometers(rate_hz: float, seed: int,
                                device: Any = None) -> tuple[Any, Any]:
     """The simulated device (MARVIN's by default) and its calibration from six static
-    orientations (§4.4.2)."""
+    orientations (§4.4.2).
+
+    The calibration is handed the device's true noise model and latency and its true
+    accelerometer positions (see ``given_by_simulator``): it estimates biases, gains and
+    axes only, so the filter's noise and latency model is exact, as a real rig's is not.
+    """
     device = device or accel_sim.default_device()
     recordings = [
         accel_cal.StaticRecording(
@@ -203,8 +219,11 @@ class Recording:
     optical_p: np.ndarray    # head poses from them
     optical_q: np.ndarray
     cpu_s: float
-    updates: int
+    stats: FusionStats       # the filter's counts at the end of the run
     optical_failures: dict[str, int]
+    #: motion times of the inertial samples that came while the filter was not running
+    #: (before its first start, or after a restart left it waiting for two poses)
+    uninitialised_t: np.ndarray
 
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
@@ -231,7 +250,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     motion_t = accel.t - cal.latency_s
     n = len(motion_t)
     rec = {k: [] for k in ("t", "p", "q", "cov", "pp", "qp")}
-    opt_t, opt_p, opt_q, failures = [], [], [], {}
+    opt_t, opt_p, opt_q, failures, waiting = [], [], [], {}, []
     cpu, k_frame = 0.0, 0
     idx = np.r_[9:12, 0:3]
     pm, qm = geo.inverse(*head_to_laser)
@@ -258,6 +277,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
             opt_p.append(hp)
             opt_q.append(hq)
         if not ekf.initialised:
+            waiting.append(motion_t[i])
             continue
         c0 = time.process_time()
         ekf.update_accel_sample(accel.t[i], accel.accel[i])
@@ -273,8 +293,8 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     return Recording(np.array(rec["t"]), np.array(rec["p"]), np.array(rec["q"]),
                      np.array(rec["cov"]), np.array(rec["pp"]), np.array(rec["qp"]),
                      np.array(opt_t), np.array(opt_p).reshape(-1, 3),
-                     np.array(opt_q).reshape(-1, 4), cpu,
-                     ekf.stats.measurement_updates + ekf.stats.time_updates, failures)
+                     np.array(opt_q).reshape(-1, 4), cpu, ekf.stats, failures,
+                     np.array(waiting))
 
 
 def _dot_updates(ekf: FusionEKF, world: IvyWorld, tracker: Any, images: Any, result: Any,
@@ -319,31 +339,44 @@ def _wall_of(world: IvyWorld, point: np.ndarray) -> Any:
 
 
 def optical_baselines(rec: Recording) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Causal optical-only estimates at the output times: hold last, constant velocity."""
+    """Causal optical-only estimates at the output times (each after an optical pose: the
+    filter starts from two).
+
+    ``hold_last`` keeps the last optical pose; ``constant_velocity`` extrapolates the last
+    two at most one optical frame beyond the last and holds that pose after it.  Unlimited,
+    the extrapolation ran ~16 frames through a 1 s gap, up to 0.6 m and 120 deg off (seed
+    1), and made the baseline look worse than holding where it is better outside gaps.
+    """
     k = np.searchsorted(rec.optical_t, rec.t, side="right") - 1
-    valid = k >= 0
-    k = np.clip(k, 0, None)
+    if np.any(k < 0):
+        raise ValueError("fusion eval: an output before the first optical pose")
     hold_p, hold_q = rec.optical_p[k], rec.optical_q[k]
     k0 = np.clip(k - 1, 0, None)
     dt = rec.optical_t[k] - rec.optical_t[k0]
+    ahead = np.minimum(rec.t - rec.optical_t[k], 1.0 / OPTICAL_HZ)
     safe = np.where(dt > 0, dt, 1.0)
-    alpha = np.where(dt > 0, (rec.t - rec.optical_t[k0]) / safe, 1.0)
+    alpha = np.where(dt > 0, 1.0 + ahead / safe, 1.0)
     cv_p, cv_q = geo.interpolate(rec.optical_p[k0], rec.optical_q[k0], hold_p, hold_q, alpha)
-    out = {"hold_last": (hold_p, hold_q), "constant_velocity": (cv_p, cv_q)}
-    return {name: (np.where(valid[:, None], p, np.nan), q) for name, (p, q) in out.items()}
+    return {"hold_last": (hold_p, hold_q), "constant_velocity": (cv_p, cv_q)}
 
 
 # ---------------------------------------------------------------------- figures
 
 
 def _rms(x: np.ndarray) -> float:
-    return float(np.sqrt(np.nanmean(np.square(x)))) if x.size else float("nan")
+    """Root mean square; NaN if ``x`` is empty or holds a NaN (never skipped)."""
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else float("nan")
+
+
+def _max(x: np.ndarray) -> float:
+    return float(np.max(x)) if x.size else float("nan")
 
 
 def _err_figures(ep: np.ndarray, er: np.ndarray) -> dict[str, float]:
-    return {"position_rmse_mm": 1e3 * _rms(ep), "position_max_mm": 1e3 * float(np.nanmax(ep)),
+    return {"samples": int(ep.size),
+            "position_rmse_mm": 1e3 * _rms(ep), "position_max_mm": 1e3 * _max(ep),
             "orientation_rmse_deg": math.degrees(_rms(er)),
-            "orientation_max_deg": math.degrees(float(np.nanmax(er)))}
+            "orientation_max_deg": math.degrees(_max(er))}
 
 
 def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
@@ -521,28 +554,58 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
                      cache, dots, device)
     if rec.t.size == 0:
         raise ValueError("fusion never started: the laser tracker found no pose")
-    traj = IvyWorld(seed=seed).trajectory
+    figures: dict[str, Any] = {
+        "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
+        "accel_device": device_figures(device),
+        "given_by_simulator": given_by_simulator(device, accel_sim.DEFAULT_RATE_HZ),
+        **figures_of(rec, IvyWorld(seed=seed).trajectory, gaps, horizon_s),
+    }
+    figures["goals"] = goals(figures)
+    return figures
+
+
+def given_by_simulator(device: Any, rate_hz: float) -> dict[str, Any]:
+    """What the run takes from the simulator's truth instead of measuring it: a real rig
+    would have to estimate these, and the figures are better for not having to."""
+    return {
+        "accel_noise_model": "the simulated device's own (calibrated_accelerometers hands "
+                             "device.noise_model() to the calibration)",
+        "accel_latency_s": device.latency_s(rate_hz),
+        "accel_positions": "the simulated device's true positions (the calibration "
+                           "estimates biases, gains and axes)",
+        "rig_mountings": "the simulator's head -> laser rig and head -> accelerometer rig",
+    }
+
+
+def figures_of(rec: Recording, traj: Any, gaps: list[tuple[float, float]],
+               horizon_s: float) -> dict[str, Any]:
+    """Every figure of a recorded run against the trajectory ``traj`` (``pose(t)``)."""
     p_true, q_true = traj.pose(rec.t)
     p_fut, q_fut = traj.pose(rec.t + horizon_s)
     after = rec.t >= WARMUP_S
     in_gap = np.zeros(rec.t.shape, bool)
     for a, b in gaps:
-        in_gap |= (rec.t >= a) & (rec.t < b + 3.0 / OPTICAL_HZ)
+        in_gap |= (rec.t >= a) & (rec.t < b + RECOVERY_FRAMES / OPTICAL_HZ)
+    in_gap &= after
     normal = after & ~in_gap
     ep, er = geo.pose_error(rec.p, rec.q, p_true, q_true)
     figures: dict[str, Any] = {
-        "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
-        "accel_device": device_figures(device),
         "output_rate_hz": float(rec.t.size / (rec.t[-1] - rec.t[0])),
         "optical_poses": int(rec.optical_t.size),
         "optical_failures": rec.optical_failures,
         "gaps": [[round(a, 3), round(b, 3)] for a, b in gaps],
+        "samples": _sample_counts(rec, after, in_gap, ep, er),
+        "filter_events": _filter_events(rec.stats),
         "fused": _err_figures(ep[after], er[after]),
+        "fused_inside_gaps": _err_figures(ep[in_gap], er[in_gap]),
+        "fused_outside_gaps": _err_figures(ep[normal], er[normal]),
     }
     for name, (bp, bq) in optical_baselines(rec).items():
         bep, ber = geo.pose_error(bp, bq, p_true, q_true)
-        figures[f"baseline_{name}"] = _err_figures(bep[after], ber[after])
-    figures["fused_outside_gaps"] = _err_figures(ep[normal], er[normal])
+        figures[f"baseline_{name}"] = {
+            region: _err_figures(bep[mask], ber[mask])
+            for region, mask in (("all", after), ("inside_gaps", in_gap),
+                                 ("outside_gaps", normal))}
     figures["gaps_by_length"] = recovery_figures(rec, ep, er, gaps, normal)
     pep, per = geo.pose_error(rec.p_pred, rec.q_pred, p_fut, q_fut)
     nep, ner = geo.pose_error(rec.p, rec.q, p_fut, q_fut)
@@ -551,25 +614,53 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
         "without_prediction_position_rmse_mm": 1e3 * _rms(nep[normal]),
         "without_prediction_orientation_rmse_deg": math.degrees(_rms(ner[normal]))}
     figures["nees"] = nees_figures(rec, p_true, q_true, after)
-    figures["filter_updates_per_cpu_s"] = rec.updates / rec.cpu_s if rec.cpu_s > 0 else None
-    figures["goals"] = goals(figures)
+    updates = rec.stats.measurement_updates + rec.stats.time_updates
+    figures["filter_updates_per_cpu_s"] = updates / rec.cpu_s if rec.cpu_s > 0 else None
     return figures
 
 
+def _sample_counts(rec: Recording, after: np.ndarray, in_gap: np.ndarray, ep: np.ndarray,
+                   er: np.ndarray) -> dict[str, int]:
+    """Where every inertial sample went: scored (inside or outside the gaps), in the
+    warm-up, or dropped while the filter was not running; and how many scored outputs are
+    not finite (they make the RMSE NaN rather than being skipped)."""
+    return {"inertial": int(rec.t.size + rec.uninitialised_t.size),
+            "filter_not_running": int(rec.uninitialised_t.size),
+            "filter_not_running_after_warmup": int(np.sum(rec.uninitialised_t >= WARMUP_S)),
+            "warmup": int(np.sum(~after)),
+            "scored": int(np.sum(after)),
+            "scored_inside_gaps": int(np.sum(in_gap)),
+            "scored_outside_gaps": int(np.sum(after & ~in_gap)),
+            "non_finite_outputs": int(np.sum(~(np.isfinite(ep) & np.isfinite(er))[after]))}
+
+
+def _filter_events(stats: FusionStats) -> dict[str, int]:
+    """Starts (the first included: every start is from two optical poses), restarts and
+    the measurements the filter's gates refused."""
+    return {"starts": stats.reinitialised, "restarts": max(0, stats.reinitialised - 1),
+            "pose_updates": stats.pose_updates, "pose_rejected": stats.pose_rejected,
+            "dot_updates": stats.dot_updates, "dot_rejected": stats.dot_rejected,
+            "accel_updates": stats.accel_updates, "accel_rejected": stats.accel_rejected}
+
+
 def goals(f: dict[str, Any]) -> dict[str, bool]:
-    """The issue's targets, each a yes/no."""
-    better = min(f["baseline_hold_last"]["position_rmse_mm"],
-                 f["baseline_constant_velocity"]["position_rmse_mm"])
-    better_r = min(f["baseline_hold_last"]["orientation_rmse_deg"],
-                   f["baseline_constant_velocity"]["orientation_rmse_deg"])
+    """The issue's targets, each a yes/no.  The fused RMSE must be at most half the better
+    baseline's over all samples and in each region that has samples (inside the gaps the
+    hold usually wins, outside them the one-frame extrapolation)."""
+    half_best = all(
+        f[fused]["samples"] == 0 or all(
+            f[fused][key] <= 0.5 * min(f[f"baseline_{b}"][region][key]
+                                       for b in ("hold_last", "constant_velocity"))
+            for key in ("position_rmse_mm", "orientation_rmse_deg"))
+        for fused, region in (("fused", "all"), ("fused_inside_gaps", "inside_gaps"),
+                              ("fused_outside_gaps", "outside_gaps")))
     gaps = f["gaps_by_length"]
     one = gaps.get("1s")
     frames = [g["recovery_optical_frames_worst"] for k, g in gaps.items()
               if k != "recovery_threshold"]
     return {
         "output_rate_ge_290hz": f["output_rate_hz"] >= 290.0,
-        "rmse_le_half_best_baseline": (f["fused"]["position_rmse_mm"] <= 0.5 * better
-                                       and f["fused"]["orientation_rmse_deg"] <= 0.5 * better_r),
+        "rmse_le_half_best_baseline": half_best,
         "gap_1s_within_3cm_1deg": bool(one and one["position_max_mm"] <= 30.0
                                        and one["orientation_max_deg"] <= 1.0),
         "recovery_within_3_frames": bool(frames) and all(
@@ -612,8 +703,12 @@ PLUGIN = EvalPlugin(
     name="fusion",
     help="The simulated MARVIN end to end: rendered camera images -> laser-dot tracker at "
          "15 Hz, simulated accelerometers at 300 Hz -> EKF/SCAAT fusion, against ground "
-         "truth at 300 Hz: RMSE/max of the fused pose and of optical-only baselines, errors "
-         "through optical gaps and recovery, +20 ms prediction error, NEES, updates/s.",
+         "truth at 300 Hz: RMSE/max of the fused pose and of optical-only baselines (hold "
+         "the last pose; extrapolate at most one frame) over all samples, inside and "
+         "outside the gaps; errors through optical gaps and recovery, +20 ms prediction "
+         "error, NEES, updates/s.  Samples left out, filter restarts and rejections are "
+         "counted; 'given_by_simulator' lists what the run takes from the simulator's "
+         "truth (the accelerometers' noise model and latency).",
     add_arguments=_add_arguments,
     run=run,
 )
