@@ -15,7 +15,6 @@ server's return.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import socket
 import time
@@ -24,6 +23,7 @@ from typing import Any
 
 from services.vrpn import protocol as vp
 from services.vrpn.link import Link
+from services.vrpn.loop import wait_for_event
 
 log = logging.getLogger("uma.vrpn")
 
@@ -114,7 +114,7 @@ class TrackerClient:
                 link.close()
                 self._close_udp()
             if not stop.is_set():
-                await _sleep_unless(stop, self.retry_s)
+                await wait_for_event(stop, self.retry_s)
 
     def _link(self, closed: asyncio.Future) -> Link:
         def on_closed(link: Link) -> None:
@@ -185,8 +185,3 @@ async def _first(closed: asyncio.Future, stop: asyncio.Event) -> None:
         await asyncio.wait([closed, stopping], return_when=asyncio.FIRST_COMPLETED)
     finally:
         stopping.cancel()
-
-
-async def _sleep_unless(stop: asyncio.Event, seconds: float) -> None:
-    with contextlib.suppress(TimeoutError):
-        await asyncio.wait_for(stop.wait(), seconds)
