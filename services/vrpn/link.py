@@ -7,8 +7,9 @@ description records where the peer takes low-latency messages, everything else g
 description) is logged with the peer's address and the reason, and the connection is
 closed; a peer that leaves mid-message is logged as such.
 
-Sending is bounded: once more than ``max_buffer`` bytes wait in the transport for a peer
-that does not read, the peer is dropped, so one stalled client never holds up the others
+Sending is bounded: the socket's kernel buffer is set to ``max_buffer`` and once more than
+``max_buffer`` bytes wait in the transport besides for a peer that does not read, the peer
+is dropped, so one stalled client never holds up the others
 nor grows our memory.
 """
 
@@ -60,6 +61,9 @@ class Link(asyncio.Protocol):
         sock = transport.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            # the kernel's buffer is bounded too (Linux grows it to megabytes otherwise,
+            # minutes of reports for a client that stopped reading)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.max_buffer)
         self.transport.write(vp.cookie())
 
     def data_received(self, data: bytes) -> None:
