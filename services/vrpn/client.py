@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from agent.runtime.logs import RateLimitedLog
 from services.vrpn import protocol as vp
 from services.vrpn.link import Link
 from services.vrpn.loop import wait_for_event
@@ -58,6 +59,7 @@ class TrackerClient:
         self.reports = 0
         self.velocity_reports = 0
         self._warned: set[str] = set()
+        self._bad = RateLimitedLog(log)
         self._udp: asyncio.DatagramTransport | None = None
         self._udp_task: asyncio.Future | None = None
         #: reports that came by UDP (the rest came by TCP)
@@ -85,7 +87,8 @@ class TrackerClient:
         return False
 
     def bad(self, text: str) -> None:
-        log.warning("VRPN server %s: %s", self.address, text)
+        """A bad datagram or report: logged (rate-limited: UDP can come from anyone)."""
+        self._bad.warning(f"VRPN server {self.address}", text)
 
     def note(self, key: str, text: str) -> None:
         """Log ``text`` once per run."""

@@ -15,6 +15,7 @@ import asyncio
 import logging
 import time
 
+from agent.runtime.logs import RateLimitedLog
 from services.vrpn import protocol as vp
 from services.vrpn.link import DEFAULT_MAX_BUFFER, Link
 
@@ -35,7 +36,7 @@ class _LobListener(asyncio.DatagramProtocol):
         try:
             host, port = vp.parse_lob_request(data)
         except vp.ProtocolError as exc:
-            log.warning("VRPN request from %s:%d refused: %s", addr[0], addr[1], exc)
+            self.server.bad.warning(f"VRPN request from {addr[0]}:{addr[1]}", f"refused: {exc}")
             return
         self.server.call_back(host, port)
 
@@ -60,6 +61,8 @@ class TrackerServer:
         self._udp_out: asyncio.DatagramTransport | None = None
         self.sent = 0
         self.dropped = 0
+        #: bad requests from anyone on the network must not flood the log
+        self.bad = RateLimitedLog(log)
 
     async def start(self) -> None:
         """Listen; ``OSError`` (port taken, bad address) is the caller's to report."""
