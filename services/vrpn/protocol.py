@@ -275,13 +275,19 @@ def encode_pos_quat(sensor: int, position: object, quaternion: object) -> bytes:
     return _POS_QUAT.pack(sensor, sensor, *p, *q)
 
 
-def decode_pos_quat(payload: bytes) -> PosQuat:
-    if len(payload) != _POS_QUAT.size:
-        raise ProtocolError(f"Pos_Quat payload is {len(payload)} bytes, expected "
-                            f"{_POS_QUAT.size}")
-    v = _POS_QUAT.unpack(payload)
+def _report(kind: str, layout: struct.Struct, payload: bytes) -> tuple:
+    """A tracker report's fields, with ``vrpn_Tracker_Remote``'s checks (exact length, a
+    sensor number that is not negative)."""
+    if len(payload) != layout.size:
+        raise ProtocolError(f"{kind} payload is {len(payload)} bytes, expected {layout.size}")
+    v = layout.unpack(payload)
     if v[0] < 0:
-        raise ProtocolError(f"Pos_Quat sensor {v[0]} is negative")
+        raise ProtocolError(f"{kind} sensor {v[0]} is negative")
+    return v
+
+
+def decode_pos_quat(payload: bytes) -> PosQuat:
+    v = _report("Pos_Quat", _POS_QUAT, payload)
     return PosQuat(v[0], np.array(v[2:5]), np.array(v[5:9]))
 
 
@@ -292,12 +298,7 @@ def encode_velocity(sensor: int, velocity: object, vel_quat: object, dt_s: float
 
 
 def decode_velocity(payload: bytes) -> Velocity:
-    if len(payload) != _VELOCITY.size:
-        raise ProtocolError(f"Velocity payload is {len(payload)} bytes, expected "
-                            f"{_VELOCITY.size}")
-    v = _VELOCITY.unpack(payload)
-    if v[0] < 0:
-        raise ProtocolError(f"Velocity sensor {v[0]} is negative")
+    v = _report("Velocity", _VELOCITY, payload)
     return Velocity(v[0], np.array(v[2:5]), np.array(v[5:9]), v[9])
 
 
