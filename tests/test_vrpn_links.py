@@ -1,7 +1,8 @@
 """The VRPN server and client on loopback without Zenoh: both connection kinds, reconnects,
-pings, and peers that misbehave (garbage, a wrong version, an oversized length, leaving
-mid-message, bad call-back requests), which are logged and dropped while the others are
-served.  The raw peers here write bytes by hand, as VRPN's documentation lays them out."""
+pings, and peers that misbehave (garbage, a wrong version, an oversized length, a bad
+description, silence instead of a cookie, leaving mid-message, bad call-back requests),
+which are logged and dropped while the others are served.  The raw peers here write bytes
+by hand, as VRPN's documentation lays them out."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import pytest
 from conftest import free_port
 
 from agent.cli.main import main as uma
+from services.vrpn import link
 from services.vrpn import protocol as vp
 from services.vrpn.bridge_in import Publisher, sensor_frames
 from services.vrpn.client import TrackerClient
@@ -117,6 +119,7 @@ BAD_PEERS = {
                   "exceeds VRPN's limit"),
     "bad name": (COOKIE + struct.pack(">IIIiiI", 24 + 8, 0, 0, 3, -1, 0)
                  + struct.pack(">i", 90) + b"abc\0", "description says its name"),
+    "silent": (b"", "sent no VRPN cookie within"),
     "mid-message": (COOKIE + struct.pack(">IIIiiI", 24 + 64, 0, 0, 0, 0, 0) + b"\0" * 10,
                     "left mid-message"),
 }
@@ -155,7 +158,8 @@ async def _bad_peers(caplog) -> None:
     await server.close()
 
 
-def test_bad_peers_are_logged_and_dropped_and_the_others_served(caplog) -> None:
+def test_bad_peers_are_logged_and_dropped_and_the_others_served(caplog, monkeypatch) -> None:
+    monkeypatch.setattr(link, "COOKIE_TIMEOUT_S", 0.3)
     caplog.set_level(logging.INFO, "uma.vrpn")
     asyncio.run(_bad_peers(caplog))
 

@@ -121,7 +121,11 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         subs = Subscriptions(client, args.serve, server)
 
         async def main(done: asyncio.Event) -> int:
-            await server.start()
+            try:
+                await server.start()
+            except OSError as exc:
+                raise OSError(f"cannot serve VRPN on {args.bind} port {args.port} (TCP and "
+                              f"UDP): {exc.strerror or exc}") from None
             log.info("vrpn-out: VRPN server on %s port %d (TCP and UDP): %s", args.bind,
                      server.port, ", ".join(names))
             loop = asyncio.get_running_loop()

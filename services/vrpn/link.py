@@ -27,6 +27,8 @@ log = logging.getLogger("uma.vrpn")
 
 #: VRPN's own TCP output buffer (vrpn_CONNECTION_TCP_BUFLEN)
 DEFAULT_MAX_BUFFER = 64000
+#: a peer that has not sent its cookie by then is not a VRPN peer
+COOKIE_TIMEOUT_S = 5.0
 
 
 class Link(asyncio.Protocol):
@@ -65,6 +67,7 @@ class Link(asyncio.Protocol):
             # minutes of reports for a client that stopped reading)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.max_buffer)
         self.transport.write(vp.cookie())
+        asyncio.get_running_loop().call_later(COOKIE_TIMEOUT_S, self._cookie_due)
 
     def data_received(self, data: bytes) -> None:
         if self.closed:
@@ -92,6 +95,10 @@ class Link(asyncio.Protocol):
         self.on_closed(self)
 
     # -- receiving
+    def _cookie_due(self) -> None:
+        if not self.ready:
+            self.fail(f"sent no VRPN cookie within {COOKIE_TIMEOUT_S:g} s")
+
     def _take_cookie(self, data: bytes) -> bytes:
         need = vp.COOKIE_SIZE - len(self._cookie)
         self._cookie += data[:need]
