@@ -62,6 +62,11 @@ async def _serve_and_receive(tcp: bool, restart: bool) -> TrackerClient:
     sensor, t_ns, p, _ = got[-1]
     assert sensor == 0 and t_ns % 1000 == 0
     np.testing.assert_array_equal(p, [p[0], 2 * p[0], 3 * p[0]])
+    if not tcp:  # a bad datagram at our UDP port is logged and dropped; reports go on
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
+            u.sendto(b"\0\0\0\x10garbage", client._udp.get_extra_info("sockname"))
+        n = len(got)
+        await until(lambda: len(got) > n + 5, "reports after a bad datagram")
     if restart:
         stop_stream.set()
         await tasks[1]
@@ -84,8 +89,9 @@ async def _serve_and_receive(tcp: bool, restart: bool) -> TrackerClient:
 
 
 @pytest.mark.parametrize("tcp", [True, False], ids=["tcp", "udp-handshake"])
-def test_client_receives_and_reconnects(tcp: bool) -> None:
+def test_client_receives_and_reconnects(tcp: bool, caplog) -> None:
     client = asyncio.run(_serve_and_receive(tcp, restart=True))
+    assert ("dropped: datagram of 11 bytes ends inside a message" in caplog.text) is not tcp
     assert client.connections == 2
     if tcp:
         assert client.udp_reports == 0
