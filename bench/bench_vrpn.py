@@ -16,7 +16,7 @@ times everything on this host's one clock.
   source publishes at 300 Hz; N is served when every client gets at least 90 % of the
   reports the source published and vrpn-out uses under 90 % of one core.
 
-    python bench/bench_vrpn.py [--samples 1000] [--clients 1,10,50,100,200] [--json]
+    python bench/bench_vrpn.py [--samples 1000] [--clients 1,10,50,100,200,300] [--json]
 """
 
 from __future__ import annotations
@@ -83,8 +83,8 @@ def zenoh_subscriber(ep: str, key: str, count: int) -> int:
 
 
 def readers(port: int, n: int, warm_s: float, seconds: float) -> int:
-    """Child: ``n`` VRPN TCP clients; print each one's Pos_Quat count over ``seconds``
-    after ``warm_s`` (counted by bytes: every report is one 88-byte message)."""
+    """Child: ``n`` VRPN TCP clients; print each one's rate of Pos_Quat reports over
+    ``seconds`` after ``warm_s`` (counted by bytes: every report is one 88-byte message)."""
     sel = selectors.DefaultSelector()
     socks = []
     for _ in range(n):
@@ -102,7 +102,8 @@ def readers(port: int, n: int, warm_s: float, seconds: float) -> int:
             data = key.fileobj.recv(1 << 20)
             if now >= start:
                 counted[key.data] += len(data)
-    print(json.dumps([c / (24 + 64) for c in counted]), flush=True)
+    rates = [c / (24 + 64) / (time.monotonic() - start) for c in counted]
+    print(json.dumps(rates), flush=True)
     for s in socks:
         s.close()
     return 0
@@ -287,11 +288,11 @@ def measure_clients(b: Bench, ladder: list[int], seconds: float) -> list[dict[st
             sent0, cpu0, t0 = len(src.sent), cpu_seconds(out.pid), time.monotonic()
             time.sleep(seconds)
             sent1, cpu1, t1 = len(src.sent), cpu_seconds(out.pid), time.monotonic()
-            counts = json.loads(next(line for line in child.stdout if line.startswith("[")))
+            rates = json.loads(next(line for line in child.stdout if line.startswith("[")))
             child.wait(30)
-            published = sent1 - sent0
-            rows.append({"clients": n, "source_hz": published / (t1 - t0),
-                         "worst_client_share": min(counts) / published,
+            source_hz = (sent1 - sent0) / (t1 - t0)
+            rows.append({"clients": n, "source_hz": source_hz,
+                         "worst_client_share": min(rates) / source_hz,
                          "vrpn_out_cpu_core": (cpu1 - cpu0) / (t1 - t0)})
     finally:
         src.close()
@@ -301,7 +302,7 @@ def measure_clients(b: Bench, ladder: list[int], seconds: float) -> list[dict[st
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=1000, help="latency samples per path")
-    ap.add_argument("--clients", default="1,10,50,100,200",
+    ap.add_argument("--clients", default="1,10,50,100,200,300",
                     help="numbers of VRPN clients to try (comma-separated)")
     ap.add_argument("--seconds", type=float, default=3.0, help="window per client count")
     ap.add_argument("--json", action="store_true")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 
 from agent.runtime.logs import RateLimitedLog
@@ -67,7 +68,8 @@ class TrackerServer:
     async def start(self) -> None:
         """Listen; ``OSError`` (port taken, bad address) is the caller's to report."""
         self.loop = asyncio.get_running_loop()
-        self._tcp = await self.loop.create_server(self._new_link, self.host, self.port)
+        self._tcp = await self.loop.create_server(self._new_link, self.host, self.port,
+                                                  backlog=socket.SOMAXCONN)
         self.port = self._tcp.sockets[0].getsockname()[1]
         self._lob, _ = await self.loop.create_datagram_endpoint(
             lambda: _LobListener(self), local_addr=(self.host, self.port))
