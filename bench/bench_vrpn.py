@@ -14,7 +14,9 @@ times everything on this host's one clock.
   process, both Zenoh clients of the agent like the services: one uma hop without uma.
 - **clients**: N VRPN clients (TCP, read by one child process) of one vrpn-out while the
   source publishes at 300 Hz; N is served when every client gets at least 90 % of the
-  reports the source published and vrpn-out uses under 90 % of one core.
+  reports the source published and vrpn-out uses under 90 % of one core.  A straight line
+  through vrpn-out's CPU against N (served rows) gives its cost per client and report and
+  the N one whole core would serve (extrapolated: a loaded host never gives it that core).
 
     python bench/bench_vrpn.py [--samples 1000] [--clients 1,10,50,100,200,300] [--json]
 """
@@ -299,6 +301,21 @@ def measure_clients(b: Bench, ladder: list[int], seconds: float) -> list[dict[st
     return rows
 
 
+def per_client_cost(rows: list[dict[str, float]]) -> dict[str, float]:
+    """vrpn-out's CPU per client from the served rows (a straight line through CPU against
+    clients), and the clients one whole core would serve at that cost: on a loaded host
+    vrpn-out never gets a whole core, so the measured count stops short of it."""
+    import numpy as np
+    if len({r["clients"] for r in rows}) < 2:
+        return {}
+    slope, base = np.polyfit([r["clients"] for r in rows],
+                             [r["vrpn_out_cpu_core"] for r in rows], 1)
+    if slope <= 0:
+        return {}
+    return {"vrpn_out_cpu_us_per_client_report": float(slope / CLIENT_RATE_HZ * 1e6),
+            "clients_per_core_extrapolated": float((1.0 - base) / slope)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=1000, help="latency samples per path")
@@ -342,6 +359,8 @@ def main() -> int:
         figures[f"clients_{n}_vrpn_out_cpu_core"] = r["vrpn_out_cpu_core"]
         figures[f"clients_{n}_source_hz"] = r["source_hz"]
     figures["clients_served_at_300hz"] = max(served, default=0)
+    figures.update(per_client_cost([r for r in rows if r["worst_client_share"] >= SERVED_SHARE]))
+    figures["load_average_1min"] = os.getloadavg()[0]
     report(figures, args.json)
     return 0
 

@@ -108,10 +108,6 @@ class TrackerClient:
                           f"every {self.retry_s} s")
                 link = None
             if link is not None:
-                self.connections += 1
-                self.connected.set()
-                log.info("VRPN server %s: connected (%s)", self.address,
-                         "TCP" if self.address.tcp else "UDP handshake")
                 await _first(closed, stop)
                 self.connected.clear()
                 link.close()
@@ -155,16 +151,29 @@ class TrackerClient:
         return accepted.result() if accepted.done() else None
 
     def _ready(self, link: Link) -> None:
-        """Cookies exchanged: over the UDP handshake, open our UDP port and say where."""
+        """Cookies exchanged: connected; over the UDP handshake, open our UDP port and say
+        where."""
+        self.connections += 1
+        self.connected.set()
+        log.info("VRPN server %s: connected (%s)", self.address,
+                 "TCP" if self.address.tcp else "UDP handshake")
         if not self.address.tcp:
             self._udp_task = asyncio.ensure_future(self._open_udp(link))
 
     async def _open_udp(self, link: Link) -> None:
         loop = asyncio.get_running_loop()
         my_ip = link.transport.get_extra_info("sockname")[0]
-        self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self, link),
-                                                           local_addr=(my_ip, 0))
-        port = self._udp.get_extra_info("sockname")[1]
+        try:
+            udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self, link),
+                                                         local_addr=(my_ip, 0))
+        except OSError as exc:
+            link.fail(f"cannot open a UDP port for its reports ({exc})")
+            return
+        if link.closed:  # gone meanwhile
+            udp.close()
+            return
+        self._udp = udp
+        port = udp.get_extra_info("sockname")[1]
         link.send(vp.udp_description(my_ip, port, time.time_ns()))
 
     def _close_udp(self) -> None:
