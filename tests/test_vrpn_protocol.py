@@ -195,6 +195,7 @@ def test_device_names() -> None:
     assert vp.parse_device("DTrack@tcp://10.0.0.2:3884") == vp.DeviceAddress(
         "DTrack", "10.0.0.2", 3884, True)
     assert str(vp.parse_device("T@h:5")) == "T@h:5"
-    for bad in ("Tracker0", "@host", "T@", "T@udp://h", "T@h:0", "T@h:x", "T@:5"):
+    for bad in ("Tracker0", "@host", "T@", "T@udp://h", "T@h:0", "T@h:x", "T@:5", "Tête@h",
+                "x" * 96 + "@h"):
         with pytest.raises(ValueError, match="VRPN device"):
             vp.parse_device(bad)

@@ -48,7 +48,7 @@ def _served(text: str) -> Served:
             f"--serve {text!r} must be NAME=SOURCE:TARGET[@ERROR], e.g. "
             "Head=ivy/world:alice/head or Head=ivy/world:alice/head@accuracy")
     try:
-        vp.sender_description(0, name, 0)
+        vp.check_name(name)
     except vp.ProtocolError as exc:
         raise argparse.ArgumentTypeError(f"--serve {text!r}: {exc}") from None
     return Served(name, source, target, error or "latency")

@@ -221,10 +221,20 @@ def decode_datagram(data: bytes) -> list[Message]:
 
 # ---------------------------------------------------------------------------- descriptions
 
-def _encode_name(name: str) -> bytes:
-    raw = name.encode("ascii")
+def check_name(name: str) -> bytes:
+    """``name`` as VRPN sends it (``ProtocolError`` unless it is 1..95 ASCII characters,
+    what a description's 100-byte buffer holds with its length and NUL)."""
+    try:
+        raw = name.encode("ascii")
+    except UnicodeEncodeError:
+        raw = b""
     if not 0 < len(raw) < MAX_NAME - 4 or b"\0" in raw:
         raise ProtocolError(f"VRPN name {name!r} must be 1..{MAX_NAME - 5} ASCII characters")
+    return raw
+
+
+def _encode_name(name: str) -> bytes:
+    raw = check_name(name)
     return struct.pack(">i", len(raw) + 1) + raw + b"\0"
 
 
@@ -343,7 +353,10 @@ def parse_device(text: str) -> DeviceAddress:
     if not at or not name or not location:
         raise ValueError(f"VRPN device {text!r} must be NAME@HOST[:PORT] or "
                          "NAME@tcp://HOST[:PORT]")
-    _encode_name(name)
+    try:
+        check_name(name)
+    except ProtocolError as exc:
+        raise ValueError(f"VRPN device {text!r}: {exc}") from None
     tcp = location.startswith("tcp://")
     if tcp:
         location = location[len("tcp://"):]

@@ -48,7 +48,7 @@ class TrackerServer:
     def __init__(self, trackers: list[str], host: str = "0.0.0.0",
                  port: int = vp.DEFAULT_PORT, max_buffer: int = DEFAULT_MAX_BUFFER) -> None:
         for name in trackers:
-            vp.sender_description(0, name, 0)  # checks the name
+            vp.check_name(name)
         self.trackers = list(trackers)
         self.host = host
         self.port = port
@@ -60,8 +60,6 @@ class TrackerServer:
         self._tcp: asyncio.Server | None = None
         self._lob: asyncio.DatagramTransport | None = None
         self._udp_out: asyncio.DatagramTransport | None = None
-        self.sent = 0
-        self.dropped = 0
         #: bad requests from anyone on the network must not flood the log
         self.bad = RateLimitedLog(log)
 
@@ -144,8 +142,5 @@ class TrackerServer:
         for link in list(self.links):
             if link.udp_peer is not None and self._udp_out is not None:
                 self._udp_out.sendto(data, link.udp_peer)
-                self.sent += 1
-            elif link.send(data):
-                self.sent += 1
             else:
-                self.dropped += 1
+                link.send(data)  # drops a client that stopped reading
