@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from agent.errors import UmaError
 from agent.runtime.plugins import ServicePlugin
 from services.vrpn import protocol as vp
 from services.vrpn.loop import run_until, wait_for_event
@@ -81,7 +82,8 @@ class Subscriptions:
 
     def try_subscribe(self) -> None:
         """Subscribe every tracker that has no subscription yet (blocking: run it off the
-        loop)."""
+        loop).  No route or frame yet is said once and tried again; a bad error function
+        (``ValueError``) ends the service with its message."""
         for i, s in enumerate(self.served):
             if i in self.subs:
                 continue
@@ -89,7 +91,7 @@ class Subscriptions:
                 self.subs[i] = self.client.subscribe(s.source, s.target, self._pusher(i),
                                                      error=s.error)
                 log.info("vrpn-out: tracker %s streams %s -> %s", s.name, s.source, s.target)
-            except Exception as exc:  # no route yet, an unknown frame: said once, retried
+            except (LookupError, UmaError, TimeoutError) as exc:  # no route (yet): retried
                 if i not in self._said:
                     self._said.add(i)
                     log.warning("vrpn-out: tracker %s has no pose yet (%s); trying again "
