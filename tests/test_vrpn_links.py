@@ -223,6 +223,18 @@ def test_vrpn_in_publisher_maps_sensors_and_says_what_it_ignores(caplog) -> None
     assert "10.0 s behind our clock: set --clock-offset-s" in caplog.text
 
 
+def test_vrpn_in_drops_a_report_uma_refuses_with_a_reason(caplog) -> None:
+    from schemas.codec import encode_pose
+
+    class Strict:  # checks a pose as AbilityHandle.publish does: with the wire codec
+        def publish(self, t, p, q) -> None:
+            encode_pose(t, p, q)
+    pub = Publisher({0: Strict()}, 0, vp.parse_device("T@h"))
+    pub(0, time.time_ns(), [1, 2, 3], [0, 0, 0, 0])  # a lost body, as some servers send it
+    assert pub.published == 0
+    assert "sensor 0 of T@h:3883: report dropped: quaternion: norm 0 is not 1" in caplog.text
+
+
 def test_vrpn_in_sensor_frames() -> None:
     args = argparse.Namespace(edge=("w/world", "w/a"), sensor=[(1, "w/b"), (3, "w/c")])
     assert sensor_frames(args) == {0: "w/a", 1: "w/b", 3: "w/c"}

@@ -21,6 +21,7 @@ import threading
 import time
 from typing import Any
 
+from agent.runtime.logs import RateLimitedLog
 from agent.runtime.plugins import ServicePlugin
 from services.vrpn import protocol as vp
 from services.vrpn.client import TrackerClient
@@ -103,6 +104,7 @@ class Publisher:
         self.address = address
         self.published = 0
         self._said: set[Any] = set()
+        self._bad = RateLimitedLog(log)
 
     def __call__(self, sensor: int, t_ns: int, position: Any, quaternion: Any) -> None:
         handle = self.handles.get(sensor)
@@ -115,7 +117,11 @@ class Publisher:
         if abs(skew) > CLOCK_WARN_S * 1e9:
             self._once("clock", "%s's reports are %.1f s %s our clock: set --clock-offset-s",
                        self.address, abs(skew) / 1e9, "behind" if skew > 0 else "ahead of")
-        handle.publish(t, position, quaternion)
+        try:
+            handle.publish(t, position, quaternion)
+        except ValueError as exc:  # e.g. a zero quaternion for a body the tracker lost
+            self._bad.warning(f"sensor {sensor} of {self.address}", f"report dropped: {exc}")
+            return
         self.published += 1
 
     def _once(self, key: Any, text: str, *args: Any) -> None:
