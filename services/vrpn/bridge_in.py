@@ -1,0 +1,166 @@
+"""``uma service run vrpn-in``: a VRPN tracker's sensors as uma ``pose6d`` abilities.
+
+Connects to a VRPN server as a client (``--tracker NAME@HOST[:PORT]``: the UDP "call me
+back" handshake, VRPN's default; ``NAME@tcp://HOST[:PORT]``: TCP only) and publishes each
+mapped sensor's Pos_Quat reports as the ability ``sensorN`` with the edge ``WORLD ->
+FRAME`` and the attributes given.  A report keeps the VRPN message's own time, moved to
+uma's clock by ``--clock-offset-s`` (0 when the server's host keeps the same time, e.g.
+by NTP); VRPN's time has microseconds, so uma sees times ending in 000 ns.  Positions are
+metres and quaternions x, y, z, w on both sides, so values pass unchanged.
+
+When the server goes away, nothing is published (the agent measures the ability's rate
+falling and re-matches needs) and the client tries again every 0.25 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import threading
+import time
+from typing import Any
+
+from agent.runtime.logs import RateLimitedLog
+from agent.runtime.plugins import ServicePlugin
+from services.vrpn import protocol as vp
+from services.vrpn.client import TrackerClient
+from services.vrpn.loop import run_until
+
+log = logging.getLogger("uma.vrpn")
+#: a report this far from our clock means the hosts' clocks differ (said once)
+CLOCK_WARN_S = 1.0
+
+
+def _device(text: str) -> vp.DeviceAddress:
+    try:
+        return vp.parse_device(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _edge(text: str) -> tuple[str, str]:
+    source, colon, target = text.partition(":")
+    if not colon or not source or not target:
+        raise argparse.ArgumentTypeError(f"--edge {text!r} must be WORLD:FRAME, e.g. "
+                                         "lab/world:lab/wand")
+    return source, target
+
+
+def _sensor(text: str) -> tuple[int, str]:
+    number, eq, frame = text.partition("=")
+    if not eq or not number.isdigit() or not frame:
+        raise argparse.ArgumentTypeError(f"--sensor {text!r} must be N=FRAME, e.g. "
+                                         "1=lab/left_hand")
+    return int(number), frame
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", default="vrpn-in", help="service id (default: vrpn-in)")
+    parser.add_argument("--tracker", type=_device, required=True, metavar="NAME@HOST[:PORT]",
+                        help="the VRPN tracker, e.g. Tracker0@localhost (UDP handshake, port "
+                             "3883) or DTrack@tcp://10.0.0.5:3883 (TCP only)")
+    parser.add_argument("--edge", type=_edge, required=True, metavar="WORLD:FRAME",
+                        help="the tracker's frame WORLD and the frame of sensor 0: sensor 0 "
+                             "is published as the pose of FRAME in WORLD")
+    parser.add_argument("--sensor", type=_sensor, action="append", default=[],
+                        metavar="N=FRAME",
+                        help="publish sensor N too, as the pose of FRAME in WORLD "
+                             "(repeatable); other sensors' reports are ignored, said once")
+    parser.add_argument("--frequency-hz", type=float, default=100.0,
+                        help="the tracker's rate, advertised (default 100)")
+    parser.add_argument("--latency-s", type=float, default=0.005,
+                        help="advertised latency (default 0.005)")
+    parser.add_argument("--pos-std-m", type=float, default=None,
+                        help="advertised position standard deviation, metres")
+    parser.add_argument("--rot-std-rad", type=float, default=None,
+                        help="advertised rotation standard deviation, radians")
+    parser.add_argument("--clock-offset-s", type=float, default=0.0,
+                        help="added to the VRPN server's timestamps to get this host's "
+                             "clock (default 0: same clock)")
+
+
+def sensor_frames(args: argparse.Namespace) -> dict[int, str]:
+    """Sensor number -> frame; ``ValueError`` for a sensor or frame named twice."""
+    world, frame0 = args.edge
+    out = {0: frame0}
+    for n, frame in args.sensor:
+        if n in out:
+            raise ValueError(f"--sensor {n}={frame}: sensor {n} is already "
+                             f"{out[n]} (sensor 0 is --edge's FRAME)")
+        if frame in out.values() or frame == world:
+            raise ValueError(f"--sensor {n}={frame}: frame {frame} is already used")
+        out[n] = frame
+    return out
+
+
+class Publisher:
+    """VRPN reports -> ability samples, on the client's loop."""
+
+    def __init__(self, handles: dict[int, Any], offset_ns: int, address: vp.DeviceAddress,
+                 ) -> None:
+        self.handles = handles
+        self.offset_ns = offset_ns
+        self.address = address
+        self.published = 0
+        self._said: set[Any] = set()
+        self._bad = RateLimitedLog(log)
+
+    def __call__(self, sensor: int, t_ns: int, position: Any, quaternion: Any) -> None:
+        handle = self.handles.get(sensor)
+        if handle is None:
+            self._once(sensor, "sensor %d of %s reports but has no --sensor mapping; "
+                       "its reports are ignored", sensor, self.address)
+            return
+        t = t_ns + self.offset_ns
+        skew = time.time_ns() - t
+        if abs(skew) > CLOCK_WARN_S * 1e9:
+            self._once("clock", "%s's reports are %.1f s %s our clock: set --clock-offset-s",
+                       self.address, abs(skew) / 1e9, "behind" if skew > 0 else "ahead of")
+        try:
+            handle.publish(t, position, quaternion)
+        except ValueError as exc:  # e.g. a zero quaternion for a body the tracker lost
+            self._bad.warning(f"sensor {sensor} of {self.address}", f"report dropped: {exc}")
+            return
+        self.published += 1
+
+    def _once(self, key: Any, text: str, *args: Any) -> None:
+        if key not in self._said:
+            self._said.add(key)
+            log.warning(text, *args)
+
+
+def run(args: argparse.Namespace, stop: threading.Event) -> int:
+    from agent import Service  # imported here: '--help' needs no Zenoh
+
+    frames = sensor_frames(args)
+    attributes = {"frequency_hz": args.frequency_hz, "latency_s": args.latency_s,
+                  "pos_std_m": args.pos_std_m, "rot_std_rad": args.rot_std_rad,
+                  "vrpn_device": str(args.tracker)}
+    attributes = {k: v for k, v in attributes.items() if v is not None}
+    with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
+                 listen=args.listen or None) as svc:
+        handles = {n: svc.ability(f"sensor{n}", type="pose6d", edge=(args.edge[0], frame),
+                                  **attributes) for n, frame in sorted(frames.items())}
+        svc.start()
+        publish = Publisher(handles, round(args.clock_offset_s * 1e9), args.tracker)
+        client = TrackerClient(args.tracker, publish)
+
+        async def main(done: asyncio.Event) -> int:
+            log.info("vrpn-in: %s -> %s", args.tracker,
+                     ", ".join(f"sensor{n}: {args.edge[0]} -> {f}"
+                               for n, f in sorted(frames.items())))
+            await client.run(done)
+            return 0
+
+        return run_until(main, stop)
+
+
+PLUGIN = ServicePlugin(
+    name="vrpn-in",
+    help="A VRPN tracker as uma abilities: connects to a VRPN server (OptiTrack Motive, "
+         "Vicon Tracker, ART DTrack, any vrpn_Tracker) and publishes each sensor's poses as "
+         "a pose6d ability sensorN with the VRPN timestamps; reconnects by itself.",
+    add_arguments=add_arguments,
+    run=run,
+)
