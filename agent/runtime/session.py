@@ -169,7 +169,8 @@ def zenoh_config_file(path: str | None) -> str | None:
     if not path:
         path, source = os.environ.get(ZENOH_CONFIG_ENV) or None, f" (from {ZENOH_CONFIG_ENV})"
     if path is not None and not os.path.isfile(path):
-        raise UmaError(f"Zenoh configuration file {path!r}{source} does not exist")
+        raise UmaError(f"cannot use Zenoh configuration {path!r}{source}: the file does "
+                       "not exist")
     return path
 
 
