@@ -44,6 +44,7 @@ from agent.cli.main import stop_on_signals
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
+from agent.runtime.ready import notify
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}
 _MATCHING = {"grace_s", "rate_window_s"}
@@ -138,14 +139,17 @@ def main(args: argparse.Namespace) -> int:
     agent = Agent(settings)
     _start_or_exit(agent)
     try:
-        print(f"uma agent {settings.agent_id} (realm {settings.realm}) listening on "
-              f"{' '.join(agent.endpoints) or 'nothing'}", flush=True)
+        status = (f"uma agent {settings.agent_id} (realm {settings.realm}) listening on "
+                  f"{' '.join(agent.endpoints) or 'nothing'}")
+        print(status, flush=True)
+        notify(READY="1", STATUS=status)
         while not stop.wait(0.2):
             if not agent.alive():
                 print("uma agent: error: the agent's worker stopped; see the log above",
                       file=sys.stderr)
                 return 1
     finally:
+        notify(STOPPING="1")
         agent.close()
     return 0
 
