@@ -138,10 +138,9 @@ def test_service_and_client_take_a_zenoh_config(tmp_path: Path, processes, realm
            for name, role in (("r", "router"), ("hostA", "service"), ("app", "client"))}
     router = spawn(processes, ["-m", "agent.cli", "router", "--config", cfg["r"]])
     router.wait_line("listening on", START_WAIT_S)
-    (tmp_path / "client.toml").write_text('mode = "client"\n')
     agent: Proc = spawn(processes, [
         "-m", "agent.cli", "agent", "--realm", realm, "--id", "hostA", "--connect", router_ep,
-        "--config", str(tmp_path / "client.toml"), "--zenoh-config",
+        "--mode", "client", "--zenoh-config",
         str(tmp_path / "hosts/hostA/agent.json5")])
     agent.wait_line("listening on", START_WAIT_S)
     with pytest.raises(UmaError, match="needs this host's certificates"):

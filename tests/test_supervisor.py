@@ -67,13 +67,10 @@ def test_notify_reaches_an_abstract_socket_and_is_silent_without_one(monkeypatch
     assert not notify(READY="1")
 
 
-def test_an_agent_whose_router_is_unreachable_exits_1_saying_so(tmp_path: Path,
-                                                                 realm: str) -> None:
-    (tmp_path / "client.toml").write_text('mode = "client"\n')
+def test_an_agent_whose_router_is_unreachable_exits_1_saying_so(realm: str) -> None:
     ep = endpoint(free_port())
     out = subprocess.run([sys.executable, "-m", "agent.cli", "agent", "--realm", realm,
-                          "--id", "A", "--connect", ep, "--config",
-                          str(tmp_path / "client.toml")],
+                          "--id", "A", "--connect", ep, "--mode", "client"],
                          cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 1
     assert f"uma agent: error: cannot reach {ep}" in out.stderr

@@ -2,7 +2,8 @@
 
 Settings come from an optional TOML file (``--config``, examples in ``deploy/``) and the
 command line; a command-line option given explicitly wins over the file for single values
-(``--realm``, ``--id``), and adds to its lists (``--listen``, ``--connect``, ``--service``).
+(``--realm``, ``--id``, ``--mode``), and adds to its lists (``--listen``, ``--connect``,
+``--service``).
 
 TOML keys (all optional)::
 
@@ -109,6 +110,8 @@ def settings_from(args: argparse.Namespace) -> AgentSettings:
         s.realm = args.realm
     if args.id is not None:
         s.agent_id = args.id
+    if getattr(args, "mode", None) is not None:
+        s.mode = args.mode
     return s.check()
 
 

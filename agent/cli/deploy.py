@@ -25,8 +25,9 @@ def _certs(args: argparse.Namespace) -> int:
     root = create_site(args.dir, spec, days=args.days)
     print(f"site {spec.site}: CA in {root / 'ca'} (keep ca.key off the hosts); one directory "
           f"per host in {root / 'hosts'}: {', '.join(spec.members)}")
+    router = (spec.addresses.get(spec.router) or [spec.router])[0]
     print(f"next: uma deploy config {args.dir} --realm REALM --router-endpoint "
-          f"tls/{spec.router}:7447")
+          f"tls/{router}:7447")
     return 0
 
 

@@ -60,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Stops cleanly on Ctrl-C / SIGTERM.")
     plugins.add_network_arguments(p)
     p.add_argument("--id", default=None, help="agent id (default: this host's name)")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="peer (the default: listens and meets the other agents directly) or "
+                        "client (behind a Zenoh router: larger and secured sites)")
     p.add_argument("--service", action="append", default=[], metavar="NAME",
                    help="host a service inside the agent process (repeatable; see "
                         "'uma service run --help' for names)")

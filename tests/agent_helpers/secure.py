@@ -36,7 +36,6 @@ class SecuredSite:
                              addresses={self.router_host.name: [self.router_host.addr]})
         create_site(directory, self.spec, days=1)
         write_configs(directory, self.spec, realm, [self.router_ep], [self.router_ep])
-        (directory / "client-mode.toml").write_text('mode = "client"\n')
 
     def config(self, name: str, role: str) -> str:
         """The Zenoh configuration file of ``role`` on host ``name``."""
@@ -57,7 +56,7 @@ class SecuredSite:
     def agent_args(self, agent_id: str, realm: str | None = None) -> list[str]:
         """``uma agent`` in client mode behind the router (its certificate from the env)."""
         return ["-m", "agent.cli", "agent", "--realm", realm or self.realm, "--id", agent_id,
-                "--connect", self.router_ep, "--config", str(self.dir / "client-mode.toml")]
+                "--connect", self.router_ep, "--mode", "client"]
 
     def start_agents(self) -> list[Proc]:
         procs = [self.site.spawn(h, self.agent_args(h.name), self.env(h, "agent"))
