@@ -5,7 +5,9 @@ time to recover, samples lost, and whether anything came twice or out of order.
 A producer ``cam`` publishes a pose at 100 Hz with sequence numbers on one host, a
 consumer ``app`` on another host has a need matched to it and reports every sample
 (``agent_helpers.svc --each-sample``).  Nothing is restarted by hand: each fault heals by
-itself or not at all.
+itself or not at all.  This kernel has no ``sch_netem``: delays and stalls come from a
+userspace TCP proxy on the slow link (:mod:`agent_helpers.tcp_proxy`).  Clock skew is
+tested on loopback (``tests/test_client_stream.py``, an agent 3 s ahead).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import statistics
 import time
 
 from agent_helpers.faults import figures
@@ -171,3 +174,58 @@ def test_a_frozen_agent_does_not_stop_a_stream_that_does_not_cross_it(site, real
     # (before the realm view kept such services: the match dropped one lease after the
     # freeze, a 3.6 s gap, 352 samples lost; now at most a re-match when the agent resumes)
     assert fig.lost < 50, fig.line()
+
+
+def test_a_slow_link_50_ms_delay_and_a_stall_keep_streams_and_queries(site, realm: str
+                                                                       ) -> None:
+    s = site(3)
+    r, h1, h2 = s.hosts
+    router_ep = r.endpoint()
+    s.spawn(r, ["-m", "agent.cli", "router", "--listen", router_ep]).wait_line(
+        "listening on", START_WAIT_S)
+    # h2 reaches the router only through a userspace proxy on its own loopback
+    proxy = s.spawn(h2, ["-m", "tests.agent_helpers.tcp_proxy", "--listen", "127.0.0.1:7447",
+                         "--target", f"{r.addr}:7447"])
+    proxy.wait_for(lambda ev: ev.get("event") == "ready", 30)
+    via_proxy = "tcp/127.0.0.1:7447"
+    for h, ep in ((h1, router_ep), (h2, via_proxy)):
+        s.spawn(h, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h.name, "--mode",
+                    "client", "--connect", ep]).wait_line("listening on", START_WAIT_S)
+    _, app = start_stream(s, realm, h1, router_ep, h2, via_proxy, "h1", "h2")
+
+    def window(seconds: float) -> tuple[float, float, float, float]:
+        """(rate Hz, median latency ms, p99 latency ms, query s) over the next seconds."""
+        mark, t0 = app.mark, time.monotonic()
+        q0 = time.monotonic()
+        query = s.run(h2, ["-m", "agent.cli", "query", "ivy/world", "alice/head", "--realm",
+                           realm, "--connect", via_proxy, "--timeout", "2", "--json"], 60)
+        took = time.monotonic() - q0
+        assert query.returncode == 0, query.stderr
+        time.sleep(max(0.0, seconds - (time.monotonic() - t0)))
+        got = [ev for ev in app.events[mark:] if ev.get("event") == "sample"]
+        lat = sorted((ev["recv_ns"] - ev["t_ns"]) / 1e6 for ev in got)
+        return (len(got) / (time.monotonic() - t0), statistics.median(lat),
+                lat[int(0.99 * (len(lat) - 1))], took)
+
+    plain = window(3.0)
+    proxy.send("delay 50")
+    proxy.wait_for(lambda ev: ev.get("command") == "delay", 10)
+    time.sleep(0.5)
+    delayed = window(3.0)
+    t_stall = time.monotonic()
+    proxy.send("stall")
+    time.sleep(0.5)  # shorter than the 1 s lease: a stall, not a lost link
+    proxy.send("resume")
+    t_resume = time.monotonic()
+    wait_after(app, t_resume)
+    time.sleep(1.0)
+    fig = figures("link stalled 0.5 s (with 50 ms delay)", app.events, "cam", t_stall,
+                  t_resume, time.monotonic())
+    print(f"FAULT slow link: without delay {plain[0]:.0f} Hz, latency median "
+          f"{plain[1]:.1f} ms p99 {plain[2]:.1f} ms, uma query {plain[3]:.2f} s (the whole "
+          f"command); with 50 ms delay {delayed[0]:.0f} Hz, latency median "
+          f"{delayed[1]:.1f} ms p99 {delayed[2]:.1f} ms, uma query {delayed[3]:.2f} s")
+    print(fig.line())
+    assert delayed[1] >= plain[1] + 40  # the proxy really delayed what it carried
+    assert delayed[0] > 0.7 * plain[0]  # the stream kept its rate
+    assert fig.lost == 0 and fig.duplicates == 0 and fig.reordered == 0

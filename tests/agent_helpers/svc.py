@@ -10,7 +10,7 @@ stdout events: ``{"event": "started"}``, ``{"event": "refused", "error": ...}``,
 ``{"event": "match", "need", "keys"}``, ``{"event": "first", "source", "recv_ns", "t_ns"}``
 (first sample from a source since the last change of source), ``{"event": "counts",
 "counts": {source: n}}`` every 0.25 s, and with ``--each-sample`` ``{"event": "sample",
-"source", "t_ns", "seq"}`` for every sample received.
+"source", "t_ns", "seq", "recv_ns"}`` for every sample received.
 stdin commands: ``rate HZ`` (publishing rate), ``update NAME=VALUE ...`` (attributes).
 SIGTERM closes the service cleanly.
 """
@@ -74,7 +74,8 @@ def main() -> int:
         with lock:
             counts[m.source] = counts.get(m.source, 0) + 1
             if args.each_sample:
-                emit(event="sample", source=m.source, t_ns=m.t_ns, seq=m.seq)
+                emit(event="sample", source=m.source, t_ns=m.t_ns, seq=m.seq,
+                     recv_ns=time.time_ns())
             if m.source != last_source[0]:
                 last_source[0] = m.source
                 emit(event="first", source=m.source, recv_ns=time.time_ns(), t_ns=m.t_ns,
