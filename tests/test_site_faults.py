@@ -37,6 +37,22 @@ def start_stream(s: Site, realm: str, cam_host: Host, cam_connect: str, app_host
     return cam, app
 
 
+def router_on(s: Site, host: Host) -> Proc:
+    """``uma router`` listening on ``host``'s address; returns once it listens."""
+    router = s.spawn(host, ["-m", "agent.cli", "router", "--listen", host.endpoint()])
+    router.wait_line("listening on", START_WAIT_S)
+    return router
+
+
+def client_agents(s: Site, realm: str, hosts: list[tuple[Host, str]]) -> list[Proc]:
+    """An agent in client mode on each host, of the router at the endpoint paired with it."""
+    agents = [s.spawn(h, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h.name,
+                          "--mode", "client", "--connect", ep]) for h, ep in hosts]
+    for a in agents:
+        a.wait_line("listening on", START_WAIT_S)
+    return agents
+
+
 def wait_after(app: Proc, t: float, timeout: float = RECOVER_LIMIT_S) -> None:
     app.wait_for(lambda ev: ev.get("event") == "sample" and ev["_mono"] > t, timeout)
 
@@ -90,21 +106,15 @@ def test_the_router_killed_and_restarted_after_3_s(site, realm: str) -> None:
     s = site(3)
     r, h1, h2 = s.hosts
     router_ep = r.endpoint()
-    router_args = ["-m", "agent.cli", "router", "--listen", router_ep]
-    router = s.spawn(r, router_args)
-    router.wait_line("listening on", START_WAIT_S)
-    for h in (h1, h2):
-        s.spawn(h, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h.name, "--mode",
-                    "client", "--connect", router_ep]).wait_line("listening on",
-                                                                 START_WAIT_S)
+    router = router_on(s, r)
+    client_agents(s, realm, [(h1, router_ep), (h2, router_ep)])
     _, app = start_stream(s, realm, h1, router_ep, h2, router_ep, "h1", "h2")
 
     t_kill = time.monotonic()
     os.kill(router.popen.pid, signal.SIGKILL)
     router.popen.wait(10)
     time.sleep(3.0)
-    router = s.spawn(r, router_args)
-    router.wait_line("listening on", START_WAIT_S)
+    router = router_on(s, r)
     t_back = time.monotonic()
     wait_after(app, t_back)
     time.sleep(1.0)
@@ -149,12 +159,8 @@ def test_a_frozen_agent_does_not_stop_a_stream_that_does_not_cross_it(site, real
     s = site(3)
     r, h1, h2 = s.hosts
     router_ep = r.endpoint()
-    s.spawn(r, ["-m", "agent.cli", "router", "--listen", router_ep]).wait_line(
-        "listening on", START_WAIT_S)
-    agents = [s.spawn(h, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h.name,
-                          "--mode", "client", "--connect", router_ep]) for h in (h1, h2)]
-    for a in agents:
-        a.wait_line("listening on", START_WAIT_S)
+    router_on(s, r)
+    agents = client_agents(s, realm, [(h1, router_ep), (h2, router_ep)])
     # both services are clients of the router: cam's samples never cross its agent
     _, app = start_stream(s, realm, h1, router_ep, h2, router_ep, "h1", "h2")
 
@@ -181,16 +187,13 @@ def test_a_slow_link_50_ms_delay_and_a_stall_keep_streams_and_queries(site, real
     s = site(3)
     r, h1, h2 = s.hosts
     router_ep = r.endpoint()
-    s.spawn(r, ["-m", "agent.cli", "router", "--listen", router_ep]).wait_line(
-        "listening on", START_WAIT_S)
+    router_on(s, r)
     # h2 reaches the router only through a userspace proxy on its own loopback
     proxy = s.spawn(h2, ["-m", "tests.agent_helpers.tcp_proxy", "--listen", "127.0.0.1:7447",
                          "--target", f"{r.addr}:7447"])
     proxy.wait_for(lambda ev: ev.get("event") == "ready", 30)
     via_proxy = "tcp/127.0.0.1:7447"
-    for h, ep in ((h1, router_ep), (h2, via_proxy)):
-        s.spawn(h, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h.name, "--mode",
-                    "client", "--connect", ep]).wait_line("listening on", START_WAIT_S)
+    client_agents(s, realm, [(h1, router_ep), (h2, via_proxy)])
     _, app = start_stream(s, realm, h1, router_ep, h2, via_proxy, "h1", "h2")
 
     def window(seconds: float) -> tuple[float, float, float, float]:
