@@ -8,6 +8,9 @@ One site serves the module: h0 the router, h1 and h2 agent hosts, h3 a client ho
 from __future__ import annotations
 
 import json
+import os
+import signal
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -118,3 +121,14 @@ def test_realms_stay_isolated(secured: SecuredSite) -> None:
     stray.wait_line("listening on", 60)
     assert agents_seen(s, other) == []  # the router carries nothing of another realm
     assert agents_seen(s) == ["h1", "h2"]
+
+
+def test_the_secured_site_heals_after_its_router_is_killed(secured: SecuredSite) -> None:
+    """Last in this module: it replaces the router the other tests share."""
+    s = secured
+    router = next(p for p in s.site.procs if "router" in p.args)
+    os.kill(router.pid, signal.SIGKILL)
+    router.wait(10)
+    time.sleep(3.0)
+    s.start_router()  # same address, same certificate: the agents re-attach over TLS
+    assert poll(lambda: agents_seen(s) == ["h1", "h2"], 60, "both agents back")
