@@ -124,8 +124,28 @@ def test_remote_ability_needs_both_snapshot_and_live_token() -> None:
     assert view.service_gone("hostB", "cam") is True  # SIGKILL: token DELETE
     assert len(view.index) == 0
     view.service_alive("hostB", "cam")
-    assert view.agent_gone("hostB") is True  # the agent takes its services with it
+    view.service_alive("hostB", "mic")  # a service with no descriptor: nothing to keep
+    assert view.agent_gone("hostB") is False  # cam's own token is live: kept (issue 17)
+    assert list(view.index.by_key) == [keys.data(R, "hostB", "cam", "pose")]
+    assert view.service_gone("hostB", "cam") is True  # it goes with its token
     assert len(view.index) == 0
+
+
+def test_an_agent_gone_takes_the_services_without_a_live_token_and_gets_them_back() -> None:
+    view = RealmView(R, "hostA")
+    view.agent_alive("hostB")
+    view.service_alive("hostB", "cam")
+    view.apply_snapshot(snapshot("hostB", 1, desc("cam", "hostB", "pose"),
+                                 desc("mic", "hostB", "pose")))
+    view.service_alive("hostB", "mic")
+    view.service_gone("hostB", "mic")  # its token went through the frozen agent
+    assert view.agent_gone("hostB") is False  # cam's token is live: kept, matchable
+    assert list(view.index.by_key) == [keys.data(R, "hostB", "cam", "pose")]
+    view.service_alive("hostB", "mic")
+    view.agent_alive("hostB")  # back: its snapshot of the same revision applies again
+    assert view.apply_snapshot(snapshot("hostB", 1, desc("cam", "hostB", "pose"),
+                                        desc("mic", "hostB", "pose"))) is True
+    assert len(view.index) == 2
 
 
 def test_stale_snapshots_are_ignored_and_changes_applied() -> None:

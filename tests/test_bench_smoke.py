@@ -3,7 +3,8 @@
 Only the pure-computation benchmarks that finish in seconds with tiny options run here;
 the ones that start agents or services (failover, query_remote, alignment_e2e, fusion
 ``--e2e``) and the slow ones (laser: camera calibration first; srg_local: a 1,000-frame
-pytransform3d graph to build) are left out.
+pytransform3d graph to build) are left out; bench_tls starts three routers (a few
+seconds).
 """
 
 from __future__ import annotations
@@ -77,6 +78,11 @@ BENCHES = {
         (("stations_10", name), ("median_ms", "p99_ms"))
         for name in ("daniilidis", "tsai_lenz", "cv2_daniilidis", "cv2_tsai",
                      "align_stations_full")
+    ]),
+    "bench_tls.py": (["--queries", "5", "--samples", "5", "--rounds", "1"], [
+        ((), tuple(f"{kind}_{variant}_{stat}" for kind in ("query", "stream")
+                   for variant in ("tcp", "tls", "tls_acl")
+                   for stat in ("median_us", "p99_us", "ratio_to_tcp"))),
     ]),
 }
 

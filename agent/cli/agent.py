@@ -2,7 +2,8 @@
 
 Settings come from an optional TOML file (``--config``, examples in ``deploy/``) and the
 command line; a command-line option given explicitly wins over the file for single values
-(``--realm``, ``--id``), and adds to its lists (``--listen``, ``--connect``, ``--service``).
+(``--realm``, ``--id``, ``--mode``), and adds to its lists (``--listen``, ``--connect``,
+``--service``).
 
 TOML keys (all optional)::
 
@@ -44,6 +45,7 @@ from agent.cli.main import stop_on_signals
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
+from agent.runtime.ready import notify
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}
 _MATCHING = {"grace_s", "rate_window_s"}
@@ -108,6 +110,8 @@ def settings_from(args: argparse.Namespace) -> AgentSettings:
         s.realm = args.realm
     if args.id is not None:
         s.agent_id = args.id
+    if getattr(args, "mode", None) is not None:
+        s.mode = args.mode
     return s.check()
 
 
@@ -138,14 +142,17 @@ def main(args: argparse.Namespace) -> int:
     agent = Agent(settings)
     _start_or_exit(agent)
     try:
-        print(f"uma agent {settings.agent_id} (realm {settings.realm}) listening on "
-              f"{' '.join(agent.endpoints) or 'nothing'}", flush=True)
+        status = (f"uma agent {settings.agent_id} (realm {settings.realm}) listening on "
+                  f"{' '.join(agent.endpoints) or 'nothing'}")
+        print(status, flush=True)
+        notify(READY="1", STATUS=status)
         while not stop.wait(0.2):
             if not agent.alive():
                 print("uma agent: error: the agent's worker stopped; see the log above",
                       file=sys.stderr)
                 return 1
     finally:
+        notify(STOPPING="1")
         agent.close()
     return 0
 

@@ -30,6 +30,7 @@ HANDLERS = {
     "services": "agent.cli.services:main",
     "query": "agent.cli.query:main",
     "schemas": "schemas.export:main",
+    "deploy": "agent.cli.deploy:main",
 }
 
 
@@ -59,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Stops cleanly on Ctrl-C / SIGTERM.")
     plugins.add_network_arguments(p)
     p.add_argument("--id", default=None, help="agent id (default: this host's name)")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="peer (the default: listens and meets the other agents directly) or "
+                        "client (behind a Zenoh router: larger and secured sites)")
     p.add_argument("--service", action="append", default=[], metavar="NAME",
                    help="host a service inside the agent process (repeatable; see "
                         "'uma service run --help' for names)")
@@ -113,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the answer")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
+    _add_deploy(sub)
+
     evals = plugins.names(plugins.EVAL_GROUP)
     p = sub.add_parser("eval", help="measure a tracker's accuracy against simulated ground truth",
                        description="Run a tracker on the simulator and print its accuracy against "
@@ -136,6 +142,51 @@ def build_parser() -> argparse.ArgumentParser:
     for command in plugins.load_all(plugins.COMMAND_GROUP):
         _add_command(sub, command)
     return top
+
+
+def _add_deploy(sub: Any) -> None:
+    """``uma deploy certs`` and ``uma deploy config``: a secured site (docs/SECURITY.md)."""
+    p = sub.add_parser("deploy", help="certificates and Zenoh configurations of a secured site",
+                       description="Secure a site with Zenoh's TLS, mutual authentication and "
+                                   "access control: 'certs' makes a site CA and one "
+                                   "certificate per host, 'config' writes each role's Zenoh "
+                                   "configuration (see docs/SECURITY.md).")
+    dsub = p.add_subparsers(dest="deploy_command", metavar="ACTION", required=True)
+    cp = dsub.add_parser("certs", help="create a site CA and one certificate per host",
+                         description="Create DIR/ca (the site CA; keep its key off the hosts) "
+                                     "and DIR/hosts/NAME (CA certificate, certificate and key "
+                                     "of host NAME, whose common name is NAME) for the router, "
+                                     "every agent host and every client host.",
+                         epilog="example: uma deploy certs site/ --site lab --hosts a,b,c "
+                                "--router r --address r=10.0.0.1")
+    cp.add_argument("dir", metavar="DIR", help="output directory (must not hold a site yet)")
+    cp.add_argument("--site", required=True, help="site name (in the CA's name)")
+    cp.add_argument("--hosts", required=True, metavar="A,B,C",
+                    help="agent hosts: each runs an agent (its id = the host name) and services")
+    cp.add_argument("--router", default="router", metavar="NAME",
+                    help="name of the router host (default: router)")
+    cp.add_argument("--clients", default=None, metavar="X,Y",
+                    help="client-only hosts: they may query and subscribe, never publish")
+    cp.add_argument("--address", action="append", default=[], metavar="NAME=ADDR",
+                    help="an IP address or DNS name NAME is reached at, added to its "
+                         "certificate (repeatable; needed for the router's address)")
+    cp.add_argument("--days", type=int, default=825,
+                    help="validity of host certificates in days (default 825; the CA: 4x)")
+    fp = dsub.add_parser("config", help="write the Zenoh configuration of every role",
+                         description="Write DIR/hosts/NAME/ROLE.json5 (router; agent, service "
+                                     "and client) with TLS only, mutual authentication and "
+                                     "the router's access control for REALM.",
+                         epilog="example: uma deploy config site/ --realm lab "
+                                "--router-endpoint tls/10.0.0.1:7447")
+    fp.add_argument("dir", metavar="DIR", help="the directory 'uma deploy certs' wrote")
+    fp.add_argument("--realm", required=True, help="the one realm the site's hosts may use")
+    fp.add_argument("--router-endpoint", action="append", required=True, metavar="EP",
+                    help="tls/HOST:PORT the hosts dial to reach the router (repeatable)")
+    fp.add_argument("--listen", action="append", default=[], metavar="EP",
+                    help="tls/ADDR:PORT the router listens on (default: --router-endpoint)")
+    fp.add_argument("--install-dir", default=None, metavar="PATH",
+                    help="where each host's directory will live on that host, e.g. /etc/uma "
+                         "(default: where it is now)")
 
 
 def _add_command(sub: Any, command: plugins.CommandPlugin) -> None:
@@ -180,6 +231,7 @@ def _run_service(args: argparse.Namespace) -> int:
                                      description=plugin.help)
     plugins.add_service_arguments(parser, plugin)
     sargs = parser.parse_args(_plugin_args(args))
+    plugins.use_zenoh_config(sargs)
     # a service is a daemon like the agent: its status and refusals go to stderr
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -228,6 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``uma`` console script."""
     args = build_parser().parse_args(argv)
     try:
+        plugins.use_zenoh_config(args)
         if getattr(args, "plugin_run", None):
             return _call(args.plugin_run, args)
         if args.command == "service":

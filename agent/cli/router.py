@@ -16,6 +16,7 @@ import os
 import sys
 
 from agent.cli.main import stop_on_signals
+from agent.runtime.ready import notify
 from agent.runtime.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
 
 log = logging.getLogger("uma.router")
@@ -31,9 +32,12 @@ def main(args: argparse.Namespace) -> int:
                            base_file=base)
     try:
         endpoints = listening_endpoints(session)
-        print(f"uma router {session.zid()} listening on {' '.join(endpoints)}", flush=True)
+        status = f"uma router {session.zid()} listening on {' '.join(endpoints)}"
+        print(status, flush=True)
+        notify(READY="1", STATUS=status)
         while not stop.wait(0.5):
             pass
     finally:
+        notify(STOPPING="1")
         session.close()
     return 0

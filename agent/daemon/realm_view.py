@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
@@ -150,10 +150,19 @@ class RealmView:
         self.live_agents.add(agent_id)
 
     def agent_gone(self, agent_id: str) -> bool:
+        """Forget an agent that left, and its services, except those whose own token is
+        still live: a service attached to a router publishes without its agent, and a
+        need matched to it keeps a stream that still flows (issue 17).  They go when their
+        token does; the kept snapshot is marked older than any, so the agent's next one
+        applies when it comes back."""
         self.live_agents.discard(agent_id)
         old = self.remote.pop(agent_id, None)
         if old is None:
             return False
+        kept = {sid: d for sid, d in old.services.items()
+                if (agent_id, sid) in self.live_services}
+        if kept:
+            self.remote[agent_id] = replace(old, services=kept, revision=-1)
         changed = False
         for sid in old.services:
             changed |= self._sync(agent_id, sid)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -114,6 +115,22 @@ def add_network_arguments(p: argparse.ArgumentParser, listen: bool = True) -> No
     if listen:
         p.add_argument("--listen", action="append", default=[], metavar="EP",
                        help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="Zenoh JSON5 configuration to start from, e.g. a secured site's TLS "
+                        "certificates ('uma deploy config'; default: $UMA_ZENOH_CONFIG); "
+                        "uma's own settings are applied on top")
+
+
+def use_zenoh_config(args: argparse.Namespace) -> None:
+    """Make ``--zenoh-config`` the Zenoh configuration of every session this process opens
+    (the agent's, its hosted services', a command's), through ``UMA_ZENOH_CONFIG``; a file
+    that does not exist is an ``UmaError`` before anything starts."""
+    path = getattr(args, "zenoh_config", None)
+    if path is not None:
+        # here, not at the top: 'uma --help' builds every parser and must not load Zenoh
+        from agent.runtime.session import ZENOH_CONFIG_ENV, zenoh_config_file
+
+        os.environ[ZENOH_CONFIG_ENV] = os.path.abspath(zenoh_config_file(path))
 
 
 def add_service_arguments(parser: argparse.ArgumentParser, service: ServicePlugin) -> None:

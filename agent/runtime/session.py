@@ -24,6 +24,10 @@ behave alike (each choice measured with eclipse-zenoh 1.10 on loopback):
   ``Service`` and ``Client`` of a process that asks for the same settings the same session
   (and its Zenoh runtime threads), and :func:`release_session` closes it when the last one
   leaves.  ``shared=False`` opts out.
+- **a Zenoh configuration file** (``zenoh_config=``, ``--zenoh-config FILE``, or
+  ``UMA_ZENOH_CONFIG`` for every process of a host) is the base that these settings are
+  applied on top of: how a secured site adds TLS, certificates and access control
+  (``uma deploy config``, ``docs/SECURITY.md``).
 - **closing never raises**: a session that cannot close in time (a starved host) is logged
   and left to the process's exit, so a ``with`` block or a command's result is never lost
   to a close error.
@@ -55,6 +59,8 @@ log = logging.getLogger("uma.session")
 MODES = ("peer", "client", "router")
 #: environment variable: the Zenoh mode of services and clients that are not told one
 SDK_MODE_ENV = "UMA_SDK_MODE"
+#: environment variable: the Zenoh configuration file of processes that are not given one
+ZENOH_CONFIG_ENV = "UMA_ZENOH_CONFIG"
 DEFAULT_LEASE_MS = 1000
 DEFAULT_PEER_LISTEN = "tcp/127.0.0.1:0"
 DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
@@ -127,6 +133,7 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
     if mode not in MODES:
         raise UmaError(f"unknown Zenoh mode {mode!r} (expected one of {', '.join(MODES)})")
     connect = [check_endpoint(ep) for ep in connect]
+    base_file = zenoh_config_file(base_file)
     c = _base_config(base_file)
     if listen is None and base_file is not None:
         listen = _configured_listen(c, mode)
@@ -152,6 +159,19 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
         _insert(c, "connect/exit_on_failure", True)
         _insert(c, "connect/timeout_ms", CONNECT_TIMEOUT_MS)
     return c
+
+
+def zenoh_config_file(path: str | None) -> str | None:
+    """The Zenoh configuration file to start from: ``path``, else ``UMA_ZENOH_CONFIG``;
+    ``UmaError`` if the file named does not exist (Zenoh's own message only says "No such
+    file")."""
+    source = ""
+    if not path:
+        path, source = os.environ.get(ZENOH_CONFIG_ENV) or None, f" (from {ZENOH_CONFIG_ENV})"
+    if path is not None and not os.path.isfile(path):
+        raise UmaError(f"cannot use Zenoh configuration {path!r}{source}: the file does "
+                       "not exist")
+    return path
 
 
 def _base_config(path: str | None) -> zenoh.Config:
@@ -197,6 +217,7 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     if realm is not None:
         keys.check_name("realm", realm)
     connect = list(connect)
+    base_file = zenoh_config_file(base_file)
     config = build_config(mode, listen, connect, lease_ms=lease_ms,
                           require_connection=require_connection, base_file=base_file)
     try:
@@ -206,10 +227,23 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
         if "Unable to connect" in text:
             raise UnreachableEndpointError(
                 f"cannot reach {', '.join(connect)} ({mode} mode): nothing answers there; "
-                "is the agent/router running?") from None
+                f"is the agent/router running?{_tls_hint(connect, base_file)}") from None
         if "Can not create a new" in text or "listen" in text.lower():
             raise UmaError(f"cannot listen: {text}") from None
         raise UmaError(f"cannot open Zenoh session: {text}") from None
+
+
+def _tls_hint(connect: Sequence[str], base_file: str | None) -> str:
+    """What else a failed ``tls/`` connection may mean: Zenoh reports a refused TLS
+    handshake (no certificate, one of another site, a name the router's certificate does not
+    carry) only as "Unable to connect"."""
+    if not any(ep.startswith("tls/") for ep in connect):
+        return ""
+    if base_file is None:
+        return (" A tls/ endpoint needs this host's certificates: --zenoh-config FILE "
+                "(written by 'uma deploy config').")
+    return (f" Or the TLS handshake was refused: check that {base_file} holds this site's "
+            "certificates and that the router's certificate names the address dialled.")
 
 
 class UnreachableEndpointError(UmaError):
@@ -241,18 +275,20 @@ def sdk_mode(mode: str | None, connect: Sequence[str]) -> str:
 
 def acquire_session(mode: str, listen: Sequence[str] | None, connect: Sequence[str],
                     realm: str | None = None, *, shared: bool = True,
-                    wait_s: float = 0.0) -> zenoh.Session:
+                    wait_s: float = 0.0, base_file: str | None = None) -> zenoh.Session:
     """This process's session for these settings, opened on first use.
 
     A client whose agent does not answer yet is tried again every 0.1 s for ``wait_s``
     seconds (an agent started together with its clients listens a moment later), then
     :class:`UnreachableEndpointError`.  Every ``acquire_session`` must be paired with one
-    :func:`release_session`.
+    :func:`release_session`.  ``base_file``: the Zenoh configuration file to start from
+    (:func:`zenoh_config_file`).
     """
     deadline = time.monotonic() + wait_s
+    base_file = zenoh_config_file(base_file)
     while True:  # bounded by wait_s
         try:
-            return _acquire(mode, listen, connect, realm, shared)
+            return _acquire(mode, listen, connect, realm, shared, base_file)
         except UnreachableEndpointError:
             if time.monotonic() >= deadline:
                 raise
@@ -260,17 +296,18 @@ def acquire_session(mode: str, listen: Sequence[str] | None, connect: Sequence[s
 
 
 def _acquire(mode: str, listen: Sequence[str] | None, connect: Sequence[str],
-             realm: str | None, shared: bool) -> zenoh.Session:
+             realm: str | None, shared: bool, base_file: str | None) -> zenoh.Session:
     if not shared:
-        return open_session(mode, listen, connect, realm)
+        return open_session(mode, listen, connect, realm, base_file=base_file)
     if realm is not None:
         keys.check_name("realm", realm)
     key = (mode, None if listen is None else tuple(listen), tuple(connect),
-           lease_ms_default())
+           lease_ms_default(), base_file)
     with _shared_lock:
         entry = _shared.get(key)
         if entry is None:
-            entry = _shared[key] = _Shared(open_session(mode, listen, connect), 0)
+            entry = _shared[key] = _Shared(open_session(mode, listen, connect,
+                                                        base_file=base_file), 0)
         entry.users += 1
         return entry.session
 

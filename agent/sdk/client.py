@@ -72,7 +72,7 @@ class Client:
     def __init__(self, realm: str = "default", connect: Iterable[str] = (), *,
                  listen: Sequence[str] | None = None, mode: str | None = None,
                  timeout: float = 2.0, session: zenoh.Session | None = None,
-                 shared: bool = True) -> None:
+                 shared: bool = True, zenoh_config: str | None = None) -> None:
         keys.check_name("realm", realm)
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout!r}")
@@ -83,7 +83,8 @@ class Client:
         # an agent started a moment ago may not listen yet: wait for it as for an answer
         self.session = session or acquire_session(sdk_mode(mode, self.connect), listen,
                                                   self.connect, realm, shared=shared,
-                                                  wait_s=self.timeout)
+                                                  wait_s=self.timeout,
+                                                  base_file=zenoh_config)
         self.clock = ClockOffsets()
         self.tracker = RealmTracker(self.session, realm, self.timeout,
                                     probe=lambda agent: self.queries.probe(agent))

@@ -194,7 +194,7 @@ class Service:
                  connect: Iterable[str] = (), listen: Sequence[str] | None = None, *,
                  attributes: dict[str, Any] | None = None,
                  register_timeout: float = 3.0, mode: str | None = None,
-                 shared: bool = True) -> None:
+                 shared: bool = True, zenoh_config: str | None = None) -> None:
         self.service_id = keys.check_name("service id", service_id)
         self.realm = keys.check_name("realm", realm)
         self.agent_id = keys.check_name("agent id", agent or keys.default_agent_id())
@@ -202,6 +202,8 @@ class Service:
         self.listen = None if listen is None else list(listen)
         self.mode = sdk_mode(mode, self.connect)
         self.shared = shared
+        #: Zenoh configuration file to start from (a secured site's TLS; UMA_ZENOH_CONFIG)
+        self.zenoh_config = zenoh_config
         self.attributes = dict(attributes or {})
         self.register_timeout = register_timeout
         _checked(ServiceDescriptor, f"service {service_id!r}", service_id=service_id,
@@ -360,7 +362,7 @@ class Service:
                 return True
             try:
                 sess = acquire_session(self.mode, self.listen, self.connect, self.realm,
-                                       shared=self.shared)
+                                       shared=self.shared, base_file=self.zenoh_config)
             except UnreachableEndpointError:
                 if self.mode != "client":
                     raise

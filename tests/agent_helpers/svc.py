@@ -9,7 +9,8 @@ what happens as JSON lines on stdout.  Commands on stdin change it while it runs
 stdout events: ``{"event": "started"}``, ``{"event": "refused", "error": ...}``,
 ``{"event": "match", "need", "keys"}``, ``{"event": "first", "source", "recv_ns", "t_ns"}``
 (first sample from a source since the last change of source), ``{"event": "counts",
-"counts": {source: n}}`` every 0.25 s.
+"counts": {source: n}}`` every 0.25 s, and with ``--each-sample`` ``{"event": "sample",
+"source", "t_ns", "seq", "recv_ns"}`` for every sample received.
 stdin commands: ``rate HZ`` (publishing rate), ``update NAME=VALUE ...`` (attributes).
 SIGTERM closes the service cleanly.
 """
@@ -62,6 +63,7 @@ def main() -> int:
     ap.add_argument("--where")
     ap.add_argument("--prefer")
     ap.add_argument("--max-count", type=int, default=1)
+    ap.add_argument("--each-sample", action="store_true")
     args = ap.parse_args()
 
     counts: dict[str, int] = {}
@@ -71,6 +73,9 @@ def main() -> int:
     def on_sample(m) -> None:
         with lock:
             counts[m.source] = counts.get(m.source, 0) + 1
+            if args.each_sample:
+                emit(event="sample", source=m.source, t_ns=m.t_ns, seq=m.seq,
+                     recv_ns=time.time_ns())
             if m.source != last_source[0]:
                 last_source[0] = m.source
                 emit(event="first", source=m.source, recv_ns=time.time_ns(), t_ns=m.t_ns,
@@ -90,6 +95,7 @@ def main() -> int:
         return 3
     emit(event="started", registered=svc.wait_registered(0))
     rate = [args.rate]
+    reschedule = threading.Event()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
@@ -100,6 +106,7 @@ def main() -> int:
                 continue
             if words[0] == "rate":
                 rate[0] = float(words[1])
+                reschedule.set()  # a slow rate's next sample may be far ahead
             elif words[0] == "update" and out is not None:
                 out.update(**dict(attr(w) for w in words[1:]))
             emit(event="ack", command=words[0])
@@ -110,6 +117,9 @@ def main() -> int:
     try:
         while not stop.is_set():
             now = time.monotonic()
+            if reschedule.is_set():
+                reschedule.clear()
+                next_pub = now
             if out is not None and now >= next_pub:
                 out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
                 next_pub = max(next_pub + 1.0 / rate[0], now - 0.1)
