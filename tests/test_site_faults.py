@@ -6,8 +6,9 @@ A producer ``cam`` publishes a pose at 100 Hz with sequence numbers on one host,
 consumer ``app`` on another host has a need matched to it and reports every sample
 (``agent_helpers.svc --each-sample``).  Nothing is restarted by hand: each fault heals by
 itself or not at all.  This kernel has no ``sch_netem``: delays and stalls come from a
-userspace TCP proxy on the slow link (:mod:`agent_helpers.tcp_proxy`).  Clock skew is
-tested on loopback (``tests/test_client_stream.py``, an agent 3 s ahead).
+userspace TCP proxy on the slow link (:mod:`agent_helpers.tcp_proxy`).  Hosts share the
+machine's clock, so a host 200 ms ahead is its agent and tracker told so
+(``UMA_CLOCK_SKEW_NS``, ``--skew-ns``), as ``tests/test_client_stream.py`` does on loopback.
 """
 
 from __future__ import annotations
@@ -221,6 +222,11 @@ def test_a_slow_link_50_ms_delay_and_a_stall_keep_streams_and_queries(site, real
     proxy.wait_for(lambda ev: ev.get("command") == "delay", 10)
     time.sleep(0.5)
     delayed = window(3.0)
+    # a bandwidth cap of 256 kB/s each way (the stream needs ~30 kB/s with its overhead)
+    proxy.send("rate 256")
+    proxy.wait_for(lambda ev: ev.get("command") == "rate", 10)
+    capped = window(3.0)
+    proxy.send("rate 0")
     t_stall = time.monotonic()
     proxy.send("stall")
     time.sleep(0.5)  # shorter than the 1 s lease: a stall, not a lost link
@@ -233,8 +239,60 @@ def test_a_slow_link_50_ms_delay_and_a_stall_keep_streams_and_queries(site, real
     print(f"FAULT slow link: without delay {plain[0]:.0f} Hz, latency median "
           f"{plain[1]:.1f} ms p99 {plain[2]:.1f} ms, uma query {plain[3]:.2f} s (the whole "
           f"command); with 50 ms delay {delayed[0]:.0f} Hz, latency median "
-          f"{delayed[1]:.1f} ms p99 {delayed[2]:.1f} ms, uma query {delayed[3]:.2f} s")
+          f"{delayed[1]:.1f} ms p99 {delayed[2]:.1f} ms, uma query {delayed[3]:.2f} s; "
+          f"and capped at 256 kB/s {capped[0]:.0f} Hz, latency median {capped[1]:.1f} ms "
+          f"p99 {capped[2]:.1f} ms, uma query {capped[3]:.2f} s")
     print(fig.line())
     assert delayed[1] >= plain[1] + 40  # the proxy really delayed what it carried
     assert delayed[0] > 0.7 * plain[0]  # the stream kept its rate
+    assert capped[0] > 0.7 * plain[0]
     assert fig.lost == 0 and fig.duplicates == 0 and fig.reordered == 0
+
+
+SKEW_NS = 200_000_000
+POSE_NOW = """
+import json, sys, time
+from agent import Client
+with Client(realm=sys.argv[1], connect=[sys.argv[2]], timeout=5.0) as c:
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            c.pose("ivy/world", "alice/head")
+            break
+        except LookupError:
+            assert time.monotonic() < deadline, "no pose within 60 s"
+            time.sleep(0.2)
+    for _ in range(20):
+        t0 = time.time_ns(); r = c.pose("ivy/world", "alice/head"); t1 = time.time_ns()
+        print(json.dumps({"t0": t0, "t_ns": r.t_ns, "t1": t1, "offset": c.clock.offset(
+            sys.argv[3])}), flush=True)
+"""
+
+
+def test_a_host_200_ms_ahead_is_taken_out_of_composed_poses(site, realm: str) -> None:
+    """Host h2's clock is 200 ms ahead (its agent and its tracker's stamps): a client on h1
+    gets the tracker's latest pose stamped on h1's clock, not 200 ms in its future."""
+    s = site(3)
+    r, h1, h2 = s.hosts
+    router_ep = r.endpoint()
+    router_on(s, r)
+    client_agents(s, realm, [(h1, router_ep)])
+    ahead = s.spawn(h2, ["-m", "agent.cli", "agent", "--realm", realm, "--id", h2.name,
+                         "--mode", "client", "--connect", router_ep],
+                    env={"UMA_CLOCK_SKEW_NS": str(SKEW_NS)})
+    ahead.wait_line("listening on", START_WAIT_S)
+    s.spawn(h2, ["-m", "tests.agent_helpers.svc", "--realm", realm, "--id", "cam", "--agent",
+                 h2.name, "--connect", router_ep, "--ability", "pose", "--rate", "100",
+                 "--skew-ns", str(SKEW_NS)])
+    out = s.run(h1, ["-c", POSE_NOW, realm, router_ep, h2.name], 120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = [json.loads(line) for line in out.stdout.splitlines()]
+    ahead_ms = [(row["t_ns"] - row["t1"]) / 1e6 for row in rows]
+    behind_ms = [(row["t0"] - row["t_ns"]) / 1e6 for row in rows]
+    print(f"FAULT clock skew 200 ms: offset estimate {rows[-1]['offset'] / 1e6:.1f} ms; "
+          f"pose time minus the query's end: median {statistics.median(ahead_ms):.1f} ms "
+          f"(uncorrected it would be about +190 ms); age at the query's start: median "
+          f"{statistics.median(behind_ms):.1f} ms")
+    assert abs(rows[-1]["offset"] - SKEW_NS) < 50_000_000
+    # the latest sample is at most a period and a transit old, and never in the future
+    assert statistics.median(ahead_ms) < 50 and max(ahead_ms) < 100, ahead_ms

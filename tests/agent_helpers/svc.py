@@ -64,6 +64,8 @@ def main() -> int:
     ap.add_argument("--prefer")
     ap.add_argument("--max-count", type=int, default=1)
     ap.add_argument("--each-sample", action="store_true")
+    ap.add_argument("--skew-ns", type=int, default=0,
+                    help="stamp samples this far ahead (a host whose clock is off)")
     args = ap.parse_args()
 
     counts: dict[str, int] = {}
@@ -121,7 +123,7 @@ def main() -> int:
                 reschedule.clear()
                 next_pub = now
             if out is not None and now >= next_pub:
-                out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+                out.publish(time.time_ns() + args.skew_ns, [0.1, 0.2, 0.3], [0, 0, 0, 1])
                 next_pub = max(next_pub + 1.0 / rate[0], now - 0.1)
             if args.need:
                 keys = [m.key for m in svc.matches(args.need)]

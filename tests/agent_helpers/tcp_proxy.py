@@ -4,8 +4,10 @@ stdin, delays what it carries, stalls it or cuts it.
 
     python -m tests.agent_helpers.tcp_proxy --listen 127.0.0.1:7447 --target 10.0.0.1:7447
 
-stdin: ``delay MS`` (every byte, both ways, is held MS ms; 0 ends it), ``stall`` (nothing is
-forwarded; the bytes wait, and TCP's flow control holds the senders), ``resume``, ``cut``
+stdin: ``delay MS`` (every byte, both ways, is held MS ms; 0 ends it), ``rate KBPS`` (each
+direction of each connection carries at most KBPS kilobytes per second; 0 ends the cap),
+``stall`` (nothing is forwarded; the bytes wait, and TCP's flow control holds the senders),
+``resume``, ``cut``
 (every open connection is closed; new ones are accepted).  Each command is acknowledged by
 ``{"event": "ack", "command": ...}`` on stdout; ``{"event": "ready"}`` once it listens.
 """
@@ -25,6 +27,7 @@ class Link:
 
     def __init__(self) -> None:
         self.delay_s = 0.0
+        self.bytes_per_s = 0.0  # 0: no cap
         self.flowing = asyncio.Event()
         self.flowing.set()
         self.writers: set[asyncio.StreamWriter] = set()
@@ -46,9 +49,13 @@ async def pump(link: Link, reader: asyncio.StreamReader, writer: asyncio.StreamW
         await queue.put(None)
 
     reading = asyncio.create_task(read())
+    free_at = time.monotonic()  # when the capped link is free to send again
     try:
         while (item := await queue.get()) is not None:
             due, data = item
+            if link.bytes_per_s:
+                free_at = max(free_at, time.monotonic()) + len(data) / link.bytes_per_s
+                due = max(due, free_at)
             await asyncio.sleep(max(0.0, due - time.monotonic()))
             await link.flowing.wait()
             writer.write(data)
@@ -86,6 +93,8 @@ async def serve(args: argparse.Namespace) -> None:
                 continue
             if words[0] == "delay":
                 link.delay_s = float(words[1]) / 1000.0
+            elif words[0] == "rate":
+                link.bytes_per_s = float(words[1]) * 1000.0
             elif words[0] == "stall":
                 link.flowing.clear()
             elif words[0] == "resume":
