@@ -36,3 +36,81 @@ def test_log_bounds_a_flood_of_distinct_senders_and_reports_the_count(caplog) ->
         rl.warning("supernode uma/r/agent/late/supernode", "malformed summary")
     assert "2995 more warnings" in caplog.records[-2].getMessage()
     assert caplog.records[-1].getMessage().startswith("supernode uma/r/agent/late")
+
+
+# --------------------------------------------------------------------------- finding 5
+
+
+def _static_node():
+    from unittest import mock
+
+    from agent.daemon.srg_node import SrgNode
+    edges = [{"parent": "w", "child": "cam", "position": [1.0, 0.0, 2.0],
+              "quaternion": [0.0, 0.0, 0.0, 1.0], "pos_std_m": 0.01},
+             {"parent": "cam", "child": "rig", "position": [0.0, 0.5, 0.0],
+              "quaternion": [0.0, 0.0, 0.0, 1.0]}]
+    return SrgNode(mock.MagicMock(), "lab", "A", edges)
+
+
+def _rss_kib() -> int:
+    from pathlib import Path
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS in /proc/self/status")
+
+
+def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch) -> None:
+    """20,000 queries with distinct error texts kept 133 MB (plans and answers never
+    evicted).  Both caches are least-recently-used with a count limit now; the test uses
+    limits of 50 to stay fast, and checks memory does not grow with more queries."""
+    from agent.daemon import srg_node
+    monkeypatch.setattr(srg_node, "MAX_ANSWERS", 50)
+    n = _static_node()
+    n.graph.max_plans = 50
+    n.handle({"op": "segment", "source": "rig", "target": "w", "error": "hops"})
+
+    def flood(start: int, count: int) -> None:
+        for i in range(start, start + count):
+            r = n.handle({"op": "segment", "source": "rig", "target": "w", "t": None,
+                          "error": f"latency_s + {i} * pos_std_m"})
+            assert "result" in r, r
+    flood(0, 100)
+    rss = _rss_kib()
+    flood(100, 500)
+    assert len(n.graph._plans) == 50 and len(n._answers) == 50
+    assert n.graph.plans_evicted == 601 - 50 and n.answers_evicted == 601 - 50
+    plans_indexed = set().union(*n.graph._plans_by_frame.values())
+    assert plans_indexed == set(n.graph._plans), "the frame index holds exactly the cache"
+    assert set().union(*n.graph._plans_by_edge.values()) == set(n.graph._plans)
+    assert _rss_kib() - rss < 8 * 1024, "500 more queries must not grow the process"
+
+
+def test_the_most_recently_used_plan_survives_eviction() -> None:
+    from agent.srg import Graph
+    g = Graph(max_plans=2)
+    g.add_static("a", "b", [0, 0, 0], [0, 0, 0, 1])
+    g.add_static("b", "c", [0, 0, 0], [0, 0, 0, 1])
+    g.pose("a", "c")
+    g.pose("a", "b")
+    g.pose("a", "c")  # used again: now b is the oldest
+    g.pose("c", "a")
+    assert g.has_plan("a", "c") and g.has_plan("c", "a") and not g.has_plan("a", "b")
+    g.remove_edge("b", "c")  # the index stays consistent through eviction and removal
+    assert not g.has_plan("a", "c") and g._plans_by_edge.keys() <= {("a", "b", "static")}
+
+
+def test_summaries_from_too_many_agents_are_refused_and_counted(monkeypatch) -> None:
+    from agent.daemon import srg_node
+    from schemas.codec import encode_message
+    monkeypatch.setattr(srg_node, "MAX_REMOTE_AGENTS", 50)
+    n = _static_node()
+    for i in range(300):
+        n._learn(f"uma/lab/agent/x{i}/supernode",
+                 encode_message({"agent": f"x{i}", "frames": [f"f{i}"]}))
+    n._learn("uma/lab/agent/big/supernode",
+             encode_message({"agent": "x1", "frames": [f"f{i}" for i in range(5000)]}))
+    assert len(n._remote_frames) == 50 and n.summaries_refused == 251
+    assert n._remote_frames["x1"] == {"f1"}
+    n._learn("uma/lab/agent/x1/supernode", encode_message({"agent": "x1", "frames": ["g"]}))
+    assert n._remote_frames["x1"] == {"g"}, "a known agent's summary still replaces its own"

@@ -34,6 +34,7 @@ import logging
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -60,6 +61,13 @@ CONFIG_SOURCE = "config"
 PUBLISH_CHECK_S = 0.05
 #: how often every agent is asked for its summary again (see ``_resync_if_due``)
 RESYNC_S = 2.0
+#: answers cached (least recently used dropped first): a query names its own error
+#: expression, so distinct expressions from a peer must not grow the cache (issue 22)
+MAX_ANSWERS = 1024
+#: other agents whose frames are remembered, and frames remembered per agent: summaries
+#: arrive from any peer, so what they make this agent hold is bounded
+MAX_REMOTE_AGENTS = 1024
+MAX_REMOTE_FRAMES = 4096
 #: edge attributes an ability may carry that the SRG uses
 _SRG_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost")
@@ -98,8 +106,12 @@ class SrgNode:
         #: wire answers by (source, target, error) with the graph version and sample count
         #: they were computed at (see ``_cached_answer``); the count is None for an
         #: all-static path, whose answer holds at every time
-        self._answers: dict[tuple[str, str, str], tuple[int, int | None, dict[str, Any]]] = {}
+        self._answers: OrderedDict[tuple[str, str, str],
+                                   tuple[int, int | None, dict[str, Any]]] = OrderedDict()
         self._remote_frames: dict[str, set[str]] = {}
+        #: what the bounds above refused or dropped: answers evicted, summaries refused
+        self.answers_evicted = 0
+        self.summaries_refused = 0
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
         self._published: tuple[int, frozenset[str]] | None = None
@@ -281,10 +293,21 @@ class SrgNode:
             if req.details:
                 return proto.segment_reply(result, [self._edge_details(e) for e in r.edges])
             if result["attributes"].get("static"):
-                self._answers[key] = (self.graph.version, None, result)
+                self._remember(key, (self.graph.version, None, result))
             elif req.t is None:
-                self._answers[key] = (self.graph.version, self.graph.samples, result)
+                self._remember(key, (self.graph.version, self.graph.samples, result))
         return proto.segment_reply(result)
+
+    def _remember(self, key: tuple[str, str, str],
+                  answer: tuple[int, int | None, dict[str, Any]]) -> None:
+        """Cache an answer, dropping the least recently used beyond ``MAX_ANSWERS``."""
+        self._answers[key] = answer
+        self._answers.move_to_end(key)
+        if len(self._answers) > MAX_ANSWERS:
+            self._answers.popitem(last=False)
+            self.answers_evicted += 1
+            self._bad.warning("query cache", f"{MAX_ANSWERS} answers cached: dropped the least "
+                              f"recently used ({self.answers_evicted} so far)")
 
     def _cached_answer(self, key: tuple[str, str, str], t: int | None,
                        ) -> dict[str, Any] | None:
@@ -299,6 +322,7 @@ class SrgNode:
         hit = self._answers.get(key)
         if hit is None or hit[0] != self.graph.version:
             return None
+        self._answers.move_to_end(key)
         _, samples, result = hit
         if samples is None:
             return proto.at_time(result, t if t is not None else self.now_ns())
@@ -338,8 +362,24 @@ class SrgNode:
         if agent == self.agent_id:
             return
         with self._lock:
-            self._remote_frames[agent] = set(frames)
+            refused = self._refusal(agent, frames)
+            if refused is None:
+                self._remote_frames[agent] = set(frames)
+        if refused is not None:
+            self.summaries_refused += 1
+            self._bad.warning(f"supernode {key}", f"summary refused: {refused} "
+                              f"({self.summaries_refused} refused so far)")
+            return
         self._wake.set()
+
+    def _refusal(self, agent: str, frames: list[str]) -> str | None:
+        """Why a summary would exceed what this node keeps of other agents, or None.  Lock
+        held."""
+        if len(frames) > MAX_REMOTE_FRAMES:
+            return f"{len(frames)} frames, more than {MAX_REMOTE_FRAMES}"
+        if agent not in self._remote_frames and len(self._remote_frames) >= MAX_REMOTE_AGENTS:
+            return f"frames of {MAX_REMOTE_AGENTS} agents kept already"
+        return None
 
     def _on_agent_token(self, sample: zenoh.Sample) -> None:
         """An agent appeared (fetch its summary: it may have published before we were
