@@ -114,3 +114,42 @@ def test_summaries_from_too_many_agents_are_refused_and_counted(monkeypatch) -> 
     assert n._remote_frames["x1"] == {"f1"}
     n._learn("uma/lab/agent/x1/supernode", encode_message({"agent": "x1", "frames": ["g"]}))
     assert n._remote_frames["x1"] == {"g"}, "a known agent's summary still replaces its own"
+
+
+def test_a_flooded_worker_refuses_and_counts_instead_of_growing(caplog) -> None:
+    """The agent's and the service's worker queue: calls come from peers' messages."""
+    from agent.runtime.worker import MAX_QUEUED, Worker
+    w = Worker("t", "agent T", logging.getLogger("uma.test.worker"), lambda: None, 1.0)
+    with caplog.at_level(logging.WARNING, logger="uma.test.worker"):
+        for _ in range(MAX_QUEUED + 500):
+            w.put(print, "never run")
+    assert w._q.qsize() == MAX_QUEUED and w.refused == 500
+    assert len(caplog.records) == 1 and "refused" in caplog.records[0].getMessage()
+
+
+def test_need_patterns_keep_a_bounded_number_of_candidates() -> None:
+    """3,000 forged abilities fitting one need pattern: the index keeps 1,024, counts the
+    refusals, tells its owner, and a removal lets a refused one in."""
+    from agent.daemon.matching import MAX_CANDIDATES, MAX_PATTERNS, Offer, OfferIndex
+    from schemas.models import Ability, Need
+
+    def offer(i: int) -> Offer:
+        ab = Ability(name="pose", type="pose6d", edge=("lab/world", f"x{i}/head"))
+        return Offer.of(f"uma/lab/data/evil/s{i}/pose", "evil", f"s{i}", ab)
+    told = []
+    idx = OfferIndex(on_refused=lambda *a: told.append(a))
+    need = Need(name="head", type="pose6d", edge=("lab/world", "*/head"))
+    assert list(idx.candidates(need)) == []
+    for i in range(3000):
+        idx.add(offer(i))
+    assert len(list(idx.candidates(need))) == MAX_CANDIDATES
+    assert idx.refused == 3000 - MAX_CANDIDATES and len(told) == idx.refused
+    assert told[-1] == (("pose6d", "lab/world", "*/head"), "uma/lab/data/evil/s2999/pose",
+                        3000 - MAX_CANDIDATES)
+    idx.remove("uma/lab/data/evil/s0/pose")
+    keys = {o.key for o in idx.candidates(need)}
+    assert len(keys) == MAX_CANDIDATES and "uma/lab/data/evil/s1024/pose" in keys
+    few = OfferIndex([offer(i) for i in range(3)])
+    for i in range(2000):  # distinct patterns: at most MAX_PATTERNS remembered
+        few.candidates(Need(name="n", type="pose6d", edge=("lab/world", f"y{i}/*")))
+    assert len(few._candidates) == MAX_PATTERNS

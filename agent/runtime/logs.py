@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import re
+import threading
 import time
 from collections import OrderedDict
 
@@ -52,10 +53,15 @@ class RateLimitedLog:
         self._last: OrderedDict[tuple[str, str], list[float]] = OrderedDict()
         self._window = (-1e18, 0)  # start of the current window, lines written in it
         self._unreported = 0  # swallowed by the burst bound or forgotten entries
+        self._lock = threading.Lock()  # Zenoh calls from several threads at once
 
     def warning(self, subject: str, reason: str) -> bool:
         """Log ``subject: reason`` unless a warning of its kind from ``subject`` was logged
         in the last ``interval`` s or the burst is spent; True if it was logged."""
+        with self._lock:
+            return self._warning(subject, reason)
+
+    def _warning(self, subject: str, reason: str) -> bool:
         now = time.monotonic()
         self.seen += 1
         k = (subject, kind_of(reason))
