@@ -153,3 +153,136 @@ def test_need_patterns_keep_a_bounded_number_of_candidates() -> None:
     for i in range(2000):  # distinct patterns: at most MAX_PATTERNS remembered
         few.candidates(Need(name="n", type="pose6d", edge=("lab/world", f"y{i}/*")))
     assert len(few._candidates) == MAX_PATTERNS
+
+
+# --------------------------------------------------------------------------- finding 6
+
+
+def _wait_for(cond, timeout: float = 5.0) -> bool:
+    import time
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+def test_zenoh_refuses_a_message_above_umas_receive_limit() -> None:
+    """Zenoh reassembled messages up to 1 GiB for uma to copy and refuse; a uma session
+    now takes at most MAX_RECEIVE_BYTES (the largest uma message, an image, + 1 MiB)."""
+    import zenoh
+
+    from agent.runtime.session import (
+        MAX_RECEIVE_BYTES,
+        close_session,
+        listening_endpoints,
+        open_session,
+    )
+    uma = open_session("peer", None, [])
+    hostile = zenoh.open(_plain_peer(listening_endpoints(uma)))
+    try:
+        got: list[int] = []
+        sub = uma.declare_subscriber("uma/r/data/A/s/x", lambda smp: got.append(len(smp.payload)))
+        # BLOCK: with DROP, Zenoh may drop a big message's fragments itself
+        pub = hostile.declare_publisher("uma/r/data/A/s/x",
+                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        assert _wait_for(lambda: (pub.put(b"ok"), got)[1] != [])
+        got.clear()
+        pub.put(b"\x00" * (MAX_RECEIVE_BYTES + (4 << 20)))
+        pub.put(b"\x01" * (2 << 20))  # under the limit: still delivered, after the big one
+        assert _wait_for(lambda: 2 << 20 in got, 10.0), got
+        assert max(got) == 2 << 20, "the oversized message reached the subscriber"
+        sub.undeclare()
+    finally:
+        hostile.close()
+        close_session(uma)
+
+
+def _plain_peer(connect: list[str]):
+    """A plain Zenoh peer (Zenoh's defaults: admin space on, 1 GiB messages), as a hostile
+    program would open it, on loopback without multicast scouting."""
+    import json
+
+    import zenoh
+    c = zenoh.Config()
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("listen/endpoints", json.dumps([]))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    return c
+
+
+def test_another_peer_cannot_read_a_uma_sessions_admin_space() -> None:
+    import zenoh
+
+    from agent.runtime.session import close_session, listening_endpoints, open_session, query
+    uma = open_session("peer", None, [])
+    hostile = zenoh.open(_plain_peer(listening_endpoints(uma)))
+    try:
+        assert _wait_for(lambda: str(uma.zid()) in {str(z) for z in hostile.info.peers_zid()})
+        replies = query(hostile, f"@/{uma.zid()}/**", 1.0)
+        assert replies == [], [str(r.ok.key_expr) for r in replies if r.ok]
+        assert listening_endpoints(uma)[0].startswith("tcp/127.0.0.1:"), "port still known"
+        assert not listening_endpoints(uma)[0].endswith(":0")
+    finally:
+        hostile.close()
+        close_session(uma)
+
+
+def test_an_oversized_summary_is_refused_before_it_is_copied(caplog) -> None:
+    """uma copied a payload (``to_bytes``) before its 1 MiB check: the size is checked on
+    the Zenoh buffer now (tracemalloc sees no copy of the 8 MiB)."""
+    import tracemalloc
+    from types import SimpleNamespace
+
+    import zenoh
+    n = _static_node()
+    big = zenoh.ZBytes(b"\x80" * (8 << 20))
+    sample = SimpleNamespace(key_expr="uma/lab/agent/B/supernode", payload=big)
+    tracemalloc.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="uma.srg"):
+            n._on_summary(sample)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20, f"{peak} bytes allocated for a refused 8 MiB summary"
+    assert "exceeds the limit" in caplog.records[-1].getMessage()
+    assert n._remote_frames == {}
+
+
+def _summary(agent: str, frames: list[str], links: list[tuple[str, str]]):
+    from agent.protocol.query import Summary
+    attrs = {"hops": {"hops": 1, "latency_s": 0.01, "cost": 0.0, "confidence": 1.0,
+                      "accuracy": 0.0, "pos_std_m": 0.0, "rot_std_rad": 0.0, "static": True}}
+    return Summary(agent, 1, set(frames), [set(frames)], [(a, b, attrs) for a, b in links])
+
+
+def test_planning_over_forged_summaries_considers_a_bounded_number_of_links(caplog) -> None:
+    """Forged summaries with 801 links each made one plan take 0.5-0.8 s: a plan now
+    considers at most MAX_LINKS_PER_AGENT links of one agent and MAX_PLAN_LINKS in all,
+    nearest agents first, so the honest route is still found, and says what it left out."""
+    import itertools
+
+    from agent.sdk import planner
+    from agent.srg.errorfn import error_function
+    frames = [f"f{i}" for i in range(41)]
+    clique = list(itertools.combinations(frames, 2))[:801]
+    summaries = {"h1": _summary("h1", ["src", "f0"], [("src", "f0")]),
+                 "h2": _summary("h2", ["f40", "dst"], [("f40", "dst")]),
+                 "h3": _summary("h3", ["f0", "f40"], [("f0", "f40")])}
+    for i in range(20):
+        summaries[f"evil{i}"] = _summary(f"evil{i}", frames, clique)
+    with caplog.at_level(logging.WARNING, logger="uma.client"):
+        links = planner.considered_links(summaries, "src", "dst")
+        routes = planner.plan_routes(summaries, "src", "dst", error_function("hops"))
+    assert len(links) == planner.MAX_PLAN_LINKS
+    per_agent = {}
+    for (agent, _, _), _ in links:
+        per_agent[agent] = per_agent.get(agent, 0) + 1
+    assert max(per_agent.values()) == planner.MAX_LINKS_PER_AGENT
+    assert per_agent["h1"] == per_agent["h2"] == per_agent["h3"] == 1, "nearest, fewest first"
+    assert [str(s) for s in routes[0].segments] == ["src -> f0 of agent 'h1'",
+                                                    "f0 -> f40 of agent 'h3'",
+                                                    "f40 -> dst of agent 'h2'"]
+    assert f"{20 * 801 - 509} links" in caplog.records[-1].getMessage()

@@ -16,7 +16,12 @@ import os
 import sys
 
 from agent.cli.main import stop_on_signals
-from agent.runtime.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
+from agent.runtime.session import (
+    DEFAULT_ROUTER_LISTEN,
+    close_session,
+    listening_endpoints,
+    open_session,
+)
 
 log = logging.getLogger("uma.router")
 
@@ -35,5 +40,5 @@ def main(args: argparse.Namespace) -> int:
         while not stop.wait(0.5):
             pass
     finally:
-        session.close()
+        close_session(session)
     return 0

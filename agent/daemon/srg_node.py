@@ -44,6 +44,7 @@ from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.protocol import query as proto
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.srg import Graph
 from agent.srg.supernode import summarize
 from schemas.codec import (
@@ -255,9 +256,7 @@ class SrgNode:
     def _on_query(self, query: zenoh.Query) -> None:
         t2 = self.now_ns()
         try:
-            payload = query.payload
-            reply = self.handle(proto.decode_request(
-                payload.to_bytes() if payload is not None else b""))
+            reply = self.handle(proto.decode_request(payload_bytes(query.payload)))
             if reply is None:
                 return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
@@ -342,15 +341,16 @@ class SrgNode:
             self._bad.warning("supernode reply", str(exc))
 
     def _on_summary(self, sample: zenoh.Sample) -> None:
-        self._learn(str(sample.key_expr), sample.payload.to_bytes())
+        self._learn(str(sample.key_expr), sample.payload)
 
     def _on_summary_reply(self, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
-            self._learn(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+            self._learn(str(reply.ok.key_expr), reply.ok.payload)
 
-    def _learn(self, key: str, data: bytes) -> None:
+    def _learn(self, key: str, payload: zenoh.ZBytes | bytes) -> None:
         """Record the frames another agent knows (they decide our boundary)."""
         try:
+            data = payload if isinstance(payload, bytes) else payload_bytes(payload)
             msg = decode_message(data, required=("agent", "frames"))
             agent, frames = msg["agent"], msg["frames"]
             if not isinstance(agent, str) or not isinstance(frames, list) or not all(

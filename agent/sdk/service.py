@@ -60,6 +60,7 @@ from agent.protocol.registration import (
     register_request,
 )
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES, payload_bytes
 from agent.runtime.session import (
     UnreachableEndpointError,
     acquire_session,
@@ -608,8 +609,11 @@ class Service:
 
     # -- data
     def _on_data(self, need: NeedHandle, link: _Link, smp: zenoh.Sample) -> None:
+        limit = MAX_IMAGE_BYTES if need.need.type == "image" else MAX_MESSAGE_BYTES
         try:
-            self._samples.put_nowait((need, link, smp.payload.to_bytes()))
+            self._samples.put_nowait((need, link, payload_bytes(smp.payload, limit)))
+        except DecodeError as exc:
+            self._bad.warning(f"data {link.match.key}", f"dropped: {exc}")
         except queue.Full:
             self._bad.warning(f"service {self.service_id} need {need.name}",
                               "callback queue full (on_sample too slow); samples dropped")

@@ -30,6 +30,7 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol.query import edge_from_wire
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.sdk.planner import Segment, SegmentError
 from agent.sdk.query import Outcome, Queries
 from agent.srg import Graph
@@ -229,7 +230,9 @@ class Subscription:
     # -- samples
     def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
         try:
-            self._q.put_nowait((agent, key, sample.payload.to_bytes()))
+            self._q.put_nowait((agent, key, payload_bytes(sample.payload)))
+        except DecodeError as exc:
+            self._bad.warning(f"subscription {key}", f"sample dropped: {exc}")
         except queue.Full:
             self._bad.warning(f"subscription {key}", "queue full; sample dropped")
 
