@@ -286,3 +286,38 @@ def test_planning_over_forged_summaries_considers_a_bounded_number_of_links(capl
                                                     "f0 -> f40 of agent 'h3'",
                                                     "f40 -> dst of agent 'h2'"]
     assert f"{20 * 801 - 509} links" in caplog.records[-1].getMessage()
+
+
+# --------------------------------------------------------------------------- finding 11
+
+
+def test_recalibration_only_on_the_exact_key_and_not_too_often(caplog) -> None:
+    """A wildcard ``recalibrate`` reached every alignment service and each request emptied
+    its buffers; now only the service's own key counts, once per RECALIBRATE_MIN_S."""
+    import argparse
+    import json
+    from types import SimpleNamespace
+
+    from services.alignment import service as alignment
+    parser = argparse.ArgumentParser()
+    alignment.add_arguments(parser)
+    args = parser.parse_args(["--a", "w/a", "--b", "w/b"])
+    live = alignment.LiveAlignment(args, alignment.options_from(args))
+    key = alignment.recalibrate_key("lab", "A", "alignment")
+    replies: list[dict] = []
+
+    def ask(asked: str) -> dict:
+        query = SimpleNamespace(key_expr=asked, reply=lambda k, data: replies.append(
+            {"key": k, **json.loads(data)}))
+        live.a.samples.append((1, None, None))  # a buffered motion: a request clears it
+        alignment._answer_request(query, live, key)
+        return replies[-1]
+    with caplog.at_level(logging.WARNING, logger="uma.alignment"):
+        wild = ask("uma/lab/svc/*/*/recalibrate")
+        assert not wild["ok"] and "wildcards are refused" in wild["status"]
+        assert not live.requested.is_set() and len(live.a.samples) == 1
+        assert ask(key)["ok"] and live.requested.is_set() and len(live.a.samples) == 0
+        again = ask(key)
+        assert not again["ok"] and "at most one per" in again["status"]
+    assert live.refused == 2 and {r["key"] for r in replies} == {key}
+    assert "2 refused so far" in caplog.records[-1].getMessage()
