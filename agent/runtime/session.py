@@ -278,10 +278,11 @@ def _free_port(ep: str) -> str:
 _listening: dict[str, list[str]] = {}
 #: sessions whose endpoints are remembered at most (the oldest are forgotten first)
 _LISTENING_KEPT = 256
+_listening_lock = threading.Lock()  # not _shared_lock: _acquire opens sessions under it
 
 
 def _remember_endpoints(session: zenoh.Session, endpoints: list[str]) -> None:
-    with _shared_lock:
+    with _listening_lock:
         _listening[str(session.zid())] = list(endpoints)
         while len(_listening) > _LISTENING_KEPT:
             del _listening[next(iter(_listening))]
@@ -370,7 +371,7 @@ def close_session(session: zenoh.Session) -> None:
     Zenoh's close times out on a CPU-starved host ("close operation timed out!"); what the
     caller did with the session is done by then, so the failure is logged, not raised.
     """
-    with _shared_lock:
+    with _listening_lock:
         _listening.pop(str(session.zid()), None)
     try:
         session.close()
@@ -419,7 +420,7 @@ def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[st
     space says (empty when the admin space is off).
     """
     zid = str(session.zid())
-    with _shared_lock:
+    with _listening_lock:
         known = _listening.get(zid)
     if known is not None:
         return list(known)
