@@ -321,3 +321,25 @@ def test_recalibration_only_on_the_exact_key_and_not_too_often(caplog) -> None:
         assert not again["ok"] and "at most one per" in again["status"]
     assert live.refused == 2 and {r["key"] for r in replies} == {key}
     assert "2 refused so far" in caplog.records[-1].getMessage()
+
+
+def test_fusion_refuses_optical_poses_stamped_far_ahead() -> None:
+    """A pose stamped a day ahead stayed pending in the fusion filter forever; it is refused
+    now, against the filter's time and against this host's clock, and counted."""
+    import time
+    from types import SimpleNamespace
+
+    import numpy as np
+    from test_fusion import HEAD_TO_LASER_RIG, MODEL_FLOOR, _still_rig
+
+    from services.fusion.service import LiveFusion
+    tracker, p, q, cov, rest = _still_rig()
+    for i in range(1, 30):
+        tracker.add_accel(i / 300, rest)
+    assert not tracker.add_rig_pose(86400.0, p, q, cov, HEAD_TO_LASER_RIG)
+    assert tracker.stats.optical_too_far_ahead == 1 and tracker._pending == []
+    assert tracker.add_rig_pose(0.2, p, q, cov, HEAD_TO_LASER_RIG)  # honest, a bit ahead
+    live = LiveFusion(0.02, MODEL_FLOOR)
+    live.on_optical(SimpleNamespace(t_ns=time.time_ns() + 86_400 * 10**9, position=np.zeros(3),
+                                    quaternion=np.array([0, 0, 0, 1.0]), covariance=None))
+    assert list(live.dropped) == ["optical pose stamped more than 10 s ahead of this host's clock"]

@@ -275,7 +275,7 @@ def _free_port(ep: str) -> str:
 
 
 #: the endpoints each open session listens on, by Zenoh id (see ``listening_endpoints``)
-_listening: dict[str, list[str]] = {}
+_listening: dict[str, tuple[zenoh.Session, list[str]]] = {}
 #: sessions whose endpoints are remembered at most (the oldest are forgotten first)
 _LISTENING_KEPT = 256
 _listening_lock = threading.Lock()  # not _shared_lock: _acquire opens sessions under it
@@ -283,7 +283,7 @@ _listening_lock = threading.Lock()  # not _shared_lock: _acquire opens sessions 
 
 def _remember_endpoints(session: zenoh.Session, endpoints: list[str]) -> None:
     with _listening_lock:
-        _listening[str(session.zid())] = list(endpoints)
+        _listening[str(session.zid())] = (session, list(endpoints))
         while len(_listening) > _LISTENING_KEPT:
             del _listening[next(iter(_listening))]
 
@@ -372,7 +372,9 @@ def close_session(session: zenoh.Session) -> None:
     caller did with the session is done by then, so the failure is logged, not raised.
     """
     with _listening_lock:
-        _listening.pop(str(session.zid()), None)
+        for zid, (known, _) in list(_listening.items()):
+            if known is session:
+                del _listening[zid]
     try:
         session.close()
     except zenoh.ZError as exc:
@@ -423,7 +425,7 @@ def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[st
     with _listening_lock:
         known = _listening.get(zid)
     if known is not None:
-        return list(known)
+        return list(known[1])
     found: list[str] = []
     for reply in query(session, f"@/{zid}/**", timeout):
         if reply.ok is None:
