@@ -343,3 +343,22 @@ def test_fusion_refuses_optical_poses_stamped_far_ahead() -> None:
     live.on_optical(SimpleNamespace(t_ns=time.time_ns() + 86_400 * 10**9, position=np.zeros(3),
                                     quaternion=np.array([0, 0, 0, 1.0]), covariance=None))
     assert list(live.dropped) == ["optical pose stamped more than 10 s ahead of this host's clock"]
+
+
+def test_the_codec_refuses_a_covariance_that_is_not_positive_semi_definite() -> None:
+    """Symmetric with a non-negative diagonal was all the codec checked; a correlation above
+    1 (here 2) passed.  Both the diagonal fast path and the Cholesky fall-back hold."""
+    import numpy as np
+    import pytest
+
+    from schemas.codec import DecodeError, decode_measurement, encode_pose
+    bad = np.eye(6) * 1e-4
+    bad[0, 1] = bad[1, 0] = 2e-4  # |corr| = 2: eigenvalue -1e-4
+    with pytest.raises(DecodeError, match="not positive semi-definite .smallest eigenvalue"):
+        decode_measurement(encode_pose(1, [0, 0, 0], [0, 0, 0, 1], bad), "pose6d")
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(6, 6))
+    for good in (np.diag([1e-4] * 3 + [1e-6] * 3), a @ a.T, np.zeros((6, 6)),
+                 np.outer(a[0], a[0])):  # rank one: semi-definite, not definite
+        m = decode_measurement(encode_pose(1, [0, 0, 0], [0, 0, 0, 1], good), "pose6d")
+        assert np.allclose(m.covariance, good)
