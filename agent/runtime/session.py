@@ -233,19 +233,16 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
             session = zenoh.open(config)
         except zenoh.ZError as exc:
             error = _open_error(exc, mode, connect)
-            if chosen == wanted or attempts >= LISTEN_ATTEMPTS or not error.listen:
+            if chosen == wanted or attempts >= LISTEN_ATTEMPTS or not isinstance(
+                    error, _ListenError):
                 raise error from None
             continue
         _remember_endpoints(session, chosen)
         return session
 
 
-class _OpenError(UmaError):
-    """Why ``zenoh.open`` failed; ``listen``: a listener could not be created."""
-
-    def __init__(self, text: str, listen: bool = False) -> None:
-        super().__init__(text)
-        self.listen = listen
+class _ListenError(UmaError):
+    """A listener could not be created (its port may have been taken meanwhile)."""
 
 
 def _open_error(exc: zenoh.ZError, mode: str, connect: Sequence[str]) -> UmaError:
@@ -255,8 +252,8 @@ def _open_error(exc: zenoh.ZError, mode: str, connect: Sequence[str]) -> UmaErro
             f"cannot reach {', '.join(connect)} ({mode} mode): nothing answers there; "
             "is the agent/router running?")
     if "Can not create a new" in text or "listen" in text.lower():
-        return _OpenError(f"cannot listen: {text}", listen=True)
-    return _OpenError(f"cannot open Zenoh session: {text}")
+        return _ListenError(f"cannot listen: {text}")
+    return UmaError(f"cannot open Zenoh session: {text}")
 
 
 def _free_port(ep: str) -> str:
