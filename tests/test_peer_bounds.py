@@ -354,7 +354,7 @@ def test_the_codec_refuses_a_covariance_that_is_not_positive_semi_definite() -> 
     from schemas.codec import DecodeError, decode_measurement, encode_pose
     bad = np.eye(6) * 1e-4
     bad[0, 1] = bad[1, 0] = 2e-4  # |corr| = 2: eigenvalue -1e-4
-    with pytest.raises(DecodeError, match="not positive semi-definite .smallest eigenvalue"):
+    with pytest.raises(DecodeError, match=r"not positive semi-definite \(smallest eigenvalue"):
         decode_measurement(encode_pose(1, [0, 0, 0], [0, 0, 0, 1], bad), "pose6d")
     rng = np.random.default_rng(3)
     a = rng.normal(size=(6, 6))
@@ -362,3 +362,46 @@ def test_the_codec_refuses_a_covariance_that_is_not_positive_semi_definite() -> 
                  np.outer(a[0], a[0])):  # rank one: semi-definite, not definite
         m = decode_measurement(encode_pose(1, [0, 0, 0], [0, 0, 0, 1], good), "pose6d")
         assert np.allclose(m.covariance, good)
+
+
+def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monkeypatch,
+                                                                   caplog) -> None:
+    """A cache file holding JSON of another structure crashed with AttributeError; an
+    interrupted write left its ``*.tmp`` behind.  Both are handled now."""
+    import json
+
+    import pytest
+
+    import services.laser_camera
+    from services.fusion import evaluate
+    from services.laser_camera.calibration import FORMAT_VERSION, Calibration
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    made = []
+
+    def make(path):
+        made.append(path)
+        path.write_text(json.dumps({"made": True}))
+
+    def load(path):
+        if json.loads(path.read_text()) != {"made": True}:
+            Calibration.load(path)  # the real loader meets the wrong structure
+    pkgs = (services.laser_camera,)
+    target = evaluate.cached_file("t", pkgs, load, make)
+    for cameras in ([1], 1):  # AttributeError, TypeError from the loader before
+        target.write_text(json.dumps({"format": "uma-laser-camera-calibration",
+                                      "version": FORMAT_VERSION, "cameras": cameras}))
+        with caplog.at_level(logging.WARNING, logger="uma.eval"):
+            assert evaluate.cached_file("t", pkgs, load, make) == target
+        assert "'cameras' must be a list of maps" in caplog.records[-1].getMessage()
+    assert len(made) == 3
+    target.unlink()
+
+    def interrupted(path):
+        path.write_text("half")
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.cached_file("t", pkgs, load, interrupted)
+    orphan = target.with_suffix(".999999999.tmp")  # a writer killed mid-write
+    orphan.write_text("half")
+    evaluate.cached_file("t", pkgs, load, make)
+    assert sorted(p.name for p in target.parent.iterdir()) == [target.name]
