@@ -405,3 +405,31 @@ def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monk
     orphan.write_text("half")
     evaluate.cached_file("t", pkgs, load, make)
     assert sorted(p.name for p in target.parent.iterdir()) == [target.name]
+
+
+def test_an_exception_in_a_zenoh_callback_is_logged_rate_limited(capfd, caplog) -> None:
+    """zenoh-python prints a traceback ("callback error") per exception a callback raises;
+    uma's callbacks are guarded: 200 failing samples give one log line, no traceback."""
+    from agent.runtime.callbacks import guarded
+    from agent.runtime.session import close_session, open_session
+    session = open_session("peer", [], [])
+    seen: list[int] = []
+
+    def on_sample(sample) -> None:
+        seen.append(1)
+        raise KeyError(f"forged id {len(seen)}")
+    bad = RateLimitedLog(logging.getLogger("uma.test.callback"), interval=60)
+    try:
+        with caplog.at_level(logging.WARNING, logger="uma.test.callback"):
+            sub = session.declare_subscriber("uma/r/data/A/s/x",
+                                             guarded(on_sample, "data uma/r/data/A/s/x", bad))
+            for i in range(200):
+                session.put("uma/r/data/A/s/x", str(i))
+            assert _wait_for(lambda: len(seen) == 200)
+            sub.undeclare()
+    finally:
+        close_session(session)
+    assert "callback error" not in capfd.readouterr().err
+    assert len(caplog.records) == 1 and bad.seen == 200
+    line = caplog.records[0].getMessage()
+    assert "on_sample failed: KeyError: 'forged id 1' (at test_peer_bounds.py:" in line

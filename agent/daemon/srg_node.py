@@ -43,6 +43,7 @@ import zenoh
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.protocol import query as proto
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.srg import Graph
@@ -131,14 +132,17 @@ class SrgNode:
         self._decls = [
             # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
             # would cost as much as the network round trip)
-            session.declare_queryable(self._query_key,
-                                      zenoh.handlers.Callback(self._on_query, indirect=False)),
-            session.declare_queryable(self._summary_key, self._on_summary_query),
-            session.declare_subscriber(keys.all_agent_supernodes(realm), self._on_summary),
-            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
-                                                    self._on_agent_token, history=True),
+            session.declare_queryable(self._query_key, zenoh.handlers.Callback(
+                guarded(self._on_query, "query", self._bad), indirect=False)),
+            session.declare_queryable(self._summary_key, guarded(
+                self._on_summary_query, "supernode query", self._bad)),
+            session.declare_subscriber(keys.all_agent_supernodes(realm), guarded(
+                self._on_summary, "supernode", self._bad)),
+            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm), guarded(
+                self._on_agent_token, "agent token", self._bad), history=True),
         ]
-        session.get(keys.all_agent_supernodes(realm), self._on_summary_reply, timeout=2.0)
+        self._on_reply = guarded(self._on_summary_reply, "supernode reply", self._bad)
+        session.get(keys.all_agent_supernodes(realm), self._on_reply, timeout=2.0)
         self._worker = threading.Thread(target=self._work, name="uma-srg", daemon=True)
         self._worker.start()
         self._wake.set()
@@ -417,14 +421,14 @@ class SrgNode:
         if now < self._next_resync:
             return
         self._next_resync = now + RESYNC_S
-        self.session.get(keys.all_agent_supernodes(self.realm), self._on_summary_reply,
+        self.session.get(keys.all_agent_supernodes(self.realm), self._on_reply,
                          timeout=2.0)
 
     def _fetch_new(self) -> None:
         with self._lock:
             agents, self._to_fetch = self._to_fetch, set()
         for agent in sorted(agents):
-            self.session.get(keys.agent_supernode(self.realm, agent), self._on_summary_reply,
+            self.session.get(keys.agent_supernode(self.realm, agent), self._on_reply,
                              timeout=2.0)
 
     def _republish_if_changed(self) -> None:

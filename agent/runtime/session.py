@@ -57,9 +57,12 @@ import zenoh
 
 from agent.errors import UmaError
 from agent.protocol import keys
+from agent.runtime.callbacks import guarded
+from agent.runtime.logs import RateLimitedLog
 from schemas.codec import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES
 
 log = logging.getLogger("uma.session")
+_bad = RateLimitedLog(log)
 
 MODES = ("peer", "client", "router")
 #: environment variable: the Zenoh mode of services and clients that are not told one
@@ -408,8 +411,10 @@ def ask_all(session: zenoh.Session, selector: str, timeout: float,
         if reply.ok is not None:
             answers.append(reply.ok.payload.to_bytes())
     extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
-    session.get(selector, zenoh.handlers.Callback(on_reply, lambda: done(answers)),
-                timeout=timeout, **extra)
+    session.get(selector, zenoh.handlers.Callback(
+        guarded(on_reply, f"replies on {selector}", _bad),
+        lambda: guarded(done, f"replies on {selector}", _bad)(answers)),
+        timeout=timeout, **extra)
 
 
 def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[str]:

@@ -29,6 +29,7 @@ import zenoh
 
 from agent.errors import UmaError
 from agent.protocol.query import edge_from_wire
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.sdk.planner import Segment, SegmentError
@@ -140,9 +141,9 @@ class Subscription:
         for agent, key, _, _ in feeds:
             # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
             # composed and delivered on this subscription's own thread
-            self._decls.append(session.declare_subscriber(
-                key, zenoh.handlers.Callback(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
-                                             indirect=False)))
+            self._decls.append(session.declare_subscriber(key, zenoh.handlers.Callback(
+                guarded(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
+                        f"subscription {key}", self._bad), indirect=False)))
         if not feeds:  # all static: the one answer is the stream
             self._deliver(outcome.pose)
 

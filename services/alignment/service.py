@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
@@ -395,7 +396,8 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         svc.need("b", type="pose6d", edge=b_edge, on_sample=live.b.add)
         svc.start()
         key = recalibrate_key(svc.realm, svc.agent_id, svc.service_id)
-        queryable = svc.session.declare_queryable(key, lambda q: _answer_request(q, live, key))
+        queryable = svc.session.declare_queryable(key, guarded(
+            lambda q: _answer_request(q, live, key), f"alignment {key}", _bad))
         try:
             _serve(svc, live, stop)
         finally:
