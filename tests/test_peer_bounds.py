@@ -433,3 +433,31 @@ def test_an_exception_in_a_zenoh_callback_is_logged_rate_limited(capfd, caplog) 
     assert len(caplog.records) == 1 and bad.seen == 200
     line = caplog.records[0].getMessage()
     assert "on_sample failed: KeyError: 'forged id 1' (at test_peer_bounds.py:" in line
+
+
+def test_a_listener_whose_chosen_port_was_taken_is_opened_on_another(monkeypatch) -> None:
+    """With the admin space off, uma picks a ``:0`` listener's port itself; another process
+    may take it before Zenoh binds it: the session is opened again on a fresh port."""
+    import socket
+
+    from agent.runtime import session as sessions
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
+    real, calls = sessions._free_port, []
+
+    def first_taken(ep: str) -> str:
+        calls.append(ep)
+        return f"tcp/127.0.0.1:{port}" if len(calls) == 1 else real(ep)
+    monkeypatch.setattr(sessions, "_free_port", first_taken)
+    try:
+        s = sessions.open_session("peer", None, [])
+        try:
+            (ep,) = sessions.listening_endpoints(s)
+            assert len(calls) == 2 and ep.startswith("tcp/127.0.0.1:")
+            assert ep != f"tcp/127.0.0.1:{port}"
+        finally:
+            sessions.close_session(s)
+    finally:
+        taken.close()
