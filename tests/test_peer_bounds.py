@@ -60,7 +60,8 @@ def _rss_kib() -> int:
     raise AssertionError("no VmRSS in /proc/self/status")
 
 
-def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch) -> None:
+def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch,
+                                                                     caplog) -> None:
     """20,000 queries with distinct error texts kept 133 MB (plans and answers never
     evicted).  Both caches are least-recently-used with a count limit now; the test uses
     limits of 50 to stay fast, and checks memory does not grow with more queries."""
@@ -84,6 +85,9 @@ def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch
     assert plans_indexed == set(n.graph._plans), "the frame index holds exactly the cache"
     assert set().union(*n.graph._plans_by_edge.values()) == set(n.graph._plans)
     assert _rss_kib() - rss < 8 * 1024, "500 more queries must not grow the process"
+    said = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("query plans: 50 plans cached") for m in said), said
+    assert any(m.startswith("query cache: 50 answers cached") for m in said), said
 
 
 def test_the_most_recently_used_plan_survives_eviction() -> None:

@@ -289,7 +289,12 @@ class SrgNode:
             cached = None if req.details else self._cached_answer(key, req.t)
             if cached is not None:
                 return proto.segment_reply(cached)
+            evicted = self.graph.plans_evicted
             r = self.graph.pose(req.source, req.target, at=req.t, error=req.error)
+            if self.graph.plans_evicted > evicted:
+                self._bad.warning("query plans", f"{self.graph.max_plans} plans cached: "
+                                  "dropped the least recently used "
+                                  f"({self.graph.plans_evicted} so far)")
             t_used = r.t_ns if r.t_ns is not None else (
                 req.t if req.t is not None else self.now_ns())
             result = proto.result_to_wire(r, req.source, req.target, self.agent_id, t_used)
