@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import zenoh
 
-from schemas.codec import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES, DecodeError
-
-__all__ = ["MAX_IMAGE_BYTES", "MAX_MESSAGE_BYTES", "payload_bytes"]
+from schemas.codec import MAX_MESSAGE_BYTES, DecodeError
 
 
 def payload_bytes(payload: zenoh.ZBytes | None, limit: int = MAX_MESSAGE_BYTES) -> bytes:

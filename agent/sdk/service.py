@@ -60,7 +60,7 @@ from agent.protocol.registration import (
     register_request,
 )
 from agent.runtime.logs import RateLimitedLog
-from agent.runtime.payload import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES, payload_bytes
+from agent.runtime.payload import payload_bytes
 from agent.runtime.session import (
     UnreachableEndpointError,
     acquire_session,
@@ -69,6 +69,8 @@ from agent.runtime.session import (
 )
 from agent.runtime.worker import Worker
 from schemas.codec import (
+    MAX_IMAGE_BYTES,
+    MAX_MESSAGE_BYTES,
     DecodeError,
     Measurement,
     decode_measurement,
