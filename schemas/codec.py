@@ -25,7 +25,8 @@ every type              ``v``: 1, ``k``: type, ``t``: int ns since the epoch (0 
 ======================  ==================================================================
 
 Quaternions within ``QUAT_NORM_TOL`` of unit norm are normalised; farther off is an error,
-not a repair.  Covariances must be symmetric with a non-negative diagonal.  Messages are
+not a repair.  Covariances must be symmetric with a non-negative diagonal, and a received
+one positive semi-definite (checked once, at decode: one 6x6 Cholesky).  Messages are
 limited to ``MAX_MESSAGE_BYTES`` (images: ``MAX_IMAGE_BYTES``).
 """
 
@@ -34,6 +35,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from operator import itemgetter
 from typing import Any
 
 import msgpack
@@ -77,6 +79,13 @@ _FULL = {6: _full_index(6), 3: _full_index(3)}
 #: Positions of the diagonal among the packed upper triangle.
 _DIAG = {dim: tuple(int(_FULL[dim][i, i]) for i in range(dim)) for dim in (6, 3)}
 _T_MAX = 1 << 63
+#: a covariance may have eigenvalues down to -PSD_TOL x its largest entry (rounding)
+PSD_TOL = 1e-9
+_EYE = {6: np.eye(6), 3: np.eye(3)}
+#: per row of a packed covariance: the position of its variance, a getter of its covariances
+_ROWS = {dim: [(int(_FULL[dim][i, i]),
+                itemgetter(*(int(_FULL[dim][i, j]) for j in range(dim) if j != i)))
+               for i in range(dim)] for dim in (6, 3)}
 
 
 class DecodeError(ValueError):
@@ -353,7 +362,31 @@ def _cov_in(obj: dict[str, Any], dim: int, kind: str) -> np.ndarray | None:
     values = _floats_in(obj, "c", dim * (dim + 1) // 2, kind)
     if min(values[i] for i in _DIAG[dim]) < 0:
         raise DecodeError(f"{kind} field 'c': negative variance on the diagonal")
-    return np.array(values, dtype=float)[_FULL[dim]]
+    cov = np.array(values, dtype=float)[_FULL[dim]]
+    _check_psd(values, cov, kind)
+    return cov
+
+
+def _check_psd(values: list[float], cov: np.ndarray, kind: str) -> None:
+    """Refuse a covariance that is not positive semi-definite (within ``PSD_TOL`` of its
+    largest entry, the tolerance of ``agent.srg.geometry.check_covariance``).
+
+    Cheap first: a diagonally dominant matrix (each variance at least the sum of its row's
+    absolute covariances) is positive semi-definite by Gershgorin's theorem, checked in
+    plain Python on the packed values; only others pay one Cholesky factorisation of
+    ``cov + tol I`` (LAPACK's ``dpotrf`` called directly: a third of the cost of
+    ``numpy.linalg.cholesky`` on a 6x6), which exists exactly when the smallest eigenvalue
+    is above ``-tol``; the eigenvalues are computed only to say why one is refused.
+    """
+    tol = PSD_TOL * max(1.0, max(values), -min(values))
+    if all(values[d] + tol >= sum(map(abs, off(values))) for d, off in _ROWS[len(cov)]):
+        return
+    from scipy.linalg.lapack import dpotrf  # here: most processes never get this far
+
+    if dpotrf(cov + tol * _EYE[len(cov)], overwrite_a=True)[1] != 0:
+        smallest = float(np.linalg.eigvalsh(cov)[0])
+        raise DecodeError(f"{kind} field 'c': covariance not positive semi-definite "
+                          f"(smallest eigenvalue {smallest:.3g})")
 
 
 def _dec_pose6d(obj: dict[str, Any], m: Measurement) -> None:

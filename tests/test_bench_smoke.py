@@ -64,6 +64,12 @@ BENCHES = {
         (("update_us",), ("median_us", "p99_us")),
         (("baseline_solve_only_us",), ("median_us", "p99_us")),
     ]),
+    "bench_peer_checks.py": (["--iterations", "2", "--forged", "1"], [
+        (("decode_diagonal",), ("median_us", "p99_us")),
+        (("decode_correlated", "anchor_unchecked"), ("median_us", "p99_us")),
+        (("plan", "plan_bounded"), ("median_ms", "p99_ms")),
+        (("plan", "anchor_unbounded"), ("median_ms", "p99_ms")),
+    ]),
     "bench_matching.py": (["--abilities", "50", "--needs", "10", "--repeat", "3"], [
         ((), ("index_build_median_ms",
               "match_all_cold_median_ms", "match_all_cold_p99_ms",

@@ -17,7 +17,12 @@ import sys
 
 from agent.cli.main import stop_on_signals
 from agent.runtime.ready import notify
-from agent.runtime.session import DEFAULT_ROUTER_LISTEN, listening_endpoints, open_session
+from agent.runtime.session import (
+    DEFAULT_ROUTER_LISTEN,
+    close_session,
+    listening_endpoints,
+    open_session,
+)
 
 log = logging.getLogger("uma.router")
 
@@ -39,5 +44,5 @@ def main(args: argparse.Namespace) -> int:
             pass
     finally:
         notify(STOPPING="1")
-        session.close()
+        close_session(session)
     return 0

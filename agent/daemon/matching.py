@@ -28,12 +28,19 @@ Speed: needs are compiled once (``Requirement``) and ``OfferIndex`` keeps, per d
 (type, edge patterns), the abilities that fit, updated incrementally as abilities come and
 go; a match then costs one compiled predicate and preference call per fitting ability.
 ``bench/bench_matching.py`` measures it.
+
+Bounds (issue 22): abilities come from any peer of the realm, so the index keeps at most
+``MAX_CANDIDATES`` fitting abilities per pattern (the first that came; later ones are
+refused and counted in ``refused`` and reported through ``on_refused``; a removal lets the
+pattern be searched again) and at most ``MAX_PATTERNS`` patterns (least recently used
+forgotten first, recomputed when asked again).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Iterable, Mapping
+from collections import OrderedDict
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -44,6 +51,10 @@ Values = Mapping[str, float]
 #: Measured attributes and the advertised attribute each one overrides.
 MEASURED_OVERRIDES = {"measured_frequency_hz": "frequency_hz",
                       "measured_latency_s": "latency_s"}
+#: abilities kept per need pattern, and need patterns kept (module docstring)
+MAX_CANDIDATES = 1024
+MAX_PATTERNS = 1024
+Pattern = tuple[str, str, str]  # (type, parent pattern, child pattern)
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,13 +133,21 @@ class OfferIndex:
 
     ``candidates(need)`` (type + edge patterns) is computed once per distinct pattern and then
     kept up to date by ``add``/``remove``, so a re-match after one ability changed tests the
-    edge patterns of that ability only.
+    edge patterns of that ability only.  ``on_refused(pattern, key, refused)`` is told of
+    each ability a full pattern refuses (module docstring, "Bounds").
     """
 
-    def __init__(self, offers: Iterable[Offer] = ()) -> None:
+    def __init__(self, offers: Iterable[Offer] = (), *, max_candidates: int = MAX_CANDIDATES,
+                 max_patterns: int = MAX_PATTERNS,
+                 on_refused: Callable[[Pattern, str, int], None] | None = None) -> None:
         self.by_key: dict[str, Offer] = {}
         self.by_type: dict[str, dict[str, Offer]] = {}
-        self._candidates: dict[tuple[str, str, str], dict[str, Offer]] = {}
+        self.max_candidates, self.max_patterns = max_candidates, max_patterns
+        self.on_refused = on_refused
+        #: abilities a full pattern refused (each time the pattern was searched)
+        self.refused = 0
+        self._candidates: OrderedDict[Pattern, dict[str, Offer]] = OrderedDict()
+        self._full: set[Pattern] = set()  # patterns that refused an ability
         for o in offers:
             self.add(o)
 
@@ -137,18 +156,20 @@ class OfferIndex:
         self.remove(offer.key)
         self.by_key[offer.key] = offer
         self.by_type.setdefault(offer.type, {})[offer.key] = offer
-        for (type_, parent, child), found in self._candidates.items():
-            if type_ == offer.type and _fits(parent, child, offer):
-                found[offer.key] = offer
+        for pattern, found in self._candidates.items():
+            if pattern[0] == offer.type and _fits(pattern[1], pattern[2], offer):
+                self._admit(pattern, found, offer)
 
     def remove(self, key: str) -> None:
         old = self.by_key.pop(key, None)
         if old is None:
             return
         del self.by_type[old.type][key]
-        for (type_, _, _), found in self._candidates.items():
-            if type_ == old.type:
-                found.pop(key, None)
+        for pattern, found in list(self._candidates.items()):
+            if pattern[0] == old.type and found.pop(key, None) is not None and (
+                    pattern in self._full):
+                del self._candidates[pattern]  # room again: search anew when asked
+                self._full.discard(pattern)
 
     def __len__(self) -> int:
         return len(self.by_key)
@@ -157,11 +178,26 @@ class OfferIndex:
         """Offers of the need's type whose edge (or key) fits its patterns."""
         pattern = (need.type, need.edge[0], need.edge[1])
         found = self._candidates.get(pattern)
-        if found is None:
-            found = {o.key: o for o in self.by_type.get(need.type, {}).values()
-                     if _fits(need.edge[0], need.edge[1], o)}
-            self._candidates[pattern] = found
+        if found is not None:
+            self._candidates.move_to_end(pattern)
+            return found.values()
+        found = self._candidates[pattern] = {}
+        for o in self.by_type.get(need.type, {}).values():
+            if _fits(need.edge[0], need.edge[1], o):
+                self._admit(pattern, found, o)
+        if len(self._candidates) > self.max_patterns:
+            oldest, _ = self._candidates.popitem(last=False)
+            self._full.discard(oldest)
         return found.values()
+
+    def _admit(self, pattern: Pattern, found: dict[str, Offer], offer: Offer) -> None:
+        if len(found) < self.max_candidates:
+            found[offer.key] = offer
+            return
+        self.refused += 1
+        self._full.add(pattern)
+        if self.on_refused is not None:
+            self.on_refused(pattern, offer.key, self.refused)
 
 
 @lru_cache(maxsize=65536)

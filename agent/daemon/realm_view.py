@@ -9,13 +9,14 @@ and latencies measured here.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from agent.daemon.matching import Choice, Offer, OfferIndex, Requirement
+from agent.daemon.matching import Choice, Offer, OfferIndex, Pattern, Requirement
 from agent.protocol import keys
 from agent.protocol.registration import (
     PENDING_TIMEOUT_S,
@@ -23,12 +24,15 @@ from agent.protocol.registration import (
     Snapshot,
     snapshot_message,
 )
+from agent.runtime.logs import RateLimitedLog
 from schemas.codec import encode_descriptor
 from schemas.models import AgentInfo, ServiceDescriptor
 
 #: how far ahead of the applied revision a published snapshot may be before it is confirmed
 #: with the agent (an agent publishes one revision per change of its services)
 MAX_REVISION_JUMP = 10_000
+
+_bad = RateLimitedLog(logging.getLogger("uma.agent"))
 
 
 @dataclass
@@ -58,13 +62,18 @@ class RealmView:
     def __init__(self, realm: str, agent_id: str) -> None:
         self.realm = realm
         self.agent_id = agent_id
-        self.index = OfferIndex()
+        self.index = OfferIndex(on_refused=self._candidate_refused)
         self.local: dict[str, LocalService] = {}
         self.remote: dict[str, Snapshot] = {}
         self.live_agents: set[str] = set()
         self.live_services: set[tuple[str, str]] = set()
         self._offered: dict[tuple[str, str], dict[str, Offer]] = {}
         self._requirements: list[Requirement] | None = None
+
+    def _candidate_refused(self, pattern: Pattern, key: str, refused: int) -> None:
+        _bad.warning(f"agent {self.agent_id} need pattern {pattern[1]} -> {pattern[2]}",
+                     f"more than {self.index.max_candidates} {pattern[0]} abilities fit: "
+                     f"{key} refused ({refused} refused so far)")
 
     # -- queries
     def descriptor(self, agent_id: str, service_id: str) -> ServiceDescriptor | None:

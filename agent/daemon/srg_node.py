@@ -34,6 +34,7 @@ import logging
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -43,7 +44,9 @@ from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.protocol import query as proto
 from agent.protocol.sequence import too_far_ahead
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.srg import Graph
 from agent.srg.supernode import summarize
 from schemas.codec import (
@@ -61,6 +64,13 @@ CONFIG_SOURCE = "config"
 PUBLISH_CHECK_S = 0.05
 #: how often every agent is asked for its summary again (see ``_resync_if_due``)
 RESYNC_S = 2.0
+#: answers cached (least recently used dropped first): a query names its own error
+#: expression, so distinct expressions from a peer must not grow the cache (issue 22)
+MAX_ANSWERS = 1024
+#: other agents whose frames are remembered, and frames remembered per agent: summaries
+#: arrive from any peer, so what they make this agent hold is bounded
+MAX_REMOTE_AGENTS = 1024
+MAX_REMOTE_FRAMES = 4096
 #: edge attributes an ability may carry that the SRG uses
 _SRG_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost")
@@ -99,10 +109,14 @@ class SrgNode:
         #: wire answers by (source, target, error) with the graph version and sample count
         #: they were computed at (see ``_cached_answer``); the count is None for an
         #: all-static path, whose answer holds at every time
-        self._answers: dict[tuple[str, str, str], tuple[int, int | None, dict[str, Any]]] = {}
+        self._answers: OrderedDict[tuple[str, str, str],
+                                   tuple[int, int | None, dict[str, Any]]] = OrderedDict()
         self._remote_frames: dict[str, set[str]] = {}
         #: local samples refused: stamped too far ahead of this host's clock
         self.refused = 0
+        #: what the bounds above refused or dropped: answers evicted, summaries refused
+        self.answers_evicted = 0
+        self.summaries_refused = 0
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
         self._boundary: set[str] = set()
         self._published: tuple[int, frozenset[str]] | None = None
@@ -121,14 +135,17 @@ class SrgNode:
         self._decls = [
             # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
             # would cost as much as the network round trip)
-            session.declare_queryable(self._query_key,
-                                      zenoh.handlers.Callback(self._on_query, indirect=False)),
-            session.declare_queryable(self._summary_key, self._on_summary_query),
-            session.declare_subscriber(keys.all_agent_supernodes(realm), self._on_summary),
-            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm),
-                                                    self._on_agent_token, history=True),
+            session.declare_queryable(self._query_key, zenoh.handlers.Callback(
+                guarded(self._on_query, "query", self._bad), indirect=False)),
+            session.declare_queryable(self._summary_key, guarded(
+                self._on_summary_query, "supernode query", self._bad)),
+            session.declare_subscriber(keys.all_agent_supernodes(realm), guarded(
+                self._on_summary, "supernode", self._bad)),
+            session.liveliness().declare_subscriber(keys.all_agent_tokens(realm), guarded(
+                self._on_agent_token, "agent token", self._bad), history=True),
         ]
-        session.get(keys.all_agent_supernodes(realm), self._on_summary_reply, timeout=2.0)
+        self._on_reply = guarded(self._on_summary_reply, "supernode reply", self._bad)
+        session.get(keys.all_agent_supernodes(realm), self._on_reply, timeout=2.0)
         self._worker = threading.Thread(target=self._work, name="uma-srg", daemon=True)
         self._worker.start()
         self._wake.set()
@@ -250,9 +267,7 @@ class SrgNode:
     def _on_query(self, query: zenoh.Query) -> None:
         t2 = self.now_ns()
         try:
-            payload = query.payload
-            reply = self.handle(proto.decode_request(
-                payload.to_bytes() if payload is not None else b""))
+            reply = self.handle(proto.decode_request(payload_bytes(query.payload)))
             if reply is None:
                 return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
@@ -281,17 +296,33 @@ class SrgNode:
             cached = None if req.details else self._cached_answer(key, req.t)
             if cached is not None:
                 return proto.segment_reply(cached)
+            evicted = self.graph.plans_evicted
             r = self.graph.pose(req.source, req.target, at=req.t, error=req.error)
+            if self.graph.plans_evicted > evicted:
+                self._bad.warning("query plans", f"{self.graph.max_plans} plans cached: "
+                                  "dropped the least recently used "
+                                  f"({self.graph.plans_evicted} so far)")
             t_used = r.t_ns if r.t_ns is not None else (
                 req.t if req.t is not None else self.now_ns())
             result = proto.result_to_wire(r, req.source, req.target, self.agent_id, t_used)
             if req.details:
                 return proto.segment_reply(result, [self._edge_details(e) for e in r.edges])
             if result["attributes"].get("static"):
-                self._answers[key] = (self.graph.version, None, result)
+                self._remember(key, (self.graph.version, None, result))
             elif req.t is None:
-                self._answers[key] = (self.graph.version, self.graph.samples, result)
+                self._remember(key, (self.graph.version, self.graph.samples, result))
         return proto.segment_reply(result)
+
+    def _remember(self, key: tuple[str, str, str],
+                  answer: tuple[int, int | None, dict[str, Any]]) -> None:
+        """Cache an answer, dropping the least recently used beyond ``MAX_ANSWERS``."""
+        self._answers[key] = answer
+        self._answers.move_to_end(key)
+        if len(self._answers) > MAX_ANSWERS:
+            self._answers.popitem(last=False)
+            self.answers_evicted += 1
+            self._bad.warning("query cache", f"{MAX_ANSWERS} answers cached: dropped the least "
+                              f"recently used ({self.answers_evicted} so far)")
 
     def _cached_answer(self, key: tuple[str, str, str], t: int | None,
                        ) -> dict[str, Any] | None:
@@ -306,6 +337,7 @@ class SrgNode:
         hit = self._answers.get(key)
         if hit is None or hit[0] != self.graph.version:
             return None
+        self._answers.move_to_end(key)
         _, samples, result = hit
         if samples is None:
             return proto.at_time(result, t if t is not None else self.now_ns())
@@ -325,15 +357,16 @@ class SrgNode:
             self._bad.warning("supernode reply", str(exc))
 
     def _on_summary(self, sample: zenoh.Sample) -> None:
-        self._learn(str(sample.key_expr), sample.payload.to_bytes())
+        self._learn(str(sample.key_expr), sample.payload)
 
     def _on_summary_reply(self, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
-            self._learn(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+            self._learn(str(reply.ok.key_expr), reply.ok.payload)
 
-    def _learn(self, key: str, data: bytes) -> None:
+    def _learn(self, key: str, payload: zenoh.ZBytes | bytes) -> None:
         """Record the frames another agent knows (they decide our boundary)."""
         try:
+            data = payload if isinstance(payload, bytes) else payload_bytes(payload)
             msg = decode_message(data, required=("agent", "frames"))
             agent, frames = msg["agent"], msg["frames"]
             if not isinstance(agent, str) or not isinstance(frames, list) or not all(
@@ -347,8 +380,24 @@ class SrgNode:
         if agent == self.agent_id:
             return
         with self._lock:
-            self._remote_frames[agent] = set(frames)
+            refused = self._refusal(agent, frames)
+            if refused is None:
+                self._remote_frames[agent] = set(frames)
+        if refused is not None:
+            self.summaries_refused += 1
+            self._bad.warning(f"supernode {key}", f"summary refused: {refused} "
+                              f"({self.summaries_refused} refused so far)")
+            return
         self._wake.set()
+
+    def _refusal(self, agent: str, frames: list[str]) -> str | None:
+        """Why a summary would exceed what this node keeps of other agents, or None.  Lock
+        held."""
+        if len(frames) > MAX_REMOTE_FRAMES:
+            return f"{len(frames)} frames, more than {MAX_REMOTE_FRAMES}"
+        if agent not in self._remote_frames and len(self._remote_frames) >= MAX_REMOTE_AGENTS:
+            return f"frames of {MAX_REMOTE_AGENTS} agents kept already"
+        return None
 
     def _on_agent_token(self, sample: zenoh.Sample) -> None:
         """An agent appeared (fetch its summary: it may have published before we were
@@ -386,14 +435,14 @@ class SrgNode:
         if now < self._next_resync:
             return
         self._next_resync = now + RESYNC_S
-        self.session.get(keys.all_agent_supernodes(self.realm), self._on_summary_reply,
+        self.session.get(keys.all_agent_supernodes(self.realm), self._on_reply,
                          timeout=2.0)
 
     def _fetch_new(self) -> None:
         with self._lock:
             agents, self._to_fetch = self._to_fetch, set()
         for agent in sorted(agents):
-            self.session.get(keys.agent_supernode(self.realm, agent), self._on_summary_reply,
+            self.session.get(keys.agent_supernode(self.realm, agent), self._on_reply,
                              timeout=2.0)
 
     def _republish_if_changed(self) -> None:

@@ -27,6 +27,7 @@ from typing import Any
 
 import zenoh
 
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 
 log = logging.getLogger("uma.agent")
@@ -73,8 +74,9 @@ class StreamHub:
                 if self._is_local(key):
                     self._declare_local()
                 else:
-                    entry.subscriber = self._session.declare_subscriber(
-                        key, lambda sample: self._dispatch(key, entry, sample))
+                    entry.subscriber = self._session.declare_subscriber(key, guarded(
+                        lambda sample: self._dispatch(key, entry, sample), f"data {key}",
+                        self._bad))
             entry.listeners = (*entry.listeners, listener)
         return lambda: self._stop_listening(key, entry, listener)
 
@@ -84,8 +86,8 @@ class StreamHub:
     def _declare_local(self) -> None:
         if self._local_subscriber is None:
             assert self._session is not None and self._local is not None
-            self._local_subscriber = self._session.declare_subscriber(self._local,
-                                                                      self._dispatch_local)
+            self._local_subscriber = self._session.declare_subscriber(self._local, guarded(
+                self._dispatch_local, f"data {self._local}", self._bad))
 
     def _dispatch_local(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

@@ -28,6 +28,14 @@ behave alike (each choice measured with eclipse-zenoh 1.10 on loopback):
   ``UMA_ZENOH_CONFIG`` for every process of a host) is the base that these settings are
   applied on top of: how a secured site adds TLS, certificates and access control
   (``uma deploy config``, ``docs/SECURITY.md``).
+- **receive limit 33 MiB** (``transport/link/rx/max_message_size``, Zenoh's default 1 GiB):
+  the largest message uma accepts is an image of 32 MiB (``schemas.codec.MAX_IMAGE_BYTES``,
+  every other message 1 MiB), so a peer cannot make Zenoh reassemble more than that per
+  message for us to copy and refuse (issue 22).  A base configuration may set it lower.
+- **admin space off** (``adminspace/enabled``): it let any peer read every session's
+  configuration, links and locators under ``@/**``.  Only a base configuration
+  (``uma router --config``) can turn it on.  The real port of a ``:0`` listener is
+  therefore chosen before opening (:func:`listening_endpoints`).
 - **closing never raises**: a session that cannot close in time (a starved host) is logged
   and left to the process's exit, so a ``with`` block or a command's result is never lost
   to a close error.
@@ -53,8 +61,12 @@ import zenoh
 
 from agent.errors import UmaError
 from agent.protocol import keys
+from agent.runtime.callbacks import guarded
+from agent.runtime.logs import RateLimitedLog
+from schemas.codec import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES
 
 log = logging.getLogger("uma.session")
+_bad = RateLimitedLog(log)
 
 MODES = ("peer", "client", "router")
 #: environment variable: the Zenoh mode of services and clients that are not told one
@@ -68,6 +80,10 @@ DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
 RETRY_INIT_MS, RETRY_MAX_MS = 250, 1000
 #: how long a ``require_connection`` open waits for its connect endpoints
 CONNECT_TIMEOUT_MS = 2000
+#: the largest message Zenoh reassembles for a uma process: uma's largest (an image) + 1 MiB
+MAX_RECEIVE_BYTES = MAX_IMAGE_BYTES + MAX_MESSAGE_BYTES
+#: a ``:0`` listener whose chosen port was taken meanwhile is opened again this often
+LISTEN_ATTEMPTS = 3
 
 _PROTOCOLS_WITH_PORT = {"tcp", "udp", "tls", "quic", "ws"}
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
@@ -122,7 +138,7 @@ def lease_ms_default() -> int:
 
 def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
                  connect: Iterable[str] = (), *, lease_ms: int | None = None,
-                 require_connection: bool = False, adminspace: bool = True,
+                 require_connection: bool = False,
                  base_file: str | None = None) -> zenoh.Config:
     """The Zenoh configuration of a uma process (see the module docstring for each choice).
 
@@ -153,8 +169,10 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
     # re-dial a lost endpoint (agent restarted) within 1 s rather than Zenoh's 4 s
     _insert(c, "connect/retry", {"period_init_ms": RETRY_INIT_MS, "period_max_ms": RETRY_MAX_MS,
                                  "period_increase_factor": 2})
-    # adminspace lets this process read back the port it really listens on (listen :0)
-    _insert(c, "adminspace/enabled", adminspace)
+    _insert(c, "transport/link/rx/max_message_size",
+            min(MAX_RECEIVE_BYTES, _configured_int(c, "transport/link/rx/max_message_size")))
+    if base_file is None:  # a base configuration decides on its admin space; we do not
+        _insert(c, "adminspace/enabled", False)
     if require_connection and connect and mode == "peer":
         _insert(c, "connect/exit_on_failure", True)
         _insert(c, "connect/timeout_ms", CONNECT_TIMEOUT_MS)
@@ -191,6 +209,12 @@ def _configured_listen(c: zenoh.Config, mode: str) -> list[str] | None:
     return [str(x) for x in found] if isinstance(found, list) and found else None
 
 
+def _configured_int(c: zenoh.Config, key: str) -> int:
+    """An integer setting of a configuration (Zenoh's default when it is not set)."""
+    value = json.loads(c.get_json(key) or "null")
+    return int(value) if isinstance(value, int) else MAX_RECEIVE_BYTES
+
+
 def _insert(c: zenoh.Config, key: str, value: object) -> None:
     try:
         c.insert_json5(key, json.dumps(value))
@@ -213,6 +237,8 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     ``realm`` is only validated here (uma keys carry it; see :mod:`agent.protocol.keys`), so a bad
     realm fails before any network activity.  ``require_connection`` makes a peer fail
     when none of its ``connect`` endpoints answers within 2 s (a client always does).
+    A ``tcp/HOST:0`` listener gets a free port chosen here (the admin space that would tell
+    Zenoh's choice is off), opened again with another if it was taken meanwhile.
     """
     if realm is not None:
         keys.check_name("realm", realm)
@@ -220,17 +246,68 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     base_file = zenoh_config_file(base_file)
     config = build_config(mode, listen, connect, lease_ms=lease_ms,
                           require_connection=require_connection, base_file=base_file)
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as exc:
-        text = _short(exc)
-        if "Unable to connect" in text:
-            raise UnreachableEndpointError(
-                f"cannot reach {', '.join(connect)} ({mode} mode): nothing answers there; "
-                f"is the agent/router running?{_tls_hint(connect, base_file)}") from None
-        if "Can not create a new" in text or "listen" in text.lower():
-            raise UmaError(f"cannot listen: {text}") from None
-        raise UmaError(f"cannot open Zenoh session: {text}") from None
+    wanted = json.loads(config.get_json("listen/endpoints") or "[]")
+    attempts = 0
+    while True:  # bounded: LISTEN_ATTEMPTS
+        attempts += 1
+        chosen = [_free_port(str(ep)) for ep in wanted] if isinstance(wanted, list) else []
+        if chosen != wanted:
+            _insert(config, "listen/endpoints", chosen)
+        try:
+            session = zenoh.open(config)
+        except zenoh.ZError as exc:
+            error = _open_error(exc, mode, connect, base_file)
+            if chosen == wanted or attempts >= LISTEN_ATTEMPTS or not isinstance(
+                    error, _ListenError):
+                raise error from None
+            continue
+        _remember_endpoints(session, chosen)
+        return session
+
+
+class _ListenError(UmaError):
+    """A listener could not be created (its port may have been taken meanwhile)."""
+
+
+def _open_error(exc: zenoh.ZError, mode: str, connect: Sequence[str],
+                base_file: str | None) -> UmaError:
+    text = _short(exc)
+    if "Unable to connect" in text:
+        return UnreachableEndpointError(
+            f"cannot reach {', '.join(connect)} ({mode} mode): nothing answers there; "
+            f"is the agent/router running?{_tls_hint(connect, base_file)}")
+    if "Can not create a new" in text or "listen" in text.lower():
+        return _ListenError(f"cannot listen: {text}")
+    return UmaError(f"cannot open Zenoh session: {text}")
+
+
+def _free_port(ep: str) -> str:
+    """``ep`` with a free port in place of ``:0`` (TCP only; others are returned as they
+    are): the kernel picks it for a socket bound and closed at once."""
+    m = _ENDPOINT.match(ep)
+    hp = _HOST_PORT.match(m["addr"]) if m and m["proto"] == "tcp" else None
+    if hp is None or hp["port"] != "0":
+        return ep
+    host = hp["host"].strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        port = sock.getsockname()[1]
+    return f"tcp/{hp['host']}:{port}{m['rest'] or ''}"
+
+
+#: the endpoints each open session listens on, by Zenoh id (see ``listening_endpoints``)
+_listening: dict[str, tuple[zenoh.Session, list[str]]] = {}
+#: sessions whose endpoints are remembered at most (the oldest are forgotten first)
+_LISTENING_KEPT = 256
+_listening_lock = threading.Lock()  # not _shared_lock: _acquire opens sessions under it
+
+
+def _remember_endpoints(session: zenoh.Session, endpoints: list[str]) -> None:
+    with _listening_lock:
+        _listening[str(session.zid())] = (session, list(endpoints))
+        while len(_listening) > _LISTENING_KEPT:
+            del _listening[next(iter(_listening))]
 
 
 def _tls_hint(connect: Sequence[str], base_file: str | None) -> str:
@@ -332,6 +409,10 @@ def close_session(session: zenoh.Session) -> None:
     Zenoh's close times out on a CPU-starved host ("close operation timed out!"); what the
     caller did with the session is done by then, so the failure is logged, not raised.
     """
+    with _listening_lock:
+        for zid, (known, _) in list(_listening.items()):
+            if known is session:
+                del _listening[zid]
     try:
         session.close()
     except zenoh.ZError as exc:
@@ -368,17 +449,23 @@ def ask_all(session: zenoh.Session, selector: str, timeout: float,
         if reply.ok is not None:
             answers.append(reply.ok.payload.to_bytes())
     extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
-    session.get(selector, zenoh.handlers.Callback(on_reply, lambda: done(answers)),
-                timeout=timeout, **extra)
+    session.get(selector, zenoh.handlers.Callback(
+        guarded(on_reply, f"replies on {selector}", _bad),
+        lambda: guarded(done, f"replies on {selector}", _bad)(answers)),
+        timeout=timeout, **extra)
 
 
 def listening_endpoints(session: zenoh.Session, timeout: float = 1.0) -> list[str]:
     """The endpoints this session really listens on (``:0`` resolved to the real port).
 
-    Read from the session's own admin space, so a hosted service or a test can connect to
-    an agent that was told to listen on an ephemeral port.
+    Those :func:`open_session` chose; for a session opened otherwise, what its own admin
+    space says (empty when the admin space is off).
     """
     zid = str(session.zid())
+    with _listening_lock:
+        known = _listening.get(zid)
+    if known is not None:
+        return list(known[1])
     found: list[str] = []
     for reply in query(session, f"@/{zid}/**", timeout):
         if reply.ok is None:

@@ -8,10 +8,17 @@ calls it runs ``tick`` every ``tick_s`` (time-driven work: retries, measurements
 re-sends) and then each ``settle`` callable (work a batch may have made due, done once per
 batch rather than once per call, e.g. a re-match).  A call that raises is logged and the
 worker goes on: one bug or one Zenoh error must not stop the component.
+
+The queue holds at most ``MAX_QUEUED`` calls: callbacks are driven by what peers send, and
+a peer flooding an agent or a service (forged control, tokens, snapshots) must not grow it
+without bound.  A call that does not fit is refused, counted (``refused``) and said in a
+rate-limited line; the components repair what a lost call missed by their periodic
+re-sends and resyncs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -25,24 +32,36 @@ from agent.runtime.logs import RateLimitedLog
 
 #: calls run per batch at most before ``tick`` and ``settle`` get their turn
 BATCH = 1000
+#: calls waiting at most (about 10 s of a busy agent's callbacks)
+MAX_QUEUED = 10_000
 
 
 class Worker:
     """The thread that runs a component's calls, ticks and settles (module docstring)."""
 
     def __init__(self, name: str, owner: str, log: logging.Logger, tick: Callable[[], None],
-                 tick_s: float, settle: Sequence[Callable[[], None]] = ()) -> None:
+                 tick_s: float, settle: Sequence[Callable[[], None]] = (),
+                 max_queued: int = MAX_QUEUED) -> None:
         self.owner = owner  # who, in log lines ("agent A", "service S")
         self._log = log
         self._bad = RateLimitedLog(log)
         self._tick, self._tick_s, self._settle = tick, tick_s, tuple(settle)
-        self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = queue.Queue()
+        self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = queue.Queue(
+            max_queued)
+        #: calls refused because the queue was full
+        self.refused = 0
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def put(self, fn: Callable[..., None], *args: Any) -> None:
-        """Have the worker call ``fn(*args)`` (from any thread)."""
-        self._q.put((fn, args))
+        """Have the worker call ``fn(*args)`` (from any thread, never blocking); refused
+        and counted when ``max_queued`` calls wait already."""
+        try:
+            self._q.put_nowait((fn, args))
+        except queue.Full:
+            self.refused += 1
+            self._bad.warning(self.owner, f"work queue full ({self._q.maxsize} calls): "
+                              f"{_name(fn)} refused ({self.refused} refused so far)")
 
     def start(self) -> None:
         self._thread.start()
@@ -53,7 +72,8 @@ class Worker:
     def stop(self, timeout: float) -> None:
         """Stop after the current call; wait for it up to ``timeout`` s (not from itself)."""
         self._stopping.set()
-        self._q.put(None)
+        with contextlib.suppress(queue.Full):  # a full queue wakes the worker anyway
+            self._q.put_nowait(None)
         self.join(timeout)
 
     def join(self, timeout: float) -> None:

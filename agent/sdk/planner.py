@@ -13,10 +13,18 @@ consecutive links of one agent into a single *segment*, and leaves it to the cal
 
 Routes through agents that have left the realm are never tried; when only such routes
 exist, :class:`RouteError` names the segments and agents that are missing.
+
+Work per plan is bounded (issue 22: forged summaries with 801 links made a plan take
+0.5–0.8 s): at most ``MAX_LINKS_PER_AGENT`` links of one agent and ``MAX_PLAN_LINKS`` in
+all are considered, taken agent by agent outward from the agents that hold the source or
+the target frame (nearest first; in one layer, the agents with the fewest links first).
+What is left out is counted and said in a rate-limited log line (the planner's only
+output besides its result).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from agent.protocol.query import Summary
+from agent.runtime.logs import RateLimitedLog
 from agent.srg import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine
@@ -34,6 +43,12 @@ from agent.srg.result import PoseResult
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
+#: links considered per plan: of one agent (an agent with 12 boundary frames has 66), in all
+MAX_LINKS_PER_AGENT = 66
+MAX_PLAN_LINKS = 512
+
+_bad = RateLimitedLog(logging.getLogger("uma.client"))
+Link = tuple[tuple[str, str, str], dict[str, dict[str, Any]]]  # (agent, a, b), attributes
 
 
 class RouteError(SrgLookupError):
@@ -107,12 +122,10 @@ def plan_routes(summaries: Mapping[str, Summary], source: str, target: str,
     routes: list[Route] = []
     adj: dict[str, list] = {}
     link_attrs: dict[tuple, dict] = {}
-    for s in summaries.values():
-        for a, b, attrs in s.links:
-            key = (s.agent, a, b)
-            link_attrs[key] = attrs
-            adj.setdefault(a, []).append((b, key, True))
-            adj.setdefault(b, []).append((a, key, False))
+    for key, attrs in considered_links(summaries, source, target):
+        link_attrs[key] = attrs
+        adj.setdefault(key[1], []).append((key[2], key, True))
+        adj.setdefault(key[2], []).append((key[1], key, False))
     if source in adj and target in adj:
         if fn.additive:
             found = paths.k_shortest(adj, source, target,
@@ -140,6 +153,36 @@ def plan_routes(summaries: Mapping[str, Summary], source: str, target: str,
     for route in sorted(routes, key=lambda r: r.value):
         unique.setdefault(tuple(route.segments), route)
     return list(unique.values())[: max(k, 1)]
+
+
+def considered_links(summaries: Mapping[str, Summary], source: str,
+                     target: str) -> list[Link]:
+    """The links a plan from ``source`` to ``target`` considers (module docstring: the
+    bounds): agents in layers outward from those holding either end, the agents with the
+    fewest links first in each layer (a forged summary tends to have many)."""
+    holders: dict[str, list[str]] = {}
+    for agent, s in summaries.items():
+        for frame in s.frames:
+            holders.setdefault(frame, []).append(agent)
+    layer = set(holders.get(source, ())) | set(holders.get(target, ()))
+    seen = set(layer)
+    links: list[Link] = []
+    dropped = 0
+    while layer:
+        following: set[str] = set()
+        for agent in sorted(layer, key=lambda a: (len(summaries[a].links), a)):
+            s = summaries[agent]
+            room = max(0, min(MAX_LINKS_PER_AGENT, MAX_PLAN_LINKS - len(links)))
+            links.extend(((agent, a, b), attrs) for a, b, attrs in s.links[:room])
+            dropped += max(0, len(s.links) - room)
+            following.update(x for f in s.frames for x in holders[f] if x not in seen)
+        seen |= following
+        layer = following
+    if dropped:
+        _bad.warning(f"plan {source} -> {target}", f"{dropped} links of the agents' summaries "
+                     f"left out (at most {MAX_LINKS_PER_AGENT} per agent, {MAX_PLAN_LINKS} "
+                     "in all)")
+    return links
 
 
 def _reach(adj: Mapping, summaries: Mapping[str, Summary], frame: str) -> set[str]:

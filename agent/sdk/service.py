@@ -63,6 +63,7 @@ from agent.protocol.registration import (
     register_request,
 )
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.runtime.session import (
     UnreachableEndpointError,
     acquire_session,
@@ -71,6 +72,8 @@ from agent.runtime.session import (
 )
 from agent.runtime.worker import Worker
 from schemas.codec import (
+    MAX_IMAGE_BYTES,
+    MAX_MESSAGE_BYTES,
     DecodeError,
     Measurement,
     decode_measurement,
@@ -664,8 +667,11 @@ class Service:
 
     # -- data
     def _on_data(self, need: NeedHandle, link: _Link, smp: zenoh.Sample) -> None:
+        limit = MAX_IMAGE_BYTES if need.need.type == "image" else MAX_MESSAGE_BYTES
         try:
-            self._samples.put_nowait((need, link, smp.payload.to_bytes()))
+            self._samples.put_nowait((need, link, payload_bytes(smp.payload, limit)))
+        except DecodeError as exc:
+            self._bad.warning(f"data {link.match.key}", f"dropped: {exc}")
         except queue.Full:
             self._bad.warning(f"service {self.service_id} need {need.name}",
                               "callback queue full (on_sample too slow); samples dropped")

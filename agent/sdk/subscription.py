@@ -31,7 +31,9 @@ from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
 from agent.protocol.sequence import SequenceGaps, too_far_ahead
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.sdk.planner import Segment, SegmentError
 from agent.sdk.query import Outcome, Queries
 from agent.srg import Graph
@@ -148,9 +150,9 @@ class Subscription:
         for agent, key, _, _ in feeds:
             # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
             # composed and delivered on this subscription's own thread
-            self._decls.append(session.declare_subscriber(
-                key, zenoh.handlers.Callback(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
-                                             indirect=False)))
+            self._decls.append(session.declare_subscriber(key, zenoh.handlers.Callback(
+                guarded(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
+                        f"subscription {key}", self._bad), indirect=False)))
         if not feeds:  # all static: the one answer is the stream
             self._deliver(outcome.pose)
 
@@ -255,7 +257,9 @@ class Subscription:
     # -- samples
     def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
         try:
-            self._q.put_nowait((agent, key, sample.payload.to_bytes()))
+            self._q.put_nowait((agent, key, payload_bytes(sample.payload)))
+        except DecodeError as exc:
+            self._bad.warning(f"subscription {key}", f"sample dropped: {exc}")
         except queue.Full:
             self._bad.warning(f"subscription {key}", "queue full; sample dropped")
 

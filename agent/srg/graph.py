@@ -19,6 +19,7 @@ JASS 2005.
 from __future__ import annotations
 
 import numbers
+from collections import OrderedDict
 from collections.abc import Iterable
 from typing import Any
 
@@ -37,6 +38,9 @@ DEFAULT_STATIC_SOURCE = "static"
 DEFAULT_MEASURED_SOURCE = "measured"
 #: candidate paths a path-level error function evaluates (ranked by hops first)
 PATH_LEVEL_CANDIDATES = 16
+#: query plans kept (least recently used dropped first): every distinct error expression of
+#: a query is a plan, so a peer sending distinct expressions must not grow the cache
+MAX_PLANS = 1024
 
 PlanKey = tuple[str, str, str]
 
@@ -77,28 +81,36 @@ class Graph:
     ``buffer_s`` and ``max_samples`` bound each measured edge's history;
     ``max_extrapolation_s`` bounds how far past its samples an edge is extrapolated (an
     edge's ``ttl_s`` lowers it); ``k_paths`` is how many ranked candidates a plan keeps
-    to fall back on when the best path is undefined at the query time.
+    to fall back on when the best path is undefined at the query time; ``max_plans`` how
+    many plans are cached (least recently used evicted first, counted in
+    ``plans_evicted``).
     """
 
     def __init__(self, buffer_s: float = 10.0, max_extrapolation_s: float = 0.1,
-                 max_samples: int = 1000, k_paths: int = 4) -> None:
+                 max_samples: int = 1000, k_paths: int = 4,
+                 max_plans: int = MAX_PLANS) -> None:
         if not buffer_s > 0:
             raise ValueError(f"buffer_s must be > 0, got {buffer_s!r}")
         if not max_extrapolation_s >= 0:
             raise ValueError(f"max_extrapolation_s must be >= 0, got {max_extrapolation_s!r}")
         if k_paths < 1:
             raise ValueError(f"k_paths must be >= 1, got {k_paths!r}")
+        if max_plans < 1:
+            raise ValueError(f"max_plans must be >= 1, got {max_plans!r}")
         self.buffer_s = float(buffer_s)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.max_samples = int(max_samples)
         self.k_paths = int(k_paths)
+        self.max_plans = int(max_plans)
         self._edges: dict[EdgeKey, Edge] = {}
         self._adj: dict[str, list[tuple[str, EdgeKey, bool]]] = {}
-        self._plans: dict[PlanKey, Plan] = {}
+        self._plans: OrderedDict[PlanKey, Plan] = OrderedDict()
         self._plans_by_frame: dict[str, set[PlanKey]] = {}
         self._plans_by_edge: dict[EdgeKey, set[PlanKey]] = {}
         #: how many plans were compiled (tests and benchmarks watch the cache with it)
         self.plans_built = 0
+        #: how many plans were dropped to keep at most ``max_plans``
+        self.plans_evicted = 0
         #: incremented on every structural or attribute change (summaries watch it)
         self.version = 0
         #: samples ever added: with ``version``, what an answer at the latest time depends on
@@ -262,18 +274,26 @@ class Graph:
         at which every measured edge of the path has data), along the best path for
         ``error`` among those defined at that time."""
         fn = error_function(error)
-        plan = self._plans.get((source, target, fn.key))
+        plan = self._cached_plan((source, target, fn.key))
         if plan is None:
             if source == target and source in self._adj:
                 return identity(source, None if at is None else _time(at))
             plan = self._build_plan(source, target, fn)
         return plan.evaluate(None if at is None else _time(at))
 
+    def _cached_plan(self, key: PlanKey) -> Plan | None:
+        """The cached plan of a query, marked as the most recently used."""
+        plan = self._plans.get(key)
+        if plan is not None:
+            self._plans.move_to_end(key)
+        return plan
+
     def best_paths(self, source: str, target: str, error: str | ErrorFunction = "hops",
                    ) -> list[Chain]:
         """The ranked candidate paths (with their attributes) a query would try, best first."""
         fn = error_function(error)
-        plan = self._plans.get((source, target, fn.key)) or self._build_plan(source, target, fn)
+        plan = self._cached_plan((source, target, fn.key)) or self._build_plan(source, target,
+                                                                                fn)
         return list(plan.chains)
 
     def _build_plan(self, source: str, target: str, fn: ErrorFunction) -> Plan:
@@ -305,6 +325,9 @@ class Graph:
         for ek in plan.edge_keys:
             self._plans_by_edge.setdefault(ek, set()).add(key)
         self.plans_built += 1
+        if len(self._plans) > self.max_plans:
+            self._invalidate([next(iter(self._plans))])  # the least recently used
+            self.plans_evicted += 1
         return plan
 
     # ------------------------------------------------------------------ internals
@@ -369,10 +392,16 @@ class Graph:
             if plan is None:
                 continue
             for frame in plan.frames:
-                s = self._plans_by_frame.get(frame)
-                if s is not None:
-                    s.discard(pk)
+                _discard(self._plans_by_frame, frame, pk)
             for ek in plan.edge_keys:
-                s = self._plans_by_edge.get(ek)
-                if s is not None:
-                    s.discard(pk)
+                _discard(self._plans_by_edge, ek, pk)
+
+
+def _discard(index: dict[Any, set[PlanKey]], key: Any, pk: PlanKey) -> None:
+    """Take a plan out of an index entry, and the entry out when it is empty (an index of
+    a removed edge or frame must not stay behind)."""
+    s = index.get(key)
+    if s is not None:
+        s.discard(pk)
+        if not s:
+            del index[key]

@@ -17,7 +17,11 @@ time offset, pair counts; re-published every second for late subscribers) and wr
 Re-calibration: on request (a Zenoh query to ``uma/<realm>/svc/<agent>/<service>/
 recalibrate``, see ``request_recalibration``), the buffers are emptied and the service
 collects fresh motions (the mounting may have changed) before solving again; with
-``--recalibrate-every S`` it also re-solves on its sliding window every S seconds.
+``--recalibrate-every S`` it also re-solves on its sliding window every S seconds.  A
+request counts only on the service's exact key (a wildcard query would empty every
+alignment service of the realm) and at most once per ``RECALIBRATE_MIN_S`` seconds (each
+request throws the collected motions away); others are refused with the reason, counted
+and logged rate-limited.
 
 Offline (``--from-file CSV``): aligns recorded pose pairs (``services.alignment.records``
 documents the columns), prints the result and writes ``--output``; no network.
@@ -41,6 +45,8 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
+from agent.runtime.callbacks import guarded
+from agent.runtime.logs import RateLimitedLog
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import pack_covariance
@@ -56,8 +62,11 @@ from services.alignment.solvers import AlignmentError, all_pairs, relative_motio
 from services.alignment.timesync import PoseSeries
 
 log = logging.getLogger("uma.alignment")
+_bad = RateLimitedLog(log)
 
 STATIC_REPUBLISH_S = 1.0
+#: re-calibration requests accepted at most once per this many seconds
+RECALIBRATE_MIN_S = 5.0
 _TICK_S = 0.2
 #: seconds between attempts while the motions are not yet good enough
 _RETRY_S = 2.0
@@ -307,14 +316,28 @@ class LiveAlignment:
         self.edge: tuple[str, str] | None = None
         self.status = "waiting for both streams"
         self.requested = threading.Event()
+        self.last_request = -math.inf
+        self.refused = 0  # re-calibration requests refused (wrong key, too soon)
         self.last_solve = 0.0
         self.last_attempt = -math.inf
 
     def request(self) -> None:
         """Start over: forget the buffered motions, collect new ones, solve again."""
+        self.last_request = time.monotonic()
         self.a.clear()
         self.b.clear()
         self.requested.set()
+
+    def refusal(self, asked: str, key: str) -> str | None:
+        """Why a re-calibration request on ``asked`` is refused (this service's key is
+        ``key``), or None."""
+        if asked != key:
+            return f"{asked!r} is not this service's key {key!r} (wildcards are refused)"
+        since = time.monotonic() - self.last_request
+        if since < RECALIBRATE_MIN_S:
+            return (f"a re-calibration was requested {since:.1f} s ago; at most one per "
+                    f"{RECALIBRATE_MIN_S:g} s")
+        return None
 
     def due(self) -> bool:
         """Whether to try solving now (first result, request, or periodic)."""
@@ -372,9 +395,9 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         svc.need("a", type="pose6d", edge=a_edge, on_sample=live.a.add)
         svc.need("b", type="pose6d", edge=b_edge, on_sample=live.b.add)
         svc.start()
-        queryable = svc.session.declare_queryable(
-            recalibrate_key(svc.realm, svc.agent_id, svc.service_id),
-            lambda q: _answer_request(q, live))
+        key = recalibrate_key(svc.realm, svc.agent_id, svc.service_id)
+        queryable = svc.session.declare_queryable(key, guarded(
+            lambda q: _answer_request(q, live, key), f"alignment {key}", _bad))
         try:
             _serve(svc, live, stop)
         finally:
@@ -419,13 +442,21 @@ def _persist(live: LiveAlignment) -> None:
         log.error("alignment: %s", exc)
 
 
-def _answer_request(query: Any, live: LiveAlignment) -> None:
-    """Reply at once: the request is taken; the new result follows when motions allow."""
-    live.request()
-    reply = {"ok": True, "status": "collecting new motions",
+def _answer_request(query: Any, live: LiveAlignment, key: str) -> None:
+    """Reply at once: the request is taken (the new result follows when motions allow) or
+    refused (``LiveAlignment.refusal``: the reason, as an error reply)."""
+    refused = live.refusal(str(query.key_expr), key)
+    if refused is None:
+        live.request()
+    else:
+        live.refused += 1
+        _bad.warning(f"alignment {key}", f"re-calibration refused: {refused} "
+                     f"({live.refused} refused so far)")
+    reply = {"ok": refused is None,
+             "status": refused or "collecting new motions",
              "previous": None if live.result is None else live.result.summary()}
     try:
-        query.reply(query.key_expr, json.dumps(reply).encode())
+        query.reply(key, json.dumps(reply).encode())
     except Exception as exc:  # never raise into Zenoh's thread
         log.warning("alignment: cannot answer re-calibration request: %s", exc)
 
@@ -463,6 +494,9 @@ def recalibrate_command(args: argparse.Namespace) -> int:
         raise ValueError(f"--timeout must be positive seconds, got {args.timeout!r}")
     ack = request_recalibration(args.realm, args.agent, args.service_id, args.connect,
                                 args.timeout)
+    if ack.get("ok") is False:
+        raise UmaError(f"{args.service_id} (agent {args.agent}) refused the request: "
+                       f"{ack.get('status')}")
     if args.json:
         print(json.dumps(ack))
         return 0

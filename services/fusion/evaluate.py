@@ -37,6 +37,7 @@ system*, MSc thesis, York University 2003.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import time
@@ -62,6 +63,8 @@ from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
 from services.sim.world import IvyWorld
+
+log = logging.getLogger("uma.eval")
 
 OPTICAL_HZ = 15.0
 WARMUP_S = 3.0
@@ -163,7 +166,11 @@ def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
                 announce: str = "") -> Path:
     """``~/.cache/uma/<name>_<hash>.json``, made by ``make(path)`` unless a file that
     ``load`` accepts exists.  The hash covers the sources of ``packages``, so a file made by
-    other code is never reused; written atomically (concurrent runs are safe)."""
+    other code is never reused; written atomically (concurrent runs are safe).
+
+    A file ``load`` cannot use, whatever is wrong with it (not JSON, another structure: a
+    loader may then fail with any error), is said and made again; a temporary file is
+    removed when ``make`` fails, and those left by processes that died are removed too."""
     import hashlib
 
     h = hashlib.sha1()
@@ -175,15 +182,39 @@ def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
         try:
             load(path)
             return path
-        except (ValueError, KeyError, OSError):
+        except Exception as exc:  # a cache file we cannot use is made again, never fatal
+            log.warning("cached %s is unusable (%s: %s); making it again", path,
+                        type(exc).__name__, exc)
             path.unlink(missing_ok=True)
     if announce:
         print(f"{announce}; cached in {path.parent}", flush=True)
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_orphans(path)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    make(tmp)
-    tmp.replace(path)
+    try:
+        make(tmp)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
+
+
+def _remove_orphans(path: Path) -> None:
+    """Remove ``path``'s temporary files whose writing process is gone (killed mid-write)."""
+    for tmp in path.parent.glob(f"{path.stem}.*.tmp"):
+        pid = tmp.suffixes[-2][1:] if len(tmp.suffixes) >= 2 else ""
+        if pid.isdigit() and not _running(int(pid)):
+            tmp.unlink(missing_ok=True)
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, another user's
+    return True
 
 
 def _cache_dir() -> Path:

@@ -39,7 +39,7 @@ from agent.srg import geometry as geo
 from services import frames
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
-from services.fusion.tracker import MAX_COAST_S, FusionTracker
+from services.fusion.tracker import MAX_AHEAD_S, MAX_COAST_S, FusionTracker
 
 log = logging.getLogger("uma.fusion")
 
@@ -135,14 +135,22 @@ class LiveFusion:
             self.published += 1
 
     def _on_optical(self, m: Any) -> None:
+        ahead_s = (int(m.t_ns) - time.time_ns()) * 1e-9
+        if ahead_s > MAX_AHEAD_S:
+            self._drop(f"optical pose stamped more than {MAX_AHEAD_S:g} s ahead of this "
+                       "host's clock")
+            return
         if self.tracker is None or self.optical_mount is None:
             self._drop("optical pose before calibration and mountings are known")
             return
         cov = m.covariance
         if cov is None:
             cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
+        ahead = self.tracker.stats.optical_too_far_ahead
         self.tracker.add_rig_pose(self._seconds(m.t_ns), m.position, m.quaternion, cov,
                                   self.optical_mount)
+        if self.tracker.stats.optical_too_far_ahead > ahead:
+            self._drop(f"optical pose more than {MAX_AHEAD_S:g} s ahead of the filter")
 
     def status(self) -> dict[str, Any]:
         """Counters for the log: what came in, what went out, what was dropped and why."""

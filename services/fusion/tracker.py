@@ -53,6 +53,10 @@ MAX_WAIT_S = 0.5
 #: inertial-only output for at most this long after the last optical measurement (s):
 #: beyond it the dead-reckoned pose is off by decimetres (docs/FUSION_TUNING.md)
 MAX_COAST_S = 2.0
+#: an optical pose further ahead of the filter than this (s) is refused: it would wait
+#: for the inertial stream forever (a pose stamped a day ahead stayed pending for good);
+#: generous, as an inertial stream may lag the optics by seconds on a busy host
+MAX_AHEAD_S = 10.0
 
 
 @dataclass
@@ -61,6 +65,7 @@ class TrackerStats:
     optical_poses: int = 0
     optical_late: int = 0      # applied by rewinding and replaying
     optical_too_old: int = 0   # older than the history: dropped
+    optical_too_far_ahead: int = 0  # more than MAX_AHEAD_S ahead of the filter: refused
     optical_waited_out: int = 0  # applied without waiting longer for the inertial stream
     replayed_samples: int = 0
     coast_stops: int = 0        # the optics were gone for longer than max_coast_s
@@ -123,12 +128,15 @@ class FusionTracker:
 
     def add_rig_pose(self, t: float, p: np.ndarray, q: np.ndarray, cov_se3: np.ndarray,
                      mount: tuple[np.ndarray, np.ndarray], now: float | None = None) -> bool:
-        """An optical rig pose for time ``t``, however late it arrives; False if gated or
-        older than the history."""
+        """An optical rig pose for time ``t``, however late it arrives; False if gated,
+        older than the history or more than ``MAX_AHEAD_S`` ahead of the filter."""
         ekf = self.ekf
         self.stats.optical_poses += 1
         if not ekf.initialised:
             return self._apply_now(t, (p, q, cov_se3, mount))
+        if t - ekf.t > MAX_AHEAD_S:
+            self.stats.optical_too_far_ahead += 1
+            return False
         if t >= ekf.t:
             bisect.insort(self._pending, (t, (p, q, cov_se3, mount)), key=lambda e: e[0])
             now = time.monotonic() if now is None else now

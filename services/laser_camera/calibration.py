@@ -149,7 +149,10 @@ class Calibration:
         meta = data.get("meta", {})
         if not isinstance(meta, dict):
             raise ValueError(f"{p}: 'meta' must be a map")
-        return cls([CameraCalibration.from_dict(c) for c in data.get("cameras", [])], meta)
+        cameras = data.get("cameras", [])
+        if not isinstance(cameras, list) or not all(isinstance(c, dict) for c in cameras):
+            raise ValueError(f"{p}: 'cameras' must be a list of maps")
+        return cls([CameraCalibration.from_dict(c) for c in cameras], meta)
 
 
 # --------------------------------------------------------------------------- procedures
