@@ -102,7 +102,7 @@ def test_reregistering_a_running_instance_needs_its_key(honest, realm) -> None:
         assert not ok and "does not carry its key" in error, error
         attrs = snapshot(s, realm, "hostA").services["cam"].abilities[0].attributes
         assert attrs.frequency_hz != 10_000
-    host.wait_log("2 refused so far")
+    host.wait_log("registration refused: it names the running instance")
     counts_grow(consumer, "cam")
 
 

@@ -375,6 +375,7 @@ class SrgNode:
             if agent != keys.parse_agent_supernode(key, self.realm):
                 raise DecodeError(f"it names agent {agent[:64]!r}, not the agent of its key")
         except DecodeError as exc:
+            self.summaries_refused += 1
             self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
             return
         if agent == self.agent_id:
