@@ -40,7 +40,8 @@ the same path, as in a tree, else a list of one per error function).  ``rev`` co
 revisions within one run (``instance``), and a path attribute that is infinite travels as
 nil.  :func:`parse_summary` also reads a summary spelt out as ``summarize`` builds it
 (``components`` of frame ids, ``links`` of ``{"a", "b", "attrs": {error: path
-attributes}}``, no ``paths``): the same content, six to forty times the bytes.
+attributes}}``, no ``paths``): the same content, five to twenty times the bytes
+(``bench/bench_scale.py``).
 
 A segment answer is read by :func:`pose_from_wire`, the hot-path twin of
 ``schemas.models.PoseResult.model_validate``: answers arrive at tracking rates, and the
