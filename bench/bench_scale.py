@@ -29,6 +29,7 @@ the load average at the start and end are printed.
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import json
 import os
@@ -44,16 +45,19 @@ from bench_matching import timed
 from summary import cpu_model, median_p99
 
 from agent.daemon.matching import OfferIndex, match_all
+from agent.errors import UmaError
 from agent.protocol.query import decode_summary, summary_to_wire
 from agent.srg import Graph
 from agent.srg.supernode import summarize
 from schemas.codec import encode_message
 
 FULL = {"frames": (10, 100, 1000), "agents": (2, 5, 10, 20),
-        "summary": ((10, 1), (100, 1), (1000, 1), (100, 2), (100, 4)),
+        "summary_frames": ((10, 1), (100, 1), (1000, 1)),
+        "summary_shared": ((100, 1), (100, 2), (100, 4)),
         "matching": ((100, 10), (1000, 100), (10000, 1000)),
         "queries": 100, "seconds": 5.0, "repeat": 3}
-QUICK = {"frames": (10,), "agents": (2,), "summary": ((10, 1), (10, 2)),
+QUICK = {"frames": (10,), "agents": (2,), "summary_frames": ((10, 1), (20, 1)),
+         "summary_shared": ((10, 1), (10, 2)),
          "matching": ((50, 5), (100, 10)), "queries": 10, "seconds": 1.0, "repeat": 2}
 #: a row's figures whose growth is reported, per sweep
 GROWTH = {
@@ -156,8 +160,8 @@ def sweep(name: str, sizes: Sequence[Any], run: Callable[[Any], dict[str, Any]],
     rows = []
     for size in sizes:
         try:
-            rows.append(run(size))
-        except (RuntimeError, OSError) as exc:
+            rows.append(dict(run(size)))  # a copy: growth factors are added to it
+        except (RuntimeError, OSError, LookupError, ValueError, UmaError) as exc:
             print(f"{name} {size}: {exc}", file=sys.stderr, flush=True)
             rows.append({"size": str(size), "error": str(exc)[:300]})
     with_growth(rows, figures)
@@ -175,19 +179,18 @@ def main() -> int:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # the realms' `finally`s run
     out: dict[str, Any] = {"cpu": cpu_model(), "load_at_start": os.getloadavg()}
     print(f"cpu: {out['cpu']}\nload average at start: {out['load_at_start']}", flush=True)
-    out["summary"] = sweep("summary (one host, in-process)", plan["summary"],
-                           lambda fs: summary_row(*fs), GROWTH["summary"])
+    summary = functools.cache(lambda size: summary_row(*size))  # a row both sweeps share
+    out["summary"] = sweep("summary by frames (one host, in-process)", plan["summary_frames"],
+                           summary, GROWTH["summary"])
+    out["summary_shared"] = sweep("summary by shared frames (one host, in-process)",
+                                  plan["summary_shared"], summary, GROWTH["summary"])
     out["matching"] = sweep("matching (abilities x needs, in-process)", plan["matching"],
                             lambda an: matching_row(*an, plan["repeat"]), GROWTH["matching"])
     if not a.skip_realm:
         from scale_realm import measure
-        measured: dict[tuple[int, int], dict[str, Any]] = {}
 
-        def realm(size: tuple[int, int]) -> dict[str, Any]:
-            """A realm's row; the one both sweeps share (2 agents, 10 frames) runs once."""
-            if size not in measured:
-                measured[size] = measure(*size, plan["queries"], plan["seconds"])
-            return {k: v for k, v in measured[size].items() if not k.endswith("_x")}
+        # the row both sweeps share (2 agents, 10 frames) runs once
+        realm = functools.cache(lambda size: measure(*size, plan["queries"], plan["seconds"]))
         out["frames"] = sweep("frames per agent (2 agents, loopback)",
                               [(2, f) for f in plan["frames"]], realm, GROWTH["realm"])
         out["agents"] = sweep("agents (10 frames each, loopback)",

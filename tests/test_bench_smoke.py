@@ -116,6 +116,8 @@ def test_bench_scale_quick_reports_every_sweep_with_its_growth() -> None:
     summary, matching = figures["summary"], figures["matching"]
     assert all(r["bytes_compact"] < r["bytes_spelt_out"] for r in summary)
     assert summary[1]["links"] > summary[0]["links"] and "bytes_compact_x" in summary[1]
+    shared = figures["summary_shared"]
+    assert shared[1]["shared"] == 2 and shared[1]["links"] > shared[0]["links"]
     assert matching[1]["abilities"] > matching[0]["abilities"]
     assert isinstance(matching[1]["cold_median_ms_x"], float)
     (row,) = figures["frames"]
