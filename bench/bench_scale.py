@@ -23,7 +23,8 @@ row's, the first row of a sweep is its anchor):
 The machine is shared: absolute times are noisy, growth factors less so; the CPU model and
 the load average at the start and end are printed.
 
-    python bench/bench_scale.py [--quick] [--json]
+    python bench/bench_scale.py [--quick] [--skip-realm | --skip-inprocess]
+        [--frames 10 100 1000] [--agents 2 5 10 20] [--form-s 600] [--json]
 """
 
 from __future__ import annotations
@@ -173,24 +174,32 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: tiny sizes, short windows")
     ap.add_argument("--skip-realm", action="store_true", help="in-process sweeps only")
+    ap.add_argument("--skip-inprocess", action="store_true", help="realm sweeps only")
+    ap.add_argument("--frames", type=int, nargs="*", help="frames per agent (2 agents) to run")
+    ap.add_argument("--agents", type=int, nargs="*", help="agents (10 frames each) to run")
+    ap.add_argument("--form-s", type=float, default=600.0, help="bound on forming a realm")
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     a = ap.parse_args()
-    plan = QUICK if a.quick else FULL
+    plan = dict(QUICK if a.quick else FULL)
+    plan |= {k: getattr(a, k) for k in ("frames", "agents") if getattr(a, k) is not None}
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # the realms' `finally`s run
     out: dict[str, Any] = {"cpu": cpu_model(), "load_at_start": os.getloadavg()}
     print(f"cpu: {out['cpu']}\nload average at start: {out['load_at_start']}", flush=True)
-    summary = functools.cache(lambda size: summary_row(*size))  # a row both sweeps share
-    out["summary"] = sweep("summary by frames (one host, in-process)", plan["summary_frames"],
-                           summary, GROWTH["summary"])
-    out["summary_shared"] = sweep("summary by shared frames (one host, in-process)",
-                                  plan["summary_shared"], summary, GROWTH["summary"])
-    out["matching"] = sweep("matching (abilities x needs, in-process)", plan["matching"],
-                            lambda an: matching_row(*an, plan["repeat"]), GROWTH["matching"])
+    if not a.skip_inprocess:
+        summary = functools.cache(lambda size: summary_row(*size))  # a row both sweeps share
+        out["summary"] = sweep("summary by frames (one host, in-process)",
+                               plan["summary_frames"], summary, GROWTH["summary"])
+        out["summary_shared"] = sweep("summary by shared frames (one host, in-process)",
+                                      plan["summary_shared"], summary, GROWTH["summary"])
+        out["matching"] = sweep("matching (abilities x needs, in-process)", plan["matching"],
+                                lambda an: matching_row(*an, plan["repeat"]),
+                                GROWTH["matching"])
     if not a.skip_realm:
         from scale_realm import measure
 
         # the row both sweeps share (2 agents, 10 frames) runs once
-        realm = functools.cache(lambda size: measure(*size, plan["queries"], plan["seconds"]))
+        realm = functools.cache(lambda size: measure(*size, plan["queries"], plan["seconds"],
+                                                     a.form_s))
         out["frames"] = sweep("frames per agent (2 agents, loopback)",
                               [(2, f) for f in plan["frames"]], realm, GROWTH["realm"])
         out["agents"] = sweep("agents (10 frames each, loopback)",

@@ -33,8 +33,8 @@ from schemas.codec import decode_message
 
 SHARED = "scale/world"
 SERVICES, RATE_HZ = 2, 100.0
-#: bound on forming a realm: 20 agents, or agents of 1,000 frames whose summaries take
-#: minutes to compute, on 2 shared cores
+#: default bound on forming a realm: 20 agents, or agents of 1,000 frames whose summaries
+#: take minutes to compute, on 2 shared cores
 FORM_S = 600.0
 
 
@@ -52,8 +52,8 @@ def config_text(agent_id: str, frames: int) -> str:
 class Realm:
     """The running realm (module docstring); use as a context manager."""
 
-    def __init__(self, agents: int, frames: int) -> None:
-        self.n, self.frames = agents, frames
+    def __init__(self, agents: int, frames: int, form_s: float = FORM_S) -> None:
+        self.n, self.frames, self.form_s = agents, frames, form_s
         self.realm = f"scale{uuid.uuid4().hex[:8]}"
         self.eps = [free_endpoint() for _ in range(agents)]
         self.agents: list[Child] = []
@@ -72,7 +72,7 @@ class Realm:
         self.close()
 
     def _start(self) -> None:
-        deadline = time.monotonic() + FORM_S
+        deadline = time.monotonic() + self.form_s
         for i, ep in enumerate(self.eps):
             path = Path(self._dir.name) / f"h{i}.toml"
             path.write_text(config_text(f"h{i}", self.frames))
@@ -101,16 +101,16 @@ class Realm:
 
 
 def wait_formed(client: Any, realm: Realm) -> float:
-    """Seconds until the cross-agent query first succeeds (bounded by ``FORM_S``)."""
+    """Seconds until the cross-agent query first succeeds (bounded by ``realm.form_s``)."""
     start = time.monotonic()
-    while True:  # bounded: FORM_S
+    while True:  # bounded: realm.form_s
         try:
             client.pose(realm.source, realm.target)
             return time.monotonic() - start
         except (LookupError, ValueError, UmaError) as exc:
-            if time.monotonic() - start > FORM_S:
+            if time.monotonic() - start > realm.form_s:
                 raise RuntimeError(f"realm of {realm.n} agents x {realm.frames} frames not "
-                                   f"formed within {FORM_S:g} s: {exc}") from None
+                                   f"formed within {realm.form_s:g} s: {exc}") from None
             time.sleep(0.2)
 
 
@@ -186,14 +186,15 @@ def summary_bytes(realm: Realm) -> dict[str, Any]:
             "summary_bytes_spelt_out_max": max(spelt, default=0)}
 
 
-def measure(agents: int, frames: int, queries: int, seconds: float) -> dict[str, Any]:
-    """One realm's row (module docstring)."""
+def measure(agents: int, frames: int, queries: int, seconds: float,
+            form_s: float = FORM_S) -> dict[str, Any]:
+    """One realm's row (module docstring); forming it may take ``form_s`` at most."""
     from agent import Client
 
     row: dict[str, Any] = {"agents": agents, "frames_per_agent": frames,
                            "load_1min": os.getloadavg()[0]}
     started = time.monotonic()
-    with Realm(agents, frames) as realm, Client(realm=realm.realm,
+    with Realm(agents, frames, form_s) as realm, Client(realm=realm.realm,
                                                 connect=[realm.eps[0]]) as client:
         row["processes_started_s"] = time.monotonic() - started
         row["formed_s"] = wait_formed(client, realm) + row["processes_started_s"]
