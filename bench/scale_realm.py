@@ -57,6 +57,8 @@ class Realm:
         self.realm = f"scale{uuid.uuid4().hex[:8]}"
         self.eps = [free_endpoint() for _ in range(agents)]
         self.agents: list[Child] = []
+        #: agents started again because they exited before listening (see ``_listening``)
+        self.restarts = 0
         self.services: list[Child] = []
         self._dir = tempfile.TemporaryDirectory(prefix="uma-scale-")
 
@@ -73,19 +75,33 @@ class Realm:
 
     def _start(self) -> None:
         deadline = time.monotonic() + self.form_s
-        for i, ep in enumerate(self.eps):
-            path = Path(self._dir.name) / f"h{i}.toml"
-            path.write_text(config_text(f"h{i}", self.frames))
-            self.agents.append(Child(
-                "-m", "agent.cli", "agent", "--realm", self.realm, "--id", f"h{i}",
-                "--config", str(path), "--listen", ep, *(["--connect", self.eps[0]] if i else [])))
-        for c in self.agents:
-            c.wait_for("listening on", deadline)
+        self.agents = [Child(*self._agent_args(i)) for i in range(self.n)]
+        for i in range(self.n):
+            self._listening(i, deadline)
         self.services = [Child("-m", "tests.agent_helpers.many_services", "--realm", self.realm,
                                "--agent", f"h{i}", "--connect", ep, "--count", str(SERVICES),
                                "--rate", str(RATE_HZ)) for i, ep in enumerate(self.eps)]
         for c in self.services:
             c.wait_for("started", deadline)
+
+    def _agent_args(self, i: int) -> list[str]:
+        path = Path(self._dir.name) / f"h{i}.toml"
+        path.write_text(config_text(f"h{i}", self.frames))
+        return ["-m", "agent.cli", "agent", "--realm", self.realm, "--id", f"h{i}", "--config",
+                str(path), "--listen", self.eps[i], *(["--connect", self.eps[0]] if i else [])]
+
+    def _listening(self, i: int, deadline: float) -> None:
+        """Agent ``i`` says it listens.  One that exited first is started once more, as its
+        supervisor would: an agent whose Zenoh session stalls at start (20 agents starting
+        at once on a loaded host) exits 1 for that (``agent.cli.agent.STALLED_START``)."""
+        try:
+            self.agents[i].wait_for("listening on", deadline)
+        except RuntimeError:
+            if self.agents[i].proc.poll() is None:
+                raise
+            self.restarts += 1
+            self.agents[i] = Child(*self._agent_args(i))
+            self.agents[i].wait_for("listening on", deadline)
 
     def close(self) -> None:
         stop_processes(c.proc for c in self.services + self.agents)
@@ -201,6 +217,7 @@ def measure(agents: int, frames: int, queries: int, seconds: float,
         row |= query_ms(client, realm, queries)
         row |= stream_figures(client, realm, seconds)
         row |= summary_bytes(realm)
+        row["agent_restarts"] = realm.restarts
         need = new_need(realm.realm, realm.eps[0], 0.0,
                         edge=(f"{realm.target.split('/')[0]}/world", realm.target))
         row["new_need_connected_ms"] = need["new_need_first_sample_ms"]
