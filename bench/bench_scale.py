@@ -149,7 +149,8 @@ def show(name: str, rows: list[dict[str, Any]], figures: Sequence[str]) -> None:
         print("  " + "; ".join(parts), flush=True)
         extra = {k: row[k] for k in ("query_p99_ms", "subscription_p99_ms", "machine_busy_pct",
                                      "agents_cpu_pct_total", "agent_rss_mb_max", "query_failed",
-                                     "subscription_poses", "agent_restarts", "load_1min",
+                                     "subscription_poses", "subscription_refused",
+                                     "agent_restarts", "load_1min",
                                      "cold_p99_ms",
                                      "spelt_out_over_compact") if k in row}
         if extra:
