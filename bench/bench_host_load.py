@@ -250,9 +250,11 @@ def pose_figures(realm: str, ep: str, frame: str) -> dict:
         "client_pose_failures": dict(failures)}
 
 
-def new_need(realm: str, ep: str, seconds: float) -> dict:
-    """A fresh service needs one running ability: ``start()`` to its first sample, then what
-    it receives over ``seconds`` against what was published meanwhile."""
+def new_need(realm: str, ep: str, seconds: float,
+             edge: tuple[str, str] = (WORLD, "obj/0")) -> dict:
+    """A fresh service of agent h0 needs one running ability (on ``edge``): ``start()`` to
+    its first sample, then what it receives over ``seconds`` against what was published
+    meanwhile."""
     from agent import Service
     from agent.errors import UmaError
 
@@ -265,7 +267,7 @@ def new_need(realm: str, ep: str, seconds: float) -> dict:
     latency_ms, window_s = None, 0.0
     try:
         with Service("newneed", realm=realm, agent="h0", connect=[ep]) as svc:
-            svc.need("obj", type="pose6d", edge=(WORLD, "obj/0"), on_sample=on_sample)
+            svc.need("obj", type="pose6d", edge=edge, on_sample=on_sample)
             t = time.perf_counter()
             svc.start()
             if first.wait(FIRST_SAMPLE_LIMIT_S):

@@ -1,10 +1,10 @@
 """The benchmarks still run, and report their figures through ``bench/summary.py``.
 
-Only the pure-computation benchmarks that finish in seconds with tiny options run here;
-the ones that start agents or services (failover, query_remote, alignment_e2e, fusion
-``--e2e``) and the slow ones (laser: camera calibration first; srg_local: a 1,000-frame
-pytransform3d graph to build) are left out; bench_tls starts three routers (a few
-seconds).
+Only the pure-computation benchmarks that finish in seconds with tiny options run here, and
+``bench_scale.py --quick`` (one realm of two agents) and bench_tls (three routers, a few
+seconds); the other ones that start agents or services (failover, query_remote,
+alignment_e2e, fusion ``--e2e``) and the slow ones (laser: camera calibration first;
+srg_local: a 1,000-frame pytransform3d graph to build) are left out.
 """
 
 from __future__ import annotations
@@ -93,18 +93,23 @@ BENCHES = {
 }
 
 
-@pytest.mark.parametrize("bench", sorted(BENCHES))
-def test_bench_runs_and_reports_median_p99(bench: str) -> None:
-    options, expected = BENCHES[bench]
+def run_bench(bench: str, options: list[str], timeout: float = 120) -> dict:
+    """``bench/BENCH OPTIONS --json``'s figures (its last line)."""
     # the working tree's packages, whatever is installed
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p))
     proc = subprocess.run([sys.executable, f"bench/{bench}", *options, "--json"], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=120)
+                          env=env, capture_output=True, text=True, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = [line for line in proc.stdout.splitlines() if line.strip()]
     assert lines, f"{bench} printed nothing"
-    figures = json.loads(lines[-1])  # --json: the last line is one JSON object
+    return json.loads(lines[-1])  # --json: the last line is one JSON object
+
+
+@pytest.mark.parametrize("bench", sorted(BENCHES))
+def test_bench_runs_and_reports_median_p99(bench: str) -> None:
+    options, expected = BENCHES[bench]
+    figures = run_bench(bench, options)
     for path, keys in expected:
         node = figures
         for part in path:
@@ -112,3 +117,24 @@ def test_bench_runs_and_reports_median_p99(bench: str) -> None:
         for key in keys:
             assert isinstance(node[key], float), (bench, path, key, node)
             assert node[key] >= 0.0, (bench, path, key, node)
+
+
+def test_bench_scale_quick_reports_every_sweep_with_its_growth() -> None:
+    """``bench_scale.py --quick``: one realm of 2 agents on loopback and tiny in-process
+    sweeps; every row has its figures, later rows their growth, no row failed."""
+    figures = run_bench("bench_scale.py", ["--quick"], timeout=300)
+    assert figures["cpu"] and len(figures["load_at_start"]) == 3
+    summary, matching = figures["summary"], figures["matching"]
+    assert all(r["bytes_compact"] < r["bytes_spelt_out"] for r in summary)
+    assert summary[1]["links"] > summary[0]["links"] and "bytes_compact_x" in summary[1]
+    shared = figures["summary_shared"]
+    assert shared[1]["shared"] == 2 and shared[1]["links"] > shared[0]["links"]
+    assert matching[1]["abilities"] > matching[0]["abilities"]
+    assert isinstance(matching[1]["cold_median_ms_x"], float)
+    (row,) = figures["frames"]
+    assert "error" not in row, row
+    assert row["summaries"] == row["agents"] == 2
+    assert row["query_failed"] == 0 and row["subscription_poses"] > 0
+    for key in ("query_median_ms", "subscription_median_ms", "agent_cpu_pct_per_1k_samples_s",
+                "agent_rss_mb_median", "new_need_connected_ms", "formed_s"):
+        assert isinstance(row[key], float) and row[key] > 0, (key, row)

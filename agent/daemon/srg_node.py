@@ -457,7 +457,7 @@ class SrgNode:
             self._rev += 1
             summary = summarize(self.graph, boundary)
             summary.update(agent=self.agent_id, rev=self._rev, instance=self.instance)
-            data = encode_message(summary)
+            data = encode_message(proto.summary_to_wire(summary))
             self._summary = data
             self._published = state
         self.session.put(self._summary_key, data)

@@ -30,9 +30,18 @@ for a measured edge, ``position``, ``quaternion``, ``covariance`` for a static o
 **Summaries** (``uma/R/agent/A/supernode``, a queryable and a publication on change)
 
 ``{"agent": A, "rev": n, "instance": run id, "frames": [...], "boundary": [...],
-"components": [[frame...]...], "links": [{"a", "b", "attrs": {error: path attributes}}]}``:
-the agent's supernode summary (:mod:`agent.srg.supernode`); ``rev`` counts its revisions
-within one run (``instance``), and a path attribute that is infinite travels as nil.
+"components": [[frame index...]...], "paths": [path attributes...], "links": [[a, b, p]...]}``:
+the agent's supernode summary (:mod:`agent.srg.supernode`) as :func:`summary_to_wire` sends
+it.  Frames are named once: components and links refer to them by their index in
+``frames``.  Each distinct map of path attributes is sent once, in ``paths``; a link
+``[a, b, p]`` refers to the best local path ``a -> b`` under each error function of
+``SUMMARY_ERRORS`` by index in ``paths`` (``p``: one index when every error function finds
+the same path, as in a tree, else a list of one per error function).  ``rev`` counts its
+revisions within one run (``instance``), and a path attribute that is infinite travels as
+nil.  :func:`parse_summary` also reads a summary spelt out as ``summarize`` builds it
+(``components`` of frame ids, ``links`` of ``{"a", "b", "attrs": {error: path
+attributes}}``, no ``paths``): the same content, five to twenty times the bytes
+(``bench/bench_scale.py``).
 
 A segment answer is read by :func:`pose_from_wire`, the hot-path twin of
 ``schemas.models.PoseResult.model_validate``: answers arrive at tracking rates, and the
@@ -488,6 +497,7 @@ def decode_summary(data: bytes) -> Summary:
 
 def parse_summary(msg: Mapping[str, Any]) -> Summary:
     """A decoded supernode message as a :class:`Summary`; ``ValueError`` says what is wrong."""
+    msg = spelt_out(msg)
     agent, frames = msg.get("agent"), msg.get("frames")
     _agent_id(agent, "summary: agent")
     if not isinstance(frames, list) or not all(isinstance(f, str) for f in frames):
@@ -516,3 +526,64 @@ def parse_summary(msg: Mapping[str, Any]) -> Summary:
     return Summary(agent, rev if isinstance(rev, int) else 0, set(frames),
                    [set(c) for c in components if isinstance(c, list)], links,
                    instance if isinstance(instance, str) else "")
+
+
+def summary_to_wire(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """A summary as ``agent.srg.supernode.summarize`` builds it, in its compact wire form
+    (module docstring).  Spelt out, a summary repeats each frame id in every link and
+    component and each path's attributes once per error function: its size grew with
+    frames x boundary frames x error functions (issue 19); compact, a link costs a few
+    bytes and only distinct paths carry attributes."""
+    index = {frame: i for i, frame in enumerate(summary["frames"])}
+    paths: list[dict[str, Any]] = []
+    known: dict[tuple, int] = {}
+
+    def path_ref(attrs: Mapping[str, Any]) -> int:
+        # the value's type is part of the key: an int and an equal float stay apart
+        key = tuple((k, type(v), v) for k, v in sorted(attrs.items()))
+        ref = known.get(key)
+        if ref is None:
+            ref = known[key] = len(paths)
+            paths.append(dict(attrs))
+        return ref
+
+    links = []
+    for link in summary["links"]:
+        refs = [path_ref(link["attrs"][e]) for e in SUMMARY_ERRORS]
+        same = all(r == refs[0] for r in refs)
+        links.append([index[link["a"]], index[link["b"]], refs[0] if same else refs])
+    return {**summary, "components": [[index[f] for f in c] for c in summary["components"]],
+            "paths": paths, "links": links}
+
+
+def spelt_out(msg: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A summary in its compact wire form (it has ``paths``) with its components and links
+    spelt out as ``summarize`` builds them; any other message as it is.  ``ValueError`` if
+    an index or a link is malformed (what they refer to is checked by the caller)."""
+    if "paths" not in msg:
+        return msg
+    frames, paths = msg.get("frames"), msg.get("paths")
+    links, components = msg.get("links", []), msg.get("components", [])
+    if not all(isinstance(x, list) for x in (frames, paths, links, components)):
+        raise ValueError("summary: frames, paths, links and components must be lists")
+
+    def pick(table: list, i: Any, what: str) -> Any:
+        if type(i) is not int or not 0 <= i < len(table):
+            raise ValueError(f"summary: {what} index {i!r:.40} out of range")
+        return table[i]
+
+    spelt = []
+    for link in links:
+        if not isinstance(link, list) or len(link) != 3:
+            raise ValueError(f"summary: malformed link {link!r:.120}")
+        a, b, refs = link
+        refs = refs if isinstance(refs, list) else [refs] * len(SUMMARY_ERRORS)
+        if len(refs) != len(SUMMARY_ERRORS):
+            raise ValueError(f"summary: link {link!r:.120} needs one path per error function")
+        spelt.append({"a": pick(frames, a, "frame"), "b": pick(frames, b, "frame"),
+                      "attrs": {e: pick(paths, r, "path")
+                                for e, r in zip(SUMMARY_ERRORS, refs, strict=True)}})
+    parts = [[pick(frames, i, "frame") for i in c] if isinstance(c, list) else c
+             for c in components]
+    out = {k: v for k, v in msg.items() if k != "paths"}
+    return out | {"components": parts, "links": spelt}
