@@ -616,4 +616,6 @@ PLUGIN = EvalPlugin(
          "through optical gaps and recovery, +20 ms prediction error, NEES, updates/s.",
     add_arguments=_add_arguments,
     run=run,
+    higher_is_better=frozenset({"output_rate_hz", "optical_poses",
+                                "filter_updates_per_cpu_s"}),
 )
