@@ -18,7 +18,7 @@ from services.sim.world import IvyWorld
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:
-    return IvyWorld(seed=2)
+    return IvyWorld(seed=2, ideal=True)
 
 
 def test_walls_follow_eq_5_40_and_cover_the_cube() -> None:
@@ -80,7 +80,7 @@ def test_rig_pose_is_head_pose_times_the_mounting(world: IvyWorld) -> None:
 
 def test_render_is_deterministic_and_realistic(world: IvyWorld) -> None:
     a, b = world.render(2.5), world.render(2.5)
-    other = IvyWorld(seed=2).render(2.5)
+    other = IvyWorld(seed=2, ideal=True).render(2.5)
     for name, img in a.images.items():
         assert img.dtype == np.uint8 and img.shape == (480, 640)
         assert np.array_equal(img, b.images[name]) and np.array_equal(img, other.images[name])
@@ -160,9 +160,10 @@ def test_installation_imperfections_are_applied_when_asked() -> None:
     from services.sim.ivy import screen_displacement
     from services.sim.world import WorldConfig
 
-    ideal = IvyWorld(seed=2)
-    rough = IvyWorld(seed=2, config=WorldConfig(housing_error_deg=0.2, housing_offset_m=0.002,
-                                                screen_bulge_m=0.005))
+    ideal = IvyWorld(seed=2, ideal=True)
+    rough = IvyWorld(seed=2, config=WorldConfig.ideal(housing_error_deg=0.2,
+                                                      housing_offset_m=0.002,
+                                                      screen_bulge_m=0.005))
     p, q = ideal.rig_pose(3.0)
     a, b = ideal.laser_hits(p[0], q[0]), rough.laser_hits(p[0], q[0])
     for k in LABELS:
