@@ -47,6 +47,8 @@ def test_spread_takes_median_and_worst_in_the_right_direction() -> None:
     text = format_spread([1, 2, 3, 4], table)
     assert "err.mean: median 2, worst 3 (seed 2); per seed: 1 3 2 -" in text
     assert "ok: true on 3 of 4 seeds (false on seeds 2)" in text
+    same = format_spread([1, 2], spread({1: {"n": 5}, 2: {"n": 5}}))
+    assert same.splitlines()[1] == "n: 5 on every seed"
 
 
 @pytest.mark.parametrize(("args", "fragment"), [

@@ -101,6 +101,9 @@ def format_spread(seeds: list[int], table: dict[str, dict[str, Any]]) -> str:
             lines.append(f"{path}: true on {e['true_on']} of {e['of']} seeds{failed}")
             continue
         per = " ".join("-" if v is None else f"{v:.4g}" for v in e["per_seed"])
+        if len(set(e["per_seed"])) == 1 and "median" in e:
+            lines.append(f"{path}: {e['median']:.6g} on every seed")
+            continue
         if "median" in e:
             head = f"median {e['median']:.6g}, worst {e['worst']:.6g} (seed {e['worst_seed']})"
         else:
