@@ -37,8 +37,11 @@ def test_spread_takes_median_and_worst_in_the_right_direction() -> None:
         3: {"seed": 3, "err": {"mean": 2.0}, "share": 0.7, "ok": True, "name": "x"},
         4: {"seed": 4, "err": {"mean": None}, "share": math.nan, "ok": True, "name": "x"},
     }
-    table = spread(per_seed, frozenset({"share"}))
-    assert set(table) == {"err.mean", "share", "ok"}
+    for f in per_seed.values():  # a key holding a dot names one leaf, not a path
+        f["cov"] = {"inside (ideal 0.95)": f["share"]}
+    table = spread(per_seed, frozenset({"share", "inside (ideal 0.95)"}))
+    assert set(table) == {"err.mean", "share", "ok", "cov.inside (ideal 0.95)"}
+    assert table["cov.inside (ideal 0.95)"]["worst"] == 0.5
     assert table["err.mean"] == {"per_seed": [1.0, 3.0, 2.0, None], "median": 2.0,
                                  "worst": 3.0, "worst_seed": 2, "missing_or_not_finite": 1}
     assert table["share"]["worst"] == 0.5 and table["share"]["worst_seed"] == 2

@@ -47,27 +47,30 @@ def spread(per_seed: dict[int, dict[str, Any]], higher_is_better: frozenset[str]
     (runs where the figure is missing or not finite are counted, not averaged); booleans as
     the seeds where they held and failed.  Strings and lists are per-seed details only."""
     leaves: dict[str, dict[int, Any]] = {}
+    names: dict[str, str] = {}  # path -> its leaf key (keys may hold dots themselves)
     for seed, figures in per_seed.items():
-        for path, value in _flatten(figures):
+        for path, key, value in _flatten(figures):
             leaves.setdefault(path, {})[seed] = value
+            names[path] = key
     out: dict[str, dict[str, Any]] = {}
     for path, values in leaves.items():
-        if path.rsplit(".", 1)[-1] in _NOT_FIGURES:
+        if names[path] in _NOT_FIGURES:
             continue
         if all(isinstance(v, bool) for v in values.values()):
             out[path] = {"true_on": sum(values.values()), "of": len(per_seed),
                          "false_seeds": [s for s in per_seed if not values.get(s, False)]}
         elif all(_is_number(v) or v is None for v in values.values()):
-            out[path] = _number_spread(path, values, list(per_seed), higher_is_better)
+            out[path] = _number_spread(names[path] in higher_is_better, values,
+                                       list(per_seed))
     return out
 
 
-def _number_spread(path: str, values: dict[int, Any], seeds: list[int],
-                   higher_is_better: frozenset[str]) -> dict[str, Any]:
+def _number_spread(higher_is_better: bool, values: dict[int, Any], seeds: list[int]
+                   ) -> dict[str, Any]:
     good = {s: float(v) for s, v in values.items() if v is not None and math.isfinite(v)}
     entry: dict[str, Any] = {"per_seed": [values.get(s) for s in seeds]}
     if good:
-        pick = min if path.rsplit(".", 1)[-1] in higher_is_better else max
+        pick = min if higher_is_better else max
         worst_seed = pick(good, key=good.__getitem__)
         vals = sorted(good.values())
         m = len(vals) // 2
@@ -84,7 +87,7 @@ def _flatten(figures: dict[str, Any], prefix: str = ""):
         if isinstance(value, dict):
             yield from _flatten(value, path + ".")
         else:
-            yield path, value
+            yield path, key, value
 
 
 def _is_number(v: Any) -> bool:
