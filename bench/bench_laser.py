@@ -78,6 +78,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=120, help="frame sets to time (default 120)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--ideal", action="store_true",
+                    help="black screens (the ideal installation) instead of the realistic "
+                         "default with projected imagery (docs/SIMULATION.md)")
     ap.add_argument("--calibration", default=None, metavar="FILE",
                     help="calibration file (default: calibrate the simulated cameras first)")
     ap.add_argument("--threads", type=int, default=1,
@@ -86,7 +89,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.threads > 0:
         cv2.setNumThreads(args.threads)
-    world = IvyWorld(seed=args.seed)
+    world = IvyWorld(seed=args.seed, ideal=args.ideal)
     cal = Calibration.load(args.calibration) if args.calibration else calibrate_sim(world)
     frames = [world.render(i / 30) for i in range(args.frames)]
 
@@ -112,6 +115,7 @@ def main() -> None:
     pipe = stats_ms(pipe_wall)
     figures = {
         "cpu": cpu_model(),
+        "installation": "ideal" if args.ideal else "realistic (projected imagery)",
         "images": len(det_wall),
         "frame_sets": len(frames),
         "opencv_threads": cv2.getNumThreads(),

@@ -63,7 +63,7 @@ def world_dots(points: np.ndarray, std: float = 1e-3) -> WorldDots:
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:
-    return IvyWorld(seed=3)
+    return IvyWorld(seed=3, ideal=True)
 
 
 # ------------------------------------------------------------------ homography (eqs 5.19-5.37)
@@ -117,9 +117,9 @@ def test_dlt_refuses_bad_input(src, dst, msg) -> None:
 
 
 def test_detection_is_subpixel_on_noise_free_renders() -> None:
-    quiet = WorldConfig(sensor=SensorModel(read_noise_dn=0.0, gain_dn_per_e=0.0,
-                                           stuck_pixels=0),
-                        exposure_s=0.0, distractor_rate=0.0)
+    quiet = WorldConfig.ideal(sensor=SensorModel(read_noise_dn=0.0, gain_dn_per_e=0.0,
+                                                 stuck_pixels=0),
+                              exposure_s=0.0, distractor_rate=0.0)
     w = IvyWorld(seed=5, config=quiet)
     rng = np.random.default_rng(RNG_SEED)
     errors = []
@@ -272,7 +272,8 @@ def test_degenerate_points_give_no_frame() -> None:
 
 
 def make_tracker() -> LaserTracker:
-    return LaserTracker(calibration=None)  # solve() works on world dots, needs no cameras
+    # solve() works on world dots, needs no cameras; exact dots: an ideal installation
+    return LaserTracker(calibration=None, params=TrackerParams.ideal())
 
 
 def test_initialisation_picks_the_upright_solution_and_coherence_keeps_it(world) -> None:
@@ -359,6 +360,46 @@ def test_covariance_is_a_valid_pose_covariance(world) -> None:
     assert 1e-7 < dec[0, 0] < 1e-4 and 1e-8 < dec[3, 3] < 1e-4
 
 
+def test_installation_tolerances_make_the_covariance_honest(world) -> None:
+    """Across many housings and screens drawn with the tolerances the tracker is told, the
+    pose errors they cause have the covariance the tracker reports (mean NEES ~ 6)."""
+    from services.sim import world as sim_world
+
+    cfg = WorldConfig.ideal(housing_error_deg=0.05, housing_offset_m=0.001,
+                            screen_bulge_m=0.004)
+    tr = LaserTracker(None, TrackerParams.ideal(housing_dir_std_rad=np.radians(0.05),
+                                                housing_offset_std_m=0.001,
+                                                screen_bulge_std_m=0.004))
+    rng = np.random.default_rng(RNG_SEED)
+    nees = []
+    for s in range(300):
+        world.beams, world.bulge_m = sim_world._imperfections(cfg, s)
+        p, q = random_rig_pose(rng, upright=True)
+        hits = [world.laser_hits(p, q)[k] for k in LABELS]
+        if not all(h.on_screen for h in hits):
+            continue
+        walls = [world.walls[h.wall] for h in hits]
+        u = [2 * h.screen_xy / w.screen_side_m - 1 for h, w in zip(hits, walls, strict=True)]
+        # the cameras see the bent fabric and the calibration puts it on the wall's plane
+        on_plane = [h.point + (w.plane_distance - h.point @ w.normal) * w.normal
+                    for h, w in zip(hits, walls, strict=True)]
+        dots = WorldDots(np.array(on_plane), np.full(4, 1e-6),
+                         [w.name for w in walls], np.array([w.rotation[:, :2].T for w in walls]),
+                         ["c"] * 4, np.array([(1 - a ** 2) * (1 - b ** 2) for a, b in u]))
+        tr.reset()
+        res = tr.solve(dots, 0.0)
+        if getattr(res, "reason", "") == "not_upright":  # a head upside down: no init
+            continue
+        assert isinstance(res, PoseEstimate), res
+        e = np.concatenate([p - res.position, geo.quat_to_rotvec(
+            geo.quat_multiply(q, geo.quat_conjugate(res.quaternion)))])
+        C = geo.se3_to_decoupled(res.position, res.covariance)
+        nees.append(e @ np.linalg.solve(C, e))
+    world.beams, world.bulge_m = sim_world._imperfections(world.config, world.install_seed)
+    assert len(nees) > 100
+    assert 4.8 < np.mean(nees) < 7.2, (np.mean(nees), len(nees))
+
+
 def test_dots_seen_by_two_overlapping_cameras_are_merged() -> None:
     from services.laser_camera.tracker import _merge_duplicates
 
@@ -411,7 +452,7 @@ def test_model_error_is_added_to_the_covariance(world) -> None:
     p, q = random_rig_pose(np.random.default_rng(2), upright=True)
     dots = world_dots(exact_hits(world, p, q), std=1e-3)
     plain = make_tracker().solve(dots, 0.0)
-    tr = LaserTracker(None, TrackerParams(model_pos_std_m=0.002, model_rot_std_rad=0.001))
+    tr = LaserTracker(None, TrackerParams.ideal(model_pos_std_m=0.002, model_rot_std_rad=0.001))
     inflated = tr.solve(dots, 0.0)
     a = geo.se3_to_decoupled(plain.position, plain.covariance)
     b = geo.se3_to_decoupled(inflated.position, inflated.covariance)

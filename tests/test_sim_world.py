@@ -13,12 +13,12 @@ from services.sim.ivy import WALL_NAMES, make_walls
 from services.sim.laser_housing import LABELS
 from services.sim.render import checkerboard, render_plane_pattern
 from services.sim.trajectory import CUBE_SIDE_M
-from services.sim.world import IvyWorld
+from services.sim.world import IvyWorld, WorldConfig
 
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:
-    return IvyWorld(seed=2)
+    return IvyWorld(seed=2, ideal=True)
 
 
 def test_walls_follow_eq_5_40_and_cover_the_cube() -> None:
@@ -80,7 +80,7 @@ def test_rig_pose_is_head_pose_times_the_mounting(world: IvyWorld) -> None:
 
 def test_render_is_deterministic_and_realistic(world: IvyWorld) -> None:
     a, b = world.render(2.5), world.render(2.5)
-    other = IvyWorld(seed=2).render(2.5)
+    other = IvyWorld(seed=2, ideal=True).render(2.5)
     for name, img in a.images.items():
         assert img.dtype == np.uint8 and img.shape == (480, 640)
         assert np.array_equal(img, b.images[name]) and np.array_equal(img, other.images[name])
@@ -158,11 +158,11 @@ def test_bad_poses_are_refused(world: IvyWorld) -> None:
 
 def test_installation_imperfections_are_applied_when_asked() -> None:
     from services.sim.ivy import screen_displacement
-    from services.sim.world import WorldConfig
 
-    ideal = IvyWorld(seed=2)
-    rough = IvyWorld(seed=2, config=WorldConfig(housing_error_deg=0.2, housing_offset_m=0.002,
-                                                screen_bulge_m=0.005))
+    ideal = IvyWorld(seed=2, ideal=True)
+    rough = IvyWorld(seed=2, config=WorldConfig.ideal(housing_error_deg=0.2,
+                                                      housing_offset_m=0.002,
+                                                      screen_bulge_m=0.005))
     p, q = ideal.rig_pose(3.0)
     a, b = ideal.laser_hits(p[0], q[0]), rough.laser_hits(p[0], q[0])
     for k in LABELS:
@@ -179,3 +179,25 @@ def test_installation_imperfections_are_applied_when_asked() -> None:
             == pytest.approx(CUBE_SIDE_M / 2)
     with pytest.raises(ValueError, match="must be >= 0"):
         WorldConfig(screen_bulge_m=-1.0)
+
+
+def test_realistic_default_shows_moving_content_and_keeps_the_calibration_images() -> None:
+    """The default world: projected content behind the notch filter (below the detector's
+    threshold, moving), cameras turned a little since calibration, imperfections drawn from
+    ``imperfection_seed`` without touching what calibration sees."""
+    real, ideal = IvyWorld(seed=2), IvyWorld(seed=2, ideal=True)
+    a, b = real.render(1.0, pose=real.rig_pose(1.0)), ideal.render(1.0, pose=real.rig_pose(1.0))
+    name = "front"
+    lit = np.median(a.images[name]) - np.median(b.images[name])
+    assert 2 < lit < 30 and np.percentile(a.images[name], 99) < 40  # dim, not black
+    later = real.render(1.5, pose=real.rig_pose(1.0)).images[name]
+    assert np.mean(np.abs(later.astype(int) - a.images[name])) > 1  # the content moves
+    turned = [np.degrees(geo.quat_angle(geo.matrix_to_quat(c.R_cw), geo.matrix_to_quat(t.R_cw)))
+              for c, t in zip(real.cameras, real._tracking, strict=True)]
+    assert all(0 < x < 0.1 for x in turned)
+    other = IvyWorld(seed=2, imperfection_seed=5)
+    assert not np.allclose(other.beams[1][1], real.beams[1][1])
+    assert np.array_equal(other.screen_board(name)[0], real.screen_board(name)[0])
+    assert np.array_equal(other.cameras[0].R_cw, real.cameras[0].R_cw)
+    with pytest.raises(ValueError, match="not both"):
+        IvyWorld(ideal=True, config=WorldConfig())

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from agent.cli import seeds
 from agent.errors import UmaError
 from agent.runtime import plugins
 
@@ -241,7 +242,8 @@ def _run_service(args: argparse.Namespace) -> int:
 def _run_eval(args: argparse.Namespace) -> int:
     names = plugins.names(plugins.EVAL_GROUP)
     if args.name is None:
-        print("usage: uma eval NAME [--seconds S] [--seed N] [--json] [options]\n\n"
+        print("usage: uma eval NAME [--seconds S] [--seed N | --seeds 1-10] [--json] "
+              "[options]\n\n"
               "Measure a tracker's accuracy against simulated ground truth.\n"
               f"Known: {', '.join(names)}\n'uma eval NAME --help' lists the options of NAME.",
               file=sys.stdout if args.show_help else sys.stderr)
@@ -250,14 +252,31 @@ def _run_eval(args: argparse.Namespace) -> int:
     parser = argparse.ArgumentParser(prog=f"uma eval {plugin.name}", description=plugin.help)
     parser.add_argument("--seconds", type=float, default=60.0,
                         help="simulated seconds (default 60)")
-    parser.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--seed", type=int, default=1, help="simulation seed (default 1)")
+    which.add_argument("--seeds", type=seeds.parse_seeds, metavar="LIST",
+                       help="run once per seed (e.g. 1-10 or 1,3,5-7) and report every "
+                            "figure per seed with its median and worst")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     plugin.add_arguments(parser)
     eargs = parser.parse_args(_plugin_args(args))
     if not (math.isfinite(eargs.seconds) and eargs.seconds > 0):
         parser.error(f"--seconds must be a positive number, got {eargs.seconds!r}")
-    figures = plugin.run(eargs)
-    print(json.dumps(figures) if eargs.json else format_figures(figures))
+    if eargs.seeds is None:
+        figures = plugin.run(eargs)
+        print(json.dumps(figures) if eargs.json else format_figures(figures))
+        return 0
+    per_seed = {}
+    for i, s in enumerate(eargs.seeds):
+        per_seed[s] = plugin.run(argparse.Namespace(**{**vars(eargs), "seed": s}))
+        print(f"uma eval {plugin.name}: seed {s} done ({i + 1} of {len(eargs.seeds)})",
+              file=sys.stderr, flush=True)
+    table = seeds.spread(per_seed, plugin.higher_is_better)
+    if eargs.json:
+        print(json.dumps({"seeds": eargs.seeds, "spread": table,
+                          "per_seed": {str(s): f for s, f in per_seed.items()}}))
+    else:
+        print(seeds.format_spread(eargs.seeds, table))
     return 0
 
 

@@ -51,13 +51,16 @@ class EvalPlugin:
     """An accuracy evaluation against simulated ground truth.
 
     ``run(args)`` returns the figures as a JSON-serialisable dict; ``args`` carries
-    ``seconds``, ``seed`` and ``json`` besides the plug-in's own options.
+    ``seconds``, ``seed`` and ``json`` besides the plug-in's own options.  With ``--seeds``
+    the CLI calls ``run`` once per seed; ``higher_is_better`` names the figures (leaf keys)
+    whose worst seed is the one with the smallest value (shares, success counts).
     """
 
     name: str
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], dict[str, Any]]
+    higher_is_better: frozenset[str] = frozenset()
 
 
 @dataclass(frozen=True)

@@ -188,4 +188,6 @@ PLUGIN = EvalPlugin(
          "--seconds is the length of each trial's recording.",
     add_arguments=add_arguments,
     run=run,
+    higher_is_better=frozenset({"within_2ms_fraction",
+                                "within_chi2_95_fraction (ideal 0.95)"}),
 )

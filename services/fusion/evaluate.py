@@ -259,22 +259,24 @@ class Recording:
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
                config: FusionConfig, model_floor: float, cache: bool,
-               dots: bool = False, device: Any = None) -> Recording:
+               dots: bool = False, device: Any = None, ideal: bool = False) -> Recording:
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
     pose only initialises the filter); frames where the tracker found fewer than four dots
     still contribute the dots it sees, labeled by the nearest predicted beam hit.
     """
-    from services.laser_camera.tracker import LaserTracker
+    from services.laser_camera.tracker import LaserTracker, TrackerParams
 
-    world = IvyWorld(seed=seed)
+    # realistic unless ``ideal`` (docs/SIMULATION.md); every seed another housing and screens
+    world = IvyWorld(seed=seed, ideal=ideal, imperfection_seed=seed)
     head_to_accel, head_to_laser = static_mounts(simulation_graph())
     rate = accel_sim.DEFAULT_RATE_HZ
     device, cal = calibrated_accelerometers(rate, seed, device)
     accel = accel_sim.simulate(world.trajectory, seconds, rate, seed=seed, sensor=device,
                                calibration=cal)
-    tracker = LaserTracker(laser_calibration(world, cache))
+    tracker = LaserTracker(laser_calibration(world, cache),
+                           TrackerParams.ideal() if ideal else TrackerParams())
     ekf = FusionEKF(accel_model(cal, head_to_accel, rate, model_floor), config)
     frames = [k / OPTICAL_HZ for k in range(int(seconds * OPTICAL_HZ))
               if not any(a <= k / OPTICAL_HZ < b for a, b in gaps)]
@@ -573,7 +575,8 @@ def _recovery_s(rec: Recording, ep: np.ndarray, er: np.ndarray, b: float, p_lim:
 
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
              config: FusionConfig | None = None, model_floor: float = MODEL_FLOOR,
-             cache: bool = True, dots: bool = False, device: Any = None) -> dict[str, Any]:
+             cache: bool = True, dots: bool = False, device: Any = None,
+             ideal: bool = False) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure (``device``: another
     simulated accelerometer device than MARVIN's)."""
     if seconds < WARMUP_S + 2.0:
@@ -582,11 +585,12 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     gaps = gap_schedule(seconds, gap_lengths)
     device = device or accel_sim.default_device()
     rec = run_fusion(seconds, seed, gaps, horizon_s, config or FusionConfig(), model_floor,
-                     cache, dots, device)
+                     cache, dots, device, ideal)
     if rec.t.size == 0:
         raise ValueError("fusion never started: the laser tracker found no pose")
     figures: dict[str, Any] = {
         "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
+        "installation": "ideal" if ideal else "realistic",
         "accel_device": device_figures(device),
         "given_by_simulator": given_by_simulator(device, accel_sim.DEFAULT_RATE_HZ),
         **figures_of(rec, IvyWorld(seed=seed).trajectory, gaps, horizon_s),
@@ -711,7 +715,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     device = device_from_args(accel_sim.default_device(), args)
     return evaluate(float(args.seconds), int(args.seed), lengths, args.horizon_ms / 1e3,
-                    cache=not args.no_cache, dots=args.optical == "dots", device=device)
+                    cache=not args.no_cache, dots=args.optical == "dots", device=device,
+                    ideal=args.ideal)
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -725,6 +730,9 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                              "each labeled laser dot (predicted dot = beam of the predicted "
                              "pose intersected with the wall)")
     add_device_arguments(parser)
+    parser.add_argument("--ideal", action="store_true",
+                        help="the ideal simulated installation instead of the realistic "
+                             "default (docs/SIMULATION.md)")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")
@@ -742,4 +750,6 @@ PLUGIN = EvalPlugin(
          "truth (the accelerometers' noise model and latency).",
     add_arguments=_add_arguments,
     run=run,
+    higher_is_better=frozenset({"output_rate_hz", "optical_poses",
+                                "filter_updates_per_cpu_s"}),
 )

@@ -69,6 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated trajectory seed (default 1; as the sim service)")
     parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
                         help="simulated display: 6 cameras (default) or 8 as in the thesis")
+    parser.add_argument("--ideal", action="store_true",
+                        help="simulate the ideal installation (docs/SIMULATION.md) and track "
+                             "it without the realistic installation's tolerances")
     parser.add_argument("--model-rot-std-deg", type=float, default=0.0, metavar="DEG",
                         help="rotation error added to every covariance for what the dots "
                              "cannot show, e.g. the housing's tolerance (default 0)")
@@ -96,7 +99,7 @@ def _calibrate(args: argparse.Namespace, specs) -> int:
                          "services.laser_camera.calibration (calibrate_intrinsics, "
                          "calibrate_screen) and saved as a calibration file")
     path = Path(args.calibration or "laser_calibration.json")
-    cal = calibrate_sim(IvyWorld(n_cameras=args.cameras, seed=args.seed))
+    cal = calibrate_sim(IvyWorld(n_cameras=args.cameras, seed=args.seed, ideal=args.ideal))
     cal.save(path)
     for c in cal.cameras:
         q = c.quality
@@ -109,7 +112,7 @@ def _calibrate(args: argparse.Namespace, specs) -> int:
 
 def _open(args: argparse.Namespace, specs) -> tuple[Calibration, SimSource | CaptureSource]:
     if specs is None:
-        world = IvyWorld(n_cameras=args.cameras, seed=args.seed)
+        world = IvyWorld(n_cameras=args.cameras, seed=args.seed, ideal=args.ideal)
         if args.calibration:
             cal = Calibration.load(args.calibration)
         else:
@@ -168,7 +171,7 @@ class _Performance:
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
     """Track at the source's pace; advertise after a warm-up measured at that pace."""
-    tracker = LaserTracker(cal, TrackerParams(
+    tracker = LaserTracker(cal, (TrackerParams.ideal if args.ideal else TrackerParams)(
         model_pos_std_m=args.model_pos_std_mm / 1000,
         model_rot_std_rad=float(np.radians(args.model_rot_std_deg))))
     perf = _Performance()

@@ -53,7 +53,10 @@ class TrackerParams:
     """Tuning of the tracker; defaults suit IVY and human head motion."""
 
     max_labeling_error: float = 0.08  # eps of eq. 5.6 (sum of cosines + m^2 + 0/1)
-    edge_guard_m: float = 0.012  # drop dots this close to a screen's edge
+    #: a dot this close to a screen's edge may be clipped by it (a biased centroid): it is
+    #: kept with ``edge_std_m`` more uncertainty, so a pose is still possible, at its cost
+    edge_guard_m: float = 0.012
+    edge_std_m: float = 0.004
     merge_world_m: float = 0.03  # dots of overlapping cameras closer than this are one
     max_dots: int = 8  # more candidates than this: no pose (C(8, 4) = 70 subsets at most)
     max_angular_speed_dps: float = 500.0  # gating: faster turns are refused
@@ -65,10 +68,18 @@ class TrackerParams:
     pool_eps: float = 0.02  # labelings this close to the best fit compete for the choice
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
-    #: errors the dots cannot reveal -- the housing's manufacturing tolerance, screens that
-    #: bend -- added to every pose covariance (1 sigma, per axis; default: none)
+    #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
+    #: default: none -- the installation's tolerances below model them dot by dot)
     model_pos_std_m: float = 0.0
     model_rot_std_rad: float = 0.0
+    #: tolerances of the installation (1 sigma), each moving a dot on its wall: the
+    #: housing's beam directions and their miss distance from P0, the fabric screens' bend
+    #: at their centres, and the cameras' turn since calibration seen on the screen
+    #: (docs/SIMULATION.md; ``TrackerParams.ideal()`` for an ideal installation)
+    housing_dir_std_rad: float = math.radians(0.02)
+    housing_offset_std_m: float = 0.0005
+    screen_bulge_std_m: float = 0.002
+    camera_residual_std_m: float = 0.0006
     #: while tracking, each dot is looked for only in a window of this half-size (pixels)
     #: around its predicted position (Dorfmueller-Ulhaas §2); 0: always the full frame
     roi_half_px: int = 24
@@ -85,6 +96,15 @@ class TrackerParams:
             raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise ValueError("roi_half_px and roi_refresh_s must be >= 0")
+        if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
+               self.camera_residual_std_m) < 0:
+            raise ValueError("the installation's tolerances must be >= 0")
+
+    @classmethod
+    def ideal(cls, **overrides) -> TrackerParams:
+        """Parameters for an ideal installation: no tolerances beyond the dots' own."""
+        return cls(**{"housing_dir_std_rad": 0.0, "housing_offset_std_m": 0.0,
+                      "screen_bulge_std_m": 0.0, "camera_residual_std_m": 0.0, **overrides})
 
 
 @dataclass(frozen=True)
@@ -96,6 +116,9 @@ class WorldDots:
     walls: list[str]  # wall of each dot
     axes: np.ndarray  # (n, 2, 3) the wall's in-plane unit axes (for error propagation)
     cameras: list[str]
+    #: (n,) how far a bending screen moves at each dot, relative to its centre (0..1; None:
+    #: unknown, taken as 1)
+    bend: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -230,7 +253,7 @@ class LaserTracker:
 
     def _to_world(self, detections: Mapping[str, np.ndarray]) -> WorldDots:
         """World-frame dots of each camera's detected pixel dots."""
-        pts, std, walls, axes, cams = [], [], [], [], []
+        pts, std, walls, axes, cams, bend = [], [], [], [], [], []
         guard = self.params.edge_guard_m
         for name, det in detections.items():
             if not len(det):
@@ -238,17 +261,21 @@ class LaserTracker:
             cal = self.calibration.camera(name)
             und = cal.undistort(det[:, [U, V]])
             xy = apply_homography(cal.H, und)
-            keep = cal.wall.on_screen(xy, guard)
+            keep = cal.wall.on_screen(xy)
+            clear = cal.wall.on_screen(xy, guard)
             sigma_cal = cal.screen_sigma_m(self.params.calib_sigma_m)
             for i in np.flatnonzero(keep):
                 mpp = cal.metres_per_pixel(und[i])
+                edge = 0.0 if clear[i] else self.params.edge_std_m
                 pts.append(cal.wall.to_world(xy[i])[0])
-                std.append(float(np.hypot(det[i, STD] * mpp, sigma_cal)))
+                std.append(float(np.sqrt((det[i, STD] * mpp) ** 2 + sigma_cal ** 2 + edge ** 2)))
                 walls.append(cal.wall.name)
                 axes.append(cal.wall.rotation[:, :2].T)
                 cams.append(name)
+                u = 2 * xy[i] / cal.wall.screen_side_m - 1
+                bend.append(max(0.0, 1 - u[0] ** 2) * max(0.0, 1 - u[1] ** 2))
         dots = WorldDots(np.array(pts).reshape(-1, 3), np.array(std), walls,
-                         np.array(axes).reshape(-1, 2, 3), cams)
+                         np.array(axes).reshape(-1, 2, 3), cams, np.array(bend))
         return _merge_duplicates(dots, self.params.merge_world_m)
 
     def solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
@@ -306,7 +333,7 @@ class LaserTracker:
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
-            cov = _covariance(dots, idx, best.position, p.model_pos_std_m, p.model_rot_std_rad)
+            cov = _covariance(dots, idx, best.position, p)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
         est = PoseEstimate(
@@ -377,14 +404,36 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
         return d
     k = np.flatnonzero(keep)
     return WorldDots(pts[k], std[k], [d.walls[i] for i in k], d.axes[k],
-                     [d.cameras[i] for i in k])
+                     [d.cameras[i] for i in k], None if d.bend is None else d.bend[k])
 
 
-def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, model_pos_std_m: float = 0.0,
-                model_rot_std_rad: float = 0.0, step_m: float = 1e-5) -> np.ndarray:
-    """6x6 pose covariance (xi form) from the dots' in-plane errors, by numeric Jacobian of
-    the closed-form solution (each dot moves along its wall's two axes), plus the model
-    error the dots cannot show."""
+def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
+                           p: TrackerParams) -> np.ndarray:
+    """Per-axis in-plane variance (m^2) each of the four dots gets from the installation's
+    tolerances, averaged over the wall's two axes.
+
+    A beam turned by ``d`` (two components, each ``housing_dir_std_rad``) or missing P0 by
+    ``o`` moves its dot by ``r d`` or ``o`` across the beam; along the beam's in-plane
+    direction that stretches by ``1 / cos(incidence)``.  A screen bent inwards by ``w``
+    moves the dot by ``w tan(incidence)`` along that direction; the cameras' turn since
+    calibration moves every dot the same in both axes."""
+    P = dots.points[idx]
+    ray = P - p0
+    r = np.linalg.norm(ray, axis=1)
+    normal = np.cross(dots.axes[idx, 0], dots.axes[idx, 1])
+    c = np.clip(np.abs(np.einsum("ij,ij->i", normal, ray)) / r, 0.05, 1.0)
+    bend = np.ones(len(idx)) if dots.bend is None else dots.bend[idx]
+    across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
+    w_tan = p.screen_bulge_std_m * bend * np.sqrt(1 - c ** 2) / c
+    return 0.5 * (across * (1 + 1 / c ** 2) + w_tan ** 2) + p.camera_residual_std_m ** 2
+
+
+def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
+                step_m: float = 1e-5) -> np.ndarray:
+    """6x6 pose covariance (xi form) from the dots' in-plane errors (their detection and
+    calibration noise and the installation's tolerances), by numeric Jacobian of the
+    closed-form solution (each dot moves along its wall's two axes), plus the model error
+    the dots cannot show."""
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
@@ -396,6 +445,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, model_pos_std_m
     dphi = 0.5 * np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
                            dR[:, 1, 0] - dR[:, 0, 1]], -1)
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
-    var = np.repeat(dots.std_m[idx] ** 2, 2)
-    C = (J * var) @ J.T + np.diag([model_pos_std_m ** 2] * 3 + [model_rot_std_rad ** 2] * 3)
+    var = np.repeat(dots.std_m[idx] ** 2 + _installation_variance(dots, idx, p0, params), 2)
+    C = (J * var) @ J.T + np.diag([params.model_pos_std_m ** 2] * 3
+                                  + [params.model_rot_std_rad ** 2] * 3)
     return geo.decoupled_to_se3(p0, 0.5 * (C + C.T))

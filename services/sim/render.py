@@ -1,7 +1,9 @@
-"""Rendering of 8-bit camera images: laser spots on a dark background, and checkerboards.
+"""Rendering of 8-bit camera images: laser spots on the screens' background, and
+checkerboards.
 
-Behind the 650 nm notch filter (Hogue 2003, §5.2) a camera sees a dark frame with a few
-bright laser spots.  A spot is the beam's footprint on the translucent screen: the beam's
+Behind the 650 nm notch filter (Hogue 2003, §5.2) a camera sees a dark frame (plus what
+the filter lets through of the projected content, ``projection``) with a few bright laser
+spots.  A spot is the beam's footprint on the translucent screen: the beam's
 Gaussian cross-section stretched by ``1 / cos(incidence)`` along its in-plane direction,
 blurred by the screen's diffusion, mapped into the image by the local affine map of the
 camera at that point.  Its total energy is fixed, so grazing spots are larger and dimmer;
@@ -116,8 +118,8 @@ class NoiseBank:
 
 def add_spots(img: np.ndarray, spots: list[Spot], sensor: SensorModel,
               rng: np.random.Generator) -> None:
-    """Draw blobs into an 8-bit image in place, with shot and read noise, rounding and
-    saturation in their window."""
+    """Add blobs to an 8-bit image in place (on whatever it shows: the dark level with its
+    read noise, projected content), with their shot noise, rounding and saturation."""
     if not spots:
         return
     h, w = img.shape
@@ -126,9 +128,9 @@ def add_spots(img: np.ndarray, spots: list[Spot], sensor: SensorModel,
     if u1 <= u0 or v1 <= v0:
         return
     signal = render_spots(spots, box)
-    std = np.sqrt(sensor.read_noise_dn ** 2 + sensor.gain_dn_per_e * signal)
-    val = sensor.dark_level_dn + signal + std * rng.standard_normal(signal.shape)
     win = img[v0:v1, u0:u1]
+    val = win + signal + np.sqrt(sensor.gain_dn_per_e * signal) \
+        * rng.standard_normal(signal.shape)
     # keep stuck pixels stuck: take the max with what is there
     np.maximum(np.clip(np.rint(val), 0, 255).astype(np.uint8),
                np.where(win == 255, win, 0).astype(np.uint8), out=win)

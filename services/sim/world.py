@@ -15,8 +15,9 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from agent.srg import geometry as geo
@@ -31,6 +32,7 @@ from services.sim.ivy import (
     make_walls,
 )
 from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
+from services.sim.projection import ProjectedContent
 from services.sim.render import (
     NoiseBank,
     SensorModel,
@@ -55,23 +57,46 @@ def sim_time_s(t_ns: int) -> float:
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Physical parameters of the simulation (defaults: Hogue 2003, ch. 5 and appendix C)."""
+    """Physical parameters of the simulation: a realistic installation by default
+    (docs/SIMULATION.md says where each value comes from); ``WorldConfig.ideal()`` is the
+    ideal one (black screens, a perfect housing and screens, spots of one size)."""
 
     n_cameras: int = 6  # 6: one per screen; 8: floor and ceiling split in two (the thesis)
     cube_side_m: float = CUBE_SIDE_M
     screen_side_m: float = SCREEN_SIDE_M
-    beam_sigma_m: float = 0.0015  # 6 mm spot at 5 m (appendix C.2.1)
+    beam_sigma_m: float = 0.0005  # beam at the diode (std); ideal: 1.5 mm everywhere
+    #: growth of the beam's std per metre of range: 6 mm diameter (~4 std) at 5 m
+    #: (appendix C.2.1)
+    beam_divergence_rad: float = 0.0002
     diffusion_sigma_m: float = 0.005  # blur of the rear-projection screen
     spot_energy_dn: float = 3000.0  # integrated DN of one spot: head-on spots saturate
+    #: the screen passes the beam's power towards the camera as cos(incidence) ** this
+    spot_falloff_exponent: float = 1.0
     exposure_s: float = 0.004  # spots smear while the head moves
     exposure_samples: int = 4
     distractor_rate: float = 0.02  # stray bright blobs per image (reflections, glints)
     sensor: SensorModel = field(default_factory=SensorModel)
-    # Imperfections of a real installation that the tracker cannot know (all off by
-    # default; each drawn once per installation from ``install_seed``):
-    housing_error_deg: float = 0.0  # std of each beam's direction error
-    housing_offset_m: float = 0.0  # std of each beam's miss distance from the common P0
-    screen_bulge_m: float = 0.0  # std of the fabric screens' bend at their centres
+    #: brightest projected content behind the notch filter (DN above dark; 0: black screens)
+    projection_peak_dn: float = 24.0
+    projection_speed_px_s: float = 120.0  # how fast the content moves across the image
+    # Imperfections of a real installation that the tracker cannot know (each drawn once
+    # per installation from ``install_seed``):
+    housing_error_deg: float = 0.02  # std of each beam's direction error
+    housing_offset_m: float = 0.0005  # std of each beam's miss distance from the common P0
+    screen_bulge_m: float = 0.002  # std of the fabric screens' bend at their centres
+    #: std (per axis) of the rotation each camera keeps after calibration: the filter is
+    #: put on after the screen homography, and the correcting homography of §5.4.2 rests on
+    #: four hand-picked laser spots
+    calibration_residual_deg: float = 0.015
+
+    @classmethod
+    def ideal(cls, **overrides) -> WorldConfig:
+        """Today's ideal installation: black screens, a perfect housing, flat screens,
+        cameras exactly where they were calibrated, spots of one size and brightness."""
+        return cls(**{"beam_sigma_m": 0.0015, "beam_divergence_rad": 0.0,
+                      "spot_falloff_exponent": 0.0, "projection_peak_dn": 0.0,
+                      "housing_error_deg": 0.0, "housing_offset_m": 0.0,
+                      "screen_bulge_m": 0.0, "calibration_residual_deg": 0.0, **overrides})
 
     def __post_init__(self) -> None:
         if self.n_cameras not in (6, 8):
@@ -79,9 +104,12 @@ class WorldConfig:
                              f"split, as in the thesis), got {self.n_cameras}")
         if self.exposure_samples < 1 or self.exposure_s < 0:
             raise ValueError("exposure_s must be >= 0 and exposure_samples >= 1")
-        if min(self.housing_error_deg, self.housing_offset_m, self.screen_bulge_m) < 0:
-            raise ValueError("housing_error_deg, housing_offset_m and screen_bulge_m must be "
-                             ">= 0")
+        if min(self.housing_error_deg, self.housing_offset_m, self.screen_bulge_m,
+               self.calibration_residual_deg, self.projection_peak_dn, self.beam_divergence_rad,
+               self.spot_falloff_exponent) < 0:
+            raise ValueError("housing_error_deg, housing_offset_m, screen_bulge_m, "
+                             "calibration_residual_deg, projection_peak_dn, "
+                             "beam_divergence_rad and spot_falloff_exponent must be >= 0")
 
 
 @dataclass
@@ -106,8 +134,17 @@ class IvyWorld:
     """The IVY display with its cameras and a head wearing the laser housing."""
 
     def __init__(self, n_cameras: int = 6, seed: int = 0, install_seed: int = 0,
-                 trajectory: HeadTrajectory | None = None, config: WorldConfig | None = None):
-        self.config = config or WorldConfig(n_cameras=n_cameras)
+                 trajectory: HeadTrajectory | None = None, config: WorldConfig | None = None,
+                 ideal: bool = False, imperfection_seed: int | None = None):
+        """``ideal``: ``WorldConfig.ideal()`` instead of the realistic default (only
+        without ``config``).  ``imperfection_seed`` (default ``install_seed``) draws the
+        housing's and screens' errors and the cameras' turn since calibration: none of them
+        changes the calibration images, so worlds that differ only in it share one
+        calibration."""
+        if ideal and config is not None:
+            raise ValueError("give ideal=True or a config, not both")
+        self.config = config or (WorldConfig.ideal(n_cameras=n_cameras) if ideal
+                                 else WorldConfig(n_cameras=n_cameras))
         if config is not None and n_cameras != 6 and config.n_cameras != n_cameras:
             raise ValueError(f"n_cameras={n_cameras} disagrees with config.n_cameras="
                              f"{config.n_cameras}; give it in one place")
@@ -117,10 +154,18 @@ class IvyWorld:
                                                  self.config.screen_side_m)
         self.cameras: list[Camera] = _install_cameras(self.walls, self.config, install_seed)
         self.trajectory = trajectory or HeadTrajectory(seed)
-        self.beams, self.bulge_m = _imperfections(self.config, install_seed)
+        flaws = install_seed if imperfection_seed is None else imperfection_seed
+        self.beams, self.bulge_m = _imperfections(self.config, flaws)
         self._noise = {c.name: NoiseBank(c, self.config.sensor,
                                          np.random.default_rng([install_seed, i, 7]))
                        for i, c in enumerate(self.cameras)}
+        #: the cameras as they are while tracking: moved a little since calibration
+        self._tracking = _after_calibration(self.cameras, self.config, flaws)
+        self._content = {
+            c.name: ProjectedContent(c.width, c.height, self.config.projection_peak_dn,
+                                     self.config.projection_speed_px_s,
+                                     np.random.default_rng([install_seed, i, 17]))
+            for i, c in enumerate(self.cameras) if self.config.projection_peak_dn > 0}
 
     @property
     def installation(self) -> dict:
@@ -167,19 +212,21 @@ class IvyWorld:
             p_t = geo.check_vector(pose[0], "rig position").reshape(3)
             q_t = geo.check_quaternion(pose[1], "rig quaternion").reshape(4)
             ps, qs = p_t[None], q_t[None]
-        sub_hits = [self.laser_hits(p, q) for p, q in zip(ps, qs, strict=True)]
+        sub_hits = [(p, self.laser_hits(p, q)) for p, q in zip(ps, qs, strict=True)]
         hits = self.laser_hits(p_t, q_t)
         images: dict[str, np.ndarray] = {}
         image_points: dict[str, dict[int, np.ndarray]] = {}
         n_distractors = 0
-        for cam in self.cameras:
+        for cam in self._tracking:
             spots = []
-            for hs in sub_hits:
+            for p, hs in sub_hits:
                 spots += [s for h in hs.values()
-                          if (s := self._spot(cam, h, 1.0 / len(sub_hits))) is not None]
+                          if (s := self._spot(cam, h, p, 1.0 / len(sub_hits))) is not None]
             extra = self._distractors(cam, rng)
             n_distractors += len(extra)
             img = self._noise[cam.name].dark_frame(rng)
+            if cam.name in self._content:
+                cv2.add(img, self._content[cam.name].crop(t), dst=img)
             add_spots(img, spots + extra, cfg.sensor, rng)
             images[cam.name] = img
             image_points[cam.name] = {
@@ -188,7 +235,8 @@ class IvyWorld:
                 and cam.in_image(uv := cam.project(h.point[None])[0])[0]}
         return Frame(t, images, p_t, q_t, hits, image_points, n_distractors)
 
-    def _spot(self, cam: Camera, hit: BeamHit, share: float) -> Spot | None:
+    def _spot(self, cam: Camera, hit: BeamHit, origin: np.ndarray,
+              share: float) -> Spot | None:
         """The image blob of a beam's footprint, if this camera sees it."""
         if hit.wall != cam.wall or not hit.on_screen:
             return None
@@ -201,12 +249,14 @@ class IvyWorld:
         d = wall.rotation.T @ hit.direction
         a = d[:2] / max(np.linalg.norm(d[:2]), 1e-12)
         c = max(hit.cos_incidence, 1e-3)
-        cov_s = cfg.beam_sigma_m ** 2 * (np.eye(2) + (1 / c ** 2 - 1) * np.outer(a, a)) \
+        beam = cfg.beam_sigma_m + cfg.beam_divergence_rad * np.linalg.norm(hit.point - origin)
+        cov_s = beam ** 2 * (np.eye(2) + (1 / c ** 2 - 1) * np.outer(a, a)) \
             + cfg.diffusion_sigma_m ** 2 * np.eye(2)
         J = cam.screen_to_image_jacobian(wall, hit.screen_xy)
         A = np.linalg.inv(J)
         clip = (A, hit.screen_xy - A @ uv, wall.screen_side_m)
-        return Spot(uv, J @ cov_s @ J.T, cfg.spot_energy_dn * share, clip)
+        energy = cfg.spot_energy_dn * share * c ** cfg.spot_falloff_exponent
+        return Spot(uv, J @ cov_s @ J.T, energy, clip)
 
     def _distractors(self, cam: Camera, rng: np.random.Generator) -> list[Spot]:
         n = rng.poisson(self.config.distractor_rate)
@@ -316,6 +366,17 @@ def _imperfections(cfg: WorldConfig, seed: int
         beams[k] = (off - (off @ d) * d, d / np.linalg.norm(d))
     bulge = {name: abs(rng.normal(0, cfg.screen_bulge_m)) for name in sorted(WALL_NAMES)}
     return beams, bulge
+
+
+def _after_calibration(cams: list[Camera], cfg: WorldConfig, seed: int) -> list[Camera]:
+    """The cameras turned by their calibration residual (a small rotation about their
+    optical centres): what the calibration images showed is no longer exactly true."""
+    rng = np.random.default_rng([seed, 19])
+    out = []
+    for cam in cams:
+        turn = geo.rodrigues(rng.normal(0, np.radians(cfg.calibration_residual_deg), 3))
+        out.append(replace(cam, R_cw=turn @ cam.R_cw, _cache={}))
+    return out
 
 
 def _install_cameras(walls: dict[str, Wall], cfg: WorldConfig, seed: int) -> list[Camera]:
