@@ -40,7 +40,8 @@ def data_selectors(realm: str, patterns: list[str]) -> list[str]:
         try:
             zenoh.KeyExpr(full)
         except zenoh.ZError as exc:
-            raise UmaError(f"--keys {p!r} is not a key expression: {exc}") from None
+            reason = str(exc).split(" at /")[0]
+            raise UmaError(f"--keys {p!r} is not a key expression ({reason})") from None
         out.append(full)
     return out
 
