@@ -124,19 +124,21 @@ def _damage(rec: Recording, good: int, exc: Exception | None) -> str:
         reason = f": {exc}" if exc is not None and str(exc) else ""
         raise UmaError(f"{rec.path} is not a readable MCAP file (damaged before its first "
                        f"record{reason})")
-    why = _why(exc)
+    why = _why(exc, at_end=good == rec.size)
     last = max((m.log_ns for m in rec.messages), default=None)
     until = f", up to log time {last} ns" if last is not None else ""
+    lost = (f"the {rec.size - good} bytes after it (at most the last chunk, about a second) "
+            "and the index are lost" if good < rec.size else
+            "only the index is lost (the writer stopped before writing it)")
     return (f"{rec.path} is truncated or damaged after byte {good} of {rec.size} ({why}); "
-            f"read {len(rec.messages)} messages before the damage{until}; the {rec.size - good} "
-            "bytes after it (at most the last chunk, about a second) and the index are lost")
+            f"read {len(rec.messages)} messages before the damage{until}; {lost}")
 
 
-def _why(exc: Exception | None) -> str:
+def _why(exc: Exception | None, at_end: bool) -> str:
     """The damage in words (the mcap library's exceptions say little about truncation)."""
     from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 
-    if exc is None:
+    if exc is None or at_end:
         return "it ends without a footer"
     if isinstance(exc, EndOfFile | struct.error):
         return "it ends inside a record"
