@@ -46,6 +46,9 @@ from services.sim import mounts
 log = logging.getLogger("uma.demo")
 
 SERVICES = ("laser-camera", "accel-rig", "fusion")
+#: where a recorded demo's simulator publishes the true head: not ``*/head``, so neither
+#: queries of the tracked head nor needs of one ever reach the truth
+TRUTH_FRAME = "alice/head_truth"
 #: how long the fused pose may take to appear after the services start (s)
 FIRST_POSE_TIMEOUT_S = 30.0
 QUERY_HZ = 20.0
@@ -148,7 +151,10 @@ def main(args: argparse.Namespace) -> int:
         if log_dir.exists() and not log_dir.is_dir():
             raise UmaError(f"--logs {args.logs}: exists and is not a directory")
         log_dir.mkdir(parents=True, exist_ok=True)
-    report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir)
+    if args.record is not None and not Path(args.record).resolve().parent.is_dir():
+        raise UmaError(f"--record {args.record}: its directory does not exist")
+    report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir,
+                      record=args.record)
     if args.json:
         print(json.dumps(report))
     else:
@@ -157,9 +163,10 @@ def main(args: argparse.Namespace) -> int:
 
 
 def run_demo(seconds: float, seed: int, live: bool = True,
-             log_dir: Path | None = None) -> dict[str, Any]:
+             log_dir: Path | None = None, record: str | None = None) -> dict[str, Any]:
     """Start everything, measure for ``seconds``, stop everything; the figures (the
-    services' logs kept in ``log_dir`` if given)."""
+    services' logs kept in ``log_dir`` if given; everything recorded into ``record`` if
+    given, with the simulator's ground truth on its own frame, ``TRUTH_FRAME``)."""
     from agent.daemon.agent import Agent
     from agent.daemon.settings import AgentSettings
     from agent.sdk.client import Client
@@ -181,6 +188,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     agents: list[Any] = []
     tally = Tally()
     sub = None
+    recording: Any = None
     try:
         tracking = Agent(AgentSettings(realm=realm, agent_id="tracking", listen=[ep_tracking],
                                        static_edges=_static_edges(), lease_ms=lease_ms))
@@ -191,6 +199,10 @@ def run_demo(seconds: float, seed: int, live: bool = True,
         app.start()
         agents.append(app)
         common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]
+        if record is not None:
+            recording = _Recording(record, realm, ep_tracking)
+            children.start("sim", [*common, "--seed", str(seed), "--mountings", "none",
+                                   "--head-frame", TRUTH_FRAME])
         children.start("laser-camera", [*common, "--seed", str(seed), "--calibration",
                                         str(calibration)])
         # The fusion uses the raw accelerometer stream; the rig's own dead reckoning is reset
@@ -221,14 +233,53 @@ def run_demo(seconds: float, seed: int, live: bool = True,
         if sub is not None:
             with contextlib.suppress(Exception):
                 sub.close()
-        children.stop()
+        try:
+            recorded = recording.close() if recording is not None else None
+        finally:
+            children.stop()
         for a in reversed(agents):
             with contextlib.suppress(Exception):
                 a.close()
     report = _report(tally, matches, seconds, time.monotonic() - t_start,
                      [p.pid for p in children.procs.values()])
     report["logs"] = None if log_dir is None else str(log_dir)
+    report["recording"] = recorded
+    if recorded is not None and recorded["error"]:
+        report["ok"] = False
     return report
+
+
+class _Recording:
+    """``uma record`` of the demo's realm, in this process, from before the services start
+    (so the fusion's whole input is in the file) until the measurement ends."""
+
+    def __init__(self, path: str, realm: str, endpoint: str) -> None:
+        from agent.record.recorder import Recorder
+        from agent.record.sink import RecordingSink
+        from agent.runtime.session import open_session
+
+        self.path = path
+        self.started = time.monotonic()
+        self.session = open_session("client", None, [endpoint], realm)
+        try:
+            self.recorder = Recorder(self.session, RecordingSink(path, realm, []), realm, [])
+        except BaseException:
+            self.session.close()
+            raise
+
+    def close(self) -> dict[str, Any]:
+        from agent.runtime.session import close_session
+
+        try:
+            stats = self.recorder.close()
+        finally:
+            close_session(self.session)
+        seconds = time.monotonic() - self.started
+        size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
+        return {"file": self.path, "seconds": seconds,
+                "messages": sum(stats.messages.values()), "bytes": size,
+                "mb_per_minute": size / 1e6 / seconds * 60.0,
+                "dropped": sum(stats.dropped.values()), "error": stats.error}
 
 
 def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
@@ -356,6 +407,13 @@ def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: flo
     return report
 
 
+def _recording_line(rec: dict[str, Any]) -> str:
+    line = (f"  recorded {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB "
+            f"({rec['mb_per_minute']:.1f} MB/min) to {rec['file']}; not written: "
+            f"{rec['dropped']}")
+    return line + (f"; {rec['error']}" if rec["error"] else "")
+
+
 def format_summary(r: dict[str, Any]) -> str:
     def s(d: dict[str, float] | None, unit: str) -> str:
         return "n/a" if d is None else (f"median {d['median']:.3g} {unit}, p99 {d['p99']:.3g} "
@@ -372,5 +430,6 @@ def format_summary(r: dict[str, Any]) -> str:
               f"                         orientation {s(r['orientation_error_deg'], 'deg')}",
               f"  all processes stopped (pids {', '.join(map(str, r['child_pids']))})",
               *([f"  service logs in {r['logs']}"] if r.get("logs") else []),
+              *([_recording_line(r["recording"])] if r.get("recording") else []),
               f"  {'OK' if r['ok'] else 'FAILED'}"]
     return "\n".join(lines)

@@ -11,7 +11,9 @@ channel topic              encoding    messages
                                        schemas export``), ``uma.service_attributes`` (JSON)
 ``uma/R/agent/A/services`` msgpack     agent A's snapshot of its services, needs, abilities and
                                        matches, at the start and at every change
-``uma/R/agent/A/supernode`` msgpack    agent A's SRG summary (its frames, static edges)
+``uma/R/agent/A/supernode`` msgpack    agent A's SRG summary (its frames)
+``uma/R/agent/A/static``   msgpack     agent A's static edges and clock offset, looked up by
+                                       the recorder (``agent.record.statics``)
 ``/tf``, ``/tf_static``    cdr         poses as ``tf2_msgs/msg/TFMessage`` (``ros2msg``
                                        schema), frame ids are uma's frame names
 =========================  ==========  =======================================================
@@ -33,6 +35,7 @@ MSGPACK = "msgpack"
 DATA = "data"
 SNAPSHOT = "snapshot"
 SUPERNODE = "supernode"
+STATIC = "static"
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
 META_START = "uma.recording"
@@ -56,11 +59,13 @@ def realm_metadata(kind: str) -> dict[str, str]:
 
 
 def kind_of_topic(topic: str) -> str | None:
-    """``snapshot`` or ``supernode`` for an agent publication's key, else None."""
-    if topic.endswith("/services"):
-        return SNAPSHOT
-    if topic.endswith("/supernode"):
-        return SUPERNODE
+    """``snapshot``, ``supernode`` or ``static`` for an agent's topic, else None (data)."""
+    if "/data/" in topic:
+        return None
+    for suffix, kind in (("/services", SNAPSHOT), ("/supernode", SUPERNODE),
+                         ("/static", STATIC)):
+        if topic.endswith(suffix):
+            return kind
     return None
 
 

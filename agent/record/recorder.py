@@ -22,6 +22,7 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.record.sink import RecordingSink, SinkStats
+from agent.record.statics import StaticEdges
 from agent.runtime.session import close_session, open_session, query, sdk_mode
 
 #: how long to wait for the agents' current snapshots and summaries at the start
@@ -63,15 +64,22 @@ class Recorder:
         def on_sample(sample: zenoh.Sample) -> None:
             offer(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
 
-        selectors = [*data_selectors(realm, patterns), keys.all_agent_services(realm),
-                     keys.all_agent_supernodes(realm)]
-        self._subs = [session.declare_subscriber(s, on_sample) for s in selectors]
-        for selector in selectors[-2:]:
+        def on_summary(sample: zenoh.Sample) -> None:
+            on_sample(sample)
+            self.statics.changed()
+
+        self.statics = StaticEdges(session, realm, offer)
+        realm_keys = [keys.all_agent_services(realm), keys.all_agent_supernodes(realm)]
+        self._subs = [session.declare_subscriber(s, on_sample)
+                      for s in [*data_selectors(realm, patterns), realm_keys[0]]]
+        self._subs.append(session.declare_subscriber(realm_keys[1], on_summary))
+        for selector in realm_keys:
             for reply in query(session, selector, ASK_TIMEOUT_S):
                 if reply.ok is not None:
                     offer(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), time.time_ns())
 
     def close(self) -> SinkStats:
+        self.statics.close()
         for sub in self._subs:
             sub.undeclare()
         return self.sink.close()

@@ -28,6 +28,7 @@ from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.registration import parse_snapshot
 from agent.record import layout
+from agent.record.statics import decode_statics
 from agent.runtime.logs import RateLimitedLog
 from schemas.codec import DecodeError, decode_measurement, peek_time
 from schemas.models import Ability
@@ -126,6 +127,8 @@ class RecordingSink:
             except OSError as exc:
                 self._fail(exc)
                 return
+            except Exception as exc:  # a bug must not end the recording silently
+                self._bad.warning("writer", "recording writer: %s: %s", type(exc).__name__, exc)
 
     def _write(self, key: str, data: bytes, recv_ns: int) -> None:
         self.stats.bytes_in += len(data)
@@ -134,6 +137,8 @@ class RecordingSink:
             self._put(key, layout.realm_metadata(kind), data, recv_ns, recv_ns)
             if kind == layout.SNAPSHOT:
                 self._learn(key, data)
+            elif kind == layout.STATIC:
+                self._write_static_tf(data, recv_ns)
             return
         if key not in self._channels and key not in self._abilities:
             self._waiting.setdefault(key, (time.monotonic(), []))[1].append((data, recv_ns))
@@ -162,6 +167,19 @@ class RecordingSink:
         payload = self._tf.encode(ability.edge[0], ability.edge[1], m.t_ns, m.position,
                                   m.quaternion)
         self._put(topic, {}, payload, recv_ns, m.t_ns)
+
+    def _write_static_tf(self, data: bytes, recv_ns: int) -> None:
+        """An agent's static edges on /tf_static, stamped with the time they were seen."""
+        if self._tf is None:
+            return
+        try:
+            edges = decode_statics(data)["edges"]
+        except ValueError as exc:
+            self._bad.warning("statics", "static edges not written to /tf_static: %s", exc)
+            return
+        for e in edges:
+            payload = self._tf.encode(e["parent"], e["child"], recv_ns, e["p"], e["q"])
+            self._put(layout.TF_STATIC_TOPIC, {}, payload, recv_ns, recv_ns)
 
     def _put(self, topic: str, metadata: dict[str, str], data: bytes, log_ns: int,
              publish_ns: int) -> None:
