@@ -41,6 +41,7 @@ from agent.runtime.processes import stop_processes
 from agent.runtime.session import lease_ms_default
 from agent.srg import geometry as geo
 from services import frames
+from services.figures import error_stats
 from services.sim import mounts
 
 log = logging.getLogger("uma.demo")
@@ -372,14 +373,6 @@ def _matches(agent: Any) -> dict[str, list[str]]:
     return out
 
 
-def _stats(x: list[float], scale: float) -> dict[str, float] | None:
-    if not x:
-        return None
-    a = np.asarray(x) * scale
-    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)),
-            "rms": float(np.sqrt(np.mean(a * a))), "max": float(a.max())}
-
-
 def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: float,
             pids: list[int]) -> dict[str, Any]:
     with t.lock:
@@ -392,14 +385,14 @@ def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: flo
             "matches": matches,
             "queries": len(t.latencies_s),
             "query_failures": t.failures,
-            "query_latency_ms": _stats(t.latencies_s, 1e3),
+            "query_latency_ms": error_stats(t.latencies_s, 1e3),
             "stream_poses": len(t.stream_times),
             "stream_rate_hz": stream_hz,
             "stream_stalls": t.stream_stalls,
             "stream_route_changes": t.stream_route_changes,
-            "position_error_mm": _stats(t.pos_err_m, 1e3),
-            "orientation_error_deg": _stats(t.rot_err_rad, 180.0 / math.pi),
-            "stream_position_error_mm": _stats(t.stream_pos_err_m, 1e3),
+            "position_error_mm": error_stats(t.pos_err_m, 1e3),
+            "orientation_error_deg": error_stats(t.rot_err_rad, 180.0 / math.pi),
+            "stream_position_error_mm": error_stats(t.stream_pos_err_m, 1e3),
             "child_pids": pids,
         }
     report["ok"] = bool(report["queries"] and report["stream_poses"]
