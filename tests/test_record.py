@@ -250,3 +250,15 @@ def test_recorded_demo_replays_deterministically(tmp_path) -> None:
     replayed = f["replayed_at_live_times"]["position_error_mm"]["median"]
     recorded = f["recorded_live"]["position_error_mm"]["median"]
     assert abs(replayed - recorded) <= 0.1 * recorded, f
+
+
+def test_readme_rosbags_example_reads_a_recording(recorded) -> None:
+    import re
+
+    readme = (Path(ROOT) / "README.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S)
+                 if "rosbags" in b)
+    out = subprocess.run([sys.executable, "-c", block.replace("lab.mcap", str(recorded))],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "ivy/world alice/head" in out.stdout
