@@ -20,6 +20,7 @@ from conftest import Processes, endpoint, free_port
 from agent.errors import UmaError
 from agent.record import layout
 from agent.record.reader import read
+from agent.record.statics import decode_statics
 from schemas.codec import decode_measurement, encode_pose
 
 pytest.importorskip("mcap")
@@ -118,6 +119,9 @@ def test_tf_reads_back_with_rosbags(recorded) -> None:
             ab = layout.ability_of(msg.channel.metadata)
             m = decode_measurement(msg.data)
             uma_poses[(ab.edge[0], ab.edge[1], m.t_ns)] = (m.position, m.quaternion)
+    for msg in _samples(rec, "/static"):      # the agent's static edges, as looked up
+        for e in decode_statics(msg.data)["edges"]:
+            uma_poses[(e["parent"], e["child"], msg.log_ns)] = (e["p"], e["q"])
     seen = defaultdict(int)
     with Reader(recorded) as reader:
         conns = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
@@ -149,10 +153,12 @@ def test_play_at_rate_2_into_a_fresh_realm(recorded, processes, realm) -> None:
                                "--agent", "replay", "--connect", ep, "--rate", "2", "--loop",
                                "--json"])
 
-    def recorded_at(t_ns: int):
-        i = int(np.argmin(np.abs(times - t_ns)))
-        assert abs(int(times[i]) - t_ns) < 3_000_000, "not a recorded time"  # clock offset
-        return head[int(times[i])]
+    def is_recorded(pose) -> bool:
+        """A recorded sample's exact position, at its time as far as the client's estimate
+        of the player's clock offset goes (a few ms on a loaded host)."""
+        near = times[np.abs(times - pose.t_ns) < 50_000_000]
+        return any(np.allclose(pose.position, head[int(t)].position, atol=1e-12, rtol=0)
+                   for t in near)
 
     def listed():
         found = {s["service_id"]: s for a in services_json(realm, ep)["agents"]
@@ -166,12 +172,11 @@ def test_play_at_rate_2_into_a_fresh_realm(recorded, processes, realm) -> None:
     streamed = []
     with Client(realm=realm, connect=[ep]) as client:
         r = poll(lambda: client.pose("ivy/world", "alice/head", error="hops"), 30, "a pose")
-        assert np.allclose(r.position, recorded_at(r.t_ns).position, atol=1e-9)
+        assert is_recorded(r)
         sub = client.subscribe("ivy/world", "alice/head", on_pose=streamed.append)
         poll(lambda: len(streamed) > 50, 30, "streamed poses")
         sub.close()
-    for pose in streamed[:50]:
-        assert np.allclose(pose.position, recorded_at(pose.t_ns).position, atol=1e-9)
+    assert all(is_recorded(pose) for pose in streamed[:50])
     # playback runs: a whole pass (2.5 s at rate 2) ends within the next 6 s; then stop
     time.sleep(6.0)
     player.popen.send_signal(signal.SIGINT)
@@ -199,7 +204,7 @@ def test_a_truncated_file_is_read_up_to_the_damage(recorded, tmp_path) -> None:
     whole = recorded.read_bytes()
     full = read(recorded)
     rng = random.Random(15)
-    for cut in sorted(rng.randrange(len(whole)) for _ in range(12)):
+    for n, cut in enumerate(sorted(rng.randrange(len(whole)) for _ in range(12))):
         part = tmp_path / f"cut{cut}.mcap"
         part.write_bytes(whole[:cut])
         try:
@@ -214,8 +219,10 @@ def test_a_truncated_file_is_read_up_to_the_damage(recorded, tmp_path) -> None:
         # what is lost is at most the last chunk (flushed every second) and the index
         lost_s = (full.messages[-1].log_ns - (rec.messages[-1].log_ns if got else 0)) / 1e9
         assert not got or lost_s <= (len(whole) - cut) / len(whole) * SECONDS + 1.5
-        out = uma("info", str(part))
-        assert out.returncode == 0 and "DAMAGED" in out.stdout and "Traceback" not in out.stderr
+        if n % 6 == 5:   # the command too (a process each: two of them)
+            out = uma("info", str(part))
+            assert out.returncode == 0 and "DAMAGED" in out.stdout
+            assert "Traceback" not in out.stderr
 
 
 def test_bad_files_and_arguments_get_clear_errors(tmp_path) -> None:

@@ -116,8 +116,9 @@ class Playback:
             delay = due - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 return
-            self.handles[m.channel.id].publish_encoded(_shifted(m.data, offset))
-            self.errors_s.append(abs(time.monotonic() - due))
+            data = _shifted(m.data, offset)
+            self.errors_s.append(abs(time.monotonic() - due))   # the moment of the put
+            self.handles[m.channel.id].publish_encoded(data)
             self.published += 1
             if status and time.monotonic() >= next_status:
                 next_status += 1.0

@@ -20,6 +20,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any, BinaryIO
@@ -134,7 +135,7 @@ class RecordingSink:
         self.stats.bytes_in += len(data)
         kind = layout.kind_of_topic(key)
         if kind is not None:
-            self._put(key, layout.realm_metadata(kind), data, recv_ns, recv_ns)
+            self._put(key, lambda: layout.realm_metadata(kind), data, recv_ns, recv_ns)
             if kind == layout.SNAPSHOT:
                 self._learn(key, data)
             elif kind == layout.STATIC:
@@ -153,7 +154,7 @@ class RecordingSink:
             self.stats.undecodable += 1
             self._bad.warning(key, "recording undecodable bytes on %s as received: %s", key, exc)
             t_ns = recv_ns
-        self._put(key, layout.data_metadata(ability, attrs), data, recv_ns, t_ns)
+        self._put(key, lambda: layout.data_metadata(ability, attrs), data, recv_ns, t_ns)
         self._write_tf(ability, data, recv_ns)
 
     def _write_tf(self, ability: Ability | None, data: bytes, recv_ns: int) -> None:
@@ -166,7 +167,7 @@ class RecordingSink:
         topic = layout.TF_STATIC_TOPIC if ability.attributes.static else layout.TF_TOPIC
         payload = self._tf.encode(ability.edge[0], ability.edge[1], m.t_ns, m.position,
                                   m.quaternion)
-        self._put(topic, {}, payload, recv_ns, m.t_ns)
+        self._put(topic, dict, payload, recv_ns, m.t_ns)
 
     def _write_static_tf(self, data: bytes, recv_ns: int) -> None:
         """An agent's static edges on /tf_static, stamped with the time they were seen."""
@@ -179,13 +180,14 @@ class RecordingSink:
             return
         for e in edges:
             payload = self._tf.encode(e["parent"], e["child"], recv_ns, e["p"], e["q"])
-            self._put(layout.TF_STATIC_TOPIC, {}, payload, recv_ns, recv_ns)
+            self._put(layout.TF_STATIC_TOPIC, dict, payload, recv_ns, recv_ns)
 
-    def _put(self, topic: str, metadata: dict[str, str], data: bytes, log_ns: int,
-             publish_ns: int) -> None:
+    def _put(self, topic: str, metadata: Callable[[], dict[str, str]], data: bytes,
+             log_ns: int, publish_ns: int) -> None:
+        """Write one message; ``metadata()`` is called once, when ``topic`` gets its channel."""
         channel = self._channels.get(topic)
         if channel is None:
-            channel = self._register(topic, metadata)
+            channel = self._register(topic, metadata())
         self._writer.add_message(channel, log_time=log_ns, data=data, publish_time=publish_ns,
                                  sequence=self.stats.messages[topic])
         self.stats.messages[topic] += 1
