@@ -13,7 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections import Counter
+from collections import defaultdict
+from datetime import UTC, datetime
 from typing import Any
 
 from agent.protocol.registration import parse_snapshot
@@ -24,17 +25,19 @@ from schemas.codec import DecodeError
 
 def summarise(rec: Recording) -> dict[str, Any]:
     """The recording as one JSON-able dict (see the module docstring)."""
-    counts = Counter(m.channel.id for m in rec.messages)
+    stamps: dict[int, list[int]] = defaultdict(list)   # channel -> log times, in order
+    for m in rec.messages:
+        stamps[m.channel.id].append(m.log_ns)
     times = [m.log_ns for m in rec.messages]
     start, end = (min(times), max(times)) if times else (None, None)
     channels = []
     for ch in sorted(rec.channels.values(), key=lambda c: c.topic):
-        stamps = [m.log_ns for m in rec.messages if m.channel.id == ch.id]
-        span = (stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else 0.0
+        own = stamps[ch.id]
+        span = (own[-1] - own[0]) / 1e9 if len(own) > 1 else 0.0
         ability = layout.ability_of(ch.metadata)
         channels.append({
-            "topic": ch.topic, "encoding": ch.message_encoding, "messages": counts[ch.id],
-            "rate_hz": (len(stamps) - 1) / span if span > 0 else 0.0,
+            "topic": ch.topic, "encoding": ch.message_encoding, "messages": len(own),
+            "rate_hz": (len(own) - 1) / span if span > 0 else 0.0,
             "ability": None if ability is None else ability.model_dump(mode="json",
                                                                        exclude_none=True)})
     end_meta = rec.metadata.get(layout.META_END, {})
@@ -67,9 +70,16 @@ def services(rec: Recording) -> list[dict[str, Any]]:
     return out
 
 
+def _utc(t_ns: int | None) -> str:
+    if t_ns is None:
+        return "-"
+    stamp = datetime.fromtimestamp(t_ns / 1e9, tz=UTC)
+    return stamp.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
 def format_info(s: dict[str, Any]) -> str:
     lines = [f"file      {s['file']} ({s['bytes']} bytes)",
-             f"duration  {s['duration_s']:.3f} s  (log time {s['start_ns']} .. {s['end_ns']})",
+             f"duration  {s['duration_s']:.3f} s  ({_utc(s['start_ns'])} .. {_utc(s['end_ns'])})",
              f"messages  {s['messages']}", "channels:"]
     for c in s["channels"]:
         lines.append(f"  {c['topic']:<60} {c['encoding']:<8} {c['messages']:>8} msgs "
