@@ -187,7 +187,8 @@ def test_play_at_rate_2_into_a_fresh_realm(recorded, processes, realm) -> None:
         assert abs(took - report["recorded_s"] / 2) <= 0.05 * report["recorded_s"] / 2, report
 
 
-def test_play_now_shifts_the_times_to_now(recorded, processes, realm) -> None:
+def test_play_now_shifts_the_times_to_now_and_a_killed_recorder_leaves_a_file(
+        recorded, processes, realm, tmp_path) -> None:
     from agent import Client
 
     ep = endpoint(free_port())
@@ -198,6 +199,17 @@ def test_play_now_shifts_the_times_to_now(recorded, processes, realm) -> None:
         r = poll(lambda: client.pose("ivy/world", "alice/head", error="hops"), 60, "a pose")
     assert abs(r.t_ns - time.time_ns()) < 30e9   # the recording was minutes ago at least
     assert r.t_ns > read(recorded).messages[-1].log_ns
+    # the played realm recorded by a recorder killed outright (SIGKILL) mid-write
+    path = tmp_path / "killed.mcap"
+    recorder = spawn(processes, ["-m", "agent.cli", "record", str(path), "--realm", realm,
+                                 "--connect", ep])
+    poll(lambda: path.exists() and path.stat().st_size > 20_000, 60, "a second of samples")
+    recorder.popen.send_signal(signal.SIGKILL)
+    recorder.popen.wait(10)
+    rec = read(path)
+    assert rec.damage and len(_samples(rec, "/sim/head")) > 50, rec.damage
+    out = uma("info", str(path))
+    assert out.returncode == 0 and "DAMAGED" in out.stdout and "truncated" in out.stderr
 
 
 def test_a_truncated_file_is_read_up_to_the_damage(recorded, tmp_path) -> None:
