@@ -23,6 +23,7 @@ import json
 import logging
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -50,6 +51,9 @@ SERVICES = ("laser-camera", "accel-rig", "fusion")
 #: where a recorded demo's simulator publishes the true head: not ``*/head``, so neither
 #: queries of the tracked head nor needs of one ever reach the truth
 TRUTH_FRAME = "alice/head_truth"
+#: the recorder's start-up (imports, session) and its clean stop (writing the summary)
+RECORDER_START_S = 30.0
+RECORDER_STOP_S = 20.0
 #: how long the fused pose may take to appear after the services start (s)
 FIRST_POSE_TIMEOUT_S = 30.0
 QUERY_HZ = 20.0
@@ -251,36 +255,52 @@ def run_demo(seconds: float, seed: int, live: bool = True,
 
 
 class _Recording:
-    """``uma record`` of the demo's realm, in this process, from before the services start
+    """``uma record`` of the demo's realm as a child process (its writer then never competes
+    with the agents of this process for the interpreter), from before the services start
     (so the fusion's whole input is in the file) until the measurement ends."""
 
     def __init__(self, path: str, realm: str, endpoint: str) -> None:
-        from agent.record.recorder import Recorder
-        from agent.record.sink import RecordingSink
-        from agent.runtime.session import open_session
-
         self.path = path
         self.started = time.monotonic()
-        self.session = open_session("client", None, [endpoint], realm)
-        try:
-            self.recorder = Recorder(self.session, RecordingSink(path, realm, []), realm, [])
-        except BaseException:
-            self.session.close()
-            raise
+        self.out = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed by close())
+        self.err = tempfile.TemporaryFile("w+")  # noqa: SIM115
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "agent.cli", "record", path, "--realm", realm, "--connect",
+             endpoint, "--json"], stdin=subprocess.DEVNULL, stdout=self.out, stderr=self.err,
+            text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        deadline = time.monotonic() + RECORDER_START_S
+        while not os.path.exists(path) and self.proc.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not os.path.exists(path):
+            self.close()
+            raise UmaError(f"demo: the recorder did not start ({self._last_error()})")
+
+    def _last_error(self) -> str:
+        self.err.seek(0)
+        lines = self.err.read().strip().splitlines()
+        return lines[-1] if lines else f"exit {self.proc.poll()}"
 
     def close(self) -> dict[str, Any]:
-        from agent.runtime.session import close_session
-
-        try:
-            stats = self.recorder.close()
-        finally:
-            close_session(self.session)
+        """Stop the recorder as Ctrl-C does (it writes the file's summary) and return its
+        figures."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        stop_processes([self.proc], RECORDER_STOP_S)
+        self.out.seek(0)
+        lines = [ln for ln in self.out.read().splitlines() if ln.startswith("{")]
+        error = None if lines and self.proc.returncode == 0 else self._last_error()
+        self.out.close()
+        self.err.close()
+        stats = json.loads(lines[-1]) if lines else {"messages": {}, "dropped": {}}
         seconds = time.monotonic() - self.started
         size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
         return {"file": self.path, "seconds": seconds,
-                "messages": sum(stats.messages.values()), "bytes": size,
+                "messages": sum(stats["messages"].values()), "bytes": size,
                 "mb_per_minute": size / 1e6 / seconds * 60.0,
-                "dropped": sum(stats.dropped.values()), "error": stats.error}
+                "dropped": sum(stats["dropped"].values()), "error": stats.get("error") or error}
 
 
 def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
