@@ -268,10 +268,13 @@ def test_recorded_demo_replays_deterministically(tmp_path) -> None:
     f = json.loads(runs[0].stdout)
     assert f["replayed"]["ground_truth"] == "ivy/world -> alice/head_truth"
     assert f["replayed"]["evaluated"] > 10 and f["recorded_live"]["evaluated"] > 10
-    # the live run's accuracy: its recorded output against the same truth, at its instants
+    # the live run's accuracy: its recorded output against the same truth, at its instants.
+    # The replay gets every sample in time order; a live filter on a starved host gets some
+    # late and drops them, so the replay may be better (measured 8-14 % on a host loaded
+    # to 20 on 2 cores), never worse by more than 10 %
     replayed = f["replayed_at_live_times"]["position_error_mm"]["median"]
     recorded = f["recorded_live"]["position_error_mm"]["median"]
-    assert abs(replayed - recorded) <= 0.1 * recorded, f
+    assert replayed <= 1.1 * recorded, f
 
 
 def test_readme_rosbags_example_reads_a_recording(recorded) -> None:

@@ -2,11 +2,13 @@
 
 Offline tuning: the recorded optical poses (``pose6d`` of ``ivy/world -> marvin/laser_rig``)
 and raw accelerometer samples (``accel_raw`` of ``*/* -> marvin/accel_rig``, whose ability
-attributes carry the rig's calibration) go, in the order the recorder received them, into
+attributes carry the rig's calibration) go, in the order of their own sample times, into
 the same :class:`services.fusion.service.LiveFusion` the service runs, as fast as the CPU
 allows.  The rig mountings come from the recorded static edges (``uma/R/agent/A/static``)
 or, failing those, from static ground-truth abilities.  Nothing depends on the wall clock,
-so two runs give identical figures.
+so two runs give identical figures.  Sample-time order, not the recorder's receive order:
+on a loaded host the recorder receives the laser's poses late by its own delays, not by
+the fusion's, and the filter would drop what it sees as older than its history.
 
 The live fusion's own output, when recorded, is evaluated the same way (``recorded_live``),
 and the replay at the live output's instants (``replayed_at_live_times``): the two agree
@@ -14,7 +16,7 @@ where the live filter kept up with its inputs.  When the recording holds the sim
 ground truth (a non-static ``pose6d`` ability of
 ``ivy/world -> X`` with ``ground_truth: true``; ``uma demo --record`` publishes it as
 ``alice/head_truth``), every fused pose after ``warmup_s`` is compared with the truth
-interpolated at its time (an SRG measured edge: slerp and linear).
+interpolated at its time (linear and slerp, as the SRG interpolates a measured edge).
 """
 
 from __future__ import annotations
@@ -28,7 +30,6 @@ from agent.errors import UmaError
 from agent.record import layout
 from agent.record.reader import Message, Recording, read
 from agent.record.statics import decode_statics
-from agent.srg import Graph
 from agent.srg import geometry as geo
 from schemas.codec import decode_measurement
 from schemas.models import Ability
@@ -38,7 +39,6 @@ from services.fusion.service import LiveFusion
 from services.fusion.state import MODEL_FLOOR
 
 WARMUP_S = 3.0
-_TRUTH = "truth"
 
 
 def _data(rec: Recording, want: Any) -> tuple[Ability | None, list[Message]]:
@@ -107,8 +107,8 @@ def replay(path: str, horizon_s: float | None = None,
                         (frames.ACCEL_RIG, fusion.on_accel_mount)):
         p, q = mounts[rig]
         setter(_Pose(p, q))
-    inputs = sorted([(m.log_ns, 0, i, m) for i, m in enumerate(optical_msgs)]
-                    + [(m.log_ns, 1, i, m) for i, m in enumerate(accel_msgs)],
+    inputs = sorted([(m.publish_ns, 0, i, m) for i, m in enumerate(optical_msgs)]
+                    + [(m.publish_ns, 1, i, m) for i, m in enumerate(accel_msgs)],
                     key=lambda x: x[:3])
     for _, kind, _, msg in inputs:
         m = decode_measurement(msg.data)
@@ -118,12 +118,14 @@ def replay(path: str, horizon_s: float | None = None,
         "from": path, "inputs": {"optical": len(optical_msgs), "accel": len(accel_msgs)},
         "fused_poses": len(out), "dropped": dict(fusion.dropped), "damage": rec.damage}
     live = _recorded_output(rec)
-    figures["replayed"] = _against_truth(rec, out, out[0][0] if out else 0, warmup_s)
-    figures["recorded_live"] = _against_truth(rec, live, out[0][0] if out else 0, warmup_s)
+    # one window for all three: from the replay's first pose plus the warm-up
+    first = out[0][0] if out else 0
+    figures["replayed"] = _against_truth(rec, out, first, warmup_s)
+    figures["recorded_live"] = _against_truth(rec, live, first, warmup_s)
     # the same instants as the live output: equal figures where the live filter kept up
     live_times = {t for t, _, _ in live}
     figures["replayed_at_live_times"] = _against_truth(
-        rec, [o for o in out if o[0] in live_times], out[0][0] if out else 0, warmup_s)
+        rec, [o for o in out if o[0] in live_times], first, warmup_s)
     return figures
 
 
@@ -153,24 +155,26 @@ class _Pose:
 def _against_truth(rec: Recording, out: list[tuple[int, np.ndarray, np.ndarray]],
                    first_ns: int, warmup_s: float) -> dict[str, Any]:
     """Errors of ``out`` against the recorded ground truth from ``warmup_s`` after
-    ``first_ns`` (the replay's first pose, so live and replayed cover the same span)."""
+    ``first_ns``."""
     truth, msgs = _data(rec, _is_truth)
     if truth is None or not msgs or not out:
         return {"ground_truth": None}
-    samples = [decode_measurement(m.data) for m in msgs]
-    span_s = (samples[-1].t_ns - samples[0].t_ns) / 1e9
-    g = Graph(buffer_s=span_s + 10.0, max_extrapolation_s=0.0)
-    for s in samples:
-        g.add_measurement(frames.WORLD, _TRUTH, s.t_ns, s.position, s.quaternion)
+    samples = sorted((decode_measurement(m.data) for m in msgs), key=lambda m: m.t_ns)
+    T = np.array([m.t_ns for m in samples], dtype=np.int64)
+    P = np.array([m.position for m in samples])
+    Q = np.array([m.quaternion for m in samples])
     start = first_ns + int(warmup_s * 1e9)
-    ep, er = [], []
-    for t, p, q in out:
-        if t < start or not samples[0].t_ns <= t <= samples[-1].t_ns:
-            continue
-        r = g.pose(frames.WORLD, _TRUTH, at=t)
-        e_p, e_r = geo.pose_error(p, q, r.position, r.quaternion)
-        ep.append(float(e_p))
-        er.append(float(e_r))
+    kept = [o for o in out if o[0] >= start and T[0] <= o[0] < T[-1]]
+    ep: list[float] = []
+    er: list[float] = []
+    if kept:
+        ts = np.array([o[0] for o in kept], dtype=np.int64)
+        i = np.searchsorted(T, ts, side="right") - 1
+        alpha = (ts - T[i]) / (T[i + 1] - T[i])
+        p_true, q_true = geo.interpolate(P[i], Q[i], P[i + 1], Q[i + 1], alpha)
+        e_p, e_r = geo.pose_error(np.array([o[1] for o in kept]),
+                                  np.array([o[2] for o in kept]), p_true, q_true)
+        ep, er = e_p.tolist(), e_r.tolist()
     return {"ground_truth": f"{truth.edge[0]} -> {truth.edge[1]}", "evaluated": len(ep),
             "position_error_mm": error_stats(ep, 1e3),
             "orientation_error_deg": error_stats(er, 180.0 / math.pi)}
