@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import struct
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,9 +45,6 @@ class Recording:
     messages: list[Message] = field(default_factory=list)
     #: None for a complete file, else what broke and what was lost
     damage: str | None = None
-
-    def topics(self, prefix: str = "") -> list[str]:
-        return sorted({c.topic for c in self.channels.values() if c.topic.startswith(prefix)})
 
 
 def read(path: str | Path) -> Recording:
@@ -145,8 +141,3 @@ def _why(exc: Exception | None, at_end: bool) -> str:
     if isinstance(exc, RecordLengthLimitExceeded):
         return "a record claims more bytes than the file holds"
     return f"{type(exc).__name__}: {exc}"
-
-
-def iter_data(rec: Recording, prefix: str) -> Iterator[Message]:
-    """The messages of channels whose topic starts with ``prefix``, in log-time order."""
-    return (m for m in rec.messages if m.channel.topic.startswith(prefix))
