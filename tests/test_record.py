@@ -287,3 +287,26 @@ def test_readme_rosbags_example_reads_a_recording(recorded) -> None:
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "ivy/world alice/head" in out.stdout
+
+
+def test_play_chooses_by_keys_and_time_window(recorded) -> None:
+    from argparse import Namespace
+
+    from agent.record import player
+
+    rec = read(recorded)
+    sim = player.streams(rec, ["*/sim/*"])
+    assert {s.service_id for s in sim.values()} == {"sim"}
+    assert {s.ability.name for s in sim.values()} == {"head", "head_to_laser_rig"}
+    everything = player.streams(rec, [])
+    assert {s.service_id for s in everything.values()} == {"sim", "laser-camera"}
+    whole = player._window(rec, sim, Namespace(start=0.0, end=None, keys=[]))
+    part = player._window(rec, sim, Namespace(start=1.0, end=2.5, keys=[]))
+    first = whole[0].log_ns
+    assert part == [m for m in whole if first + 1e9 <= m.log_ns <= first + 2.5e9]
+    assert 0 < len(part) < len(whole)
+    with pytest.raises(UmaError, match="leaves nothing"):
+        player._window(rec, sim, Namespace(start=60.0, end=None, keys=[]))
+    with pytest.raises(UmaError, match="no data to play"):
+        player._window(rec, player.streams(rec, ["nobody/*/*"]),
+                       Namespace(start=0.0, end=None, keys=["nobody/*/*"]))
