@@ -98,10 +98,10 @@ def record(args: argparse.Namespace, stop: threading.Event) -> dict[str, Any]:
     session = open_session(mode, None, args.connect, args.realm,
                            require_connection=bool(args.connect))
     live = not args.json and sys.stderr.isatty()
-    started = time.monotonic()
     try:
         sink = RecordingSink(args.file, args.realm, list(args.keys), ros=not args.no_ros)
         recorder = Recorder(session, sink, args.realm, list(args.keys))
+        started = time.monotonic()   # --duration counts from here: everything is subscribed
         end = started + args.duration if args.duration else math.inf
         while not stop.is_set() and not sink.stopped.is_set() and time.monotonic() < end:
             stop.wait(min(1.0, max(0.0, end - time.monotonic())))
