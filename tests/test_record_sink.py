@@ -103,3 +103,26 @@ def test_a_slow_disk_drops_are_counted_and_reported(tmp_path) -> None:
     ability = layout.ability_of(next(c for c in rec.channels.values()
                                      if c.topic == KEY).metadata)
     assert ability.edge == ("ivy/world", "cam/rig")
+
+
+def test_no_ros_leaves_out_the_tf_channels(tmp_path) -> None:
+    from mcap.reader import make_reader
+
+    from agent.record.sink import RecordingSink
+
+    rng = np.random.default_rng(3)
+    files = {}
+    for ros in (True, False):
+        path = tmp_path / f"ros_{ros}.mcap"
+        sink = RecordingSink(str(path), REALM, [], ros=ros)
+        sink.offer(*_snapshot(), time.time_ns())
+        for i in range(20):
+            sink.offer(KEY, _pose(i, rng), time.time_ns())
+        assert sink.close().error is None
+        files[ros] = read(path)
+        with open(path, "rb") as f:
+            assert make_reader(f).get_header().profile == ("ros2" if ros else "")
+    topics = {ros: {c.topic for c in rec.channels.values()} for ros, rec in files.items()}
+    assert layout.TF_TOPIC in topics[True] and layout.TF_TOPIC not in topics[False]
+    assert topics[True] - topics[False] == {layout.TF_TOPIC}
+    assert len([m for m in files[True].messages if m.channel.topic == layout.TF_TOPIC]) == 20
