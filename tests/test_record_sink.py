@@ -126,3 +126,21 @@ def test_no_ros_leaves_out_the_tf_channels(tmp_path) -> None:
     assert layout.TF_TOPIC in topics[True] and layout.TF_TOPIC not in topics[False]
     assert topics[True] - topics[False] == {layout.TF_TOPIC}
     assert len([m for m in files[True].messages if m.channel.topic == layout.TF_TOPIC]) == 20
+
+
+def test_undecodable_bytes_are_recorded_as_received_and_counted(tmp_path) -> None:
+    from agent.record.sink import RecordingSink
+
+    path = tmp_path / "bad.mcap"
+    good = _pose(0, np.random.default_rng(4))
+    sink = RecordingSink(str(path), REALM, [])
+    sink.offer(*_snapshot(), time.time_ns())
+    for data in (good, b"\xc1 not msgpack", good):
+        sink.offer(KEY, data, time.time_ns())
+    stats = sink.close()
+    assert stats.undecodable == 1 and stats.error is None
+    rec = read(path)
+    assert [m.data for m in rec.messages if m.channel.topic == KEY] == [good, b"\xc1 not msgpack",
+                                                                         good]
+    assert len([m for m in rec.messages if m.channel.topic == layout.TF_TOPIC]) == 2
+    assert rec.metadata[layout.META_END]["undecodable"] == "1"

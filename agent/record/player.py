@@ -28,7 +28,7 @@ from agent.errors import UmaError
 from agent.record import layout
 from agent.record.reader import Message, Recording, read
 from agent.record.recorder import key_filter
-from schemas.codec import decode_measurement, encode_measurement
+from schemas.codec import DecodeError, decode_measurement, encode_measurement
 from schemas.models import Ability
 
 
@@ -103,6 +103,7 @@ class Playback:
         self.now = now
         self.errors_s: list[float] = []
         self.published = 0
+        self.undecodable = 0
         #: how long each complete pass took, first to last publication
         self.pass_s: list[float] = []
 
@@ -116,9 +117,14 @@ class Playback:
             delay = due - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 return
-            data = _shifted(m.data, offset)
-            self.errors_s.append(abs(time.monotonic() - due))   # the moment of the put
-            self.handles[m.channel.id].publish_encoded(data)
+            try:
+                data = _shifted(m.data, offset)
+                late = abs(time.monotonic() - due)   # at the moment of the put
+                self.handles[m.channel.id].publish_encoded(data)
+            except DecodeError:   # recorded as received, not a sample: never published
+                self.undecodable += 1
+                continue
+            self.errors_s.append(late)
             self.published += 1
             if status and time.monotonic() >= next_status:
                 next_status += 1.0
@@ -184,7 +190,7 @@ def play(args: argparse.Namespace, stop: threading.Event) -> dict[str, Any]:
             "wall_s": time.monotonic() - t0, "rate": args.rate, "pass_s": playback.pass_s,
             "timing_error_ms": {"median": float(np.median(err)) if len(err) else None,
                                 "p99": float(np.percentile(err, 99)) if len(err) else None},
-            "damage": rec.damage}
+            "undecodable_not_played": playback.undecodable, "damage": rec.damage}
 
 
 def main(args: argparse.Namespace) -> int:

@@ -129,7 +129,9 @@ class RecordingSink:
                 self._fail(exc)
                 return
             except Exception as exc:  # a bug must not end the recording silently
-                self._bad.warning("writer", "recording writer: %s: %s", type(exc).__name__, exc)
+                self._bad.warning("recording writer", f"{type(exc).__name__}: {exc}")
+                if item:
+                    self.stats.dropped[item[0]] += 1
 
     def _write(self, key: str, data: bytes, recv_ns: int) -> None:
         self.stats.bytes_in += len(data)
@@ -152,7 +154,7 @@ class RecordingSink:
             t_ns = peek_time(data)
         except DecodeError as exc:
             self.stats.undecodable += 1
-            self._bad.warning(key, "recording undecodable bytes on %s as received: %s", key, exc)
+            self._bad.warning(key, f"undecodable, recorded as received ({exc})")
             t_ns = recv_ns
         self._put(key, lambda: layout.data_metadata(ability, attrs), data, recv_ns, t_ns)
         self._write_tf(ability, data, recv_ns)
@@ -176,7 +178,7 @@ class RecordingSink:
         try:
             edges = decode_statics(data)["edges"]
         except ValueError as exc:
-            self._bad.warning("statics", "static edges not written to /tf_static: %s", exc)
+            self._bad.warning("static edges", f"not written to /tf_static ({exc})")
             return
         for e in edges:
             payload = self._tf.encode(e["parent"], e["child"], recv_ns, e["p"], e["q"])
@@ -208,7 +210,7 @@ class RecordingSink:
         try:
             snap = parse_snapshot(data, keys.parse_agent_services(key, self.realm))
         except DecodeError as exc:
-            self._bad.warning(key, "unreadable snapshot on %s: %s", key, exc)
+            self._bad.warning(key, f"unreadable snapshot ({exc})")
             return
         for desc in snap.services.values():
             for ab in desc.abilities:
