@@ -19,6 +19,10 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--logs", default=None, metavar="DIR",
                    help="keep each service's log as DIR/<service>.log (default: discarded)")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the demo (every stream, and the simulator's ground truth as "
+                        "ivy/world -> alice/head_truth) for 'uma play' and 'uma eval fusion "
+                        "--from'")
 
 
 def _recalibrate_arguments(p: argparse.ArgumentParser) -> None:

@@ -23,6 +23,7 @@ import json
 import logging
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -41,11 +42,18 @@ from agent.runtime.processes import stop_processes
 from agent.runtime.session import lease_ms_default
 from agent.srg import geometry as geo
 from services import frames
+from services.figures import error_stats
 from services.sim import mounts
 
 log = logging.getLogger("uma.demo")
 
 SERVICES = ("laser-camera", "accel-rig", "fusion")
+#: where a recorded demo's simulator publishes the true head: not ``*/head``, so neither
+#: queries of the tracked head nor needs of one ever reach the truth
+TRUTH_FRAME = "alice/head_truth"
+#: the recorder's start-up (imports, session) and its clean stop (writing the summary)
+RECORDER_START_S = 30.0
+RECORDER_STOP_S = 20.0
 #: how long the fused pose may take to appear after the services start (s)
 FIRST_POSE_TIMEOUT_S = 30.0
 QUERY_HZ = 20.0
@@ -148,7 +156,10 @@ def main(args: argparse.Namespace) -> int:
         if log_dir.exists() and not log_dir.is_dir():
             raise UmaError(f"--logs {args.logs}: exists and is not a directory")
         log_dir.mkdir(parents=True, exist_ok=True)
-    report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir)
+    if args.record is not None and not Path(args.record).resolve().parent.is_dir():
+        raise UmaError(f"--record {args.record}: its directory does not exist")
+    report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir,
+                      record=args.record)
     if args.json:
         print(json.dumps(report))
     else:
@@ -157,9 +168,10 @@ def main(args: argparse.Namespace) -> int:
 
 
 def run_demo(seconds: float, seed: int, live: bool = True,
-             log_dir: Path | None = None) -> dict[str, Any]:
+             log_dir: Path | None = None, record: str | None = None) -> dict[str, Any]:
     """Start everything, measure for ``seconds``, stop everything; the figures (the
-    services' logs kept in ``log_dir`` if given)."""
+    services' logs kept in ``log_dir`` if given; everything recorded into ``record`` if
+    given, with the simulator's ground truth on its own frame, ``TRUTH_FRAME``)."""
     from agent.daemon.agent import Agent
     from agent.daemon.settings import AgentSettings
     from agent.sdk.client import Client
@@ -181,6 +193,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     agents: list[Any] = []
     tally = Tally()
     sub = None
+    recording: Any = None
     try:
         tracking = Agent(AgentSettings(realm=realm, agent_id="tracking", listen=[ep_tracking],
                                        static_edges=_static_edges(), lease_ms=lease_ms))
@@ -191,6 +204,10 @@ def run_demo(seconds: float, seed: int, live: bool = True,
         app.start()
         agents.append(app)
         common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]
+        if record is not None:
+            recording = _Recording(record, realm, ep_tracking)
+            children.start("sim", [*common, "--seed", str(seed), "--mountings", "none",
+                                   "--head-frame", TRUTH_FRAME])
         children.start("laser-camera", [*common, "--seed", str(seed), "--calibration",
                                         str(calibration)])
         # The fusion uses the raw accelerometer stream; the rig's own dead reckoning is reset
@@ -221,14 +238,69 @@ def run_demo(seconds: float, seed: int, live: bool = True,
         if sub is not None:
             with contextlib.suppress(Exception):
                 sub.close()
-        children.stop()
+        try:
+            recorded = recording.close() if recording is not None else None
+        finally:
+            children.stop()
         for a in reversed(agents):
             with contextlib.suppress(Exception):
                 a.close()
     report = _report(tally, matches, seconds, time.monotonic() - t_start,
                      [p.pid for p in children.procs.values()])
     report["logs"] = None if log_dir is None else str(log_dir)
+    report["recording"] = recorded
+    if recorded is not None and recorded["error"]:
+        report["ok"] = False
     return report
+
+
+class _Recording:
+    """``uma record`` of the demo's realm as a child process (its writer then never competes
+    with the agents of this process for the interpreter), from before the services start
+    (so the fusion's whole input is in the file) until the measurement ends."""
+
+    def __init__(self, path: str, realm: str, endpoint: str) -> None:
+        self.path = path
+        self.started = time.monotonic()
+        self.out = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed by close())
+        self.err = tempfile.TemporaryFile("w+")  # noqa: SIM115
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "agent.cli", "record", path, "--realm", realm, "--connect",
+             endpoint, "--json"], stdin=subprocess.DEVNULL, stdout=self.out, stderr=self.err,
+            text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        deadline = time.monotonic() + RECORDER_START_S
+        while not os.path.exists(path) and self.proc.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not os.path.exists(path):
+            self.close()
+            raise UmaError(f"demo: the recorder did not start ({self._last_error()})")
+
+    def _last_error(self) -> str:
+        self.err.seek(0)
+        lines = self.err.read().strip().splitlines()
+        return lines[-1] if lines else f"exit {self.proc.poll()}"
+
+    def close(self) -> dict[str, Any]:
+        """Stop the recorder as Ctrl-C does (it writes the file's summary) and return its
+        figures."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        stop_processes([self.proc], RECORDER_STOP_S)
+        self.out.seek(0)
+        lines = [ln for ln in self.out.read().splitlines() if ln.startswith("{")]
+        error = None if lines and self.proc.returncode == 0 else self._last_error()
+        self.out.close()
+        self.err.close()
+        stats = json.loads(lines[-1]) if lines else {"messages": {}, "dropped": {}}
+        seconds = time.monotonic() - self.started
+        size = os.path.getsize(self.path) if os.path.exists(self.path) else 0
+        return {"file": self.path, "seconds": seconds,
+                "messages": sum(stats["messages"].values()), "bytes": size,
+                "mb_per_minute": size / 1e6 / seconds * 60.0,
+                "dropped": sum(stats["dropped"].values()), "error": stats.get("error") or error}
 
 
 def _wait_first_pose(client: Any, children: Children, tally: Tally) -> float:
@@ -321,14 +393,6 @@ def _matches(agent: Any) -> dict[str, list[str]]:
     return out
 
 
-def _stats(x: list[float], scale: float) -> dict[str, float] | None:
-    if not x:
-        return None
-    a = np.asarray(x) * scale
-    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)),
-            "rms": float(np.sqrt(np.mean(a * a))), "max": float(a.max())}
-
-
 def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: float,
             pids: list[int]) -> dict[str, Any]:
     with t.lock:
@@ -341,19 +405,26 @@ def _report(t: Tally, matches: dict[str, list[str]], seconds: float, wall_s: flo
             "matches": matches,
             "queries": len(t.latencies_s),
             "query_failures": t.failures,
-            "query_latency_ms": _stats(t.latencies_s, 1e3),
+            "query_latency_ms": error_stats(t.latencies_s, 1e3),
             "stream_poses": len(t.stream_times),
             "stream_rate_hz": stream_hz,
             "stream_stalls": t.stream_stalls,
             "stream_route_changes": t.stream_route_changes,
-            "position_error_mm": _stats(t.pos_err_m, 1e3),
-            "orientation_error_deg": _stats(t.rot_err_rad, 180.0 / math.pi),
-            "stream_position_error_mm": _stats(t.stream_pos_err_m, 1e3),
+            "position_error_mm": error_stats(t.pos_err_m, 1e3),
+            "orientation_error_deg": error_stats(t.rot_err_rad, 180.0 / math.pi),
+            "stream_position_error_mm": error_stats(t.stream_pos_err_m, 1e3),
             "child_pids": pids,
         }
     report["ok"] = bool(report["queries"] and report["stream_poses"]
                         and matches.get("fusion.optical") and matches.get("fusion.accel"))
     return report
+
+
+def _recording_line(rec: dict[str, Any]) -> str:
+    line = (f"  recorded {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB "
+            f"({rec['mb_per_minute']:.1f} MB/min) to {rec['file']}; not written: "
+            f"{rec['dropped']}")
+    return line + (f"; {rec['error']}" if rec["error"] else "")
 
 
 def format_summary(r: dict[str, Any]) -> str:
@@ -372,5 +443,6 @@ def format_summary(r: dict[str, Any]) -> str:
               f"                         orientation {s(r['orientation_error_deg'], 'deg')}",
               f"  all processes stopped (pids {', '.join(map(str, r['child_pids']))})",
               *([f"  service logs in {r['logs']}"] if r.get("logs") else []),
+              *([_recording_line(r["recording"])] if r.get("recording") else []),
               f"  {'OK' if r['ok'] else 'FAILED'}"]
     return "\n".join(lines)

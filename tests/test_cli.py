@@ -17,7 +17,8 @@ def uma(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=timeout, check=False)
 
 
-COMMANDS = ["agent", "router", "service", "services", "query", "demo", "eval", "schemas"]
+COMMANDS = ["agent", "router", "service", "services", "query", "demo", "eval", "schemas",
+            "record", "play", "info"]
 
 
 def test_top_level_help_lists_every_command() -> None:
@@ -39,6 +40,9 @@ def test_top_level_help_lists_every_command() -> None:
     (["schemas", "export"], "output directory"),
     (["eval"], "accuracy against simulated ground truth"),
     (["service", "run"], "Known services"),
+    (["record"], "losslessly into FILE.mcap"),
+    (["play"], "recorded timing scaled by --rate"),
+    (["info"], "read up to the damage"),
 ])
 def test_every_command_explains_itself(args: list[str], purpose: str) -> None:
     r = uma(*args, "--help")

@@ -620,7 +620,8 @@ def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
     _, cal_marvin = fe.calibrated_accelerometers(300.0, 1)
     assert cal.noise.density_v == pytest.approx(10e-6) and cal.noise.conversions == 4
     assert np.all(cal.accel_var(300.0) < 0.5 * cal_marvin.accel_var(300.0))
-    base = dict(gaps="1", horizon_ms=20.0, no_cache=False, optical="pose", seconds=9.0, seed=1)
+    base = dict(gaps="1", horizon_ms=20.0, no_cache=False, optical="pose", seconds=9.0, seed=1,
+                from_file=None)
     for flag, value in (("accel_noise_uv", -1.0), ("adc_conversions", 3),
                         ("converter_noise_lsb", float("nan"))):
         with pytest.raises(ValueError, match="--" + flag.replace("_", "-")):

@@ -80,6 +80,7 @@ from schemas.codec import (
     encode_descriptor,
     encode_measurement,
     encode_pose,
+    peek_time,
     validation_summary,
 )
 from schemas.models import Ability, Need, ServiceDescriptor
@@ -145,6 +146,13 @@ class AbilityHandle:
         if m.seq is None:
             m.seq = self._next_seq()
         self._put(encode_measurement(m))
+
+    def publish_encoded(self, data: bytes) -> None:
+        """Publish a sample that is already encoded, byte for byte (``uma play`` replays a
+        recording's exact bytes); ``DecodeError`` if its envelope is not a measurement of
+        this ability's type."""
+        peek_time(data, self.ability.type)
+        self._put(bytes(data))
 
     def update(self, **attributes: Any) -> None:
         """Change advertised attributes at run time (re-advertised, re-matched)."""

@@ -705,16 +705,22 @@ def goals(f: dict[str, Any]) -> dict[str, bool]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if args.horizon_ms is not None and not (math.isfinite(args.horizon_ms)
+                                            and 0 <= args.horizon_ms <= 500):
+        raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
+    if args.from_file is not None:
+        from services.fusion.replay import replay
+
+        return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3)
+    horizon_ms = 20.0 if args.horizon_ms is None else args.horizon_ms
     try:
         lengths = [float(x) for x in args.gaps.split(",") if x.strip()]
     except ValueError:
         raise ValueError(f"--gaps: expected comma-separated seconds, got {args.gaps!r}") from None
     if any(not (math.isfinite(x) and x > 0) for x in lengths):
         raise ValueError(f"--gaps: gap lengths must be positive seconds, got {args.gaps!r}")
-    if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
-        raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     device = device_from_args(accel_sim.default_device(), args)
-    return evaluate(float(args.seconds), int(args.seed), lengths, args.horizon_ms / 1e3,
+    return evaluate(float(args.seconds), int(args.seed), lengths, horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device,
                     ideal=args.ideal)
 
@@ -723,8 +729,9 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gaps", default="0.25,0.5,1", metavar="S,S,...",
                         help="lengths of the optical dropouts to schedule, cycled every "
                              f"{GAP_SPACING_S:g} s after the warm-up (default 0.25,0.5,1)")
-    parser.add_argument("--horizon-ms", type=float, default=20.0,
-                        help="prediction horizon evaluated (default 20 ms)")
+    parser.add_argument("--horizon-ms", type=float, default=None,
+                        help="prediction horizon evaluated (default 20 ms; with --from, the "
+                             "recorded fusion's own)")
     parser.add_argument("--optical", choices=("pose", "dots"), default="pose",
                         help="optical update: the tracker's pose (default) or SCAAT with "
                              "each labeled laser dot (predicted dot = beam of the predicted "
@@ -733,6 +740,10 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ideal", action="store_true",
                         help="the ideal simulated installation instead of the realistic "
                              "default (docs/SIMULATION.md)")
+    parser.add_argument("--from", dest="from_file", default=None, metavar="FILE.mcap",
+                        help="run the fusion filter on a recording's optical and accelerometer "
+                             "samples instead of the simulator (uma record, uma demo --record); "
+                             "compared with its ground truth if it holds the simulator's")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")

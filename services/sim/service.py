@@ -41,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="which true rig mountings to publish as static edges: all "
                              "(default), laser (the accelerometer rig's must then come from "
                              "tracker alignment), none")
+    parser.add_argument("--head-frame", default=frames.HEAD, metavar="FRAME",
+                        help=f"frame of the true head (default {frames.HEAD}); another name "
+                             "keeps the truth off the tracked edge, so queries of the head "
+                             "still reach the trackers ('uma demo --record' records it so)")
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -52,11 +56,11 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
     period = 1.0 / args.rate_hz
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
-        head = svc.ability("head", type="pose6d", edge=(frames.WORLD, frames.HEAD),
+        head = svc.ability("head", type="pose6d", edge=(frames.WORLD, args.head_frame),
                            ground_truth=True, frequency_hz=args.rate_hz, latency_s=0.0,
                            pos_std_m=0.0, rot_std_rad=0.0, seed=args.seed)
         statics = [
-            (svc.ability(name, type="pose6d", edge=(frames.HEAD, child), static=True,
+            (svc.ability(name, type="pose6d", edge=(args.head_frame, child), static=True,
                          ground_truth=True), pose)
             for name, child, pose in MOUNTINGS[args.mountings]]
         svc.start()

@@ -1,0 +1,116 @@
+"""The realm's static edges and the agents' clock offsets, for a recording to explain itself.
+
+An agent's static edges (its configured calibration, e.g. the rig mountings) are not on any
+data key, and its summary lists only frames.  So the recorder asks, as a client would: at
+the start and whenever an agent's summary changes, one ``hops`` pose query per ordered pair
+of that agent's frames (at most ``MAX_FRAMES`` of them), keeping the answers that are one
+static edge owned by that agent in its stored direction.  The clock offset to the agent
+comes from the same round trips (:mod:`agent.sdk.clock`).  Each agent's edges go into the
+recording as one msgpack message on ``uma/R/agent/A/static`` (recorder-made, not a Zenoh
+key): ``{v: 1, agent, edges: [{parent, child, p, q}], clock_offset_ns}``, written when they
+change, and on ``/tf_static`` when ROS channels are on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+import zenoh
+
+from agent.errors import UmaError
+
+log = logging.getLogger("uma.record")
+
+#: an agent with more frames than this has its static edges looked up among the first ones
+MAX_FRAMES = 24
+#: look again this often even without a summary change (a clock offset drifts)
+RECHECK_S = 30.0
+
+
+def static_topic(realm: str, agent_id: str) -> str:
+    return f"uma/{realm}/agent/{agent_id}/static"
+
+
+def encode_statics(agent_id: str, edges: list[dict[str, Any]], offset_ns: int | None) -> bytes:
+    return msgpack.packb({"v": 1, "agent": agent_id, "edges": edges,
+                          "clock_offset_ns": offset_ns}, use_bin_type=True)
+
+
+def decode_statics(data: bytes) -> dict[str, Any]:
+    """A static-edges message; ``ValueError`` says what is wrong."""
+    try:
+        msg = msgpack.unpackb(data, raw=False)
+    except Exception as exc:  # msgpack raises many kinds
+        raise ValueError(f"static edges: not msgpack ({exc})") from None
+    if not isinstance(msg, dict) or msg.get("v") != 1 or not isinstance(msg.get("edges"), list):
+        raise ValueError("static edges: expected {v: 1, agent, edges: [...]}")
+    return msg
+
+
+class StaticEdges:
+    """Looks the static edges up on its own thread; :meth:`changed` asks it to look again."""
+
+    def __init__(self, session: zenoh.Session, realm: str,
+                 offer: Callable[[str, bytes, int], None]) -> None:
+        from agent.sdk.client import Client
+
+        self._client = Client(realm, session=session, timeout=1.0)
+        self._realm = realm
+        self._offer = offer
+        self._last: dict[str, list[dict[str, Any]]] = {}
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._wake.set()
+        self._thread = threading.Thread(target=self._run, name="uma-record-statics",
+                                        daemon=True)
+        self._thread.start()
+
+    def changed(self) -> None:
+        self._wake.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(5.0)
+        with contextlib.suppress(Exception):
+            self._client.close()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(RECHECK_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self._client.refresh()
+                for agent_id, info in sorted(self._client.agents().items()):
+                    if info["alive"]:
+                        self._look(agent_id, info["frames"][:MAX_FRAMES])
+            except Exception as exc:  # a realm in flux: logged, tried again at the next change
+                log.warning("looking up static edges: %s", exc)
+
+    def _look(self, agent_id: str, frames: list[str]) -> None:
+        edges = []
+        for parent in frames:
+            for child in frames:
+                if parent == child or self._stop.is_set():
+                    continue
+                with contextlib.suppress(UmaError, ValueError, LookupError, TimeoutError):
+                    r = self._client.pose(parent, child, error="hops")
+                    e = r.edges[0] if len(r.edges) == 1 else {}
+                    if (r.attributes.get("static") and e.get("forward")
+                            and e.get("owner") == agent_id):
+                        edges.append({"parent": parent, "child": child,
+                                      "p": [float(v) for v in r.position],
+                                      "q": [float(v) for v in r.quaternion]})
+        if edges != self._last.get(agent_id):
+            self._last[agent_id] = edges
+            offset = self._client.clock.offset(agent_id)
+            self._offer(static_topic(self._realm, agent_id),
+                        encode_statics(agent_id, edges, offset), time.time_ns())
