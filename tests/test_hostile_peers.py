@@ -202,3 +202,37 @@ def test_control_needs_the_key_the_epoch_and_the_next_seq() -> None:
     svc._on_control(control_message(key, 7, 5, "head", [], False))  # a few lost: fine
     assert svc.applied == [(m.key,), ()]
     svc.close()
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+
+
+#: what a flood of forged ids may add to a process's memory (the bounds keep ~1,000 agents)
+FLOOD_RSS_MB = 60
+
+
+def test_floods_of_distinct_ids_keep_every_process_within_bounds(honest, realm) -> None:
+    ep, host, cam, consumer = honest
+    procs = {"agent": host, "producer": cam, "consumer": consumer}
+    with open_session(connect=[ep]) as s:
+        snapshot(s, realm, "hostA")
+        before = {name: rss_mb(p.popen.pid) for name, p in procs.items()}
+        info = snapshot(s, realm, "hostA").info
+        for i in range(3000):
+            s.put(keys.agent_supernode(realm, f"ghost{i}"), msgpack.packb(
+                {"v": 1, "agent": f"ghost{i}", "frames": [f"g{i}/x{j}" for j in range(20)],
+                 "rev": 1}))
+            s.put(keys.agent_services(realm, f"ghost{i}"), snapshot_message(
+                {**info, "agent_id": f"ghost{i}"}, 1, 1, []))
+            s.put(keys.data(realm, "hostA", "cam", "pose"),
+                  encode_pose(time.time_ns(), [7, 7, 7], [0, 0, 0, 1], seq=10**9 + i))
+        s.put(keys.data(realm, "hostA", "cam", "pose"), b"\x00" * (40 * 2**20),
+              congestion_control=zenoh.CongestionControl.BLOCK)
+        counts_grow(consumer, "cam")
+        after = {name: rss_mb(p.popen.pid) for name, p in procs.items()}
+    grew = {name: round(after[name] - before[name], 1) for name in procs}
+    print(f"RSS before {before} MB, growth after the flood {grew} MB")
+    assert all(g < FLOOD_RSS_MB for g in grew.values()), grew
+    assert all(p.popen.poll() is None for p in procs.values())

@@ -73,7 +73,9 @@ from agent.protocol.registration import (
     parse_snapshot,
 )
 from agent.runtime import plugins
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
 from agent.runtime.session import ask_all, listening_endpoints, open_session, query
 from agent.runtime.worker import Worker
 from schemas.codec import DecodeError
@@ -184,9 +186,10 @@ class Agent:
         self._decls += [
             sess.declare_queryable(keys.agent_services(r, a),
                                    lambda q: put(self._on_services_query, q)),
-            sess.declare_subscriber(keys.all_agent_services(r),
-                                    lambda smp: put(self._on_snapshot, str(smp.key_expr),
-                                                    smp.payload.to_bytes())),
+            sess.declare_subscriber(keys.all_agent_services(r), guarded(
+                lambda smp: put(self._on_snapshot, str(smp.key_expr),
+                                payload_bytes(smp.payload)),
+                keys.all_agent_services(r), self._bad)),
             sess.liveliness().declare_subscriber(
                 keys.all_agent_tokens(r), lambda smp: put(self._on_agent_token, smp),
                 history=True),

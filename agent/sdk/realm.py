@@ -25,6 +25,8 @@ import zenoh
 from agent.protocol import keys
 from agent.protocol.query import Summary, decode_summary
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.payload import payload_bytes
+from schemas.codec import DecodeError
 
 log = logging.getLogger("uma.client")
 
@@ -182,7 +184,13 @@ class RealmTracker:
     # ------------------------------------------------------------------ what comes in
 
     def _on_summary(self, sample: zenoh.Sample) -> None:
-        self.take_summary(str(sample.key_expr), sample.payload.to_bytes())
+        try:
+            data = payload_bytes(sample.payload)
+        except DecodeError as exc:
+            self.refused += 1
+            self._bad.warning(f"supernode {sample.key_expr}", f"dropped: {exc}")
+            return
+        self.take_summary(str(sample.key_expr), data)
 
     def take_summary(self, key: str, data: bytes, answered: bool = False) -> None:
         """A summary published or answered on ``key``: newer ones replace the known one.  A

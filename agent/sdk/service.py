@@ -62,6 +62,7 @@ from agent.protocol.registration import (
     parse_reply,
     register_request,
 )
+from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.runtime.session import (
@@ -392,8 +393,9 @@ class Service:
         r, a, s = self.realm, self.agent_id, self.service_id
         put = self._enqueue
         self._decls += [
-            sess.declare_subscriber(keys.control(r, a, s),
-                                    lambda smp: put(self._on_control, smp.payload.to_bytes())),
+            sess.declare_subscriber(keys.control(r, a, s), guarded(
+                lambda smp: put(self._on_control, payload_bytes(smp.payload)),
+                keys.control(r, a, s), self._bad)),
             sess.declare_queryable(keys.service_token(r, a, s),
                                    lambda q: put(self._on_descriptor_query, q)),
             sess.liveliness().declare_subscriber(
