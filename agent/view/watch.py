@@ -1,0 +1,179 @@
+"""The realm as the view sees it, kept current by one background thread.
+
+Every ``POLL_S`` (and at once when an agent publishes a new snapshot of its services) it
+collects the realm as ``uma services`` does (:func:`agent.cli.services.collect`: every
+agent's snapshot, with its services, needs, abilities, matches and the rates and latencies
+their consumers' agents measured), turns the difference to the previous look into event
+lines (:mod:`agent.view.events`), measures every live agent's clock offset and delay every
+``CLOCK_S`` (one probe each, :meth:`agent.sdk.query.Queries.probe`), and, when an agent's
+SRG summary changes, asks it for the details of its static edges (one segment request with
+details per frame of its summary, from the first frame of each connected component):
+the summaries say which frames an agent has, not where they are.
+
+Each look is published as one immutable :class:`Look`; the draw loop reads the latest.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from agent.cli.services import collect
+from agent.protocol import keys
+from agent.protocol import query as proto
+from agent.sdk.client import Client
+from agent.view import events
+from agent.view.space import EdgeView
+from schemas.models import EDGE_TYPES
+
+log = logging.getLogger("uma.view")
+
+#: seconds between looks at the realm when nothing is published
+POLL_S = 0.5
+#: seconds between clock probes of each agent
+CLOCK_S = 2.0
+#: lines kept in the event log
+EVENT_LINES = 200
+
+
+@dataclass(frozen=True)
+class Look:
+    """One look at the realm: the collected realm (``uma services --json``'s object), the
+    live agents with their clock offset and delay (ms, None until measured), the edges the
+    view knows (by name) and the event log, newest last."""
+
+    realm: dict[str, Any]
+    clocks: dict[str, tuple[float | None, float | None]] = field(default_factory=dict)
+    edges: dict[str, EdgeView] = field(default_factory=dict)
+    events: tuple[tuple[float, str], ...] = ()
+    seq: int = 0
+
+
+class Watch:
+    """Looks at the realm on its own thread (module docstring)."""
+
+    def __init__(self, client: Client, timeout: float = 1.0) -> None:
+        self.client = client
+        self.realm = client.realm
+        self.timeout = timeout
+        self.look = Look({"realm": client.realm, "agents": [], "problems": []})
+        self._digest = events.Digest()
+        self._events: deque[tuple[float, str]] = deque(maxlen=EVENT_LINES)
+        self._statics: dict[str, tuple[tuple[str, int], dict[str, EdgeView]]] = {}
+        self._clock_due = 0.0
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._sub = client.session.declare_subscriber(keys.all_agent_services(self.realm),
+                                                      lambda _s: self._wake.set())
+        self._thread = threading.Thread(target=self._run, name="uma-view-watch", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(self.timeout * 4 + 2.0)
+        with contextlib.suppress(zenoh.ZError):
+            self._sub.undeclare()
+
+    def _run(self) -> None:
+        first = True
+        while not self._stop.is_set():
+            self._wake.clear()
+            try:
+                self._look(first)
+                first = False
+            except Exception as exc:  # a bad answer must not end the view
+                log.warning("looking at realm %s failed: %s", self.realm, exc)
+            self._wake.wait(POLL_S)
+
+    def _look(self, first: bool) -> None:
+        realm = collect(self.client.session, self.realm, self.timeout, settle_s=0.0)
+        new = events.digest(realm)
+        now = time.time()
+        lines = events.changes(self._digest, new)
+        if first and not realm["agents"]:
+            lines = [f"no agents in realm {self.realm} yet"]
+        self._events.extend((now, line) for line in lines)
+        self._digest = new
+        alive = [a["agent_id"] for a in realm["agents"]]
+        if time.monotonic() >= self._clock_due:
+            self._clock_due = time.monotonic() + CLOCK_S
+            for agent in alive:
+                self.client.queries.probe(agent)
+        edges = measured_edges(realm)
+        for agent in alive:
+            edges.update(self._static_edges(agent))
+        self.look = Look(realm, {a: self._clock(a) for a in alive}, edges,
+                         tuple(self._events), self.look.seq + 1)
+
+    def _clock(self, agent: str) -> tuple[float | None, float | None]:
+        best = self.client.clock.best(agent)
+        return (None, None) if best is None else (best.offset_ns / 1e6, best.delay_ns / 1e6)
+
+    def _static_edges(self, agent: str) -> dict[str, EdgeView]:
+        """The static edges of ``agent``'s graph, fetched again when its summary changes."""
+        version = self.client.tracker.summary_version(agent)
+        if version is None:
+            self.client.tracker.refresh()
+            version = self.client.tracker.summary_version(agent)
+        if version is None:
+            return {}
+        known = self._statics.get(agent)
+        if known is not None and known[0] == version:
+            return known[1]
+        summary = self.client.tracker.view().summaries.get(agent)
+        found = self._fetch_statics(agent, summary) if summary is not None else {}
+        self._statics[agent] = (version, found)
+        return found
+
+    def _fetch_statics(self, agent: str, summary: proto.Summary) -> dict[str, EdgeView]:
+        found: dict[str, EdgeView] = {}
+        for component in summary.components:
+            frames = sorted(component)
+            for target in frames[1:]:
+                request = proto.segments_request({agent: proto.SegmentRequest(
+                    frames[0], target, "hops", None, details=True)})
+                for who, reply, _, _ in self.client.queries.answers(request, [agent]):
+                    if who == agent and reply.get("ok"):
+                        found.update(_statics_of(agent, reply.get("edges") or []))
+        return found
+
+
+def _statics_of(agent: str, details: list[Any]) -> dict[str, EdgeView]:
+    out = {}
+    for d in details:
+        try:
+            e = proto.edge_from_wire(d)
+        except ValueError as exc:
+            log.warning("agent %s sent unreadable edge details: %s", agent, exc)
+            continue
+        if e.static:
+            view = EdgeView(e.parent, e.child, agent, True, e.source, None, "pose6d",
+                            {**e.attributes, "position": e.position,
+                             "quaternion": e.quaternion})
+            out[view.name] = view
+    return out
+
+
+def measured_edges(realm: dict[str, Any]) -> dict[str, EdgeView]:
+    """Every edge ability of the realm's live services (by :attr:`EdgeView.name`)."""
+    out = {}
+    for a in realm["agents"]:
+        for s in a["services"]:
+            for ab in s["abilities"]:
+                if ab["type"] not in EDGE_TYPES or "edge" not in ab:
+                    continue
+                attrs = ab.get("attributes", {})
+                key = keys.data(realm["realm"], a["agent_id"], s["service_id"], ab["name"])
+                e = EdgeView(ab["edge"][0], ab["edge"][1], a["agent_id"],
+                             bool(attrs.get("static")), f"{s['service_id']}/{ab['name']}",
+                             key, ab["type"], attrs)
+                out[e.name] = e
+    return out
