@@ -19,6 +19,11 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--logs", default=None, metavar="DIR",
                    help="keep each service's log as DIR/<service>.log (default: discarded)")
+    p.add_argument("--view", action="store_true",
+                   help="also serve the live view of the demo's realm (uma view; needs the "
+                        "'view' extra) on http://127.0.0.1:PORT/")
+    p.add_argument("--view-port", type=int, default=8080, metavar="PORT",
+                   help="port of the view's page (default 8080)")
 
 
 def _recalibrate_arguments(p: argparse.ArgumentParser) -> None:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from agent.errors import UmaError
+from agent.protocol import keys
 from agent.sdk.client import Client
 from agent.view import panels
 from agent.view.space import Placed, Space, Trails
@@ -84,6 +85,7 @@ def _connect(args: argparse.Namespace, page: Any, stop: threading.Event,
 
 def check_arguments(args: argparse.Namespace) -> None:
     """Refuse bad values with a message naming the option."""
+    keys.check_name("realm", args.realm)
     if not 0 <= args.port <= 65535:
         raise UmaError(f"--port must be in 0..65535, got {args.port}")
     if not (math.isfinite(args.hz) and 0 < args.hz <= MAX_HZ):

@@ -42,12 +42,20 @@ def unavailable() -> str | None:
 
 @contextlib.contextmanager
 def chromium() -> Iterator[Any]:
-    """A headless Chromium under Selenium, quit (and its profile removed) at the end."""
+    """A headless Chromium under Selenium for a test, skipped (module docstring) when it
+    cannot exist here."""
     reason = unavailable()
     if reason:
         if os.environ.get("UMA_REQUIRE_BROWSER"):
             pytest.fail(f"UMA_REQUIRE_BROWSER is set but {reason}")
         pytest.skip(reason)
+    with chromium_driver() as driver:
+        yield driver
+
+
+@contextlib.contextmanager
+def chromium_driver() -> Iterator[Any]:
+    """A headless Chromium under Selenium, quit (and its profile removed) at the end."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
