@@ -115,8 +115,9 @@ def run_frames(frames: int, rate: float, seconds: float) -> dict[str, float]:
         pub = subprocess.Popen(
             [sys.executable, __file__, "--publish", str(frames), "--rate", str(rate),
              "--realm", realm, "--connect", ep, "--seconds", str(seconds + 60)],
-            env=dict(os.environ, PYTHONPATH=ROOT, UMA_LEASE_MS=LEASE_MS), cwd=ROOT, stdout=subprocess.PIPE,
-            stderr=open(f"/tmp/bench_view_pub_{frames}.log", "w"), text=True)  # noqa: SIM115
+            env=dict(os.environ, PYTHONPATH=ROOT, UMA_LEASE_MS=LEASE_MS), cwd=ROOT,
+            stdout=subprocess.PIPE, text=True,
+            stderr=open(f"/tmp/bench_view_pub_{frames}.log", "w"))  # noqa: SIM115
         procs.append(pub)
         view = _uma("view", "--realm", realm, "--connect", ep, "--port", "0", "--root",
                     "bench/world", out=subprocess.PIPE)

@@ -26,9 +26,12 @@ def _view(processes, realm: str, ep: str):
     return view, re.search(r"http://\S+/", line).group(0)
 
 
-def test_the_page_shows_a_live_realm(processes, realm):
+def test_the_page_shows_a_live_realm(processes, realm, tmp_path):
     ep_lab, ep_app = endpoint(free_port()), endpoint(free_port())
-    agent(processes, realm, "lab", ep_lab)
+    config = tmp_path / "lab.toml"  # a static edge the page learns from the agent's answers
+    config.write_text('[[static]]\nparent = "ivy/world"\nchild = "ivy/cam_nw"\n'
+                      'position = [1.2, 1.2, 2.4]\nquaternion = [0, 0, 0, 1]\n')
+    agent(processes, realm, "lab", ep_lab, extra=("--config", str(config)))
     agent(processes, realm, "app", ep_app, connect=(ep_lab,))
     common = ["--realm", realm, "--agent", "lab", "--connect", ep_lab]
     spawn(processes, ["-m", "agent.cli", "service", "run", "sim", *common])
@@ -40,6 +43,10 @@ def test_the_page_shows_a_live_realm(processes, realm):
                          "both agents, the services and the streaming match")
         assert "app tcp/127.0.0.1" in text and "lab tcp/127.0.0.1" in text, text
         assert "lab/sim\n" in text and "service sim came on agent lab" in text, text
+        # the SRG: world, head, both rigs (the simulator's static mountings, the rig's pose)
+        # and the agent's configured camera
+        wait_text(browser, lambda t: "5 frame(s) placed from ivy/world" in t, WAIT_S,
+                  "the five frames of the SRG")
         # the head frame moves: two screenshots of the scene differ
         first = scene_png(browser)
         second = poll(lambda: (lambda s: s if s != first else False)(scene_png(browser)),

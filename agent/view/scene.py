@@ -50,6 +50,7 @@ class Page:
         self._sent: dict[str, Any] = {}
         gui = server.gui
         gui.set_panel_label("uma view")
+        gui.configure_theme(control_width="large")  # the match table has six columns
         with gui.add_folder("Realm"):
             self.realm = gui.add_markdown("looking at the realm...")
         with gui.add_folder("Matches"):

@@ -1,9 +1,10 @@
 """The realm's frames in space: every edge the view knows, placed in one root frame.
 
 Pure numpy, no I/O.  The frames reachable from the root form a breadth-first tree over the
-edges that have a value (static ones always; measured ones once a sample came); the tree is
-rebuilt only when that set changes, and the poses are composed level by level, each level
-in one vectorised call, so 1,000 frames cost a handful of numpy calls per redraw.
+edges that have a value (static ones always; measured ones once a sample came), a static
+edge winning where two could place a frame; the tree is rebuilt only when that set
+changes, and the poses are composed level by level, each level in one vectorised call, so
+1,000 frames cost a handful of numpy calls per redraw.
 """
 
 from __future__ import annotations
@@ -82,9 +83,10 @@ class Space:
         return Placed(list(self._frames), P, Q, dict(self._via))
 
     def _build(self, root: str, edges: Mapping[str, EdgeView]) -> None:
-        """The breadth-first tree from ``root``, stored level by level."""
+        """The breadth-first tree from ``root``, stored level by level; of two edges that
+        could place a frame, a static one (a calibration) wins over a measured one."""
         adjacent: dict[str, list[tuple[str, str, bool]]] = {}
-        for name in sorted(edges):
+        for name in sorted(edges, key=lambda n: (not edges[n].static, n)):
             e = edges[name]
             adjacent.setdefault(e.parent, []).append((e.child, name, False))
             adjacent.setdefault(e.child, []).append((e.parent, name, True))

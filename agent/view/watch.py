@@ -66,7 +66,8 @@ class Watch:
         self.look = Look({"realm": client.realm, "agents": [], "problems": []})
         self._digest = events.Digest()
         self._events: deque[tuple[float, str]] = deque(maxlen=EVENT_LINES)
-        self._statics: dict[str, tuple[tuple[str, int], dict[str, EdgeView]]] = {}
+        #: per agent: the summary version its static edges were fetched for, and the edges
+        self._statics: dict[str, tuple[tuple[str, int] | tuple[()], dict[str, EdgeView]]] = {}
         self._clock_due = 0.0
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -94,7 +95,8 @@ class Watch:
             self._wake.wait(POLL_S)
 
     def _look(self, first: bool) -> None:
-        realm = collect(self.client.session, self.realm, self.timeout, settle_s=0.0)
+        realm = self._carry_over(collect(self.client.session, self.realm, self.timeout,
+                                         settle_s=0.0))
         new = events.digest(realm)
         now = time.time()
         lines = events.changes(self._digest, new)
@@ -107,9 +109,24 @@ class Watch:
             self._clock_due = time.monotonic() + CLOCK_S
             for agent in alive:
                 self.client.queries.probe(agent)
+        self._publish(realm, alive)
+        if self._refresh_statics(alive):
+            self._publish(realm, alive)
+
+    def _carry_over(self, realm: dict[str, Any]) -> dict[str, Any]:
+        """An agent whose token is still there but whose snapshot came too late (a loaded
+        host) keeps its last one: it has not left, and the page must not say so."""
+        answered = {a["agent_id"] for a in realm["agents"]}
+        kept = [a for a in self.look.realm["agents"]
+                if a["agent_id"] not in answered and self.client.tracker.is_alive(a["agent_id"])]
+        if kept:
+            realm["agents"] = sorted([*realm["agents"], *kept], key=lambda a: a["agent_id"])
+        return realm
+
+    def _publish(self, realm: dict[str, Any], alive: list[str]) -> None:
         edges = measured_edges(realm)
         for agent in alive:
-            edges.update(self._static_edges(agent))
+            edges.update(self._statics.get(agent, ((), {}))[1])
         self.look = Look(realm, {a: self._clock(a) for a in alive}, edges,
                          tuple(self._events), self.look.seq + 1)
 
@@ -117,33 +134,60 @@ class Watch:
         best = self.client.clock.best(agent)
         return (None, None) if best is None else (best.offset_ns / 1e6, best.delay_ns / 1e6)
 
-    def _static_edges(self, agent: str) -> dict[str, EdgeView]:
-        """The static edges of ``agent``'s graph, fetched again when its summary changes."""
-        version = self.client.tracker.summary_version(agent)
-        if version is None:
-            self.client.tracker.refresh()
+    def _refresh_statics(self, alive: list[str]) -> bool:
+        """Fetch the static edges of every agent whose summary changed; True if any did."""
+        changed = False
+        for agent in alive:
             version = self.client.tracker.summary_version(agent)
-        if version is None:
-            return {}
-        known = self._statics.get(agent)
-        if known is not None and known[0] == version:
-            return known[1]
-        summary = self.client.tracker.view().summaries.get(agent)
-        found = self._fetch_statics(agent, summary) if summary is not None else {}
-        self._statics[agent] = (version, found)
-        return found
+            if version is None:
+                self.client.tracker.refresh()
+                version = self.client.tracker.summary_version(agent)
+            known = self._statics.get(agent)
+            if version is None or (known is not None and known[0] == version):
+                continue
+            summary = self.client.tracker.view().summaries.get(agent)
+            if summary is not None:
+                self._statics[agent] = (version, self._fetch_statics(agent, summary))
+                changed = True
+        for agent in set(self._statics) - set(alive):
+            del self._statics[agent]
+        return changed
 
     def _fetch_statics(self, agent: str, summary: proto.Summary) -> dict[str, EdgeView]:
+        """One segment request with details from the first frame of each component to every
+        other frame, all sent at once (one round trip, not one per frame)."""
         found: dict[str, EdgeView] = {}
+        lock, pending = threading.Lock(), []
+        done = threading.Semaphore(0)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                answer = proto.decode_reply(reply.ok.payload.to_bytes())
+            except ValueError as exc:
+                log.warning("agent %s sent an unreadable answer: %s", agent, exc)
+                return
+            if answer.get("ok"):
+                edges = _statics_of(agent, answer.get("edges") or [])
+                with lock:
+                    found.update(edges)
+
+        key = keys.agent_query(self.realm, agent)
         for component in summary.components:
             frames = sorted(component)
             for target in frames[1:]:
                 request = proto.segments_request({agent: proto.SegmentRequest(
                     frames[0], target, "hops", None, details=True)})
-                for who, reply, _, _ in self.client.queries.answers(request, [agent]):
-                    if who == agent and reply.get("ok"):
-                        found.update(_statics_of(agent, reply.get("edges") or []))
-        return found
+                self.client.session.get(key, zenoh.handlers.Callback(on_reply, done.release),
+                                        payload=request, timeout=self.timeout)
+                pending.append(target)
+        deadline = time.monotonic() + self.timeout + 1.0
+        for _ in pending:
+            if not done.acquire(timeout=max(0.0, deadline - time.monotonic())):
+                break
+        with lock:
+            return dict(found)
 
 
 def _statics_of(agent: str, details: list[Any]) -> dict[str, EdgeView]:
