@@ -74,6 +74,18 @@ def _uma(*args: str, out: int | None = subprocess.DEVNULL) -> subprocess.Popen:
                             stdout=out, stderr=log, text=True)
 
 
+def _wait_listening(port: int, timeout: float = 60.0) -> None:
+    """Until something accepts connections on ``port``: the agent (a service started
+    before it would wait) or the view's page."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise RuntimeError(f"the agent never listened on port {port}")
+
+
 def _url(view: subprocess.Popen, timeout: float = 60.0) -> str:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -112,6 +124,7 @@ def run_frames(frames: int, rate: float, seconds: float) -> dict[str, float]:
     procs = []
     try:
         procs.append(_uma("agent", "--realm", realm, "--id", "bench", "--listen", ep))
+        _wait_listening(int(ep.rsplit(":", 1)[1]))
         pub = subprocess.Popen(
             [sys.executable, __file__, "--publish", str(frames), "--rate", str(rate),
              "--realm", realm, "--connect", ep, "--seconds", str(seconds + 60)],
@@ -171,10 +184,11 @@ def run_demo(seconds: float) -> dict[str, float]:
                 out=subprocess.PIPE)
     try:
         url = _url(demo, 120)
+        _wait_listening(port, 120)
         view_pid = _child_view(demo.pid)
         return measure_page(url, view_pid, seconds, "alice/head")
     finally:
-        stop_processes([demo], 10.0)
+        stop_processes([demo], 15.0)  # SIGTERM: the demo stops its children
 
 
 def _child_view(parent: int) -> int:

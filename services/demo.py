@@ -23,6 +23,7 @@ import json
 import logging
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -142,7 +143,14 @@ class Children:
             f.close()
 
 
+def _interrupted(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(args: argparse.Namespace) -> int:
+    # SIGTERM stops the demo as Ctrl-C does, through run_demo's cleanup: without this it
+    # ended the process at once and left its child processes running
+    signal.signal(signal.SIGTERM, _interrupted)
     seconds = float(args.seconds)
     if not (math.isfinite(seconds) and 0 < seconds <= 3600):
         raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")

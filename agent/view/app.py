@@ -159,14 +159,14 @@ class View:
         slow = now >= self._next_slow
         if slow:
             self._next_slow = now + 1.0 / SLOW_HZ
-        if look.seq != self._seen:
-            self._seen = look.seq
+        changed, self._seen = look.seq != self._seen, look.seq
+        if changed:
             self.taps.follow((e.key, e.type) for e in look.edges.values() if e.key)
             page.text(page.realm, panels.realm_md(look))
             page.text(page.services, panels.services_md(look))
             page.text(page.events, panels.events_md(look))
             page.edge_choices(sorted(look.edges))
-        if slow or look.seq != self._seen:
+        if slow or changed:  # stream states and ages move without a new look
             page.text(page.matches, panels.matches_md(look, self.taps.facts))
             page.text(page.edge_info, panels.edge_md(page.edge.value, look, self.taps.facts))
         values, covariances, newest = self._values(look)
