@@ -107,7 +107,7 @@ def test_ellipsoid_axes_follow_the_covariance():
 
 
 def test_stream_states():
-    fresh, old = StreamFacts(100.0, 0.01, 500), StreamFacts(0.0, 2.0, 500)
+    fresh, old = StreamFacts(100.0, 0.01, 500), StreamFacts(None, 2.0, 500)
     assert stream_state(False, fresh, 100.0, 100.0) == "no route"
     assert stream_state(True, fresh, 100.0, 100.0) == "streaming"
     assert stream_state(True, old, 100.0, 100.0) == "stalled"
@@ -171,3 +171,40 @@ def test_without_the_extra_it_says_what_to_install():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 1, r.stderr
     assert "pip install 'uma-tracking[view]'" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_taps_pull_the_newest_sample_and_measure_the_rate_from_sequence_numbers():
+    import logging
+    import time
+
+    import zenoh
+
+    from agent.view.taps import Taps
+    from schemas.codec import encode_pose
+
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    session = zenoh.open(config)
+    try:
+        taps = Taps(session, logging.getLogger("test"))
+        taps.follow([("uma/r/data/a/s/pose", "pose6d")])
+        assert taps.latest("uma/r/data/a/s/pose") is None
+        t0 = time.time_ns()
+        for k in range(51):   # 100 Hz in the samples' own time, sent in one burst
+            session.put("uma/r/data/a/s/pose", encode_pose(
+                t0 + k * 10_000_000, [0.01 * k, 0.0, 0.0], [0, 0, 0, 1], seq=k))
+            if k in (0, 50):
+                time.sleep(0.2)
+                m = taps.latest("uma/r/data/a/s/pose")
+                assert m is not None and m.seq == k
+        facts = taps.facts("uma/r/data/a/s/pose")
+        assert facts.seq == 50 and facts.rate_hz == pytest.approx(100.0)
+        assert facts.age_s is not None and facts.age_s < 5.0
+        session.put("uma/r/data/a/s/pose", b"\x00not msgpack")
+        time.sleep(0.2)
+        assert taps.latest("uma/r/data/a/s/pose").seq == 50  # the malformed one is skipped
+        taps.follow([])
+        assert taps.facts("uma/r/data/a/s/pose") is None
+    finally:
+        session.close()

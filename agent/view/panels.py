@@ -95,8 +95,9 @@ def edge_md(name: str, look: Look, facts: Facts) -> str:
     f = facts(e.key) if e.key else None
     if f is not None:
         age = "no sample yet" if f.age_s is None else f"{f.age_s * 1e3:.0f} ms"
-        lines += [f"- rate: {f.rate_hz:.1f} Hz", f"- newest sample: {age} ago",
-                  f"- samples seen: {f.count}"]
+        rate = "not measured yet" if f.rate_hz is None else f"{f.rate_hz:.1f} Hz"
+        lines += [f"- rate: {rate}", f"- newest sample: {age} ago",
+                  f"- its sequence number: {'-' if f.seq is None else f.seq}"]
     attrs = {k: v for k, v in e.attributes.items() if k not in ("position", "quaternion")}
     lines.append(f"- attributes: {_qos(attrs) or 'none'}")
     return "\n".join(lines)

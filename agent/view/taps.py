@@ -1,16 +1,18 @@
-"""The view's own taps on the streams of edge abilities: the newest sample of each (kept as
-bytes, decoded only when drawn) and its arrival times, for the measured rate, the age of
-the newest sample and the stream's state.
+"""The view's own taps on the streams of edge abilities: the newest sample of each, the
+stream's rate and the age of its newest sample, for drawing and for the stream's state.
 
-Zenoh's callback only keeps a reference to the payload and the arrival time under a lock
-(a few microseconds, no copy), so a realm publishing thousands of samples a second costs
-the view little; copying and decoding happen at most once per redraw per stream.
+Each tap is a Zenoh subscriber with a ring channel of one: Zenoh keeps only the newest
+sample of the stream, in Rust, and Python never runs per sample.  The draw loop pulls the
+newest one at most once per redraw (:meth:`Taps.latest`), so a realm publishing tens of
+thousands of samples a second costs the view a few pulls per redraw, and a slow view never
+makes its agent queue samples for it.  The rate is measured from the samples' own sequence
+numbers and times (``s`` and ``t`` on the wire) over the last ``RATE_WINDOW_S``; the age of
+the newest sample is the time since it was first pulled (one redraw period late at most).
 """
 
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
 from collections import deque
 from collections.abc import Iterable
@@ -22,7 +24,7 @@ import zenoh
 from agent.runtime.logs import RateLimitedLog
 from schemas.codec import DecodeError, Measurement, decode_measurement
 
-#: the window over which a stream's rate is measured (s)
+#: the window of sample time over which a stream's rate is measured (s)
 RATE_WINDOW_S = 1.0
 #: a stream is stalled after this many of its advertised periods without a sample, and
 #: never before STALL_MIN_S (the subscription SDK's rule, agent.sdk.subscription)
@@ -33,94 +35,93 @@ STALL_MIN_S = 1.5
 @dataclass
 class _Stream:
     type: str
-    data: Any = None  # the newest payload (zenoh.ZBytes), copied out only when drawn
-    arrivals: deque[float] = field(default_factory=lambda: deque(maxlen=4096))
-    decoded: Measurement | None = None
-    decoded_from: Any = None
+    subscriber: Any
+    newest: Measurement | None = None
+    #: when the newest sample was first pulled (monotonic s)
+    pulled: float | None = None
+    #: (t_ns, seq) of the samples pulled within the rate window
+    marks: deque[tuple[int, int]] = field(default_factory=deque)
 
 
 @dataclass(frozen=True)
 class StreamFacts:
-    """What the view measured of one stream: rate over the last second, seconds since the
-    newest sample (None: none yet), and samples seen."""
+    """What the view measured of one stream: rate over the last second (None: not yet
+    measurable), seconds since the newest sample (None: none yet), and its sequence
+    number."""
 
-    rate_hz: float
+    rate_hz: float | None
     age_s: float | None
-    count: int
+    seq: int | None
 
 
 class Taps:
-    """Subscriptions to data keys, changed by :meth:`follow` (module docstring)."""
+    """Ring-channel subscriptions to data keys, changed by :meth:`follow`; used by the
+    draw loop's thread only (module docstring)."""
 
     def __init__(self, session: zenoh.Session, log: Any) -> None:
         self.session = session
         self._bad = RateLimitedLog(log)
-        self._lock = threading.Lock()
         self._streams: dict[str, _Stream] = {}
-        self._counts: dict[str, int] = {}
-        self._subs: dict[str, Any] = {}
 
     def follow(self, wanted: Iterable[tuple[str, str]]) -> None:
         """Tap exactly these ``(data key, measurement type)`` streams."""
         wanted = dict(wanted)
-        for key in set(self._subs) - set(wanted):
+        for key in set(self._streams) - set(wanted):
             with contextlib.suppress(zenoh.ZError):
-                self._subs.pop(key).undeclare()
-            with self._lock:
-                self._streams.pop(key, None)
+                self._streams.pop(key).subscriber.undeclare()
         for key, type_ in wanted.items():
-            if key in self._subs:
-                continue
-            with self._lock:
-                self._streams[key] = _Stream(type_)
-                self._counts.setdefault(key, 0)
-            self._subs[key] = self.session.declare_subscriber(
-                key, zenoh.handlers.Callback(lambda s, k=key: self._on_sample(k, s),
-                                             indirect=False))
-
-    def _on_sample(self, key: str, sample: zenoh.Sample) -> None:
-        data, now = sample.payload, time.monotonic()
-        with self._lock:
-            stream = self._streams.get(key)
-            if stream is not None:
-                stream.data = data
-                stream.arrivals.append(now)
-                self._counts[key] += 1
+            if key not in self._streams:
+                self._streams[key] = _Stream(type_, self.session.declare_subscriber(
+                    key, zenoh.handlers.RingChannel(1)))
 
     def latest(self, key: str) -> Measurement | None:
-        """The newest sample of ``key`` decoded (None if none, or if it was malformed: then
-        a rate-limited log line names the key and the reason)."""
-        with self._lock:
-            stream = self._streams.get(key)
-            if stream is None or stream.data is None:
-                return None
-            data, type_ = stream.data, stream.type
-            if stream.decoded_from is data:
-                return stream.decoded
-        try:
-            m = decode_measurement(data.to_bytes(), type_)
-        except DecodeError as exc:
-            self._bad.warning(key, f"dropped a malformed sample: {exc}")
-            m = None
-        with self._lock:
-            if key in self._streams:
-                self._streams[key].decoded, self._streams[key].decoded_from = m, data
-        return m
+        """The newest sample of ``key``, pulled now if a newer one came (None if none yet;
+        a malformed one is skipped with a rate-limited log line naming the key and the
+        reason)."""
+        stream = self._streams.get(key)
+        if stream is None:
+            return None
+        sample = stream.subscriber.try_recv()
+        if sample is not None:
+            try:
+                m = decode_measurement(sample.payload.to_bytes(), stream.type)
+            except DecodeError as exc:
+                self._bad.warning(key, f"dropped a malformed sample: {exc}")
+            else:
+                stream.newest, stream.pulled = m, time.monotonic()
+                _mark(stream.marks, m)
+        return stream.newest
 
     def facts(self, key: str) -> StreamFacts | None:
-        """Rate, age and count of a tapped stream (None if it is not tapped)."""
-        now = time.monotonic()
-        with self._lock:
-            stream = self._streams.get(key)
-            if stream is None:
-                return None
-            times = stream.arrivals
-            recent = sum(1 for t in reversed(times) if t > now - RATE_WINDOW_S)
-            age = now - times[-1] if times else None
-            return StreamFacts(recent / RATE_WINDOW_S, age, self._counts.get(key, 0))
+        """Rate, age and sequence number of a tapped stream (None if it is not tapped)."""
+        stream = self._streams.get(key)
+        if stream is None:
+            return None
+        age = None if stream.pulled is None else time.monotonic() - stream.pulled
+        seq = None if stream.newest is None else stream.newest.seq
+        return StreamFacts(_rate(stream.marks), age, seq)
 
     def close(self) -> None:
         self.follow(())
+
+
+def _mark(marks: deque[tuple[int, int]], m: Measurement) -> None:
+    if m.seq is None:
+        return
+    marks.append((m.t_ns, m.seq))
+    while marks and marks[0][0] < m.t_ns - int(RATE_WINDOW_S * 1e9):
+        marks.popleft()
+
+
+def _rate(marks: deque[tuple[int, int]]) -> float | None:
+    """Samples per second between the oldest and newest pulled samples of the window, by
+    their sequence numbers and times (a restarted publisher's sequence is not counted)."""
+    if len(marks) < 2:
+        return None
+    (t0, s0), (t1, s1) = marks[0], marks[-1]
+    if t1 <= t0 or s1 <= s0:
+        return None
+    return (s1 - s0) / ((t1 - t0) / 1e9)
 
 
 def stream_state(matched: bool, facts: StreamFacts | None, advertised_hz: float | None,
