@@ -131,7 +131,7 @@ def run_frames(frames: int, rate: float, seconds: float) -> dict[str, float]:
         _wait_listening(int(ep.rsplit(":", 1)[1]))
         pub = subprocess.Popen(
             [sys.executable, __file__, "--publish", str(frames), "--rate", str(rate),
-             "--realm", realm, "--connect", ep, "--seconds", str(seconds + 60)],
+             "--realm", realm, "--connect", ep, "--seconds", str(seconds + 300)],
             env=dict(os.environ, PYTHONPATH=ROOT, UMA_LEASE_MS=LEASE_MS), cwd=ROOT,
             stdout=subprocess.PIPE, text=True,
             stderr=open(f"/tmp/bench_view_pub_{frames}.log", "w"))  # noqa: SIM115

@@ -126,8 +126,8 @@ def test_the_page_text():
     look = Look(realm, {"lab": (0.05, 0.4)}, measured_edges(realm), ((0.0, "agent lab came"),))
     assert "| lab | tcp/127.0.0.1:7000 | yes | 0.05 ms | 0.40 ms | 1 |" in panels.realm_md(look)
     m = panels.matches_md(look, lambda key: None)
-    assert "| lab/cam/pose | → | lab/fusion.optical | 99.5 Hz | 2.00 ms | streaming |" in m
-    assert "| - | → | lab/fusion.accel | - | - | no route |" in m
+    assert "| lab/cam/pose → lab/fusion.optical | 99.5 Hz | 2.00 ms | streaming |" in m
+    assert "| nothing → lab/fusion.accel | - | - | no route |" in m
     s = panels.services_md(look)
     assert "ability `head` pose6d w -> a/head frequency_hz=100, latency_s=0.004" in s
     assert "need `accel`" in s and "(unsatisfied)" in s

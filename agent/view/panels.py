@@ -60,7 +60,7 @@ def matches_md(look: Look, facts: Facts) -> str:
     """The match graph as arrows ability -> need, each with its stream's measured rate and
     latency (as the consumer's agent measures them) and its state."""
     advertised = _advertised(look.realm)
-    rows = ["| ability | | need | rate | latency | state |", "|---|---|---|---|---|---|"]
+    rows = ["| ability → need | rate | latency | state |", "|---|---|---|---|"]
     for a in look.realm["agents"]:
         for s in a["services"]:
             for n in s["needs"]:
@@ -69,10 +69,10 @@ def matches_md(look: Look, facts: Facts) -> str:
                     meas = m.get("measured", {})
                     hz, lat = meas.get("measured_frequency_hz"), meas.get("measured_latency_s")
                     state = stream_state(True, facts(m["key"]), advertised.get(m["key"]), hz)
-                    rows.append(f"| {match_name(m)} | → | {need} | {_num(hz, 'Hz')} | "
+                    rows.append(f"| {match_name(m)} → {need} | {_num(hz, 'Hz')} | "
                                 f"{_ms(None if lat is None else lat * 1e3)} | {state} |")
                 if not n["matches"]:
-                    rows.append(f"| - | → | {need} | - | - | no route |")
+                    rows.append(f"| nothing → {need} | - | - | no route |")
     return "\n".join(rows) if len(rows) > 2 else "no needs in the realm"
 
 

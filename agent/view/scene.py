@@ -105,9 +105,9 @@ class Page:
         """Point the camera at the placed frames, from far enough to see them all (once:
         afterwards the user moves it)."""
         centre = positions.mean(axis=0)
-        span = max(float(np.ptp(positions, axis=0).max()), 1.0)
+        span = max(float(np.ptp(positions, axis=0).max()), 0.3)
         self.server.initial_camera.look_at = tuple(centre)
-        self.server.initial_camera.position = tuple(centre + span * np.array([1.3, -1.3, 1.0]))
+        self.server.initial_camera.position = tuple(centre + span * np.array([1.0, -1.0, 0.7]))
 
     def frames(self, placed: Placed, labels: bool) -> None:
         """Every placed frame as axes; labels follow when ``labels`` (they cost one message
