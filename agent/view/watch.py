@@ -1,7 +1,9 @@
 """The realm as the view sees it, kept current by one background thread.
 
-Every ``POLL_S`` (and at once when an agent publishes a new snapshot of its services) it
-collects the realm as ``uma services`` does (:func:`agent.cli.services.collect`: every
+Every ``POLL_S`` (and at once when an agent publishes a new snapshot of its services, or a
+service's liveliness token goes: that service leaves the page before its agent's next
+snapshot says so, since a killed service's token goes within milliseconds) it collects the
+realm as ``uma services`` does (:func:`agent.cli.services.collect`: every
 agent's snapshot, with its services, needs, abilities, matches and the rates and latencies
 their consumers' agents measured), turns the difference to the previous look into event
 lines (:mod:`agent.view.events`), measures every live agent's clock offset and delay every
@@ -71,8 +73,15 @@ class Watch:
         self._clock_due = 0.0
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._sub = client.session.declare_subscriber(keys.all_agent_services(self.realm),
-                                                      lambda _s: self._wake.set())
+        #: services whose token went (and did not come back) while their agent still listed
+        #: them: dropped from the page at once, before the agent's snapshot says so
+        self._dead: set[tuple[str, str]] = set()
+        self._dead_lock = threading.Lock()
+        self._subs = [
+            client.session.declare_subscriber(keys.all_agent_services(self.realm),
+                                              lambda _s: self._wake.set()),
+            client.session.liveliness().declare_subscriber(keys.service_tokens(self.realm),
+                                                           self._on_service_token)]
         self._thread = threading.Thread(target=self._run, name="uma-view-watch", daemon=True)
         self._thread.start()
 
@@ -80,14 +89,28 @@ class Watch:
         self._stop.set()
         self._wake.set()
         self._thread.join(self.timeout * 4 + 2.0)
-        with contextlib.suppress(zenoh.ZError):
-            self._sub.undeclare()
+        for sub in self._subs:
+            with contextlib.suppress(zenoh.ZError):
+                sub.undeclare()
+
+    def _on_service_token(self, sample: zenoh.Sample) -> None:
+        """A service's token went: show it gone now, before its agent's next snapshot."""
+        found = keys.parse_service_token(str(sample.key_expr), self.realm)
+        if found is None:
+            return
+        with self._dead_lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._dead.add(found)
+            else:
+                self._dead.discard(found)
+        self._wake.set()
 
     def _run(self) -> None:
         first = True
         while not self._stop.is_set():
             self._wake.clear()
             try:
+                self._drop_gone()
                 self._look(first)
                 first = False
             except Exception as exc:  # a bad answer must not end the view
@@ -97,13 +120,9 @@ class Watch:
     def _look(self, first: bool) -> None:
         realm = self._carry_over(collect(self.client.session, self.realm, self.timeout,
                                          settle_s=0.0))
-        new = events.digest(realm)
-        now = time.time()
-        lines = events.changes(self._digest, new)
-        if first and not realm["agents"]:
-            lines = [f"no agents in realm {self.realm} yet"]
-        self._events.extend((now, line) for line in lines)
-        self._digest = new
+        self._forget_dropped(realm)
+        realm = self._without_dead(realm)
+        self._record(realm, first)
         alive = [a["agent_id"] for a in realm["agents"]]
         if time.monotonic() >= self._clock_due:
             self._clock_due = time.monotonic() + CLOCK_S
@@ -112,6 +131,43 @@ class Watch:
         self._publish(realm, alive)
         if self._refresh_statics(alive):
             self._publish(realm, alive)
+
+    def _drop_gone(self) -> None:
+        """Publish the last look without the services whose token went, if it showed any
+        (the next look says whether their agent dropped them too)."""
+        realm = self._without_dead(self.look.realm)
+        if realm is not self.look.realm:
+            self._record(realm)
+            self._publish(realm, [a["agent_id"] for a in realm["agents"]])
+
+    def _without_dead(self, realm: dict[str, Any]) -> dict[str, Any]:
+        """``realm`` without the services whose token went (itself if it has none)."""
+        with self._dead_lock:
+            dead = set(self._dead)
+        if not any((a["agent_id"], s["service_id"]) in dead
+                   for a in realm["agents"] for s in a["services"]):
+            return realm
+        return {**realm, "agents": [
+            {**a, "services": [s for s in a["services"]
+                               if (a["agent_id"], s["service_id"]) not in dead]}
+            for a in realm["agents"]]}
+
+    def _forget_dropped(self, realm: dict[str, Any]) -> None:
+        """Forget the dead services that their agents no longer list."""
+        listed = {(a["agent_id"], s["service_id"]) for a in realm["agents"]
+                  for s in a["services"]}
+        with self._dead_lock:
+            self._dead &= listed
+
+    def _record(self, realm: dict[str, Any], first: bool = False) -> None:
+        """The event lines from the previous look to ``realm``."""
+        new = events.digest(realm)
+        lines = events.changes(self._digest, new)
+        if first and not realm["agents"]:
+            lines = [f"no agents in realm {self.realm} yet"]
+        now = time.time()
+        self._events.extend((now, line) for line in lines)
+        self._digest = new
 
     def _carry_over(self, realm: dict[str, Any]) -> dict[str, Any]:
         """An agent whose token is still there but whose snapshot came too late (a loaded
