@@ -208,3 +208,33 @@ def test_taps_pull_the_newest_sample_and_measure_the_rate_from_sequence_numbers(
         assert taps.facts("uma/r/data/a/s/pose") is None
     finally:
         session.close()
+
+
+def test_the_watch_hides_services_whose_token_went_and_keeps_agents_alive_by_token():
+    """The watch's bookkeeping, without a realm: a service whose token went is hidden from
+    every look until its agent drops it or its token comes back; an agent whose snapshot came
+    too late keeps its last one while its token is there."""
+    import threading
+    from types import SimpleNamespace
+
+    from agent.view.watch import Watch
+
+    w = Watch.__new__(Watch)
+    w._dead, w._dead_lock = {("lab", "cam")}, threading.Lock()
+    alive = {"lab", "slow"}
+    w.client = SimpleNamespace(tracker=SimpleNamespace(is_alive=lambda a: a in alive))
+    both = _realm({"lab": [_svc("cam"), _svc("sim")], "slow": [_svc("x")]}, ("lab", "slow"))
+    w.look = Look(both)
+    hidden = w._without_dead(both)
+    assert [s["service_id"] for s in hidden["agents"][0]["services"]] == ["sim"]
+    assert w._without_dead(hidden) is hidden
+    # "slow" did not answer this time: it keeps its last snapshot while its token is there
+    late = w._carry_over(_realm({"lab": [_svc("cam"), _svc("sim")]}, ("lab",)))
+    assert [a["agent_id"] for a in late["agents"]] == ["lab", "slow"]
+    alive.discard("slow")
+    assert [a["agent_id"] for a in w._carry_over(_realm({}, ("lab",)))["agents"]] == ["lab"]
+    # still listed by its agent: still hidden; once the agent drops it, forgotten
+    w._forget_dropped(both)
+    assert w._dead == {("lab", "cam")}
+    w._forget_dropped(_realm({"lab": [_svc("sim")]}))
+    assert w._dead == set()
