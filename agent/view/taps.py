@@ -4,8 +4,10 @@ stream's rate and the age of its newest sample, for drawing and for the stream's
 Each tap is a Zenoh subscriber with a ring channel of one: Zenoh keeps only the newest
 sample of the stream, in Rust, and Python never runs per sample.  The draw loop pulls the
 newest one at most once per redraw (:meth:`Taps.latest`), so a realm publishing tens of
-thousands of samples a second costs the view a few pulls per redraw, and a slow view never
-makes its agent queue samples for it.  The rate is measured from the samples' own sequence
+thousands of samples a second costs the view's Python a few pulls per redraw.  Zenoh itself
+still receives every sample: a view process starved of CPU falls behind in its transport
+(``bench/bench_view.py``: 200 frames at 100 Hz on a loaded 2-core host drew seconds-old
+samples).  The rate is measured from the samples' own sequence
 numbers and times (``s`` and ``t`` on the wire) over the last ``RATE_WINDOW_S``; the age of
 the newest sample is the time since it was first pulled (one redraw period late at most).
 """
