@@ -47,6 +47,10 @@ def test_the_page_shows_a_live_realm(processes, realm, tmp_path):
         # and the agent's configured camera
         wait_text(browser, lambda t: "5 frame(s) placed from ivy/world" in t, WAIT_S,
                   "the five frames of the SRG")
+        # the query box: the head in the world, its path and covariance
+        _query(browser, "alice/head")
+        wait_text(browser, lambda t: "path: ivy/world -> alice/head" in t, WAIT_S,
+                  "the query's answer")
         # the head frame moves: two screenshots of the scene differ
         first = scene_png(browser)
         second = poll(lambda: (lambda s: s if s != first else False)(scene_png(browser)),
@@ -62,6 +66,16 @@ def test_the_page_shows_a_live_realm(processes, realm, tmp_path):
         print(f"the departure showed on the page {took:.2f} s after the kill")
         assert took <= DEPARTURE_S, f"the departure took {took:.2f} s to show"
         assert "lab/sim\n" in after and "no needs in the realm" in after, after
+
+
+def _query(browser, target: str) -> None:
+    """Type ``target`` into the query box and press its button."""
+    from selenium.webdriver.common.by import By
+
+    box = browser.find_element(By.XPATH, "//label[normalize-space()='target']/following::input[1]")
+    box.clear()
+    box.send_keys(target)
+    browser.find_element(By.XPATH, "//button[normalize-space()='query']").click()
 
 
 def test_an_empty_realm_says_so_and_a_later_realm_shows_up(processes, realm):
