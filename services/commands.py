@@ -23,6 +23,11 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
                    help="record the demo (every stream, and the simulator's ground truth as "
                         "ivy/world -> alice/head_truth) for 'uma play' and 'uma eval fusion "
                         "--from'")
+    p.add_argument("--view", action="store_true",
+                   help="also serve the live view of the demo's realm (uma view; needs the "
+                        "'view' extra) on http://127.0.0.1:PORT/")
+    p.add_argument("--view-port", type=int, default=8080, metavar="PORT",
+                   help="port of the view's page (default 8080)")
 
 
 def _recalibrate_arguments(p: argparse.ArgumentParser) -> None:

@@ -118,13 +118,18 @@ class Children:
         self.lease_ms = lease_ms
 
     def start(self, name: str, argv: list[str]) -> None:
+        """The service ``name`` (``uma service run NAME ARGV``)."""
+        self.start_command(name, ["service", "run", name, *argv])
+
+    def start_command(self, name: str, argv: list[str]) -> None:
+        """``uma ARGV``, its log kept as ``name``'s."""
         env = dict(os.environ, PYTHONUNBUFFERED="1", UMA_LEASE_MS=str(self.lease_ms))
         # a file, not a pipe: a chatty child must never block on a full pipe (closed in stop())
         log_file = (tempfile.TemporaryFile("w+") if self.log_dir is None  # noqa: SIM115
                     else open(self.log_dir / f"{name}.log", "w+"))  # noqa: SIM115
         self.logs[name] = log_file
         self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", "agent.cli", "service", "run", name, *argv],
+            [sys.executable, "-m", "agent.cli", *argv],
             env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
             stderr=log_file, text=True)
 
@@ -145,7 +150,14 @@ class Children:
             f.close()
 
 
+def _interrupted(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(args: argparse.Namespace) -> int:
+    # SIGTERM stops the demo as Ctrl-C does, through run_demo's cleanup: without this it
+    # ended the process at once and left its child processes running
+    signal.signal(signal.SIGTERM, _interrupted)
     seconds = float(args.seconds)
     if not (math.isfinite(seconds) and 0 < seconds <= 3600):
         raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")
@@ -158,8 +170,16 @@ def main(args: argparse.Namespace) -> int:
         log_dir.mkdir(parents=True, exist_ok=True)
     if args.record is not None and not Path(args.record).resolve().parent.is_dir():
         raise UmaError(f"--record {args.record}: its directory does not exist")
+    view_port = None
+    if getattr(args, "view", False):
+        from agent.view.app import import_viser
+
+        import_viser()  # says what to install before anything starts
+        if not 0 < args.view_port <= 65535:
+            raise UmaError(f"--view-port must be in 1..65535, got {args.view_port}")
+        view_port = int(args.view_port)
     report = run_demo(seconds, int(args.seed), live=not args.json, log_dir=log_dir,
-                      record=args.record)
+                      record=args.record, view_port=view_port)
     if args.json:
         print(json.dumps(report))
     else:
@@ -168,10 +188,12 @@ def main(args: argparse.Namespace) -> int:
 
 
 def run_demo(seconds: float, seed: int, live: bool = True,
-             log_dir: Path | None = None, record: str | None = None) -> dict[str, Any]:
+             log_dir: Path | None = None, record: str | None = None,
+             view_port: int | None = None) -> dict[str, Any]:
     """Start everything, measure for ``seconds``, stop everything; the figures (the
     services' logs kept in ``log_dir`` if given; everything recorded into ``record`` if
-    given, with the simulator's ground truth on its own frame, ``TRUTH_FRAME``)."""
+    given, with the simulator's ground truth on its own frame, ``TRUTH_FRAME``;
+    ``view_port``: also serve ``uma view`` of the realm on that port)."""
     from agent.daemon.agent import Agent
     from agent.daemon.settings import AgentSettings
     from agent.sdk.client import Client
@@ -215,6 +237,11 @@ def run_demo(seconds: float, seed: int, live: bool = True,
         children.start("accel-rig", [*common, "--seed", str(seed), "--calibration",
                                      str(accel_calibration)])
         children.start("fusion", common)
+        if view_port is not None:
+            children.start_command("view", ["view", "--realm", realm, "--connect", ep_app,
+                                             "--port", str(view_port)])
+            print(f"uma demo: the view of realm {realm} is on http://127.0.0.1:{view_port}/",
+                  file=sys.stdout if live else sys.stderr, flush=True)
         with Client(realm=realm, connect=[ep_app], timeout=1.0) as client:
             t_first = _wait_first_pose(client, children, tally)
             if live:

@@ -18,7 +18,7 @@ def uma(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
 
 
 COMMANDS = ["agent", "router", "service", "services", "query", "demo", "eval", "schemas",
-            "record", "play", "info"]
+            "record", "play", "info", "view"]
 
 
 def test_top_level_help_lists_every_command() -> None:
@@ -36,6 +36,7 @@ def test_top_level_help_lists_every_command() -> None:
     (["services"], "each agent, service, need, ability"),
     (["query"], "pose of frame TARGET in frame SOURCE"),
     (["demo"], "simulated IVY world"),
+    (["view"], "shows a realm live"),
     (["schemas"], "JSON Schemas"),
     (["schemas", "export"], "output directory"),
     (["eval"], "accuracy against simulated ground truth"),

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -69,3 +70,54 @@ def test_demo_refuses_a_log_dir_that_is_a_file(tmp_path):
     p = subprocess.run([sys.executable, "-m", "agent.cli", "demo", "--logs", str(f)],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "--logs" in p.stderr and "not a directory" in p.stderr
+
+
+@pytest.mark.slow
+def test_demo_view_serves_the_page_and_sigterm_stops_everything():
+    """``uma demo --view``: the view's page is served on the port asked for; SIGTERM stops
+    the demo and every process it started (the view included)."""
+    import signal
+    import socket
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    p = subprocess.Popen([sys.executable, "-m", "agent.cli", "demo", "--view", "--view-port",
+                          str(port), "--seconds", "120"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline, page = time.monotonic() + 120, ""
+        while time.monotonic() < deadline and p.poll() is None and "viser" not in page:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as r:
+                    page = r.read().decode("utf-8", "replace")
+            except OSError:
+                time.sleep(0.5)
+        assert "viser" in page.lower(), f"no page on port {port}: exit {p.poll()}"
+        children = _children(p.pid)
+        assert any(b"view" in cmd for cmd in children.values()), children
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.wait(60)
+    assert p.returncode == 130, p.stderr.read()[-2000:]
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in children), children
+
+
+def _children(parent: int) -> dict[int, bytes]:
+    """The child processes of ``parent`` and their command lines."""
+    out = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                cmd = Path(f"/proc/{entry}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
+                out[int(entry)] = cmd
+    return out
