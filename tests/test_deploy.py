@@ -86,7 +86,7 @@ def test_the_router_denies_by_default_and_each_host_writes_only_its_own_keys() -
 
 def test_config_writes_each_role_with_tls_only(tmp_path: Path) -> None:
     create_site(tmp_path, SPEC, days=10)
-    written = write_configs(tmp_path, SPEC, "lab", ["tls/0.0.0.0:7447"],
+    written = write_configs(tmp_path, SPEC, "lab", ["tls/127.0.0.1:7447"],
                             ["tls/127.0.0.1:7447"], install_dir="/etc/uma")
     assert sorted(p.relative_to(tmp_path).as_posix() for p in written) == [
         "hosts/a/agent.json5", "hosts/a/client.json5", "hosts/a/service.json5",
@@ -99,7 +99,7 @@ def test_config_writes_each_role_with_tls_only(tmp_path: Path) -> None:
     assert tls["connect_certificate"] == "/etc/uma/c/cert.pem" and tls["enable_mtls"]
     assert tls["verify_name_on_connect"]
     with pytest.raises(UmaError, match="TLS only"):
-        write_configs(tmp_path, SPEC, "lab", ["tcp/0.0.0.0:7447"], ["tls/127.0.0.1:7447"])
+        write_configs(tmp_path, SPEC, "lab", ["tcp/127.0.0.1:7447"], ["tls/127.0.0.1:7447"])
 
 
 def test_the_commands_explain_themselves_and_name_bad_input(tmp_path: Path) -> None:

@@ -226,8 +226,6 @@ def test_floods_of_distinct_ids_keep_every_process_within_bounds(honest, realm) 
                  "rev": 1}))
             s.put(keys.agent_services(realm, f"ghost{i}"), snapshot_message(
                 {**info, "agent_id": f"ghost{i}"}, 1, 1, []))
-            s.put(keys.data(realm, "hostA", "cam", "pose"),
-                  encode_pose(time.time_ns(), [7, 7, 7], [0, 0, 0, 1], seq=10**9 + i))
         s.put(keys.data(realm, "hostA", "cam", "pose"), b"\x00" * (40 * 2**20),
               congestion_control=zenoh.CongestionControl.BLOCK)
         counts_grow(consumer, "cam")

@@ -153,7 +153,7 @@ class AbilityHandle:
         recording's exact bytes); ``DecodeError`` if its envelope is not a measurement of
         this ability's type."""
         peek_time(data, self.ability.type)
-        self._put(bytes(data))
+        self._put(data)
 
     def update(self, **attributes: Any) -> None:
         """Change advertised attributes at run time (re-advertised, re-matched)."""
