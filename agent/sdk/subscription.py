@@ -228,8 +228,9 @@ class Subscription:
         Otherwise stop delivering, say so once, and retry."""
         self.last_error = exc
         self._next_retry = time.monotonic() + RETRY_S
-        flowing = (self.status == "streaming"
-                   and time.monotonic() - self._last_push <= self.stall_limit_s)
+        recent = self.stall_limit_s if math.isfinite(self.stall_limit_s) else STALL_MIN_S
+        flowing = (self.status == "streaming" and self.pusher is not None
+                   and time.monotonic() - self._last_push <= recent)
         if self.status in _ON_ROUTE and (flowing or (
                 isinstance(exc, SegmentError)
                 and all(self.queries.tracker.is_alive(s.agent) for s in self.route))):
