@@ -7,6 +7,14 @@ keys.  Each sample of the fastest edge pushes a composed pose at its time; the o
 are interpolated (or boundedly extrapolated) at that time: Ubitrack's push/pull rule.
 ``on_pose`` runs on the subscription's own thread, never on a Zenoh thread.
 
+Latency is the point of a stream, so the fastest edge's samples are not handed from Zenoh's
+callback thread to ours through a Python queue (a lock, a condition and a GIL hand-off per
+sample: measured ~100-150 µs on loopback).  Its subscriber has a Zenoh ring channel that
+the subscription's thread reads itself, blocking in Zenoh's own receive; a subscription
+that falls behind loses the oldest samples, counted in ``lost`` like any sequence gap.  The
+other (pulled) edges only update the mirror, so they go straight into it from Zenoh's
+callback.  A second thread follows the realm and watches for stalls.
+
 It follows the realm: whenever the client's ``topology`` moves it plans again, and if the
 best route (or any edge of it) differs it rebuilds its mirror on the new route.  Of its
 client it uses only the :class:`agent.sdk.query.Queries` (the query with details, the
@@ -19,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -50,6 +57,10 @@ RETRY_S = 1.0
 #: STALL_MIN_S, is a stall (a route change takes up to a lease, 1 s, without samples)
 STALL_PERIODS = 10
 STALL_MIN_S = 1.5
+#: samples of the fastest edge a subscription may fall behind before it loses the oldest
+RING = 1024
+#: how often a subscription checks whether the realm changed or its route stalled
+WATCH_S = 0.05
 #: the states in which a subscription holds a route's mirror
 _ON_ROUTE = ("streaming", "stalled")
 
@@ -108,7 +119,12 @@ class Subscription:
         self.route: list[Segment] = []
         self.graph = Graph(buffer_s=5.0)
         self.pusher: tuple | None = None
-        self._q: queue.Queue[tuple[str, str, bytes] | None] = queue.Queue(10_000)
+        #: the mirror (graph, feeds, pusher) is replaced by the watcher while samples
+        #: arrive on Zenoh's threads and the stream's: every use of it holds this lock
+        self._lock = threading.RLock()
+        #: the pusher's subscriber, read by the stream thread; set when it changes
+        self._pushed_by: tuple[str, str, zenoh.Subscriber] | None = None
+        self._route_changed = threading.Event()
         self._decls: list[Any] = []
         self._feeds: dict[str, tuple[str, str, tuple, float]] = {}
         self._signature: Signature | None = None
@@ -118,17 +134,30 @@ class Subscription:
         self._replan_failed: Exception | None = None
         self._closed = threading.Event()
         self._build(first)
-        self._thread = threading.Thread(target=self._work, name="uma-subscription",
-                                        daemon=True)
-        self._thread.start()
+        self._streamer = threading.Thread(target=self._stream, name="uma-subscription",
+                                          daemon=True)
+        self._watcher = threading.Thread(target=self._watch, name="uma-subscription-watch",
+                                         daemon=True)
+        self._streamer.start()
+        self._watcher.start()
 
     # -- the mirror of one route
     def _build(self, outcome: Outcome) -> None:
         """Mirror the route of a query with details (dropping any previous mirror) and
-        subscribe."""
+        subscribe.  Zenoh's undeclarations happen outside the lock: a feed's callback may be
+        waiting for it."""
+        self._unsubscribe()
+        with self._lock:
+            self._mirror_route(outcome)
+            streams = bool(self._feeds)
+        self._route_changed.set()
+        if not streams:
+            self._deliver(outcome.pose)  # all static: the one answer is the stream
+
+    def _mirror_route(self, outcome: Outcome) -> None:
+        """The body of :meth:`_build` (lock held)."""
         parts = outcome.parts
         self._replan_failed = None
-        self._unsubscribe()
         self.graph = Graph(buffer_s=5.0)
         feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
         for seg, edges in parts:
@@ -147,14 +176,16 @@ class Subscription:
         self.status = "streaming"
         self._next_retry = math.inf
         session = self.queries.session
-        for agent, key, _, _ in feeds:
-            # enqueue straight from Zenoh's thread (it only copies the payload); the pose is
-            # composed and delivered on this subscription's own thread
-            self._decls.append(session.declare_subscriber(key, zenoh.handlers.Callback(
-                guarded(lambda smp, a=agent, k=key: self._enqueue(a, k, smp),
-                        f"subscription {key}", self._bad), indirect=False)))
-        if not feeds:  # all static: the one answer is the stream
-            self._deliver(outcome.pose)
+        for agent, key, edge_key, _ in feeds:
+            if edge_key == self.pusher:
+                sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(RING))
+                self._pushed_by = (agent, key, sub)
+            else:
+                sub = session.declare_subscriber(key, zenoh.handlers.Callback(
+                    guarded(lambda smp, a=agent, k=key: self._on_sample(
+                        a, k, payload_bytes(smp.payload)), f"subscription {key}", self._bad),
+                    indirect=False))
+            self._decls.append(sub)
 
     def _stall_limit(self, pusher_hz: float) -> float:
         """How long the fastest edge may be silent: ``stall_s``, or ``STALL_PERIODS`` of its
@@ -166,11 +197,15 @@ class Subscription:
         return max(STALL_MIN_S, STALL_PERIODS / pusher_hz) if pusher_hz > 0 else math.inf
 
     def _unsubscribe(self) -> None:
-        for decl in self._decls:
+        """Undeclare every feed (which also ends the stream thread's read of the pusher)."""
+        with self._lock:
+            decls, self._decls = self._decls, []
+            self._feeds = {}
+            self._pushed_by = None
+        for decl in decls:
             with contextlib.suppress(zenoh.ZError):
                 decl.undeclare()
-        self._decls.clear()
-        self._feeds = {}
+        self._route_changed.set()
 
     def _mirror(self, agent: str, wire: dict[str, Any]) -> list[tuple[str, str, tuple, float]]:
         """Copy one edge of the route into the local graph; measured ones become feeds."""
@@ -256,29 +291,33 @@ class Subscription:
                 self._bad.warning("on_error", f"{type(cb_exc).__name__}: {cb_exc}")
 
     # -- samples
-    def _enqueue(self, agent: str, key: str, sample: zenoh.Sample) -> None:
-        try:
-            self._q.put_nowait((agent, key, payload_bytes(sample.payload)))
-        except DecodeError as exc:
-            self._bad.warning(f"subscription {key}", f"sample dropped: {exc}")
-        except queue.Full:
-            self._bad.warning(f"subscription {key}", "queue full; sample dropped")
-
-    def _work(self) -> None:
+    def _stream(self) -> None:
+        """Read the pusher's ring channel until the route changes, then the next one's."""
         while not self._closed.is_set():
+            with self._lock:
+                current = self._pushed_by
+                self._route_changed.clear()
+            if current is None:
+                self._route_changed.wait(0.2)
+                continue
+            agent, key, sub = current
             try:
-                item = self._q.get(timeout=0.2)
-            except queue.Empty:
-                item = ()
-            if item is None:
-                return
+                for sample in sub:  # ends when the subscriber is undeclared
+                    self._on_sample(agent, key, payload_bytes(sample.payload))
+            except (zenoh.ZError, DecodeError) as exc:
+                self._bad.warning(f"subscription {key}", f"reading samples: {exc}")
+            except Exception:  # a bug must not stop the stream; log it with its traceback
+                log.exception("subscription %s -> %s: delivering failed", self.source,
+                              self.target)
+
+    def _watch(self) -> None:
+        """Follow the realm and watch for stalls, every ``WATCH_S``."""
+        while not self._closed.wait(WATCH_S):
             try:
                 self._follow()
             except Exception:  # a bug must not stop the stream; log it with its traceback
                 log.exception("subscription %s -> %s: re-planning failed", self.source,
                               self.target)
-            if item:
-                self._on_sample(*item)
             self._check_stall()
 
     def _check_stall(self) -> None:
@@ -308,9 +347,17 @@ class Subscription:
         self._last_push = now
 
     def _on_sample(self, agent: str, key: str, data: bytes) -> None:
+        """One sample of a feed into the mirror; the pusher's also composes and delivers."""
+        with self._lock:
+            result = self._take(agent, key, data)
+        if result is not None:
+            self._deliver(result)
+
+    def _take(self, agent: str, key: str, data: bytes) -> PoseResult | None:
+        """The body of :meth:`_on_sample` (lock held): the pose to deliver, if any."""
         feed = self._feeds.get(key)
         if feed is None:
-            return  # a sample of a route left meanwhile
+            return None  # a sample of a route left meanwhile
         edge_key = feed[2]
         try:
             m = decode_measurement(data, expected_type="pose6d")
@@ -319,24 +366,27 @@ class Subscription:
                 self.refused += 1
                 raise ValueError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
                                  f"clock: refused ({self.refused} so far)")
-            self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
+            gap = self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
+            if gap:
+                self._bad.warning(f"subscription {key}", f"{gap} sample(s) lost before "
+                                  f"s={m.seq} (dropped on the way, or this subscription fell "
+                                  f"{RING} samples behind); {self.lost} so far")
             self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
                                        m.quaternion, m.covariance, source=edge_key[2])
         except (DecodeError, ValueError) as exc:
             self.failed += 1
             self.last_error = exc
             self._bad.warning(f"subscription {key}", f"bad sample: {exc}")
-            return
+            return None
         if edge_key != self.pusher:
-            return
+            return None
         self._pushed()
         try:
-            result = self.graph.pose(self.source, self.target, at=t, error="hops")
+            return self.graph.pose(self.source, self.target, at=t, error="hops")
         except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
             self.failed += 1
             self.last_error = exc
-            return
-        self._deliver(result)
+            return None
 
     @property
     def lost(self) -> int:
@@ -356,9 +406,11 @@ class Subscription:
         if self._closed.is_set():
             return
         self._closed.set()
-        with contextlib.suppress(queue.Full):
-            self._q.put_nowait(None)
-        self._thread.join(1.0 + self.queries.timeout)
-        self._unsubscribe()
+        me = threading.current_thread()  # on_pose or on_error may close their subscription
+        if self._watcher is not me:
+            self._watcher.join(1.0 + self.queries.timeout)  # it may be re-planning
+        self._unsubscribe()  # after the watcher: it may have subscribed a new route
+        if self._streamer is not me:
+            self._streamer.join(1.0)
         self.status = "closed"
         self._on_close(self)
