@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import random
+
 import pytest
 
 from agent.protocol.query import skew_from_env
@@ -64,3 +66,22 @@ def test_skew_env(monkeypatch):
         skew_from_env()
     monkeypatch.delenv("UMA_CLOCK_SKEW_NS")
     assert skew_from_env() == 0
+
+
+def test_best_is_the_minimum_delay_of_the_window_as_samples_come_and_go():
+    """The best sample is kept up to date as samples arrive (not rescanned each time): it
+    must equal the minimum-delay sample of the last ``window`` samples, also when the best
+    is pushed out of the window."""
+    rng = random.Random(7)
+    clock = ClockOffsets(window=4)
+    window: dict[str, list[int]] = {"a": [], "b": []}
+    for _ in range(400):
+        agent = rng.choice("ab")
+        delay = rng.randrange(1, 50)
+        t1 = rng.randrange(0, 10**9)
+        sample = clock.add(agent, t1, t1 + 5, t1 + 5, t1 + delay)
+        assert sample is not None and sample.delay_ns == delay
+        window[agent] = (window[agent] + [delay])[-4:]
+        for name, delays in window.items():
+            best = clock.best(name)
+            assert (best.delay_ns if best else None) == (min(delays) if delays else None)

@@ -39,10 +39,12 @@ class ClockOffsets:
         #: forged agent keys must not grow a client without bound
         self.max_agents = max_agents
         self._samples: dict[str, deque[ClockSample]] = {}
-        #: per agent, the best sample and until when it stays the best unless a sample
-        #: arrives (the first moment one of the window's samples ages out): a query at a
-        #: given time asks for each agent's offset several times, and scanning the window
-        #: every time was a visible share of a query's CPU time
+        #: per agent, the best sample and until when it stays the best (the first moment
+        #: one of the window's samples ages out): a query asks for each agent's offset
+        #: several times and adds a sample per answer, and rescanning the window at every
+        #: one was a visible share of a query's CPU time.  A new sample only replaces the
+        #: best if its delay is smaller; the window is rescanned when the best ages out or
+        #: is pushed out of the window
         self._best: dict[str, tuple[ClockSample | None, float]] = {}
         self._lock = threading.Lock()
 
@@ -55,9 +57,15 @@ class ClockOffsets:
         sample = ClockSample(((t2 - t1) + (t3 - t4)) // 2, delay, time.monotonic())
         with self._lock:
             samples = self._samples.pop(agent, None) or deque(maxlen=self.window)
+            pushed_out = samples[0] if len(samples) == self.window else None
             samples.append(sample)
             self._samples[agent] = samples  # last: the dict's order is recency
-            self._best.pop(agent, None)
+            cached = self._best.get(agent)
+            if cached is not None and cached[0] is not None and cached[0] is not pushed_out:
+                if delay < cached[0].delay_ns:  # the expiry stays: it only comes sooner
+                    self._best[agent] = (sample, cached[1])
+            else:
+                self._best.pop(agent, None)
             while len(self._samples) > self.max_agents:
                 oldest = next(iter(self._samples))
                 del self._samples[oldest]

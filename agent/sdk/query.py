@@ -53,6 +53,8 @@ log = logging.getLogger("uma.client")
 
 #: routes tried before a query gives up
 MAX_ROUTES = 4
+#: reply keys whose parse is remembered
+MAX_REPLY_KEYS = 1024
 
 #: one segment's answer: its pose and (when asked for) its edges' details, as sent
 Answer = tuple[PoseResult, list[dict[str, Any]]]
@@ -99,6 +101,8 @@ class Queries:
         self._static: dict[tuple[str, str, str, str], tuple[tuple[str, int], PoseResult]] = {}
         #: False: ask for every segment every time (the benchmark's uncached figure)
         self.cache_static_segments = True
+        #: agent id (or None) by the key a reply came on
+        self._reply_keys: dict[str, str | None] = {}
         #: declared queriers by query key (every agent's, or one agent's)
         self._queriers: dict[str, zenoh.Querier] = {}
 
@@ -360,7 +364,7 @@ class Queries:
             if reply.ok is None:
                 continue
             key = str(reply.ok.key_expr)
-            agent = keys.parse_agent_query(key, self.realm)
+            agent = self._reply_agent(key)
             if agent is None:
                 self._bad.warning("query reply", f"unexpected key {key!r}")
                 continue
@@ -376,6 +380,17 @@ class Queries:
             seen.add(agent)
             if expected and expected <= seen:
                 return  # no need to wait for agents that have nothing to say
+
+    def _reply_agent(self, key: str) -> str | None:
+        """The agent id of a reply's key (None: not an agent's query key); the few keys
+        replies come on are parsed once."""
+        agent = self._reply_keys.get(key, False)
+        if agent is False:
+            agent = keys.parse_agent_query(key, self.realm)
+            if len(self._reply_keys) >= MAX_REPLY_KEYS:  # forged keys must not grow it
+                self._reply_keys.clear()
+            self._reply_keys[key] = agent
+        return agent
 
     def _querier(self, key: str) -> zenoh.Querier:
         """The querier of one query key, declared once: Zenoh then resolves the key
