@@ -80,7 +80,9 @@ class ClockOffsets:
             if cached is not None and now < cached[1]:
                 return cached[0]
             samples = [s for s in self._samples.get(agent, ()) if s.taken >= now - self.max_age_s]
-            best = min(samples, key=lambda s: s.delay_ns) if samples else None
+            # of equal delays the newest: it stays in the window longest (the oldest would be
+            # pushed out by the next sample and the window scanned again)
+            best = min(reversed(samples), key=lambda s: s.delay_ns) if samples else None
             expires = min(s.taken for s in samples) + self.max_age_s if samples else now
             self._best[agent] = (best, expires)
             return best

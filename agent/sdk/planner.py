@@ -34,7 +34,6 @@ import numpy as np
 
 from agent.protocol.query import Summary
 from agent.runtime.logs import RateLimitedLog
-from agent.srg import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
@@ -248,10 +247,11 @@ class Composition:
     order they come, so when the slowest agent answers only its own segment is left to
     merge with the runs beside it (the others were composed while it computed).
 
-    Merging run ``X`` with the run ``Y`` right of it uses ``X``'s adjoint: its rotation
-    block carries ``Y``'s position into ``X``'s source frame and it maps ``Y``'s covariance
-    there (``C = C_X + Ad_X C_Y Ad_X^T``).  A run that ends at the last segment never needs
-    its adjoint.
+    Merging run ``X`` with the run ``Y`` right of it carries ``Y``'s position into ``X``'s
+    source frame by ``X``'s rotation and maps ``Y``'s covariance there by ``X``'s adjoint
+    (``C = C_X + Ad_X C_Y Ad_X^T``).  Poses are composed on plain floats (numpy's per-call
+    overhead on 3- and 4-vectors was most of a query's composing time); only covariances,
+    6x6, go through numpy.
     """
 
     def __init__(self, n: int) -> None:
@@ -266,17 +266,16 @@ class Composition:
         if self._results[i] is not None:
             raise ValueError(f"segment {i} was already added")
         self._results[i] = result
-        last = len(self._results) - 1
-        run = _Run(i, i, result.position, result.quaternion, result.covariance,
-                   None if i == last else geo.adjoint(result.position, result.quaternion))
+        q = tuple(result.quaternion.tolist())
+        run = _Run(i, i, tuple(result.position.tolist()), q, _rotation(q), result.covariance)
         left = self._ending.pop(i - 1, None)
         if left is not None:
             del self._starting[left.first]
-            run = left.then(run, last)
+            run = left.then(run)
         right = self._starting.pop(i + 1, None)
         if right is not None:
             del self._ending[right.final]
-            run = run.then(right, last)
+            run = run.then(right)
         self._starting[run.first] = run
         self._ending[run.final] = run
 
@@ -296,36 +295,64 @@ class Composition:
             stamps.extend(r.stamps)
         extrapolated = max(r.extrapolated_s for r in results)
         parts = [r.attributes for r in results]
-        # runs start from the segments' own arrays: the result must not alias them
-        p, q, cov = whole.p, whole.q, whole.cov
-        if len(results) == 1:
-            p, q = p.copy(), q.copy()
+        p, q, cov = np.array(whole.p), np.array(whole.q), whole.cov
+        # a run starts from a segment's own covariance: the result must not alias it
         if cov is not None and any(cov is r.covariance for r in results):
             cov = cov.copy()
         return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
                           lambda: combine(parts, p, cov))
 
 
+Vec = tuple[float, ...]
+Rot = tuple[Vec, Vec, Vec]
+
+
+def _rotation(q: Vec) -> Rot:
+    """The rotation matrix of a unit quaternion (x, y, z, w), rows as tuples."""
+    x, y, z, w = q
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+            (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+            (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
+
+
+def _adjoint(p: Vec, R: Rot) -> np.ndarray:
+    """SE(3) adjoint ``[[R, [p]x R], [0, R]]`` (:func:`agent.srg.geometry.adjoint`)."""
+    px, py, pz = p
+    (a, b, c), (d, e, f), (g, h, k) = R
+    return np.array([
+        (a, b, c, py * g - pz * d, py * h - pz * e, py * k - pz * f),
+        (d, e, f, pz * a - px * g, pz * b - px * h, pz * c - px * k),
+        (g, h, k, px * d - py * a, px * e - py * b, px * f - py * c),
+        (0.0, 0.0, 0.0, a, b, c), (0.0, 0.0, 0.0, d, e, f), (0.0, 0.0, 0.0, g, h, k)])
+
+
 @dataclass
 class _Run:
-    """Segments ``first..final`` composed: pose, covariance, and adjoint (None when the run
-    ends at the last segment: nothing is ever right of it)."""
+    """Segments ``first..final`` composed: position, quaternion and rotation on floats, and
+    the covariance (None: exactly known)."""
 
     first: int
     final: int
-    p: np.ndarray
-    q: np.ndarray
+    p: Vec
+    q: Vec
+    R: Rot
     cov: np.ndarray | None
-    Ad: np.ndarray | None
 
-    def then(self, right: _Run, last: int) -> _Run:
+    def then(self, right: _Run) -> _Run:
         """This run followed by the one right of it."""
-        J = self.Ad
+        R, (rx, ry, rz) = self.R, right.p
         cov = self.cov
         if right.cov is not None:
+            J = _adjoint(self.p, R)
             mapped = J @ right.cov @ J.T
             cov = mapped if cov is None else cov + mapped
-        return _Run(self.first, right.final, self.p + J[:3, :3] @ right.p,
-                    geo.quat_multiply(self.q, right.q), cov,
-                    None if right.final == last else J @ right.Ad)
-
+        p = tuple(pi + row[0] * rx + row[1] * ry + row[2] * rz
+                  for pi, row in zip(self.p, R, strict=True))
+        ax, ay, az, aw = self.q
+        bx, by, bz, bw = right.q
+        q = (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+             aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+        cols = tuple(zip(*right.R, strict=True))
+        rot = tuple(tuple(row[0] * col[0] + row[1] * col[1] + row[2] * col[2] for col in cols)
+                    for row in R)
+        return _Run(self.first, right.final, p, q, rot, cov)  # type: ignore[arg-type]
