@@ -110,9 +110,9 @@ def _reference_step(dr: DeadReckoner, x: _State, samples, t1: float):
     B = np.zeros((12, G.shape[1]))
     B[6:9] = R @ G[:3]
     B[9:12] = G[3:]
-    Bs = B * dr._noise_std
+    Bs = B * np.sqrt(dr.calibration.accel_var(dr.rate_hz))
     P = F @ x.P @ F.T + (h / dr.rate_hz) * (Bs @ Bs.T)
-    c = dr._cal_base.copy()
+    c = np.ones((G.shape[1], 4)) / dr.calibration.gain_v_per_mps2[:, None]
     c[:, 1:] *= f
     S = F @ x.S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
     return p1, q1 / np.linalg.norm(q1), v1, w1, P, S
@@ -137,7 +137,8 @@ def test_float_solve_equals_numpy(make):
     for _ in range(50):
         a, w = rng.normal(size=lay.count) * 20, rng.uniform(-6, 6, size=3)
         _close(lay.project_floats(a.tolist()), lay.project(a))
-        _close(lay.correction_floats(w.tolist()), lay.correction(w))
+        _close(lay.solve_floats(lay.project_floats(a.tolist()), w.tolist()),
+               np.concatenate(lay.solve(a, w)))
         _close(lay.omega_jacobian_floats(w.tolist()), _corr_jacobian(lay, w))
 
 

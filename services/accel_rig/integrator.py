@@ -59,21 +59,24 @@ _POSE_ORDER = np.array([3, 4, 5, 0, 1, 2])
 _POSE_BLOCKS = np.ix_(_POSE_ORDER, _POSE_ORDER)
 
 
-def _error_dynamics_layout() -> tuple[Array, Array]:
-    """The error dynamics A of ``DeadReckoner._propagate`` as a constant template (the
-    identity of rho' = dv + ...) and the flat indices where each step puts its entries, in
-    the order R, [v]x, [p]x R, -[R f]x, R df/domega, domega_dot/domega (3x3 blocks; of the
-    cross-product matrices only the off-diagonal entries): one ``put`` fills A."""
-    template = np.zeros((12, 12))
+def _error_dynamics_layout(gk: Array) -> tuple[Array, Array]:
+    """The matrix ``[A | Bk]`` of ``DeadReckoner._propagate`` (12 x (12 + N)): the error
+    dynamics A and the reading sensitivity over the gains Bk, as a template holding what
+    is constant (the identity of rho' = dv + ..., and Bk's rows 9:12, ``gk[3:]``) and the
+    flat indices where each step puts the rest, in the order R, [v]x, [p]x R, -[R f]x,
+    R df/domega, domega_dot/domega (3x3 blocks of A; of the cross-product matrices only the
+    off-diagonal entries), then R gk[:3] (Bk's rows 6:9): one ``put`` fills the matrix."""
+    n = gk.shape[1]
+    width = 12 + n
+    template = np.zeros((12, width))
     template[3:6, 6:9] = np.eye(3)
+    template[9:12, 12:] = gk[3:]
     full = [(i, j) for i in range(3) for j in range(3)]
     off = [(i, j) for i, j in full if i != j]
-    blocks = [(0, 9, full), (3, 0, off), (3, 9, full), (6, 0, off), (6, 9, full), (9, 9, full)]
-    index = [12 * (r + i) + c + j for r, c, cells in blocks for i, j in cells]
+    blocks = [(0, 9, full), (3, 0, off), (3, 9, full), (6, 0, off), (6, 9, full), (9, 9, full),
+              (6, 12, [(i, j) for i in range(3) for j in range(n)])]
+    index = [width * (r + i) + c + j for r, c, cells in blocks for i, j in cells]
     return template, np.array(index)
-
-
-_A_TEMPLATE, _A_INDEX = _error_dynamics_layout()
 
 
 @dataclass(frozen=True)
@@ -140,14 +143,15 @@ class DeadReckoner:
         self.rate_hz = float(rate_hz)
         self.gravity = np.asarray(gravity, float)
         self._gravity = self.gravity.tolist()
-        self._noise_std = np.sqrt(calibration.accel_var(rate_hz))  # per sample, m/s^2
         n = self.layout.count
-        self._G = self.layout.readings_jacobian  # d(f, wd)/d(readings), 6 x N
-        self._B = np.zeros((12, n))  # d(state error)/d(readings): rows 6:9 are R G[:3]
-        self._B[9:12] = self._G[3:]
         self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
-        # [1, f] / k_j, the reading error per unit calibration error, f filled in per step
-        self._cal_base = np.ones((n, 4)) / calibration.gain_v_per_mps2[:, None]
+        # d(f, wd)/d(readings) per unit calibration error: G / k (a bias error dB_j and a
+        # gain*axis error dm_j make the reading error ([1, f] / k_j) . [dB_j, dm_j])
+        gk = self.layout.readings_jacobian / calibration.gain_v_per_mps2
+        self._gk_cols = list(zip(*gk[:3].tolist(), strict=True))  # rows 0:3, by reading
+        self._AB, self._AB_INDEX = _error_dynamics_layout(gk)
+        # the reading noise in units of G / k: B diag(std^2) B^T = Bk diag((k std)^2) Bk^T
+        self._noise_var_k = calibration.accel_var(rate_hz) * calibration.gain_v_per_mps2**2
         self._samples: list[_Sample] = []  # the last 3, for the next step's parabola
         keep = max(4, math.ceil(HISTORY_S * rate_hz))
         # recent samples and the states after them, so that a reset arriving late is applied
@@ -320,45 +324,42 @@ class DeadReckoner:
         h = t1 - t0
         hh = 0.5 * h
         x0, xm, x1 = _interpolate(samples, (t0, t0 + hh, t1))
-        corr = self.layout.correction_floats
+        solve = self.layout.solve_floats  # [f, omega_dot] of a sample's readings at omega
         # omega stages (omega_dot depends on omega through the centripetal terms only)
         w0 = x.w
-        s1 = [a + b for a, b in zip(x0, corr(w0), strict=True)]
-        w2 = _axpy(w0, hh, s1[3:])
-        s2 = [a + b for a, b in zip(xm, corr(w2), strict=True)]
-        w3 = _axpy(w0, hh, s2[3:])
-        s3 = [a + b for a, b in zip(xm, corr(w3), strict=True)]
-        w4 = _axpy(w0, h, s3[3:])
-        s4 = [a + b for a, b in zip(x1, corr(w4), strict=True)]
-        # quaternion stages: q' = 1/2 q (x) [omega, 0]
-        q0 = x.q
-        kq1 = _quat_rate(q0, w0)
-        q2 = _axpy(q0, hh, kq1)
-        kq2 = _quat_rate(q2, w2)
-        q3 = _axpy(q0, hh, kq2)
-        kq3 = _quat_rate(q3, w3)
-        q4 = _axpy(q0, h, kq3)
-        kq4 = _quat_rate(q4, w4)
-        q1 = _rk4(q0, h, kq1, kq2, kq3, kq4)
+        s1 = solve(x0, w0)
+        w2 = [w0[0] + hh * s1[3], w0[1] + hh * s1[4], w0[2] + hh * s1[5]]
+        s2 = solve(xm, w2)
+        w3 = [w0[0] + hh * s2[3], w0[1] + hh * s2[4], w0[2] + hh * s2[5]]
+        s3 = solve(xm, w3)
+        w4 = [w0[0] + h * s3[3], w0[1] + h * s3[4], w0[2] + h * s3[5]]
+        s4 = solve(x1, w4)
+        q1, q2, q3, q4 = _quaternion_rk4(x.q, (w0, w2, w3, w4), h)
         # velocity / position stages: v' = R(q) f + g, p' = v
         R2 = _rotation(q2)
         g = self._gravity
-        acc = [_add(_rotate(q0, s1), g), _add(_mat_vec(R2, s2), g), _add(_rotate(q3, s3), g),
-               _add(_rotate(q4, s4), g)]
-        v0, p0 = x.v, x.p
-        hh6 = h * h / 6.0
-        p1 = [p + h * v + hh6 * (a1 + a2 + a3)
-              for p, v, a1, a2, a3 in zip(p0, v0, acc[0], acc[1], acc[2], strict=True)]
-        v1 = _rk4(v0, h, *acc)
-        w1 = _rk4(w0, h, s1[3:], s2[3:], s3[3:], s4[3:])
-        P, S = self._propagate(x.P, x.S, h, R2, s2[:3], w2,
-                               [0.5 * (a + b) for a, b in zip(p1, p0, strict=True)],
-                               [0.5 * (a + b) for a, b in zip(v1, v0, strict=True)])
-        norm = math.sqrt(sum(c * c for c in q1))
+        a1, a2 = _rotate(x.q, s1), _mat_vec(R2, s2)
+        a3, a4 = _rotate(q3, s3), _rotate(q4, s4)
+        h6, hh6 = h / 6.0, h * h / 6.0
+        p0, v0 = x.p, x.v
+        p1, v1, w1 = [], [], []
+        for i in range(3):
+            gi = g[i]
+            p1.append(p0[i] + h * v0[i] + hh6 * ((a1[i] + gi) + (a2[i] + gi) + (a3[i] + gi)))
+            v1.append(v0[i] + h6 * ((a1[i] + gi) + 2.0 * (a2[i] + gi) + 2.0 * (a3[i] + gi)
+                                    + (a4[i] + gi)))
+            w1.append(w0[i] + h6 * (s1[3 + i] + 2.0 * s2[3 + i] + 2.0 * s3[3 + i] + s4[3 + i]))
+        P, S = self._propagate(x.P, x.S, h, R2, s2, w2,
+                               [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
+                                0.5 * (p1[2] + p0[2])],
+                               [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
+                                0.5 * (v1[2] + v0[2])])
+        a, b, c, d = q1
+        norm = math.sqrt(a * a + b * b + c * c + d * d)
         reason = _divergence(norm, w1, P)
         if reason:
             raise _DivergedError(f"at t={t1:.3f} s: {reason}")
-        return _State(t1, p1, [c / norm for c in q1], v1, w1, P, S)
+        return _State(t1, p1, [a / norm, b / norm, c / norm, d / norm], v1, w1, P, S)
 
     def _propagate(self, P: Array, S: Array, h: float, R: list[float], f: list[float],
                    w: list[float], p: list[float], v: list[float]) -> tuple[Array, Array]:
@@ -369,22 +370,21 @@ class DeadReckoner:
         dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
         """
         J = self.layout.omega_jacobian_floats(w)  # d(f, wd)/d(omega)
-        # the non-constant entries of A, in the order of _A_INDEX, as floats; one put
-        A = _A_TEMPLATE.copy()
-        A.put(_A_INDEX, [*R, *_cross_entries(v), *_cross_times(p, R),
-                         *_cross_entries([-c for c in _mat_vec(R, f)]),
-                         *_mat_mat(R, J[:3]), *J[3], *J[4], *J[5]])
-        Ah = A * h
+        r0, r1, r2 = R[0:3], R[3:6], R[6:9]
+        # A and the rows 6:9 of Bk = d(state error)/d(readings) / k (R G[:3] / k) as floats,
+        # in the order of _error_dynamics_layout; one put fills the numpy matrix [A | Bk]
+        AB = self._AB.copy()
+        cols = self._gk_cols
+        AB.put(self._AB_INDEX, _dynamics_entries(R, f, w=J, p=p, v=v)
+               + [a * r0[0] + b * r0[1] + c * r0[2] for a, b, c in cols]
+               + [a * r1[0] + b * r1[1] + c * r1[2] for a, b, c in cols]
+               + [a * r2[0] + b * r2[1] + c * r2[2] for a, b, c in cols])
+        Ah = AB[:, :12] * h
+        Bk = AB[:, 12:]
         F = _I12 + Ah + 0.5 * (Ah @ Ah)
-        B = self._B.copy()
-        B[6:9] = A[0:3, 9:12] @ self._G[:3]  # R d(f)/d(readings)
-        Bs = B * self._noise_std
-        P = F @ P @ F.T + (h / self.rate_hz) * (Bs @ Bs.T)
-        if self._cal_cov is not None:
-            # a reading error from calibration: da_j = ([1, f_j] / k_j) . [dB_j, dm_j]
-            c = self._cal_base.copy()
-            c[:, 1:] *= f
-            S = F @ S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+        P = F @ P @ F.T + (Bk * (self._noise_var_k * (h / self.rate_hz))) @ Bk.T
+        if self._cal_cov is not None:  # a calibration error is a reading error ([1, f]/k)
+            S = F @ S + np.multiply.outer(Bk, [h, h * f[0], h * f[1], h * f[2]]).reshape(12, -1)
         return P, S
 
 
@@ -456,60 +456,68 @@ def _divergence(q_norm: float, w: list[float], P: Array) -> str:
 
 def _interpolate(samples: list[_Sample], taus: tuple[float, ...]) -> list[list[float]]:
     """Projected readings (``layout.project``) at motion times ``taus``, one list of 6 per
-    tau, by Lagrange interpolation over ``samples`` (a parabola through three; before the
-    third sample the missing ones enter with weight zero)."""
-    ts = [t for t, _ in samples]
-    padded = [samples[0][1]] * (3 - len(samples)) + [x for _, x in samples]
-    cols = list(zip(*padded, strict=True))
+    tau, by Lagrange interpolation over ``samples``: the parabola through the last three
+    (written out), the line or the constant through fewer (the first two samples).  At a
+    sample's own time (where a step starts and ends) the weights are exactly 0, 1, 0, so
+    that sample's readings are returned as they are: the floats the products would give."""
+    if len(samples) < 3:
+        return [_lagrange_few(samples, tau) for tau in taus]
+    (ta, xa), (tb, xb), (tc, xc) = samples
+    dab, dac, dbc = ta - tb, ta - tc, tb - tc
     out = []
     for tau in taus:
-        weights = [0.0] * (3 - len(samples))
-        for i, ti in enumerate(ts):
-            w = 1.0
-            for j, tj in enumerate(ts):
-                if j != i:
-                    w *= (tau - tj) / (ti - tj)
-            weights.append(w)
-        a, b, c = weights
-        out.append([a * x + b * y + c * z for x, y, z in cols])
+        if tau in (tb, tc):
+            out.append(xb if tau == tb else xc)
+            continue
+        ua, ub, uc = tau - ta, tau - tb, tau - tc
+        wa, wb, wc = ub * uc / (dab * dac), -ua * uc / (dab * dbc), ua * ub / (dac * dbc)
+        out.append([wa * a + wb * b + wc * c for a, b, c in zip(xa, xb, xc, strict=True)])
     return out
 
 
+def _lagrange_few(samples: list[_Sample], tau: float) -> list[float]:
+    """``_interpolate`` at ``tau`` over one sample (its readings) or two (their line)."""
+    if len(samples) == 1:
+        return list(samples[0][1])
+    (ta, xa), (tb, xb) = samples
+    wa, wb = (tau - tb) / (ta - tb), (tau - ta) / (tb - ta)
+    return [wa * a + wb * b for a, b in zip(xa, xb, strict=True)]
+
+
 # ---------------------------------------------------------------------- small-vector arithmetic
-# On Python floats: at 3 and 4 values a numpy call costs more than the arithmetic (the step
-# above runs 300 times a second).  Rotations are row-major 9-lists, quaternions xyzw.
+# On Python floats, written out: at 3 and 4 values a numpy call costs more than the
+# arithmetic, and so do Python's generators and helper calls (the step runs 300 times a
+# second).  Rotations are row-major 9-lists, quaternions xyzw.
 
 
-def _add(a: list[float], b: list[float]) -> list[float]:
-    return [x + y for x, y in zip(a, b, strict=True)]
-
-
-def _axpy(y: list[float], a: float, x: list[float]) -> list[float]:
-    """y + a x."""
-    return [yi + a * xi for yi, xi in zip(y, x, strict=True)]
-
-
-def _rk4(y: list[float], h: float, k1: list[float], k2: list[float], k3: list[float],
-         k4: list[float]) -> list[float]:
-    """Classical RK4's combination of its four stage slopes: y + h/6 (k1 + 2 k2 + 2 k3 + k4)."""
+def _quaternion_rk4(q0: list[float], ws: tuple[list[float], ...], h: float) -> \
+        tuple[list[float], ...]:
+    """RK4 of eq. 4.45, q' = q (x) [omega, 0] / 2 (geometry's Hamilton product, xyzw), with
+    the omega of each stage: the end quaternion (not normalised) and those of stages 2-4."""
+    x0, y0, z0, s0 = q0
+    x, y, z, s = q0
+    stages, k = [], []
+    for i, (a, b, c) in enumerate(ws):
+        kx, ky, kz = 0.5 * (s * a + y * c - z * b), 0.5 * (s * b + z * a - x * c), \
+            0.5 * (s * c + x * b - y * a)
+        ks = -0.5 * (x * a + y * b + z * c)
+        k.append((kx, ky, kz, ks))
+        if i < 3:
+            d = h if i == 2 else 0.5 * h
+            x, y, z, s = x0 + d * kx, y0 + d * ky, z0 + d * kz, s0 + d * ks
+            stages.append([x, y, z, s])
     h6 = h / 6.0
-    return [yi + h6 * (a + 2.0 * b + 2.0 * c + d)
-            for yi, a, b, c, d in zip(y, k1, k2, k3, k4, strict=True)]
-
-
-def _quat_rate(q: list[float], w: list[float]) -> list[float]:
-    """Eq. 4.45: q' = q (x) [omega, 0] / 2, geometry's Hamilton product (xyzw)."""
-    x, y, z, s = q
-    a, b, c = w
-    return [0.5 * (s * a + y * c - z * b), 0.5 * (s * b + z * a - x * c),
-            0.5 * (s * c + x * b - y * a), -0.5 * (x * a + y * b + z * c)]
+    (a1, b1, c1, d1), (a2, b2, c2, d2), (a3, b3, c3, d3), (a4, b4, c4, d4) = k
+    end = [x0 + h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), y0 + h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
+           z0 + h6 * (c1 + 2.0 * c2 + 2.0 * c3 + c4), s0 + h6 * (d1 + 2.0 * d2 + 2.0 * d3 + d4)]
+    return (end, *stages)
 
 
 def _rotation(q: list[float]) -> list[float]:
-    """R(q / |q|) for a quaternion an RK4 stage has moved off the unit sphere."""
+    """R(q / |q|), row-major, for a quaternion an RK4 stage has moved off the unit sphere."""
     x, y, z, s = q
-    n = 1.0 / (x * x + y * y + z * z + s * s)
     xx, yy, zz, ss = x * x, y * y, z * z, s * s
+    n = 1.0 / (xx + yy + zz + ss)
     xy, xz, yz, xs, ys, zs = 2 * x * y, 2 * x * z, 2 * y * z, 2 * x * s, 2 * y * s, 2 * z * s
     return [n * (ss + xx - yy - zz), n * (xy - zs), n * (xz + ys),
             n * (xy + zs), n * (ss - xx + yy - zz), n * (yz - xs),
@@ -538,28 +546,30 @@ def _mat_vec(R: list[float], v: list[float]) -> list[float]:
             R[6] * a + R[7] * b + R[8] * c]
 
 
-def _mat_mat(R: list[float], M: list[tuple[float, float, float]]) -> list[float]:
-    """R M for a row-major 3x3 ``R`` and 3 rows ``M``, row-major."""
-    (a, b, c), (d, e, f), (g, h, i) = M
-    out = []
-    for r0, r1, r2 in (R[0:3], R[3:6], R[6:9]):
-        out += [r0 * a + r1 * d + r2 * g, r0 * b + r1 * e + r2 * h, r0 * c + r1 * f + r2 * i]
-    return out
-
-
-def _cross_entries(u: list[float]) -> list[float]:
-    """The off-diagonal entries of ``[u]x``, row by row: (0,1) (0,2) (1,0) (1,2) (2,0) (2,1)."""
-    x, y, z = u
-    return [-z, y, z, -x, -y, x]
-
-
-def _cross_times(p: list[float], R: list[float]) -> list[float]:
-    """[p]x R, row-major: row i of [p]x times R."""
-    x, y, z = p
-    r0, r1, r2 = R[0:3], R[3:6], R[6:9]
-    return [*(y * c - z * b for b, c in zip(r1, r2, strict=True)),
-            *(z * a - x * c for a, c in zip(r0, r2, strict=True)),
-            *(x * b - y * a for a, b in zip(r0, r1, strict=True))]
+def _dynamics_entries(R: list[float], f: list[float], w: list[tuple[float, float, float]],
+                      p: list[float], v: list[float]) -> list[float]:
+    """The step-dependent entries of the error dynamics A (``_propagate``) in the order of
+    ``_error_dynamics_layout``: R; [v]x; [p]x R; -[R f]x; R J[:3]; J[3:], where J (``w``)
+    is d(f, omega_dot)/d(omega).  Written out: at 3x3, Python's loops would cost more than
+    the products."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+    px, py, pz = p
+    vx, vy, vz = v
+    ux, uy, uz = _mat_vec(R, f)
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = w[0], w[1], w[2]
+    return [r00, r01, r02, r10, r11, r12, r20, r21, r22,
+            -vz, vy, vz, -vx, -vy, vx,
+            py * r20 - pz * r10, py * r21 - pz * r11, py * r22 - pz * r12,
+            pz * r00 - px * r20, pz * r01 - px * r21, pz * r02 - px * r22,
+            px * r10 - py * r00, px * r11 - py * r01, px * r12 - py * r02,
+            uz, -uy, -uz, ux, uy, -ux,
+            r00 * j00 + r01 * j10 + r02 * j20, r00 * j01 + r01 * j11 + r02 * j21,
+            r00 * j02 + r01 * j12 + r02 * j22,
+            r10 * j00 + r11 * j10 + r12 * j20, r10 * j01 + r11 * j11 + r12 * j21,
+            r10 * j02 + r11 * j12 + r12 * j22,
+            r20 * j00 + r21 * j10 + r22 * j20, r20 * j01 + r21 * j11 + r22 * j21,
+            r20 * j02 + r21 * j12 + r22 * j22,
+            *w[3], *w[4], *w[5]]
 
 
 def _calibration_cov_in_accel(cal: Calibration) -> Array | None:

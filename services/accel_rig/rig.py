@@ -255,19 +255,20 @@ class RigLayout:
     # ------------------------------------------------------------------ one sample, plain floats
     # The dead reckoner solves one sample of six values at a time, 300 times a second; a numpy
     # call on such small vectors costs more than its arithmetic, so its per-sample path works on
-    # Python floats.  These equal ``project``, ``correction`` and the omega derivative of
-    # ``solve`` to float rounding (tests/test_accel_rig.py checks them against numpy).
+    # Python floats.  These equal ``project``, ``solve`` and the omega derivative of ``solve``
+    # to float rounding (tests/test_accel_fast_path.py checks them against numpy).
 
     def project_floats(self, readings: list[float]) -> list[float]:
         """``project`` of one sample of N readings: ``[f; omega_dot]`` before the correction."""
         return [sum(map(operator.mul, row, readings)) for row in self._proj_rows]
 
-    def correction_floats(self, omega: list[float]) -> list[float]:
-        """``correction`` for one angular velocity ``[x, y, z]``: 6 floats."""
+    def solve_floats(self, projected: list[float], omega: list[float]) -> list[float]:
+        """``solve`` of one sample from its ``project_floats``: ``projected`` plus the
+        ``correction`` for ``omega`` ``[x, y, z]``, 6 floats ``[f, omega_dot]``."""
         x, y, z = omega
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        return [a * xx + b * yy + c * zz + d * xy + e * yz + f * xz
-                for a, b, c, d, e, f in self._corr_rows]
+        return [p + a * xx + b * yy + c * zz + d * xy + e * yz + f * xz
+                for p, (a, b, c, d, e, f) in zip(projected, self._corr_rows, strict=True)]
 
     def omega_jacobian_floats(self, omega: list[float]) -> list[tuple[float, float, float]]:
         """d(f, omega_dot)/d(omega) of ``solve`` at ``omega``: 6 rows of 3.  The correction is
