@@ -56,7 +56,7 @@ _I12 = np.eye(12)
 #: rows and columns of the 12x12 state covariance that make the pose's 6x6 in geometry's
 #: order [rho, phi] (the state holds [phi, rho, ...])
 _POSE_ORDER = np.array([3, 4, 5, 0, 1, 2])
-_POSE_BLOCKS = np.ix_(_POSE_ORDER, _POSE_ORDER)
+_POSE_FLAT = (12 * _POSE_ORDER[:, None] + _POSE_ORDER[None, :]).ravel()  # for one take
 
 
 def _error_dynamics_layout(gk: Array) -> tuple[Array, Array]:
@@ -245,12 +245,12 @@ class DeadReckoner:
         x = self._x
         if x is None:
             raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
-        C = x.P[_POSE_BLOCKS]  # [phi, rho] -> [rho, phi]
+        C = x.P.take(_POSE_FLAT).reshape(6, 6)  # [phi, rho] -> [rho, phi]
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
             S = x.S[_POSE_ORDER]
-            C = C + S @ self._cal_cov @ S.T
+            C = S @ self._cal_cov @ S.T + C
         return Estimate(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
-                        0.5 * (C + C.T))
+                        (C + C.T) * 0.5)
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
