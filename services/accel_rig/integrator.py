@@ -319,7 +319,7 @@ class DeadReckoner:
         the result is no dead-reckoned state any more.
 
         The 3- and 4-vectors are Python floats: a numpy call on them costs more than the
-        arithmetic (measured in the commit that made them so)."""
+        arithmetic (see "small-vector arithmetic" below); the matrices stay numpy."""
         t0 = x.t
         h = t1 - t0
         hh = 0.5 * h

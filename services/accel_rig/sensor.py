@@ -87,15 +87,15 @@ def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
     corrupt line); one at the amplifier rail is clipped, so its acceleration is unknown.
     """
     v = np.asarray(volts, dtype=float)
-    if (np.abs(v) < _SAFE_V).all():
-        return v
-    _refuse_volts(v, name)
+    if not (np.abs(v) < _SAFE_V).all():
+        _refuse_volts(v, name)
     return v
 
 
 def _refuse_volts(v: Array, name: str) -> None:
     """Raise the ``ValueError`` that names the first bad voltage of ``v`` and what is wrong
-    with it (``check_volts`` calls it only when a value is not safely inside the range)."""
+    with it; called when a value is not strictly below ``_SAFE_V``, which fails one of the
+    three checks."""
     if not np.all(np.isfinite(v)):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
         raise ValueError(f"{name}: non-finite value {float(v[idx])} at index {idx} "
@@ -230,7 +230,7 @@ class Calibration:
 
         The dead reckoner's per-sample path: on six values each numpy call costs more than
         its arithmetic, so a good sample is checked and converted in Python floats and only
-        a refused one goes through ``check_volts`` for its message.
+        a refused one goes through ``check_volts``'s checks for its message.
         """
         v = np.asarray(volts, dtype=float)
         if v.shape != (self.layout.count,):
@@ -244,6 +244,7 @@ class Calibration:
 
     @cached_property
     def _bias_gain_floats(self) -> tuple[list[float], list[float]]:
+        """Bias and gain as plain floats for ``to_accel_floats`` (the calibration is frozen)."""
         return self.bias_v.tolist(), self.gain_v_per_mps2.tolist()
 
     def to_volts(self, accel: Array) -> Array:
