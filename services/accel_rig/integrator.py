@@ -52,39 +52,31 @@ MAX_OMEGA_RAD_S = 50.0
 #: Beyond 1000 m, m/s, rad or rad/s of standard deviation the linearised covariance
 #: describes nothing: the dead reckoning has diverged (and would overflow soon after).
 MAX_VARIANCE = 1e6
-_I3 = np.eye(3)
 _I12 = np.eye(12)
-#: q (x) [omega, 0] / 2 = sum_i omega_i _HALF_RIGHT_PRODUCT[i] @ q: the rate quaternion
-#: (eq. 4.45) as a linear map of q, built from geometry's Hamilton product.
-_HALF_RIGHT_PRODUCT = 0.5 * np.stack(
-    [geo.quat_multiply(np.eye(4), np.eye(4)[i]).T for i in range(3)]).reshape(3, 16)
-
-
-def _rotation_quadratic() -> Array:
-    """(16, 9) map from ``vec(q q^T)`` to ``vec(R(q) |q|^2)``: ``R(q) v = q (x) v (x) q*`` is a
-    quadratic form in q.  Built from geometry's Hamilton product; it turns the rotation
-    matrices of the four RK4 stages into one small matrix product."""
-    e = np.eye(4)
-    T = np.zeros((4, 4, 3, 3))
-    for i in range(4):
-        for j in range(4):
-            for col in range(3):  # R v for v = basis vector ``col``
-                v = np.zeros(4)
-                v[col] = 1.0
-                T[i, j, :, col] = geo.quat_multiply(geo.quat_multiply(e[i], v),
-                                                    geo.quat_conjugate(e[j]))[:3]
-    return T.reshape(16, 9)
-
-
-_ROTATION_QUADRATIC = _rotation_quadratic()
-#: classical RK4's weights of its four stages (times h / 6), as one product over the stages
-#: instead of a chain of 3-vector operations (each costs a numpy call, at this size all
-#: overhead); position, integrated twice, weighs the first three stages' accelerations alike
-_RK4_WEIGHTS = np.array([1.0, 2.0, 2.0, 1.0])
-_RK4_POSITION_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.0])
 #: rows and columns of the 12x12 state covariance that make the pose's 6x6 in geometry's
 #: order [rho, phi] (the state holds [phi, rho, ...])
-_POSE_BLOCKS = np.ix_([3, 4, 5, 0, 1, 2], [3, 4, 5, 0, 1, 2])
+_POSE_ORDER = np.array([3, 4, 5, 0, 1, 2])
+_POSE_FLAT = (12 * _POSE_ORDER[:, None] + _POSE_ORDER[None, :]).ravel()  # for one take
+
+
+def _error_dynamics_layout(gk: Array) -> tuple[Array, Array]:
+    """The matrix ``[A | Bk]`` of ``DeadReckoner._propagate`` (12 x (12 + N)): the error
+    dynamics A and the reading sensitivity over the gains Bk, as a template holding what
+    is constant (the identity of rho' = dv + ..., and Bk's rows 9:12, ``gk[3:]``) and the
+    flat indices where each step puts the rest, in the order R, [v]x, [p]x R, -[R f]x,
+    R df/domega, domega_dot/domega (3x3 blocks of A; of the cross-product matrices only the
+    off-diagonal entries), then R gk[:3] (Bk's rows 6:9): one ``put`` fills the matrix."""
+    n = gk.shape[1]
+    width = 12 + n
+    template = np.zeros((12, width))
+    template[3:6, 6:9] = np.eye(3)
+    template[9:12, 12:] = gk[3:]
+    full = [(i, j) for i in range(3) for j in range(3)]
+    off = [(i, j) for i, j in full if i != j]
+    blocks = [(0, 9, full), (3, 0, off), (3, 9, full), (6, 0, off), (6, 9, full), (9, 9, full),
+              (6, 12, [(i, j) for i in range(3) for j in range(n)])]
+    index = [width * (r + i) + c + j for r, c, cells in blocks for i, j in cells]
+    return template, np.array(index)
 
 
 @dataclass(frozen=True)
@@ -118,15 +110,15 @@ class _State(NamedTuple):
     a late reset restarts from the state at its own time, a refused one changes nothing."""
 
     t: float  # motion time, s
-    p: Array
-    q: Array
-    v: Array  # world frame
-    w: Array  # rig frame
+    p: list[float]  # plain floats: the step's arithmetic is on them (see ``_step``)
+    q: list[float]  # xyzw
+    v: list[float]  # world frame
+    w: list[float]  # rig frame
     P: Array  # (12, 12) covariance of [phi, rho, dv, domega] from the reading noise
     S: Array  # (12, 4N) sensitivity of that error to the calibration parameters
 
 
-_Sample = tuple[float, Array]  # (motion time, projected readings)
+_Sample = tuple[float, list[float]]  # (motion time, projected readings)
 
 
 class DeadReckoner:
@@ -150,11 +142,16 @@ class DeadReckoner:
         self.layout = calibration.layout
         self.rate_hz = float(rate_hz)
         self.gravity = np.asarray(gravity, float)
-        self._noise_std = np.sqrt(calibration.accel_var(rate_hz))  # per sample, m/s^2
+        self._gravity = self.gravity.tolist()
         n = self.layout.count
         self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
-        # [1, f] / k_j, the reading error per unit calibration error, f filled in per step
-        self._cal_base = np.ones((n, 4)) / calibration.gain_v_per_mps2[:, None]
+        # d(f, wd)/d(readings) per unit calibration error: G / k (a bias error dB_j and a
+        # gain*axis error dm_j make the reading error ([1, f] / k_j) . [dB_j, dm_j])
+        gk = self.layout.readings_jacobian / calibration.gain_v_per_mps2
+        self._gk_cols = list(zip(*gk[:3].tolist(), strict=True))  # rows 0:3, by reading
+        self._AB, self._AB_INDEX = _error_dynamics_layout(gk)
+        # the reading noise in units of G / k: B diag(std^2) B^T = Bk diag((k std)^2) Bk^T
+        self._noise_var_k = calibration.accel_var(rate_hz) * calibration.gain_v_per_mps2**2
         self._samples: list[_Sample] = []  # the last 3, for the next step's parabola
         keep = max(4, math.ceil(HISTORY_S * rate_hz))
         # recent samples and the states after them, so that a reset arriving late is applied
@@ -162,7 +159,7 @@ class DeadReckoner:
         self._history: deque[_Sample] = deque(maxlen=keep)
         self._states: deque[_State] = deque(maxlen=2 * keep)  # resets add states too
         self._x: _State | None = None
-        self._rest = _State(0.0, np.zeros(3), geo.quat_identity(), np.zeros(3), np.zeros(3),
+        self._rest = _State(0.0, [0.0] * 3, [0.0, 0.0, 0.0, 1.0], [0.0] * 3, [0.0] * 3,
                             np.zeros((12, 12)), np.zeros((12, 4 * n)))
 
     # ------------------------------------------------------------------ state
@@ -191,8 +188,8 @@ class DeadReckoner:
         if not math.isfinite(t):
             raise ValueError(f"reset: time must be finite, got {t!r}")
         self._check_reset_time(t)
-        p = geo.check_vector(position, "reset position").reshape(3)
-        q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4)
+        p = geo.check_vector(position, "reset position").reshape(3).tolist()
+        q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4).tolist()
         C = np.zeros((6, 6)) if covariance is None else \
             geo.check_covariance(covariance, "reset covariance")
         rates = {name: _checked_rate(name, value, cov) for name, value, cov in
@@ -248,8 +245,12 @@ class DeadReckoner:
         x = self._x
         if x is None:
             raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
-        C = self._full_covariance(x)[_POSE_BLOCKS]  # [phi, rho] -> [rho, phi]
-        return Estimate(x.t, x.p.copy(), x.q.copy(), x.v.copy(), x.w.copy(), 0.5 * (C + C.T))
+        C = x.P.take(_POSE_FLAT).reshape(6, 6)  # [phi, rho] -> [rho, phi]
+        if self._cal_cov is not None:  # the pose rows of _full_covariance only
+            S = x.S[_POSE_ORDER]
+            C = S @ self._cal_cov @ S.T + C
+        return Estimate(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
+                        (C + C.T) * 0.5)
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
@@ -266,7 +267,7 @@ class DeadReckoner:
 
     def update_volts(self, t: float, volts: Array) -> Estimate | None:
         """``update`` for raw voltages, converted (and validated) by the calibration."""
-        return self.update(t, self.calibration.to_accel(volts))
+        return self._update(t, self.calibration.to_accel_floats(volts))
 
     def update(self, t: float, accel: Array) -> Estimate | None:
         """Integrate up to the sample taken at time ``t`` with accelerations ``accel`` (N,).
@@ -280,17 +281,22 @@ class DeadReckoner:
         if a.shape != (self.layout.count,):
             raise ValueError(f"accelerometer sample: expected {self.layout.count} values, "
                              f"got shape {a.shape}")
-        if not np.isfinite(a).all():
-            j = int(np.flatnonzero(~np.isfinite(a))[0])
+        vals = a.tolist()
+        if not all(map(math.isfinite, vals)):
+            j = next(j for j, x in enumerate(vals) if not math.isfinite(x))
             raise ValueError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
-                             f"{float(a[j])} (NaN samples are refused)")
+                             f"{vals[j]} (NaN samples are refused)")
+        return self._update(t, vals)
+
+    def _update(self, t: float, accel: list[float]) -> Estimate | None:
+        """``update`` of a sample its caller has validated (N finite floats)."""
         tm = float(t) - self.calibration.latency_s
         if not math.isfinite(tm):
             raise ValueError(f"accelerometer sample: time must be finite, got {t!r}")
         if self._samples and tm <= self._samples[-1][0]:
             raise ValueError(f"accelerometer sample at t={t!r} is not after the previous "
                              f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
-        sample = (tm, self.layout.project(a))
+        sample = (tm, self.layout.project_floats(accel))
         self._samples = [*self._samples[-2:], sample]
         self._history.append(sample)
         if self._x is None:
@@ -310,86 +316,80 @@ class DeadReckoner:
     def _step(self, x: _State, samples: list[_Sample], t1: float) -> _State:
         """One RK4 step of the coupled (q, omega, v, p) ODE from ``x`` to ``t1`` and its
         error propagation, the readings interpolated over ``samples``; ``_DivergedError`` if
-        the result is no dead-reckoned state any more."""
+        the result is no dead-reckoned state any more.
+
+        The 3- and 4-vectors are Python floats: a numpy call on them costs more than the
+        arithmetic (see "small-vector arithmetic" below); the matrices stay numpy."""
         t0 = x.t
         h = t1 - t0
-        x0, xm, x1 = _interpolate(samples, (t0, t0 + 0.5 * h, t1))
-        corr = self.layout.correction
+        hh = 0.5 * h
+        x0, xm, x1 = _interpolate(samples, (t0, t0 + hh, t1))
+        solve = self.layout.solve_floats  # [f, omega_dot] of a sample's readings at omega
         # omega stages (omega_dot depends on omega through the centripetal terms only)
         w0 = x.w
-        s1 = x0 + corr(w0)
-        w2 = w0 + 0.5 * h * s1[3:]
-        s2 = xm + corr(w2)
-        w3 = w0 + 0.5 * h * s2[3:]
-        s3 = xm + corr(w3)
-        w4 = w0 + h * s3[3:]
-        s4 = x1 + corr(w4)
-        ws = np.array([w0, w2, w3, w4])
-        xs = np.array([s1, s2, s3, s4])  # [f, omega_dot] per stage
-        # quaternion stages: q' = 1/2 q (x) [omega, 0] = M(omega) q, linear in q
-        M = (ws @ _HALF_RIGHT_PRODUCT).reshape(4, 4, 4)
-        q0 = x.q
-        kq1 = M[0] @ q0
-        q2 = q0 + 0.5 * h * kq1
-        kq2 = M[1] @ q2
-        q3 = q0 + 0.5 * h * kq2
-        kq3 = M[2] @ q3
-        q4 = q0 + h * kq3
-        kq4 = M[3] @ q4
-        q1 = q0 + h / 6.0 * (_RK4_WEIGHTS @ np.array([kq1, kq2, kq3, kq4]))
+        s1 = solve(x0, w0)
+        w2 = [w0[0] + hh * s1[3], w0[1] + hh * s1[4], w0[2] + hh * s1[5]]
+        s2 = solve(xm, w2)
+        w3 = [w0[0] + hh * s2[3], w0[1] + hh * s2[4], w0[2] + hh * s2[5]]
+        s3 = solve(xm, w3)
+        w4 = [w0[0] + h * s3[3], w0[1] + h * s3[4], w0[2] + h * s3[5]]
+        s4 = solve(x1, w4)
+        q1, q2, q3, q4 = _quaternion_rk4(x.q, (w0, w2, w3, w4), h)
         # velocity / position stages: v' = R(q) f + g, p' = v
-        qs = np.array([q0, q2, q3, q4])
-        Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
-              / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
-        acc = (Rs @ xs[:, :3, None])[:, :, 0] + self.gravity
-        v0, p0 = x.v, x.p
-        p1 = p0 + h * v0 + h * h / 6.0 * (_RK4_POSITION_WEIGHTS @ acc)
-        v1 = v0 + h / 6.0 * (_RK4_WEIGHTS @ acc)
-        w1 = w0 + h / 6.0 * (_RK4_WEIGHTS @ xs[:, 3:])
-        P, S = self._propagate(x.P, x.S, h, Rs[1], s2[:3], w2, 0.5 * (p1 + p0),
-                               0.5 * (v1 + v0))
-        norm = math.sqrt(q1 @ q1)
+        R2 = _rotation(q2)
+        g = self._gravity
+        a1, a2 = _rotate(x.q, s1), _mat_vec(R2, s2)
+        a3, a4 = _rotate(q3, s3), _rotate(q4, s4)
+        h6, hh6 = h / 6.0, h * h / 6.0
+        p0, v0 = x.p, x.v
+        p1, v1, w1 = [], [], []
+        for i in range(3):
+            gi = g[i]
+            p1.append(p0[i] + h * v0[i] + hh6 * ((a1[i] + gi) + (a2[i] + gi) + (a3[i] + gi)))
+            v1.append(v0[i] + h6 * ((a1[i] + gi) + 2.0 * (a2[i] + gi) + 2.0 * (a3[i] + gi)
+                                    + (a4[i] + gi)))
+            w1.append(w0[i] + h6 * (s1[3 + i] + 2.0 * s2[3 + i] + 2.0 * s3[3 + i] + s4[3 + i]))
+        P, S = self._propagate(x.P, x.S, h, R2, s2, w2,
+                               [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
+                                0.5 * (p1[2] + p0[2])],
+                               [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
+                                0.5 * (v1[2] + v0[2])])
+        a, b, c, d = q1
+        norm = math.sqrt(a * a + b * b + c * c + d * d)
         reason = _divergence(norm, w1, P)
         if reason:
             raise _DivergedError(f"at t={t1:.3f} s: {reason}")
-        return _State(t1, p1, q1 / norm, v1, w1, P, S)
+        return _State(t1, p1, [a / norm, b / norm, c / norm, d / norm], v1, w1, P, S)
 
-    def _propagate(self, P: Array, S: Array, h: float, R: Array, f: Array, w: Array, p: Array,
-                   v: Array) -> tuple[Array, Array]:
+    def _propagate(self, P: Array, S: Array, h: float, R: list[float], f: list[float],
+                   w: list[float], p: list[float], v: list[float]) -> tuple[Array, Array]:
         """Error-state propagation of ``P`` and ``S`` over one step, linearised at the
-        step's midpoint.
+        step's midpoint (``R`` row-major, 9 floats).
 
         phi' = R domega;  rho' = dv + [p]x R domega + [v]x phi  (rho = dp - phi x p);
         dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
         """
-        G, Jw = self.layout.solve_jacobians(w)  # d(f, wd)/d(readings), d(f, wd)/d(omega)
-        A = np.zeros((12, 12))
-        A[0:3, 9:12] = R
-        A[3:6, 6:9] = _I3
-        _put_cross(A, 3, 0, v)
-        px = np.zeros((3, 3))
-        _put_cross(px, 0, 0, p)
-        A[3:6, 9:12] = px @ R
-        _put_cross(A, 6, 0, -(R @ f))
-        A[6:9, 9:12] = R @ Jw[:3]
-        A[9:12, 9:12] = Jw[3:]
-        Ah = A * h
+        J = self.layout.omega_jacobian_floats(w)  # d(f, wd)/d(omega)
+        r0, r1, r2 = R[0:3], R[3:6], R[6:9]
+        # A and the rows 6:9 of Bk = d(state error)/d(readings) / k (R G[:3] / k) as floats,
+        # in the order of _error_dynamics_layout; one put fills the numpy matrix [A | Bk]
+        AB = self._AB.copy()
+        cols = self._gk_cols
+        AB.put(self._AB_INDEX, _dynamics_entries(R, f, w=J, p=p, v=v)
+               + [a * r0[0] + b * r0[1] + c * r0[2] for a, b, c in cols]
+               + [a * r1[0] + b * r1[1] + c * r1[2] for a, b, c in cols]
+               + [a * r2[0] + b * r2[1] + c * r2[2] for a, b, c in cols])
+        Ah = AB[:, :12] * h
+        Bk = AB[:, 12:]
         F = _I12 + Ah + 0.5 * (Ah @ Ah)
-        B = np.zeros((12, G.shape[1]))
-        B[6:9] = R @ G[:3]
-        B[9:12] = G[3:]
-        Bs = B * self._noise_std
-        P = F @ P @ F.T + (h / self.rate_hz) * (Bs @ Bs.T)
-        if self._cal_cov is not None:
-            # a reading error from calibration: da_j = ([1, f_j] / k_j) . [dB_j, dm_j]
-            c = self._cal_base.copy()
-            c[:, 1:] *= f
-            S = F @ S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
+        P = F @ P @ F.T + (Bk * (self._noise_var_k * (h / self.rate_hz))) @ Bk.T
+        if self._cal_cov is not None:  # a calibration error is a reading error ([1, f]/k)
+            S = F @ S + np.multiply.outer(Bk, [h, h * f[0], h * f[1], h * f[2]]).reshape(12, -1)
         return P, S
 
 
 def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \
-        tuple[Array, Array] | None:
+        tuple[list[float], Array] | None:
     """A reset's velocity or angular velocity and its 3x3 covariance (zero when not
     given), or None when the reset does not set it."""
     if value is None:
@@ -405,11 +405,11 @@ def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \
     if float(C.max(initial=0.0)) > MAX_VARIANCE:
         raise ValueError(f"reset {name} covariance: variance {C.max():.3g} is beyond "
                          f"{MAX_VARIANCE:g} (no information)")
-    return v, C
+    return v.tolist(), C
 
 
-def _reset_state(base: _State, t: float, p: Array, q: Array, C: Array,
-                 rates: dict[str, tuple[Array, Array] | None]) -> _State:
+def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Array,
+                 rates: dict[str, tuple[list[float], Array] | None]) -> _State:
     """The state right after a reset: the absolute pose with its covariance; each rate
     given with its own covariance, or kept from ``base`` with its covariance,
     cross-covariance with the other kept rate and calibration sensitivity (the new pose
@@ -433,13 +433,13 @@ def _reset_state(base: _State, t: float, p: Array, q: Array, C: Array,
     return _State(t, p, q, values["velocity"], values["omega"], P, S)
 
 
-def _divergence(q_norm: float, w: Array, P: Array) -> str:
+def _divergence(q_norm: float, w: list[float], P: Array) -> str:
     """Why a stepped state is no dead-reckoned state any more ('' when it still is).
 
     A NaN or an overflow anywhere in the step reaches the diagonal of ``P``: the stage
     rotations and specific force and the midpoint position and velocity all enter F."""
     variances = P.diagonal().tolist()  # plain floats: this runs at every sample
-    x, y, z = w.tolist()
+    x, y, z = w
     ww = x * x + y * y + z * z
     if not math.isfinite(sum(variances) + ww + q_norm):
         return "to non-finite values"
@@ -454,32 +454,122 @@ def _divergence(q_norm: float, w: Array, P: Array) -> str:
     return ""
 
 
-def _interpolate(samples: list[_Sample], taus: tuple[float, ...]) -> Array:
-    """Projected readings (``layout.project``) at motion times ``taus``, (len, 6), by
-    Lagrange interpolation over ``samples`` (a parabola through three)."""
-    ts = [t for t, _ in samples]
-    W = []
+def _interpolate(samples: list[_Sample], taus: tuple[float, ...]) -> list[list[float]]:
+    """Projected readings (``layout.project``) at motion times ``taus``, one list of 6 per
+    tau, by Lagrange interpolation over ``samples``: the parabola through the last three
+    (written out), the line or the constant through fewer (the first two samples).  At a
+    sample's own time (where a step starts and ends) the weights are exactly 0, 1, 0, so
+    that sample's readings are returned as they are: the floats the products would give."""
+    if len(samples) < 3:
+        return [_lagrange_few(samples, tau) for tau in taus]
+    (ta, xa), (tb, xb), (tc, xc) = samples
+    dab, dac, dbc = ta - tb, ta - tc, tb - tc
+    out = []
     for tau in taus:
-        row = []
-        for i, ti in enumerate(ts):
-            w = 1.0
-            for j, tj in enumerate(ts):
-                if j != i:
-                    w *= (tau - tj) / (ti - tj)
-            row.append(w)
-        W.append(row)
-    return np.array(W) @ np.array([x for _, x in samples])
+        if tau in (tb, tc):
+            out.append(xb if tau == tb else xc)
+            continue
+        ua, ub, uc = tau - ta, tau - tb, tau - tc
+        wa, wb, wc = ub * uc / (dab * dac), -ua * uc / (dab * dbc), ua * ub / (dac * dbc)
+        out.append([wa * a + wb * b + wc * c for a, b, c in zip(xa, xb, xc, strict=True)])
+    return out
 
 
-def _put_cross(A: Array, r: int, c: int, u: Array) -> None:
-    """Write the cross-product matrix ``[u]x`` into the zero block ``A[r:r+3, c:c+3]``.
+def _lagrange_few(samples: list[_Sample], tau: float) -> list[float]:
+    """``_interpolate`` at ``tau`` over one sample (its readings) or two (their line)."""
+    if len(samples) == 1:
+        return list(samples[0][1])
+    (ta, xa), (tb, xb) = samples
+    wa, wb = (tau - tb) / (ta - tb), (tau - ta) / (tb - ta)
+    return [wa * a + wb * b for a, b in zip(xa, xb, strict=True)]
 
-    ``geo.skew`` builds it by stacking, which costs more than the rest of this step's
-    arithmetic; six scalar writes into a zeroed block cost nothing."""
-    x, y, z = u.tolist()
-    A[r, c + 1], A[r, c + 2] = -z, y
-    A[r + 1, c], A[r + 1, c + 2] = z, -x
-    A[r + 2, c], A[r + 2, c + 1] = -y, x
+
+# ---------------------------------------------------------------------- small-vector arithmetic
+# On Python floats, written out: at 3 and 4 values a numpy call costs more than the
+# arithmetic, and so do Python's generators and helper calls (the step runs 300 times a
+# second).  Rotations are row-major 9-lists, quaternions xyzw.
+
+
+def _quaternion_rk4(q0: list[float], ws: tuple[list[float], ...], h: float) -> \
+        tuple[list[float], ...]:
+    """RK4 of eq. 4.45, q' = q (x) [omega, 0] / 2 (geometry's Hamilton product, xyzw), with
+    the omega of each stage: the end quaternion (not normalised) and those of stages 2-4."""
+    x0, y0, z0, s0 = q0
+    x, y, z, s = q0
+    stages, k = [], []
+    for i, (a, b, c) in enumerate(ws):
+        kx, ky, kz = 0.5 * (s * a + y * c - z * b), 0.5 * (s * b + z * a - x * c), \
+            0.5 * (s * c + x * b - y * a)
+        ks = -0.5 * (x * a + y * b + z * c)
+        k.append((kx, ky, kz, ks))
+        if i < 3:
+            d = h if i == 2 else 0.5 * h
+            x, y, z, s = x0 + d * kx, y0 + d * ky, z0 + d * kz, s0 + d * ks
+            stages.append([x, y, z, s])
+    h6 = h / 6.0
+    (a1, b1, c1, d1), (a2, b2, c2, d2), (a3, b3, c3, d3), (a4, b4, c4, d4) = k
+    end = [x0 + h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), y0 + h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
+           z0 + h6 * (c1 + 2.0 * c2 + 2.0 * c3 + c4), s0 + h6 * (d1 + 2.0 * d2 + 2.0 * d3 + d4)]
+    return (end, *stages)
+
+
+def _rotation(q: list[float]) -> list[float]:
+    """R(q / |q|), row-major, for a quaternion an RK4 stage has moved off the unit sphere."""
+    x, y, z, s = q
+    xx, yy, zz, ss = x * x, y * y, z * z, s * s
+    n = 1.0 / (xx + yy + zz + ss)
+    xy, xz, yz, xs, ys, zs = 2 * x * y, 2 * x * z, 2 * y * z, 2 * x * s, 2 * y * s, 2 * z * s
+    return [n * (ss + xx - yy - zz), n * (xy - zs), n * (xz + ys),
+            n * (xy + zs), n * (ss - xx + yy - zz), n * (yz - xs),
+            n * (xz - ys), n * (yz + xs), n * (ss - xx - yy + zz)]
+
+
+def _rotate(q: list[float], v: list[float]) -> list[float]:
+    """R(q / |q|) v (the first 3 of ``v``) without forming R:
+    q v q* = (s^2 - |u|^2) v + 2 (u.v) u + 2 s (u x v), divided by |q|^2."""
+    x, y, z, s = q
+    a, b, c = v[0], v[1], v[2]
+    uu = x * x + y * y + z * z
+    n = 1.0 / (uu + s * s)
+    k = s * s - uu
+    d = 2.0 * (x * a + y * b + z * c)
+    s2 = 2.0 * s
+    return [n * (k * a + d * x + s2 * (y * c - z * b)),
+            n * (k * b + d * y + s2 * (z * a - x * c)),
+            n * (k * c + d * z + s2 * (x * b - y * a))]
+
+
+def _mat_vec(R: list[float], v: list[float]) -> list[float]:
+    """R v for a row-major 3x3 ``R`` and the first 3 of ``v``."""
+    a, b, c = v[0], v[1], v[2]
+    return [R[0] * a + R[1] * b + R[2] * c, R[3] * a + R[4] * b + R[5] * c,
+            R[6] * a + R[7] * b + R[8] * c]
+
+
+def _dynamics_entries(R: list[float], f: list[float], w: list[tuple[float, float, float]],
+                      p: list[float], v: list[float]) -> list[float]:
+    """The step-dependent entries of the error dynamics A (``_propagate``) in the order of
+    ``_error_dynamics_layout``: R; [v]x; [p]x R; -[R f]x; R J[:3]; J[3:], where J (``w``)
+    is d(f, omega_dot)/d(omega).  Written out: at 3x3, Python's loops would cost more than
+    the products."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+    px, py, pz = p
+    vx, vy, vz = v
+    ux, uy, uz = _mat_vec(R, f)
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = w[0], w[1], w[2]
+    return [r00, r01, r02, r10, r11, r12, r20, r21, r22,
+            -vz, vy, vz, -vx, -vy, vx,
+            py * r20 - pz * r10, py * r21 - pz * r11, py * r22 - pz * r12,
+            pz * r00 - px * r20, pz * r01 - px * r21, pz * r02 - px * r22,
+            px * r10 - py * r00, px * r11 - py * r01, px * r12 - py * r02,
+            uz, -uy, -uz, ux, uy, -ux,
+            r00 * j00 + r01 * j10 + r02 * j20, r00 * j01 + r01 * j11 + r02 * j21,
+            r00 * j02 + r01 * j12 + r02 * j22,
+            r10 * j00 + r11 * j10 + r12 * j20, r10 * j01 + r11 * j11 + r12 * j21,
+            r10 * j02 + r11 * j12 + r12 * j22,
+            r20 * j00 + r21 * j10 + r22 * j20, r20 * j01 + r21 * j11 + r22 * j21,
+            r20 * j02 + r21 * j12 + r22 * j22,
+            *w[3], *w[4], *w[5]]
 
 
 def _calibration_cov_in_accel(cal: Calibration) -> Array | None:

@@ -26,6 +26,7 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,8 +76,9 @@ class RigLayout:
     _cent: Array = field(init=False, repr=False, compare=False)
     _pred: Array = field(init=False, repr=False, compare=False)
     _proj: Array = field(init=False, repr=False, compare=False)
-    _corr_outer: Array = field(init=False, repr=False, compare=False)
-    _dcorr: Array = field(init=False, repr=False, compare=False)
+    _corr: Array = field(init=False, repr=False, compare=False)
+    _proj_rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
+    _corr_rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -125,9 +127,9 @@ class RigLayout:
     def _build_solver(self) -> None:
         """Choose the unknowns and precompute the pseudo-inverse of the linear system.
 
-        Caches ``_proj`` (6 x N: readings to [f; omega_dot]), ``_corr_outer`` (9 x 6: the
-        correction for the entries of omega omega^T that must be predicted from omega) and
-        ``_dcorr`` (its Jacobian's coefficients).
+        Caches ``_proj`` (6 x N: readings to [f; omega_dot]) and ``_corr`` (6 x 6: the
+        correction per entry xx yy zz xy yz xz of omega omega^T, zero for the entries the
+        layout solves for), and both as rows of plain floats for the per-sample path.
         """
         H = self.system_matrix
         rank = np.linalg.matrix_rank(H, tol=1e-9 * max(1.0, np.abs(H).max()))
@@ -148,14 +150,11 @@ class RigLayout:
                 solved, A = _W_OFFDIAG, A9
         pred = np.setdiff1d(np.arange(6), solved)
         proj = np.linalg.pinv(A)[:6]
-        rows, cols = _W_ROWS[pred], _W_COLS[pred]
-        corr_outer = np.zeros((9, 6))  # on vec(omega omega^T), one slot per predicted entry
-        corr_outer[rows * 3 + cols] = (-proj @ C[:, pred]).T
-        # the correction is the quadratic form w^T D_k w / 2 per output k, so its Jacobian
-        # w.r.t. omega is D @ w: (6, 3, 3) with D_k[a, b] = C_k[a, b] + C_k[b, a]
-        quad = corr_outer.T.reshape(6, 3, 3)
-        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr_outer": corr_outer,
-                 "_dcorr": quad + quad.transpose(0, 2, 1)}
+        corr = np.zeros((6, 6))  # (output, entry of omega omega^T)
+        corr[:, pred] = -proj @ C[:, pred]
+        cache = {"_cent": C, "_pred": pred, "_proj": proj, "_corr": corr,
+                 "_proj_rows": tuple(map(tuple, proj.tolist())),
+                 "_corr_rows": tuple(map(tuple, corr.tolist()))}
         for name, value in cache.items():
             object.__setattr__(self, name, value)
 
@@ -235,8 +234,7 @@ class RigLayout:
     def correction(self, omega: Array) -> Array:
         """What the centripetal terms predicted from ``omega`` add to ``project``, (..., 6)."""
         w = np.asarray(omega, float)
-        outer = w[..., :, None] * w[..., None, :]
-        return outer.reshape(*w.shape[:-1], 9) @ self._corr_outer
+        return (w[..., _W_ROWS] * w[..., _W_COLS]) @ self._corr.T
 
     def solve(self, readings: Array, omega: Array) -> tuple[Array, Array]:
         """Eq. 4.42: rig-frame specific force and angular acceleration from N readings.
@@ -249,10 +247,36 @@ class RigLayout:
         x = self.project(readings) + self.correction(omega)
         return x[..., :3], x[..., 3:6]
 
-    def solve_jacobians(self, omega: Array) -> tuple[Array, Array]:
-        """Derivatives of ``solve``'s (f, omega_dot) = (6,): w.r.t. the readings (6 x N) and
-        w.r.t. omega (6 x 3); the dead reckoner propagates its covariance with them."""
-        return self._proj, self._dcorr @ np.asarray(omega, float)
+    @property
+    def readings_jacobian(self) -> Array:
+        """d(f, omega_dot)/d(readings) of ``solve``, 6 x N (a constant of the layout)."""
+        return self._proj
+
+    # ------------------------------------------------------------------ one sample, plain floats
+    # The dead reckoner solves one sample of six values at a time, 300 times a second; a numpy
+    # call on such small vectors costs more than its arithmetic, so its per-sample path works on
+    # Python floats.  These equal ``project``, ``solve`` and the omega derivative of ``solve``
+    # to float rounding (tests/test_accel_fast_path.py checks them against numpy).
+
+    def project_floats(self, readings: list[float]) -> list[float]:
+        """``project`` of one sample of N readings: ``[f; omega_dot]`` before the correction."""
+        return [sum(map(operator.mul, row, readings)) for row in self._proj_rows]
+
+    def solve_floats(self, projected: list[float], omega: list[float]) -> list[float]:
+        """``solve`` of one sample from its ``project_floats``: ``projected`` plus the
+        ``correction`` for ``omega`` ``[x, y, z]``, 6 floats ``[f, omega_dot]``."""
+        x, y, z = omega
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        return [p + a * xx + b * yy + c * zz + d * xy + e * yz + f * xz
+                for p, (a, b, c, d, e, f) in zip(projected, self._corr_rows, strict=True)]
+
+    def omega_jacobian_floats(self, omega: list[float]) -> list[tuple[float, float, float]]:
+        """d(f, omega_dot)/d(omega) of ``solve`` at ``omega``: 6 rows of 3.  The correction is
+        a quadratic form in omega, so its derivative is linear in it: d(xy)/dx = y, ..."""
+        x, y, z = omega
+        x2, y2, z2 = 2.0 * x, 2.0 * y, 2.0 * z
+        return [(a * x2 + d * y + f * z, b * y2 + d * x + e * z, c * z2 + e * y + f * x)
+                for a, b, c, d, e, f in self._corr_rows]
 
 
 # ---------------------------------------------------------------------- standard layouts

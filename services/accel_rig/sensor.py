@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,13 @@ def counts_to_volts(counts: Array) -> Array:
     return np.asarray(counts, float) * LSB_V
 
 
+#: Every voltage strictly below this in magnitude is finite, inside the A/D range and off
+#: the amplifier rail: one comparison accepts a good sample (NaN compares False), and only a
+#: refused one pays for finding which check it fails.
+_SAFE_V = AMP_RAIL_V - SATURATION_MARGIN_V
+assert _SAFE_V < -ADC_MIN_COUNT * LSB_V and _SAFE_V < ADC_MAX_COUNT * LSB_V
+
+
 def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
     """Refuse NaN, infinite, out-of-range and saturated voltages with a clear message.
 
@@ -79,6 +87,15 @@ def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
     corrupt line); one at the amplifier rail is clipped, so its acceleration is unknown.
     """
     v = np.asarray(volts, dtype=float)
+    if not (np.abs(v) < _SAFE_V).all():
+        _refuse_volts(v, name)
+    return v
+
+
+def _refuse_volts(v: Array, name: str) -> None:
+    """Raise the ``ValueError`` that names the first bad voltage of ``v`` and what is wrong
+    with it; called when a value is not strictly below ``_SAFE_V``, which fails one of the
+    three checks."""
     if not np.all(np.isfinite(v)):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
         raise ValueError(f"{name}: non-finite value {float(v[idx])} at index {idx} "
@@ -94,7 +111,6 @@ def check_volts(volts: Array, name: str = "accelerometer voltages") -> Array:
         idx = tuple(int(i) for i in np.argwhere(sat)[0])
         raise ValueError(f"{name}: {v[idx]:.4g} V at index {idx} is at the amplifier rail "
                          f"(+/-{AMP_RAIL_V} V = +/-5 g): the accelerometer saturated")
-    return v
 
 
 @dataclass(frozen=True)
@@ -208,6 +224,28 @@ class Calibration:
             raise ValueError(f"accelerometer voltages: {v.shape[-1]} channels, the calibration "
                              f"has {self.layout.count}")
         return (v - self.bias_v) / self.gain_v_per_mps2
+
+    def to_accel_floats(self, volts: Array) -> list[float]:
+        """``to_accel`` of one sample (N,) as plain floats, validated the same way.
+
+        The dead reckoner's per-sample path: on six values each numpy call costs more than
+        its arithmetic, so a good sample is checked and converted in Python floats and only
+        a refused one goes through ``check_volts``'s checks for its message.
+        """
+        v = np.asarray(volts, dtype=float)
+        if v.shape != (self.layout.count,):
+            raise ValueError(f"accelerometer voltages: expected {self.layout.count} values, "
+                             f"got shape {v.shape}")
+        vals = v.tolist()
+        if not all(map(_SAFE_V.__gt__, map(abs, vals))):
+            _refuse_volts(v, "accelerometer voltages")
+        bias, gain = self._bias_gain_floats
+        return [(x - b) / k for x, b, k in zip(vals, bias, gain, strict=True)]
+
+    @cached_property
+    def _bias_gain_floats(self) -> tuple[list[float], list[float]]:
+        """Bias and gain as plain floats for ``to_accel_floats`` (the calibration is frozen)."""
+        return self.bias_v.tolist(), self.gain_v_per_mps2.tolist()
 
     def to_volts(self, accel: Array) -> Array:
         """Accelerations along the axes back to ideal (unquantised) voltages."""
