@@ -19,10 +19,17 @@ tracker service process registered with C), and one bare queryable process.  Mea
    run: a bare Zenoh put from the tracker's own session to a subscriber callback in this
    process (half a period after each sample, so the two never queue behind each other).
 
+Both are measured with the client as a Zenoh client of agent A (the default layout: A
+routes its queries to B and C and their answers back, and C's samples through A) and as a
+peer that meets every agent directly (the all-peers layout, ``UMA_SDK_MODE=peer``), each
+against the bare get and put of the same run.  The bare get goes straight to its
+queryable, so in the default layout the extra hop through A counts against uma.
+
 Goals (issue 19): the query at an explicit past time ≤ 2.0× the bare get; streaming median
 ≤ 200 µs and ≤ 4× the bare one-way.
 
-Usage: python bench/bench_query_remote.py [--queries N] [--stream-seconds S] [--json]
+Usage: python bench/bench_query_remote.py [--queries N] [--stream-seconds S]
+       [--client-mode client|peer|both] [--json]
 """
 
 from __future__ import annotations
@@ -119,11 +126,116 @@ def _config(path: Path, edges) -> str:
     return str(path)
 
 
+#: the Zenoh modes the client is measured in: a client of its host's agent (the default
+#: layout: the agent routes its queries and streams) and a peer that meets every agent
+#: directly (the all-peers layout, ``UMA_SDK_MODE=peer``)
+CLIENT_MODES = {"client": ("client",), "peer": ("peer",), "both": ("client", "peer")}
+LABELS = {"latest": "3 agents all asked, latest time",
+          "past": "3 agents all asked, 30 ms back (interpolated afresh)",
+          "cached": "static segments cached (only C asked)"}
+
+
+def _ready(c, bare, key: str) -> None:
+    """Wait until the route over all three agents and the bare queryable answer."""
+    from agent.errors import UmaError
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            r = c.pose(WORLD, HEAD, error="hops")
+            if r.path == [WORLD, CAM, RIG, HEAD] and any(list(bare.get(key, timeout=1.0))):
+                return
+        except (LookupError, ValueError, UmaError) as exc:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"setup failed: {exc}") from None
+        time.sleep(0.2)
+
+
+def _queries(c, bare, key: str, n: int) -> dict:
+    """The three kinds of query and the bare get, interleaved (the same machine load)."""
+    modes = tuple(LABELS)
+    us: dict[str, list[float]] = {m: [] for m in modes}
+    bare_us = []
+    for i in range(len(modes) * n):
+        mode = modes[i % len(modes)]
+        c.cache_static_segments = mode == "cached"
+        at = time.time_ns() - PAST_NS if mode == "past" else None
+        t0 = time.perf_counter_ns()
+        r = c.pose(WORLD, HEAD, at=at, error="hops")
+        t1 = time.perf_counter_ns()
+        replies = list(bare.get(key, payload=b"q" * 64, timeout=2.0))
+        t2 = time.perf_counter_ns()
+        assert replies and replies[0].ok is not None and len(r.path) == 4
+        us[mode].append((t1 - t0) / 1000)
+        bare_us.append((t2 - t1) / 1000)
+    out = {m: _stats(v) for m, v in us.items()}
+    out["bare_get"] = b = _stats(bare_us)
+    for m in modes:
+        out[f"ratio_{m}_to_bare_get"] = out[m]["median_us"] / b["median_us"]
+    return out
+
+
+def _streaming(c, realm: str, seconds: float) -> dict:
+    """Publication -> composed pose at ``on_pose``, and the bare put -> callback anchor
+    between the same processes (the tracker's session and this client's)."""
+    latency_us: list[float] = []
+    oneway_us: list[float] = []
+
+    def on_bare(sample) -> None:
+        sent = struct.unpack("<q", sample.payload.to_bytes())[0]
+        oneway_us.append((time.time_ns() - sent) / 1000)
+
+    def on_pose(r) -> None:
+        published = c.clock.to_remote("C", r.t_ns)
+        latency_us.append((time.time_ns() - published) / 1000)
+    bare_sub = c.session.declare_subscriber(f"bench/{realm}/oneway", on_bare)
+    sub = c.subscribe(WORLD, HEAD, on_pose=on_pose, error="hops")
+    time.sleep(seconds)
+    sub.close()
+    bare_sub.undeclare()
+    out = {"streaming": _stats(latency_us) if latency_us else None,
+           "bare_put": _stats(oneway_us) if oneway_us else None}
+    if latency_us and oneway_us:
+        out["ratio_streaming_to_bare_put"] = (out["streaming"]["median_us"]
+                                              / out["bare_put"]["median_us"])
+    return out
+
+
+def _print(figures: dict) -> None:
+    print(f"cpu {figures['cpu']}")
+    for mode in CLIENT_MODES["both"]:
+        f = figures.get(mode)
+        if f is None:
+            continue
+        b = f["bare_get"]
+        print(f"[client as a Zenoh {mode}] bare Zenoh get: median {b['median_us']:.0f} us, "
+              f"p99 {b['p99_us']:.0f} us")
+        for kind, label in LABELS.items():
+            q = f[kind]
+            print(f"[client as a Zenoh {mode}] cross-agent query, {label}: median "
+                  f"{q['median_us']:.0f} us, p99 {q['p99_us']:.0f} us, ratio "
+                  f"{f[f'ratio_{kind}_to_bare_get']:.2f}"
+                  + (" (goal <= 2.0)" if kind == "past" else ""))
+        o, s = f["bare_put"], f["streaming"]
+        if o:
+            print(f"[client as a Zenoh {mode}] bare Zenoh put -> subscriber callback: median "
+                  f"{o['median_us']:.0f} us, p99 {o['p99_us']:.0f} us ({o['n']} puts)")
+        if s:
+            line = (f"[client as a Zenoh {mode}] streaming, publication -> composed pose: "
+                    f"median {s['median_us']:.0f} us, p99 {s['p99_us']:.0f} us ({s['n']} poses)")
+            if o:
+                line += (f", ratio {f['ratio_streaming_to_bare_put']:.2f} to the bare put "
+                         "(goal: median <= 200 us and <= 4)")
+            print(line)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--queries", type=int, default=1000)
     ap.add_argument("--stream-seconds", type=float, default=5.0)
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
+    ap.add_argument("--client-mode", choices=sorted(CLIENT_MODES), default="both",
+                    help="the client's Zenoh mode: a client of agent A (the default layout), "
+                         "a peer of every agent, or both in turn (default)")
     ap.add_argument("--role", default="main", choices=["main", "echo", "tracker"],
                     help=argparse.SUPPRESS)
     ap.add_argument("--listen", help=argparse.SUPPRESS)
@@ -136,7 +248,6 @@ def main() -> None:
     if args.role == "tracker":
         return run_tracker(args)
 
-    from agent.errors import UmaError
     from agent.runtime.session import open_session
     from agent.sdk.client import Client
 
@@ -167,79 +278,16 @@ def main() -> None:
         procs.append(subprocess.Popen([*me, "--role", "tracker", "--realm", realm,
                                        "--connect", ep["C"]], env=env))
         _wait_listening([ports[name] for name in ("A", "echo")], 60.0)
-        with Client(realm=realm, connect=[ep["A"]], timeout=2.0) as c, \
-                open_session("peer", None, [ep["echo"]]) as bare:
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    r = c.pose(WORLD, HEAD, error="hops")
-                    if r.path == [WORLD, CAM, RIG, HEAD] and any(
-                            list(bare.get(key, timeout=1.0))):
-                        break
-                except (LookupError, ValueError, UmaError) as exc:
-                    if time.monotonic() > deadline:
-                        raise SystemExit(f"setup failed: {exc}") from None
-                time.sleep(0.2)
-            modes = ("latest", "past", "cached")
-            us: dict[str, list[float]] = {m: [] for m in modes}
-            bare_us = []
-            for i in range(len(modes) * args.queries):  # interleaved: the same machine load
-                mode = modes[i % len(modes)]
-                c.cache_static_segments = mode == "cached"
-                at = time.time_ns() - PAST_NS if mode == "past" else None
-                t0 = time.perf_counter_ns()
-                r = c.pose(WORLD, HEAD, at=at, error="hops")
-                t1 = time.perf_counter_ns()
-                replies = list(bare.get(key, payload=b"q" * 64, timeout=2.0))
-                t2 = time.perf_counter_ns()
-                assert replies and replies[0].ok is not None and len(r.path) == 4
-                us[mode].append((t1 - t0) / 1000)
-                bare_us.append((t2 - t1) / 1000)
-            latency_us: list[float] = []
-            oneway_us: list[float] = []
-
-            def on_bare(sample) -> None:
-                sent = struct.unpack("<q", sample.payload.to_bytes())[0]
-                oneway_us.append((time.time_ns() - sent) / 1000)
-
-            def on_pose(r) -> None:
-                published = c.clock.to_remote("C", r.t_ns)
-                latency_us.append((time.time_ns() - published) / 1000)
-            bare_sub = c.session.declare_subscriber(f"bench/{realm}/oneway", on_bare)
-            sub = c.subscribe(WORLD, HEAD, on_pose=on_pose, error="hops")
-            time.sleep(args.stream_seconds)
-            sub.close()
-            bare_sub.undeclare()
+        figures: dict = {"cpu": cpu_model()}
+        with open_session("peer", None, [ep["echo"]]) as bare:
+            for mode in CLIENT_MODES[args.client_mode]:
+                with Client(realm=realm, connect=[ep["A"]], timeout=2.0, mode=mode) as c:
+                    _ready(c, bare, key)
+                    figures[mode] = {**_queries(c, bare, key, args.queries),
+                                     **_streaming(c, realm, args.stream_seconds)}
     finally:
         stop_processes(procs)
-    names = {"latest": "cross_agent_query", "past": "cross_agent_query_past_time",
-             "cached": "cross_agent_query_static_segments_cached"}
-    figures = {names[m]: _stats(v) for m, v in us.items()}
-    figures["bare_zenoh_get"] = b = _stats(bare_us)
-    figures["streaming_publication_to_pose"] = s = _stats(latency_us) if latency_us else None
-    figures["bare_zenoh_put_to_callback"] = o = _stats(oneway_us) if oneway_us else None
-    labels = {"latest": "3 agents all asked, latest time",
-              "past": "3 agents all asked, 30 ms back (interpolated afresh)",
-              "cached": "static segments cached (only C asked)"}
-    figures["cpu"] = cpu_model()
-    print(f"cpu {figures['cpu']}")
-    print(f"bare Zenoh get: median {b['median_us']:.0f} us, p99 {b['p99_us']:.0f} us")
-    for mode, name in names.items():
-        q = figures[name]
-        ratio = figures[f"ratio_{mode}_to_bare_get"] = q["median_us"] / b["median_us"]
-        print(f"cross-agent query, {labels[mode]}: median {q['median_us']:.0f} us, p99 "
-              f"{q['p99_us']:.0f} us, ratio {ratio:.2f}" + (" (goal <= 2.0)" if mode == "past"
-                                                           else ""))
-    if o:
-        print(f"bare Zenoh put -> subscriber callback: median {o['median_us']:.0f} us, p99 "
-              f"{o['p99_us']:.0f} us ({o['n']} puts)")
-    if s:
-        line = (f"streaming, publication -> composed pose: median {s['median_us']:.0f} us, p99 "
-                f"{s['p99_us']:.0f} us ({s['n']} poses)")
-        if o:
-            ratio = figures["ratio_streaming_to_bare_put"] = s["median_us"] / o["median_us"]
-            line += f", ratio {ratio:.2f} to the bare put (goal: median <= 200 us and <= 4)"
-        print(line)
+    _print(figures)
     if args.json:
         print(json.dumps(figures))
 
