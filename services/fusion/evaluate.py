@@ -285,7 +285,6 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     rec = {k: [] for k in ("t", "p", "q", "cov", "pp", "qp")}
     opt_t, opt_p, opt_q, failures, waiting = [], [], [], {}, []
     cpu, k_frame = 0.0, 0
-    idx = np.r_[9:12, 0:3]
     pm, qm = geo.inverse(*head_to_laser)
     for i in range(n):
         while k_frame < len(frames) and frames[k_frame] <= motion_t[i]:
@@ -295,6 +294,10 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
             result = tracker.process(images, t_f)
             if dots and ekf.initialised:
                 c0 = time.process_time()
+                if result.ok:  # the dots' persistent error, as the pose has it
+                    ekf.systematic = geo.se3_to_decoupled(
+                        geo.compose(result.position, result.quaternion, pm, qm)[0],
+                        result.systematic)
                 _dot_updates(ekf, world, tracker, images, result, t_f, head_to_laser)
                 cpu += time.process_time() - c0
             if not result.ok:
@@ -303,7 +306,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
             if not dots or not ekf.initialised:
                 c0 = time.process_time()
                 ekf.update_rig_pose(t_f, result.position, result.quaternion,
-                                    result.covariance, head_to_laser)
+                                    result.covariance, head_to_laser, result.systematic)
                 cpu += time.process_time() - c0
             hp, hq = geo.compose(result.position, result.quaternion, pm, qm)
             opt_t.append(t_f)
@@ -320,7 +323,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
         rec["t"].append(ekf.t)
         rec["p"].append(p)
         rec["q"].append(q)
-        rec["cov"].append(ekf.P[np.ix_(idx, idx)])
+        rec["cov"].append(ekf.pose_covariance_decoupled())
         rec["pp"].append(pp)
         rec["qp"].append(qp)
     return Recording(np.array(rec["t"]), np.array(rec["p"]), np.array(rec["q"]),
