@@ -51,7 +51,7 @@ from scipy.stats import chi2
 from agent.runtime.plugins import EvalPlugin
 from agent.srg import Graph
 from agent.srg import geometry as geo
-from services import frames
+from services import consistency, frames
 from services.accel_rig import calibration as accel_cal
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import (
@@ -429,6 +429,12 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
     and the mean NEES of the position and rotation parts (3 each when honest) while
     tracking and inside optical outages, where a filter can be honest in one regime and
     not in the other while the overall mean hides it.
+
+    ``errors_about_zero`` is ``services.consistency``'s figure of the same errors: its
+    effective sample count comes from the errors' autocorrelation about zero, so an error
+    that lasts the whole run (the installation's, carried by the fused covariance) counts
+    as the one sample it is.  The NEES series' autocorrelation about its own mean cannot
+    see such an error, and its band is then far narrower than the run's information.
     """
     e = np.concatenate([p_true - rec.p, geo.quat_to_rotvec(
         geo.quat_multiply(q_true, geo.quat_conjugate(rec.q)))], axis=1)[mask]
@@ -447,6 +453,7 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
             "bounds_95_one_sample_per_optical_frame": list(_mean_bounds(k_frames)),
             "share_inside_single_95": float(np.mean(inside)),
             "by_regime": _nees_by_regime(rec, e, cov, mask),
+            "errors_about_zero": consistency.nees_figures(e, cov),
             "within_bounds": bool(lo <= mean <= hi)}
 
 
