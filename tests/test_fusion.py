@@ -627,10 +627,10 @@ def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
 
 def test_a_reported_systematic_error_is_carried_into_the_fused_covariance():
     """A tracker off by a constant that it reports as the systematic part of its covariance
-    (the laser tracker's installation tolerances): the filter weighs the poses by their
-    random part and keeps the systematic part in its output covariance, so the position
-    NEES stays honest.  The same covariance given whole, as if every frame's error were
-    new, is averaged away: the filter claims an accuracy the tracker never had."""
+    (the laser tracker's installation tolerances): the filter keeps the systematic part
+    whole in its output covariance, so the position NEES stays honest.  The same
+    covariance without the split, as if every frame's error were new, is averaged away:
+    the filter claims an accuracy the tracker never had."""
     ps = OPT_STD[0]
     offset = (4e-4, -4e-4, 4e-4)
     sys = np.diag([4e-4**2] * 3 + [0.0] * 3)

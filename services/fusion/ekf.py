@@ -60,8 +60,8 @@ class OpticalPose:
     t: float
     p: Array
     q: Array
-    cov: Array  # over [dp, dtheta]: the random part, new in every frame
-    systematic: Array  # over [dp, dtheta]: the part that persists from frame to frame
+    cov: Array  # over [dp, dtheta]
+    systematic: Array  # the part of ``cov`` that persists from frame to frame
 
 
 @dataclass(frozen=True)
@@ -178,12 +178,13 @@ class FusionEKF:
 
     def pose_covariance_decoupled(self) -> Array:
         """6x6 covariance of the head pose over ``[dp, dtheta]``: the filter's own, plus the
-        optics' systematic part.
+        systematic part of the newest optical pose's.
 
         The filter follows the optical poses, so an error they share from frame to frame
-        (the installation's) is in the fused pose too, whole: averaging frames reduces only
-        their random part, which is all the filter's ``P`` knows of (Schmidt's "consider"
-        covariance, with the persistent error passed through at full gain)."""
+        (the installation's) is in the fused pose too, whole, where ``P`` has it divided by
+        the frames it averaged (Schmidt's "consider" covariance, the persistent error
+        passed through at full gain; docs/FUSION_TUNING.md says why ``P`` keeps its share
+        rather than the filter weighing the poses by their random part alone)."""
         return self.P[np.ix_(POSE_INDEX, POSE_INDEX)] + self.systematic
 
     def pose_covariance(self) -> Array:
@@ -372,9 +373,10 @@ class FusionEKF:
         """Absolute head pose (world) with its covariance over ``[dp, dtheta]``; False if gated.
 
         ``systematic`` (None: nothing) is the part of ``cov_decoupled`` that persists from
-        frame to frame (an installation's imperfections): the pose is weighed by the
-        rest, the random part, and the systematic part goes whole into the fused covariance
-        (``pose_covariance_decoupled``), since no number of frames averages it away.
+        frame to frame (an installation's imperfections): it goes whole into the fused
+        covariance (``pose_covariance_decoupled``), since no number of frames averages it
+        away.  The pose is still weighed by all of ``cov_decoupled``: the persistent error
+        changes from frame to frame too, as the dots move over the screens.
 
         The first two poses close enough in time start the filter (``start_max_gap_s``).  A
         pose far outside the predicted uncertainty is rejected (Mahalanobis gate); after
@@ -395,7 +397,7 @@ class FusionEKF:
                                pose.cov * np.outer(d, d))
         self.stats.last_pose_nis = inn.nis
         self._adapt_pose_noise(inn)
-        if self._gate_nis(inn, pose.systematic) > self.config.pose_gate:
+        if inn.nis > self.config.pose_gate:
             self.stats.pose_rejected += 1
             self._rejected_in_row += 1
             pose = OpticalPose(pose.t, pose.p, pose.q, inn.R, pose.systematic)
@@ -514,11 +516,10 @@ class FusionEKF:
 
     @staticmethod
     def _gate_nis(inn: Innovation, systematic: Array) -> float:
-        """The NIS the gates judge: with the optics' systematic covariance (in the
-        measurement's space) added to ``S``.  The filter weighs a measurement by its random
-        part alone, but the persistent error is not one constant: when the dots move to
-        another camera or another part of a screen it changes by up to its own size, and
-        the gate must not refuse the optics for that."""
+        """The NIS the dot gate judges: with the optics' systematic covariance (in the
+        measurement's space) added to ``S``.  A dot comes with its random std alone, but
+        the persistent error moves it too, and differently when the dots change camera or
+        part of a screen: the gate must not refuse the optics for that."""
         if not np.any(systematic):
             return inn.nis
         return float(inn.y @ np.linalg.solve(inn.S + systematic, inn.y))
@@ -562,11 +563,11 @@ class FusionEKF:
 
 def _optical_pose(t: float, p: Array, q: Array, cov: Array,
                   systematic: Array | None) -> OpticalPose:
-    """A checked optical pose, its covariance split into the random and the systematic
-    part; ``ValueError`` names what is wrong (a systematic part larger than the whole)."""
+    """A checked optical pose with its covariance and that covariance's systematic part;
+    ``ValueError`` names what is wrong (a systematic part larger than the whole)."""
     whole = geo.check_covariance(cov, "optical covariance")
     sys = np.zeros((6, 6)) if systematic is None else geo.check_covariance(
         systematic, "optical systematic covariance")
-    random = geo.check_covariance(whole - sys, "optical covariance minus its systematic part")
+    geo.check_covariance(whole - sys, "optical covariance minus its systematic part")
     return OpticalPose(float(t), geo.check_vector(p, "optical position").reshape(3),
-                       geo.check_quaternion(q, "optical quaternion").reshape(4), random, sys)
+                       geo.check_quaternion(q, "optical quaternion").reshape(4), whole, sys)
