@@ -14,7 +14,9 @@ every type              ``v``: 1, ``k``: type, ``t``: int ns since the epoch (0 
                         (optional: str keys; numbers, bools, strings, nil, lists, maps)
 ``pose6d``              ``p``: [x, y, z] m, ``q``: [x, y, z, w] unit quaternion,
                         ``c``: 21 floats (upper triangle of the 6x6 covariance over the
-                        parent-frame perturbation [translation, rotation], row by row) or nil
+                        parent-frame perturbation [translation, rotation], row by row) or nil;
+                        optionally ``x[SYSTEMATIC_COVARIANCE]``: 21 floats, the part of ``c``
+                        that persists from sample to sample (a filter must not average it)
 ``position3d``          ``p``, ``c``: 6 floats (upper triangle of the 3x3 covariance) or nil
 ``rotation3d``          ``q``, ``c``: 6 floats (3x3 rotation covariance, rad^2) or nil
 ``points3d``            ``P``: bin, n*3 little-endian float64 (x, y, z per point),
@@ -193,6 +195,12 @@ def _plain_default(obj: Any) -> Any:
     if isinstance(obj, np.generic | np.ndarray):
         return obj.tolist()
     raise TypeError(f"cannot encode a {type(obj).__name__}")
+
+
+#: ``extra`` key of a pose's systematic covariance: the part of ``c`` that persists from
+#: sample to sample (an installation's imperfections), packed as ``c`` is.  Optional:
+#: receivers that do not know it ignore it, and its absence means "not known"
+SYSTEMATIC_COVARIANCE = "c_sys"
 
 
 def encode_pose(t_ns: int, position: Any, quaternion: Any, covariance: Any = None,

@@ -93,9 +93,11 @@ def test_accelerometer_jacobian_matches_finite_differences():
 
 
 def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claimed=None,
-              optical_offset=(0.0, 0.0, 0.0)):
+              optical_offset=(0.0, 0.0, 0.0), systematic=None):
     """The real accelerometer simulator + optical stand-in (truth + offset + noise) at 15 Hz;
-    the optical covariance says ``claimed`` (default: the true ``optical_noise``)."""
+    the optical covariance says ``claimed`` (default: the true ``optical_noise``) plus
+    ``systematic`` (6x6), which each pose reports as its systematic part unless
+    ``systematic`` is None."""
     traj = HeadTrajectory(seed)
     device, cal = fe.calibrated_accelerometers(300.0, seed)
     run = accel_sim.simulate(traj, seconds, seed=seed, sensor=device, calibration=cal)
@@ -104,6 +106,8 @@ def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claime
     ps, rs = optical_noise
     cps, crs = claimed or optical_noise
     cov = np.diag([cps**2] * 3 + [crs**2] * 3)
+    if systematic is not None:
+        cov = cov + systematic
     frames = [k / 15 for k in range(int(seconds * 15))
               if not any(a <= k / 15 < b for a, b in gaps)]
     out_t, out_p, out_q, nees = [], [], [], []
@@ -113,7 +117,7 @@ def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claime
             p, q = traj.pose(frames[k])
             ekf.update_pose(frames[k], p[0] + np.asarray(optical_offset) + rng.normal(0, ps, 3),
                             geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0]),
-                            cov)
+                            cov, systematic)
             k += 1
         if ekf.initialised:
             ekf.update_accel_sample(run.t[i], run.accel[i])
@@ -121,8 +125,7 @@ def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claime
             pt, qt = traj.pose(ekf.t)
             e = np.concatenate([pt[0] - p, geo.quat_to_rotvec(
                 geo.quat_multiply(qt[0], geo.quat_conjugate(q)))])
-            idx = np.r_[9:12, 0:3]
-            C = ekf.P[np.ix_(idx, idx)]
+            C = ekf.pose_covariance_decoupled()
             nees.append(float(e @ np.linalg.solve(C, e)))
             out_t.append(ekf.t)
             out_p.append(p)
@@ -537,11 +540,14 @@ def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
 
 
 def test_short_eval_measures_gaps_from_the_last_optical_pose():
-    """A 9 s ``uma eval fusion`` (the 60 s runs are by hand): one 1 s gap, every figure, on
-    the ideal installation: on the realistic one the fusion's NEES is not yet honest (the
-    laser tracker's persistent installation error is averaged as if it were per-frame
-    noise: docs/SIMULATION.md), so its NEES goal fails there; the others hold."""
-    f = fe.evaluate(9.0, seed=1, gap_lengths=[1.0], horizon_s=0.02, ideal=True)
+    """A 9 s ``uma eval fusion`` (the 60 s runs are by hand) on the realistic installation:
+    one 1 s gap, every figure.  The fused covariance carries the laser tracker's
+    installation error, which lasts the run: the NEES counted with the errors'
+    autocorrelation about zero is inside its band (averaged as per-frame noise, the
+    installation's error made it 35 on this seed: docs/FUSION_TUNING.md).  The band of the
+    NEES series about its own mean cannot see an error that lasts the run, so that goal is
+    left out here."""
+    f = fe.evaluate(9.0, seed=1, gap_lengths=[1.0], horizon_s=0.02)
     gap = f["gaps_by_length"]["1s"]
     assert gap["gaps"] == 1 and gap["outage_s_max"] >= 1.0  # 15 Hz: at least 16 frames
     assert gap["orientation_per_gap_deg"][0] == pytest.approx(gap["orientation_max_deg"],
@@ -561,9 +567,14 @@ def test_short_eval_measures_gaps_from_the_last_optical_pose():
     for regime in ("tracking", "optical_gap"):
         r = nees["by_regime"][regime]
         assert 0 < r["share"] < 1 and r["position_mean"] > 0 and r["rotation_mean"] > 0
+    about_zero = nees["errors_about_zero"]
+    assert about_zero["within_bounds"] and about_zero["mean"] == pytest.approx(nees["mean"],
+                                                                              abs=1e-3)
+    assert about_zero["effective_samples"] < 0.1 * nees["effective_samples"]
     assert f["output_rate_hz"] > 290
-    # every goal is met, in each region (run by hand at 60 s: docs/FUSION_TUNING.md)
-    assert f["goals"] == dict.fromkeys(f["goals"], True) and len(f["goals"]) == 5
+    # every other goal is met, in each region (run by hand at 60 s: docs/FUSION_TUNING.md)
+    others = {k: v for k, v in f["goals"].items() if k != "nees_within_95_bounds"}
+    assert others == dict.fromkeys(others, True) and len(others) == 4
     n = f["samples"]
     assert n["inertial"] == 9 * 300 and n["non_finite_outputs"] == 0
     assert n["inertial"] == n["filter_not_running"] + n["warmup"] + n["scored"]
@@ -612,6 +623,63 @@ def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
     assert np.all(np.abs(ekf.optical_bias) < 3 * 4e-4)
     # the tracker's noise still averages out: the fused position is no worse than it
     assert np.sqrt(np.mean(ep_b[late] ** 2)) < np.sqrt(np.mean(ep[late] ** 2)) + ps
+
+
+def test_a_reported_systematic_error_is_carried_into_the_fused_covariance():
+    """A tracker off by a constant that it reports as the systematic part of its covariance
+    (the laser tracker's installation tolerances): the filter keeps the systematic part
+    whole in its output covariance, so the position NEES stays honest.  The same
+    covariance without the split, as if every frame's error were new, is averaged away:
+    the filter claims an accuracy the tracker never had."""
+    ps = OPT_STD[0]
+    offset = (4e-4, -4e-4, 4e-4)
+    sys = np.diag([4e-4**2] * 3 + [0.0] * 3)
+    config = FusionConfig(adapt_pose_noise=False)
+    t, _, _, nees_whole, _ = _simulate(10.0, seed=3, optical_offset=offset, config=config,
+                                       claimed=(np.hypot(ps, 4e-4), OPT_STD[1]))
+    t, ep, _, nees, ekf = _simulate(10.0, seed=3, optical_offset=offset, config=config,
+                                    systematic=sys)
+    late = t > 3.0
+    assert float(np.mean(nees_whole[late])) > 1.5 * float(np.mean(nees[late]))
+    assert 3.0 < float(np.mean(nees[late])) < 9.0
+    np.testing.assert_array_equal(ekf.systematic, sys)
+    assert np.all(np.sqrt(np.diag(ekf.pose_covariance_decoupled())[:3]) >= 4e-4)
+    # the random part still averages out: the fused position is off by about the offset
+    assert np.sqrt(np.mean(ep[late] ** 2)) < np.linalg.norm(offset) + ps
+
+
+def test_a_systematic_part_larger_than_the_covariance_is_refused_by_name():
+    ekf = FusionEKF(_model())
+    cov = np.eye(6) * 1e-6
+    with pytest.raises(ValueError, match="optical covariance minus its systematic part"):
+        ekf.update_pose(0.0, np.zeros(3), [0, 0, 0, 1], cov, 2 * cov)
+    with pytest.raises(ValueError, match="optical systematic covariance"):
+        ekf.update_pose(0.0, np.zeros(3), [0, 0, 0, 1], cov, -cov)
+
+
+def test_the_systematic_covariance_crosses_the_wire_and_old_poses_still_work():
+    """The laser tracker's systematic part travels as an optional extra of the pose; a
+    receiver reads it back, a pose without it has none, a malformed one is named."""
+    from schemas.codec import (
+        SYSTEMATIC_COVARIANCE,
+        Measurement,
+        decode_measurement,
+        encode_measurement,
+        pack_covariance,
+    )
+    from services.fusion.service import systematic_covariance
+
+    sys = np.diag([1e-6, 2e-6, 3e-6, 1e-8, 2e-8, 3e-8])
+    sys[0, 4] = sys[4, 0] = 1e-8
+    m = decode_measurement(encode_measurement(Measurement(
+        type="pose6d", t_ns=1, position=np.zeros(3), quaternion=np.array([0, 0, 0, 1.0]),
+        covariance=2 * sys, extra={SYSTEMATIC_COVARIANCE: pack_covariance(sys)})))
+    np.testing.assert_allclose(systematic_covariance(m), sys)
+    m.extra = {}
+    assert systematic_covariance(m) is None
+    m.extra = {SYSTEMATIC_COVARIANCE: [1.0, "x"]}
+    with pytest.raises(ValueError, match=f"extra '{SYSTEMATIC_COVARIANCE}'"):
+        systematic_covariance(m)
 
 
 def test_eval_what_if_device_reaches_the_device_and_the_filter_model():

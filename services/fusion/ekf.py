@@ -61,6 +61,7 @@ class OpticalPose:
     p: Array
     q: Array
     cov: Array  # over [dp, dtheta]
+    systematic: Array  # the part of ``cov`` that persists from frame to frame
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,7 @@ class FilterState:
     rejected_in_row: int
     last_rejected: OpticalPose | None
     last_optical_t: float | None
+    systematic: Array
 
 
 @dataclass
@@ -132,6 +134,9 @@ class FusionEKF:
         self._last_rejected: OpticalPose | None = None
         self.start_t: float | None = None  # when the filter last (re)started
         self.last_optical_t: float | None = None  # the newest optical measurement it used
+        #: the persistent part of the newest optical pose's error covariance (over [dp,
+        #: dtheta]), which the fused pose carries on top of ``P`` (``pose_covariance``)
+        self.systematic = np.zeros((6, 6))
         self._R = geo.quat_to_matrix(self.q)
         self._dtheta = np.zeros(3)
 
@@ -171,9 +176,20 @@ class FusionEKF:
         """The optical position error the filter attributes to the tracker now (m)."""
         return self.x[self.layout.optical_bias].copy()
 
+    def pose_covariance_decoupled(self) -> Array:
+        """6x6 covariance of the head pose over ``[dp, dtheta]``: the filter's own, plus the
+        systematic part of the newest optical pose's.
+
+        The filter follows the optical poses, so an error they share from frame to frame
+        (the installation's) is in the fused pose too, whole, where ``P`` has it divided by
+        the frames it averaged (Schmidt's "consider" covariance, the persistent error
+        passed through at full gain; docs/FUSION_TUNING.md says why ``P`` keeps its share
+        rather than the filter weighing the poses by their random part alone)."""
+        return self.P[np.ix_(POSE_INDEX, POSE_INDEX)] + self.systematic
+
     def pose_covariance(self) -> Array:
         """6x6 covariance of the head pose in geometry's ``xi = [rho, phi]`` convention."""
-        return geo.decoupled_to_se3(self.x[P], self.P[np.ix_(POSE_INDEX, POSE_INDEX)])
+        return geo.decoupled_to_se3(self.x[P], self.pose_covariance_decoupled())
 
     def pose(self, horizon_s: float = 0.0) -> tuple[Array, Array]:
         """Head pose now, or extrapolated ``horizon_s`` ahead with the estimated motion."""
@@ -188,7 +204,8 @@ class FusionEKF:
 
     def snapshot(self) -> FilterState:
         return FilterState(self.t, self.q.copy(), self.x.copy(), self.P.copy(),
-                           self._rejected_in_row, self._last_rejected, self.last_optical_t)
+                           self._rejected_in_row, self._last_rejected, self.last_optical_t,
+                           self.systematic.copy())
 
     def restore(self, s: FilterState) -> None:
         """Go back to a snapshot (statistics keep counting)."""
@@ -196,12 +213,15 @@ class FusionEKF:
         self._rejected_in_row = s.rejected_in_row
         self._last_rejected = s.last_rejected
         self.last_optical_t = s.last_optical_t
+        self.systematic = s.systematic.copy()
         self._R = geo.quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ initialisation
 
-    def initialise(self, t: float, p: Array, q: Array, cov_decoupled: Array) -> None:
-        """Start (or restart) from an absolute pose; motion unknown (initial_std)."""
+    def initialise(self, t: float, p: Array, q: Array, cov_decoupled: Array,
+                   systematic: Array | None = None) -> None:
+        """Start (or restart) from an absolute pose; motion unknown (initial_std).
+        ``systematic``: the part of the pose's error that persists (``update_pose``)."""
         cfg, lay = self.config, self.layout
         so, sod, sv, sa, _ = cfg.initial_std
         self.t = float(t)
@@ -227,6 +247,7 @@ class FusionEKF:
             P0[P, P] += np.eye(3) * var
             P0[P, ob] = P0[ob, P] = -np.eye(3) * var
         self.P = P0
+        self.systematic = np.zeros((6, 6)) if systematic is None else systematic
         self._R = geo.quat_to_matrix(self.q)
         self.stats.reinitialised += 1
         self._rejected_in_row = 0
@@ -257,7 +278,9 @@ class FusionEKF:
         cfg = self.config
         _, sod, _, sa, _ = cfg.initial_std
         q_mid = geo.slerp(a.q, b.q, 0.5)
-        self.initialise(a.t + 0.5 * dt, 0.5 * (a.p + b.p), q_mid, 0.25 * (a.cov + b.cov))
+        # the persistent errors of two poses 1/15 s apart are one: the midpoint has it too
+        self.initialise(a.t + 0.5 * dt, 0.5 * (a.p + b.p), q_mid, 0.25 * (a.cov + b.cov),
+                        b.systematic)
         R = self._R
         self.x[W] = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_conjugate(a.q), b.q)) / dt
         self.x[V] = (b.p - a.p) / dt
@@ -271,7 +294,7 @@ class FusionEKF:
             self.P[pos, rate] = (cb - ca) @ rot / (2 * dt)
             self.P[rate, pos] = self.P[pos, rate].T
             self.P[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
-        self.update_pose(b.t, b.p, b.q, b.cov)
+        self._update_with(b)
         self.start_t = b.t
 
     # ------------------------------------------------------------------ time update
@@ -345,31 +368,39 @@ class FusionEKF:
 
     # ------------------------------------------------------------------ optical pose
 
-    def update_pose(self, t: float, p: Array, q: Array, cov_decoupled: Array) -> bool:
+    def update_pose(self, t: float, p: Array, q: Array, cov_decoupled: Array,
+                    systematic: Array | None = None) -> bool:
         """Absolute head pose (world) with its covariance over ``[dp, dtheta]``; False if gated.
+
+        ``systematic`` (None: nothing) is the part of ``cov_decoupled`` that persists from
+        frame to frame (an installation's imperfections): it goes whole into the fused
+        covariance (``pose_covariance_decoupled``), since no number of frames averages it
+        away.  The pose is still weighed by all of ``cov_decoupled``: the persistent error
+        changes from frame to frame too, as the dots move over the screens.
 
         The first two poses close enough in time start the filter (``start_max_gap_s``).  A
         pose far outside the predicted uncertainty is rejected (Mahalanobis gate); after
         ``max_rejected_poses`` rejections in a row the filter trusts the optics again and
         restarts from the last two of them.
         """
-        p = geo.check_vector(p, "optical position").reshape(3)
-        q = geo.check_quaternion(q, "optical quaternion").reshape(4)
-        Rm = geo.check_covariance(cov_decoupled, "optical covariance")
+        return self._update_with(_optical_pose(t, p, q, cov_decoupled, systematic))
+
+    def _update_with(self, pose: OpticalPose) -> bool:
+        """``update_pose`` with a checked pose."""
         if not self.initialised:
-            self._start_with(OpticalPose(float(t), p, q, Rm))
+            self._start_with(pose)
             return True
-        self.predict_to(t)
+        self.predict_to(pose.t)
         predicted, H = measurements.optical_pose(self.x, self.q, self.layout)
         d = np.sqrt(np.repeat(self.stats.pose_noise_scale, 3))
-        inn = self._innovation(measurements.pose_residual(p, q, predicted), H,
-                               Rm * np.outer(d, d))
+        inn = self._innovation(measurements.pose_residual(pose.p, pose.q, predicted), H,
+                               pose.cov * np.outer(d, d))
         self.stats.last_pose_nis = inn.nis
         self._adapt_pose_noise(inn)
         if inn.nis > self.config.pose_gate:
             self.stats.pose_rejected += 1
             self._rejected_in_row += 1
-            pose = OpticalPose(float(t), p, q, inn.R)
+            pose = OpticalPose(pose.t, pose.p, pose.q, inn.R, pose.systematic)
             if self._rejected_in_row >= self.config.max_rejected_poses:
                 previous = self._last_rejected
                 self.stop()                      # the optics win: start again from them
@@ -381,6 +412,7 @@ class FusionEKF:
         self._rejected_in_row = 0
         self._last_rejected = None
         self._apply(inn)
+        self.systematic = pose.systematic
         self.stats.pose_updates += 1
         return True
 
@@ -397,17 +429,21 @@ class FusionEKF:
             self._last_rejected = b
 
     def update_rig_pose(self, t: float, p_rig: Array, q_rig: Array, cov_rig_se3: Array,
-                        mount: tuple[Array, Array]) -> bool:
-        """A tracker's pose of its rig (world -> rig), mounted at ``mount`` (head -> rig).
+                        mount: tuple[Array, Array],
+                        systematic_se3: Array | None = None) -> bool:
+        """A tracker's pose of its rig (world -> rig), mounted at ``mount`` (head -> rig),
+        with its covariance and that covariance's systematic part (``update_pose``).
 
         ``T_world_head = T_world_rig T_head_rig^-1``; a left perturbation of the rig pose is
-        the same left perturbation of the head pose, so the covariance carries over and is
+        the same left perturbation of the head pose, so the covariances carry over and are
         converted to the filter's position/rotation form.
         """
         pm, qm = geo.inverse(*mount)
         p, q = geo.compose(p_rig, q_rig, pm, qm)
         cov = geo.se3_to_decoupled(p, geo.check_covariance(cov_rig_se3, "rig pose covariance"))
-        return self.update_pose(t, p, q, cov)
+        sys = None if systematic_se3 is None else geo.se3_to_decoupled(
+            p, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))
+        return self.update_pose(t, p, q, cov, sys)
 
     def _adapt_pose_noise(self, inn: Innovation) -> None:
         """Covariance matching for the optical noise (Mehra's adaptive R, per block).
@@ -462,7 +498,8 @@ class FusionEKF:
             return False
         A2 = np.asarray(axes, float).reshape(2, 3)
         inn = self._innovation(A2 @ (point - pred), A2 @ J, np.eye(2) * std_m**2)
-        if inn.nis > self.config.dot_gate:
+        J_pose = inn.H[:, POSE_INDEX]
+        if self._gate_nis(inn, J_pose @ self.systematic @ J_pose.T) > self.config.dot_gate:
             self.stats.dot_rejected += 1
             return False
         self._apply(inn)
@@ -476,6 +513,16 @@ class FusionEKF:
         PHt = self.P @ H.T
         S = H @ PHt + R
         return Innovation(y, H, R, PHt, S, float(y @ np.linalg.solve(S, y)))
+
+    @staticmethod
+    def _gate_nis(inn: Innovation, systematic: Array) -> float:
+        """The NIS the dot gate judges: with the optics' systematic covariance (in the
+        measurement's space) added to ``S``.  A dot comes with its random std alone, but
+        the persistent error moves it too, and differently when the dots change camera or
+        part of a screen: the gate must not refuse the optics for that."""
+        if not np.any(systematic):
+            return inn.nis
+        return float(inn.y @ np.linalg.solve(inn.S + systematic, inn.y))
 
     def _apply(self, inn: Innovation) -> None:
         """The vector update of the optical measurements (pose and laser dot).
@@ -512,3 +559,15 @@ class FusionEKF:
             self.q /= np.linalg.norm(self.q)
         self._dtheta = np.zeros(3)
         self._R = geo.quat_to_matrix(self.q)
+
+
+def _optical_pose(t: float, p: Array, q: Array, cov: Array,
+                  systematic: Array | None) -> OpticalPose:
+    """A checked optical pose with its covariance and that covariance's systematic part;
+    ``ValueError`` names what is wrong (a systematic part larger than the whole)."""
+    whole = geo.check_covariance(cov, "optical covariance")
+    sys = np.zeros((6, 6)) if systematic is None else geo.check_covariance(
+        systematic, "optical systematic covariance")
+    geo.check_covariance(whole - sys, "optical covariance minus its systematic part")
+    return OpticalPose(float(t), geo.check_vector(p, "optical position").reshape(3),
+                       geo.check_quaternion(q, "optical quaternion").reshape(4), whole, sys)

@@ -3,7 +3,9 @@
 Needs (matched by the agent, data straight from the publishing services):
 
 * ``optical``: the absolute pose of the optical rig, ``ivy/world -> */laser_rig``
-  (``pose6d``, 10 Hz or more: the laser-dot camera at 15-60 Hz);
+  (``pose6d``, 10 Hz or more: the laser-dot camera at 15-60 Hz), with the systematic part
+  of its covariance if the tracker publishes one (``schemas.codec.SYSTEMATIC_COVARIANCE``:
+  the filter weighs the pose by the rest and carries that part into its output);
 * ``accel``: the raw accelerometer stream of the inertial rig (``accel_raw``, 100 Hz or
   more), whose ability attributes carry the rig's calibration (positions, axes, noise,
   latency: ``services.accel_rig.sensor.Calibration.to_dict``);
@@ -36,6 +38,7 @@ import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
+from schemas.codec import SYSTEMATIC_COVARIANCE, unpack_covariance
 from services import frames
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
@@ -148,7 +151,7 @@ class LiveFusion:
             cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
         ahead = self.tracker.stats.optical_too_far_ahead
         self.tracker.add_rig_pose(self._seconds(m.t_ns), m.position, m.quaternion, cov,
-                                  self.optical_mount)
+                                  self.optical_mount, systematic_se3=systematic_covariance(m))
         if self.tracker.stats.optical_too_far_ahead > ahead:
             self._drop(f"optical pose more than {MAX_AHEAD_S:g} s ahead of the filter")
 
@@ -213,6 +216,19 @@ def _attributes(a: Any) -> dict[str, Any]:
     if isinstance(a, dict):
         return dict(a)
     return a.model_dump()
+
+
+def systematic_covariance(m: Any) -> np.ndarray | None:
+    """An optical pose's systematic covariance (``SYSTEMATIC_COVARIANCE`` in its extra map),
+    None if its tracker sends none; ``ValueError`` names a malformed one."""
+    packed = (getattr(m, "extra", None) or {}).get(SYSTEMATIC_COVARIANCE)
+    if packed is None:
+        return None
+    name = f"optical pose extra {SYSTEMATIC_COVARIANCE!r}"
+    try:
+        return unpack_covariance(packed, 6, name)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: expected 21 numbers ({exc})") from None
 
 
 def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:

@@ -150,16 +150,17 @@ class FusionConfig:
     #: lowest scale of the optical (position, rotation) covariance: the NIS cannot tell a
     #: tracker that overstates its noise from one whose errors persist from frame to frame
     #: (both make it small), so the optics are never trusted more than twice their claim;
-    #: persistent errors belong in ``optical_bias_std``
+    #: persistent errors belong in the systematic part of the optical covariance
+    #: (``FusionEKF.update_pose``) or in ``optical_bias_std``
     pose_noise_min_scale: tuple[float, float] = (0.5, 0.5)
     max_step_s: float = 0.05             # longer predictions are split (integration accuracy)
     #: the optical position error's persistent part (m, per axis; 0: none), a Gauss-Markov
     #: state with correlation time ``optical_bias_tau_s``.  A tracker's calibration error
     #: (camera, screen geometry) stays while the head moves over the same part of the
     #: walls; modelled as white noise it would "average out" over frames, and the fused
-    #: position would claim an accuracy the tracker never had.  The simulated laser tracker
-    #: needs none (its calibration error is 0.03 mm); a real one's comes from comparing it
-    #: with a reference
+    #: position would claim an accuracy the tracker never had.  For a tracker that does not
+    #: publish the systematic part of its covariance (the laser tracker does, and needs
+    #: none); a real one's comes from comparing it with a reference
     optical_bias_std: float = 0.0
     optical_bias_tau_s: float = 30.0
 

@@ -127,18 +127,22 @@ class FusionTracker:
         return True
 
     def add_rig_pose(self, t: float, p: np.ndarray, q: np.ndarray, cov_se3: np.ndarray,
-                     mount: tuple[np.ndarray, np.ndarray], now: float | None = None) -> bool:
+                     mount: tuple[np.ndarray, np.ndarray], now: float | None = None,
+                     systematic_se3: np.ndarray | None = None) -> bool:
         """An optical rig pose for time ``t``, however late it arrives; False if gated,
-        older than the history or more than ``MAX_AHEAD_S`` ahead of the filter."""
+        older than the history or more than ``MAX_AHEAD_S`` ahead of the filter.
+        ``systematic_se3``: the part of ``cov_se3`` that persists from frame to frame
+        (``FusionEKF.update_pose``)."""
         ekf = self.ekf
         self.stats.optical_poses += 1
+        pose = (p, q, cov_se3, mount, systematic_se3)
         if not ekf.initialised:
-            return self._apply_now(t, (p, q, cov_se3, mount))
+            return self._apply_now(t, pose)
         if t - ekf.t > MAX_AHEAD_S:
             self.stats.optical_too_far_ahead += 1
             return False
         if t >= ekf.t:
-            bisect.insort(self._pending, (t, (p, q, cov_se3, mount)), key=lambda e: e[0])
+            bisect.insort(self._pending, (t, pose), key=lambda e: e[0])
             now = time.monotonic() if now is None else now
             if now - self._last_accel_wall > self.max_wait_s:   # inertial stream stalled
                 while self._pending:
@@ -161,7 +165,7 @@ class FusionTracker:
         for _, t_s, a in before:
             ekf.update_accel_sample(t_s, a)
         self.stats.replayed_samples += len(before)
-        ok = ekf.update_rig_pose(t, p, q, cov_se3, mount)
+        ok = ekf.update_rig_pose(t, *pose)
         if not self._new_start():
             self._snapshot()
             self._replay(after)

@@ -3,9 +3,11 @@
 Abilities:
 
 * ``pose`` -- ``pose6d`` ``ivy/world -> marvin/laser_rig`` with a 6x6 covariance per
-  sample; its attributes (``frequency_hz``, ``latency_s``, ``pos_std_m``, ``rot_std_rad``,
-  ``confidence`` = share of frame sets with a pose) are measured by the service itself: a
-  warm-up before it advertises, then updated as they drift;
+  sample, and that covariance's systematic part (the installation's tolerances, which hold
+  from frame to frame) under ``extra[SYSTEMATIC_COVARIANCE]``; its attributes
+  (``frequency_hz``, ``latency_s``, ``pos_std_m``, ``rot_std_rad``, ``confidence`` = share
+  of frame sets with a pose) are measured by the service itself: a warm-up before it
+  advertises, then updated as they drift;
 * ``dots`` -- ``points3d`` on the same edge: the labeled world-frame laser spots of each
   pose (ids = diode labels 1..4), for one-dot-at-a-time (SCAAT) fusion.
 
@@ -32,7 +34,7 @@ import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from schemas.codec import Measurement
+from schemas.codec import SYSTEMATIC_COVARIANCE, Measurement, pack_covariance
 from services import frames
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
@@ -262,7 +264,10 @@ def _step(tracker: LaserTracker, source, perf: _Performance):
 def _publish(pose_out, dots_out, advertised: dict, t_ns: int, result) -> None:
     if not isinstance(result, PoseEstimate):
         return
-    pose_out.publish(t_ns, result.position, result.quaternion, covariance=result.covariance)
+    pose_out.publish_measurement(Measurement(
+        type="pose6d", t_ns=t_ns, position=result.position, quaternion=result.quaternion,
+        covariance=result.covariance,
+        extra={SYSTEMATIC_COVARIANCE: pack_covariance(result.systematic)}))
     labels = sorted(result.dots)
     dots_out.publish_measurement(Measurement(
         type="points3d", t_ns=t_ns, points=np.array([result.dots[k] for k in labels]),

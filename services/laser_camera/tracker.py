@@ -134,6 +134,9 @@ class PoseEstimate:
     labeling_error: float  # eps of the chosen labeling
     n_dots: int  # candidates detected
     reinitialised: bool  # chosen by the upright rule, not temporal coherence
+    #: the part of ``covariance`` that persists from frame to frame (the installation's
+    #: tolerances and the model error): no number of frames averages it away
+    systematic: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     timing_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -333,14 +336,14 @@ class LaserTracker:
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
-            cov = _covariance(dots, idx, best.position, p)
+            cov, systematic = _covariance(dots, idx, best.position, p)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
             {k + 1: float(dots.std_m[i]) for k, i in enumerate(idx)},
-            best.error, n, not tracking)
+            best.error, n, not tracking, systematic)
         self._last = est
         return est
 
@@ -429,11 +432,14 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
 
 
 def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
-                step_m: float = 1e-5) -> np.ndarray:
-    """6x6 pose covariance (xi form) from the dots' in-plane errors (their detection and
-    calibration noise and the installation's tolerances), by numeric Jacobian of the
-    closed-form solution (each dot moves along its wall's two axes), plus the model error
-    the dots cannot show."""
+                step_m: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+    """6x6 pose covariances (xi form): the whole, and its systematic part.
+
+    Propagated by numeric Jacobian of the closed-form solution (each dot moves along its
+    wall's two axes) from the dots' in-plane errors: their detection and calibration noise,
+    new in every frame, and the installation's tolerances, which hold for the whole run;
+    plus the model error the dots cannot show, systematic too.  A filter that averages
+    frames must keep the systematic part apart (docs/FUSION_TUNING.md)."""
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
@@ -445,7 +451,8 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     dphi = 0.5 * np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
                            dR[:, 1, 0] - dR[:, 0, 1]], -1)
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
-    var = np.repeat(dots.std_m[idx] ** 2 + _installation_variance(dots, idx, p0, params), 2)
-    C = (J * var) @ J.T + np.diag([params.model_pos_std_m ** 2] * 3
-                                  + [params.model_rot_std_rad ** 2] * 3)
-    return geo.decoupled_to_se3(p0, 0.5 * (C + C.T))
+    random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
+    systematic = (J * np.repeat(_installation_variance(dots, idx, p0, params), 2)) @ J.T \
+        + np.diag([params.model_pos_std_m ** 2] * 3 + [params.model_rot_std_rad ** 2] * 3)
+    return tuple(geo.decoupled_to_se3(p0, 0.5 * (C + C.T))
+                 for C in (random + systematic, systematic))
