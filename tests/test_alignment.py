@@ -12,6 +12,7 @@ from agent.srg import geometry as geo
 from services.alignment import opencv_reference, records
 from services.alignment.pipeline import (
     AlignmentOptions,
+    align_at_offset,
     align_stations,
     align_streams,
     estimate_offset,
@@ -317,3 +318,22 @@ def test_calibration_file_is_an_agent_static_edge(tmp_path) -> None:
     assert edge["rot_std_rad"] == pytest.approx(result.rot_std_rad)
     with pytest.raises(AlignmentError, match="cannot be written"):
         records.calibration_toml(result, 'a"b', "c")
+
+
+def test_the_offset_uncertainty_is_in_the_covariance() -> None:
+    """The offset is estimated once and then held fixed: its error is common to every
+    station, which the bootstrap over stations cannot see, so align_streams adds what it
+    does to X (dX/d offset times the offset's variance) to the covariance."""
+    rng = np.random.default_rng(5)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 1.0)
+    a, b = simulate_streams(21, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.05))
+    options = AlignmentOptions(bootstrap=30)
+    result = align_streams(a, b, options)
+    assert 0.0 < result.time_offset_std_s < 2e-3
+    assert abs(result.time_offset_s - 0.05) < 4 * result.time_offset_std_s + 1e-4
+    alone = align_at_offset(a, b, result.time_offset_s, 0.0, options)
+    added = result.covariance - alone.covariance
+    assert np.trace(added) > 0
+    assert np.linalg.eigvalsh(added).min() > -1e-12 * np.trace(added)  # one direction, PSD
+    assert np.linalg.matrix_rank(added, tol=1e-9 * np.trace(added)) == 1
+    assert result.summary()["time_offset_std_s"] == result.time_offset_std_s

@@ -27,9 +27,10 @@ from agent.srg import geometry as geo
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
     AlignmentOptions,
-    align_stations,
+    align_at_offset,
     estimate_offset,
     fit_stations,
+    offset_std,
     station_times,
 )
 from services.alignment.simulate import (
@@ -121,7 +122,9 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: 
             pose = method(stations)
             dp, dr = geo.pose_error(pose.position, pose.quaternion, *x)
             out[f"{case}/{name}"] = (float(np.degrees(dr)), 1e3 * float(dp))
-    full = align_stations(*clean, options, offset)
+    std = offset_std(a, b, offset, options)
+    out["offset_std_ms"] = 1e3 * std
+    full = align_at_offset(a, b, offset, std, options)
     out["nees"] = _nees(full, x)
     return out
 
@@ -175,6 +178,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "coarse_abs_error_ms_median": float(np.median(np.abs(
             [t["coarse_offset_error_ms"] for t in trials]))),
         "within_2ms_fraction": float(np.mean(off <= 2.0)),
+        "std_ms_median": float(np.median([t["offset_std_ms"] for t in trials])),
+        # the offset's own consistency: 1 when its reported std is honest
+        "error_over_std_rms": float(np.sqrt(np.mean(
+            [(t["offset_error_ms"] / t["offset_std_ms"]) ** 2 for t in trials]))),
     }
     nees = np.array([t["nees"] for t in trials])
     figures["covariance"] = {"nees_mean (ideal 6)": float(nees.mean()),
