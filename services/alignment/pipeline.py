@@ -354,15 +354,40 @@ def offset_covariance(b: PoseSeries, stations_a: tuple[np.ndarray, np.ndarray],
     return geo.decoupled_to_se3(result.position, np.outer(j, j) * std_s ** 2)
 
 
+def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray | None,
+                          ) -> np.ndarray:
+    """A tracker's published covariances (n, 6, 6, world frame) at its stations ``(p, q)``
+    read as one error that holds in its sensor's frame for all of them: their mean in that
+    frame (``Ad(T^-1) C Ad(T^-1)^T``).
+
+    Why: an error ``E`` that stays with the sensor (``A_k -> A_k E``: a laser housing's
+    beams, a marker body's geometry) cancels from every residual of ``A X = X B`` and moves
+    X by exactly ``E``; no resampling of the stations can see it, so only the tracker's own
+    account of its errors can.  Reading the whole published covariance as held is the
+    conservative choice; its part that changes from sample to sample is counted again by the
+    bootstrap, which is small where the installation dominates (docs/SIMULATION.md).
+    """
+    if covariances is None:
+        return np.zeros((6, 6))
+    Ad = geo.adjoint(*geo.inverse(p, q))
+    return np.mean(Ad @ covariances @ np.swapaxes(Ad, -1, -2), axis=0)
+
+
 def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s: float,
                     options: AlignmentOptions) -> AlignmentResult:
-    """X from the streams' stations at a given offset whose uncertainty is ``offset_std_s``
-    (its error goes into X's covariance, ``offset_covariance``)."""
+    """X from the streams' stations at a given offset whose uncertainty is ``offset_std_s``.
+
+    X's covariance adds to the bootstrap's the errors no station resample sees: the offset's
+    (``offset_covariance``) and each tracker's held error (``held_error_covariance``; b's
+    moves X by ``X E_b X^-1``, hence its adjoint)."""
     times = station_times(a, b, offset_s, options.max_stations)
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + offset_s)
     result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s)
-    added = offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
+    ad_x = geo.adjoint(result.position, result.quaternion)
+    added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
+             + held_error_covariance(pa, qa, a.covariance_at(times))
+             + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
     return replace(result, covariance=result.covariance + added, time_offset_std_s=offset_std_s)
 
 

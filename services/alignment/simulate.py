@@ -97,11 +97,11 @@ def _sample_times(rate_hz: float, seconds: float, rng: np.random.Generator) -> n
 
 def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz: float,
                  rng: np.random.Generator) -> PoseSeries:
-    """The laser-dot tracker's poses of ``marvin/laser_rig`` in ``ivy/world`` over the
-    world's head trajectory, at ``rate_hz`` from a random phase; frames without a pose
-    are left out (a gap in the stream, as on the wire)."""
+    """The laser-dot tracker's poses of ``marvin/laser_rig`` in ``ivy/world`` with their
+    published covariances over the world's head trajectory, at ``rate_hz`` from a random
+    phase; frames without a pose are left out (a gap in the stream, as on the wire)."""
     t_all = _sample_times(rate_hz, seconds, rng)
-    t, p, q = [], [], []
+    t, p, q, c = [], [], [], []
     for tk in t_all:
         dots = tracker.locate(_detections(world, tk, rng))
         res = tracker.solve(dots, float(tk))
@@ -109,7 +109,8 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
             t.append(tk)
             p.append(res.position)
             q.append(res.quaternion)
-    return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream")
+            c.append(res.covariance)
+    return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c))
 
 
 def _detections(world: IvyWorld, t: float, rng: np.random.Generator,
