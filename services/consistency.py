@@ -25,7 +25,7 @@ def nees_figures(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
     e = np.asarray(errors, float)
     n, d = e.shape
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(covariances, e[..., None])[..., 0])
-    tau = max(autocorrelation_time_about_zero(e[:, j]) for j in range(d))
+    tau = max(autocorrelation_time(e[:, j], about="zero") for j in range(d))
     k = n / tau
     lo, hi = (float(x) for x in chi2.ppf([0.025, 0.975], d * k) / k)
     lo_1, hi_1 = chi2.ppf([0.025, 0.975], d)
@@ -36,18 +36,32 @@ def nees_figures(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
             "within_bounds": bool(lo <= mean <= hi)}
 
 
-def autocorrelation_time_about_zero(x: np.ndarray) -> float:
-    """Integrated autocorrelation time (samples, 1..n) of a series whose mean should be 0:
-    ``1 + 2 sum rho_k`` with the autocorrelation taken about zero, summed over pairs
-    ``rho_2m + rho_2m+1`` while they stay positive."""
+def autocorrelation_time(x: np.ndarray, about: str) -> float:
+    """Integrated autocorrelation time (samples, 1..n) of a series: ``1 + 2 sum rho_k``,
+    summed over pairs ``rho_2m + rho_2m+1`` while they stay positive (Geyer's initial
+    positive sequence, which stops before the noisy tail of the estimate takes over).
+
+    ``about="zero"``: for errors whose mean should be 0, taken about zero, each lag's
+    products averaged over the ``n - k`` of them, so that an error which stays the same for
+    the whole run keeps ``rho_k`` at 1 and counts as the single sample it is.
+    ``about="mean"``: for fluctuations about the series' own mean (a NEES series, whose
+    mean is what is being judged), centred first and with the usual ``1/n`` weighting of
+    every lag, whose tapering keeps the sequence positive definite as Geyer's rule needs.
+    """
+    if about not in ("zero", "mean"):
+        raise ValueError(f"about must be 'zero' or 'mean', got {about!r}")
     x = np.asarray(x, float)
     n = x.size
+    if about == "mean":
+        x = x - np.mean(x)
     if n < 4 or not np.any(x):
         return 1.0
     f = np.fft.rfft(x, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[:n] / (n - np.arange(n))  # unbiased per lag
+    acf = np.fft.irfft(f * np.conj(f))[:n]
+    if about == "zero":
+        acf = acf / (n - np.arange(n))  # unbiased per lag
     rho = acf / acf[0]
-    tau = -1.0
+    tau = -1.0  # rho_0 counted once: 1 + 2 * sum_{k>=1} = 2 * sum_{k>=0} - 1
     for m in range(n // 2):
         pair = rho[2 * m] + rho[2 * m + 1]
         if pair <= 0:

@@ -12,6 +12,7 @@ from agent.srg import geometry as geo
 from services.alignment import opencv_reference, records
 from services.alignment.pipeline import (
     AlignmentOptions,
+    align_at_offset,
     align_stations,
     align_streams,
     estimate_offset,
@@ -317,3 +318,57 @@ def test_calibration_file_is_an_agent_static_edge(tmp_path) -> None:
     assert edge["rot_std_rad"] == pytest.approx(result.rot_std_rad)
     with pytest.raises(AlignmentError, match="cannot be written"):
         records.calibration_toml(result, 'a"b', "c")
+
+
+def test_the_offset_uncertainty_is_in_the_covariance() -> None:
+    """The offset is estimated once and then held fixed: its error is common to every
+    station, which the bootstrap over stations cannot see, so align_streams adds what it
+    does to X (dX/d offset times the offset's variance) to the covariance."""
+    rng = np.random.default_rng(5)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 1.0)
+    a, b = simulate_streams(21, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.05))
+    options = AlignmentOptions(bootstrap=30)
+    result = align_streams(a, b, options)
+    assert 0.0 < result.time_offset_std_s < 2e-3
+    assert abs(result.time_offset_s - 0.05) < 4 * result.time_offset_std_s + 1e-4
+    alone = align_at_offset(a, b, result.time_offset_s, 0.0, options)
+    added = result.covariance - alone.covariance
+    assert np.trace(added) > 0
+    assert np.linalg.eigvalsh(added).min() > -1e-12 * np.trace(added)  # one direction, PSD
+    assert np.linalg.matrix_rank(added, tol=1e-9 * np.trace(added)) == 1
+    assert result.summary()["time_offset_std_s"] == result.time_offset_std_s
+
+
+def _nees_of(result, x: Pose) -> float:
+    d = np.concatenate([x.position - result.position, geo.quat_to_rotvec(geo.quat_multiply(
+        x.quaternion, geo.quat_conjugate(result.quaternion)))])
+    return float(d @ np.linalg.solve(geo.se3_to_decoupled(result.position, result.covariance),
+                                     d))
+
+
+def test_a_trackers_held_error_is_in_the_covariance() -> None:
+    """An error that stays with sensor a (``A_k -> A_k E``: a housing's beams) cancels from
+    every residual and moves X by E, so no bootstrap over stations sees it; the tracker's
+    published covariance is its account of it, and X's covariance must carry it."""
+    rng = np.random.default_rng(8)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 1.0)
+    a, b = simulate_streams(4, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.02))
+    held = np.diag([2e-3 ** 2] * 3 + [np.radians(0.3) ** 2] * 3)  # in sensor a's frame
+    e = np.array([2e-3, -2e-3, 2e-3, *np.radians([0.3, -0.3, 0.3])])  # one std per axis
+    p, q = geo.compose(a.position, a.quaternion, e[:3], geo.rotvec_to_quat(e[3:]))
+    Ad = geo.adjoint(p, q)
+    published = Ad @ held @ np.swapaxes(Ad, -1, -2)  # the tracker's world-frame covariance
+    options = AlignmentOptions(bootstrap=30)
+    honest = align_streams(PoseSeries(a.t, p, q, "a", published), b, options)
+    silent = align_streams(PoseSeries(a.t, p, q, "a"), b, options)  # the old covariance
+    assert _nees_of(honest, x) < 16.8  # chi2(6) 99 %
+    assert _nees_of(silent, x) > 50
+
+
+def test_published_covariances_are_checked() -> None:
+    t = np.arange(4.0)
+    p, q = np.zeros((4, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (4, 1))
+    with pytest.raises(AlignmentError, match="covariances must be 4 finite 6x6"):
+        PoseSeries(t, p, q, "a", np.zeros((3, 6, 6)))
+    assert PoseSeries(t, p, q, "a", np.zeros((4, 6, 6))).covariance_at([1.4, 1.6])[0].shape \
+        == (6, 6)

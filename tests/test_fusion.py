@@ -354,19 +354,6 @@ def test_pose_covariance_is_symmetric_positive_and_in_xi_form():
     assert np.all(np.diag(ekf.P[np.ix_(idx, idx)]) < np.diag(C))   # two poses fused
 
 
-def test_autocorrelation_time_of_known_series():
-    """White noise has tau = 1; an AR(1) series x_k = a x_k-1 + w_k has (1 + a) / (1 - a)."""
-    rng = np.random.default_rng(3)
-    assert fe.autocorrelation_time(rng.standard_normal(20000)) == pytest.approx(1.0, abs=0.1)
-    a, w = 0.9, rng.standard_normal(50000)
-    x = np.empty_like(w)
-    x[0] = w[0]
-    for k in range(1, w.size):
-        x[k] = a * x[k - 1] + w[k]
-    assert fe.autocorrelation_time(x) == pytest.approx((1 + a) / (1 - a), rel=0.15)
-    assert fe.autocorrelation_time(np.ones(10)) == 1.0  # constant: nothing to correlate
-
-
 def test_gap_schedule_and_baselines():
     gaps = fe.gap_schedule(30.0, [0.25, 0.5, 1.0])
     pattern = [0.25, 0.5, 1.0]

@@ -65,4 +65,23 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
                              "solvable; the motions barely determine X")
     D = np.array(deltas)
     decoupled = D.T @ D / (len(D) - 1)  # spread about the estimate itself, not the mean
-    return geo.decoupled_to_se3(x.position, decoupled)
+    return geo.decoupled_to_se3(x.position, decoupled) * _inverse_unbiased(len(stations))
+
+
+def _inverse_unbiased(stations: int, dof: int = 6) -> float:
+    """``nu / (nu - d - 1)``, ``nu = stations - 1``: the factor that makes the inverse of a
+    covariance estimated from ``stations`` independent measurements unbiased.
+
+    Why: consumers use the inverse (NEES, a filter's gain, the SRG's error functions), and
+    the inverse of an estimate is biased high: for a Wishart estimate with ``nu`` degrees
+    of freedom, ``E[S^-1] = nu / (nu - d - 1) Sigma^-1`` (Hotelling's T^2).  The bootstrap's
+    covariance rests on the stations, not on the resamples, so ``nu`` counts stations.
+    Measured (40 synchronous stations, b with Gaussian noise, no outliers): the bootstrap
+    covariance averaged over noise draws matches the Monte Carlo covariance (trace ratio
+    5.4-6.2 for 6), yet the mean NEES with each draw's own bootstrap was 8.25.
+    """
+    nu = stations - 1
+    if nu <= dof + 1:
+        raise AlignmentError(f"the covariance of X needs at least {dof + 3} stations, got "
+                             f"{stations}")
+    return nu / (nu - dof - 1)

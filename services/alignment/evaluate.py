@@ -2,7 +2,11 @@
 
 Each trial draws a random X (sensor b in sensor a: any rotation, up to 20 cm per axis), an
 unrelated world for tracker b, a clock offset in [0, 100] ms, and simulates both trackers
-on the head trajectory (a at 60 Hz, b at 100 Hz, pose noise per sample).  The offset is
+on the head trajectory.  Tracker a is the laser-dot tracker (sensor a is its rig) at
+30 Hz on the simulated installation, realistic unless ``--ideal`` (docs/SIMULATION.md;
+every seed is another housing and screen state, every trial another motion in it:
+``simulate.laser_stream``); tracker b is an unrelated tracker at 100 Hz with Gaussian pose
+noise per sample (``--pos-noise-mm``, ``--rot-noise-deg``).  The offset is
 estimated from the streams; the stations (40 of a's samples, b interpolated at the
 estimated offset) are then given to our solvers and to ``cv2.calibrateHandEye`` (TSAI,
 DANIILIDIS) alike.  The same stations with 20 % of b's poses replaced by gross errors form
@@ -23,14 +27,28 @@ from agent.srg import geometry as geo
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
     AlignmentOptions,
-    align_stations,
+    align_at_offset,
     estimate_offset,
     fit_stations,
+    offset_std,
     station_times,
 )
-from services.alignment.simulate import StreamConfig, corrupt, random_pose, simulate_streams
+from services.alignment.simulate import (
+    StreamConfig,
+    corrupt,
+    laser_stream,
+    random_pose,
+    stream_b,
+)
 from services.alignment.solvers import Pose
+from services.fusion.evaluate import laser_calibration
+from services.laser_camera.tracker import LaserTracker, TrackerParams
 from services.sim import mounts
+from services.sim.world import IvyWorld
+
+#: the laser-dot tracker's frame rate in the trials (its eval's default; the thesis ran
+#: at 15-20 Hz)
+LASER_RATE_HZ = 30.0
 
 #: 95 % quantile of chi-square with 6 degrees of freedom (covariance consistency check).
 _CHI2_6_95 = 12.592
@@ -44,9 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fraction of b's poses replaced by gross errors in the outlier "
                              "case (default 0.2)")
     parser.add_argument("--pos-noise-mm", type=float, default=1.0,
-                        help="position noise per pose sample, mm per axis (default 1)")
+                        help="tracker b's position noise per pose sample, mm per axis "
+                             "(default 1)")
     parser.add_argument("--rot-noise-deg", type=float, default=0.1,
-                        help="rotation noise per pose sample, degrees per axis (default 0.1)")
+                        help="tracker b's rotation noise per pose sample, degrees per axis "
+                             "(default 0.1)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="tracker a on the ideal installation instead of the realistic "
+                             "default of docs/SIMULATION.md")
 
 
 def _methods(options: AlignmentOptions, rng: np.random.Generator) -> dict[str, Method]:
@@ -80,13 +103,12 @@ def _nees(result: Any, truth: Pose) -> float:
     return float(d @ np.linalg.solve(C, d))
 
 
-def _trial(seed: int, trial: int, config: StreamConfig, outliers: float,
+def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: bool,
            ) -> dict[str, Any]:
     rng = np.random.default_rng([seed, trial])
     x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
-    config = StreamConfig(seconds=config.seconds, pos_std_m=config.pos_std_m,
-                          rot_std_rad=config.rot_std_rad, offset_s=rng.uniform(0.0, 0.1))
-    a, b = simulate_streams(seed * 100_003 + trial, mounts_laser(), x, world_b, config)
+    config = replace(config, offset_s=rng.uniform(0.0, 0.1))
+    a, b = _streams(seed, trial, x, world_b, config, ideal)
     options = AlignmentOptions(seed=trial)
     offset, coarse = estimate_offset(a, b, options)
     times = station_times(a, b, offset, options.max_stations)
@@ -100,9 +122,22 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float,
             pose = method(stations)
             dp, dr = geo.pose_error(pose.position, pose.quaternion, *x)
             out[f"{case}/{name}"] = (float(np.degrees(dr)), 1e3 * float(dp))
-    full = align_stations(*clean, options, offset)
+    std = offset_std(a, b, offset, options)
+    out["offset_std_ms"] = 1e3 * std
+    full = align_at_offset(a, b, offset, std, options)
     out["nees"] = _nees(full, x)
     return out
+
+
+def _streams(seed: int, trial: int, x: Pose, world_b: Pose, config: StreamConfig,
+             ideal: bool) -> tuple[Any, Any]:
+    """The laser tracker's stream (a) and tracker b's, on one motion of the head."""
+    world = IvyWorld(seed=seed * 100_003 + trial, ideal=ideal, imperfection_seed=seed)
+    tracker = LaserTracker(laser_calibration(world, cache=True),
+                           TrackerParams.ideal() if ideal else TrackerParams())
+    rng = np.random.default_rng([seed, trial, 1])
+    a = laser_stream(world, tracker, config.seconds, LASER_RATE_HZ, rng)
+    return a, stream_b(world.trajectory, mounts_laser(), x, world_b, config, rng)
 
 
 def mounts_laser() -> Pose:
@@ -127,9 +162,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError("--pos-noise-mm and --rot-noise-deg must be >= 0")
     config = StreamConfig(seconds=args.seconds, pos_std_m=args.pos_noise_mm / 1e3,
                           rot_std_rad=float(np.radians(args.rot_noise_deg)))
-    trials = [_trial(args.seed, k, config, args.outliers) for k in range(args.trials)]
+    trials = [_trial(args.seed, k, config, args.outliers, args.ideal)
+              for k in range(args.trials)]
     figures: dict[str, Any] = {"trials": args.trials, "seconds": args.seconds,
-                               "outlier_fraction": args.outliers}
+                               "outlier_fraction": args.outliers,
+                               "installation": "ideal" if args.ideal else "realistic"}
     for case in ("clean", "outliers"):
         figures[case] = {name.split("/")[1]: _stats([t[name] for t in trials])
                          for name in trials[0] if name.startswith(f"{case}/")}
@@ -141,6 +178,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "coarse_abs_error_ms_median": float(np.median(np.abs(
             [t["coarse_offset_error_ms"] for t in trials]))),
         "within_2ms_fraction": float(np.mean(off <= 2.0)),
+        "std_ms_median": float(np.median([t["offset_std_ms"] for t in trials])),
+        # the offset's own consistency: 1 when its reported std is honest
+        "error_over_std_rms": float(np.sqrt(np.mean(
+            [(t["offset_error_ms"] / t["offset_std_ms"]) ** 2 for t in trials]))),
     }
     nees = np.array([t["nees"] for t in trials])
     figures["covariance"] = {"nees_mean (ideal 6)": float(nees.mean()),

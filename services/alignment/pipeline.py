@@ -12,7 +12,7 @@ stream b at the stations' times.  Conventions: ``solvers`` (A, B, X) and ``times
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -55,6 +55,9 @@ _REFINE_TRIM = 0.2
 #: (varied gaps give both short and long motions without the cost of all combinations).
 _REFINE_STATIONS = 240
 _REFINE_GAPS = (5, 11, 23, 47)
+#: Step (s) of the offset's parabola fit and of dX/d(offset): inside the range where a
+#: pair's residual is linear in the offset, well above the refinement's tolerance.
+_OFFSET_STEP_S = 0.002
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,9 @@ class AlignmentResult:
     axis_spread_rad: float
     axis_criterion: float
     residuals: Residuals = field(repr=False)  # of the inlier pairs
+    #: station index pairs (i, j) of the inlier motions X was solved from
+    pairs_ij: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 2), int))
+    time_offset_std_s: float = 0.0  # the offset's uncertainty, in the covariance
 
     @property
     def pose(self) -> Pose:
@@ -142,7 +148,8 @@ class AlignmentResult:
         return {
             "position": self.position.tolist(), "quaternion": self.quaternion.tolist(),
             "pos_std_m": self.pos_std_m, "rot_std_rad": self.rot_std_rad,
-            "time_offset_s": self.time_offset_s, "method": self.method,
+            "time_offset_s": self.time_offset_s,
+            "time_offset_std_s": self.time_offset_std_s, "method": self.method,
             "residual_rot_rad": self.residual_rot_rad, "residual_pos_m": self.residual_pos_m,
             "stations": self.n_stations, "pairs_candidate": self.n_candidates,
             "pairs_selected": self.n_selected, "pairs_inlier": self.n_inliers,
@@ -206,7 +213,8 @@ def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarra
         n_candidates=fit.selection.candidates, n_selected=len(fit.motions),
         n_inliers=int(fit.inliers.sum()), axis_spread_rad=fit.selection.axis_spread_rad,
         axis_criterion=fit.selection.axis_criterion,
-        residuals=pair_residuals(fit.motions.subset(fit.inliers), fit.pose))
+        residuals=pair_residuals(fit.motions.subset(fit.inliers), fit.pose),
+        pairs_ij=fit.pairs_ij[fit.inliers])
 
 
 def station_times(a: PoseSeries, b: PoseSeries, offset_s: float, count: int,
@@ -227,21 +235,42 @@ def station_times(a: PoseSeries, b: PoseSeries, offset_s: float, count: int,
     return usable[pick]
 
 
-def _offset_cost(a: PoseSeries, b: PoseSeries, times: np.ndarray, ij: np.ndarray,
-                 solver: Any) -> Any:
-    """The misfit of X solved at offset d, as a function of d (trimmed mean square)."""
+def _pair_misfits(a: PoseSeries, b: PoseSeries, times: np.ndarray, ij: np.ndarray,
+                  solver: Any) -> Callable[[float], np.ndarray]:
+    """The misfit of each pair ``ij`` under X solved at offset d, as a function of d."""
     pa, qa, _ = a.at(times)
-    keep = int(np.ceil((1.0 - _REFINE_TRIM) * len(ij)))
 
-    def cost(d: float) -> float:
+    def misfits(d: float) -> np.ndarray:
         pb, qb, _ = b.at(times + d)
         motions = relative_motions(pa, qa, pb, qb, ij)
-        x = solver(motions)
-        e = misfit(motions, x, max(float(np.median(np.linalg.norm(motions.pa, axis=-1))),
-                                   0.01))
-        return float(np.mean(np.sort(e)[:keep] ** 2))
+        return misfit(motions, solver(motions),
+                      max(float(np.median(np.linalg.norm(motions.pa, axis=-1))), 0.01))
+
+    return misfits
+
+
+def _offset_cost(misfits: Callable[[float], np.ndarray]) -> Callable[[float], float]:
+    """The offset refinement's cost: the trimmed mean square misfit at offset d."""
+    def cost(d: float) -> float:
+        e = misfits(d)
+        return float(np.mean(np.sort(e)[:int(np.ceil((1.0 - _REFINE_TRIM) * len(e)))] ** 2))
 
     return cost
+
+
+def _refinement_pairs(a: PoseSeries, b: PoseSeries, offset_s: float,
+                      options: AlignmentOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The stations (times in a) and station pairs the offset refinement works on."""
+    times = station_times(a, b, offset_s, _REFINE_STATIONS,
+                          margin=_REFINE_HALF_WIDTH_S * (_REFINE_MAX_SHIFTS + 1))
+    pa, qa, _ = a.at(times)
+    pb, qb, _ = b.at(times + offset_s)
+    ij = np.concatenate([np.stack([np.arange(len(times) - g), np.arange(g, len(times))], -1)
+                         for g in _REFINE_GAPS if g < len(times)])
+    ij = ij[angle_mask(relative_motions(pa, qa, pb, qb, ij), options.min_angle_rad)]
+    if len(ij) < 2:
+        raise DegenerateMotionError("the streams hardly rotate; cannot align their time offset")
+    return times, ij
 
 
 def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
@@ -249,16 +278,8 @@ def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
     """The time offset (coarse by correlation, then refined jointly with X) and the coarse one.
     """
     coarse, _ = coarse_offset(a, b, options.max_offset_s)
-    times = station_times(a, b, coarse, _REFINE_STATIONS,
-                          margin=_REFINE_HALF_WIDTH_S * (_REFINE_MAX_SHIFTS + 1))
-    pa, qa, _ = a.at(times)
-    pb, qb, _ = b.at(times + coarse)
-    ij = np.concatenate([np.stack([np.arange(len(times) - g), np.arange(g, len(times))], -1)
-                         for g in _REFINE_GAPS if g < len(times)])
-    ij = ij[angle_mask(relative_motions(pa, qa, pb, qb, ij), options.min_angle_rad)]
-    if len(ij) < 2:
-        raise DegenerateMotionError("the streams hardly rotate; cannot align their time offset")
-    cost = _offset_cost(a, b, times, ij, SOLVERS[options.method])
+    times, ij = _refinement_pairs(a, b, coarse, options)
+    cost = _offset_cost(_pair_misfits(a, b, times, ij, SOLVERS[options.method]))
     centre = coarse
     for _ in range(_REFINE_MAX_SHIFTS):
         lo, hi = centre - _REFINE_HALF_WIDTH_S, centre + _REFINE_HALF_WIDTH_S
@@ -271,12 +292,111 @@ def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
                          f"{coarse * 1e3:.1f} ms; the streams may not move together")
 
 
+def offset_std(a: PoseSeries, b: PoseSeries, offset_s: float, options: AlignmentOptions,
+               ) -> float:
+    """Standard deviation (s) of a refined time offset, by bootstrap over stations.
+
+    Why: the offset is estimated once and then held fixed, so every station's b is read at
+    the same wrong instant and that error is common to all of them; the bootstrap over
+    stations of X cannot see it.  Each pair's squared misfit is a parabola in the offset
+    near its minimum (its residual is linear in the offset there), fitted through
+    ``offset_s`` and ``_OFFSET_STEP_S`` either side; a resample of the stations (pairs
+    weighted ``c_i c_j`` as in ``covariance``) moves the minimum of the weighted sum, and
+    the spread of those minima about the unweighted one is the offset's uncertainty.  The
+    pairs the refinement trims at ``offset_s`` stay out.
+    """
+    times, ij = _refinement_pairs(a, b, offset_s, options)
+    misfits = _pair_misfits(a, b, times, ij, SOLVERS[options.method])
+    h = _OFFSET_STEP_S
+    lo, mid, hi = (misfits(offset_s + k * h) ** 2 for k in (-1, 0, 1))
+    keep = np.argsort(mid)[:int(np.ceil((1.0 - _REFINE_TRIM) * len(mid)))]
+    slope, curve = ((hi - lo) / (2 * h))[keep], ((hi - 2 * mid + lo) / h ** 2)[keep]
+    ij = ij[keep]
+    rng = np.random.default_rng([options.seed, 1])
+    stations = np.unique(ij)
+
+    def minimum(w: np.ndarray) -> float:
+        return float(-(w @ slope) / (w @ curve))
+
+    centre = minimum(np.ones(len(ij)))
+    shifts = []
+    for _ in range(options.bootstrap):
+        counts = np.zeros(int(stations.max()) + 1)
+        np.add.at(counts, rng.choice(stations, size=len(stations)), 1.0)
+        w = counts[ij[:, 0]] * counts[ij[:, 1]]
+        if w @ curve > 0:
+            shifts.append(minimum(w) - centre)
+    if len(shifts) < 2:
+        return 0.0
+    return float(np.sqrt(np.mean(np.square(shifts))))
+
+
+def offset_covariance(b: PoseSeries, stations_a: tuple[np.ndarray, np.ndarray],
+                      times: np.ndarray, result: AlignmentResult, std_s: float,
+                      options: AlignmentOptions) -> np.ndarray:
+    """What an offset error of ``std_s`` adds to X's covariance (geometry's convention).
+
+    X is solved again from the same motion pairs with b read ``_OFFSET_STEP_S`` earlier and
+    later; the central difference is dX/d(offset), and its outer product times the
+    offset's variance the added covariance (first order).
+    """
+    if std_s == 0.0:
+        return np.zeros((6, 6))
+    solver = solver_for(options)
+    ends = []
+    for d in (-_OFFSET_STEP_S, _OFFSET_STEP_S):
+        pb, qb, _ = b.at(times + result.time_offset_s + d)
+        x = solver(relative_motions(*stations_a, pb, qb, result.pairs_ij))
+        ends.append((x.position, x.quaternion))
+    (p0, q0), (p1, q1) = ends
+    dphi = geo.quat_to_rotvec(geo.quat_multiply(q1, geo.quat_conjugate(q0)))
+    j = np.concatenate([p1 - p0, dphi]) / (2 * _OFFSET_STEP_S)
+    return geo.decoupled_to_se3(result.position, np.outer(j, j) * std_s ** 2)
+
+
+def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray | None,
+                          ) -> np.ndarray:
+    """A tracker's published covariances (n, 6, 6, world frame) at its stations ``(p, q)``
+    read as one error that holds in its sensor's frame for all of them: their mean in that
+    frame (``Ad(T^-1) C Ad(T^-1)^T``).
+
+    Why: an error ``E`` that stays with the sensor (``A_k -> A_k E``: a laser housing's
+    beams, a marker body's geometry) cancels from every residual of ``A X = X B`` and moves
+    X by exactly ``E``; no resampling of the stations can see it, so only the tracker's own
+    account of its errors can.  Reading the whole published covariance as held is the
+    conservative choice; its part that changes from sample to sample is counted again by the
+    bootstrap, which is small where the installation dominates (docs/SIMULATION.md).
+    """
+    if covariances is None:
+        return np.zeros((6, 6))
+    Ad = geo.adjoint(*geo.inverse(p, q))
+    return np.mean(Ad @ covariances @ np.swapaxes(Ad, -1, -2), axis=0)
+
+
+def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s: float,
+                    options: AlignmentOptions) -> AlignmentResult:
+    """X from the streams' stations at a given offset whose uncertainty is ``offset_std_s``.
+
+    X's covariance adds to the bootstrap's the errors no station resample sees: the offset's
+    (``offset_covariance``) and each tracker's held error (``held_error_covariance``; b's
+    moves X by ``X E_b X^-1``, hence its adjoint)."""
+    times = station_times(a, b, offset_s, options.max_stations)
+    pa, qa, _ = a.at(times)
+    pb, qb, _ = b.at(times + offset_s)
+    result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s)
+    ad_x = geo.adjoint(result.position, result.quaternion)
+    added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
+             + held_error_covariance(pa, qa, a.covariance_at(times))
+             + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
+    return replace(result, covariance=result.covariance + added, time_offset_std_s=offset_std_s)
+
+
 def align_streams(a: PoseSeries, b: PoseSeries,
                   options: AlignmentOptions | None = None) -> AlignmentResult:
-    """X and the time offset from two free-running pose streams of rigidly joined sensors."""
+    """X and the time offset from two free-running pose streams of rigidly joined sensors.
+    A given offset (``options.estimate_offset`` False) counts as exact."""
     options = options or AlignmentOptions()
-    offset = estimate_offset(a, b, options)[0] if options.estimate_offset else options.offset_s
-    times = station_times(a, b, offset, options.max_stations)
-    pa, qa, _ = a.at(times)
-    pb, qb, _ = b.at(times + offset)
-    return align_stations(pa, qa, pb, qb, options, time_offset_s=offset)
+    if not options.estimate_offset:
+        return align_at_offset(a, b, options.offset_s, 0.0, options)
+    offset = estimate_offset(a, b, options)[0]
+    return align_at_offset(a, b, offset, offset_std(a, b, offset, options), options)

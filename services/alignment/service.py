@@ -224,7 +224,8 @@ class StreamBuffer:
     def __init__(self, name: str, window_s: float) -> None:
         self.name = name
         self.window_ns = int(window_s * 1e9)
-        self.samples: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
+        #: (t_ns, position, quaternion, published covariance or None)
+        self.samples: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = deque()
         self.edge: tuple[str, str] | None = None
         self.dropped: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -249,7 +250,7 @@ class StreamBuffer:
                 self._drop("out of order", f"{self.name}: sample at {t} ns not after "
                                            f"{self.samples[-1][0]} ns")
                 return
-            self.samples.append((t, p, q))
+            self.samples.append((t, p, q, getattr(m, "covariance", None)))
             while self.samples and self.samples[0][0] < t - self.window_ns:
                 self.samples.popleft()
 
@@ -268,14 +269,18 @@ class StreamBuffer:
             return self.samples[0][0] if self.samples else None
 
     def series(self, t0_ns: int) -> PoseSeries | None:
-        """The buffer as seconds since ``t0_ns``, or None with fewer than 3 samples."""
+        """The buffer as seconds since ``t0_ns``, or None with fewer than 3 samples; with
+        the published covariances when every sample had one (they go into X's, as the
+        tracker's held error: ``pipeline.held_error_covariance``)."""
         with self._lock:
             if len(self.samples) < 3:
                 return None
             t = np.array([s[0] for s in self.samples], dtype=np.int64)
             p = np.array([s[1] for s in self.samples])
             q = np.array([s[2] for s in self.samples])
-        return PoseSeries((t - t0_ns) / 1e9, p, q, self.name)
+            c = [s[3] for s in self.samples]
+        cov = None if any(x is None for x in c) else np.array(c)
+        return PoseSeries((t - t0_ns) / 1e9, p, q, self.name, cov)
 
 
 def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOptions,

@@ -29,12 +29,14 @@ _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
 @dataclass(frozen=True)
 class PoseSeries:
-    """A tracker's pose stream: times (s), positions (n, 3), xyzw quaternions (n, 4)."""
+    """A tracker's pose stream: times (s), positions (n, 3), xyzw quaternions (n, 4), and
+    the covariances (n, 6, 6, geometry's convention) it published with them, if any."""
 
     t: np.ndarray
     position: np.ndarray
     quaternion: np.ndarray
     name: str = "stream"
+    covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -51,6 +53,12 @@ class PoseSeries:
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "position", p)
         object.__setattr__(self, "quaternion", q)
+        if self.covariance is not None:
+            c = np.asarray(self.covariance, dtype=float)
+            if c.shape != (len(t), 6, 6) or not np.all(np.isfinite(c)):
+                raise AlignmentError(f"{self.name}: covariances must be {len(t)} finite 6x6 "
+                                     f"matrices, got shape {c.shape}")
+            object.__setattr__(self, "covariance", c)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -70,6 +78,17 @@ class PoseSeries:
         p, q = geo.interpolate(self.position[k], self.quaternion[k], self.position[k + 1],
                                self.quaternion[k + 1], alpha)
         return p, q, valid
+
+
+    def covariance_at(self, times: np.ndarray) -> np.ndarray | None:
+        """The published covariance of the sample nearest each of ``times`` (None if the
+        stream has none): a covariance changes slowly, so no interpolation."""
+        if self.covariance is None:
+            return None
+        times = np.asarray(times, dtype=float).reshape(-1)
+        k = np.clip(np.searchsorted(self.t, times), 1, len(self.t) - 1)
+        k -= (times - self.t[k - 1]) < (self.t[k] - times)
+        return self.covariance[k]
 
 
 def angular_speed(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:

@@ -59,6 +59,7 @@ from services.accel_rig.device_options import (
     device_figures,
     device_from_args,
 )
+from services.consistency import autocorrelation_time
 from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
@@ -440,7 +441,7 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
         geo.quat_multiply(q_true, geo.quat_conjugate(rec.q)))], axis=1)[mask]
     cov = rec.cov[mask]
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
-    tau = autocorrelation_time(nees)
+    tau = autocorrelation_time(nees, about="mean")
     k = nees.size / tau
     span = float(rec.t[mask][-1] - rec.t[mask][0]) if mask.any() else 0.0
     k_frames = max(1, int(span * OPTICAL_HZ))
@@ -480,28 +481,6 @@ def _nees_by_regime(rec: Recording, e: np.ndarray, cov: np.ndarray,
 def _mean_bounds(k: float) -> tuple[float, float]:
     """Two-sided 95 % bounds of the mean of k independent chi-square(6) samples."""
     return tuple(chi2.ppf([0.025, 0.975], 6 * k) / k)
-
-
-def autocorrelation_time(x: np.ndarray) -> float:
-    """Integrated autocorrelation time (in samples, >= 1) of a series: 1 + 2 sum rho_k.
-
-    Geyer's initial positive sequence: the sum runs over pairs rho_2m + rho_2m+1 while
-    they stay positive, which stops before the noisy tail of the estimate takes over.
-    """
-    x = np.asarray(x, float) - np.mean(x)
-    n = x.size
-    if n < 4 or not np.any(x):
-        return 1.0
-    f = np.fft.rfft(x, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[:n]
-    rho = acf / acf[0]
-    tau = -1.0  # rho_0 counted once: 1 + 2 * sum_{k>=1} = 2 * sum_{k>=0} - 1
-    for m in range(n // 2):
-        pair = rho[2 * m] + rho[2 * m + 1]
-        if pair <= 0:
-            break
-        tau += 2.0 * pair
-    return max(1.0, tau)
 
 
 def recovery_figures(rec: Recording, ep: np.ndarray, er: np.ndarray,

@@ -212,6 +212,12 @@ class LaserTracker:
         ``ValueError``."""
         return self._to_world(self._detections(images))
 
+    def locate(self, detections: Mapping[str, np.ndarray]) -> WorldDots:
+        """World-frame dots of pixel detections given per camera (rows ``U, V, FLUX,
+        AREA, STD`` of ``detection``), as ``detect`` finds them in images: for a
+        simulation that skips the images."""
+        return self._to_world(detections)
+
     def _detections(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Each camera's pixel dots, searched in the full frame."""
         return {name: detect_dots(img, self._camera(name, img).detector)

@@ -215,7 +215,6 @@ class IvyWorld:
         sub_hits = [(p, self.laser_hits(p, q)) for p, q in zip(ps, qs, strict=True)]
         hits = self.laser_hits(p_t, q_t)
         images: dict[str, np.ndarray] = {}
-        image_points: dict[str, dict[int, np.ndarray]] = {}
         n_distractors = 0
         for cam in self._tracking:
             spots = []
@@ -229,11 +228,17 @@ class IvyWorld:
                 cv2.add(img, self._content[cam.name].crop(t), dst=img)
             add_spots(img, spots + extra, cfg.sensor, rng)
             images[cam.name] = img
-            image_points[cam.name] = {
-                k: uv for k, h in hits.items()
-                if h.wall == cam.wall and h.on_screen
-                and cam.in_image(uv := cam.project(h.point[None])[0])[0]}
-        return Frame(t, images, p_t, q_t, hits, image_points, n_distractors)
+        return Frame(t, images, p_t, q_t, hits, self.dot_pixels(hits), n_distractors)
+
+    def dot_pixels(self, hits: dict[int, BeamHit]) -> dict[str, dict[int, np.ndarray]]:
+        """The true pixel (u, v) of every beam hit that each camera, as it is while
+        tracking, sees: the spots' centres before blur and noise.  A simulation that needs
+        the installation's geometry but not the images (``services.alignment.simulate``)
+        starts here."""
+        return {cam.name: {k: uv for k, h in hits.items()
+                           if h.wall == cam.wall and h.on_screen
+                           and cam.in_image(uv := cam.project(h.point[None])[0])[0]}
+                for cam in self._tracking}
 
     def _spot(self, cam: Camera, hit: BeamHit, origin: np.ndarray,
               share: float) -> Spot | None:
