@@ -27,7 +27,11 @@ predicate for longer than the grace period) are skipped.
 Speed: needs are compiled once (``Requirement``) and ``OfferIndex`` keeps, per distinct
 (type, edge patterns), the abilities that fit, updated incrementally as abilities come and
 go; a match then costs one compiled predicate and preference call per fitting ability.
-``bench/bench_matching.py`` measures it.
+A result remembers what it was computed from (the need, its exclusions and current keys),
+and the index journals the abilities it gained or lost (``take_touched``), so after one
+change only the needs whose edge patterns fit a touched ability are matched again
+(``still_holds``): a change in a realm of 10,000 abilities and 1,000 needs costs the few
+needs it concerns, not all of them.  ``bench/bench_matching.py`` measures it.
 
 Bounds (issue 22): abilities come from any peer of the realm, so the index keeps at most
 ``MAX_CANDIDATES`` fitting abilities per pattern (the first that came; later ones are
@@ -54,6 +58,9 @@ MEASURED_OVERRIDES = {"measured_frequency_hz": "frequency_hz",
 #: abilities kept per need pattern, and need patterns kept (module docstring)
 MAX_CANDIDATES = 1024
 MAX_PATTERNS = 1024
+#: abilities journalled between two ``take_touched``: beyond, everything is matched again
+#: (as cheap as sifting a longer journal), and an index nobody reads stays bounded
+MAX_TOUCHED = 1024
 Pattern = tuple[str, str, str]  # (type, parent pattern, child pattern)
 
 
@@ -118,6 +125,9 @@ class MatchResult:
     chosen: tuple[Choice, ...]
     qualified: int
     rejected: Mapping[str, int] = field(default_factory=dict)
+    #: the data keys excluded and current when it was computed (``still_holds``)
+    excluded: frozenset[str] = frozenset()
+    current: frozenset[str] = frozenset()
 
     @property
     def satisfied(self) -> bool:
@@ -148,12 +158,28 @@ class OfferIndex:
         self.refused = 0
         self._candidates: OrderedDict[Pattern, dict[str, Offer]] = OrderedDict()
         self._full: set[Pattern] = set()  # patterns that refused an ability
+        #: offers added, replaced or removed since ``take_touched`` (None: too many)
+        self._touched: list[Offer] | None = []
         for o in offers:
             self.add(o)
+
+    def take_touched(self) -> list[Offer] | None:
+        """The offers added, removed or replaced (old and new version) since the last
+        call, and a fresh journal; None when more than ``MAX_TOUCHED`` were: then any
+        need may have changed."""
+        touched, self._touched = self._touched, []
+        return touched
+
+    def _touch(self, offer: Offer) -> None:
+        if self._touched is not None:
+            self._touched.append(offer)
+            if len(self._touched) > MAX_TOUCHED:
+                self._touched = None
 
     def add(self, offer: Offer) -> None:
         """Add or replace (same data key) an offer."""
         self.remove(offer.key)
+        self._touch(offer)
         self.by_key[offer.key] = offer
         self.by_type.setdefault(offer.type, {})[offer.key] = offer
         for pattern, found in self._candidates.items():
@@ -164,6 +190,7 @@ class OfferIndex:
         old = self.by_key.pop(key, None)
         if old is None:
             return
+        self._touch(old)
         del self.by_type[old.type][key]
         for pattern, found in list(self._candidates.items()):
             if pattern[0] == old.type and found.pop(key, None) is not None and (
@@ -286,7 +313,22 @@ def match(req: Requirement, index: OfferIndex, local_agent: str, *,
                        Choice(offer, s, local)))
     ranked.sort(key=lambda r: r[:4])
     chosen = tuple(r[4] for r in ranked[:need.max_count])
-    return MatchResult(req, chosen, len(ranked), rejected)
+    return MatchResult(req, chosen, len(ranked), rejected, frozenset(excluded),
+                       frozenset(current))
+
+
+def still_holds(result: MatchResult | None, req: Requirement, touched: list[Offer] | None, *,
+                excluded: Collection[str] = (), current: Collection[str] = ()) -> bool:
+    """Whether ``match`` would give ``result`` again: computed for this need with the same
+    exclusions and current keys, and no ability touched since (``OfferIndex.take_touched``)
+    fits its type and edge patterns (only those are its candidates)."""
+    if result is None or touched is None or result.requirement != req:
+        return False
+    if result.excluded != frozenset(excluded) or result.current != frozenset(current):
+        return False
+    need = req.need
+    return not any(o.type == need.type and _fits(need.edge[0], need.edge[1], o)
+                   for o in touched)
 
 
 def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, *,
@@ -295,11 +337,24 @@ def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, 
               ) -> dict[tuple[str, str], MatchResult]:
     """Match many needs; keys of ``excluded``/``current`` and of the result are
     ``(service_id, need name)``."""
+    return rematch_all(reqs, index, local_agent, {}, None, excluded=excluded, current=current)
+
+
+def rematch_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str,
+                previous: Mapping[tuple[str, str], MatchResult], touched: list[Offer] | None,
+                *, excluded: Mapping[tuple[str, str], Collection[str]] | None = None,
+                current: Mapping[tuple[str, str], Collection[str]] | None = None,
+                ) -> dict[tuple[str, str], MatchResult]:
+    """``match_all`` after a change: the ``previous`` result of a need is kept where it
+    still holds (``still_holds``; ``touched`` as ``index.take_touched()`` gave it), the
+    other needs are matched again."""
     excluded = excluded or {}
     current = current or {}
     out = {}
     for req in reqs:
         k = (req.service_id, req.name)
-        out[k] = match(req, index, local_agent, excluded=excluded.get(k, ()),
-                       current=current.get(k, ()))
+        ex, cur = excluded.get(k, ()), current.get(k, ())
+        before = previous.get(k)
+        out[k] = before if still_holds(before, req, touched, excluded=ex, current=cur) else (
+            match(req, index, local_agent, excluded=ex, current=cur))
     return out
