@@ -470,7 +470,7 @@ class Agent:
             before = state.result
             excluded = self.monitor.excluded(need).keys()
             if not still_holds(before, state.req, touched, excluded=excluded,
-                               current=state.current):  # else no ability of its can differ
+                               current=state.current):  # else nothing it depends on changed
                 state.result = match(state.req, self.view.index, self.agent_id,
                                      excluded=excluded, current=state.current)
             if (before is None or before.chosen != state.result.chosen

@@ -28,7 +28,7 @@ _EYE6 = np.eye(6)
 
 
 def oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: bool,
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """An edge value as walked: itself forwards, its inverse backwards."""
     if forward:
         return p, q, cov
