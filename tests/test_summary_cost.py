@@ -98,3 +98,26 @@ def test_bridges_of_a_multigraph_and_of_a_long_chain() -> None:
         chain[f"f{i}"].append((f"f{i + 1}", i, True))
         chain[f"f{i + 1}"].append((f"f{i}", i, False))
     assert paths.bridges(chain) == set(range(4999))
+
+
+def test_a_plan_finds_the_route_from_a_frame_behind_hundreds_of_others() -> None:
+    """Each agent summarises a link from every one of its 150 frames to the shared one; a
+    plan considers at most 66 links of an agent, and the source's own link came after 66
+    dead ends (frames only their agent knows): the plan now skips those first."""
+    from agent.protocol.query import parse_summary
+    from agent.sdk.planner import Segment, plan_routes
+
+    graphs = {}
+    for name in ("h0", "h1"):
+        g = Graph()
+        g.add_static("scale/world", f"{name}/world", [1, 0, 0], [0, 0, 0, 1], pos_std_m=0.01)
+        for k in range(150):
+            g.add_static(f"{name}/world", f"{name}/f{k}", [0, k, 0], [0, 0, 0, 1])
+        g.add_static(f"{name}/world", f"{name}/s0", [0, 0, 1], [0, 0, 0, 1], pos_std_m=0.01)
+        graphs[name] = g
+    summaries = {name: parse_summary(summarize(g, ["scale/world"]) | {"agent": name, "rev": 1})
+                 for name, g in graphs.items()}
+    for e in SUMMARY_ERRORS:
+        route = plan_routes(summaries, "h0/s0", "h1/s0", error_function(e))[0]
+        assert route.segments == [Segment("h0", "h0/s0", "scale/world"),
+                                  Segment("h1", "scale/world", "h1/s0")], e
