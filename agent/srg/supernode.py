@@ -74,8 +74,9 @@ class Topology:
 
     @classmethod
     def of(cls, graph: Graph) -> Topology:
-        """A copy of what ``summarize`` needs of ``graph`` (the newest sample of a measured
-        edge is its nominal value: copied, as the buffer it lives in keeps changing)."""
+        """A copy of what ``summarize`` needs of ``graph``.  The newest sample of a measured
+        edge is its nominal value: copied, as the buffer it lives in keeps changing (a
+        static value is replaced, never changed in place)."""
         adj = graph.adjacency()
         attrs: dict[EdgeKey, dict[str, Any]] = {}
         nominal: dict[EdgeKey, tuple] = {}
@@ -84,8 +85,8 @@ class Topology:
                 if forward:  # every edge is listed once forwards
                     edge = graph.edge(*key)
                     attrs[key] = dict(edge.attrs, static=edge.is_static)
-                    nominal[key] = tuple(None if x is None else np.array(x)
-                                         for x in edge.nominal())
+                    nominal[key] = edge.value if edge.is_static else tuple(
+                        None if x is None else np.array(x) for x in edge.nominal())
         return cls(adj, attrs, nominal, max(PATH_LEVEL_CANDIDATES, graph.k_paths))
 
 
