@@ -56,7 +56,7 @@ from typing import Any
 
 import zenoh
 
-from agent.daemon.matching import MatchResult, Offer, Requirement, match, still_holds
+from agent.daemon.matching import MatchResult, Offer, Requirement, rematch
 from agent.daemon.monitor import NeedId, StreamMonitor
 from agent.daemon.realm_view import Identity, NeedStatus, RealmView, build_snapshot
 from agent.daemon.registrar import DEPARTURE_CHECK_S, Registrar
@@ -468,11 +468,9 @@ class Agent:
         touched = self.view.index.take_touched()
         for need, state in list(self.needs.items()):
             before = state.result
-            excluded = self.monitor.excluded(need).keys()
-            if not still_holds(before, state.req, touched, excluded=excluded,
-                               current=state.current):  # else nothing it depends on changed
-                state.result = match(state.req, self.view.index, self.agent_id,
-                                     excluded=excluded, current=state.current)
+            state.result = rematch(before, state.req, self.view.index, self.agent_id, touched,
+                                   excluded=self.monitor.excluded(need).keys(),
+                                   current=state.current)
             if (before is None or before.chosen != state.result.chosen
                     or before.satisfied != state.result.satisfied):
                 self._snapshot_dirty = True
