@@ -261,6 +261,11 @@ def _fits(parent_pattern: str, child_pattern: str, offer: Offer) -> bool:
         parent is None or _frame_fits(parent_pattern, parent))
 
 
+def _candidate_of(need: Need, offer: Offer) -> bool:
+    """Whether the offer fits the need's type and edge patterns (bounds aside)."""
+    return offer.type == need.type and _fits(need.edge[0], need.edge[1], offer)
+
+
 def advertised_values(attributes: Values) -> dict[str, float]:
     """An ability's numeric attributes plus the ``measured_*`` names standing for their
     advertised counterparts (so a predicate using them can match before any measurement)."""
@@ -372,8 +377,7 @@ def rematch(previous: MatchResult | None, req: Requirement, index: OfferIndex,
             or previous.current != frozenset(current)):
         return match(req, index, local_agent, excluded=excluded, current=current)
     need = req.need
-    mine = [(o, present) for o, present in touched
-            if o.type == need.type and _fits(need.edge[0], need.edge[1], o)]
+    mine = [(o, present) for o, present in touched if _candidate_of(need, o)]
     if not mine:
         return previous
     search, complete = index.searched(need)
@@ -406,8 +410,7 @@ def _patch(previous: MatchResult, index: OfferIndex, local_agent: str,
     qualified, rejected = previous.qualified, dict(previous.rejected)
     for key, old in before.items():
         new = index.by_key.get(key)
-        if new is not None and not (new.type == need.type
-                                    and _fits(need.edge[0], need.edge[1], new)):
+        if new is not None and not _candidate_of(need, new):
             new = None
         for offer, sign in ((old, -1), (new, 1)):
             r = None if offer is None else _rank(req, offer, local_agent, ex, cur)
