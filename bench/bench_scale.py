@@ -17,8 +17,8 @@ row's, the first row of a sweep is its anchor):
   different paths): ``summarize``'s time, the summary's links and its bytes spelt out
   (as agents sent it before) and compact (``agent.protocol.query.summary_to_wire``).
 - **matching** (in-process, ``agent/daemon/matching.py`` as ``bench_matching.py``):
-  abilities x needs up to 10,000 x 1,000, one full re-match (cold: index built) and one
-  after a change (warm).
+  abilities x needs up to 10,000 x 1,000, one full re-match (cold: index built), one
+  after a change (warm) and the incremental one after a change (only the needs it concerns).
 
 The machine is shared: absolute times are noisy, growth factors less so; the CPU model and
 the load average at the start and end are printed.
@@ -45,7 +45,7 @@ from bench_matching import realm as matching_realm
 from bench_matching import timed
 from summary import cpu_model, median_p99
 
-from agent.daemon.matching import OfferIndex, match_all
+from agent.daemon.matching import OfferIndex, match_all, rematch_all
 from agent.errors import UmaError
 from agent.protocol.query import decode_summary, summary_to_wire
 from agent.srg import Graph
@@ -66,7 +66,7 @@ GROWTH = {
               "realm_cpu_pct", "agent_rss_mb_median", "summary_bytes_max",
               "summary_bytes_spelt_out_max", "new_need_connected_ms", "formed_s"),
     "summary": ("summarize_ms", "links", "bytes_spelt_out", "bytes_compact"),
-    "matching": ("cold_median_ms", "warm_median_ms"),
+    "matching": ("cold_median_ms", "warm_median_ms", "incremental_median_ms"),
 }
 
 
@@ -107,18 +107,30 @@ def summary_row(frames: int, shared: int) -> dict[str, Any]:
 
 
 def matching_row(abilities: int, needs: int, repeat: int) -> dict[str, Any]:
-    """One full re-match (a fresh index) and one after a single change, as an agent does."""
+    """One full re-match (a fresh index), one full re-match after a single change, and the
+    incremental one after a single change, as an agent does (``rematch_all``: only the
+    needs the changed ability can concern)."""
     offers, reqs = matching_realm(abilities, needs, seed=1)
     match_all(reqs, OfferIndex(offers), "host0")  # untimed: first calls import and compile
     cold = timed(lambda: match_all(reqs, OfferIndex(offers), "host0"), repeat)
-    index, changing = OfferIndex(offers), iter(offers * (repeat + 1))
+    index, changing = OfferIndex(offers), iter(offers * (2 * repeat + 2))
 
     def one_change() -> None:
         index.add(next(changing))
         match_all(reqs, index, "host0")
     warm = timed(one_change, repeat)
+    results = match_all(reqs, index, "host0")
+    index.take_touched()
+
+    def one_incremental_change() -> None:
+        nonlocal results
+        index.add(next(changing))
+        results = rematch_all(reqs, index, "host0", results, index.take_touched())
+    incremental = timed(one_incremental_change, repeat)
+    if results != match_all(reqs, index, "host0"):
+        raise RuntimeError("the incremental re-match differs from the full one: invalid")
     out: dict[str, Any] = {"abilities": abilities, "needs": needs}
-    for name, xs in (("cold", cold), ("warm", warm)):
+    for name, xs in (("cold", cold), ("warm", warm), ("incremental", incremental)):
         out |= {f"{name}_{k}": v for k, v in median_p99([1e3 * x for x in xs], "ms").items()}
     return out
 

@@ -56,7 +56,7 @@ from typing import Any
 
 import zenoh
 
-from agent.daemon.matching import MatchResult, Offer, Requirement, match
+from agent.daemon.matching import MatchResult, Offer, Requirement, rematch
 from agent.daemon.monitor import NeedId, StreamMonitor
 from agent.daemon.realm_view import Identity, NeedStatus, RealmView, build_snapshot
 from agent.daemon.registrar import DEPARTURE_CHECK_S, Registrar
@@ -465,11 +465,12 @@ class Agent:
         self._dirty = False
         now = time.monotonic()
         self.monitor.drop_unoffered(self.view.index)
+        touched = self.view.index.take_touched()
         for need, state in list(self.needs.items()):
             before = state.result
-            state.result = match(state.req, self.view.index, self.agent_id,
-                                 excluded=self.monitor.excluded(need).keys(),
-                                 current=state.current)
+            state.result = rematch(before, state.req, self.view.index, self.agent_id, touched,
+                                   excluded=self.monitor.excluded(need).keys(),
+                                   current=state.current)
             if (before is None or before.chosen != state.result.chosen
                     or before.satisfied != state.result.satisfied):
                 self._snapshot_dirty = True

@@ -27,7 +27,14 @@ predicate for longer than the grace period) are skipped.
 Speed: needs are compiled once (``Requirement``) and ``OfferIndex`` keeps, per distinct
 (type, edge patterns), the abilities that fit, updated incrementally as abilities come and
 go; a match then costs one compiled predicate and preference call per fitting ability.
-``bench/bench_matching.py`` measures it.
+A result remembers what it was computed from (the need, its exclusions and current keys,
+whether its candidates were complete), and the index journals the abilities it gained or
+lost (``take_touched``), so after one change ``rematch`` keeps the result of every need
+whose edge patterns fit no touched ability and patches the others with the touched
+abilities alone (matching anew only when a chosen ability changed or left, since the next
+best is not kept): a change in a realm of 10,000 abilities and 1,000 needs costs a few
+predicate calls per need it concerns, not one per need and ability.
+``bench/bench_matching.py`` and ``bench/bench_scale.py`` measure it.
 
 Bounds (issue 22): abilities come from any peer of the realm, so the index keeps at most
 ``MAX_CANDIDATES`` fitting abilities per pattern (the first that came; later ones are
@@ -54,7 +61,12 @@ MEASURED_OVERRIDES = {"measured_frequency_hz": "frequency_hz",
 #: abilities kept per need pattern, and need patterns kept (module docstring)
 MAX_CANDIDATES = 1024
 MAX_PATTERNS = 1024
+#: abilities journalled between two ``take_touched``: beyond, everything is matched again
+#: (as cheap as sifting a longer journal), and an index nobody reads stays bounded
+MAX_TOUCHED = 1024
 Pattern = tuple[str, str, str]  # (type, parent pattern, child pattern)
+#: a journalled offer: the version added (True) or removed (False)
+Touch = tuple["Offer", bool]
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +130,11 @@ class MatchResult:
     chosen: tuple[Choice, ...]
     qualified: int
     rejected: Mapping[str, int] = field(default_factory=dict)
+    #: the data keys excluded and current when it was computed, and its candidates
+    #: (``OfferIndex.searched``): what ``rematch`` relies on
+    excluded: frozenset[str] = frozenset()
+    current: frozenset[str] = frozenset()
+    searched: tuple[int, bool] = field(default=(0, True), compare=False)
 
     @property
     def satisfied(self) -> bool:
@@ -148,12 +165,31 @@ class OfferIndex:
         self.refused = 0
         self._candidates: OrderedDict[Pattern, dict[str, Offer]] = OrderedDict()
         self._full: set[Pattern] = set()  # patterns that refused an ability
+        #: each kept pattern's search: a new number whenever it is searched anew
+        self._search: dict[Pattern, int] = {}
+        self._searches = 0
+        #: offers added or removed since ``take_touched`` (None: too many)
+        self._touched: list[Touch] | None = []
         for o in offers:
             self.add(o)
+
+    def take_touched(self) -> list[Touch] | None:
+        """The offers added (True) or removed (False) since the last call, in order (a
+        replacement is both), and a fresh journal; None when more than ``MAX_TOUCHED``
+        were: then any need may have changed."""
+        touched, self._touched = self._touched, []
+        return touched
+
+    def _touch(self, offer: Offer, present: bool) -> None:
+        if self._touched is not None:
+            self._touched.append((offer, present))
+            if len(self._touched) > MAX_TOUCHED:
+                self._touched = None
 
     def add(self, offer: Offer) -> None:
         """Add or replace (same data key) an offer."""
         self.remove(offer.key)
+        self._touch(offer, True)
         self.by_key[offer.key] = offer
         self.by_type.setdefault(offer.type, {})[offer.key] = offer
         for pattern, found in self._candidates.items():
@@ -164,11 +200,13 @@ class OfferIndex:
         old = self.by_key.pop(key, None)
         if old is None:
             return
+        self._touch(old, False)
         del self.by_type[old.type][key]
         for pattern, found in list(self._candidates.items()):
             if pattern[0] == old.type and found.pop(key, None) is not None and (
                     pattern in self._full):
                 del self._candidates[pattern]  # room again: search anew when asked
+                del self._search[pattern]
                 self._full.discard(pattern)
 
     def __len__(self) -> int:
@@ -182,13 +220,25 @@ class OfferIndex:
             self._candidates.move_to_end(pattern)
             return found.values()
         found = self._candidates[pattern] = {}
+        self._searches += 1
+        self._search[pattern] = self._searches
         for o in self.by_type.get(need.type, {}).values():
             if _fits(need.edge[0], need.edge[1], o):
                 self._admit(pattern, found, o)
         if len(self._candidates) > self.max_patterns:
             oldest, _ = self._candidates.popitem(last=False)
+            del self._search[oldest]
             self._full.discard(oldest)
         return found.values()
+
+    def searched(self, need: Need) -> tuple[int, bool]:
+        """The need's pattern's search (its number changes whenever the candidates are
+        searched anew) and whether every fitting offer is among them (no bound refused
+        one).  While a bound refuses, the candidates change only by a new search (a
+        removal empties the pattern; additions are refused)."""
+        self.candidates(need)
+        pattern = (need.type, need.edge[0], need.edge[1])
+        return self._search[pattern], pattern not in self._full
 
     def _admit(self, pattern: Pattern, found: dict[str, Offer], offer: Offer) -> None:
         if len(found) < self.max_candidates:
@@ -209,6 +259,11 @@ def _fits(parent_pattern: str, child_pattern: str, offer: Offer) -> bool:
     parent, child = offer.target
     return _frame_fits(child_pattern, child) and (
         parent is None or _frame_fits(parent_pattern, parent))
+
+
+def _candidate_of(need: Need, offer: Offer) -> bool:
+    """Whether the offer fits the need's type and edge patterns (bounds aside)."""
+    return offer.type == need.type and _fits(need.edge[0], need.edge[1], offer)
 
 
 def advertised_values(attributes: Values) -> dict[str, float]:
@@ -260,6 +315,35 @@ def judge(req: Requirement, offer: Offer, measured: Values) -> tuple[bool, str]:
     return qualifies(req, measured_values(offer, measured))
 
 
+Ranked = tuple[float, int, int, str, Choice]
+
+
+def _rank(req: Requirement, offer: Offer, local_agent: str, excluded: Collection[str],
+          current: Collection[str]) -> Ranked | str | None:
+    """One candidate's verdict for a need: its rank (sorted by its first four fields), or
+    why it was rejected, or None for the need's own service's ability (never a match)."""
+    if offer.service_id == req.service_id and offer.agent_id == local_agent:
+        return None
+    if offer.key in excluded:
+        return "measured"
+    ok, reason = qualifies(req, offer.values)
+    if not ok:
+        return reason
+    s = score(req, offer.values)
+    local = offer.agent_id == local_agent
+    return (s, 0 if local else 1, 0 if offer.key in current else 1, offer.key,
+            Choice(offer, s, local))
+
+
+def _result(req: Requirement, ranked: list[Ranked], qualified: int, rejected: dict[str, int],
+            excluded: Collection[str], current: Collection[str],
+            searched: tuple[int, bool]) -> MatchResult:
+    ranked.sort(key=lambda r: r[:4])
+    chosen = tuple(r[4] for r in ranked[:req.need.max_count])
+    return MatchResult(req, chosen, qualified, rejected, frozenset(excluded),
+                       frozenset(current), searched)
+
+
 def match(req: Requirement, index: OfferIndex, local_agent: str, *,
           excluded: Collection[str] = (), current: Collection[str] = ()) -> MatchResult:
     """Match one need against the realm (see the module docstring for the rules).
@@ -267,26 +351,78 @@ def match(req: Requirement, index: OfferIndex, local_agent: str, *,
     ``excluded``: data keys this need must not use; ``current``: data keys it is connected
     to now (kept on ties).  A service never matches its own abilities.
     """
-    need = req.need
     rejected: dict[str, int] = {}
-    ranked: list[tuple[float, int, int, str, Choice]] = []
-    for offer in index.candidates(need):
-        if offer.service_id == req.service_id and offer.agent_id == local_agent:
-            continue
-        if offer.key in excluded:
-            rejected["measured"] = rejected.get("measured", 0) + 1
-            continue
-        ok, reason = qualifies(req, offer.values)
-        if not ok:
-            rejected[reason] = rejected.get(reason, 0) + 1
-            continue
-        s = score(req, offer.values)
-        local = offer.agent_id == local_agent
-        ranked.append((s, 0 if local else 1, 0 if offer.key in current else 1, offer.key,
-                       Choice(offer, s, local)))
-    ranked.sort(key=lambda r: r[:4])
-    chosen = tuple(r[4] for r in ranked[:need.max_count])
-    return MatchResult(req, chosen, len(ranked), rejected)
+    ranked: list[Ranked] = []
+    for offer in index.candidates(req.need):
+        r = _rank(req, offer, local_agent, excluded, current)
+        if isinstance(r, str):
+            rejected[r] = rejected.get(r, 0) + 1
+        elif r is not None:
+            ranked.append(r)
+    return _result(req, ranked, len(ranked), rejected, excluded, current,
+                   index.searched(req.need))
+
+
+def rematch(previous: MatchResult | None, req: Requirement, index: OfferIndex,
+            local_agent: str, touched: list[Touch] | None, *,
+            excluded: Collection[str] = (), current: Collection[str] = ()) -> MatchResult:
+    """What ``match`` gives now, from ``previous`` and the offers ``touched`` since it was
+    computed (``OfferIndex.take_touched``; None: unknown): ``previous`` itself when no
+    touched offer fits the need's patterns, or when a bound refused candidates then and
+    the same search holds them now (they did not change); else ``previous`` patched with
+    the touched offers; else (the need, its exclusions or current keys changed, a bound
+    refuses candidates, a chosen ability changed or left) a match anew."""
+    if (previous is None or touched is None or previous.requirement != req
+            or previous.excluded != frozenset(excluded)
+            or previous.current != frozenset(current)):
+        return match(req, index, local_agent, excluded=excluded, current=current)
+    need = req.need
+    mine = [(o, present) for o, present in touched if _candidate_of(need, o)]
+    if not mine:
+        return previous
+    search, complete = index.searched(need)
+    if not previous.searched[1] and search == previous.searched[0]:
+        return previous
+    patched = _patch(previous, index, local_agent, mine) if (
+        complete and previous.searched[1]) else None
+    return patched if patched is not None else match(req, index, local_agent,
+                                                     excluded=excluded, current=current)
+
+
+def _patch(previous: MatchResult, index: OfferIndex, local_agent: str,
+           touched: list[Touch]) -> MatchResult | None:
+    """``previous`` with each touched key's version before (the first journalled, if it
+    was a removal) taken out and its version now (if it fits) put in; None when a chosen
+    ability is among them (the next best is not kept).  Both results' candidates must be
+    complete (every fitting offer).  The best ``max_count`` of the chosen and the new are
+    the best of all: every other candidate ranked after the chosen ones, which are all
+    still there."""
+    req = previous.requirement
+    need = req.need
+    before: dict[str, Offer | None] = {}
+    for offer, present in touched:
+        before.setdefault(offer.key, None if present else offer)
+    if any(key in before for key in previous.keys):
+        return None
+    ex, cur = previous.excluded, previous.current
+    ranked = [r for c in previous.chosen
+              if isinstance(r := _rank(req, c.offer, local_agent, ex, cur), tuple)]
+    qualified, rejected = previous.qualified, dict(previous.rejected)
+    for key, old in before.items():
+        new = index.by_key.get(key)
+        if new is not None and not _candidate_of(need, new):
+            new = None
+        for offer, sign in ((old, -1), (new, 1)):
+            r = None if offer is None else _rank(req, offer, local_agent, ex, cur)
+            if isinstance(r, str):
+                rejected[r] = rejected.get(r, 0) + sign
+                if not rejected[r]:
+                    del rejected[r]
+            elif r is not None:
+                qualified += sign
+                if sign > 0:
+                    ranked.append(r)
+    return _result(req, ranked, qualified, rejected, ex, cur, index.searched(need))
 
 
 def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, *,
@@ -295,11 +431,22 @@ def match_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str, 
               ) -> dict[tuple[str, str], MatchResult]:
     """Match many needs; keys of ``excluded``/``current`` and of the result are
     ``(service_id, need name)``."""
+    return rematch_all(reqs, index, local_agent, {}, None, excluded=excluded, current=current)
+
+
+def rematch_all(reqs: Iterable[Requirement], index: OfferIndex, local_agent: str,
+                previous: Mapping[tuple[str, str], MatchResult], touched: list[Touch] | None,
+                *, excluded: Mapping[tuple[str, str], Collection[str]] | None = None,
+                current: Mapping[tuple[str, str], Collection[str]] | None = None,
+                ) -> dict[tuple[str, str], MatchResult]:
+    """``match_all`` after a change, each need through ``rematch`` from its ``previous``
+    result (``touched``: as ``index.take_touched()`` gave it)."""
     excluded = excluded or {}
     current = current or {}
     out = {}
     for req in reqs:
         k = (req.service_id, req.name)
-        out[k] = match(req, index, local_agent, excluded=excluded.get(k, ()),
-                       current=current.get(k, ()))
+        ex, cur = excluded.get(k, ()), current.get(k, ())
+        out[k] = rematch(previous.get(k), req, index, local_agent, touched, excluded=ex,
+                         current=cur)
     return out

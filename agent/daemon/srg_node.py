@@ -22,9 +22,10 @@ itself and puts each sample into its graph (``on_local_sample``), as tf2's
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
 tens of microseconds), decode local samples into the graph under the same lock (a pose
 costs a few microseconds) and record other agents' frames; one worker thread republishes the
-summary when needed and asks every agent for its summary every ``RESYNC_S`` (a summary put
-before our subscription reached its author is never sent again).  A failing query is
-answered with an error, never raised into Zenoh.
+summary when needed (computed from a copy of the graph's topology, off the lock) and asks
+every agent for its summary every ``RESYNC_S`` (a summary put before our subscription
+reached its author is never sent again).  A failing query is answered with an error, never
+raised into Zenoh.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.srg import Graph
-from agent.srg.supernode import summarize
+from agent.srg.supernode import Topology, summarize
 from schemas.codec import (
     DecodeError,
     decode_measurement,
@@ -102,6 +103,8 @@ class SrgNode:
         self.skew_ns = proto.skew_from_env()
         self.graph = Graph()
         self._lock = threading.Lock()
+        #: held while a summary is computed and published (not the graph's lock)
+        self._publishing = threading.Lock()
         self._bad = RateLimitedLog(log)
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
@@ -447,20 +450,28 @@ class SrgNode:
                              timeout=2.0)
 
     def _republish_if_changed(self) -> None:
-        with self._lock:
-            local = set(self.graph.frames())
-            remote = set().union(*self._remote_frames.values()) if self._remote_frames else set()
-            boundary = frozenset(local & remote)
-            state = (self.graph.version, boundary)
-            if state == self._published:
-                return
+        """Publish a new summary when the graph or the boundary changed.  Only the copy
+        of the graph's topology is taken under the lock: the summary is computed without
+        it, so queries and samples are never held up by it (issue 19: at 1,000 frames the
+        old summary held the lock for minutes).  Publishers take turns (``_publishing``):
+        a summary of an older state must not overwrite a newer one."""
+        with self._publishing:
+            with self._lock:
+                local = set(self.graph.frames())
+                remote = (set().union(*self._remote_frames.values()) if self._remote_frames
+                          else set())
+                boundary = frozenset(local & remote)
+                state = (self.graph.version, boundary)
+                if state == self._published:
+                    return
+                topology = Topology.of(self.graph)
             self._rev += 1
-            summary = summarize(self.graph, boundary)
+            summary = summarize(topology, boundary)
             summary.update(agent=self.agent_id, rev=self._rev, instance=self.instance)
             data = encode_message(proto.summary_to_wire(summary))
             self._summary = data
             self._published = state
-        self.session.put(self._summary_key, data)
+            self.session.put(self._summary_key, data)
 
     def close(self) -> None:
         """Stop publishing, answering and listening (before the agent closes its session)."""

@@ -19,7 +19,11 @@ Work per plan is bounded (issue 22: forged summaries with 801 links made a plan 
 all are considered, taken agent by agent outward from the agents that hold the source or
 the target frame (nearest first; in one layer, the agents with the fewest links first).
 What is left out is counted and said in a rate-limited log line (the planner's only
-output besides its result).
+output besides its result).  Only links that can carry this plan count: both ends the
+source, the target or a frame another agent also holds.  A link to a frame only its own
+agent knows is a dead end for any other query (a route through it would merge into that
+agent's link between the two frames beside it), and an agent of 1,000 frames summarises
+1,000 such links (issue 19: bounded to the first 66, they hid the source's own link).
 """
 
 from __future__ import annotations
@@ -156,9 +160,9 @@ def plan_routes(summaries: Mapping[str, Summary], source: str, target: str,
 
 def considered_links(summaries: Mapping[str, Summary], source: str,
                      target: str) -> list[Link]:
-    """The links a plan from ``source`` to ``target`` considers (module docstring: the
-    bounds): agents in layers outward from those holding either end, the agents with the
-    fewest links first in each layer (a forged summary tends to have many)."""
+    """The links a plan from ``source`` to ``target`` considers (module docstring: which,
+    and the bounds): agents in layers outward from those holding either end, the agents
+    with the fewest links first in each layer (a forged summary tends to have many)."""
     holders: dict[str, list[str]] = {}
     for agent, s in summaries.items():
         for frame in s.frames:
@@ -167,13 +171,18 @@ def considered_links(summaries: Mapping[str, Summary], source: str,
     seen = set(layer)
     links: list[Link] = []
     dropped = 0
+
+    def carries(frame: str) -> bool:
+        return frame in (source, target) or len(holders.get(frame, ())) > 1
+
     while layer:
         following: set[str] = set()
         for agent in sorted(layer, key=lambda a: (len(summaries[a].links), a)):
             s = summaries[agent]
             room = max(0, min(MAX_LINKS_PER_AGENT, MAX_PLAN_LINKS - len(links)))
-            links.extend(((agent, a, b), attrs) for a, b, attrs in s.links[:room])
-            dropped += max(0, len(s.links) - room)
+            useful = [(a, b, attrs) for a, b, attrs in s.links if carries(a) and carries(b)]
+            links.extend(((agent, a, b), attrs) for a, b, attrs in useful[:room])
+            dropped += max(0, len(useful) - room)
             following.update(x for f in s.frames for x in holders[f] if x not in seen)
         seen |= following
         layer = following

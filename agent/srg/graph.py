@@ -257,14 +257,12 @@ class Graph:
 
     def components(self) -> list[list[str]]:
         """The connected parts of the graph (frames linked by any chain of edges)."""
-        seen: set[str] = set()
-        out = []
-        for frame in sorted(self._adj):
-            if frame not in seen:
-                part = paths.reachable(self._adj, frame)
-                seen |= part
-                out.append(sorted(part))
-        return out
+        return paths.components(self._adj)
+
+    def adjacency(self) -> dict[str, list[tuple[str, EdgeKey, bool]]]:
+        """A copy of frame -> [(neighbour, edge key, walked forwards?)]: what a path search
+        over a snapshot of the graph needs (a summary is computed off the graph's lock)."""
+        return {frame: list(steps) for frame, steps in self._adj.items()}
 
     # ------------------------------------------------------------------ queries
 

@@ -47,23 +47,24 @@ def reachable(adj: Adjacency, start: str) -> set[str]:
     return seen
 
 
-def dijkstra(adj: Adjacency, source: str, target: str, weight: Weight,
-             banned_edges: Iterable[Hashable] = (), banned_frames: Iterable[str] = (),
-             ) -> Path | None:
-    """The lightest path (weights must be >= 0; ``inf`` edges are never used), or None."""
-    banned_e = set(banned_edges)
-    banned_f = set(banned_frames)
-    if source in banned_f:
-        return None
+def _settle(adj: Adjacency, source: str, target: str | None, weight: Weight,
+            banned_e: set[Hashable], banned_f: set[str],
+            ) -> tuple[dict[str, float], dict[str, tuple[str, Hashable, bool]], list[str]]:
+    """Dijkstra from ``source`` until ``target`` is reached (None: every reachable frame):
+    each frame's distance, the step that reached it (from frame, edge key, walked forwards?)
+    and the frames in the order they were settled (a frame after the one it was reached
+    from)."""
     best = {source: 0.0}
     back: dict[str, tuple[str, Hashable, bool]] = {}
     heap = [(0.0, 0, source)]
     counter = 1
     done: set[str] = set()
+    order: list[str] = []
     while heap:
         d, _, u = heapq.heappop(heap)
         if u in done:
             continue
+        order.append(u)
         if u == target:
             break
         done.add(u)
@@ -80,6 +81,17 @@ def dijkstra(adj: Adjacency, source: str, target: str, weight: Weight,
                 back[v] = (u, key, fwd)
                 heapq.heappush(heap, (nd, counter, v))
                 counter += 1
+    return best, back, order
+
+
+def dijkstra(adj: Adjacency, source: str, target: str, weight: Weight,
+             banned_edges: Iterable[Hashable] = (), banned_frames: Iterable[str] = (),
+             ) -> Path | None:
+    """The lightest path (weights must be >= 0; ``inf`` edges are never used), or None."""
+    banned_f = set(banned_frames)
+    if source in banned_f:
+        return None
+    best, back, _ = _settle(adj, source, target, weight, set(banned_edges), banned_f)
     if target not in best or best[target] == math.inf:
         return None
     frames = [target]
@@ -89,6 +101,69 @@ def dijkstra(adj: Adjacency, source: str, target: str, weight: Weight,
         steps.append((key, fwd))
         frames.append(u)
     return Path(tuple(reversed(frames)), tuple(reversed(steps)), best[target])
+
+
+def shortest_tree(adj: Adjacency, root: str, weight: Weight,
+                  ) -> list[tuple[str, str, Hashable, bool]]:
+    """The lightest paths from every frame to ``root`` at once (one Dijkstra from the root:
+    a path's reverse is a path, and weights do not depend on the direction walked).
+
+    Each reachable frame other than the root as ``(frame, next frame towards the root,
+    edge key, walked forwards from frame to next?)``, a frame always after its next one, so
+    a caller can extend each path by one step from the one it continues.
+    """
+    _, back, order = _settle(adj, root, None, weight, set(), set())
+    return [(v, back[v][0], back[v][1], not back[v][2]) for v in order[1:]]
+
+
+def components(adj: Adjacency) -> list[list[str]]:
+    """The connected parts (frames linked by any chain of edges), each sorted, in the
+    order of their first frame."""
+    seen: set[str] = set()
+    out = []
+    for frame in sorted(adj):
+        if frame not in seen:
+            part = reachable(adj, frame)
+            seen |= part
+            out.append(sorted(part))
+    return out
+
+
+def bridges(adj: Adjacency) -> set[Hashable]:
+    """The keys of the edges whose removal disconnects their two frames (Tarjan's bridges,
+    iterative: a chain of thousands of frames must not hit Python's recursion limit).
+
+    A path made only of bridges is the only simple path between its ends (any other would
+    have to cross each of them too), so every error function picks it.  Parallel edges are
+    never bridges: the walk back to the parent is refused by edge key, not by frame.
+    """
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    out: set[Hashable] = set()
+    for root in adj:
+        if root in index:
+            continue
+        index[root] = low[root] = len(index)
+        stack = [(root, None, iter(adj[root]))]
+        while stack:
+            node, via, todo = stack[-1]
+            for nxt, key, _ in todo:
+                if key == via:
+                    continue
+                if nxt in index:
+                    low[node] = min(low[node], index[nxt])
+                    continue
+                index[nxt] = low[nxt] = len(index)
+                stack.append((nxt, key, iter(adj[nxt])))
+                break
+            else:
+                stack.pop()
+                if stack:
+                    parent = stack[-1][0]
+                    low[parent] = min(low[parent], low[node])
+                    if low[node] > index[parent]:
+                        out.add(via)
+    return out
 
 
 def k_shortest(adj: Adjacency, source: str, target: str, weight: Weight, k: int) -> list[Path]:

@@ -27,8 +27,8 @@ from agent.srg.result import PoseResult
 _EYE6 = np.eye(6)
 
 
-def _oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: bool,
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: bool,
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """An edge value as walked: itself forwards, its inverse backwards."""
     if forward:
         return p, q, cov
@@ -36,9 +36,20 @@ def _oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: boo
     return pi, qi, geo.inverse_covariance(p, q, cov)
 
 
-def _compose(a: tuple, b: tuple) -> tuple:
+def compose_values(a: tuple, b: tuple) -> tuple:
+    """``(p, q, covariance)`` of ``a`` followed by ``b`` (first-order covariance)."""
     p, q = geo.compose(a[0], a[1], b[0], b[1])
     return p, q, geo.compose_covariance(a[0], a[1], a[2], b[2])
+
+
+def nominal_attributes(edge_attrs: Sequence[dict[str, Any]], values: Sequence[tuple],
+                       ) -> dict[str, Any]:
+    """A path's attributes for ranking: the covariance propagated through its edges'
+    nominal values (``(p, q, covariance)`` as walked, see :func:`oriented`)."""
+    acc = (np.zeros(3), geo.quat_identity(), None)
+    for value in values:
+        acc = compose_values(acc, value)
+    return aggregate(edge_attrs, acc[0], acc[2])
 
 
 class Chain:
@@ -62,9 +73,9 @@ class Chain:
         self._measured: list[tuple[Edge, bool, float]] = []
         for edge, fwd in steps:
             if edge.is_static:
-                value = _oriented(*edge.value, fwd)
+                value = oriented(*edge.value, fwd)
                 if items and items[-1][0] == "c":
-                    items[-1] = ("c", *_compose(items[-1][1:], value))
+                    items[-1] = ("c", *compose_values(items[-1][1:], value))
                 else:
                     items.append(("c", *value))
             else:
@@ -80,15 +91,9 @@ class Chain:
         self._uncertain = any(it[3] is not None for it in items if it[0] == "c") or any(
             e.attrs.get("covariance") is not None or e.std_cov is not None
             for e, _, _ in self._measured)
-        self.attributes = self._nominal_attributes(steps)
+        self.attributes = nominal_attributes(
+            self.edge_attrs, [oriented(*edge.nominal(), fwd) for edge, fwd in steps])
         self._constant_attrs = path_constants(self.edge_attrs)
-
-    def _nominal_attributes(self, steps: Sequence[tuple[Edge, bool]]) -> dict[str, Any]:
-        """Attributes for ranking: the covariance propagated through the nominal values."""
-        acc = (np.zeros(3), geo.quat_identity(), None)
-        for edge, fwd in steps:
-            acc = _compose(acc, _oriented(*edge.nominal(), fwd))
-        return aggregate(self.edge_attrs, acc[0], acc[2])
 
     def latest_time(self) -> int | None:
         """The latest time at which every measured edge has data without extrapolating."""
