@@ -71,8 +71,7 @@ def frames_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         P0 = P1 + lam[:, None] * d12
         v3 = P3 - P0
         n = _cross(P1 - P0, v3)
-        len_v3 = np.linalg.norm(v3, axis=1)
-        len_n = np.linalg.norm(n, axis=1)
+        len_v3, len_n = _norm(v3), _norm(n)
         x = R[:, :, 0] = -v3 / len_v3[:, None]
         z = R[:, :, 2] = n / len_n[:, None]
     R[:, :, 1] = _cross(z, x)
@@ -93,7 +92,7 @@ def labeling_errors(points: np.ndarray) -> np.ndarray:
         P0 = P1 + (_dot(P3 - P1, d12) / L2)[:, None] * d12
         P0b = P1 + (_dot(P4 - P1, d12) / L2)[:, None] * d12
         rays = P - P0[:, None]  # rays[:, k] = P(k+1) - P0
-        u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        u = rays / _norm(rays)[..., None]
         u1, u2, u3, u4 = u[:, 0], u[:, 1], u[:, 2], u[:, 3]
         perp = (np.abs(_dot(u4, u1)) + np.abs(_dot(u4, u2)) + np.abs(_dot(u4, u3))
                 + np.abs(_dot(u1, u3)) + np.abs(_dot(u2, u3)))
@@ -128,16 +127,23 @@ def reflection(order: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
     return (order[1], order[0], order[3], order[2])
 
 
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norms along the last axis: what np.linalg.norm computes (the same sum),
+    without its argument handling, which costs more than the sum on a few 3-vectors."""
+    return np.sqrt(np.add.reduce(v * v, axis=-1))
+
+
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, b)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (m, 3) arrays: each component ``a_j b_k - a_k b_j`` as
-    np.cross takes it, in four gathers and three array operations (np.cross and a
-    column_stack of the components cost a dozen numpy calls on small arrays)."""
-    return a[:, _NEXT] * b[:, _LAST] - a[:, _LAST] * b[:, _NEXT]
+    np.cross takes it, from four ``take`` gathers (timeit on (24, 3): 7 us, against 18 for
+    a column_stack of the components and 44 for np.cross, whose cost on small arrays is
+    its per-call overhead)."""
+    return a.take(_NEXT, 1) * b.take(_LAST, 1) - a.take(_LAST, 1) * b.take(_NEXT, 1)
 
 
 #: component j of a cross product pairs components _NEXT[j] and _LAST[j]
-_NEXT, _LAST = [1, 2, 0], [2, 0, 1]
+_NEXT, _LAST = np.array([1, 2, 0]), np.array([2, 0, 1])
