@@ -233,10 +233,10 @@ class LaserTracker:
         for name, img in images.items():
             cal = self._camera(name, img)
             centres = self._seen.predict(name, t, half)
-            if not len(centres):
+            if not centres:
                 continue
             boxes = [(round(u) - half, round(v) - half, round(u) + half + 1, round(v) + half + 1)
-                     for u, v in centres.tolist()]
+                     for u, v in centres]
             det, whole = detect_dots_in(img, boxes, cal.detector)
             if not whole or not _all_found(centres, det, half):
                 return None
@@ -372,43 +372,48 @@ class _Screens:
 
 
 class _SeenDots:
-    """Each camera's pixel dots in the last two frame sets: where to look next."""
+    """Each camera's pixel dots in the last two frame sets: where to look next.
+
+    A camera holds one or two dots: plain floats, not arrays -- numpy's per-call overhead
+    on such tiny arrays cost more than the arithmetic (cProfile on the bench's frames)."""
 
     def __init__(self) -> None:
         self.full_t = -math.inf  # time of the last full-frame pass
-        self._last: dict[str, np.ndarray] = {}
+        self._last: dict[str, list[list[float]]] = {}
         self._last_t = -math.inf
-        self._prev: dict[str, np.ndarray] = {}
+        self._prev: dict[str, list[list[float]]] = {}
         self._prev_t = -math.inf
 
     def update(self, detections: Mapping[str, np.ndarray], t: float, full: bool) -> None:
         self._prev, self._prev_t = self._last, self._last_t
-        self._last = {name: d[:, [U, V]] for name, d in detections.items() if len(d)}
+        self._last = {name: d[:, [U, V]].tolist() for name, d in detections.items() if len(d)}
         self._last_t = t
         if full:
             self.full_t = t
 
-    def predict(self, name: str, t: float, gate_px: float) -> np.ndarray:
-        """Where camera ``name``'s dots will be at ``t`` (n, 2): each moves on at its pixel
-        velocity since the nearest dot of the frame set before, if one was that near."""
-        last = self._last.get(name, np.zeros((0, 2)))
+    def predict(self, name: str, t: float, gate_px: float) -> list[list[float]]:
+        """Where camera ``name``'s dots will be at ``t`` ([u, v] each): each moves on at its
+        pixel velocity since the nearest dot of the frame set before, if one was that
+        near."""
+        last = self._last.get(name, [])
         prev = self._prev.get(name)
-        if prev is None or not len(last) or not self._prev_t < self._last_t:
+        if prev is None or not last or not self._prev_t < self._last_t:
             return last
-        step = last[:, None, :] - prev[None, :, :]
-        dist = np.hypot(step[..., 0], step[..., 1])
-        j = dist.argmin(axis=1)
-        rows = np.arange(len(last))
-        step = np.where((dist[rows, j] <= gate_px)[:, None], step[rows, j], 0.0)
-        return last + step * ((t - self._last_t) / (self._last_t - self._prev_t))
+        ratio = (t - self._last_t) / (self._last_t - self._prev_t)
+        out = []
+        for u, v in last:
+            du, dv = min(((u - pu, v - pv) for pu, pv in prev), key=lambda s: math.hypot(*s))
+            if not math.hypot(du, dv) <= gate_px:
+                du = dv = 0.0
+            out.append([u + du * ratio, v + dv * ratio])
+        return out
 
 
-def _all_found(centres: np.ndarray, det: np.ndarray, half: float) -> bool:
+def _all_found(centres: list[list[float]], det: np.ndarray, half: float) -> bool:
     """Whether every window (``half`` around each centre) holds a detected dot."""
-    if not len(det):
-        return False
-    d = np.abs(centres[:, None, :] - det[None, :, :2]).max(axis=2)
-    return bool((d.min(axis=1) <= half + 0.5).all())
+    found = det[:, :2].tolist()
+    return bool(found) and all(any(max(abs(u - x), abs(v - y)) <= half + 0.5
+                                   for x, y in found) for u, v in centres)
 
 
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
