@@ -57,7 +57,7 @@ def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) ->
     from sensor noise (with a floor for systematic effects).
     """
     _check_gray8(image)
-    return _merge(_components(image, 0, 0, params), params)
+    return _merge(_components(image, _boxes(image, params), 0, 0, params), params)
 
 
 def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
@@ -74,10 +74,12 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
         if x1 <= x0 or y1 <= y0:
             continue
         win = image[y0:y1, x0:x1]
-        whole = whole and not any(inner and int(edge.max()) > params.threshold for inner, edge in
-                                  ((x0 > 0, win[:, 0]), (x1 < w, win[:, -1]),
-                                   (y0 > 0, win[0]), (y1 < h, win[-1])))
-        rows.append(_components(win, x0, y0, params))
+        boxes = _boxes(win, params)
+        # a box of bright pixels reaching an edge of the window inside the image: a cut spot
+        whole = whole and not any((c0 == 0 < x0) or (c1 == x1 - x0 and x1 < w)
+                                  or (r0 == 0 < y0) or (r1 == y1 - y0 and y1 < h)
+                                  for r0, r1, c0, c1 in boxes)
+        rows.append(_components(win, boxes, x0, y0, params))
     return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
 
 
@@ -105,22 +107,31 @@ def _check_gray8(image: np.ndarray) -> None:
                          f"{getattr(image, 'shape', '')}")
 
 
-def _components(image: np.ndarray, x0: int, y0: int, p: DetectorParams) -> np.ndarray:
-    """Centroid rows of the bright components of ``image`` (offset ``x0, y0``).
+def _boxes(image: np.ndarray, p: DetectorParams) -> list[tuple[int, int, int, int]]:
+    """``(r0, r1, c0, c1)`` of each box holding bright pixels: the bands of consecutive rows
+    holding one (row maxima), cut into the runs of columns holding one within the band
+    (column maxima of the band).
 
     Labelling the whole frame writes a label for each of its 307,200 pixels, nearly all
-    dark.  Instead the row maxima find the bands of consecutive rows holding a bright pixel,
-    the column maxima of each band its runs of bright columns, and only those boxes are
-    labelled.  This is exact: an 8-connected component's rows are consecutive and each holds
-    one of its pixels, so it lies in one band, likewise in one column run of that band, and
-    any bright pixel touching it lies in the same box.
-    """
+    dark; only these boxes are labelled (``_components``).  This is exact: an 8-connected
+    component's rows are consecutive and each holds one of its pixels, so it lies in one
+    band, likewise in one column run of that band, and any bright pixel touching it lies in
+    the same box.  A window's search reads from the boxes, too, whether a spot reaches its
+    edge (``detect_dots_in``)."""
+    return [(r0, r1, c0, c1)
+            for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold)
+            for c0, c1 in _runs(cv2.reduce(image[r0:r1], 0, cv2.REDUCE_MAX).ravel()
+                                > p.threshold)]
+
+
+def _components(image: np.ndarray, boxes: list[tuple[int, int, int, int]], x0: int, y0: int,
+                p: DetectorParams) -> np.ndarray:
+    """Centroid rows of the bright components of ``image`` (offset ``x0, y0``), labelled
+    box by box (``_boxes``)."""
     rows = []
-    for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold):
-        band = image[r0:r1]
-        for c0, c1 in _runs(cv2.reduce(band, 0, cv2.REDUCE_MAX).ravel() > p.threshold):
-            if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
-                rows += _box_components(band[:, c0:c1], x0 + c0, y0 + r0, p)
+    for r0, r1, c0, c1 in boxes:
+        if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
+            rows += _box_components(image[r0:r1, c0:c1], x0 + c0, y0 + r0, p)
     return np.array(rows).reshape(-1, 5)
 
 

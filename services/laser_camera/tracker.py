@@ -353,8 +353,7 @@ class _Screens:
         det = np.concatenate([detections[name] for name in names])
         und = np.concatenate([self.cameras[self.index[name]].undistort(detections[name][:, [U, V]])
                               for name in names])
-        cam = np.repeat([self.index[name] for name in names],
-                        [len(detections[name]) for name in names])
+        cam = np.array([self.index[name] for name in names for _ in detections[name]])
         xy = apply_homography(self.H[cam], und)
         keep = np.flatnonzero(on_active_area(xy, self.side[cam, None]))
         cam, det, und, xy = cam[keep], det[keep], und[keep], xy[keep]
