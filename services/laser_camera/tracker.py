@@ -298,11 +298,12 @@ class LaserTracker:
         last = self._last
         tracking = last is not None and 0 <= t - last.t <= p.coherence_s
         if tracking:  # temporal coherence: the smallest error quaternion (eqs. 5.10-5.11)
-            angles = [float(geo.quat_angle(last.quaternion, c.quaternion)) for c, _ in pool]
-            best, subset = pool[int(np.argmin(angles))]
+            angles = geo.quat_angle(last.quaternion, np.array([c.quaternion for c, _ in pool]))
+            k = int(np.argmin(angles))
+            best, subset = pool[k]
             dt = t - last.t
-            turn = np.degrees(min(angles))
-            move = float(np.linalg.norm(best.position - last.position))
+            turn = math.degrees(angles[k])
+            move = math.dist(best.position, last.position)
             if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
                     or move > p.max_speed_mps * dt + p.gate_margin_m:
                 return NoPose(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
