@@ -85,22 +85,27 @@ def labeling_errors(points: np.ndarray) -> np.ndarray:
     where a labeling defines no frame.  (The directions from P0 to all four points are
     one (24, 4, 3) array: a numpy call per labeling array, not per point.)"""
     P = points[PERMUTATIONS]  # (24, 4, 3): P[i, k] = point labeled diode k + 1
-    P1, P2, P3, P4 = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
-    d12 = P2 - P1
-    L2 = _dot(d12, d12)
+    P1 = P[:, 0]
+    d12 = P[:, 1] - P1
     with np.errstate(divide="ignore", invalid="ignore"):
-        P0 = P1 + (_dot(P3 - P1, d12) / L2)[:, None] * d12
-        P0b = P1 + (_dot(P4 - P1, d12) / L2)[:, None] * d12
+        # the feet of P3 (P0, eq. 5.6's frame) and of P4 (P0', eq. 5.8) on the line P1P2
+        lam = np.einsum("ikj,ij->ik", P[:, 2:] - P1[:, None], d12) / _dot(d12, d12)[:, None]
+        feet = P1[:, None] + lam[:, :, None] * d12[:, None]
+        P0 = feet[:, 0]
         rays = P - P0[:, None]  # rays[:, k] = P(k+1) - P0
         u = rays / _norm(rays)[..., None]
-        u1, u2, u3, u4 = u[:, 0], u[:, 1], u[:, 2], u[:, 3]
-        perp = (np.abs(_dot(u4, u1)) + np.abs(_dot(u4, u2)) + np.abs(_dot(u4, u3))
-                + np.abs(_dot(u1, u3)) + np.abs(_dot(u2, u3)))
-        D = _dot(P0 - P0b, P0 - P0b)
+        # eq. 5.7's pairs: beam 4 with 1, 2, 3; beam 3 with 1, 2
+        cosines = np.einsum("ikj,ikj->ik", u.take(_PERP_A, 1), u.take(_PERP_B, 1))
+        perp = np.add.reduce(np.abs(cosines), axis=1)
+        D = _dot(P0 - feet[:, 1], P0 - feet[:, 1])
         n = _cross(rays[:, 0], rays[:, 2])
         F = (_dot(n, rays[:, 3]) <= 0).astype(float)
         eps = perp + D + F
     return np.where(np.isfinite(eps), eps, np.inf)
+
+
+#: the direction pairs of eq. 5.7 that must be perpendicular (diode indices - 1)
+_PERP_A, _PERP_B = np.array([3, 3, 3, 0, 1]), np.array([0, 1, 2, 2, 2])
 
 
 def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
