@@ -57,7 +57,7 @@ def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) ->
     from sensor noise (with a floor for systematic effects).
     """
     _check_gray8(image)
-    return _merge(_components(image, _boxes(image, params), 0, 0, params), params)
+    return _merge(_components(image, 0, 0, params), params)
 
 
 def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
@@ -73,13 +73,13 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
                                    for b in boxes]):
         if x1 <= x0 or y1 <= y0:
             continue
-        win = image[y0:y1, x0:x1]
-        boxes = _boxes(win, params)
-        # a box of bright pixels reaching an edge of the window inside the image: a cut spot
-        whole = whole and not any((c0 == 0 < x0) or (c1 == x1 - x0 and x1 < w)
-                                  or (r0 == 0 < y0) or (r1 == y1 - y0 and y1 < h)
-                                  for r0, r1, c0, c1 in boxes)
-        rows.append(_components(win, boxes, x0, y0, params))
+        # a window is small: labelled whole, without the band search of a full frame
+        found, stats = _box_components(image[y0:y1, x0:x1], x0, y0, params)
+        # a component reaching an edge of the window inside the image: a cut spot
+        whole = whole and not any((x == 0 < x0) or (x + bw == x1 - x0 and x1 < w)
+                                  or (y == 0 < y0) or (y + bh == y1 - y0 and y1 < h)
+                                  for x, y, bw, bh, _ in stats)
+        rows.append(np.array(found).reshape(-1, 5))
     return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
 
 
@@ -116,22 +116,20 @@ def _boxes(image: np.ndarray, p: DetectorParams) -> list[tuple[int, int, int, in
     dark; only these boxes are labelled (``_components``).  This is exact: an 8-connected
     component's rows are consecutive and each holds one of its pixels, so it lies in one
     band, likewise in one column run of that band, and any bright pixel touching it lies in
-    the same box.  A window's search reads from the boxes, too, whether a spot reaches its
-    edge (``detect_dots_in``)."""
+    the same box."""
     return [(r0, r1, c0, c1)
             for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold)
             for c0, c1 in _runs(cv2.reduce(image[r0:r1], 0, cv2.REDUCE_MAX).ravel()
                                 > p.threshold)]
 
 
-def _components(image: np.ndarray, boxes: list[tuple[int, int, int, int]], x0: int, y0: int,
-                p: DetectorParams) -> np.ndarray:
+def _components(image: np.ndarray, x0: int, y0: int, p: DetectorParams) -> np.ndarray:
     """Centroid rows of the bright components of ``image`` (offset ``x0, y0``), labelled
     box by box (``_boxes``)."""
     rows = []
-    for r0, r1, c0, c1 in boxes:
+    for r0, r1, c0, c1 in _boxes(image, p):
         if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
-            rows += _box_components(image[r0:r1, c0:c1], x0 + c0, y0 + r0, p)
+            rows += _box_components(image[r0:r1, c0:c1], x0 + c0, y0 + r0, p)[0]
     return np.array(rows).reshape(-1, 5)
 
 
@@ -147,19 +145,21 @@ def _runs(bright: np.ndarray) -> list[tuple[int, int]]:
     return runs
 
 
-def _box_components(roi: np.ndarray, x0: int, y0: int, p: DetectorParams) -> list[list[float]]:
-    """Centroid rows of the 8-connected components in one box of bright rows and columns."""
+def _box_components(roi: np.ndarray, x0: int, y0: int,
+                    p: DetectorParams) -> tuple[list[list[float]], list[list[int]]]:
+    """Centroid rows of the 8-connected components in one box (of bright rows and columns,
+    or a window), and every component's ``x, y, w, h, area`` in the box (small ones too)."""
     mask = (roi > p.threshold).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
                                                            ltype=cv2.CV_32S)
     out = []
-    for k in range(1, n):
-        x, y, w, h, area = stats[k].tolist()
+    boxes = stats[1:].tolist()
+    for k, (x, y, w, h, area) in enumerate(boxes, 1):
         if p.min_area <= area <= p.max_area:
             box = slice(y, y + h), slice(x, x + w)
             sel = mask[box].view(bool) if n == 2 else labels[box] == k
             out.append(_centroid(roi[box], sel, x0 + x, y0 + y, area, p))
-    return out
+    return out, boxes
 
 
 def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
