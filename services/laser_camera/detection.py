@@ -168,8 +168,7 @@ def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
 
     ``cv2.moments`` takes every sum in one C pass (in double precision, about the box's
     corner, where the coordinates are small)."""
-    signal = roi.astype(np.float64)
-    signal -= p.dark_level
+    signal = np.subtract(roi, p.dark_level, dtype=np.float64)
     signal *= sel
     np.maximum(signal, 0.0, out=signal)
     m = cv2.moments(signal)
