@@ -240,27 +240,28 @@ _EYE3 = np.eye(3)
 
 
 def matrix_to_quat(R: Array) -> Array:
-    """Rotation matrices (..., 3, 3) to unit quaternions (w >= 0), Shepperd's method."""
+    """Rotation matrices (..., 3, 3) to unit quaternions (w >= 0), Shepperd's method.
+
+    The four candidates are written into one array rather than stacked (five np.stack
+    calls were most of the cost on the few matrices of a tracker's frame set)."""
     R = np.asarray(R, dtype=float)
-    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    lead = R.shape[:-2]
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(-1, 9).T
     trace = m00 + m11 + m22
     # Four candidate solutions; pick per element the one with the largest pivot (stable).
-    cand = np.stack([
-        np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1], 1 + trace], -1),
-        np.stack([1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0],
-                  R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
-        np.stack([R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22,
-                  R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
-        np.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1],
-                  1 - m00 - m11 + m22, R[..., 1, 0] - R[..., 0, 1]], -1),
-    ], axis=-2)
-    pivots = np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
-                       1 - m00 - m11 + m22], -1)
-    idx = np.argmax(pivots, axis=-1)
-    q = np.take_along_axis(cand, idx[..., None, None], axis=-2)[..., 0, :]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return quat_canonical(q)
+    cand = np.empty((4, 4, len(m00)))
+    cand[0] = m21 - m12, m02 - m20, m10 - m01, 1 + trace
+    cand[1] = 1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12
+    cand[2] = m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20
+    cand[3] = m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01
+    idx = np.argmax(cand[_PIVOT_ROWS, _PIVOT_COLS], axis=0)  # the pivots: the four 4 w^2 ..
+    q = cand[idx, :, np.arange(len(idx))]  # (n, 4)
+    q = q / np.sqrt(np.add.reduce(q * q, axis=-1))[:, None]  # np.linalg.norm's sum
+    return quat_canonical(q.reshape(*lead, 4))
+
+
+#: where each candidate of ``matrix_to_quat`` holds its pivot (4 w^2, 4 x^2, 4 y^2, 4 z^2)
+_PIVOT_ROWS, _PIVOT_COLS = np.arange(4), np.array([3, 0, 1, 2])
 
 
 def rotvec_to_quat(r: Array) -> Array:

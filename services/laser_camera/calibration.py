@@ -33,7 +33,7 @@ from services.laser_camera.detection import DetectorParams
 from services.laser_camera.homography import (
     apply_homography,
     dlt_homography,
-    homography_jacobian,
+    homography_scale,
 )
 from services.sim.camera import undistort_points
 from services.sim.ivy import Wall
@@ -74,9 +74,9 @@ class CameraCalibration:
             return default
         return float(rms / math.sqrt(2) * math.sqrt(8 / n))
 
-    def metres_per_pixel(self, uv_undistorted: np.ndarray) -> float:
-        """Linear scale of the image -> screen map at an (undistorted) image point."""
-        return math.sqrt(abs(np.linalg.det(homography_jacobian(self.H, uv_undistorted))))
+    def metres_per_pixel(self, uv_undistorted: np.ndarray) -> np.ndarray:
+        """Linear scale of the image -> screen map at (undistorted) image points (n, 2)."""
+        return homography_scale(self.H, uv_undistorted)
 
     def to_dict(self) -> dict:
         d = self.detector

@@ -73,11 +73,13 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
                                    for b in boxes]):
         if x1 <= x0 or y1 <= y0:
             continue
-        win = image[y0:y1, x0:x1]
-        whole = whole and not any(inner and int(edge.max()) > params.threshold for inner, edge in
-                                  ((x0 > 0, win[:, 0]), (x1 < w, win[:, -1]),
-                                   (y0 > 0, win[0]), (y1 < h, win[-1])))
-        rows.append(_components(win, x0, y0, params))
+        # a window is small: labelled whole, without the band search of a full frame
+        found, stats = _box_components(image[y0:y1, x0:x1], x0, y0, params)
+        # a component reaching an edge of the window inside the image: a cut spot
+        whole = whole and not any((x == 0 < x0) or (x + bw == x1 - x0 and x1 < w)
+                                  or (y == 0 < y0) or (y + bh == y1 - y0 and y1 < h)
+                                  for x, y, bw, bh, _ in stats)
+        rows.append(np.array(found).reshape(-1, 5))
     return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
 
 
@@ -105,22 +107,29 @@ def _check_gray8(image: np.ndarray) -> None:
                          f"{getattr(image, 'shape', '')}")
 
 
-def _components(image: np.ndarray, x0: int, y0: int, p: DetectorParams) -> np.ndarray:
-    """Centroid rows of the bright components of ``image`` (offset ``x0, y0``).
+def _boxes(image: np.ndarray, p: DetectorParams) -> list[tuple[int, int, int, int]]:
+    """``(r0, r1, c0, c1)`` of each box holding bright pixels: the bands of consecutive rows
+    holding one (row maxima), cut into the runs of columns holding one within the band
+    (column maxima of the band).
 
     Labelling the whole frame writes a label for each of its 307,200 pixels, nearly all
-    dark.  Instead the row maxima find the bands of consecutive rows holding a bright pixel,
-    the column maxima of each band its runs of bright columns, and only those boxes are
-    labelled.  This is exact: an 8-connected component's rows are consecutive and each holds
-    one of its pixels, so it lies in one band, likewise in one column run of that band, and
-    any bright pixel touching it lies in the same box.
-    """
+    dark; only these boxes are labelled (``_components``).  This is exact: an 8-connected
+    component's rows are consecutive and each holds one of its pixels, so it lies in one
+    band, likewise in one column run of that band, and any bright pixel touching it lies in
+    the same box."""
+    return [(r0, r1, c0, c1)
+            for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold)
+            for c0, c1 in _runs(cv2.reduce(image[r0:r1], 0, cv2.REDUCE_MAX).ravel()
+                                > p.threshold)]
+
+
+def _components(image: np.ndarray, x0: int, y0: int, p: DetectorParams) -> np.ndarray:
+    """Centroid rows of the bright components of ``image`` (offset ``x0, y0``), labelled
+    box by box (``_boxes``)."""
     rows = []
-    for r0, r1 in _runs(cv2.reduce(image, 1, cv2.REDUCE_MAX).ravel() > p.threshold):
-        band = image[r0:r1]
-        for c0, c1 in _runs(cv2.reduce(band, 0, cv2.REDUCE_MAX).ravel() > p.threshold):
-            if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
-                rows += _box_components(band[:, c0:c1], x0 + c0, y0 + r0, p)
+    for r0, r1, c0, c1 in _boxes(image, p):
+        if (c1 - c0) * (r1 - r0) >= p.min_area:  # else too small: a hot pixel
+            rows += _box_components(image[r0:r1, c0:c1], x0 + c0, y0 + r0, p)[0]
     return np.array(rows).reshape(-1, 5)
 
 
@@ -136,19 +145,21 @@ def _runs(bright: np.ndarray) -> list[tuple[int, int]]:
     return runs
 
 
-def _box_components(roi: np.ndarray, x0: int, y0: int, p: DetectorParams) -> list[list[float]]:
-    """Centroid rows of the 8-connected components in one box of bright rows and columns."""
+def _box_components(roi: np.ndarray, x0: int, y0: int,
+                    p: DetectorParams) -> tuple[list[list[float]], list[list[int]]]:
+    """Centroid rows of the 8-connected components in one box (of bright rows and columns,
+    or a window), and every component's ``x, y, w, h, area`` in the box (small ones too)."""
     mask = (roi > p.threshold).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
                                                            ltype=cv2.CV_32S)
     out = []
-    for k in range(1, n):
-        x, y, w, h, area = stats[k].tolist()
+    boxes = stats[1:].tolist()
+    for k, (x, y, w, h, area) in enumerate(boxes, 1):
         if p.min_area <= area <= p.max_area:
             box = slice(y, y + h), slice(x, x + w)
             sel = mask[box].view(bool) if n == 2 else labels[box] == k
             out.append(_centroid(roi[box], sel, x0 + x, y0 + y, area, p))
-    return out
+    return out, boxes
 
 
 def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
@@ -157,8 +168,7 @@ def _centroid(roi: np.ndarray, sel: np.ndarray, x0: int, y0: int, area: int,
 
     ``cv2.moments`` takes every sum in one C pass (in double precision, about the box's
     corner, where the coordinates are small)."""
-    signal = roi.astype(np.float64)
-    signal -= p.dark_level
+    signal = np.subtract(roi, p.dark_level, dtype=np.float64)
     signal *= sel
     np.maximum(signal, 0.0, out=signal)
     m = cv2.moments(signal)

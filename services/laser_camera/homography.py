@@ -57,17 +57,26 @@ def dlt_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Map 2-D points (n, 2) through ``H`` (eq. 5.39)."""
-    p = _homogeneous(np.atleast_2d(points)) @ np.asarray(H, float).T
-    return p[:, :2] / p[:, 2:3]
+    """Map 2-D points (n, 2) through ``H`` (eq. 5.39): one (3, 3), or one per point
+    (n, 3, 3) -- the tracker maps the dots of all its cameras in one call."""
+    p = np.asarray(H, float) @ _homogeneous(np.atleast_2d(points))[:, :, None]
+    return p[:, :2, 0] / p[:, 2:3, 0]
 
 
-def homography_jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """d(H(x))/dx (2x2) at one point: how image errors become screen errors."""
-    x = np.append(np.asarray(point, float), 1.0)
-    w = H[2] @ x
-    y = H[:2] @ x / w
-    return (H[:2, :2] - np.outer(y, H[2, :2])) / w
+def homography_jacobian(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """d(H(x))/dx: (2, 2) at one point (2,), (n, 2, 2) at points (n, 2) (with one ``H`` or
+    one per point, (n, 3, 3)) -- how image errors become screen errors."""
+    x = np.asarray(points, float)
+    w = np.einsum("...j,...j->...", H[..., 2, :2], x) + H[..., 2, 2]
+    y = ((H[..., :2, :2] @ x[..., None])[..., 0] + H[..., :2, 2]) / w[..., None]
+    return (H[..., :2, :2] - y[..., :, None] * H[..., None, 2, :2]) / w[..., None, None]
+
+
+def homography_scale(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Linear scale of the map at points (n, 2): the square root of the Jacobian's
+    determinant, (n,) (``H`` as for ``homography_jacobian``)."""
+    J = homography_jacobian(H, points)
+    return np.sqrt(np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]))
 
 
 def _points(a: np.ndarray, name: str) -> np.ndarray:

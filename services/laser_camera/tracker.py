@@ -40,8 +40,9 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, U, V, detect_dots, detect_dots_in
-from services.laser_camera.homography import apply_homography
+from services.laser_camera.homography import apply_homography, homography_scale
 from services.laser_camera.pose import LabeledPose, candidate_poses, frames_from_points
+from services.sim.ivy import on_active_area, screen_to_world
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
@@ -171,6 +172,8 @@ class LaserTracker:
         self.passes: Counter[str] = Counter()
         self._last: PoseEstimate | None = None
         self._seen = _SeenDots()
+        self._screens = None if calibration is None else _Screens(
+            calibration.cameras, self.params.calib_sigma_m)
 
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
@@ -239,10 +242,10 @@ class LaserTracker:
         for name, img in images.items():
             cal = self._camera(name, img)
             centres = self._seen.predict(name, t, half)
-            if not len(centres):
+            if not centres:
                 continue
             boxes = [(round(u) - half, round(v) - half, round(u) + half + 1, round(v) + half + 1)
-                     for u, v in centres.tolist()]
+                     for u, v in centres]
             det, whole = detect_dots_in(img, boxes, cal.detector)
             if not whole or not _all_found(centres, det, half):
                 return None
@@ -254,38 +257,18 @@ class LaserTracker:
         if self.calibration is None:
             raise ValueError("this tracker has no camera calibration; it can only solve() "
                              "world-frame dots")
-        cal = self.calibration.camera(name)
+        i = self._screens.index.get(name)
+        cal = self.calibration.camera(name) if i is None else self._screens.cameras[i]
         if getattr(img, "shape", None) != (cal.height, cal.width):
             raise ValueError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
                              f" but calibrated for ({cal.height}, {cal.width}) gray")
         return cal
 
     def _to_world(self, detections: Mapping[str, np.ndarray]) -> WorldDots:
-        """World-frame dots of each camera's detected pixel dots."""
-        pts, std, walls, axes, cams, bend = [], [], [], [], [], []
-        guard = self.params.edge_guard_m
-        for name, det in detections.items():
-            if not len(det):
-                continue
-            cal = self.calibration.camera(name)
-            und = cal.undistort(det[:, [U, V]])
-            xy = apply_homography(cal.H, und)
-            keep = cal.wall.on_screen(xy)
-            clear = cal.wall.on_screen(xy, guard)
-            sigma_cal = cal.screen_sigma_m(self.params.calib_sigma_m)
-            for i in np.flatnonzero(keep):
-                mpp = cal.metres_per_pixel(und[i])
-                edge = 0.0 if clear[i] else self.params.edge_std_m
-                pts.append(cal.wall.to_world(xy[i])[0])
-                std.append(float(np.sqrt((det[i, STD] * mpp) ** 2 + sigma_cal ** 2 + edge ** 2)))
-                walls.append(cal.wall.name)
-                axes.append(cal.wall.rotation[:, :2].T)
-                cams.append(name)
-                u = 2 * xy[i] / cal.wall.screen_side_m - 1
-                bend.append(max(0.0, 1 - u[0] ** 2) * max(0.0, 1 - u[1] ** 2))
-        dots = WorldDots(np.array(pts).reshape(-1, 3), np.array(std), walls,
-                         np.array(axes).reshape(-1, 2, 3), cams, np.array(bend))
-        return _merge_duplicates(dots, self.params.merge_world_m)
+        """World-frame dots of each camera's detected pixel dots (cameras already checked
+        by ``_camera``)."""
+        return _merge_duplicates(self._screens.to_world(detections, self.params),
+                                 self.params.merge_world_m)
 
     def solve(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """The pose from world-frame dots (``detect``'s output), with temporal coherence."""
@@ -324,11 +307,12 @@ class LaserTracker:
         last = self._last
         tracking = last is not None and 0 <= t - last.t <= p.coherence_s
         if tracking:  # temporal coherence: the smallest error quaternion (eqs. 5.10-5.11)
-            angles = [float(geo.quat_angle(last.quaternion, c.quaternion)) for c, _ in pool]
-            best, subset = pool[int(np.argmin(angles))]
+            angles = geo.quat_angle(last.quaternion, np.array([c.quaternion for c, _ in pool]))
+            k = int(np.argmin(angles))
+            best, subset = pool[k]
             dt = t - last.t
-            turn = np.degrees(min(angles))
-            move = float(np.linalg.norm(best.position - last.position))
+            turn = math.degrees(angles[k])
+            move = math.dist(best.position, last.position)
             if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
                     or move > p.max_speed_mps * dt + p.gate_margin_m:
                 return NoPose(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
@@ -354,44 +338,91 @@ class LaserTracker:
         return est
 
 
+class _Screens:
+    """Every camera's image -> world map as arrays stacked over the cameras, so that the
+    dots of a frame set (four to six, spread over several cameras) pass through it in one
+    batch: done camera by camera, or dot by dot, numpy's per-call overhead was the cost."""
+
+    def __init__(self, cameras: list[CameraCalibration], calib_sigma_m: float):
+        self.cameras = cameras
+        self.index = {c.name: i for i, c in enumerate(cameras)}
+        self.H = np.array([c.H for c in cameras])
+        self.rotation = np.array([c.wall.rotation for c in cameras])
+        self.translation = np.array([c.wall.translation for c in cameras])
+        self.plane = np.array([c.wall.plane_distance for c in cameras])
+        self.side = np.array([c.wall.screen_side_m for c in cameras])
+        self.axes = self.rotation[:, :, :2].transpose(0, 2, 1)  # in-plane unit axes
+        self.sigma_m = np.array([c.screen_sigma_m(calib_sigma_m) for c in cameras])
+
+    def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
+        """The dots on the active screens, before duplicates are merged."""
+        names = [name for name, d in detections.items() if len(d)]
+        if not names:
+            return WorldDots(np.zeros((0, 3)), np.zeros(0), [], np.zeros((0, 2, 3)), [],
+                             np.zeros(0))
+        det = np.concatenate([detections[name] for name in names])
+        und = np.concatenate([self.cameras[self.index[name]].undistort(detections[name][:, [U, V]])
+                              for name in names])
+        cam = np.array([self.index[name] for name in names for _ in detections[name]])
+        xy = apply_homography(self.H[cam], und)
+        keep = np.flatnonzero(on_active_area(xy, self.side[cam, None]))
+        cam, det, und, xy = cam[keep], det[keep], und[keep], xy[keep]
+        side = self.side[cam]
+        edge = np.where(on_active_area(xy, side[:, None], p.edge_guard_m), 0.0, p.edge_std_m)
+        std = np.sqrt((det[:, STD] * homography_scale(self.H[cam], und)) ** 2
+                      + self.sigma_m[cam] ** 2 + edge ** 2)
+        u = 2 * xy / side[:, None] - 1
+        bend = np.maximum(0.0, 1 - u[:, 0] ** 2) * np.maximum(0.0, 1 - u[:, 1] ** 2)
+        cams = cam.tolist()
+        return WorldDots(
+            screen_to_world(xy, self.rotation[cam], self.translation[cam], self.plane[cam]),
+            std, [self.cameras[i].wall.name for i in cams], self.axes[cam],
+            [self.cameras[i].name for i in cams], bend)
+
+
 class _SeenDots:
-    """Each camera's pixel dots in the last two frame sets: where to look next."""
+    """Each camera's pixel dots in the last two frame sets: where to look next.
+
+    A camera holds one or two dots: plain floats, not arrays -- numpy's per-call overhead
+    on such tiny arrays cost more than the arithmetic (cProfile on the bench's frames)."""
 
     def __init__(self) -> None:
         self.full_t = -math.inf  # time of the last full-frame pass
-        self._last: dict[str, np.ndarray] = {}
+        self._last: dict[str, list[list[float]]] = {}
         self._last_t = -math.inf
-        self._prev: dict[str, np.ndarray] = {}
+        self._prev: dict[str, list[list[float]]] = {}
         self._prev_t = -math.inf
 
     def update(self, detections: Mapping[str, np.ndarray], t: float, full: bool) -> None:
         self._prev, self._prev_t = self._last, self._last_t
-        self._last = {name: d[:, [U, V]] for name, d in detections.items() if len(d)}
+        self._last = {name: d[:, [U, V]].tolist() for name, d in detections.items() if len(d)}
         self._last_t = t
         if full:
             self.full_t = t
 
-    def predict(self, name: str, t: float, gate_px: float) -> np.ndarray:
-        """Where camera ``name``'s dots will be at ``t`` (n, 2): each moves on at its pixel
-        velocity since the nearest dot of the frame set before, if one was that near."""
-        last = self._last.get(name, np.zeros((0, 2)))
+    def predict(self, name: str, t: float, gate_px: float) -> list[list[float]]:
+        """Where camera ``name``'s dots will be at ``t`` ([u, v] each): each moves on at its
+        pixel velocity since the nearest dot of the frame set before, if one was that
+        near."""
+        last = self._last.get(name, [])
         prev = self._prev.get(name)
-        if prev is None or not len(last) or not self._prev_t < self._last_t:
+        if prev is None or not last or not self._prev_t < self._last_t:
             return last
-        step = last[:, None, :] - prev[None, :, :]
-        dist = np.hypot(step[..., 0], step[..., 1])
-        j = dist.argmin(axis=1)
-        rows = np.arange(len(last))
-        step = np.where((dist[rows, j] <= gate_px)[:, None], step[rows, j], 0.0)
-        return last + step * ((t - self._last_t) / (self._last_t - self._prev_t))
+        ratio = (t - self._last_t) / (self._last_t - self._prev_t)
+        out = []
+        for u, v in last:
+            du, dv = min(((u - pu, v - pv) for pu, pv in prev), key=lambda s: math.hypot(*s))
+            if not math.hypot(du, dv) <= gate_px:
+                du = dv = 0.0
+            out.append([u + du * ratio, v + dv * ratio])
+        return out
 
 
-def _all_found(centres: np.ndarray, det: np.ndarray, half: float) -> bool:
+def _all_found(centres: list[list[float]], det: np.ndarray, half: float) -> bool:
     """Whether every window (``half`` around each centre) holds a detected dot."""
-    if not len(det):
-        return False
-    d = np.abs(centres[:, None, :] - det[None, :, :2]).max(axis=2)
-    return bool((d.min(axis=1) <= half + 0.5).all())
+    found = det[:, :2].tolist()
+    return bool(found) and all(any(max(abs(u - x), abs(v - y)) <= half + 0.5
+                                   for x, y in found) for u, v in centres)
 
 
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:

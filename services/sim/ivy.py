@@ -61,9 +61,7 @@ class Wall:
 
     def to_world(self, xy: np.ndarray) -> np.ndarray:
         """Screen points (n, 2) in metres to world points (n, 3) by eq. 5.40."""
-        xy = np.atleast_2d(np.asarray(xy, float))
-        xyz = np.column_stack([xy, np.full(len(xy), self.plane_distance)])
-        return xyz @ self.rotation.T - self.translation
+        return screen_to_world(xy, self.rotation, self.translation, self.plane_distance)
 
     def to_screen(self, points: np.ndarray) -> np.ndarray:
         """World points (n, 3) on the wall's plane to screen coordinates (n, 2)."""
@@ -72,9 +70,7 @@ class Wall:
 
     def on_screen(self, xy: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
         """Which screen points (n, 2) lie on the active area, at least ``margin_m`` inside."""
-        xy = np.atleast_2d(np.asarray(xy, float))
-        lo, hi = margin_m, self.screen_side_m - margin_m
-        return np.all((xy >= lo) & (xy <= hi), axis=1)
+        return on_active_area(xy, self.screen_side_m, margin_m)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "rotation": self.rotation.tolist(),
@@ -90,6 +86,25 @@ class Wall:
         if T.shape != (3,):
             raise ValueError(f"wall {d.get('name')!r}: translation must have 3 values")
         return cls(str(d["name"]), R, T, float(d["plane_distance"]), float(d["screen_side_m"]))
+
+
+def screen_to_world(xy: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                    plane_distance: float | np.ndarray) -> np.ndarray:
+    """Eq. 5.40 for screen points (n, 2) of one wall, or of one wall per point (rotation
+    (n, 3, 3), translation (n, 3), plane_distance (n,)): world points (n, 3)."""
+    xy = np.atleast_2d(np.asarray(xy, float))
+    xyz = np.empty((len(xy), 3))
+    xyz[:, :2] = xy
+    xyz[:, 2] = plane_distance
+    return (rotation @ xyz[:, :, None])[:, :, 0] - translation
+
+
+def on_active_area(xy: np.ndarray, side_m: float | np.ndarray,
+                   margin_m: float = 0.0) -> np.ndarray:
+    """Which screen points (n, 2) lie on an active area of side ``side_m`` (one, or (n, 1)
+    for one per point), at least ``margin_m`` inside."""
+    xy = np.atleast_2d(np.asarray(xy, float))
+    return np.all((xy >= margin_m) & (xy <= side_m - margin_m), axis=1)
 
 
 def make_walls(cube_side_m: float = CUBE_SIDE_M,
