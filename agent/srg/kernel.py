@@ -23,15 +23,16 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+
 from agent.srg.geometry import _SMALL_ANGLE
 
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)
 EdgeValue = tuple[int, int, float, Pose]
-#: position, quaternion, largest extrapolation (s), sample times per measured edge, and
-#: the per-edge values (None unless asked for)
-Result = tuple[tuple[float, float, float], tuple[float, float, float, float], float,
-               list[tuple[int, int]], list[EdgeValue] | None]
+#: largest extrapolation (s), sample times per measured edge, and the per-edge values
+#: (None unless asked for)
+Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None]
 
 
 def log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
@@ -87,8 +88,12 @@ def _compose(a: Pose, b: Pose) -> Pose:
             aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
 
 
-def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool) -> Result:
-    """The chain's pose at ``t_ns``; raises the buffer's error for an edge undefined there."""
+def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndarray,
+             q_out: np.ndarray) -> Result:
+    """The chain's pose at ``t_ns`` written into ``p_out`` (3) and ``q_out`` (4): the
+    result's own arrays, so that no tuple is converted afterwards (the compiled kernel
+    fills them through the buffer protocol).  Raises the buffer's error for an edge
+    undefined at ``t_ns``."""
     acc: Pose | None = None
     extrapolated = 0.0
     stamps: list[tuple[int, int]] = []
@@ -113,10 +118,12 @@ def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool) -> Result:
             if not forward:
                 value = _inverse(value)
         acc = value if acc is None else _compose(acc, value)
-    return acc[:3], acc[3:], extrapolated, stamps, edges
+    p_out[:] = acc[:3]
+    q_out[:] = acc[3:]
+    return extrapolated, stamps, edges
 
 
-def _native() -> Callable[[int, Sequence[tuple], bool], Result | None] | None:
+def _native() -> Callable[..., Result | None] | None:
     """The compiled kernel, or None (not built, or ``UMA_SRG_PURE_PYTHON=1``).  It returns
     None where :func:`evaluate` would raise, so that the error comes from one place."""
     if os.environ.get("UMA_SRG_PURE_PYTHON", "") not in ("", "0"):

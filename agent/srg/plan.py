@@ -122,16 +122,16 @@ class Chain:
                     uncertain = True
                     break
         items = self._kernel_items
+        p, q = np.empty(3), np.empty(4)
         native = kernel.NATIVE
-        out = None if native is None else native(t_ns, items, uncertain)
+        out = None if native is None else native(t_ns, items, uncertain, p, q)
         if out is None:  # the Python kernel: also the one that raises for undefined edges
-            out = kernel.evaluate(t_ns, items, uncertain)
-        p3, q4, extrapolated, stamps, edges = out
-        p = np.array(p3)
+            out = kernel.evaluate(t_ns, items, uncertain, p, q)
+        extrapolated, stamps, edges = out
         cov = None if edges is None else self._covariance(edges)
         constant = self._constant_attrs
-        return PoseResult(p, np.array(q4), cov, self.frames, self.edge_infos, t_ns,
-                          extrapolated, stamps, lambda: {**constant, **uncertainty(p, cov)})
+        return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
+                          lambda: {**constant, **uncertainty(p, cov)})
 
     def _covariance(self, edges: list[kernel.EdgeValue]) -> np.ndarray | None:
         """The path's covariance from the interpolated edge values the kernel returned."""
