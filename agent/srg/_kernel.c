@@ -150,7 +150,8 @@ static int bracket(PyObject *times, long long t, long long buffer_ns, double lim
 }
 
 /* One measured edge at t: its value as sampled into *value; stamps and, when edges is not
- * NULL, (i0, i1, factor, value) appended.  1 done, 0 undefined, -1 a Python error. */
+ * NULL, (i0, i1, factor, value) appended (evaluate then also appends the composed pose
+ * after each item to its prefixes).  1 done, 0 undefined, -1 a Python error. */
 static int measured(PyObject *entry, long long t, pose_t *value, double *extrapolated,
                     PyObject *stamps, PyObject *edges) {
     PyObject *times = PyTuple_GET_ITEM(entry, 1), *values = PyTuple_GET_ITEM(entry, 2);
@@ -221,8 +222,12 @@ static PyObject *evaluate(PyObject *Py_UNUSED(self), PyObject *args) {
     int have_t = 0;
     double extrapolated = 0.0;
     pose_t acc, value;
-    PyObject *stamps = PyList_New(0), *edges = want_edges ? PyList_New(0) : NULL;
-    if (stamps == NULL || (want_edges && edges == NULL)) goto fail;
+    PyObject *stamps = PyList_New(0), *edges = NULL, *prefixes = NULL;
+    if (want_edges) {
+        edges = PyList_New(0);
+        prefixes = PyList_New(0);
+    }
+    if (stamps == NULL || (want_edges && (edges == NULL || prefixes == NULL))) goto fail;
     Py_ssize_t count = PyTuple_GET_SIZE(items);
     for (Py_ssize_t k = 0; k < count; k++) {
         PyObject *entry = PyTuple_GET_ITEM(items, k);
@@ -242,17 +247,25 @@ static PyObject *evaluate(PyObject *Py_UNUSED(self), PyObject *args) {
             if (!PyObject_IsTrue(PyTuple_GET_ITEM(entry, 6))) inverse(&value);
         }
         if (k == 0) acc = value; else { pose_t c; compose(&acc, &value, &c); acc = c; }
+        if (prefixes != NULL) {
+            PyObject *a = float_tuple(acc.v, 7);
+            if (a == NULL || PyList_Append(prefixes, a) < 0) { Py_XDECREF(a); goto fail; }
+            Py_DECREF(a);
+        }
     }
     if (count == 0) goto undefined;
     if (!write_doubles(p_out, acc.v, 3) || !write_doubles(q_out, acc.v + 3, 4)) goto fail;
-    return Py_BuildValue("(dNN)", extrapolated, stamps, want_edges ? edges : Py_NewRef(Py_None));
+    if (!want_edges) return Py_BuildValue("(dNOO)", extrapolated, stamps, Py_None, Py_None);
+    return Py_BuildValue("(dNNN)", extrapolated, stamps, edges, prefixes);
 undefined:
     Py_XDECREF(stamps);
     Py_XDECREF(edges);
+    Py_XDECREF(prefixes);
     Py_RETURN_NONE;
 fail:
     Py_XDECREF(stamps);
     Py_XDECREF(edges);
+    Py_XDECREF(prefixes);
     return NULL;
 }
 

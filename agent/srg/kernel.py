@@ -30,9 +30,10 @@ from agent.srg.geometry import _SMALL_ANGLE
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)
 EdgeValue = tuple[int, int, float, Pose]
-#: largest extrapolation (s), sample times per measured edge, and the per-edge values
-#: (None unless asked for)
-Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None]
+#: largest extrapolation (s), sample times per measured edge, and, only when asked for
+#: (else None), the per-edge values and the composed pose after each item (covariance
+#: propagation maps each item's covariance with them)
+Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None, list[Pose] | None]
 
 
 def log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
@@ -78,7 +79,7 @@ def _rotate(x: float, y: float, z: float, w: float, vx: float, vy: float, vz: fl
             vz + w * tz + (x * ty - y * tx))
 
 
-def _compose(a: Pose, b: Pose) -> Pose:
+def compose(a: Pose, b: Pose) -> Pose:
     """``A B``: ``p_a + R_a p_b`` and ``q_a q_b``."""
     ax, ay, az, aw = a[3], a[4], a[5], a[6]
     rx, ry, rz = _rotate(ax, ay, az, aw, b[0], b[1], b[2])
@@ -98,6 +99,7 @@ def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndar
     extrapolated = 0.0
     stamps: list[tuple[int, int]] = []
     edges: list[EdgeValue] | None = [] if want_edges else None
+    prefixes: list[Pose] | None = [] if want_edges else None
     for entry in items:
         if len(entry) == 1:
             value = entry[0]
@@ -117,10 +119,12 @@ def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndar
                 edges.append((i0, i1, a, value))
             if not forward:
                 value = _inverse(value)
-        acc = value if acc is None else _compose(acc, value)
+        acc = value if acc is None else compose(acc, value)
+        if prefixes is not None:
+            prefixes.append(acc)
     p_out[:] = acc[:3]
     q_out[:] = acc[3:]
-    return extrapolated, stamps, edges
+    return extrapolated, stamps, edges, prefixes
 
 
 def _native() -> Callable[..., Result | None] | None:

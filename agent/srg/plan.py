@@ -27,8 +27,6 @@ from agent.srg.edge import Edge, EdgeKey
 from agent.srg.errors import EdgeUndefinedError, NoSamplesError, NoValidPathError
 from agent.srg.result import PoseResult
 
-_EYE6 = np.eye(6)
-
 
 def _oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: bool,
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -77,11 +75,7 @@ class Chain:
         self._items = items
         self._kernel_items = tuple(self._kernel_item(it) for it in items)
         self._buffers = tuple(e.buffer for e, _, _ in self._measured)
-        self._backward = np.array([not fwd for _, fwd, _ in self._measured], dtype=bool)
-        self._any_backward = bool(self._backward.any())
-        # constants of the static runs for covariance propagation: adjoint, covariance
-        self._const = {i: (geo.adjoint(it[1], it[2]), it[3])
-                       for i, it in enumerate(items) if it[0] == "c"}
+        self._backward = [not fwd for _, fwd, _ in self._measured]
         self._uncertain = any(it[3] is not None for it in items if it[0] == "c") or any(
             e.attrs.get("covariance") is not None or e.std_cov is not None
             for e, _, _ in self._measured)
@@ -127,29 +121,27 @@ class Chain:
         out = None if native is None else native(t_ns, items, uncertain, p, q)
         if out is None:  # the Python kernel: also the one that raises for undefined edges
             out = kernel.evaluate(t_ns, items, uncertain, p, q)
-        extrapolated, stamps, edges = out
-        cov = None if edges is None else self._covariance(edges)
+        extrapolated, stamps, edges, prefixes = out
+        cov = None if edges is None else self._covariance(edges, prefixes)
         constant = self._constant_attrs
         return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
                           lambda: {**constant, **uncertainty(p, cov)})
 
-    def _covariance(self, edges: list[kernel.EdgeValue]) -> np.ndarray | None:
-        """The path's covariance from the interpolated edge values the kernel returned."""
+    def _covariance(self, edges: list[kernel.EdgeValue], prefixes: list[kernel.Pose],
+                    ) -> np.ndarray | None:
+        """The path's covariance from the interpolated edge values and the composed poses
+        after each item that the kernel returned."""
         covs = [self._edge_cov(edge, buf, i0, i1, a)
                 for (edge, _, _), buf, (i0, i1, a, _) in zip(self._measured, self._buffers,
                                                               edges, strict=True)]
-        if not self._uncertain and all(c is None for c in covs):
-            return None
-        if not edges:
-            return self._propagate(None, None, None, covs)
-        E = np.array([e[3] for e in edges])
-        P_edge, Q = E[:, :3], E[:, 3:]
-        P = P_edge
-        if self._any_backward:
-            bw = self._backward
-            P, Q = P.copy(), Q.copy()
-            P[bw], Q[bw] = geo.inverse(P[bw], Q[bw])
-        return self._propagate(P, Q, P_edge, covs)
+        if len(self._items) == 1 and edges and not self._backward[0]:
+            # one measured edge walked forwards (a tracker's own segment, the most frequent
+            # query): its covariance needs no prefix, only the "std" translation
+            if covs[0] is None:
+                return None
+            kind, c = covs[0]
+            return c if kind == "se3" else geo.decoupled_to_se3(np.array(edges[0][3][:3]), c)
+        return self._propagate(edges, prefixes, covs)
 
     @staticmethod
     def _edge_cov(edge: Edge, buf: SampleBuffer, i0: int, i1: int, a: float,
@@ -169,58 +161,43 @@ class Chain:
         cov, rotates = edge.std_cov
         return ("std", cov) if rotates else ("se3", cov)
 
-    def _propagate(self, P: np.ndarray | None, Q: np.ndarray | None,
-                   P_edge: np.ndarray | None, covs: list) -> np.ndarray | None:
-        """``sum(Ad(prefix_i) C_i Ad(prefix_i)^T)`` with every adjoint from one batched call.
+    def _propagate(self, edges: list[kernel.EdgeValue], prefixes: list[kernel.Pose],
+                   covs: list) -> np.ndarray | None:
+        """``sum(Ad(M_i) C_i Ad(M_i)^T)`` over the uncertain items, every adjoint from one
+        batched call.
 
-        An edge walked forwards is mapped by the prefix before it, one walked backwards by
-        the prefix after it (its inverse is part of the prefix: T^-1 Exp(-xi) =
-        Exp(-Ad(T^-1) xi) T^-1).  A "std" covariance is first moved to the edge's
-        translation by the adjoint of that pure translation (``decoupled_to_se3``).
+        ``M_i`` maps item i's covariance to the source: the composed path before it for a
+        constant or an edge walked forwards; the path through it for an edge walked
+        backwards (its inverse is part of that prefix: T^-1 Exp(-xi) = Exp(-Ad(T^-1) xi)
+        T^-1); followed, for a "std" covariance, by the pure translation of the edge
+        (``decoupled_to_se3``).  ``Ad(A) Ad(B) = Ad(AB)``, so the kernel's composed poses
+        give each map directly, without a chain of 6x6 products.
         """
-        m = 0 if P is None else len(P)
-        if m == 1 and len(self._items) == 1 and not self._backward[0]:
-            # one measured edge walked forwards (a tracker's own segment, the most frequent
-            # query): its covariance needs no prefix, only the "std" translation
-            if covs[0] is None:
-                return None
-            kind, c = covs[0]
-            return c if kind == "se3" else geo.decoupled_to_se3(P_edge[0], c)
-        std_rows = [j for j in range(m) if covs[j] is not None and covs[j][0] == "std"]
-        if m:
-            Pa = P if not std_rows else np.concatenate([P, P_edge[std_rows]])
-            Qa = Q if not std_rows else np.concatenate([Q, np.tile(_QUAT_ID, (len(std_rows),
-                                                                               1))])
-            Ads = geo.adjoint(Pa, Qa)
-        maps, mats = [], []
-        prefix = _EYE6
+        poses, mats = [], []
         for i, it in enumerate(self._items):
+            before = prefixes[i - 1] if i else _IDENTITY
             if it[0] == "c":
-                Ad, c = self._const[i]
-                if c is not None:
-                    maps.append(prefix)
-                    mats.append(c)
-                prefix = prefix @ Ad
+                if it[3] is not None:
+                    poses.append(before)
+                    mats.append(it[3])
                 continue
             j = it[1]
-            before = prefix
-            prefix = prefix @ Ads[j]
-            entry = covs[j]
-            if entry is None:
+            if covs[j] is None:
                 continue
-            kind, c = entry
-            mapped = before if not self._backward[j] else prefix
+            kind, c = covs[j]
+            pose = prefixes[i] if self._backward[j] else before
             if kind == "std":
-                mapped = mapped @ Ads[m + std_rows.index(j)]
-            maps.append(mapped)
+                pose = kernel.compose(pose, (*edges[j][3][:3], 0.0, 0.0, 0.0, 1.0))
+            poses.append(pose)
             mats.append(c)
         if not mats:
             return None
-        Mp = np.array(maps)
-        return (Mp @ np.array(mats) @ Mp.transpose(0, 2, 1)).sum(axis=0)
+        M = np.array(poses)
+        Ad = geo.adjoint(M[:, :3], M[:, 3:])
+        return (Ad @ np.array(mats) @ Ad.transpose(0, 2, 1)).sum(axis=0)
 
 
-_QUAT_ID = np.array([0.0, 0.0, 0.0, 1.0])
+_IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
 class Plan:
