@@ -6,7 +6,7 @@ about a microsecond per call on a 3- or 4-vector, where the float arithmetic of 
 edge (lerp, slerp as ``q0 Exp(a Log(q0^-1 q1))`` with the log cached per sample pair, one
 composition) is a few dozen operations.  So the kernel works on tuples of floats, and a
 compiled twin (``agent/srg/_kernel.c``, built when a C compiler is there) does the same
-operations in the same order; :func:`active` returns the compiled one unless it is absent
+operations in the same order; :data:`NATIVE` is the compiled one unless it was not built
 or ``UMA_SRG_PURE_PYTHON=1`` is set.  Both are tested to agree.
 
 ``items`` is the chain in path order; each entry is either ``(pose,)``, a constant (a
@@ -36,7 +36,7 @@ EdgeValue = tuple[int, int, float, Pose]
 Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None, list[Pose] | None]
 
 
-def log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
+def _log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
     """The rotation vector of ``q0^-1 q1`` (slerp's log), as ``geometry.quat_to_rotvec``."""
     ax, ay, az, aw = -v0[3], -v0[4], -v0[5], v0[6]
     bx, by, bz, bw = v1[3], v1[4], v1[5], v1[6]
@@ -110,7 +110,7 @@ def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndar
             if i0 != i1:
                 delta = deltas[i0]
                 if delta is None:
-                    delta = deltas[i0] = log_between(value, values[i1])
+                    delta = deltas[i0] = _log_between(value, values[i1])
                 value = _interpolated(value, values[i1], delta, a)
             if ex > extrapolated:
                 extrapolated = ex

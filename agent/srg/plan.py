@@ -48,8 +48,8 @@ class Chain:
     Evaluation interpolates every measured edge and composes the path on plain floats in
     :mod:`agent.srg.kernel` (compiled when available): for a handful of edges numpy's
     per-call overhead costs more than the arithmetic.  Covariance, when any edge is
-    uncertain, is propagated with one batched ``adjoint`` whose prefix products map each
-    edge's covariance to the source.
+    uncertain, is propagated with one batched ``adjoint`` of the composed poses the kernel
+    passed through, which map each edge's covariance to the source.
     """
 
     def __init__(self, frames: Sequence[str], steps: Sequence[tuple[Edge, bool]],
