@@ -3,8 +3,9 @@
 1. A cached query at a time between samples over a path of 4 measured edges (interpolated
    at a random time each call, so nothing but the plan is reused) against
    ``TransformManager.get_transform`` over the same 4 edges as a static graph.  Reported
-   with and without covariance, and against TransformManager with its default checks
-   (``check=True``) and without (``check=False``).
+   with and without covariance, with the compiled chain kernel and the pure-Python one,
+   and against TransformManager without its checks (``check=False``, the goal's anchor)
+   and with them (the default).  The candidates are timed in alternating blocks.
 2. One new measurement followed by a query on a 1,000-frame graph against
    ``add_transform`` + ``get_transform``.
 
@@ -14,17 +15,20 @@ Usage: python bench/bench_srg_local.py [--iterations N] [--json]
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
+from collections.abc import Callable
 
 import numpy as np
 from pytransform3d.transform_manager import TransformManager
-from summary import median_p99
+from summary import cpu_model, median_p99
 
-from agent.srg import Graph
+from agent.srg import Graph, kernel
 from agent.srg import geometry as geo
 
 S = 1_000_000_000
+COMPILED = kernel.NATIVE  # None: not built, or UMA_SRG_PURE_PYTHON=1
 
 
 def _timed(fn, n: int) -> np.ndarray:
@@ -38,6 +42,35 @@ def _timed(fn, n: int) -> np.ndarray:
 
 def _random_pose(rng):
     return rng.normal(size=3), geo.rotvec_to_quat(rng.normal(size=3) * 0.5)
+
+
+def _interleaved(fns: dict[str, Callable[[int], object]], n: int, rounds: int = 10,
+                 ) -> dict[str, np.ndarray]:
+    """``n`` timed calls of each function, in ``rounds`` alternating blocks: on a shared
+    machine the load drifts, and ratios of figures taken side by side are what compare."""
+    out = {label: np.empty(n) for label in fns}
+    bounds = np.linspace(0, n, rounds + 1).astype(int)
+    for lo, hi in itertools.pairwise(bounds):
+        for label, fn in fns.items():
+            dest = out[label]
+            for i in range(lo, hi):
+                t0 = time.perf_counter_ns()
+                fn(i)
+                dest[i] = time.perf_counter_ns() - t0
+    return {label: a / 1000.0 for label, a in out.items()}  # microseconds
+
+
+def _kernel(native: object) -> Callable[[Callable[[int], object]], Callable[[int], object]]:
+    """A query run with the given chain kernel (None: the pure-Python one)."""
+    def wrap(fn: Callable[[int], object]) -> Callable[[int], object]:
+        def run(i: int) -> object:
+            kernel.NATIVE = native
+            try:
+                return fn(i)
+            finally:
+                kernel.NATIVE = COMPILED
+        return run
+    return wrap
 
 
 def bench_path4(n: int, rng: np.random.Generator) -> dict:
@@ -55,24 +88,34 @@ def bench_path4(n: int, rng: np.random.Generator) -> dict:
         graphs[label] = g
     times = rng.integers(10_000_000, (samples - 2) * 10_000_000, n)
     times[times % 10_000_000 == 0] += 1  # strictly between samples
-    out: dict = {"edges": 4, "samples_per_edge": samples}
+    fns: dict[str, Callable[[int], object]] = {}
     for label, g in graphs.items():
         g.pose(frames[0], frames[4], at=int(times[0]))  # build the plan once
         for i in range(min(n, 2000)):  # warm the per-sample slerp logs as a running system does
             g.pose(frames[0], frames[4], at=int(times[i]))
-        out[label] = median_p99(_timed(lambda i, g=g: g.pose(frames[0], frames[4],
-                                                             at=int(times[i])), n), "us")
+
+        def query(i: int, g: Graph = g) -> object:
+            return g.pose(frames[0], frames[4], at=int(times[i]))
+
+        fns[label] = query  # the kernel in use: the compiled one when it was built
+        if COMPILED is not None:
+            fns[f"{label}_python"] = _kernel(None)(query)
     for label, check in (("pytransform3d_default", True), ("pytransform3d_check_false", False)):
         tm = TransformManager(check=check)
         for e in range(4):
             tm.add_transform(frames[e + 1], frames[e], geo.to_matrix(*series[e][50]))
-        out[label] = median_p99(
-            _timed(lambda i, tm=tm: tm.get_transform(frames[4], frames[0]), n), "us")
-    base = out["pytransform3d_default"]["median_us"]
-    out["ratio_to_pytransform3d"] = out["no_covariance"]["median_us"] / base
-    out["ratio_with_covariance_to_pytransform3d"] = out["with_covariance"]["median_us"] / base
-    out["ratio_to_pytransform3d_check_false"] = (
-        out["no_covariance"]["median_us"] / out["pytransform3d_check_false"]["median_us"])
+        fns[label] = lambda i, tm=tm: tm.get_transform(frames[4], frames[0])
+    out: dict = {"edges": 4, "samples_per_edge": samples,
+                 "kernel": "python" if COMPILED is None else "compiled"}
+    out.update({label: median_p99(a, "us") for label, a in _interleaved(fns, n).items()})
+    for label in ("no_covariance", "with_covariance"):
+        out.setdefault(f"{label}_python", out[label])
+    strict, default = (out[k]["median_us"] for k in ("pytransform3d_check_false",
+                                                      "pytransform3d_default"))
+    for label in ("no_covariance", "with_covariance", "no_covariance_python",
+                  "with_covariance_python"):
+        out[f"ratio_{label}_to_check_false"] = out[label]["median_us"] / strict
+    out["ratio_to_pytransform3d_default"] = out["no_covariance"]["median_us"] / default
     return out
 
 
@@ -122,15 +165,22 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
-    figures = {"cached_query_4_edges": bench_path4(args.iterations, rng),
+    figures = {"cpu": cpu_model(), "cached_query_4_edges": bench_path4(args.iterations, rng),
                "update_and_query_1000_frames": bench_update_1000(args.iterations // 5,
                                                                  args.seed + 1)}
     a, b = figures["cached_query_4_edges"], figures["update_and_query_1000_frames"]
-    print(f"cached query, 4 interpolated edges: {a['no_covariance']['median_us']:.1f} us "
-          f"(with covariance {a['with_covariance']['median_us']:.1f} us); pytransform3d "
-          f"get_transform {a['pytransform3d_default']['median_us']:.1f} us "
-          f"(check=False {a['pytransform3d_check_false']['median_us']:.1f} us); ratio "
-          f"{a['ratio_to_pytransform3d']:.2f} (goal <= 1.0)")
+
+    def us(label: str) -> str:
+        return f"{a[label]['median_us']:.1f} us"
+
+    print(f"cpu: {figures['cpu']}; chain kernel: {a['kernel']}")
+    print(f"cached query, 4 interpolated edges: {us('no_covariance')}; pytransform3d "
+          f"get_transform(check=False) {us('pytransform3d_check_false')}; ratio "
+          f"{a['ratio_no_covariance_to_check_false']:.2f} (goal <= 1.0)")
+    print(f"  pure-Python kernel {us('no_covariance_python')} (ratio "
+          f"{a['ratio_no_covariance_python_to_check_false']:.2f}); with covariance "
+          f"{us('with_covariance')} (pure Python {us('with_covariance_python')}); "
+          f"pytransform3d with its default checks {us('pytransform3d_default')}")
     print(f"new measurement + query, 1000 frames: {b['srg']['median_us']:.1f} us; "
           f"pytransform3d add+get {b['pytransform3d']['median_us']:.1f} us; speedup "
           f"{b['speedup_vs_pytransform3d']:.1f}x (goal >= 10x)")

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pytransform3d.transform_manager import TransformManager
 
-from agent.srg import Graph
+from agent.srg import Graph, kernel
 from agent.srg import geometry as geo
 from agent.srg.errors import (
     BadErrorFunctionError,
@@ -25,6 +25,18 @@ from agent.srg.errors import (
 )
 
 S = 1_000_000_000  # ns per second
+COMPILED = kernel.NATIVE
+
+
+@pytest.fixture(scope="module", autouse=True, params=["compiled", "python"])
+def chain_kernel(request):
+    """Every test here runs on both chain kernels: the compiled one (when it was built) and
+    the pure-Python one, which must give the same answers and errors."""
+    if request.param == "compiled" and COMPILED is None:
+        pytest.skip("the compiled kernel was not built (agent/srg/_kernel.c)")
+    kernel.NATIVE = COMPILED if request.param == "compiled" else None
+    yield request.param
+    kernel.NATIVE = COMPILED
 
 
 def random_pose(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

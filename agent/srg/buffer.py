@@ -1,12 +1,12 @@
 """The time series of one measured edge: a bounded buffer of samples and where ``t`` falls.
 
 The buffer answers "which two samples bracket ``t``, and how far between them": the
-interpolation itself is done for every edge of a path at once by the plan (one batched
-:func:`agent.srg.geometry.interpolate` call), because per-edge numpy calls on 3- and
-4-vectors cost more than the arithmetic.  ``t`` outside the samples is extrapolated with a
-constant-velocity model (the same bracket, with a factor outside [0, 1]) up to a limit, and
-refused beyond it with an error that says whether the data for ``t`` was already dropped
-or has not arrived yet.
+interpolation itself is done by the plan's kernel (:mod:`agent.srg.kernel`) on plain floats,
+because per-call numpy overhead on 3- and 4-vectors costs more than the arithmetic; a
+sample is therefore kept as one tuple of 7 floats, not as arrays.  ``t`` outside the
+samples is extrapolated with a constant-velocity model (the same bracket, with a factor
+outside [0, 1]) up to a limit, and refused beyond it with an error that says whether the
+data for ``t`` was already dropped or has not arrived yet.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ Bracket = tuple[int, int, float, float]
 class SampleBuffer:
     """Samples of one edge ordered by time, at most ``max_samples`` and ``buffer_s`` long."""
 
-    __slots__ = ("buffer_ns", "covs", "deltas", "max_samples", "name", "positions", "quats",
-                 "times")
+    __slots__ = ("buffer_ns", "covs", "deltas", "max_samples", "name", "times", "values",
+                 "with_cov")
 
     def __init__(self, name: str, buffer_s: float, max_samples: int) -> None:
         if not buffer_s > 0:
@@ -35,12 +35,15 @@ class SampleBuffer:
         self.name = name
         self.buffer_ns = int(buffer_s * 1e9)
         self.max_samples = max_samples
+        # The lists are only ever changed in place: compiled plans hold references to them.
         self.times: list[int] = []
-        self.positions: list[np.ndarray] = []
-        self.quats: list[np.ndarray] = []
+        #: (px, py, pz, qx, qy, qz, qw) of each sample
+        self.values: list[tuple[float, ...]] = []
         self.covs: list[np.ndarray | None] = []
         #: rotation vector from sample i to sample i + 1 (slerp's log), filled on first use
-        self.deltas: list[np.ndarray | None] = []
+        self.deltas: list[tuple[float, float, float] | None] = []
+        #: how many samples carry a covariance (none: a plan skips looking for them)
+        self.with_cov = 0
 
     def __len__(self) -> int:
         return len(self.times)
@@ -52,17 +55,19 @@ class SampleBuffer:
     def add(self, t_ns: int, p: np.ndarray, q: np.ndarray, cov: np.ndarray | None) -> None:
         """Insert a sample; a sample at an existing time replaces it (a re-send)."""
         times = self.times
+        value = tuple(p.tolist() + q.tolist())
         if not times or t_ns > times[-1]:
             times.append(t_ns)
-            self.positions.append(p)
-            self.quats.append(q)
+            self.values.append(value)
             self.covs.append(cov)
+            self.with_cov += cov is not None
             self.deltas.append(None)
             self._trim()
             return
         i = bisect_left(times, t_ns)
         if times[i] == t_ns:
-            self.positions[i], self.quats[i], self.covs[i] = p, q, cov
+            self.with_cov += (cov is not None) - (self.covs[i] is not None)
+            self.values[i], self.covs[i] = value, cov
             self.deltas[i] = None
             if i:
                 self.deltas[i - 1] = None
@@ -70,9 +75,9 @@ class SampleBuffer:
         if t_ns < times[-1] - self.buffer_ns:
             return  # older than what the buffer keeps: it would be dropped at once
         times.insert(i, t_ns)
-        self.positions.insert(i, p)
-        self.quats.insert(i, q)
+        self.values.insert(i, value)
         self.covs.insert(i, cov)
+        self.with_cov += cov is not None
         self.deltas.insert(i, None)
         if i:
             self.deltas[i - 1] = None
@@ -86,8 +91,9 @@ class SampleBuffer:
             return
         cut = max(excess, bisect_left(times, times[-1] - self.buffer_ns))
         if cut > 0:
-            del times[:cut], self.positions[:cut], self.quats[:cut], self.covs[:cut]
-            del self.deltas[:cut]
+            if self.with_cov:
+                self.with_cov -= sum(c is not None for c in self.covs[:cut])
+            del times[:cut], self.values[:cut], self.covs[:cut], self.deltas[:cut]
 
     def bracket(self, t_ns: int, limit_s: float) -> Bracket:
         """The two samples around ``t`` and the interpolation factor between them.

@@ -88,7 +88,8 @@ class Edge:
             return self.value
         buf = self.buffer
         if buf is not None and len(buf):
-            p, q = buf.positions[-1], buf.quats[-1]
+            value = buf.values[-1]
+            p, q = np.array(value[:3]), np.array(value[3:])
             return p, q, self.covariance_at(p, buf.covs[-1])
         p = np.zeros(3)
         return p, geo.quat_identity(), nominal_covariance(self.attrs, p)

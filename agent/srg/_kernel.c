@@ -1,0 +1,282 @@
+/* The compiled twin of agent/srg/kernel.py's evaluate(): the same operations in the same
+ * order, on the same data (the buffers' Python lists), without the interpreter's cost per
+ * float operation.  It returns None wherever the Python kernel would raise (an edge with
+ * no value at t, or anything unexpected), so errors are made in one place: the caller then
+ * runs the Python kernel, which raises the precise error.  Optional: when this does not
+ * build, agent.srg.kernel runs in pure Python. */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+
+#define SMALL_ANGLE 1e-8 /* geometry._SMALL_ANGLE */
+
+typedef struct { double v[7]; } pose_t; /* px py pz qx qy qz qw */
+
+/* Hamilton product a * b of xyzw quaternions. */
+static void quat_mul(const double *a, const double *b, double *out) {
+    double ax = a[0], ay = a[1], az = a[2], aw = a[3];
+    double bx = b[0], by = b[1], bz = b[2], bw = b[3];
+    out[0] = aw * bx + ax * bw + ay * bz - az * by;
+    out[1] = aw * by - ax * bz + ay * bw + az * bx;
+    out[2] = aw * bz + ax * by - ay * bx + az * bw;
+    out[3] = aw * bw - ax * bx - ay * by - az * bz;
+}
+
+/* v + w t + u x t with t = 2 u x v. */
+static void rotate(const double *q, const double *v, double *out) {
+    double x = q[0], y = q[1], z = q[2], w = q[3];
+    double tx = 2.0 * (y * v[2] - z * v[1]);
+    double ty = 2.0 * (z * v[0] - x * v[2]);
+    double tz = 2.0 * (x * v[1] - y * v[0]);
+    out[0] = v[0] + w * tx + (y * tz - z * ty);
+    out[1] = v[1] + w * ty + (z * tx - x * tz);
+    out[2] = v[2] + w * tz + (x * ty - y * tx);
+}
+
+static void compose(const pose_t *a, const pose_t *b, pose_t *out) {
+    double r[3], q[4];
+    rotate(a->v + 3, b->v, r);
+    quat_mul(a->v + 3, b->v + 3, q);
+    out->v[0] = a->v[0] + r[0];
+    out->v[1] = a->v[1] + r[1];
+    out->v[2] = a->v[2] + r[2];
+    memcpy(out->v + 3, q, sizeof q);
+}
+
+static void inverse(pose_t *p) {
+    double q[4] = {-p->v[3], -p->v[4], -p->v[5], p->v[6]}, r[3];
+    rotate(q, p->v, r);
+    p->v[0] = -r[0];
+    p->v[1] = -r[1];
+    p->v[2] = -r[2];
+    memcpy(p->v + 3, q, sizeof q);
+}
+
+/* Rotation vector of q0^-1 q1 (slerp's log). */
+static void log_between(const pose_t *a, const pose_t *b, double *out) {
+    double c[4] = {-a->v[3], -a->v[4], -a->v[5], a->v[6]}, d[4];
+    quat_mul(c, b->v + 3, d);
+    if (d[3] < 0) {
+        d[0] = -d[0]; d[1] = -d[1]; d[2] = -d[2]; d[3] = -d[3];
+    }
+    double s = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    double k = s < SMALL_ANGLE ? 2.0 / d[3] : 2.0 * atan2(s, d[3]) / s;
+    out[0] = d[0] * k; out[1] = d[1] * k; out[2] = d[2] * k;
+}
+
+static void interpolate(const pose_t *a, const pose_t *b, const double *delta, double f,
+                        pose_t *out) {
+    double rx = delta[0] * f, ry = delta[1] * f, rz = delta[2] * f;
+    double th = sqrt(rx * rx + ry * ry + rz * rz);
+    double k = th < SMALL_ANGLE ? 0.5 - th * th / 48.0 : sin(0.5 * th) / th;
+    double e[4] = {rx * k, ry * k, rz * k, cos(0.5 * th)};
+    for (int i = 0; i < 3; i++) out->v[i] = a->v[i] + (b->v[i] - a->v[i]) * f;
+    quat_mul(a->v + 3, e, out->v + 3);
+}
+
+/* A tuple of n floats into out; 0 on anything else (no exception left set). */
+static int read_floats(PyObject *tuple, double *out, Py_ssize_t n) {
+    if (!PyTuple_Check(tuple) || PyTuple_GET_SIZE(tuple) != n) return 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *x = PyTuple_GET_ITEM(tuple, i);
+        if (!PyFloat_CheckExact(x)) return 0;
+        out[i] = PyFloat_AS_DOUBLE(x);
+    }
+    return 1;
+}
+
+static PyObject *float_tuple(const double *v, Py_ssize_t n) {
+    PyObject *t = PyTuple_New(n);
+    if (t == NULL) return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *x = PyFloat_FromDouble(v[i]);
+        if (x == NULL) { Py_DECREF(t); return NULL; }
+        PyTuple_SET_ITEM(t, i, x);
+    }
+    return t;
+}
+
+static int time_at(PyObject *times, Py_ssize_t i, long long *out) {
+    *out = PyLong_AsLongLong(PyList_GET_ITEM(times, i));
+    return !(*out == -1 && PyErr_Occurred());
+}
+
+/* SampleBuffer.bracket without its errors: 1 found, 0 undefined at t (or unreadable). */
+static int bracket(PyObject *times, long long t, long long buffer_ns, double limit,
+                   Py_ssize_t *i0, Py_ssize_t *i1, double *f, double *ex) {
+    Py_ssize_t n = PyList_GET_SIZE(times);
+    long long last, first, t0, t1;
+    *f = 0.0;
+    *ex = 0.0;
+    if (n == 0 || !time_at(times, n - 1, &last)) return 0;
+    if (t >= last) {
+        *i0 = *i1 = n - 1;
+        if (t == last) return 1;
+        *ex = (double)(t - last) * 1e-9;
+        if (*ex > limit) return 0;
+        if (n == 1) { *i0 = *i1 = 0; return 1; }
+        if (!time_at(times, n - 2, &t0)) return 0;
+        *i0 = n - 2;
+        *f = (double)(t - t0) / (double)(last - t0);
+        return 1;
+    }
+    if (!time_at(times, 0, &first) || t < last - buffer_ns) return 0;
+    if (t <= first) {
+        *i0 = *i1 = 0;
+        if (t == first) return 1;
+        *ex = (double)(first - t) * 1e-9;
+        if (*ex > limit) return 0;
+        if (n == 1) return 1;
+        if (!time_at(times, 1, &t1)) return 0;
+        *i1 = 1;
+        *f = (double)(t - first) / (double)(t1 - first);
+        return 1;
+    }
+    Py_ssize_t lo = 0, hi = n; /* bisect_left */
+    while (lo < hi) {
+        Py_ssize_t mid = (lo + hi) / 2;
+        long long tm;
+        if (!time_at(times, mid, &tm)) return 0;
+        if (tm < t) lo = mid + 1; else hi = mid;
+    }
+    if (!time_at(times, lo, &t1)) return 0;
+    *i0 = *i1 = lo;
+    if (t1 == t) return 1;
+    if (!time_at(times, lo - 1, &t0)) return 0;
+    *i0 = lo - 1;
+    *f = (double)(t - t0) / (double)(t1 - t0);
+    return 1;
+}
+
+/* One measured edge at t: its value as sampled into *value; stamps and, when edges is not
+ * NULL, (i0, i1, factor, value) appended (evaluate then also appends the composed pose
+ * after each item to its prefixes).  1 done, 0 undefined, -1 a Python error. */
+static int measured(PyObject *entry, long long t, pose_t *value, double *extrapolated,
+                    PyObject *stamps, PyObject *edges) {
+    PyObject *times = PyTuple_GET_ITEM(entry, 1), *values = PyTuple_GET_ITEM(entry, 2);
+    PyObject *deltas = PyTuple_GET_ITEM(entry, 3);
+    if (!PyList_CheckExact(times) || !PyList_CheckExact(values) || !PyList_CheckExact(deltas))
+        return 0;
+    long long buffer_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(entry, 4));
+    double limit = PyFloat_AsDouble(PyTuple_GET_ITEM(entry, 5));
+    if (PyErr_Occurred()) { PyErr_Clear(); return 0; }
+    Py_ssize_t i0, i1;
+    double f, ex;
+    if (!bracket(times, t, buffer_ns, limit, &i0, &i1, &f, &ex)) { PyErr_Clear(); return 0; }
+    Py_ssize_t n = PyList_GET_SIZE(values);
+    if (i1 >= n || PyList_GET_SIZE(deltas) != n) return 0;
+    pose_t v0, v1;
+    if (!read_floats(PyList_GET_ITEM(values, i0), v0.v, 7)) return 0;
+    if (i0 == i1) {
+        *value = v0;
+    } else {
+        double delta[3];
+        if (!read_floats(PyList_GET_ITEM(values, i1), v1.v, 7)) return 0;
+        PyObject *cached = PyList_GET_ITEM(deltas, i0);
+        if (cached == Py_None) {
+            log_between(&v0, &v1, delta);
+            PyObject *d = float_tuple(delta, 3);
+            if (d == NULL) return -1;
+            PyList_SetItem(deltas, i0, d); /* steals d */
+        } else if (!read_floats(cached, delta, 3)) {
+            return 0;
+        }
+        interpolate(&v0, &v1, delta, f, value);
+    }
+    if (ex > *extrapolated) *extrapolated = ex;
+    PyObject *stamp = Py_BuildValue("(OO)", PyList_GET_ITEM(times, i0),
+                                    PyList_GET_ITEM(times, i1));
+    if (stamp == NULL || PyList_Append(stamps, stamp) < 0) { Py_XDECREF(stamp); return -1; }
+    Py_DECREF(stamp);
+    if (edges != NULL) {
+        PyObject *v = float_tuple(value->v, 7);
+        PyObject *e = v == NULL ? NULL : Py_BuildValue("(nndN)", i0, i1, f, v);
+        if (e == NULL || PyList_Append(edges, e) < 0) { Py_XDECREF(e); return -1; }
+        Py_DECREF(e);
+    }
+    return 1;
+}
+
+/* Write n doubles into a writable contiguous float64 buffer of exactly n (a numpy array,
+ * read through the buffer protocol: no numpy headers needed to build). */
+static int write_doubles(PyObject *target, const double *v, Py_ssize_t n) {
+    Py_buffer view;
+    if (PyObject_GetBuffer(target, &view, PyBUF_WRITABLE | PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) < 0)
+        return 0;
+    int ok = view.itemsize == 8 && view.len == n * 8 && view.format != NULL
+             && (strcmp(view.format, "d") == 0 || strcmp(view.format, "<d") == 0);
+    if (ok) memcpy(view.buf, v, n * sizeof(double));
+    PyBuffer_Release(&view);
+    if (!ok) PyErr_SetString(PyExc_ValueError, "the output must be float64 arrays of 3 and 4");
+    return ok;
+}
+
+static PyObject *evaluate(PyObject *Py_UNUSED(self), PyObject *args) {
+    PyObject *t_obj, *items, *p_out, *q_out;
+    int want_edges;
+    if (!PyArg_ParseTuple(args, "OO!pOO", &t_obj, &PyTuple_Type, &items, &want_edges, &p_out,
+                          &q_out))
+        return NULL;
+    long long t = 0;
+    int have_t = 0;
+    double extrapolated = 0.0;
+    pose_t acc, value;
+    PyObject *stamps = PyList_New(0), *edges = NULL, *prefixes = NULL;
+    if (want_edges) {
+        edges = PyList_New(0);
+        prefixes = PyList_New(0);
+    }
+    if (stamps == NULL || (want_edges && (edges == NULL || prefixes == NULL))) goto fail;
+    Py_ssize_t count = PyTuple_GET_SIZE(items);
+    for (Py_ssize_t k = 0; k < count; k++) {
+        PyObject *entry = PyTuple_GET_ITEM(items, k);
+        if (!PyTuple_Check(entry)) goto undefined;
+        if (PyTuple_GET_SIZE(entry) == 1) {
+            if (!read_floats(PyTuple_GET_ITEM(entry, 0), value.v, 7)) goto undefined;
+        } else {
+            if (PyTuple_GET_SIZE(entry) != 7) goto undefined;
+            if (!have_t) {
+                t = PyLong_AsLongLong(t_obj); /* None or out of range: the Python kernel */
+                if (t == -1 && PyErr_Occurred()) { PyErr_Clear(); goto undefined; }
+                have_t = 1;
+            }
+            int r = measured(entry, t, &value, &extrapolated, stamps, edges);
+            if (r < 0) goto fail;
+            if (r == 0) goto undefined;
+            if (!PyObject_IsTrue(PyTuple_GET_ITEM(entry, 6))) inverse(&value);
+        }
+        if (k == 0) acc = value; else { pose_t c; compose(&acc, &value, &c); acc = c; }
+        if (prefixes != NULL) {
+            PyObject *a = float_tuple(acc.v, 7);
+            if (a == NULL || PyList_Append(prefixes, a) < 0) { Py_XDECREF(a); goto fail; }
+            Py_DECREF(a);
+        }
+    }
+    if (count == 0) goto undefined;
+    if (!write_doubles(p_out, acc.v, 3) || !write_doubles(q_out, acc.v + 3, 4)) goto fail;
+    if (!want_edges) return Py_BuildValue("(dNOO)", extrapolated, stamps, Py_None, Py_None);
+    return Py_BuildValue("(dNNN)", extrapolated, stamps, edges, prefixes);
+undefined:
+    Py_XDECREF(stamps);
+    Py_XDECREF(edges);
+    Py_XDECREF(prefixes);
+    Py_RETURN_NONE;
+fail:
+    Py_XDECREF(stamps);
+    Py_XDECREF(edges);
+    Py_XDECREF(prefixes);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"evaluate", evaluate, METH_VARARGS,
+     "evaluate(t_ns, items, want_edges, p_out, q_out): agent.srg.kernel.evaluate "
+     "compiled; None where it would raise."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernel", NULL, -1, methods,
+                                     NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__kernel(void) { return PyModule_Create(&module); }

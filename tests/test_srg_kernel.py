@@ -1,0 +1,129 @@
+"""The compiled chain kernel against the pure-Python one on random graphs: the same poses,
+covariances, sample stamps and extrapolation, and undefined edges left to Python's errors.
+
+The pytransform3d oracle and analytic interpolation tests (``test_srg_graph.py``) run on
+both kernels as well; here the two are compared with each other, to float rounding.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from agent.srg import Graph, kernel
+from agent.srg import geometry as geo
+from agent.srg.errors import EdgeUndefinedError
+
+COMPILED = kernel.NATIVE
+needs_compiled = pytest.mark.skipif(COMPILED is None,
+                                    reason="the compiled kernel was not built")
+LIMIT_S = 0.05
+
+
+def _random_chain(seed: int, hops: int) -> list[tuple]:
+    """Edges of a path f0 .. f{hops}: static or measured (irregular sample times, some
+    with sample covariances), random directions and uncertainty attributes."""
+    rng = np.random.default_rng(seed)
+    edges = []
+    for i in range(hops):
+        a, b = f"f{i}", f"f{i + 1}"
+        if rng.random() < 0.5:
+            a, b = b, a
+        attrs = {}
+        if rng.random() < 0.4:
+            attrs = {"pos_std_m": float(rng.uniform(1e-3, 1e-2)),
+                     "rot_std_rad": float(rng.uniform(0, 1e-2))}
+        if rng.random() < 0.3:
+            p = rng.normal(size=3)
+            edges.append(("static", a, b, p, geo.rotvec_to_quat(rng.normal(size=3)), attrs))
+            continue
+        times = np.cumsum(rng.integers(1_000_000, 30_000_000, int(rng.integers(1, 12))))
+        samples = []
+        for t in times:
+            cov = None
+            if rng.random() < 0.2:
+                L = rng.normal(size=(6, 6)) * 1e-3
+                cov = L @ L.T
+            samples.append((int(t), rng.normal(size=3),
+                            geo.rotvec_to_quat(rng.normal(size=3) * 2.0), cov))
+        edges.append(("measured", a, b, samples, None, attrs))
+    return edges
+
+
+def _graph(edges: list[tuple]) -> Graph:
+    g = Graph(max_extrapolation_s=LIMIT_S)
+    for kind, a, b, value, q, attrs in edges:
+        if kind == "static":
+            g.add_static(a, b, value, q, **attrs)
+        else:
+            for t, p, sq, cov in value:
+                g.add_measurement(a, b, t, p, sq, cov, **attrs)
+    return g
+
+
+def _query(g: Graph, hops: int, t: int, compiled: bool):
+    kernel.NATIVE = COMPILED if compiled else None
+    try:
+        return g.pose("f0", f"f{hops}", at=t)
+    except EdgeUndefinedError as exc:
+        return exc
+    finally:
+        kernel.NATIVE = COMPILED
+
+
+@needs_compiled
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), hops=st.integers(1, 6))
+def test_compiled_and_python_kernels_agree_on_random_chains(seed, hops):
+    edges = _random_chain(seed, hops)
+    # one graph per kernel: each fills its own cache of slerp logs
+    ours, theirs = _graph(edges), _graph(edges)
+    times = sorted({s[0] for e in edges if e[0] == "measured" for s in e[3]} or {0})
+    rng = np.random.default_rng(seed)
+    queries = [times[0], times[-1], times[-1] + 20_000_000, times[-1] + 80_000_000,
+               times[0] - 30_000_000, *rng.integers(times[0], times[-1] + 1, 8).tolist()]
+    for t in queries:
+        a = _query(ours, hops, int(t), compiled=True)
+        b = _query(theirs, hops, int(t), compiled=False)
+        if isinstance(b, Exception):
+            assert type(a) is type(b) and str(a) == str(b)
+            continue
+        np.testing.assert_allclose(a.position, b.position, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.quaternion, b.quaternion, rtol=0, atol=1e-12)
+        assert a.stamps == b.stamps and a.path == b.path
+        assert a.extrapolated_s == b.extrapolated_s
+        assert (a.covariance is None) == (b.covariance is None)
+        if a.covariance is not None:
+            np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-12, atol=1e-18)
+
+
+@needs_compiled
+def test_compiled_kernel_leaves_undefined_edges_to_python():
+    """Where an edge has no value at t, the compiled kernel answers None (and caches no
+    log), so the error is the Python kernel's, naming the edge."""
+    g = Graph(max_extrapolation_s=LIMIT_S)
+    g.add_measurement("a", "b", 0, [0, 0, 0], [0, 0, 0, 1])
+    g.add_measurement("a", "b", 10_000_000, [1, 0, 0], [0, 0, 0, 1])
+    g.declare_measured("b", "c")
+    g.pose("a", "b", at=5_000_000)
+    items = g.best_paths("a", "c")[0]._kernel_items
+    assert COMPILED(5_000_000, items, False, np.empty(3), np.empty(4)) is None
+    assert COMPILED(None, items, False, np.empty(3), np.empty(4)) is None
+    items_ab = g.best_paths("a", "b")[0]._kernel_items
+    assert COMPILED(10_000_000 + 10**9, items_ab, False, np.empty(3), np.empty(4)) is None
+    with pytest.raises(ValueError, match="float64 arrays"):
+        COMPILED(5_000_000, items_ab, False, np.empty(3, np.float32), np.empty(4))
+
+
+def test_pure_python_kernel_is_forced_by_the_environment():
+    env = dict(os.environ, UMA_SRG_PURE_PYTHON="1")
+    out = subprocess.run([sys.executable, "-c",
+                          "from agent.srg import kernel; print(kernel.NATIVE is None)"],
+                         env=env, capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "True"
