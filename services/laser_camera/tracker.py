@@ -41,7 +41,13 @@ from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, U, V, detect_dots, detect_dots_in
 from services.laser_camera.homography import apply_homography, homography_scale
-from services.laser_camera.pose import LabeledPose, candidate_poses, frames_from_points
+from services.laser_camera.pose import (
+    LabeledPose,
+    candidate_poses,
+    cross_rows,
+    frames_from_points,
+    row_norms,
+)
 from services.sim.ivy import on_active_area, screen_to_world
 
 #: why a frame set gave no pose
@@ -459,8 +465,8 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
     calibration moves every dot the same in both axes."""
     P = dots.points[idx]
     ray = P - p0
-    r = np.linalg.norm(ray, axis=1)
-    normal = np.cross(dots.axes[idx, 0], dots.axes[idx, 1])
+    r = row_norms(ray)
+    normal = cross_rows(dots.axes[idx, 0], dots.axes[idx, 1])
     c = np.clip(np.abs(np.einsum("ij,ij->i", normal, ray)) / r, 0.05, 1.0)
     bend = np.ones(len(idx)) if dots.bend is None else dots.bend[idx]
     across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
@@ -485,11 +491,22 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     if not np.all(np.isfinite(R)):
         raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
     dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
-    dphi = 0.5 * np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
-                           dR[:, 1, 0] - dR[:, 0, 1]], -1)
+    dphi = 0.5 * (dR[:, _SKEW_ROWS, _SKEW_COLS] - dR[:, _SKEW_COLS, _SKEW_ROWS])
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
+    # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
+    J[:3] += geo.skew(p0) @ J[3:]
     random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
-    systematic = (J * np.repeat(_installation_variance(dots, idx, p0, params), 2)) @ J.T \
-        + np.diag([params.model_pos_std_m ** 2] * 3 + [params.model_rot_std_rad ** 2] * 3)
-    return tuple(geo.decoupled_to_se3(p0, 0.5 * (C + C.T))
-                 for C in (random + systematic, systematic))
+    systematic = (J * np.repeat(_installation_variance(dots, idx, p0, params), 2)) @ J.T
+    model = np.zeros((6, 6))
+    model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
+    model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
+    systematic += geo.decoupled_to_se3(p0, model)
+    whole = random + systematic
+    return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+
+
+#: the skew part of a rotation's small error: component j is R[ROWS[j], COLS[j]] minus its
+#: transposed entry
+_SKEW_ROWS = np.array([2, 0, 1])
+_SKEW_COLS = np.array([1, 2, 0])
+_DIAG3 = np.arange(3)
