@@ -60,12 +60,20 @@ def test_the_page_shows_a_live_realm(processes, realm, tmp_path):
         assert "lab/accel-rig" in text
         processes.kill(rig.popen)
         killed = time.monotonic()
-        after = wait_text(browser, lambda t: "lab/accel-rig" not in t and
+        after = wait_text(browser, lambda t: "lab/accel-rig" not in _outside_events(t) and
                           "service accel-rig left agent lab" in t, WAIT_S, "the departure")
         took = time.monotonic() - killed
         print(f"the departure showed on the page {took:.2f} s after the kill")
         assert took <= DEPARTURE_S, f"the departure took {took:.2f} s to show"
         assert "lab/sim\n" in after and "no needs in the realm" in after, after
+
+
+def _outside_events(text: str) -> str:
+    """The page's text without its event log, which keeps naming a departed service (its
+    arrival, or a need of it re-matched at start-up on a loaded host)."""
+    head, sep, rest = text.partition("\nEvents\n")
+    services = rest.find("\nServices\n")
+    return text if not sep else head + (rest[services:] if services >= 0 else "")
 
 
 def _query(browser, target: str) -> None:
