@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from loopback import free_port
 
 from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
@@ -30,12 +30,6 @@ from agent.runtime.processes import stop_processes
 from agent.srg import geometry as geo
 from services import frames
 from services.sim import mounts
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _start(logdir: Path, name: str, *args: str) -> subprocess.Popen:
@@ -46,7 +40,7 @@ def _start(logdir: Path, name: str, *args: str) -> subprocess.Popen:
 
 def run(timeout: float, extra: list[str]) -> dict[str, Any]:
     realm = f"e2e{os.getpid()}"
-    ep = f"tcp/127.0.0.1:{_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     work = Path(tempfile.mkdtemp(prefix="uma-align-e2e-"))
     out = work / "alignment.toml"
     net = ["--realm", realm, "--agent", "lab", "--connect", ep]

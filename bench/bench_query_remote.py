@@ -38,7 +38,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -49,6 +48,7 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+from loopback import free_port, wait_listening
 from summary import cpu_model, median_p99
 
 from agent.runtime.processes import stop_processes
@@ -63,26 +63,8 @@ RATE_HZ = 100.0
 PAST_NS = 30_000_000  # "past" queries: between two samples, well inside C's buffer
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
-def _wait_listening(ports: list[int], limit_s: float) -> None:
-    """Wait until every port accepts a connection (agents take seconds to start on a
-    loaded machine; the client's own wait is its 2 s query timeout)."""
-    deadline = time.monotonic() + limit_s
-    for port in ports:
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise SystemExit(f"setup failed: nothing listens on port {port} after "
-                                     f"{limit_s:g} s") from None
-                time.sleep(0.1)
 
 
 def _stats(us: list[float]) -> dict:
@@ -254,7 +236,7 @@ def main() -> None:
     # a SIGTERM ends the run through `finally`, which stops the agents it started
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     realm = f"bench{uuid.uuid4().hex[:8]}"
-    ports = {name: _port() for name in ("A", "B", "C", "echo")}
+    ports = {name: free_port() for name in ("A", "B", "C", "echo")}
     ep = {name: f"tcp/127.0.0.1:{p}" for name, p in ports.items()}
     # a long lease: on a loaded machine a process stalled for more than the default 1 s
     # lease loses its links, and its tokens vanish mid-benchmark (failure detection is not
@@ -277,7 +259,7 @@ def main() -> None:
                                        key], env=env))
         procs.append(subprocess.Popen([*me, "--role", "tracker", "--realm", realm,
                                        "--connect", ep["C"]], env=env))
-        _wait_listening([ports[name] for name in ("A", "echo")], 60.0)
+        wait_listening([ports[name] for name in ("A", "echo")], 60.0)
         figures: dict = {"cpu": cpu_model()}
         with open_session("peer", None, [ep["echo"]]) as bare:
             for mode in CLIENT_MODES[args.client_mode]:

@@ -21,7 +21,6 @@ Usage: python bench/bench_tls.py [--queries N] [--samples N] [--rounds N] [--jso
 from __future__ import annotations
 
 import argparse
-import socket
 import subprocess
 import sys
 import tempfile
@@ -29,6 +28,7 @@ import threading
 import time
 from pathlib import Path
 
+from loopback import free_port
 from summary import cpu_model, median_p99, report
 
 from agent.deploy.certs import SiteSpec, create_site
@@ -42,10 +42,6 @@ VARIANTS = ("tcp", "tls", "tls_acl")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Variant:
@@ -53,7 +49,7 @@ class Variant:
 
     def __init__(self, name: str, directory: Path) -> None:
         self.name = name
-        port = _port()
+        port = free_port()
         scheme = "tcp" if name == "tcp" else "tls"
         self.endpoint = f"{scheme}/127.0.0.1:{port}"
         self.query: list[float] = []

@@ -16,12 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from loopback import free_port, wait_listening
 from summary import cpu_model, median_p99
 
 ANSWER = b"x" * 600  # about a segment answer with covariance and edges
@@ -39,10 +39,6 @@ def _config(mode: str, listen: str | None = None, connect: str | None = None):
     return c
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def run_queryable(name: str, listen: str, connect: str | None) -> None:
@@ -55,19 +51,6 @@ def run_queryable(name: str, listen: str, connect: str | None) -> None:
         q.undeclare()
 
 
-def _wait_listening(eps: dict[str, str], limit_s: float = 60.0) -> None:
-    """Every queryable process accepts connections (they take a moment to start)."""
-    deadline = time.monotonic() + limit_s
-    for ep in eps.values():
-        port = int(ep.rsplit(":", 1)[1])
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise SystemExit(f"setup failed: nothing listens at {ep}") from None
-                time.sleep(0.1)
 
 
 def _measure(mode: str, eps: dict[str, str], n: int) -> dict:
@@ -107,13 +90,14 @@ def main() -> None:
     if args.role:
         name, listen, connect = args.role
         return run_queryable(name, listen, None if connect == "-" else connect)
-    eps = {name: f"tcp/127.0.0.1:{_port()}" for name in "ABCE"}
+    ports = {name: free_port() for name in "ABCE"}
+    eps = {name: f"tcp/127.0.0.1:{port}" for name, port in ports.items()}
     me = [sys.executable, str(Path(__file__).resolve())]
     procs = []
     try:
         for name, connect in (("A", "-"), ("B", eps["A"]), ("C", eps["A"]), ("E", "-")):
             procs.append(subprocess.Popen([*me, "--role", name, eps[name], connect]))
-        _wait_listening(eps)
+        wait_listening(list(ports.values()))
         figures = {"cpu": cpu_model(),
                    **{mode: _measure(mode, eps, args.gets) for mode in ("client", "peer")}}
     finally:
