@@ -38,6 +38,7 @@ import numpy as np
 
 from agent.protocol.query import Summary
 from agent.runtime.logs import RateLimitedLog
+from agent.srg import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
@@ -276,7 +277,8 @@ class Composition:
             raise ValueError(f"segment {i} was already added")
         self._results[i] = result
         q = tuple(result.quaternion.tolist())
-        run = _Run(i, i, tuple(result.position.tolist()), q, _rotation(q), result.covariance)
+        run = _Run(i, i, tuple(result.position.tolist()), q, geo.rotation_rows(q),
+                   result.covariance)
         left = self._ending.pop(i - 1, None)
         if left is not None:
             del self._starting[left.first]
@@ -316,25 +318,6 @@ Vec = tuple[float, ...]
 Rot = tuple[Vec, Vec, Vec]
 
 
-def _rotation(q: Vec) -> Rot:
-    """The rotation matrix of a unit quaternion (x, y, z, w), rows as tuples."""
-    x, y, z, w = q
-    return ((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
-            (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
-            (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
-
-
-def _adjoint(p: Vec, R: Rot) -> np.ndarray:
-    """SE(3) adjoint ``[[R, [p]x R], [0, R]]`` (:func:`agent.srg.geometry.adjoint`)."""
-    px, py, pz = p
-    (a, b, c), (d, e, f), (g, h, k) = R
-    return np.array([
-        (a, b, c, py * g - pz * d, py * h - pz * e, py * k - pz * f),
-        (d, e, f, pz * a - px * g, pz * b - px * h, pz * c - px * k),
-        (g, h, k, px * d - py * a, px * e - py * b, px * f - py * c),
-        (0.0, 0.0, 0.0, a, b, c), (0.0, 0.0, 0.0, d, e, f), (0.0, 0.0, 0.0, g, h, k)])
-
-
 @dataclass
 class _Run:
     """Segments ``first..final`` composed: position, quaternion and rotation on floats, and
@@ -352,7 +335,7 @@ class _Run:
         R, (rx, ry, rz) = self.R, right.p
         cov = self.cov
         if right.cov is not None:
-            J = _adjoint(self.p, R)
+            J = geo.adjoint_of_rows(self.p, R)
             mapped = J @ right.cov @ J.T
             cov = mapped if cov is None else cov + mapped
         p = tuple(pi + row[0] * rx + row[1] * ry + row[2] * rz

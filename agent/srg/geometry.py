@@ -22,6 +22,7 @@ Inputs that cross a trust boundary go through the ``check_*`` functions, which r
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -419,16 +420,29 @@ def adjoint(p: Array, q: Array) -> Array:
 def _adjoint_one(p: Array, q: Array) -> Array:
     """``adjoint`` of one pose in plain floats: a client composes one per segment answer,
     and numpy's per-call overhead is most of the batched form's cost for a single pose."""
-    x, y, z, w = np.asarray(q, float).ravel().tolist()
-    px, py, pz = np.asarray(p, float).ravel().tolist()
-    r = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    s = [[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]]
-    sr = [[s[i][0] * r[0][j] + s[i][1] * r[1][j] + s[i][2] * r[2][j] for j in range(3)]
-          for i in range(3)]
-    zero = [0.0, 0.0, 0.0]
-    return np.array([r[i] + sr[i] for i in range(3)] + [zero + r[i] for i in range(3)])
+    return adjoint_of_rows(np.asarray(p, float).ravel().tolist(),
+                           rotation_rows(np.asarray(q, float).ravel().tolist()))
+
+
+def rotation_rows(q: Sequence[float]) -> tuple[tuple[float, float, float], ...]:
+    """The rotation matrix of one unit quaternion (x, y, z, w) on plain floats, rows as
+    tuples (for code that composes single poses, where numpy's per-call cost dominates)."""
+    x, y, z, w = q
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+            (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+            (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
+
+
+def adjoint_of_rows(p: Sequence[float], R: Sequence[Sequence[float]]) -> Array:
+    """``adjoint`` from a position and rotation rows on plain floats:
+    ``[[R, [p]x R], [0, R]]``."""
+    px, py, pz = p
+    (a, b, c), (d, e, f), (g, h, k) = R
+    return np.array([
+        (a, b, c, py * g - pz * d, py * h - pz * e, py * k - pz * f),
+        (d, e, f, pz * a - px * g, pz * b - px * h, pz * c - px * k),
+        (g, h, k, px * d - py * a, px * e - py * b, px * f - py * c),
+        (0.0, 0.0, 0.0, a, b, c), (0.0, 0.0, 0.0, d, e, f), (0.0, 0.0, 0.0, g, h, k)])
 
 
 def compose_covariance(p1: Array, q1: Array, C1: Array | None,
