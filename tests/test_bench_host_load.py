@@ -22,7 +22,7 @@ def test_bench_host_load_reports_every_figure() -> None:
     row = report["rows"][0]
     assert (row["services"], row["processes"], row["agents"]) == (4, 2, 2)
     assert row["uma_services_listed"] == 4
-    assert row["uma_services_ok"] == "3/3" and row["uma_query_ok"] == "3/3"
+    assert (row["uma_services_ok"], row["uma_query_ok"]) == ("3/3", "3/3"), row["uma_cli_errors"]
     assert 0 < row["uma_services_median_s"] <= row["uma_services_max_s"]
     assert 0 < row["uma_query_median_s"] <= row["uma_query_max_s"]
     # two agents linked to each other, two service processes to the first agent: every
