@@ -13,7 +13,9 @@ tracker service process registered with C), and one bare queryable process.  Mea
    faster than samples); every segment asked at a time 30 ms back, which C interpolates
    afresh each time (the worst case: nothing an agent computed can be reused); and with
    the client's cache of all-static segments (A's and B's here; valid until the agent's
-   summary changes), so that only C is asked;
+   summary changes), so that only C is asked.  Each kind also reports the CPU time of the
+   asking thread per query (median), beside the bare get's: the share of a query that is
+   this process's own work rather than waiting for the network and the agents;
 2. streaming: the time from the tracker's publication of a sample to the composed pose
    reaching ``on_pose`` in this process; median and p99, against the anchor of the same
    run: a bare Zenoh put from the tracker's own session to a subscriber callback in this
@@ -61,10 +63,6 @@ EDGES = {
 }
 RATE_HZ = 100.0
 PAST_NS = 30_000_000  # "past" queries: between two samples, well inside C's buffer
-
-
-
-
 
 
 def _stats(us: list[float]) -> dict:
@@ -135,22 +133,26 @@ def _ready(c, bare, key: str) -> None:
 def _queries(c, bare, key: str, n: int) -> dict:
     """The three kinds of query and the bare get, interleaved (the same machine load)."""
     modes = tuple(LABELS)
-    us: dict[str, list[float]] = {m: [] for m in modes}
-    bare_us = []
+    us: dict[str, list[float]] = {m: [] for m in (*modes, "bare_get")}
+    cpu: dict[str, list[float]] = {m: [] for m in us}
+    wall, thread = time.perf_counter_ns, time.thread_time_ns
     for i in range(len(modes) * n):
         mode = modes[i % len(modes)]
         c.cache_static_segments = mode == "cached"
         at = time.time_ns() - PAST_NS if mode == "past" else None
-        t0 = time.perf_counter_ns()
+        t0, c0 = wall(), thread()
         r = c.pose(WORLD, HEAD, at=at, error="hops")
-        t1 = time.perf_counter_ns()
+        t1, c1 = wall(), thread()
         replies = list(bare.get(key, payload=b"q" * 64, timeout=2.0))
-        t2 = time.perf_counter_ns()
+        t2, c2 = wall(), thread()
         assert replies and replies[0].ok is not None and len(r.path) == 4
         us[mode].append((t1 - t0) / 1000)
-        bare_us.append((t2 - t1) / 1000)
-    out = {m: _stats(v) for m, v in us.items()}
-    out["bare_get"] = b = _stats(bare_us)
+        us["bare_get"].append((t2 - t1) / 1000)
+        cpu[mode].append((c1 - c0) / 1000)
+        cpu["bare_get"].append((c2 - c1) / 1000)
+    out = {m: {**_stats(v), "thread_cpu_median_us": float(np.median(cpu[m]))}
+           for m, v in us.items()}
+    b = out["bare_get"]
     for m in modes:
         out[f"ratio_{m}_to_bare_get"] = out[m]["median_us"] / b["median_us"]
     return out
@@ -190,12 +192,13 @@ def _print(figures: dict) -> None:
             continue
         b = f["bare_get"]
         print(f"[client as a Zenoh {mode}] bare Zenoh get: median {b['median_us']:.0f} us, "
-              f"p99 {b['p99_us']:.0f} us")
+              f"p99 {b['p99_us']:.0f} us, asking thread's CPU {b['thread_cpu_median_us']:.0f} us")
         for kind, label in LABELS.items():
             q = f[kind]
             print(f"[client as a Zenoh {mode}] cross-agent query, {label}: median "
                   f"{q['median_us']:.0f} us, p99 {q['p99_us']:.0f} us, ratio "
-                  f"{f[f'ratio_{kind}_to_bare_get']:.2f}"
+                  f"{f[f'ratio_{kind}_to_bare_get']:.2f}, asking thread's CPU "
+                  f"{q['thread_cpu_median_us']:.0f} us"
                   + (" (goal <= 2.0)" if kind == "past" else ""))
         o, s = f["bare_put"], f["streaming"]
         if o:
