@@ -96,3 +96,21 @@ def test_summaries_are_asked_for_again_periodically(monkeypatch):
         assert len(asked) >= 2
     finally:
         n.close()
+
+
+def test_a_summary_every_receiver_would_refuse_is_reported_by_its_agent(caplog):
+    """Receivers refuse summaries of more than MAX_SUMMARY_FRAMES frames or links; the
+    agent that publishes one says so, since elsewhere it only shows as unknown frames."""
+    n = node()
+    for i in range(12):
+        n.graph.add_static("rig", f"tool{i}", [0.0, 0.0, 0.1 * i], [0.0, 0.0, 0.0, 1.0])
+    n._remote_frames["B"] = {"w", "cam", "rig"}  # shared with agent B: 15 x 3 - 6 links
+    with mock.patch("agent.protocol.query.MAX_SUMMARY_FRAMES", 20), caplog.at_level("WARNING"):
+        n._republish_if_changed()
+    assert "has 15 frames and 39 links (frames x 3 boundary frames)" in caplog.text
+    assert "receivers refuse more than 20" in caplog.text
+    caplog.clear()
+    n.graph.add_static("rig", "tool99", [0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0])
+    with caplog.at_level("WARNING"):  # within the limit: nothing to say
+        n._republish_if_changed()
+    assert "receivers refuse" not in caplog.text

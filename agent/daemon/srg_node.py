@@ -468,10 +468,24 @@ class SrgNode:
             self._rev += 1
             summary = summarize(topology, boundary)
             summary.update(agent=self.agent_id, rev=self._rev, instance=self.instance)
+            self._warn_if_refused(summary)
             data = encode_message(proto.summary_to_wire(summary))
             self._summary = data
             self._published = state
             self.session.put(self._summary_key, data)
+
+    def _warn_if_refused(self, summary: dict[str, Any]) -> None:
+        """Say so when every other agent and client will refuse this summary: queries that
+        need this host's frames then fail elsewhere with "unknown frame", and the reason is
+        only here.  Links grow with frames x boundary frames (``agent.srg.supernode``)."""
+        frames, links = len(summary["frames"]), len(summary["links"])
+        if max(frames, links) > proto.MAX_SUMMARY_FRAMES:
+            self._bad.warning("supernode", f"this agent's summary has {frames} frames and "
+                              f"{links} links (frames x {len(summary['boundary'])} boundary "
+                              f"frames); receivers refuse more than "
+                              f"{proto.MAX_SUMMARY_FRAMES} of either, so no other host can "
+                              "plan a query through this one: fewer frames or fewer frames "
+                              "shared with other hosts")
 
     def close(self) -> None:
         """Stop publishing, answering and listening (before the agent closes its session)."""
