@@ -1,20 +1,25 @@
 """The VRPN server and client on loopback without Zenoh: both connection kinds, reconnects,
 pings, and peers that misbehave (garbage, a wrong version, an oversized length, a bad
 description, silence instead of a cookie, leaving mid-message, bad call-back requests),
-which are logged and dropped while the others are served.  The raw peers here write bytes
-by hand, as VRPN's documentation lays them out."""
+which are logged and dropped while the others are served.  Servers that go silent with the
+connection open (a hung fake, a real uma server in a process stopped with SIGSTOP) are
+pinged, dropped and rejoined; one that answers the pings but has nothing to report is kept.
+The raw peers here write bytes by hand, as VRPN's documentation lays them out."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
 import logging
+import os
+import signal
 import socket
 import struct
 import time
 
 import numpy as np
 import pytest
+from agent_helpers.harness import freeze, spawn
 from conftest import free_port
 
 from agent.cli.main import main as uma
@@ -28,15 +33,15 @@ COOKIE = b"vrpn: ver. 07.38  0".ljust(24, b"\0")
 LIMIT_S = 10.0  # every wait below is bounded by this (a loaded machine)
 
 
-async def until(cond, what: str) -> None:
-    deadline = time.monotonic() + LIMIT_S
+async def until(cond, what: str, limit_s: float = LIMIT_S) -> None:
+    deadline = time.monotonic() + limit_s
     for _ in range(100_000):
         if cond():
             return
         if time.monotonic() > deadline:
             break
         await asyncio.sleep(0.01)
-    raise AssertionError(f"{what} not within {LIMIT_S} s")
+    raise AssertionError(f"{what} not within {limit_s} s")
 
 
 async def streaming(server: TrackerServer, stop: asyncio.Event) -> None:
@@ -92,7 +97,7 @@ async def _serve_and_receive(tcp: bool, restart: bool) -> TrackerClient:
 def test_client_receives_and_reconnects(tcp: bool, caplog) -> None:
     client = asyncio.run(_serve_and_receive(tcp, restart=True))
     assert ("dropped: datagram of 11 bytes ends inside a message" in caplog.text) is not tcp
-    assert client.connections == 2
+    assert client.connections == 2 and client.silent_drops == 0
     if tcp:
         assert client.udp_reports == 0
     else:
@@ -201,6 +206,132 @@ def _pongs(data: bytes) -> list[vp.Message]:
 def test_the_server_answers_pings() -> None:
     pong = _pongs(asyncio.run(_ping()))
     assert len(pong) == 1 and pong[0].sender == 0  # from tracker "Head", our sender 0
+
+
+# ---------------------------------------------------------------------------- silent servers
+
+def _hello(t_ns: int) -> bytes:
+    """What a VRPN server says first: its cookie, tracker Head, the Pos_Quat type, a report."""
+    return (COOKIE + vp.sender_description(0, "Head", t_ns)
+            + vp.type_description(0, vp.POS_QUAT, t_ns)
+            + vp.encode_message(0, 0, t_ns, vp.encode_pos_quat(0, [1, 2, 3], [0, 0, 0, 1])))
+
+
+class _Hung(asyncio.Protocol):
+    """A server that says hello, then neither reads nor writes, its socket left open: a
+    hung process, or a network path that died without a FIN or RST."""
+
+    def __init__(self, hung: list[tuple[float, asyncio.Transport]]) -> None:
+        self.hung = hung
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        transport.write(_hello(time.time_ns()))
+        transport.pause_reading()
+        self.hung.append((time.monotonic(), transport))
+
+
+async def _hung_server(caplog) -> None:
+    port = free_port()
+    hung: list[tuple[float, asyncio.Transport]] = []
+    server = await asyncio.get_running_loop().create_server(lambda: _Hung(hung), "127.0.0.1",
+                                                            port)
+    got: list = []
+    client = TrackerClient(vp.DeviceAddress("Head", "127.0.0.1", port, True),
+                           lambda *r: got.append(r), ping_s=0.2, pong_timeout_s=0.5)
+    stop = asyncio.Event()
+    task = asyncio.ensure_future(client.run(stop))
+    try:
+        await until(lambda: client.silent_drops == 1, "the first silent drop")
+        dropped = time.monotonic()
+        assert dropped - hung[0][0] >= 0.2 + 0.5  # pinged after 0.2 s, waited 0.5 s more
+        assert client.pings == 1 and len(got) == 1
+        assert f"VRPN server Head@tcp://127.0.0.1:{port} silent for " in caplog.text
+        assert " s: no pong within 0.5 s of our ping" in caplog.text
+        await until(lambda: client.connections == 2 and len(got) == 2,
+                    "a reconnection to the same server")
+        await until(lambda: client.silent_drops == 2, "the second silent drop")
+    finally:
+        stop.set()
+        await task
+        for _, t in hung:
+            t.abort()
+        server.close()
+        await server.wait_closed()
+
+
+def test_a_hung_server_is_pinged_dropped_and_reconnected(caplog) -> None:
+    asyncio.run(_hung_server(caplog))
+
+
+async def _quiet_server(tcp: bool) -> None:
+    port = free_port()
+    server = TrackerServer(["Head"], "127.0.0.1", port)
+    await server.start()
+    client = TrackerClient(vp.DeviceAddress("Head", "127.0.0.1", port, tcp), lambda *r: None,
+                           ping_s=0.1, pong_timeout_s=0.3)
+    stop = asyncio.Event()
+    task = asyncio.ensure_future(client.run(stop))
+    # each ping waits for its pong; without the pongs it would be dropped after 0.4 s
+    await until(lambda: client.pings >= 10, "ten pings")
+    assert client.pongs >= 9 and client.silent_drops == 0 and client.connections == 1
+    assert client.connected.is_set()
+    stop.set()
+    await task
+    await server.close()
+
+
+@pytest.mark.parametrize("tcp", [True, False], ids=["tcp", "udp-handshake"])
+def test_a_server_that_answers_pings_but_sends_no_reports_is_kept(tcp: bool) -> None:
+    asyncio.run(_quiet_server(tcp))
+
+
+#: a real uma VRPN server in a process of its own, streaming Head at ~100 Hz (bounded)
+SERVER = """
+import asyncio, sys, time
+from services.vrpn.server import TrackerServer
+
+async def main():
+    server = TrackerServer(["Head"], "127.0.0.1", int(sys.argv[1]))
+    await server.start()
+    print("serving", flush=True)
+    for k in range(12_000):
+        server.report(0, time.time_ns(), [k, 0, 0], [0, 0, 0, 1])
+        await asyncio.sleep(0.01)
+
+asyncio.run(main())
+"""
+
+
+async def _stopped_server(processes, tcp: bool, caplog) -> None:
+    port = free_port()
+    proc = spawn(processes, ["-c", SERVER, str(port)])
+    loop = asyncio.get_running_loop()
+    await loop.run_in_executor(None, proc.wait_line, "serving")
+    got: list = []
+    client = TrackerClient(vp.DeviceAddress("Head", "127.0.0.1", port, tcp),
+                           lambda *r: got.append(r))  # the default timings
+    stop = asyncio.Event()
+    task = asyncio.ensure_future(client.run(stop))
+    try:
+        await until(lambda: len(got) > 20, "reports")
+        await loop.run_in_executor(None, freeze, proc)
+        await until(lambda: client.silent_drops == 1, "the stopped server noticed", 30.0)
+        assert "no pong within 3 s of our ping" in caplog.text
+        assert not client.connected.is_set() and client.connections == 1
+        n = len(got)
+    finally:
+        os.kill(proc.popen.pid, signal.SIGCONT)
+    await until(lambda: client.connections == 2, "the reconnection after SIGCONT", 30.0)
+    await until(lambda: len(got) > n + 20, "reports again")
+    stop.set()
+    await task
+    assert client.silent_drops == 1
+
+
+@pytest.mark.parametrize("tcp", [True, False], ids=["tcp", "udp-handshake"])
+def test_a_stopped_uma_server_is_noticed_and_rejoined_after_sigcont(processes, tcp,
+                                                                     caplog) -> None:
+    asyncio.run(_stopped_server(processes, tcp, caplog))
 
 
 class _Handle:

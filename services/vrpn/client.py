@@ -10,6 +10,24 @@ timestamp.
 When the server goes away the client tries again every ``retry_s`` (0.25 s: VRPN's own
 clients wait 1 to 2 s between attempts), so it is back within a fraction of a second of the
 server's return.
+
+A server that goes silent without closing the connection (its process hung or stopped, the
+network path gone without a FIN or RST) is noticed with VRPN's ping: when nothing has come
+from the server for ``ping_s``, the client sends ``vrpn_Base ping_message`` on the
+tracker's sender, which VRPN's servers (and uma's) answer with ``vrpn_Base pong_message``.
+If neither the pong nor anything else arrives within ``pong_timeout_s``, the client logs
+how long the server has been silent, drops the connection (counted in ``silent_drops``)
+and reconnects as for a lost server.  A server that sends nothing because its device does
+not move still answers the pings, so it is kept.
+
+VRPN's clients (VRPN, vrpn_BaseClass.C: ``client_mainloop``, ``initiate_ping_cycle``) ping
+when they connect or lose the connection, repeat the ping every second while it is
+unanswered, warn "No response from server for >= 3 seconds" and call the server flatlined
+after 10 s, but never drop it.  uma takes the same second and three seconds (``ping_s`` 1,
+``pong_timeout_s`` 3: a silent server is noticed within about 4 s) and drops the connection
+instead of only warning, so the service stops publishing and the agent re-matches needs
+now rather than when TCP gives up (minutes, or never for a stopped process).  Over TCP one
+ping is enough: a repeat cannot overtake the first.
 """
 
 from __future__ import annotations
@@ -30,6 +48,15 @@ log = logging.getLogger("uma.vrpn")
 
 OnPose = Callable[[int, int, Any, Any], Any]
 
+#: silence (s) after which the server is pinged: VRPN's clients ping once a second
+DEFAULT_PING_S = 1.0
+#: a ping unanswered this long (s), with nothing else received, drops the connection:
+#: VRPN's clients warn "No response from server" after 3 s
+DEFAULT_PONG_TIMEOUT_S = 3.0
+#: our ids on the link (per connection and direction): the tracker's sender, the ping type
+SENDER_ID = 0
+PING_ID = 0
+
 
 class _Datagrams(asyncio.DatagramProtocol):
     """Our UDP port: messages from the server, named by the TCP link's tables."""
@@ -40,22 +67,35 @@ class _Datagrams(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         try:
-            for msg in vp.decode_datagram(data):
-                self.client.udp_reports += self.client.handle(self.link, msg)
+            msgs = vp.decode_datagram(data)
         except vp.ProtocolError as exc:
             self.client.bad(f"datagram from {addr[0]}:{addr[1]} dropped: {exc}")
+            return
+        self.link.heard = time.monotonic()  # the server is alive: no ping needed
+        for msg in msgs:
+            self.client.udp_reports += self.client.handle(self.link, msg)
 
 
 class TrackerClient:
-    """Receives one VRPN tracker; :meth:`run` connects and reconnects until stopped."""
+    """Receives one VRPN tracker; :meth:`run` connects and reconnects until stopped
+    (``ping_s`` and ``pong_timeout_s``: the module docstring)."""
 
     def __init__(self, address: vp.DeviceAddress, on_pose: OnPose,
-                 retry_s: float = 0.25) -> None:
+                 retry_s: float = 0.25, ping_s: float = DEFAULT_PING_S,
+                 pong_timeout_s: float = DEFAULT_PONG_TIMEOUT_S) -> None:
         self.address = address
         self.on_pose = on_pose
         self.retry_s = retry_s
+        self.ping_s = ping_s
+        self.pong_timeout_s = pong_timeout_s
         self.connected = asyncio.Event()
         self.connections = 0
+        #: pings sent, pongs received, connections dropped because the server went silent
+        self.pings = 0
+        self.pongs = 0
+        self.silent_drops = 0
+        #: set by a pong, so the next ping is timed from it (not from the ping's timeout)
+        self._ponged = asyncio.Event()
         self.reports = 0
         self.velocity_reports = 0
         self._warned: set[str] = set()
@@ -82,6 +122,9 @@ class TrackerClient:
                 self.velocity_reports += 1
                 self.note("velocity", "velocity reports arrive; uma has no velocity type, "
                           "so only poses are published")
+            elif kind == vp.PONG:
+                self.pongs += 1
+                self._ponged.set()
         except vp.ProtocolError as exc:
             self.bad(f"{kind} report dropped: {exc}")
         return False
@@ -108,12 +151,45 @@ class TrackerClient:
                           f"every {self.retry_s} s")
                 link = None
             if link is not None:
-                await _first(closed, stop)
+                await self._watch(link, closed, stop)
                 self.connected.clear()
                 link.close()
                 self._close_udp()
             if not stop.is_set():
                 await wait_for_event(stop, self.retry_s)
+
+    async def _watch(self, link: Link, closed: asyncio.Future, stop: asyncio.Event) -> None:
+        """Until the link closes or ``stop`` is set: ping a server silent for ``ping_s``,
+        drop it if nothing comes within ``pong_timeout_s`` of the ping (a hung server or a
+        dead path closes nothing; TCP alone would wait for ever)."""
+        await _until(closed, stop, self.connected)  # until then, Link's cookie timeout
+        pinged: float | None = None  # when we pinged, while nothing came since
+        while not (closed.done() or stop.is_set()):
+            now = time.monotonic()
+            if pinged is not None and link.heard > pinged:
+                pinged = None
+            if pinged is None and now - link.heard >= self.ping_s:
+                self._ping(link)
+                pinged = now
+            if pinged is not None and now - pinged >= self.pong_timeout_s:
+                self._drop_silent(link, now - link.heard)
+                return
+            due = link.heard + self.ping_s if pinged is None else pinged + self.pong_timeout_s
+            self._ponged.clear()
+            await _until(closed, stop, self._ponged, timeout=due - now)
+
+    def _ping(self, link: Link) -> None:
+        """``vrpn_Base ping_message`` on the tracker's sender, as VRPN's clients send it."""
+        self.pings += 1
+        link.send(vp.encode_message(PING_ID, SENDER_ID, time.time_ns()))
+
+    def _drop_silent(self, link: Link, silent_s: float) -> None:
+        """Say why and close: :meth:`run` then reconnects as for a lost server."""
+        self.silent_drops += 1
+        link.fail(f"VRPN server {self.address} silent for {silent_s:.1f} s: no pong within "
+                  f"{self.pong_timeout_s:g} s of our ping (the server hangs or is stopped, "
+                  "the network path to it is gone, or it has no device "
+                  f"{self.address.name!r})")
 
     def _link(self, closed: asyncio.Future) -> Link:
         def on_closed(link: Link) -> None:
@@ -151,8 +227,11 @@ class TrackerClient:
         return accepted.result() if accepted.done() else None
 
     def _ready(self, link: Link) -> None:
-        """Cookies exchanged: connected; over the UDP handshake, open our UDP port and say
-        where."""
+        """Cookies exchanged: name our sender and the ping type (so we can ping), connected;
+        over the UDP handshake, open our UDP port and say where."""
+        now = time.time_ns()
+        link.send(vp.sender_description(SENDER_ID, self.address.name, now)
+                  + vp.type_description(PING_ID, vp.PING, now))
         self.connections += 1
         self.connected.set()
         log.info("VRPN server %s: connected (%s)", self.address,
@@ -190,10 +269,13 @@ def _local_ip_towards(host: str, port: int) -> str:
         return s.getsockname()[0]
 
 
-async def _first(closed: asyncio.Future, stop: asyncio.Event) -> None:
-    """Until the link closes or ``stop`` is set."""
-    stopping = asyncio.ensure_future(stop.wait())
+async def _until(closed: asyncio.Future, *events: asyncio.Event,
+                 timeout: float | None = None) -> None:
+    """Until ``closed`` is done, one of ``events`` is set or ``timeout`` s have passed."""
+    waits = [asyncio.ensure_future(e.wait()) for e in events]
     try:
-        await asyncio.wait([closed, stopping], return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait([closed, *waits], timeout=timeout,
+                           return_when=asyncio.FIRST_COMPLETED)
     finally:
-        stopping.cancel()
+        for w in waits:
+            w.cancel()

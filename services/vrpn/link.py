@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -52,6 +53,9 @@ class Link(asyncio.Protocol):
         self.types: dict[int, str] = {}
         #: where the peer takes UDP messages, once it said so
         self.udp_peer: tuple[str, int] | None = None
+        #: when the peer last sent anything (``time.monotonic()``): a hung peer closes
+        #: nothing, so silence is how a client tells it from a live one
+        self.heard = time.monotonic()
         self._cookie = bytearray()
         self._decoder = vp.StreamDecoder()
 
@@ -72,6 +76,7 @@ class Link(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.closed:
             return
+        self.heard = time.monotonic()
         try:
             if not self.ready:
                 data = self._take_cookie(data)
