@@ -7,8 +7,10 @@
   would interpolate up to a few milliseconds of head motion away), by TCP and by the UDP
   handshake.
 * ``vrpn-in`` connected to a ``vrpn-out`` of another realm: the pose comes round the loop
-  unchanged, the ability is listed by ``uma services``, and after the server is killed and
-  started again the client is back within 1 s of its return.
+  unchanged, the ability is listed by ``uma services``; when the server is stopped
+  (SIGSTOP: its connection stays open) the client says it answers no ping, drops it and is
+  back once the server runs again; after the server is killed and started again the client
+  is back within 1 s of its return.
 * Two VRPN clients, one stalled: the other keeps its rate and the stalled one is dropped.
 
 Malformed peers are tested without Zenoh in ``test_vrpn_links.py``.
@@ -19,12 +21,14 @@ from __future__ import annotations
 import bisect
 import datetime
 import math
+import os
+import signal
 import socket
 import threading
 import time
 
 import numpy as np
-from agent_helpers.harness import Proc, agent, poll, services_json, spawn
+from agent_helpers.harness import Proc, agent, freeze, poll, services_json, spawn
 from agent_helpers.vrpn_peer import RawClient
 from conftest import endpoint, free_port
 
@@ -181,14 +185,22 @@ def test_vrpn_in_from_vrpn_out_round_trip_and_reconnect(processes, realm) -> Non
             assert [(a["name"], a["edge"]) for a in ability] == [
                 ("sensor0", ["site/world", "site/wand"])]
 
+            freeze(out)  # hung: the connection stays open, nothing more comes
+            try:
+                vin.wait_log("no pong within 3 s of our ping")
+            finally:
+                os.kill(out.popen.pid, signal.SIGCONT)
+            poll(lambda: _count(vin, "connected (UDP handshake)") == 2, what="rejoined")
+            seen = poll(lambda: round_trip(seen), what="poses after SIGCONT")
+
             out.popen.kill()
             out.popen.wait(10)
             time.sleep(1.0)  # the client retries meanwhile
-            assert _count(vin, "connected (UDP handshake)") == 1
+            assert _count(vin, "connected (UDP handshake)") == 2
             out = vrpn_out(processes, realm, ep_a, port, serve)
             back = out.wait_log("VRPN server on")
-            poll(lambda: _count(vin, "connected (UDP handshake)") == 2, what="reconnected")
-            again = [line for line in list(vin.log) if "connected (UDP handshake)" in line][1]
+            poll(lambda: _count(vin, "connected (UDP handshake)") == 3, what="reconnected")
+            again = [line for line in list(vin.log) if "connected (UDP handshake)" in line][2]
             assert 0 <= _log_time(again) - _log_time(back) < 1.0, (back, again)
             poll(lambda: round_trip(seen), what="poses after the restart")
             sub.close()

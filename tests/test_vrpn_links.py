@@ -379,6 +379,10 @@ def test_vrpn_in_sensor_frames() -> None:
     (["vrpn-in", "--tracker", "Tracker0", "--edge", "a/w:a/b"], "NAME@HOST"),
     (["vrpn-in", "--tracker", "T@h", "--edge", "a/w"], "WORLD:FRAME"),
     (["vrpn-in", "--tracker", "T@h", "--edge", "a/w:a/b", "--sensor", "x=a/c"], "N=FRAME"),
+    (["vrpn-in", "--tracker", "T@h", "--edge", "a/w:a/b", "--ping-s", "0"],
+     "'0' is not a positive number of seconds"),
+    (["vrpn-in", "--tracker", "T@h", "--edge", "a/w:a/b", "--pong-timeout-s", "nan"],
+     "'nan' is not a positive number of seconds"),
     (["vrpn-out", "--serve", "Head"], "NAME=SOURCE:TARGET"),
     (["vrpn-out"], "--serve"),
 ])

@@ -9,7 +9,13 @@ by NTP); VRPN's time has microseconds, so uma sees times ending in 000 ns.  Posi
 metres and quaternions x, y, z, w on both sides, so values pass unchanged.
 
 When the server goes away, nothing is published (the agent measures the ability's rate
-falling and re-matches needs) and the client tries again every 0.25 s.
+falling and re-matches needs) and the client tries again every 0.25 s.  A server that goes
+silent with its connection open (hung or stopped, or the network path gone without a FIN or
+RST) takes the same path: nothing arrives to publish, and once it has sent nothing for
+``--ping-s`` and not answered VRPN's ping within ``--pong-timeout-s`` the client says so,
+drops the connection and tries again as for a server that went away
+(:mod:`services.vrpn.client`), so a server restarted elsewhere on the network or resumed is
+found again.  A server that only has nothing to report still answers the ping and is kept.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import math
 import threading
 import time
 from typing import Any
@@ -24,7 +31,7 @@ from typing import Any
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.plugins import ServicePlugin
 from services.vrpn import protocol as vp
-from services.vrpn.client import TrackerClient
+from services.vrpn.client import DEFAULT_PING_S, DEFAULT_PONG_TIMEOUT_S, TrackerClient
 from services.vrpn.loop import run_until
 
 log = logging.getLogger("uma.vrpn")
@@ -45,6 +52,16 @@ def _edge(text: str) -> tuple[str, str]:
         raise argparse.ArgumentTypeError(f"--edge {text!r} must be WORLD:FRAME, e.g. "
                                          "lab/world:lab/wand")
     return source, target
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
 
 
 def _sensor(text: str) -> tuple[int, str]:
@@ -78,6 +95,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clock-offset-s", type=float, default=0.0,
                         help="added to the VRPN server's timestamps to get this host's "
                              "clock (default 0: same clock)")
+    parser.add_argument("--ping-s", type=_seconds, default=DEFAULT_PING_S,
+                        help="ping a server that has sent nothing for this long (default "
+                             f"{DEFAULT_PING_S:g}: VRPN's clients ping once a second)")
+    parser.add_argument("--pong-timeout-s", type=_seconds, default=DEFAULT_PONG_TIMEOUT_S,
+                        help="a server that answers no ping within this is hung or out of "
+                             "reach: dropped and reconnected (default "
+                             f"{DEFAULT_PONG_TIMEOUT_S:g}: VRPN's clients warn then)")
 
 
 def sensor_frames(args: argparse.Namespace) -> dict[int, str]:
@@ -144,7 +168,8 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
                                   **attributes) for n, frame in sorted(frames.items())}
         svc.start()
         publish = Publisher(handles, round(args.clock_offset_s * 1e9), args.tracker)
-        client = TrackerClient(args.tracker, publish)
+        client = TrackerClient(args.tracker, publish, ping_s=args.ping_s,
+                               pong_timeout_s=args.pong_timeout_s)
 
         async def main(done: asyncio.Event) -> int:
             log.info("vrpn-in: %s -> %s", args.tracker,
