@@ -21,13 +21,15 @@ and reconnects as for a lost server.  A server that sends nothing because its de
 not move still answers the pings, so it is kept.
 
 VRPN's clients (VRPN, vrpn_BaseClass.C: ``client_mainloop``, ``initiate_ping_cycle``) ping
-when they connect or lose the connection, repeat the ping every second while it is
+only when they connect or lose the connection, repeat the ping every second while it is
 unanswered, warn "No response from server for >= 3 seconds" and call the server flatlined
-after 10 s, but never drop it.  uma takes the same second and three seconds (``ping_s`` 1,
-``pong_timeout_s`` 3: a silent server is noticed within about 4 s) and drops the connection
-instead of only warning, so the service stops publishing and the agent re-matches needs
-now rather than when TCP gives up (minutes, or never for a stopped process).  Over TCP one
-ping is enough: a repeat cannot overtake the first.
+after 10 s, but never drop it; a server that hangs after its first pong goes unnoticed
+(``vrpn_print_devices`` just stops printing).  uma takes the same second and three seconds
+(``ping_s`` 1, ``pong_timeout_s`` 3: a silent server is dropped after about 4 s of silence)
+but pings whenever the server is silent and drops the connection instead of only warning:
+neither a stopped process nor a dead path ever closes it (a client that only receives
+gives TCP nothing to time out), while reconnecting finds the server again once it runs (or
+is back at its address).  Over TCP one ping is enough: a repeat cannot overtake the first.
 """
 
 from __future__ import annotations
