@@ -49,6 +49,7 @@ from services.laser_camera.pose import (
     row_norms,
 )
 from services.sim.ivy import on_active_area, screen_to_world
+from services.sim.laser_housing import BEAM_DIRECTIONS
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
@@ -93,6 +94,9 @@ class TrackerParams:
     #: a full-frame pass at least this often picks up dots the windows cannot (a dot
     #: entering a camera's view, a second camera seeing a dot in an overlap)
     roi_refresh_s: float = 0.5
+    #: a dot of a frame set without a pose gets the label of the nearest beam hit of the
+    #: pose predicted from the last two (``label_dots``) if that is this close (m)
+    label_gate_m: float = 0.05
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
@@ -103,6 +107,8 @@ class TrackerParams:
             raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise ValueError("roi_half_px and roi_refresh_s must be >= 0")
+        if not self.label_gate_m > 0:
+            raise ValueError("label_gate_m must be positive")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
                self.camera_residual_std_m) < 0:
             raise ValueError("the installation's tolerances must be >= 0")
@@ -145,10 +151,28 @@ class PoseEstimate:
     #: tolerances and the model error): no number of frames averages it away
     systematic: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     timing_s: dict[str, float] = field(default_factory=dict)
+    #: diode label -> per-axis in-plane std of that spot's installation error (the dot's
+    #: share of ``systematic``)
+    dot_systematic_std_m: dict[int, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return True
+
+
+@dataclass(frozen=True)
+class LabeledDots:
+    """The labeled laser spots of one frame set, for one-dot-at-a-time (SCAAT) fusion."""
+
+    t: float
+    labels: list[int]  # diode label of each spot
+    points: np.ndarray  # (n, 3) world
+    std_m: np.ndarray  # (n,) per-axis in-plane std of the detection and calibration noise
+    #: (n,) per-axis in-plane std of the installation's error at each spot: it holds from
+    #: frame to frame, so a filter must not average it away
+    systematic_std_m: np.ndarray
+    #: True: labeled by the predicted pose (the frame set gave none), False: the pose's own
+    predicted: bool
 
 
 @dataclass(frozen=True)
@@ -177,6 +201,8 @@ class LaserTracker:
         #: detection passes: "full" frame or "roi" (predicted windows only)
         self.passes: Counter[str] = Counter()
         self._last: PoseEstimate | None = None
+        self._prev: PoseEstimate | None = None  # the pose before ``_last``: its motion
+        self._dots: WorldDots | None = None  # the dots of the last frame set solved
         self._seen = _SeenDots()
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
@@ -184,7 +210,7 @@ class LaserTracker:
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
         dots found in the full frames)."""
-        self._last = None
+        self._last = self._prev = None
         self._seen = _SeenDots()
 
     # ------------------------------------------------------------------ pipeline
@@ -293,6 +319,7 @@ class LaserTracker:
     def _choose(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
+        self._dots = dots
         n = len(dots.points)
         if n < 4:
             return NoPose(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
@@ -335,13 +362,62 @@ class LaserTracker:
             cov, systematic = _covariance(dots, idx, best.position, p)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
+        sys_std = np.sqrt(_installation_variance(dots, idx, best.position, p))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
             {k + 1: float(dots.std_m[i]) for k, i in enumerate(idx)},
-            best.error, n, not tracking, systematic)
+            best.error, n, not tracking, systematic,
+            dot_systematic_std_m={k + 1: float(s) for k, s in enumerate(sys_std)})
+        self._prev = last if tracking else None
         self._last = est
         return est
+
+    # ------------------------------------------------------------------ labeled dots
+
+    def label_dots(self, result: PoseEstimate | NoPose) -> LabeledDots:
+        """The labeled dots of the frame set ``result`` came from (the last one solved).
+
+        With a pose, its four dots.  Without one (fewer than four dots seen, or no
+        labeling fits), each dot gets the label of the nearest beam hit, on the dot's own
+        wall, of the pose predicted at the frame's time from the last two (temporal
+        coherence, Hogue 2003 §5.3: a head moves little in a frame), if that is within
+        ``label_gate_m``, one dot per label.  A dot that gets no label is counted in
+        ``counts`` under ``dot_unlabeled_<why>``, never passed on with a guessed label."""
+        if isinstance(result, PoseEstimate):
+            labels = sorted(result.dots)
+            return LabeledDots(result.t, labels, np.array([result.dots[k] for k in labels]),
+                               np.array([result.dot_std_m[k] for k in labels]),
+                               np.array([result.dot_systematic_std_m[k] for k in labels]),
+                               predicted=False)
+        dots = self._dots if self._dots is not None else _no_dots()
+        n = len(dots.points)
+        predicted = self._predict(result.t)
+        if predicted is None or n > self.params.max_dots:
+            why = "too_many_dots" if predicted is not None else "no_recent_pose"
+            self.counts[f"dot_unlabeled_{why}"] += n
+            return _labeled(result.t, dots, [], [], np.zeros(3), self.params)
+        p0, R = predicted
+        idx, labels = _nearest_beams(dots, p0, R, self.params.label_gate_m)
+        self.counts["dot_unlabeled_no_beam_within_gate"] += n - len(idx)
+        self.counts["dot_labeled_by_prediction"] += len(idx)
+        return _labeled(result.t, dots, idx, labels, p0, self.params)
+
+    def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rig pose (P0, rotation matrix) at ``t`` moved on from the last pose at the
+        motion between the last two (held if there is only one); None beyond
+        ``coherence_s`` after the last pose."""
+        last, prev = self._last, self._prev
+        if last is None or not 0 <= t - last.t <= self.params.coherence_s:
+            return None
+        p0, q = last.position, last.quaternion
+        if prev is not None and last.t > prev.t:
+            k = (t - last.t) / (last.t - prev.t)
+            p0 = p0 + k * (last.position - prev.position)
+            turn = geo.quat_to_rotvec(geo.quat_multiply(last.quaternion,
+                                                        geo.quat_conjugate(prev.quaternion)))
+            q = geo.quat_multiply(geo.rotvec_to_quat(k * turn), q)
+        return p0, geo.quat_to_matrix(q)
 
 
 class _Screens:
@@ -364,8 +440,7 @@ class _Screens:
         """The dots on the active screens, before duplicates are merged."""
         names = [name for name, d in detections.items() if len(d)]
         if not names:
-            return WorldDots(np.zeros((0, 3)), np.zeros(0), [], np.zeros((0, 2, 3)), [],
-                             np.zeros(0))
+            return _no_dots()
         det = np.concatenate([detections[name] for name in names])
         und = np.concatenate([self.cameras[self.index[name]].undistort(detections[name][:, [U, V]])
                               for name in names])
@@ -431,6 +506,43 @@ def _all_found(centres: list[list[float]], det: np.ndarray, half: float) -> bool
                                    for x, y in found) for u, v in centres)
 
 
+def _no_dots() -> WorldDots:
+    return WorldDots(np.zeros((0, 3)), np.zeros(0), [], np.zeros((0, 2, 3)), [], np.zeros(0))
+
+
+def _nearest_beams(dots: WorldDots, p0: np.ndarray, R: np.ndarray,
+                   gate_m: float) -> tuple[list[int], list[int]]:
+    """Dot indices and their diode labels: each dot's nearest predicted beam hit on its
+    own wall within ``gate_m``, nearest pairs first, every dot and label used once."""
+    pairs = []
+    for i, point in enumerate(dots.points):
+        normal = np.cross(dots.axes[i, 0], dots.axes[i, 1])
+        height = float(normal @ (point - p0))  # the wall's distance from P0 along its normal
+        for label, beam in BEAM_DIRECTIONS.items():
+            d = R @ beam
+            nd = float(normal @ d)
+            if nd > 1e-6 and height > 0:
+                dist = float(np.linalg.norm(p0 + (height / nd) * d - point))
+                if dist <= gate_m:
+                    pairs.append((dist, i, label))
+    idx: list[int] = []
+    labels: list[int] = []
+    for _, i, label in sorted(pairs):
+        if i not in idx and label not in labels:
+            idx.append(i)
+            labels.append(label)
+    return idx, labels
+
+
+def _labeled(t: float, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
+             params: TrackerParams) -> LabeledDots:
+    """``LabeledDots`` of the dots ``idx`` labeled ``labels``, their installation error
+    as seen from P0 at ``p0``."""
+    sys_var = _installation_variance(dots, idx, p0, params) if idx else np.zeros(0)
+    return LabeledDots(t, labels, dots.points[idx].reshape(-1, 3), dots.std_m[idx],
+                       np.sqrt(sys_var), predicted=True)
+
+
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
     """One dot per spot: overlapping cameras (the split floor and ceiling) see some twice."""
     n = len(d.points)
@@ -455,7 +567,7 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
 
 def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
                            p: TrackerParams) -> np.ndarray:
-    """Per-axis in-plane variance (m^2) each of the four dots gets from the installation's
+    """Per-axis in-plane variance (m^2) each dot ``idx`` gets from the installation's
     tolerances, averaged over the wall's two axes.
 
     A beam turned by ``d`` (two components, each ``housing_dir_std_rad``) or missing P0 by
