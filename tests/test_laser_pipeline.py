@@ -147,7 +147,8 @@ def test_frame_sets_with_fewer_than_four_dots_still_publish_their_labeled_dots(
     """Seed 7 at 30 Hz: the frame set at 98/30 s shows three dots (the fourth beam is off
     the screens).  No pose, but the three are labeled by the pose predicted from the last
     two, each within a centimetre of its true spot, and published on the dots stream with
-    their stds; a frame set long after the last pose has nothing to label from."""
+    their stds; so are those of the next four frame sets, none with a pose; a frame set
+    long after the last sighting has nothing to label from."""
     from schemas.codec import (
         DOT_STD,
         DOT_SYSTEMATIC_STD,
@@ -186,9 +187,17 @@ def test_frame_sets_with_fewer_than_four_dots_still_publish_their_labeled_dots(
     assert m.ids == dots.labels and np.array_equal(m.points, dots.points)
     assert m.extra[DOT_STD] == dots.std_m.tolist()
     assert m.extra[DOT_SYSTEMATIC_STD] == dots.systematic_std_m.tolist()
-    # half a second later the last pose is too old to predict from: nothing is labeled,
+    # the frame sets up to 102/30 s have two or three dots too: each label's spot moves on
+    # from its last two sightings, chained through frame sets without a pose
+    for k in range(99, 103):
+        frame = world.render(k / 30)
+        dots = tracker.label_dots(tracker.process(frame.images, frame.t))
+        assert sorted(dots.labels) == sorted(frame.visible_labels), k
+        for label, point in zip(dots.labels, dots.points, strict=True):
+            assert np.linalg.norm(point - frame.hits[label].point) < 0.01, (k, label)
+    # 0.6 s later the last sightings are too old to predict from: nothing is labeled,
     # and the dots left out are counted, not silently dropped
-    late = world.render(113 / 30)
+    late = world.render(120 / 30)
     _, *dark = [c for c, pts in late.image_points.items() if pts]  # one camera left
     result = tracker.process({**late.images, **{c: np.zeros_like(late.images[c])
                                                 for c in dark}}, late.t)
