@@ -669,7 +669,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.from_file is not None:
         from services.fusion.replay import replay
 
-        return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3)
+        if args.optical == "dots" and not args.display_calibration:
+            raise ValueError("--from with --optical dots needs --display-calibration FILE "
+                             "(the laser tracker's calibration, whose walls the dots lie on)")
+        return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3,
+                      display_calibration=args.display_calibration
+                      if args.optical == "dots" else None)
     horizon_ms = 20.0 if args.horizon_ms is None else args.horizon_ms
     try:
         lengths = [float(x) for x in args.gaps.split(",") if x.strip()]
@@ -702,6 +707,10 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the fusion filter on a recording's optical and accelerometer "
                              "samples instead of the simulator (uma record, uma demo --record); "
                              "compared with its ground truth if it holds the simulator's")
+    parser.add_argument("--display-calibration", metavar="FILE", default=None,
+                        help="with --from and --optical dots: the laser tracker's calibration "
+                             "file, whose walls the recorded dots lie on (the one uma demo "
+                             "gives its fusion)")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")
