@@ -22,6 +22,10 @@ Anything that prevents a pose (fewer than four dots, no consistent labeling, a g
 jump, ...) yields ``NoPose`` with the reason, counted in ``tracker.counts`` -- never an
 exception.
 
+``label_dots(result)`` gives the labeled dots of the frame set, for one-dot-at-a-time
+(SCAAT) fusion: a pose's four, and without a pose the dots it can label by each spot's
+predicted position (temporal coherence), each with its noise and installation std.
+
 Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
 system*, MSc thesis, York University 2003.
 """
