@@ -809,12 +809,19 @@ def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
                         ("converter_noise_lsb", float("nan"))):
         with pytest.raises(ValueError, match="--" + flag.replace("_", "-")):
             fe.run(SimpleNamespace(**base, **{flag: value}))
+    # a recording replayed in dot mode needs the walls the dots lie on
+    with pytest.raises(ValueError, match="--display-calibration"):
+        fe.run(SimpleNamespace(**{**base, "from_file": "demo.mcap", "optical": "dots",
+                                  "display_calibration": None}))
 
 
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),
                                         (["--optical-bias-tau-s", "0"], "--optical-bias-tau-s"),
                                         (["--model-floor", "nan"], "--model-floor"),
-                                        (["--max-coast-s", "0"], "--max-coast-s")])
+                                        (["--max-coast-s", "0"], "--max-coast-s"),
+                                        (["--optical", "dots"], "--display-calibration"),
+                                        (["--display-calibration", "ivy.json"],
+                                         "--display-calibration is for --optical dots")])
 def test_service_refuses_bad_noise_flags_by_name(argv, flag):
     import argparse
     import threading
