@@ -20,7 +20,8 @@ every type              ``v``: 1, ``k``: type, ``t``: int ns since the epoch (0 
 ``position3d``          ``p``, ``c``: 6 floats (upper triangle of the 3x3 covariance) or nil
 ``rotation3d``          ``q``, ``c``: 6 floats (3x3 rotation covariance, rad^2) or nil
 ``points3d``            ``P``: bin, n*3 little-endian float64 (x, y, z per point),
-                        ``i``: n int labels or nil
+                        ``i``: n int labels or nil; laser dots optionally ``x[DOT_STD]`` and
+                        ``x[DOT_SYSTEMATIC_STD]``: n floats each, per point
 ``accel_raw``           ``a``: N floats (one reading per accelerometer axis, m/s^2)
 ``image``               ``h``, ``w``, ``ch`` (1 or 3): ints, ``d``: bin, h*w*ch uint8, row-major
 ``event``               only the common fields; the payload is ``x``
@@ -201,6 +202,11 @@ def _plain_default(obj: Any) -> Any:
 #: sample to sample (an installation's imperfections), packed as ``c`` is.  Optional:
 #: receivers that do not know it ignore it, and its absence means "not known"
 SYSTEMATIC_COVARIANCE = "c_sys"
+#: ``extra`` keys of a ``points3d`` of laser dots: per point, the per-axis in-plane standard
+#: deviation (m) of its noise, new in every sample, and of its installation error, which
+#: persists.  Optional: a receiver that needs them refuses points without them
+DOT_STD = "std_m"
+DOT_SYSTEMATIC_STD = "std_sys_m"
 
 
 def encode_pose(t_ns: int, position: Any, quaternion: Any, covariance: Any = None,

@@ -45,6 +45,8 @@ def test_demo_runs_end_to_end_and_stops_everything(tmp_path):
     why = f"{r}\n{_tails(logs)}"
     assert r["ok"] and r["path"] == ["ivy/world", "alice/head"], why
     assert r["matches"]["fusion.optical"] and r["matches"]["fusion.accel"], why
+    # dot mode by default: the fusion also takes the laser tracker's labeled dots
+    assert r["optical"] == "dots" and r["matches"]["fusion.dots"], why
     assert r["queries"] > 10 and r["stream_poses"] > 100, why
     # the subscription's health is part of the report (a loaded host may stall it)
     assert isinstance(r["stream_stalls"], int) and isinstance(r["stream_route_changes"], int)

@@ -23,6 +23,7 @@ from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import FusionTracker
 from services.sim.mounts import HEAD_TO_ACCEL_RIG, HEAD_TO_LASER_RIG
 from services.sim.trajectory import HeadTrajectory
+from services.sim.world import IvyWorld
 
 OPT_STD = (3e-4, np.radians(0.02))
 
@@ -470,6 +471,131 @@ def test_live_fusion_builds_from_attributes_and_publishes():
     assert np.linalg.norm(pos) < 1e-3 and cov.shape == (6, 6)
 
 
+def _live_at_rest(walls=None):
+    """A ``LiveFusion`` (dot mode if ``walls``) started by two poses of a head at rest at
+    the origin: it, the rig pose, the accelerometer attributes and readings at rest."""
+    cal = accel_sim.default_device().calibration()
+    live = LiveFusion(0.0, MODEL_FLOOR, publish=lambda *a: None, walls=walls)
+    attrs = {**cal.to_dict(), "frequency_hz": 300.0}
+    live.on_accel_mount(SimpleNamespace(position=HEAD_TO_ACCEL_RIG[0],
+                                        quaternion=HEAD_TO_ACCEL_RIG[1]))
+    live.on_optical_mount(SimpleNamespace(position=HEAD_TO_LASER_RIG[0],
+                                          quaternion=HEAD_TO_LASER_RIG[1]))
+    live.on_accel(SimpleNamespace(t_ns=1_000_000_000, values=np.zeros(6), attributes=attrs))
+    p, q = geo.compose(np.zeros(3), np.array([0, 0, 0, 1.0]), *HEAD_TO_LASER_RIG)
+    for t_ns in (1_001_000_000, 1_002_000_000):
+        live.on_optical(SimpleNamespace(t_ns=t_ns, position=p, quaternion=q, covariance=None))
+    reading = [float(n @ [0, 0, 9.80665]) for n in live.tracker.ekf.accel.axes]
+    return live, (p, q), attrs, np.array(reading)
+
+
+def _dots_message(t_ns, points, ids, std=1e-3, sys_std=5e-4):
+    from schemas.codec import DOT_STD, DOT_SYSTEMATIC_STD, Measurement
+
+    n = len(points)
+    return Measurement(type="points3d", t_ns=t_ns, points=np.asarray(points, float),
+                       ids=ids, extra={DOT_STD: [std] * n, DOT_SYSTEMATIC_STD: [sys_std] * n})
+
+
+def test_live_fusion_in_dot_mode_drops_bad_dots_with_a_reason():
+    from services.fusion.dots import display_walls
+    from services.sim.ivy import intersect_beam, make_walls
+    from services.sim.laser_housing import BEAM_DIRECTIONS
+
+    walls = list(make_walls().values())
+    live, (p, q), attrs, rest = _live_at_rest(walls)
+    R = geo.quat_to_matrix(q)
+    hit = {k: intersect_beam(make_walls(), p, R @ d).point for k, d in BEAM_DIRECTIONS.items()}
+    bad_point = hit[3].copy()
+    bad_point[1] = np.nan
+    t_ns = 1_010_000_000
+    live.on_dots(_dots_message(t_ns, [hit[1], hit[4]], [1, 4]))            # good
+    live.on_dots(_dots_message(t_ns + 1, [hit[2], bad_point], [2, 3]))      # one NaN
+    live.on_dots(_dots_message(t_ns + 2, [hit[2], hit[1]], [7, 1]))         # unknown label
+    live.on_dots(_dots_message(t_ns + 3, [hit[2], hit[1]], [2]))            # ids mismatch
+    live.on_dots(_dots_message(t_ns + 4, [hit[2]], [2], std=-1.0))          # bad std
+    no_std = _dots_message(t_ns + 5, [hit[2]], [2])
+    no_std.extra = {}
+    live.on_dots(no_std)
+    for i in range(30):  # the accelerometers reach the dots' time: they are applied
+        live.on_accel(SimpleNamespace(t_ns=1_005_000_000 + i * 3_333_333, values=rest,
+                                      attributes=attrs))
+    stats = live.tracker.ekf.stats
+    assert stats.dot_updates == 4 and stats.dot_rejected == 0  # the 2 + 1 + 1 good dots
+    assert live.dropped["laser dot with a non-finite point or a non-positive std"] == 2
+    assert live.dropped["laser dot with unknown label 7"] == 1
+    assert live.dropped["laser dots refused: 1 labels for 2 points"] == 1
+    assert live.dropped["laser dots refused: extra 'std_m': expected 1 numbers"] == 1
+    assert np.linalg.norm(live.tracker.pose()[0]) < 1e-3
+    pose_mode, *_ = _live_at_rest()
+    pose_mode.on_dots(_dots_message(t_ns, [hit[1]], [1]))
+    assert pose_mode.dropped["laser dots while not in dot mode"] == 1
+    assert len(display_walls(fe.laser_calibration(IvyWorld(), cache=True))) == 6
+
+
+def test_live_fusion_in_dot_mode_consumes_the_laser_services_dots_and_tracks_the_truth():
+    """Seed 7, 5 s: the laser tracker on rendered frames at 15 Hz publishes as the laser
+    service does (``_publish``, through the wire codec), the simulated accelerometers at
+    300 Hz; the live fusion in dot mode takes every dot, also those of frame sets without a
+    pose, and follows the truth."""
+    from schemas.codec import decode_measurement, encode_measurement
+    from services.fusion.dots import display_walls
+    from services.laser_camera import service as laser_service
+    from services.laser_camera.tracker import LaserTracker
+    from services.sim.world import SIM_EPOCH_NS, sim_time_s
+
+    seconds, rate = 5.0, accel_sim.DEFAULT_RATE_HZ
+    world = IvyWorld(seed=7)
+    cal = fe.laser_calibration(world, cache=True)
+    device, accel_cal = fe.calibrated_accelerometers(rate, 7)
+    accel = accel_sim.simulate(world.trajectory, seconds, rate, seed=7, sensor=device,
+                               calibration=accel_cal)
+    fused = []
+    live = LiveFusion(0.0, MODEL_FLOOR, publish=lambda t, p, q, c: fused.append((t, p)),
+                      walls=display_walls(cal))
+    live.on_accel_mount(SimpleNamespace(position=HEAD_TO_ACCEL_RIG[0],
+                                        quaternion=HEAD_TO_ACCEL_RIG[1]))
+    live.on_optical_mount(SimpleNamespace(position=HEAD_TO_LASER_RIG[0],
+                                          quaternion=HEAD_TO_LASER_RIG[1]))
+    attrs = {**accel_cal.to_dict(), "frequency_hz": rate}
+
+    class Stream:
+        def __init__(self, on_sample) -> None:
+            self.on_sample = on_sample
+
+        def publish_measurement(self, m) -> None:
+            self.on_sample(decode_measurement(encode_measurement(m)))
+
+    out = laser_service._Outputs(Stream(live.on_optical), Stream(live.on_dots), {}, {})
+    tracker = LaserTracker(cal)
+    frames = [k / 15 for k in range(int(seconds * 15))]
+    predicted = sent = 0  # dots sent after the filter started: of frame sets without a pose, all
+    for t_a, a in zip(accel.t, accel.accel, strict=True):
+        while frames and frames[0] <= t_a - accel_cal.latency_s:
+            t_f = frames.pop(0)
+            result = tracker.process(world.render(t_f).images, t_f)
+            dots = tracker.label_dots(result)
+            started = live.tracker is not None and live.tracker.ekf.initialised
+            predicted += len(dots.labels) if dots.predicted and started else 0
+            sent += len(dots.labels) if started else 0
+            laser_service._publish(out, SIM_EPOCH_NS + round(t_f * 1e9), result, dots)
+        live.on_accel(SimpleNamespace(t_ns=SIM_EPOCH_NS + round(t_a * 1e9), values=a,
+                                      attributes=attrs))
+    stats, ekf = live.tracker.stats, live.tracker.ekf.stats
+    assert predicted >= 10  # seed 7 has frame sets of fewer than four dots: 27 dots
+    assert ekf.pose_updates == 1 and stats.dot_frames == 75   # the poses only started it
+    assert ekf.dot_updates + ekf.dot_rejected == sent and ekf.dot_rejected <= 2
+    # nothing dropped but what came before the start: the two poses' frame sets' dots
+    assert live.dropped.pop("laser dots before the filter runs (or of the frame set that "
+                            "started it)") == 2
+    assert set(live.dropped) == {"waiting for two optical poses to start"}
+    t = np.array([sim_time_s(t_ns) for t_ns, _ in fused])
+    p_true, _ = world.trajectory.pose(t)
+    err = np.linalg.norm(np.array([p for _, p in fused]) - p_true, axis=1)[t > 1.0]
+    # measured: 1.25 mm RMS, 2.0 mm at most after the first second
+    assert np.sqrt(np.mean(err ** 2)) < 0.0025 and err.max() < 0.005
+
+
 def test_accel_model_from_bad_attributes_names_the_problem():
     with pytest.raises(ValueError, match="format"):
         accel_model_from_attributes({"frequency_hz": 300.0}, HEAD_TO_ACCEL_RIG, 0.0)
@@ -683,12 +809,19 @@ def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
                         ("converter_noise_lsb", float("nan"))):
         with pytest.raises(ValueError, match="--" + flag.replace("_", "-")):
             fe.run(SimpleNamespace(**base, **{flag: value}))
+    # a recording replayed in dot mode needs the walls the dots lie on
+    with pytest.raises(ValueError, match="--display-calibration"):
+        fe.run(SimpleNamespace(**{**base, "from_file": "demo.mcap", "optical": "dots",
+                                  "display_calibration": None}))
 
 
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),
                                         (["--optical-bias-tau-s", "0"], "--optical-bias-tau-s"),
                                         (["--model-floor", "nan"], "--model-floor"),
-                                        (["--max-coast-s", "0"], "--max-coast-s")])
+                                        (["--max-coast-s", "0"], "--max-coast-s"),
+                                        (["--optical", "dots"], "--display-calibration"),
+                                        (["--display-calibration", "ivy.json"],
+                                         "--display-calibration is for --optical dots")])
 def test_service_refuses_bad_noise_flags_by_name(argv, flag):
     import argparse
     import threading

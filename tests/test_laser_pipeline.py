@@ -142,6 +142,71 @@ def test_tracker_survives_lost_dots_and_bad_frames(world, calibration) -> None:
         tr.process({lost: np.zeros((480, 640), np.float32)}, 2.0)
 
 
+def test_frame_sets_with_fewer_than_four_dots_still_publish_their_labeled_dots(
+        calibration) -> None:
+    """Seed 7 at 30 Hz: the frame set at 98/30 s shows three dots (the fourth beam is off
+    the screens).  No pose, but the three are labeled by the pose predicted from the last
+    two, each within a centimetre of its true spot, and published on the dots stream with
+    their stds; so are those of the next four frame sets, none with a pose; a frame set
+    long after the last sighting has nothing to label from."""
+    from schemas.codec import (
+        DOT_STD,
+        DOT_SYSTEMATIC_STD,
+        decode_measurement,
+        encode_measurement,
+    )
+    from services.laser_camera import service
+
+    world = IvyWorld(seed=7)  # the fixture's installation, another trajectory
+    tracker = LaserTracker(calibration)
+    for k in range(92, 98):
+        assert tracker.process(world.render(k / 30).images, k / 30).ok, k
+    frame = world.render(98 / 30)
+    assert len(frame.visible_labels) == 3
+    result = tracker.process(frame.images, frame.t)
+    assert isinstance(result, NoPose) and result.reason == "too_few_dots"
+    dots = tracker.label_dots(result)
+    assert dots.predicted and sorted(dots.labels) == sorted(frame.visible_labels)
+    for label, point in zip(dots.labels, dots.points, strict=True):
+        assert np.linalg.norm(point - frame.hits[label].point) < 0.01, label
+    assert np.all(dots.std_m > 0) and np.all(dots.systematic_std_m > 0)
+    assert tracker.counts["dot_labeled_by_prediction"] == 3
+
+    class Out:
+        def __init__(self) -> None:
+            self.sent: list = []
+
+        def publish_measurement(self, m) -> None:
+            # what a subscriber receives
+            self.sent.append(decode_measurement(encode_measurement(m)))
+
+    out = service._Outputs(Out(), Out(), {}, {})
+    service._publish(out, 123, result, dots)
+    assert not out.pose.sent  # no pose of this frame set
+    (m,) = out.dots.sent
+    assert m.ids == dots.labels and np.array_equal(m.points, dots.points)
+    assert m.extra[DOT_STD] == dots.std_m.tolist()
+    assert m.extra[DOT_SYSTEMATIC_STD] == dots.systematic_std_m.tolist()
+    # the frame sets up to 102/30 s have two or three dots too: each label's spot moves on
+    # from its last two sightings, chained through frame sets without a pose
+    for k in range(99, 103):
+        frame = world.render(k / 30)
+        dots = tracker.label_dots(tracker.process(frame.images, frame.t))
+        assert sorted(dots.labels) == sorted(frame.visible_labels), k
+        for label, point in zip(dots.labels, dots.points, strict=True):
+            assert np.linalg.norm(point - frame.hits[label].point) < 0.01, (k, label)
+    # 0.6 s later the last sightings are too old to predict from: nothing is labeled,
+    # and the dots left out are counted, not silently dropped
+    late = world.render(120 / 30)
+    _, *dark = [c for c, pts in late.image_points.items() if pts]  # one camera left
+    result = tracker.process({**late.images, **{c: np.zeros_like(late.images[c])
+                                                for c in dark}}, late.t)
+    seen = result.n_dots
+    assert not result.ok and 1 <= seen < 4
+    assert not tracker.label_dots(result).labels
+    assert tracker.counts["dot_unlabeled_no_recent_pose"] == seen
+
+
 def test_windows_track_like_the_full_frame_and_reacquire_after_a_loss(world,
                                                                         calibration) -> None:
     world = IvyWorld(seed=4, ideal=True)  # the pass counts below assume no dot near an edge

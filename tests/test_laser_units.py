@@ -23,6 +23,7 @@ from services.laser_camera.pose import (
     reflection,
 )
 from services.laser_camera.tracker import (
+    LabeledDots,
     LaserTracker,
     NoPose,
     PoseEstimate,
@@ -434,21 +435,26 @@ def test_service_measures_and_readvertises_its_attributes() -> None:
     perf = service._Performance()
     est = PoseEstimate(0.0, np.zeros(3), geo.quat_identity(), np.diag([1e-6] * 3 + [4e-6] * 3),
                        {}, {}, 0.0, 4, False)
-    for i in range(20):
-        perf.add(0.01, est if i % 4 else NoPose(0.0, "too_few_dots", 3))
+    two_dots = LabeledDots(0.0, [1, 3], np.zeros((2, 3)), np.ones(2), np.ones(2), True)
+    for i in range(20):  # a pose in 3 of 4 frame sets, labeled dots in all but one
+        perf.add(0.01, est if i % 4 else NoPose(0.0, "too_few_dots", 3),
+                 None if i == 0 else two_dots)
         perf.times[-1] = i / 30.0  # as if taken at 30 Hz
     a = perf.attributes(30.0)
     assert a["confidence"] == pytest.approx(0.75)
     assert a["frequency_hz"] == pytest.approx(30 * 0.75, rel=1e-6)
     assert a["latency_s"] == pytest.approx(0.01)
     assert a["pos_std_m"] == pytest.approx(1e-3) and a["rot_std_rad"] == pytest.approx(2e-3)
-    pose_out, dots_out = Out(), Out()
-    *_, adv = service._maybe_update(pose_out, dots_out, a, dict(a))
-    assert adv == a and not pose_out.updates  # nothing drifted
-    slower = dict(a, latency_s=0.05)
-    *_, adv = service._maybe_update(pose_out, dots_out, a, slower)
-    assert adv == slower and pose_out.updates == [slower]
-    assert "pos_std_m" not in dots_out.updates[0]
+    d = perf.dot_attributes(30.0)
+    assert d["confidence"] == pytest.approx(0.95) and "pos_std_m" not in d
+    assert d["frequency_hz"] == pytest.approx(30 * 0.95, rel=1e-6)
+    out = service._Outputs(Out(), Out(), a, d)
+    service._maybe_update(out, perf, 30.0)
+    assert not out.pose.updates and not out.dots.updates  # nothing drifted
+    perf.latency.extend([0.05] * 40)  # the median latency is now 50 ms
+    service._maybe_update(out, perf, 30.0)
+    assert out.pose.updates == [out.pose_attrs] and out.pose_attrs["latency_s"] == 0.05
+    assert out.dots.updates == [out.dot_attrs] and out.dot_attrs["latency_s"] == 0.05
 
 
 def test_model_error_is_added_to_the_covariance(world) -> None:
@@ -492,11 +498,11 @@ def test_warm_up_waits_for_a_first_pose_but_not_forever() -> None:
     from services.laser_camera import service as ls
 
     pose = PoseEstimate.__new__(PoseEstimate)  # only its type matters here
-    none = [(k, None) for k in range(ls.WARMUP_FRAMES)]
-    assert not ls._warmed_up([*none[:-2], (8, pose)])  # too few frames to measure a rate
-    assert ls._warmed_up([*none[:-1], (9, pose)])
+    none = [(k, None, None) for k in range(ls.WARMUP_FRAMES)]
+    assert not ls._warmed_up([*none[:-2], (8, pose, None)])  # too few frames for a rate
+    assert ls._warmed_up([*none[:-1], (9, pose, None)])
     assert not ls._warmed_up(none)  # no pose yet: keep waiting
-    assert ls._warmed_up([(k, None) for k in range(ls.MAX_WARMUP_FRAMES)])
+    assert ls._warmed_up([(k, None, None) for k in range(ls.MAX_WARMUP_FRAMES)])
 
 
 def test_simulated_cameras_skip_the_frames_an_overrun_missed() -> None:

@@ -262,10 +262,17 @@ def test_recorded_demo_replays_deterministically(tmp_path) -> None:
     live = json.loads(demo.stdout.strip().splitlines()[-1])
     assert live["recording"]["error"] is None, live["recording"]
     assert live["recording"]["messages"] > 1000 and live["recording"]["dropped"] == 0
-    runs = [uma("eval", "fusion", "--from", str(path), "--json", timeout=120) for _ in range(2)]
+    # replayed as the demo's fusion ran: in dot mode, on the walls of the demo's calibration
+    from services.fusion.evaluate import laser_calibration_file
+    from services.sim.world import IvyWorld
+
+    walls = str(laser_calibration_file(IvyWorld(seed=1)))
+    runs = [uma("eval", "fusion", "--from", str(path), "--json", "--optical", "dots",
+                "--display-calibration", walls, timeout=120) for _ in range(2)]
     assert all(r.returncode == 0 for r in runs), runs[0].stderr
     assert runs[0].stdout == runs[1].stdout            # identical figures, byte for byte
     f = json.loads(runs[0].stdout)
+    assert f["optical_update"] == "dots" and f["inputs"]["dots"] > 30, f
     assert f["replayed"]["ground_truth"] == "ivy/world -> alice/head_truth"
     assert f["replayed"]["evaluated"] > 10 and f["recorded_live"]["evaluated"] > 10
     # the live run's accuracy: its recorded output against the same truth, at its instants.

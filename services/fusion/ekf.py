@@ -445,6 +445,15 @@ class FusionEKF:
             p, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))
         return self.update_pose(t, p, q, cov, sys)
 
+    def carry_rig_systematic(self, p_rig: Array, q_rig: Array, systematic_se3: Array,
+                             mount: tuple[Array, Array]) -> None:
+        """Carry a rig pose's systematic covariance into the fused one without updating with
+        the pose: in dot mode its dots are the updates, and the error they share from frame
+        to frame is in the fused pose whole (``pose_covariance_decoupled``)."""
+        p, _ = geo.compose(p_rig, q_rig, *geo.inverse(*mount))
+        self.systematic = geo.se3_to_decoupled(
+            p, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))
+
     def _adapt_pose_noise(self, inn: Innovation) -> None:
         """Covariance matching for the optical noise (Mehra's adaptive R, per block).
 

@@ -41,7 +41,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,7 @@ from services.accel_rig.device_options import (
     device_from_args,
 )
 from services.consistency import autocorrelation_time
+from services.fusion.dots import display_walls, update_dots
 from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
@@ -76,8 +77,6 @@ RECOVERY_FRAMES = 3
 #: output error within which the filter counts as recovered: a few times its normal error
 RECOVERY_FACTOR = 3.0
 RECOVERY_HOLD_S = 0.1
-#: a dot seen without a pose is labeled with the nearest predicted beam hit within this
-DOT_LABEL_GATE_M = 0.05
 
 
 # ---------------------------------------------------------------------- set-up
@@ -256,6 +255,8 @@ class Recording:
     #: motion times of the inertial samples that came while the filter was not running
     #: (before its first start, or after a restart left it waiting for two poses)
     uninitialised_t: np.ndarray
+    #: dot mode: the tracker's counts of dots labeled by prediction and left unlabeled
+    dot_labels: dict[str, int] = field(default_factory=dict)
 
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
@@ -264,8 +265,9 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
-    pose only initialises the filter); frames where the tracker found fewer than four dots
-    still contribute the dots it sees, labeled by the nearest predicted beam hit.
+    pose only initialises the filter and brings its systematic covariance); frames where
+    the tracker found no pose still contribute the dots it can label by the pose it
+    predicts (``LaserTracker.label_dots``), as the live service publishes them.
     """
     from services.laser_camera.tracker import LaserTracker, TrackerParams
 
@@ -278,6 +280,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                                calibration=cal)
     tracker = LaserTracker(laser_calibration(world, cache),
                            TrackerParams.ideal() if ideal else TrackerParams())
+    walls = display_walls(tracker.calibration)
     ekf = FusionEKF(accel_model(cal, head_to_accel, rate, model_floor), config)
     frames = [k / OPTICAL_HZ for k in range(int(seconds * OPTICAL_HZ))
               if not any(a <= k / OPTICAL_HZ < b for a, b in gaps)]
@@ -295,11 +298,10 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
             result = tracker.process(images, t_f)
             if dots and ekf.initialised:
                 c0 = time.process_time()
-                if result.ok:  # the dots' persistent error, as the pose has it
-                    ekf.systematic = geo.se3_to_decoupled(
-                        geo.compose(result.position, result.quaternion, pm, qm)[0],
-                        result.systematic)
-                _dot_updates(ekf, world, tracker, images, result, t_f, head_to_laser)
+                if result.ok:
+                    ekf.carry_rig_systematic(result.position, result.quaternion,
+                                             result.systematic, head_to_laser)
+                update_dots(ekf, tracker.label_dots(result), walls, head_to_laser)
                 cpu += time.process_time() - c0
             if not result.ok:
                 failures[result.reason] = failures.get(result.reason, 0) + 1
@@ -331,45 +333,8 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                      np.array(rec["cov"]), np.array(rec["pp"]), np.array(rec["qp"]),
                      np.array(opt_t), np.array(opt_p).reshape(-1, 3),
                      np.array(opt_q).reshape(-1, 4), cpu, ekf.stats, failures,
-                     np.array(waiting))
-
-
-def _dot_updates(ekf: FusionEKF, world: IvyWorld, tracker: Any, images: Any, result: Any,
-                 t: float, mount: tuple[np.ndarray, np.ndarray]) -> int:
-    """One SCAAT update per laser dot; the walls are the display's geometry."""
-    from services.sim.laser_housing import BEAM_DIRECTIONS
-
-    if result.ok:
-        labeled = [(k, p, result.dot_std_m[k]) for k, p in result.dots.items()]
-    else:  # fewer than four dots: label each by the nearest predicted beam hit
-        found = tracker.detect(images)
-        labeled = []
-        for point, std in zip(found.points, found.std_m, strict=True):
-            wall = _wall_of(world, point)
-            plane = (wall.normal, float(wall.normal @ point))
-            best = None
-            for k, beam in BEAM_DIRECTIONS.items():
-                try:
-                    pred, _ = ekf.predict_dot(beam, plane, mount)
-                except ValueError:
-                    continue
-                dist = float(np.linalg.norm(pred - point))
-                if dist < DOT_LABEL_GATE_M and (best is None or dist < best[0]):
-                    best = (dist, k)
-            if best is not None:
-                labeled.append((best[1], point, float(std)))
-    accepted = 0
-    for k, point, std in labeled:
-        wall = _wall_of(world, point)
-        accepted += ekf.update_dot(t, point, std, BEAM_DIRECTIONS[k],
-                                   (wall.normal, float(wall.normal @ point)),
-                                   wall.rotation[:, :2].T, mount)
-    return accepted
-
-
-def _wall_of(world: IvyWorld, point: np.ndarray) -> Any:
-    """The wall whose plane the point lies on (the cube face it is closest to)."""
-    return max(world.walls.values(), key=lambda w: float(w.normal @ point))
+                     np.array(waiting),
+                     {k: v for k, v in tracker.counts.items() if k.startswith("dot_")})
 
 
 # ---------------------------------------------------------------------- baselines
@@ -620,6 +585,7 @@ def figures_of(rec: Recording, traj: Any, gaps: list[tuple[float, float]],
         "output_rate_hz": float(rec.t.size / (rec.t[-1] - rec.t[0])),
         "optical_poses": int(rec.optical_t.size),
         "optical_failures": rec.optical_failures,
+        "optical_dot_labels": rec.dot_labels,
         "gaps": [[round(a, 3), round(b, 3)] for a, b in gaps],
         "samples": _sample_counts(rec, after, in_gap, ep, er),
         "filter_events": _filter_events(rec.stats),
@@ -703,7 +669,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.from_file is not None:
         from services.fusion.replay import replay
 
-        return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3)
+        if args.optical == "dots" and not args.display_calibration:
+            raise ValueError("--from with --optical dots needs --display-calibration FILE "
+                             "(the laser tracker's calibration, whose walls the dots lie on)")
+        return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3,
+                      display_calibration=args.display_calibration
+                      if args.optical == "dots" else None)
     horizon_ms = 20.0 if args.horizon_ms is None else args.horizon_ms
     try:
         lengths = [float(x) for x in args.gaps.split(",") if x.strip()]
@@ -736,6 +707,10 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the fusion filter on a recording's optical and accelerometer "
                              "samples instead of the simulator (uma record, uma demo --record); "
                              "compared with its ground truth if it holds the simulator's")
+    parser.add_argument("--display-calibration", metavar="FILE", default=None,
+                        help="with --from and --optical dots: the laser tracker's calibration "
+                             "file, whose walls the recorded dots lie on (the one uma demo "
+                             "gives its fusion)")
     parser.add_argument("--no-cache", action="store_true",
                         help="recalibrate the laser tracker instead of reusing "
                              "~/.cache/uma/laser_calibration_*.json")

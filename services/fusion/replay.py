@@ -10,6 +10,10 @@ so two runs give identical figures.  Sample-time order, not the recorder's recei
 on a loaded host the recorder receives the laser's poses late by its own delays, not by
 the fusion's, and the filter would drop what it sees as older than its history.
 
+With ``display_calibration`` (the laser tracker's calibration file, whose walls are not in
+the recording) the replay runs in dot mode, as ``uma demo`` does by default, and also feeds
+the recorded laser dots (``points3d`` on the optical edge).
+
 The live fusion's own output, when recorded, is evaluated the same way (``recorded_live``),
 and the replay at the live output's instants (``replayed_at_live_times``): the two agree
 where the live filter kept up with its inputs.  When the recording holds the simulator's
@@ -37,6 +41,7 @@ from services import frames
 from services.figures import error_stats
 from services.fusion.service import LiveFusion
 from services.fusion.state import MODEL_FLOOR
+from services.sim.ivy import Wall
 
 WARMUP_S = 3.0
 
@@ -53,6 +58,10 @@ def _data(rec: Recording, want: Any) -> tuple[Ability | None, list[Message]]:
 def _is_optical(a: Ability) -> bool:
     return a.type == "pose6d" and a.edge == (frames.WORLD, frames.LASER_RIG) \
         and not a.attributes.model_extra.get("ground_truth")
+
+
+def _is_dots(a: Ability) -> bool:
+    return a.type == "points3d" and a.edge == (frames.WORLD, frames.LASER_RIG)
 
 
 def _is_accel(a: Ability) -> bool:
@@ -82,10 +91,11 @@ def mountings(rec: Recording) -> dict[str, tuple[list[float], list[float]]]:
     return found
 
 
-def replay(path: str, horizon_s: float | None = None,
-           warmup_s: float = WARMUP_S) -> dict[str, Any]:
+def replay(path: str, horizon_s: float | None = None, warmup_s: float = WARMUP_S,
+           display_calibration: str | None = None) -> dict[str, Any]:
     """Run the fusion on the recording at ``path``; the figures (module docstring).
-    ``horizon_s`` None: the recorded fusion's own (its ability's ``predicted_s``, else 0)."""
+    ``horizon_s`` None: the recorded fusion's own (its ability's ``predicted_s``, else 0);
+    ``display_calibration``: dot mode with that file's walls."""
     rec = read(path)
     if horizon_s is None:
         horizon_s = _recorded_horizon(rec)
@@ -100,22 +110,31 @@ def replay(path: str, horizon_s: float | None = None,
     if missing:
         raise UmaError(f"{path}: no recorded mounting {frames.HEAD} -> {', '.join(missing)} "
                        "(static edges or ground-truth static abilities)")
+    dots, dots_msgs = _data(rec, _is_dots) if display_calibration else (None, [])
+    if display_calibration and dots is None:
+        raise UmaError(f"{path}: dot mode, but no laser dots are recorded (points3d "
+                       f"{frames.WORLD} -> {frames.LASER_RIG})")
     out: list[tuple[int, np.ndarray, np.ndarray]] = []
     fusion = LiveFusion(horizon_s, MODEL_FLOOR,
-                        publish=lambda t, p, q, cov: out.append((t, np.array(p), np.array(q))))
+                        publish=lambda t, p, q, cov: out.append((t, np.array(p), np.array(q))),
+                        walls=_walls(display_calibration))
     for rig, setter in ((frames.LASER_RIG, fusion.on_optical_mount),
                         (frames.ACCEL_RIG, fusion.on_accel_mount)):
         p, q = mounts[rig]
         setter(_Pose(p, q))
-    inputs = sorted([(m.publish_ns, 0, i, m) for i, m in enumerate(optical_msgs)]
-                    + [(m.publish_ns, 1, i, m) for i, m in enumerate(accel_msgs)],
-                    key=lambda x: x[:3])
+    streams = ((optical, optical_msgs, fusion.on_optical), (accel, accel_msgs, fusion.on_accel),
+               (dots, dots_msgs, fusion.on_dots))
+    inputs = sorted(((m.publish_ns, kind, i, m) for kind, (_, msgs, _) in enumerate(streams)
+                     for i, m in enumerate(msgs)), key=lambda x: x[:3])
     for _, kind, _, msg in inputs:
+        ability, _, on_sample = streams[kind]
         m = decode_measurement(msg.data)
-        m.attributes = (optical if kind == 0 else accel).attributes
-        (fusion.on_optical if kind == 0 else fusion.on_accel)(m)
+        m.attributes = ability.attributes
+        on_sample(m)
     figures: dict[str, Any] = {
-        "from": path, "inputs": {"optical": len(optical_msgs), "accel": len(accel_msgs)},
+        "from": path, "optical_update": "dots" if display_calibration else "pose",
+        "inputs": {"optical": len(optical_msgs), "accel": len(accel_msgs),
+                   "dots": len(dots_msgs)},
         "fused_poses": len(out), "dropped": dict(fusion.dropped), "damage": rec.damage}
     live = _recorded_output(rec)
     # one window for all three: from the replay's first pose plus the warm-up
@@ -127,6 +146,16 @@ def replay(path: str, horizon_s: float | None = None,
     figures["replayed_at_live_times"] = _against_truth(
         rec, [o for o in out if o[0] in live_times], first, warmup_s)
     return figures
+
+
+def _walls(display_calibration: str | None) -> list[Wall] | None:
+    """The display's walls for dot mode, None for pose mode."""
+    if display_calibration is None:
+        return None
+    from services.fusion.dots import display_walls
+    from services.laser_camera.calibration import Calibration
+
+    return display_walls(Calibration.load(display_calibration))
 
 
 def _is_fused(a: Ability) -> bool:

@@ -9,6 +9,12 @@ Needs (matched by the agent, data straight from the publishing services):
 * ``accel``: the raw accelerometer stream of the inertial rig (``accel_raw``, 100 Hz or
   more), whose ability attributes carry the rig's calibration (positions, axes, noise,
   latency: ``services.accel_rig.sensor.Calibration.to_dict``);
+* ``dots`` (``--optical dots`` only): the labeled laser dots on the optical rig's edge
+  (``points3d``, ids = diode labels 1..4, each dot's noise and installation std in
+  ``schemas.codec.DOT_STD`` / ``DOT_SYSTEMATIC_STD``), also of frame sets without a pose;
+  one SCAAT update per dot (``services.fusion.dots``) against the walls of the display's
+  calibration file (``--display-calibration``, the laser tracker's).  The poses then only
+  start the filter and bring their systematic covariance.
 
 The mountings ``alice/head -> <rig>`` are the SRG's static edges (an agent's
 ``[[static]]`` configuration, an alignment result or the simulator's true mountings):
@@ -38,11 +44,20 @@ import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from schemas.codec import SYSTEMATIC_COVARIANCE, unpack_covariance
+from schemas.codec import (
+    DOT_STD,
+    DOT_SYSTEMATIC_STD,
+    SYSTEMATIC_COVARIANCE,
+    unpack_covariance,
+)
 from services import frames
+from services.fusion.dots import display_walls, update_dots
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import MAX_AHEAD_S, MAX_COAST_S, FusionTracker
+from services.laser_camera.tracker import LabeledDots
+from services.sim.ivy import Wall
+from services.sim.laser_housing import BEAM_DIRECTIONS
 
 log = logging.getLogger("uma.fusion")
 
@@ -76,6 +91,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="publish accelerometer-only poses for at most this long after "
                              "the last optical pose, then none until the optics return "
                              f"(default {MAX_COAST_S:g} s)")
+    parser.add_argument("--optical", choices=("pose", "dots"), default="pose",
+                        help="optical update: the tracker's poses (default) or one SCAAT "
+                             "update per labeled laser dot, also of frame sets without a "
+                             "pose (needs --display-calibration)")
+    parser.add_argument("--display-calibration", metavar="FILE", default=None,
+                        help="with --optical dots: the laser tracker's calibration file, "
+                             "whose walls the dots lie on")
 
 
 class LiveFusion:
@@ -86,8 +108,10 @@ class LiveFusion:
 
     def __init__(self, horizon_s: float, model_floor: float,
                  publish: Any = None, config: FusionConfig | None = None,
-                 max_coast_s: float = MAX_COAST_S):
+                 max_coast_s: float = MAX_COAST_S, walls: list[Wall] | None = None):
+        """``walls``: the display's walls; given, the fusion runs in dot mode."""
         self.horizon_s = horizon_s
+        self.walls = walls
         self.max_coast_s = max_coast_s
         self.model_floor = model_floor
         self.publish = publish
@@ -122,6 +146,10 @@ class LiveFusion:
         with self._lock:
             self._on_optical(m)
 
+    def on_dots(self, m: Any) -> None:
+        with self._lock:
+            self._on_dots(m)
+
     def _on_accel(self, m: Any) -> None:
         if self.tracker is None and not self._build(m):
             return
@@ -150,10 +178,44 @@ class LiveFusion:
         if cov is None:
             cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
         ahead = self.tracker.stats.optical_too_far_ahead
-        self.tracker.add_rig_pose(self._seconds(m.t_ns), m.position, m.quaternion, cov,
-                                  self.optical_mount, systematic_se3=systematic_covariance(m))
+        systematic, mount = systematic_covariance(m), self.optical_mount
+        t = self._seconds(m.t_ns)
+        if self.walls is None or not self.tracker.ekf.initialised:
+            self.tracker.add_rig_pose(t, m.position, m.quaternion, cov, mount,
+                                      systematic_se3=systematic)
+        elif systematic is not None:  # dot mode: its dots update, the pose's error stays
+            p, q = m.position, m.quaternion
+            self.tracker.add_optical(t, lambda ekf, _: ekf.carry_rig_systematic(
+                p, q, systematic, mount) or True)
         if self.tracker.stats.optical_too_far_ahead > ahead:
             self._drop(f"optical pose more than {MAX_AHEAD_S:g} s ahead of the filter")
+
+    def _on_dots(self, m: Any) -> None:
+        """One SCAAT update per labeled dot (dot mode); a bad message or dot is dropped
+        and counted with its reason."""
+        if self.walls is None:
+            self._drop("laser dots while not in dot mode")
+            return
+        if self.tracker is None or self.optical_mount is None:
+            self._drop("laser dots before calibration and mountings are known")
+            return
+        try:
+            dots = labeled_dots(m, self._seconds(m.t_ns), self._drop)
+        except ValueError as exc:
+            self._drop(f"laser dots refused: {exc}")
+            return
+        if not dots.labels:
+            return
+        walls, mount, stats = self.walls, self.optical_mount, self.tracker.stats
+        before = (stats.dots_before_start, stats.optical_too_old, stats.optical_too_far_ahead)
+        self.tracker.add_dots(dots.t, lambda ekf, _: update_dots(ekf, dots, walls, mount))
+        for was, now, why in zip(before, (stats.dots_before_start, stats.optical_too_old,
+                                          stats.optical_too_far_ahead), (
+                "laser dots before the filter runs (or of the frame set that started it)",
+                "laser dots older than the history",
+                f"laser dots more than {MAX_AHEAD_S:g} s ahead of the filter"), strict=True):
+            if now > was:
+                self._drop(why)
 
     def status(self) -> dict[str, Any]:
         """Counters for the log: what came in, what went out, what was dropped and why."""
@@ -210,6 +272,47 @@ def accel_model_from_attributes(attrs: dict[str, Any], mount: tuple[np.ndarray, 
                                   cal.accel_var(rate), cal.latency_s, model_floor)
 
 
+def labeled_dots(m: Any, t: float, drop: Any) -> LabeledDots:
+    """The labeled dots of a ``points3d`` laser-dot message at filter time ``t``.
+
+    A message whose parts do not fit together (labels, points and stds of different
+    counts, stds missing) is a ``ValueError``; a dot that cannot be used (an unknown
+    label, a label twice, a non-finite point or std) is left out and ``drop(reason)``
+    counts it."""
+    points = np.asarray(m.points if m.points is not None else np.zeros((0, 3)), float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points of shape {points.shape}, expected (n, 3)")
+    n = len(points)
+    ids = m.ids
+    if ids is None or len(ids) != n:
+        raise ValueError(f"{'no' if ids is None else len(ids)} labels for {n} points")
+    extra = getattr(m, "extra", None) or {}
+    stds = []
+    for key in (DOT_STD, DOT_SYSTEMATIC_STD):
+        try:
+            v = np.asarray(extra[key], float).reshape(-1)
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"extra {key!r}: expected {n} numbers") from None
+        if v.shape != (n,):
+            raise ValueError(f"extra {key!r}: {v.size} numbers for {n} points")
+        stds.append(v)
+    std, sys_std = stds
+    keep, seen = [], set()
+    for i, label in enumerate(ids):
+        if label not in BEAM_DIRECTIONS:
+            drop(f"laser dot with unknown label {label!r}")
+        elif label in seen:
+            drop(f"laser dot label {label} twice in one message")
+        elif not (np.all(np.isfinite(points[i])) and std[i] > 0 and math.isfinite(std[i])
+                  and sys_std[i] >= 0 and math.isfinite(sys_std[i])):
+            drop("laser dot with a non-finite point or a non-positive std")
+        else:
+            keep.append(i)
+            seen.add(label)
+    return LabeledDots(t, [int(ids[i]) for i in keep], points[keep], std[keep],
+                       sys_std[keep], predicted=False)
+
+
 def _attributes(a: Any) -> dict[str, Any]:
     if a is None:
         return {}
@@ -252,7 +355,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
     config = FusionConfig(optical_bias_std=args.optical_bias_mm / 1e3,
                           optical_bias_tau_s=args.optical_bias_tau_s)
     live = LiveFusion(args.horizon_ms / 1e3, args.model_floor, config=config,
-                      max_coast_s=args.max_coast_s)
+                      max_coast_s=args.max_coast_s, walls=_walls(args))
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         out = svc.ability("head", type="pose6d", edge=(args.world, args.head),
@@ -266,10 +369,27 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
                  where="frequency_hz >= 2", prefer="latency_s", on_sample=live.on_optical)
         svc.need("accel", type="accel_raw", edge=("*/*", args.accel_rig),
                  where="frequency_hz >= 20", prefer="latency_s", on_sample=live.on_accel)
+        if live.walls is not None:
+            svc.need("dots", type="points3d", edge=(args.world, args.optical_rig),
+                     where="frequency_hz >= 2", prefer="latency_s", on_sample=live.on_dots)
         svc.start()
         log.info("fusion: publishing %s -> %s", args.world, args.head)
         poll_mountings(live, args, stop)
     return 0
+
+
+def _walls(args: argparse.Namespace) -> list[Wall] | None:
+    """The display's walls for dot mode (from the laser tracker's calibration file)."""
+    if args.optical == "pose":
+        if args.display_calibration:
+            raise ValueError("--display-calibration is for --optical dots")
+        return None
+    if not args.display_calibration:
+        raise ValueError("--optical dots needs --display-calibration FILE (the laser "
+                         "tracker's calibration, whose walls the dots lie on)")
+    from services.laser_camera.calibration import Calibration
+
+    return display_walls(Calibration.load(args.display_calibration))
 
 
 def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:

@@ -34,6 +34,7 @@ import bisect
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,10 +60,16 @@ MAX_COAST_S = 2.0
 MAX_AHEAD_S = 10.0
 
 
+#: an optical measurement to apply at its time: ``apply(ekf, t) -> accepted``
+Update = Callable[[FusionEKF, float], bool]
+
+
 @dataclass
 class TrackerStats:
     accel_samples: int = 0
     optical_poses: int = 0
+    dot_frames: int = 0        # frame sets of labeled laser dots received
+    dots_before_start: int = 0  # dot frames before (or of) the filter's start: dropped
     optical_late: int = 0      # applied by rewinding and replaying
     optical_too_old: int = 0   # older than the history: dropped
     optical_too_far_ahead: int = 0  # more than MAX_AHEAD_S ahead of the filter: refused
@@ -72,8 +79,9 @@ class TrackerStats:
 
 
 class FusionTracker:
-    """``add_accel(t, readings)`` and ``add_rig_pose(t, p, q, cov, mount)`` in arrival
-    order; ``pose(horizon)`` is the latest fused head pose."""
+    """``add_accel(t, readings)``, ``add_rig_pose(t, p, q, cov, mount)`` and
+    ``add_dots(t, apply)`` in arrival order; ``pose(horizon)`` is the latest fused head
+    pose."""
 
     def __init__(self, ekf: FusionEKF, history_s: float = HISTORY_S,
                  max_wait_s: float = MAX_WAIT_S, max_coast_s: float = MAX_COAST_S):
@@ -87,7 +95,7 @@ class FusionTracker:
         #: why the last ``add_accel`` gave no pose (for the service's log)
         self.refusal = ""
         self._coasted_out = False
-        self._pending: list[tuple[float, tuple]] = []   # optical poses ahead of the filter
+        self._pending: list[tuple[float, Update]] = []   # optical data ahead of the filter
         self._last_accel_wall = -math.inf
         self._samples: deque[tuple[float, float, np.ndarray]] = deque()  # (motion t, t, a)
         self._snapshots: deque[FilterState] = deque()
@@ -133,16 +141,36 @@ class FusionTracker:
         older than the history or more than ``MAX_AHEAD_S`` ahead of the filter.
         ``systematic_se3``: the part of ``cov_se3`` that persists from frame to frame
         (``FusionEKF.update_pose``)."""
-        ekf = self.ekf
         self.stats.optical_poses += 1
         pose = (p, q, cov_se3, mount, systematic_se3)
+        return self.add_optical(t, lambda ekf, t_m: ekf.update_rig_pose(t_m, *pose), now)
+
+    def add_dots(self, t: float, apply: Callable[[FusionEKF, float], int],
+                 now: float | None = None) -> bool:
+        """The labeled laser dots of the frame set at ``t``: ``apply(ekf, t)`` makes their
+        single-dot updates and returns how many it used, late or early as
+        ``add_rig_pose``; dropped (False) before the filter runs and for the frame set
+        whose pose started it (that pose is already in the filter)."""
+        self.stats.dot_frames += 1
+        start = self.ekf.start_t
+        if not self.ekf.initialised or start is None or t <= start:
+            self.stats.dots_before_start += 1
+            return False
+        # a coast-out may stop the filter while the dots wait: then they are dropped
+        return self.add_optical(t, lambda ekf, t_m: ekf.initialised and bool(apply(ekf, t_m)),
+                                now)
+
+    def add_optical(self, t: float, apply: Update, now: float | None = None) -> bool:
+        """Apply an optical measurement (``apply(ekf, t)``) at its time ``t``: now, when the
+        inertial stream reaches it, or by rewinding to the snapshot before it."""
+        ekf = self.ekf
         if not ekf.initialised:
-            return self._apply_now(t, pose)
+            return self._apply_now(t, apply)
         if t - ekf.t > MAX_AHEAD_S:
             self.stats.optical_too_far_ahead += 1
             return False
         if t >= ekf.t:
-            bisect.insort(self._pending, (t, pose), key=lambda e: e[0])
+            bisect.insort(self._pending, (t, apply), key=lambda e: e[0])
             now = time.monotonic() if now is None else now
             if now - self._last_accel_wall > self.max_wait_s:   # inertial stream stalled
                 while self._pending:
@@ -165,14 +193,14 @@ class FusionTracker:
         for _, t_s, a in before:
             ekf.update_accel_sample(t_s, a)
         self.stats.replayed_samples += len(before)
-        ok = ekf.update_rig_pose(t, *pose)
+        ok = apply(ekf, t)
         if not self._new_start():
             self._snapshot()
             self._replay(after)
         return ok
 
-    def _apply_now(self, t: float, pose: tuple) -> bool:
-        ok = self.ekf.update_rig_pose(t, *pose)
+    def _apply_now(self, t: float, apply: Update) -> bool:
+        ok = apply(self.ekf, t)
         if not self._new_start() and self.ekf.initialised:
             self._snapshot()
         return ok
@@ -185,8 +213,8 @@ class FusionTracker:
         self._coasted_out = True
         self._new_start()
         pending, self._pending = self._pending, []
-        for t, pose in pending:
-            self._apply_now(t, pose)
+        for t, apply in pending:
+            self._apply_now(t, apply)
 
     def _new_start(self) -> bool:
         """After a (re)start the history begins again there, and the samples after it are

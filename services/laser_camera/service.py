@@ -8,8 +8,13 @@ Abilities:
   (``frequency_hz``, ``latency_s``, ``pos_std_m``, ``rot_std_rad``, ``confidence`` = share
   of frame sets with a pose) are measured by the service itself: a warm-up before it
   advertises, then updated as they drift;
-* ``dots`` -- ``points3d`` on the same edge: the labeled world-frame laser spots of each
-  pose (ids = diode labels 1..4), for one-dot-at-a-time (SCAAT) fusion.
+* ``dots`` -- ``points3d`` on the same edge: the labeled world-frame laser spots (ids =
+  diode labels 1..4) of every frame set that has any, for one-dot-at-a-time (SCAAT)
+  fusion (Welch & Bishop, SCAAT, 1997): a pose's four, and of a frame set without a pose
+  (fewer than four dots seen) those the pose predicted from the last two labels
+  (``LaserTracker.label_dots``); each dot's noise and installation std ride along
+  (``schemas.codec.DOT_STD``, ``DOT_SYSTEMATIC_STD``).  A dot that gets no label is not
+  published; the tracker counts it (``dot_unlabeled_*``), logged with the other counts.
 
 Input is the simulator (default) or one OpenCV capture per camera (``sources``).
 ``--calibrate`` calibrates the simulated cameras from rendered checkerboards and writes
@@ -28,17 +33,30 @@ import math
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
-from schemas.codec import SYSTEMATIC_COVARIANCE, Measurement, pack_covariance
+from schemas.codec import (
+    DOT_STD,
+    DOT_SYSTEMATIC_STD,
+    SYSTEMATIC_COVARIANCE,
+    Measurement,
+    pack_covariance,
+)
 from services import frames
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
-from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams
+from services.laser_camera.tracker import (
+    LabeledDots,
+    LaserTracker,
+    PoseEstimate,
+    TrackerParams,
+)
 from services.sim.world import IvyWorld
 
 log = logging.getLogger("uma.laser_camera")
@@ -144,31 +162,48 @@ class _Performance:
         self.times: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)  # frame-set wall times
         self.latency: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
         self.got_pose: deque[bool] = deque(maxlen=ATTRIBUTE_WINDOW)
+        self.got_dots: deque[bool] = deque(maxlen=ATTRIBUTE_WINDOW)
         self.pos_std: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
         self.rot_std: deque[float] = deque(maxlen=ATTRIBUTE_WINDOW)
 
-    def add(self, latency_s: float, result) -> None:
+    def add(self, latency_s: float, result, dots: LabeledDots | None) -> None:
         self.times.append(time.monotonic())
         self.latency.append(latency_s)
         self.got_pose.append(isinstance(result, PoseEstimate))
+        self.got_dots.append(dots is not None and bool(dots.labels))
         if isinstance(result, PoseEstimate):
             dec = geo.se3_to_decoupled(result.position, result.covariance)
             self.pos_std.append(float(np.sqrt(np.trace(dec[:3, :3]) / 3)))
             self.rot_std.append(float(np.sqrt(np.trace(dec[3:, 3:]) / 3)))
 
-    def attributes(self, nominal_hz: float) -> dict[str, float]:
+    def frame_hz(self, nominal_hz: float) -> float:
+        """The measured rate of frame sets (``nominal_hz`` until two were taken)."""
         span = self.times[-1] - self.times[0] if len(self.times) > 1 else 0.0
-        hz = (len(self.times) - 1) / span if span > 0 else nominal_hz
+        return (len(self.times) - 1) / span if span > 0 else nominal_hz
+
+    def latency_s(self) -> float:
+        """The median latency from capture to result."""
+        return round(float(np.median(self.latency)), 4) if self.latency else 0.0
+
+    def attributes(self, nominal_hz: float) -> dict[str, float]:
         share = float(np.mean(self.got_pose)) if self.got_pose else 0.0
         # the rate of poses, not of frames; never 0 (the schema wants a positive rate):
         # a warm-up in which no frame gave a pose advertises the lowest rate it can state
-        out = {"frequency_hz": max(round(hz * share, 2), MIN_RATE_HZ),
-               "latency_s": round(float(np.median(self.latency)), 4) if self.latency else 0.0,
+        out = {"frequency_hz": max(round(self.frame_hz(nominal_hz) * share, 2), MIN_RATE_HZ),
+               "latency_s": self.latency_s(),
                "confidence": round(share, 3)}
         if self.pos_std:
             out["pos_std_m"] = float(f"{np.median(self.pos_std):.3g}")
             out["rot_std_rad"] = float(f"{np.median(self.rot_std):.3g}")
         return out
+
+    def dot_attributes(self, nominal_hz: float) -> dict[str, float]:
+        """The dots stream's: the rate and share of frame sets with labeled dots (more
+        than have a pose), the same latency."""
+        share = float(np.mean(self.got_dots)) if self.got_dots else 0.0
+        return {"frequency_hz": max(round(self.frame_hz(nominal_hz) * share, 2), MIN_RATE_HZ),
+                "latency_s": self.latency_s(),
+                "confidence": round(share, 3)}
 
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
@@ -190,14 +225,15 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
             if outputs is None:
                 warmup.append(r)
                 if _warmed_up(warmup):
-                    outputs = _advertise(args, stack, perf.attributes(args.rate_hz))
-                    for t_ns, result in warmup:
-                        _publish(*outputs, t_ns, result)
+                    outputs = _advertise(args, stack, perf)
+                    for step in warmup:
+                        _publish(outputs, *step)
                     next_update = time.monotonic() + ATTRIBUTE_UPDATE_S
             else:
-                _publish(*outputs, *r)
+                _publish(outputs, *r)
                 if time.monotonic() >= next_update:
-                    outputs = _maybe_update(*outputs, perf.attributes(args.rate_hz))
+                    _maybe_update(outputs, perf, args.rate_hz)
+                    log.info("laser-camera: %s", dict(tracker.counts))
                     next_update = time.monotonic() + ATTRIBUTE_UPDATE_S
             next_tick = next_frame_time(next_tick, period, time.monotonic())
             stop.wait(max(0.0, next_tick - time.monotonic()))
@@ -218,23 +254,31 @@ def next_frame_time(tick: float, period: float, now: float) -> float:
     return tick
 
 
-def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack, attrs: dict):
+@dataclass
+class _Outputs:
+    """The two abilities and the attributes they were last advertised with."""
+
+    pose: Any
+    dots: Any
+    pose_attrs: dict[str, float]
+    dot_attrs: dict[str, float]
+
+
+def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack,
+               perf: _Performance) -> _Outputs:
     """Declare the abilities with the measured attributes and start the service."""
     from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
 
     svc = stack.enter_context(Service(args.id, realm=args.realm, agent=args.agent,
                                       connect=args.connect, listen=args.listen or None))
+    attrs = perf.attributes(args.rate_hz)
+    dot_attrs = perf.dot_attributes(args.rate_hz)
     pose_out = svc.ability("pose", type="pose6d", edge=(frames.WORLD, frames.LASER_RIG),
                            **attrs)
     dots_out = svc.ability("dots", type="points3d", edge=(frames.WORLD, frames.LASER_RIG),
-                           **_dot_attributes(attrs))
+                           **dot_attrs)
     svc.start()
-    return pose_out, dots_out, attrs
-
-
-def _dot_attributes(attrs: dict) -> dict:
-    """The pose's attributes that also describe the dots stream."""
-    return {k: v for k, v in attrs.items() if k not in ("pos_std_m", "rot_std_rad")}
+    return _Outputs(pose_out, dots_out, attrs, dot_attrs)
 
 
 def _warmed_up(warmup: list) -> bool:
@@ -242,12 +286,14 @@ def _warmed_up(warmup: list) -> bool:
     them: an ability advertised at the rate of no poses would not match any need."""
     if len(warmup) < WARMUP_FRAMES:
         return False
-    got_pose = any(isinstance(result, PoseEstimate) for _, result in warmup)
+    got_pose = any(isinstance(result, PoseEstimate) for _, result, _ in warmup)
     return got_pose or len(warmup) >= MAX_WARMUP_FRAMES
 
 
 def _step(tracker: LaserTracker, source, perf: _Performance):
-    """Grab and process one frame set: (t_ns, result), or None when the input ended."""
+    """Grab and process one frame set: (t_ns, result, labeled dots), or None when the input
+    ended.  The dots are labeled now: without a pose, by the tracker's state of this
+    frame set."""
     grabbed = source.grab()
     if grabbed is None:
         return None
@@ -257,33 +303,44 @@ def _step(tracker: LaserTracker, source, perf: _Performance):
     except ValueError as exc:  # e.g. an image of the wrong format from a capture
         log.warning("laser-camera: frame set refused: %s", exc)
         result = None
-    perf.add((time.time_ns() - t_ns) * 1e-9, result)  # capture to result
-    return t_ns, result
+    dots = None if result is None else tracker.label_dots(result)
+    perf.add((time.time_ns() - t_ns) * 1e-9, result, dots)  # capture to result
+    return t_ns, result, dots
 
 
-def _publish(pose_out, dots_out, advertised: dict, t_ns: int, result) -> None:
-    if not isinstance(result, PoseEstimate):
-        return
-    pose_out.publish_measurement(Measurement(
-        type="pose6d", t_ns=t_ns, position=result.position, quaternion=result.quaternion,
-        covariance=result.covariance,
-        extra={SYSTEMATIC_COVARIANCE: pack_covariance(result.systematic)}))
-    labels = sorted(result.dots)
-    dots_out.publish_measurement(Measurement(
-        type="points3d", t_ns=t_ns, points=np.array([result.dots[k] for k in labels]),
-        ids=labels))
+def _publish(out: _Outputs, t_ns: int, result, dots: LabeledDots | None) -> None:
+    """The pose, if the frame set gave one, and its labeled dots, if it has any."""
+    if isinstance(result, PoseEstimate):
+        out.pose.publish_measurement(Measurement(
+            type="pose6d", t_ns=t_ns, position=result.position, quaternion=result.quaternion,
+            covariance=result.covariance,
+            extra={SYSTEMATIC_COVARIANCE: pack_covariance(result.systematic)}))
+    if dots is not None and dots.labels:
+        out.dots.publish_measurement(dots_measurement(t_ns, dots))
 
 
-def _maybe_update(pose_out, dots_out, advertised: dict, measured: dict):
-    """Re-advertise the attributes that drifted by more than ``ATTRIBUTE_CHANGE``."""
-    drifted = any(abs(measured[k] - advertised.get(k, 0.0))
-                  > ATTRIBUTE_CHANGE * max(abs(advertised.get(k, 0.0)), 1e-9)
-                  for k in measured)
-    if drifted:
-        pose_out.update(**measured)
-        dots_out.update(**_dot_attributes(measured))
-        advertised = measured
-    return pose_out, dots_out, advertised
+def dots_measurement(t_ns: int, dots: LabeledDots) -> Measurement:
+    """The ``points3d`` of labeled dots, each with its noise and installation std."""
+    return Measurement(type="points3d", t_ns=t_ns, points=dots.points, ids=list(dots.labels),
+                       extra={DOT_STD: dots.std_m.tolist(),
+                              DOT_SYSTEMATIC_STD: dots.systematic_std_m.tolist()})
+
+
+def _maybe_update(out: _Outputs, perf: _Performance, nominal_hz: float) -> None:
+    """Re-advertise an ability whose attributes drifted by more than ``ATTRIBUTE_CHANGE``."""
+    attrs = perf.attributes(nominal_hz)
+    dot_attrs = perf.dot_attributes(nominal_hz)
+    if _drifted(out.pose_attrs, attrs):
+        out.pose.update(**attrs)
+        out.pose_attrs = attrs
+    if _drifted(out.dot_attrs, dot_attrs):
+        out.dots.update(**dot_attrs)
+        out.dot_attrs = dot_attrs
+
+
+def _drifted(advertised: dict[str, float], measured: dict[str, float]) -> bool:
+    return any(abs(measured[k] - advertised.get(k, 0.0))
+               > ATTRIBUTE_CHANGE * max(abs(advertised.get(k, 0.0)), 1e-9) for k in measured)
 
 
 PLUGIN = ServicePlugin(

@@ -22,6 +22,10 @@ Anything that prevents a pose (fewer than four dots, no consistent labeling, a g
 jump, ...) yields ``NoPose`` with the reason, counted in ``tracker.counts`` -- never an
 exception.
 
+``label_dots(result)`` gives the labeled dots of the frame set, for one-dot-at-a-time
+(SCAAT) fusion: a pose's four, and without a pose the dots it can label by each spot's
+predicted position (temporal coherence), each with its noise and installation std.
+
 Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
 system*, MSc thesis, York University 2003.
 """
@@ -49,6 +53,7 @@ from services.laser_camera.pose import (
     row_norms,
 )
 from services.sim.ivy import on_active_area, screen_to_world
+from services.sim.laser_housing import BEAM_DIRECTIONS
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
@@ -93,6 +98,14 @@ class TrackerParams:
     #: a full-frame pass at least this often picks up dots the windows cannot (a dot
     #: entering a camera's view, a second camera seeing a dot in an overlap)
     roi_refresh_s: float = 0.5
+    #: a dot of a frame set without a pose gets the label of the nearest predicted spot
+    #: (``label_dots``) if that is within this distance (m) plus ``label_gate_mps`` times
+    #: the age of the sightings it was predicted from: at 15 Hz on seeds 1-10 the
+    #: prediction was off by up to ~1.5 m/s times that age (a fast head, one or more frame
+    #: sets without a pose), while the predicted spots of two labels on a wall were at
+    #: least 1.8 m apart (the beams are orthogonal)
+    label_gate_m: float = 0.05
+    label_gate_mps: float = 1.5
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
@@ -103,6 +116,8 @@ class TrackerParams:
             raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise ValueError("roi_half_px and roi_refresh_s must be >= 0")
+        if not (self.label_gate_m > 0 and self.label_gate_mps >= 0):
+            raise ValueError("label_gate_m must be positive and label_gate_mps >= 0")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
                self.camera_residual_std_m) < 0:
             raise ValueError("the installation's tolerances must be >= 0")
@@ -145,10 +160,28 @@ class PoseEstimate:
     #: tolerances and the model error): no number of frames averages it away
     systematic: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     timing_s: dict[str, float] = field(default_factory=dict)
+    #: diode label -> per-axis in-plane std of that spot's installation error (the dot's
+    #: share of ``systematic``)
+    dot_systematic_std_m: dict[int, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return True
+
+
+@dataclass(frozen=True)
+class LabeledDots:
+    """The labeled laser spots of one frame set, for one-dot-at-a-time (SCAAT) fusion."""
+
+    t: float
+    labels: list[int]  # diode label of each spot
+    points: np.ndarray  # (n, 3) world
+    std_m: np.ndarray  # (n,) per-axis in-plane std of the detection and calibration noise
+    #: (n,) per-axis in-plane std of the installation's error at each spot: it holds from
+    #: frame to frame, so a filter must not average it away
+    systematic_std_m: np.ndarray
+    #: True: labeled by the predicted pose (the frame set gave none), False: the pose's own
+    predicted: bool
 
 
 @dataclass(frozen=True)
@@ -177,6 +210,10 @@ class LaserTracker:
         #: detection passes: "full" frame or "roi" (predicted windows only)
         self.passes: Counter[str] = Counter()
         self._last: PoseEstimate | None = None
+        self._prev: PoseEstimate | None = None  # the pose before ``_last``: its motion
+        self._dots: WorldDots | None = None  # the dots of the last frame set solved
+        #: diode label -> its last two labeled sightings (t, world point, wall)
+        self._spots: dict[int, tuple[tuple[float, np.ndarray, str], ...]] = {}
         self._seen = _SeenDots()
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
@@ -184,7 +221,8 @@ class LaserTracker:
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
         dots found in the full frames)."""
-        self._last = None
+        self._last = self._prev = None
+        self._spots = {}
         self._seen = _SeenDots()
 
     # ------------------------------------------------------------------ pipeline
@@ -293,6 +331,7 @@ class LaserTracker:
     def _choose(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
+        self._dots = dots
         n = len(dots.points)
         if n < 4:
             return NoPose(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
@@ -335,13 +374,90 @@ class LaserTracker:
             cov, systematic = _covariance(dots, idx, best.position, p)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
+        sys_std = np.sqrt(_installation_variance(dots, idx, best.position, p))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
             {k + 1: float(dots.std_m[i]) for k, i in enumerate(idx)},
-            best.error, n, not tracking, systematic)
+            best.error, n, not tracking, systematic,
+            dot_systematic_std_m={k + 1: float(s) for k, s in enumerate(sys_std)})
+        self._prev = last if tracking else None
         self._last = est
+        self._remember(t, [1, 2, 3, 4], dots.points[idx], [dots.walls[i] for i in idx])
         return est
+
+    # ------------------------------------------------------------------ labeled dots
+
+    def label_dots(self, result: PoseEstimate | NoPose) -> LabeledDots:
+        """The labeled dots of the frame set ``result`` came from (the last one solved).
+
+        With a pose, its four dots.  Without one (fewer than four dots seen, or no
+        labeling fits), each dot gets the label whose predicted spot on the dot's own wall
+        is nearest, within ``label_gate_m``, one dot per label (temporal coherence, Hogue
+        2003 §5.3: a head moves little in a frame).  A label's spot is predicted from its
+        last two labeled sightings on that wall at their velocity, which chains through a
+        run of frame sets without a pose; failing that, as the beam hit of the pose
+        predicted from the last two.  A dot that gets no label is counted in ``counts``
+        under ``dot_unlabeled_<why>``, never passed on with a guessed label."""
+        if isinstance(result, PoseEstimate):
+            labels = sorted(result.dots)
+            return LabeledDots(result.t, labels, np.array([result.dots[k] for k in labels]),
+                               np.array([result.dot_std_m[k] for k in labels]),
+                               np.array([result.dot_systematic_std_m[k] for k in labels]),
+                               predicted=False)
+        dots = self._dots if self._dots is not None else _no_dots()
+        n, t = len(dots.points), result.t
+        if n > self.params.max_dots:
+            self.counts["dot_unlabeled_too_many_dots"] += n
+            return _labeled(t, dots, [], [], np.zeros(3), self.params)
+        pose = self._predict(t)
+        predictions = [[self._predicted_spot(dots, i, label, t, pose)
+                        for label in BEAM_DIRECTIONS] for i in range(n)]
+        idx, labels = _nearest_spots(dots.points, predictions, self.params)
+        if not any(p is not None for row in predictions for p in row):
+            self.counts["dot_unlabeled_no_recent_pose"] += n
+        else:
+            self.counts["dot_unlabeled_no_spot_within_gate"] += n - len(idx)
+        self.counts["dot_labeled_by_prediction"] += len(idx)
+        self._remember(t, labels, dots.points[idx], [dots.walls[i] for i in idx])
+        p0 = pose[0] if pose is not None else (
+            self._last.position if self._last is not None else np.zeros(3))
+        return _labeled(t, dots, idx, labels, p0, self.params)
+
+    def _predicted_spot(self, dots: WorldDots, i: int, label: int, t: float,
+                        pose: tuple[np.ndarray, np.ndarray] | None
+                        ) -> tuple[np.ndarray, float] | None:
+        """Where diode ``label``'s spot should be at ``t`` if it lies on dot ``i``'s wall,
+        and the age (s) of what that is predicted from: moved on from its last two
+        sightings there, else the predicted pose's beam hit; None if neither is known."""
+        seen = self._spots.get(label, ())
+        spot = _moved_on(seen, dots.walls[i], t, self.params.coherence_s)
+        if spot is not None:
+            return spot, t - seen[-1][0]
+        hit = None if pose is None else _beam_hit(dots, i, *pose, BEAM_DIRECTIONS[label])
+        return None if hit is None else (hit, t - self._last.t)
+
+    def _remember(self, t: float, labels: list[int], points: np.ndarray,
+                  walls: list[str]) -> None:
+        """Keep each label's last two sightings (time, point, wall)."""
+        for label, point, wall in zip(labels, points, walls, strict=True):
+            self._spots[label] = (*self._spots.get(label, ())[-1:], (t, point, wall))
+
+    def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rig pose (P0, rotation matrix) at ``t`` moved on from the last pose at the
+        motion between the last two (held if there is only one); None beyond
+        ``coherence_s`` after the last pose."""
+        last, prev = self._last, self._prev
+        if last is None or not 0 <= t - last.t <= self.params.coherence_s:
+            return None
+        p0, q = last.position, last.quaternion
+        if prev is not None and last.t > prev.t:
+            k = (t - last.t) / (last.t - prev.t)
+            p0 = p0 + k * (last.position - prev.position)
+            turn = geo.quat_to_rotvec(geo.quat_multiply(last.quaternion,
+                                                        geo.quat_conjugate(prev.quaternion)))
+            q = geo.quat_multiply(geo.rotvec_to_quat(k * turn), q)
+        return p0, geo.quat_to_matrix(q)
 
 
 class _Screens:
@@ -364,8 +480,7 @@ class _Screens:
         """The dots on the active screens, before duplicates are merged."""
         names = [name for name, d in detections.items() if len(d)]
         if not names:
-            return WorldDots(np.zeros((0, 3)), np.zeros(0), [], np.zeros((0, 2, 3)), [],
-                             np.zeros(0))
+            return _no_dots()
         det = np.concatenate([detections[name] for name in names])
         und = np.concatenate([self.cameras[self.index[name]].undistort(detections[name][:, [U, V]])
                               for name in names])
@@ -431,6 +546,63 @@ def _all_found(centres: list[list[float]], det: np.ndarray, half: float) -> bool
                                    for x, y in found) for u, v in centres)
 
 
+def _no_dots() -> WorldDots:
+    return WorldDots(np.zeros((0, 3)), np.zeros(0), [], np.zeros((0, 2, 3)), [], np.zeros(0))
+
+
+def _moved_on(seen: tuple[tuple[float, np.ndarray, str], ...], wall: str, t: float,
+              horizon_s: float) -> np.ndarray | None:
+    """A spot at ``t`` moved on from its last two sightings ``seen`` at their velocity, if
+    both were on ``wall`` and neither gap exceeds ``horizon_s``; else None."""
+    if len(seen) < 2:
+        return None
+    (t0, p0, w0), (t1, p1, w1) = seen
+    if w0 != wall or w1 != wall or not (0 < t1 - t0 <= horizon_s and 0 <= t - t1 <= horizon_s):
+        return None
+    return p1 + (p1 - p0) * ((t - t1) / (t1 - t0))
+
+
+def _beam_hit(dots: WorldDots, i: int, p0: np.ndarray, R: np.ndarray,
+              beam: np.ndarray) -> np.ndarray | None:
+    """Where the beam ``beam`` (rig frame) of a rig at (``p0``, ``R``) meets the plane of
+    dot ``i``'s wall; None if it runs parallel to it or away from it."""
+    normal = np.cross(dots.axes[i, 0], dots.axes[i, 1])
+    height = float(normal @ (dots.points[i] - p0))  # the wall's distance from P0
+    d = R @ beam
+    nd = float(normal @ d)
+    if nd <= 1e-6 or height <= 0:
+        return None
+    return p0 + (height / nd) * d
+
+
+def _nearest_spots(points: np.ndarray,
+                   predictions: list[list[tuple[np.ndarray, float] | None]],
+                   p: TrackerParams) -> tuple[list[int], list[int]]:
+    """Dot indices and their diode labels: each dot's nearest predicted spot
+    (``predictions[i][label - 1]``: the spot and the age of its prediction) within the
+    gate for that age, nearest pairs first, every dot and label used once."""
+    pairs = [(float(np.linalg.norm(pred[0] - points[i])), i, label,
+              p.label_gate_m + p.label_gate_mps * pred[1])
+             for i, row in enumerate(predictions)
+             for label, pred in zip(BEAM_DIRECTIONS, row, strict=True) if pred is not None]
+    idx: list[int] = []
+    labels: list[int] = []
+    for dist, i, label, gate in sorted(pairs):
+        if dist <= gate and i not in idx and label not in labels:
+            idx.append(i)
+            labels.append(label)
+    return idx, labels
+
+
+def _labeled(t: float, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
+             params: TrackerParams) -> LabeledDots:
+    """``LabeledDots`` of the dots ``idx`` labeled ``labels``, their installation error
+    as seen from P0 at ``p0``."""
+    sys_var = _installation_variance(dots, idx, p0, params) if idx else np.zeros(0)
+    return LabeledDots(t, labels, dots.points[idx].reshape(-1, 3), dots.std_m[idx],
+                       np.sqrt(sys_var), predicted=True)
+
+
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
     """One dot per spot: overlapping cameras (the split floor and ceiling) see some twice."""
     n = len(d.points)
@@ -455,7 +627,7 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
 
 def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
                            p: TrackerParams) -> np.ndarray:
-    """Per-axis in-plane variance (m^2) each of the four dots gets from the installation's
+    """Per-axis in-plane variance (m^2) each dot ``idx`` gets from the installation's
     tolerances, averaged over the wall's two axes.
 
     A beam turned by ``d`` (two components, each ``housing_dir_std_rad``) or missing P0 by
