@@ -16,12 +16,16 @@ from services.alignment.pipeline import (
     align_stations,
     align_streams,
     estimate_offset,
+    fit_stations,
+    offset_parabolas,
+    offset_std,
 )
 from services.alignment.robust import ransac
 from services.alignment.selection import (
     angle_mask,
     axis_criterion,
     greedy_axis_selection,
+    noise_angle_threshold,
     select_pairs,
 )
 from services.alignment.simulate import (
@@ -216,6 +220,28 @@ def test_angle_threshold_and_axis_criterion() -> None:
     assert sel.axis_spread_rad > np.radians(30)
 
 
+def test_the_angle_threshold_follows_the_noise() -> None:
+    """Without a given threshold, pairs are dropped only when their rotation is within a few
+    noise standard deviations of none or of half a turn (the angles of A and B differ only
+    by noise), so the default keeps more pairs than 5 degrees would; a given threshold is
+    applied as given."""
+    stations, _ = _stations(7, n=25, noise=(0.001, np.radians(0.1)))
+    motions = relative_motions(*stations, all_pairs(25))
+    threshold = noise_angle_threshold(motions)
+    assert np.radians(0.05) < threshold < np.radians(2.0)
+    assert select_pairs(motions).min_angle_rad == threshold
+    assert select_pairs(motions, np.radians(5.0)).min_angle_rad == np.radians(5.0)
+    noisier = relative_motions(*_stations(7, n=25, noise=(0.001, np.radians(0.4)))[0],
+                               all_pairs(25))
+    assert noise_angle_threshold(noisier) > 2 * threshold
+    fit = fit_stations(*stations, AlignmentOptions(ransac=False, refine=False),
+                       np.random.default_rng(0))
+    kept = angle_mask(motions, threshold).sum()
+    assert len(fit.motions) == kept > angle_mask(motions, np.radians(5.0)).sum()
+    exact = relative_motions(*_stations(7, n=25)[0], all_pairs(25))
+    assert noise_angle_threshold(exact) < 1e-6  # no noise: only rotations of 0 are dropped
+
+
 # --------------------------------------------------------------------------- RANSAC
 
 
@@ -251,6 +277,20 @@ def test_time_offset_is_recovered_within_2_ms(offset_s: float) -> None:
     estimate, coarse = estimate_offset(a, b, AlignmentOptions())
     assert abs(estimate - offset_s) < 2e-3
     assert abs(coarse - offset_s) < 10e-3
+
+
+def test_the_offset_estimate_is_the_minimum_its_std_describes() -> None:
+    """offset_std is the spread of the minimum of the kept pairs' parabolas, so the
+    estimate must sit at that minimum: the step the parabolas still ask for is small next
+    to the std (the golden section alone stopped where the trimmed cost jumps)."""
+    rng = np.random.default_rng(8)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
+    a, b = simulate_streams(8, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.03))
+    options = AlignmentOptions(bootstrap=30)
+    estimate, _ = estimate_offset(a, b, options)
+    std = offset_std(a, b, estimate, options)
+    assert abs(offset_parabolas(a, b, estimate, options).minimum()) < 0.5 * std
+    assert abs(estimate - 0.03) < 4 * std
 
 
 def test_streams_end_to_end_with_covariance() -> None:

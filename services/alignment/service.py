@@ -57,7 +57,7 @@ from services.alignment.pipeline import (
     align_stations,
     align_streams,
 )
-from services.alignment.selection import select_pairs
+from services.alignment.selection import DEFAULT_MIN_ANGLE_RAD, select_pairs
 from services.alignment.solvers import AlignmentError, all_pairs, relative_motions
 from services.alignment.timesync import PoseSeries
 
@@ -108,7 +108,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="daniilidis", choices=["daniilidis", "tsai-lenz"],
                         help="closed-form solver before refinement (default daniilidis)")
     parser.add_argument("--min-angle-deg", type=float, default=5.0,
-                        help="motion pairs must rotate by at least this (default 5)")
+                        help="before solving, --min-pairs motion pairs must rotate by at "
+                             "least this (default 5); the solver's own selection follows "
+                             "the motions' noise")
     parser.add_argument("--min-spread-deg", type=float, default=30.0,
                         help="rotation axes must spread by at least this before solving "
                              "(default 30)")
@@ -155,7 +157,7 @@ def options_from(args: argparse.Namespace) -> AlignmentOptions:
     if args.offset_ms is not None and not math.isfinite(args.offset_ms):
         raise ValueError(f"--offset-ms must be finite, got {args.offset_ms}")
     return AlignmentOptions(
-        method=args.method, min_angle_rad=math.radians(args.min_angle_deg),
+        method=args.method,
         max_stations=args.max_stations, bootstrap=args.bootstrap,
         estimate_offset=args.offset_ms is None,
         offset_s=(args.offset_ms or 0.0) / 1e3, max_offset_s=args.max_offset_ms / 1e3,
@@ -285,8 +287,10 @@ class StreamBuffer:
 
 def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOptions,
               min_pairs: int, min_spread_rad: float, min_seconds: float = 0.0,
-              ) -> tuple[bool, str]:
-    """Whether the buffered motions condition X well enough to solve, and why not."""
+              min_angle_rad: float = DEFAULT_MIN_ANGLE_RAD) -> tuple[bool, str]:
+    """Whether the buffered motions condition X well enough to solve, and why not: enough
+    of a's motions rotate by ``min_angle_rad`` (a fixed criterion of enough movement; the
+    solver's selection then follows the noise)."""
     if a is None or b is None:
         return False, "waiting for both streams"
     overlap = min(a.t[-1], b.t[-1]) - max(a.t[0], b.t[0])
@@ -299,10 +303,10 @@ def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOpti
     pick = np.unique(np.linspace(0, len(a) - 1, _READINESS_STATIONS).astype(int))
     motions = relative_motions(a.position[pick], a.quaternion[pick], a.position[pick],
                                a.quaternion[pick], all_pairs(len(pick)))
-    sel = select_pairs(motions, options.min_angle_rad)
+    sel = select_pairs(motions, min_angle_rad)
     if len(sel.index) < min_pairs:
         return False, (f"{len(sel.index)} of {min_pairs} motion pairs rotate by "
-                       f"{math.degrees(options.min_angle_rad):.0f} deg or more: keep moving")
+                       f"{math.degrees(min_angle_rad):.0f} deg or more: keep moving")
     if sel.axis_spread_rad < min_spread_rad:
         return False, (f"rotation axes spread {math.degrees(sel.axis_spread_rad):.0f} of "
                        f"{math.degrees(min_spread_rad):.0f} deg: rotate about other axes")
@@ -362,7 +366,8 @@ class LiveAlignment:
         sa, sb = self.a.series(t0), self.b.series(t0)
         ready, self.status = readiness(sa, sb, self.options, self.args.min_pairs,
                                        math.radians(self.args.min_spread_deg),
-                                       self.args.min_seconds)
+                                       self.args.min_seconds,
+                                       math.radians(self.args.min_angle_deg))
         if not ready:
             return None
         self.last_attempt = time.monotonic()
