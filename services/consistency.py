@@ -8,6 +8,13 @@ the mean an honest, unbiased tracker's error has, so that an error which stays t
 for the whole run counts as the single sample it is -- gives the effective number of
 independent samples ``k = n / tau`` (``tau`` the largest integrated autocorrelation time
 of the error's components, Geyer's initial positive sequence).
+
+Runs that share an error known only through its covariance -- every dead-reckoning run of
+one calibration shares that calibration's error -- are dependent in a way the reported
+covariances describe exactly: ``shared_error_effective_runs`` takes the variance of the
+runs' mean NEES from them, and the band is the chi-square with the same mean and variance
+(Satterthwaite, "An approximate distribution of estimates of variance components",
+Biometrics Bulletin 1946).
 """
 
 from __future__ import annotations
@@ -27,13 +34,47 @@ def nees_figures(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(covariances, e[..., None])[..., 0])
     tau = max(autocorrelation_time(e[:, j], about="zero") for j in range(d))
     k = n / tau
-    lo, hi = (float(x) for x in chi2.ppf([0.025, 0.975], d * k) / k)
+    lo, hi = mean_nees_band_95(d, k)
     lo_1, hi_1 = chi2.ppf([0.025, 0.975], d)
     mean = float(np.mean(nees))
     return {"mean": round(mean, 3), "dof": d, "effective_samples": round(k, 2),
             "bounds_95": [round(lo, 3), round(hi, 3)],
             "share_inside_single_95": round(float(np.mean((nees >= lo_1) & (nees <= hi_1))), 4),
             "within_bounds": bool(lo <= mean <= hi)}
+
+
+def mean_nees_band_95(dof: int, effective_samples: float) -> tuple[float, float]:
+    """The 95 % interval of the mean NEES of ``effective_samples`` independent ``dof``-dof
+    errors with honest covariances: ``chi2(dof k) / k``'s 2.5 % and 97.5 % quantiles."""
+    k = float(effective_samples)
+    lo, hi = chi2.ppf([0.025, 0.975], dof * k) / k
+    return float(lo), float(hi)
+
+
+def shared_error_effective_runs(covariances: np.ndarray, sensitivities: np.ndarray,
+                                shared_cov: np.ndarray) -> float:
+    """Effective number of independent runs in the mean NEES of runs whose errors
+    ``y_r = S_r c + n_r`` share one draw ``c ~ N(0, shared_cov)`` (m-dim) on top of
+    independent ``n_r``, each reported with its full covariance ``covariances[r]``
+    (d x d, ``S_r shared_cov S_r^T`` included); ``sensitivities`` are the ``S_r`` (n, d, m).
+
+    The mean NEES is a Gaussian quadratic form: with ``W_r`` the inverse covariances,
+    ``Var(sum_r y_r^T W_r y_r) = 2 sum_{r,s} tr(W_r K_rs W_s K_sr)`` (``K_rs`` the
+    cross-covariances), which is ``2 d`` per run plus, between runs,
+    ``2 sum_{r != s} tr(U_r C U_s C)`` with ``U_r = S_r^T W_r S_r``.  Returned is the
+    ``k`` for which ``chi2(d k) / k`` has that variance (``n`` when nothing is shared):
+    the shared part counts once, not once per run.
+    """
+    cov = np.asarray(covariances, float)
+    S = np.asarray(sensitivities, float)
+    C = np.asarray(shared_cov, float)
+    n, d = cov.shape[:2]
+    WS = np.linalg.solve(cov, S)  # (n, d, m)
+    V = np.einsum("rdi,rdj,jk->rik", S, WS, C)  # U_r C
+    T = V.sum(axis=0)
+    between = np.einsum("ij,ji->", T, T) - np.einsum("rij,rji->", V, V)
+    var_sum = 2.0 * d * n + 2.0 * between
+    return float(2.0 * d * n * n / var_sum)
 
 
 def autocorrelation_time(x: np.ndarray, about: str) -> float:

@@ -1,9 +1,9 @@
-"""services.consistency: the autocorrelation time behind every NEES band."""
+"""services.consistency: the autocorrelation time and shared errors behind NEES bands."""
 
 import numpy as np
 import pytest
 
-from services.consistency import autocorrelation_time
+from services.consistency import autocorrelation_time, shared_error_effective_runs
 
 
 def _ar1(a: float, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -43,3 +43,23 @@ def test_an_offset_makes_the_two_differ():
 def test_about_must_be_named():
     with pytest.raises(ValueError, match="about must be 'zero' or 'mean'"):
         autocorrelation_time(np.ones(10), about="median")
+
+
+def test_shared_error_effective_runs_matches_monte_carlo():
+    """Runs sharing one Gaussian error: the variance of their mean NEES is that of
+    chi2(d k) / k with the k returned (20 runs of 6 dof sharing a 5-dim error)."""
+    rng = np.random.default_rng(0)
+    n, d, m = 20, 6, 5
+    S = 0.5 * rng.standard_normal((n, d, m))
+    P = rng.uniform(0.5, 2.0, (n, d))
+    C = np.diag(rng.uniform(0.5, 2.0, m))
+    cov = np.einsum("ri,ij->rij", P, np.eye(d)) + np.einsum("rij,jk,rlk->ril", S, C, S)
+    k = shared_error_effective_runs(cov, S, C)
+    assert 1.0 < k < n
+    assert shared_error_effective_runs(cov, np.zeros_like(S), C) == pytest.approx(n)
+    draws = 4000
+    c = rng.standard_normal((draws, m)) @ np.linalg.cholesky(C).T
+    y = np.einsum("rij,tj->tri", S, c) + np.sqrt(P) * rng.standard_normal((draws, n, d))
+    mean = np.einsum("tri,tri->t", y, np.linalg.solve(cov, y[..., None])[..., 0]) / n
+    assert mean.mean() == pytest.approx(d, rel=0.05)
+    assert mean.var() == pytest.approx(2 * d / k, rel=0.1)

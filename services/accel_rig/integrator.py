@@ -86,7 +86,11 @@ class Estimate:
     ``velocity`` is world-frame, ``omega`` rig-frame.  ``covariance`` is the 6x6 pose
     covariance in geometry's SE(3) convention (left perturbation, ``[rho, phi]``);
     ``decoupled_covariance`` the same over ``[position error, world-frame rotation error]``,
-    computed on first use.
+    computed on first use.  ``calibration_sensitivity`` (6 x 4N, rows ``[rho, phi]``) is
+    the part of the pose error that is the calibration's, per unit error of each
+    accelerometer's ``[bias, gain * axis]`` (None without a calibration covariance): every
+    estimate made with one calibration shares that error, which a consumer combining
+    several of them (``uma eval accel-rig``'s NEES band) must count once.
     """
 
     t: float
@@ -95,6 +99,7 @@ class Estimate:
     velocity: Array
     omega: Array
     covariance: Array
+    calibration_sensitivity: Array | None = None
 
     @cached_property
     def decoupled_covariance(self) -> Array:
@@ -144,7 +149,7 @@ class DeadReckoner:
         self.gravity = np.asarray(gravity, float)
         self._gravity = self.gravity.tolist()
         n = self.layout.count
-        self._cal_cov = _calibration_cov_in_accel(calibration)  # (4N, 4N) or None
+        self._cal_cov = calibration_covariance(calibration)  # (4N, 4N) or None
         # d(f, wd)/d(readings) per unit calibration error: G / k (a bias error dB_j and a
         # gain*axis error dm_j make the reading error ([1, f] / k_j) . [dB_j, dm_j])
         gk = self.layout.readings_jacobian / calibration.gain_v_per_mps2
@@ -246,11 +251,13 @@ class DeadReckoner:
         if x is None:
             raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
         C = x.P.take(_POSE_FLAT).reshape(6, 6)  # [phi, rho] -> [rho, phi]
+        S = None
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
             S = x.S[_POSE_ORDER]
             C = S @ self._cal_cov @ S.T + C
         return Estimate(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
-                        (C + C.T) * 0.5)
+                        (C + C.T) * 0.5, S)
+
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
@@ -572,8 +579,10 @@ def _dynamics_entries(R: list[float], f: list[float], w: list[tuple[float, float
             *w[3], *w[4], *w[5]]
 
 
-def _calibration_cov_in_accel(cal: Calibration) -> Array | None:
-    """Block-diagonal (4N, 4N) covariance of the calibration parameters, or None."""
+def calibration_covariance(cal: Calibration) -> Array | None:
+    """Block-diagonal (4N, 4N) covariance of the calibration parameters ``[bias,
+    gain * axis]`` per accelerometer (the ``c`` of ``Estimate.calibration_sensitivity``),
+    or None."""
     if cal.param_cov is None:
         return None
     n = cal.layout.count
