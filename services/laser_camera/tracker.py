@@ -371,10 +371,11 @@ class LaserTracker:
             best, subset = pool[k]
         idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
         try:
-            cov, systematic = _covariance(dots, idx, best.position, p)
+            sys_var = _installation_variance(dots, idx, best.position, p)
+            cov, systematic = _covariance(dots, idx, best.position, p, sys_var)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
-        sys_std = np.sqrt(_installation_variance(dots, idx, best.position, p))
+        sys_std = np.sqrt(sys_var)
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
@@ -647,14 +648,17 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
 
 
 def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
-                step_m: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+                installation_var: np.ndarray, step_m: float = 1e-5,
+                ) -> tuple[np.ndarray, np.ndarray]:
     """6x6 pose covariances (xi form): the whole, and its systematic part.
 
     Propagated by numeric Jacobian of the closed-form solution (each dot moves along its
     wall's two axes) from the dots' in-plane errors: their detection and calibration noise,
-    new in every frame, and the installation's tolerances, which hold for the whole run;
-    plus the model error the dots cannot show, systematic too.  A filter that averages
-    frames must keep the systematic part apart (docs/FUSION_TUNING.md)."""
+    new in every frame, and the installation's tolerances (``installation_var``, per dot:
+    :func:`_installation_variance`, which the caller also publishes per dot), which hold
+    for the whole run; plus the model error the dots cannot show, systematic too.  A
+    filter that averages frames must keep the systematic part apart
+    (docs/FUSION_TUNING.md)."""
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
@@ -668,7 +672,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
     J[:3] += geo.skew(p0) @ J[3:]
     random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
-    systematic = (J * np.repeat(_installation_variance(dots, idx, p0, params), 2)) @ J.T
+    systematic = (J * np.repeat(installation_var, 2)) @ J.T
     model = np.zeros((6, 6))
     model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
     model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
