@@ -40,6 +40,11 @@ def display_walls(calibration: Calibration) -> list[Wall]:
     return list(walls.values())
 
 
+def load_walls(path: str) -> list[Wall]:
+    """The display's walls from the laser tracker's calibration file (dot mode's walls)."""
+    return display_walls(Calibration.load(path))
+
+
 def wall_of(walls: Sequence[Wall], point: np.ndarray) -> Wall:
     """The wall whose plane the point lies on: the face of the cube it is closest to (the
     largest component along an outward normal)."""

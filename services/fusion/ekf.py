@@ -438,11 +438,9 @@ class FusionEKF:
         the same left perturbation of the head pose, so the covariances carry over and are
         converted to the filter's position/rotation form.
         """
-        pm, qm = geo.inverse(*mount)
-        p, q = geo.compose(p_rig, q_rig, pm, qm)
+        p, q = geo.compose(p_rig, q_rig, *geo.inverse(*mount))
         cov = geo.se3_to_decoupled(p, geo.check_covariance(cov_rig_se3, "rig pose covariance"))
-        sys = None if systematic_se3 is None else geo.se3_to_decoupled(
-            p, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))
+        sys = None if systematic_se3 is None else _head_systematic(p, systematic_se3)
         return self.update_pose(t, p, q, cov, sys)
 
     def carry_rig_systematic(self, p_rig: Array, q_rig: Array, systematic_se3: Array,
@@ -451,8 +449,7 @@ class FusionEKF:
         the pose: in dot mode its dots are the updates, and the error they share from frame
         to frame is in the fused pose whole (``pose_covariance_decoupled``)."""
         p, _ = geo.compose(p_rig, q_rig, *geo.inverse(*mount))
-        self.systematic = geo.se3_to_decoupled(
-            p, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))
+        self.systematic = _head_systematic(p, systematic_se3)
 
     def _adapt_pose_noise(self, inn: Innovation) -> None:
         """Covariance matching for the optical noise (Mehra's adaptive R, per block).
@@ -580,3 +577,10 @@ def _optical_pose(t: float, p: Array, q: Array, cov: Array,
     geo.check_covariance(whole - sys, "optical covariance minus its systematic part")
     return OpticalPose(float(t), geo.check_vector(p, "optical position").reshape(3),
                        geo.check_quaternion(q, "optical quaternion").reshape(4), whole, sys)
+
+
+def _head_systematic(p_head: Array, systematic_se3: Array) -> Array:
+    """A rig pose's systematic covariance (SE(3) form) as the head pose's, in the filter's
+    position/rotation form (``update_rig_pose`` says why it carries over)."""
+    return geo.se3_to_decoupled(
+        p_head, geo.check_covariance(systematic_se3, "rig pose systematic covariance"))

@@ -39,9 +39,9 @@ from schemas.codec import decode_measurement
 from schemas.models import Ability
 from services import frames
 from services.figures import error_stats
+from services.fusion.dots import load_walls
 from services.fusion.service import LiveFusion
 from services.fusion.state import MODEL_FLOOR
-from services.sim.ivy import Wall
 
 WARMUP_S = 3.0
 
@@ -117,7 +117,8 @@ def replay(path: str, horizon_s: float | None = None, warmup_s: float = WARMUP_S
     out: list[tuple[int, np.ndarray, np.ndarray]] = []
     fusion = LiveFusion(horizon_s, MODEL_FLOOR,
                         publish=lambda t, p, q, cov: out.append((t, np.array(p), np.array(q))),
-                        walls=_walls(display_calibration))
+                        walls=None if display_calibration is None
+                        else load_walls(display_calibration))
     for rig, setter in ((frames.LASER_RIG, fusion.on_optical_mount),
                         (frames.ACCEL_RIG, fusion.on_accel_mount)):
         p, q = mounts[rig]
@@ -146,16 +147,6 @@ def replay(path: str, horizon_s: float | None = None, warmup_s: float = WARMUP_S
     figures["replayed_at_live_times"] = _against_truth(
         rec, [o for o in out if o[0] in live_times], first, warmup_s)
     return figures
-
-
-def _walls(display_calibration: str | None) -> list[Wall] | None:
-    """The display's walls for dot mode, None for pose mode."""
-    if display_calibration is None:
-        return None
-    from services.fusion.dots import display_walls
-    from services.laser_camera.calibration import Calibration
-
-    return display_walls(Calibration.load(display_calibration))
 
 
 def _is_fused(a: Ability) -> bool:

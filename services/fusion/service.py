@@ -51,7 +51,7 @@ from schemas.codec import (
     unpack_covariance,
 )
 from services import frames
-from services.fusion.dots import display_walls, update_dots
+from services.fusion.dots import load_walls, update_dots
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.fusion.tracker import MAX_AHEAD_S, MAX_COAST_S, FusionTracker
@@ -387,9 +387,7 @@ def _walls(args: argparse.Namespace) -> list[Wall] | None:
     if not args.display_calibration:
         raise ValueError("--optical dots needs --display-calibration FILE (the laser "
                          "tracker's calibration, whose walls the dots lie on)")
-    from services.laser_camera.calibration import Calibration
-
-    return display_walls(Calibration.load(args.display_calibration))
+    return load_walls(args.display_calibration)
 
 
 def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:
