@@ -101,9 +101,10 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
     published covariances over the world's head trajectory, at ``rate_hz`` from a random
     phase; frames without a pose are left out (a gap in the stream, as on the wire)."""
     t_all = _sample_times(rate_hz, seconds, rng)
+    rig_p, rig_q = world.rig_pose(t_all)  # one batched call: the trajectory is vectorised
     t, p, q, c = [], [], [], []
-    for tk in t_all:
-        dots = tracker.locate(_detections(world, tk, rng))
+    for tk, pk, qk in zip(t_all, rig_p, rig_q, strict=True):
+        dots = tracker.locate(_detections(world, pk, qk, rng))
         res = tracker.solve(dots, float(tk))
         if res.ok:
             t.append(tk)
@@ -113,10 +114,10 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
     return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c))
 
 
-def _detections(world: IvyWorld, t: float, rng: np.random.Generator,
+def _detections(world: IvyWorld, p: np.ndarray, q: np.ndarray, rng: np.random.Generator,
                 ) -> dict[str, np.ndarray]:
-    """Per camera, the detector's rows for the spots of the rig's beams at ``t``."""
-    hits = world.laser_hits(*(v[0] for v in world.rig_pose(t)))
+    """Per camera, the detector's rows for the spots of the beams of a rig at ``(p, q)``."""
+    hits = world.laser_hits(p, q)
     out = {}
     for name, spots in world.dot_pixels(hits).items():
         rows = np.zeros((len(spots), 5))

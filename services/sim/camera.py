@@ -80,10 +80,10 @@ class Camera:
     def in_image(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Which pixel positions (n, 2) lie inside the image, ``margin_px`` from its border."""
         uv = np.atleast_2d(uv)
-        ok = np.isfinite(uv).all(axis=1)
-        u, v = np.nan_to_num(uv[:, 0], nan=-1e9), np.nan_to_num(uv[:, 1], nan=-1e9)
-        return ok & (u >= margin_px - 0.5) & (u <= self.width - 0.5 - margin_px) \
-            & (v >= margin_px - 0.5) & (v <= self.height - 0.5 - margin_px)
+        u, v = uv[:, 0], uv[:, 1]
+        with np.errstate(invalid="ignore"):  # NaN compares False: outside
+            return (u >= margin_px - 0.5) & (u <= self.width - 0.5 - margin_px) \
+                & (v >= margin_px - 0.5) & (v <= self.height - 0.5 - margin_px)
 
     def pixel_rays(self, supersample: int = 1) -> np.ndarray:
         """Unit viewing rays in world coordinates, (h*s, w*s, 3), for sub-pixel sample

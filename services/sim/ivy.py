@@ -145,33 +145,55 @@ def intersect_beam(walls: dict[str, Wall], origin: np.ndarray, direction: np.nda
     (``screen_displacement``); the hit is then on the bent surface, which the tracker's
     planar calibration does not know.
     """
-    o = np.asarray(origin, float)
-    d = np.asarray(direction, float)
-    d = d / np.linalg.norm(d)
-    best: tuple[float, Wall] | None = None
-    for wall in walls.values():
-        c = float(d @ wall.normal)
-        if c <= 1e-12:
-            continue
-        s = (wall.plane_distance - float(o @ wall.normal)) / c
-        if s >= 0 and (best is None or s < best[0]):
-            best = (s, wall)
-    if best is None:  # only possible from outside the cube
-        raise ValueError(f"ray from {o.tolist()} along {d.tolist()} meets no wall; "
+    return intersect_beams(walls, np.asarray(origin, float)[None],
+                           np.asarray(direction, float)[None], bulge_m)[0]
+
+
+def intersect_beams(walls: dict[str, Wall], origins: np.ndarray, directions: np.ndarray,
+                    bulge_m: dict[str, float] | None = None) -> list[BeamHit]:
+    """``intersect_beam`` for rays (n, 3) at once: a rig's beams meet the walls in every
+    simulated frame, so the evaluations spend their time here."""
+    o = np.asarray(origins, float).reshape(-1, 3)
+    d = np.asarray(directions, float).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    ws = list(walls.values())
+    normals = np.array([w.normal for w in ws])
+    distance = np.array([w.plane_distance for w in ws])
+    cos = d @ normals.T  # (n, walls)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (distance - o @ normals.T) / cos
+    s[~((cos > 1e-12) & (s >= 0))] = np.inf
+    first = np.argmin(s, axis=1)
+    rows = np.arange(len(o))
+    for i in np.flatnonzero(~np.isfinite(s[rows, first])):  # only possible from outside
+        raise ValueError(f"ray from {o[i].tolist()} along {d[i].tolist()} meets no wall; "
                          "is the origin inside the cube?")
-    s, wall = best
-    c = float(d @ wall.normal)
-    amp = (bulge_m or {}).get(wall.name, 0.0)
-    p = o + s * d
-    for _ in range(4 if amp else 0):  # fixed point: the bend varies slowly over the screen
-        w = screen_displacement(wall, wall.to_screen(p)[0], amp)
-        p = o + (wall.plane_distance - w - float(o @ wall.normal)) / c * d
-    xy = wall.to_screen(p)[0]
-    return BeamHit(wall.name, p, d, xy, c, bool(wall.on_screen(xy)[0]))
+    hit = [ws[k] for k in first]
+    c = cos[rows, first]
+    p = o + s[rows, first][:, None] * d
+    rotation = np.array([w.rotation for w in hit])
+    translation = np.array([w.translation for w in hit])
+    side = np.array([w.screen_side_m for w in hit])
+    amp = np.array([(bulge_m or {}).get(w.name, 0.0) for w in hit])
+    if np.any(amp):  # fixed point: the bend varies slowly over the screen
+        plane = distance[first] - np.einsum("ij,ij->i", o, normals[first])
+        for _ in range(4):
+            xy = np.einsum("ij,ijk->ik", p + translation, rotation)[:, :2]
+            p = o + ((plane - _displacement(xy, side, amp)) / c)[:, None] * d
+    xy = np.einsum("ij,ijk->ik", p + translation, rotation)[:, :2]
+    on = on_active_area(xy, side[:, None])
+    return [BeamHit(w.name, p[i], d[i], xy[i], float(c[i]), bool(on[i]))
+            for i, w in enumerate(hit)]
+
+
+def _displacement(xy: np.ndarray, side_m: np.ndarray, amplitude_m: np.ndarray) -> np.ndarray:
+    """``screen_displacement`` of points (n, 2), each on its own screen."""
+    u = 2 * xy / side_m[:, None] - 1
+    return amplitude_m * np.prod(np.maximum(0.0, 1 - u ** 2), axis=1)
 
 
 def screen_displacement(wall: Wall, xy: np.ndarray, amplitude_m: float) -> float:
     """Inward displacement (m) of a fabric screen at screen point ``xy``: a pillow shape,
     ``amplitude_m`` at the centre, zero at the frame."""
-    u = 2 * np.asarray(xy, float) / wall.screen_side_m - 1
-    return float(amplitude_m * max(0.0, 1 - u[0] ** 2) * max(0.0, 1 - u[1] ** 2))
+    xy = np.asarray(xy, float).reshape(1, 2)
+    return float(_displacement(xy, np.array([wall.screen_side_m]), np.array([amplitude_m]))[0])

@@ -28,7 +28,7 @@ from services.sim.ivy import (
     WALL_NAMES,
     BeamHit,
     Wall,
-    intersect_beam,
+    intersect_beams,
     make_walls,
 )
 from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
@@ -192,8 +192,10 @@ class IvyWorld:
             raise ValueError(f"rig position {p.tolist()} is outside the cube (half side "
                              f"{half} m)")
         R = geo.quat_to_matrix(q)
-        return {k: intersect_beam(self.walls, p + R @ off, R @ d, self.bulge_m)
-                for k, (off, d) in self.beams.items()}
+        offsets = np.array([off for off, _ in self.beams.values()])
+        directions = np.array([d for _, d in self.beams.values()])
+        hits = intersect_beams(self.walls, p + offsets @ R.T, directions @ R.T, self.bulge_m)
+        return dict(zip(self.beams, hits, strict=True))
 
     # ------------------------------------------------------------------ rendering
 
@@ -235,10 +237,18 @@ class IvyWorld:
         tracking, sees: the spots' centres before blur and noise.  A simulation that needs
         the installation's geometry but not the images (``services.alignment.simulate``)
         starts here."""
-        return {cam.name: {k: uv for k, h in hits.items()
-                           if h.wall == cam.wall and h.on_screen
-                           and cam.in_image(uv := cam.project(h.point[None])[0])[0]}
-                for cam in self._tracking}
+        return {cam.name: self._seen_by(cam, hits) for cam in self._tracking}
+
+    @staticmethod
+    def _seen_by(cam: Camera, hits: dict[int, BeamHit]) -> dict[int, np.ndarray]:
+        """The pixels of the hits on ``cam``'s screen that fall in its image (one
+        projection for all of them: this runs for every frame of an evaluation)."""
+        mine = [k for k, h in hits.items() if h.wall == cam.wall and h.on_screen]
+        if not mine:
+            return {}
+        uv = cam.project(np.array([hits[k].point for k in mine]))
+        inside = cam.in_image(uv)
+        return {k: uv[i] for i, k in enumerate(mine) if inside[i]}
 
     def _spot(self, cam: Camera, hit: BeamHit, origin: np.ndarray,
               share: float) -> Spot | None:
