@@ -4,6 +4,10 @@
 - **registration** (``uma/R/agent/A/register``): a valid registration is admitted into the
   agent's ``RealmView`` and the agent is told (:meth:`RegistrarHost.service_admitted`);
   an invalid one is refused, saying why;
+- **a lost answer**: a registration of the instance already held but not yet live (no
+  token), without its key, is refused with ``retry``: the service may have stopped waiting
+  before our answer with the key came; the held one expires without its token and the
+  retry is then accepted as new (a live instance's key is required: hijacks are refused);
 - **duplicates**: a second process registering a service id already held by another
   instance is *pending* while the holder is asked on ``uma/R/svc/A/S`` whether it still
   answers (``DUPLICATE_CHECK_S``): refused if it does, else it replaces the holder.  A
@@ -160,6 +164,14 @@ class Registrar:
             return
         entry = self.view.local.get(sid)
         if entry is not None and entry.instance == reg.instance and not self._proven(reg):
+            if (self.agent_id, sid) not in self.view.live_services:
+                # no token yet: our answer with the key may have come after the service
+                # stopped waiting.  Not told from a hijack, so not accepted; but temporary:
+                # the registration expires without its token and the next one is new
+                _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is "
+                        "registered, waiting for its token, and this registration does not "
+                        "carry its key; retry", retry=True)
+                return
             self.hijacks_refused += 1
             self._bad.warning(f"service {sid}", "registration refused: it names the running "
                               "instance's id without that instance's key "

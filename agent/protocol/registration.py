@@ -25,7 +25,10 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    is refused with "duplicate service id" *if the first one still answers* on
    ``uma/R/svc/A/S``; if it does not (it died and its lease has not expired yet) the
    newcomer replaces it.  A refusal with
-   ``retry: true`` is temporary (a check for that id is in progress).
+   ``retry: true`` is temporary: a check for that id is in progress, or the instance is
+   held but its token has not come, so the agent's answer with the key may have reached
+   the service after it stopped waiting (the held registration expires after
+   ``PENDING_TIMEOUT_S`` and the retry is then accepted as new).
 4. On the first acceptance the service declares its liveliness token ``uma/R/svc/A/S``
    (only then, so a refused duplicate never merges with the original's token).  The agent
    advertises a local service's abilities once it has seen that token.  A token's DELETE

@@ -63,7 +63,19 @@ class ScaleRealm:
             if complete(listing, len(self.agents), services_per_agent):
                 return listing
         raise AssertionError(f"the realm did not form within {timeout} s; last listing: "
-                             f"{summary(listing)}")
+                             f"{summary(listing)}; what the agents and services said of "
+                             f"registrations: {self.registration_log()}")
+
+    def registration_log(self, last: int = 5) -> dict[str, list[str]]:
+        """Each process's last lines about registrations (refused, dropped, re-adopted):
+        why a service is missing from a listing."""
+        words = ("refused", "dropped", "re-adopted", "never declared", "gone")
+        out = {}
+        for proc in [*self.agents, *self.services]:
+            lines = [ln for ln in proc.log if any(w in ln for w in words)]
+            if lines:
+                out[" ".join(proc.popen.args[-8:])] = lines[-last:]
+        return out
 
 
 def start(site: Site, realm: str) -> ScaleRealm:
