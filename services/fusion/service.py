@@ -185,8 +185,11 @@ class LiveFusion:
                                       systematic_se3=systematic)
         elif systematic is not None:  # dot mode: its dots update, the pose's error stays
             p, q = m.position, m.quaternion
-            self.tracker.add_optical(t, lambda ekf, _: ekf.carry_rig_systematic(
-                p, q, systematic, mount) or True)
+
+            def carry(ekf: Any, _t: float) -> bool:
+                ekf.carry_rig_systematic(p, q, systematic, mount)
+                return True  # nothing measured, nothing to gate
+            self.tracker.add_optical(t, carry)
         if self.tracker.stats.optical_too_far_ahead > ahead:
             self._drop(f"optical pose more than {MAX_AHEAD_S:g} s ahead of the filter")
 
