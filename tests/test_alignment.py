@@ -412,3 +412,28 @@ def test_published_covariances_are_checked() -> None:
         PoseSeries(t, p, q, "a", np.zeros((3, 6, 6)))
     assert PoseSeries(t, p, q, "a", np.zeros((4, 6, 6))).covariance_at([1.4, 1.6])[0].shape \
         == (6, 6)
+
+
+def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:
+    """``uma eval alignment``'s band of a seed's mean NEES: as many trials as there are when
+    nothing is shared; towards one trial when the shared installation error dominates."""
+    from services.alignment.evaluate import _covariance_figures
+    rng = np.random.default_rng(3)
+
+    def trials(shared_scale: float) -> list[dict]:
+        out = []
+        for _ in range(50):
+            p = rng.uniform(-0.2, 0.2, 3)
+            S = np.eye(6)
+            S[:3, 3:] = -geo.skew(p)
+            own = np.diag([1e-6] * 3 + [1e-7] * 3)
+            shared = shared_scale * own
+            out.append({"nees": float(rng.chisquare(6)), "consistency": {
+                "covariance": S @ (own + shared) @ S.T, "sensitivity": S, "shared": shared}})
+        return out
+    alone = _covariance_figures(trials(0.0))
+    assert alone["effective_trials"] == pytest.approx(50)
+    assert alone["bounds_95"] == pytest.approx(alone["bounds_95_independent_trials"])
+    held = _covariance_figures(trials(100.0))
+    assert 1.0 <= held["effective_trials"] < 1.2
+    assert held["bounds_95"][1] > 2 * held["bounds_95_independent_trials"][1]

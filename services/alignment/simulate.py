@@ -96,13 +96,15 @@ def _sample_times(rate_hz: float, seconds: float, rng: np.random.Generator) -> n
 
 
 def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz: float,
-                 rng: np.random.Generator) -> PoseSeries:
+                 rng: np.random.Generator) -> tuple[PoseSeries, np.ndarray]:
     """The laser-dot tracker's poses of ``marvin/laser_rig`` in ``ivy/world`` with their
     published covariances over the world's head trajectory, at ``rate_hz`` from a random
-    phase; frames without a pose are left out (a gap in the stream, as on the wire)."""
+    phase; frames without a pose are left out (a gap in the stream, as on the wire).
+    Also returned: each covariance's systematic part (n, 6, 6), the installation's error,
+    which every recording in the same installation shares."""
     t_all = _sample_times(rate_hz, seconds, rng)
     rig_p, rig_q = world.rig_pose(t_all)  # one batched call: the trajectory is vectorised
-    t, p, q, c = [], [], [], []
+    t, p, q, c, s = [], [], [], [], []
     for tk, pk, qk in zip(t_all, rig_p, rig_q, strict=True):
         dots = tracker.locate(_detections(world, pk, qk, rng))
         res = tracker.solve(dots, float(tk))
@@ -111,7 +113,9 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
             p.append(res.position)
             q.append(res.quaternion)
             c.append(res.covariance)
-    return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c))
+            s.append(res.systematic)
+    return (PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c)),
+            np.array(s))
 
 
 def _detections(world: IvyWorld, p: np.ndarray, q: np.ndarray, rng: np.random.Generator,
