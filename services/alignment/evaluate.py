@@ -10,7 +10,10 @@ noise per sample (``--pos-noise-mm``, ``--rot-noise-deg``).  The offset is
 estimated from the streams; the stations (40 of a's samples, b interpolated at the
 estimated offset) are then given to our solvers and to ``cv2.calibrateHandEye`` (TSAI,
 DANIILIDIS) alike.  The same stations with 20 % of b's poses replaced by gross errors form
-the outlier case.  Errors are reported as medians and 95th percentiles over trials.
+the outlier case.  Errors are reported as medians and 95th percentiles over trials; the
+reported covariance of X by its NEES, whose mean over the trials is judged against a band
+that counts once the installation's error every trial of the seed shares
+(``_covariance_figures``).
 """
 
 from __future__ import annotations
