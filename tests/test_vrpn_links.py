@@ -175,6 +175,29 @@ def test_bad_peers_are_logged_and_dropped_and_the_others_served(caplog, monkeypa
     asyncio.run(_bad_peers(caplog))
 
 
+async def _repeated_bad_peer(caplog) -> TrackerServer:
+    port = free_port()
+    server = TrackerServer(["Head"], "127.0.0.1", port)
+    await server.start()
+    loop = asyncio.get_running_loop()
+    for _ in range(5):
+        s = await loop.run_in_executor(None, _raw, port, BAD_PEERS["garbage"][0])
+        await until(lambda s=s: _closed(s), "the bad peer closed")
+        s.close()
+    await until(lambda: server.bad.seen == 5, "five refusals counted")
+    await server.close()
+    return server
+
+
+def test_a_peer_that_misbehaves_in_a_loop_gets_one_log_line_not_one_per_connection(
+        caplog) -> None:
+    caplog.set_level(logging.INFO, "uma.vrpn")
+    server = asyncio.run(_repeated_bad_peer(caplog))
+    lines = [r for r in caplog.records if "not a VRPN 07.xx peer" in r.getMessage()]
+    assert len(lines) == 1 and "VRPN host 127.0.0.1: peer 127.0.0.1:" in lines[0].getMessage()
+    assert server.bad.seen == 5 and server.bad.logged == 1
+
+
 async def _ping() -> bytes:
     port = free_port()
     server = TrackerServer(["Head"], "127.0.0.1", port)

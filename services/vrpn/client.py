@@ -197,7 +197,7 @@ class TrackerClient:
         def on_closed(link: Link) -> None:
             if not closed.done():
                 closed.set_result(None)
-        return Link(self._ready, self.handle, on_closed)
+        return Link(self._ready, self.handle, on_closed, bad=self._bad)
 
     async def _connect(self, closed: asyncio.Future, stop: asyncio.Event) -> Link | None:
         loop = asyncio.get_running_loop()

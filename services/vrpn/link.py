@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from agent.runtime.logs import RateLimitedLog
 from services.vrpn import protocol as vp
 
 log = logging.getLogger("uma.vrpn")
@@ -34,20 +35,25 @@ COOKIE_TIMEOUT_S = 5.0
 
 class Link(asyncio.Protocol):
     """A VRPN TCP link; ``on_ready(link)`` once the cookies are exchanged,
-    ``on_message(link, msg)`` for each non-system message, ``on_closed(link)`` once."""
+    ``on_message(link, msg)`` for each non-system message, ``on_closed(link)`` once.
+    ``bad`` is the owner's limiter for what peers do wrong: a peer that reconnects and
+    misbehaves in a loop gets one line per kind every 10 s, not one per connection."""
 
     def __init__(self, on_ready: Callable[[Link], Any],
                  on_message: Callable[[Link, vp.Message], Any],
                  on_closed: Callable[[Link], Any], max_buffer: int = DEFAULT_MAX_BUFFER,
-                 ) -> None:
+                 bad: RateLimitedLog | None = None) -> None:
+        self.bad = bad if bad is not None else RateLimitedLog(log)
         self.on_ready = on_ready
         self.on_message = on_message
         self.on_closed = on_closed
         self.max_buffer = max_buffer
         self.transport: asyncio.Transport | None = None
-        self.peer = "?"
+        self.peer = self.peer_host = "?"
         self.ready = False
         self.closed = False
+        #: closed by us (``fail``), not by the peer
+        self.failed = False
         #: the peer's ids -> names
         self.senders: dict[int, str] = {}
         self.types: dict[int, str] = {}
@@ -64,6 +70,7 @@ class Link(asyncio.Protocol):
         self.transport = transport  # type: ignore[assignment]
         name = transport.get_extra_info("peername")
         self.peer = f"{name[0]}:{name[1]}" if name else "?"
+        self.peer_host = str(name[0]) if name else "?"
         sock = transport.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -89,12 +96,12 @@ class Link(asyncio.Protocol):
         if self.closed:
             return
         self.closed = True
-        if self._decoder.pending:
-            log.warning("VRPN peer %s left mid-message (%d bytes of it received)", self.peer,
-                        self._decoder.pending)
+        if self.failed:
+            pass  # ``fail`` said why: the peer did not leave, we closed it
+        elif self._decoder.pending:
+            self._warn(f" left mid-message ({self._decoder.pending} bytes of it received)")
         elif not self.ready:
-            log.warning("VRPN peer %s left before its cookie (%s)", self.peer,
-                        exc or "connection closed")
+            self._warn(f" left before its cookie ({exc or 'connection closed'})")
         else:
             log.info("VRPN peer %s disconnected%s", self.peer, f" ({exc})" if exc else "")
         self.on_closed(self)
@@ -145,11 +152,15 @@ class Link(asyncio.Protocol):
 
     def fail(self, reason: str) -> None:
         """Log why and close the connection now."""
-        if self.closed:
+        if self.closed or self.failed:
             return
-        log.warning("VRPN peer %s: %s; closing the connection", self.peer, reason)
+        self.failed = True
+        self._warn(f": {reason}; closing the connection")
         if self.transport is not None:
             self.transport.abort()
+
+    def _warn(self, what: str) -> None:
+        self.bad.warning(f"VRPN host {self.peer_host}", f"peer {self.peer}{what}")
 
     def close(self) -> None:
         if self.transport is not None and not self.closed:

@@ -86,7 +86,7 @@ class TrackerServer:
 
     # -- connections
     def _new_link(self) -> Link:
-        return Link(self._ready, self._message, self._closed, self.max_buffer)
+        return Link(self._ready, self._message, self._closed, self.max_buffer, self.bad)
 
     def call_back(self, host: str, port: int) -> None:
         """Connect to a client that lobbed a request (once while a call is under way: a
