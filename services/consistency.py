@@ -77,6 +77,26 @@ def shared_error_effective_runs(covariances: np.ndarray, sensitivities: np.ndarr
     return float(2.0 * d * n * n / var_sum)
 
 
+def shared_error_nees_figures(nees: np.ndarray, covariances: np.ndarray,
+                              sensitivities: np.ndarray, shared_cov: np.ndarray | None,
+                              ) -> dict[str, Any]:
+    """Mean NEES of runs (``nees``, each with its full ``covariances``) that share an error
+    (``sensitivities``, ``shared_cov``: see ``shared_error_effective_runs``; None: nothing
+    shared) against the 95 % band that counts the shared error once, and against the
+    narrower band of as many independent runs."""
+    nees = np.asarray(nees, float)
+    n, d = np.shape(covariances)[:2]
+    k = float(n) if shared_cov is None else shared_error_effective_runs(
+        covariances, sensitivities, shared_cov)
+    mean = float(nees.mean())
+    lo, hi = mean_nees_band_95(d, k)
+    lo_i, hi_i = mean_nees_band_95(d, n)
+    return {"mean": mean, "effective_runs": k, "bounds_95": [lo, hi],
+            "within_bounds": bool(lo <= mean <= hi),
+            "bounds_95_independent_runs": [lo_i, hi_i],
+            "within_bounds_independent_runs": bool(lo_i <= mean <= hi_i)}
+
+
 def autocorrelation_time(x: np.ndarray, about: str) -> float:
     """Integrated autocorrelation time (samples, 1..n) of a series: ``1 + 2 sum rho_k``,
     summed over pairs ``rho_2m + rho_2m+1`` while they stay positive (Geyer's initial

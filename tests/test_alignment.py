@@ -432,8 +432,8 @@ def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:
                 "covariance": S @ (own + shared) @ S.T, "sensitivity": S, "shared": shared}})
         return out
     alone = _covariance_figures(trials(0.0))
-    assert alone["effective_trials"] == pytest.approx(50)
-    assert alone["bounds_95"] == pytest.approx(alone["bounds_95_independent_trials"])
+    assert alone["effective_runs"] == pytest.approx(50)
+    assert alone["bounds_95"] == pytest.approx(alone["bounds_95_independent_runs"])
     held = _covariance_figures(trials(100.0))
-    assert 1.0 <= held["effective_trials"] < 1.2
-    assert held["bounds_95"][1] > 2 * held["bounds_95_independent_trials"][1]
+    assert 1.0 <= held["effective_runs"] < 1.2
+    assert held["bounds_95"][1] > 2 * held["bounds_95_independent_runs"][1]

@@ -46,7 +46,7 @@ from services.alignment.simulate import (
 )
 from services.alignment.solvers import Pose
 from services.alignment.timesync import PoseSeries
-from services.consistency import mean_nees_band_95, shared_error_effective_runs
+from services.consistency import shared_error_nees_figures
 from services.fusion.evaluate import laser_calibration
 from services.laser_camera.tracker import LaserTracker, TrackerParams
 from services.sim import mounts
@@ -222,17 +222,12 @@ def _covariance_figures(trials: list[dict[str, Any]]) -> dict[str, Any]:
     given too."""
     nees = np.array([t["nees"] for t in trials])
     terms = [t["consistency"] for t in trials]
-    k = shared_error_effective_runs(np.array([c["covariance"] for c in terms]),
-                                    np.array([c["sensitivity"] for c in terms]),
-                                    np.mean([c["shared"] for c in terms], axis=0))
-    mean = float(nees.mean())
-    lo, hi = mean_nees_band_95(6, k)
-    lo_i, hi_i = mean_nees_band_95(6, len(trials))
-    return {"nees_mean (ideal 6)": mean,
+    figures = shared_error_nees_figures(nees, np.array([c["covariance"] for c in terms]),
+                                        np.array([c["sensitivity"] for c in terms]),
+                                        np.mean([c["shared"] for c in terms], axis=0))
+    return {"nees_mean (ideal 6)": figures.pop("mean"),
             "within_chi2_95_fraction (ideal 0.95)": float(np.mean(nees <= _CHI2_6_95)),
-            "effective_trials": k, "bounds_95": [lo, hi], "within_bounds": bool(lo <= mean <= hi),
-            "bounds_95_independent_trials": [lo_i, hi_i],
-            "within_bounds_independent_trials": bool(lo_i <= mean <= hi_i)}
+            **figures}
 
 
 _SAME = 1e-9  # relative difference below which two medians are the same figure
