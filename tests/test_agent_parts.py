@@ -92,6 +92,31 @@ def test_worker_logs_a_failing_call_and_goes_on() -> None:
         worker.stop(1.0)
 
 
+def test_worker_names_a_call_that_does_not_return() -> None:
+    """A call blocked inside Zenoh (a stalled session) shows as stuck, with its name and for
+    how long; short calls and an idle worker do not."""
+    release, entered = threading.Event(), threading.Event()
+
+    def resync_agent_tokens() -> None:
+        entered.set()
+        release.wait(10.0)
+    worker = Worker("test-worker", "test", mock.Mock(), lambda: None, 1.0)
+    worker.start()
+    try:
+        assert worker.stuck(0.0) is None  # idle
+        worker.put(resync_agent_tokens)
+        assert entered.wait(5.0)
+        _wait(lambda: worker.stuck(0.1) is not None)
+        name, took = worker.stuck(0.1)
+        assert name == "resync_agent_tokens" and took > 0.1
+        assert worker.stuck(60.0) is None  # not yet past a longer limit
+        release.set()
+        _wait(lambda: worker.stuck(0.0) is None)
+    finally:
+        release.set()
+        worker.stop(1.0)
+
+
 def test_the_agents_own_keys_share_one_wildcard_subscriber() -> None:
     """Real Zenoh: local keys come through one ``uma/r/data/A/*/*`` subscriber, remote ones
     through their own; a local key nobody listens to is not delivered."""

@@ -242,3 +242,29 @@ def test_an_agent_whose_start_stalls_says_so_and_exits() -> None:
                          timeout=60)
     assert out.returncode == 1 and STALLED_START in out.stderr
     assert time.monotonic() - t0 < 25  # the watchdog, not the 30 s sleep, ended it
+
+
+def test_an_agent_whose_session_stalls_later_says_so_and_exits() -> None:
+    """A running agent whose worker is blocked in Zenoh past the limit exits 1 naming the
+    call (its supervisor starts it again); one within the limit goes on."""
+    import subprocess
+    import sys
+
+    from agent.cli.agent import STALLED_RUNNING
+
+    script = ("from agent.cli import agent as daemon\n"
+              "class Blocked:\n"
+              "    def stalled(self, limit_s):\n"
+              "        return 'its worker is blocked in _resync_agent_tokens for 31 s' \\\n"
+              "            if limit_s < 31 else None\n"
+              "daemon.STALL_LIMIT_S = 60.0\n"
+              "daemon._exit_if_stalled(Blocked())\n"
+              "print('went on', flush=True)\n"
+              "daemon.STALL_LIMIT_S = 30.0\n"
+              "daemon._exit_if_stalled(Blocked())\n"
+              "print('still running')\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 1, out
+    assert out.stdout == "went on\n" and STALLED_RUNNING in out.stderr
+    assert "_resync_agent_tokens for 31 s" in out.stderr

@@ -130,6 +130,11 @@ AGENT_ZENOH_RUNTIME = "(rx: (handover: tx), acc: (handover: tx), net: (handover:
 START_LIMIT_S = 15.0
 #: What a stalled start prints; supervisors (and the test harness) restart on it.
 STALLED_START = "the Zenoh session stalled while the agent was starting"
+#: What a session that stalls later prints (the same deadlock, after the start)
+STALLED_RUNNING = "the Zenoh session stalled while the agent was running"
+#: A worker call blocked this long means a stalled session (its calls take milliseconds;
+#: a re-match of 10,000 abilities x 1,000 needs well under a second, bench/bench_scale.py)
+STALL_LIMIT_S = 30.0
 
 
 def main(args: argparse.Namespace) -> int:
@@ -151,10 +156,26 @@ def main(args: argparse.Namespace) -> int:
                 print("uma agent: error: the agent's worker stopped; see the log above",
                       file=sys.stderr)
                 return 1
+            _exit_if_stalled(agent)
     finally:
         notify(STOPPING="1")
         agent.close()
     return 0
+
+
+def _exit_if_stalled(agent: Agent) -> None:
+    """Exit 1 with a message if the agent's Zenoh session stalled while it runs.
+
+    Such an agent stays alive but its peers and services lose it for good (its links lapse
+    and are never re-made); exiting lets its supervisor (``Restart=on-failure`` in
+    ``deploy/systemd``) start it again, and its services, which keep their connections
+    meanwhile, register again.  ``os._exit``: the stalled threads are in native code, a
+    clean close would block on them too."""
+    stalled = agent.stalled(STALL_LIMIT_S)
+    if stalled is not None:
+        print(f"uma agent: error: {STALLED_RUNNING} ({stalled}; a known Zenoh deadlock "
+              "under peer churn); start it again", file=sys.stderr, flush=True)
+        os._exit(1)
 
 
 def _start_or_exit(agent: Agent) -> None:

@@ -232,6 +232,16 @@ class Agent:
         """Whether the worker runs (it only stops on close, or on a bug)."""
         return self._worker.alive()
 
+    def stalled(self, limit_s: float) -> str | None:
+        """What the worker has been blocked in for more than ``limit_s`` s, or None.  Its
+        tick asks Zenoh for the live tokens every ``RESEND_S``, so a session whose routing
+        tables deadlocked (eclipse-zenoh/zenoh#2581, under peer churn: many agents joining
+        at once on a loaded host) blocks it within seconds, while the process looks alive
+        and its peers no longer see it."""
+        stuck = self._worker.stuck(limit_s)
+        return None if stuck is None else f"its worker is blocked in {stuck[0]} for " \
+            f"{stuck[1]:.0f} s"
+
     def close(self, timeout: float = 1.5) -> None:
         """Stop hosted services, the SRG, the worker; undeclare everything; close the session.
 

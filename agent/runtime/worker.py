@@ -52,6 +52,8 @@ class Worker:
         self.refused = 0
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        #: the call running now and when it began (read by other threads: see ``stuck``)
+        self._running: tuple[str, float] | None = None
 
     def put(self, fn: Callable[..., None], *args: Any) -> None:
         """Have the worker call ``fn(*args)`` (from any thread, never blocking); refused
@@ -80,8 +82,19 @@ class Worker:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout)
 
+    def stuck(self, limit_s: float) -> tuple[str, float] | None:
+        """The call that has run for more than ``limit_s`` seconds and for how long, or
+        None.  The worker's calls are short; one that does not return is blocked inside
+        Zenoh (a session whose routing tables deadlocked), and the component cannot go on."""
+        running = self._running  # one read: the worker thread replaces it, never mutates
+        if running is None:
+            return None
+        took = time.monotonic() - running[1]
+        return (running[0], took) if took > limit_s else None
+
     def call(self, fn: Callable[..., None], *args: Any) -> None:
         """Run one call; log what it raises (a Zenoh error while stopping is expected)."""
+        self._running = (_name(fn), time.monotonic())
         try:
             fn(*args)
         except zenoh.ZError as exc:
@@ -89,6 +102,8 @@ class Worker:
                 self._bad.warning(self.owner, f"{_name(fn)}: Zenoh: {exc}")
         except Exception:  # a bug must not stop the component; log it with its traceback
             self._log.exception("%s: %s failed", self.owner, _name(fn))
+        finally:
+            self._running = None
 
     def _run(self) -> None:
         next_tick = time.monotonic()
