@@ -91,6 +91,8 @@ def test_from_file_aligns_recorded_streams_and_writes_the_agent_config(tmp_path,
     (["--a", A_EDGE, "--b", B_EDGE, "--from-file", "x.csv", "--min-angle-deg", "95"],
      "--min-angle-deg must lie in"),
     (["--a", A_EDGE, "--b", B_EDGE, "--from-file", "NAN"], "qa_w is nan"),
+    (["--a", A_EDGE, "--b", B_EDGE, "--from-file", "x.csv", "--bootstrap", "5"],
+     "--bootstrap must be >= 9 .*got 5"),
 ])
 def test_bad_command_lines_give_clear_errors(tmp_path, capsys, args, msg) -> None:
     if "NAN" in args:

@@ -51,6 +51,7 @@ from agent.runtime.plugins import ServicePlugin
 from agent.srg import geometry as geo
 from schemas.codec import pack_covariance
 from services.alignment import records
+from services.alignment.covariance import MIN_RESAMPLES
 from services.alignment.pipeline import (
     AlignmentOptions,
     AlignmentResult,
@@ -136,7 +137,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also re-solve on the sliding window every S seconds (default 0: "
                              "only on request)")
     parser.add_argument("--bootstrap", type=int, default=100,
-                        help="resamples for the covariance (default 100)")
+                        help=f"resamples for the covariance (default 100, at least "
+                             f"{MIN_RESAMPLES})")
     parser.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, bootstrap)")
     parser.add_argument("--json", action="store_true",
                         help="with --from-file: print one JSON object")
@@ -152,8 +154,11 @@ def options_from(args: argparse.Namespace) -> AlignmentOptions:
                              f"got {value}")
     if not 0 < args.min_angle_deg < 90:
         raise ValueError(f"--min-angle-deg must lie in (0, 90), got {args.min_angle_deg}")
-    if args.min_pairs < 2 or args.bootstrap < 2:
-        raise ValueError("--min-pairs and --bootstrap must be >= 2")
+    if args.min_pairs < 2:
+        raise ValueError(f"--min-pairs must be >= 2, got {args.min_pairs}")
+    if args.bootstrap < MIN_RESAMPLES:
+        raise ValueError(f"--bootstrap must be >= {MIN_RESAMPLES} (a 6-dof covariance from "
+                         f"fewer resamples has no unbiased inverse), got {args.bootstrap}")
     if args.offset_ms is not None and not math.isfinite(args.offset_ms):
         raise ValueError(f"--offset-ms must be finite, got {args.offset_ms}")
     return AlignmentOptions(
