@@ -426,16 +426,14 @@ def test_the_bootstraps_factor_makes_the_nested_estimates_inverse_unbiased() -> 
     A = rng.normal(size=(6, 6))
     sigma = A @ A.T + 0.5 * np.eye(6)
 
-    def wishart_mean(cov: np.ndarray, nu: int) -> np.ndarray:  # (draws, 6, 6) around cov
-        z = rng.normal(size=(draws, nu, 6)) @ np.linalg.cholesky(cov).T
-        return np.einsum("dni,dnj->dij", z, z) / nu
+    def estimated(cov: np.ndarray, nu: int) -> np.ndarray:
+        """``draws`` Wishart estimates of ``cov`` (6x6, or one per draw) with ``nu`` dof."""
+        L = np.linalg.cholesky(cov)
+        z = rng.normal(size=(draws, nu, 6))
+        return L @ (np.einsum("dni,dnj->dij", z, z) / nu) @ np.swapaxes(L, -1, -2)
 
-    ideal = np.linalg.cholesky(sigma) @ (wishart_mean(np.eye(6), stations - 1)
-                                         ) @ np.linalg.cholesky(sigma).T
-    chol = np.linalg.cholesky(ideal)
-    z = rng.normal(size=(draws, resamples - 1, 6))
-    w = np.einsum("dni,dnj->dij", z, z) / (resamples - 1)
-    estimate = chol @ w @ np.swapaxes(chol, 1, 2)
+    ideal = estimated(sigma, stations - 1)  # the bootstrap over every resample
+    estimate = estimated(ideal, resamples - 1)  # its Monte Carlo estimate
     e = rng.normal(size=(draws, 6)) @ np.linalg.cholesky(sigma).T
     nees = np.einsum("di,di->d", e, np.linalg.solve(estimate, e[..., None])[..., 0])
     both, stations_only = _inverse_unbiased(stations, resamples), 39 / 32

@@ -133,7 +133,8 @@ STALLED_START = "the Zenoh session stalled while the agent was starting"
 #: What a session that stalls later prints (the same deadlock, after the start)
 STALLED_RUNNING = "the Zenoh session stalled while the agent was running"
 #: A worker call blocked this long means a stalled session (its calls take milliseconds;
-#: a re-match of 10,000 abilities x 1,000 needs well under a second, bench/bench_scale.py)
+#: the longest, a full re-match of 10,000 abilities x 1,000 needs, 2.8 s cold in
+#: bench/bench_scale.py on a loaded 2-core host)
 STALL_LIMIT_S = 30.0
 
 
