@@ -10,7 +10,11 @@ can, with numpy (``layout.solve(cal.to_accel(v), omega)``) and on Python floats 
 update's own per-sample path); the faster one is the anchor.  The ratio to it is the
 load-independent figure on a shared machine.  For scale, the bench also times the three
 matrix products every sample's covariance needs at the least (F P F^T, F S and the pose
-rows of S cov S^T, on matrices of the rig's sizes).
+rows of S cov S^T, on matrices of the rig's sizes).  The update runs the compiled step
+where it was built (``UMA_ACCEL_PURE_PYTHON=1`` forces pure Python); the bench says which,
+and with the compiled one it times the pure-Python update too, in a second pass interleaved
+with the float solve again (not in the first: its hundred microseconds per sample would
+evict from the caches what the update and the solve use, and charge that to both).
 
     /work/venv/bin/python bench/bench_accel.py [--seconds 10] [--json]
 """
@@ -25,6 +29,7 @@ from collections.abc import Callable
 import numpy as np
 from summary import cpu_model, median_p99
 
+from services.accel_rig import integrator
 from services.accel_rig.integrator import DeadReckoner
 from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simulate
 from services.sim.trajectory import HeadTrajectory
@@ -63,6 +68,20 @@ def _covariance_products(dr: DeadReckoner) -> _Timed:
     return products
 
 
+def _pure_python(update: _Timed) -> _Timed:
+    """``update`` with the compiled step switched off for the call (a reference figure:
+    the switch costs a fraction of a microsecond, the pure-Python update a hundred)."""
+    native = integrator.NATIVE
+
+    def run(t: float, v: np.ndarray) -> object:
+        integrator.NATIVE = None
+        try:
+            return update(t, v)
+        finally:
+            integrator.NATIVE = native
+    return run
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0,
@@ -82,13 +101,19 @@ def main() -> None:
         return dr
 
     layout, omega, omega_floats = cal.layout, np.zeros(3), [0.0, 0.0, 0.0]
-    times = _time_interleaved({
+    compiled = integrator.NATIVE is not None
+    fns = {
         "update": fresh().update_volts,
         "solve_numpy": lambda t, v: layout.solve(cal.to_accel(v), omega),
         "solve_floats": lambda t, v: layout.solve_floats(
             layout.project_floats(cal.to_accel_floats(v)), omega_floats),
         "covariance_products": _covariance_products(fresh()),
-    }, sim.t, sim.volts)
+    }
+    times = _time_interleaved(fns, sim.t, sim.volts)
+    pure = None
+    if compiled:
+        pure = _time_interleaved({"update_pure_python": _pure_python(fresh().update_volts),
+                                  "solve_floats": fns["solve_floats"]}, sim.t, sim.volts)
     period_us = 1e6 / DEFAULT_RATE_HZ
     figs = {name: median_p99(us, "us") for name, us in times.items()}
     kind = min(("solve_numpy", "solve_floats"), key=lambda n: figs[n]["median_us"])
@@ -96,6 +121,7 @@ def main() -> None:
     fig = {
         "cpu": cpu_model(),
         "samples": len(sim.t),
+        "step": "compiled" if compiled else "pure Python",
         "update_us": upd,
         "baseline_solve_only_us": base,
         "baseline_kind": kind,
@@ -109,13 +135,23 @@ def main() -> None:
         "goal_ratio": GOAL_RATIO,
         "meets_goal": upd["median_us"] <= GOAL_RATIO * base["median_us"],
     }
-    print(f"cpu {fig['cpu']}")
-    for key in ("update_us", "solve_numpy_us", "solve_floats_us", "covariance_products_us"):
+    keys = ["update_us", "solve_numpy_us", "solve_floats_us", "covariance_products_us"]
+    if pure is not None:
+        upd_py, base_py = (median_p99(pure[n], "us") for n in ("update_pure_python",
+                                                                "solve_floats"))
+        fig["update_pure_python_us"] = upd_py
+        fig["ratio_update_pure_python_to_solve_floats"] = \
+            upd_py["median_us"] / base_py["median_us"]
+        keys.append("update_pure_python_us")
+    print(f"cpu {fig['cpu']}, dead reckoner step: {fig['step']}")
+    for key in keys:
         print(f"{key:24s} median {fig[key]['median_us']:8.1f}  p99 {fig[key]['p99_us']:8.1f}")
     print(f"ratio to baseline ({kind}) {fig['ratio_update_to_baseline']:.2f} "
           f"(goal <= {GOAL_RATIO:g}), real-time factor at 300 Hz "
           f"{fig['realtime_factor_at_300hz']:.0f}x; the covariance products alone "
-          f"{fig['ratio_covariance_products_to_baseline']:.2f}x")
+          f"{fig['ratio_covariance_products_to_baseline']:.2f}x"
+          + (f"; the pure-Python update {fig['ratio_update_pure_python_to_solve_floats']:.2f}x "
+             "(second pass)" if pure is not None else ""))
     if args.json:
         print(json.dumps(fig))
 

@@ -3,7 +3,8 @@ replaced (issue 19: the same figures within float rounding).
 
 The reference below is the previous numpy implementation of one RK4 step and its error
 propagation (Hogue 2003, §4.3), kept here unchanged in its mathematics; the fast path must
-agree with it to 1e-12 on random states, samples and layouts.
+agree with it to 1e-12 on random states, samples and layouts, in both of its forms: the
+compiled step (when built) and the pure-Python one.
 
 Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
 system*, MSc thesis, York University 2003.
@@ -11,10 +12,13 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from agent.srg import geometry as geo
+from services.accel_rig import integrator
 from services.accel_rig import rig as rg
 from services.accel_rig.integrator import DeadReckoner, _State
 from services.accel_rig.sensor import Calibration, check_volts
@@ -22,6 +26,16 @@ from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device
 
 TOL = 1e-12
 LAYOUTS = [rg.marvin_six, rg.marvin_six_table_4_1, rg.nine_accelerometer]
+COMPILED = integrator.NATIVE
+
+
+@pytest.fixture(params=["compiled", "python"])
+def step_path(request, monkeypatch):
+    """Run the test on the compiled step and on the pure-Python one."""
+    if request.param == "compiled" and COMPILED is None:
+        pytest.skip("the compiled step was not built")
+    monkeypatch.setattr(integrator, "NATIVE", COMPILED if request.param == "compiled" else None)
+    return request.param
 
 
 def _close(a, b) -> None:
@@ -163,7 +177,7 @@ def test_float_conversion_equals_numpy_and_refuses_alike():
 
 @pytest.mark.parametrize("make", LAYOUTS)
 @pytest.mark.parametrize("samples_before", [1, 2, 3])
-def test_step_equals_the_previous_numpy_step(make, samples_before):
+def test_step_equals_the_previous_numpy_step(make, samples_before, step_path):
     """Random states, readings and step lengths, the first samples' shorter parabolas
     included; with a calibration covariance (the sensitivity S is propagated too)."""
     lay = make()
@@ -183,8 +197,13 @@ def test_step_equals_the_previous_numpy_step(make, samples_before):
             _close(g, w)
 
 
-def test_estimate_takes_the_pose_block_of_the_full_covariance():
+@pytest.mark.parametrize("calibration_covariance", [False, True])
+def test_estimate_takes_the_pose_block_of_the_full_covariance(calibration_covariance,
+                                                              step_path):
     cal = default_device().calibration(DEFAULT_RATE_HZ)
+    if calibration_covariance:  # full 4x4 blocks, one per accelerometer
+        L = np.random.default_rng(6).normal(size=(cal.layout.count, 4, 4)) * 1e-3
+        cal = dataclasses.replace(cal, param_cov=L @ L.transpose(0, 2, 1))
     dr = DeadReckoner(cal, DEFAULT_RATE_HZ)
     rng = np.random.default_rng(5)
     dr._x = _random_state(rng, cal.layout.count)

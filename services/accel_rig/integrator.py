@@ -17,6 +17,11 @@ and axis of each accelerometer act as constant reading errors, carried as a sens
 matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
 error feeds back through the centripetal terms of eq. 4.42.
 
+The step and the estimate's covariance have a compiled twin (``_step.c``, built when a C
+compiler is there) doing the same operations on the same data: :data:`NATIVE` is it unless
+it was not built or ``UMA_ACCEL_PURE_PYTHON=1`` is set.  Both are tested to agree
+(``tests/test_accel_native.py``).
+
 Times: a reading taken at sample time t describes the motion at ``t - latency_s`` (the
 0-110 Hz response), so the state and the reported pose carry that motion time.
 
@@ -27,10 +32,11 @@ system*, MSc thesis, York University 2003.
 from __future__ import annotations
 
 import math
+import os
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -101,6 +107,18 @@ class Estimate:
     covariance: Array
     calibration_sensitivity: Array | None = None
 
+    @classmethod
+    def _of(cls, t: float, position: Array, quaternion: Array, velocity: Array, omega: Array,
+            covariance: Array, calibration_sensitivity: Array | None) -> Estimate:
+        """``Estimate(...)`` for the dead reckoner's per-sample path: a frozen dataclass's
+        ``__init__`` sets each field through ``object.__setattr__``, which costs a tenth of
+        a compiled update; this fills the same fields at once."""
+        e = object.__new__(cls)
+        e.__dict__.update(t=t, position=position, quaternion=quaternion, velocity=velocity,
+                          omega=omega, covariance=covariance,
+                          calibration_sensitivity=calibration_sensitivity)
+        return e
+
     @cached_property
     def decoupled_covariance(self) -> Array:
         return geo.se3_to_decoupled(self.position, self.covariance)
@@ -157,6 +175,8 @@ class DeadReckoner:
         self._AB, self._AB_INDEX = _error_dynamics_layout(gk)
         # the reading noise in units of G / k: B diag(std^2) B^T = Bk diag((k std)^2) Bk^T
         self._noise_var_k = calibration.accel_var(rate_hz) * calibration.gain_v_per_mps2**2
+        self._consts = _native_constants(self.layout.correction_matrix, gk, self._noise_var_k,
+                                         self.rate_hz, self.gravity, calibration.param_cov)
         self._samples: list[_Sample] = []  # the last 3, for the next step's parabola
         keep = max(4, math.ceil(HISTORY_S * rate_hz))
         # recent samples and the states after them, so that a reset arriving late is applied
@@ -250,14 +270,25 @@ class DeadReckoner:
         x = self._x
         if x is None:
             raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
+        native = NATIVE
+        if native is None:
+            C, S = self._pose_covariance(x)
+        else:
+            C = np.empty((6, 6))
+            S = None if self._cal_cov is None else np.empty((6, x.S.shape[1]))
+            native.pose_covariance(self._consts, x.P, x.S, C, S)
+        return Estimate._of(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
+                            C, S)
+
+    def _pose_covariance(self, x: _State) -> tuple[Array, Array | None]:
+        """The pose's 6x6 covariance (symmetrised) and the pose rows of ``S`` (None
+        without a calibration covariance); the pure-Python twin of ``pose_covariance``."""
         C = x.P.take(_POSE_FLAT).reshape(6, 6)  # [phi, rho] -> [rho, phi]
         S = None
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
             S = x.S[_POSE_ORDER]
             C = S @ self._cal_cov @ S.T + C
-        return Estimate(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
-                        (C + C.T) * 0.5, S)
-
+        return (C + C.T) * 0.5, S
 
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
@@ -323,7 +354,27 @@ class DeadReckoner:
     def _step(self, x: _State, samples: list[_Sample], t1: float) -> _State:
         """One RK4 step of the coupled (q, omega, v, p) ODE from ``x`` to ``t1`` and its
         error propagation, the readings interpolated over ``samples``; ``_DivergedError`` if
-        the result is no dead-reckoned state any more.
+        the result is no dead-reckoned state any more.  Compiled (``NATIVE.step``) or in
+        Python (``_step_python``): the same operations, the same result to float rounding."""
+        native = NATIVE
+        if native is None:
+            p, q, v, w, norm, P, S = self._step_python(x, samples, t1)
+            variances = P.diagonal().tolist()
+            reason = _divergence(norm, w, sum(variances), max(variances))
+        else:
+            P = np.empty((12, 12))
+            S = x.S if self._cal_cov is None else np.empty_like(x.S)
+            p, q, v, w, norm, total, largest, fine = native.step(self._consts, x, samples, t1,
+                                                                 P, S)
+            reason = "" if fine else _divergence(norm, w, total, largest)
+        if reason:
+            raise _DivergedError(f"at t={t1:.3f} s: {reason}")
+        return _State(t1, p, q, v, w, P, S)
+
+    def _step_python(self, x: _State, samples: list[_Sample], t1: float) -> \
+            tuple[list[float], list[float], list[float], list[float], float, Array, Array]:
+        """``_step`` before its divergence check: the new p, q (normalised unless its norm
+        is 0), v, omega, the norm of q before normalising, and the new P and S.
 
         The 3- and 4-vectors are Python floats: a numpy call on them costs more than the
         arithmetic (see "small-vector arithmetic" below); the matrices stay numpy."""
@@ -363,10 +414,9 @@ class DeadReckoner:
                                 0.5 * (v1[2] + v0[2])])
         a, b, c, d = q1
         norm = math.sqrt(a * a + b * b + c * c + d * d)
-        reason = _divergence(norm, w1, P)
-        if reason:
-            raise _DivergedError(f"at t={t1:.3f} s: {reason}")
-        return _State(t1, p1, [a / norm, b / norm, c / norm, d / norm], v1, w1, P, S)
+        if norm:  # else the divergence check refuses the state
+            q1 = [a / norm, b / norm, c / norm, d / norm]
+        return p1, q1, v1, w1, norm, P, S
 
     def _propagate(self, P: Array, S: Array, h: float, R: list[float], f: list[float],
                    w: list[float], p: list[float], v: list[float]) -> tuple[Array, Array]:
@@ -393,6 +443,34 @@ class DeadReckoner:
         if self._cal_cov is not None:  # a calibration error is a reading error ([1, f]/k)
             S = F @ S + np.multiply.outer(Bk, [h, h * f[0], h * f[1], h * f[2]]).reshape(12, -1)
         return P, S
+
+
+def _native_constants(corr: Array, gk: Array, noise_var_k: Array, rate_hz: float,
+                      gravity: Array, param_cov: Array | None) -> Array:
+    """The constants of a dead reckoner as the compiled step reads them, in one float64
+    array: ``[N, rate_hz, MAX_OMEGA_RAD_S^2, MAX_VARIANCE, gravity, corr, gk, noise_var_k]``
+    and, with a calibration covariance, its N 4x4 blocks (the layout is described in
+    ``_step.c``)."""
+    parts = [[gk.shape[1], rate_hz, MAX_OMEGA_RAD_S**2, MAX_VARIANCE], gravity, corr, gk,
+             noise_var_k]
+    if param_cov is not None:
+        parts.append(param_cov)
+    return np.concatenate([np.asarray(part, float).ravel() for part in parts])
+
+
+def _native() -> Any:
+    """The compiled step (``_step.c``), or None (not built, or ``UMA_ACCEL_PURE_PYTHON=1``)."""
+    if os.environ.get("UMA_ACCEL_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from services.accel_rig import _step
+    except ImportError:
+        return None
+    return _step
+
+
+#: the compiled step in use (tests set it to None to run the pure-Python one)
+NATIVE: Any = _native()
 
 
 def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \
@@ -440,17 +518,18 @@ def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Arra
     return _State(t, p, q, values["velocity"], values["omega"], P, S)
 
 
-def _divergence(q_norm: float, w: list[float], P: Array) -> str:
-    """Why a stepped state is no dead-reckoned state any more ('' when it still is).
+def _divergence(q_norm: float, w: list[float], var_sum: float, var: float) -> str:
+    """Why a stepped state is no dead-reckoned state any more ('' when it still is), from
+    the norm of its quaternion, its omega and the sum and largest of its variances (the
+    diagonal of ``P``).  The compiled step makes the same tests, and calls this only to
+    word a divergence it found.
 
     A NaN or an overflow anywhere in the step reaches the diagonal of ``P``: the stage
     rotations and specific force and the midpoint position and velocity all enter F."""
-    variances = P.diagonal().tolist()  # plain floats: this runs at every sample
     x, y, z = w
     ww = x * x + y * y + z * z
-    if not math.isfinite(sum(variances) + ww + q_norm):
+    if not math.isfinite(var_sum + ww + q_norm):
         return "to non-finite values"
-    var = max(variances)
     if q_norm < 1e-6:
         return "to a zero quaternion"
     if ww > MAX_OMEGA_RAD_S**2:

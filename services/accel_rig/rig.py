@@ -248,6 +248,13 @@ class RigLayout:
         return x[..., :3], x[..., 3:6]
 
     @property
+    def correction_matrix(self) -> Array:
+        """The 6 x 6 matrix of ``correction``: rows per output ``[f; omega_dot]``, columns per
+        entry xx yy zz xy yz xz of omega omega^T (the dead reckoner's compiled step takes it
+        as numbers, not as a method)."""
+        return self._corr
+
+    @property
     def readings_jacobian(self) -> Array:
         """d(f, omega_dot)/d(readings) of ``solve``, 6 x N (a constant of the layout)."""
         return self._proj
