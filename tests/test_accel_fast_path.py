@@ -33,7 +33,7 @@ COMPILED = integrator.NATIVE
 def step_path(request, monkeypatch):
     """Run the test on the compiled step and on the pure-Python one."""
     if request.param == "compiled" and COMPILED is None:
-        pytest.skip("the compiled step was not built")
+        pytest.skip("the compiled step is not built or is switched off")
     monkeypatch.setattr(integrator, "NATIVE", COMPILED if request.param == "compiled" else None)
     return request.param
 

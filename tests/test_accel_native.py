@@ -26,7 +26,8 @@ from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simula
 from services.sim.trajectory import HeadTrajectory
 
 COMPILED = integrator.NATIVE
-needs_compiled = pytest.mark.skipif(COMPILED is None, reason="the compiled step was not built")
+needs_compiled = pytest.mark.skipif(COMPILED is None,
+                                    reason="the compiled step is not built or is switched off")
 REL = 1e-12
 
 

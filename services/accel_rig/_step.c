@@ -1,5 +1,5 @@
 /* The compiled twin of the dead reckoner's step (services/accel_rig/integrator.py): the
- * RK4 step of DeadReckoner._step with its error propagation, and the pose covariance of
+ * RK4 step of DeadReckoner._step with its error propagation, and the arrays of
  * DeadReckoner.estimate.  The same operations in the same order as the Python floats
  * (interpolation, eq. 4.42 solves, quaternion RK4, rotations), so the state is the same to
  * the bit where the compiler keeps IEEE order (setup.py turns floating-point contraction
@@ -415,26 +415,34 @@ done:
     return result;
 }
 
-/* pose_covariance(consts, P, S, C_out, S6_out): DeadReckoner.estimate's 6x6 covariance,
- * symmetrised, in geometry's order [rho, phi], and with a calibration covariance the pose
- * rows of S (S6_out) and S6 cal S6^T added (cal is block-diagonal: 4x4 per accelerometer,
- * so only its blocks are multiplied). */
-static PyObject *pose_covariance(PyObject *Py_UNUSED(self), PyObject *const *args,
-                                 Py_ssize_t nargs) {
+/* estimate(consts, x, vec_out, C_out, S6_out): DeadReckoner.estimate's arrays of the state
+ * x: its p, q, v, w (vec_out, 13), the 6x6 pose covariance, symmetrised, in geometry's
+ * order [rho, phi] (C_out), and with a calibration covariance the pose rows of S (S6_out)
+ * and S6 cal S6^T added to C (cal is block-diagonal: 4x4 per accelerometer, so only its
+ * blocks are multiplied). */
+static PyObject *estimate(PyObject *Py_UNUSED(self), PyObject *const *args, Py_ssize_t nargs) {
     static const int order[6] = {3, 4, 5, 0, 1, 2};
     if (nargs != 5) {
-        PyErr_SetString(PyExc_TypeError, "pose_covariance: expected 5 arguments");
+        PyErr_SetString(PyExc_TypeError, "estimate: expected 5 arguments");
         return NULL;
     }
-    buf_t cb = {0}, pb = {0}, sb = {0}, co = {0}, so = {0};
+    buf_t cb = {0}, pb = {0}, sb = {0}, vo = {0}, co = {0}, so = {0};
     consts_t c;
+    vec_state_t x;
     PyObject *result = NULL;
     if (!get_doubles(args[0], -1, 0, &cb, "constants") || !parse_consts(&cb, &c)
-        || !get_doubles(args[1], E * E, 0, &pb, "P")
-        || !get_doubles(args[2], E * 4 * c.n, 0, &sb, "S")
+        || !read_state(args[1], &x)
+        || !get_doubles(PyTuple_GET_ITEM(args[1], 5), E * E, 0, &pb, "P")
+        || !get_doubles(PyTuple_GET_ITEM(args[1], 6), E * 4 * c.n, 0, &sb, "S")
+        || !get_doubles(args[2], 13, 1, &vo, "vec_out")
         || !get_doubles(args[3], 36, 1, &co, "C_out")
         || (c.cal != NULL && !get_doubles(args[4], 24 * c.n, 1, &so, "S6_out")))
         goto done;
+    double *vec = vo.view.buf;
+    memcpy(vec, x.p, sizeof x.p);
+    memcpy(vec + 3, x.q, sizeof x.q);
+    memcpy(vec + 7, x.v, sizeof x.v);
+    memcpy(vec + 10, x.w, sizeof x.w);
     const double *P = pb.view.buf, *S = sb.view.buf;
     double *C = co.view.buf, M[6][6];
     Py_ssize_t m = 4 * c.n;
@@ -458,15 +466,15 @@ static PyObject *pose_covariance(PyObject *Py_UNUSED(self), PyObject *const *arg
         for (int b = 0; b < 6; b++) C[6 * a + b] = (M[a][b] + M[b][a]) * 0.5;
     result = Py_NewRef(Py_None);
 done:
-    release(&cb); release(&pb); release(&sb); release(&co); release(&so);
+    release(&cb); release(&pb); release(&sb); release(&vo); release(&co); release(&so);
     return result;
 }
 
 static PyMethodDef methods[] = {
     {"step", (PyCFunction)(void (*)(void))step, METH_FASTCALL,
      "One RK4 step of the dead reckoner with its error propagation."},
-    {"pose_covariance", (PyCFunction)(void (*)(void))pose_covariance, METH_FASTCALL,
-     "The estimate's 6x6 pose covariance and calibration sensitivity."},
+    {"estimate", (PyCFunction)(void (*)(void))estimate, METH_FASTCALL,
+     "The estimate's vectors, 6x6 pose covariance and calibration sensitivity."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -17,7 +17,7 @@ and axis of each accelerometer act as constant reading errors, carried as a sens
 matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
 error feeds back through the centripetal terms of eq. 4.42.
 
-The step and the estimate's covariance have a compiled twin (``_step.c``, built when a C
+The step and the estimate's arrays have a compiled twin (``_step.c``, built when a C
 compiler is there) doing the same operations on the same data: :data:`NATIVE` is it unless
 it was not built or ``UMA_ACCEL_PURE_PYTHON=1`` is set.  Both are tested to agree
 (``tests/test_accel_native.py``).
@@ -273,16 +273,18 @@ class DeadReckoner:
         native = NATIVE
         if native is None:
             C, S = self._pose_covariance(x)
-        else:
-            C = np.empty((6, 6))
-            S = None if self._cal_cov is None else np.empty((6, x.S.shape[1]))
-            native.pose_covariance(self._consts, x.P, x.S, C, S)
-        return Estimate._of(x.t, np.array(x.p), np.array(x.q), np.array(x.v), np.array(x.w),
-                            C, S)
+            return Estimate._of(x.t, np.array(x.p), np.array(x.q), np.array(x.v),
+                                np.array(x.w), C, S)
+        # one buffer for the four vectors: a fresh array and four views of it cost half of
+        # four arrays made from lists
+        vec, C = np.empty(13), np.empty((6, 6))
+        S = None if self._cal_cov is None else np.empty((6, x.S.shape[1]))
+        native.estimate(self._consts, x, vec, C, S)
+        return Estimate._of(x.t, vec[0:3], vec[3:7], vec[7:10], vec[10:13], C, S)
 
     def _pose_covariance(self, x: _State) -> tuple[Array, Array | None]:
         """The pose's 6x6 covariance (symmetrised) and the pose rows of ``S`` (None
-        without a calibration covariance); the pure-Python twin of ``pose_covariance``."""
+        without a calibration covariance); the compiled step's ``estimate`` computes the same."""
         C = x.P.take(_POSE_FLAT).reshape(6, 6)  # [phi, rho] -> [rho, phi]
         S = None
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
