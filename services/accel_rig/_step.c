@@ -37,7 +37,10 @@ static int get_doubles(PyObject *obj, Py_ssize_t n, int writable, buf_t *b, cons
     if (b->view.itemsize == 8 && (n < 0 || b->view.len == n * 8) && f != NULL
         && (strcmp(f, "d") == 0 || strcmp(f, "<d") == 0))
         return 1;
-    PyErr_Format(PyExc_ValueError, "%s: expected a contiguous float64 array of %zd", what, n);
+    if (n < 0)
+        PyErr_Format(PyExc_ValueError, "%s: expected a contiguous float64 array", what);
+    else
+        PyErr_Format(PyExc_ValueError, "%s: expected a contiguous float64 array of %zd", what, n);
     return 0;
 }
 
@@ -232,10 +235,12 @@ static void dynamics(const consts_t *c, const double *R, const double *f, const 
 }
 
 /* out = a b (a: r x k, b: k x m, row strides given), summed over k in order.  The left
- * operands are the error dynamics and F, mostly exact zeros (their block structure), whose
- * terms are skipped: they add nothing while the right operand is finite, and P and S are
- * (a state whose variances are not finite is refused as diverged, and S, the error's share
- * due to constant reading errors, grows with P). */
+ * operands (Ah, F, the noise's Bk) are mostly exact zeros, their block structure, whose
+ * terms are skipped: they add nothing while the right operand is finite.  P and S enter
+ * finite (a state with a non-finite variance is refused as diverged, and S, the same error's
+ * share from constant reading errors, grows with P); where the step itself overflows, its
+ * inf or NaN reaches P's diagonal through the terms kept, and the step diverges either way
+ * (tests/test_accel_native.py: the same message as numpy's products). */
 static void mat_mul(const double *a, int sa, const double *b, int sb, int r, int k, int m,
                     double *out, int so) {
     for (int i = 0; i < r; i++) {
