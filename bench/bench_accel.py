@@ -13,8 +13,9 @@ matrix products every sample's covariance needs at the least (F P F^T, F S and t
 rows of S cov S^T, on matrices of the rig's sizes).  The update runs the compiled step
 where it was built (``UMA_ACCEL_PURE_PYTHON=1`` forces pure Python); the bench says which,
 and with the compiled one it times the pure-Python update too, in a second pass interleaved
-with the float solve again (not in the first: its hundred microseconds per sample would
-evict from the caches what the update and the solve use, and charge that to both).
+with the float solve again (not in the first: there it raised the update's ratio from
+1.76-1.78 to 1.87-1.89, three alternating runs of each, presumably as its hundred
+microseconds per sample evict from the caches what the compiled update uses).
 
     /work/venv/bin/python bench/bench_accel.py [--seconds 10] [--json]
 """
