@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from services.accel_rig import integrator
-from services.accel_rig.integrator import MAX_OMEGA_RAD_S, DeadReckoner
+from services.accel_rig import rig as rg
+from services.accel_rig.integrator import MAX_OMEGA_RAD_S, DeadReckoner, _State
 from services.accel_rig.sensor import Calibration
 from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simulate
 from services.sim.trajectory import HeadTrajectory
@@ -95,6 +96,31 @@ def test_compiled_and_python_steps_agree_on_a_run(calibration_covariance):
             _close(getattr(a, name), getattr(b, name))
         _close(full_a, full_b)
     assert (ours[-1][0].calibration_sensitivity is not None) == calibration_covariance
+
+
+@needs_compiled
+@pytest.mark.parametrize("make", [rg.marvin_six, rg.marvin_six_table_4_1, rg.nine_accelerometer])
+def test_compiled_and_python_estimates_agree_on_every_layout(make):
+    """The estimate's arrays from random states of six- and nine-accelerometer rigs."""
+    lay = make()
+    n = lay.count
+    rng = np.random.default_rng(n)
+    cal = _with_calibration_covariance(
+        Calibration(lay, rng.uniform(-0.05, 0.05, n), rng.uniform(0.3, 0.5, n)), n)
+    dr = DeadReckoner(cal, DEFAULT_RATE_HZ)
+    for _ in range(10):
+        L = rng.normal(size=(12, 12)) * 1e-3
+        q = rng.normal(size=4)
+        dr._x = _State(1.0, rng.normal(size=3).tolist(), (q / np.linalg.norm(q)).tolist(),
+                       rng.normal(size=3).tolist(), rng.normal(size=3).tolist(), L @ L.T,
+                       rng.normal(size=(12, 4 * n)) * 1e-3)
+        with _path(True):
+            a = dr.estimate()
+        with _path(False):
+            b = dr.estimate()
+        for name in ("position", "quaternion", "velocity", "omega", "covariance",
+                     "calibration_sensitivity"):
+            _close(getattr(a, name), getattr(b, name))
 
 
 def _diverge(compiled: bool, accel: np.ndarray, omega: np.ndarray) -> tuple[str, list]:
