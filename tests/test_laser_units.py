@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from agent.srg import geometry as geo
-from services.laser_camera.detection import DetectorParams, detect_dots, detect_dots_in
+from services.laser_camera.detection import (
+    DetectorParams,
+    _component_stats,
+    detect_dots,
+    detect_dots_in,
+)
 from services.laser_camera.homography import (
     apply_homography,
     dlt_homography,
@@ -189,6 +194,16 @@ def test_banded_labelling_finds_what_full_frame_labelling_finds() -> None:
         ours = ours[np.lexsort(ours[:, :2].T)]
         ref = ref[np.lexsort(ref[:, :2].T)]
         np.testing.assert_allclose(ours[:, :4], ref, rtol=1e-12, atol=1e-9)
+
+
+def test_component_statistics_are_opencvs() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    for _ in range(300):  # sparse to dense masks: one component, several, none
+        shape = tuple(rng.integers(1, 60, 2))
+        mask = (rng.random(shape) < rng.uniform(0, 0.4)).view(np.uint8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
+                                                               ltype=cv2.CV_32S)
+        assert _component_stats(mask, labels, n) == stats[1:].tolist()
 
 
 def test_detection_in_windows_is_detection_in_full_where_the_windows_are() -> None:
