@@ -640,7 +640,8 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
     ray = P - p0
     r = row_norms(ray)
     normal = cross_rows(dots.axes[idx, 0], dots.axes[idx, 1])
-    c = np.clip(np.abs(np.einsum("ij,ij->i", normal, ray)) / r, 0.05, 1.0)
+    # np.clip's argument handling costs more than its arithmetic on four values
+    c = np.minimum(np.maximum(np.abs(np.einsum("ij,ij->i", normal, ray)) / r, 0.05), 1.0)
     bend = np.ones(len(idx)) if dots.bend is None else dots.bend[idx]
     across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
     w_tan = p.screen_bulge_std_m * bend * np.sqrt(1 - c ** 2) / c
@@ -662,7 +663,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
-    Q[1 + np.arange(8), np.repeat(np.arange(4), 2)] += step_m * axes
+    Q[_PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
     p, R = frames_from_points(Q)
     if not np.all(np.isfinite(R)):
         raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
@@ -670,13 +671,14 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     dphi = 0.5 * (dR[:, _SKEW_ROWS, _SKEW_COLS] - dR[:, _SKEW_COLS, _SKEW_ROWS])
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
     # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
-    J[:3] += geo.skew(p0) @ J[3:]
+    J[:3] += geo.skew3(p0) @ J[3:]
     random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
     systematic = (J * np.repeat(installation_var, 2)) @ J.T
-    model = np.zeros((6, 6))
-    model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
-    model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
-    systematic += geo.decoupled_to_se3(p0, model)
+    if params.model_pos_std_m or params.model_rot_std_rad:  # else it adds zeros
+        model = np.zeros((6, 6))
+        model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
+        model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
+        systematic += geo.decoupled_to_se3(p0, model)
     whole = random + systematic
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
 
@@ -686,3 +688,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
 _SKEW_ROWS = np.array([2, 0, 1])
 _SKEW_COLS = np.array([1, 2, 0])
 _DIAG3 = np.arange(3)
+#: the covariance's eight perturbed copies of the four dots: copy 1 + 2k + a moves dot k
+#: along its wall's axis a
+_PERTURBED_COPY = 1 + np.arange(8)
+_PERTURBED_DOT = np.repeat(np.arange(4), 2)
