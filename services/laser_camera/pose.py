@@ -65,25 +65,40 @@ def frames_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     norm is taken once and R is filled in place rather than stacked."""
     P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]
     d12 = P2 - P1
-    R = np.empty((len(P), 3, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = _dot(P3 - P1, d12) / _dot(d12, d12)
         P0 = P1 + lam[:, None] * d12
-        v3 = P3 - P0
-        n = cross_rows(P1 - P0, v3)
+        v1, v3 = P1 - P0, P3 - P0
+    return P0, _rotations(v1, v3)
+
+
+def _rotations(v1: np.ndarray, v3: np.ndarray) -> np.ndarray:
+    """The rig's rotations (m, 3, 3) from the directions P0 -> P1 and P0 -> P3 (m, 3); NaN
+    where they define no frame."""
+    R = np.empty((len(v3), 3, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n = cross_rows(v1, v3)
         len_v3, len_n = row_norms(v3), row_norms(n)
         x = R[:, :, 0] = -v3 / len_v3[:, None]
         z = R[:, :, 2] = n / len_n[:, None]
     R[:, :, 1] = cross_rows(z, x)
     bad = ~np.isfinite(R).all(axis=(1, 2)) | (len_v3 < 1e-9) | (len_n < 1e-12)
     R[bad] = np.nan
-    return P0, R
+    return R
 
 
 def labeling_errors(points: np.ndarray) -> np.ndarray:
     """eps(i) of eq. 5.6 for all 24 labelings of four points (4, 3), vectorised; ``inf``
-    where a labeling defines no frame.  (The directions from P0 to all four points are
-    one (24, 4, 3) array: a numpy call per labeling array, not per point.)"""
+    where a labeling defines no frame."""
+    return _labelings(points)[0]
+
+
+def _labelings(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``labeling_errors`` and, per labeling, P0 (24, 3) and the rays from it to the
+    points labeled diodes 1..4 (24, 4, 3): the frame of a labeling is made of these
+    (``_rotations``), so its candidates need not be solved again.  (The directions from
+    P0 to all four points are one (24, 4, 3) array: a numpy call per labeling array, not
+    per point.)"""
     P = points[PERMUTATIONS]  # (24, 4, 3): P[i, k] = point labeled diode k + 1
     P1 = P[:, 0]
     d12 = P[:, 1] - P1
@@ -101,7 +116,7 @@ def labeling_errors(points: np.ndarray) -> np.ndarray:
         n = cross_rows(rays[:, 0], rays[:, 2])
         F = (_dot(n, rays[:, 3]) <= 0).astype(float)
         eps = perp + D + F
-    return np.where(np.isfinite(eps), eps, np.inf)
+    return np.where(np.isfinite(eps), eps, np.inf), P0, rays
 
 
 #: the direction pairs of eq. 5.7 that must be perpendicular (diode indices - 1)
@@ -114,13 +129,13 @@ def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
     points = np.asarray(points, float)
     if points.shape != (4, 3) or not np.all(np.isfinite(points)):
         raise ValueError(f"pose: need four finite 3-D points, got shape {points.shape}")
-    eps = labeling_errors(points)
+    eps, P0, rays = _labelings(points)
     best = np.argsort(eps, kind="stable")
     best = best[eps[best] <= max_error]
     if not len(best):
         return []
     # all frames in one batch: per labeling, numpy's call overhead is the cost
-    P0, R = frames_from_points(points[PERMUTATIONS[best]])
+    P0, R = P0[best], _rotations(rays[best, 0], rays[best, 2])
     found = np.isfinite(R).all(axis=(1, 2))  # the others define no frame
     q = geo.matrix_to_quat(R[found])
     return [LabeledPose(p0, qk, tuple(PERMUTATIONS[i].tolist()), float(eps[i]))
