@@ -44,7 +44,6 @@ import numpy as np
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, U, V, detect_dots, detect_dots_in
-from services.laser_camera.homography import apply_homography, homography_scale
 from services.laser_camera.pose import (
     LabeledPose,
     candidate_poses,
@@ -52,7 +51,6 @@ from services.laser_camera.pose import (
     frames_from_points,
     row_norms,
 )
-from services.sim.ivy import on_active_area, screen_to_world
 from services.sim.laser_housing import BEAM_DIRECTIONS
 
 #: why a frame set gave no pose
@@ -462,44 +460,80 @@ class LaserTracker:
 
 
 class _Screens:
-    """Every camera's image -> world map as arrays stacked over the cameras, so that the
-    dots of a frame set (four to six, spread over several cameras) pass through it in one
-    batch: done camera by camera, or dot by dot, numpy's per-call overhead was the cost."""
+    """Every camera's image -> world map, its constants kept as plain floats: a frame set
+    holds four to six dots, and on arrays that small numpy's per-call overhead, not the
+    arithmetic, was the cost (cProfile of the bench's tracked frame sets: 19 % of the
+    pipeline in some thirty numpy calls per frame set, batched over all cameras' dots)."""
 
     def __init__(self, cameras: list[CameraCalibration], calib_sigma_m: float):
         self.cameras = cameras
         self.index = {c.name: i for i, c in enumerate(cameras)}
-        self.H = np.array([c.H for c in cameras])
-        self.rotation = np.array([c.wall.rotation for c in cameras])
-        self.translation = np.array([c.wall.translation for c in cameras])
-        self.plane = np.array([c.wall.plane_distance for c in cameras])
-        self.side = np.array([c.wall.screen_side_m for c in cameras])
-        self.axes = self.rotation[:, :, :2].transpose(0, 2, 1)  # in-plane unit axes
-        self.sigma_m = np.array([c.screen_sigma_m(calib_sigma_m) for c in cameras])
+        self.axes = np.array([c.wall.rotation[:, :2].T for c in cameras])  # in-plane axes
+        self.maps = [_ScreenMap(tuple(np.ravel(c.H).tolist()),
+                                tuple(np.ravel(c.wall.rotation).tolist()),
+                                tuple(np.ravel(c.wall.translation).tolist()),
+                                float(c.wall.plane_distance), float(c.wall.screen_side_m),
+                                c.screen_sigma_m(calib_sigma_m)) for c in cameras]
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
-        names = [name for name, d in detections.items() if len(d)]
-        if not names:
+        cams: list[int] = []
+        dots: list[tuple[list[float], float, float]] = []
+        for name, d in detections.items():
+            if not len(d):
+                continue
+            i = self.index[name]
+            und = self.cameras[i].undistort(d[:, [U, V]]).tolist()
+            for (x, y), std_px in zip(und, d[:, STD].tolist(), strict=True):
+                dot = self.maps[i].world_dot(x, y, std_px, p)
+                if dot is not None:
+                    cams.append(i)
+                    dots.append(dot)
+        if not dots:
             return _no_dots()
-        det = np.concatenate([detections[name] for name in names])
-        und = np.concatenate([self.cameras[self.index[name]].undistort(detections[name][:, [U, V]])
-                              for name in names])
-        cam = np.array([self.index[name] for name in names for _ in detections[name]])
-        xy = apply_homography(self.H[cam], und)
-        keep = np.flatnonzero(on_active_area(xy, self.side[cam, None]))
-        cam, det, und, xy = cam[keep], det[keep], und[keep], xy[keep]
-        side = self.side[cam]
-        edge = np.where(on_active_area(xy, side[:, None], p.edge_guard_m), 0.0, p.edge_std_m)
-        std = np.sqrt((det[:, STD] * homography_scale(self.H[cam], und)) ** 2
-                      + self.sigma_m[cam] ** 2 + edge ** 2)
-        u = 2 * xy / side[:, None] - 1
-        bend = np.maximum(0.0, 1 - u[:, 0] ** 2) * np.maximum(0.0, 1 - u[:, 1] ** 2)
-        cams = cam.tolist()
-        return WorldDots(
-            screen_to_world(xy, self.rotation[cam], self.translation[cam], self.plane[cam]),
-            std, [self.cameras[i].wall.name for i in cams], self.axes[cam],
-            [self.cameras[i].name for i in cams], bend)
+        points, std, bend = zip(*dots, strict=True)
+        return WorldDots(np.array(points), np.array(std),
+                         [self.cameras[i].wall.name for i in cams], self.axes[cams],
+                         [self.cameras[i].name for i in cams], np.array(bend))
+
+
+@dataclass(frozen=True)
+class _ScreenMap:
+    """One camera's undistorted pixel -> screen homography (eq. 5.39) and its wall's
+    screen -> world transform (eq. 5.40), row-major."""
+
+    H: tuple[float, ...]
+    rotation: tuple[float, ...]
+    translation: tuple[float, ...]
+    plane_m: float
+    side_m: float
+    sigma_m: float  # the image -> screen map's calibration error (1 sigma, per axis)
+
+    def world_dot(self, x: float, y: float, std_px: float,
+                  p: TrackerParams) -> tuple[list[float], float, float] | None:
+        """The world point of the dot at undistorted pixel ``(x, y)``, its in-plane std
+        (the pixel std scaled by the map's Jacobian, the calibration's, and
+        ``edge_std_m`` near the screen's edge) and how far the bending screen moves there
+        (0..1); None off the active area."""
+        h0, h1, h2, h3, h4, h5, h6, h7, h8 = self.H
+        w = h6 * x + h7 * y + h8
+        if w == 0.0:  # the horizon of the screen's plane: no point on it
+            return None
+        sx, sy = (h0 * x + h1 * y + h2) / w, (h3 * x + h4 * y + h5) / w
+        side, g = self.side_m, p.edge_guard_m
+        if not (0.0 <= sx <= side and 0.0 <= sy <= side):
+            return None
+        edge = 0.0 if g <= sx <= side - g and g <= sy <= side - g else p.edge_std_m
+        # the Jacobian of the homography: (H[:2, :2] - screen point x H[2, :2]) / w
+        scale = math.sqrt(abs((h0 - sx * h6) / w * ((h4 - sy * h7) / w)
+                              - (h1 - sx * h7) / w * ((h3 - sy * h6) / w)))
+        std = math.sqrt((std_px * scale) ** 2 + self.sigma_m ** 2 + edge ** 2)
+        ux, uy = 2 * sx / side - 1, 2 * sy / side - 1
+        bend = max(0.0, 1 - ux ** 2) * max(0.0, 1 - uy ** 2)
+        r, t, z = self.rotation, self.translation, self.plane_m
+        point = [r[0] * sx + r[1] * sy + r[2] * z - t[0], r[3] * sx + r[4] * sy + r[5] * z - t[1],
+                 r[6] * sx + r[7] * sy + r[8] * z - t[2]]
+        return point, std, bend
 
 
 class _SeenDots:
