@@ -25,6 +25,8 @@ import numpy as np
 
 #: columns of the detector's output rows
 U, V, FLUX, AREA, STD = range(5)
+#: the pixel columns u, v: a slice takes a view where a list of columns copies
+UV = slice(U, V + 1)
 
 
 @dataclass(frozen=True)

@@ -112,9 +112,10 @@ def _labelings(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # eq. 5.7's pairs: beam 4 with 1, 2, 3; beam 3 with 1, 2
         cosines = np.einsum("ikj,ikj->ik", u.take(_PERP_A, 1), u.take(_PERP_B, 1))
         perp = np.add.reduce(np.abs(cosines), axis=1)
-        D = _dot(P0 - feet[:, 1], P0 - feet[:, 1])
+        apart = P0 - feet[:, 1]
+        D = _dot(apart, apart)
         n = cross_rows(rays[:, 0], rays[:, 2])
-        F = (_dot(n, rays[:, 3]) <= 0).astype(float)
+        F = _dot(n, rays[:, 3]) <= 0  # adds as 0 or 1
         eps = perp + D + F
     return np.where(np.isfinite(eps), eps, np.inf), P0, rays
 

@@ -43,7 +43,7 @@ import numpy as np
 
 from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, CameraCalibration
-from services.laser_camera.detection import STD, U, V, detect_dots, detect_dots_in
+from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
 from services.laser_camera.pose import (
     LabeledPose,
     candidate_poses,
@@ -481,7 +481,7 @@ class _Screens:
             if not len(d):
                 continue
             i = self.index[name]
-            und = self.cameras[i].undistort(d[:, [U, V]]).tolist()
+            und = self.cameras[i].undistort(d[:, UV]).tolist()
             for (x, y), std_px in zip(und, d[:, STD].tolist(), strict=True):
                 dot = self.maps[i].world_dot(x, y, std_px, p)
                 if dot is not None:
@@ -549,7 +549,7 @@ class _SeenDots:
 
     def update(self, detections: Mapping[str, np.ndarray], t: float, full: bool) -> None:
         self._prev, self._prev_t = self._last, self._last_t
-        self._last = {name: d[:, [U, V]].tolist() for name, d in detections.items() if len(d)}
+        self._last = {name: d[:, UV].tolist() for name, d in detections.items() if len(d)}
         self._last_t = t
         if full:
             self.full_t = t
@@ -574,7 +574,7 @@ class _SeenDots:
 
 def _all_found(centres: list[list[float]], det: np.ndarray, half: float) -> bool:
     """Whether every window (``half`` around each centre) holds a detected dot."""
-    found = det[:, :2].tolist()
+    found = det[:, UV].tolist()
     return bool(found) and all(any(max(abs(u - x), abs(v - y)) <= half + 0.5
                                    for x, y in found) for u, v in centres)
 
@@ -706,7 +706,8 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     if not np.all(np.isfinite(R)):
         raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
     dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
-    dphi = 0.5 * (dR[:, _SKEW_ROWS, _SKEW_COLS] - dR[:, _SKEW_COLS, _SKEW_ROWS])
+    dR = dR.reshape(8, 9)
+    dphi = 0.5 * (dR.take(_SKEW_PLUS, 1) - dR.take(_SKEW_MINUS, 1))
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
     # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
     J[:3] += geo.skew3(p0) @ J[3:]
@@ -721,10 +722,11 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
 
 
-#: the skew part of a rotation's small error: component j is R[ROWS[j], COLS[j]] minus its
-#: transposed entry
-_SKEW_ROWS = np.array([2, 0, 1])
-_SKEW_COLS = np.array([1, 2, 0])
+#: the skew part of a rotation's small error, as flat indices into the row-major 3 x 3:
+#: component j is R[(2, 0, 1)[j], (1, 2, 0)[j]] minus its transposed entry (flat indices
+#: take one ``take`` each, where a row and column index pair takes a slower fancy index)
+_SKEW_PLUS = np.array([7, 2, 3])
+_SKEW_MINUS = np.array([5, 6, 1])
 _DIAG3 = np.arange(3)
 #: the covariance's eight perturbed copies of the four dots: copy 1 + 2k + a moves dot k
 #: along its wall's axis a
