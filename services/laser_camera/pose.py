@@ -33,6 +33,7 @@ from agent.srg import geometry as geo
 #: every assignment of four points to the diodes: PERMUTATIONS[i][k] = index of the point
 #: labeled diode k + 1
 PERMUTATIONS = np.array(list(permutations(range(4))))
+_ORDERS = list(permutations(range(4)))  # the same, as the tuples LabeledPose holds
 
 
 @dataclass(frozen=True)
@@ -137,10 +138,11 @@ def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
         return []
     # all frames in one batch: per labeling, numpy's call overhead is the cost
     P0, R = P0[best], _rotations(rays[best, 0], rays[best, 2])
-    found = np.isfinite(R).all(axis=(1, 2))  # the others define no frame
-    q = geo.matrix_to_quat(R[found])
-    return [LabeledPose(p0, qk, tuple(PERMUTATIONS[i].tolist()), float(eps[i]))
-            for p0, qk, i in zip(P0[found], q, best[found], strict=True)]
+    found = ~np.isnan(R[:, 0, 0])  # the others define no frame (NaN throughout)
+    best = best[found]
+    return [LabeledPose(p0, q, _ORDERS[i], e)
+            for p0, q, i, e in zip(P0[found], geo.matrix_to_quat(R[found]), best.tolist(),
+                                   eps[best].tolist(), strict=True)]
 
 
 def reflection(order: tuple[int, int, int, int]) -> tuple[int, int, int, int]:

@@ -703,7 +703,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     Q = np.repeat(P[None], 9, axis=0)
     Q[_PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
     p, R = frames_from_points(Q)
-    if not np.all(np.isfinite(R)):
+    if np.isnan(R[:, 0, 0]).any():  # a perturbed copy without a frame is NaN throughout
         raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
     dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
     dR = dR.reshape(8, 9)
