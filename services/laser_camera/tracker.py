@@ -639,18 +639,17 @@ def _labeled(t: float, dots: WorldDots, idx: list[int], labels: list[int], p0: n
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
     """One dot per spot: overlapping cameras (the split floor and ceiling) see some twice."""
     n = len(d.points)
-    if n < 2:
+    same_wall = [(i, j) for i in range(n) for j in range(i + 1, n) if d.walls[i] == d.walls[j]]
+    if not same_wall:  # the usual frame set: each dot on its own wall
         return d
     keep = np.ones(n, bool)
     pts, std = d.points.copy(), d.std_m.copy()
-    for i in range(n):
-        for j in range(i + 1, n):
-            if keep[i] and keep[j] and d.walls[i] == d.walls[j] \
-                    and np.linalg.norm(pts[i] - pts[j]) < tol:
-                wi, wj = 1 / std[i] ** 2, 1 / std[j] ** 2
-                pts[i] = (wi * pts[i] + wj * pts[j]) / (wi + wj)
-                std[i] = 1 / np.sqrt(wi + wj)
-                keep[j] = False
+    for i, j in same_wall:
+        if keep[i] and keep[j] and np.linalg.norm(pts[i] - pts[j]) < tol:
+            wi, wj = 1 / std[i] ** 2, 1 / std[j] ** 2
+            pts[i] = (wi * pts[i] + wj * pts[j]) / (wi + wj)
+            std[i] = 1 / np.sqrt(wi + wj)
+            keep[j] = False
     if keep.all():
         return d
     k = np.flatnonzero(keep)
