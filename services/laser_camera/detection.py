@@ -81,8 +81,8 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
         whole = whole and not any((x == 0 < x0) or (x + bw == x1 - x0 and x1 < w)
                                   or (y == 0 < y0) or (y + bh == y1 - y0 and y1 < h)
                                   for x, y, bw, bh, _ in stats)
-        rows.append(np.array(found).reshape(-1, 5))
-    return _merge(np.concatenate(rows) if rows else np.zeros((0, 5)), params), whole
+        rows += found
+    return _merge(np.array(rows).reshape(-1, 5), params), whole
 
 
 def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
