@@ -58,7 +58,8 @@ def dlt_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Map 2-D points (n, 2) through ``H`` (eq. 5.39): one (3, 3), or one per point
-    (n, 3, 3) -- the tracker maps the dots of all its cameras in one call."""
+    (n, 3, 3).  (The tracker maps its few dots a frame set in plain floats instead:
+    ``tracker._ScreenMap``.)"""
     p = np.asarray(H, float) @ _homogeneous(np.atleast_2d(points))[:, :, None]
     return p[:, :2, 0] / p[:, 2:3, 0]
 
