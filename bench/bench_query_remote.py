@@ -15,7 +15,10 @@ tracker service process registered with C), and one bare queryable process.  Mea
    the client's cache of all-static segments (A's and B's here; valid until the agent's
    summary changes), so that only C is asked.  Each kind also reports the CPU time of the
    asking thread per query (median), beside the bare get's: the share of a query that is
-   this process's own work rather than waiting for the network and the agents;
+   this process's own work rather than waiting for the network and the agents.  Interleaved
+   with them, the floor under the query: a clock round trip to the same three agents
+   through the same client (the query's fan-out and uma's sessions, no segment work at
+   either end), so that the query's ratio splits into the transport's part and uma's;
 2. streaming: the time from the tracker's publication of a sample to the composed pose
    reaching ``on_pose`` in this process; median and p99, against the anchor of the same
    run: a bare Zenoh put from the tracker's own session to a subscriber callback in this
@@ -53,6 +56,7 @@ import numpy as np
 from loopback import free_port, wait_listening
 from summary import cpu_model, median_p99
 
+from agent.protocol import query as proto
 from agent.runtime.processes import stop_processes
 
 WORLD, CAM, RIG, HEAD = "ivy/world", "cam/nw", "marvin/rig", "alice/head"
@@ -61,6 +65,7 @@ EDGES = {
     "B": [(CAM, RIG, [0.3, 0.8, -1.1], [0.0, 0.38268343, 0.0, 0.92387953], 0.002)],
     "C": [],
 }
+AGENTS = ("A", "B", "C")
 RATE_HZ = 100.0
 PAST_NS = 30_000_000  # "past" queries: between two samples, well inside C's buffer
 
@@ -112,7 +117,8 @@ def _config(path: Path, edges) -> str:
 CLIENT_MODES = {"client": ("client",), "peer": ("peer",), "both": ("client", "peer")}
 LABELS = {"latest": "3 agents all asked, latest time",
           "past": "3 agents all asked, 30 ms back (interpolated afresh)",
-          "cached": "static segments cached (only C asked)"}
+          "cached": "static segments cached (only C asked)",
+          "clock": "3 agents asked the time only (the fan-out's floor, no segment work)"}
 
 
 def _ready(c, bare, key: str) -> None:
@@ -133,6 +139,7 @@ def _ready(c, bare, key: str) -> None:
 def _queries(c, bare, key: str, n: int) -> dict:
     """The three kinds of query and the bare get, interleaved (the same machine load)."""
     modes = tuple(LABELS)
+    clock = proto.clock_request()
     us: dict[str, list[float]] = {m: [] for m in (*modes, "bare_get")}
     cpu: dict[str, list[float]] = {m: [] for m in us}
     wall, thread = time.perf_counter_ns, time.thread_time_ns
@@ -141,11 +148,14 @@ def _queries(c, bare, key: str, n: int) -> dict:
         c.cache_static_segments = mode == "cached"
         at = time.time_ns() - PAST_NS if mode == "past" else None
         t0, c0 = wall(), thread()
-        r = c.pose(WORLD, HEAD, at=at, error="hops")
+        if mode == "clock":
+            answered = len(list(c.queries.answers(clock, AGENTS)))
+        else:
+            answered = len(c.pose(WORLD, HEAD, at=at, error="hops").path) - 1
         t1, c1 = wall(), thread()
         replies = list(bare.get(key, payload=b"q" * 64, timeout=2.0))
         t2, c2 = wall(), thread()
-        assert replies and replies[0].ok is not None and len(r.path) == 4
+        assert replies and replies[0].ok is not None and answered == len(AGENTS)
         us[mode].append((t1 - t0) / 1000)
         us["bare_get"].append((t2 - t1) / 1000)
         cpu[mode].append((c1 - c0) / 1000)
@@ -239,7 +249,7 @@ def main() -> None:
     # a SIGTERM ends the run through `finally`, which stops the agents it started
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     realm = f"bench{uuid.uuid4().hex[:8]}"
-    ports = {name: free_port() for name in ("A", "B", "C", "echo")}
+    ports = {name: free_port() for name in (*AGENTS, "echo")}
     ep = {name: f"tcp/127.0.0.1:{p}" for name, p in ports.items()}
     # a long lease: on a loaded machine a process stalled for more than the default 1 s
     # lease loses its links, and its tokens vanish mid-benchmark (failure detection is not
@@ -250,7 +260,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="uma-bench-"))
     me = [sys.executable, str(Path(__file__).resolve())]
     try:
-        for name in ("A", "B", "C"):
+        for name in AGENTS:
             cmd = [sys.executable, "-m", "agent.cli", "agent", "--realm", realm, "--id", name,
                    "--listen", ep[name], "--config", _config(tmp / f"{name}.toml", EDGES[name])]
             if name != "A":
