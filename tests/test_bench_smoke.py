@@ -64,6 +64,9 @@ BENCHES = {
         (("update_us",), ("median_us", "p99_us")),
         (("baseline_solve_only_us",), ("median_us", "p99_us")),
     ]),
+    "bench_idle_floor.py": (["--puts", "20"], [
+        ((f"{rate}_hz", "bare_put"), ("median_us", "p99_us")) for rate in (100, 1000, 5000)
+    ] + [(("hot_python_loop",), ("median_us", "p99_us"))]),
     "bench_peer_checks.py": (["--iterations", "2", "--forged", "1"], [
         (("decode_diagonal",), ("median_us", "p99_us")),
         (("decode_correlated", "anchor_unchecked"), ("median_us", "p99_us")),
