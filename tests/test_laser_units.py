@@ -18,6 +18,7 @@ from services.laser_camera.homography import (
     apply_homography,
     dlt_homography,
     homography_jacobian,
+    homography_scale,
     normalising_transform,
 )
 from services.laser_camera.pose import (
@@ -34,8 +35,9 @@ from services.laser_camera.tracker import (
     PoseEstimate,
     TrackerParams,
     WorldDots,
+    _ScreenMap,
 )
-from services.sim.ivy import intersect_beam, make_walls
+from services.sim.ivy import intersect_beam, make_walls, on_active_area, screen_to_world
 from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import SensorModel
 from services.sim.world import IvyWorld, WorldConfig
@@ -204,6 +206,37 @@ def test_component_statistics_are_opencvs() -> None:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8,
                                                                ltype=cv2.CV_32S)
         assert _component_stats(mask, labels, n) == stats[1:].tolist()
+
+
+def test_the_trackers_plain_float_screen_map_is_the_shared_numpy_one() -> None:
+    """The tracker maps each dot image -> screen -> world on floats (``_ScreenMap``); it must
+    say what eqs. 5.39-5.40's numpy functions say: the same point, the same std (pixel std
+    through the homography's scale, calibration and edge terms), the same bend, and None
+    exactly off the active area."""
+    rng = np.random.default_rng(RNG_SEED)
+    p = TrackerParams()
+    for wall in make_walls().values():
+        side = wall.screen_side_m
+        pixels = np.array([[0, 0], [640, 0], [0, 480], [640, 480]], float)
+        corners = np.array([[0, 0], [side, 0], [0, side], [side, side]])
+        H = dlt_homography(pixels + rng.normal(0, 15, (4, 2)), corners)
+        m = _ScreenMap(tuple(H.ravel().tolist()), tuple(wall.rotation.ravel().tolist()),
+                       tuple(wall.translation.tolist()), wall.plane_distance, side, 0.001)
+        uv = rng.uniform(-40, 680, (200, 2))  # some beyond the screen's image
+        xy = apply_homography(H, uv)
+        on = on_active_area(xy, side)
+        edge = np.where(on_active_area(xy, side, p.edge_guard_m), 0.0, p.edge_std_m)
+        std = np.sqrt((0.3 * homography_scale(H, uv)) ** 2 + 0.001 ** 2 + edge ** 2)
+        u = 2 * xy / side - 1
+        bend = np.maximum(0, 1 - u[:, 0] ** 2) * np.maximum(0, 1 - u[:, 1] ** 2)
+        world = screen_to_world(xy, wall.rotation, wall.translation, wall.plane_distance)
+        assert 0 < on.sum() < len(uv)
+        for k, (x, y) in enumerate(uv.tolist()):
+            dot = m.world_dot(x, y, 0.3, p)
+            assert (dot is not None) == on[k]
+            if dot is not None:
+                np.testing.assert_allclose(dot[0], world[k], rtol=1e-12, atol=1e-12)
+                assert dot[1:] == pytest.approx((std[k], bend[k]), rel=1e-12, abs=1e-15)
 
 
 def test_detection_in_windows_is_detection_in_full_where_the_windows_are() -> None:
