@@ -28,28 +28,18 @@ import sys
 import time
 from pathlib import Path
 
-from loopback import free_port, wait_listening
+from loopback import free_port, wait_listening, zenoh_config
 from summary import cpu_model, median_p99
 
 RATES_HZ = (100.0, 1000.0, 5000.0)
 KEY = "floor/oneway"
 
 
-def _config(listen: str | None = None, connect: str | None = None):
-    import zenoh
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps("peer"))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
-    return c
-
 
 def run_publisher(connect: str, puts: int) -> None:
     """Put ``puts`` stamped samples at each rate in turn (a pause between the rates)."""
     import zenoh
-    with zenoh.open(_config(connect=connect)) as s:
+    with zenoh.open(zenoh_config(connect=connect)) as s:
         pub = s.declare_publisher(KEY)
         time.sleep(1.0)  # the subscriber's declaration reaches this session
         for rate in RATES_HZ:
@@ -69,7 +59,7 @@ def _oneway(puts: int) -> dict[float, list[float]]:
     def on_sample(sample) -> None:
         sent, rate = struct.unpack("<qd", sample.payload.to_bytes()[:16])
         got[rate].append((time.time_ns() - sent) / 1000)
-    with zenoh.open(_config(listen=endpoint)) as s:
+    with zenoh.open(zenoh_config(listen=endpoint)) as s:
         s.declare_subscriber(KEY, on_sample)
         wait_listening([port], 30.0)
         publisher = subprocess.Popen([sys.executable, str(Path(__file__).resolve()),

@@ -21,22 +21,11 @@ import sys
 import time
 from pathlib import Path
 
-from loopback import free_port, wait_listening
+from loopback import free_port, wait_listening, zenoh_config
 from summary import cpu_model, median_p99
 
 ANSWER = b"x" * 600  # about a segment answer with covariance and edges
 
-
-def _config(mode: str, listen: str | None = None, connect: str | None = None):
-    import zenoh
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(mode))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        c.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
-    return c
 
 
 
@@ -44,7 +33,7 @@ def _config(mode: str, listen: str | None = None, connect: str | None = None):
 def run_queryable(name: str, listen: str, connect: str | None) -> None:
     """One bare peer answering ``fan/NAME/query`` until SIGTERM."""
     import zenoh
-    with zenoh.open(_config("peer", listen, connect)) as s:
+    with zenoh.open(zenoh_config("peer", listen, connect)) as s:
         key = f"fan/{name}/query"
         q = s.declare_queryable(key, lambda query: query.reply(key, ANSWER))
         signal.sigwait({signal.SIGTERM, signal.SIGINT})
@@ -55,8 +44,8 @@ def run_queryable(name: str, listen: str, connect: str | None) -> None:
 
 def _measure(mode: str, eps: dict[str, str], n: int) -> dict:
     import zenoh
-    with zenoh.open(_config(mode, connect=eps["A"])) as fan, \
-            zenoh.open(_config("peer", connect=eps["E"])) as direct:
+    with zenoh.open(zenoh_config(mode, connect=eps["A"])) as fan, \
+            zenoh.open(zenoh_config("peer", connect=eps["E"])) as direct:
         querier = fan.declare_querier("fan/*/query", timeout=2.0,
                                       consolidation=zenoh.ConsolidationMode.NONE)
         deadline = time.monotonic() + 30
