@@ -14,29 +14,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
+from services.camera.model import undistort_points
 from services.sim.ivy import Wall
 
 IMAGE_WIDTH = 640
 IMAGE_HEIGHT = 480
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
-
-
-def undistort_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray,
-                     P: np.ndarray | None = None) -> np.ndarray:
-    """Distorted pixels (n, 2) to ideal ones: normalised coordinates, or pixels of the
-    camera matrix ``P``.  Iterates to 1e-10 -- OpenCV's default five iterations leave
-    tenths of a pixel at the image corners of a wide-angle lens.  (OpenCV 4 names the
-    iterating variant ``undistortPointsIter``; OpenCV 5 folds it into ``undistortPoints``.)
-    """
-    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
-    if hasattr(cv2, "undistortPointsIter"):
-        out = cv2.undistortPointsIter(pts, K, dist, None, P, _UNDISTORT_CRITERIA)
-    else:
-        out = cv2.undistortPoints(pts, K, dist, R=None, P=P, criteria=_UNDISTORT_CRITERIA)
-    return out.reshape(-1, 2)
 
 
 @dataclass(frozen=True)
