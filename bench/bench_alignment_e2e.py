@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 from loopback import free_port
 
+from agent import geometry as geo
 from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
 from agent.runtime.processes import stop_processes
-from agent.srg import geometry as geo
 from services import frames
 from services.sim import mounts
 

@@ -27,7 +27,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from summary import median_p99
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import simulator as accel_sim
 from services.fusion.ekf import FusionEKF
 from services.fusion.evaluate import accel_model, calibrated_accelerometers

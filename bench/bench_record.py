@@ -32,11 +32,11 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 from summary import cpu_model, median_p99, report
 
+from agent import geometry as geo
 from agent.protocol import keys
 from agent.protocol.registration import snapshot_message
 from agent.record.sink import CHUNK_BYTES, QUEUE_SIZE, RecordingSink
 from agent.runtime.processes import stop_processes
-from agent.srg import geometry as geo
 from schemas.codec import encode_descriptor, encode_pose
 from schemas.models import Ability, ServiceDescriptor
 

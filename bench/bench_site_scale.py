@@ -49,13 +49,14 @@ def probe(realm: str, connect: str) -> int:
     from agent.cli import main, services  # noqa: F401
     from agent.protocol import keys
     from agent.runtime.session import close_session, open_session, query
+    from agent.sdk import inventory
     startup = process_age_s()
     t_import = time.perf_counter()
     session = open_session("client", None, [connect], realm, require_connection=True)
     t_open = time.perf_counter()
-    listing = services.collect(session, realm, 2.0, settle_s=0.0)  # as a client does
+    listing = inventory.collect_realm(session, realm, 2.0, settle_s=0.0)  # as a client does
     t_collect = time.perf_counter()
-    agents = services.live_agents(session, realm, 2.0)
+    agents = inventory.live_agents(session, realm, 2.0)
     t_live = time.perf_counter()
     replies = query(session, keys.all_agent_services(realm), 2.0)
     t_snap = time.perf_counter()

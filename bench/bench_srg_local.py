@@ -24,8 +24,8 @@ import numpy as np
 from pytransform3d.transform_manager import TransformManager
 from summary import cpu_model, median_p99
 
+from agent import geometry as geo
 from agent.srg import Graph, kernel
-from agent.srg import geometry as geo
 
 S = 1_000_000_000
 COMPILED = kernel.NATIVE  # None: not built, or UMA_SRG_PURE_PYTHON=1

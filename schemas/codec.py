@@ -383,7 +383,7 @@ def _cov_in(obj: dict[str, Any], dim: int, kind: str) -> np.ndarray | None:
 
 def _check_psd(values: list[float], cov: np.ndarray, kind: str) -> None:
     """Refuse a covariance that is not positive semi-definite (within ``PSD_TOL`` of its
-    largest entry, the tolerance of ``agent.srg.geometry.check_covariance``).
+    largest entry, the tolerance of ``agent.geometry.check_covariance``).
 
     Cheap first: a diagonally dominant matrix (each variance at least the sum of its row's
     absolute covariances) is positive semi-definite by Gershgorin's theorem, checked in

@@ -40,10 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.runtime.processes import stop_processes
-from agent.runtime.session import lease_ms_default
-from agent.srg import geometry as geo
+from agent.runtime import lease_ms_default, stop_processes
 from services import frames
 from services.figures import error_stats
 from services.sim import mounts
@@ -175,7 +174,7 @@ def main(args: argparse.Namespace) -> int:
         raise UmaError(f"--record {args.record}: its directory does not exist")
     view_port = None
     if getattr(args, "view", False):
-        from agent.view.app import import_viser
+        from agent.view import import_viser
 
         import_viser()  # says what to install before anything starts
         if not 0 < args.view_port <= 65535:
@@ -199,9 +198,8 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     given, with the simulator's ground truth on its own frame, ``TRUTH_FRAME``;
     ``view_port``: also serve ``uma view`` of the realm on that port; ``optical``: the
     fusion's optical update, ``dots`` or ``pose``)."""
-    from agent.daemon.agent import Agent
-    from agent.daemon.settings import AgentSettings
-    from agent.sdk.client import Client
+    from agent import Client
+    from agent.daemon import Agent, AgentSettings
     from services.fusion.evaluate import accel_calibration_file, laser_calibration_file
     from services.sim.trajectory import HeadTrajectory
     from services.sim.world import IvyWorld, sim_time_s

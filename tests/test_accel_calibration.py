@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.calibration import (
     SIX_POSES,

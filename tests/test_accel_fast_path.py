@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import integrator
 from services.accel_rig import rig as rg
 from services.accel_rig.integrator import DeadReckoner, _State

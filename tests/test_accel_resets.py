@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from schemas.codec import encode_measurement, encode_pose
 from services.accel_rig.integrator import MAX_OMEGA_RAD_S, DeadReckoner
 from services.accel_rig.pose_rates import AbsolutePoses

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import rig as rg
 from services.accel_rig.integrator import DeadReckoner, dead_reckon_from_truth
 from services.accel_rig.motions import AxisRotation, SinusoidalTranslation

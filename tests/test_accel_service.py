@@ -19,8 +19,8 @@ import pytest
 from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.srg import geometry as geo
 from services import frames
 from services.accel_rig.calibration import THESIS_POSES
 from services.accel_rig.service import LiveRig, parse_mount

@@ -7,8 +7,8 @@ import tomllib
 import numpy as np
 import pytest
 
+from agent import geometry as geo
 from agent.daemon.settings import check_static_edge
-from agent.srg import geometry as geo
 from services.alignment import opencv_reference, records
 from services.alignment.pipeline import (
     AlignmentOptions,

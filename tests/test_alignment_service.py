@@ -17,10 +17,10 @@ import pytest
 from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
+from agent import geometry as geo
 from agent.cli import main
 from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
-from agent.srg import geometry as geo
 from services import frames
 from services.alignment import records
 from services.alignment.service import StreamBuffer

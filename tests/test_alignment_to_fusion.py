@@ -17,7 +17,7 @@ from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 
 from agent import Service
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services import frames
 from services.fusion.service import poll_mountings
 from services.sim import mounts

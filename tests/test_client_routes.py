@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import zenoh
 
+from agent import geometry as geo
 from agent.daemon.srg_node import SrgNode
 from agent.protocol.query import parse_summary
 from agent.sdk import realm as realm_module
 from agent.sdk.client import Client
 from agent.sdk.planner import RouteError, SegmentError, plan_routes
 from agent.srg import Graph
-from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
 from agent.srg.errors import UnreachableError
 from schemas.codec import decode_message, encode_message

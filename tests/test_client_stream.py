@@ -20,7 +20,7 @@ import pytest
 from agent_helpers.harness import agent, poll
 from conftest import endpoint, free_port
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 WORLD, HEAD, EYE = "ivy/world", "alice/head", "alice/eye"
 SKEW_NS = 3_000_000_000

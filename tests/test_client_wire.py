@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from agent import geometry as geo
 from agent.protocol.query import pose_from_wire, result_to_wire
 from agent.srg import Graph
-from agent.srg import geometry as geo
 from schemas.models import PoseResult as PoseModel
 
 S = 1_000_000_000

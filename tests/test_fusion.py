@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1

@@ -1,4 +1,4 @@
-"""agent/srg/geometry.py: identities (hypothesis), cross-checks against pytransform3d and
+"""agent/geometry.py: identities (hypothesis), cross-checks against pytransform3d and
 OpenCV, validation messages, and covariance propagation against Monte Carlo sampling."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytransform3d.transformations as pt
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.srg import geometry as g
+from agent import geometry as g
 
 # --------------------------------------------------------------------------- strategies
 

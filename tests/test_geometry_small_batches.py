@@ -1,11 +1,11 @@
 """quat_multiply and quat_to_matrix take one numpy form for a few quaternions and another
-for large batches (agent.srg.geometry._SMALL): both must give the same results."""
+for large batches (agent.geometry._SMALL): both must give the same results."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 
 def test_small_and_large_batch_forms_agree():

@@ -15,8 +15,8 @@ from agent_helpers.harness import agent
 from conftest import endpoint, free_port
 from scipy.stats import chi2
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.srg import geometry as geo
 from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
 from services.laser_camera.evaluate import evaluate
 from services.laser_camera.sources import CaptureSource, parse_sources

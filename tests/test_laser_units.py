@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.laser_camera.detection import (
     DetectorParams,
     _component_stats,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.fusion import evaluate_predictor as ep
 from services.fusion import predictor as pr
 

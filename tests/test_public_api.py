@@ -55,3 +55,92 @@ def test_commands_added_by_plugins_are_in_uma_help() -> None:
     out = subprocess.run([sys.executable, "-m", "agent.cli", "service", "recalibrate",
                           "--help"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "--agent ID" in out.stdout
+
+
+def _public_names(module_name: str) -> set[str] | None:
+    """The public names of a public module: its ``__all__``, or None (any name without a
+    leading ``_``)."""
+    import importlib
+
+    return set(getattr(importlib.import_module(module_name), "__all__", ())) or None
+
+
+def _import_offences(path, own: str | None) -> list[str]:
+    """Each import of ``path`` that reaches past the public API, as 'file:line: import';
+    ``own`` is the package the file belongs to (it may use its own modules)."""
+    import ast
+
+    def allowed(module: str, names: list[str]) -> bool:
+        if module == "agent._lazy" and path.name == "__init__.py":
+            return True  # how every package of agent exports its names lazily
+        if own is not None and (module == own or module.startswith(own + ".")):
+            return True
+        if module == "agent":
+            return all(n in agent.__all__ or f"agent.{n}" in agent.PUBLIC_MODULES
+                       for n in names)
+        if module not in agent.PUBLIC_MODULES:
+            return False
+        public = _public_names(module)
+        return all(not n.startswith("_") and (public is None or n in public) for n in names)
+
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and (
+                node.module == "agent" or node.module.startswith("agent.")):
+            names = [a.name for a in node.names]
+            if not allowed(node.module, names):
+                found.append(f"{path}:{node.lineno}: from {node.module} import "
+                             f"{', '.join(names)}")
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("agent.") and not allowed(a.name, []):
+                    found.append(f"{path}:{node.lineno}: import {a.name}")
+    return found
+
+
+def test_services_view_and_record_use_only_the_public_api() -> None:
+    """Services, ``uma view`` and ``uma record`` import ``agent``'s ``__all__`` and the
+    modules ``agent.PUBLIC_MODULES`` names (only their public names), never the internals;
+    view and record may use their own modules."""
+    from pathlib import Path
+
+    root = Path(agent.__file__).parent.parent
+    offences = []
+    for folder, own in (("services", None), ("agent/view", "agent.view"),
+                        ("agent/record", "agent.record")):
+        for path in sorted((root / folder).rglob("*.py")):
+            offences += _import_offences(path.relative_to(root), own)
+    assert offences == [], "imports of agent internals:\n" + "\n".join(offences)
+
+
+def test_the_import_check_names_an_internal_import(tmp_path, monkeypatch) -> None:
+    """The check above fails on an internal import, naming the file, the line and what it
+    imports (the check itself can fail)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "m.py").write_text("from agent.sdk.client import Client\n"
+                                   "from agent import Client, geometry\n"
+                                   "from agent.runtime import RateLimitedLog\n"
+                                   "from agent.geometry import _SMALL_ANGLE\n"
+                                   "import agent.daemon.agent\n")
+    from pathlib import Path
+
+    assert _import_offences(Path("m.py"), None) == [
+        "m.py:1: from agent.sdk.client import Client",
+        "m.py:4: from agent.geometry import _SMALL_ANGLE",
+        "m.py:5: import agent.daemon.agent"]
+
+
+def test_every_public_module_imports_without_zenoh_and_its_names_resolve() -> None:
+    """The public modules are light to import (a plug-in's module is imported by ``uma
+    --help``) and every name they list resolves."""
+    code = ("import sys, importlib, agent\n"
+            "for m in agent.PUBLIC_MODULES:\n"
+            "    importlib.import_module(m)\n"
+            "assert 'zenoh' not in sys.modules, 'zenoh imported'\n"
+            "for m in agent.PUBLIC_MODULES:\n"
+            "    mod = importlib.import_module(m)\n"
+            "    for n in getattr(mod, '__all__', ()):\n"
+            "        assert getattr(mod, n) is not None, (m, n)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr

@@ -16,9 +16,9 @@ import pytest
 from agent_helpers.harness import agent, poll
 from conftest import endpoint, free_port
 
+from agent import geometry as geo
 from agent.sdk.client import Client
 from agent.sdk.planner import RouteError
-from agent.srg import geometry as geo
 
 WORLD, CAM, RIG, IMU, HEAD = "ivy/world", "cam/nw", "marvin/rig", "marvin/imu", "alice/head"
 Q_CAM = geo.rotvec_to_quat(np.array([0.1, -0.4, 0.2])).tolist()

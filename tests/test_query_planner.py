@@ -9,6 +9,7 @@ from unittest import mock
 import numpy as np
 import pytest
 
+from agent import geometry as geo
 from agent.daemon.srg_node import SrgNode
 from agent.protocol.query import parse_summary
 from agent.sdk.planner import (
@@ -20,7 +21,6 @@ from agent.sdk.planner import (
     usable_routes,
 )
 from agent.srg import Graph
-from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
 from agent.srg.errors import UnknownFrameError, UnreachableError
 from agent.srg.supernode import summarize

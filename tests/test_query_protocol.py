@@ -8,9 +8,9 @@ from unittest import mock
 import numpy as np
 import pytest
 
+from agent import geometry as geo
 from agent.daemon.srg_node import SrgNode
 from agent.protocol import query as proto
-from agent.srg import geometry as geo
 from schemas.codec import decode_message, encode_message
 
 

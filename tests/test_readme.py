@@ -35,6 +35,22 @@ def test_graph_example_runs() -> None:
     assert "cam/nw" in done.stdout and "alice/head" in done.stdout
 
 
+def test_public_modules_example_runs() -> None:
+    done = _run(_block("ServicePlugin("))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[:2] == ["[1. 1. 0.]", "my-tracker"]
+
+
+def test_inventory_example_lists_the_agent(processes, realm) -> None:
+    ep = endpoint(free_port())
+    agent(processes, realm, "hostA", ep)
+    code = _block("collect_realm(").replace("tcp/127.0.0.1:7447", ep).replace('"lab"',
+                                                                             f'"{realm}"')
+    done = _run(code)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "['hostA'] []"
+
+
 def test_service_and_client_examples_run_against_an_agent(processes, realm) -> None:
     ep = endpoint(free_port())
 
@@ -48,7 +64,7 @@ def test_service_and_client_examples_run_against_an_agent(processes, realm) -> N
         deadline = time.monotonic() + 20.0
         last = None
         while time.monotonic() < deadline and svc.poll() is None:
-            last = _run(adapt(_block("Client(")))
+            last = _run(adapt(_block("c.pose(")))
             if last.returncode == 0:
                 break
             time.sleep(0.2)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 
-from agent.cli import services
+from agent.sdk import inventory as services
 
 
 def answers(monkeypatch, *sets: set[str]) -> list[float]:

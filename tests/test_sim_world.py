@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.sim import mounts
 from services.sim.ivy import WALL_NAMES, make_walls
 from services.sim.laser_housing import LABELS

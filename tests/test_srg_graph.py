@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pytransform3d.transform_manager import TransformManager
 
+from agent import geometry as geo
 from agent.srg import Graph, kernel
-from agent.srg import geometry as geo
 from agent.srg.errors import (
     BadErrorFunctionError,
     DataNotYetArrivedError,

@@ -16,8 +16,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from agent import geometry as geo
 from agent.srg import Graph, kernel
-from agent.srg import geometry as geo
 from agent.srg.errors import EdgeUndefinedError
 
 COMPILED = kernel.NATIVE

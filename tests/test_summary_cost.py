@@ -10,9 +10,9 @@ import random
 import numpy as np
 import pytest
 
+from agent import geometry as geo
 from agent.protocol.query import attributes_from_wire
 from agent.srg import Graph, paths
-from agent.srg import geometry as geo
 from agent.srg.errorfn import error_function
 from agent.srg.supernode import SUMMARY_ERRORS, Topology, summarize
 

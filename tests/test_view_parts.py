@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from agent.view import events, panels
 from agent.view.space import EdgeView, Space, Trails, ellipsoid
 from agent.view.taps import StreamFacts, stream_state

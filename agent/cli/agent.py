@@ -41,10 +41,10 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from agent.cli.main import stop_on_signals
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
+from agent.runtime.processes import stop_on_signals
 from agent.runtime.ready import notify
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}

@@ -13,9 +13,7 @@ import json
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -23,6 +21,7 @@ from typing import Any
 from agent.cli import seeds
 from agent.errors import UmaError
 from agent.runtime import plugins
+from agent.runtime.processes import stop_on_signals
 
 # command -> "module:function"; the function takes the parsed arguments, returns an exit code
 HANDLERS = {
@@ -204,14 +203,6 @@ def _call(target: str, args: argparse.Namespace) -> int:
     except (ImportError, AttributeError):
         raise UmaError(f"'uma {args.command}' is not built yet") from None
     return int(fn(args) or 0)
-
-
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT/SIGTERM, so long-running commands stop cleanly."""
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
 
 
 def _plugin_args(args: argparse.Namespace) -> list[str]:

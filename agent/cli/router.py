@@ -15,7 +15,7 @@ import logging
 import os
 import sys
 
-from agent.cli.main import stop_on_signals
+from agent.runtime.processes import stop_on_signals
 from agent.runtime.ready import notify
 from agent.runtime.session import (
     DEFAULT_ROUTER_LISTEN,

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agent.errors import UmaError
+from agent.geometry import check_quaternion, check_vector
 from agent.protocol import keys
-from agent.srg.geometry import check_quaternion, check_vector
 
 
 @dataclass

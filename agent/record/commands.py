@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from agent.runtime.plugins import CommandPlugin, add_network_arguments
+from agent.runtime import CommandPlugin, add_network_arguments
 
 _KEYS_HELP = ("record only data keys matching AGENT/SERVICE/ABILITY (Zenoh wildcards * and **; "
               "repeatable; default: every stream of the realm)")

@@ -17,7 +17,7 @@ from collections import defaultdict
 from datetime import UTC, datetime
 from typing import Any
 
-from agent.protocol.registration import parse_snapshot
+from agent.protocol import parse_snapshot
 from agent.record import layout
 from agent.record.reader import Recording, read
 from schemas.codec import DecodeError

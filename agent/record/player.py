@@ -195,7 +195,7 @@ def play(args: argparse.Namespace, stop: threading.Event) -> dict[str, Any]:
 
 def main(args: argparse.Namespace) -> int:
     """Handler of ``uma play``."""
-    from agent.cli.main import stop_on_signals
+    from agent.runtime import stop_on_signals
 
     if not (math.isfinite(args.rate) and 0 < args.rate <= 1000):
         raise UmaError(f"--rate must be in (0, 1000], got {args.rate}")

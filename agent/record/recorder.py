@@ -23,7 +23,7 @@ from agent.errors import UmaError
 from agent.protocol import keys
 from agent.record.sink import RecordingSink, SinkStats
 from agent.record.statics import StaticEdges
-from agent.runtime.session import close_session, open_session, query, sdk_mode
+from agent.runtime import close_session, open_session, query, sdk_mode
 
 #: how long to wait for the agents' current snapshots and summaries at the start
 ASK_TIMEOUT_S = 2.0
@@ -120,7 +120,7 @@ def record(args: argparse.Namespace, stop: threading.Event) -> dict[str, Any]:
 
 def main(args: argparse.Namespace) -> int:
     """Handler of ``uma record``."""
-    from agent.cli.main import stop_on_signals
+    from agent.runtime import stop_on_signals
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UmaError(f"--duration must be a positive number of seconds, got {args.duration}")

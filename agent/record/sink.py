@@ -26,11 +26,10 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any, BinaryIO
 
 from agent.errors import UmaError
-from agent.protocol import keys
-from agent.protocol.registration import parse_snapshot
+from agent.protocol import keys, parse_snapshot
 from agent.record import layout
 from agent.record.statics import decode_statics
-from agent.runtime.logs import RateLimitedLog
+from agent.runtime import RateLimitedLog
 from schemas.codec import DecodeError, decode_measurement, peek_time
 from schemas.models import Ability
 

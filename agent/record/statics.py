@@ -58,7 +58,7 @@ class StaticEdges:
 
     def __init__(self, session: zenoh.Session, realm: str,
                  offer: Callable[[str, bytes, int], None]) -> None:
-        from agent.sdk.client import Client
+        from agent import Client
 
         self._client = Client(realm, session=session, timeout=1.0)
         self._realm = realm

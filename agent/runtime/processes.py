@@ -1,10 +1,12 @@
-"""Child processes: the one way uma's commands, tests and benchmarks end them, and how many
-network links one holds (the measure of the realm's topology)."""
+"""Processes: the one way uma's commands, tests and benchmarks end their children, how a
+long-running command learns it must stop (SIGINT, SIGTERM), and how many network links a
+process holds (the measure of the realm's topology)."""
 
 from __future__ import annotations
 
 import signal
 import subprocess
+import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -27,6 +29,14 @@ def stop_processes(procs: Iterable[subprocess.Popen], timeout: float = 5.0) -> N
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(timeout=timeout)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT/SIGTERM, so long-running commands stop cleanly."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
 
 
 def established_tcp(pid: int) -> int:

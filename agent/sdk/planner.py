@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.protocol.query import Summary
 from agent.runtime.logs import RateLimitedLog
-from agent.srg import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction

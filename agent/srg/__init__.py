@@ -1,6 +1,6 @@
 """The spatial relationship graph (SRG): pure computation on numpy, no I/O.
 
-``from agent.srg import Graph`` for the graph and pose queries; ``agent.srg.geometry`` for
+``from agent.srg import Graph`` for the graph and pose queries; ``agent.geometry`` for
 SE(3) poses, quaternions (x, y, z, w) and covariance propagation; ``agent.srg.errors`` for
 the exceptions a query raises (all ``LookupError`` or ``ValueError``).
 """

@@ -5,7 +5,7 @@ An edge carries ``latency_s``, ``frequency_hz``, ``confidence`` [0, 1], ``pos_st
 A path's attributes are what an error function ranks: latencies and costs add up, the
 update rate is the slowest edge's, confidences multiply (independent detections), the time
 to live is the shortest, and the covariance is propagated through the chain (first order,
-see :mod:`agent.srg.geometry`); ``accuracy`` is the trace of that propagated covariance.
+see :mod:`agent.geometry`); ``accuracy`` is the trace of that propagated covariance.
 
 Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
 JASS 2005.
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 #: attributes an edge may carry
 EDGE_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",

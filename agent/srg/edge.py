@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from agent.srg.attributes import nominal_covariance
 from agent.srg.buffer import SampleBuffer
 

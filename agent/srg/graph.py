@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import aggregate, check_attributes, same_attributes
 from agent.srg.edge import Edge, EdgeKey, edge_name

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg.geometry import _SMALL_ANGLE
+from agent.geometry import _SMALL_ANGLE
 
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from agent.srg import kernel
 from agent.srg.attributes import aggregate, path_constants, uncertainty
 from agent.srg.buffer import SampleBuffer

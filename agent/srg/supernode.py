@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from agent.srg import paths
 from agent.srg.attributes import combine, path_constants
 from agent.srg.edge import EdgeKey

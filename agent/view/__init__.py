@@ -11,4 +11,15 @@ draw loop), ``watch`` (the realm's snapshots, agents, clocks, static edges), ``e
 (what changed between two looks), ``taps`` (the streams of edge abilities), ``space``
 (frames' poses in a root frame, trails), ``panels`` (the text of the page) and ``scene``
 (the 3D scene and GUI controls).
+
+Public: :func:`import_viser`, viser or an ``UmaError`` saying what to install (``uma demo
+--view`` checks it before it starts anything).
 """
+
+from __future__ import annotations
+
+from agent._lazy import lazy_attributes
+
+__all__ = ["import_viser"]
+
+__getattr__ = lazy_attributes(__name__, {"import_viser": "agent.view.app"})

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from agent import Client
 from agent.errors import UmaError
 from agent.protocol import keys
-from agent.sdk.client import Client
 from agent.view import panels
 from agent.view.space import Placed, Space, Trails
 from agent.view.taps import Taps
@@ -46,7 +46,7 @@ def main(args: argparse.Namespace) -> int:
     viser = import_viser()
     _check_port_free(args.host, args.port)
     logging.getLogger("uma").setLevel(logging.WARNING)
-    from agent.cli.main import stop_on_signals
+    from agent.runtime import stop_on_signals
     from agent.view.scene import Page
 
     stop = stop_on_signals()

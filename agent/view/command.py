@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from agent.runtime.plugins import CommandPlugin, add_network_arguments
+from agent.runtime import CommandPlugin, add_network_arguments
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:

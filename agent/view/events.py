@@ -24,7 +24,7 @@ class Digest:
 
 
 def digest(realm: dict[str, Any]) -> Digest:
-    """The digest of a realm as :func:`agent.cli.services.collect` returns it."""
+    """The digest of a realm as :func:`agent.collect_realm` returns it."""
     services, matches, excluded = set(), {}, {}
     for a in realm["agents"]:
         for s in a["services"]:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 
 @dataclass(frozen=True)

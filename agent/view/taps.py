@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from agent.runtime.logs import RateLimitedLog
+from agent.runtime import RateLimitedLog
 from schemas.codec import DecodeError, Measurement, decode_measurement
 
 #: the window of sample time over which a stream's rate is measured (s)

@@ -3,7 +3,7 @@
 Every ``POLL_S`` (and at once when an agent publishes a new snapshot of its services, or a
 service's liveliness token goes: that service leaves the page before its agent's next
 snapshot says so, since a killed service's token goes within milliseconds) it collects the
-realm as ``uma services`` does (:func:`agent.cli.services.collect`: every
+realm as ``uma services`` does (:func:`agent.collect_realm`: every
 agent's snapshot, with its services, needs, abilities, matches and the rates and latencies
 their consumers' agents measured), turns the difference to the previous look into event
 lines (:mod:`agent.view.events`), measures every live agent's clock offset and delay every
@@ -27,10 +27,9 @@ from typing import Any
 
 import zenoh
 
-from agent.cli.services import collect
+from agent import Client, collect_realm
+from agent import protocol as proto
 from agent.protocol import keys
-from agent.protocol import query as proto
-from agent.sdk.client import Client
 from agent.view import events
 from agent.view.space import EdgeView
 from schemas.models import EDGE_TYPES
@@ -118,7 +117,7 @@ class Watch:
             self._wake.wait(POLL_S)
 
     def _look(self, first: bool) -> None:
-        realm = self._carry_over(collect(self.client.session, self.realm, self.timeout,
+        realm = self._carry_over(collect_realm(self.client.session, self.realm, self.timeout,
                                          settle_s=0.0))
         self._forget_dropped(realm)
         realm = self._without_dead(realm)

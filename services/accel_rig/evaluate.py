@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import EvalPlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import EvalPlugin
 from services.accel_rig import sensor as sn
 from services.accel_rig.calibration import (
     SIX_POSES,

@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig.sensor import Calibration
 from services.frames import GRAVITY
 from services.sim.trajectory import KinematicState

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.sim.trajectory import KinematicState
 
 Array = np.ndarray

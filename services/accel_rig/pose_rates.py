@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 Array = np.ndarray
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.frames import GRAVITY
 
 Array = np.ndarray

@@ -41,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import ServicePlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import ServicePlugin
 from schemas.codec import Measurement
 from services import frames
 from services.accel_rig.calibration import (

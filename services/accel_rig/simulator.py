@@ -22,7 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout, marvin_six_table_4_1
 from services.frames import GRAVITY

@@ -9,7 +9,7 @@ measurements) with replacement and re-solving keeps that correlation, needs no n
 and also covers the solver's own non-linearity.  A solve costs a few hundred microseconds,
 so a hundred resamples are cheap next to collecting the motions.
 
-Result in ``agent.srg.geometry``'s convention: 6x6 over the left perturbation
+Result in ``agent.geometry``'s convention: 6x6 over the left perturbation
 ``X_true = Exp(xi) X``, ``xi = [rho (m), phi (rad)]`` in sensor_a's frame.
 """
 
@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.alignment.solvers import (
     AlignmentError,
     DegenerateMotionError,

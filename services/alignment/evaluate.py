@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import EvalPlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import EvalPlugin
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
     AlignmentOptions,

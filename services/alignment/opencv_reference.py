@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.alignment.solvers import AlignmentError, Pose
 
 METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}

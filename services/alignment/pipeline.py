@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.alignment.covariance import bootstrap_covariance
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (

@@ -44,11 +44,9 @@ from typing import Any
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.runtime.callbacks import guarded
-from agent.runtime.logs import RateLimitedLog
-from agent.runtime.plugins import ServicePlugin
-from agent.srg import geometry as geo
+from agent.runtime import RateLimitedLog, ServicePlugin, guarded
 from schemas.codec import pack_covariance
 from services.alignment import records
 from services.alignment.covariance import MIN_RESAMPLES
@@ -484,7 +482,7 @@ def request_recalibration(realm: str, agent_id: str, service_id: str = "alignmen
     A new session learns the service's queryable only after connecting, and a ``get`` that
     reaches no queryable returns at once: retry until ``timeout``.
     """
-    from agent.runtime.session import open_session
+    from agent.runtime import open_session
 
     session = open_session("peer", None, connect or [], realm,
                            require_connection=bool(connect))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.alignment.solvers import Pose
 from services.alignment.timesync import PoseSeries
 from services.laser_camera.detection import AREA, FLUX, STD, U, V

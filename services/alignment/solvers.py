@@ -15,7 +15,7 @@ Convention (used by every module of ``services.alignment``):
   base = world_a, camera = sensor b, target = world_b: pass ``R/t_gripper2base = A_k`` and
   ``R/t_target2cam = B_k^-1``; its ``R/t_cam2gripper`` is ``X``.
 
-All quaternion and pose arithmetic goes through ``agent.srg.geometry`` (xyzw, Hamilton).
+All quaternion and pose arithmetic goes through ``agent.geometry`` (xyzw, Hamilton).
 
 Klinker, Bauer 2005: Klinker, Bauer (eds.), *Ubiquitous Tracking for Augmented Reality*,
 JASS 2005.
@@ -28,8 +28,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.srg import geometry as geo
 
 #: Motions rotating less than this are too small to carry a rotation axis (solver check).
 MIN_ANGLE_RAD = np.radians(2.0)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.alignment.solvers import AlignmentError
 
 #: Samples further apart than this are a gap; nothing is interpolated across it.

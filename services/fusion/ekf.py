@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.frames import GRAVITY
 from services.fusion import measurements
 from services.fusion.process import ProcessModel

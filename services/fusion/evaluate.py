@@ -48,9 +48,9 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from agent.runtime.plugins import EvalPlugin
-from agent.srg import Graph
-from agent.srg import geometry as geo
+from agent import Graph
+from agent import geometry as geo
+from agent.runtime import EvalPlugin
 from services import consistency, frames
 from services.accel_rig import calibration as accel_cal
 from services.accel_rig import simulator as accel_sim

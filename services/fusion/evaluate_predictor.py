@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import EvalPlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import EvalPlugin
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig, motion_matrices
 from services.sim.trajectory import HeadTrajectory
 

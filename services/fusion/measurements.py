@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.fusion.state import TH, WD, A, AccelModel, Array, P, StateLayout, W, size
 
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.fusion.state import check_config
 
 #: below this rotation per step (rad) the coefficient functions use their Taylor series

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import ServicePlugin
+from agent.runtime import ServicePlugin
 from services import frames
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
 

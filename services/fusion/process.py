@@ -15,7 +15,7 @@ import math
 import numpy as np
 from filterpy.common import Q_continuous_white_noise
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.fusion.state import TH, WD, A, Array, FusionConfig, P, StateLayout, V, W, size
 
 #: step matrices kept at most (the inertial rate is nearly constant: a handful of dt)

@@ -30,11 +30,9 @@ from typing import Any
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.errors import UmaError
-from agent.record import layout
-from agent.record.reader import Message, Recording, read
-from agent.record.statics import decode_statics
-from agent.srg import geometry as geo
+from agent.record import Message, Recording, decode_statics, layout, read
 from schemas.codec import decode_measurement
 from schemas.models import Ability
 from services import frames

@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import ServicePlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import ServicePlugin
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,
@@ -395,8 +395,8 @@ def _walls(args: argparse.Namespace) -> list[Wall] | None:
 
 def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:
     """Ask the agent's SRG for head -> rig until known, then refresh every few seconds."""
+    from agent import Client
     from agent.errors import UmaError
-    from agent.sdk.client import Client
 
     wanted = ((args.optical_rig, live.on_optical_mount), (args.accel_rig, live.on_accel_mount))
     next_status = time.monotonic() + STATUS_EVERY_S

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 Array = np.ndarray
 

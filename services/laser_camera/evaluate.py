@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import EvalPlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.tracker import (

@@ -28,7 +28,7 @@ from itertools import permutations
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 #: every assignment of four points to the diodes: PERMUTATIONS[i][k] = index of the point
 #: labeled diode k + 1

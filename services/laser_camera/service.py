@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime.plugins import ServicePlugin
-from agent.srg import geometry as geo
+from agent import geometry as geo
+from agent.runtime import ServicePlugin
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,

@@ -41,7 +41,7 @@ from itertools import combinations
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
 from services.laser_camera.pose import (

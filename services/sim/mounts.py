@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 #: laser housing on top of the head, pitched 5 degrees forward
 HEAD_TO_LASER_RIG = (np.array([0.02, 0.0, 0.12]),

@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 
-from agent.runtime.plugins import ServicePlugin
+from agent.runtime import ServicePlugin
 from services import frames
 from services.sim import mounts
 from services.sim.trajectory import HeadTrajectory

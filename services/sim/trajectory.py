@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 
 CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (Hogue 2003, ch. 5)
 

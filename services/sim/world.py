@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.sim import mounts
 from services.sim.camera import Camera, place_camera
 from services.sim.ivy import (

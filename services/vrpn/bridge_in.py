@@ -28,8 +28,7 @@ import threading
 import time
 from typing import Any
 
-from agent.runtime.logs import RateLimitedLog
-from agent.runtime.plugins import ServicePlugin
+from agent.runtime import RateLimitedLog, ServicePlugin
 from services.vrpn import protocol as vp
 from services.vrpn.client import DEFAULT_PING_S, DEFAULT_PONG_TIMEOUT_S, TrackerClient
 from services.vrpn.loop import run_until

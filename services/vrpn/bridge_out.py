@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from agent.errors import UmaError
-from agent.runtime.plugins import ServicePlugin
+from agent.runtime import ServicePlugin
 from services.vrpn import protocol as vp
 from services.vrpn.loop import run_until, wait_for_event
 from services.vrpn.server import TrackerServer

@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from agent.runtime.logs import RateLimitedLog
+from agent.runtime import RateLimitedLog
 from services.vrpn import protocol as vp
 from services.vrpn.link import Link
 from services.vrpn.loop import wait_for_event

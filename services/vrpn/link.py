@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from agent.runtime.logs import RateLimitedLog
+from agent.runtime import RateLimitedLog
 from services.vrpn import protocol as vp
 
 log = logging.getLogger("uma.vrpn")

@@ -16,7 +16,7 @@ import logging
 import socket
 import time
 
-from agent.runtime.logs import RateLimitedLog
+from agent.runtime import RateLimitedLog
 from services.vrpn import protocol as vp
 from services.vrpn.link import DEFAULT_MAX_BUFFER, Link
 
