@@ -8,8 +8,16 @@
    and with them (the default).  The candidates are timed in alternating blocks.
 2. One new measurement followed by a query on a 1,000-frame graph against
    ``add_transform`` + ``get_transform``.
+3. ``Client.pose`` on a kept route (``Client.keep``) of 4 measured edges at a past time:
+   an agent (its own process) and a tracker service publishing the 4 edges at 100 Hz with
+   their standard deviations, the client keeping the route; once 1.5 s of samples are
+   kept the tracker stops, and the kept answer (with covariance, no network) is timed
+   against the same query on a local ``agent.srg.Graph`` holding the same samples and
+   against pytransform3d's ``TemporalTransformManager(check=False)`` over them (fewer
+   calls: it is slow), interleaved.  Every kept answer is checked to come from the kept
+   route and to equal the local graph's to 1e-12.  ``--no-kept`` leaves it out.
 
-Usage: python bench/bench_srg_local.py [--iterations N] [--json]
+Usage: python bench/bench_srg_local.py [--iterations N] [--no-kept] [--json]
 """
 
 from __future__ import annotations
@@ -17,11 +25,23 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
+import signal
+import subprocess
+import sys
+import threading
 import time
+import uuid
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
-from pytransform3d.transform_manager import TransformManager
+from loopback import free_port, wait_listening
+from pytransform3d.transform_manager import (
+    NumpyTimeseriesTransform,
+    TemporalTransformManager,
+    TransformManager,
+)
 from summary import cpu_model, median_p99
 
 from agent import geometry as geo
@@ -158,16 +178,167 @@ def bench_update_1000(n: int, seed: int) -> dict:
     return out
 
 
+KEPT_FRAMES = [f"kept/f{i}" for i in range(5)]
+KEPT_RATE_HZ = 100.0
+
+
+def run_tracker(args: argparse.Namespace) -> None:
+    """The kept route's tracker: 4 measured edges f0 -> f1 -> ... -> f4 at 100 Hz, each a
+    smooth motion, with standard deviations (so the kept answer has a covariance)."""
+    from agent import Service
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with Service("tracker", realm=args.realm, agent="A", connect=[args.connect]) as svc:
+        outs = [svc.ability(f"e{i}", type="pose6d", edge=(KEPT_FRAMES[i], KEPT_FRAMES[i + 1]),
+                            frequency_hz=KEPT_RATE_HZ, latency_s=0.001, pos_std_m=0.002,
+                            rot_std_rad=0.01) for i in range(4)]
+        svc.start()
+        k = 0
+        while not stop.is_set():
+            k += 1
+            t = time.time_ns()
+            for i, out in enumerate(outs):
+                a = k / 50 + i
+                out.publish(t, [0.1 * np.sin(a), 0.2 * np.cos(a), 0.3 + i],
+                            geo.rotvec_to_quat(np.array([0.3 * np.sin(a), 0.2, i * 0.1])))
+            stop.wait(1.0 / KEPT_RATE_HZ)
+
+
+def _same_samples(kept) -> tuple[Graph, TemporalTransformManager]:
+    """A local graph and a TemporalTransformManager holding the kept route's samples (on
+    the route's clock, as the mirror holds them)."""
+    g = Graph(buffer_s=60.0, max_samples=100_000)
+    tm = TemporalTransformManager(check=False)
+    for info in kept.graph.edges():
+        parent, child, source = info["parent"], info["child"], info["source"]
+        edge = kept.graph.edge(parent, child, source)
+        buf = edge.buffer
+        attrs = {k: v for k, v in edge.attrs.items() if k != "covariance"}
+        for t, v, c in zip(buf.times, buf.values, buf.covs, strict=True):
+            g.add_measurement(parent, child, t, np.array(v[:3]), np.array(v[3:]), c,
+                              source=source, **attrs)
+        # pytransform3d's pq: x, y, z, qw, qx, qy, qz
+        pqs = np.array([(*v[:3], v[6], *v[3:6]) for v in buf.values])
+        tm.add_transform(child, parent, NumpyTimeseriesTransform(
+            np.array(buf.times, dtype=float) * 1e-9, pqs))
+    return g, tm
+
+
+def bench_kept(n: int, seed: int) -> dict:
+    """Row 3 of the module docstring."""
+    from agent.runtime.processes import stop_processes
+    from agent.sdk.client import Client
+
+    realm = f"bench{uuid.uuid4().hex[:8]}"
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", UMA_LEASE_MS="10000")
+    agent = subprocess.Popen([sys.executable, "-m", "agent.cli", "agent", "--realm", realm,
+                              "--id", "A", "--listen", ep], env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [agent]
+    try:
+        wait_listening([port], 60.0)
+        tracker = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--role",
+                                    "tracker", "--realm", realm, "--connect", ep], env=env)
+        procs.append(tracker)
+        with Client(realm=realm, connect=[ep], timeout=2.0) as c:
+            kept = _keep_when_ready(c)
+            deadline = time.monotonic() + 30
+            while min(len(kept.graph.edge(*_kept_edge(kept, i)).buffer)
+                      for i in range(4)) < 1.5 * KEPT_RATE_HZ:
+                if time.monotonic() > deadline:
+                    raise SystemExit("setup failed: the kept route got no samples")
+                time.sleep(0.1)
+            stop_processes([tracker])
+            return _time_kept(c, kept, n, np.random.default_rng(seed))
+    finally:
+        stop_processes(procs)
+
+
+def _keep_when_ready(c):
+    """The kept route, once the agent has the tracker's 4 edges (setup, bounded)."""
+    from agent.errors import UmaError
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            c.pose(KEPT_FRAMES[0], KEPT_FRAMES[4], error="hops")
+            return c.keep(KEPT_FRAMES[0], KEPT_FRAMES[4], buffer_s=10.0, error="hops",
+                          stall_s=3600.0)
+        except (LookupError, ValueError, UmaError) as exc:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"setup failed: {exc}") from None
+        time.sleep(0.2)
+
+
+def _kept_edge(kept, i: int) -> tuple[str, str, str]:
+    info = next(e for e in kept.graph.edges() if e["parent"] == KEPT_FRAMES[i])
+    return info["parent"], info["child"], info["source"]
+
+
+def _time_kept(c, kept, n: int, rng: np.random.Generator) -> dict:
+    """The kept answer, the local graph's and pytransform3d's, interleaved; every kept
+    answer checked against the local graph's."""
+    g, tm = _same_samples(kept)
+    offset = c.clock.offset(kept.clock_agent) or 0
+    times = [kept.graph.edge(*_kept_edge(kept, i)).buffer.times for i in range(4)]
+    lo, hi = max(t[0] for t in times), min(t[-1] for t in times)
+    route_times = rng.integers(lo + 1, hi, n)
+    src, dst = KEPT_FRAMES[0], KEPT_FRAMES[4]
+    answered = kept.answered
+    results: list = [None] * n
+    n_tm = max(1, n // 20)
+
+    def kept_pose(i: int) -> None:
+        results[i] = c.pose(src, dst, at=int(route_times[i]) - offset, error="hops")
+
+    def graph_pose(i: int) -> None:
+        g.pose(src, dst, at=int(route_times[i]))
+
+    def temporal(i: int) -> None:
+        tm.current_time = route_times[i % n_tm] * 1e-9
+        tm.get_transform(dst, src)
+
+    for i in range(min(n, 500)):  # warm the slerp logs of both, as a running system does
+        kept_pose(i)
+        graph_pose(i)
+    us = _interleaved({"kept": kept_pose, "graph": graph_pose}, n)
+    us["temporal"] = _timed(temporal, n_tm)
+    assert kept.answered - answered == n + min(n, 500), "a kept query went to the network"
+    for i in range(0, n, max(1, n // 200)):
+        mine, local = results[i], g.pose(src, dst, at=int(route_times[i]))
+        assert np.abs(mine.position - local.position).max() <= 1e-12
+        assert np.abs(mine.quaternion - local.quaternion).max() <= 1e-12
+        assert np.abs(mine.covariance - local.covariance).max() <= 1e-12
+    out: dict = {"edges": 4, "samples_per_edge": min(len(t) for t in times),
+                 "temporal_calls": n_tm}
+    out.update({label: median_p99(a, "us") for label, a in us.items()})
+    out["ratio_to_graph"] = out["kept"]["median_us"] / out["graph"]["median_us"]
+    out["ratio_to_temporal_check_false"] = (out["kept"]["median_us"]
+                                            / out["temporal"]["median_us"])
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=5000)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-kept", action="store_true",
+                    help="leave out the kept route (it starts an agent and a tracker)")
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
+    ap.add_argument("--role", default="main", choices=["main", "tracker"],
+                    help=argparse.SUPPRESS)
+    ap.add_argument("--realm", help=argparse.SUPPRESS)
+    ap.add_argument("--connect", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.role == "tracker":
+        return run_tracker(args)
     rng = np.random.default_rng(args.seed)
     figures = {"cpu": cpu_model(), "cached_query_4_edges": bench_path4(args.iterations, rng),
                "update_and_query_1000_frames": bench_update_1000(args.iterations // 5,
                                                                  args.seed + 1)}
+    if not args.no_kept:
+        figures["kept_route_4_edges"] = bench_kept(args.iterations, args.seed + 2)
     a, b = figures["cached_query_4_edges"], figures["update_and_query_1000_frames"]
 
     def us(label: str) -> str:
@@ -184,6 +355,14 @@ def main() -> None:
     print(f"new measurement + query, 1000 frames: {b['srg']['median_us']:.1f} us; "
           f"pytransform3d add+get {b['pytransform3d']['median_us']:.1f} us; speedup "
           f"{b['speedup_vs_pytransform3d']:.1f}x (goal >= 10x)")
+    k = figures.get("kept_route_4_edges")
+    if k:
+        print(f"pose() on a kept route, 4 edges with covariance, past time: "
+              f"{k['kept']['median_us']:.1f} us (p99 {k['kept']['p99_us']:.1f}); the same "
+              f"query on a local Graph {k['graph']['median_us']:.1f} us, ratio "
+              f"{k['ratio_to_graph']:.2f} (goal <= 1.5); TemporalTransformManager"
+              f"(check=False) {k['temporal']['median_us']:.1f} us, ratio "
+              f"{k['ratio_to_temporal_check_false']:.3f} (goal <= 1.0)")
     if args.json:
         print(json.dumps(figures))
 

@@ -195,7 +195,9 @@ def test_an_agent_that_was_only_slow_gets_the_stream_back(
         client.cache_static_segments = False  # else A's static segment is not asked for
         freeze(procs["A"])
         try:
-            r = client.pose(WORLD, HEAD, error="accuracy")  # A does not answer: over B
+            # asked of the agents (client.pose would answer from the subscription's
+            # mirror): A does not answer, so over B
+            r = client.queries.ask(WORLD, HEAD, None, "accuracy").pose
             assert [e["owner"] for e in r.edges] == ["B", "C"], r.edges
             assert client.agents()["A"]["alive"] is False
             poses.via("B", len(poses.got))

@@ -9,6 +9,9 @@
         sub = c.subscribe("ivy/world", "alice/head", on_pose=handle)
         ...
         sub.close()
+        kept = c.keep("ivy/world", "alice/head", buffer_s=10.0)
+        c.pose("ivy/world", "alice/head", at=t)  # answered here, no network
+        kept.close()
 
 ``pose`` plans a route over the agents' supernode summaries (:mod:`agent.sdk.planner`), asks
 each owning agent for its segment at ``t`` (all at once, one round trip), and composes the
@@ -28,6 +31,12 @@ subscribing directly to their services' data keys.  Each sample of the fastest e
 a composed pose at its time; the other edges are interpolated (or boundedly
 extrapolated) at that time: Ubitrack's push/pull rule.  ``on_pose`` runs on the
 subscription's own thread, never on a Zenoh thread (:mod:`agent.sdk.subscription`).
+
+A subscribed or kept route answers ``pose`` locally, as tf2's buffer does: ``keep`` mirrors
+a route as ``subscribe`` does, without a callback, and ``pose`` on that route (the same
+source, target and error function) at any time inside the mirror's buffer is interpolated
+here, with covariance, without asking any agent (:meth:`Subscription.answer` says when the
+agents are asked instead).
 
 A subscription follows the realm: whenever an agent leaves or joins or a supernode summary
 changes, it plans again, and if the best route (or any edge of it) differs it rebuilds its
@@ -53,7 +62,7 @@ import zenoh
 from agent.protocol import keys
 from agent.runtime.session import acquire_session, release_session, sdk_mode
 from agent.sdk.clock import ClockOffsets
-from agent.sdk.query import NoAgentsError, Queries
+from agent.sdk.query import NoAgentsError, Queries, check_time
 from agent.sdk.realm import RealmTracker
 from agent.sdk.subscription import Subscription
 from agent.srg.result import PoseResult
@@ -91,6 +100,8 @@ class Client:
         self.queries = Queries(self.session, realm, self.timeout, self.tracker, self.clock,
                                self.connect)
         self._subscriptions: list[Subscription] = []
+        #: the running mirrors by (source, target, error), for ``pose`` to answer from
+        self._mirrors: dict[tuple[str, str, str], list[Subscription]] = {}
         self._closed = False
 
     @property
@@ -144,7 +155,15 @@ class Client:
     def pose(self, source: str, target: str, at: int | None = None,
              error: str = "latency") -> PoseResult:
         """The pose of ``target`` in ``source``'s frame at ``at`` (ns on this clock; None:
-        the latest common time), composed across agents (module docstring)."""
+        the latest common time): from a subscribed or kept route's mirror where it can
+        answer, else composed across agents (module docstring)."""
+        mirrors = self._mirrors.get((source, target, error))
+        if mirrors:
+            at = check_time(at)
+            for mirror in mirrors:
+                r = mirror.answer(at)
+                if r is not None:
+                    return r
         return self.queries.ask(source, target, at, error).pose
 
     def subscribe(self, source: str, target: str, on_pose: Callable[[PoseResult], Any],
@@ -157,6 +176,26 @@ class Client:
         :meth:`pose` if there is no route to begin with."""
         if not callable(on_pose):
             raise ValueError("on_pose must be callable")
+        return self._mirror(source, target, on_pose, error, on_error, stall_s, 5.0)
+
+    def keep(self, source: str, target: str, buffer_s: float = 10.0,
+             error: str = "latency", on_error: Callable[[Exception], Any] | None = None,
+             stall_s: float | None = None) -> Subscription:
+        """Mirror the route from ``source`` to ``target`` here, ``buffer_s`` of it, so that
+        ``pose(source, target, at, error)`` is answered locally at any time inside it (tf2's
+        buffer); it follows route changes and stalls as a subscription does, and
+        ``close()`` ends it.  Raises like :meth:`pose` if there is no route to begin with."""
+        if not (isinstance(buffer_s, int | float) and math.isfinite(buffer_s)
+                and buffer_s > 0):
+            raise ValueError(f"buffer_s must be a positive number of seconds, got "
+                             f"{buffer_s!r}")
+        return self._mirror(source, target, None, error, on_error, stall_s, float(buffer_s))
+
+    def _mirror(self, source: str, target: str,
+                on_pose: Callable[[PoseResult], Any] | None, error: str,
+                on_error: Callable[[Exception], Any] | None, stall_s: float | None,
+                buffer_s: float) -> Subscription:
+        """A subscription (``on_pose`` None: a kept route), registered for ``pose``."""
         if on_error is not None and not callable(on_error):
             raise ValueError("on_error must be callable or None")
         if stall_s is not None and not (isinstance(stall_s, int | float)
@@ -166,11 +205,17 @@ class Client:
         seen = self.topology
         first = self.queries.ask(source, target, None, error, details=True)
         sub = Subscription(self.queries, source, target, on_pose, error, on_error, first, seen,
-                           stall_s, on_close=self._forget)
+                           stall_s, on_close=self._forget, buffer_s=buffer_s)
         self._subscriptions.append(sub)
+        self._mirrors.setdefault((source, target, error), []).append(sub)
         return sub
 
     def _forget(self, sub: Subscription) -> None:
         """A subscription closed."""
         with contextlib.suppress(ValueError):
             self._subscriptions.remove(sub)
+        key = (sub.source, sub.target, sub.error)
+        with contextlib.suppress(ValueError):
+            self._mirrors.get(key, []).remove(sub)
+        if not self._mirrors.get(key, True):
+            del self._mirrors[key]

@@ -66,6 +66,15 @@ class NoAgentsError(UmaError):
     """Nobody in the realm answered."""
 
 
+def check_time(at: Any) -> int | None:
+    """A query's time as a plain int (None: the latest); ``ValueError`` for anything else."""
+    if at is None:
+        return None
+    if isinstance(at, bool) or not isinstance(at, (int, np.integer)):
+        raise ValueError(f"at must be integer ns since the epoch or None, got {at!r}")
+    return int(at)
+
+
 @dataclass
 class Outcome:
     """A query's composed pose, and per segment of its route the edges' details (empty
@@ -121,9 +130,7 @@ class Queries:
         the latest common time): plan, ask each segment's agent, compose; on to the next
         route when an agent fails.  ``details``: with every edge's details."""
         fn = error_function(error)
-        if at is not None and (isinstance(at, bool) or not isinstance(at, (int, np.integer))):
-            raise ValueError(f"at must be integer ns since the epoch or None, got {at!r}")
-        at = None if at is None else int(at)
+        at = check_time(at)
         view = self._realm()
         if source == target and any(source in s.frames for s in view.summaries.values()):
             return Outcome(identity(source, at), [])

@@ -7,6 +7,17 @@ keys.  Each sample of the fastest edge pushes a composed pose at its time; the o
 are interpolated (or boundedly extrapolated) at that time: Ubitrack's push/pull rule.
 ``on_pose`` runs on the subscription's own thread, never on a Zenoh thread.
 
+The mirror also answers :meth:`agent.sdk.client.Client.pose` on its route locally, as
+tf2's buffer answers ``lookupTransform``: :meth:`Subscription.answer` interpolates the
+mirrored edges at any time inside the buffer, with covariance, without the network.  A
+route kept without a callback (:meth:`agent.sdk.client.Client.keep`) is a subscription that
+only does that.  The mirror holds its samples on the clock of the agent whose edge pushes
+(the route's clock) and converts times at each answer with the current offset estimate,
+as a query to that agent does: a later, better offset estimate applies to old samples
+too, and a kept answer equals the agents' on the same data.  A time the mirror would
+extrapolate to, one outside its buffer, a stalled route or no route is left to the
+agents: they may hold samples the mirror has not received.
+
 Latency is the point of a stream, so the fastest edge's samples are not handed from Zenoh's
 callback thread to ours through a Python queue (a lock, a condition and a GIL hand-off per
 sample: measured ~100-150 µs on loopback).  Its subscriber has a Zenoh ring channel that
@@ -61,6 +72,11 @@ STALL_MIN_S = 1.5
 RING = 1024
 #: how often a subscription checks whether the realm changed or its route stalled
 WATCH_S = 0.05
+#: how often the route's clock is measured again (a kept route asks the agents nothing
+#: else, and an offset estimate older than ``ClockOffsets.max_age_s`` is dropped)
+CLOCK_S = 10.0
+#: samples a mirrored edge keeps per second of buffer (the fastest tracker's rate, and more)
+MAX_RATE_HZ = 1000
 #: the states in which a subscription holds a route's mirror
 _ON_ROUTE = ("streaming", "stalled")
 
@@ -90,14 +106,16 @@ class Subscription:
     times its route fell silent; ``lost``: samples of its edges lost on the way (gaps in
     their sequence numbers); ``refused``: samples refused (stamped more than
     ``agent.protocol.sequence.MAX_AHEAD_NS`` ahead of this clock); ``last_error``: the
-    latest failure (bad sample, undefined pull, stall, no route).
+    latest failure (bad sample, undefined pull, stall, no route); ``answered``: poses
+    answered locally (:meth:`answer`).  ``on_pose`` None: a kept route, which only answers.
     """
 
     def __init__(self, queries: Queries, source: str, target: str,
-                 on_pose: Callable[[PoseResult], Any], error: str,
+                 on_pose: Callable[[PoseResult], Any] | None, error: str,
                  on_error: Callable[[Exception], Any] | None, first: Outcome,
                  topology: int, stall_s: float | None = None,
-                 on_close: Callable[[Subscription], Any] = lambda sub: None) -> None:
+                 on_close: Callable[[Subscription], Any] = lambda sub: None,
+                 buffer_s: float = 5.0) -> None:
         self.queries = queries
         self._on_close = on_close
         self._bad = RateLimitedLog(log)
@@ -110,6 +128,8 @@ class Subscription:
         self.replans = 0
         self.stalls = 0
         self.refused = 0
+        self.answered = 0
+        self.buffer_s = float(buffer_s)
         self._gaps: dict[str, SequenceGaps] = {}
         self.last_error: Exception | None = None
         self.status = "streaming"
@@ -117,8 +137,11 @@ class Subscription:
         self.stall_limit_s = math.inf  # set for each route by _build
         self._last_push = time.monotonic()
         self.route: list[Segment] = []
-        self.graph = Graph(buffer_s=5.0)
+        self.graph = self._new_graph()
         self.pusher: tuple | None = None
+        #: the agent whose clock the mirror's samples are on (the pusher's), or None
+        self.clock_agent: str | None = None
+        self._next_clock = time.monotonic() + CLOCK_S
         #: the mirror (graph, feeds, pusher) is replaced by the watcher while samples
         #: arrive on Zenoh's threads and the stream's: every use of it holds this lock
         self._lock = threading.RLock()
@@ -151,19 +174,21 @@ class Subscription:
             self._mirror_route(outcome)
             streams = bool(self._feeds)
         self._route_changed.set()
-        if not streams:
+        if not streams and self.on_pose is not None:
             self._deliver(outcome.pose)  # all static: the one answer is the stream
 
     def _mirror_route(self, outcome: Outcome) -> None:
         """The body of :meth:`_build` (lock held)."""
         parts = outcome.parts
         self._replan_failed = None
-        self.graph = Graph(buffer_s=5.0)
+        self.graph = self._new_graph()
         feeds: list[tuple[str, str, tuple, float]] = []  # (agent, key, edge key, frequency)
         for seg, edges in parts:
             for e in edges:
                 feeds += self._mirror(seg.agent, e)
-        self.pusher = max(feeds, key=lambda f: f[3])[2] if feeds else None
+        pushing = max(feeds, key=lambda f: f[3]) if feeds else None
+        self.pusher = None if pushing is None else pushing[2]
+        self.clock_agent = None if pushing is None else pushing[0]
         self.stall_limit_s = self._stall_limit(max((f[3] for f in feeds), default=0.0))
         self._last_push = time.monotonic()
         rates = [f[3] for f in feeds if f[3] > 0]
@@ -195,6 +220,11 @@ class Subscription:
         if self.stall_s is not None:
             return self.stall_s
         return max(STALL_MIN_S, STALL_PERIODS / pusher_hz) if pusher_hz > 0 else math.inf
+
+    def _new_graph(self) -> Graph:
+        """An empty mirror holding ``buffer_s`` of samples per edge."""
+        return Graph(buffer_s=self.buffer_s,
+                     max_samples=max(1000, math.ceil(self.buffer_s * MAX_RATE_HZ)))
 
     def _unsubscribe(self) -> None:
         """Undeclare every feed (which also ends the stream thread's read of the pusher)."""
@@ -319,6 +349,17 @@ class Subscription:
                 log.exception("subscription %s -> %s: re-planning failed", self.source,
                               self.target)
             self._check_stall()
+            self._refresh_clock()
+
+    def _refresh_clock(self) -> None:
+        """Measure the route's clock again every ``CLOCK_S``: the mirror's times are
+        converted with it, and nothing else asks the agent while the route is streaming."""
+        now = time.monotonic()
+        agent = self.clock_agent
+        if now < self._next_clock or agent is None or self.status not in _ON_ROUTE:
+            return
+        self._next_clock = now + CLOCK_S
+        self.queries.probe(agent)
 
     def _check_stall(self) -> None:
         """On a route whose fastest edge has been silent too long: say so, once."""
@@ -359,9 +400,10 @@ class Subscription:
         if feed is None:
             return None  # a sample of a route left meanwhile
         edge_key = feed[2]
+        clock = self.queries.clock
         try:
             m = decode_measurement(data, expected_type="pose6d")
-            t = self.queries.clock.to_local(agent, m.t_ns)
+            t = clock.to_local(agent, m.t_ns)
             if too_far_ahead(t, time.time_ns()):
                 self.refused += 1
                 raise ValueError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
@@ -371,7 +413,9 @@ class Subscription:
                 self._bad.warning(f"subscription {key}", f"{gap} sample(s) lost before "
                                   f"s={m.seq} (dropped on the way, or this subscription fell "
                                   f"{RING} samples behind); {self.lost} so far")
-            self.graph.add_measurement(edge_key[0], edge_key[1], t, m.position,
+            on_route_clock = (m.t_ns if agent == self.clock_agent or self.clock_agent is None
+                              else clock.to_remote(self.clock_agent, t))
+            self.graph.add_measurement(edge_key[0], edge_key[1], on_route_clock, m.position,
                                        m.quaternion, m.covariance, source=edge_key[2])
         except (DecodeError, ValueError) as exc:
             self.failed += 1
@@ -381,12 +425,37 @@ class Subscription:
         if edge_key != self.pusher:
             return None
         self._pushed()
+        if self.on_pose is None:
+            return None  # a kept route: composed only when asked (answer)
         try:
-            return self.graph.pose(self.source, self.target, at=t, error="hops")
+            r = self.graph.pose(self.source, self.target, at=m.t_ns, error="hops")
         except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
             self.failed += 1
             self.last_error = exc
             return None
+        return _on_local_clock(r, m.t_ns - t)
+
+    def answer(self, at: int | None) -> PoseResult | None:
+        """The route's pose at ``at`` (ns on this clock, checked by the caller; None: the
+        latest time every edge has data) from the mirror, or None where the agents must
+        answer: not streaming, or ``at`` outside what the mirror holds without
+        extrapolating (module docstring)."""
+        if self.status != "streaming":
+            return None
+        agent = self.clock_agent
+        offset = 0 if agent is None else self.queries.clock.offset(agent) or 0
+        with self._lock:
+            if self.status != "streaming":
+                return None
+            try:
+                r = self.graph.pose(self.source, self.target,
+                                    at=None if at is None else at + offset, error="hops")
+            except LookupError:
+                return None
+        if r.extrapolated_s:
+            return None
+        self.answered += 1
+        return _on_local_clock(r, offset)
 
     @property
     def lost(self) -> int:
@@ -394,6 +463,8 @@ class Subscription:
         return sum(g.lost for g in list(self._gaps.values()))
 
     def _deliver(self, result: PoseResult) -> None:
+        if self.on_pose is None:
+            return
         try:
             self.on_pose(result)
             self.delivered += 1
@@ -414,3 +485,13 @@ class Subscription:
             self._streamer.join(1.0)
         self.status = "closed"
         self._on_close(self)
+
+
+def _on_local_clock(r: PoseResult, offset: int) -> PoseResult:
+    """A mirror's answer (on the route's clock) moved to this clock: ``offset`` is the
+    route's clock minus ours.  The result is the query's own, so it is changed in place."""
+    if offset:
+        if r.t_ns is not None:
+            r.t_ns -= offset
+        r.stamps = [(a - offset, b - offset) for a, b in r.stamps]
+    return r
