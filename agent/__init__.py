@@ -38,7 +38,7 @@ __getattr__ = lazy_attributes(__name__, {
     "Subscription": "agent.sdk.subscription",  # what Client.subscribe returns
     "Match": "agent.protocol.registration",    # an ability a need is connected to
     "Measurement": "schemas.codec",            # what a need's on_sample receives
-    "PoseResult": "agent.srg.result",          # what a query returns
+    "PoseResult": "agent.result",          # what a query returns
     "Graph": "agent.srg.graph",                # the SRG, offline
     "UmaError": "agent.errors",                # every error explained to the user
     "collect_realm": "agent.sdk.inventory",    # every agent's services, needs, matches

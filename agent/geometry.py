@@ -27,12 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from schemas.quaternion import QUAT_NORM_TOL
+
 Array = np.ndarray
 
-#: Largest accepted deviation of a quaternion's norm from 1 before it is refused, not
-#: normalised. Rounding in text, float32 and msgpack stays far below it; a quaternion
-#: off by more is a bug upstream and must not be silently repaired.
-QUAT_NORM_TOL = 1e-3
 #: Largest accepted deviation of R^T R from I for a rotation matrix.
 ROT_ORTHO_TOL = 1e-4
 _SMALL_ANGLE = 1e-8
@@ -422,6 +420,16 @@ def _adjoint_one(p: Array, q: Array) -> Array:
     and numpy's per-call overhead is most of the batched form's cost for a single pose."""
     return adjoint_of_rows(np.asarray(p, float).ravel().tolist(),
                            rotation_rows(np.asarray(q, float).ravel().tolist()))
+
+
+def quat_product(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float, float]:
+    """``a b`` of two quaternions (x, y, z, w) on plain floats, for code that composes single
+    poses (the SRG's kernel, a client's composition), where numpy's per-call cost dominates;
+    :func:`quat_multiply` is the batched form."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
 
 
 def rotation_rows(q: Sequence[float]) -> tuple[tuple[float, float, float], ...]:

@@ -17,11 +17,11 @@ from collections.abc import Callable
 
 from summary import cpu_model, median_p99, report
 
+from agent.attributes import SUMMARY_ERRORS
 from agent.protocol import keys
 from agent.protocol.query import decode_summary
 from agent.protocol.registration import Match, control_message, parse_control
 from agent.protocol.sequence import SequenceGaps, too_far_ahead
-from agent.srg.supernode import SUMMARY_ERRORS
 from schemas.codec import (
     decode_measurement,
     decode_message,

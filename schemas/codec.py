@@ -45,7 +45,8 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
-from schemas.models import ServiceDescriptor, check_plain
+from schemas.models import MEASUREMENT_TYPES, ServiceDescriptor, check_plain
+from schemas.quaternion import QUAT_NORM_TOL, unit_norm
 
 WIRE_VERSION = 1
 MAX_MESSAGE_BYTES = 1 << 20
@@ -54,9 +55,6 @@ MAX_POINTS = 40_000
 MAX_VALUES = 4096
 MAX_MAP_LEN = 1024
 MAX_STR_LEN = 1 << 16
-QUAT_NORM_TOL = 1e-3
-MEASUREMENT_TYPES = ("pose6d", "position3d", "rotation3d", "points3d", "accel_raw", "image",
-                     "event")
 
 _COMMON = frozenset({"v", "k", "t", "s", "x"})
 _FIELDS = {
@@ -168,10 +166,7 @@ def _floats_out(x: Any, n: int, name: str) -> list[float]:
 
 def _quat_out(q: Any) -> list[float]:
     v = _floats_out(q, 4, "quaternion")
-    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3])
-    if abs(n - 1.0) > QUAT_NORM_TOL:
-        raise ValueError(f"quaternion: norm {n:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
-                         "quaternions are x, y, z, w")
+    n = unit_norm(*v)
     return [v[0] / n, v[1] / n, v[2] / n, v[3] / n]
 
 

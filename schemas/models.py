@@ -2,8 +2,8 @@
 
 These validate everything that crosses a process boundary except measurements on the hot
 path (those go through ``schemas.codec``): service descriptors, agent information, pose
-query results.  Their JSON Schemas are exported by ``uma schemas export`` and committed
-beside this file.
+query results (:class:`PoseResultMessage`).  Their JSON Schemas are exported by ``uma
+schemas export`` and committed beside this file.
 
 Identifiers:
 
@@ -33,7 +33,7 @@ import math
 import re
 from fnmatch import fnmatchcase
 from functools import lru_cache
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import (
     AfterValidator,
@@ -46,16 +46,17 @@ from pydantic import (
 )
 
 from schemas import expr, ids
+from schemas.quaternion import unit_norm
 
 ATTRIBUTE_NAMES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost", "static")
 MEASURED_NAMES = ("measured_frequency_hz", "measured_latency_s")
-MEASUREMENT_TYPES = ("pose6d", "position3d", "rotation3d", "points3d", "accel_raw", "image",
-                     "event")
 #: Types whose abilities must name an edge (they are spatial relationships).
 EDGE_TYPES = ("pose6d", "position3d", "rotation3d")
 MeasurementType = Literal["pose6d", "position3d", "rotation3d", "points3d", "accel_raw", "image",
                           "event"]
+#: the measurement types of samples and abilities (``schemas.codec`` encodes each)
+MEASUREMENT_TYPES: tuple[str, ...] = get_args(MeasurementType)
 
 FRAME_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 EDGE_PATTERN = r"^[A-Za-z0-9_.\-*]+(/[A-Za-z0-9_.\-*]+)*$"
@@ -69,7 +70,6 @@ MAX_NAME_LENGTH = ids.MAX_LENGTH
 #: Bounds on free-form attribute values (lists of numbers such as rig geometry, nesting).
 MAX_LIST_LENGTH = 1024
 MAX_PLAIN_DEPTH = 4
-QUAT_NORM_TOL = 1e-3
 #: Offsets of the diagonal in the 21 upper-triangular entries (row by row) of a 6x6 matrix.
 _TRIU6_DIAGONAL = (0, 6, 11, 15, 18, 20)
 
@@ -375,10 +375,12 @@ class EdgeUse(BaseModel):
     t_ns: int = Field(description="timestamp of the sample(s) used")
 
 
-class PoseResult(BaseModel):
+# The wire form of a pose query's answer; in a process it is an ``agent.PoseResult``, and its
+# JSON Schema keeps that name (PoseResult.schema.json, its docstring the description).
+class PoseResultMessage(BaseModel):
     """The answer to a pose query: the pose of ``target`` in ``source``'s frame at ``t_ns``."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, title="PoseResult")
 
     source: FrameId
     target: FrameId
@@ -395,14 +397,12 @@ class PoseResult(BaseModel):
     @field_validator("quaternion")
     @classmethod
     def _unit(cls, q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
-        n = math.sqrt(sum(c * c for c in q))
-        if abs(n - 1.0) > QUAT_NORM_TOL:
-            raise ValueError(f"quaternion: norm {n:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
-                             "quaternions are x, y, z, w")
+        n = unit_norm(*q)
         return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 MODELS: dict[str, type[BaseModel]] = {
-    m.__name__: m
-    for m in (Attributes, Ability, Need, ServiceDescriptor, AgentInfo, EdgeUse, PoseResult)
+    m.model_config.get("title") or m.__name__: m
+    for m in (Attributes, Ability, Need, ServiceDescriptor, AgentInfo, EdgeUse,
+              PoseResultMessage)
 }

@@ -1,5 +1,5 @@
 """The client's light check of segment answers (``agent.protocol.query.pose_from_wire``) against the
-documented contract, ``schemas.models.PoseResult``: the same verdict on valid answers and on
+documented contract, ``schemas.models.PoseResultMessage``: the same verdict on valid answers and on
 each kind of damage, and the same values where both accept."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pydantic import ValidationError
 from agent import geometry as geo
 from agent.protocol.query import pose_from_wire, result_to_wire
 from agent.srg import Graph
-from schemas.models import PoseResult as PoseModel
+from schemas.models import PoseResultMessage as PoseModel
 
 S = 1_000_000_000
 

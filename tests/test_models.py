@@ -20,7 +20,7 @@ from schemas.models import (
     AgentInfo,
     Attributes,
     Need,
-    PoseResult,
+    PoseResultMessage,
     ServiceDescriptor,
     frame_matches,
 )
@@ -207,19 +207,19 @@ def _pose(**kw: Any) -> dict[str, Any]:
 
 
 def test_pose_result() -> None:
-    r = PoseResult.model_validate(_pose(
+    r = PoseResultMessage.model_validate(_pose(
         quaternion=[0, 0, 0, 1.0005], covariance=[0.0] * 36,
         path=["ivy/world", "alice/head"], extrapolated_s=0.01,
         edges=[{"parent": "ivy/world", "child": "alice/head", "inverted": False,
                 "owner": "hostA", "t_ns": 5}]))
     assert r.quaternion == pytest.approx((0, 0, 0, 1), abs=1e-12)  # normalised
     assert r.edges[0].owner == "hostA"
-    assert PoseResult.model_validate(r.model_dump(mode="json")) == r
-    assert "not 1" in _error(PoseResult, _pose(quaternion=[0, 0, 0, 1.1]))
-    assert "finite number" in _error(PoseResult, _pose(position=[0, math.nan, 0]))
-    assert "at least 36" in _error(PoseResult, _pose(covariance=[0.0] * 21))
-    assert "greater than or equal to 0" in _error(PoseResult, _pose(extrapolated_s=-1))
-    assert "Field required" in _error(PoseResult, _pose(edges=[{"parent": "a/b"}]))
+    assert PoseResultMessage.model_validate(r.model_dump(mode="json")) == r
+    assert "not 1" in _error(PoseResultMessage, _pose(quaternion=[0, 0, 0, 1.1]))
+    assert "finite number" in _error(PoseResultMessage, _pose(position=[0, math.nan, 0]))
+    assert "at least 36" in _error(PoseResultMessage, _pose(covariance=[0.0] * 21))
+    assert "greater than or equal to 0" in _error(PoseResultMessage, _pose(extrapolated_s=-1))
+    assert "Field required" in _error(PoseResultMessage, _pose(edges=[{"parent": "a/b"}]))
 
 
 def test_exported_schemas_match_the_models() -> None:

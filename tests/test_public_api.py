@@ -144,3 +144,25 @@ def test_every_public_module_imports_without_zenoh_and_its_names_resolve() -> No
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 0, out.stderr
+
+
+def test_protocol_and_srg_depend_only_on_schemas_and_the_pure_modules() -> None:
+    """``agent/protocol`` and ``agent/srg`` import nothing of uma but ``schemas``, their own
+    package and the pure modules beside them, and not each other (docs/ARCHITECTURE.md)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(agent.__file__).parent
+    pure = {"agent", "agent.geometry", "agent.attributes", "agent.result", "agent.errors",
+            "agent._lazy"}
+    offences = []
+    for package in ("protocol", "srg"):
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module
+                         else [a.name for a in node.names] if isinstance(node, ast.Import)
+                         else [])
+                offences += [f"{path.name}:{node.lineno}: {n}" for n in names
+                             if n.startswith("agent") and n not in pure
+                             and not n.startswith(f"agent.{package}")]
+    assert offences == []

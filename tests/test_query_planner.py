@@ -12,15 +12,9 @@ import pytest
 from agent import geometry as geo
 from agent.daemon.srg_node import SrgNode
 from agent.protocol.query import parse_summary
-from agent.sdk.planner import (
-    Composition,
-    RouteError,
-    Segment,
-    compose,
-    plan_routes,
-    usable_routes,
-)
+from agent.sdk.planner import RouteError, Segment, plan_routes, usable_routes
 from agent.srg import Graph
+from agent.srg.composition import Composition, compose
 from agent.srg.errorfn import error_function
 from agent.srg.errors import UnknownFrameError, UnreachableError
 from agent.srg.supernode import summarize

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
+from agent.attributes import SUMMARY_ERRORS
 from agent.protocol.query import attributes_from_wire
 from agent.srg import Graph, paths
 from agent.srg.errorfn import error_function
-from agent.srg.supernode import SUMMARY_ERRORS, Topology, summarize
+from agent.srg.supernode import Topology, summarize
 
 
 def random_attributes(rng: random.Random) -> dict[str, float]:

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
+from agent.result import PoseResult
 from agent.runtime.session import sdk_mode
 from agent.sdk.client import Client
-from agent.srg.result import PoseResult
 
 
 def parse_at(text: str | None) -> int | None:

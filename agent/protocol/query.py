@@ -11,7 +11,7 @@ request                                 reply
 ``{"op": "clock"}``                     ``{"ok": true, "t2": recv ns, "t3": reply ns}``
 ``{"op": "segment", "source": S,        ``{"ok": true, "result": PoseResult, "t2", "t3"``
 "target": T, "t": ns or nil,            ``[, "edges": [edge details]]}`` where result
-"error": E[, "details": true]}``        is a ``schemas.models.PoseResult`` as a map;
+"error": E[, "details": true]}``        is a ``schemas.models.PoseResultMessage`` as a map;
 (``"op": "pose"`` is the same)          ``details`` adds each edge's data key (measured)
                                         or value (static), for streaming clients
 ``{"op": "segments", "parts":           the same answer to this agent's part; no answer
@@ -44,7 +44,7 @@ attributes}}``, no ``paths``): the same content, five to twenty times the bytes
 (``bench/bench_scale.py``).
 
 A segment answer is read by :func:`pose_from_wire`, the hot-path twin of
-``schemas.models.PoseResult.model_validate``: answers arrive at tracking rates, and the
+``schemas.models.PoseResultMessage.model_validate``: answers arrive at tracking rates, and the
 model costs ten times as much (pydantic validates descriptors and API results, not
 per-message hot paths).
 """
@@ -60,12 +60,18 @@ from typing import Any
 
 import numpy as np
 
-from agent.srg.attributes import EDGE_ATTRIBUTES, check_attributes
-from agent.srg.result import PoseResult, finite_or_none
-from agent.srg.supernode import SUMMARY_ERRORS
+from agent.attributes import EDGE_ATTRIBUTES, SUMMARY_ERRORS, check_attributes
+from agent.result import PoseResult, finite_or_none
 from schemas import ids
 from schemas.codec import DecodeError, decode_message, encode_message
-from schemas.models import FRAME_PATTERN, MAX_FRAME_LENGTH, QUAT_NORM_TOL, check_plain
+from schemas.models import (
+    FRAME_PATTERN,
+    MAX_FRAME_LENGTH,
+    EdgeUse,
+    PoseResultMessage,
+    check_plain,
+)
+from schemas.quaternion import unit_norm
 
 #: environment variable that skews an agent's clock, as its ``t2``/``t3`` show it: the agent
 #: then stamps as if its clock were that many ns ahead (tests only: it exists to test the
@@ -190,7 +196,7 @@ def stamped(reply: dict[str, Any], agent: str, t2: int, t3: int) -> bytes:
 
 def result_to_wire(r: PoseResult, source: str, target: str, owner: str,
                    t_ns: int) -> dict[str, Any]:
-    """A local result as a ``schemas.models.PoseResult`` map (checked by the receiver)."""
+    """A local result as a ``schemas.models.PoseResultMessage`` map (checked by the receiver)."""
     stamps = iter(r.stamps)
     edges = []
     for e in r.edges:
@@ -267,9 +273,8 @@ def read_segment_reply(reply: Mapping[str, Any], to_local: Callable[[int], int],
 
 
 _INF_WHEN_NONE = ("frequency_hz", "ttl_s")
-_WIRE_FIELDS = frozenset(("source", "target", "t_ns", "position", "quaternion", "covariance",
-                          "path", "edges", "attributes", "extrapolated_s"))
-_EDGE_FIELDS = frozenset(("parent", "child", "inverted", "owner", "t_ns"))
+_WIRE_FIELDS = frozenset(PoseResultMessage.model_fields)
+_EDGE_FIELDS = frozenset(EdgeUse.model_fields)
 
 
 #: most frames (and links) one agent's summary may carry: a host's SRG has tens to
@@ -380,7 +385,7 @@ def _wire_attributes(value: Any) -> dict[str, Any]:
 
 
 def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
-    """A segment answer (a ``schemas.models.PoseResult`` map) as a result, timestamps mapped
+    """A segment answer (a ``schemas.models.PoseResultMessage`` map) as a result, timestamps mapped
     by ``to_local``; ``ValueError`` names the first field that is wrong.
 
     The same fields, shapes, ids, finiteness and unit quaternion (renormalized) as the
@@ -400,10 +405,7 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> Pose
     t_ns = _wire_int(d["t_ns"], "t_ns")
     position = _wire_floats(d["position"], 3, "position")
     q = _wire_floats(d["quaternion"], 4, "quaternion")
-    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if abs(norm - 1.0) > QUAT_NORM_TOL:
-        raise ValueError(f"quaternion: norm {norm:.6g} is not 1 (tolerance {QUAT_NORM_TOL:g}); "
-                         "quaternions are x, y, z, w")
+    norm = unit_norm(*q)
     cov = d.get("covariance")
     if cov is not None:
         cov = _wire_covariance(cov)

@@ -60,12 +60,12 @@ from typing import Any
 import zenoh
 
 from agent.protocol import keys
+from agent.result import PoseResult
 from agent.runtime.session import acquire_session, release_session, sdk_mode
 from agent.sdk.clock import ClockOffsets
 from agent.sdk.query import NoAgentsError, Queries, check_time
 from agent.sdk.realm import RealmTracker
 from agent.sdk.subscription import Subscription
-from agent.srg.result import PoseResult
 
 __all__ = ["Client", "NoAgentsError", "Subscription"]
 

@@ -7,9 +7,9 @@ those links (labelled with their agent), ranks routes from source to target for 
 function (Dijkstra/Yen as in the local SRG: additive functions sum the links' values,
 path-level ones are evaluated on the joined attributes of k candidate routes), merges
 consecutive links of one agent into a single *segment*, and leaves it to the caller
-(:mod:`agent.sdk.query`) to ask each owning agent for its segment at ``t`` and to
-:func:`compose` the answers.  Pure: no I/O, no wire format (summaries arrive parsed, by
-:mod:`agent.protocol.query`).
+(:mod:`agent.sdk.query`) to ask each owning agent for its segment at ``t`` and to compose
+the answers (:mod:`agent.srg.composition`).  Pure: no I/O, no wire format (summaries
+arrive parsed, by :mod:`agent.protocol.query`).
 
 Routes through agents that have left the realm are never tried; when only such routes
 exist, :class:`RouteError` names the segments and agents that are missing.
@@ -36,14 +36,12 @@ from typing import Any
 
 import numpy as np
 
-from agent import geometry as geo
+from agent.attributes import combine
 from agent.protocol.query import Summary
 from agent.runtime.logs import RateLimitedLog
 from agent.srg import paths
-from agent.srg.attributes import combine
 from agent.srg.errorfn import ErrorFunction
 from agent.srg.errors import SrgLookupError, UnknownFrameError, UnreachableError, list_names
-from agent.srg.result import PoseResult
 
 #: candidate routes ranked for path-level error functions
 ROUTE_CANDIDATES = 16
@@ -241,110 +239,3 @@ def with_departed(exc: UnreachableError, summaries: Mapping[str, Summary],
         return exc
     return RouteError(f"{exc}; agent(s) {list_names(gone)} left the realm and held frames "
                       f"of these parts: the missing segment was probably theirs")
-
-
-def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
-    """Chain segment answers source -> target, propagating the covariance (first order)."""
-    chain = Composition(len(results))
-    for i, r in enumerate(results):
-        chain.add(i, r)
-    return chain.result(t_ns)
-
-
-class Composition:
-    """Segment answers chained source -> target as they arrive, covariance propagated (first
-    order).  Answers of neighbouring segments are merged into runs at once, in whatever
-    order they come, so when the slowest agent answers only its own segment is left to
-    merge with the runs beside it (the others were composed while it computed).
-
-    Merging run ``X`` with the run ``Y`` right of it carries ``Y``'s position into ``X``'s
-    source frame by ``X``'s rotation and maps ``Y``'s covariance there by ``X``'s adjoint
-    (``C = C_X + Ad_X C_Y Ad_X^T``).  Poses are composed on plain floats (numpy's per-call
-    overhead on 3- and 4-vectors was most of a query's composing time); only covariances,
-    6x6, go through numpy.
-    """
-
-    def __init__(self, n: int) -> None:
-        if n < 1:
-            raise ValueError("a composition needs at least one segment")
-        self._results: list[PoseResult | None] = [None] * n
-        self._starting: dict[int, _Run] = {}  # runs by their first segment
-        self._ending: dict[int, _Run] = {}  # the same runs by their last segment
-
-    def add(self, i: int, result: PoseResult) -> None:
-        """Segment ``i``'s answer (each segment once)."""
-        if self._results[i] is not None:
-            raise ValueError(f"segment {i} was already added")
-        self._results[i] = result
-        q = tuple(result.quaternion.tolist())
-        run = _Run(i, i, tuple(result.position.tolist()), q, geo.rotation_rows(q),
-                   result.covariance)
-        left = self._ending.pop(i - 1, None)
-        if left is not None:
-            del self._starting[left.first]
-            run = left.then(run)
-        right = self._starting.pop(i + 1, None)
-        if right is not None:
-            del self._ending[right.final]
-            run = run.then(right)
-        self._starting[run.first] = run
-        self._ending[run.final] = run
-
-    def result(self, t_ns: int | None) -> PoseResult:
-        """The composed pose at ``t_ns``; ``ValueError`` if a segment is still missing."""
-        missing = [i for i, r in enumerate(self._results) if r is None]
-        if missing:
-            raise ValueError(f"segment(s) {missing} missing from the composition")
-        results: list[PoseResult] = self._results  # type: ignore[assignment]
-        whole = self._starting[0]
-        path: list[str] = []
-        edges: list[dict[str, Any]] = []
-        stamps: list[tuple[int, int]] = []
-        for r in results:
-            path.extend(r.path if not path else r.path[1:])
-            edges.extend(r.edges)
-            stamps.extend(r.stamps)
-        extrapolated = max(r.extrapolated_s for r in results)
-        parts = [r.attributes for r in results]
-        p, q, cov = np.array(whole.p), np.array(whole.q), whole.cov
-        # a run starts from a segment's own covariance: the result must not alias it
-        if cov is not None and any(cov is r.covariance for r in results):
-            cov = cov.copy()
-        return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
-                          lambda: combine(parts, p, cov))
-
-
-Vec = tuple[float, ...]
-Rot = tuple[Vec, Vec, Vec]
-
-
-@dataclass
-class _Run:
-    """Segments ``first..final`` composed: position, quaternion and rotation on floats, and
-    the covariance (None: exactly known)."""
-
-    first: int
-    final: int
-    p: Vec
-    q: Vec
-    R: Rot
-    cov: np.ndarray | None
-
-    def then(self, right: _Run) -> _Run:
-        """This run followed by the one right of it."""
-        R, (rx, ry, rz) = self.R, right.p
-        cov = self.cov
-        if right.cov is not None:
-            J = geo.adjoint_of_rows(self.p, R)
-            mapped = J @ right.cov @ J.T
-            cov = mapped if cov is None else cov + mapped
-        p = tuple(pi + row[0] * rx + row[1] * ry + row[2] * rz
-                  for pi, row in zip(self.p, R, strict=True))
-        ax, ay, az, aw = self.q
-        bx, by, bz, bw = right.q
-        q = (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-             aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
-        cols = tuple(zip(*right.R, strict=True))
-        rot = tuple(tuple(row[0] * col[0] + row[1] * col[1] + row[2] * col[2] for col in cols)
-                    for row in R)
-        return _Run(self.first, right.final, p, q, rot, cov)  # type: ignore[arg-type]

@@ -30,24 +30,23 @@ import zenoh
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol import query as proto
+from agent.result import PoseResult
 from agent.runtime.logs import RateLimitedLog
 from agent.sdk.clock import ClockOffsets
 from agent.sdk.planner import (
-    Composition,
     Route,
     RouteError,
     Segment,
     SegmentError,
-    compose,
     plan_routes,
     usable_routes,
     with_departed,
 )
 from agent.sdk.realm import RealmTracker, RealmView
+from agent.srg.composition import Composition, compose
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.errors import UnknownFrameError, UnreachableError
 from agent.srg.graph import identity
-from agent.srg.result import PoseResult
 
 log = logging.getLogger("uma.client")
 

@@ -45,19 +45,19 @@ from typing import Any
 
 import zenoh
 
+from agent.attributes import EDGE_ATTRIBUTES
 from agent.errors import UmaError
 from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
 from agent.protocol.sequence import SequenceGaps, too_far_ahead
+from agent.result import PoseResult
 from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.sdk.planner import Segment, SegmentError
 from agent.sdk.query import Outcome, Queries
 from agent.srg import Graph
-from agent.srg.attributes import EDGE_ATTRIBUTES
 from agent.srg.errors import EdgeUndefinedError
-from agent.srg.result import PoseResult
 from schemas.codec import DecodeError, decode_measurement
 
 log = logging.getLogger("uma.client")
@@ -79,6 +79,13 @@ CLOCK_S = 10.0
 MAX_RATE_HZ = 1000
 #: the states in which a subscription holds a route's mirror
 _ON_ROUTE = ("streaming", "stalled")
+
+
+def stall_limit(rate_hz: float | None) -> float:
+    """How long a stream of ``rate_hz`` may be silent before it is stalled: ``STALL_PERIODS``
+    of its periods, at least ``STALL_MIN_S`` (``STALL_MIN_S`` when its rate is unknown).
+    The one rule for subscriptions and for ``uma view``'s stream states."""
+    return max(STALL_MIN_S, STALL_PERIODS / rate_hz) if rate_hz else STALL_MIN_S
 
 
 #: what a route's mirror is made of: per segment, its agent and each edge's identity and
@@ -109,6 +116,8 @@ class Subscription:
     latest failure (bad sample, undefined pull, stall, no route); ``answered``: poses
     answered locally (:meth:`answer`).  ``on_pose`` None: a kept route, which only answers.
     """
+
+    stall_limit = staticmethod(stall_limit)
 
     def __init__(self, queries: Queries, source: str, target: str,
                  on_pose: Callable[[PoseResult], Any] | None, error: str,
@@ -219,7 +228,7 @@ class Subscription:
             return math.inf
         if self.stall_s is not None:
             return self.stall_s
-        return max(STALL_MIN_S, STALL_PERIODS / pusher_hz) if pusher_hz > 0 else math.inf
+        return stall_limit(pusher_hz) if pusher_hz > 0 else math.inf
 
     def _new_graph(self) -> Graph:
         """An empty mirror holding ``buffer_s`` of samples per edge."""

@@ -11,7 +11,7 @@ from typing import Any
 
 __all__ = ["Graph", "PoseResult"]
 
-_LAZY = {"Graph": "agent.srg.graph", "PoseResult": "agent.srg.result"}
+_LAZY = {"Graph": "agent.srg.graph", "PoseResult": "agent.result"}
 
 
 def __getattr__(name: str) -> Any:

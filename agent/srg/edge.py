@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
-from agent.srg.attributes import nominal_covariance
+from agent.attributes import nominal_covariance
 from agent.srg.buffer import SampleBuffer
 
 #: (parent, child, source): parallel edges between the same frames differ by source

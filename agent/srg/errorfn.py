@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from agent.srg.attributes import PATH_ATTRIBUTES
+from agent.attributes import PATH_ATTRIBUTES
 from agent.srg.errors import BadErrorFunctionError
 from schemas.expr import Expr, ExprError, parse
 

@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.attributes import aggregate, check_attributes, same_attributes
+from agent.result import PoseResult
 from agent.srg import paths
-from agent.srg.attributes import aggregate, check_attributes, same_attributes
 from agent.srg.edge import Edge, EdgeKey, edge_name
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.errors import UnknownEdgeError, UnknownFrameError, UnreachableError
 from agent.srg.plan import Chain, Plan
-from agent.srg.result import PoseResult
 
 DEFAULT_STATIC_SOURCE = "static"
 DEFAULT_MEASURED_SOURCE = "measured"

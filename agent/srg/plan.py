@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.attributes import aggregate, path_constants, uncertainty
+from agent.result import PoseResult
 from agent.srg import kernel
-from agent.srg.attributes import aggregate, path_constants, uncertainty
 from agent.srg.buffer import SampleBuffer
 from agent.srg.edge import Edge, EdgeKey
 from agent.srg.errors import EdgeUndefinedError, NoSamplesError, NoValidPathError
-from agent.srg.result import PoseResult
 
 
 def oriented(p: np.ndarray, q: np.ndarray, cov: np.ndarray | None, forward: bool,

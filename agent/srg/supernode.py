@@ -34,16 +34,14 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.attributes import SUMMARY_ERRORS, combine, path_constants
+from agent.result import finite_or_none
 from agent.srg import paths
-from agent.srg.attributes import combine, path_constants
 from agent.srg.edge import EdgeKey
 from agent.srg.errorfn import ErrorFunction, error_function
 from agent.srg.graph import PATH_LEVEL_CANDIDATES, Graph
 from agent.srg.plan import compose_values, nominal_attributes, oriented
-from agent.srg.result import finite_or_none
 
-#: the error functions whose best local paths a summary describes
-SUMMARY_ERRORS = ("hops", "latency", "accuracy", "confidence", "cost")
 #: the additive ones besides hops: their trees are grown only where a path crosses a cycle
 _OTHER_ADDITIVE = ("latency", "confidence", "cost")
 

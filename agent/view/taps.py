@@ -23,15 +23,12 @@ from typing import Any
 
 import zenoh
 
+from agent import Subscription
 from agent.runtime import RateLimitedLog
 from schemas.codec import DecodeError, Measurement, decode_measurement
 
 #: the window of sample time over which a stream's rate is measured (s)
 RATE_WINDOW_S = 1.0
-#: a stream is stalled after this many of its advertised periods without a sample, and
-#: never before STALL_MIN_S (the subscription SDK's rule, agent.sdk.subscription)
-STALL_PERIODS = 10
-STALL_MIN_S = 1.5
 
 
 @dataclass
@@ -128,12 +125,12 @@ def _rate(marks: deque[tuple[int, int]]) -> float | None:
 
 def stream_state(matched: bool, facts: StreamFacts | None, advertised_hz: float | None,
                  measured_hz: float | None) -> str:
-    """``no route`` (nothing matched), ``stalled`` (no sample for ``STALL_PERIODS``
-    advertised periods, at least ``STALL_MIN_S``), else ``streaming``.  Streams the view
+    """``no route`` (nothing matched), ``stalled`` (no sample for as long as a subscription
+    waits, :meth:`agent.Subscription.stall_limit`), else ``streaming``.  Streams the view
     does not tap itself are judged by the rate their consumer's agent measured."""
     if not matched:
         return "no route"
     if facts is not None:
-        limit = max(STALL_MIN_S, STALL_PERIODS / advertised_hz) if advertised_hz else STALL_MIN_S
+        limit = Subscription.stall_limit(advertised_hz)
         return "streaming" if facts.age_s is not None and facts.age_s <= limit else "stalled"
     return "streaming" if measured_hz else "stalled"

@@ -27,6 +27,9 @@ EDGE_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_
 #: attributes of a path, the names an error expression may use
 PATH_ATTRIBUTES = ("hops", "latency_s", "frequency_hz", "confidence", "pos_std_m",
                    "rot_std_rad", "accuracy", "ttl_s", "cost", "static")
+#: the error functions whose best local paths a supernode summary describes (the built-in
+#: ones of :mod:`agent.srg.errorfn`)
+SUMMARY_ERRORS = ("hops", "latency", "accuracy", "confidence", "cost")
 
 _NONNEGATIVE = ("latency_s", "pos_std_m", "rot_std_rad", "cost")
 _POSITIVE = ("frequency_hz", "ttl_s")
