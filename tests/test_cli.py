@@ -18,7 +18,7 @@ def uma(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
 
 
 COMMANDS = ["agent", "router", "service", "services", "query", "demo", "eval", "schemas",
-            "record", "play", "info", "view"]
+            "record", "play", "info", "view", "calibrate", "markers"]
 
 
 def test_top_level_help_lists_every_command() -> None:
@@ -26,7 +26,7 @@ def test_top_level_help_lists_every_command() -> None:
     assert r.returncode == 0, r.stderr
     assert "ubiquitous tracking" in r.stdout
     for command in COMMANDS:
-        assert f"\n    {command} " in r.stdout, command
+        assert f"\n    {command} " in r.stdout or f"\n    {command}\n" in r.stdout, command
 
 
 @pytest.mark.parametrize(("args", "purpose"), [
@@ -44,6 +44,9 @@ def test_top_level_help_lists_every_command() -> None:
     (["record"], "losslessly into FILE.mcap"),
     (["play"], "recorded timing scaled by --rate"),
     (["info"], "read up to the damage"),
+    (["calibrate"], "'uma.calibrate' entry-point group"),
+    (["calibrate", "camera"], "printed ChArUco board"),
+    (["markers", "print"], "Print at 100 %"),
 ])
 def test_every_command_explains_itself(args: list[str], purpose: str) -> None:
     r = uma(*args, "--help")

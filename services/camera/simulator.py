@@ -96,7 +96,7 @@ class PlanarTarget:
             return
         uv = corners_c[:, :2] / corners_c[:, 2:] @ K[:2, :2].T + K[:2, 2]
         texels_per_px = self.texture.shape[1] / max(np.ptp(uv[:, 0]), np.ptp(uv[:, 1]), 1.0)
-        level = int(np.clip(math.floor(math.log2(max(texels_per_px, 1.0))), 0,
+        level = int(np.clip(math.ceil(math.log2(max(texels_per_px, 1.0))), 0,
                             len(self._levels) - 1))
         tex = self._levels[level]
         th, tw = tex.shape

@@ -1,0 +1,170 @@
+"""`uma calibrate camera` on simulated ChArUco boards of known intrinsics, and the
+printable marker sheets of `uma markers print`."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.cli.main import main
+from services.camera import calibrate as cal
+from services.camera.markers import (
+    board_in_target,
+    board_target,
+    charuco_board,
+    dictionary,
+    sheet,
+    write_pdf,
+    write_png,
+)
+from services.camera.model import CameraModel, load
+from services.camera.simulator import SceneObject, SimCamera, pose_matrix, static, write_video
+
+TRUTH = CameraModel(np.array([[612.0, 0, 318.2], [0, 609.5, 242.7], [0, 0, 1]]),
+                    [-0.21, 0.06, 0.0012, -0.0008, -0.01], 640, 480)
+BOARD = charuco_board((9, 6), 0.04, 0.02)
+
+
+def board_poses(rng, n, distance=(0.45, 0.75), centre_only=False):
+    """Board poses facing the camera, tilted 0.2-0.6 rad about both axes, centred on
+    random image points (the whole image, or its middle)."""
+    lo, hi = ([280, 200], [360, 280]) if centre_only else ([60, 60], [580, 420])
+    for _ in range(n):
+        u, v = rng.uniform(lo, hi)
+        T = pose_matrix((math.pi, 0, 0),
+                        rng.uniform(*distance) * np.linalg.solve(TRUTH.K, [u, v, 1]))
+        tilt = rng.choice([-1, 1], 2) * rng.uniform(0.2, 0.6, 2)
+        T[:3, :3] = T[:3, :3] @ cv2.Rodrigues(np.array([*tilt, rng.uniform(-0.3, 0.3)]))[0]
+        yield T
+
+
+def render_board_views(seed, n, board=BOARD, **kw):
+    """(frames, true corner noise rms in px) of ``n`` simulated views of ``board``."""
+    rng = np.random.default_rng(seed)
+    cam, target = SimCamera(TRUTH), board_target(board)
+    detector = cv2.aruco.CharucoDetector(board)
+    frames, errors = [], []
+    for T in board_poses(rng, n, **kw):
+        image = cam.render([SceneObject("board", target, static(T))], 0.0, rng)
+        frames.append(image)
+        view = cal.detect_view(detector, image, len(frames))
+        if view is not None:
+            Tb = T @ board_in_target(board)
+            pts = board.getChessboardCorners()[view.ids] @ Tb[:3, :3].T + Tb[:3, 3]
+            errors.append(view.corners - TRUTH.project(pts))
+    e = np.concatenate(errors)
+    return frames, float(np.sqrt((e ** 2).sum(1).mean()))
+
+
+@pytest.fixture(scope="module")
+def board_video(tmp_path_factory):
+    frames, noise = render_board_views(seed=1, n=36)
+    path = write_video(tmp_path_factory.mktemp("cal") / "board.avi", frames, fps=10)
+    return path, noise
+
+
+def check_intrinsics(summary, noise_px):
+    K = TRUTH.K
+    assert abs(summary["fx"] / K[0, 0] - 1) < 0.003
+    assert abs(summary["fy"] / K[1, 1] - 1) < 0.003
+    assert abs(summary["cx"] - K[0, 2]) < 1.0
+    assert abs(summary["cy"] - K[1, 2]) < 1.0
+    assert abs(summary["rms_px"] / noise_px - 1) < 0.10
+
+
+def test_uma_calibrate_camera_recovers_known_intrinsics(board_video, tmp_path, capsys):
+    path, noise = board_video
+    out = tmp_path / "cam.yaml"
+    code = main(["calibrate", "camera", "--source", str(path), "--squares", "9x6",
+                 "--square", "0.04", "-o", str(out), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert (code, summary["verdict"], summary["reasons"]) == (0, "good", [])
+    check_intrinsics(summary, noise)
+    written = load(out)
+    np.testing.assert_allclose(written.K[0, 0], summary["fx"])
+    assert written.pixel_std == pytest.approx(summary["rms_px"] / math.sqrt(2))
+    assert summary["std"]["fx"] > 0 and summary["uncovered"] == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_calibration_goals_hold_on_more_seeds(seed):
+    frames, noise = render_board_views(seed, n=36)
+    detector = cv2.aruco.CharucoDetector(BOARD)
+    views = [v for i, f in enumerate(frames)
+             if (v := cal.detect_view(detector, f, i)) is not None]
+    kept, dup = cal.select_views(views, TRUTH.size)
+    result = cal.calibrate(kept, BOARD, TRUTH.size, len(views), dup)
+    assert result.verdict == "good", result.reasons
+    check_intrinsics(result.summary(), noise)
+
+
+def test_views_of_the_image_centre_only_need_more_views(tmp_path, capsys):
+    small = charuco_board((5, 4), 0.04, 0.02)
+    frames, _ = render_board_views(seed=5, n=12, board=small, distance=(0.6, 0.7),
+                                   centre_only=True)
+    path = write_video(tmp_path / "centre.avi", frames, fps=10)
+    code = main(["calibrate", "camera", "--source", str(path), "--squares", "5x4", "-o",
+                 str(tmp_path / "c.yaml")])
+    text = capsys.readouterr().out
+    assert code == 3
+    assert "verdict: needs more views" in text
+    assert re.search(r"no corners seen in the image's top-left, top, top-right, left, right, "
+                     r"bottom-left, bottom, bottom-right", text)
+
+
+def test_near_duplicate_views_are_dropped():
+    rng = np.random.default_rng(0)
+    T = next(board_poses(rng, 1))
+    cam, target = SimCamera(TRUTH), board_target(BOARD)
+    detector = cv2.aruco.CharucoDetector(BOARD)
+    views = []
+    for i in range(4):  # the board held still: only the sensor noise changes
+        image = cam.render([SceneObject("b", target, static(T))], 0.0, rng)
+        views.append(cal.detect_view(detector, image, i))
+    kept, duplicates = cal.select_views(views, TRUTH.size)
+    assert (len(kept), duplicates) == (1, 3)
+
+
+def test_bad_calibrate_arguments_say_what_is_wrong(tmp_path, capsys):
+    assert main(["calibrate", "camera", "--source", str(tmp_path / "none.avi")]) == 1
+    assert "neither a device index" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["calibrate", "camera", "--source", "x", "--squares", "9by6"])
+    assert "COLSxROWS" in capsys.readouterr().err
+
+
+def test_printed_png_carries_its_dpi_and_exact_tag_size(tmp_path):
+    dpi = 200.0
+    image = sheet("apriltag36h11", [0, 1, 2], 0.05, dpi=dpi)
+    data = write_png(tmp_path / "tags.png", image, dpi).read_bytes()
+    at = data.index(b"pHYs")
+    ppm_x, ppm_y, unit = struct.unpack(">IIB", data[at + 4:at + 13])
+    assert (ppm_x, ppm_y, unit) == (round(dpi / 0.0254), round(dpi / 0.0254), 1)
+    back = cv2.imread(str(tmp_path / "tags.png"), cv2.IMREAD_GRAYSCALE)
+    corners, ids, _ = cv2.aruco.ArucoDetector(dictionary("apriltag36h11")).detectMarkers(back)
+    assert sorted(ids.ravel().tolist()) == [0, 1, 2]
+    side_px = np.linalg.norm(corners[0][0, 1] - corners[0][0, 0])
+    assert side_px / dpi * 25.4 == pytest.approx(50.0, abs=0.3)  # mm on paper
+
+
+def test_printed_pdf_is_a_page_of_the_sheets_physical_size(tmp_path):
+    image = sheet("aruco4x4_50", [3], 0.04, dpi=100, page="letter")
+    data = write_pdf(tmp_path / "t.pdf", image, 100).read_bytes()
+    assert data.startswith(b"%PDF-1.4") and data.rstrip().endswith(b"%%EOF")
+    box = re.search(rb"/MediaBox \[0 0 ([\d.]+) ([\d.]+)\]", data)
+    assert float(box[1]) == pytest.approx(215.9 / 25.4 * 72, abs=0.5)  # letter, points
+    xref = int(data.rsplit(b"startxref\n", 1)[1].split()[0])
+    offsets = [int(line[:10]) for line in data[xref:].split(b"\n")[3:8]]
+    for n, off in enumerate(offsets, 1):
+        assert data[off:].startswith(b"%d 0 obj" % n)
+    start = data.index(b"stream\n", data.index(b"/Subtype /Image")) + len(b"stream\n")
+    pixels = zlib.decompress(data[start:data.index(b"\nendstream", start)])
+    np.testing.assert_array_equal(np.frombuffer(pixels, np.uint8).reshape(image.shape), image)
