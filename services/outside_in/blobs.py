@@ -1,0 +1,149 @@
+"""Bright blobs of an infrared image as sub-pixel marker centroids.
+
+Thresholding, 8-connected components and the intensity-weighted centroid with its noise
+std are the laser tracker's detector (``services.laser_camera.detection``: it labels only
+the boxes holding bright pixels, and works in windows too); this module adds what markers
+need beyond it: a size range, a roundness test (a retro-reflective ball images as a round
+blob, a reflection on a rail or two touching markers do not), and windows around the
+markers a prediction projects into the image, falling back to the whole frame when a
+window cuts a blob.  Fragments are never merged: two markers close together must stay two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.laser_camera.detection import (
+    AREA,
+    FLUX,
+    DetectorParams,
+    detect_dots,
+    detect_dots_in,
+)
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True)
+class BlobParams:
+    """Thresholds of marker segmentation (DN of an 8-bit image, pixels)."""
+
+    threshold: int = 50           # DN above which a pixel may belong to a marker
+    min_area: int = 3             # pixels: smaller is a hot pixel or noise
+    max_area: int = 600           # pixels: larger is a lamp or a window
+    min_roundness: float = 0.8    # minor / major axis of the blob's intensity moments
+    window_px: int = 10           # half size of a window around a predicted marker
+    dark_level: float = 8.0       # DN of a dark pixel
+    read_noise: float = 2.0       # DN, std of a dark pixel
+    gain: float = 0.15            # DN per electron: shot noise variance = gain * signal
+    floor_px: float = 0.03        # centroid error floor (pixel sampling, blob shape)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.threshold < 255:
+            raise ValueError(f"blob threshold must be in 1..254 DN, got {self.threshold}")
+        if not 1 <= self.min_area <= self.max_area:
+            raise ValueError(f"need 1 <= min_area <= max_area, got {self.min_area}, "
+                             f"{self.max_area}")
+        if not 0 <= self.min_roundness <= 1:
+            raise ValueError(f"min_roundness must be in [0, 1], got {self.min_roundness}")
+        if self.window_px < 2:
+            raise ValueError(f"window_px must be >= 2, got {self.window_px}")
+
+    def detector(self) -> DetectorParams:
+        return DetectorParams(threshold=self.threshold, min_area=self.min_area,
+                              max_area=self.max_area, merge_px=0.0,
+                              dark_level=self.dark_level, read_noise=self.read_noise,
+                              gain=self.gain, floor_px=self.floor_px)
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """Marker candidates of one image: pixel centroids and what was measured of each."""
+
+    uv: Array         # (n, 2) distorted pixels, pixel centres at integers
+    std_px: Array     # (n,) centroid noise std
+    flux: Array       # (n,) summed intensity above the dark level
+    area: Array       # (n,) pixels
+    roundness: Array  # (n,) minor / major axis
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @staticmethod
+    def empty() -> Blobs:
+        z = np.zeros(0)
+        return Blobs(np.zeros((0, 2)), z, z, z, z)
+
+
+def find_blobs(image: Array, params: BlobParams = BlobParams(),
+               predicted_uv: Array | None = None) -> Blobs:
+    """Round bright blobs of ``image``: in windows around ``predicted_uv`` (n, 2) when
+    given, the whole frame when not or when a window cuts a blob."""
+    det = params.detector()
+    rows = None
+    if predicted_uv is not None and len(predicted_uv):
+        r = params.window_px
+        boxes = [(int(u) - r, int(v) - r, int(u) + r + 1, int(v) + r + 1)
+                 for u, v in np.asarray(predicted_uv, float).reshape(-1, 2)
+                 if np.isfinite(u) and np.isfinite(v)]
+        found, whole = detect_dots_in(image, boxes, det)
+        if whole:
+            rows = found
+    if rows is None:
+        rows = detect_dots(image, det)
+    if len(rows) == 0:
+        return Blobs.empty()
+    refined = np.array([_refine(image, row, params) for row in rows]).reshape(-1, 4)
+    keep = refined[:, 3] >= params.min_roundness
+    rows, refined = rows[keep], refined[keep]
+    return Blobs(refined[:, :2].copy(), refined[:, 2].copy(), rows[:, FLUX].copy(),
+                 rows[:, AREA].copy(), refined[:, 3].copy())
+
+
+def _refine(image: Array, row: Array, p: BlobParams) -> list[float]:
+    """Centroid, its std and the roundness of one blob, from its bright pixels and the
+    two-pixel rim around them.
+
+    The detector's centroid weighs only the pixels above the threshold; for a marker of a
+    few pixels that cut depends on where the blob falls within a pixel and biases the
+    centroid by up to a tenth of a pixel.  The rim holds the blob's faint tails, so
+    weighing it in (intensity above the dark level) removes most of that bias at the cost
+    of a little read noise, which the std counts.  Roundness is the minor over major axis
+    of the same intensity moments."""
+    half = int(np.ceil(np.sqrt(row[AREA]))) + 3
+    u, v = round(float(row[0])), round(float(row[1]))
+    h, w = image.shape
+    y0, y1 = max(v - half, 0), min(v + half + 1, h)
+    x0, x1 = max(u - half, 0), min(u + half + 1, w)
+    roi = image[y0:y1, x0:x1]
+    bright = cv2.threshold(roi, p.threshold, 1, cv2.THRESH_BINARY)[1]
+    _, labels = cv2.connectedComponents(bright, connectivity=8)
+    own = labels[min(max(v - y0, 0), y1 - y0 - 1), min(max(u - x0, 0), x1 - x0 - 1)]
+    # own == 0: the centroid fell between the pixels of a ring; take all bright pixels
+    mine = bright if own == 0 else (labels == own).astype(np.uint8)
+    # the rim stops short of other blobs' rims: a neighbour's tail would pull the centroid
+    sel = cv2.dilate(mine, _RIM) & ~cv2.dilate(bright - mine, _RIM) & 1
+    signal = np.subtract(roi, p.dark_level, dtype=np.float64)
+    np.maximum(signal, 0.0, out=signal)
+    signal *= sel
+    m = cv2.moments(signal)
+    flux = m["m00"]
+    if flux <= 0:
+        return [float(row[0]), float(row[1]), np.inf, 0.0]
+    cu, cv_ = m["m10"] / flux, m["m01"] / flux
+    var_i = (signal * p.gain + p.read_noise ** 2) * (sel & (roi < 255))
+    mv = cv2.moments(var_i)
+    r2 = (mv["m20"] + mv["m02"] - 2.0 * (cu * mv["m10"] + cv_ * mv["m01"])
+          + (cu * cu + cv_ * cv_) * mv["m00"])
+    std = float(np.sqrt(0.5 * r2 / flux ** 2 + p.floor_px ** 2))
+    a, b, c = m["mu20"] / flux, m["mu02"] / flux, m["mu11"] / flux
+    root = np.sqrt(max((a - b) ** 2 + 4 * c * c, 0.0))
+    big, small = 0.5 * (a + b + root), 0.5 * (a + b - root)
+    return [x0 + cu, y0 + cv_, std, float(np.sqrt(max(small, 0.0) / big)) if big > 0 else 0.0]
+
+
+#: the rim around a blob's bright pixels that holds its tails
+_RIM = np.ones((5, 5), np.uint8)

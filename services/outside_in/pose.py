@@ -1,0 +1,178 @@
+"""A body's pose from its markers: absolute orientation, then refinement on the images.
+
+The first estimate aligns the body's markers to their triangulated points (Kabsch /
+Umeyama without scale: scipy's ``Rotation.align_vectors``).  The refinement then fits the
+pose to every camera's 2D observation of every identified marker
+(``scipy.optimize.least_squares``, residuals in pixels divided by each centroid's std),
+which weighs each ray by what it measured instead of trusting triangulated points
+equally, and gives the covariance ``(J^T J)^-1`` of the pose.
+
+Observations of cameras exposed at other times than the pose's time ``t`` are moved to it
+with the filter's velocities (``Motion``): the marker a camera saw ``tau`` seconds after
+``t`` stood at ``Exp(omega tau) R m + p + v tau``.  Unsynchronised cameras then refine
+one pose instead of several poses blurred together.
+
+The pose is ``world -> body``: ``x_world = R x_body + p``; the covariance is over
+``[dp, phi]`` with ``R_true = Exp(phi) R`` (geometry's decoupled form).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from agent import geometry as geo
+from services.outside_in.rig import RigCamera
+
+Array = np.ndarray
+
+
+def absolute_orientation(body_points: Array, world_points: Array) -> tuple[Array, Array]:
+    """``(R, p)`` minimising ``sum |R b_i + p - w_i|^2`` (needs 3 or more points)."""
+    b = np.asarray(body_points, float)
+    w = np.asarray(world_points, float)
+    cb, cw = b.mean(axis=0), w.mean(axis=0)
+    rot, _ = Rotation.align_vectors(w - cw, b - cb)
+    R = rot.as_matrix()
+    return R, cw - R @ cb
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Markers of one body seen by one camera: which markers, where (normalised), how
+    well (std in pixels), and when relative to the pose's time."""
+
+    camera: RigCamera
+    markers: Array   # (k,) marker indices
+    xy: Array        # (k, 2) undistorted normalised coordinates
+    std_px: Array    # (k,)
+    dt_s: float = 0.0
+    index: int = -1  # the camera's index in its rig (for the caller's bookkeeping)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Velocities that move observations to the pose's time (world frame)."""
+
+    velocity: Array   # m/s
+    omega: Array      # rad/s
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    p: Array
+    R: Array
+    cov: Array        # (6, 6) over [dp, phi]
+    rms_px: float
+    n_observations: int
+    n_cameras: int
+    errors_px: Array  # (n_observations,) each marker image's distance from the fit, in the
+                      # order of the observations and their markers
+
+    @property
+    def q(self) -> Array:
+        return geo.matrix_to_quat(self.R)
+
+
+def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: Array,
+                motion: Motion | None = None) -> PoseFit | None:
+    """The pose that best explains the observations; None with fewer than 3 markers seen
+    or fewer than 2 cameras (no depth), or when the fit fails."""
+    obs = [o for o in observations if len(o.markers)]
+    cams = len({o.camera.name for o in obs})
+    seen = {int(m) for o in obs for m in o.markers}
+    if cams < 2 or len(seen) < 3:
+        return None
+    m = np.asarray(markers, float)
+    stack = _Stack.of(obs, m, motion)
+    p0 = np.asarray(p0, float)
+    R0 = np.asarray(R0, float)
+    try:
+        sol = least_squares(lambda x: stack.residual(x, p0, R0), np.zeros(6),
+                            jac=lambda x: stack.jacobian(x, p0, R0), method="lm",
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=50)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    p = p0 + sol.x[:3]
+    R = geo.rodrigues(sol.x[3:]) @ R0
+    # the Jacobian at the solution itself, where the perturbation is zero
+    zero = np.zeros(6)
+    J = stack.jacobian(zero, p, R)
+    info = J.T @ J
+    if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e14:
+        return None
+    cov = np.linalg.inv(info)
+    pix = stack.pixels(zero, p, R)
+    return PoseFit(p, R, 0.5 * (cov + cov.T), float(np.sqrt(np.mean(pix ** 2))), len(pix),
+                   cams, pix)
+
+
+def _moved(motion: Motion | None, dt_s: float) -> tuple[Array, Array]:
+    """``Exp(omega dt)`` and ``v dt``: how far the body moved between two exposures."""
+    if motion is None or dt_s == 0.0:
+        return np.eye(3), np.zeros(3)
+    return (geo.rodrigues(np.asarray(motion.omega, float) * dt_s),
+            np.asarray(motion.velocity, float) * dt_s)
+
+
+@dataclass(frozen=True)
+class _Stack:
+    """Every observed marker image of a fit, stacked, with residuals in units of its std."""
+
+    R_cw: Array      # (k, 3, 3)
+    t_cw: Array      # (k, 3)
+    focal: Array     # (k,)
+    body: Array      # (k, 3) marker positions in the body frame
+    xy: Array        # (k, 2)
+    scale: Array     # (k,) focal / std: normalised units -> standard deviations
+    turn: Array      # (k, 3, 3) Exp(omega dt)
+    shift: Array     # (k, 3) v dt
+
+    @staticmethod
+    def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
+        cols: dict[str, list[Array]] = {k: [] for k in
+                                        ("R", "t", "f", "b", "xy", "s", "turn", "shift")}
+        for o in obs:
+            k = len(o.markers)
+            turn, shift = _moved(motion, o.dt_s)
+            f = o.camera.focal_px
+            cols["R"].append(np.broadcast_to(o.camera.R_cw, (k, 3, 3)))
+            cols["t"].append(np.broadcast_to(o.camera.t_cw, (k, 3)))
+            cols["f"].append(np.full(k, f))
+            cols["b"].append(markers[np.asarray(o.markers, int)])
+            cols["xy"].append(np.asarray(o.xy, float).reshape(k, 2))
+            cols["s"].append(f / np.asarray(o.std_px, float))
+            cols["turn"].append(np.broadcast_to(turn, (k, 3, 3)))
+            cols["shift"].append(np.broadcast_to(shift, (k, 3)))
+        c = {k: np.concatenate(v) for k, v in cols.items()}
+        return _Stack(c["R"], c["t"], c["f"], c["b"], c["xy"], c["s"], c["turn"], c["shift"])
+
+    def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:
+        R = geo.rodrigues(x[3:]) @ R0
+        arm = np.einsum("kij,kj->ki", self.turn, self.body @ R.T)   # Exp(omega dt) R m
+        world = arm + p0 + x[:3] + self.shift
+        return np.einsum("kij,kj->ki", self.R_cw, world) + self.t_cw, arm
+
+    def pixels(self, x: Array, p0: Array, R0: Array) -> Array:
+        xc, _ = self._camera_points(x, p0, R0)
+        d = (xc[:, :2] / xc[:, 2:3] - self.xy) * self.focal[:, None]
+        return np.hypot(d[:, 0], d[:, 1])
+
+    def residual(self, x: Array, p0: Array, R0: Array) -> Array:
+        xc, _ = self._camera_points(x, p0, R0)
+        return ((xc[:, :2] / xc[:, 2:3] - self.xy) * self.scale[:, None]).reshape(-1)
+
+    def jacobian(self, x: Array, p0: Array, R0: Array) -> Array:
+        xc, arm = self._camera_points(x, p0, R0)
+        z = xc[:, 2]
+        proj = xc[:, :2] / z[:, None]
+        # d proj / d world (k, 2, 3)
+        dpw = (self.R_cw[:, :2, :] - proj[:, :, None] * self.R_cw[:, 2:3, :]) / z[:, None, None]
+        # d world / d phi = -Exp(omega dt) [R m]x ~ -[arm]x  (left perturbation; omega dt
+        # is a fraction of a degree between two cameras' exposures)
+        dphi = np.einsum("kij,kjl->kil", dpw, -geo.skew(arm))
+        J = np.concatenate([dpw, dphi], axis=2) * self.scale[:, None, None]
+        return J.reshape(-1, 6)

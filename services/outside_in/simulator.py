@@ -1,0 +1,269 @@
+"""A simulated outside-in rig: infrared cameras around a volume, bodies with markers.
+
+What it models, and why:
+
+* **Cameras**: ``n`` cameras on a ring above a 3 x 3 x 2.5 m volume (a typical motion
+  capture room), looking at its centre, 640 x 480 with a mildly distorting wide lens
+  (OpenCV's model: the tracker undistorts exactly as the simulator distorts).  Each may
+  expose with its own phase within the frame period (``synchronized=False``: cheap
+  cameras without a sync cable).
+* **Markers**: retro-reflective balls of 14 mm.  A ball images as a disk of its
+  apparent radius blurred by the lens (``0.5 erfc((d - r) / (sqrt 2 sigma))``), brightest
+  near the camera (the ring light falls off with the square of the distance), saturating
+  at 255.  Pixel noise is the sensor's: shot noise (``gain`` DN per electron) and read
+  noise -- the detector's own noise model (``BlobParams``), so the centroid stds it reports
+  are the truth's.  Fresh noise is drawn in each marker's patch; the rest of the image
+  keeps one frozen noise draw, far below the threshold, where it cannot make a blob.
+* **Occlusion**: each body has a hull (a sphere at its origin, the markers on stalks
+  outside it); a marker whose ray to a camera crosses any hull is hidden.
+* **False blobs**: 5 per camera -- three round reflections the size of a marker, an
+  elongated one (a shiny rail) and a lamp (large and saturated) -- fixed in the image.
+* **Motion**: each body moves on a smooth random path (sums of sinusoids, up to about
+  1 m/s and 90 deg/s) in its own part of the volume.
+
+Everything depends only on ``seed`` and time, so runs repeat.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import erfc
+
+from agent import geometry as geo
+from services.outside_in.bodies import RigidBody
+from services.outside_in.rig import RigCamera, look_at
+
+Array = np.ndarray
+
+WIDTH, HEIGHT = 640, 480
+#: a body's hull radius (m): what hides its own markers and others'
+HULL_M = 0.035
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    n_cameras: int = 6
+    rate_hz: float = 120.0
+    synchronized: bool = True
+    marker_diameter_m: float = 0.014
+    psf_sigma_px: float = 0.6
+    peak_dn_at_2m: float = 230.0
+    dark_level: float = 8.0
+    read_noise: float = 2.0
+    gain: float = 0.15
+    false_blobs: int = 5
+    focal_px: float = 460.0
+    distortion: tuple[float, ...] = (-0.08, 0.03, 0.0, 0.0, 0.0)
+    speed: float = 1.0               # scales the bodies' motion
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.n_cameras <= 16:
+            raise ValueError(f"n_cameras must be 2..16, got {self.n_cameras}")
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
+
+
+def standard_bodies() -> list[RigidBody]:
+    """Three bodies of 4-5 markers whose distance signatures tell them apart."""
+    return [
+        RigidBody("head", np.array([[0.0, 0.0, 0.09], [0.08, 0.02, 0.05], [-0.07, 0.05, 0.04],
+                                    [0.01, -0.10, 0.05], [-0.04, -0.04, 0.085]])),
+        RigidBody("wand", np.array([[0.0, 0.0, 0.06], [0.16, 0.0, 0.04], [0.09, 0.07, 0.04],
+                                    [-0.05, -0.06, 0.05]])),
+        RigidBody("hand", np.array([[0.0, 0.06, 0.05], [0.11, -0.02, 0.05],
+                                    [-0.03, -0.12, 0.06], [-0.09, 0.03, 0.04],
+                                    [0.05, 0.05, 0.07]])),
+    ]
+
+
+def ring_cameras(n: int, config: SimConfig = SimConfig(), seed: int = 0) -> list[RigCamera]:
+    """``n`` cameras around the volume at 2.4-2.8 m height, looking at its centre."""
+    rng = np.random.default_rng(10_000 + seed)
+    f = config.focal_px
+    K = np.array([[f, 0, WIDTH / 2 - 0.5], [0, f, HEIGHT / 2 - 0.5], [0, 0, 1.0]])
+    out = []
+    for i in range(n):
+        a = 2 * np.pi * i / n + np.pi / 4 + rng.uniform(-0.1, 0.1)
+        eye = np.array([2.3 * np.cos(a), 2.3 * np.sin(a), 2.6 + rng.uniform(-0.2, 0.2)])
+        target = np.array([0.0, 0.0, 1.0]) + rng.uniform(-0.2, 0.2, 3)
+        Ki = K.copy()
+        Ki[0, 0] *= 1 + rng.uniform(-0.02, 0.02)
+        Ki[1, 1] = Ki[0, 0] * (1 + rng.uniform(-0.002, 0.002))
+        Ki[:2, 2] += rng.uniform(-4, 4, 2)
+        out.append(RigCamera.of(f"cam{i}", Ki, np.array(config.distortion, float), eye,
+                                look_at(eye, target), WIDTH, HEIGHT))
+    return out
+
+
+@dataclass(frozen=True)
+class _Path:
+    """A smooth random path: centre + sums of sinusoids for position and rotation."""
+
+    centre: Array
+    amp: Array        # (k, 3)
+    freq: Array       # (k,)
+    phase: Array      # (k, 3)
+    rot_amp: Array    # (k, 3)
+    rot_phase: Array  # (k, 3)
+    rot0: Array       # (3,) rotation vector
+
+    def pose(self, t: float) -> tuple[Array, Array]:
+        w = 2 * np.pi * self.freq[:, None] * t
+        p = self.centre + np.sum(self.amp * np.sin(w + self.phase), axis=0)
+        r = np.sum(self.rot_amp * np.sin(w + self.rot_phase), axis=0)
+        q = geo.quat_multiply(geo.rotvec_to_quat(r), geo.rotvec_to_quat(self.rot0))
+        return p, q
+
+
+@dataclass
+class Frame:
+    """One camera's image at its exposure time, with the truth behind it."""
+
+    camera: int
+    t: float
+    image: Array
+    marker_uv: dict[tuple[int, int], Array]   # (body, marker) -> true pixel, visible only
+
+
+@dataclass
+class Simulation:
+    """A rig, its bodies and their motion; renders each camera's frames."""
+
+    seed: int = 1
+    config: SimConfig = field(default_factory=SimConfig)
+    cameras: list[RigCamera] = field(init=False)
+    bodies: list[RigidBody] = field(init=False)
+
+    def __post_init__(self) -> None:
+        cfg = self.config
+        self.cameras = ring_cameras(cfg.n_cameras, cfg, self.seed)
+        self.bodies = standard_bodies()
+        rng = np.random.default_rng(self.seed)
+        self._paths = [self._path(rng, k) for k in range(len(self.bodies))]
+        self._phase = (np.zeros(cfg.n_cameras) if cfg.synchronized
+                       else rng.uniform(0, 1 / cfg.rate_hz, cfg.n_cameras))
+        self._backgrounds = [self._background(rng) for _ in self.cameras]
+        self.hidden: set[int] = set()   # cameras covered (they see nothing but dark)
+
+    def _path(self, rng: np.random.Generator, k: int) -> _Path:
+        a = 2 * np.pi * k / 3 + rng.uniform(-0.3, 0.3)
+        centre = np.array([0.55 * np.cos(a), 0.55 * np.sin(a), 1.2 + 0.2 * k])
+        n = 3
+        s = self.config.speed
+        return _Path(centre, rng.uniform(-0.12, 0.12, (n, 3)) * np.array([1, 1, 0.6]),
+                     rng.uniform(0.15, 0.6, n) * s, rng.uniform(0, 2 * np.pi, (n, 3)),
+                     rng.uniform(-0.35, 0.35, (n, 3)), rng.uniform(0, 2 * np.pi, (n, 3)),
+                     rng.normal(0, 0.4, 3))
+
+    def _background(self, rng: np.random.Generator) -> Array:
+        cfg = self.config
+        img = cfg.dark_level + rng.normal(0, cfg.read_noise, (HEIGHT, WIDTH))
+        yy, xx = np.mgrid[0:HEIGHT, 0:WIDTH]
+        kinds = ["round", "round", "round", "rail", "lamp"][:cfg.false_blobs]
+        kinds += ["round"] * (cfg.false_blobs - len(kinds))
+        for kind in kinds:
+            u, v = rng.uniform(30, WIDTH - 30), rng.uniform(30, HEIGHT - 30)
+            if kind == "round":
+                r = rng.uniform(1.2, 2.2)
+                d = np.hypot(xx - u, yy - v)
+                img += rng.uniform(120, 230) * 0.5 * erfc((d - r) / (np.sqrt(2) * 0.6))
+            elif kind == "rail":
+                ang = rng.uniform(0, np.pi)
+                along = (xx - u) * np.cos(ang) + (yy - v) * np.sin(ang)
+                across = -(xx - u) * np.sin(ang) + (yy - v) * np.cos(ang)
+                d = np.hypot(np.maximum(np.abs(along) - 12, 0), across)
+                img += 200 * 0.5 * erfc((d - 1.5) / (np.sqrt(2) * 0.6))
+            else:
+                d = np.hypot(xx - u, yy - v)
+                img += 400 * 0.5 * erfc((d - 14) / (np.sqrt(2) * 2.0))
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+    # ------------------------------------------------------------------ truth
+
+    def exposure_time(self, camera: int, index: int) -> float:
+        return index / self.config.rate_hz + float(self._phase[camera])
+
+    def body_pose(self, body: int, t: float) -> tuple[Array, Array]:
+        """``world -> body`` at ``t``: position and quaternion."""
+        return self._paths[body].pose(t)
+
+    def marker_positions(self, t: float) -> list[Array]:
+        """Each body's markers in the world at ``t`` ((n_k, 3) each)."""
+        out = []
+        for k, b in enumerate(self.bodies):
+            p, q = self.body_pose(k, t)
+            out.append(geo.quat_rotate(q, b.markers) + p)
+        return out
+
+    def visible(self, camera: int, t: float) -> dict[tuple[int, int], Array]:
+        """``(body, marker) -> world point`` of the markers camera sees at ``t``."""
+        cam = self.cameras[camera]
+        if camera in self.hidden:
+            return {}
+        centres = [self.body_pose(k, t)[0] for k in range(len(self.bodies))]
+        out = {}
+        for k, pts in enumerate(self.marker_positions(t)):
+            vis = cam.visible(pts, margin_px=3)
+            for m in np.nonzero(vis)[0]:
+                if not _blocked(cam.position, pts[m], centres):
+                    out[(k, int(m))] = pts[m]
+        return out
+
+    # ------------------------------------------------------------------ images
+
+    def render(self, camera: int, index: int, rng: np.random.Generator | None = None) -> Frame:
+        """Camera ``camera``'s ``index``-th frame (noise from ``seed``, camera and index)."""
+        cfg = self.config
+        t = self.exposure_time(camera, index)
+        rng = rng or np.random.default_rng([self.seed, camera, index])
+        img = self._backgrounds[camera].astype(np.float64)
+        if camera in self.hidden:
+            img[:] = cfg.dark_level
+            return Frame(camera, t, _to8(img), {})
+        cam = self.cameras[camera]
+        truth = {}
+        vis = self.visible(camera, t)
+        if vis:
+            keys = list(vis)
+            world = np.array([vis[k] for k in keys])
+            uv = cam.project(world)
+            depth = cam.to_camera(world)[:, 2]
+            for key, (u, v), z in zip(keys, uv, depth, strict=True):
+                truth[key] = np.array([u, v])
+                self._splat(img, u, v, z, rng)
+        return Frame(camera, t, _to8(img), truth)
+
+    def _splat(self, img: Array, u: float, v: float, depth: float,
+               rng: np.random.Generator) -> None:
+        """Add one marker's image (with fresh sensor noise) into ``img``."""
+        cfg = self.config
+        r = self.cameras[0].focal_px * cfg.marker_diameter_m / 2 / depth
+        peak = cfg.peak_dn_at_2m * (2.0 / depth) ** 2
+        half = int(np.ceil(r + 4 * cfg.psf_sigma_px)) + 1
+        x0, x1 = max(round(float(u)) - half, 0), min(round(float(u)) + half + 1, WIDTH)
+        y0, y1 = max(round(float(v)) - half, 0), min(round(float(v)) + half + 1, HEIGHT)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        d = np.hypot(xx - u, yy - v)
+        signal = peak * 0.5 * erfc((d - r) / (np.sqrt(2) * cfg.psf_sigma_px))
+        fresh = cfg.dark_level + signal + rng.normal(0, 1, signal.shape) * np.sqrt(
+            cfg.gain * signal + cfg.read_noise ** 2)
+        # a marker over a reflection (or another marker) shows the brighter of the two
+        np.maximum(img[y0:y1, x0:x1], fresh, out=img[y0:y1, x0:x1])
+
+
+def _to8(img: Array) -> Array:
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _blocked(eye: Array, point: Array, centres: list[Array]) -> bool:
+    """Whether the segment eye -> point crosses a hull sphere (before the point)."""
+    d = point - eye
+    L = np.linalg.norm(d)
+    d = d / L
+    for c in centres:
+        s = float(np.dot(c - eye, d))
+        if 0 < s < L - 0.005 and np.linalg.norm(eye + s * d - c) < HULL_M:
+            return True
+    return False

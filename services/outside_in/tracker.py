@@ -1,0 +1,270 @@
+"""One frame set at a time: every camera's blobs in, every body's pose out.
+
+Dorfmüller-Ulhaas §2, fig. 5, with the filter's prediction doing what the paper says it
+is for:
+
+* **Tracked bodies** (the filter runs): each marker's predicted position at each
+  camera's own exposure time is projected into that camera, and the blob nearest it
+  within ``gate_px`` is taken -- unless another blob is nearly as near, or the blob is
+  claimed by another marker (of this body or another): such a blob is used by none.  No
+  search, no triangulation, and no identity can swap: a marker is only ever looked for
+  where its own body predicts it.
+* **Lost bodies**: the blobs nobody took are matched between cameras and triangulated
+  (``triangulation``), each lost body is searched among the points by its distance
+  signature (``bodies``), its pose found by absolute orientation.
+* Either way the pose is then refined against every camera's 2D observations at one
+  time, the newest exposure of the set, with the filter's velocities bringing the other
+  cameras' observations to it (``pose``); observations further than ``outlier_px`` from
+  the fit are dropped one by one.  A pose needs rays from 2 cameras at least.  The fit
+  then updates the filter (``motion``), whose pose and covariance are the output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent import geometry as geo
+from services.outside_in.blobs import Blobs
+from services.outside_in.bodies import RigidBody, identify
+from services.outside_in.motion import MotionConfig, MotionFilter
+from services.outside_in.pose import (
+    Motion,
+    Observation,
+    PoseFit,
+    absolute_orientation,
+    refine_pose,
+)
+from services.outside_in.rig import RigCamera
+from services.outside_in.triangulation import MatchParams, match_and_triangulate
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """The blobs one camera found in one image, and when it was exposed (s)."""
+
+    camera: int
+    t: float
+    blobs: Blobs
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    match: MatchParams = field(default_factory=MatchParams)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    identify_tolerance_m: float = 0.005   # distance signature tolerance when searching
+    gate_px: float = 5.0                  # blob distance to a predicted marker
+    ambiguity_ratio: float = 0.6          # nearest / second nearest blob must be below it
+    outlier_px: float = 1.5               # an observation further from the fit is dropped
+    max_rms_px: float = 1.0               # a fit with a larger rms is refused
+    lost_after: int = 5                   # frame sets without a pose before a new search
+
+
+@dataclass(frozen=True)
+class BodyEstimate:
+    """A body's pose at ``t`` (filtered), with how it was measured."""
+
+    body: str
+    t: float
+    p: Array
+    q: Array
+    cov: Array                  # (6, 6) over [dp, phi] (decoupled)
+    cameras: int                # cameras whose rays the pose was fitted to
+    markers: int                # identified marker images
+    rms_px: float
+    acquired: bool              # found by search this frame set (not by prediction)
+    blobs: dict[int, dict[int, int]]   # camera -> marker -> blob index
+    fit: PoseFit
+
+    @property
+    def cov_se3(self) -> Array:
+        """The covariance over uma's SE(3) left perturbation (for the SRG)."""
+        return geo.decoupled_to_se3(self.p, self.cov)
+
+
+@dataclass
+class _Track:
+    body: RigidBody
+    filter: MotionFilter
+    missed: int = 0
+
+
+class OutsideInTracker:
+    """Tracks rigid bodies with a calibrated rig of marker cameras."""
+
+    def __init__(self, cameras: list[RigCamera], bodies: list[RigidBody],
+                 params: TrackerParams | None = None):
+        if len(cameras) < 2:
+            raise ValueError(f"an outside-in rig needs 2 cameras at least, got {len(cameras)}")
+        self.cameras = list(cameras)
+        self.params = params or TrackerParams()
+        self.tracks = [_Track(b, MotionFilter(self.params.motion)) for b in bodies]
+        self.counts = {"tracked": 0, "acquired": 0, "refused_fit": 0, "refused_filter": 0,
+                       "ambiguous_blobs": 0}
+
+    def process(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
+        """Poses of the bodies found in one set of frames (one per camera at most)."""
+        frames = [f for f in frames if len(f.blobs)]
+        if not frames:
+            self._miss_all(set())
+            return []
+        t_ref = max(f.t for f in frames)
+        norm = {f.camera: self.cameras[f.camera].normalize(f.blobs.uv) for f in frames}
+        claims = self._predicted_claims(frames)
+        used = {cb for mine in claims.values() for cb in mine.values()}
+        out: list[BodyEstimate] = []
+        done: set[int] = set()
+        for k, mine in claims.items():
+            est = self._estimate(self.tracks[k], mine, frames, norm, t_ref, acquired=False)
+            if est is not None:
+                out.append(est)
+                done.add(k)
+        lost = [k for k, tr in enumerate(self.tracks)
+                if k not in done and (not tr.filter.ready or tr.missed >= self.params.lost_after)]
+        if lost:
+            out += self._acquire(lost, frames, norm, used, t_ref, done)
+        self._miss_all(done)
+        return out
+
+    # ---------------------------------------------------------------- association
+
+    def _predicted_claims(self, frames: list[CameraFrame]
+                          ) -> dict[int, dict[tuple[int, int], tuple[int, int]]]:
+        """Per tracked body, ``(camera, marker) -> (camera, blob)`` for every marker whose
+        predicted image has one unambiguous blob; blobs claimed twice go to no one."""
+        p = self.params
+        owners: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
+        for k, track in enumerate(self.tracks):
+            if not track.filter.ready or track.missed >= p.lost_after:
+                continue
+            for f in frames:
+                cam = self.cameras[f.camera]
+                pp, R = track.filter.predicted_pose(f.t)
+                world = track.body.markers @ R.T + pp
+                if not np.all(cam.to_camera(world)[:, 2] > 0.05):
+                    continue
+                d = np.linalg.norm(cam.project(world)[:, None, :] - f.blobs.uv[None, :, :],
+                                   axis=2)
+                order = np.argsort(d, axis=1)
+                for m in range(len(world)):
+                    near = d[m, order[m, 0]]
+                    if near > p.gate_px:
+                        continue
+                    if d.shape[1] > 1 and near > p.ambiguity_ratio * d[m, order[m, 1]]:
+                        self.counts["ambiguous_blobs"] += 1
+                        continue
+                    owners.setdefault((f.camera, int(order[m, 0])), []).append(
+                        (k, f.camera, m))
+        claims: dict[int, dict[tuple[int, int], tuple[int, int]]] = {}
+        for blob, keys in owners.items():
+            if len(keys) > 1:
+                self.counts["ambiguous_blobs"] += len(keys)
+                continue
+            k, c, m = keys[0]
+            claims.setdefault(k, {})[(c, m)] = blob
+        return claims
+
+    # ---------------------------------------------------------------- estimation
+
+    def _estimate(self, track: _Track, marker_blobs: dict[tuple[int, int], tuple[int, int]],
+                  frames: list[CameraFrame], norm: dict[int, Array], t_ref: float,
+                  acquired: bool, start: tuple[Array, Array] | None = None
+                  ) -> BodyEstimate | None:
+        """Refine the body's pose on ``(camera, marker) -> (camera, blob)`` and update
+        its filter; None (counted) when the fit or the filter refuses it."""
+        p = self.params
+        times = {f.camera: f.t for f in frames}
+        blobs = {f.camera: f.blobs for f in frames}
+        pairs = dict(marker_blobs)
+        if start is None:
+            p0, R0 = track.filter.predicted_pose(t_ref)
+            motion = Motion(track.filter.v, track.filter.omega)
+        else:
+            (p0, R0), motion = start, None
+        fit = None
+        while True:
+            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref)
+            fit = refine_pose(track.body.markers, obs, p0, R0, motion)
+            if fit is None:
+                break
+            worst, err = _worst(fit, obs)
+            if err <= p.outlier_px:
+                break
+            del pairs[worst]
+        if fit is None or fit.rms_px > p.max_rms_px:
+            self.counts["refused_fit"] += 1
+            return None
+        if not track.filter.update(t_ref, fit.p, fit.R, fit.cov):
+            self.counts["refused_filter"] += 1
+            return None
+        self.counts["acquired" if acquired else "tracked"] += 1
+        track.missed = -1          # counted up to 0 at the end of the frame set
+        by_cam: dict[int, dict[int, int]] = {}
+        for (c, m), (_, b) in pairs.items():
+            by_cam.setdefault(c, {})[m] = b
+        f = track.filter
+        return BodyEstimate(track.body.name, t_ref, f.p.copy(), geo.matrix_to_quat(f.R),
+                            f.pose_covariance, fit.n_cameras, fit.n_observations, fit.rms_px,
+                            acquired, by_cam, fit)
+
+    def _acquire(self, lost: list[int], frames: list[CameraFrame], norm: dict[int, Array],
+                 used: set[tuple[int, int]], t_ref: float, done: set[int]
+                 ) -> list[BodyEstimate]:
+        """Search the lost bodies among the points triangulated from unclaimed blobs."""
+        cams = sorted(norm)
+        keep = [[b for b in range(len(norm[c])) if (c, b) not in used] for c in cams]
+        free = [norm[c][kb] for c, kb in zip(cams, keep, strict=True)]
+        points = match_and_triangulate([self.cameras[c] for c in cams], free,
+                                       self.params.match)
+        if len(points) < 3:
+            return []
+        X = np.array([q.X for q in points])
+        taken: set[int] = set()
+        out = []
+        for k in lost:
+            track = self.tracks[k]
+            ident = identify(track.body, X, self.params.identify_tolerance_m, exclude=taken)
+            if ident is None:
+                continue
+            idx = [(m, i) for m, i in enumerate(ident.points) if i >= 0]
+            R0, p0 = absolute_orientation(track.body.markers[[m for m, _ in idx]],
+                                          X[[i for _, i in idx]])
+            pairs = {(cams[ci], m): (cams[ci], keep[ci][b])
+                     for m, i in idx for ci, b in points[i].views}
+            track.filter.reset()           # a new track: no motion to carry over
+            est = self._estimate(track, pairs, frames, norm, t_ref, acquired=True,
+                                 start=(p0, R0))
+            if est is not None:
+                taken.update(i for _, i in idx)
+                done.add(k)
+                out.append(est)
+        return out
+
+    def _miss_all(self, done: set[int]) -> None:
+        for k, track in enumerate(self.tracks):
+            track.missed = 0 if k in done else track.missed + 1
+
+
+def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[RigCamera],
+                  norm: dict[int, Array], blobs: dict[int, Blobs], times: dict[int, float],
+                  t_ref: float) -> list[Observation]:
+    by_cam: dict[int, list[tuple[int, int]]] = {}
+    for (c, m), (_, b) in pairs.items():
+        by_cam.setdefault(c, []).append((m, b))
+    out = []
+    for c, mb in sorted(by_cam.items()):
+        m = np.array([x for x, _ in mb])
+        b = np.array([y for _, y in mb])
+        out.append(Observation(cameras[c], m, norm[c][b], blobs[c].std_px[b], times[c] - t_ref,
+                               index=c))
+    return out
+
+
+def _worst(fit: PoseFit, obs: list[Observation]) -> tuple[tuple[int, int], float]:
+    """The observation furthest from the fitted pose: ``(camera, marker)`` and pixels."""
+    keys = [(o.index, int(m)) for o in obs for m in o.markers]
+    i = int(np.argmax(fit.errors_px))
+    return keys[i], float(fit.errors_px[i])

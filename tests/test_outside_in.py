@@ -1,0 +1,263 @@
+"""The outside-in tracker's parts on small synthetic problems with known answers:
+blob centroids, triangulation and matching with false blobs, body identification, pose by
+absolute orientation and refinement (its covariance against Monte Carlo), the motion
+filter, and the whole tracker on a few simulated frame sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import erfc
+from scipy.stats import chi2
+
+from agent import geometry as geo
+from agent.errors import UmaError
+from services.fusion.predictor import motion_matrices
+from services.outside_in.blobs import BlobParams, find_blobs
+from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
+from services.outside_in.motion import MotionFilter
+from services.outside_in.pose import Observation, absolute_orientation, refine_pose
+from services.outside_in.rig import RigCamera, look_at
+from services.outside_in.simulator import SimConfig, Simulation, standard_bodies
+from services.outside_in.tracker import CameraFrame, OutsideInTracker
+from services.outside_in.triangulation import (
+    match_and_triangulate,
+    refine_point,
+    triangulate_dlt,
+)
+
+K = np.array([[460.0, 0, 319.5], [0, 460.0, 239.5], [0, 0, 1]])
+DIST = np.array([-0.08, 0.03, 0.0, 0.0, 0.0])
+
+
+def rig(n: int = 4) -> list[RigCamera]:
+    out = []
+    for i in range(n):
+        a = 2 * np.pi * i / n + 0.3
+        eye = np.array([2.3 * np.cos(a), 2.3 * np.sin(a), 2.5])
+        out.append(RigCamera.of(f"c{i}", K, DIST, eye, look_at(eye, [0, 0, 1.0])))
+    return out
+
+
+def blob_image(centres: list[tuple[float, float]], radius: float = 1.5,
+               peak: float = 200.0, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:480, 0:640]
+    signal = np.zeros((480, 640))
+    for u, v in centres:
+        d = np.hypot(xx - u, yy - v)
+        signal += peak * 0.5 * erfc((d - radius) / (np.sqrt(2) * 0.6))
+    # the sensor of BlobParams' noise model: shot noise (0.15 DN per electron), read noise
+    img = 8.0 + signal + rng.normal(0, 1, signal.shape) * np.sqrt(0.15 * signal + 4.0)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+# ------------------------------------------------------------------------ blobs
+
+def test_blob_centroids_are_sub_pixel_and_their_std_is_honest() -> None:
+    rng = np.random.default_rng(3)
+    centres = [(100 + 40 * i + rng.uniform(), 200 + rng.uniform()) for i in range(10)]
+    errors, stds = [], []
+    for seed in range(8):
+        # no floor: the std is then the sensor noise alone, which the errors must match
+        blobs = find_blobs(blob_image(centres, seed=seed), BlobParams(floor_px=0.0))
+        assert len(blobs) == 10
+        order = np.argsort(blobs.uv[:, 0])
+        errors.append(blobs.uv[order] - np.array(centres))
+        stds.append(blobs.std_px[order])
+    e = np.concatenate(errors)
+    s = np.concatenate(stds)
+    assert np.sqrt(np.mean(e ** 2)) < 0.06
+    assert 0.7 < np.sqrt(np.mean((e / s[:, None]) ** 2)) < 1.4
+
+
+def test_elongated_and_huge_blobs_are_refused() -> None:
+    img = blob_image([(300.0, 240.0)])
+    img[100:103, 100:130] = 200        # a rail's reflection: long and thin
+    img[300:340, 400:440] = 255        # a lamp: too large
+    blobs = find_blobs(img)
+    assert len(blobs) == 1
+    assert np.allclose(blobs.uv[0], [300.0, 240.0], atol=0.1)
+
+
+def test_windows_find_what_the_whole_frame_finds() -> None:
+    img = blob_image([(200.3, 150.7), (420.6, 330.2), (50.0, 60.0)])
+    whole = find_blobs(img)
+    near = find_blobs(img, predicted_uv=np.array([[201, 150], [419, 331]]))
+    assert len(whole) == 3 and len(near) == 2
+    for uv in near.uv:
+        assert np.min(np.linalg.norm(whole.uv - uv, axis=1)) < 1e-9
+
+
+def test_blob_params_refuse_nonsense() -> None:
+    with pytest.raises(ValueError, match="threshold"):
+        BlobParams(threshold=300)
+    with pytest.raises(ValueError, match="min_area"):
+        BlobParams(min_area=10, max_area=5)
+
+
+# ------------------------------------------------------------------------ triangulation
+
+def test_dlt_and_refinement_recover_a_point() -> None:
+    cams = rig(3)
+    X = np.array([0.2, -0.1, 1.3])
+    obs = np.array([c.normalize(c.project(X))[0] for c in cams])
+    P = np.array([c.projection for c in cams])
+    assert np.allclose(triangulate_dlt(P[None], obs[None])[0], X, atol=1e-9)
+    R = np.array([c.R_cw for c in cams])
+    t = np.array([c.t_cw for c in cams])
+    f = np.array([c.focal_px for c in cams])
+    Xr, res, J = refine_point(R, t, obs, f, X + 0.01)
+    assert np.allclose(Xr, X, atol=1e-9) and np.all(res < 1e-6) and J.shape == (6, 3)
+
+
+def test_matching_finds_every_marker_and_no_false_point_among_false_blobs() -> None:
+    rng = np.random.default_rng(1)
+    cams = rig(5)
+    points = rng.uniform([-0.6, -0.6, 0.8], [0.6, 0.6, 1.8], (12, 3))
+    obs = []
+    for c in cams:
+        uv = c.project(points) + rng.normal(0, 0.05, (12, 2))
+        false = rng.uniform([20, 20], [620, 460], (5, 2))
+        obs.append(c.normalize(np.vstack([uv, false])[rng.permutation(17)]))
+    found = match_and_triangulate(cams, obs)
+    strong = [q for q in found if len(q.views) >= 3]
+    assert len(strong) == 12
+    for q in strong:
+        assert np.min(np.linalg.norm(points - q.X, axis=1)) < 0.001
+    assert len({v for q in found for v in q.views}) == sum(len(q.views) for q in found)
+
+
+# ------------------------------------------------------------------------ bodies
+
+def test_identification_finds_a_body_with_ghosts_and_a_missing_marker() -> None:
+    rng = np.random.default_rng(2)
+    body = standard_bodies()[0]
+    q = geo.rotvec_to_quat([0.3, -0.5, 1.0])
+    world = geo.quat_rotate(q, body.markers) + np.array([0.1, 0.2, 1.4])
+    cloud = np.vstack([world[[0, 1, 3, 4]] + rng.normal(0, 3e-4, (4, 3)),
+                       rng.uniform([-1, -1, 0.5], [1, 1, 2], (15, 3))])
+    perm = rng.permutation(len(cloud))
+    ident = identify(body, cloud[perm], 0.004)
+    assert ident is not None and ident.found == 4
+    inverse = np.argsort(perm)
+    assert [ident.points[m] for m in (0, 1, 3, 4)] == [inverse[i] for i in range(4)]
+    assert ident.points[2] == -1
+
+
+def test_a_symmetric_body_is_ambiguous_and_refused() -> None:
+    square = RigidBody("square", np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0],
+                                           [0, 0.1, 0.0]]))
+    assert identify(square, square.markers + np.array([1, 0, 1]), 0.003) is None
+
+
+def test_the_standard_bodies_are_distinguishable_and_a_copy_is_not() -> None:
+    bodies = standard_bodies()
+    for a in bodies:
+        for b in bodies:
+            if a is not b:
+                assert distinguishable(a, b, 0.0005), (a.name, b.name)
+    twin = RigidBody("twin", bodies[0].markers[:4] + 0.0001)
+    assert not distinguishable(bodies[0], twin, 0.0005)
+
+
+def test_bodies_file_errors_name_what_is_wrong(tmp_path) -> None:
+    with pytest.raises(UmaError, match="does not exist"):
+        load_bodies(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[body]\nname=")
+    with pytest.raises(UmaError, match="not valid TOML"):
+        load_bodies(bad)
+    few = tmp_path / "few.toml"
+    few.write_text('[[body]]\nname = "a"\nmarkers = [[0, 0, 0], [0.1, 0, 0]]\n')
+    with pytest.raises(UmaError, match="3 to 12"):
+        load_bodies(few)
+    good = tmp_path / "good.toml"
+    good.write_text('[[body]]\nname = "a"\nmarkers = [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]\n')
+    assert load_bodies(good)[0].name == "a"
+
+
+# ------------------------------------------------------------------------ pose
+
+def test_absolute_orientation_is_exact() -> None:
+    body = standard_bodies()[1]
+    R = geo.rodrigues(np.array([0.4, 0.2, -0.9]))
+    p = np.array([0.3, -0.2, 1.1])
+    R_est, p_est = absolute_orientation(body.markers, body.markers @ R.T + p)
+    assert np.allclose(R_est, R, atol=1e-12) and np.allclose(p_est, p, atol=1e-12)
+
+
+def test_refined_pose_covariance_matches_its_errors() -> None:
+    """Monte Carlo: the mean NEES of the refined pose lies in its 95 % band."""
+    rng = np.random.default_rng(7)
+    cams = rig(4)
+    body = standard_bodies()[0]
+    R = geo.rodrigues(np.array([0.2, -0.3, 0.5]))
+    p = np.array([0.1, 0.0, 1.3])
+    world = body.markers @ R.T + p
+    std = 0.05
+    nees = []
+    for _ in range(300):
+        obs = [Observation(c, np.arange(5), c.normalize(c.project(world)
+                                                        + rng.normal(0, std, (5, 2))),
+                           np.full(5, std)) for c in cams]
+        start = geo.rodrigues(np.array([0.01, 0, 0])) @ R
+        fit = refine_pose(body.markers, obs, p + 0.002, start)
+        assert fit is not None and fit.n_cameras == 4
+        e = np.concatenate([p - fit.p, geo.rodrigues_inverse(R @ fit.R.T)])
+        nees.append(e @ np.linalg.solve(fit.cov, e))
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * 300) / 300
+    assert lo < np.mean(nees) < hi
+
+
+def test_no_pose_from_one_camera() -> None:
+    cams = rig(2)
+    body = standard_bodies()[0]
+    world = body.markers + np.array([0, 0, 1.2])
+    obs = [Observation(cams[0], np.arange(5), cams[0].normalize(cams[0].project(world)),
+                       np.full(5, 0.05))]
+    assert refine_pose(body.markers, obs, np.array([0, 0, 1.2]), np.eye(3)) is None
+
+
+# ------------------------------------------------------------------------ filter
+
+def test_motion_filter_learns_a_screw_motion_and_predicts_it() -> None:
+    omega = np.array([0.0, 0.0, 1.0])
+    v = np.array([0.3, 0.0, 0.1])
+    f = MotionFilter()
+    cov = np.diag([1e-8] * 3 + [1e-7] * 3)
+    p, R = np.array([0.0, 0.0, 1.0]), np.eye(3)
+    for k in range(60):
+        f.update(k / 120, p, R, cov)
+        W, V, _ = motion_matrices(omega, 1 / 120)
+        p, R, v = p + V @ v, W @ R, W @ v
+    p_pred, R_pred, _ = f.predicted(60 / 120)
+    assert np.linalg.norm(p_pred - p) < 2e-4
+    assert np.linalg.norm(geo.rodrigues_inverse(R_pred @ R.T)) < 1e-3
+    assert np.allclose(f.omega, omega, atol=0.05)
+    # an outlier is refused, the prediction kept
+    assert not f.update(60 / 120, p + 0.05, R, cov)
+    assert f.refused_in_row == 1
+
+
+# ------------------------------------------------------------------------ tracker
+
+def test_tracker_follows_three_bodies_on_simulated_frames() -> None:
+    sim = Simulation(seed=3, config=SimConfig(n_cameras=4))
+    tracker = OutsideInTracker(sim.cameras, sim.bodies)
+    names = [b.name for b in sim.bodies]
+    errors: dict[str, list[float]] = {n: [] for n in names}
+    for i in range(24):
+        frames = []
+        for c in range(4):
+            fr = sim.render(c, i)
+            frames.append(CameraFrame(c, fr.t, find_blobs(fr.image)))
+        for est in tracker.process(frames):
+            assert est.cameras >= 2
+            p, q = sim.body_pose(names.index(est.body), est.t)
+            dp, da = geo.pose_error(est.p, est.q, p, q)
+            errors[est.body].append(dp)
+            assert da < np.radians(1.0)
+    for n in names:
+        assert len(errors[n]) >= 20, n
+        assert np.sqrt(np.mean(np.square(errors[n]))) < 0.001, n
