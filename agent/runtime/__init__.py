@@ -6,6 +6,7 @@ a command) and a long-running command may use; the modules behind them are inter
 
 - plug-in declarations: :class:`ServicePlugin`, :class:`EvalPlugin`, :class:`CommandPlugin`
   and :func:`add_network_arguments` (``--realm``, ``--connect``, ``--listen``);
+  :func:`load_all`: every plug-in of an entry-point group (a command's own subcommands);
 - :func:`stop_on_signals`: an event set on SIGINT/SIGTERM; :func:`stop_processes`: end
   children by PID;
 - sessions: :func:`open_session`, :func:`close_session`, :func:`sdk_mode` (client or peer
@@ -20,13 +21,14 @@ from agent._lazy import lazy_attributes
 
 __all__ = ["CommandPlugin", "EvalPlugin", "RateLimitedLog", "ServicePlugin",
            "add_network_arguments", "close_session", "guarded", "lease_ms_default",
-           "open_session", "query", "sdk_mode", "stop_on_signals", "stop_processes"]
+           "load_all", "open_session", "query", "sdk_mode", "stop_on_signals", "stop_processes"]
 
 __getattr__ = lazy_attributes(__name__, {
     "CommandPlugin": "agent.runtime.plugins",
     "EvalPlugin": "agent.runtime.plugins",
     "ServicePlugin": "agent.runtime.plugins",
     "add_network_arguments": "agent.runtime.plugins",
+    "load_all": "agent.runtime.plugins",
     "RateLimitedLog": "agent.runtime.logs",
     "guarded": "agent.runtime.callbacks",
     "close_session": "agent.runtime.session",

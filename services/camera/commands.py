@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import argparse
 
-from agent.runtime import plugins
-from agent.runtime.plugins import CommandPlugin
+from agent.runtime import CommandPlugin, load_all
 
 CALIBRATE_GROUP = "uma.calibrate"
 
@@ -141,7 +140,7 @@ CALIBRATE = CommandPlugin(
     description="Calibration commands; each is a plug-in of the 'uma.calibrate' entry-point "
                 "group.",
     add_arguments=lambda p: _subcommands(p, "calibrate_what",
-                                         plugins.load_all(CALIBRATE_GROUP)),
+                                         load_all(CALIBRATE_GROUP)),
     run="services.camera.cli:missing_subcommand")
 
 MARKERS = CommandPlugin(
