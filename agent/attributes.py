@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 
 #: attributes an edge may carry
 EDGE_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
@@ -37,10 +38,10 @@ _POSITIVE = ("frequency_hz", "ttl_s")
 
 def _number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ValueError(f"attribute {name}: expected a number, got {value!r}")
+        raise InvalidInputError(f"attribute {name}: expected a number, got {value!r}")
     v = float(value)
     if not math.isfinite(v):
-        raise ValueError(f"attribute {name}: must be finite, got {v!r}")
+        raise InvalidInputError(f"attribute {name}: must be finite, got {v!r}")
     return v
 
 
@@ -51,26 +52,26 @@ def check_attributes(attrs: Mapping[str, Any]) -> dict[str, Any]:
     """
     unknown = sorted(set(attrs) - set(EDGE_ATTRIBUTES))
     if unknown:
-        raise ValueError(f"unknown edge attribute(s) {', '.join(unknown)}; known: "
-                         f"{', '.join(EDGE_ATTRIBUTES)}")
+        raise InvalidInputError(f"unknown edge attribute(s) {', '.join(unknown)}; known: "
+                                f"{', '.join(EDGE_ATTRIBUTES)}")
     out: dict[str, Any] = {}
     for name, value in attrs.items():
         if value is None:
             continue
         if name == "static":
             if not isinstance(value, (bool, np.bool_)):
-                raise ValueError(f"attribute static: expected true/false, got {value!r}")
+                raise InvalidInputError(f"attribute static: expected true/false, got {value!r}")
             out[name] = bool(value)
         elif name == "covariance":
             out[name] = geo.check_covariance(value, "attribute covariance")
         else:
             v = _number(name, value)
             if name in _NONNEGATIVE and v < 0:
-                raise ValueError(f"attribute {name}: must be >= 0, got {v:g}")
+                raise InvalidInputError(f"attribute {name}: must be >= 0, got {v:g}")
             if name in _POSITIVE and v <= 0:
-                raise ValueError(f"attribute {name}: must be > 0, got {v:g}")
+                raise InvalidInputError(f"attribute {name}: must be > 0, got {v:g}")
             if name == "confidence" and not 0.0 <= v <= 1.0:
-                raise ValueError(f"attribute confidence: must be in [0, 1], got {v:g}")
+                raise InvalidInputError(f"attribute confidence: must be in [0, 1], got {v:g}")
             out[name] = v
     return out
 

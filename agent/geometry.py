@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from schemas.quaternion import QUAT_NORM_TOL
 
 Array = np.ndarray
@@ -43,14 +44,14 @@ def _finite(x: Any, name: str, shape_tail: tuple[int, ...]) -> Array:
     try:
         a = np.asarray(x, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: not a numeric array ({exc})") from None
+        raise InvalidInputError(f"{name}: not a numeric array ({exc})") from None
     if a.shape[a.ndim - len(shape_tail):] != shape_tail or a.ndim < len(shape_tail):
-        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), "
-                         f"got {a.shape}")
+        raise InvalidInputError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), "
+                                f"got {a.shape}")
     if not np.all(np.isfinite(a)):
         bad = np.argwhere(~np.isfinite(a))[0]
         index = tuple(int(i) for i in bad)  # plain ints: numpy 2 reprs would say np.int64(2)
-        raise ValueError(f"{name}: non-finite value {float(a[index])!r} at index {index}")
+        raise InvalidInputError(f"{name}: non-finite value {float(a[index])!r} at index {index}")
     return a
 
 
@@ -86,8 +87,9 @@ def check_quaternion(q: Any, name: str = "quaternion", tol: float = QUAT_NORM_TO
     off = np.abs(n - 1.0)
     if np.any(off > tol):
         worst = float(np.max(off))
-        raise ValueError(f"{name}: not a unit quaternion (norm {float(n.flat[np.argmax(off)]):.6g}"
-                         f", off by {worst:.3g} > tolerance {tol:g}); quaternions are x, y, z, w")
+        norm = float(n.flat[np.argmax(off)])
+        raise InvalidInputError(f"{name}: not a unit quaternion (norm {norm:.6g}, off by "
+                                f"{worst:.3g} > tolerance {tol:g}); quaternions are x, y, z, w")
     return a / n[..., None]
 
 
@@ -96,12 +98,12 @@ def check_rotation_matrix(R: Any, name: str = "rotation") -> Array:
     a = _finite(R, name, (3, 3))
     err = np.abs(np.swapaxes(a, -1, -2) @ a - np.eye(3)).max()
     if err > ROT_ORTHO_TOL:
-        raise ValueError(f"{name}: not orthonormal "
-                         f"(max |R^T R - I| = {err:.3g} > {ROT_ORTHO_TOL:g})")
+        raise InvalidInputError(f"{name}: not orthonormal "
+                                f"(max |R^T R - I| = {err:.3g} > {ROT_ORTHO_TOL:g})")
     det = np.linalg.det(a)
     if np.any(det < 0):
-        raise ValueError(f"{name}: determinant {float(np.min(det)):.3g} < 0, a reflection, "
-                         "not a rotation")
+        raise InvalidInputError(f"{name}: determinant {float(np.min(det)):.3g} < 0, a reflection, "
+                                "not a rotation")
     return a
 
 
@@ -110,7 +112,7 @@ def check_matrix(T: Any, name: str = "transform") -> Array:
     a = _finite(T, name, (4, 4))
     bottom = a[..., 3, :]
     if np.abs(bottom - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
-        raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {bottom.tolist()}")
+        raise InvalidInputError(f"{name}: last row must be [0, 0, 0, 1], got {bottom.tolist()}")
     check_rotation_matrix(a[..., :3, :3], f"{name} rotation block")
     return a
 
@@ -119,13 +121,14 @@ def check_covariance(C: Any, name: str = "covariance", dim: int = 6) -> Array:
     """A finite, symmetric, positive semi-definite (dim, dim) matrix."""
     a = _finite(C, name, (dim, dim))
     if a.ndim != 2:
-        raise ValueError(f"{name}: expected one ({dim}, {dim}) matrix, got shape {a.shape}")
+        raise InvalidInputError(f"{name}: expected one ({dim}, {dim}) matrix, got shape {a.shape}")
     scale = max(1.0, float(np.abs(a).max()))
     if np.abs(a - a.T).max() > 1e-9 * scale:
-        raise ValueError(f"{name}: not symmetric")
+        raise InvalidInputError(f"{name}: not symmetric")
     w = np.linalg.eigvalsh(a)
     if w[0] < -1e-9 * scale:
-        raise ValueError(f"{name}: not positive semi-definite (smallest eigenvalue {w[0]:.3g})")
+        raise InvalidInputError(f"{name}: not positive semi-definite (smallest eigenvalue "
+                                f"{w[0]:.3g})")
     return a
 
 

@@ -166,3 +166,32 @@ def test_protocol_and_srg_depend_only_on_schemas_and_the_pure_modules() -> None:
                              if n.startswith("agent") and n not in pure
                              and not n.startswith(f"agent.{package}")]
     assert offences == []
+
+
+def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() -> None:
+    """One ``except UmaError`` catches what the SDK raises at its user; code that catches
+    the builtin base (``ValueError``, ``LookupError``, ``TimeoutError``) still does."""
+    import pytest
+
+    from agent import Graph, UmaError
+    from agent import geometry as geo
+    from agent.errors import InvalidInputError, NotFoundError, UmaTimeoutError
+    from agent.sdk.planner import RouteError, SegmentError
+    from agent.sdk.query import check_time
+    from agent.srg import errors
+
+    for cls, base in ((InvalidInputError, ValueError), (NotFoundError, LookupError),
+                      (UmaTimeoutError, TimeoutError), (errors.SrgLookupError, LookupError),
+                      (errors.BadErrorFunctionError, ValueError), (RouteError, LookupError),
+                      (SegmentError, LookupError)):
+        assert issubclass(cls, UmaError) and issubclass(cls, base), cls
+    g = Graph()
+    g.add_static("a/w", "a/b", [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    with pytest.raises(UmaError, match="unknown frame 'a/x'"):
+        g.pose("a/w", "a/x")
+    with pytest.raises(UmaError, match="error function"):
+        g.pose("a/w", "a/b", error="no such thing +")
+    with pytest.raises(UmaError, match="not a unit quaternion"):
+        geo.check_quaternion([0.0, 0.0, 0.0, 2.0])
+    with pytest.raises(UmaError, match="integer ns"):
+        check_time(1.5)

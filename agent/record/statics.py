@@ -101,7 +101,7 @@ class StaticEdges:
             for child in frames:
                 if parent == child or self._stop.is_set():
                     continue
-                with contextlib.suppress(UmaError, ValueError, LookupError, TimeoutError):
+                with contextlib.suppress(UmaError):
                     r = self._client.pose(parent, child, error="hops")
                     e = r.edges[0] if len(r.edges) == 1 else {}
                     if (r.attributes.get("static") and e.get("forward")

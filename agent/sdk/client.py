@@ -59,6 +59,7 @@ from typing import Any
 
 import zenoh
 
+from agent.errors import InvalidInputError
 from agent.protocol import keys
 from agent.result import PoseResult
 from agent.runtime.session import acquire_session, release_session, sdk_mode
@@ -84,7 +85,7 @@ class Client:
                  shared: bool = True, zenoh_config: str | None = None) -> None:
         keys.check_name("realm", realm)
         if not timeout > 0:
-            raise ValueError(f"timeout must be > 0 s, got {timeout!r}")
+            raise InvalidInputError(f"timeout must be > 0 s, got {timeout!r}")
         self.realm = realm
         self.timeout = float(timeout)
         self.connect = list(connect)
@@ -175,7 +176,7 @@ class Client:
         route silent for ``stall_s`` is reported as stalled (module docstring).  Raises like
         :meth:`pose` if there is no route to begin with."""
         if not callable(on_pose):
-            raise ValueError("on_pose must be callable")
+            raise InvalidInputError("on_pose must be callable")
         return self._mirror(source, target, on_pose, error, on_error, stall_s, 5.0)
 
     def keep(self, source: str, target: str, buffer_s: float = 10.0,
@@ -187,8 +188,8 @@ class Client:
         ``close()`` ends it.  Raises like :meth:`pose` if there is no route to begin with."""
         if not (isinstance(buffer_s, int | float) and math.isfinite(buffer_s)
                 and buffer_s > 0):
-            raise ValueError(f"buffer_s must be a positive number of seconds, got "
-                             f"{buffer_s!r}")
+            raise InvalidInputError(f"buffer_s must be a positive number of seconds, got "
+                                    f"{buffer_s!r}")
         return self._mirror(source, target, None, error, on_error, stall_s, float(buffer_s))
 
     def _mirror(self, source: str, target: str,
@@ -197,11 +198,11 @@ class Client:
                 buffer_s: float) -> Subscription:
         """A subscription (``on_pose`` None: a kept route), registered for ``pose``."""
         if on_error is not None and not callable(on_error):
-            raise ValueError("on_error must be callable or None")
+            raise InvalidInputError("on_error must be callable or None")
         if stall_s is not None and not (isinstance(stall_s, int | float)
                                         and math.isfinite(stall_s) and stall_s > 0):
-            raise ValueError(f"stall_s must be a positive number of seconds or None, got "
-                             f"{stall_s!r}")
+            raise InvalidInputError(f"stall_s must be a positive number of seconds or None, got "
+                                    f"{stall_s!r}")
         seen = self.topology
         first = self.queries.ask(source, target, None, error, details=True)
         sub = Subscription(self.queries, source, target, on_pose, error, on_error, first, seen,

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from agent.protocol import keys
 from agent.protocol import query as proto
 from agent.result import PoseResult
@@ -70,7 +70,7 @@ def check_time(at: Any) -> int | None:
     if at is None:
         return None
     if isinstance(at, bool) or not isinstance(at, (int, np.integer)):
-        raise ValueError(f"at must be integer ns since the epoch or None, got {at!r}")
+        raise InvalidInputError(f"at must be integer ns since the epoch or None, got {at!r}")
     return int(at)
 
 

@@ -50,7 +50,7 @@ from typing import Any
 import zenoh
 from pydantic import ValidationError
 
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError, UmaTimeoutError
 from agent.protocol import keys
 from agent.protocol.registration import (
     Match,
@@ -113,7 +113,7 @@ def _checked(model: type, what: str, **fields: Any) -> Any:
     try:
         return model(**fields)
     except ValidationError as exc:
-        raise ValueError(f"{what}: {validation_summary(exc)}") from None
+        raise InvalidInputError(f"{what}: {validation_summary(exc)}") from None
 
 
 class AbilityHandle:
@@ -266,8 +266,8 @@ class Service:
                       attributes=attributes)
         with self._lock:
             if name in self._abilities:
-                raise ValueError(f"service {self.service_id!r} already has an ability "
-                                 f"named {name!r}")
+                raise InvalidInputError(f"service {self.service_id!r} already has an ability "
+                                        f"named {name!r}")
             handle = AbilityHandle(self, ab)
             self._abilities[name] = handle
             self._revision += 1
@@ -284,11 +284,11 @@ class Service:
         need = _checked(Need, f"need {name!r}", name=name, type=type, edge=tuple(edge),
                         where=where, prefer=prefer, min_count=min_count, max_count=max_count)
         if on_sample is not None and not callable(on_sample):
-            raise ValueError(f"need {name!r}: on_sample must be callable")
+            raise InvalidInputError(f"need {name!r}: on_sample must be callable")
         with self._lock:
             if name in self._needs:
-                raise ValueError(f"service {self.service_id!r} already has a need named "
-                                 f"{name!r}")
+                raise InvalidInputError(f"service {self.service_id!r} already has a need named "
+                                        f"{name!r}")
             handle = NeedHandle(need, on_sample)
             self._needs[name] = handle
             self._revision += 1
@@ -459,8 +459,8 @@ class Service:
                 left = deadline - time.monotonic()
                 if left <= 0 or self.closed:
                     have = ", ".join(m.key for m in handle.matches) or "nothing"
-                    raise TimeoutError(f"service {self.service_id!r}: need {need!r} not matched "
-                                       f"as wanted within {timeout:g} s (connected to {have})")
+                    raise UmaTimeoutError(f"service {self.service_id!r}: need {need!r} not matched "
+                                          f"as wanted within {timeout:g} s (connected to {have})")
                 self._cond.wait(left)
             return list(handle.matches)
 

@@ -46,7 +46,7 @@ from typing import Any
 import zenoh
 
 from agent.attributes import EDGE_ATTRIBUTES
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
 from agent.protocol.sequence import SequenceGaps, too_far_ahead
@@ -285,7 +285,7 @@ class Subscription:
                 return
             was = [s.agent for s in self.route] if self.status in _ON_ROUTE else None
             self._build(outcome)
-        except (LookupError, UmaError, ValueError) as exc:
+        except UmaError as exc:
             self._lost(exc)
             return
         self.replans += 1
@@ -415,8 +415,8 @@ class Subscription:
             t = clock.to_local(agent, m.t_ns)
             if too_far_ahead(t, time.time_ns()):
                 self.refused += 1
-                raise ValueError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
-                                 f"clock: refused ({self.refused} so far)")
+                raise InvalidInputError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
+                                        f"clock: refused ({self.refused} so far)")
             gap = self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
             if gap:
                 self._bad.warning(f"subscription {key}", f"{gap} sample(s) lost before "

@@ -15,6 +15,7 @@ from bisect import bisect_left
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from agent.srg.errors import DataNotYetArrivedError, DataTooOldError, NoSamplesError
 
 #: (index of the first sample, index of the second, factor, extrapolated seconds)
@@ -29,9 +30,9 @@ class SampleBuffer:
 
     def __init__(self, name: str, buffer_s: float, max_samples: int) -> None:
         if not buffer_s > 0:
-            raise ValueError(f"buffer_s must be > 0, got {buffer_s!r}")
+            raise InvalidInputError(f"buffer_s must be > 0, got {buffer_s!r}")
         if max_samples < 2:
-            raise ValueError(f"max_samples must be >= 2, got {max_samples!r}")
+            raise InvalidInputError(f"max_samples must be >= 2, got {max_samples!r}")
         self.name = name
         self.buffer_ns = int(buffer_s * 1e9)
         self.max_samples = max_samples

@@ -1,7 +1,8 @@
 """Why a pose query failed, as exceptions a user can act on.
 
-Every class derives from ``LookupError`` (something asked for is not there) or ``ValueError``
-(something given is malformed), so the CLI prints the message and exits 1.  Messages follow
+Every class is an ``agent.errors.NotFoundError`` (something asked for is not there, a
+``LookupError``) or ``InvalidInputError`` (something given is malformed, a ``ValueError``),
+both ``UmaError``, so the CLI prints the message and exits 1.  Messages follow
 tf2's habit of naming what was asked *and* what exists: the unknown frame and the known
 ones, the edge that had no data at ``t`` and whether its data was too old (dropped from
 the buffer) or had not arrived yet.
@@ -10,6 +11,8 @@ the buffer) or had not arrived yet.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+
+from agent.errors import InvalidInputError, NotFoundError
 
 #: how many names an error message lists before it says "... and N more"
 _SHOWN = 12
@@ -24,7 +27,7 @@ def list_names(names: Iterable[str], shown: int = _SHOWN) -> str:
     return head if len(items) <= shown else f"{head} ... and {len(items) - shown} more"
 
 
-class SrgLookupError(LookupError):
+class SrgLookupError(NotFoundError):
     """Base of the lookups that fail because something is not (yet) in the graph."""
 
 
@@ -113,5 +116,5 @@ class NoValidPathError(SrgLookupError):
                          f"({len(self.causes)} candidates tried): {lines}")
 
 
-class BadErrorFunctionError(ValueError):
+class BadErrorFunctionError(InvalidInputError):
     """An error function that is neither a built-in nor a valid expression."""

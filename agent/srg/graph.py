@@ -27,6 +27,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.attributes import aggregate, check_attributes, same_attributes
+from agent.errors import InvalidInputError
 from agent.result import PoseResult
 from agent.srg import paths
 from agent.srg.edge import Edge, EdgeKey, edge_name
@@ -47,13 +48,13 @@ PlanKey = tuple[str, str, str]
 
 def _frame(name: str, value: Any) -> str:
     if not isinstance(value, str) or not value.strip():
-        raise ValueError(f"{name} frame must be a non-empty string, got {value!r}")
+        raise InvalidInputError(f"{name} frame must be a non-empty string, got {value!r}")
     return value
 
 
 def _time(t_ns: Any) -> int:
     if isinstance(t_ns, bool) or not isinstance(t_ns, numbers.Integral):
-        raise ValueError(f"time must be integer nanoseconds since the epoch, got {t_ns!r}")
+        raise InvalidInputError(f"time must be integer nanoseconds since the epoch, got {t_ns!r}")
     return int(t_ns)
 
 
@@ -90,13 +91,14 @@ class Graph:
                  max_samples: int = 1000, k_paths: int = 4,
                  max_plans: int = MAX_PLANS) -> None:
         if not buffer_s > 0:
-            raise ValueError(f"buffer_s must be > 0, got {buffer_s!r}")
+            raise InvalidInputError(f"buffer_s must be > 0, got {buffer_s!r}")
         if not max_extrapolation_s >= 0:
-            raise ValueError(f"max_extrapolation_s must be >= 0, got {max_extrapolation_s!r}")
+            raise InvalidInputError(
+                f"max_extrapolation_s must be >= 0, got {max_extrapolation_s!r}")
         if k_paths < 1:
-            raise ValueError(f"k_paths must be >= 1, got {k_paths!r}")
+            raise InvalidInputError(f"k_paths must be >= 1, got {k_paths!r}")
         if max_plans < 1:
-            raise ValueError(f"max_plans must be >= 1, got {max_plans!r}")
+            raise InvalidInputError(f"max_plans must be >= 1, got {max_plans!r}")
         self.buffer_s = float(buffer_s)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.max_samples = int(max_samples)
@@ -130,8 +132,8 @@ class Graph:
         cov = None if covariance is None else geo.check_covariance(covariance)
         old = self._edges.get(key)
         if old is not None and not old.is_static:
-            raise ValueError(f"edge {edge_name(key)} is measured; remove it before adding a "
-                             "static edge with the same source")
+            raise InvalidInputError(f"edge {edge_name(key)} is measured; remove it before adding a "
+                                    "static edge with the same source")
         edge = Edge(key, attrs, static_value=(p, q, cov if cov is not None
                                               else self._nominal_cov(attrs, p)))
         if old is None:
@@ -162,7 +164,7 @@ class Graph:
                                                      **attributes)]
             edge.last_kwargs = attributes
         elif edge.buffer is None:
-            raise ValueError(f"edge {edge.name} is static; it takes no measurements")
+            raise InvalidInputError(f"edge {edge.name} is static; it takes no measurements")
         t = _time(t_ns)
         p = geo.check_vector(position, "position").reshape(3)
         q = geo.check_quaternion(quaternion, "quaternion").reshape(4)
@@ -182,7 +184,7 @@ class Graph:
         if edge is None:
             self._link(Edge(key, attrs, buffer_s=self.buffer_s, max_samples=self.max_samples))
         elif edge.buffer is None:
-            raise ValueError(f"edge {edge.name} is static; it takes no measurements")
+            raise InvalidInputError(f"edge {edge.name} is static; it takes no measurements")
         else:
             merged = dict(edge.attrs, **attrs)
             if not same_attributes(merged, edge.attrs):
@@ -334,9 +336,9 @@ class Graph:
         _frame("parent", parent)
         _frame("child", child)
         if parent == child:
-            raise ValueError(f"an edge needs two different frames, got {parent!r} twice")
+            raise InvalidInputError(f"an edge needs two different frames, got {parent!r} twice")
         if not isinstance(source, str) or not source:
-            raise ValueError(f"edge source must be a non-empty string, got {source!r}")
+            raise InvalidInputError(f"edge source must be a non-empty string, got {source!r}")
         return (parent, child, source)
 
     def _between(self, a: str, b: str) -> list[str]:
@@ -353,8 +355,8 @@ class Graph:
         if len(found) != 1:
             if not found:
                 raise UnknownEdgeError(f"{parent}->{child}", self._between(parent, child))
-            raise ValueError(f"{len(found)} parallel edges {parent}->{child}: name the source "
-                             f"({', '.join(e.source for e in found)})")
+            raise InvalidInputError(f"{len(found)} parallel edges {parent}->{child}: name the "
+                                    f"source ({', '.join(e.source for e in found)})")
         return found[0]
 
     def _link(self, edge: Edge) -> None:

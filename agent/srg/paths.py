@@ -17,6 +17,8 @@ import math
 from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
+from agent.errors import InvalidInputError
+
 #: frame -> [(neighbour frame, edge key, walked forwards?)]
 Adjacency = Mapping[str, Sequence[tuple[str, Hashable, bool]]]
 Weight = Callable[[Hashable], float]
@@ -73,8 +75,8 @@ def _settle(adj: Adjacency, source: str, target: str | None, weight: Weight,
                 continue
             w = weight(key)
             if w < 0 or math.isnan(w):
-                raise ValueError(f"error function gave edge {key} the weight {w!r}; additive "
-                                 "error functions need weights >= 0")
+                raise InvalidInputError(f"error function gave edge {key} the weight {w!r}; "
+                                        "additive error functions need weights >= 0")
             nd = d + w
             if nd < best.get(v, math.inf):
                 best[v] = nd

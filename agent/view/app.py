@@ -211,7 +211,7 @@ class View:
             return "give a source and a target frame", []
         try:
             r = self.client.pose(source, target, at=None, error=error)
-        except (UmaError, ValueError, LookupError, TimeoutError) as exc:
+        except UmaError as exc:
             return f"**no answer**: {exc}", []
         cov = ("none" if r.covariance is None else
                f"position std {1e3 * np.sqrt(np.trace(r.covariance[:3, :3]) / 3):.2f} mm")

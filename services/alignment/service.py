@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
-from agent.errors import UmaError
+from agent.errors import UmaError, UmaTimeoutError
 from agent.runtime import RateLimitedLog, ServicePlugin, guarded
 from schemas.codec import pack_covariance
 from services.alignment import records
@@ -497,8 +497,8 @@ def request_recalibration(realm: str, agent_id: str, service_id: str = "alignmen
             time.sleep(0.1)
     finally:
         session.close()
-    raise TimeoutError(f"alignment service {service_id!r} of agent {agent_id!r} did not "
-                       f"answer within {timeout} s")
+    raise UmaTimeoutError(f"alignment service {service_id!r} of agent {agent_id!r} did not "
+                          f"answer within {timeout} s")
 
 
 def recalibrate_command(args: argparse.Namespace) -> int:

@@ -406,7 +406,7 @@ def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.E
             for rig, setter in wanted:
                 try:
                     r = client.pose(args.head, rig, error="hops")
-                except (UmaError, ValueError, LookupError, TimeoutError) as exc:
+                except UmaError as exc:
                     missing += 1
                     live._drop(f"mounting {args.head} -> {rig} not in the SRG yet ({exc})")
                     continue

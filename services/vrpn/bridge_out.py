@@ -91,7 +91,7 @@ class Subscriptions:
                 self.subs[i] = self.client.subscribe(s.source, s.target, self._pusher(i),
                                                      error=s.error)
                 log.info("vrpn-out: tracker %s streams %s -> %s", s.name, s.source, s.target)
-            except (LookupError, UmaError, TimeoutError) as exc:  # no route (yet): retried
+            except UmaError as exc:  # no route (yet): retried
                 if i not in self._said:
                     self._said.add(i)
                     log.warning("vrpn-out: tracker %s has no pose yet (%s); trying again "
