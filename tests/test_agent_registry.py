@@ -60,8 +60,10 @@ def test_register_request_round_trip_and_refusals() -> None:
     with pytest.raises(DecodeError, match="revision"):
         parse_register_request(register_request(encode_descriptor(d), "i", -1, {}), "hostA")
     key = bytes(range(16))
-    assert parse_reply(reply_ok(5, key)) == (True, "", False, 5, key)
-    assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True, None, None)
+    assert parse_reply(reply_ok(5, key)) == (True, "", False, 5, key, False)
+    assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True, None, None,
+                                                            False)
+    assert parse_reply(reply_error("held", renew=True)).renew
     with pytest.raises(DecodeError, match="control key"):
         parse_reply(msgpack.packb({"v": 1, "ok": True, "epoch": 5}))
 

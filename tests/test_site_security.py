@@ -98,6 +98,29 @@ def test_a_host_with_the_wrong_role_cannot_publish_into_another_services_stream(
     assert spoofed == []
 
 
+def test_only_an_agents_own_host_reaches_its_registration_queryable(
+        secured: SecuredSite) -> None:
+    """A registration is a write: another agent host and the read-only client host asking
+    ``agent/h1/register`` (directly or through a wildcard) get no answer at all, so they
+    cannot re-register h1's services; h1's own services register."""
+    s = secured
+    h1, h2, h3 = s.agent_hosts[0], s.agent_hosts[1], s.client_host
+    victim = s.site.spawn(h1, ["-m", "tests.agent_helpers.svc", "--realm", s.realm,
+                               "--connect", s.router_ep, "--id", "victim", "--agent", "h1",
+                               "--ability", "pose"], s.env(h1, "service"))
+    assert victim.wait_for(lambda ev: ev.get("event") == "started", 60)["registered"]
+    root = f"uma/{s.realm}"
+    selectors = [f"{root}/agent/h1/register", f"{root}/agent/*/register",
+                 f"{root}/agent/h1/**", f"{root}/**"]
+    for host, role in ((h2, "agent"), (h3, "client")):
+        asker = s.site.spawn(host, ["-m", "tests.agent_helpers.intruder", "--connect",
+                                    s.router_ep, "--agent", "h1", "--service", "victim",
+                                    *[a for sel in selectors for a in ("--ask", sel)]],
+                             s.env(host, role))
+        answers = asker.wait_for(lambda ev: ev.get("event") == "asked", 60)["answers"]
+        assert answers == dict.fromkeys(selectors, 0), (host.name, answers)
+
+
 def test_a_spoofed_agent_id_is_refused(secured: SecuredSite) -> None:
     s = secured
     h2 = s.agent_hosts[1]

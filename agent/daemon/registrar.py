@@ -7,10 +7,18 @@
 - **a lost answer**: a registration of the instance already held but not yet live (no
   token), without its key, is refused with ``retry``: the service may have stopped waiting
   before our answer with the key came; the held one expires without its token and the
-  retry is then accepted as new (a live instance's key is required: hijacks are refused);
+  retry is then accepted as new;
+- **hijacks**: a registration of a live instance is accepted only with that instance's key.
+  Keys live exactly as long as the registration they were given with (nothing evicts the
+  key of a held service); an instance held without a key (re-adopted after this agent
+  restarted) is refused with ``renew``: the real service then registers as a new
+  instance, which passes the duplicate check below because its own queryable answers
+  with that new instance, while a stranger's new instance finds the real service
+  answering;
 - **duplicates**: a second process registering a service id already held by another
   instance is *pending* while the holder is asked on ``uma/R/svc/A/S`` whether it still
-  answers (``DUPLICATE_CHECK_S``): refused if it does, else it replaces the holder.  A
+  answers (``DUPLICATE_CHECK_S``): refused if anything answers there with another instance
+  than the newcomer's, else it replaces the holder.  A
   registration for an id being checked is refused with ``retry``;
 - **token watch**: every service token ``uma/R/svc/*/*`` (local and remote): a PUT makes
   the service present; a DELETE is a **departure check** first: the service is asked on
@@ -35,7 +43,6 @@ import contextlib
 import logging
 import secrets
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -66,8 +73,6 @@ DUPLICATE_CHECK_S = 0.5
 DEPARTURE_CHECK_S = 1.0
 #: seconds to wait for a service's descriptor answer when adopting it
 ADOPT_TIMEOUT_S = 2.0
-#: control keys kept (per service instance, also after it left: it may come back)
-MAX_CONTROL_KEYS = 4096
 
 
 class RegistrarHost(Protocol):
@@ -92,7 +97,6 @@ class PendingRegistration:
 
     query: zenoh.Query
     reg: Registration
-    old_instance: str
     holder_answered: bool = False
 
 
@@ -115,8 +119,9 @@ class Registrar:
         self._checks = 0
         #: local services whose descriptor is being re-fetched (their token came back)
         self._adopting: set[str] = set()
-        #: (service id, instance) -> the key control messages to it are signed with
-        self._control_keys: OrderedDict[tuple[str, str], bytes] = OrderedDict()
+        #: service id -> (instance, the key control messages to it are signed with), for
+        #: the registrations held (dropped with them: see ``_prune_keys``)
+        self._control_keys: dict[str, tuple[str, bytes]] = {}
         #: registrations refused for an instance id without its key
         self.hijacks_refused = 0
 
@@ -164,26 +169,13 @@ class Registrar:
             return
         entry = self.view.local.get(sid)
         if entry is not None and entry.instance == reg.instance and not self._proven(reg):
-            if (self.agent_id, sid) not in self.view.live_services:
-                # no token yet: our answer with the key may have come after the service
-                # stopped waiting.  Not told from a hijack, so not accepted; but temporary:
-                # the registration expires without its token and the next one is new
-                _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is "
-                        "registered, waiting for its token, and this registration does not "
-                        "carry its key; retry", retry=True)
-                return
-            self.hijacks_refused += 1
-            self._bad.warning(f"service {sid}", "registration refused: it names the running "
-                              "instance's id without that instance's key "
-                              f"({self.hijacks_refused} refused so far)")
-            _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is registered "
-                    "and this registration does not carry its key")
+            self._refuse_unproven(query, reg)
             return
         if entry is None or entry.instance == reg.instance:
             self._accept(query, reg)
             return
         # another process holds this id: refuse if it still answers, else replace it
-        self._pending[sid] = PendingRegistration(query, reg, entry.instance)
+        self._pending[sid] = PendingRegistration(query, reg)
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
@@ -191,12 +183,33 @@ class Registrar:
         self._get(keys.service_token(self.realm, self.agent_id, sid), on_reply,
                   lambda: self._on_holder_done(sid), DUPLICATE_CHECK_S, every_reply=True)
 
+    def _refuse_unproven(self, query: zenoh.Query, reg: Registration) -> None:
+        """A registration of the instance held, without the key it was given."""
+        sid = reg.descriptor.service_id
+        if (self.agent_id, sid) not in self.view.live_services:
+            # no token yet: our answer with the key may have come after the service
+            # stopped waiting.  Not told from a hijack, so not accepted; but temporary:
+            # the registration expires without its token and the next one is new
+            _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is "
+                    "registered, waiting for its token, and this registration does not "
+                    "carry its key; retry", retry=True)
+            return
+        self.hijacks_refused += 1
+        self._bad.warning(f"service {sid}", "registration refused: it names the running "
+                          "instance's id without that instance's key "
+                          f"({self.hijacks_refused} refused so far)")
+        held = self._control_keys.get(sid)
+        renew = held is None or held[0] != reg.instance  # re-adopted: never given a key
+        _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is registered "
+                "and this registration does not carry its key"
+                + ("; register as a new instance" if renew else ""), renew=renew)
+
     def _on_holder_reply(self, sid: str, data: bytes) -> None:
         pending = self._pending.get(sid)
         if pending is None:
             return
         try:
-            if parse_descriptor_reply(data) == pending.old_instance:
+            if parse_descriptor_reply(data) != pending.reg.instance:
                 pending.holder_answered = True
         except DecodeError as exc:
             self._bad.warning(f"service {sid}", f"bad descriptor reply: {exc}")
@@ -215,29 +228,32 @@ class Registrar:
             self._accept(pending.query, pending.reg)
 
     def _proven(self, reg: Registration) -> bool:
-        """Whether a registration of a known instance carries the key it was given (an
-        instance this agent never gave a key, e.g. one it re-adopted, needs none)."""
-        key = self._control_keys.get((reg.descriptor.service_id, reg.instance))
-        return key is None or reg.proof == key
+        """Whether a registration of the instance held carries the key it was given (an
+        instance held without a key, i.e. re-adopted, cannot prove anything)."""
+        held = self._control_keys.get(reg.descriptor.service_id)
+        return held is not None and held[0] == reg.instance and reg.proof == held[1]
 
     def control_key(self, sid: str) -> bytes | None:
         """The key control messages to local service ``sid`` are signed with (None: it
         never registered with this agent, e.g. re-adopted: it registers on the first
         message it cannot verify)."""
-        entry = self.view.local.get(sid)
-        return None if entry is None else self._control_keys.get((sid, entry.instance))
+        entry, held = self.view.local.get(sid), self._control_keys.get(sid)
+        return held[1] if entry and held and held[0] == entry.instance else None
 
     def _issue_key(self, sid: str, instance: str) -> bytes:
-        k = (sid, instance)
-        key = self._control_keys.get(k)
-        if key is None:
-            key = self._control_keys[k] = secrets.token_bytes(CONTROL_KEY_BYTES)
-            while len(self._control_keys) > MAX_CONTROL_KEYS:
-                self._control_keys.popitem(last=False)
-        self._control_keys.move_to_end(k)
-        return key
+        """The key of the instance held (a new one for a new instance)."""
+        held = self._control_keys.get(sid)
+        if held is None or held[0] != instance:
+            held = self._control_keys[sid] = (instance, secrets.token_bytes(CONTROL_KEY_BYTES))
+        return held[1]
+
+    def _prune_keys(self) -> None:
+        """Forget the keys of registrations no longer held (as many keys as services)."""
+        for sid in [s for s in self._control_keys if s not in self.view.local]:
+            del self._control_keys[sid]
 
     def _accept(self, query: zenoh.Query, reg: Registration) -> None:
+        self._prune_keys()
         self._admit(reg)
         key = self._issue_key(reg.descriptor.service_id, reg.instance)
         try:
@@ -401,9 +417,9 @@ class Registrar:
                  sid, self.agent_id, reg.revision)
 
 
-def _refuse(query: zenoh.Query, error: str, retry: bool = False) -> None:
+def _refuse(query: zenoh.Query, error: str, retry: bool = False, renew: bool = False) -> None:
     try:
-        query.reply_err(reply_error(error, retry))
+        query.reply_err(reply_error(error, retry, renew))
     finally:
         query.drop()
 

@@ -14,18 +14,27 @@ What the router allows (``R`` the site's realm, ``h`` the common name of the rem
 ==========================  ===========  =================================================
 who                         flow         messages, key expressions
 ==========================  ===========  =================================================
-every member of the site    ingress      query, declare_subscriber, liveliness_query,
+every member of the site    ingress      declare_subscriber, liveliness_query,
                                          declare_liveliness_subscriber on ``uma/R/**``
+every member of the site    ingress      query on the keys that are read by asking:
+                                         ``uma/R/agent/*/services``, ``.../supernode``,
+                                         ``.../query``, ``uma/R/svc/**`` (``ASK_KEYS``)
 every member of the site    egress       every message on ``uma/R/**`` (what it may read)
 agent host ``h``            ingress      put, delete, declare_queryable,
                                          liveliness_token on ``uma/R/agent/h``,
                                          ``uma/R/agent/h/**``, ``uma/R/svc/h/**``,
-                                         ``uma/R/ctl/h/**``, ``uma/R/data/h/**``
+                                         ``uma/R/ctl/h/**``, ``uma/R/data/h/**``;
+                                         query on ``uma/R/agent/h/register`` (its
+                                         services register with its agent, nobody else)
 every agent host            ingress      reply on ``uma/R/**`` (see below)
 client host                 —            nothing more: it queries and subscribes
 anyone else, anything else  —            denied (and without a site certificate the TLS
                                          handshake fails before any message)
 ==========================  ===========  =================================================
+
+Zenoh's access control matches a message's key expression by *inclusion* in a rule's: a
+query on ``uma/R/agent/h/**`` or ``uma/R/**`` is included in no rule above and is denied,
+so the registration queryable of agent ``h`` is reached by host ``h`` alone.
 
 Zenoh checks a reply against the key expression of the *query* it answers, not the key the
 reply carries; a host receives only the queries that meet the queryables it was allowed to
@@ -53,11 +62,13 @@ from agent.errors import UmaError
 from agent.protocol import keys
 from agent.runtime.session import check_endpoint
 
-READ_MESSAGES = ["query", "declare_subscriber", "liveliness_query",
-                 "declare_liveliness_subscriber"]
+READ_MESSAGES = ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"]
+#: what every member may query, under the realm's root: what agents and services answer
+#: to anyone (a registration is a write: ``register_key``, for the agent's own host only)
+ASK_KEYS = ("agent/*/services", "agent/*/supernode", "agent/*/query", "svc/**")
 WRITE_MESSAGES = ["put", "delete", "declare_queryable", "liveliness_token"]
 #: every message type Zenoh's access control knows (``DEFAULT_CONFIG.json5``, 1.x)
-ALL_MESSAGES = [*WRITE_MESSAGES, "reply", *READ_MESSAGES]
+ALL_MESSAGES = [*WRITE_MESSAGES, "reply", "query", *READ_MESSAGES]
 ROLES = ("router", "agent", "service", "client")
 
 
@@ -111,6 +122,8 @@ def access_control(spec: SiteSpec, realm: str) -> dict[str, Any]:
     rules = [
         {"id": "read", "flows": ["ingress"], "permission": "allow",
          "messages": READ_MESSAGES, "key_exprs": [f"{root}/**"]},
+        {"id": "ask", "flows": ["ingress"], "permission": "allow",
+         "messages": ["query"], "key_exprs": [f"{root}/{k}" for k in ASK_KEYS]},
         {"id": "deliver", "flows": ["egress"], "permission": "allow",
          "messages": ALL_MESSAGES, "key_exprs": [f"{root}/**"]},
         {"id": "answer", "flows": ["ingress"], "permission": "allow",
@@ -119,14 +132,17 @@ def access_control(spec: SiteSpec, realm: str) -> dict[str, Any]:
     subjects = [{"id": "site", "cert_common_names": members, "link_protocols": ["tls"]},
                 {"id": "agent-hosts", "cert_common_names": list(spec.hosts),
                  "link_protocols": ["tls"]}]
-    policies = [{"id": "members-read", "rules": ["read", "deliver"], "subjects": ["site"]},
+    policies = [{"id": "members-read", "rules": ["read", "ask", "deliver"],
+                 "subjects": ["site"]},
                 {"id": "agent-hosts-answer", "rules": ["answer"], "subjects": ["agent-hosts"]}]
     for host in spec.hosts:
         rules.append({"id": f"write-{host}", "flows": ["ingress"], "permission": "allow",
                       "messages": WRITE_MESSAGES, "key_exprs": own_keys(realm, host)})
+        rules.append({"id": f"register-{host}", "flows": ["ingress"], "permission": "allow",
+                      "messages": ["query"], "key_exprs": [keys.agent_register(realm, host)]})
         subjects.append({"id": f"host-{host}", "cert_common_names": [host],
                          "link_protocols": ["tls"]})
-        policies.append({"id": f"{host}-writes", "rules": [f"write-{host}"],
+        policies.append({"id": f"{host}-writes", "rules": [f"write-{host}", f"register-{host}"],
                          "subjects": [f"host-{host}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}

@@ -19,12 +19,16 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    epoch, key}``, or ``reply_err {ok: false, error}``.  ``key`` (random, per service
    instance, kept by the agent for its lifetime) signs the agent's control messages to the
    service; a query reply reaches only the querier, so no other peer learns it.  A
-   re-registration of an instance the agent holds a key for must carry that key as
-   ``proof``: a process that merely copies another's instance id is refused.  A second
+   re-registration of an instance the agent holds must carry that instance's key as
+   ``proof``: a process that merely copies another's instance id is refused.  An instance
+   the agent holds without a key (it restarted and re-adopted the service, step 4) is
+   refused with ``renew: true``: the service takes a new ``instance`` and registers again,
+   which is a second process for the duplicate check below, answered by itself.  A second
    process registering a service id that is already registered (different ``instance``)
    is refused with "duplicate service id" *if the first one still answers* on
-   ``uma/R/svc/A/S``; if it does not (it died and its lease has not expired yet) the
-   newcomer replaces it.  A refusal with
+   ``uma/R/svc/A/S`` (anything answering there with another instance than the
+   newcomer's); if it does not (it died and its lease has not expired yet) the newcomer
+   replaces it.  A refusal with
    ``retry: true`` is temporary: a check for that id is in progress, or the instance is
    held but its token has not come, so the agent's answer with the key may have reached
    the service after it stopped waiting (the held registration expires after
@@ -253,9 +257,11 @@ def reply_ok(epoch: int, control_key: bytes) -> bytes:
     return encode_message({"ok": True, "epoch": epoch, "key": control_key})
 
 
-def reply_error(error: str, retry: bool = False) -> bytes:
-    """A refusal; ``retry`` says it is temporary (try again shortly)."""
-    return encode_message({"ok": False, "error": error, "retry": retry})
+def reply_error(error: str, retry: bool = False, renew: bool = False) -> bytes:
+    """A refusal; ``retry`` says it is temporary (try again shortly), ``renew`` that the
+    agent holds this instance without a key it gave (it restarted and re-adopted it): the
+    service registers again as a new instance."""
+    return encode_message({"ok": False, "error": error, "retry": retry, "renew": renew})
 
 
 class RegisterReply(NamedTuple):
@@ -266,6 +272,7 @@ class RegisterReply(NamedTuple):
     retry: bool = False
     epoch: int | None = None
     key: bytes | None = None
+    renew: bool = False
 
 
 def parse_reply(data: bytes) -> RegisterReply:
@@ -274,7 +281,7 @@ def parse_reply(data: bytes) -> RegisterReply:
     msg = decode_message(data, required=("ok",))
     if not msg["ok"]:
         return RegisterReply(False, str(msg.get("error", ""))[:500],
-                             bool(msg.get("retry", False)))
+                             bool(msg.get("retry", False)), renew=bool(msg.get("renew", False)))
     epoch, key = msg.get("epoch"), msg.get("key")
     if type(epoch) is not int or not (isinstance(key, bytes) and len(key) == CONTROL_KEY_BYTES):
         raise DecodeError("accepted registration without an integer epoch and a "

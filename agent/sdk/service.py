@@ -575,6 +575,8 @@ class Service:
             self._outcome.set()
             log.info("service %s registered with agent %s (revision %d)", self.service_id,
                      self.agent_id, revision)
+        elif reply.renew:
+            self._renew_instance()
         elif retry or "Timeout" in error:
             self._schedule_retry()
         else:
@@ -584,6 +586,16 @@ class Service:
             self._outcome.set()
             with self._cond:
                 self._cond.notify_all()
+
+    def _renew_instance(self) -> None:
+        """The agent holds this instance without a key it gave (it restarted and adopted
+        us): register as a new instance, which the duplicate check lets through because
+        our own descriptor queryable answers with it."""
+        self.instance = secrets.token_hex(8)
+        self._control_key = None
+        self._next_try = 0.0
+        log.info("service %s: agent %s holds this instance without its key; registering as "
+                 "instance %s", self.service_id, self.agent_id, self.instance)
 
     def _on_register_done(self, answered: bool) -> None:
         self._registering = False

@@ -1,0 +1,108 @@
+"""Who may (re-)register a service with its agent: an agent and services in this process,
+a plain Zenoh session playing a stranger who knows what the realm publishes (a service's
+instance id is in its agent's snapshot) and sends what it likes."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import pytest
+from agent_helpers.harness import poll
+from conftest import endpoint, free_port
+from test_agent_robustness import register_raw, wait_token
+
+from agent.daemon import registrar as registrar_module
+from agent.daemon.agent import Agent
+from agent.daemon.settings import AgentSettings
+from agent.protocol import keys
+from agent.protocol.registration import register_request
+from agent.runtime.session import open_session
+from agent.sdk.service import Service
+from schemas.codec import encode_descriptor
+from schemas.models import ServiceDescriptor
+
+EDGE = ("ivy/world", "alice/head")
+
+
+@pytest.fixture
+def site(realm) -> Iterator[tuple[str, Agent, Service]]:
+    """An agent ``hostA`` and its camera ``cam`` (registered, token live)."""
+    ep = endpoint(free_port())
+    agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep]))
+    agent.start()
+    cam = Service("cam", realm=realm, agent="hostA", connect=[ep])
+    try:
+        cam.ability("pose", type="pose6d", edge=EDGE, frequency_hz=100)
+        cam.start()
+        assert cam.wait_registered(10), cam.error
+        poll(lambda: ("hostA", "cam") in agent.view.live_services, 10, "cam's token")
+        yield ep, agent, cam
+    finally:
+        cam.close()
+        agent.close()
+
+
+def forged(sid: str = "cam", edge: tuple[str, str] = ("evil/world", "evil/head")) -> bytes:
+    return encode_descriptor(ServiceDescriptor(service_id=sid, agent_id="hostA", abilities=[
+        {"name": "pose", "type": "pose6d", "edge": list(edge)}]))
+
+
+def edges(agent: Agent, sid: str = "cam") -> list[tuple[str, str] | None]:
+    return [a.edge for a in agent.view.local[sid].descriptor.abilities]
+
+
+def on_worker(agent: Agent, fn) -> None:
+    """Run ``fn`` on the agent's worker (which owns the registrar) and wait for it."""
+    done = threading.Event()
+    agent._worker.put(lambda: (fn(), done.set()))
+    assert done.wait(5)
+
+
+def test_a_flood_of_registrations_never_frees_a_live_services_instance(
+        site, realm, monkeypatch) -> None:
+    """Throw-away registrations used to push the victim's key out of a bounded cache, after
+    which its instance id (public in the snapshot) re-registered without any key."""
+    ep, agent, cam = site
+    monkeypatch.setattr(registrar_module, "MAX_CONTROL_KEYS", 20, raising=False)
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        for i in range(30):
+            ok, error = register_raw(s, realm, "hostA", register_request(
+                forged(f"junk{i}", (f"j{i}/a", f"j{i}/b")), f"junk{i}", 1, {}))
+            assert ok, error
+        ok, error = register_raw(s, realm, "hostA", register_request(
+            forged(), cam.instance, 10**6, {}))
+        assert not ok and "does not carry its key" in error, error
+    assert edges(agent) == [EDGE]
+    assert agent.registrar.hijacks_refused == 1
+
+
+def test_a_readopted_service_renews_its_instance_and_a_stranger_cannot(site, realm) -> None:
+    """An agent that adopted a live service (it restarted, or dropped it meanwhile) holds
+    its instance without a key: a keyless registration of that instance is refused, the
+    real service is told to register as a new instance and is let through, because its
+    own descriptor queryable answers with that new instance."""
+    ep, agent, cam = site
+    old = cam.instance
+
+    def forget_and_adopt() -> None:
+        agent.view.remove_local("cam")
+        agent.registrar._control_keys.clear()
+        agent.registrar._adopt("cam")
+    on_worker(agent, forget_and_adopt)
+    poll(lambda: "cam" in agent.view.local, 10, "cam re-adopted")
+    assert agent.registrar.control_key("cam") is None
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        ok, error = register_raw(s, realm, "hostA", register_request(forged(), old, 10**6, {}))
+        assert not ok and "does not carry its key" in error, error
+        # a stranger's new instance: the real service answers its queryable, so refused
+        ok, error = register_raw(s, realm, "hostA", register_request(
+            forged(), "f" * 16, 10**6, {}))
+        assert not ok and "already runs it" in error, error
+    assert edges(agent) == [EDGE]
+    cam.ability("pose2", type="pose6d", edge=("ivy/world", "bob/head"))  # re-registers
+    assert cam.wait_registered(10), cam.error
+    assert cam.instance != old and agent.view.local["cam"].instance == cam.instance
+    poll(lambda: agent.registrar.control_key("cam") is not None, 10, "cam's new key")
