@@ -1,4 +1,4 @@
-"""Time to process one 300 Hz accelerometer sample (goal, issue 19: <= 2x the bare solve).
+"""Time to process one 300 Hz accelerometer sample (goal: <= 2x the bare solve).
 
 Measures ``DeadReckoner.update_volts`` per sample over a simulated head motion: validation,
 conversion, eq. 4.42 solve, RK4 step, covariance propagation and the pose estimate with its
@@ -35,7 +35,7 @@ from services.accel_rig.integrator import DeadReckoner
 from services.accel_rig.simulator import DEFAULT_RATE_HZ, default_device, simulate
 from services.sim.trajectory import HeadTrajectory
 
-#: issue 19: a sample may cost at most this many times the bare eq. 4.42 solve of the same run
+#: goal: a sample may cost at most this many times the bare eq. 4.42 solve of the same run
 GOAL_RATIO = 2.0
 
 _Timed = Callable[[float, np.ndarray], object]

@@ -1,4 +1,4 @@
-"""What the checks against hostile peers cost where they run (issue 22's closing figures).
+"""What the checks against hostile peers cost where they run.
 
 Each row times a check and, as its anchor in the same run, the work that path did before
 it: a received pose's decode (the subscription's per-sample work) for the future-time and

@@ -1,5 +1,5 @@
 """Benchmark of one loaded host: N services in N/K processes publishing at R Hz, A agents as
-peers on loopback (issue 23's table, same recipe).
+peers on loopback.
 
 The services are written as the README's ``Service`` example (``connect=[agent endpoint]``,
 everything else the SDK's default), K per process (``bench/host_load_services.py``), all

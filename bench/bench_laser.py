@@ -1,5 +1,5 @@
 """Benchmark of the laser-dot tracker: dot detection per 640x480 image and the whole
-pipeline per six-camera frame set (goals, issue 19: detection <= 1.0x the baseline,
+pipeline per six-camera frame set (goals: detection <= 1.0x the baseline,
 pipeline <= 1.5 ms median).
 
 Baseline measured in the same run: detection with ``cv2.findContours`` and intensity

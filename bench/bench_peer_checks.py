@@ -1,4 +1,4 @@
-"""What the checks against buggy and hostile peers cost on the hot path (issue 22).
+"""What the checks against buggy and hostile peers cost on the hot path.
 
 1. Decoding a ``pose6d`` sample with a covariance, with the positive semi-definite check
    and without it (the anchor), interleaved in one run: a diagonally dominant covariance

@@ -30,7 +30,7 @@ peer that meets every agent directly (the all-peers layout, ``UMA_SDK_MODE=peer`
 against the bare get and put of the same run.  The bare get goes straight to its
 queryable, so in the default layout the extra hop through A counts against uma.
 
-Goals (issue 19): the query at an explicit past time ≤ 2.0× the bare get; streaming median
+Goals: the query at an explicit past time ≤ 2.0× the bare get; streaming median
 ≤ 200 µs and ≤ 4× the bare one-way.
 
 Usage: python bench/bench_query_remote.py [--queries N] [--stream-seconds S]

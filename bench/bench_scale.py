@@ -1,4 +1,4 @@
-"""How uma's cost grows with the size of a realm (issue 19, "how cost grows").
+"""How uma's cost grows with the size of a realm.
 
 Four sweeps, each row with its growth factor (``xN``: the figure divided by the previous
 row's, the first row of a sweep is its anchor):

@@ -1,4 +1,4 @@
-"""``uma services`` at site scale (issue 23): N hosts in network namespaces, one agent each
+"""``uma services`` at site scale: N hosts in network namespaces, one agent each
 with K services in one process (10 Hz each by default), and ``uma services --json`` run
 from a host of its own against the first agent.  Needs root (``ip netns``).
 

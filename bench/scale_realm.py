@@ -199,7 +199,7 @@ def subscribe(client: Any, target: str, on_pose: Any) -> tuple[Any, int]:
 
 def summary_bytes(realm: Realm) -> dict[str, Any]:
     """Every agent's summary as it travels (compact) and spelt out (``summarize``'s form,
-    what agents sent before issue 19): the largest of each, in bytes."""
+    the verbose form): the largest of each, in bytes."""
     session = open_session("client", None, [realm.eps[0]], realm.realm,
                            require_connection=True)
     try:

@@ -1,5 +1,5 @@
 """The dead reckoner's per-sample path on Python floats equals the numpy computation it
-replaced (issue 19: the same figures within float rounding).
+replaced (the same figures within float rounding).
 
 The reference below is the previous numpy implementation of one RK4 step and its error
 propagation (Hogue 2003, §4.3), kept here unchanged in its mathematics; the fast path must

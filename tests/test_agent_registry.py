@@ -127,7 +127,7 @@ def test_remote_ability_needs_both_snapshot_and_live_token() -> None:
     assert len(view.index) == 0
     view.service_alive("hostB", "cam")
     view.service_alive("hostB", "mic")  # a service with no descriptor: nothing to keep
-    assert view.agent_gone("hostB") is False  # cam's own token is live: kept (issue 17)
+    assert view.agent_gone("hostB") is False  # cam's own token is live: kept
     assert list(view.index.by_key) == [keys.data(R, "hostB", "cam", "pose")]
     assert view.service_gone("hostB", "cam") is True  # it goes with its token
     assert len(view.index) == 0

@@ -1,5 +1,5 @@
-"""An ability or need change re-matches only the needs it concerns (issue 19: a change in
-a realm of 10,000 abilities and 1,000 needs re-matched every need), and the result is the
+"""An ability or need change re-matches only the needs it concerns (not every need of
+a realm of 10,000 abilities and 1,000 needs), and the result is the
 full re-match's, on random realms and random sequences of changes."""
 
 from __future__ import annotations

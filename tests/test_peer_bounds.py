@@ -1,4 +1,4 @@
-"""Bounds against buggy and hostile peers (issue 22, findings 5, 6, 10, 11): what a peer
+"""Bounds against buggy and hostile peers: what a peer
 sends cannot grow a log, a cache or a queue without bound, and every refusal is counted."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Supernode summaries computed by shortest-path trees (issue 19, "how cost grows") describe
+"""Supernode summaries computed by shortest-path trees describe
 the same best local paths as a query plan per frame, boundary frame and error function did,
 on random graphs with cycles, parallel and measured edges; they build no query plan."""
 

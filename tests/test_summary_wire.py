@@ -1,4 +1,4 @@
-"""The compact wire form of supernode summaries (issue 19): it reads exactly as the summary
+"""The compact wire form of supernode summaries: it reads exactly as the summary
 ``summarize`` builds, whatever the graph, and is smaller; a malformed one is refused."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The VRPN bridges in real processes on loopback (issue 18's "Done when").
+"""The VRPN bridges in real processes on loopback.
 
 * ``vrpn-out`` serving the simulator's head: the tests' own VRPN client
   (:mod:`agent_helpers.vrpn_peer`, written from VRPN's protocol documentation) receives

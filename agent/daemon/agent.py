@@ -119,14 +119,14 @@ class Agent:
         self.revision = 0
         self.session: zenoh.Session | None = None
         self.srg: Any = None
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self._worker = Worker("uma-agent", f"agent {self.agent_id}", log, self._tick,
                               self.s.tick_s, settle=(self._rematch_if_dirty,
                                                      self._publish_if_dirty))
-        self.registrar = Registrar(self.view, self.epoch, self._worker.put, self, self._bad)
+        self.registrar = Registrar(self.view, self.epoch, self._worker.put, self, self._log)
         self.streams = StreamHub(local=keys.all_data(self.realm, self.agent_id))
         self.monitor = StreamMonitor(self.streams, self.s.grace_s, self.s.rate_window_s,
-                                     self._bad)
+                                     self._log)
         self._decls: list[Any] = []
         self._token: Any = None
         #: agents whose token went, being asked whether they still answer (check number)
@@ -189,7 +189,7 @@ class Agent:
             sess.declare_subscriber(keys.all_agent_services(r), guarded(
                 lambda smp: put(self._on_snapshot, str(smp.key_expr),
                                 payload_bytes(smp.payload)),
-                keys.all_agent_services(r), self._bad)),
+                keys.all_agent_services(r), self._log)),
             sess.liveliness().declare_subscriber(
                 keys.all_agent_tokens(r), lambda smp: put(self._on_agent_token, smp),
                 history=True),
@@ -335,7 +335,7 @@ class Agent:
     def _on_agent_token(self, smp: zenoh.Sample) -> None:
         agent_id = keys.parse_agent_token(str(smp.key_expr), self.realm)
         if agent_id is None:
-            self._bad.warning(f"liveliness {smp.key_expr}", "not an agent token key")
+            self._log.warning(f"liveliness {smp.key_expr}", "not an agent token key")
             return
         if agent_id == self.agent_id:
             return
@@ -372,7 +372,7 @@ class Agent:
             except DecodeError:
                 continue
             if known is None or snap.epoch == known.epoch:
-                self._bad.warning(f"agent {agent_id}",
+                self._log.warning(f"agent {agent_id}",
                                   "its liveliness token went but it still answers; kept")
                 return
         if self.view.agent_gone(agent_id):
@@ -396,7 +396,7 @@ class Agent:
         self._fetching.discard(agent_id)
         snaps = [s for s in (self._parse_snapshot(key, data) for data in answers) if s]
         if len({s.epoch for s in snaps}) > 1:
-            self._bad.warning(f"agent {agent_id}", "answers with snapshots of different "
+            self._log.warning(f"agent {agent_id}", "answers with snapshots of different "
                               "epochs: two processes claim its id; kept what was applied")
             return
         for snap in snaps:
@@ -437,7 +437,7 @@ class Agent:
             return
         if self.view.suspect(snap):
             self.snapshots_suspect += 1
-            self._bad.warning(f"snapshot {key}", f"epoch {snap.epoch} revision "
+            self._log.warning(f"snapshot {key}", f"epoch {snap.epoch} revision "
                               f"{snap.revision} is not the agent's current run; asking it "
                               f"({self.snapshots_suspect} so far)")
             self._fetch_snapshot(snap.agent_id)
@@ -447,24 +447,24 @@ class Agent:
     def _parse_snapshot(self, key: str, data: bytes) -> Snapshot | None:
         agent_id = keys.parse_agent_services(key, self.realm)
         if agent_id is None:
-            self._bad.warning(key, "not an agent services key")
+            self._log.warning(key, "not an agent services key")
             return None
         try:
             return parse_snapshot(data, agent_id)
         except DecodeError as exc:
-            self._bad.warning(f"snapshot {key}", f"dropped: {exc}")
+            self._log.warning(f"snapshot {key}", f"dropped: {exc}")
             return None
 
     def _apply_snapshot(self, key: str, snap: Snapshot, confirmed: bool = False) -> None:
         agent_id = snap.agent_id
         if agent_id == self.agent_id:
             if snap.epoch != self.epoch:
-                self._bad.warning(f"agent {agent_id}", "another agent with this id runs in "
+                self._log.warning(f"agent {agent_id}", "another agent with this id runs in "
                                   f"realm {self.realm} (epoch {snap.epoch}); give each agent "
                                   "its own --id")
             return
         for err in snap.errors:
-            self._bad.warning(f"snapshot {key}", f"service dropped: {err}")
+            self._log.warning(f"snapshot {key}", f"service dropped: {err}")
         if self.view.apply_snapshot(snap, confirmed):
             self._dirty = True
 

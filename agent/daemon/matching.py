@@ -36,7 +36,7 @@ best is not kept): a change in a realm of 10,000 abilities and 1,000 needs costs
 predicate calls per need it concerns, not one per need and ability.
 ``bench/bench_matching.py`` and ``bench/bench_scale.py`` measure it.
 
-Bounds (issue 22): abilities come from any peer of the realm, so the index keeps at most
+Bounds: abilities come from any peer of the realm, so the index keeps at most
 ``MAX_CANDIDATES`` fitting abilities per pattern (the first that came; later ones are
 refused and counted in ``refused`` and reported through ``on_refused``; a removal lets the
 pattern be searched again) and at most ``MAX_PATTERNS`` patterns (least recently used

@@ -63,7 +63,7 @@ class _Stream:
         self.window: deque[tuple[float, int, float | None]] = deque()
         self.gaps = SequenceGaps()
         self.stop_listening: Callable[[], None] = lambda: None
-        self._bad = bad
+        self._log = bad
 
     def on_sample(self, data: bytes) -> None:
         if len(self.inbox) < INBOX:
@@ -91,14 +91,14 @@ class _Stream:
             try:
                 t_ns, seq = peek_time_seq(data, expected_type=self.type)
             except DecodeError as exc:
-                self._bad.warning(f"data {self.key}", f"dropped a malformed sample: {exc}")
+                self._log.warning(f"data {self.key}", f"dropped a malformed sample: {exc}")
                 continue
             self.gaps.see(seq)
             self.window.append((mono, 1, (wall_ns - t_ns) / 1e9))
         overflow = self.overflow
         if overflow > self._overflow_seen:
             self.window.append((now, overflow - self._overflow_seen, None))
-            self._bad.warning(f"data {self.key}", f"{overflow} samples arrived faster than "
+            self._log.warning(f"data {self.key}", f"{overflow} samples arrived faster than "
                               "the monitor reads them: counted in the rate, not inspected")
             self._overflow_seen = overflow
 
@@ -120,7 +120,7 @@ class StreamMonitor:
         self._hub = hub
         self.grace_s = grace_s
         self.window_s = window_s
-        self._bad = bad
+        self._log = bad
         self._streams: dict[str, _Stream] = {}
         self._verdicts: dict[NeedId, _Verdicts] = {}
         #: the values of the last ``judge``, by data key (shown in snapshots)
@@ -157,7 +157,7 @@ class StreamMonitor:
             self._streams.pop(k).stop_listening()
         for k, type_ in wanted.items():
             if k not in self._streams:
-                stream = _Stream(k, type_, self.window_s, now, self._bad)
+                stream = _Stream(k, type_, self.window_s, now, self._log)
                 stream.stop_listening = self._hub.listen(k, stream.on_sample)
                 self._streams[k] = stream
 

@@ -32,7 +32,7 @@ from schemas.models import AgentInfo, ServiceDescriptor
 #: with the agent (an agent publishes one revision per change of its services)
 MAX_REVISION_JUMP = 10_000
 
-_bad = RateLimitedLog(logging.getLogger("uma.agent"))
+_log = RateLimitedLog(logging.getLogger("uma.agent"))
 
 
 @dataclass
@@ -71,7 +71,7 @@ class RealmView:
         self._requirements: list[Requirement] | None = None
 
     def _candidate_refused(self, pattern: Pattern, key: str, refused: int) -> None:
-        _bad.warning(f"agent {self.agent_id} need pattern {pattern[1]} -> {pattern[2]}",
+        _log.warning(f"agent {self.agent_id} need pattern {pattern[1]} -> {pattern[2]}",
                      f"more than {self.index.max_candidates} {pattern[0]} abilities fit: "
                      f"{key} refused ({refused} refused so far)")
 
@@ -161,7 +161,7 @@ class RealmView:
     def agent_gone(self, agent_id: str) -> bool:
         """Forget an agent that left, and its services, except those whose own token is
         still live: a service attached to a router publishes without its agent, and a
-        need matched to it keeps a stream that still flows (issue 17).  They go when their
+        need matched to it keeps a stream that still flows.  They go when their
         token does; the kept snapshot is marked older than any, so the agent's next one
         applies when it comes back."""
         self.live_agents.discard(agent_id)

@@ -110,7 +110,7 @@ class Registrar:
         self.epoch = epoch
         self._put = put
         self._host = host
-        self._bad = bad
+        self._log = bad
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
         self._pending: dict[str, PendingRegistration] = {}
@@ -159,7 +159,7 @@ class Registrar:
                 raise DecodeError("empty registration")
             reg = parse_register_request(data, self.agent_id)
         except DecodeError as exc:
-            self._bad.warning(f"registration on {query.key_expr}", f"refused: {exc}")
+            self._log.warning(f"registration on {query.key_expr}", f"refused: {exc}")
             _refuse(query, f"registration refused: {exc}")
             return
         sid = reg.descriptor.service_id
@@ -195,7 +195,7 @@ class Registrar:
                     "carry its key; retry", retry=True)
             return
         self.hijacks_refused += 1
-        self._bad.warning(f"service {sid}", "registration refused: it names the running "
+        self._log.warning(f"service {sid}", "registration refused: it names the running "
                           "instance's id without that instance's key "
                           f"({self.hijacks_refused} refused so far)")
         held = self._control_keys.get(sid)
@@ -212,7 +212,7 @@ class Registrar:
             if parse_descriptor_reply(data) != pending.reg.instance:
                 pending.holder_answered = True
         except DecodeError as exc:
-            self._bad.warning(f"service {sid}", f"bad descriptor reply: {exc}")
+            self._log.warning(f"service {sid}", f"bad descriptor reply: {exc}")
 
     def _on_holder_done(self, sid: str) -> None:
         pending = self._pending.pop(sid, None)
@@ -221,7 +221,7 @@ class Registrar:
         if pending.holder_answered:
             error = (f"duplicate service id {sid!r} on agent {self.agent_id!r} in realm "
                      f"{self.realm!r}: another process already runs it")
-            self._bad.warning(f"service {sid}", f"second registration refused ({error})")
+            self._log.warning(f"service {sid}", f"second registration refused ({error})")
             _refuse(pending.query, error)
         else:
             log.info("service %s: previous instance does not answer; replaced", sid)
@@ -284,7 +284,7 @@ class Registrar:
     def _on_service_token(self, smp: zenoh.Sample) -> None:
         parsed = keys.parse_service_token(str(smp.key_expr), self.realm)
         if parsed is None:
-            self._bad.warning(f"liveliness {smp.key_expr}", "not a service token key")
+            self._log.warning(f"liveliness {smp.key_expr}", "not a service token key")
             return
         if smp.kind == zenoh.SampleKind.PUT:
             self._service_token_put(*parsed)
@@ -322,7 +322,7 @@ class Registrar:
         for key in token_keys:
             parsed = keys.parse_service_token(key, self.realm)
             if parsed is None:
-                self._bad.warning(f"liveliness {key}", "not a service token key")
+                self._log.warning(f"liveliness {key}", "not a service token key")
                 continue
             live.add(parsed)
         for agent_id, sid in live:
@@ -360,10 +360,10 @@ class Registrar:
             try:
                 instance = parse_descriptor_reply(data)
             except DecodeError as exc:
-                self._bad.warning(f"service {agent_id}/{sid}", f"bad descriptor reply: {exc}")
+                self._log.warning(f"service {agent_id}/{sid}", f"bad descriptor reply: {exc}")
                 continue
             if expected is None or instance == expected:
-                self._bad.warning(f"service {agent_id}/{sid}",
+                self._log.warning(f"service {agent_id}/{sid}",
                                   "its liveliness token went but it still answers; kept")
                 return
         self._service_gone(agent_id, sid)
@@ -406,10 +406,10 @@ class Registrar:
         try:
             reg = parse_descriptor_answer(data, self.agent_id)
         except DecodeError as exc:
-            self._bad.warning(f"service {sid}", f"cannot re-adopt it: {exc}")
+            self._log.warning(f"service {sid}", f"cannot re-adopt it: {exc}")
             return
         if reg.descriptor.service_id != sid:
-            self._bad.warning(f"service {sid}", "cannot re-adopt it: it answers as "
+            self._log.warning(f"service {sid}", "cannot re-adopt it: it answers as "
                               f"{reg.descriptor.service_id!r}")
             return
         self._admit(reg)

@@ -66,7 +66,7 @@ PUBLISH_CHECK_S = 0.05
 #: how often every agent is asked for its summary again (see ``_resync_if_due``)
 RESYNC_S = 2.0
 #: answers cached (least recently used dropped first): a query names its own error
-#: expression, so distinct expressions from a peer must not grow the cache (issue 22)
+#: expression, so distinct expressions from a peer must not grow the cache
 MAX_ANSWERS = 1024
 #: other agents whose frames are remembered, and frames remembered per agent: summaries
 #: arrive from any peer, so what they make this agent hold is bounded
@@ -105,7 +105,7 @@ class SrgNode:
         self._lock = threading.Lock()
         #: held while a summary is computed and published (not the graph's lock)
         self._publishing = threading.Lock()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self._sources: dict[tuple[str, str], tuple[Any, str]] = {}  # -> (ability, source)
         self._data_keys: dict[str, str] = {}  # edge source -> data key
         self._static_values: dict[str, tuple[bytes, bytes, bytes | None]] = {}
@@ -139,15 +139,15 @@ class SrgNode:
             # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
             # would cost as much as the network round trip)
             session.declare_queryable(self._query_key, zenoh.handlers.Callback(
-                guarded(self._on_query, "query", self._bad), indirect=False)),
+                guarded(self._on_query, "query", self._log), indirect=False)),
             session.declare_queryable(self._summary_key, guarded(
-                self._on_summary_query, "supernode query", self._bad)),
+                self._on_summary_query, "supernode query", self._log)),
             session.declare_subscriber(keys.all_agent_supernodes(realm), guarded(
-                self._on_summary, "supernode", self._bad)),
+                self._on_summary, "supernode", self._log)),
             session.liveliness().declare_subscriber(keys.all_agent_tokens(realm), guarded(
-                self._on_agent_token, "agent token", self._bad), history=True),
+                self._on_agent_token, "agent token", self._log), history=True),
         ]
-        self._on_reply = guarded(self._on_summary_reply, "supernode reply", self._bad)
+        self._on_reply = guarded(self._on_summary_reply, "supernode reply", self._log)
         session.get(keys.all_agent_supernodes(realm), self._on_reply, timeout=2.0)
         self._worker = threading.Thread(target=self._work, name="uma-srg", daemon=True)
         self._worker.start()
@@ -203,7 +203,7 @@ class SrgNode:
                                   f"this host's clock ({self.refused} refused so far)")
         except DecodeError as exc:
             key = keys.data(self.realm, self.agent_id, *local)
-            self._bad.warning(f"data {key}", f"dropped a malformed sample: {exc}")
+            self._log.warning(f"data {key}", f"dropped a malformed sample: {exc}")
             return
         self.on_local_sample(local[0], entry[0], m)
 
@@ -276,12 +276,12 @@ class SrgNode:
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
             reply = proto.error_reply(exc)
         except Exception as exc:  # never into Zenoh's thread: answer and log
-            self._bad.warning("query", f"{type(exc).__name__}: {exc}")
+            self._log.warning("query", f"{type(exc).__name__}: {exc}")
             reply = proto.internal_error_reply(exc)
         try:
             query.reply(self._query_key, proto.stamped(reply, self.agent_id, t2, self.now_ns()))
         except (zenoh.ZError, ValueError) as exc:
-            self._bad.warning("query reply", str(exc))
+            self._log.warning("query reply", str(exc))
 
     def handle(self, msg: dict[str, Any]) -> dict[str, Any] | None:
         """Answer one decoded query message (:mod:`agent.protocol.query`); None: not for us."""
@@ -302,7 +302,7 @@ class SrgNode:
             evicted = self.graph.plans_evicted
             r = self.graph.pose(req.source, req.target, at=req.t, error=req.error)
             if self.graph.plans_evicted > evicted:
-                self._bad.warning("query plans", f"{self.graph.max_plans} plans cached: "
+                self._log.warning("query plans", f"{self.graph.max_plans} plans cached: "
                                   "dropped the least recently used "
                                   f"({self.graph.plans_evicted} so far)")
             t_used = r.t_ns if r.t_ns is not None else (
@@ -324,7 +324,7 @@ class SrgNode:
         if len(self._answers) > MAX_ANSWERS:
             self._answers.popitem(last=False)
             self.answers_evicted += 1
-            self._bad.warning("query cache", f"{MAX_ANSWERS} answers cached: dropped the least "
+            self._log.warning("query cache", f"{MAX_ANSWERS} answers cached: dropped the least "
                               f"recently used ({self.answers_evicted} so far)")
 
     def _cached_answer(self, key: tuple[str, str, str], t: int | None,
@@ -357,7 +357,7 @@ class SrgNode:
         try:
             query.reply(self._summary_key, self._summary)
         except zenoh.ZError as exc:
-            self._bad.warning("supernode reply", str(exc))
+            self._log.warning("supernode reply", str(exc))
 
     def _on_summary(self, sample: zenoh.Sample) -> None:
         self._learn(str(sample.key_expr), sample.payload)
@@ -379,7 +379,7 @@ class SrgNode:
                 raise DecodeError(f"it names agent {agent[:64]!r}, not the agent of its key")
         except DecodeError as exc:
             self.summaries_refused += 1
-            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
+            self._log.warning(f"supernode {key}", f"dropped a malformed summary: {exc}")
             return
         if agent == self.agent_id:
             return
@@ -389,7 +389,7 @@ class SrgNode:
                 self._remote_frames[agent] = set(frames)
         if refused is not None:
             self.summaries_refused += 1
-            self._bad.warning(f"supernode {key}", f"summary refused: {refused} "
+            self._log.warning(f"supernode {key}", f"summary refused: {refused} "
                               f"({self.summaries_refused} refused so far)")
             return
         self._wake.set()
@@ -428,7 +428,7 @@ class SrgNode:
                 self._fetch_new()
                 self._republish_if_changed()
             except Exception as exc:  # keep the agent alive; say why once in a while
-                self._bad.warning("supernode", f"{type(exc).__name__}: {exc}")
+                self._log.warning("supernode", f"{type(exc).__name__}: {exc}")
             self._stop.wait(PUBLISH_CHECK_S)
 
     def _resync_if_due(self) -> None:
@@ -452,8 +452,8 @@ class SrgNode:
     def _republish_if_changed(self) -> None:
         """Publish a new summary when the graph or the boundary changed.  Only the copy
         of the graph's topology is taken under the lock: the summary is computed without
-        it, so queries and samples are never held up by it (issue 19: at 1,000 frames the
-        old summary held the lock for minutes).  Publishers take turns (``_publishing``):
+        it, so queries and samples are never held up by it (a large graph's summary takes
+        a while).  Publishers take turns (``_publishing``):
         a summary of an older state must not overwrite a newer one."""
         with self._publishing:
             with self._lock:
@@ -480,7 +480,7 @@ class SrgNode:
         only here.  Links grow with frames x boundary frames (``agent.srg.supernode``)."""
         frames, links = len(summary["frames"]), len(summary["links"])
         if max(frames, links) > proto.MAX_SUMMARY_FRAMES:
-            self._bad.warning("supernode", f"this agent's summary has {frames} frames and "
+            self._log.warning("supernode", f"this agent's summary has {frames} frames and "
                               f"{links} links (frames x {len(summary['boundary'])} boundary "
                               f"frames); receivers refuse more than "
                               f"{proto.MAX_SUMMARY_FRAMES} of either, so no other host can "

@@ -52,7 +52,7 @@ class StreamHub:
         self._session = session
         self._keys: dict[str, _Key] = {}
         self._lock = threading.Lock()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         #: the key expression of this agent's own data (``uma/R/data/A/*/*``), if any
         self._local = local
         self._local_prefix = None if local is None else local.split("*", 1)[0]
@@ -76,7 +76,7 @@ class StreamHub:
                 else:
                     entry.subscriber = self._session.declare_subscriber(key, guarded(
                         lambda sample: self._dispatch(key, entry, sample), f"data {key}",
-                        self._bad))
+                        self._log))
             entry.listeners = (*entry.listeners, listener)
         return lambda: self._stop_listening(key, entry, listener)
 
@@ -87,7 +87,7 @@ class StreamHub:
         if self._local_subscriber is None:
             assert self._session is not None and self._local is not None
             self._local_subscriber = self._session.declare_subscriber(self._local, guarded(
-                self._dispatch_local, f"data {self._local}", self._bad))
+                self._dispatch_local, f"data {self._local}", self._log))
 
     def _dispatch_local(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -130,7 +130,7 @@ class StreamHub:
             try:
                 listener(data)
             except Exception as exc:  # never into Zenoh's thread
-                self._bad.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
+                self._log.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
 
 
 def _undeclare(entry: _Key) -> None:

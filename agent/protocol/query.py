@@ -205,7 +205,7 @@ def result_to_wire(r: PoseResult, source: str, target: str, owner: str,
                       "owner": owner, "t_ns": int(t_edge)})
     return {
         "source": source, "target": target, "t_ns": int(t_ns),
-        "position": r.position.tolist(),  # numpy float64 -> Python floats, 10x faster
+        "position": r.position.tolist(),  # numpy float64 -> Python floats in one call
         "quaternion": r.quaternion.tolist(),
         "covariance": None if r.covariance is None else r.covariance.ravel().tolist(),
         "path": list(r.path), "edges": edges,
@@ -533,8 +533,8 @@ def parse_summary(msg: Mapping[str, Any]) -> Summary:
 def summary_to_wire(summary: Mapping[str, Any]) -> dict[str, Any]:
     """A summary as ``agent.srg.supernode.summarize`` builds it, in its compact wire form
     (module docstring).  Spelt out, a summary repeats each frame id in every link and
-    component and each path's attributes once per error function: its size grew with
-    frames x boundary frames x error functions (issue 19); compact, a link costs a few
+    component and each path's attributes once per error function: its size grows with
+    frames x boundary frames x error functions; compact, a link costs a few
     bytes and only distinct paths carry attributes."""
     index = {frame: i for i, frame in enumerate(summary["frames"])}
     paths: list[dict[str, Any]] = []

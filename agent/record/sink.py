@@ -88,7 +88,7 @@ class RecordingSink:
         self._abilities: dict[str, tuple[Ability, dict[str, Any]]] = {}
         self._waiting: dict[str, tuple[float, list[tuple[bytes, int]]]] = {}
         self._tf = None
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self._writer.start(profile="ros2" if ros else "", library=f"uma {_uma_version()}")
         self._writer.add_metadata(layout.META_START, {
             "realm": realm, "patterns": json.dumps(patterns), "started_ns": str(time.time_ns()),
@@ -128,7 +128,7 @@ class RecordingSink:
                 self._fail(exc)
                 return
             except Exception as exc:  # a bug must not end the recording silently
-                self._bad.warning("recording writer", f"{type(exc).__name__}: {exc}")
+                self._log.warning("recording writer", f"{type(exc).__name__}: {exc}")
                 if item:
                     self.stats.dropped[item[0]] += 1
 
@@ -153,7 +153,7 @@ class RecordingSink:
             t_ns = peek_time(data)
         except DecodeError as exc:
             self.stats.undecodable += 1
-            self._bad.warning(key, f"undecodable, recorded as received ({exc})")
+            self._log.warning(key, f"undecodable, recorded as received ({exc})")
             t_ns = recv_ns
         self._put(key, lambda: layout.data_metadata(ability, attrs), data, recv_ns, t_ns)
         self._write_tf(ability, data, recv_ns)
@@ -177,7 +177,7 @@ class RecordingSink:
         try:
             edges = decode_statics(data)["edges"]
         except ValueError as exc:
-            self._bad.warning("static edges", f"not written to /tf_static ({exc})")
+            self._log.warning("static edges", f"not written to /tf_static ({exc})")
             return
         for e in edges:
             payload = self._tf.encode(e["parent"], e["child"], recv_ns, e["p"], e["q"])
@@ -209,7 +209,7 @@ class RecordingSink:
         try:
             snap = parse_snapshot(data, keys.parse_agent_services(key, self.realm))
         except DecodeError as exc:
-            self._bad.warning(key, f"unreadable snapshot ({exc})")
+            self._log.warning(key, f"unreadable snapshot ({exc})")
             return
         for desc in snap.services.values():
             for ab in desc.abilities:

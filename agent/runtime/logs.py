@@ -1,8 +1,8 @@
 """Logging that a peer's bad input cannot flood.
 
 A hostile or buggy peer can send thousands of bad messages, each with its own error text
-(a byte value, a position, a forged id in quotes).  Keyed on that text, every message was
-a "new" warning (issue 22: ~11,600 bad messages gave 497 lines).  So a warning is keyed on
+(a byte value, a position, a forged id in quotes).  Keyed on that text, every message
+would be a "new" warning.  So a warning is keyed on
 its sender (``subject``) and the *kind* of its reason: the text with numbers and quoted
 values replaced by placeholders.  Three bounds hold whatever the peers send:
 

@@ -2,7 +2,7 @@
 
 ``ZBytes.to_bytes()`` copies the whole payload into Python; the codec then refuses a
 message over 1 MiB (``schemas.codec``).  Checking ``len()`` first (which copies nothing)
-spares the copy of what would be refused anyway (issue 22, finding 6).
+spares the copy of what would be refused anyway.
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ behave alike (each choice measured with eclipse-zenoh 1.10 on loopback):
 - **receive limit 33 MiB** (``transport/link/rx/max_message_size``, Zenoh's default 1 GiB):
   the largest message uma accepts is an image of 32 MiB (``schemas.codec.MAX_IMAGE_BYTES``,
   every other message 1 MiB), so a peer cannot make Zenoh reassemble more than that per
-  message for us to copy and refuse (issue 22).  A base configuration may set it lower.
+  message for us to copy and refuse.  A base configuration may set it lower.
 - **admin space off** (``adminspace/enabled``): it let any peer read every session's
   configuration, links and locators under ``@/**``.  Only a base configuration
   (``uma router --config``) can turn it on.  The real port of a ``:0`` listener is
@@ -66,7 +66,7 @@ from agent.runtime.logs import RateLimitedLog
 from schemas.codec import MAX_IMAGE_BYTES, MAX_MESSAGE_BYTES
 
 log = logging.getLogger("uma.session")
-_bad = RateLimitedLog(log)
+_log = RateLimitedLog(log)
 
 MODES = ("peer", "client", "router")
 #: environment variable: the Zenoh mode of services and clients that are not told one
@@ -450,8 +450,8 @@ def ask_all(session: zenoh.Session, selector: str, timeout: float,
             answers.append(reply.ok.payload.to_bytes())
     extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
     session.get(selector, zenoh.handlers.Callback(
-        guarded(on_reply, f"replies on {selector}", _bad),
-        lambda: guarded(done, f"replies on {selector}", _bad)(answers)),
+        guarded(on_reply, f"replies on {selector}", _log),
+        lambda: guarded(done, f"replies on {selector}", _log)(answers)),
         timeout=timeout, **extra)
 
 

@@ -43,8 +43,8 @@ class Worker:
                  tick_s: float, settle: Sequence[Callable[[], None]] = (),
                  max_queued: int = MAX_QUEUED) -> None:
         self.owner = owner  # who, in log lines ("agent A", "service S")
-        self._log = log
-        self._bad = RateLimitedLog(log)
+        self._logger = log
+        self._log = RateLimitedLog(log)
         self._tick, self._tick_s, self._settle = tick, tick_s, tuple(settle)
         self._q: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]] | None] = queue.Queue(
             max_queued)
@@ -62,7 +62,7 @@ class Worker:
             self._q.put_nowait((fn, args))
         except queue.Full:
             self.refused += 1
-            self._bad.warning(self.owner, f"work queue full ({self._q.maxsize} calls): "
+            self._log.warning(self.owner, f"work queue full ({self._q.maxsize} calls): "
                               f"{_name(fn)} refused ({self.refused} refused so far)")
 
     def start(self) -> None:
@@ -99,9 +99,9 @@ class Worker:
             fn(*args)
         except zenoh.ZError as exc:
             if not self._stopping.is_set():
-                self._bad.warning(self.owner, f"{_name(fn)}: Zenoh: {exc}")
+                self._log.warning(self.owner, f"{_name(fn)}: Zenoh: {exc}")
         except Exception:  # a bug must not stop the component; log it with its traceback
-            self._log.exception("%s: %s failed", self.owner, _name(fn))
+            self._logger.exception("%s: %s failed", self.owner, _name(fn))
         finally:
             self._running = None
 

@@ -14,16 +14,16 @@ arrive parsed, by :mod:`agent.protocol.query`).
 Routes through agents that have left the realm are never tried; when only such routes
 exist, :class:`RouteError` names the segments and agents that are missing.
 
-Work per plan is bounded (issue 22: forged summaries with 801 links made a plan take
-0.5–0.8 s): at most ``MAX_LINKS_PER_AGENT`` links of one agent and ``MAX_PLAN_LINKS`` in
-all are considered, taken agent by agent outward from the agents that hold the source or
-the target frame (nearest first; in one layer, the agents with the fewest links first).
+Work per plan is bounded (a peer may forge summaries of many links): at most
+``MAX_LINKS_PER_AGENT`` links of one agent and ``MAX_PLAN_LINKS`` in all are considered,
+taken agent by agent outward from the agents that hold the source or the target frame
+(nearest first; in one layer, the agents with the fewest links first).
 What is left out is counted and said in a rate-limited log line (the planner's only
 output besides its result).  Only links that can carry this plan count: both ends the
 source, the target or a frame another agent also holds.  A link to a frame only its own
 agent knows is a dead end for any other query (a route through it would merge into that
 agent's link between the two frames beside it), and an agent of 1,000 frames summarises
-1,000 such links (issue 19: bounded to the first 66, they hid the source's own link).
+1,000 such links (bounded to the first 66, they could hide the source's own link).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ ROUTE_CANDIDATES = 16
 MAX_LINKS_PER_AGENT = 66
 MAX_PLAN_LINKS = 512
 
-_bad = RateLimitedLog(logging.getLogger("uma.client"))
+_log = RateLimitedLog(logging.getLogger("uma.client"))
 Link = tuple[tuple[str, str, str], dict[str, dict[str, Any]]]  # (agent, a, b), attributes
 
 
@@ -186,7 +186,7 @@ def considered_links(summaries: Mapping[str, Summary], source: str,
         seen |= following
         layer = following
     if dropped:
-        _bad.warning(f"plan {source} -> {target}", f"{dropped} links of the agents' summaries "
+        _log.warning(f"plan {source} -> {target}", f"{dropped} links of the agents' summaries "
                      f"left out (at most {MAX_LINKS_PER_AGENT} per agent, {MAX_PLAN_LINKS} "
                      "in all)")
     return links

@@ -95,7 +95,7 @@ class Queries:
         self.clock = clock
         self.connect = list(connect)
         self._lock = threading.Lock()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         #: answers refused: they came on one agent's key naming another (or none)
         self.refused = 0
         #: planned routes by (source, target, error), for summaries of ``_planned_on``
@@ -342,7 +342,7 @@ class Queries:
                 self._clock_sample(who, reply, t1, t4)
                 answered = answered or who == agent
         except zenoh.ZError as exc:
-            self._bad.warning("probe", f"asking agent {agent!r}: {exc}")
+            self._log.warning("probe", f"asking agent {agent!r}: {exc}")
         return answered
 
     def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
@@ -372,12 +372,12 @@ class Queries:
             key = str(reply.ok.key_expr)
             agent = self._reply_agent(key)
             if agent is None:
-                self._bad.warning("query reply", f"unexpected key {key!r}")
+                self._log.warning("query reply", f"unexpected key {key!r}")
                 continue
             answer = proto.decode_reply(reply.ok.payload.to_bytes())
             if answer.get("agent") != agent:
                 self.refused += 1
-                self._bad.warning("query reply", f"on {key} names agent "
+                self._log.warning("query reply", f"on {key} names agent "
                                   f"{str(answer.get('agent'))[:64]!r} "
                                   f"({answer.get('error', 'not the agent of its key')}): "
                                   f"refused ({self.refused} so far)")

@@ -66,7 +66,7 @@ class RealmTracker:
         #: gossip is still linking it to agents; a client's agent answers for all at once (0)
         self.settle_s = settle_s
         self._lock = threading.Lock()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         #: summaries refused: malformed, under another agent's key, or beyond MAX_AGENTS
         self.refused = 0
         self._summaries: dict[str, Summary] = {}
@@ -188,7 +188,7 @@ class RealmTracker:
             data = payload_bytes(sample.payload)
         except DecodeError as exc:
             self.refused += 1
-            self._bad.warning(f"supernode {sample.key_expr}", f"dropped: {exc}")
+            self._log.warning(f"supernode {sample.key_expr}", f"dropped: {exc}")
             return
         self.take_summary(str(sample.key_expr), data)
 
@@ -203,7 +203,7 @@ class RealmTracker:
                                  "its key")
         except ValueError as exc:
             self.refused += 1
-            self._bad.warning(f"supernode {key}", f"dropped a malformed summary: {exc} "
+            self._log.warning(f"supernode {key}", f"dropped a malformed summary: {exc} "
                               f"({self.refused} refused so far)")
             return
         with self._lock:
@@ -213,7 +213,7 @@ class RealmTracker:
             if (old is not None and not answered and summary.instance == old.instance
                     and summary.rev > old.rev + MAX_REVISION_JUMP):
                 self.refused += 1
-                self._bad.warning(f"supernode {key}", f"revision {summary.rev} jumps from "
+                self._log.warning(f"supernode {key}", f"revision {summary.rev} jumps from "
                                   f"{old.rev}: refused ({self.refused} refused so far)")
                 return
             if (old is None or summary.rev > old.rev or summary.instance != old.instance
@@ -236,7 +236,7 @@ class RealmTracker:
             self._heard.pop(dead, None)
             return True
         self.refused += 1
-        self._bad.warning("supernode", f"more than {MAX_AGENTS} agents; summary of {agent!r} "
+        self._log.warning("supernode", f"more than {MAX_AGENTS} agents; summary of {agent!r} "
                           f"dropped ({self.refused} refused so far)")
         return False
 
@@ -266,7 +266,7 @@ class RealmTracker:
         """Update the live set (lock held); a change moves ``topology``."""
         if alive and agent not in self._alive and len(self._alive) >= MAX_AGENTS:
             self.refused += 1
-            self._bad.warning("liveliness", f"more than {MAX_AGENTS} live agents; {agent!r} "
+            self._log.warning("liveliness", f"more than {MAX_AGENTS} live agents; {agent!r} "
                               f"ignored ({self.refused} refused so far)")
             return
         if alive:

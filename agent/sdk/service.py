@@ -29,7 +29,7 @@ and follows every re-match without any action by the code using it.
 A service that names its agent's endpoint (``connect``) is a Zenoh *client* of that agent,
 which routes its samples (``docs/ARCHITECTURE.md``, "Topology"); every ``Service`` and
 ``Client`` of one process shares one session (``shared=False`` opts out, ``mode="peer"``
-makes the service a listening peer of its own, as before).  When the agent is not
+makes the service a listening peer of its own).  When the agent is not
 reachable yet, the service connects as soon as it is; samples published meanwhile have no
 receiver and are counted in ``handle.unsent``.  ``svc.matches(name)`` and
 ``svc.wait_matched(name)`` expose the matches.
@@ -246,7 +246,7 @@ class Service:
         self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
             SAMPLE_QUEUE)
         self._threads: list[threading.Thread] = []
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         #: the agent's epoch and the key it signs control messages with (register reply)
         self._agent_epoch: int | None = None
         self._control_key: bytes | None = None
@@ -395,7 +395,7 @@ class Service:
         self._decls += [
             sess.declare_subscriber(keys.control(r, a, s), guarded(
                 lambda smp: put(self._on_control, payload_bytes(smp.payload)),
-                keys.control(r, a, s), self._bad)),
+                keys.control(r, a, s), self._log)),
             sess.declare_queryable(keys.service_token(r, a, s),
                                    lambda q: put(self._on_descriptor_query, q)),
             sess.liveliness().declare_subscriber(
@@ -660,7 +660,7 @@ class Service:
 
     def _refuse_control(self, reason: str, detail: str) -> None:
         n = self.control_refused[reason] = self.control_refused.get(reason, 0) + 1
-        self._bad.warning(f"control {keys.control(self.realm, self.agent_id, self.service_id)}",
+        self._log.warning(f"control {keys.control(self.realm, self.agent_id, self.service_id)}",
                           f"refused ({reason}, {n} so far): {detail}")
 
     def _apply(self, need: NeedHandle, matches: tuple[Match, ...], satisfied: bool) -> None:
@@ -693,9 +693,9 @@ class Service:
         try:
             self._samples.put_nowait((need, link, payload_bytes(smp.payload, limit)))
         except DecodeError as exc:
-            self._bad.warning(f"data {link.match.key}", f"dropped: {exc}")
+            self._log.warning(f"data {link.match.key}", f"dropped: {exc}")
         except queue.Full:
-            self._bad.warning(f"service {self.service_id} need {need.name}",
+            self._log.warning(f"service {self.service_id} need {need.name}",
                               "callback queue full (on_sample too slow); samples dropped")
 
     def _dispatch(self) -> None:
@@ -709,7 +709,7 @@ class Service:
             try:
                 m = decode_measurement(data, expected_type=need.need.type)
             except DecodeError as exc:
-                self._bad.warning(f"data {link.match.key}", f"dropped: {exc}")
+                self._log.warning(f"data {link.match.key}", f"dropped: {exc}")
                 continue
             m.edge, m.source, m.attributes = (link.match.edge, link.match.service_id,
                                               link.match.attributes)
@@ -718,6 +718,6 @@ class Service:
             try:
                 need.on_sample(m)
             except Exception as exc:
-                if self._bad.warning(f"service {self.service_id} need {need.name}",
+                if self._log.warning(f"service {self.service_id} need {need.name}",
                                      f"on_sample raised {type(exc).__name__}: {exc}"):
                     log.debug("on_sample traceback", exc_info=True)

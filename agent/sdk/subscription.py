@@ -127,7 +127,7 @@ class Subscription:
                  buffer_s: float = 5.0) -> None:
         self.queries = queries
         self._on_close = on_close
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self.source, self.target = source, target
         self.on_pose = on_pose
         self.on_error = on_error
@@ -217,7 +217,7 @@ class Subscription:
             else:
                 sub = session.declare_subscriber(key, zenoh.handlers.Callback(
                     guarded(lambda smp, a=agent, k=key: self._on_sample(
-                        a, k, payload_bytes(smp.payload)), f"subscription {key}", self._bad),
+                        a, k, payload_bytes(smp.payload)), f"subscription {key}", self._log),
                     indirect=False))
             self._decls.append(sub)
 
@@ -286,14 +286,14 @@ class Subscription:
             was = [s.agent for s in self.route] if self.status in _ON_ROUTE else None
             self._build(outcome)
         except UmaError as exc:
-            self._lost(exc)
+            self._planning_failed(exc)
             return
         self.replans += 1
         log.info("subscription %s -> %s: now via %s (%s)", self.source, self.target,
                  ", ".join(str(s) for s in self.route),
                  "no route before" if was is None else f"was via agents {', '.join(was)}")
 
-    def _lost(self, exc: Exception) -> None:
+    def _planning_failed(self, exc: Exception) -> None:
         """Planning failed.  While the mirrored route's samples still arrive, keep
         delivering them: an agent's absence (its token lapsed on a frozen host, a
         partition) stops new plans, not a working stream; the stream ends only when it
@@ -309,7 +309,7 @@ class Subscription:
                 isinstance(exc, SegmentError)
                 and all(self.queries.tracker.is_alive(s.agent) for s in self.route))):
             self._replan_failed = exc
-            self._bad.warning(f"subscription {self.source} -> {self.target}",
+            self._log.warning(f"subscription {self.source} -> {self.target}",
                               f"re-planning failed, route kept while it streams: {exc}")
             return
         self._no_route(exc)
@@ -327,7 +327,7 @@ class Subscription:
             try:
                 self.on_error(exc)
             except Exception as cb_exc:
-                self._bad.warning("on_error", f"{type(cb_exc).__name__}: {cb_exc}")
+                self._log.warning("on_error", f"{type(cb_exc).__name__}: {cb_exc}")
 
     # -- samples
     def _stream(self) -> None:
@@ -344,7 +344,7 @@ class Subscription:
                 for sample in sub:  # ends when the subscriber is undeclared
                     self._on_sample(agent, key, payload_bytes(sample.payload))
             except (zenoh.ZError, DecodeError) as exc:
-                self._bad.warning(f"subscription {key}", f"reading samples: {exc}")
+                self._log.warning(f"subscription {key}", f"reading samples: {exc}")
             except Exception:  # a bug must not stop the stream; log it with its traceback
                 log.exception("subscription %s -> %s: delivering failed", self.source,
                               self.target)
@@ -419,7 +419,7 @@ class Subscription:
                                         f"clock: refused ({self.refused} so far)")
             gap = self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
             if gap:
-                self._bad.warning(f"subscription {key}", f"{gap} sample(s) lost before "
+                self._log.warning(f"subscription {key}", f"{gap} sample(s) lost before "
                                   f"s={m.seq} (dropped on the way, or this subscription fell "
                                   f"{RING} samples behind); {self.lost} so far")
             on_route_clock = (m.t_ns if agent == self.clock_agent or self.clock_agent is None
@@ -429,7 +429,7 @@ class Subscription:
         except (DecodeError, ValueError) as exc:
             self.failed += 1
             self.last_error = exc
-            self._bad.warning(f"subscription {key}", f"bad sample: {exc}")
+            self._log.warning(f"subscription {key}", f"bad sample: {exc}")
             return None
         if edge_key != self.pusher:
             return None
@@ -480,7 +480,7 @@ class Subscription:
         except Exception as exc:
             self.failed += 1
             self.last_error = exc
-            self._bad.warning("on_pose", f"{type(exc).__name__}: {exc}")
+            self._log.warning("on_pose", f"{type(exc).__name__}: {exc}")
 
     def close(self) -> None:
         if self._closed.is_set():

@@ -8,7 +8,7 @@ path between them under each built-in error function.  A planner joins summaries
 graph whose edges are these links, finds a route, and asks each owning agent for its
 segment at the query time.
 
-Cost (issue 19): a summary grows with frames x boundary frames, so its work must not grow
+Cost: a summary grows with frames x boundary frames, so its work must not grow
 faster.  No query plan is built: per boundary frame, one shortest-path tree (Dijkstra from
 that frame) gives every frame's best path to it, whose attributes are extended by one edge
 from those of the path it continues (one composition per frame).  Where a path is made only

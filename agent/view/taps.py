@@ -59,7 +59,7 @@ class Taps:
 
     def __init__(self, session: zenoh.Session, log: Any) -> None:
         self.session = session
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self._streams: dict[str, _Stream] = {}
 
     def follow(self, wanted: Iterable[tuple[str, str]]) -> None:
@@ -85,7 +85,7 @@ class Taps:
             try:
                 m = decode_measurement(sample.payload.to_bytes(), stream.type)
             except DecodeError as exc:
-                self._bad.warning(key, f"dropped a malformed sample: {exc}")
+                self._log.warning(key, f"dropped a malformed sample: {exc}")
             else:
                 stream.newest, stream.pulled = m, time.monotonic()
                 _mark(stream.marks, m)

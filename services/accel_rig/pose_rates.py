@@ -4,14 +4,14 @@ A reset gives the dead reckoner an absolute pose; the velocity and angular veloc
 restarts with must come from the absolute poses too.  They have to be good: the
 six-accelerometer rig cannot tell an angular-velocity error from the centripetal terms it
 removes (Hogue 2003, §4.2), an error ``e`` feeds back as ``e' ~ e^2`` and the dead reckoning
-diverges within about ``1 / |e|`` seconds.  The three-point derivative that was used
-multiplies the pose noise by ``~2.5 / dt``: about 760 for 300 Hz fused head poses, so
-1 mrad of orientation noise became 0.8 rad/s of angular-velocity error, and the service
-overflowed within two seconds.
+diverges within about ``1 / |e|`` seconds.  A three-point derivative multiplies the pose
+noise by ``~2.5 / dt``: about 760 for 300 Hz fused head poses, so 1 mrad of orientation
+noise would become 0.8 rad/s of angular-velocity error, and the reckoning would overflow
+within two seconds.
 
 Here a quadratic is fitted by least squares to the poses of the last ``FIT_WINDOW_S``
 (at least three, spanning at most ``MAX_SPAN_S``) and differentiated at the newest one:
-at 300 Hz the noise gain drops to ~60; at 30 Hz it is the three-point parabola as before.
+at 300 Hz the noise gain drops to ~60; at 30 Hz it is the three-point parabola.
 The variance of each derivative is the fit's noise gain (sum of its squared weights) times
 the per-pose noise variance, plus a floor for the truncation error of the quadratic on
 head motion.  The per-pose noise is the larger of what the poses report and what the fit

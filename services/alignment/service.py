@@ -61,7 +61,7 @@ from services.alignment.solvers import AlignmentError, all_pairs, relative_motio
 from services.alignment.timesync import PoseSeries
 
 log = logging.getLogger("uma.alignment")
-_bad = RateLimitedLog(log)
+_log = RateLimitedLog(log)
 
 STATIC_REPUBLISH_S = 1.0
 #: re-calibration requests accepted at most once per this many seconds
@@ -410,7 +410,7 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         svc.start()
         key = recalibrate_key(svc.realm, svc.agent_id, svc.service_id)
         queryable = svc.session.declare_queryable(key, guarded(
-            lambda q: _answer_request(q, live, key), f"alignment {key}", _bad))
+            lambda q: _answer_request(q, live, key), f"alignment {key}", _log))
         try:
             _serve(svc, live, stop)
         finally:
@@ -463,7 +463,7 @@ def _answer_request(query: Any, live: LiveAlignment, key: str) -> None:
         live.request()
     else:
         live.refused += 1
-        _bad.warning(f"alignment {key}", f"re-calibration refused: {refused} "
+        _log.warning(f"alignment {key}", f"re-calibration refused: {refused} "
                      f"({live.refused} refused so far)")
     reply = {"ok": refused is None,
              "status": refused or "collecting new motions",

@@ -127,7 +127,7 @@ class Publisher:
         self.address = address
         self.published = 0
         self._said: set[Any] = set()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
 
     def __call__(self, sensor: int, t_ns: int, position: Any, quaternion: Any) -> None:
         handle = self.handles.get(sensor)
@@ -143,7 +143,7 @@ class Publisher:
         try:
             handle.publish(t, position, quaternion)
         except ValueError as exc:  # e.g. a zero quaternion for a body the tracker lost
-            self._bad.warning(f"sensor {sensor} of {self.address}", f"report dropped: {exc}")
+            self._log.warning(f"sensor {sensor} of {self.address}", f"report dropped: {exc}")
             return
         self.published += 1
 

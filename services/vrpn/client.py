@@ -101,7 +101,7 @@ class TrackerClient:
         self.reports = 0
         self.velocity_reports = 0
         self._warned: set[str] = set()
-        self._bad = RateLimitedLog(log)
+        self._log = RateLimitedLog(log)
         self._udp: asyncio.DatagramTransport | None = None
         self._udp_task: asyncio.Future | None = None
         #: reports that came by UDP (the rest came by TCP)
@@ -133,7 +133,7 @@ class TrackerClient:
 
     def bad(self, text: str) -> None:
         """A bad datagram or report: logged (rate-limited: UDP can come from anyone)."""
-        self._bad.warning(f"VRPN server {self.address}", text)
+        self._log.warning(f"VRPN server {self.address}", text)
 
     def note(self, key: str, text: str) -> None:
         """Log ``text`` once per run."""
@@ -197,7 +197,7 @@ class TrackerClient:
         def on_closed(link: Link) -> None:
             if not closed.done():
                 closed.set_result(None)
-        return Link(self._ready, self.handle, on_closed, bad=self._bad)
+        return Link(self._ready, self.handle, on_closed, bad=self._log)
 
     async def _connect(self, closed: asyncio.Future, stop: asyncio.Event) -> Link | None:
         loop = asyncio.get_running_loop()

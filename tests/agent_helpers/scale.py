@@ -1,4 +1,4 @@
-"""A realm at site scale (issue 23): one agent per host of a :class:`Site`, each with one
+"""A realm at site scale: one agent per host of a :class:`Site`, each with one
 process of K services (:mod:`agent_helpers.many_services`), and ``uma services`` asked from
 a host of its own.  Used by ``tests/test_site_scale.py`` and ``bench/bench_site_scale.py``.
 """
