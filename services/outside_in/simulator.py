@@ -26,6 +26,7 @@ Everything depends only on ``seed`` and time, so runs repeat.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -213,18 +214,19 @@ class Simulation:
 
     # ------------------------------------------------------------------ images
 
-    def render(self, camera: int, index: int, rng: np.random.Generator | None = None) -> Frame:
-        """Camera ``camera``'s ``index``-th frame (noise from ``seed``, camera and index)."""
+    def render(self, camera: int, index: int, scene: Scene | None = None) -> Frame:
+        """Camera ``camera``'s ``index``-th frame of the bodies (or of ``scene``: what a
+        camera sees at a time); the noise depends only on seed, camera and index."""
         cfg = self.config
         t = self.exposure_time(camera, index)
-        rng = rng or np.random.default_rng([self.seed, camera, index])
-        img = self._backgrounds[camera].astype(np.float64)
+        rng = np.random.default_rng([self.seed, camera, index])
         if camera in self.hidden:
-            img[:] = cfg.dark_level
-            return Frame(camera, t, _to8(img), {})
+            return Frame(camera, t, np.full((HEIGHT, WIDTH), round(cfg.dark_level), np.uint8),
+                         {})
+        img = self._backgrounds[camera].copy()
         cam = self.cameras[camera]
+        vis = (scene or self.visible)(camera, t)
         truth = {}
-        vis = self.visible(camera, t)
         if vis:
             keys = list(vis)
             world = np.array([vis[k] for k in keys])
@@ -232,14 +234,14 @@ class Simulation:
             depth = cam.to_camera(world)[:, 2]
             for key, (u, v), z in zip(keys, uv, depth, strict=True):
                 truth[key] = np.array([u, v])
-                self._splat(img, u, v, z, rng)
-        return Frame(camera, t, _to8(img), truth)
+                self._splat(img, cam.focal_px, u, v, z, rng)
+        return Frame(camera, t, img, truth)
 
-    def _splat(self, img: Array, u: float, v: float, depth: float,
+    def _splat(self, img: Array, focal: float, u: float, v: float, depth: float,
                rng: np.random.Generator) -> None:
-        """Add one marker's image (with fresh sensor noise) into ``img``."""
+        """Draw one marker's image (with fresh sensor noise) into ``img`` (uint8)."""
         cfg = self.config
-        r = self.cameras[0].focal_px * cfg.marker_diameter_m / 2 / depth
+        r = focal * cfg.marker_diameter_m / 2 / depth
         peak = cfg.peak_dn_at_2m * (2.0 / depth) ** 2
         half = int(np.ceil(r + 4 * cfg.psf_sigma_px)) + 1
         x0, x1 = max(round(float(u)) - half, 0), min(round(float(u)) + half + 1, WIDTH)
@@ -250,7 +252,12 @@ class Simulation:
         fresh = cfg.dark_level + signal + rng.normal(0, 1, signal.shape) * np.sqrt(
             cfg.gain * signal + cfg.read_noise ** 2)
         # a marker over a reflection (or another marker) shows the brighter of the two
-        np.maximum(img[y0:y1, x0:x1], fresh, out=img[y0:y1, x0:x1])
+        patch = img[y0:y1, x0:x1]
+        patch[:] = np.maximum(patch, _to8(fresh))
+
+
+#: what a camera sees at a time: ``(camera, t) -> {key: world point}``
+Scene = Callable[[int, float], dict]
 
 
 def _to8(img: Array) -> Array:
@@ -267,3 +274,42 @@ def _blocked(eye: Array, point: Array, centres: list[Array]) -> bool:
         if 0 < s < L - 0.005 and np.linalg.norm(eye + s * d - c) < HULL_M:
             return True
     return False
+
+
+@dataclass(frozen=True)
+class WandWave:
+    """A calibration wand waved through the volume: markers at ``distances`` along it."""
+
+    distances: tuple[float, ...] = (0.0, 0.16, 0.5)
+    seed: int = 0
+
+    def markers(self, t: float) -> Array:
+        """(3, 3) marker positions at ``t``: the centre wanders over the volume, the
+        direction turns through every orientation."""
+        ph = np.random.default_rng(20_000 + self.seed).uniform(0, 2 * np.pi, 6)
+        c = np.array([1.1 * np.sin(2 * np.pi * 0.037 * t + ph[0]),
+                      1.1 * np.sin(2 * np.pi * 0.029 * t + ph[1]),
+                      1.25 + 0.8 * np.sin(2 * np.pi * 0.043 * t + ph[2])])
+        u = np.array([np.sin(0.61 * t + ph[3]), np.cos(0.47 * t + ph[4]),
+                      np.sin(0.37 * t + ph[5])])
+        u /= np.linalg.norm(u)
+        d = np.asarray(self.distances)
+        return c + (d - d[-1] / 2)[:, None] * u
+
+    def scene(self, sim: Simulation) -> Scene:
+        """What each camera of ``sim`` sees of the wand (all three markers or none)."""
+        def see(camera: int, t: float) -> dict:
+            X = self.markers(t)
+            vis = sim.cameras[camera].visible(X, margin_px=3)
+            return {(0, k): X[k] for k in range(len(X))} if np.all(vis) else {}
+        return see
+
+
+def static_scene(sim: Simulation, points: Array) -> Scene:
+    """Markers that do not move (an L-frame on the floor): each camera sees those in view."""
+    P = np.asarray(points, float)
+
+    def see(camera: int, t: float) -> dict:
+        vis = sim.cameras[camera].visible(P, margin_px=3)
+        return {(0, k): P[k] for k in np.nonzero(vis)[0]}
+    return see

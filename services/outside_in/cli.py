@@ -1,0 +1,190 @@
+"""What ``uma calibrate rig`` does (grammar in ``commands.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agent import geometry as geo
+from agent.errors import UmaError
+from services.camera.capture import Capture
+from services.camera.model import load as load_camera
+from services.camera.simulator import write_video
+from services.outside_in.blobs import find_blobs
+from services.outside_in.calibration import (
+    LFRAME,
+    RigCalibration,
+    Wand,
+    calibrate_rig,
+    wand_observations,
+)
+from services.outside_in.pose import absolute_orientation
+from services.outside_in.rigfile import save_rig, static_edges
+from services.outside_in.simulator import SimConfig, Simulation, WandWave, static_scene
+
+Array = np.ndarray
+#: wand frame sets per second the simulation records (a wand needs no more)
+SIM_WAND_HZ = 20
+
+
+def calibrate_rig_command(args: argparse.Namespace) -> int:
+    try:
+        wand = Wand(args.wand)
+    except ValueError as exc:
+        raise UmaError(f"--wand: {exc}") from None
+    truth = None
+    if args.sim is not None:
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = Path(args.videos or tmp)
+            sim = simulate_recordings(args.sim, args.cameras, args.frames, folder, wand)
+            truth = sim.cameras
+            cal = calibrate_from_files(_sim_sources(folder, sim), wand, args.refine_intrinsics)
+    else:
+        cal = calibrate_from_files(_sources(args), wand, args.refine_intrinsics)
+    save_rig(args.output, cal.cameras, cal.covariances, args.world, args.site, cal.rms_px)
+    if args.agent_config:
+        Path(args.agent_config).write_text(
+            "# world -> camera edges of 'uma calibrate rig'\n"
+            + static_edges(cal.cameras, cal.covariances, args.world, args.site))
+    report = rig_report(cal, truth)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        _print(report, args.output)
+    return 0
+
+
+def _sources(args: argparse.Namespace) -> dict[str, tuple[str, str, str]]:
+    """NAME -> (wand video, L-frame video, intrinsics file), every camera complete."""
+    wand, lf, intr = (dict(args.wand_video), dict(args.lframe_video), dict(args.intrinsics))
+    names = set(wand) | set(lf) | set(intr)
+    if len(names) < 2:
+        raise UmaError("give two cameras at least: --wand-video, --lframe-video and "
+                       "--intrinsics NAME=FILE for each (or --sim SEED)")
+    for n in sorted(names):
+        missing = [o for o, d in (("--wand-video", wand), ("--lframe-video", lf),
+                                  ("--intrinsics", intr)) if n not in d]
+        if missing:
+            raise UmaError(f"camera {n!r} lacks {', '.join(missing)}")
+    return {n: (wand[n], lf[n], intr[n]) for n in sorted(names)}
+
+
+def _sim_sources(folder: Path, sim: Simulation) -> dict[str, tuple[str, str, str]]:
+    return {c.name: (str(folder / f"{c.name}.wand.avi"), str(folder / f"{c.name}.lframe.avi"),
+                     str(folder / f"{c.name}.yaml")) for c in sim.cameras}
+
+
+def simulate_recordings(seed: int, n_cameras: int, n_frames: int, folder: Path,
+                        wand: Wand) -> Simulation:
+    """Render a simulated rig's wand and L-frame videos and intrinsics files into
+    ``folder``; returns the simulation (its cameras are the truth)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    sim = Simulation(seed=seed, config=SimConfig(n_cameras=n_cameras))
+    wave = WandWave(wand.distances, seed=seed).scene(sim)
+    still = static_scene(sim, LFRAME.markers)
+    stride = round(sim.config.rate_hz / SIM_WAND_HZ)
+    for c, cam in enumerate(sim.cameras):
+        cam.model.save(folder / f"{cam.name}.yaml")
+        write_video(folder / f"{cam.name}.wand.avi",
+                    (sim.render(c, stride * i, wave).image for i in range(n_frames)),
+                    SIM_WAND_HZ)
+        write_video(folder / f"{cam.name}.lframe.avi",
+                    (sim.render(c, 10**6 + i, still).image for i in range(20)), SIM_WAND_HZ)
+    return sim
+
+
+def calibrate_from_files(sources: dict[str, tuple[str, str, str]], wand: Wand,
+                         refine_intrinsics: bool) -> RigCalibration:
+    """Read every camera's recordings through the capture path and calibrate."""
+    names = list(sources)
+    models = []
+    for n in names:
+        m = load_camera(sources[n][2])
+        models.append(type(m)(m.K, m.dist, m.width, m.height, m.pixel_std, n))
+    wand_frames = matched_blobs([sources[n][0] for n in names])
+    lframe_frames = matched_blobs([sources[n][1] for n in names])
+    obs = wand_observations(models, wand_frames, wand)
+    return calibrate_rig(models, obs, lframe_frames, wand, intrinsics=refine_intrinsics)
+
+
+def matched_blobs(paths: list[str], max_frames: int = 20_000) -> list[list[Array]]:
+    """Blob pixels of every camera's recording, frame sets matched by time: each camera's
+    frame nearest to the first camera's, within half a frame period, else none."""
+    per_cam: list[tuple[Array, list[Array]]] = []
+    for path in paths:
+        times, blobs = [], []
+        with Capture(path, gray=True, max_frames=max_frames) as cap:
+            for frame in cap.frames():
+                times.append(frame.t_ns)
+                blobs.append(find_blobs(frame.image).uv)
+        if not times:
+            raise UmaError(f"{path}: no frames")
+        t = np.array(times, float)
+        per_cam.append((t - t[0], blobs))
+    ref_t, _ = per_cam[0]
+    period = float(np.median(np.diff(ref_t))) if len(ref_t) > 1 else 1.0
+    out = []
+    for t in ref_t:
+        row = []
+        for ts, blobs in per_cam:
+            k = int(np.argmin(np.abs(ts - t)))
+            row.append(blobs[k] if abs(ts[k] - t) <= period / 2 else np.zeros((0, 2)))
+        out.append(row)
+    return out
+
+
+def rig_report(cal: RigCalibration, truth: list | None = None) -> dict[str, Any]:
+    """Figures of a calibration, and its errors when the truth is known (simulation):
+    in the world frame the L-frame defines, and of the rig's shape (the calibrated rig
+    moved onto the true one by the best rigid motion, which takes the world frame's own
+    error out)."""
+    out: dict[str, Any] = {"rms_px": round(cal.rms_px, 4), "wand_frames": cal.wand_frames,
+                           "lframe_frames": cal.lframe_frames,
+                           "wand_observations": cal.observations, "cameras": {}}
+    for c, cam in enumerate(cal.cameras):
+        ps, rs = cal.std(c)
+        out["cameras"][cam.name] = {"position": [round(float(x), 5) for x in cam.position],
+                                    "quaternion": [round(float(x), 6) for x in cam.quaternion],
+                                    "pos_std_mm": round(ps * 1e3, 3),
+                                    "rot_std_deg": round(float(np.degrees(rs)), 4)}
+    if truth is None:
+        return out
+    T = np.array([c.position for c in truth])
+    E = np.array([c.position for c in cal.cameras])
+    R, p = absolute_orientation(E, T)
+    q_align = geo.matrix_to_quat(R)
+    for c, (cam, tc) in enumerate(zip(cal.cameras, truth, strict=True)):
+        entry = out["cameras"][cam.name]
+        entry["world_pos_error_mm"] = round(float(np.linalg.norm(E[c] - T[c])) * 1e3, 3)
+        entry["world_rot_error_deg"] = round(float(np.degrees(
+            geo.quat_angle(cam.quaternion, tc.quaternion))), 4)
+        entry["shape_pos_error_mm"] = round(float(np.linalg.norm(R @ E[c] + p - T[c])) * 1e3,
+                                            3)
+        entry["shape_rot_error_deg"] = round(float(np.degrees(geo.quat_angle(
+            geo.quat_multiply(q_align, cam.quaternion), tc.quaternion))), 4)
+    for key in ("world_pos_error_mm", "world_rot_error_deg", "shape_pos_error_mm",
+                "shape_rot_error_deg"):
+        out[f"max_{key}"] = max(v[key] for v in out["cameras"].values())
+    return out
+
+
+def _print(report: dict[str, Any], path: str) -> None:
+    w = sys.stdout.write
+    w(f"rig calibrated from {report['wand_frames']} wand frame sets "
+      f"({report['wand_observations']} camera views) and {report['lframe_frames']} L-frame "
+      f"frame sets; reprojection RMS {report['rms_px']:.3f} px\n")
+    for name, c in report["cameras"].items():
+        line = (f"  {name}: position {c['position']} m  std {c['pos_std_mm']:.2f} mm "
+                f"{c['rot_std_deg']:.3f} deg")
+        if "world_pos_error_mm" in c:
+            line += (f"  error {c['world_pos_error_mm']:.2f} mm {c['world_rot_error_deg']:.3f}"
+                     f" deg (rig shape {c['shape_pos_error_mm']:.2f} mm "
+                     f"{c['shape_rot_error_deg']:.4f} deg)")
+        w(line + "\n")
+    w(f"wrote {path}\n")
