@@ -8,15 +8,17 @@ import threading
 from collections.abc import Iterator
 
 import pytest
-from agent_helpers.harness import poll
+from agent_helpers.harness import agent, poll, service
 from conftest import endpoint, free_port
 from test_agent_robustness import register_raw, wait_token
+from test_hostile_peers import PRODUCER, rss_mb, snapshot
 
 from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.protocol import keys
 from agent.protocol.registration import register_request
+from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
 from schemas.codec import encode_descriptor
@@ -106,3 +108,51 @@ def test_a_readopted_service_renews_its_instance_and_a_stranger_cannot(site, rea
     assert cam.wait_registered(10), cam.error
     assert cam.instance != old and agent.view.local["cam"].instance == cam.instance
     poll(lambda: agent.registrar.control_key("cam") is not None, 10, "cam's new key")
+
+
+def big(sid: str) -> bytes:
+    """A valid descriptor of about 0.6 MB (what the flood of the audit sent)."""
+    return encode_descriptor(ServiceDescriptor(
+        service_id=sid, agent_id="hostA", attributes={"blob": ["x" * 600] * 1000},
+        abilities=[{"name": "pose", "type": "pose6d", "edge": ["big/a", "big/b"]}]))
+
+
+def test_a_registration_flood_is_bounded_in_size_and_rate(processes, realm) -> None:
+    """60 registrations of 0.6 MB and 300 small ones of distinct service ids, as fast as
+    one session can ask: the big ones are refused unread, the small ones beyond the bound
+    with ``retry``; the agent logs it in one line, its memory stays put, and the real
+    camera's own re-registration still goes through."""
+    ep = endpoint(free_port())
+    host = agent(processes, realm, "hostA", ep)
+    cam = service(processes, realm, "cam", "hostA", ep, *PRODUCER)
+    cam.wait_for(lambda e: e.get("event") == "started")
+    with open_session(connect=[ep]) as s:
+        poll(lambda: "cam" in snapshot(s, realm, "hostA").services, 20, "cam registered")
+        before = rss_mb(host.popen.pid)
+        outcomes = [register_raw(s, realm, "hostA", register_request(
+            big(f"big{i}"), f"b{i}", 1, {})) for i in range(60)]
+        outcomes += [register_raw(s, realm, "hostA", register_request(
+            forged(f"junk{i}", (f"j{i}/a", f"j{i}/b")), f"j{i}", 1, {})) for i in range(300)]
+        grew = rss_mb(host.popen.pid) - before
+        cam.send("update frequency_hz=77")
+        poll(lambda: snapshot(s, realm, "hostA").services["cam"].abilities[0]
+             .attributes.frequency_hz == 77, 20, "cam's update applied")
+    accepted = [i for i, (ok, _) in enumerate(outcomes) if ok]
+    print(f"flood: {len(accepted)} of {len(outcomes)} accepted, agent RSS +{grew:.1f} MB")
+    assert all("more than 131072" in error for _, error in outcomes[:60]), outcomes[0]
+    assert 0 < len(accepted) < 150 and all(i >= 60 for i in accepted)
+    assert all("retry" in error for ok, error in outcomes[60:] if not ok)
+    assert grew < 40
+    host.wait_log("registrations: refused (rate")
+    assert len([line for line in host.log if "registrations: refused (rate" in line]) == 1
+
+
+def test_sender_limits_bound_each_sender_and_all_together() -> None:
+    limits = SenderLimits(1.0, 2, total=(10.0, 3), max_senders=2, now=0.0)
+    assert [limits.allow("a", 0.0) for _ in range(3)] == [None, None, "sender"]
+    assert [limits.allow("b", 0.0) for _ in range(2)] == [None, "total"]
+    assert limits.allow("b", 0.1) is None  # its own token was given back; total refilled
+    assert limits.allow("a", 1.0) is None and limits.allow("a", 1.0) == "sender"
+    for i in range(100):
+        limits.allow(f"x{i}", 2.0)
+    assert len(limits._senders) == 2

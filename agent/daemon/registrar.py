@@ -33,8 +33,15 @@
   whose token is absent is checked; a registration whose token never came is dropped after
   ``PENDING_TIMEOUT_S`` (:meth:`Registrar.expire_pending`).
 
-Everything runs in the agent's worker: Zenoh callbacks and replies are handed to it with
-``put``.
+- **floods** (:class:`RegistrationGate`): a request larger than ``MAX_REGISTRATION_BYTES``
+  is refused unread; the rest are rated per service id before they reach the worker.  A
+  re-registration that carries the key of the instance held draws on its own service's
+  bucket, which no stranger can drain; every other one (new services, new instances,
+  refusals to come) on a smaller bucket per service id and one shared by all of them.
+  A refusal says ``retry``: a real service registers again after its back-off.
+
+Everything else runs in the agent's worker: Zenoh callbacks and replies are handed to it
+with ``put``.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import secrets
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,13 +61,16 @@ from agent.daemon.realm_view import RealmView
 from agent.protocol import keys
 from agent.protocol.registration import (
     CONTROL_KEY_BYTES,
+    MAX_REGISTRATION_BYTES,
     Registration,
     parse_descriptor_answer,
     parse_descriptor_reply,
     parse_register_request,
+    peek_register,
     reply_error,
     reply_ok,
 )
+from agent.runtime.limits import SenderLimits
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.session import ask_all
 from schemas.codec import DecodeError
@@ -73,6 +84,13 @@ DUPLICATE_CHECK_S = 0.5
 DEPARTURE_CHECK_S = 1.0
 #: seconds to wait for a service's descriptor answer when adopting it
 ADOPT_TIMEOUT_S = 2.0
+#: registrations of a held instance with its key, per service id: at once, then per second
+PROVEN_BURST, PROVEN_RATE = 20, 5.0
+#: other registrations (new services or instances, and would-be hijacks): per service id,
+#: and for all service ids together (a host starting a hundred services at once is served
+#: in seconds; the refused retry after their back-off)
+UNPROVEN_BURST, UNPROVEN_RATE = 5, 1.0
+UNPROVEN_TOTAL_BURST, UNPROVEN_TOTAL_RATE = 64, 20.0
 
 
 class RegistrarHost(Protocol):
@@ -89,6 +107,47 @@ class RegistrarHost(Protocol):
 
     def snapshot_changed(self) -> None:
         """The local services changed: publish a new snapshot."""
+
+
+class RegistrationGate:
+    """Size and rate bounds on registrations, checked on Zenoh's thread before any decoding
+    of the descriptor (module docstring, "floods"); refusals are counted by reason."""
+
+    def __init__(self, agent_id: str, bad: RateLimitedLog,
+                 held: Callable[[str], tuple[str, bytes] | None]) -> None:
+        self.agent_id = agent_id
+        self._bad = bad
+        self._held = held
+        self._proven = SenderLimits(PROVEN_RATE, PROVEN_BURST)
+        self._unproven = SenderLimits(UNPROVEN_RATE, UNPROVEN_BURST,
+                                      (UNPROVEN_TOTAL_RATE, UNPROVEN_TOTAL_BURST))
+        self._count_lock = threading.Lock()
+        #: registrations refused here, by reason ("size", "rate")
+        self.refused: dict[str, int] = {}
+
+    def refusal(self, data: bytes | None) -> str | None:
+        """Why this request is refused unread (None: it goes on to the worker)."""
+        if data is not None and len(data) > MAX_REGISTRATION_BYTES:
+            return self._count("size", f"{len(data)} bytes, more than "
+                               f"{MAX_REGISTRATION_BYTES}")
+        claim = peek_register(data) if data is not None else None
+        sid = claim.service_id if claim is not None else "?"
+        held = self._held(sid) if claim is not None else None
+        proven = (held is not None and claim is not None and held[0] == claim.instance
+                  and claim.proof == held[1])
+        over = (self._proven if proven else self._unproven).allow(sid)
+        if over is None:
+            return None
+        return self._count("rate", f"service id {sid!r}: more registrations than "
+                           + ("its own bound" if over == "sender" else "the bound of all new "
+                              "or unproven registrations together") + "; retry")
+
+    def _count(self, reason: str, detail: str) -> str:
+        with self._count_lock:
+            n = self.refused[reason] = self.refused.get(reason, 0) + 1
+        self._bad.warning(f"agent {self.agent_id} registrations",
+                          f"refused ({reason}, {n} so far): {detail}")
+        return f"registration refused: {detail}"
 
 
 @dataclass
@@ -124,6 +183,7 @@ class Registrar:
         self._control_keys: dict[str, tuple[str, bytes]] = {}
         #: registrations refused for an instance id without its key
         self.hijacks_refused = 0
+        self.gate = RegistrationGate(self.agent_id, bad, self._control_keys.get)
 
     def declare(self, session: zenoh.Session) -> None:
         """Answer registrations and watch the service tokens from now on."""
@@ -131,7 +191,7 @@ class Registrar:
         put = self._put
         self._decls += [
             session.declare_queryable(keys.agent_register(self.realm, self.agent_id),
-                                      lambda q: put(self.on_register, q, _payload(q))),
+                                      self._on_register_query),
             session.liveliness().declare_subscriber(
                 keys.service_tokens(self.realm), lambda smp: put(self._on_service_token, smp),
                 history=True),
@@ -153,6 +213,15 @@ class Registrar:
                           timeout=timeout, **extra)
 
     # -- registrations and duplicates
+    def _on_register_query(self, query: zenoh.Query) -> None:
+        """Zenoh's thread: refuse a flood here, hand the rest to the worker."""
+        data = _payload(query)
+        refusal = self.gate.refusal(data)
+        if refusal is None:
+            self._put(self.on_register, query, data)
+        else:
+            _refuse(query, refusal, retry=True)
+
     def on_register(self, query: zenoh.Query, data: bytes | None) -> None:
         try:
             if data is None:

@@ -112,6 +112,9 @@ RESEND_S = 5.0
 CONTROL_KEY_BYTES = 16
 #: most matches one control message may name (a need's max_count is far lower)
 MAX_CONTROL_MATCHES = 64
+#: largest register request an agent reads (a service with a hundred abilities and their
+#: attributes needs tens of KiB; a request is refused before it is decoded)
+MAX_REGISTRATION_BYTES = 128 * 1024
 
 
 # --------------------------------------------------------------------------- matches
@@ -196,6 +199,29 @@ def register_request(desc_bytes: bytes, instance: str, revision: int,
     if proof is not None:
         msg["proof"] = proof
     return encode_message(msg)
+
+
+class RegisterClaim(NamedTuple):
+    """Who a register request says it is, read without validating the descriptor."""
+
+    service_id: str
+    instance: str
+    proof: bytes | None
+
+
+def peek_register(data: bytes) -> RegisterClaim | None:
+    """The service id, instance and proof a register request claims (cheap: no descriptor
+    validation), None if unreadable; what the agent rates registrations by."""
+    try:
+        msg = decode_message(data, required=("instance", "descriptor"))
+        desc = msg["descriptor"]
+        sid = decode_message(desc).get("service_id") if isinstance(desc, bytes) else None
+    except DecodeError:
+        return None
+    instance, proof = msg["instance"], msg.get("proof")
+    if not (isinstance(sid, str) and isinstance(instance, str)):
+        return None
+    return RegisterClaim(sid[:64], instance[:64], proof if isinstance(proof, bytes) else None)
 
 
 def parse_register_request(data: bytes, agent_id: str) -> Registration:
