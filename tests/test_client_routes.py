@@ -44,6 +44,7 @@ class Realm:
         self.client = Client(realm="lab", session=mock.MagicMock())
         self.asked: list[set[str]] = []
         self.client.queries.answers = self.ask
+        self.client.queries.relay = False  # each agent asked: the fan-out is what is tested
         self.publish()
 
     def publish(self):

@@ -17,7 +17,9 @@ itself and puts each sample into its graph (``on_local_sample``), as tf2's
   ``uma/<realm>/agent/<id>/supernode`` whenever its graph's structure or attributes or its
   boundary (the frames other agents also know, learnt from their summaries) change, and
   answers queries there with the latest one;
-- answers ``uma/<realm>/agent/<id>/query`` (the messages: :mod:`agent.protocol.query`).
+- answers ``uma/<realm>/agent/<id>/query`` (the messages: :mod:`agent.protocol.query`),
+  whole routes with :mod:`agent.daemon.relay` (its own segment, other agents' from its
+  supernode cache, the rest asked of their agents).
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
 tens of microseconds), decode local samples into the graph under the same lock (a pose
@@ -41,6 +43,7 @@ from typing import Any
 
 import zenoh
 
+from agent.daemon.relay import RouteRelay, SegmentCache
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
 from agent.protocol import query as proto
@@ -134,6 +137,10 @@ class SrgNode:
         for i, edge in enumerate(static_edges or []):
             self._add_static(i, edge)
         self._query_key = keys.agent_query(realm, agent_id)
+        #: other agents' segments this agent is asked for often, and whole routes
+        self.segment_cache = SegmentCache(session, realm)
+        self._relay = RouteRelay(session, realm, agent_id, self._own_part, self.now_ns,
+                                 self.segment_cache)
         self._summary_key = keys.agent_supernode(realm, agent_id)
         self._decls = [
             # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
@@ -270,7 +277,11 @@ class SrgNode:
     def _on_query(self, query: zenoh.Query) -> None:
         t2 = self.now_ns()
         try:
-            reply = self.handle(proto.decode_request(payload_bytes(query.payload)))
+            msg = proto.decode_request(payload_bytes(query.payload))
+            if msg["op"] == "route":  # the whole route: the relay replies, maybe later
+                self._relay.answer(query, proto.parse_request(msg, self.agent_id), t2)
+                return
+            reply = self.handle(msg)
             if reply is None:
                 return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
@@ -290,7 +301,16 @@ class SrgNode:
             return None
         if isinstance(request, proto.ClockRequest):
             return proto.clock_reply()
+        if isinstance(request, proto.RouteRequest):  # what is here; no other agent asked
+            return {"ok": True, "parts": self._relay.local_parts(request)[0]}
         return self._segment(request)
+
+    def _own_part(self, req: proto.SegmentRequest) -> dict[str, Any]:
+        """This agent's part of a route: its segment's answer, or the error saying why."""
+        try:
+            return self._segment(req)
+        except (ValueError, LookupError, TypeError) as exc:
+            return proto.error_reply(exc)
 
     def _segment(self, req: proto.SegmentRequest) -> dict[str, Any]:
         """One segment's answer, from the cache when it still holds (``_cached_answer``)."""
@@ -492,6 +512,7 @@ class SrgNode:
         self._stop.set()
         self._wake.set()
         self._worker.join(2.0)
+        self.segment_cache.close()
         for _, stop in self._local.values():
             stop()
         self._local.clear()

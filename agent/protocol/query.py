@@ -18,6 +18,15 @@ request                                 reply
 {agent id: segment request}}``          at all if there is none (one query sent to
                                         ``uma/R/agent/*/query`` asks every agent
                                         of a route at once)
+``{"op": "route", "parts":              ``{"ok": true, "parts": {agent id: answer},
+{agent id: segment request}}``          "t2", "t3"}``: a whole route asked of one
+                                        agent, which answers every part it can (its
+                                        own, its cache of other agents' segments) and
+                                        asks the other agents for the rest; each
+                                        answer is that agent's reply without its
+                                        ``agent``, ``t2`` and ``t3`` (``"cached":
+                                        true`` if from the cache); a part whose
+                                        agent did not answer is left out
 anything malformed or failing           ``{"ok": false, "error": message, "kind":
                                         exception class, "t2", "t3"}``
 ======================================  ==============================================
@@ -97,6 +106,10 @@ class ClockRequest:
     """``{"op": "clock"}``: only the timestamps of the reply are wanted."""
 
 
+#: parts one ``route`` request may have (an agent asks the others for each one it lacks)
+MAX_ROUTE_PARTS = 16
+
+
 @dataclass(frozen=True)
 class SegmentRequest:
     """One agent's segment: ``source -> target`` in its graph at ``t`` (its clock; None:
@@ -116,13 +129,21 @@ class SegmentRequest:
         return part
 
 
+@dataclass(frozen=True)
+class RouteRequest:
+    """``{"op": "route"}``: the segments of a route by agent id, asked of one agent."""
+
+    parts: dict[str, SegmentRequest]
+
+
 def clock_request() -> bytes:
     return encode_message({"op": "clock"})
 
 
-def segments_request(parts: Mapping[str, SegmentRequest]) -> bytes:
-    """One request for several agents' segments (one per agent id)."""
-    return encode_message({"op": "segments",
+def segments_request(parts: Mapping[str, SegmentRequest], op: str = "segments") -> bytes:
+    """One request for several agents' segments (one per agent id): to every agent at once
+    (``segments``) or to one agent that answers the whole route (``route``)."""
+    return encode_message({"op": op,
                            "parts": {agent: p.to_wire() for agent, p in parts.items()}})
 
 
@@ -132,12 +153,22 @@ def decode_request(data: bytes) -> dict[str, Any]:
 
 
 def parse_request(msg: Mapping[str, Any], agent_id: str,
-                  ) -> ClockRequest | SegmentRequest | None:
+                  ) -> ClockRequest | SegmentRequest | RouteRequest | None:
     """What a decoded request asks of agent ``agent_id`` (None: a ``segments`` request with
     no part for it); ``ValueError`` names what is wrong."""
     op = msg["op"]
     if op == "clock":
         return ClockRequest()
+    if op == "route":
+        parts = msg.get("parts")
+        if not isinstance(parts, dict) or not 0 < len(parts) <= MAX_ROUTE_PARTS:
+            raise ValueError(f"route request: parts must be a map agent id -> request of 1 "
+                             f"to {MAX_ROUTE_PARTS} entries")
+        for agent, part in parts.items():
+            if not isinstance(agent, str) or not isinstance(part, dict):
+                raise ValueError(f"route request: the part for {agent!r:.64} is not a map")
+        return RouteRequest({agent: _segment_request(part, "segment")
+                             for agent, part in parts.items()})
     if op == "segments":
         parts = msg.get("parts")
         if not isinstance(parts, dict):
@@ -149,7 +180,13 @@ def parse_request(msg: Mapping[str, Any], agent_id: str,
             raise ValueError(f"segments request: the part for {agent_id!r} is not a map")
         msg, op = part, "segment"
     if op not in ("segment", "pose"):
-        raise ValueError(f"unknown op {op!r} (expected clock, segment or pose)")
+        raise ValueError(f"unknown op {op!r} (expected clock, segment, segments, route or "
+                         "pose)")
+    return _segment_request(msg, op)
+
+
+def _segment_request(msg: Mapping[str, Any], op: str) -> SegmentRequest:
+    """One segment's request; ``ValueError`` names what is wrong."""
     source, target, error = msg.get("source"), msg.get("target"), msg.get("error", "hops")
     for name, value in (("source", source), ("target", target), ("error", error)):
         if not isinstance(value, str) or not value:
@@ -252,6 +289,18 @@ def decode_reply(data: bytes) -> dict[str, Any]:
         return decode_message(data)
     except DecodeError as exc:
         return {"ok": False, "error": f"unreadable answer: {exc}"}
+
+
+def route_parts(reply: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """The answers of a ``route`` reply by agent id; ``RefusedError`` if the agent refused
+    the whole request, ``ValueError`` if the reply is malformed."""
+    if not reply.get("ok"):
+        raise RefusedError(str(reply.get("error", "no reason given")))
+    parts = reply.get("parts")
+    if not isinstance(parts, dict) or not all(
+            isinstance(k, str) and isinstance(v, dict) for k, v in parts.items()):
+        raise ValueError("route reply: parts must be a map agent id -> answer")
+    return parts
 
 
 def reply_times(reply: Mapping[str, Any]) -> tuple[int, int] | None:

@@ -1,8 +1,11 @@
 """One pose query's life, top to bottom: plan, ask, compose, retry.
 
 :meth:`Queries.ask` plans routes over the agents' supernode summaries
-(:mod:`agent.sdk.planner`), asks each owning agent of the best live route for its segment
-at ``t`` (all at once, one round trip; the messages are :mod:`agent.protocol.query`'s),
+(:mod:`agent.sdk.planner`), asks the first agent of the best live route for the whole
+route (one round trip: that agent answers its own segment, the others' from its supernode
+cache, and asks the remaining agents itself, :mod:`agent.daemon.relay`), or, as the
+fallback, each owning agent for its segment at ``t`` (all at once, one round trip; the
+messages are :mod:`agent.protocol.query`'s),
 composes the answers with their covariances as they arrive, and, if an agent does not
 answer or cannot, tries the next route without it.  ``at`` is on this process's clock;
 each agent's clock offset is estimated from the round trips (:mod:`agent.sdk.clock`) and
@@ -102,13 +105,17 @@ class Queries:
         self._routes: dict[tuple[str, str, str], list[Route]] = {}
         #: encoded requests for the latest time (the same for every query of a round's
         #: segments), dropped with the routes
-        self._requests: dict[tuple[tuple[Segment, ...], str, bool], bytes] = {}
+        self._requests: dict[tuple[tuple[Segment, ...], str, bool, str], bytes] = {}
         self._planned_on = 0
         #: answers of all-static segments (valid at all times) by (agent, source, target,
         #: error), with the (instance, revision) of the agent's summary they belong to
         self._static: dict[tuple[str, str, str, str], tuple[tuple[str, int], PoseResult]] = {}
         #: False: ask for every segment every time (the benchmark's uncached figure)
         self.cache_static_segments = True
+        #: False: ask every agent of a route itself (the fan-out) rather than its first
+        self.relay = True
+        #: segments answered from the supernode cache of a route's first agent
+        self.cached_parts = 0
         #: agent id (or None) by the key a reply came on
         self._reply_keys: dict[str, str | None] = {}
         #: declared queriers by query key (every agent's, or one agent's)
@@ -253,8 +260,52 @@ class Queries:
 
     def _round(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
                details: bool, chain: Composition | None) -> dict[int, Answer]:
-        """One query to the agents of ``todo`` (one segment each); SegmentError names the
-        first segment (in route order) that failed.  Each answer is checked as it arrives,
+        """One query for the segments of ``todo`` (one per agent): to its first agent, which
+        answers the whole route, or to all of them; SegmentError names the first segment (in
+        route order) that failed."""
+        if self.relay and len(todo) > 1 and not details:
+            got = self._relayed(todo, at, spec, chain)
+            if got is not None:
+                return got
+        return self._fan_out(todo, at, spec, details, chain)
+
+    def _relayed(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
+                 chain: Composition | None) -> dict[int, Answer] | None:
+        """The whole of ``todo`` asked of its first agent (module docstring); None if that
+        agent does not answer routes (the fan-out asks then)."""
+        entry = todo[0][1]
+        request = self._request([seg for _, seg in todo], at, spec, False, "route")
+        got = next((r for r in self.answers(request, [entry.agent]) if r[0] == entry.agent),
+                   None)
+        if got is None:
+            raise SegmentError(entry, f"agent {entry.agent!r} did not answer within "
+                                      f"{self.timeout:g} s (gone or unreachable)", True)
+        _, reply, t1, t4 = got
+        self._clock_sample(entry.agent, reply, t1, t4)
+        try:
+            parts = proto.route_parts(reply)
+        except (proto.RefusedError, ValueError) as exc:
+            self._log.warning("route", f"agent {entry.agent!r} did not answer the route "
+                              f"({exc}): asking each agent")
+            return None
+        out: dict[int, Answer] = {}
+        for i, seg in todo:
+            part = parts.get(seg.agent)
+            if part is None:
+                raise SegmentError(seg, f"agent {seg.agent!r} did not answer agent "
+                                        f"{entry.agent!r} (gone or unreachable)", True)
+            answer = self._segment_answer(seg, spec, part, t1, t4)
+            if isinstance(answer, SegmentError):
+                raise answer
+            self.cached_parts += part.get("cached") is True
+            out[i] = answer
+            if chain is not None:
+                chain.add(i, answer[0])
+        return out
+
+    def _fan_out(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
+                 details: bool, chain: Composition | None) -> dict[int, Answer]:
+        """One query to every agent of ``todo``.  Each answer is checked as it arrives,
         while the slower agents are still computing theirs."""
         index = {seg.agent: (i, seg) for i, seg in todo}
         got: dict[int, Answer | SegmentError] = {}
@@ -277,9 +328,9 @@ class Queries:
         return out
 
     def _request(self, segments: Sequence[Segment], at: int | None, spec: str,
-                 details: bool) -> bytes:
+                 details: bool, op: str = "segments") -> bytes:
         """The request for one round; one for the latest time is encoded once."""
-        key = (tuple(segments), spec, details)
+        key = (tuple(segments), spec, details, op)
         with self._lock:
             request = self._requests.get(key) if at is None else None
         if request is None:
@@ -287,7 +338,7 @@ class Queries:
                 seg.agent: proto.SegmentRequest(
                     seg.source, seg.target, spec,
                     None if at is None else self.clock.to_remote(seg.agent, at), details)
-                for seg in segments})
+                for seg in segments}, op)
             if at is None:
                 with self._lock:
                     self._requests[key] = request

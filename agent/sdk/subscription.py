@@ -449,22 +449,27 @@ class Subscription:
         latest time every edge has data) from the mirror, or None where the agents must
         answer: not streaming, or ``at`` outside what the mirror holds without
         extrapolating (module docstring)."""
-        if self.status != "streaming":
-            return None
         agent = self.clock_agent
         offset = 0 if agent is None else self.queries.clock.offset(agent) or 0
+        r = self.answer_on_route_clock(None if at is None else at + offset)
+        return None if r is None else _on_local_clock(r, offset)
+
+    def answer_on_route_clock(self, at: int | None) -> PoseResult | None:
+        """:meth:`answer` with ``at`` and the result on the route's clock (that of
+        ``clock_agent``): what that agent itself would answer on the same samples."""
+        if self.status != "streaming":
+            return None
         with self._lock:
             if self.status != "streaming":
                 return None
             try:
-                r = self.graph.pose(self.source, self.target,
-                                    at=None if at is None else at + offset, error="hops")
+                r = self.graph.pose(self.source, self.target, at=at, error="hops")
             except LookupError:
                 return None
         if r.extrapolated_s:
             return None
         self.answered += 1
-        return _on_local_clock(r, offset)
+        return r
 
     @property
     def lost(self) -> int:
