@@ -25,6 +25,7 @@ from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.tracker import (
+    GATE_REASONS,
     NO_POSE_REASONS,
     LaserTracker,
     PoseEstimate,
@@ -169,6 +170,7 @@ def evaluate(world: IvyWorld, cal: Calibration, seconds: float, rate_hz: float =
         "poses": poses,
         "frames_without_pose": n - poses,
         "no_pose_reasons": {r: tracker.counts[r] for r in NO_POSE_REASONS if tracker.counts[r]},
+        "frames_refused_by_labeling_gate": sum(tracker.counts[r] for r in GATE_REASONS),
         "labeling_correct_pct": round(100.0 * labeled_ok / poses, 3) if poses else None,
         "labeling_errors": labeled_bad,
         "orientation_error_deg": _stats(rot_deg),

@@ -9,18 +9,31 @@ for having none out.
    merged;
 2. with four or more dots, every 4-subset and all 24 labelings scored by eq. 5.6
    (``pose``); labelings above ``max_labeling_error`` are impossible geometries;
-3. the choice among the survivors -- the true labeling and its reflection always score
-   alike -- by temporal coherence: the smallest error-quaternion angle to the previous
-   pose (eqs. 5.10-5.11); with no recent pose, by the upright assumption of the thesis'
-   initialisation (the head's up axis, the rig's z, is the one closer to the world's up;
-   the reflection turns that axis to the horizontal, so knowing which wall the user faces,
-   the thesis' second assumption, is not needed with this housing);
-4. gating: a pose that moved or turned faster than a head can is refused;
-5. a 6x6 covariance by first-order propagation of each dot's measured uncertainty.
+3. a labeling is kept only if its four dots fit one pose within their covariance: four
+   dots on their walls hold eight coordinates for six of pose, and the two left over
+   (where the fourth beam meets its dot, given the pose of the other three) are a
+   chi-square test of 2 dof against each dot's noise and installation error -- eps of
+   eq. 5.6 screens out impossible geometries but has no scale, and a labeling that
+   takes a stray blob a few centimetres from a true dot scores an eps only a little worse;
+4. the choice among the survivors -- the true labeling and its reflection always score
+   alike -- by temporal coherence: the sum of that chi-square and the pose's Mahalanobis
+   distance from the pose predicted at constant velocity from the last two (the error
+   quaternion of eqs. 5.10-5.11, given a scale by the head's acceleration); with no
+   recent pose, by the upright assumption of the thesis' initialisation (the head's up
+   axis, the rig's z, is the one closer to the world's up; the reflection turns that
+   axis to the horizontal, so knowing which wall the user faces, the thesis' second
+   assumption, is not needed with this housing);
+5. the margin: a labeling is published only if every other surviving labeling whose pose
+   lies outside the chosen pose's covariance scores clearly worse (``min_margin``, or
+   ``init_margin_cos`` of up-axis cosine at initialisation); else the frame set is
+   ambiguous and gives no pose -- a confident wrong pose is worse than none;
+6. gating: a pose far from the prediction, or that moved or turned faster than a head
+   can, is refused;
+7. a 6x6 covariance by first-order propagation of each dot's measured uncertainty.
 
-Anything that prevents a pose (fewer than four dots, no consistent labeling, a gated
-jump, ...) yields ``NoPose`` with the reason, counted in ``tracker.counts`` -- never an
-exception.
+Anything that prevents a pose (fewer than four dots, no consistent labeling, dots that
+fit no pose, an ambiguous labeling, a gated jump, ...) yields ``NoPose`` with the reason,
+counted in ``tracker.counts`` -- never an exception.
 
 ``label_dots(result)`` gives the labeled dots of the frame set, for one-dot-at-a-time
 (SCAAT) fusion: a pose's four, and without a pose the dots it can label by each spot's
@@ -53,7 +66,10 @@ from services.sim.laser_housing import BEAM_DIRECTIONS
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
-                   "not_upright", "gated_jump", "degenerate")
+                   "inconsistent_dots", "ambiguous_labeling", "not_upright", "gated_jump",
+                   "degenerate")
+#: the reasons that refuse a frame set whose dots were all there: the labeling gate
+GATE_REASONS = ("inconsistent_dots", "ambiguous_labeling", "gated_jump")
 
 
 @dataclass(frozen=True)
@@ -73,7 +89,28 @@ class TrackerParams:
     gate_margin_m: float = 0.05
     coherence_s: float = 0.3  # beyond this gap without a pose, re-initialise (upright)
     min_upright_cos: float = 0.3  # initialisation needs the rig's z within ~73 deg of up
-    pool_eps: float = 0.02  # labelings this close to the best fit compete for the choice
+    #: a labeling's dots must fit its pose: chi-square (2 dof) of the fourth beam's miss
+    #: against the dots' whole covariance at most this (chi2(2)'s 1 - 1e-4 quantile)
+    max_residual_chi2: float = 18.4
+    #: a pose must lie this near the predicted one: Mahalanobis distance squared (6 dof)
+    #: under the motion model below at most this (chi2(6)'s 1 - 1e-4 quantile)
+    max_prediction_chi2: float = 27.9
+    #: the constant-velocity prediction misses by the head's acceleration: 1 sigma per
+    #: axis (fast head turns reach some 1,000-3,000 deg/s^2); with one pose only, held,
+    #: it misses by the head's speed
+    accel_std_mps2: float = 10.0
+    angular_accel_std_dps2: float = 2000.0
+    speed_std_mps: float = 1.0
+    angular_speed_std_dps: float = 200.0
+    #: a rival labeling (its pose outside the chosen one's covariance) must score this
+    #: much worse (chi-square + prediction distance, i.e. -2 log likelihood: e^-5 as likely)
+    #: or the frame set is ambiguous; at initialisation its up axis must be this much less
+    #: upright (cosine) unless its chi-square alone is that much worse
+    min_margin: float = 10.0
+    init_margin_cos: float = 0.25
+    #: a rival whose pose lies within the chosen pose's covariance (Mahalanobis distance
+    #: squared, 6 dof, at most this: chi2(6)'s 1 - 1e-4 quantile) is the same answer
+    same_pose_chi2: float = 27.9
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
@@ -108,6 +145,13 @@ class TrackerParams:
             raise ValueError("max_dots must be at least 4")
         if self.coherence_s <= 0 or self.max_labeling_error <= 0:
             raise ValueError("coherence_s and max_labeling_error must be positive")
+        if min(self.max_residual_chi2, self.max_prediction_chi2, self.same_pose_chi2,
+               self.accel_std_mps2,
+               self.angular_accel_std_dps2, self.speed_std_mps,
+               self.angular_speed_std_dps) <= 0 or min(self.min_margin,
+                                                       self.init_margin_cos) < 0:
+            raise ValueError("the labeling gate's chi-square bounds and motion stds must be "
+                             "positive, its margins >= 0")
         if self.model_pos_std_m < 0 or self.model_rot_std_rad < 0:
             raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
@@ -333,44 +377,24 @@ class LaserTracker:
             return NoPose(t, "too_few_dots", n, f"{n} dot(s) visible, need 4")
         if n > p.max_dots:
             return NoPose(t, "too_many_dots", n, f"{n} candidates > max_dots {p.max_dots}")
-        cands: list[tuple[LabeledPose, tuple[int, ...]]] = []
-        for subset in combinations(range(n), 4):
-            for c in candidate_poses(dots.points[list(subset)], p.max_labeling_error):
-                cands.append((c, subset))
-        if not cands:
-            return NoPose(t, "no_consistent_labeling", n,
-                          f"no labeling of {n} dots fits the housing (eps > "
-                          f"{p.max_labeling_error})")
-        # the true labeling and its reflection score alike up to noise; worse fits (a
-        # distractor in the subset, a lost dot) compete only if they are nearly as good
-        eps_min = min(c.error for c, _ in cands)
-        pool = [(c, s) for c, s in cands if c.error <= eps_min + p.pool_eps]
+        fits = self._fits(dots, t)
+        if isinstance(fits, NoPose):
+            return fits
         last = self._last
         tracking = last is not None and 0 <= t - last.t <= p.coherence_s
-        if tracking:  # temporal coherence: the smallest error quaternion (eqs. 5.10-5.11)
-            angles = geo.quat_angle(last.quaternion, np.array([c.quaternion for c, _ in pool]))
-            k = int(np.argmin(angles))
-            best, subset = pool[k]
-            dt = t - last.t
-            turn = math.degrees(angles[k])
-            move = math.dist(best.position, last.position)
-            if turn > p.max_angular_speed_dps * dt + p.gate_margin_deg \
-                    or move > p.max_speed_mps * dt + p.gate_margin_m:
-                return NoPose(t, "gated_jump", n, f"turned {turn:.1f} deg and moved "
-                              f"{move * 100:.1f} cm in {dt * 1000:.0f} ms")
-        else:  # initialisation: the user stands upright (thesis §5.3)
-            ups = [float(geo.quat_rotate(c.quaternion, [0.0, 0.0, 1.0])[2]) for c, _ in pool]
-            k = int(np.argmax(ups))
-            if ups[k] < p.min_upright_cos:
-                return NoPose(t, "not_upright", n, "initialisation needs an upright head "
-                              f"(best up-axis cosine {ups[k]:.2f})")
-            best, subset = pool[k]
-        idx = [subset[i] for i in best.order]  # dot index of diodes 1..4
+        picked = self._pick_tracking(fits, t, n) if tracking else _pick_upright(fits, t, n, p)
+        if isinstance(picked, NoPose):
+            return picked
+        k, lead = picked
+        best, idx = fits[k].pose, fits[k].idx
         try:
             sys_var = _installation_variance(dots, idx, best.position, p)
             cov, systematic = _covariance(dots, idx, best.position, p, sys_var)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
+        rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
+        if rival is not None:
+            return NoPose(t, "ambiguous_labeling", n, rival)
         sys_std = np.sqrt(sys_var)
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
@@ -382,6 +406,45 @@ class LaserTracker:
         self._last = est
         self._remember(t, [1, 2, 3, 4], dots.points[idx], [dots.walls[i] for i in idx])
         return est
+
+    def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
+        """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
+        5.6) and whose dots fit one pose (``residual_chi2``); while tracking, only those a
+        head could have reached since the last pose."""
+        p, n = self.params, len(dots.points)
+        cands = [(c, [subset[i] for i in c.order])
+                 for subset in combinations(range(n), 4)
+                 for c in candidate_poses(dots.points[list(subset)], p.max_labeling_error)]
+        if not cands:
+            return NoPose(t, "no_consistent_labeling", n,
+                          f"no labeling of {n} dots fits the housing (eps > "
+                          f"{p.max_labeling_error})")
+        chi2 = residual_chi2(dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
+        fits = [_Fit(c, idx, float(x)) for (c, idx), x in zip(cands, chi2, strict=True)
+                if x <= p.max_residual_chi2]
+        if not fits:
+            return NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
+                          f"residual chi-square {float(np.min(chi2)):.1f} > "
+                          f"{p.max_residual_chi2:g}")
+        last = self._last
+        if last is None or not 0 <= t - last.t <= p.coherence_s:
+            return fits
+        fits = [f for f in fits if self._within_reach(f.pose, t)]
+        return fits or NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
+                              f"than a head can since the last pose {t - last.t:.3f} s ago")
+
+    def _pick_tracking(self, fits: list[_Fit], t: float,
+                       n: int) -> tuple[int, np.ndarray] | NoPose:
+        """Temporal coherence: the fit with the least chi-square plus distance from the
+        predicted pose, and how much worse each fit scores than it (its lead)."""
+        d2 = self._prediction_distance(t, [f.pose for f in fits])
+        score = np.array([f.chi2 for f in fits]) + d2
+        k = int(np.argmin(score))
+        if d2[k] > self.params.max_prediction_chi2:
+            return NoPose(t, "gated_jump", n, "no labeling near the predicted pose: "
+                          f"Mahalanobis distance squared {d2[k]:.1f} > "
+                          f"{self.params.max_prediction_chi2:g}")
+        return k, score - score[k]
 
     # ------------------------------------------------------------------ labeled dots
 
@@ -431,7 +494,8 @@ class LaserTracker:
         spot = _moved_on(seen, dots.walls[i], t, self.params.coherence_s)
         if spot is not None:
             return spot, t - seen[-1][0]
-        hit = None if pose is None else _beam_hit(dots, i, *pose, BEAM_DIRECTIONS[label])
+        hit = None if pose is None else _beam_hit(dots, i, pose[0], geo.quat_to_matrix(pose[1]),
+                                                 BEAM_DIRECTIONS[label])
         return None if hit is None else (hit, t - self._last.t)
 
     def _remember(self, t: float, labels: list[int], points: np.ndarray,
@@ -441,7 +505,7 @@ class LaserTracker:
             self._spots[label] = (*self._spots.get(label, ())[-1:], (t, point, wall))
 
     def _predict(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """The rig pose (P0, rotation matrix) at ``t`` moved on from the last pose at the
+        """The rig pose (P0, quaternion) at ``t`` moved on from the last pose at the
         motion between the last two (held if there is only one); None beyond
         ``coherence_s`` after the last pose."""
         last, prev = self._last, self._prev
@@ -454,7 +518,47 @@ class LaserTracker:
             turn = geo.quat_to_rotvec(geo.quat_multiply(last.quaternion,
                                                         geo.quat_conjugate(prev.quaternion)))
             q = geo.quat_multiply(geo.rotvec_to_quat(k * turn), q)
-        return p0, geo.quat_to_matrix(q)
+        return p0, q
+
+    def _within_reach(self, pose: LabeledPose, t: float) -> bool:
+        """Whether a head could have turned and moved from the last pose to ``pose`` by
+        ``t`` (``max_angular_speed_dps``, ``max_speed_mps``, plus the gate's margins)."""
+        p, last = self.params, self._last
+        dt = t - last.t
+        turn = math.degrees(float(geo.quat_angle(last.quaternion, pose.quaternion)))
+        return (turn <= p.max_angular_speed_dps * dt + p.gate_margin_deg
+                and math.dist(pose.position, last.position)
+                <= p.max_speed_mps * dt + p.gate_margin_m)
+
+    def _prediction_distance(self, t: float, poses: list[LabeledPose]) -> np.ndarray:
+        """Each pose's Mahalanobis distance squared (6 dof) from the pose ``_predict``
+        gives at ``t``, under the covariance of that prediction.
+
+        Moved on at constant velocity from the last two poses (``h`` apart) by ``d``, the
+        prediction misses by ``a d (d + h) / 2`` for an acceleration ``a``; held (one pose
+        only), by ``v d``.  The poses' own random errors add, the last one's weighted
+        ``1 + (1 + k)^2 + k^2`` (``k = d / h``: the last, the extrapolated difference, the
+        new pose), at least twice when held."""
+        p = self.params
+        p0, q = self._predict(t)
+        last, prev = self._last, self._prev
+        d = t - last.t
+        if prev is not None and last.t > prev.t:
+            h = last.t - prev.t
+            reach = 0.5 * d * (d + h)
+            pos_std, rot_std = p.accel_std_mps2 * reach, math.radians(
+                p.angular_accel_std_dps2) * reach
+            k = d / h
+            weight = 1 + (1 + k) ** 2 + k ** 2
+        else:
+            pos_std, rot_std = p.speed_std_mps * d, math.radians(p.angular_speed_std_dps) * d
+            weight = 2.0
+        C = weight * geo.se3_to_decoupled(last.position, last.covariance - last.systematic)
+        C[_DIAG3, _DIAG3] += pos_std ** 2
+        C[_DIAG3 + 3, _DIAG3 + 3] += rot_std ** 2
+        e = np.array([np.concatenate([c.position - p0, geo.quat_to_rotvec(
+            geo.quat_multiply(c.quaternion, geo.quat_conjugate(q)))]) for c in poses])
+        return np.einsum("ni,ni->n", e, np.linalg.solve(C, e.T).T)
 
 
 class _Screens:
@@ -683,6 +787,86 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
         w_tan = p.screen_bulge_std_m * bend * math.sqrt(1 - c ** 2) / c
         out.append(0.5 * (across * (1 + 1 / c ** 2) + w_tan ** 2) + p.camera_residual_std_m ** 2)
     return np.array(out)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A labeling whose dots fit one pose."""
+
+    pose: LabeledPose
+    idx: list[int]  # dot index of diodes 1..4
+    chi2: float  # ``residual_chi2``
+
+
+def _pick_upright(fits: list[_Fit], t: float, n: int,
+                  p: TrackerParams) -> tuple[int, np.ndarray] | NoPose:
+    """Initialisation, the user standing upright (thesis §5.3): the fit whose rig z is
+    nearest the world's up; a rival is beaten by being ``init_margin_cos`` less upright,
+    else by its chi-square alone (``inf`` / chi-square difference: its lead)."""
+    ups = np.array([float(geo.quat_rotate(f.pose.quaternion, [0.0, 0.0, 1.0])[2])
+                    for f in fits])
+    k = int(np.argmax(ups))
+    if ups[k] < p.min_upright_cos:
+        return NoPose(t, "not_upright", n, "initialisation needs an upright head "
+                      f"(best up-axis cosine {ups[k]:.2f})")
+    chi2 = np.array([f.chi2 for f in fits])
+    return k, np.where(ups[k] - ups >= p.init_margin_cos, np.inf, chi2 - chi2[k])
+
+
+def residual_chi2(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
+                  p: TrackerParams, step_m: float = 1e-5) -> np.ndarray:
+    """Chi-square (2 dof) of each labeling's dots against one pose: ``orders[j]`` the dot
+    indices of diodes 1..4, ``origins[j]`` its P0 (for the installation's error).
+
+    The dots of diodes 1-3 fix the pose (six coordinates, six unknowns); the residual is
+    where the fourth dot lies off beam 4 of that pose, across the beam (its components
+    along the rig's x and y, times nothing: metres at the dot).  Its covariance comes by
+    numeric Jacobian from all four dots' in-plane errors, noise and installation both
+    (a single frame sees both).  Inf where a labeling's dots give no frame."""
+    m = len(orders)
+    if not m:
+        return np.zeros(0)
+    idx = np.array(orders)  # (m, 4)
+    P = dots.points[idx]
+    axes = dots.axes[idx].reshape(m, 8, 3)  # dot k moves along axes[:, 2k], axes[:, 2k + 1]
+    Q = np.repeat(P[:, None], 9, axis=1)
+    Q[:, _PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
+    p0, R = frames_from_points(Q.reshape(m * 9, 4, 3))
+    ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
+    r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
+    J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
+    var = np.array([dots.std_m[o] ** 2 + _installation_variance(dots, list(o), x, p)
+                    for o, x in zip(orders, origins, strict=True)])
+    S = np.einsum("mki,mk,mkj->mij", J, np.repeat(var, 2, axis=1), J)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(S).all(axis=(1, 2)) & (np.linalg.det(np.nan_to_num(S)) > 0)
+    out = np.full(m, np.inf)
+    if ok.any():
+        r0 = r[ok, 0]
+        out[ok] = np.einsum("mi,mi->m", r0, np.linalg.solve(S[ok], r0[..., None])[..., 0])
+    return out
+
+
+def _rival(poses: list[LabeledPose], k: int, lead: np.ndarray, cov: np.ndarray,
+           min_margin: float, same_chi2: float) -> str | None:
+    """Why the chosen pose ``poses[k]`` (covariance ``cov``, xi form) is ambiguous: a
+    rival whose pose lies outside that covariance (Mahalanobis distance squared above
+    ``same_chi2``) scores less than ``min_margin`` worse (``lead``); None if none does.
+    A rival inside the covariance is the same answer: publishing either is honest."""
+    best = poses[k]
+    C = geo.se3_to_decoupled(best.position, cov)
+    for j, c in enumerate(poses):
+        if j == k or lead[j] >= min_margin:
+            continue
+        e = np.concatenate([c.position - best.position, geo.quat_to_rotvec(
+            geo.quat_multiply(c.quaternion, geo.quat_conjugate(best.quaternion)))])
+        d2 = float(e @ np.linalg.solve(C, e))
+        if d2 > same_chi2:
+            return (f"two labelings fit: the runner-up scores {lead[j]:.1f} worse (margin "
+                    f"{min_margin:g}) and lies {math.sqrt(d2):.1f} sigma from the best "
+                    f"({np.linalg.norm(e[:3]) * 100:.1f} cm, "
+                    f"{math.degrees(np.linalg.norm(e[3:])):.2f} deg)")
+    return None
 
 
 def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
