@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from agent.srg import geometry as geo
+from agent import geometry as geo
 from services.laser_camera.tracker import (
     LaserTracker,
     NoPose,
@@ -170,7 +170,8 @@ def _seeds() -> list[int]:
 def _short_run(seed: int, seconds: float, rng: np.random.Generator) -> dict[str, int]:
     """The tracker on ``seed``'s installation and trajectory without images: each dot as
     the cameras would give it (its wall hit, on the wall's plane, with detection noise),
-    spots lost now and then, and stray blobs, a third of them within 5 cm of a true spot."""
+    spots lost now and then, stray blobs far from the spots in a fifth of the frame sets
+    and in a tenth one 3.5-6 cm from a spot, half of those with that spot lost."""
     world = IvyWorld(seed=seed, imperfection_seed=seed)
     traj_p, traj_q = world.rig_pose(np.arange(0, seconds, 1 / RATE_HZ))
     tr = LaserTracker(None)
@@ -180,15 +181,18 @@ def _short_run(seed: int, seconds: float, rng: np.random.Generator) -> dict[str,
         seen = [k for k in LABELS if hits[k].on_screen and rng.random() > 0.05]
         points = [hits[k].point + 2e-4 * rng.normal(size=3) for k in seen]
         walls = [hits[k].wall for k in seen]
-        if seen and rng.random() < 0.3:
+        draw = rng.random()
+        if seen and draw < 0.3:
             k = int(rng.integers(len(seen)))
-            near = rng.random() < 1 / 3
-            offset = rng.uniform(0.005, 0.05) if near else rng.uniform(0.2, 1.0)
+            near = draw < 0.1
+            offset = rng.uniform(0.035, 0.06) if near else rng.uniform(0.2, 1.0)
             stray = points[k] + offset * along_wall(world, walls[k], rng.uniform(0, 2 * np.pi))
             wall = world.walls[walls[k]]
             if wall.on_screen(wall.to_screen(stray[None]))[0]:
                 points.append(stray)
                 walls.append(walls[k])
+                if near and rng.random() < 0.5:
+                    del points[k], walls[k]
         res = tr.solve(dots_on_walls(world, points, walls), i / RATE_HZ)
         if isinstance(res, PoseEstimate):
             out["poses"] += 1
@@ -198,7 +202,8 @@ def _short_run(seed: int, seconds: float, rng: np.random.Generator) -> dict[str,
 
 def test_no_wrong_labeling_is_published_on_random_seeds() -> None:
     """Property: over installations and trajectories drawn at random, with lost spots and
-    stray blobs near the true ones, no published pose has a wrong labeling."""
+    stray blobs near the true ones (some in a lost spot's place), no published pose has a
+    wrong labeling."""
     seeds = _seeds()
     rng = np.random.default_rng(seeds[0])
     for seed in seeds:

@@ -206,8 +206,9 @@ PLUGIN = EvalPlugin(
     name="laser-camera",
     help="MARVIN's laser-dot camera tracker on the simulated IVY display: calibrates the "
          "simulated cameras, renders the head trajectory of --seed, runs the whole pipeline "
-         "(dot detection, homographies, 24 labelings, temporal coherence) and prints frames, "
-         "labeling accuracy, orientation/position errors against ground truth and timings.",
+         "(dot detection, homographies, 24 labelings, the labeling gate, temporal coherence) "
+         "and prints frames, labeling accuracy, frames the labeling gate refused, "
+         "orientation/position errors against ground truth and timings.",
     add_arguments=add_arguments,
     run=run,
     higher_is_better=frozenset({"pose_pct_when_four_visible", "poses", "labeling_correct_pct",

@@ -409,9 +409,9 @@ class LaserTracker:
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
-        5.6) and whose dots fit one pose (``residual_chi2``); while tracking, only those a
-        head could have reached since the last pose."""
-        p, n = self.params, len(dots.points)
+        5.6), which, while tracking, a head could have reached since the last pose, and
+        whose dots fit one pose (``residual_chi2``)."""
+        p, n, last = self.params, len(dots.points), self._last
         cands = [(c, [subset[i] for i in c.order])
                  for subset in combinations(range(n), 4)
                  for c in candidate_poses(dots.points[list(subset)], p.max_labeling_error)]
@@ -419,19 +419,17 @@ class LaserTracker:
             return NoPose(t, "no_consistent_labeling", n,
                           f"no labeling of {n} dots fits the housing (eps > "
                           f"{p.max_labeling_error})")
+        if last is not None and 0 <= t - last.t <= p.coherence_s:
+            cands = [(c, idx) for c, idx in cands if self._within_reach(c, t)]
+            if not cands:
+                return NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
+                              f"than a head can since the last pose {t - last.t:.3f} s ago")
         chi2 = residual_chi2(dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
         fits = [_Fit(c, idx, float(x)) for (c, idx), x in zip(cands, chi2, strict=True)
                 if x <= p.max_residual_chi2]
-        if not fits:
-            return NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
-                          f"residual chi-square {float(np.min(chi2)):.1f} > "
-                          f"{p.max_residual_chi2:g}")
-        last = self._last
-        if last is None or not 0 <= t - last.t <= p.coherence_s:
-            return fits
-        fits = [f for f in fits if self._within_reach(f.pose, t)]
-        return fits or NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
-                              f"than a head can since the last pose {t - last.t:.3f} s ago")
+        return fits or NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
+                              f"residual chi-square {float(np.min(chi2)):.1f} > "
+                              f"{p.max_residual_chi2:g}")
 
     def _pick_tracking(self, fits: list[_Fit], t: float,
                        n: int) -> tuple[int, np.ndarray] | NoPose:
@@ -522,10 +520,13 @@ class LaserTracker:
 
     def _within_reach(self, pose: LabeledPose, t: float) -> bool:
         """Whether a head could have turned and moved from the last pose to ``pose`` by
-        ``t`` (``max_angular_speed_dps``, ``max_speed_mps``, plus the gate's margins)."""
+        ``t`` (``max_angular_speed_dps``, ``max_speed_mps``, plus the gate's margins).
+        Plain floats: numpy's per-call overhead on two quaternions costs more than this."""
         p, last = self.params, self._last
         dt = t - last.t
-        turn = math.degrees(float(geo.quat_angle(last.quaternion, pose.quaternion)))
+        cos_half = abs(sum(a * b for a, b in zip(last.quaternion.tolist(),
+                                                 pose.quaternion.tolist(), strict=True)))
+        turn = math.degrees(2 * math.acos(min(cos_half, 1.0)))
         return (turn <= p.max_angular_speed_dps * dt + p.gate_margin_deg
                 and math.dist(pose.position, last.position)
                 <= p.max_speed_mps * dt + p.gate_margin_m)
