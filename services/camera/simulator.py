@@ -151,10 +151,11 @@ class SimCamera:
 
     def render(self, scene: Iterable[SceneObject], t: float,
                rng: np.random.Generator) -> np.ndarray:
-        """The 8-bit gray frame whose exposure ends at ``t``."""
+        """The 8-bit gray frame whose exposure is centred on ``t`` (so the ground truth of a
+        moving object is its pose at ``t``, not a blur-length behind it)."""
         scene = list(scene)
         n = self._subframes(scene, t)
-        times = [t - self.exposure_s * (1 - (i + 0.5) / n) for i in range(n)] if n > 1 \
+        times = [t + self.exposure_s * ((i + 0.5) / n - 0.5) for i in range(n)] if n > 1 \
             else [t]
         ideal = sum(self._ideal_image(scene, s) for s in times) / len(times)
         mx, my = self.model.distortion_map(self.ideal_camera()[0])
@@ -203,8 +204,8 @@ class SimCamera:
             return 1
         moved = 0.0
         for obj in scene:
-            a = self.pose_of(obj, t - self.exposure_s)[:3, 3]
-            b = self.pose_of(obj, t)[:3, 3]
+            a = self.pose_of(obj, t - self.exposure_s / 2)[:3, 3]
+            b = self.pose_of(obj, t + self.exposure_s / 2)[:3, 3]
             if a[2] > 0.02 and b[2] > 0.02:
                 uv = self.model.project(np.array([a, b]))
                 moved = max(moved, float(np.linalg.norm(uv[1] - uv[0])))

@@ -1,0 +1,118 @@
+"""A rigid object's pose from its markers' corners, with a first-order covariance.
+
+Every object (one square marker, or a bundle of markers) is solved the same way:
+
+1. **Candidates**: each visible marker's two IPPE solutions
+   (``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)``), moved into the object's frame.
+   A planar square seen from far away fits both of them almost equally well: the
+   *planar ambiguity* (the marker tilted one way or the mirror way).
+2. **Refinement**: ``cv2.solvePnPRefineLM`` from each candidate over all the object's
+   corners; the distinct local minima are kept, ordered by their residual sum of squares.
+3. **Covariance** (:func:`covariance`): ``(Jᵀ J)⁻¹ σ²`` with ``J`` the reprojection
+   Jacobian over (rvec, tvec) that ``cv2.projectPoints`` returns, ``σ`` the corner noise
+   (per axis, pixels) the caller estimates from the residuals.  It is returned in the
+   *decoupled* form, [position error (m), rotation error (rad) in the camera frame]
+   (``R_true = exp(φ) R``); :func:`agent.geometry.decoupled_to_se3` gives uma's wire form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+_LM_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-10)
+#: two refined solutions closer than this (rad) are the same minimum
+SAME_SOLUTION_RAD = np.deg2rad(2.0)
+
+
+@dataclass(frozen=True)
+class Solution:
+    """One refined pose of an object in the camera frame and how well it fits."""
+
+    rvec: np.ndarray  # (3,)
+    tvec: np.ndarray  # (3,)
+    rss_px2: float  # residual sum of squares over all corners
+    n_points: int
+    jacobian: np.ndarray  # (2n, 6): d(pixels) / d(rvec, tvec)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return cv2.Rodrigues(self.rvec)[0]
+
+    @property
+    def dof(self) -> int:
+        """Residual degrees of freedom: the noise's evidence in this fit."""
+        return 2 * self.n_points - 6
+
+
+def square_candidates(corners: np.ndarray, object_corners: np.ndarray, K: np.ndarray,
+                      dist: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Both IPPE solutions (rvec, tvec) of one square marker in the camera frame."""
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(object_corners, corners.reshape(-1, 1, 2), K,
+                                             dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    return [(np.asarray(rvecs[i], np.float64).ravel(), np.asarray(tvecs[i], np.float64).ravel())
+            for i in range(n)]
+
+
+def solve(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray,
+          dist: np.ndarray, candidates: list[tuple[np.ndarray, np.ndarray]],
+          ) -> list[Solution]:
+    """The distinct refined solutions from ``candidates``, best (smallest RSS) first."""
+    obj = np.ascontiguousarray(object_points, np.float64).reshape(-1, 3)
+    img = np.ascontiguousarray(image_points, np.float64).reshape(-1, 2)
+    found: list[Solution] = []
+    for rvec0, tvec0 in candidates:
+        if tvec0[2] <= 0:
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec0.reshape(3, 1).copy(),
+                                          tvec0.reshape(3, 1).copy(), _LM_CRITERIA)
+        rvec, tvec = rvec.ravel(), tvec.ravel()
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        rss = float(((img - proj.reshape(-1, 2)) ** 2).sum())
+        sol = Solution(rvec, tvec, rss, len(obj), jac[:, :6].copy())
+        if not any(_same(sol, f) for f in found):
+            found.append(sol)
+    return sorted(found, key=lambda s: s.rss_px2)
+
+
+def _same(a: Solution, b: Solution) -> bool:
+    return rotation_angle(a.rotation, b.rotation) < SAME_SOLUTION_RAD
+
+
+def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """The angle (rad) between two rotations."""
+    c = (np.trace(Ra @ Rb.T) - 1) / 2
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def covariance(sol: Solution, sigma_px: float) -> np.ndarray:
+    """Decoupled 6x6 covariance [position, camera-frame rotation] of ``sol`` for corner
+    noise ``sigma_px`` per axis; ``inf`` variances if the corners do not fix the pose."""
+    info = sol.jacobian.T @ sol.jacobian
+    try:
+        cov_rt = np.linalg.inv(info) * sigma_px ** 2
+    except np.linalg.LinAlgError:
+        return np.diag(np.full(6, np.inf))
+    G = np.zeros((6, 6))
+    G[:3, 3:] = np.eye(3)
+    G[3:, :3] = rotation_jacobian(sol.rvec)
+    cov = G @ cov_rt @ G.T
+    return (cov + cov.T) / 2
+
+
+def rotation_jacobian(rvec: np.ndarray) -> np.ndarray:
+    """d(φ)/d(rvec) where ``R(rvec + d) = exp(φ) R(rvec)``: SO(3)'s left Jacobian."""
+    theta = float(np.linalg.norm(rvec))
+    W = np.array([[0, -rvec[2], rvec[1]], [rvec[2], 0, -rvec[0]], [-rvec[1], rvec[0], 0]])
+    if theta < 1e-6:
+        return np.eye(3) + W / 2
+    return (np.eye(3) + (1 - np.cos(theta)) / theta ** 2 * W
+            + (theta - np.sin(theta)) / theta ** 3 * W @ W)
+
+
+def difference(a: Solution, b: Solution) -> np.ndarray:
+    """[position, rotation] of ``b`` relative to ``a`` in the decoupled form (6,)."""
+    phi = cv2.Rodrigues(b.rotation @ a.rotation.T)[0].ravel()
+    return np.concatenate([b.tvec - a.tvec, phi])

@@ -1,0 +1,240 @@
+"""``uma service run fiducials``: printed markers seen by a calibrated camera, as poses.
+
+::
+
+    uma service run fiducials --source 0 --calibration cam.yaml \\
+        --family apriltag36h11 --size 0.08 --frame lab/cam1
+
+Every frame of ``--source`` (a camera index, a video file, an image folder, a URL; files
+are replayed at their own rate) goes through :class:`~services.fiducials.tracker.
+FiducialTracker`.  Each body seen (a marker, or a bundle of ``--bundles``) becomes a
+``pose6d`` ability the first time it is seen, named after it (``apriltag36h11-3``, or the
+bundle's name), with the edge ``FRAME -> PREFIX/NAME`` (``--name ID=FRAME`` renames a
+marker's frame).  Each sample carries the frame's capture time, the 6x6 covariance (uma's
+SE(3) form) and, in ``extra``: ``ambiguity`` (``none``, ``history``: the IPPE solution the
+previous frame supports, ``covered``: the covariance spans both solutions), ``sigma_px``
+(the corner noise estimated from the residuals), ``rms_px`` and ``markers`` (the ids used).
+
+The attributes each ability advertises are measured: ``frequency_hz`` (samples over the
+last ``WINDOW_S``), ``latency_s`` (publication minus capture time, median), ``pos_std_m``
+and ``rot_std_rad`` (the root of the covariance's position and rotation traces, median),
+``confidence`` (share of frames with the body); re-advertised when one drifts by more
+than ``DRIFT`` (at most every ``UPDATE_S``), so a need with ``prefer="pos_std_m"`` moves
+to the camera that sees the body best as the body moves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from agent import geometry as geo
+from agent.errors import UmaError
+from agent.runtime import ServicePlugin
+from schemas.codec import Measurement
+from services.camera import markers
+from services.camera.capture import Capture
+from services.camera.model import load
+from services.fiducials.bodies import load_bundles
+from services.fiducials.tracker import Estimate, FiducialTracker
+
+log = logging.getLogger("uma.fiducials")
+WINDOW_S = 2.0
+DRIFT = 0.25
+UPDATE_S = 0.25
+LOG_EVERY_S = 10.0
+
+
+def _id_size(text: str) -> tuple[int, float]:
+    marker_id, eq, size = text.partition("=")
+    try:
+        value = float(size)
+    except ValueError:
+        value = -1.0
+    if not eq or not marker_id.isdigit() or not 0 < value < 10:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected ID=METRES, e.g. 3=0.05")
+    return int(marker_id), value
+
+
+def _id_frame(text: str) -> tuple[int, str]:
+    marker_id, eq, frame = text.partition("=")
+    if not eq or not marker_id.isdigit() or not frame:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected ID=FRAME, e.g. 3=lab/wand")
+    return int(marker_id), frame
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", default="fiducials", help="service id (default fiducials)")
+    parser.add_argument("--source", required=True,
+                        help="camera index (0), video file, image folder or stream URL")
+    parser.add_argument("--calibration", required=True, metavar="FILE",
+                        help="the camera's calibration: 'uma calibrate camera' output, any "
+                             "OpenCV calibration YAML/JSON/XML or a ROS camera_info YAML")
+    parser.add_argument("--family", default="apriltag36h11",
+                        help="marker family (default apriltag36h11; 'uma markers families')")
+    parser.add_argument("--size", type=float, default=None, metavar="M",
+                        help="side of the markers' black square, metres, as printed; markers "
+                             "of no known size are ignored (said once)")
+    parser.add_argument("--marker-size", type=_id_size, action="append", default=[],
+                        metavar="ID=M", help="a marker of another size (repeatable)")
+    parser.add_argument("--bundles", metavar="FILE", default=None,
+                        help="TOML file of marker bundles tracked as one body each "
+                             "(see services/fiducials/bodies.py)")
+    parser.add_argument("--frame", required=True,
+                        help="the camera's frame in the SRG, e.g. lab/cam1")
+    parser.add_argument("--prefix", default="markers",
+                        help="frames of the bodies: PREFIX/NAME (default markers)")
+    parser.add_argument("--name", type=_id_frame, action="append", default=[],
+                        metavar="ID=FRAME", help="publish marker ID as FRAME instead "
+                                                 "(repeatable)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frame rate of an image folder (default 30)")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N",
+                        help="stop after N frames (default: the source's end, or never)")
+
+
+@dataclass
+class _Quality:
+    """What one ability has shown lately: the measured attributes it advertises."""
+
+    times: deque = field(default_factory=deque)  # (capture s, latency s, pos std, rot std)
+    advertised: dict[str, float] = field(default_factory=dict)
+    updated: float = 0.0
+
+    def add(self, t_s: float, latency_s: float, cov: np.ndarray) -> None:
+        self.times.append((t_s, latency_s, math.sqrt(np.trace(cov[:3, :3])),
+                           math.sqrt(np.trace(cov[3:, 3:]))))
+        while self.times and self.times[0][0] < t_s - WINDOW_S:
+            self.times.popleft()
+
+    def attributes(self, frames_in_window: int) -> dict[str, float]:
+        rows = np.array(self.times)
+        span = max(rows[-1, 0] - rows[0, 0], 1e-3) if len(rows) > 1 else WINDOW_S
+        rate = (len(rows) - 1) / span if len(rows) > 1 else 1.0 / WINDOW_S
+        return {"frequency_hz": round(float(rate), 2),
+                "latency_s": round(float(np.median(rows[:, 1])), 4),
+                "pos_std_m": float(np.median(rows[:, 2])),
+                "rot_std_rad": float(np.median(rows[:, 3])),
+                "confidence": round(min(1.0, len(rows) / max(frames_in_window, 1)), 3)}
+
+
+class Publisher:
+    """Estimates -> abilities (created on first sight) with measured attributes."""
+
+    def __init__(self, svc: Any, args: argparse.Namespace) -> None:
+        self.svc = svc
+        self.args = args
+        self.frames_of = dict(args.name)
+        self.handles: dict[str, Any] = {}
+        self.quality: dict[str, _Quality] = {}
+        self.frame_times: deque = deque()
+        self.published = 0
+
+    def frame(self, t_ns: int) -> None:
+        t = t_ns / 1e9
+        self.frame_times.append(t)
+        while self.frame_times and self.frame_times[0] < t - WINDOW_S:
+            self.frame_times.popleft()
+
+    def __call__(self, est: Estimate, marker_id: int | None) -> None:
+        now = time.time_ns()
+        cov = geo.decoupled_to_se3(est.t, est.covariance)
+        q = self.quality.setdefault(est.name, _Quality())
+        q.add(est.t_ns / 1e9, (now - est.t_ns) / 1e9, est.covariance)
+        handle = self.handles.get(est.name)
+        if handle is None:
+            target = self.frames_of.get(marker_id) if marker_id is not None else None
+            target = target or f"{self.args.prefix}/{est.name}"
+            attrs = q.attributes(len(self.frame_times))
+            handle = self.svc.ability(est.name, type="pose6d", edge=(self.args.frame, target),
+                                      **attrs)
+            self.handles[est.name] = handle
+            q.advertised, q.updated = attrs, time.monotonic()
+            log.info("fiducials: %s -> %s (%s)", self.args.frame, target, attrs)
+        elif time.monotonic() - q.updated > UPDATE_S:
+            attrs = q.attributes(len(self.frame_times))
+            if _drifted(q.advertised, attrs):
+                handle.update(**attrs)
+                q.advertised, q.updated = attrs, time.monotonic()
+        handle.publish_measurement(Measurement(
+            type="pose6d", t_ns=est.t_ns, position=est.t, quaternion=geo.matrix_to_quat(est.R),
+            covariance=cov,
+            extra={"ambiguity": est.ambiguity, "sigma_px": round(est.sigma_px, 4),
+                   "rms_px": round(est.rms_px, 4), "markers": list(est.markers)}))
+        self.published += 1
+
+
+def _drifted(advertised: dict[str, float], measured: dict[str, float]) -> bool:
+    return any(abs(v - advertised.get(k, 0.0)) > DRIFT * max(abs(advertised.get(k, 0.0)), 1e-9)
+               for k, v in measured.items())
+
+
+def tracker_from(args: argparse.Namespace) -> FiducialTracker:
+    """The tracker the arguments describe; ``UmaError`` for a bad file or family."""
+    camera = load(args.calibration)
+    try:
+        markers.dictionary(args.family)
+    except ValueError as exc:
+        raise UmaError(str(exc)) from None
+    bundles = load_bundles(args.bundles, args.family) if args.bundles else []
+    if args.size is None and not args.marker_size and not bundles:
+        raise UmaError("give --size (or --marker-size / --bundles): a marker's pose needs its "
+                       "printed size")
+    return FiducialTracker(camera, args.family, args.size, dict(args.marker_size), bundles)
+
+
+def run(args: argparse.Namespace, stop: threading.Event) -> int:
+    from agent import Service  # imported here: '--help' needs no Zenoh
+
+    tracker = tracker_from(args)
+    size = tracker.camera.size
+    with Capture(args.source, fps=args.fps, pace=True, max_frames=args.max_frames) as cap, \
+            Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
+                    listen=args.listen or None) as svc:
+        svc.start()
+        publish = Publisher(svc, args)
+        log.info("fiducials: %s (%s) -> %s, %s", args.source, cap.clock, args.frame,
+                 args.family)
+        last_log, unsized_said = time.monotonic(), set()
+        bundles = {b.name for b in tracker.bundles}
+        for frame in cap.frames(stop):
+            h, w = frame.image.shape[:2]
+            if (w, h) != size:
+                raise UmaError(f"{args.source}: frames are {w}x{h}, the calibration "
+                               f"{args.calibration} is for {size[0]}x{size[1]}")
+            gray = frame.image if frame.image.ndim == 2 else \
+                cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+            publish.frame(frame.t_ns)
+            for est in tracker.process(gray, frame.t_ns):
+                publish(est, None if est.name in bundles else est.markers[0])
+            for marker_id in tracker.unsized - unsized_said:
+                log.warning("fiducials: marker %d has no size (--size, --marker-size): "
+                            "ignored", marker_id)
+            unsized_said |= tracker.unsized
+            if time.monotonic() - last_log > LOG_EVERY_S:
+                log.info("fiducials: %d frames, %d poses published", cap.delivered,
+                         publish.published)
+                last_log = time.monotonic()
+        log.info("fiducials: source ended after %d frames, %d poses published",
+                 cap.delivered, publish.published)
+    return 0
+
+
+PLUGIN = ServicePlugin(
+    name="fiducials",
+    help="Printed fiducial markers (AprilTag, ArUco) seen by a calibrated camera: one pose6d "
+         "ability per marker or bundle seen, camera frame -> markers/<family>-<id>, with a "
+         "covariance from the corners' measured noise, the planar ambiguity flagged, and "
+         "rate, latency and accuracy advertised as measured.",
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -1,0 +1,182 @@
+"""The fiducial tracker's per-frame pipeline: detect, solve each body, judge, estimate noise.
+
+``FiducialTracker.process(image, t_ns)`` returns one :class:`Estimate` per body seen:
+
+* **detection**: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; their corners
+  are then located from their four sides (:mod:`services.fiducials.edges`), in ideal
+  pixels (lens distortion removed), where the poses are solved;
+* **pose**: :mod:`services.fiducials.pose` (IPPE candidates, LM refinement, covariance);
+* **corner noise**: not assumed: per body, the residuals of its last ``POOL_FRAMES``
+  fits pooled (``σ² = Σ RSS / Σ dof``, with a weak prior of ``PRIOR_DOF`` degrees of
+  freedom at the camera's calibrated pixel noise), so the covariance grows when the
+  marker is far, blurred or badly lit and its corners scatter more;
+* **planar ambiguity**: when the second-best solution fits within ``AMBIGUITY_GAP``
+  (in units of σ², the χ² distance between the two fits) the choice is not trusted to
+  the residuals.  If the body's previous trusted estimate (at most ``HISTORY_S`` old) lies
+  clearly on one solution's side (within ``HISTORY_SIDE`` of the angle between the two),
+  that one is taken (``ambiguity = "history"``);
+  otherwise the better fit is reported with its covariance inflated by the other
+  solution's offset, so that the other one lies within one standard deviation
+  (``ambiguity = "covered"``).  Never a silent flip: the sample says which.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from services.camera.markers import dictionary, marker_corners
+from services.camera.model import CameraModel
+from services.fiducials import edges, pose
+from services.fiducials.bodies import Body, marker_body, marker_in_body
+
+POOL_FRAMES = 30
+PRIOR_DOF = 4
+DEFAULT_PIXEL_STD = 0.3
+AMBIGUITY_GAP = 16.0
+HISTORY_S = 0.5
+#: the previous pose decides when it is within this share of the two solutions' angle
+#: of one of them (clearly on its side)
+HISTORY_SIDE = 0.4
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One body's pose in the camera frame at the frame's capture time."""
+
+    name: str
+    t_ns: int
+    R: np.ndarray  # (3, 3) body -> camera
+    t: np.ndarray  # (3,) body origin in the camera frame, m
+    covariance: np.ndarray  # (6, 6) decoupled [position, camera-frame rotation]
+    sigma_px: float  # corner noise used (per axis)
+    rms_px: float  # this frame's reprojection RMS (per axis)
+    ambiguity: str  # "none", "history" or "covered"
+    markers: tuple[int, ...]
+    alternative_gap: float  # χ² gap to the other solution (inf if there is none)
+
+
+@dataclass
+class _BodyState:
+    pool: deque = field(default_factory=lambda: deque(maxlen=POOL_FRAMES))
+    last: Estimate | None = None
+
+
+class FiducialTracker:
+    """Tracks the markers of one family seen by one calibrated camera."""
+
+    def __init__(self, camera: CameraModel, family: str, size_m: float | None,
+                 sizes: dict[int, float] | None = None, bundles: list[Body] | None = None,
+                 name_of: dict[int, str] | None = None) -> None:
+        self.camera = camera
+        self.family = family
+        self.size_m = size_m
+        self.sizes = dict(sizes or {})
+        d = dictionary(family)
+        self.detector = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
+        self._modules = d.markerSize + 2
+        self._K = camera.K
+        self._no_dist = np.zeros(0)
+        self.bundles = list(bundles or [])
+        self._bundle_of = {i: b for b in self.bundles for i in b.corners}
+        self._name_of = dict(name_of or {})
+        self._singles: dict[int, Body] = {}
+        self._state: dict[str, _BodyState] = {}
+        prior = camera.pixel_std if camera.pixel_std else DEFAULT_PIXEL_STD
+        self._prior_rss = PRIOR_DOF * prior ** 2
+        #: ids seen that are neither in a bundle nor of a known size (no --size)
+        self.unsized: set[int] = set()
+
+    def detect(self, image: np.ndarray) -> dict[int, np.ndarray]:
+        """Marker id -> its four corners (4, 2) in ideal pixels (distortion removed)."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        corners, ids, _ = self.detector.detectMarkers(gray)
+        if ids is None:
+            return {}
+        ideal = edges.refine(gray, np.asarray(corners).reshape(-1, 4, 2), self._modules,
+                             self.camera)
+        return {int(i): c for i, c in zip(ids.ravel(), ideal, strict=True)}
+
+    def process(self, image: np.ndarray, t_ns: int) -> list[Estimate]:
+        """Every body seen in ``image`` (captured at ``t_ns``)."""
+        return self.estimate(self.detect(image), t_ns)
+
+    def estimate(self, seen: dict[int, np.ndarray], t_ns: int) -> list[Estimate]:
+        """Every body among the detected markers ``seen`` (ideal-pixel corners)."""
+        groups: dict[str, tuple[Body, list[int]]] = {}
+        for marker_id in sorted(seen):
+            body = self._body(marker_id)
+            if body is not None:
+                groups.setdefault(body.name, (body, []))[1].append(marker_id)
+        out = []
+        for body, ids in groups.values():
+            est = self._solve(body, ids, seen, t_ns)
+            if est is not None:
+                out.append(est)
+        return out
+
+    def _body(self, marker_id: int) -> Body | None:
+        if marker_id in self._bundle_of:
+            return self._bundle_of[marker_id]
+        if marker_id not in self._singles:
+            size = self.sizes.get(marker_id, self.size_m)
+            if size is None:
+                self.unsized.add(marker_id)
+                return None
+            name = self._name_of.get(marker_id, f"{self.family}-{marker_id}")
+            self._singles[marker_id] = marker_body(name, marker_id, size)
+        return self._singles[marker_id]
+
+    def _solve(self, body: Body, ids: list[int], seen: dict[int, np.ndarray], t_ns: int,
+               ) -> Estimate | None:
+        K, dist = self._K, self._no_dist
+        obj = np.concatenate([body.corners[i] for i in ids])
+        img = np.concatenate([seen[i] for i in ids])
+        biggest = max(ids, key=lambda i: cv2.contourArea(seen[i].astype(np.float32)))
+        T_body_marker = marker_in_body(body.corners[biggest])
+        size = float(np.linalg.norm(body.corners[biggest][1] - body.corners[biggest][0]))
+        candidates = []
+        for rvec, tvec in pose.square_candidates(seen[biggest], marker_corners(size), K, dist):
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec
+            T = T @ np.linalg.inv(T_body_marker)
+            candidates.append((cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]))
+        solutions = pose.solve(obj, img, K, dist, candidates)
+        if not solutions:
+            return None
+        state = self._state.setdefault(body.name, _BodyState())
+        best = solutions[0]
+        state.pool.append((best.rss_px2, best.dof))
+        sigma2 = (sum(r for r, _ in state.pool) + self._prior_rss) / \
+            (sum(d for _, d in state.pool) + PRIOR_DOF)
+        chosen, cov, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
+        est = Estimate(body.name, t_ns, chosen.rotation, chosen.tvec, cov, float(np.sqrt(sigma2)),
+                       float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), ambiguity,
+                       tuple(ids), gap)
+        if ambiguity != "covered":  # a guess between two solutions is no one's history
+            state.last = est
+        return est
+
+    def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
+               t_ns: int) -> tuple[pose.Solution, np.ndarray, str, float]:
+        best = solutions[0]
+        sigma = float(np.sqrt(sigma2))
+        if len(solutions) == 1:
+            return best, pose.covariance(best, sigma), "none", float("inf")
+        other = solutions[1]
+        gap = (other.rss_px2 - best.rss_px2) / sigma2
+        if gap > AMBIGUITY_GAP:
+            return best, pose.covariance(best, sigma), "none", gap
+        last = state.last
+        if last is not None and 0 <= t_ns - last.t_ns <= HISTORY_S * 1e9:
+            d_best = pose.rotation_angle(best.rotation, last.R)
+            d_other = pose.rotation_angle(other.rotation, last.R)
+            apart = pose.rotation_angle(best.rotation, other.rotation)
+            near = best if d_best <= d_other else other
+            if min(d_best, d_other) < HISTORY_SIDE * apart:
+                return near, pose.covariance(near, sigma), "history", gap
+        d = pose.difference(best, other)
+        return best, pose.covariance(best, sigma) + np.outer(d, d), "covered", gap

@@ -1,0 +1,224 @@
+"""The fiducial tracker: covariance against Monte Carlo, the planar ambiguity never a
+silent flip, edge-fitted corners, bundles, and the service end to end through a real agent
+reading a generated video through cv2.VideoCapture."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from agent_helpers.harness import agent, poll, services_json, spawn
+from conftest import endpoint, free_port
+
+from agent import Client
+from agent import geometry as geo
+from services.camera.markers import marker_corners
+from services.camera.model import CameraModel
+from services.camera.simulator import SimCamera, static, write_video
+from services.fiducials import edges, pose
+from services.fiducials.bodies import Body, BundleFileError, load_bundles
+from services.fiducials.simulate import FACING, tags
+from services.fiducials.tracker import FiducialTracker
+
+K = np.array([[530.0, 0, 319.5], [0, 530.0, 239.5], [0, 0, 1]])
+IDEAL = CameraModel(K, [], 640, 480, pixel_std=0.3)
+LENS = CameraModel(K, [-0.15, 0.03, 0.0003, -0.0002, 0.0], 640, 480, pixel_std=0.3)
+
+
+def facing(tilt=(0.0, 0.0, 0.0), position=(0.0, 0.0, 1.0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = FACING @ cv2.Rodrigues(np.asarray(tilt, float))[0]
+    T[:3, 3] = position
+    return T
+
+
+def corners_of(T: np.ndarray, size=0.08) -> np.ndarray:
+    return IDEAL.project(marker_corners(size) @ T[:3, :3].T + T[:3, 3])
+
+
+def decoupled_error(T: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.concatenate([T[:3, 3] - t, cv2.Rodrigues(T[:3, :3] @ R.T)[0].ravel()])
+
+
+def test_covariance_matches_monte_carlo_for_the_noise_it_is_given():
+    T = facing((0.5, 0.3, 0.2), (0.1, -0.05, 0.8))
+    obj, true = marker_corners(0.08), corners_of(T)
+    rng = np.random.default_rng(0)
+    errors, nees = [], []
+    for _ in range(300):
+        img = true + rng.normal(0, 0.3, true.shape)
+        sols = pose.solve(obj, img, K, np.zeros(0), pose.square_candidates(img, obj, K,
+                                                                             np.zeros(0)))
+        best = sols[0]
+        e = decoupled_error(T, best.rotation, best.tvec)
+        errors.append(e)
+        nees.append(e @ np.linalg.solve(pose.covariance(best, 0.3), e))
+    empirical = np.cov(np.array(errors).T)
+    claimed = pose.covariance(sols[0], 0.3)
+    for block in (slice(0, 3), slice(3, 6)):
+        ratio = np.trace(empirical[block, block]) / np.trace(claimed[block, block])
+        assert 0.8 < ratio < 1.25, ratio
+    assert 5.0 < np.mean(nees) < 7.2
+
+
+def test_covariance_grows_with_the_measured_corner_noise():
+    T = facing((0.3, 0.2, 0.0), (0.0, 0.0, 1.2))
+    rng = np.random.default_rng(1)
+    stds = {}
+    for noise in (0.1, 0.8):
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+        for k in range(30):
+            seen = {5: corners_of(T) + rng.normal(0, noise, (4, 2))}
+            est = tracker.estimate(seen, k * 33_000_000)
+        stds[noise] = (est[0].sigma_px, math.sqrt(np.trace(est[0].covariance[:3, :3])))
+    assert stds[0.1][0] < 0.2 and 0.55 < stds[0.8][0] < 1.05  # estimated, not assumed
+    assert stds[0.8][1] > 4 * stds[0.1][1]
+
+
+def _ambiguous_view():
+    """A small, far, nearly fronto-parallel tag: IPPE's two solutions fit alike."""
+    return facing((0.08, 0.05, 0.0), (0.2, 0.1, 2.8))
+
+
+def test_planar_ambiguity_is_covered_never_silent():
+    T = _ambiguous_view()
+    rng = np.random.default_rng(2)
+    flagged = 0
+    for _ in range(40):
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)  # no history
+        est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.3, (4, 2))}, 0)[0]
+        e = decoupled_error(T, est.R, est.t)
+        if est.ambiguity == "covered":
+            flagged += 1
+            assert math.isfinite(est.alternative_gap) and est.alternative_gap <= 16
+        rot_m = e[3:] @ np.linalg.solve(est.covariance[3:, 3:], e[3:])
+        assert rot_m < 16.3 or math.degrees(np.linalg.norm(e[3:])) < 5  # no silent flip
+    assert flagged > 20
+
+
+def test_previous_frame_picks_the_solution_it_supports():
+    T = _ambiguous_view()
+    rng = np.random.default_rng(3)
+    tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+    near = T.copy()
+    near[:3, 3] = (0.1, 0.05, 0.5)  # the same attitude seen clearly, just before
+    assert tracker.estimate({3: corners_of(near)}, 0)[0].ambiguity == "none"
+    kinds = []
+    for k in range(1, 10):
+        est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.3, (4, 2))},
+                               k * 30_000_000)[0]
+        kinds.append(est.ambiguity)
+        if est.ambiguity == "history":  # the flipped solution lies 30-45 degrees off
+            assert pose.rotation_angle(est.R, T[:3, :3]) < math.radians(20)
+    assert kinds.count("history") >= 5, kinds
+
+
+def test_edge_fitted_corners_beat_the_detectors_on_a_blurred_tag():
+    cam = SimCamera(LENS, blur_sigma_px=1.0)
+    T = facing((0.4, -0.3, 0.3), (0.05, 0.03, 1.0))
+    scene = tags("apriltag36h11", [11], 0.08, [static(T)])
+    image = cam.render(scene, 0.0, np.random.default_rng(4))
+    true = LENS.undistort(LENS.project(marker_corners(0.08) @ T[:3, :3].T + T[:3, 3]),
+                          pixels=True)
+    tracker = FiducialTracker(LENS, "apriltag36h11", 0.08)
+    raw, _, _ = tracker.detector.detectMarkers(image)
+    detector_err = np.abs(LENS.undistort(raw[0].reshape(4, 2), pixels=True) - true).max()
+    ours = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, LENS)[0]
+    assert np.abs(ours - true).max() < 0.3 < detector_err
+
+
+def test_tracker_on_rendered_frames_is_accurate_and_honest():
+    cam = SimCamera(LENS)
+    T = facing((0.35, 0.2, 0.5), (-0.1, 0.05, 0.7))
+    scene = tags("apriltag36h11", [2], 0.08, [static(T)])
+    tracker = FiducialTracker(LENS, "apriltag36h11", 0.08)
+    rng = np.random.default_rng(5)
+    for k in range(10):
+        est = tracker.process(cam.render(scene, 0.0, rng), k * 33_000_000)
+    (e,) = est
+    err = decoupled_error(T, e.R, e.t)
+    assert np.linalg.norm(err[:3]) < 0.004 and math.degrees(np.linalg.norm(err[3:])) < 0.5
+    assert e.name == "apriltag36h11-2" and e.ambiguity == "none"
+    assert err @ np.linalg.solve(e.covariance, err) < 22.5  # chi2(6) 99.9 %
+
+
+def test_a_bundle_is_solved_from_all_its_corners(tmp_path):
+    path = tmp_path / "b.toml"
+    path.write_text("""
+[[bundle]]
+name = "cube"
+[[bundle.marker]]
+id = 1
+size = 0.05
+position = [0.0, 0.0, 0.025]
+[[bundle.marker]]
+id = 2
+size = 0.05
+position = [0.025, 0.0, 0.0]
+rotation = [0.0, 1.5707963267948966, 0.0]
+""")
+    (cube,) = load_bundles(path, "apriltag36h11")
+    T = facing((0.3, -0.5, 0.2), (0.0, 0.0, 0.9))
+    rng = np.random.default_rng(6)
+    seen = {i: IDEAL.project(c @ T[:3, :3].T + T[:3, 3]) + rng.normal(0, 0.2, (4, 2))
+            for i, c in cube.corners.items()}
+    tracker = FiducialTracker(IDEAL, "apriltag36h11", None, bundles=[cube])
+    (est,) = tracker.estimate(seen, 0)
+    single = FiducialTracker(IDEAL, "apriltag36h11", 0.05).estimate({1: seen[1]}, 0)[0]
+    assert est.name == "cube" and est.markers == (1, 2)
+    assert np.linalg.norm(decoupled_error(T, est.R, est.t)[:3]) < 0.003
+    assert np.trace(est.covariance) < np.trace(single.covariance) / 2
+
+
+@pytest.mark.parametrize(("text", "reason"), [
+    ("[[bundle]]\nname = 'x'\n", "no \\[\\[bundle.marker\\]\\]"),
+    ("bundle = 3\n", "no \\[\\[bundle\\]\\] tables"),
+    ("[[bundle]]\nname = 'a'\n[[bundle.marker]]\nid = 1\nsize = 0.05\n"
+     "[[bundle]]\nname = 'b'\n[[bundle.marker]]\nid = 1\nsize = 0.05\n", "already in bundle"),
+    ("[[bundle]]\nname = 'a'\n[[bundle.marker]]\nid = 1\nsize = -1\n", "size must be"),
+    ("[[bundle\n", "not a TOML file"),
+])
+def test_bad_bundle_files_say_what_is_wrong(tmp_path, text, reason):
+    path = tmp_path / "b.toml"
+    path.write_text(text)
+    with pytest.raises(BundleFileError, match=reason):
+        load_bundles(path, "apriltag36h11")
+
+
+def test_charuco_board_bundle_has_every_marker():
+    from services.fiducials.bodies import charuco_body
+
+    body = charuco_body("board", {"squares": [5, 4], "square": 0.04, "marker": 0.03},
+                        "aruco4x4_50")
+    assert isinstance(body, Body) and len(body.corners) == 10
+
+
+def test_service_publishes_marker_poses_from_a_video(processes, realm, tmp_path):
+    T = facing((0.3, -0.2, 0.4), (0.05, -0.02, 0.6))
+    cam = SimCamera(LENS)
+    scene = tags("apriltag36h11", [4], 0.08, [static(T)])
+    rng = np.random.default_rng(7)
+    video = write_video(tmp_path / "cam.avi", [cam.render(scene, 0.0, rng) for _ in range(80)],
+                        fps=10)  # 8 s: still running when listed
+    calibration = LENS.save(tmp_path / "cam.yaml")
+    ep = endpoint(free_port())
+    agent(processes, realm, "host", ep)
+    svc = spawn(processes, ["-m", "agent.cli", "service", "run", "fiducials", "--realm", realm,
+                            "--agent", "host", "--connect", ep, "--source", str(video),
+                            "--calibration", str(calibration), "--size", "0.08",
+                            "--frame", "lab/cam1"])
+    svc.wait_log("lab/cam1 -> markers/apriltag36h11-4")
+    with Client(realm=realm, connect=[ep]) as client:
+        got = poll(lambda: client.pose("lab/cam1", "markers/apriltag36h11-4"),
+                   what="the marker's pose")
+    R = geo.quat_to_matrix(np.asarray(got.quaternion, float))
+    assert np.linalg.norm(got.position - T[:3, 3]) < 0.004
+    assert pose.rotation_angle(R, T[:3, :3]) < math.radians(0.5)
+    assert got.covariance is not None and np.all(np.diag(got.covariance) > 0)
+    listed = services_json(realm, ep)
+    (ability,) = [a for ag in listed["agents"] for s in ag["services"]
+                  if s["service_id"] == "fiducials" for a in s["abilities"]]
+    assert ability["edge"] == ["lab/cam1", "markers/apriltag36h11-4"]
+    assert 0 < ability["attributes"]["pos_std_m"] < 0.01
