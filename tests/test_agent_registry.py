@@ -60,10 +60,21 @@ def test_register_request_round_trip_and_refusals() -> None:
     with pytest.raises(DecodeError, match="revision"):
         parse_register_request(register_request(encode_descriptor(d), "i", -1, {}), "hostA")
     key = bytes(range(16))
-    assert parse_reply(reply_ok(5, key)) == (True, "", False, 5, key, False)
+    assert parse_reply(reply_ok(5, key)) == (True, "", False, 5, key, False, None)
     assert parse_reply(reply_error("nope", retry=True)) == (False, "nope", True, None, None,
-                                                            False)
+                                                            False, None)
     assert parse_reply(reply_error("held", renew=True)).renew
+    assert parse_reply(reply_ok(5, key, challenge=bytes(16))).challenge == bytes(16)
+    # a registration proves the key without carrying it, over a challenge and its content
+    signed = parse_register_request(register_request(
+        encode_descriptor(d), "inst1", 3, {"head": ["k1"]}, key=key, challenge=bytes(16)),
+        "hostA")
+    assert signed.proof is not None and signed.proof.verifies(key)
+    assert not signed.proof.verifies(bytes(16)) and key not in data
+    other = parse_register_request(register_request(
+        encode_descriptor(d), "inst1", 4, {"head": ["k1"]}, key=key, challenge=bytes(16)),
+        "hostA")
+    assert other.proof is not None and other.proof.mac != signed.proof.mac
     with pytest.raises(DecodeError, match="control key"):
         parse_reply(msgpack.packb({"v": 1, "ok": True, "epoch": 5}))
 

@@ -95,7 +95,7 @@ def test_reregistering_a_running_instance_needs_its_key(honest, realm) -> None:
             {"name": "pose", "type": "pose6d", "edge": ["ivy/world", "alice/head"],
              "attributes": {"frequency_hz": 10_000, "latency_s": 0.0}}])
         ok, error = register_raw(s, realm, "hostA", register_request(
-            encode_descriptor(forged), instance, 99, {}, proof=bytes(16)))
+            encode_descriptor(forged), instance, 99, {}, key=bytes(16), challenge=bytes(16)))
         assert not ok and "does not carry its key" in error, error
         ok, error = register_raw(s, realm, "hostA", register_request(
             encode_descriptor(forged), instance, 99, {}))

@@ -5,8 +5,10 @@ instance id is in its agent's snapshot) and sends what it likes."""
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 
+import msgpack
 import pytest
 from agent_helpers.harness import agent, poll, service
 from conftest import endpoint, free_port
@@ -17,7 +19,7 @@ from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.protocol import keys
-from agent.protocol.registration import register_request
+from agent.protocol.registration import Match, control_message, register_request
 from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
@@ -156,3 +158,67 @@ def test_sender_limits_bound_each_sender_and_all_together() -> None:
     for i in range(100):
         limits.allow(f"x{i}", 2.0)
     assert len(limits._senders) == 2
+
+
+@pytest.fixture
+def consumer(site, realm) -> Iterator[Service]:
+    """``fusion`` with a need for up to two heads, matched to ``cam``."""
+    ep = site[0]
+    fusion = Service("fusion", realm=realm, agent="hostA", connect=[ep])
+    try:
+        fusion.need("head", type="pose6d", edge=("ivy/world", "*/head"), max_count=2)
+        fusion.start()
+        fusion.wait_matched("head", 1, timeout=10)
+        yield fusion
+    finally:
+        fusion.close()
+
+
+def test_an_eavesdropper_on_registrations_learns_no_key(site, consumer, realm) -> None:
+    """A queryable on ``agent/hostA/register`` gets every registration; one that does not
+    verify is provoked by an unsigned control message.  What it overhears does not sign
+    control messages the service accepts."""
+    ep, agent, _ = site
+    captured: list[bytes] = []
+    evil = Match(keys.data(realm, "evil", "x", "pose"), "evil", "x", "pose", "pose6d",
+                 ("ivy/world", "evil/head"), {})
+    ctl = keys.control(realm, "hostA", "fusion")
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        ear = s.declare_queryable(keys.agent_register(realm, "hostA"),
+                                  lambda q: captured.append(q.payload.to_bytes()))
+        time.sleep(0.3)  # the queryable reaches the service's session
+        s.put(ctl, control_message(None, agent.epoch, 1, "head", [evil], True))
+        poll(lambda: any(b"proof" in c for c in captured), 10, "a re-registration overheard")
+        proofs = [msgpack.unpackb(c)["proof"] for c in captured if b"proof" in c]
+        seq = consumer._needs["head"].last[1]
+        for i, proof in enumerate(proofs):
+            s.put(ctl, control_message(proof, agent.epoch, seq + 1 + i, "head", [evil], True))
+        poll(lambda: consumer.control_refused.get("signature", 0) >= len(proofs) + 1, 10,
+             "the forged messages refused")
+        ear.undeclare()
+    assert [m.service_id for m in consumer.matches("head")] == ["cam"]
+
+
+def test_a_forged_seq_jump_holds_the_agents_messages_back_briefly(site, consumer,
+                                                                    realm) -> None:
+    """Were a service's key known, a jump of its seq far ahead is refused, and one within
+    the bound (+900) is overtaken by the agent's own seq within a second: a new match is
+    still sent and applied (the agent counted one per message before, so the same +900 held
+    back 900 of its messages, ~75 min of re-sends)."""
+    ep, agent, _ = site
+    key = agent.registrar.control_key("fusion")
+    seq = consumer._needs["head"].last[1]
+    cam_match = consumer.matches("head")[0]
+    ctl = keys.control(realm, "hostA", "fusion")
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        s.put(ctl, control_message(key, agent.epoch, seq + 10**7, "head", [], False))
+        poll(lambda: consumer.control_refused.get("seq", 0) == 1, 10, "the far jump refused")
+        s.put(ctl, control_message(key, agent.epoch, seq + 900, "head", [cam_match], True))
+        poll(lambda: consumer._needs["head"].last[1] == seq + 900, 10, "the +900 applied")
+    time.sleep(1.0)
+    with Service("cam2", realm=realm, agent="hostA", connect=[ep]) as cam2:
+        cam2.ability("pose", type="pose6d", edge=("ivy/world", "bob/head"), frequency_hz=50)
+        cam2.start()
+        consumer.wait_matched("head", 2, timeout=4)

@@ -70,6 +70,7 @@ from agent.protocol.registration import (
     Registration,
     Snapshot,
     control_message,
+    next_seq,
     parse_snapshot,
 )
 from agent.runtime import plugins
@@ -499,7 +500,7 @@ class Agent:
 
     def _send(self, state: NeedState, matches: tuple[Match, ...], now: float) -> None:
         assert self.session is not None and state.result is not None
-        state.seq += 1
+        state.seq = next_seq(state.seq, now - self._started_mono)
         sid = state.req.service_id
         payload = control_message(self.registrar.control_key(sid), self.epoch, state.seq,
                                   state.req.name, matches, state.result.satisfied)

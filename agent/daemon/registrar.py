@@ -47,6 +47,8 @@ with ``put``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import logging
 import secrets
 import threading
@@ -60,8 +62,11 @@ import zenoh
 from agent.daemon.realm_view import RealmView
 from agent.protocol import keys
 from agent.protocol.registration import (
+    CHALLENGE_BYTES,
+    CHALLENGE_TTL_S,
     CONTROL_KEY_BYTES,
     MAX_REGISTRATION_BYTES,
+    Proof,
     Registration,
     parse_descriptor_answer,
     parse_descriptor_reply,
@@ -109,15 +114,39 @@ class RegistrarHost(Protocol):
         """The local services changed: publish a new snapshot."""
 
 
+class Challenges:
+    """The challenges an agent gives with its answers to registrations, checked without
+    keeping any: the time issued and an HMAC of it with the service id and instance under
+    a secret of this agent run, so a stranger can neither make one nor reuse one for
+    another instance, and none outlives ``CHALLENGE_TTL_S``."""
+
+    def __init__(self) -> None:
+        self._secret = secrets.token_bytes(16)
+
+    def issue(self, sid: str, instance: str) -> bytes:
+        issued = int(time.monotonic() * 1000).to_bytes(8, "big")
+        return issued + self._tag(issued, sid, instance)
+
+    def fresh(self, sid: str, instance: str, challenge: bytes) -> bool:
+        issued = challenge[:8]
+        age_ms = int(time.monotonic() * 1000) - int.from_bytes(issued, "big")
+        return (0 <= age_ms <= CHALLENGE_TTL_S * 1000
+                and hmac.compare_digest(challenge[8:], self._tag(issued, sid, instance)))
+
+    def _tag(self, issued: bytes, sid: str, instance: str) -> bytes:
+        return hmac.new(self._secret, issued + f"{sid}/{instance}".encode(),
+                        hashlib.sha256).digest()[:CHALLENGE_BYTES - 8]
+
+
 class RegistrationGate:
     """Size and rate bounds on registrations, checked on Zenoh's thread before any decoding
     of the descriptor (module docstring, "floods"); refusals are counted by reason."""
 
     def __init__(self, agent_id: str, bad: RateLimitedLog,
-                 held: Callable[[str], tuple[str, bytes] | None]) -> None:
+                 proven: Callable[[str, str, Proof | None], bool]) -> None:
         self.agent_id = agent_id
         self._bad = bad
-        self._held = held
+        self._proves = proven
         self._proven = SenderLimits(PROVEN_RATE, PROVEN_BURST)
         self._unproven = SenderLimits(UNPROVEN_RATE, UNPROVEN_BURST,
                                       (UNPROVEN_TOTAL_RATE, UNPROVEN_TOTAL_BURST))
@@ -132,9 +161,7 @@ class RegistrationGate:
                                f"{MAX_REGISTRATION_BYTES}")
         claim = peek_register(data) if data is not None else None
         sid = claim.service_id if claim is not None else "?"
-        held = self._held(sid) if claim is not None else None
-        proven = (held is not None and claim is not None and held[0] == claim.instance
-                  and claim.proof == held[1])
+        proven = claim is not None and self._proves(*claim)
         over = (self._proven if proven else self._unproven).allow(sid)
         if over is None:
             return None
@@ -183,7 +210,8 @@ class Registrar:
         self._control_keys: dict[str, tuple[str, bytes]] = {}
         #: registrations refused for an instance id without its key
         self.hijacks_refused = 0
-        self.gate = RegistrationGate(self.agent_id, bad, self._control_keys.get)
+        self.challenges = Challenges()
+        self.gate = RegistrationGate(self.agent_id, bad, self._proves)
 
     def declare(self, session: zenoh.Session) -> None:
         """Answer registrations and watch the service tokens from now on."""
@@ -240,6 +268,10 @@ class Registrar:
         if entry is not None and entry.instance == reg.instance and not self._proven(reg):
             self._refuse_unproven(query, reg)
             return
+        if entry is not None and entry.instance == reg.instance and reg.revision < entry.revision:
+            _refuse(query, f"service id {sid!r}: revision {reg.revision} is older than the "
+                    f"one held ({entry.revision}): a replay")
+            return
         if entry is None or entry.instance == reg.instance:
             self._accept(query, reg)
             return
@@ -253,25 +285,31 @@ class Registrar:
                   lambda: self._on_holder_done(sid), DUPLICATE_CHECK_S, every_reply=True)
 
     def _refuse_unproven(self, query: zenoh.Query, reg: Registration) -> None:
-        """A registration of the instance held, without the key it was given."""
-        sid = reg.descriptor.service_id
+        """A registration of the instance held that does not prove the key it was given."""
+        sid, instance = reg.descriptor.service_id, reg.instance
+        held = self._control_keys.get(sid)
+        keyed = held is not None and held[0] == instance
+        if keyed and reg.proof is not None and reg.proof.verifies(held[1]):
+            # the right key on a challenge too old: the real service, long after its last
+            # registration; it signs a fresh one
+            _refuse(query, f"service id {sid!r}: the challenge is stale; retry with this one",
+                    retry=True, challenge=self.challenges.issue(sid, instance))
+            return
         if (self.agent_id, sid) not in self.view.live_services:
             # no token yet: our answer with the key may have come after the service
             # stopped waiting.  Not told from a hijack, so not accepted; but temporary:
             # the registration expires without its token and the next one is new
-            _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is "
-                    "registered, waiting for its token, and this registration does not "
-                    "carry its key; retry", retry=True)
+            _refuse(query, f"service id {sid!r}: instance {instance!r} is registered, "
+                    "waiting for its token, and this registration does not carry its key; "
+                    "retry", retry=True)
             return
         self.hijacks_refused += 1
         self._log.warning(f"service {sid}", "registration refused: it names the running "
                           "instance's id without that instance's key "
                           f"({self.hijacks_refused} refused so far)")
-        held = self._control_keys.get(sid)
-        renew = held is None or held[0] != reg.instance  # re-adopted: never given a key
-        _refuse(query, f"service id {sid!r}: instance {reg.instance!r} is registered "
-                "and this registration does not carry its key"
-                + ("; register as a new instance" if renew else ""), renew=renew)
+        _refuse(query, f"service id {sid!r}: instance {instance!r} is registered and this "
+                "registration does not carry its key"
+                + ("" if keyed else "; register as a new instance"), renew=not keyed)
 
     def _on_holder_reply(self, sid: str, data: bytes) -> None:
         pending = self._pending.get(sid)
@@ -297,10 +335,17 @@ class Registrar:
             self._accept(pending.query, pending.reg)
 
     def _proven(self, reg: Registration) -> bool:
-        """Whether a registration of the instance held carries the key it was given (an
+        """Whether a registration of the instance held proves the key it was given (an
         instance held without a key, i.e. re-adopted, cannot prove anything)."""
-        held = self._control_keys.get(reg.descriptor.service_id)
-        return held is not None and held[0] == reg.instance and reg.proof == held[1]
+        return self._proves(reg.descriptor.service_id, reg.instance, reg.proof)
+
+    def _proves(self, sid: str, instance: str, proof: Proof | None) -> bool:
+        """Whether ``proof`` signs a fresh challenge of ours with the key of ``instance``,
+        the instance of ``sid`` held (also called on Zenoh's threads: reads only)."""
+        held = self._control_keys.get(sid)
+        return (proof is not None and held is not None and held[0] == instance
+                and self.challenges.fresh(sid, instance, proof.challenge)
+                and proof.verifies(held[1]))
 
     def control_key(self, sid: str) -> bytes | None:
         """The key control messages to local service ``sid`` are signed with (None: it
@@ -324,9 +369,11 @@ class Registrar:
     def _accept(self, query: zenoh.Query, reg: Registration) -> None:
         self._prune_keys()
         self._admit(reg)
-        key = self._issue_key(reg.descriptor.service_id, reg.instance)
+        sid = reg.descriptor.service_id
+        key = self._issue_key(sid, reg.instance)
         try:
-            query.reply(query.key_expr, reply_ok(self.epoch, key))
+            query.reply(query.key_expr, reply_ok(self.epoch, key,
+                                                 self.challenges.issue(sid, reg.instance)))
         finally:
             query.drop()
         log.info("service %s registered with agent %s (revision %d)",
@@ -486,9 +533,10 @@ class Registrar:
                  sid, self.agent_id, reg.revision)
 
 
-def _refuse(query: zenoh.Query, error: str, retry: bool = False, renew: bool = False) -> None:
+def _refuse(query: zenoh.Query, error: str, retry: bool = False, renew: bool = False,
+            challenge: bytes | None = None) -> None:
     try:
-        query.reply_err(reply_error(error, retry, renew))
+        query.reply_err(reply_error(error, retry, renew, challenge))
     finally:
         query.drop()
 

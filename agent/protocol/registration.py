@@ -19,8 +19,13 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
    epoch, key}``, or ``reply_err {ok: false, error}``.  ``key`` (random, per service
    instance, kept by the agent for its lifetime) signs the agent's control messages to the
    service; a query reply reaches only the querier, so no other peer learns it.  A
-   re-registration of an instance the agent holds must carry that instance's key as
-   ``proof``: a process that merely copies another's instance id is refused.  An instance
+   re-registration of an instance the agent holds must prove that instance's key without
+   sending it: every answer to a registration carries a ``challenge`` (opaque, good for
+   ``CHALLENGE_TTL_S``), and the next request carries it back with ``proof`` = HMAC of the
+   challenge and the request's content with the key (:func:`register_request`); a proof
+   that does not verify, or a stale challenge, is refused with ``retry`` and a fresh
+   challenge.  A process that merely copies another's instance id is refused, and one
+   that overhears a request learns no key.  An instance
    the agent holds without a key (it restarted and re-adopted the service, step 4) is
    refused with ``renew: true``: the service takes a new ``instance`` and registers again,
    which is a second process for the duplicate check below, answered by itself.  A second
@@ -61,11 +66,14 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
 (``match`` = ``{key, agent_id, service_id, ability, type, edge, attributes}``, at most
 ``MAX_CONTROL_MATCHES``), and ``mac`` = HMAC-SHA256 of ``body`` with the service's key
 (first 16 bytes).  The service applies only a message that verifies, whose ``epoch`` is the
-one its agent replied with, and whose ``seq`` is newer than the last applied but by at most
-``SEQ_WINDOW`` of the service; one that does not verify makes it register again (its key
-may be one the agent has not given it yet).  Set semantics make messages idempotent, and the
-agent re-sends every need's set every ``RESEND_S`` with the next ``seq`` (anti-entropy, in
-case a put was lost).
+one its agent replied with, and whose ``seq`` is newer than the last applied but not
+further ahead than the milliseconds passed since then plus ``SEQ_WINDOW`` of the service:
+an agent's ``seq`` is the milliseconds since it started (:func:`next_seq`; one more when two
+messages of a need fall in one millisecond), so a forged jump, were the key ever known,
+holds the agent's real messages back for ``SEQ_WINDOW`` ms at most.  One that does not
+verify makes the service register again (its key may be one the agent has not given it
+yet).  Set semantics make messages idempotent, and the agent re-sends every need's set
+every ``RESEND_S`` with the next ``seq`` (anti-entropy, in case a put was lost).
 
 **Agent <-> agents**
 
@@ -110,6 +118,10 @@ PENDING_TIMEOUT_S = 5.0
 RESEND_S = 5.0
 #: length of the key an agent signs its control messages to one service instance with
 CONTROL_KEY_BYTES = 16
+#: length of the challenge an agent gives with every answer to a registration (the next
+#: re-registration signs it), and how long one stays good
+CHALLENGE_BYTES = 16
+CHALLENGE_TTL_S = 60.0
 #: most matches one control message may name (a need's max_count is far lower)
 MAX_CONTROL_MATCHES = 64
 #: largest register request an agent reads (a service with a hundred abilities and their
@@ -179,6 +191,21 @@ class Match:
 
 
 @dataclass(frozen=True)
+class Proof:
+    """A registration's proof that its sender holds the instance's key, without sending
+    it: ``mac`` = HMAC-SHA256 (first 16 bytes) with the key over ``signed``, the agent's
+    ``challenge`` and the request's content (:func:`register_request`)."""
+
+    challenge: bytes
+    mac: bytes
+    #: what ``mac`` must sign, rebuilt by the receiver from the request it got
+    signed: bytes
+
+    def verifies(self, key: bytes) -> bool:
+        return hmac.compare_digest(self.mac, _mac(key, self.signed))
+
+
+@dataclass(frozen=True)
 class Registration:
     """A decoded register request."""
 
@@ -186,19 +213,47 @@ class Registration:
     instance: str
     revision: int
     connected: dict[str, list[str]]
-    #: the control key this agent gave the instance before (None: never given one)
-    proof: bytes | None = None
+    #: proof of the key this agent gave the instance before (None: it claims none)
+    proof: Proof | None = None
 
 
 def register_request(desc_bytes: bytes, instance: str, revision: int,
-                     connected: Mapping[str, Iterable[str]],
-                     proof: bytes | None = None) -> bytes:
+                     connected: Mapping[str, Iterable[str]], key: bytes | None = None,
+                     challenge: bytes | None = None) -> bytes:
+    """A register request; with the ``key`` the agent gave this instance and the last
+    ``challenge`` it sent, signed to prove the key (the key itself never travels)."""
+    wire = {k: list(v) for k, v in connected.items()}
     msg: dict[str, Any] = {"op": "register", "instance": instance, "revision": revision,
-                           "descriptor": desc_bytes,
-                           "connected": {k: list(v) for k, v in connected.items()}}
-    if proof is not None:
-        msg["proof"] = proof
+                           "descriptor": desc_bytes, "connected": wire}
+    if key is not None and challenge is not None:
+        msg["challenge"] = challenge
+        msg["proof"] = _mac(key, _signed(challenge, instance, revision, desc_bytes, wire))
     return encode_message(msg)
+
+
+def _signed(challenge: bytes, instance: str, revision: int, desc_bytes: bytes,
+            connected: Mapping[str, list[str]]) -> bytes:
+    """What a registration's proof signs: the challenge and everything the request says."""
+    return encode_message({"challenge": challenge, "instance": instance,
+                           "revision": revision,
+                           "descriptor": hashlib.sha256(desc_bytes).digest(),
+                           "connected": sorted([k, v] for k, v in connected.items())})
+
+
+def _proof(msg: dict[str, Any]) -> Proof | None:
+    """The proof of a decoded request (``DecodeError`` if malformed, None if absent)."""
+    challenge, mac = msg.get("challenge"), msg.get("proof")
+    if challenge is None and mac is None:
+        return None
+    if not (isinstance(challenge, bytes) and len(challenge) == CHALLENGE_BYTES
+            and isinstance(mac, bytes) and len(mac) == CONTROL_KEY_BYTES):
+        raise DecodeError(f"proof: expected a {CHALLENGE_BYTES}-byte challenge and a "
+                          f"{CONTROL_KEY_BYTES}-byte proof")
+    connected = msg.get("connected") or {}
+    if not isinstance(connected, dict) or not isinstance(msg["descriptor"], bytes):
+        raise DecodeError("connected: expected a map")
+    return Proof(challenge, mac, _signed(challenge, msg["instance"], msg["revision"],
+                                         msg["descriptor"], connected))
 
 
 class RegisterClaim(NamedTuple):
@@ -206,22 +261,22 @@ class RegisterClaim(NamedTuple):
 
     service_id: str
     instance: str
-    proof: bytes | None
+    proof: Proof | None
 
 
 def peek_register(data: bytes) -> RegisterClaim | None:
     """The service id, instance and proof a register request claims (cheap: no descriptor
     validation), None if unreadable; what the agent rates registrations by."""
     try:
-        msg = decode_message(data, required=("instance", "descriptor"))
+        msg = decode_message(data, required=("instance", "revision", "descriptor"))
         desc = msg["descriptor"]
         sid = decode_message(desc).get("service_id") if isinstance(desc, bytes) else None
-    except DecodeError:
+        instance = msg["instance"]
+        if not (isinstance(sid, str) and isinstance(instance, str)):
+            return None
+        return RegisterClaim(sid[:64], instance[:64], _proof(msg))
+    except (DecodeError, TypeError):
         return None
-    instance, proof = msg["instance"], msg.get("proof")
-    if not (isinstance(sid, str) and isinstance(instance, str)):
-        return None
-    return RegisterClaim(sid[:64], instance[:64], proof if isinstance(proof, bytes) else None)
 
 
 def parse_register_request(data: bytes, agent_id: str) -> Registration:
@@ -230,10 +285,8 @@ def parse_register_request(data: bytes, agent_id: str) -> Registration:
     if msg["op"] != "register":
         raise DecodeError(f"unknown op {msg['op']!r} (expected 'register')")
     reg = _registration(msg, agent_id)
-    proof = msg.get("proof")
-    if proof is not None and not (isinstance(proof, bytes) and len(proof) == CONTROL_KEY_BYTES):
-        raise DecodeError(f"proof: expected {CONTROL_KEY_BYTES} bytes")
-    return Registration(reg.descriptor, reg.instance, reg.revision, reg.connected, proof)
+    return Registration(reg.descriptor, reg.instance, reg.revision, reg.connected,
+                        _proof(msg))
 
 
 def parse_descriptor_answer(data: bytes, agent_id: str) -> Registration:
@@ -277,17 +330,25 @@ def _peek_service_id(desc_bytes: bytes) -> str:
     return sid[:64] if isinstance(sid, str) else "?"
 
 
-def reply_ok(epoch: int, control_key: bytes) -> bytes:
-    """An accepted registration: the agent's epoch and the key its control messages to
-    this service are signed with (a query reply reaches only the querier)."""
-    return encode_message({"ok": True, "epoch": epoch, "key": control_key})
+def reply_ok(epoch: int, control_key: bytes, challenge: bytes | None = None) -> bytes:
+    """An accepted registration: the agent's epoch, the key its control messages to this
+    service are signed with (a query reply reaches only the querier) and the challenge
+    the next re-registration signs."""
+    msg: dict[str, Any] = {"ok": True, "epoch": epoch, "key": control_key}
+    if challenge is not None:
+        msg["challenge"] = challenge
+    return encode_message(msg)
 
 
-def reply_error(error: str, retry: bool = False, renew: bool = False) -> bytes:
+def reply_error(error: str, retry: bool = False, renew: bool = False,
+                challenge: bytes | None = None) -> bytes:
     """A refusal; ``retry`` says it is temporary (try again shortly), ``renew`` that the
     agent holds this instance without a key it gave (it restarted and re-adopted it): the
-    service registers again as a new instance."""
-    return encode_message({"ok": False, "error": error, "retry": retry, "renew": renew})
+    service registers again as a new instance; ``challenge``: a fresh one to sign."""
+    msg: dict[str, Any] = {"ok": False, "error": error, "retry": retry, "renew": renew}
+    if challenge is not None:
+        msg["challenge"] = challenge
+    return encode_message(msg)
 
 
 class RegisterReply(NamedTuple):
@@ -299,20 +360,32 @@ class RegisterReply(NamedTuple):
     epoch: int | None = None
     key: bytes | None = None
     renew: bool = False
+    challenge: bytes | None = None
 
 
 def parse_reply(data: bytes) -> RegisterReply:
     """A register reply (a reply_err payload included); ``DecodeError`` if an acceptance
     lacks the epoch or the control key."""
     msg = decode_message(data, required=("ok",))
+    challenge = msg.get("challenge")
+    if challenge is not None and not (isinstance(challenge, bytes)
+                                      and len(challenge) == CHALLENGE_BYTES):
+        raise DecodeError(f"challenge: expected {CHALLENGE_BYTES} bytes")
     if not msg["ok"]:
         return RegisterReply(False, str(msg.get("error", ""))[:500],
-                             bool(msg.get("retry", False)), renew=bool(msg.get("renew", False)))
+                             bool(msg.get("retry", False)), renew=bool(msg.get("renew", False)),
+                             challenge=challenge)
     epoch, key = msg.get("epoch"), msg.get("key")
     if type(epoch) is not int or not (isinstance(key, bytes) and len(key) == CONTROL_KEY_BYTES):
         raise DecodeError("accepted registration without an integer epoch and a "
                           f"{CONTROL_KEY_BYTES}-byte control key")
-    return RegisterReply(True, epoch=epoch, key=key)
+    return RegisterReply(True, epoch=epoch, key=key, challenge=challenge)
+
+
+def next_seq(last: int, since_start_s: float) -> int:
+    """The ``seq`` of an agent's next control message of one need: the milliseconds since
+    the agent started, and always more than the ``last`` one."""
+    return max(last + 1, int(since_start_s * 1000))
 
 
 class UnverifiedControlError(DecodeError):

@@ -99,9 +99,10 @@ PROBE_S = 1.0
 RETRY_TICK_S = 0.05
 #: seconds between attempts to reach an agent that did not answer at start()
 OPEN_RETRY_S = 0.25
-#: how far a control message's seq may run ahead of the last one applied (the agent counts
-#: one per message; more than this many lost in a row would be a forged or broken sender)
-SEQ_WINDOW = 1000
+#: how far a control message's seq (the agent's milliseconds, ``next_seq``) may run ahead
+#: of the last one applied plus the milliseconds passed since: a forged jump holds the
+#: agent's real messages back this long at most
+SEQ_WINDOW = 2000
 #: seconds between registrations prompted by control messages that do not verify
 REVERIFY_S = 1.0
 
@@ -193,6 +194,7 @@ class NeedHandle:
     satisfied: bool = False
     links: dict[str, _Link] = field(default_factory=dict)
     last: tuple[int, int] = (-1, -1)  # (agent epoch, seq) of the last control applied
+    last_at: float = 0.0  # when it was applied (monotonic s)
 
     @property
     def name(self) -> str:
@@ -250,6 +252,8 @@ class Service:
         #: the agent's epoch and the key it signs control messages with (register reply)
         self._agent_epoch: int | None = None
         self._control_key: bytes | None = None
+        #: the challenge the agent's last answer gave (the next registration signs it)
+        self._challenge: bytes | None = None
         #: the newest control message per own need that did not verify yet (kept until
         #: the next registration gives a key: the agent may have sent it first)
         self._unverified: dict[str, bytes] = {}
@@ -549,7 +553,7 @@ class Service:
         self.session.get(keys.agent_register(self.realm, self.agent_id),
                          zenoh.handlers.Callback(on_reply, on_done),
                          payload=register_request(desc, self.instance, revision, connected,
-                                                  self._control_key),
+                                                  self._control_key, self._challenge),
                          timeout=REGISTER_TIMEOUT_S)
 
     def _on_register_reply(self, revision: int, data: bytes, ok_reply: bool) -> None:
@@ -558,6 +562,8 @@ class Service:
         except DecodeError as exc:
             reply = RegisterReply(False, f"unreadable reply from agent ({exc})", True)
         ok, error, retry = reply.ok, reply.error, reply.retry
+        if reply.challenge is not None:
+            self._challenge = reply.challenge
         if ok and ok_reply:
             self._agent_epoch, self._control_key = reply.epoch, reply.key
             pending, self._unverified = self._unverified, {}
@@ -592,7 +598,7 @@ class Service:
         us): register as a new instance, which the duplicate check lets through because
         our own descriptor queryable answers with it."""
         self.instance = secrets.token_hex(8)
-        self._control_key = None
+        self._control_key = self._challenge = None
         self._next_try = 0.0
         log.info("service %s: agent %s holds this instance without its key; registering as "
                  "instance %s", self.service_id, self.agent_id, self.instance)
@@ -636,11 +642,15 @@ class Service:
         if need is None:
             self._refuse_control("need", f"names unknown need {ctl.need!r}")
             return
-        if ctl.epoch == need.last[0] and not need.last[1] < ctl.seq <= need.last[1] + SEQ_WINDOW:
-            if ctl.seq > need.last[1]:
-                self._refuse_control("seq", f"seq {ctl.seq} jumps ahead of {need.last[1]}")
-            return  # older than what was applied
-        need.last = (ctl.epoch, ctl.seq)
+        now = time.monotonic()
+        if ctl.epoch == need.last[0]:
+            if ctl.seq <= need.last[1]:
+                return  # older than what was applied
+            if ctl.seq > need.last[1] + int((now - need.last_at) * 1000) + SEQ_WINDOW:
+                self._refuse_control("seq", f"seq {ctl.seq} jumps ahead of {need.last[1]} "
+                                     "by more than the time passed")
+                return
+        need.last, need.last_at = (ctl.epoch, ctl.seq), now
         self._apply(need, ctl.matches, ctl.satisfied)
 
     def _unverified_control(self, data: bytes, reason: str) -> None:
