@@ -261,3 +261,29 @@ def test_tracker_follows_three_bodies_on_simulated_frames() -> None:
     for n in names:
         assert len(errors[n]) >= 20, n
         assert np.sqrt(np.mean(np.square(errors[n]))) < 0.001, n
+
+
+# ------------------------------------------------------------------------ evaluation
+
+def test_eval_outside_in_runs_both_trackers_and_the_baseline_on_the_same_frames() -> None:
+    from services.outside_in.evaluate import evaluate
+    f = evaluate(Simulation(seed=4, config=SimConfig(n_cameras=6)), 0.15)
+    assert f["frames"] == 18 and f["poses_from_fewer_than_two_cameras"] == 0
+    for case in ("uma_3plus", "uma_2cam_rig", "opencv_3plus", "opencv_2cam_rig"):
+        assert f[case]["poses"] > 0 and f[case]["wrong_poses"] == 0, case
+        assert f[case]["position_rmse_mm"] < 2.0, case
+    assert f["identity_swaps"] == 0
+    assert "nees" in f["uma_3plus"] and "nees" not in f["opencv_3plus"]
+
+
+@pytest.mark.slow
+def test_eval_outside_in_meets_its_goals_on_a_seed() -> None:
+    """Issue 33's accuracy goals on one seed of one second (the full figures: README)."""
+    from services.outside_in.evaluate import evaluate
+    f = evaluate(Simulation(seed=1, config=SimConfig(n_cameras=6)), 1.0)
+    assert f["uma_3plus"]["position_rmse_mm"] <= 0.5
+    assert f["uma_3plus"]["orientation_rmse_deg"] <= 0.12
+    assert f["uma_2cam_rig"]["position_rmse_mm"] <= 1.5
+    assert f["uma_2cam_rig"]["orientation_rmse_deg"] <= 0.3
+    assert f["ratio_position_3plus"] <= 0.5 and f["ratio_orientation_3plus"] <= 0.5
+    assert f["identity_swaps"] == 0 and f["poses_from_fewer_than_two_cameras"] == 0

@@ -134,7 +134,10 @@ def _refine(image: Array, row: Array, p: BlobParams) -> list[float]:
     if flux <= 0:
         return [float(row[0]), float(row[1]), np.inf, 0.0]
     cu, cv_ = m["m10"] / flux, m["m01"] / flux
-    var_i = (signal * p.gain + p.read_noise ** 2) * (sel & (roi < 255))
+    # a rim pixel near the dark level is clipped at zero: max(n, 0) of read noise n keeps
+    # (1/2 - 1/(2 pi)) of its variance
+    read = np.where(signal > 2.0 * p.read_noise, 1.0, 0.5 - 0.5 / np.pi) * p.read_noise ** 2
+    var_i = (signal * p.gain + read) * (sel & (roi < 255))
     mv = cv2.moments(var_i)
     r2 = (mv["m20"] + mv["m02"] - 2.0 * (cu * mv["m10"] + cv_ * mv["m01"])
           + (cu * cu + cv_ * cv_) * mv["m00"])

@@ -117,8 +117,10 @@ class Identification:
 
 
 def identify(body: RigidBody, points: Array, tolerance_m: float, min_markers: int = 3,
-             exclude: set[int] | frozenset[int] = frozenset()) -> Identification | None:
-    """The body's markers among ``points`` (m, 3), or None when not found or ambiguous."""
+             exclude: set[int] | frozenset[int] = frozenset(),
+             views: list[frozenset] | None = None) -> Identification | None:
+    """The body's markers among ``points`` (m, 3), or None when not found or ambiguous.
+    ``views`` (per point, the blobs it came from): two markers never share a blob."""
     P = np.asarray(points, float).reshape(-1, 3)
     n = len(body.markers)
     D = np.linalg.norm(P[:, None] - P[None], axis=2)
@@ -134,7 +136,8 @@ def identify(body: RigidBody, points: Array, tolerance_m: float, min_markers: in
             best.append((found, misfit, tuple(chosen)))
             return
         for i in allowed:
-            if i in chosen:
+            if i in chosen or (views is not None and any(
+                    j >= 0 and views[i] & views[j] for j in chosen)):
                 continue
             err = 0.0
             for l, j in enumerate(chosen):

@@ -58,7 +58,7 @@ class TrackerParams:
     identify_tolerance_m: float = 0.005   # distance signature tolerance when searching
     gate_px: float = 5.0                  # blob distance to a predicted marker
     ambiguity_ratio: float = 0.6          # nearest / second nearest blob must be below it
-    outlier_px: float = 1.5               # an observation further from the fit is dropped
+    outlier_px: float = 0.4               # an observation further from the fit is dropped
     max_rms_px: float = 1.0               # a fit with a larger rms is refused
     lost_after: int = 5                   # frame sets without a pose before a new search
 
@@ -218,15 +218,20 @@ class OutsideInTracker:
         keep = [[b for b in range(len(norm[c])) if (c, b) not in used] for c in cams]
         free = [norm[c][kb] for c, kb in zip(cams, keep, strict=True)]
         points = match_and_triangulate([self.cameras[c] for c in cams], free,
-                                       self.params.match)
+                                       self.params.match, keep_ambiguous=True)
         if len(points) < 3:
             return []
         X = np.array([q.X for q in points])
         taken: set[int] = set()
         out = []
+        views = [frozenset(q.views) for q in points]
         for k in lost:
             track = self.tracks[k]
-            ident = identify(track.body, X, self.params.identify_tolerance_m, exclude=taken)
+            # four markers at least where the body has them: three points can match a
+            # triangle of ghosts, which tracking would then follow
+            ident = identify(track.body, X, self.params.identify_tolerance_m,
+                             min_markers=min(4, len(track.body.markers)), exclude=taken,
+                             views=views)
             if ident is None:
                 continue
             idx = [(m, i) for m, i in enumerate(ident.points) if i >= 0]
@@ -238,7 +243,8 @@ class OutsideInTracker:
             est = self._estimate(track, pairs, frames, norm, t_ref, acquired=True,
                                  start=(p0, R0))
             if est is not None:
-                taken.update(i for _, i in idx)
+                blobs_taken = frozenset().union(*(views[i] for _, i in idx))
+                taken.update(j for j, v in enumerate(views) if v & blobs_taken)
                 done.add(k)
                 out.append(est)
         return out

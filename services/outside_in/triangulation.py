@@ -100,8 +100,14 @@ class MatchParams:
 
 
 def match_and_triangulate(cameras: list[RigCamera], observations: list[Array],
-                          params: MatchParams = MatchParams()) -> list[Point3]:
-    """3D points from normalised observations of each camera (a list of (n_i, 2))."""
+                          params: MatchParams = MatchParams(),
+                          keep_ambiguous: bool = False) -> list[Point3]:
+    """3D points from normalised observations of each camera (a list of (n_i, 2)).
+
+    With ``keep_ambiguous`` the two-view candidates are all kept, even those sharing a
+    blob: two cameras alone cannot tell a marker from a ghost where epipolar lines cross,
+    the body identification can (its points must not share a blob, ``identify``'s
+    ``views``)."""
     R = np.array([c.R_cw for c in cameras])
     t = np.array([c.t_cw for c in cameras])
     f = np.array([c.focal_px for c in cameras])
@@ -119,7 +125,12 @@ def match_and_triangulate(cameras: list[RigCamera], observations: list[Array],
         for views in _supports(R, t, f, obs, X, i, j, a, b, params):
             hypotheses.setdefault(views, None)
     points = [p for p in (_refined(R, t, f, obs, v, params) for v in hypotheses) if p]
-    return _greedy(points, R, t, f, obs, params)
+    if not keep_ambiguous:
+        return _greedy(points, R, t, f, obs, params)
+    strong = _greedy([p for p in points if len(p.views) >= 3], R, t, f, obs, params)
+    used = {v for p in strong for v in p.views}
+    weak = [p for p in points if len(p.views) == 2 and not used & set(p.views)]
+    return strong + weak
 
 
 def _epipolar_pairs(R: Array, t: Array, f: Array, obs: list[Array], i: int, j: int,
