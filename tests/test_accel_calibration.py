@@ -208,9 +208,9 @@ def test_eval_plugin_reports_every_figure():
     """A short ``uma eval accel-rig`` (the full one is run by hand: 100 runs per seed)."""
     from argparse import Namespace
 
-    from services.accel_rig.evaluate import PLUGIN
+    from services.accel_rig.evaluate import run
 
-    fig = PLUGIN.run(Namespace(seconds=10.0, seed=1, json=True, runs=4, layout="marvin-six",
+    fig = run(Namespace(seconds=10.0, seed=1, json=True, runs=4, layout="marvin-six",
                                poses="thesis", pose_seconds=2.0))
     cal = fig["calibration"]
     assert cal["poses"] == list(THESIS_POSES)
@@ -240,5 +240,5 @@ def test_eval_plugin_reports_every_figure():
         assert 1 <= n["effective_runs"] <= 4 + 1e-9
         assert n["bounds_95"][0] <= lo + 1e-9 and n["bounds_95"][1] >= hi - 1e-9
     with pytest.raises(ValueError, match="--seconds must exceed"):
-        PLUGIN.run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
+        run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
                              poses="six", pose_seconds=2.0))

@@ -181,12 +181,12 @@ def test_bad_options_are_refused_with_the_reason(args, msg):
     import threading
 
     from agent.runtime import plugins
-    from services.accel_rig.service import PLUGIN
+    from services.accel_rig.plugin import ACCEL_RIG
 
     parser = argparse.ArgumentParser()
-    plugins.add_service_arguments(parser, PLUGIN)
+    plugins.add_service_arguments(parser, ACCEL_RIG)
     with pytest.raises(ValueError, match=re.escape(msg)):
-        PLUGIN.run(parser.parse_args(args), threading.Event())
+        plugins.runner(ACCEL_RIG.run)(parser.parse_args(args), threading.Event())
 
 
 def test_the_command_line_prints_errors_without_traceback():

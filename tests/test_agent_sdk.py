@@ -150,8 +150,11 @@ def test_hosted_service_runs_with_the_agents_endpoints_and_stops(monkeypatch,
         return 0
 
     fake = plugins.ServicePlugin("fake", "a test service",
-                                 lambda p: p.add_argument("--speed", default=3), run)
+                                 lambda p: p.add_argument("--speed", default=3),
+                                 "test_agent_sdk:run")
     monkeypatch.setattr(plugins, "load", lambda group, name: fake)
+    monkeypatch.setattr(plugins, "runner",
+                        lambda target: run if target == "test_agent_sdk:run" else None)
     ep = endpoint(free_port())
     agent = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep],
                                 services=["fake"]))

@@ -827,9 +827,10 @@ def test_service_refuses_bad_noise_flags_by_name(argv, flag):
     import threading
 
     from services.fusion import service
+    from services.fusion.plugin import add_fusion_arguments
 
     parser = argparse.ArgumentParser()
-    service.add_arguments(parser)
+    add_fusion_arguments(parser)
     with pytest.raises(ValueError, match=flag):
         service.run(parser.parse_args(argv), threading.Event())
 

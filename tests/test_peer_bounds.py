@@ -303,8 +303,9 @@ def test_recalibration_only_on_the_exact_key_and_not_too_often(caplog) -> None:
     from types import SimpleNamespace
 
     from services.alignment import service as alignment
+    from services.alignment.plugin import add_arguments
     parser = argparse.ArgumentParser()
-    alignment.add_arguments(parser)
+    add_arguments(parser)
     args = parser.parse_args(["--a", "w/a", "--b", "w/b"])
     live = alignment.LiveAlignment(args, alignment.options_from(args))
     key = alignment.recalibrate_key("lab", "A", "alignment")

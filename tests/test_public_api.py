@@ -195,3 +195,21 @@ def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() ->
         geo.check_quaternion([0.0, 0.0, 0.0, 2.0])
     with pytest.raises(UmaError, match="integer ns"):
         check_time(1.5)
+
+
+def test_plugin_declarations_import_no_zenoh_and_name_what_runs() -> None:
+    """Every service and evaluation plug-in is declared in a module light to import (``uma
+    service run NAME --help`` loads it), and its ``run`` names a function that exists."""
+    code = ("import sys\n"
+            "from agent.runtime import plugins\n"
+            "found = [plugins.load(plugins.SERVICE_GROUP, n)\n"
+            "         for n in plugins.names(plugins.SERVICE_GROUP)]\n"
+            "assert 'zenoh' not in sys.modules, 'zenoh imported'\n"
+            "found += [plugins.load(plugins.EVAL_GROUP, n)\n"
+            "          for n in plugins.names(plugins.EVAL_GROUP)]\n"
+            "assert len(found) >= 13, len(found)\n"
+            "for p in found:\n"
+            "    assert isinstance(p.run, str) and callable(plugins.runner(p.run)), p.name\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr

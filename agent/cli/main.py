@@ -8,7 +8,6 @@ Exit codes: 0 success, 1 failure (a clear message on stderr), 2 bad arguments.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import logging
 import math
@@ -197,10 +196,9 @@ def _add_command(sub: Any, command: plugins.CommandPlugin) -> None:
 
 
 def _call(target: str, args: argparse.Namespace) -> int:
-    module, func = target.split(":")
     try:
-        fn = getattr(importlib.import_module(module), func)
-    except (ImportError, AttributeError):
+        fn = plugins.runner(target)
+    except UmaError:
         raise UmaError(f"'uma {args.command}' is not built yet") from None
     return int(fn(args) or 0)
 
@@ -227,7 +225,7 @@ def _run_service(args: argparse.Namespace) -> int:
     # a service is a daemon like the agent: its status and refusals go to stderr
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    return plugin.run(sargs, stop_on_signals())
+    return plugins.runner(plugin.run)(sargs, stop_on_signals())
 
 
 def _run_eval(args: argparse.Namespace) -> int:
@@ -253,13 +251,14 @@ def _run_eval(args: argparse.Namespace) -> int:
     eargs = parser.parse_args(_plugin_args(args))
     if not (math.isfinite(eargs.seconds) and eargs.seconds > 0):
         parser.error(f"--seconds must be a positive number, got {eargs.seconds!r}")
+    run = plugins.runner(plugin.run)
     if eargs.seeds is None:
-        figures = plugin.run(eargs)
+        figures = run(eargs)
         print(json.dumps(figures) if eargs.json else format_figures(figures))
         return 0
     per_seed = {}
     for i, s in enumerate(eargs.seeds):
-        per_seed[s] = plugin.run(argparse.Namespace(**{**vars(eargs), "seed": s}))
+        per_seed[s] = run(argparse.Namespace(**{**vars(eargs), "seed": s}))
         print(f"uma eval {plugin.name}: seed {s} done ({i + 1} of {len(eargs.seeds)})",
               file=sys.stderr, flush=True)
     table = seeds.spread(per_seed, plugin.higher_is_better)

@@ -216,10 +216,11 @@ class Agent:
             argv += ["--connect", ep]
         args = parser.parse_args(argv)
         stop = threading.Event()
+        service_run = plugins.runner(plugin.run)
 
         def run() -> None:
             try:
-                code = plugin.run(args, stop)
+                code = service_run(args, stop)
                 if code and not stop.is_set():
                     log.error("hosted service %s exited with code %s", name, code)
             except Exception:

@@ -1,7 +1,8 @@
 """Service and evaluation plug-ins, found by name through package entry points.
 
-A tracker service is a module exposing ``PLUGIN = ServicePlugin(...)`` and registered in
-``pyproject.toml`` under ``[project.entry-points."uma.services"]``; an accuracy evaluation
+A tracker service is a :class:`ServicePlugin` declared in a light module (its options and
+the ``"module:function"`` that runs it) and registered in ``pyproject.toml`` under
+``[project.entry-points."uma.services"]``; an accuracy evaluation
 likewise under ``"uma.evals"``; a command that a package adds to ``uma`` (``uma demo``) is a
 :class:`CommandPlugin` under ``"uma.commands"``, and one under ``uma service`` (``uma
 service recalibrate``) under ``"uma.service_commands"``.  The CLI (``uma service run NAME``,
@@ -13,9 +14,9 @@ add its own.
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -35,7 +36,9 @@ SERVICE_COMMAND_GROUP = "uma.service_commands"
 class ServicePlugin:
     """A runnable service.
 
-    ``run(args, stop)`` runs until ``stop`` is set (or the service ends by itself) and
+    The module that declares it must be light to import (``uma service run NAME --help``
+    loads it): ``run`` is ``"module:function"``, imported only when the service runs, and
+    ``function(args, stop)`` runs until ``stop`` is set (or the service ends by itself) and
     returns an exit code.  ``args`` always carries ``realm``, ``agent``, ``connect`` and
     ``listen`` besides the options that ``add_arguments`` declared.
     """
@@ -43,14 +46,15 @@ class ServicePlugin:
     name: str
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
-    run: Callable[[argparse.Namespace, threading.Event], int]
+    run: str
 
 
 @dataclass(frozen=True)
 class EvalPlugin:
     """An accuracy evaluation against simulated ground truth.
 
-    ``run(args)`` returns the figures as a JSON-serialisable dict; ``args`` carries
+    ``run`` is ``"module:function"``; ``function(args)`` returns the figures as a
+    JSON-serialisable dict; ``args`` carries
     ``seconds``, ``seed`` and ``json`` besides the plug-in's own options.  With ``--seeds``
     the CLI calls ``run`` once per seed; ``higher_is_better`` names the figures (leaf keys)
     whose worst seed is the one with the smallest value (shares, success counts).
@@ -59,7 +63,7 @@ class EvalPlugin:
     name: str
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
-    run: Callable[[argparse.Namespace], dict[str, Any]]
+    run: str
     higher_is_better: frozenset[str] = frozenset()
 
 
@@ -107,6 +111,16 @@ def load(group: str, name: str) -> Any:
         return found[0].load()
     except (ImportError, AttributeError) as exc:
         raise UmaError(f"{name!r} is registered but not built yet ({exc})") from None
+
+
+def runner(target: str) -> Callable[..., Any]:
+    """The function a plug-in's ``run`` names (``"module:function"``), imported now; an
+    ``UmaError`` says so if it cannot be."""
+    module, _, func = target.partition(":")
+    try:
+        return getattr(importlib.import_module(module), func)
+    except (ImportError, AttributeError) as exc:
+        raise UmaError(f"{target!r} cannot be run: it is not built yet ({exc})") from None
 
 
 def add_network_arguments(p: argparse.ArgumentParser, listen: bool = True) -> None:

@@ -196,5 +196,5 @@ PLUGIN = EvalPlugin(
          "0.25/0.5/1/2 s of dead reckoning from random starting points, and the NEES of the "
          "reported covariance. --seconds is the span of trajectory the runs start in.",
     add_arguments=add_arguments,
-    run=run,
+    run="services.accel_rig.evaluate:run",
 )

@@ -41,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from agent import Service
 from agent import geometry as geo
-from agent.runtime import ServicePlugin
 from schemas.codec import Measurement
 from services import frames
 from services.accel_rig.calibration import (
@@ -53,10 +53,9 @@ from services.accel_rig.calibration import (
 )
 from services.accel_rig.integrator import HISTORY_S, DeadReckoner
 from services.accel_rig.pose_rates import AbsolutePoses, Rates
-from services.accel_rig.rig import DEFAULT_DELTA_M, LAYOUTS, layout_by_name
+from services.accel_rig.rig import DEFAULT_DELTA_M, layout_by_name
 from services.accel_rig.sensor import Calibration
 from services.accel_rig.simulator import (
-    DEFAULT_RATE_HZ,
     SensorTruth,
     axis_down_quaternion,
     default_device,
@@ -72,51 +71,6 @@ log = logging.getLogger("uma.accel_rig")
 LOG_INTERVAL_S = 10.0
 #: Distinct reasons remembered for that; beyond, each kind shares one line per interval.
 MAX_LOGGED_REASONS = 256
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="accel-rig", help="service id (default: accel-rig)")
-    parser.add_argument("--source", default="sim", metavar="SRC",
-                        help="'sim' (default: the simulated rig on the head trajectory), "
-                             "'csv:FILE' (replay lines 't v1 .. vN') or 'serial:DEVICE' (the "
-                             "same lines read live from a configured tty or a pipe)")
-    parser.add_argument("--calibration", metavar="FILE", default=None,
-                        help="calibration file (JSON) to load; required for csv/serial; "
-                             "with the simulator, missing means: calibrate at start; with "
-                             "--calibrate: where to write it (default accel_calibration.json)")
-    parser.add_argument("--calibrate", action="store_true",
-                        help="run the static calibration (Hogue 2003, §4.4.2): the simulated "
-                             "rig, or the recordings given by --pose; write --calibration "
-                             "and exit")
-    parser.add_argument("--pose", action="append", default=[], metavar="LABEL=CSV",
-                        help="with --calibrate: a recording of the rig held still with axis "
-                             "LABEL (+x -x +y -y +z -z) pointing down, lines 't v1 .. vN'; at "
-                             "least 4 (repeatable; write --pose=-x=FILE for a minus sign)")
-    parser.add_argument("--pose-seconds", type=float, default=20.0,
-                        help="seconds per simulated calibration pose (default 20)")
-    parser.add_argument("--layout", default="marvin-six", choices=sorted(LAYOUTS),
-                        help="nominal accelerometer layout: positions (default marvin-six)")
-    parser.add_argument("--delta", type=float, default=DEFAULT_DELTA_M,
-                        help=f"accelerometer distance from the rig centre, m (default "
-                             f"{DEFAULT_DELTA_M})")
-    parser.add_argument("--rate-hz", type=float, default=DEFAULT_RATE_HZ,
-                        help="sample rate (default 300, appendix C.1)")
-    parser.add_argument("--seed", type=int, default=1,
-                        help="simulated trajectory seed (default 1; as the sim service)")
-    parser.add_argument("--speed", type=float, default=1.0,
-                        help="csv replay speed (1 = as recorded, 0 = as fast as possible)")
-    parser.add_argument("--reset-frame", default="*/head", metavar="FRAME",
-                        help="frame whose absolute pose in ivy/world resets the integrator: "
-                             "a head (pattern, composed with --mount; default */head) or "
-                             f"{frames.ACCEL_RIG} itself")
-    parser.add_argument("--reset-every", type=float, default=1.0,
-                        help="seconds between resets from the absolute pose (default 1; 0: "
-                             "at every absolute pose)")
-    parser.add_argument("--mount", default=None, metavar="X,Y,Z,QX,QY,QZ,QW",
-                        help="pose of the rig in the head frame (default: the simulated "
-                             "head mounting)")
-    parser.add_argument("--ttl-s", type=float, default=1.0,
-                        help="advertised validity of a dead-reckoned pose (default 1 s)")
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -427,7 +381,6 @@ _DIGITS = re.compile(r"\d+")
 
 
 def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.Event) -> int:
-    from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
 
     is_rig = args.reset_frame == frames.ACCEL_RIG
     live = LiveRig(cal, args.rate_hz, None if is_rig else parse_mount(args.mount),
@@ -461,15 +414,3 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
             log.info("accel-rig: input %s ended", source.name)
     log.info("accel-rig: %s", dict(live.counts))
     return 0
-
-
-PLUGIN = ServicePlugin(
-    name="accel-rig",
-    help="MARVIN's six-accelerometer inertial tracker (Hogue 2003, ch. 4): publishes each "
-         "sample's accelerations (accel_raw, with the rig geometry and calibration as "
-         "attributes) and the dead-reckoned pose of marvin/accel_rig in ivy/world since the "
-         "last absolute pose (need 'reset'). Input: the simulated rig (default), a CSV replay "
-         "or a serial line, with a calibration file; '--calibrate' writes one.",
-    add_arguments=add_arguments,
-    run=run,
-)

@@ -267,7 +267,7 @@ PLUGIN = EvalPlugin(
          "stations; the time-offset error; the consistency of the reported covariance (NEES). "
          "--seconds is the length of each trial's recording.",
     add_arguments=add_arguments,
-    run=run,
+    run="services.alignment.evaluate:run",
     higher_is_better=frozenset({"within_2ms_fraction",
                                 "within_chi2_95_fraction (ideal 0.95)"}),
 )

@@ -240,7 +240,7 @@ PLUGIN = EvalPlugin(
          "tracker beside bare OpenCV and AprilTag 3 (pupil-apriltags), NEES, silent flips, "
          "a 4-tag bundle vs its single tags (try --seconds 20 --seeds 1-10)",
     add_arguments=add_arguments,
-    run=run,
+    run="services.fiducials.evaluate:run",
     higher_is_better=frozenset({"detected", "bundle_samples", "single_samples",
                                 "share_inside_single_95", "effective_samples",
                                 "gain_measured", "gain_claimed"}),

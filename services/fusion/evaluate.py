@@ -727,7 +727,7 @@ PLUGIN = EvalPlugin(
          "counted; 'given_by_simulator' lists what the run takes from the simulator's "
          "truth (the accelerometers' noise model and latency).",
     add_arguments=_add_arguments,
-    run=run,
+    run="services.fusion.evaluate:run",
     higher_is_better=frozenset({"output_rate_hz", "optical_poses",
                                 "filter_updates_per_cpu_s"}),
 )

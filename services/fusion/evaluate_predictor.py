@@ -269,5 +269,5 @@ PLUGIN = EvalPlugin(
          "abrupt change (figs. 9-15), and +20 ms prediction on the simulated head "
          "trajectory for --seconds. --seed drives the perturbations.",
     add_arguments=_add_arguments,
-    run=run,
+    run="services.fusion.evaluate_predictor:run",
 )

@@ -20,8 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.runtime import ServicePlugin
-from services import frames
+from agent import Service
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
 
 log = logging.getLogger("uma.predictor")
@@ -29,20 +28,6 @@ log = logging.getLogger("uma.predictor")
 #: process noise for human head motion (the figures of ``uma eval predictor``'s head run)
 HEAD_MOTION = {"omega_walk": 20.0, "velocity_walk": 3.0, "accel_walk": 30.0,
                "initial_std": (5.0, 2.0, 10.0)}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="predictor", help="service id (default: predictor)")
-    parser.add_argument("--source", default=frames.WORLD, help="parent frame (ivy/world)")
-    parser.add_argument("--target", default=frames.HEAD,
-                        help=f"frame whose pose is predicted (default {frames.HEAD})")
-    parser.add_argument("--output", default=None,
-                        help="frame of the predicted pose (default: <target>_predicted)")
-    parser.add_argument("--horizon-ms", type=float, default=20.0,
-                        help="how far ahead to predict (default 20 ms)")
-    parser.add_argument("--point-std-m", type=float, default=None,
-                        help="noise of the input (default: from the ability's pos_std_m, "
-                             "else 1 mm)")
 
 
 class LivePredictor:
@@ -85,7 +70,6 @@ class LivePredictor:
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
-    from agent import Service
 
     if not (math.isfinite(args.horizon_ms) and 0 < args.horizon_ms <= 500):
         raise ValueError(f"--horizon-ms must be within (0, 500], got {args.horizon_ms!r}")
@@ -110,12 +94,3 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
         while not stop.wait(1.0):
             pass
     return 0
-
-
-PLUGIN = ServicePlugin(
-    name="predictor",
-    help="Dorfmüller-Ulhaas's EKF motion predictor on any pose6d stream: publishes the "
-         "pose predicted --horizon-ms ahead on <target>_predicted.",
-    add_arguments=add_arguments,
-    run=run,
-)

@@ -42,18 +42,18 @@ from typing import Any
 
 import numpy as np
 
+from agent import Client, Service
 from agent import geometry as geo
-from agent.runtime import ServicePlugin
+from agent.errors import UmaError
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,
     SYSTEMATIC_COVARIANCE,
     unpack_covariance,
 )
-from services import frames
 from services.fusion.dots import load_walls, update_dots
 from services.fusion.ekf import FusionEKF
-from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
+from services.fusion.state import AccelModel, FusionConfig
 from services.fusion.tracker import MAX_AHEAD_S, MAX_COAST_S, FusionTracker
 from services.laser_camera.tracker import LabeledDots
 from services.sim.ivy import Wall
@@ -66,38 +66,6 @@ MOUNT_REFRESH_S = 5.0
 STATUS_EVERY_S = 2.0
 #: a laser pose without covariance is taken with these standard deviations
 DEFAULT_OPTICAL_STD = (0.005, math.radians(0.5))
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="fusion", help="service id (default: fusion)")
-    parser.add_argument("--world", default=frames.WORLD, help="world frame (ivy/world)")
-    parser.add_argument("--head", default=frames.HEAD, help="fused frame (alice/head)")
-    parser.add_argument("--optical-rig", default=frames.LASER_RIG,
-                        help=f"frame of the optical rig (default {frames.LASER_RIG})")
-    parser.add_argument("--accel-rig", default=frames.ACCEL_RIG,
-                        help=f"frame of the inertial rig (default {frames.ACCEL_RIG})")
-    parser.add_argument("--horizon-ms", type=float, default=0.0,
-                        help="publish the pose predicted this far ahead (default 0)")
-    parser.add_argument("--model-floor", type=float, default=MODEL_FLOOR,
-                        help="extra accelerometer noise std for what the calibration does "
-                             f"not capture, m/s^2 (default {MODEL_FLOOR:g})")
-    parser.add_argument("--optical-bias-mm", type=float, default=0.0,
-                        help="std of the optical tracker's persistent position error (its "
-                             "calibration error), estimated as a slowly varying bias; 0: "
-                             "the tracker's errors are white (default)")
-    parser.add_argument("--optical-bias-tau-s", type=float, default=30.0,
-                        help="how long that error persists, seconds (default 30)")
-    parser.add_argument("--max-coast-s", type=float, default=MAX_COAST_S,
-                        help="publish accelerometer-only poses for at most this long after "
-                             "the last optical pose, then none until the optics return "
-                             f"(default {MAX_COAST_S:g} s)")
-    parser.add_argument("--optical", choices=("pose", "dots"), default="pose",
-                        help="optical update: the tracker's poses (default) or one SCAAT "
-                             "update per labeled laser dot, also of frame sets without a "
-                             "pose (needs --display-calibration)")
-    parser.add_argument("--display-calibration", metavar="FILE", default=None,
-                        help="with --optical dots: the laser tracker's calibration file, "
-                             "whose walls the dots lie on")
 
 
 class LiveFusion:
@@ -343,7 +311,6 @@ def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
-    from agent import Service  # imported here: '--help' needs no Zenoh
 
     if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
         raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
@@ -395,8 +362,6 @@ def _walls(args: argparse.Namespace) -> list[Wall] | None:
 
 def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.Event) -> None:
     """Ask the agent's SRG for head -> rig until known, then refresh every few seconds."""
-    from agent import Client
-    from agent.errors import UmaError
 
     wanted = ((args.optical_rig, live.on_optical_mount), (args.accel_rig, live.on_accel_mount))
     next_status = time.monotonic() + STATUS_EVERY_S
@@ -417,13 +382,3 @@ def poll_mountings(live: LiveFusion, args: argparse.Namespace, stop: threading.E
                     log.info("fusion: %s", live.status())
                     next_status = time.monotonic() + STATUS_EVERY_S
                 stop.wait(min(0.5, max(0.0, deadline - time.monotonic())))
-
-
-PLUGIN = ServicePlugin(
-    name="fusion",
-    help="EKF/SCAAT fusion of an absolute optical pose (laser rig, 15-60 Hz) and raw "
-         "accelerometers (300 Hz) into the head pose at the inertial rate with covariance "
-         "(Hogue 2003, ch. 6); rig mountings from the SRG's static edges.",
-    add_arguments=add_arguments,
-    run=run,
-)

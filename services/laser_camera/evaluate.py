@@ -210,7 +210,7 @@ PLUGIN = EvalPlugin(
          "and prints frames, labeling accuracy, frames the labeling gate refused, "
          "orientation/position errors against ground truth and timings.",
     add_arguments=add_arguments,
-    run=run,
+    run="services.laser_camera.evaluate:run",
     higher_is_better=frozenset({"pose_pct_when_four_visible", "poses", "labeling_correct_pct",
                                 "frames_with_four_visible_dots", "share_inside_single_95",
                                 "effective_samples"}),

@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from agent import Service
 from agent import geometry as geo
-from agent.runtime import ServicePlugin
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,
@@ -67,36 +67,6 @@ MAX_WARMUP_FRAMES = 150
 ATTRIBUTE_WINDOW = 150  # frame sets over which the advertised attributes are measured
 ATTRIBUTE_UPDATE_S = 5.0
 ATTRIBUTE_CHANGE = 0.25  # re-advertise when a figure drifted by more than this fraction
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="laser-camera", help="service id (default: "
-                        "laser-camera)")
-    parser.add_argument("--source", action="append", default=[], metavar="SRC",
-                        help="'sim' (default: the simulated IVY display) or, per camera of "
-                             "the calibration, CAMERA=video:FILE or CAMERA=camera:INDEX "
-                             "(repeatable)")
-    parser.add_argument("--calibration", metavar="FILE", default=None,
-                        help="calibration file to load (required for real sources; with the "
-                             "simulator, missing means: calibrate at start, about 15 s); "
-                             "with --calibrate: where to write it")
-    parser.add_argument("--calibrate", action="store_true",
-                        help="calibrate the simulated cameras from rendered checkerboards, "
-                             "write --calibration (default laser_calibration.json) and exit")
-    parser.add_argument("--rate-hz", type=float, default=30.0,
-                        help="simulated camera frame rate (default 30)")
-    parser.add_argument("--seed", type=int, default=1,
-                        help="simulated trajectory seed (default 1; as the sim service)")
-    parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
-                        help="simulated display: 6 cameras (default) or 8 as in the thesis")
-    parser.add_argument("--ideal", action="store_true",
-                        help="simulate the ideal installation (docs/SIMULATION.md) and track "
-                             "it without the realistic installation's tolerances")
-    parser.add_argument("--model-rot-std-deg", type=float, default=0.0, metavar="DEG",
-                        help="rotation error added to every covariance for what the dots "
-                             "cannot show, e.g. the housing's tolerance (default 0)")
-    parser.add_argument("--model-pos-std-mm", type=float, default=0.0, metavar="MM",
-                        help="the same for position (default 0)")
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -267,7 +237,6 @@ class _Outputs:
 def _advertise(args: argparse.Namespace, stack: contextlib.ExitStack,
                perf: _Performance) -> _Outputs:
     """Declare the abilities with the measured attributes and start the service."""
-    from agent import Service  # imported here: '--help' and '--calibrate' need no Zenoh
 
     svc = stack.enter_context(Service(args.id, realm=args.realm, agent=args.agent,
                                       connect=args.connect, listen=args.listen or None))
@@ -341,15 +310,3 @@ def _maybe_update(out: _Outputs, perf: _Performance, nominal_hz: float) -> None:
 def _drifted(advertised: dict[str, float], measured: dict[str, float]) -> bool:
     return any(abs(measured[k] - advertised.get(k, 0.0))
                > ATTRIBUTE_CHANGE * max(abs(advertised.get(k, 0.0)), 1e-9) for k in measured)
-
-
-PLUGIN = ServicePlugin(
-    name="laser-camera",
-    help="MARVIN's laser-dot camera tracker (Hogue 2003, ch. 5): finds the four laser spots in "
-         "the images of the cameras behind IVY's screens and publishes the pose of "
-         "marvin/laser_rig in ivy/world with its covariance, plus the labeled spots as "
-         "points3d. Input: the simulated display (default) or one video/camera per screen "
-         "with a calibration file. '--calibrate' writes the simulated display's calibration.",
-    add_arguments=add_arguments,
-    run=run,
-)

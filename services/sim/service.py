@@ -15,9 +15,9 @@ import logging
 import threading
 import time
 
-from agent.runtime import ServicePlugin
+from agent import Service
 from services import frames
-from services.sim import mounts
+from services.sim.plugin import MOUNTINGS
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import sim_time_s
 
@@ -25,31 +25,7 @@ log = logging.getLogger("uma.sim")
 STATIC_REPUBLISH_S = 1.0
 
 
-_LASER = ("head_to_laser_rig", frames.LASER_RIG, mounts.HEAD_TO_LASER_RIG)
-_ACCEL = ("head_to_accel_rig", frames.ACCEL_RIG, mounts.HEAD_TO_ACCEL_RIG)
-#: --mountings choice -> the static mounting abilities published
-MOUNTINGS = {"all": (_LASER, _ACCEL), "laser": (_LASER,), "none": ()}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="sim", help="service id (default: sim)")
-    parser.add_argument("--seed", type=int, default=1,
-                        help="trajectory seed (default 1); other simulators must use the same")
-    parser.add_argument("--rate-hz", type=float, default=100.0,
-                        help="ground-truth publication rate (default 100)")
-    parser.add_argument("--mountings", choices=sorted(MOUNTINGS), default="all",
-                        help="which true rig mountings to publish as static edges: all "
-                             "(default), laser (the accelerometer rig's must then come from "
-                             "tracker alignment), none")
-    parser.add_argument("--head-frame", default=frames.HEAD, metavar="FRAME",
-                        help=f"frame of the true head (default {frames.HEAD}); another name "
-                             "keeps the truth off the tracked edge, so queries of the head "
-                             "still reach the trackers ('uma demo --record' records it so)")
-
-
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
-    from agent import Service  # imported here: 'uma service run sim --help' needs no Zenoh
-
     if not 0 < args.rate_hz <= 2000:
         raise ValueError(f"--rate-hz must be in (0, 2000], got {args.rate_hz}")
     trajectory = HeadTrajectory(args.seed)
@@ -81,13 +57,3 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
                 next_tick = time.monotonic()
             stop.wait(max(0.0, delay))
     return 0
-
-
-PLUGIN = ServicePlugin(
-    name="sim",
-    help="The simulated IVY world's ground truth: the head pose ivy/world -> alice/head "
-         "(ground_truth: true) of a seeded random trajectory, and the true laser and "
-         "accelerometer rig mountings as static edges.",
-    add_arguments=add_arguments,
-    run=run,
-)

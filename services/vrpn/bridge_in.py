@@ -23,84 +23,19 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import math
 import threading
 import time
 from typing import Any
 
-from agent.runtime import RateLimitedLog, ServicePlugin
+from agent import Service
+from agent.runtime import RateLimitedLog
 from services.vrpn import protocol as vp
-from services.vrpn.client import DEFAULT_PING_S, DEFAULT_PONG_TIMEOUT_S, TrackerClient
+from services.vrpn.client import TrackerClient
 from services.vrpn.loop import run_until
 
 log = logging.getLogger("uma.vrpn")
 #: a report this far from our clock means the hosts' clocks differ (said once)
 CLOCK_WARN_S = 1.0
-
-
-def _device(text: str) -> vp.DeviceAddress:
-    try:
-        return vp.parse_device(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _edge(text: str) -> tuple[str, str]:
-    source, colon, target = text.partition(":")
-    if not colon or not source or not target:
-        raise argparse.ArgumentTypeError(f"--edge {text!r} must be WORLD:FRAME, e.g. "
-                                         "lab/world:lab/wand")
-    return source, target
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0 < value < math.inf:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return value
-
-
-def _sensor(text: str) -> tuple[int, str]:
-    number, eq, frame = text.partition("=")
-    if not eq or not number.isdigit() or not frame:
-        raise argparse.ArgumentTypeError(f"--sensor {text!r} must be N=FRAME, e.g. "
-                                         "1=lab/left_hand")
-    return int(number), frame
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", default="vrpn-in", help="service id (default: vrpn-in)")
-    parser.add_argument("--tracker", type=_device, required=True, metavar="NAME@HOST[:PORT]",
-                        help="the VRPN tracker, e.g. Tracker0@localhost (UDP handshake, port "
-                             "3883) or DTrack@tcp://10.0.0.5:3883 (TCP only)")
-    parser.add_argument("--edge", type=_edge, required=True, metavar="WORLD:FRAME",
-                        help="the tracker's frame WORLD and the frame of sensor 0: sensor 0 "
-                             "is published as the pose of FRAME in WORLD")
-    parser.add_argument("--sensor", type=_sensor, action="append", default=[],
-                        metavar="N=FRAME",
-                        help="publish sensor N too, as the pose of FRAME in WORLD "
-                             "(repeatable); other sensors' reports are ignored, said once")
-    parser.add_argument("--frequency-hz", type=float, default=100.0,
-                        help="the tracker's rate, advertised (default 100)")
-    parser.add_argument("--latency-s", type=float, default=0.005,
-                        help="advertised latency (default 0.005)")
-    parser.add_argument("--pos-std-m", type=float, default=None,
-                        help="advertised position standard deviation, metres")
-    parser.add_argument("--rot-std-rad", type=float, default=None,
-                        help="advertised rotation standard deviation, radians")
-    parser.add_argument("--clock-offset-s", type=float, default=0.0,
-                        help="added to the VRPN server's timestamps to get this host's "
-                             "clock (default 0: same clock)")
-    parser.add_argument("--ping-s", type=_seconds, default=DEFAULT_PING_S,
-                        help="ping a server that has sent nothing for this long (default "
-                             f"{DEFAULT_PING_S:g}: VRPN's clients ping once a second)")
-    parser.add_argument("--pong-timeout-s", type=_seconds, default=DEFAULT_PONG_TIMEOUT_S,
-                        help="a server that answers no ping within this is hung or out of "
-                             "reach: dropped and reconnected (default "
-                             f"{DEFAULT_PONG_TIMEOUT_S:g}: VRPN's clients warn then)")
 
 
 def sensor_frames(args: argparse.Namespace) -> dict[int, str]:
@@ -154,7 +89,6 @@ class Publisher:
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
-    from agent import Service  # imported here: '--help' needs no Zenoh
 
     frames = sensor_frames(args)
     attributes = {"frequency_hz": args.frequency_hz, "latency_s": args.latency_s,
@@ -178,13 +112,3 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
             return 0
 
         return run_until(main, stop)
-
-
-PLUGIN = ServicePlugin(
-    name="vrpn-in",
-    help="A VRPN tracker as uma abilities: connects to a VRPN server (OptiTrack Motive, "
-         "Vicon Tracker, ART DTrack, any vrpn_Tracker) and publishes each sensor's poses as "
-         "a pose6d ability sensorN with the VRPN timestamps; reconnects by itself.",
-    add_arguments=add_arguments,
-    run=run,
-)

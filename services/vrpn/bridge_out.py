@@ -17,57 +17,16 @@ import asyncio
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
+from agent import Client
 from agent.errors import UmaError
-from agent.runtime import ServicePlugin
-from services.vrpn import protocol as vp
 from services.vrpn.loop import run_until, wait_for_event
+from services.vrpn.plugin import Served
 from services.vrpn.server import TrackerServer
 
 log = logging.getLogger("uma.vrpn")
 RESUBSCRIBE_S = 1.0
-
-
-@dataclass(frozen=True)
-class Served:
-    """One ``--serve``: the VRPN tracker ``name`` streams TARGET in SOURCE."""
-
-    name: str
-    source: str
-    target: str
-    error: str
-
-
-def _served(text: str) -> Served:
-    name, eq, rest = text.partition("=")
-    path, _, error = rest.partition("@")
-    source, colon, target = path.partition(":")
-    if not eq or not name or not colon or not source or not target:
-        raise argparse.ArgumentTypeError(
-            f"--serve {text!r} must be NAME=SOURCE:TARGET[@ERROR], e.g. "
-            "Head=ivy/world:alice/head or Head=ivy/world:alice/head@accuracy")
-    try:
-        vp.check_name(name)
-    except vp.ProtocolError as exc:
-        raise argparse.ArgumentTypeError(f"--serve {text!r}: {exc}") from None
-    return Served(name, source, target, error or "latency")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--serve", type=_served, action="append", required=True,
-                        metavar="NAME=SOURCE:TARGET[@ERROR]",
-                        help="a VRPN tracker NAME streaming the pose of TARGET in SOURCE "
-                             "(repeatable); ERROR is the error function of the route "
-                             "(latency, hops, accuracy, ...; default latency)")
-    parser.add_argument("--port", type=int, default=vp.DEFAULT_PORT,
-                        help="VRPN port, TCP and UDP (default 3883, VRPN's)")
-    parser.add_argument("--bind", default="0.0.0.0",
-                        help="address to listen on (default 0.0.0.0: every interface)")
-    parser.add_argument("--max-buffer-kb", type=float, default=64.0,
-                        help="a client with more than this waiting unread is dropped "
-                             "(default 64, VRPN's own TCP buffer)")
 
 
 class Subscriptions:
@@ -109,7 +68,6 @@ class Subscriptions:
 
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
-    from agent import Client  # imported here: '--help' needs no Zenoh
 
     names = [s.name for s in args.serve]
     if len(set(names)) != len(names):
@@ -142,13 +100,3 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
             return 0
 
         return run_until(main, stop)
-
-
-PLUGIN = ServicePlugin(
-    name="vrpn-out",
-    help="uma poses as VRPN trackers: a VRPN server whose tracker NAME streams the pose of "
-         "TARGET in SOURCE (a uma subscription) to any number of VRPN clients (Unity, "
-         "Unreal, MotionBuilder, vrpn_print_devices...) over TCP or UDP.",
-    add_arguments=add_arguments,
-    run=run,
-)
