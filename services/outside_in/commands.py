@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from agent.runtime.plugins import CommandPlugin
+from agent.runtime import CommandPlugin
 
 
 def _named(text: str) -> tuple[str, str]:
