@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from agent import geometry as geo
-from agent.runtime.plugins import EvalPlugin
+from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.outside_in.blobs import Blobs, find_blobs
 from services.outside_in.bodies import RigidBody
@@ -240,7 +240,7 @@ PLUGIN = EvalPlugin(
          "RMSE with 3+ cameras and with exactly 2, NEES, identity swaps, side by side with "
          "an OpenCV-only baseline (triangulatePoints + estimateAffine3D) on the same images.",
     add_arguments=add_arguments,
-    run=run,
+    run="services.outside_in.evaluate:run",
     higher_is_better=frozenset({"poses", "pose_pct_when_seeable", "effective_samples",
                                 "share_inside_single_95"}),
 )
