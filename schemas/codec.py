@@ -22,6 +22,10 @@ every type              ``v``: 1, ``k``: type, ``t``: int ns since the epoch (0 
 ``points3d``            ``P``: bin, n*3 little-endian float64 (x, y, z per point),
                         ``i``: n int labels or nil; laser dots optionally ``x[DOT_STD]`` and
                         ``x[DOT_SYSTEMATIC_STD]``: n floats each, per point
+``markers2d``           ``P``: bin, n*2 little-endian float64 (u, v: distorted pixels of
+                        marker images, pixel centres at integers), ``e``: bin, n float64
+                        (each centroid's std, px, > 0); ``x[MARKERS_CAMERA]`` and
+                        ``x[MARKERS_CALIBRATION]`` name the camera and its calibration
 ``accel_raw``           ``a``: N floats (one reading per accelerometer axis, m/s^2)
 ``image``               ``h``, ``w``, ``ch`` (1 or 3): ints, ``d``: bin, h*w*ch uint8, row-major
 ``event``               only the common fields; the payload is ``x``
@@ -62,6 +66,7 @@ _FIELDS = {
     "position3d": _COMMON | {"p", "c"},
     "rotation3d": _COMMON | {"q", "c"},
     "points3d": _COMMON | {"P", "i"},
+    "markers2d": _COMMON | {"P", "e"},
     "accel_raw": _COMMON | {"a"},
     "image": _COMMON | {"h", "w", "ch", "d"},
     "event": _COMMON,
@@ -202,6 +207,10 @@ SYSTEMATIC_COVARIANCE = "c_sys"
 #: persists.  Optional: a receiver that needs them refuses points without them
 DOT_STD = "std_m"
 DOT_SYSTEMATIC_STD = "std_sys_m"
+#: ``extra`` keys of a ``markers2d``: the camera's id and its calibration's version (a
+#: consumer matches the images to the calibration it holds, and refuses others)
+MARKERS_CAMERA = "camera"
+MARKERS_CALIBRATION = "calibration"
 
 
 def encode_pose(t_ns: int, position: Any, quaternion: Any, covariance: Any = None,
@@ -271,6 +280,23 @@ def _enc_points3d(m: Measurement, msg: dict[str, Any]) -> None:
         msg["i"] = [_int_out(i, "ids", -_T_MAX, _T_MAX) for i in m.ids]
 
 
+def _enc_markers2d(m: Measurement, msg: dict[str, Any]) -> None:
+    uv = np.asarray(_required(m, "points"), dtype=float)
+    std = np.asarray(_required(m, "values"), dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"points: expected shape (n, 2) of pixels, got {uv.shape}")
+    if len(uv) > MAX_POINTS:
+        raise ValueError(f"points: {len(uv)} marker images, more than {MAX_POINTS}")
+    if std.shape != (len(uv),):
+        raise ValueError(f"values: expected {len(uv)} centroid stds, got shape {std.shape}")
+    if not (np.isfinite(uv).all() and np.isfinite(std).all()):
+        raise ValueError("points: non-finite value")
+    if len(std) and std.min() <= 0:
+        raise ValueError("values: centroid stds must be > 0")
+    msg["P"] = uv.astype("<f8").tobytes()
+    msg["e"] = std.astype("<f8").tobytes()
+
+
 def _enc_accel_raw(m: Measurement, msg: dict[str, Any]) -> None:
     values = np.asarray(_required(m, "values"), dtype=float)
     if values.ndim != 1 or not 0 < len(values) <= MAX_VALUES:
@@ -296,7 +322,8 @@ def _enc_event(m: Measurement, msg: dict[str, Any]) -> None:
 
 _ENCODERS = {"pose6d": _enc_pose6d, "position3d": _enc_position3d,
              "rotation3d": _enc_rotation3d, "points3d": _enc_points3d,
-             "accel_raw": _enc_accel_raw, "image": _enc_image, "event": _enc_event}
+             "markers2d": _enc_markers2d, "accel_raw": _enc_accel_raw, "image": _enc_image,
+             "event": _enc_event}
 
 
 # --------------------------------------------------------------------------- decoding
@@ -434,6 +461,27 @@ def _dec_points3d(obj: dict[str, Any], m: Measurement) -> None:
         m.ids = ids
 
 
+def _dec_markers2d(obj: dict[str, Any], m: Measurement) -> None:
+    raw, err = obj.get("P"), obj.get("e")
+    if type(raw) is not bytes or len(raw) % 16:
+        got = f"{len(raw)} bytes" if type(raw) is bytes else type(raw).__name__
+        raise DecodeError(f"markers2d field 'P': expected n*16 bytes of float64, got {got}")
+    uv = np.frombuffer(raw, dtype="<f8").reshape(-1, 2).astype(float)
+    if len(uv) > MAX_POINTS:
+        raise DecodeError(f"markers2d field 'P': {len(uv)} marker images, more than "
+                          f"{MAX_POINTS}")
+    if type(err) is not bytes or len(err) != 8 * len(uv):
+        got = f"{len(err)} bytes" if type(err) is bytes else type(err).__name__
+        raise DecodeError(f"markers2d field 'e': expected {8 * len(uv)} bytes of float64, "
+                          f"got {got}")
+    std = np.frombuffer(err, dtype="<f8").astype(float)
+    if not (np.isfinite(uv).all() and np.isfinite(std).all()):
+        raise DecodeError("markers2d: non-finite value")
+    if len(std) and std.min() <= 0:
+        raise DecodeError("markers2d field 'e': centroid stds must be > 0")
+    m.points, m.values = uv, std
+
+
 def _dec_accel_raw(obj: dict[str, Any], m: Measurement) -> None:
     a = obj.get("a")
     n = len(a) if type(a) is list else -1
@@ -462,7 +510,8 @@ def _dec_event(obj: dict[str, Any], m: Measurement) -> None:
 
 _DECODERS = {"pose6d": _dec_pose6d, "position3d": _dec_position3d,
              "rotation3d": _dec_rotation3d, "points3d": _dec_points3d,
-             "accel_raw": _dec_accel_raw, "image": _dec_image, "event": _dec_event}
+             "markers2d": _dec_markers2d, "accel_raw": _dec_accel_raw, "image": _dec_image,
+             "event": _dec_event}
 
 
 def decode_measurement(data: bytes, expected_type: str | None = None) -> Measurement:

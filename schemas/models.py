@@ -53,8 +53,8 @@ ATTRIBUTE_NAMES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_
 MEASURED_NAMES = ("measured_frequency_hz", "measured_latency_s")
 #: Types whose abilities must name an edge (they are spatial relationships).
 EDGE_TYPES = ("pose6d", "position3d", "rotation3d")
-MeasurementType = Literal["pose6d", "position3d", "rotation3d", "points3d", "accel_raw", "image",
-                          "event"]
+MeasurementType = Literal["pose6d", "position3d", "rotation3d", "points3d", "markers2d",
+                          "accel_raw", "image", "event"]
 #: the measurement types of samples and abilities (``schemas.codec`` encodes each)
 MEASUREMENT_TYPES: tuple[str, ...] = get_args(MeasurementType)
 

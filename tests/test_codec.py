@@ -91,6 +91,25 @@ def test_position3d_and_rotation3d_round_trip() -> None:
     assert r.position is None and r.covariance is None
 
 
+def test_markers2d_round_trip_and_refusals() -> None:
+    uv = np.array([[10.25, 20.5], [639.0, 0.0]])
+    m = decode_measurement(encode_measurement(Measurement(
+        "markers2d", 7, points=uv, values=np.array([0.05, 0.1]),
+        extra={"camera": "cam3", "calibration": "rig-1"})), "markers2d")
+    assert np.array_equal(m.points, uv) and np.array_equal(m.values, [0.05, 0.1])
+    assert m.extra == {"camera": "cam3", "calibration": "rig-1"}
+    empty = decode_measurement(encode_measurement(Measurement(
+        "markers2d", 7, points=np.zeros((0, 2)), values=np.zeros(0))))
+    assert empty.points.shape == (0, 2)
+    for fields, fragment in (({"P": b"\x00" * 15, "e": b""}, "n*16 bytes"),
+                             ({"P": b"\x00" * 16, "e": b"\x00" * 4}, "expected 8 bytes"),
+                             ({"P": b"\x00" * 16, "e": np.zeros(1).tobytes()}, "> 0"),
+                             ({"P": np.full(2, np.nan).tobytes(), "e": np.ones(1).tobytes()},
+                              "non-finite")):
+        with pytest.raises(DecodeError, match=fragment):
+            decode_measurement(msgpack.packb({"v": 1, "k": "markers2d", "t": 1, **fields}))
+
+
 def test_points3d_round_trip() -> None:
     pts = RNG.normal(size=(25, 3))
     m = decode_measurement(encode_measurement(
@@ -254,13 +273,13 @@ _plain = st.recursive(
     st.text(max_size=5) | st.binary(max_size=30),
     lambda children: st.lists(children, max_size=5) | st.dictionaries(
         st.sampled_from(["v", "k", "t", "s", "x", "p", "q", "c", "P", "i", "a", "h", "w", "ch",
-                         "d"]), children, max_size=6),
+                         "d", "e"]), children, max_size=6),
     max_leaves=15)
 
 
 @settings(max_examples=150, deadline=None)
 @given(st.dictionaries(st.sampled_from(["v", "k", "t", "s", "x", "p", "q", "c", "P", "i", "a",
-                                        "h", "w", "ch", "d"]), _plain, max_size=8),
+                                        "h", "w", "ch", "d", "e"]), _plain, max_size=8),
        st.sampled_from(codec.MEASUREMENT_TYPES))
 def test_structured_garbage_raises_only_decode_error(obj: dict[str, Any], kind: str) -> None:
     obj = {"v": 1, "k": kind, "t": 1, **obj}
@@ -298,6 +317,12 @@ def test_structured_garbage_raises_only_decode_error(obj: dict[str, Any], kind: 
      "points: expected shape (n, 3)"),
     (lambda: encode_measurement(Measurement("points3d", 1, points=np.ones((2, 3)), ids=[1])),
      "ids: 1 labels for 2 points"),
+    (lambda: encode_measurement(Measurement("markers2d", 1, points=np.ones((2, 3)),
+                                            values=np.ones(2))), "points: expected shape (n, 2)"),
+    (lambda: encode_measurement(Measurement("markers2d", 1, points=np.ones((2, 2)),
+                                            values=np.ones(3))), "values: expected 2 centroid"),
+    (lambda: encode_measurement(Measurement("markers2d", 1, points=np.ones((1, 2)),
+                                            values=np.zeros(1))), "stds must be > 0"),
     (lambda: encode_measurement(Measurement("accel_raw", 1, values=[])), "values: expected"),
     (lambda: encode_measurement(Measurement("image", 1, image=np.zeros((2, 2)))),
      "image: expected uint8"),

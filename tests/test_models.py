@@ -45,8 +45,8 @@ def _error(model: type, data: dict[str, Any]) -> str:
 def test_constants_match_design() -> None:
     assert ATTRIBUTE_NAMES == ("latency_s", "frequency_hz", "confidence", "pos_std_m",
                                "rot_std_rad", "ttl_s", "cost", "static")
-    assert MEASUREMENT_TYPES == ("pose6d", "position3d", "rotation3d", "points3d", "accel_raw",
-                                 "image", "event")
+    assert MEASUREMENT_TYPES == ("pose6d", "position3d", "rotation3d", "points3d", "markers2d",
+                                 "accel_raw", "image", "event")
     assert set(MODELS) >= {"Attributes", "Ability", "Need", "ServiceDescriptor", "AgentInfo",
                            "PoseResult"}
 
