@@ -54,9 +54,10 @@ up() {
   cat <<EOF
 site $name: $n hosts umasite-$name-h0 .. umasite-$name-h$((n - 1)), addresses 10.77.$subnet.1 .. 10.77.$subnet.$n
 
-Run one agent per host (each in a terminal of its own, or with & and a log file):
-  ip netns exec umasite-$name-h0 uma agent --realm site --id h0 --listen $seed
-  ip netns exec umasite-$name-h1 uma agent --realm site --id h1 --listen tcp/10.77.$subnet.2:7447 --connect $seed
+Run one agent per host (each in a terminal of its own, or with & and a log file); this
+test site is plain TCP on purpose, hence --insecure (a real site: README "Deploying a site"):
+  ip netns exec umasite-$name-h0 uma agent --realm site --id h0 --listen $seed --insecure
+  ip netns exec umasite-$name-h1 uma agent --realm site --id h1 --listen tcp/10.77.$subnet.2:7447 --connect $seed --insecure
   ...
 Services connect to the agent of their host:
   ip netns exec umasite-$name-h1 uma service run sim --realm site --agent h1 --connect tcp/10.77.$subnet.2:7447

@@ -41,7 +41,8 @@ def start_stream(s: Site, realm: str, cam_host: Host, cam_connect: str, app_host
 
 def router_on(s: Site, host: Host) -> Proc:
     """``uma router`` listening on ``host``'s address; returns once it listens."""
-    router = s.spawn(host, ["-m", "agent.cli", "router", "--listen", host.endpoint()])
+    router = s.spawn(host, ["-m", "agent.cli", "router", "--listen", host.endpoint(),
+                            "--insecure"])
     router.wait_line("listening on", START_WAIT_S)
     return router
 

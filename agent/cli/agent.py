@@ -112,6 +112,7 @@ def settings_from(args: argparse.Namespace) -> AgentSettings:
         s.agent_id = args.id
     if getattr(args, "mode", None) is not None:
         s.mode = args.mode
+    s.insecure = bool(getattr(args, "insecure", False))
     return s.check()
 
 

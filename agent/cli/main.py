@@ -31,6 +31,10 @@ HANDLERS = {
     "schemas": "schemas.export:main",
     "deploy": "agent.cli.deploy:main",
 }
+#: what --insecure of ``uma agent`` and ``uma router`` says
+INSECURE_HELP = ("listen without TLS on addresses other hosts reach (refused by default: "
+                 "anyone who reaches it can read and write the realm; secure the site with "
+                 "'uma deploy' instead)")
 
 
 def _version() -> str:
@@ -67,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "'uma service run --help' for names)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="TOML file with the same settings and static edges (examples in deploy/)")
+    p.add_argument("--insecure", action="store_true", help=INSECURE_HELP)
 
     p = sub.add_parser("router", help="run a Zenoh router for client-mode agents",
                        description="Run a Zenoh router in this process so agents and clients in "
@@ -78,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Zenoh JSON5 configuration to start from (default: $ZENOH_CONFIG if "
                         "set; example in deploy/router.json5); uma's settings (mode, lease, "
                         "no multicast scouting) are applied on top")
+    p.add_argument("--insecure", action="store_true", help=INSECURE_HELP)
 
     p = sub.add_parser("service", help="run one tracker service on its own",
                        description="Run a tracker service as its own process; it registers with "

@@ -149,7 +149,8 @@ class Agent:
         s = self.s
         hosted = [(name, plugins.load(plugins.SERVICE_GROUP, name)) for name in s.services]
         self.session = open_session(s.mode, s.listen, s.connect, self.realm,
-                                    lease_ms=s.lease_ms)
+                                    lease_ms=s.lease_ms, exposed_as="uma agent",
+                                    insecure=s.insecure)
         self.streams.open(self.session)
         try:
             self._join()

@@ -33,6 +33,8 @@ class AgentSettings:
     rate_window_s: float = 0.5
     lease_ms: int | None = None
     tick_s: float = 0.05
+    #: listen without TLS where other hosts reach it (refused otherwise: safe by default)
+    insecure: bool = False
 
     def check(self) -> AgentSettings:
         """Validate; ``UmaError`` names the setting that is wrong."""

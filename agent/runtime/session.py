@@ -179,6 +179,58 @@ def build_config(mode: str = "peer", listen: Sequence[str] | None = None,
     return c
 
 
+#: listen protocols whose links are encrypted and authenticated (Zenoh's TLS; QUIC is TLS)
+SECURE_PROTOCOLS = frozenset({"tls", "quic"})
+
+
+def exposed_endpoints(listen: Iterable[str]) -> list[str]:
+    """The listen endpoints another host could reach without TLS: a network protocol other
+    than ``SECURE_PROTOCOLS`` on an address that is not loopback (a host name counts as
+    loopback only if every address it resolves to is)."""
+    found = []
+    for ep in listen:
+        m = _ENDPOINT.match(str(ep).strip())
+        if m is None or m["proto"] in SECURE_PROTOCOLS or m["proto"] not in _PROTOCOLS_WITH_PORT:
+            continue
+        hp = _HOST_PORT.match(m["addr"])
+        if hp is None or not _loopback(hp["host"].strip("[]")):
+            found.append(str(ep))
+    return found
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        pass
+    try:
+        addresses = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except (socket.gaierror, UnicodeError):
+        return False
+    return bool(addresses) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback
+                                   for a in addresses)
+
+
+def refuse_exposure(config: zenoh.Config, who: str, insecure: bool) -> None:
+    """Safe by default: ``UmaError`` if ``who`` (``uma agent``, ``uma router``) would
+    listen where another host reaches it without TLS, unless ``insecure`` (then a
+    warning).  Whoever reaches a plain listener can read and write the whole realm."""
+    listen = json.loads(config.get_json("listen/endpoints") or "[]")
+    exposed = exposed_endpoints(listen if isinstance(listen, list) else [])
+    if not exposed:
+        return
+    what = (f"{who} would listen on {', '.join(exposed)} without TLS: any process that "
+            "reaches this address can read the realm, publish into it and re-register "
+            "its services")
+    if insecure:
+        log.warning("%s (--insecure: accepted on purpose)", what)
+        return
+    raise UmaError(f"{what}. Secure the site (TLS and access control: 'uma deploy certs' "
+                   "and 'uma deploy config', README \"Deploying a site\"), listen on "
+                   "loopback only (tcp/127.0.0.1:PORT), or pass --insecure to run it "
+                   "unprotected on purpose")
+
+
 def zenoh_config_file(path: str | None) -> str | None:
     """The Zenoh configuration file to start from: ``path``, else ``UMA_ZENOH_CONFIG``;
     ``UmaError`` if the file named does not exist (Zenoh's own message only says "No such
@@ -231,7 +283,8 @@ def _short(exc: BaseException) -> str:
 def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
                  connect: Iterable[str] = (), realm: str | None = None, *,
                  lease_ms: int | None = None, require_connection: bool = False,
-                 base_file: str | None = None) -> zenoh.Session:
+                 base_file: str | None = None, exposed_as: str | None = None,
+                 insecure: bool = False) -> zenoh.Session:
     """Open a Zenoh session configured for uma; ``UmaError`` if it cannot be opened.
 
     ``realm`` is only validated here (uma keys carry it; see :mod:`agent.protocol.keys`), so a bad
@@ -239,6 +292,8 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     when none of its ``connect`` endpoints answers within 2 s (a client always does).
     A ``tcp/HOST:0`` listener gets a free port chosen here (the admin space that would tell
     Zenoh's choice is off), opened again with another if it was taken meanwhile.
+    ``exposed_as`` (``"uma agent"``, ``"uma router"``) refuses listeners other hosts reach
+    without TLS unless ``insecure`` (:func:`refuse_exposure`).
     """
     if realm is not None:
         keys.check_name("realm", realm)
@@ -246,6 +301,8 @@ def open_session(mode: str = "peer", listen: Sequence[str] | None = None,
     base_file = zenoh_config_file(base_file)
     config = build_config(mode, listen, connect, lease_ms=lease_ms,
                           require_connection=require_connection, base_file=base_file)
+    if exposed_as is not None:
+        refuse_exposure(config, exposed_as, insecure)
     wanted = json.loads(config.get_json("listen/endpoints") or "[]")
     attempts = 0
     while True:  # bounded: LISTEN_ATTEMPTS

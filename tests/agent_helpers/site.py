@@ -128,7 +128,8 @@ class Site:
 
         def command(host: Host) -> tuple[list[str], list[str]]:
             connect = () if host == seed else (seed.endpoint(),)
-            return agent_command(realm, host.name, host.endpoint(), connect, extra), host.prefix
+            return (agent_command(realm, host.name, host.endpoint(), connect,
+                                  [*extra, "--insecure"]), host.prefix)
 
         procs = {}
         if seed in hosts:
