@@ -3,9 +3,13 @@
 Four sweeps, each row with its growth factor (``xN``: the figure divided by the previous
 row's, the first row of a sweep is its anchor):
 
-- **frames per agent** (10, 100, 1,000; 2 agents) and **agents** (2, 5, 10, 20; 10 frames
-  each): real ``uma agent`` processes on loopback (``bench/scale_realm.py``), each with one
-  process of 2 services at 100 Hz.  Per row: ``Client.pose`` across two agents (median,
+- **frames per agent** (10, 100, 1,000; 2 agents), **agents** (2, 5, 10, 20; 10 frames
+  each) and **samples per agent** (200 and 1,000 samples/s: 2 and 10 services at 100 Hz;
+  2 agents, 10 frames): real ``uma agent`` processes on loopback (``bench/scale_realm.py``),
+  each with one process of 2 services (or 10) at 100 Hz.  The agents' CPU per 1,000
+  samples/s is read at 1,000 samples/s per agent too: at 200 the fixed cost of an agent
+  (its threads' ticks, registrations, summaries) weighs five times as much per sample.
+  Per row: ``Client.pose`` across two agents (median,
   p99), a subscription's latency (sample time to ``on_pose``), the agents' CPU per 1,000
   samples/s they receive (% of one core), the realm's CPU (agents and service processes)
   against the 2 cores and how busy the machine was, the agents' RSS, the largest summary
@@ -52,12 +56,12 @@ from agent.srg import Graph
 from agent.srg.supernode import summarize
 from schemas.codec import encode_message
 
-FULL = {"frames": (10, 100, 1000), "agents": (2, 5, 10, 20),
+FULL = {"frames": (10, 100, 1000), "agents": (2, 5, 10, 20), "services": (2, 10),
         "summary_frames": ((10, 1), (100, 1), (1000, 1)),
         "summary_shared": ((100, 1), (100, 2), (100, 4)),
         "matching": ((100, 10), (1000, 100), (10000, 1000)),
         "queries": 100, "seconds": 5.0, "repeat": 3}
-QUICK = {"frames": (10,), "agents": (2,), "summary_frames": ((10, 1), (20, 1)),
+QUICK = {"frames": (10,), "agents": (2,), "services": (2,), "summary_frames": ((10, 1), (20, 1)),
          "summary_shared": ((10, 1), (10, 2)),
          "matching": ((50, 5), (100, 10)), "queries": 10, "seconds": 1.0, "repeat": 2}
 #: a row's figures whose growth is reported, per sweep
@@ -150,9 +154,10 @@ def show(name: str, rows: list[dict[str, Any]], figures: Sequence[str]) -> None:
     """A sweep's rows, one line each: its size, then every figure with its growth."""
     print(f"\n{name}", flush=True)
     for row in rows:
-        size = " ".join(f"{k}={v}" for k, v in row.items()
-                        if k in ("agents", "frames_per_agent", "frames", "shared", "abilities",
-                                 "needs"))
+        size = " ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+                        for k, v in row.items()
+                        if k in ("agents", "frames_per_agent", "samples_per_agent_s", "frames",
+                                 "shared", "abilities", "needs"))
         parts = [size]
         for key in figures:
             v, x = row.get(key), row.get(f"{key}_x")
@@ -191,11 +196,14 @@ def main() -> int:
     ap.add_argument("--skip-inprocess", action="store_true", help="realm sweeps only")
     ap.add_argument("--frames", type=int, nargs="*", help="frames per agent (2 agents) to run")
     ap.add_argument("--agents", type=int, nargs="*", help="agents (10 frames each) to run")
+    ap.add_argument("--services", type=int, nargs="*",
+                    help="services per agent at 100 Hz (2 agents, 10 frames) to run")
     ap.add_argument("--form-s", type=float, default=600.0, help="bound on forming a realm")
     ap.add_argument("--json", action="store_true", help="last line: one JSON object")
     a = ap.parse_args()
     plan = dict(QUICK if a.quick else FULL)
-    plan |= {k: getattr(a, k) for k in ("frames", "agents") if getattr(a, k) is not None}
+    plan |= {k: getattr(a, k) for k in ("frames", "agents", "services")
+             if getattr(a, k) is not None}
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # the realms' `finally`s run
     out: dict[str, Any] = {"cpu": cpu_model(), "load_at_start": os.getloadavg()}
     print(f"cpu: {out['cpu']}\nload average at start: {out['load_at_start']}", flush=True)
@@ -212,12 +220,16 @@ def main() -> int:
         from scale_realm import measure
 
         # the row both sweeps share (2 agents, 10 frames) runs once
-        realm = functools.cache(lambda size: measure(*size, plan["queries"], plan["seconds"],
-                                                     a.form_s))
+        realm = functools.cache(lambda size: measure(*size[:2], plan["queries"],
+                                                     plan["seconds"], a.form_s, *size[2:]))
         out["frames"] = sweep("frames per agent (2 agents, loopback)",
                               [(2, f) for f in plan["frames"]], realm, GROWTH["realm"])
         out["agents"] = sweep("agents (10 frames each, loopback)",
                               [(n, 10) for n in plan["agents"]], realm, GROWTH["realm"])
+        out["services"] = sweep("samples per agent (2 agents, 10 frames, loopback; goal: agent "
+                                "CPU <= 10 % of a core per 1,000 samples/s)",
+                                [(2, 10) if s == 2 else (2, 10, s) for s in plan["services"]],
+                                realm, GROWTH["realm"])
     out["load_at_end"] = os.getloadavg()
     print(f"\nload average at end: {out['load_at_end']}", flush=True)
     if a.json:

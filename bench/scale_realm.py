@@ -3,7 +3,8 @@ frames, and what a client, a subscriber and a new service see of it.
 
 Agent ``h{i}`` listens on a free port (all join ``h0``; multicast scouting is off in every
 uma session) and holds, from its ``--config`` file, the static edges ``scale/world ->
-h{i}/world`` and ``h{i}/world -> h{i}/f{k}``; one process of ``SERVICES`` services
+h{i}/world`` and ``h{i}/world -> h{i}/f{k}``; one process of ``SERVICES`` services (or as
+many as the row asks for)
 (``tests/agent_helpers/many_services.py``) adds the measured edges ``h{i}/world ->
 h{i}/s{j}`` at ``RATE_HZ`` each.  ``scale/world`` is the one frame every agent shares, so
 a query from ``h0/s0`` to ``h{N-1}/s0`` crosses two agents.  Every process is stopped by
@@ -41,11 +42,11 @@ FORM_S = 600.0
 SUBSCRIBE_S = 30.0
 
 
-def config_text(agent_id: str, frames: int) -> str:
+def config_text(agent_id: str, frames: int, services: int = SERVICES) -> str:
     """The agent's TOML: static edges giving it ``frames`` frames with its services'."""
     statics = [(SHARED, f"{agent_id}/world")]
     statics += [(f"{agent_id}/world", f"{agent_id}/f{k}")
-                for k in range(max(0, frames - 2 - SERVICES))]
+                for k in range(max(0, frames - 2 - services))]
     tables = [f'[[static]]\nparent = "{p}"\nchild = "{c}"\nposition = [{k}.0, 0.0, 1.0]\n'
               f"quaternion = [0.0, 0.0, 0.0, 1.0]\npos_std_m = {0.001 * (1 + k % 7)}\n"
               for k, (p, c) in enumerate(statics)]
@@ -55,8 +56,10 @@ def config_text(agent_id: str, frames: int) -> str:
 class Realm:
     """The running realm (module docstring); use as a context manager."""
 
-    def __init__(self, agents: int, frames: int, form_s: float = FORM_S) -> None:
+    def __init__(self, agents: int, frames: int, form_s: float = FORM_S,
+                 services: int = SERVICES) -> None:
         self.n, self.frames, self.form_s = agents, frames, form_s
+        self.services_per_agent = services
         self.realm = f"scale{uuid.uuid4().hex[:8]}"
         self.eps = [free_endpoint() for _ in range(agents)]
         self.agents: list[Child] = []
@@ -81,15 +84,16 @@ class Realm:
         self.agents = [Child(*self._agent_args(i)) for i in range(self.n)]
         for i in range(self.n):
             self._listening(i, deadline)
+        count = str(self.services_per_agent)
         self.services = [Child("-m", "tests.agent_helpers.many_services", "--realm", self.realm,
-                               "--agent", f"h{i}", "--connect", ep, "--count", str(SERVICES),
+                               "--agent", f"h{i}", "--connect", ep, "--count", count,
                                "--rate", str(RATE_HZ)) for i, ep in enumerate(self.eps)]
         for c in self.services:
             c.wait_for("started", deadline)
 
     def _agent_args(self, i: int) -> list[str]:
         path = Path(self._dir.name) / f"h{i}.toml"
-        path.write_text(config_text(f"h{i}", self.frames))
+        path.write_text(config_text(f"h{i}", self.frames, self.services_per_agent))
         return ["-m", "agent.cli", "agent", "--realm", self.realm, "--id", f"h{i}", "--config",
                 str(path), "--listen", self.eps[i], *(["--connect", self.eps[0]] if i else [])]
 
@@ -169,7 +173,7 @@ def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
     finally:
         sub.close()
     agents_cpu = cpu[:realm.n]
-    per_agent_rate = SERVICES * RATE_HZ
+    per_agent_rate = realm.services_per_agent * RATE_HZ
     rss = [rss_mb(c.pid) for c in realm.agents]
     out: dict[str, Any] = {}
     if latency_ms:
@@ -221,14 +225,15 @@ def summary_bytes(realm: Realm) -> dict[str, Any]:
 
 
 def measure(agents: int, frames: int, queries: int, seconds: float,
-            form_s: float = FORM_S) -> dict[str, Any]:
+            form_s: float = FORM_S, services: int = SERVICES) -> dict[str, Any]:
     """One realm's row (module docstring); forming it may take ``form_s`` at most."""
     from agent import Client
 
     row: dict[str, Any] = {"agents": agents, "frames_per_agent": frames,
+                           "samples_per_agent_s": services * RATE_HZ,
                            "load_1min": os.getloadavg()[0]}
     started = time.monotonic()
-    with Realm(agents, frames, form_s) as realm, Client(realm=realm.realm,
+    with Realm(agents, frames, form_s, services) as realm, Client(realm=realm.realm,
                                                 connect=[realm.eps[0]]) as client:
         row["processes_started_s"] = time.monotonic() - started
         row["formed_s"] = wait_formed(client, realm) + row["processes_started_s"]

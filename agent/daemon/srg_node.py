@@ -22,8 +22,13 @@ itself and puts each sample into its graph (``on_local_sample``), as tf2's
   supernode cache, the rest asked of their agents).
 
 Threads: Zenoh callbacks decode and answer queries under the graph lock (a query costs
-tens of microseconds), decode local samples into the graph under the same lock (a pose
-costs a few microseconds) and record other agents' frames; one worker thread republishes the
+tens of microseconds), queue local samples (their bytes, nothing decoded) and record other
+agents' frames; the queued samples are decoded into the graph in batches, by the worker
+(every ``PUBLISH_CHECK_S`` while samples come) and before anything reads the graph (a
+query, a summary), so answers hold every sample that arrived before them.  Per sample
+that is a queue append on Zenoh's thread instead of a decode and an insert there: at
+tracking rates the thread hop into Python finds the interpreter's caches cold, and a
+batch decoded in one go is several times cheaper per sample.  One worker thread republishes the
 summary when needed (computed from a copy of the graph's topology, off the lock) and asks
 every agent for its summary every ``RESYNC_S`` (a summary put before our subscription
 reached its author is never sent again).  A failing query is answered with an error, never
@@ -37,7 +42,7 @@ import logging
 import secrets
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import Any
 
@@ -75,6 +80,9 @@ MAX_ANSWERS = 1024
 #: arrive from any peer, so what they make this agent hold is bounded
 MAX_REMOTE_AGENTS = 1024
 MAX_REMOTE_FRAMES = 4096
+#: local samples queued before the thread that queues one decodes the batch itself (the
+#: worker normally does, within PUBLISH_CHECK_S): a flood must not grow the agent
+MAX_PENDING = 4096
 #: edge attributes an ability may carry that the SRG uses
 _SRG_ATTRIBUTES = ("latency_s", "frequency_hz", "confidence", "pos_std_m", "rot_std_rad",
                    "ttl_s", "cost")
@@ -133,6 +141,8 @@ class SrgNode:
         self._rev = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
+        #: local samples not decoded yet: (service id, ability name), payload
+        self._pending: deque[tuple[tuple[str, str], bytes]] = deque()
         self._next_resync = time.monotonic() + RESYNC_S
         for i, edge in enumerate(static_edges or []):
             self._add_static(i, edge)
@@ -198,7 +208,27 @@ class SrgNode:
                 self._local[(service_id, name)] = (ability, stop)
 
     def _on_local_data(self, local: tuple[str, str], data: bytes) -> None:
-        """A local pose sample (Zenoh's thread): decode it and put it into the graph."""
+        """A local pose sample (Zenoh's thread): queued for the next batch (module
+        docstring); the first of a batch wakes the worker."""
+        pending = self._pending
+        if not pending:
+            self._wake.set()
+        pending.append((local, data))
+        if len(pending) >= MAX_PENDING:
+            self.drain()
+
+    def drain(self) -> None:
+        """Decode the queued local samples into the graph (any thread; each sample once)."""
+        pending = self._pending
+        while pending:
+            try:
+                local, data = pending.popleft()
+            except IndexError:  # another thread took the last one
+                return
+            self._take_local(local, data)
+
+    def _take_local(self, local: tuple[str, str], data: bytes) -> None:
+        """One queued local sample: decode it and put it into the graph."""
         entry = self._local.get(local)
         if entry is None:
             return  # the ability went away meanwhile
@@ -299,6 +329,7 @@ class SrgNode:
         request = proto.parse_request(msg, self.agent_id)
         if request is None:
             return None
+        self.drain()
         if isinstance(request, proto.ClockRequest):
             return proto.clock_reply()
         if isinstance(request, proto.RouteRequest):  # what is here; no other agent asked
@@ -307,6 +338,7 @@ class SrgNode:
 
     def _own_part(self, req: proto.SegmentRequest) -> dict[str, Any]:
         """This agent's part of a route: its segment's answer, or the error saying why."""
+        self.drain()
         try:
             return self._segment(req)
         except (ValueError, LookupError, TypeError) as exc:
@@ -444,6 +476,7 @@ class SrgNode:
             if self._stop.is_set():
                 return
             try:
+                self.drain()
                 self._resync_if_due()
                 self._fetch_new()
                 self._republish_if_changed()
