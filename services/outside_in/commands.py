@@ -10,10 +10,12 @@ import argparse
 from agent.runtime import CommandPlugin
 
 
-def _named(text: str) -> tuple[str, str]:
+def named(text: str) -> tuple[str, str]:
+    """A ``CAMERA=VALUE`` argument (a file, a device index, a URL)."""
     name, eq, value = text.partition("=")
     if not eq or not name or not value:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=FILE, e.g. cam0=cam0.avi")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected CAMERA=VALUE, e.g. "
+                                         "cam0=cam0.avi")
     return name, value
 
 
@@ -30,13 +32,13 @@ def _distances(text: str) -> tuple[float, float, float]:
 
 def _rig_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_argument_group("recordings (one per camera, frames matched by their times)")
-    src.add_argument("--wand-video", type=_named, action="append", default=[],
+    src.add_argument("--wand-video", type=named, action="append", default=[],
                      metavar="NAME=FILE", help="a camera's video (or image folder) of the wand "
                      "waved through the volume; repeat for every camera")
-    src.add_argument("--lframe-video", type=_named, action="append", default=[],
+    src.add_argument("--lframe-video", type=named, action="append", default=[],
                      metavar="NAME=FILE", help="the same camera's video of the L-frame lying "
                      "still on the floor (a second or two is enough)")
-    src.add_argument("--intrinsics", type=_named, action="append", default=[],
+    src.add_argument("--intrinsics", type=named, action="append", default=[],
                      metavar="NAME=FILE", help="the camera's calibration file ('uma calibrate "
                      "camera'); with --refine-intrinsics a starting value")
     p.add_argument("--sim", type=int, metavar="SEED", default=None,

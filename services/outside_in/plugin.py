@@ -1,0 +1,66 @@
+"""The outside-in services' declarations: ``marker-camera`` (one per camera, any host) and
+``outside-in`` (the reconstruction); light to import (``uma service run NAME --help``)."""
+
+from __future__ import annotations
+
+import argparse
+
+from agent.runtime import ServicePlugin
+from services.outside_in.commands import named
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rig", required=True, metavar="FILE",
+                        help="the rig file of 'uma calibrate rig' (cameras' intrinsics and "
+                             "poses; its content is the calibration's version)")
+    parser.add_argument("--world", default="lab/world", help="world frame (default lab/world)")
+    parser.add_argument("--site", default="lab",
+                        help="site prefix of camera and body frames, SITE/NAME (default lab)")
+
+
+def marker_camera_arguments(parser: argparse.ArgumentParser) -> None:
+    _common(parser)
+    parser.add_argument("--camera", action="append", default=[], metavar="NAME",
+                        help="a camera of the rig this process serves (repeatable; each is "
+                             "its own service 'markers-NAME')")
+    parser.add_argument("--source", type=named, action="append", default=[],
+                        metavar="NAME=SOURCE", help="the camera's frames: a device index, a "
+                        "video file, an image folder or a stream URL (repeatable)")
+    parser.add_argument("--sim", type=int, default=None, metavar="SEED",
+                        help="render the simulated rig's view instead (the rig file must be "
+                             "that simulation's, e.g. from 'uma calibrate rig --sim SEED')")
+    parser.add_argument("--rate-hz", type=float, default=30.0,
+                        help="frame rate of the simulated cameras (default 30)")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N",
+                        help="stop after N frames per camera (default: never / the file's end)")
+
+
+def outside_in_arguments(parser: argparse.ArgumentParser) -> None:
+    _common(parser)
+    parser.add_argument("--id", default="outside-in", help="service id (default outside-in)")
+    parser.add_argument("--bodies", required=True, metavar="FILE",
+                        help="TOML file of rigid bodies: [[body]] name, markers = [[x, y, z], "
+                             "...] (metres, body frame)")
+    parser.add_argument("--rate-hz", type=float, default=30.0,
+                        help="the cameras' frame rate, advertised as the poses' (default 30)")
+
+
+MARKER_CAMERA = ServicePlugin(
+    name="marker-camera",
+    help="An infrared marker camera of an outside-in rig: finds the bright round blobs of "
+         "every frame and publishes their sub-pixel centroids with their std as a "
+         "markers2d ability (capture time in this host's clock, the camera's id and its "
+         "calibration's version).",
+    add_arguments=marker_camera_arguments,
+    run="services.outside_in.service:run_marker_camera",
+)
+
+OUTSIDE_IN = ServicePlugin(
+    name="outside-in",
+    help="The outside-in reconstruction (Dorfmüller-Ulhaas §2): needs markers2d from every "
+         "camera of the rig, wherever it runs, and publishes each rigid body's pose6d "
+         "world -> SITE/BODY with covariance (matching, triangulation, identification, "
+         "refinement on the images, the EKF).",
+    add_arguments=outside_in_arguments,
+    run="services.outside_in.service:run_outside_in",
+)

@@ -1,0 +1,233 @@
+"""The outside-in services: ``marker-camera`` and ``outside-in`` (declared in ``plugin``).
+
+A **marker camera** serves one or more cameras of a rig (each its own ``Service``
+``markers-NAME``): every frame's blobs (``blobs.find_blobs``) go out as a ``markers2d``
+sample on the edge ``world -> SITE/NAME``, stamped with the capture time in this host's
+clock, with the camera's name and the calibration's version (a digest of the rig file)
+in ``extra``.  Frames come from ``services.camera.capture`` (devices, videos, folders,
+URLs) or from the simulated rig, whose time is the wall clock so that cameras on several
+hosts render one world.
+
+The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
+whatever camera appears is used, one that stops is left out.  Samples are gathered into
+frame sets (a set is complete when every live camera sent one, when a camera sends its
+next frame, or when a frame of a later exposure arrives), run through
+``OutsideInTracker``, and each body's pose is published on ``world -> SITE/BODY`` with its
+covariance.  A sample of another calibration than the
+rig file's, or of a camera the rig does not hold, is refused, counted and logged
+(rate-limited), never used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent import Service
+from agent.errors import UmaError
+from agent.runtime import RateLimitedLog
+from schemas.codec import MARKERS_CALIBRATION, MARKERS_CAMERA, Measurement
+from services.camera.capture import Capture
+from services.outside_in.blobs import Blobs, find_blobs
+from services.outside_in.bodies import load_bodies
+from services.outside_in.rigfile import load_rig
+from services.outside_in.simulator import SimConfig, Simulation
+from services.outside_in.tracker import BodyEstimate, CameraFrame, OutsideInTracker
+
+log = logging.getLogger("uma.outside_in")
+#: a camera silent this long is not waited for when a frame set is complete
+LIVE_S = 0.5
+
+
+def calibration_version(path: str | Path) -> str:
+    """The rig file's version: the first 12 hex digits of its SHA-256."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+    except OSError as exc:
+        raise UmaError(f"rig file {path}: cannot be read ({exc})") from None
+
+
+# ------------------------------------------------------------------ marker cameras
+
+
+def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
+    cams, _, _ = load_rig(args.rig)
+    version = calibration_version(args.rig)
+    by_name = {c.name: i for i, c in enumerate(cams)}
+    names = args.camera or [n for n, _ in args.source]
+    if not names:
+        raise UmaError("say which cameras this process serves: --camera NAME (with --sim) or "
+                       "--source NAME=SOURCE")
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise UmaError(f"cameras {unknown} are not in the rig file {args.rig} "
+                       f"(it has {sorted(by_name)})")
+    sources = dict(args.source)
+    if args.sim is None and set(names) - set(sources):
+        raise UmaError(f"cameras {sorted(set(names) - set(sources))} need --source NAME=SOURCE "
+                       "(or --sim SEED)")
+    if not 0 < args.rate_hz <= 240:
+        raise UmaError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
+    sim = (Simulation(seed=args.sim, config=SimConfig(n_cameras=len(cams),
+                                                      rate_hz=args.rate_hz))
+           if args.sim is not None else None)
+    threads = []
+    with contextlib.ExitStack() as stack:
+        for name in names:
+            svc = stack.enter_context(Service(f"markers-{name}", realm=args.realm,
+                                              agent=args.agent, connect=args.connect,
+                                              listen=args.listen or None))
+            out = svc.ability("markers", type="markers2d",
+                              edge=(args.world, f"{args.site}/{name}"),
+                              frequency_hz=args.rate_hz, latency_s=0.01)
+            svc.start()
+            extra = {MARKERS_CAMERA: name, MARKERS_CALIBRATION: version}
+            frames = (_sim_frames(sim, by_name[name], stop, args.max_frames) if sim
+                      else _capture_frames(sources[name], stop, args.max_frames))
+            t = threading.Thread(target=_publish_frames, args=(frames, out, extra),
+                                 name=f"uma-markers-{name}", daemon=True)
+            t.start()
+            threads.append(t)
+        log.info("marker-camera: serving %s (calibration %s)", ", ".join(names), version)
+        while not stop.is_set() and any(t.is_alive() for t in threads):
+            stop.wait(0.2)
+        stop.set()
+        for t in threads:
+            t.join(timeout=5.0)
+    return 0
+
+
+def _publish_frames(frames, out, extra: dict) -> None:
+    for t_ns, image in frames:
+        blobs = find_blobs(image)
+        out.publish_measurement(Measurement(type="markers2d", t_ns=t_ns, points=blobs.uv,
+                                            values=blobs.std_px, extra=extra))
+
+
+def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames: int | None):
+    """The simulated camera's frames, paced by the wall clock: frame ``i`` is exposed at
+    ``i / rate`` seconds since the epoch (plus the camera's phase)."""
+    period_ns = round(1e9 / sim.config.rate_hz)
+    i = time.time_ns() // period_ns + 1
+    n = 0
+    while not stop.is_set() and (max_frames is None or n < max_frames):
+        frame = sim.render(camera, i)
+        t_ns = round(frame.t * 1e9)
+        wait = (t_ns - time.time_ns()) / 1e9
+        if wait > 0:
+            stop.wait(wait)
+        yield t_ns, frame.image
+        n += 1
+        i = max(i + 1, time.time_ns() // period_ns)   # a frame missed while busy is gone
+
+
+def _capture_frames(source: str, stop: threading.Event, max_frames: int | None):
+    with Capture(source, pace=True, gray=True, max_frames=max_frames) as cap:
+        for frame in cap.frames(stop):
+            yield frame.t_ns, frame.image
+
+
+# ------------------------------------------------------------------ reconstruction
+
+
+class Reconstruction:
+    """Gathers markers2d samples into frame sets and tracks the bodies (no I/O: the
+    service calls ``add`` from its dispatch thread and publishes what it returns)."""
+
+    def __init__(self, rig_path: str | Path, bodies_path: str | Path, site: str):
+        cams, _, _ = load_rig(rig_path)
+        self.version = calibration_version(rig_path)
+        self.bodies = load_bodies(bodies_path)
+        self.tracker = OutsideInTracker(cams, self.bodies)
+        self.index = {c.name: i for i, c in enumerate(cams)}
+        self.site = site
+        self.pending: dict[int, CameraFrame] = {}
+        self.last_seen: dict[int, float] = {}
+        self.last_t: dict[int, float] = {}
+        self.period: float | None = None   # the shortest frame period seen
+        self.refused = RateLimitedLog(log)
+        self.refused_count = 0
+        self.frame_sets = 0
+
+    def add(self, m: Measurement, now: float | None = None) -> list[BodyEstimate]:
+        """One camera's sample; the poses of the frame set it completed, if any."""
+        now = time.monotonic() if now is None else now
+        cam = self._camera(m)
+        if cam is None:
+            return []
+        self.last_seen[cam] = now
+        t = m.t_ns / 1e9
+        if cam in self.last_t and t > self.last_t[cam]:
+            self.period = min(self.period or np.inf, t - self.last_t[cam])
+        self.last_t[cam] = t
+        out: list[BodyEstimate] = []
+        # a camera's next frame, or a frame of a later exposure than the pending set's:
+        # the pending set is as complete as it gets
+        later = (self.period is not None and self.pending
+                 and t - min(f.t for f in self.pending.values()) > 0.5 * self.period)
+        if cam in self.pending or later:
+            out = self._flush()
+        n = len(m.points)
+        self.pending[cam] = CameraFrame(cam, t, Blobs(
+            m.points, m.values, np.zeros(n), np.zeros(n), np.ones(n)))
+        live = {c for c, t in self.last_seen.items() if now - t <= LIVE_S}
+        if live <= set(self.pending):
+            out += self._flush()
+        return out
+
+    def _flush(self) -> list[BodyEstimate]:
+        frames = list(self.pending.values())
+        self.pending = {}
+        self.frame_sets += 1
+        return self.tracker.process(frames)
+
+    def _camera(self, m: Measurement) -> int | None:
+        name = m.extra.get(MARKERS_CAMERA)
+        source = m.source or "?"
+        if name not in self.index:
+            self._refuse(source, f"camera {name!r} is not in the rig")
+            return None
+        if m.extra.get(MARKERS_CALIBRATION) != self.version:
+            self._refuse(source, f"calibration {m.extra.get(MARKERS_CALIBRATION)!r} is not "
+                                 f"the rig file's {self.version}")
+            return None
+        return self.index[name]
+
+    def _refuse(self, source: str, reason: str) -> None:
+        self.refused_count += 1
+        self.refused.warning(source, f"markers2d refused: {reason}")
+
+
+def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
+    rec = Reconstruction(args.rig, args.bodies, args.site)
+    lock = threading.Lock()
+    with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
+                 listen=args.listen or None) as svc:
+        outs = {b.name: svc.ability(b.name, type="pose6d",
+                                    edge=(args.world, f"{args.site}/{b.name}"),
+                                    frequency_hz=args.rate_hz, latency_s=0.03,
+                                    pos_std_m=0.0005, rot_std_rad=0.002)
+                for b in rec.bodies}
+
+        def on_sample(m: Measurement) -> None:
+            with lock:
+                estimates = rec.add(m)
+            for e in estimates:
+                outs[e.body].publish(round(e.t * 1e9), e.p, e.q, e.cov_se3)
+
+        svc.need("markers", type="markers2d", edge=(args.world, f"{args.site}/*"),
+                 min_count=2, max_count=16, on_sample=on_sample)
+        svc.start()
+        log.info("outside-in: tracking %s with %d cameras (calibration %s)",
+                 ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
+        while not stop.wait(5.0):
+            log.info("outside-in: %d frame sets, %s, %d samples refused", rec.frame_sets,
+                     dict(rec.tracker.counts), rec.refused_count)
+    return 0
