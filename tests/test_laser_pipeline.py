@@ -24,6 +24,9 @@ from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, Tr
 from services.sim import mounts
 from services.sim.world import IvyWorld, sim_time_s
 
+# its module fixture is costly: every test of it on one worker
+pytestmark = pytest.mark.xdist_group("test_laser_pipeline")
+
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:

@@ -42,6 +42,9 @@ from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import SensorModel
 from services.sim.world import IvyWorld, WorldConfig
 
+# its module fixture is costly: every test of it on one worker
+pytestmark = pytest.mark.xdist_group("test_laser_units")
+
 RNG_SEED = 1234
 
 

@@ -15,6 +15,9 @@ from services.sim.render import checkerboard, render_plane_pattern
 from services.sim.trajectory import CUBE_SIDE_M
 from services.sim.world import IvyWorld, WorldConfig
 
+# its module fixture is costly: every test of it on one worker
+pytestmark = pytest.mark.xdist_group("test_sim_world")
+
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:

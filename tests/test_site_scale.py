@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 
+import pytest
 from agent_helpers import scale
 
 AGENTS, SERVICES_PER_AGENT = 20, 10
@@ -16,6 +17,7 @@ AGENTS, SERVICES_PER_AGENT = 20, 10
 RATE_HZ = 2.0
 
 
+@pytest.mark.slow
 def test_twenty_hosts_form_one_realm_that_lists_all_services(site, realm) -> None:
     s = site(AGENTS + 1)  # the last host runs only the client
     started = time.monotonic()

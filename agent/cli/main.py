@@ -15,7 +15,7 @@ import os
 import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
-from typing import Any
+from typing import Any, NoReturn
 
 from agent.cli import seeds
 from agent.errors import UmaError
@@ -314,4 +314,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"uma {args.command}: internal error: {type(exc).__name__}: {exc} "
               "(set UMA_DEBUG=1 for the traceback)", file=sys.stderr)
         return 1
+
+
+def run() -> NoReturn:
+    """The ``uma`` executable: :func:`main`, then the process ends without Python's
+    finalization.  Zenoh's native threads may still deliver a callback after ``main``
+    returns (a session that could not close in time ends with the process); one that
+    meets a finalizing interpreter aborts the whole process ("FATAL: exception not
+    rethrown") and turns a clean exit into SIGABRT."""
+    try:
+        code = main()
+    except SystemExit as stop:  # argparse's errors and --help
+        if stop.code is not None and not isinstance(stop.code, int):
+            print(stop.code, file=sys.stderr)
+        code = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing left to say
+            pass
+    os._exit(code)
 
