@@ -8,6 +8,7 @@ Exit codes: 0 success, 1 failure (a clear message on stderr), 2 bad arguments.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -330,9 +331,7 @@ def run() -> NoReturn:
         code = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
-        try:
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing left to say
             stream.flush()
-        except (OSError, ValueError):  # a closed pipe: nothing left to say
-            pass
     os._exit(code)
 
