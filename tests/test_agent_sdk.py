@@ -251,8 +251,8 @@ def test_a_registration_whose_answer_was_lost_is_retried_until_it_holds(monkeypa
     as a 20-host site that listed 197 of 200 services.)"""
     from agent.daemon import realm_view
     from agent.daemon import registrar as registrar_module
-    from agent.sdk import service as service_module
-    monkeypatch.setattr(service_module, "REGISTER_TIMEOUT_S", 0.3)
+    from agent.sdk import presence as presence_module
+    monkeypatch.setattr(presence_module, "REGISTER_TIMEOUT_S", 0.3)
     monkeypatch.setattr(realm_view, "PENDING_TIMEOUT_S", 1.0)
     accept = registrar_module.Registrar._accept
     slow = [True]

@@ -50,11 +50,12 @@ class Realm:
     def publish(self):
         frames = {n: set(node.graph.frames()) for n, node in self.nodes.items()}
         for name, node in self.nodes.items():
-            node._remote_frames = {o: f for o, f in frames.items() if o != name}
-            node._republish_if_changed()
+            node.peers.frames = {o: f for o, f in frames.items() if o != name}
+            node.publisher.republish_if_changed()
             self.client.tracker._on_token(SimpleNamespace(key_expr=f"uma/lab/agent/{name}",
                                                           kind=zenoh.SampleKind.PUT))
-            self.client.tracker.take_summary(f"uma/lab/agent/{name}/supernode", node._summary)
+            self.client.tracker.take_summary(f"uma/lab/agent/{name}/supernode",
+                                             node.publisher.summary)
         self.client.tracker._looked = True
 
     def ask(self, request, agents=()):
@@ -208,7 +209,7 @@ def test_a_summary_the_client_missed_is_fetched_when_the_pair_looks_unreachable(
     never sent again: an unreachable pair makes the client ask every agent for its summary
     before giving up."""
     c = realm_ab.client
-    fresh = realm_ab.nodes["B"]._summary
+    fresh = realm_ab.nodes["B"].publisher.summary
     stale = decode_message(fresh)
     stale.update(rev=stale["rev"] - 1, links=[], boundary=[])
     c.tracker._summaries["B"] = parse_summary(stale)
@@ -255,7 +256,7 @@ def test_an_agent_that_restarts_while_it_is_asked_is_not_marked_gone(realm_ab):
     summary: a query that reached it in between goes unanswered.  Its new summary, come in
     meanwhile, says it is back; the missed answer must not mark it gone after that."""
     c = realm_ab.client
-    restarted = decode_message(realm_ab.nodes["B"]._summary)
+    restarted = decode_message(realm_ab.nodes["B"].publisher.summary)
     restarted.update(instance="new-instance", rev=0)
     _silent(realm_ab, "B", lambda: c.tracker.take_summary("uma/lab/agent/B/supernode",
                                                    encode_message(restarted)))
@@ -278,7 +279,7 @@ def test_an_agent_that_missed_an_answer_is_not_asked_until_it_shows_life(realm_a
     with pytest.raises(RouteError, match="agent\\(s\\) B left the realm"):
         c.pose("w", "head", error="hops")
     assert len(realm_ab.asked) == asked
-    c.tracker.take_summary("uma/lab/agent/B/supernode", realm_ab.nodes["B"]._summary)
+    c.tracker.take_summary("uma/lab/agent/B/supernode", realm_ab.nodes["B"].publisher.summary)
     assert c.pose("w", "head", error="hops").path == ["w", "cam", "rig", "head"]
 
 

@@ -177,10 +177,9 @@ class _Recorder(Service):
         super().__init__("fusion", realm="lab", agent="hostA")
         self.need("head", type="pose6d", edge=("ivy/world", "*/head"))
         self.applied: list[tuple[str, ...]] = []
-        self._token = object()  # as if declared: the test has no session
-
-    def _apply(self, need, matches, satisfied) -> None:
-        self.applied.append(tuple(m.key for m in matches))
+        self.presence.token = object()  # as if declared: the test has no session
+        self.links.apply = lambda need, matches, satisfied: self.applied.append(
+            tuple(m.key for m in matches))
 
 
 def test_control_needs_the_key_the_epoch_and_the_next_seq() -> None:
@@ -188,18 +187,18 @@ def test_control_needs_the_key_the_epoch_and_the_next_seq() -> None:
     m = Match(keys.data("lab", "hostB", "cam", "pose"), "hostB", "cam", "pose", "pose6d",
               None, {})
     # before the register reply: kept, applied once the reply gives the key
-    svc._on_control(control_message(key, 7, 1, "head", [m], True))
+    svc.control.on_control(control_message(key, 7, 1, "head", [m], True))
     assert svc.applied == [] and svc.control_refused == {"no key yet": 1}
-    svc._agent_present = True
-    svc._on_register_reply(0, reply_ok(7, key), True)
+    svc.presence.agent_present = True
+    svc.presence.on_register_reply(0, reply_ok(7, key), True)
     assert svc.applied == [(m.key,)]
-    svc._on_control(control_message(key, 8, 2, "head", [], True))         # another epoch
-    svc._on_control(control_message(key, 7, 2 + SEQ_WINDOW, "head", [], True))  # a jump
-    svc._on_control(control_message(bytes(16), 7, 2, "head", [], True))   # a wrong key
-    svc._on_control(control_message(key, 7, 1, "head", [], True))         # a replay
+    svc.control.on_control(control_message(key, 8, 2, "head", [], True))         # another epoch
+    svc.control.on_control(control_message(key, 7, 2 + SEQ_WINDOW, "head", [], True))  # a jump
+    svc.control.on_control(control_message(bytes(16), 7, 2, "head", [], True))   # a wrong key
+    svc.control.on_control(control_message(key, 7, 1, "head", [], True))         # a replay
     assert svc.applied == [(m.key,)]
     assert svc.control_refused == {"no key yet": 1, "epoch": 1, "seq": 1, "signature": 1}
-    svc._on_control(control_message(key, 7, 5, "head", [], False))  # a few lost: fine
+    svc.control.on_control(control_message(key, 7, 5, "head", [], False))  # a few lost: fine
     assert svc.applied == [(m.key,), ()]
     svc.close()
 

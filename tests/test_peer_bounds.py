@@ -65,8 +65,8 @@ def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch
     """20,000 queries with distinct error texts kept 133 MB (plans and answers never
     evicted).  Both caches are least-recently-used with a count limit now; the test uses
     limits of 50 to stay fast, and checks memory does not grow with more queries."""
-    from agent.daemon import srg_node
-    monkeypatch.setattr(srg_node, "MAX_ANSWERS", 50)
+    from agent.daemon import query_server
+    monkeypatch.setattr(query_server, "MAX_ANSWERS", 50)
     n = _static_node()
     n.graph.max_plans = 50
     n.handle({"op": "segment", "source": "rig", "target": "w", "error": "hops"})
@@ -79,7 +79,7 @@ def test_queries_with_distinct_error_expressions_keep_bounded_caches(monkeypatch
     flood(0, 100)
     rss = _rss_kib()
     flood(100, 500)
-    assert len(n.graph._plans) == 50 and len(n._answers) == 50
+    assert len(n.graph._plans) == 50 and len(n.queries.answers) == 50
     assert n.graph.plans_evicted == 601 - 50 and n.answers_evicted == 601 - 50
     plans_indexed = set().union(*n.graph._plans_by_frame.values())
     assert plans_indexed == set(n.graph._plans), "the frame index holds exactly the cache"
@@ -105,19 +105,19 @@ def test_the_most_recently_used_plan_survives_eviction() -> None:
 
 
 def test_summaries_from_too_many_agents_are_refused_and_counted(monkeypatch) -> None:
-    from agent.daemon import srg_node
+    from agent.daemon import peer_frames
     from schemas.codec import encode_message
-    monkeypatch.setattr(srg_node, "MAX_REMOTE_AGENTS", 50)
+    monkeypatch.setattr(peer_frames, "MAX_REMOTE_AGENTS", 50)
     n = _static_node()
     for i in range(300):
-        n._learn(f"uma/lab/agent/x{i}/supernode",
+        n.peers.learn(f"uma/lab/agent/x{i}/supernode",
                  encode_message({"agent": f"x{i}", "frames": [f"f{i}"]}))
-    n._learn("uma/lab/agent/big/supernode",
+    n.peers.learn("uma/lab/agent/big/supernode",
              encode_message({"agent": "x1", "frames": [f"f{i}" for i in range(5000)]}))
-    assert len(n._remote_frames) == 50 and n.summaries_refused == 251
-    assert n._remote_frames["x1"] == {"f1"}
-    n._learn("uma/lab/agent/x1/supernode", encode_message({"agent": "x1", "frames": ["g"]}))
-    assert n._remote_frames["x1"] == {"g"}, "a known agent's summary still replaces its own"
+    assert len(n.peers.frames) == 50 and n.summaries_refused == 251
+    assert n.peers.frames["x1"] == {"f1"}
+    n.peers.learn("uma/lab/agent/x1/supernode", encode_message({"agent": "x1", "frames": ["g"]}))
+    assert n.peers.frames["x1"] == {"g"}, "a known agent's summary still replaces its own"
 
 
 def test_a_flooded_worker_refuses_and_counts_instead_of_growing(caplog) -> None:
@@ -246,13 +246,13 @@ def test_an_oversized_summary_is_refused_before_it_is_copied(caplog) -> None:
     tracemalloc.start()
     try:
         with caplog.at_level(logging.WARNING, logger="uma.srg"):
-            n._on_summary(sample)
+            n.peers.on_summary(sample)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
     assert peak < 1 << 20, f"{peak} bytes allocated for a refused 8 MiB summary"
     assert "exceeds the limit" in caplog.records[-1].getMessage()
-    assert n._remote_frames == {}
+    assert n.peers.frames == {}
 
 
 def _summary(agent: str, frames: list[str], links: list[tuple[str, str]]):

@@ -154,7 +154,7 @@ def test_node_turns_query_failures_into_error_replies(node):
         q = mock.MagicMock()
         q.payload.to_bytes.return_value = payload
         q.reply.side_effect = lambda key, data: replies.append(decode_message(data))
-        node._on_query(q)
+        node.queries.on_query(q)
     assert [r["ok"] for r in replies] == [False, False]
     assert "unknown frame 'nowhere'" in replies[1]["error"]
     assert all(isinstance(r["t2"], int) and r["t3"] >= r["t2"] for r in replies)

@@ -35,13 +35,13 @@ def flap(svc, gap_s: float, with_queryable: bool) -> None:
     assert len(queryables) == 1, svc._decls
     if with_queryable:  # first, so that the agent's check finds nobody
         queryables[0].undeclare()
-    svc._token.undeclare()
+    svc.presence.token.undeclare()
     time.sleep(gap_s)
     if with_queryable:
         fresh = svc.session.declare_queryable(
-            key, lambda q: svc._enqueue(svc._on_descriptor_query, q))
+            key, lambda q: svc._enqueue(svc.presence.on_descriptor_query, q))
         svc._decls[svc._decls.index(queryables[0])] = fresh
-    svc._token = svc.session.liveliness().declare_token(key)
+    svc.presence.token = svc.session.liveliness().declare_token(key)
 
 
 def run_tracker(argv: list[str]) -> int:

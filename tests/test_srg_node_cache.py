@@ -29,11 +29,11 @@ def ask(n: SrgNode, t, source="rig", target="w"):
 def test_a_cached_static_answer_equals_a_fresh_one_at_every_time():
     n = node()
     first = ask(n, 5 * S)
-    assert [h[1] for h in n._answers.values()] == [None], "an all-static answer is cached"
+    assert [h[1] for h in n.queries.answers.values()] == [None], "an all-static answer is cached"
     for t in (5 * S, 7 * S + 3, None):
         with mock.patch.object(n, "now_ns", return_value=9 * S):
             cached = ask(n, t)
-            n._answers.clear()
+            n.queries.answers.clear()
             fresh = ask(n, t)
         assert cached == fresh
         assert cached["result"]["t_ns"] == (t if t is not None else 9 * S)
@@ -47,7 +47,7 @@ def test_changing_a_static_edge_drops_the_cached_answer():
     n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
     after = ask(n, S)["result"]["position"]
     assert not np.allclose(before, after)
-    n._answers.clear()
+    n.queries.answers.clear()
     assert ask(n, S)["result"]["position"] == after
 
 
@@ -57,7 +57,7 @@ def test_measured_and_detailed_answers_are_not_cached():
     ask(n, S, "w", "head")
     n.handle({"op": "segment", "source": "w", "target": "rig", "t": S, "error": "hops",
               "details": True})
-    assert not n._answers
+    assert not n.queries.answers
 
 
 def test_a_latest_answer_is_reused_only_until_the_next_sample():
@@ -72,7 +72,7 @@ def test_a_latest_answer_is_reused_only_until_the_next_sample():
     n.graph.add_static("cam", "rig", [0.0, 0.7, 0.0], [0.0, 0.0, 0.0, 1.0], source="config")
     third = ask(n, None, "w", "head")["result"]  # a changed edge: computed again
     assert third["t_ns"] == 2 * S and third["position"] != second["position"]
-    n._answers.clear()
+    n.queries.answers.clear()
     assert ask(n, None, "w", "head")["result"] == third
 
 
@@ -81,9 +81,9 @@ def test_summaries_are_asked_for_again_periodically(monkeypatch):
     again: the worker asks every agent for its summary every RESYNC_S."""
     import time
 
-    from agent.daemon import srg_node
+    from agent.daemon import peer_frames
 
-    monkeypatch.setattr(srg_node, "RESYNC_S", 0.05)
+    monkeypatch.setattr(peer_frames, "RESYNC_S", 0.05)
     n = node()
     try:
         deadline = time.monotonic() + 5.0
@@ -104,13 +104,13 @@ def test_a_summary_every_receiver_would_refuse_is_reported_by_its_agent(caplog):
     n = node()
     for i in range(12):
         n.graph.add_static("rig", f"tool{i}", [0.0, 0.0, 0.1 * i], [0.0, 0.0, 0.0, 1.0])
-    n._remote_frames["B"] = {"w", "cam", "rig"}  # shared with agent B: 15 x 3 - 6 links
+    n.peers.frames["B"] = {"w", "cam", "rig"}  # shared with agent B: 15 x 3 - 6 links
     with mock.patch("agent.protocol.query.MAX_SUMMARY_FRAMES", 20), caplog.at_level("WARNING"):
-        n._republish_if_changed()
+        n.publisher.republish_if_changed()
     assert "has 15 frames and 39 links (frames x 3 boundary frames)" in caplog.text
     assert "receivers refuse more than 20" in caplog.text
     caplog.clear()
     n.graph.add_static("rig", "tool99", [0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0])
     with caplog.at_level("WARNING"):  # within the limit: nothing to say
-        n._republish_if_changed()
+        n.publisher.republish_if_changed()
     assert "receivers refuse" not in caplog.text
