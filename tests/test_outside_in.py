@@ -287,3 +287,39 @@ def test_eval_outside_in_meets_its_goals_on_a_seed() -> None:
     assert f["uma_2cam_rig"]["orientation_rmse_deg"] <= 0.3
     assert f["ratio_position_3plus"] <= 0.5 and f["ratio_orientation_3plus"] <= 0.5
     assert f["identity_swaps"] == 0 and f["poses_from_fewer_than_two_cameras"] == 0
+
+
+def test_readme_example_runs() -> None:
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S)
+                if "OutsideInTracker(" in b]
+    done = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert {"head", "wand", "hand"} <= {line.split()[0] for line in done.stdout.splitlines()}
+
+
+@pytest.mark.slow
+def test_a_bumped_camera_is_noticed_and_re_estimated() -> None:
+    from services.outside_in.evaluate import bumped
+    from services.outside_in.health import HealthParams
+    from services.outside_in.tracker import TrackerParams
+    sim = Simulation(seed=2, config=SimConfig(n_cameras=5))
+    calibrated = list(sim.cameras)
+    params = TrackerParams(health=HealthParams(window=15, min_expected=20,
+                                               correspondences=120))
+    tracker = OutsideInTracker(calibrated, sim.bodies, params)
+    for i in range(75):
+        if i == 20:
+            sim.cameras[3] = bumped(sim.cameras[3], 0.5)
+        frames = [sim.render(c, i) for c in range(5)]
+        tracker.process([CameraFrame(c, f.t, find_blobs(f.image)) for c, f in enumerate(frames)])
+    events = [(e["camera"], e["event"]) for e in tracker.health.events]
+    assert events[:2] == [("cam3", "disagrees"), ("cam3", "re-estimated")], events
+    new = tracker.cameras[3]
+    assert np.degrees(geo.quat_angle(new.quaternion, sim.cameras[3].quaternion)) < 0.05
+    assert np.degrees(geo.quat_angle(calibrated[3].quaternion, sim.cameras[3].quaternion)) > 0.4

@@ -39,7 +39,7 @@ class BlobParams:
     dark_level: float = 8.0       # DN of a dark pixel
     read_noise: float = 2.0       # DN, std of a dark pixel
     gain: float = 0.15            # DN per electron: shot noise variance = gain * signal
-    floor_px: float = 0.03        # centroid error floor (pixel sampling, blob shape)
+    floor_px: float = 0.022       # centroid error floor (pixel sampling, blob shape)
 
     def __post_init__(self) -> None:
         if not 0 < self.threshold < 255:

@@ -17,6 +17,10 @@ each).  Every frame set is rendered, its blobs found, and then:
   marker (the nearest blob within 1 px of each marker's true image), so its errors are
   its geometry's alone, never a wrong correspondence.
 
+With ``--bump-deg`` camera 3 is turned half-way through (its calibration kept): the run
+says when the tracker noticed (``health``) and re-estimated it, and how far the new pose
+is from the truth.
+
 Figures: position and orientation RMSE per case, uma / OpenCV ratios, mean NEES against
 its 95 % band (``services.consistency``), identity swaps (a body's pose nearer another
 body's truth than its own), poses further than 2 cm or 2 deg (wrong), poses from fewer than
@@ -55,6 +59,8 @@ WRONG_M = 0.02
 WRONG_RAD = np.radians(2.0)
 #: the cameras of the two-camera rig
 PAIR = (1, 2)
+#: the camera ``--bump-deg`` turns
+BUMPED = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,6 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-hz", type=float, default=120.0,
                         help="camera frame rate (default 120); about 0.1 s of computing per "
                              "frame set here: --seconds 3 is a quick look")
+    parser.add_argument("--bump-deg", type=float, default=0.0, metavar="DEG",
+                        help="turn camera 3 by this much half-way through the run (the "
+                             "tracker keeps its calibration): when it is noticed and "
+                             "re-estimated, and how far the new pose is from the truth")
     parser.add_argument("--unsynchronized", action="store_true",
                         help="every camera exposes at its own phase within the frame period "
                              "(cheap cameras without a sync cable)")
@@ -96,16 +106,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
     sim = Simulation(seed=args.seed, config=SimConfig(
         n_cameras=args.cameras, rate_hz=args.rate_hz, synchronized=not args.unsynchronized))
-    return evaluate(sim, args.seconds)
+    return evaluate(sim, args.seconds, bump_deg=args.bump_deg)
 
 
-def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = None
-             ) -> dict[str, Any]:
+def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = None,
+             bump_deg: float = 0.0) -> dict[str, Any]:
     n = max(round(seconds * sim.config.rate_hz), 1)
+    bump_at = n // 2 if bump_deg else None
     hide_from = round(0.4 * n)
     hide_to = hide_from + round(min(2.0, 0.3 * seconds) * sim.config.rate_hz)
-    pair_cams = [sim.cameras[c] for c in PAIR]
-    full = OutsideInTracker(sim.cameras, sim.bodies, params)
+    calibrated = list(sim.cameras)      # what the trackers and the baseline were told
+    pair_cams = [calibrated[c] for c in PAIR]
+    full = OutsideInTracker(calibrated, sim.bodies, params)
     pair = OutsideInTracker(pair_cams, sim.bodies, params)
     cases = {k: _Case() for k in ("uma_3plus", "uma_2", "uma_2cam_rig", "opencv_3plus",
                                   "opencv_2cam_rig")}
@@ -114,6 +126,8 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
     t_track, t_detect = [], []
     for i in range(n):
         sim.hidden = {0} if hide_from <= i < hide_to else set()
+        if i == bump_at:
+            sim.cameras[BUMPED] = bumped(sim.cameras[BUMPED], bump_deg)
         frames = [sim.render(c, i) for c in range(len(sim.cameras))]
         t0 = time.perf_counter()
         blobs = [find_blobs(f.image) for f in frames]
@@ -135,7 +149,7 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
         for e in est_pair:
             _score(sim, e, cases["uma_2cam_rig"])
         for k, body in enumerate(sim.bodies):
-            for cams, idx, case in ((sim.cameras, range(len(sim.cameras)), "opencv_3plus"),
+            for cams, idx, case in ((calibrated, range(len(sim.cameras)), "opencv_3plus"),
                                     (pair_cams, PAIR, "opencv_2cam_rig")):
                 got = opencv_baseline(cams, [frames[c] for c in idx], [blobs[c] for c in idx],
                                       k, body)
@@ -158,6 +172,8 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
         "tracker_ms_per_frame_set_p99": round(1e3 * float(np.percentile(t_track, 99)), 3),
         "counts": dict(full.counts),
     }
+    if bump_at is not None:
+        figures["bump"] = bump_figures(full, sim, bump_at / sim.config.rate_hz, bump_deg)
     for rig, ours, theirs in (("3plus", "uma_3plus", "opencv_3plus"),
                               ("2cam_rig", "uma_2cam_rig", "opencv_2cam_rig")):
         a, b = figures[ours], figures[theirs]
@@ -165,6 +181,33 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
             if a.get(what) and b.get(what):
                 figures[f"ratio_{what.split('_')[0]}_{rig}"] = round(a[what] / b[what], 4)
     return figures
+
+
+def bumped(cam: RigCamera, deg: float) -> RigCamera:
+    """The camera turned by ``deg`` about an axis across its view (a knock on its mount)."""
+    turn = geo.rotvec_to_quat(np.radians(deg) * geo.quat_rotate(cam.quaternion, [0.6, 0.8, 0]))
+    return cam.moved(cam.position, geo.quat_multiply(turn, cam.quaternion))
+
+
+def bump_figures(tracker: OutsideInTracker, sim: Simulation, t_bump: float,
+                 deg: float) -> dict[str, Any]:
+    """When the bumped camera was noticed and re-estimated, and the new pose's error."""
+    name = sim.cameras[BUMPED].name
+    ev = {e["event"]: e["t"] for e in tracker.health.events if e["camera"] == name}
+    others = [e for e in tracker.health.events if e["camera"] != name]
+    est = tracker.cameras[BUMPED]
+    truth = sim.cameras[BUMPED]
+    out: dict[str, Any] = {"camera": name, "turned_deg": deg, "at_s": round(t_bump, 3),
+                           "false_alarms": len(others)}
+    if "disagrees" in ev:
+        out["detected_after_s"] = round(ev["disagrees"] - t_bump, 3)
+    if "re-estimated" in ev:
+        out["reestimated_after_s"] = round(ev["re-estimated"] - t_bump, 3)
+        out["reestimated_rot_error_deg"] = round(float(np.degrees(
+            geo.quat_angle(est.quaternion, truth.quaternion))), 4)
+        out["reestimated_pos_error_mm"] = round(
+            float(np.linalg.norm(est.position - truth.position)) * 1e3, 3)
+    return out
 
 
 def _seeable(frames: list[Frame], body: int, n_markers: int) -> bool:

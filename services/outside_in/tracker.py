@@ -28,6 +28,7 @@ import numpy as np
 from agent import geometry as geo
 from services.outside_in.blobs import Blobs
 from services.outside_in.bodies import RigidBody, identify
+from services.outside_in.health import HealthParams, RigHealth
 from services.outside_in.motion import MotionConfig, MotionFilter
 from services.outside_in.pose import (
     Motion,
@@ -61,6 +62,7 @@ class TrackerParams:
     outlier_px: float = 0.4               # an observation further from the fit is dropped
     max_rms_px: float = 1.0               # a fit with a larger rms is refused
     lost_after: int = 5                   # frame sets without a pose before a new search
+    health: HealthParams = field(default_factory=HealthParams)
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,7 @@ class OutsideInTracker:
         self.tracks = [_Track(b, MotionFilter(self.params.motion)) for b in bodies]
         self.counts = {"tracked": 0, "acquired": 0, "refused_fit": 0, "refused_filter": 0,
                        "ambiguous_blobs": 0}
+        self.health = RigHealth(len(self.cameras), self.params.health)
 
     def process(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
         """Poses of the bodies found in one set of frames (one per camera at most)."""
@@ -127,7 +130,17 @@ class OutsideInTracker:
         if lost:
             out += self._acquire(lost, frames, norm, used, t_ref, done)
         self._miss_all(done)
+        self._check_cameras(t_ref, frames, out)
         return out
+
+    def _check_cameras(self, t: float, frames: list[CameraFrame],
+                       out: list[BodyEstimate]) -> None:
+        """Feed the rig's health and put re-estimated cameras in place (``health``)."""
+        markers = {tr.body.name: tr.body.markers for tr in self.tracks}
+        poses = [(e.fit.p, e.fit.R, markers[e.body], e.blobs) for e in out if not e.acquired]
+        for c, cam in self.health.observe(t, self.cameras, {f.camera: f.blobs.uv
+                                                            for f in frames}, poses):
+            self.cameras[c] = cam
 
     # ---------------------------------------------------------------- association
 
