@@ -170,6 +170,27 @@ def test_a_forged_snapshot_epoch_does_not_freeze_the_realm(processes, realm) -> 
     consumer.wait_for(lambda e: first_from(e, "cam"))
 
 
+def test_a_forged_snapshot_revision_jump_is_confirmed_first(processes, realm) -> None:
+    """A snapshot of hostB under its real epoch, 5,000 revisions ahead and with no services,
+    would take hostB's camera from hostA's matching until hostB's own revisions caught up
+    (for good when they counted one per change); it is more than the time passed allows,
+    so hostA asks hostB, which answers with its camera."""
+    ea, eb = endpoint(free_port()), endpoint(free_port())
+    host_a = agent(processes, realm, "hostA", ea)
+    agent(processes, realm, "hostB", eb, connect=(ea,))
+    consumer = service(processes, realm, "fusion", "hostA", ea, "--need", "head")
+    service(processes, realm, "cam", "hostB", eb, *PRODUCER)
+    consumer.wait_for(lambda e: first_from(e, "cam"))
+    with open_session(connect=[ea]) as s:
+        real = snapshot(s, realm, "hostB")
+        s.put(keys.agent_services(realm, "hostB"), snapshot_message(
+            real.info, real.epoch, real.revision + 5000, []))
+        host_a.wait_log("is not the agent's current run; asking it")
+    mark = consumer.mark
+    counts_grow(consumer, "cam")
+    assert not any(e.get("event") == "match" and not e["keys"] for e in consumer.events[mark:])
+
+
 class _Recorder(Service):
     """A Service whose control handling is driven by the test (no session)."""
 

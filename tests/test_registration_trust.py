@@ -19,7 +19,7 @@ from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.protocol import keys
-from agent.protocol.registration import Match, control_message, register_request
+from agent.protocol.registration import Match, control_message, register_request, reply_error
 from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
@@ -222,3 +222,26 @@ def test_a_forged_seq_jump_holds_the_agents_messages_back_briefly(site, consumer
         cam2.ability("pose", type="pose6d", edge=("ivy/world", "bob/head"), frequency_hz=50)
         cam2.start()
         consumer.wait_matched("head", 2, timeout=4)
+
+
+def test_a_strangers_refusal_does_not_make_a_service_give_up(site, realm) -> None:
+    """A process answering every registration with a final refusal, next to the agent: a
+    new service registers anyway, and keeps registering its changes."""
+    ep, agent, _ = site
+
+    def refuse(query) -> None:
+        query.reply_err(reply_error("duplicate service id: another process runs it"))
+        query.drop()
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        liar = s.declare_queryable(keys.agent_register(realm, "hostA"), refuse)
+        time.sleep(0.3)  # the queryable reaches the agent's session
+        with Service("cam2", realm=realm, agent="hostA", connect=[ep]) as cam2:
+            out = cam2.ability("pose", type="pose6d", edge=("ivy/world", "bob/head"))
+            cam2.start()
+            assert cam2.wait_registered(5) and cam2.error is None, cam2.error
+            out.update(frequency_hz=42)
+            assert cam2.wait_registered(5) and cam2.error is None, cam2.error
+            poll(lambda: agent.view.local["cam2"].descriptor.abilities[0]
+                 .attributes.frequency_hz == 42, 10, "the update registered")
+        liar.undeclare()

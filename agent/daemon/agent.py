@@ -545,7 +545,7 @@ class Agent:
         if not self._snapshot_dirty:
             return
         self._snapshot_dirty = False
-        self.revision += 1
+        self.revision = next_seq(self.revision, time.monotonic() - self._started_mono)
         assert self.session is not None
         self.session.put(keys.agent_services(self.realm, self.agent_id), self._snapshot(),
                          congestion_control=zenoh.CongestionControl.BLOCK)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, version
@@ -28,9 +29,11 @@ from agent.runtime.logs import RateLimitedLog
 from schemas.codec import encode_descriptor
 from schemas.models import AgentInfo, ServiceDescriptor
 
-#: how far ahead of the applied revision a published snapshot may be before it is confirmed
-#: with the agent (an agent publishes one revision per change of its services)
-MAX_REVISION_JUMP = 10_000
+#: how far a published snapshot's revision (its agent's milliseconds since it started,
+#: ``next_seq``) may run ahead of the applied one plus the milliseconds passed since it
+#: was applied before it is confirmed with the agent: a forged jump holds the agent's own
+#: snapshots back this long at most
+REVISION_SLACK_MS = 2000
 
 _log = RateLimitedLog(logging.getLogger("uma.agent"))
 
@@ -65,6 +68,8 @@ class RealmView:
         self.index = OfferIndex(on_refused=self._candidate_refused)
         self.local: dict[str, LocalService] = {}
         self.remote: dict[str, Snapshot] = {}
+        #: when each remote snapshot was applied (monotonic s)
+        self._applied_at: dict[str, float] = {}
         self.live_agents: set[str] = set()
         self.live_services: set[tuple[str, str]] = set()
         self._offered: dict[tuple[str, str], dict[str, Offer]] = {}
@@ -131,16 +136,22 @@ class RealmView:
             changed |= self.remove_local(service_id)
         return changed
 
-    def suspect(self, snap: Snapshot) -> bool:
+    def suspect(self, snap: Snapshot, now: float | None = None) -> bool:
         """Whether a published snapshot must be confirmed by asking its agent before it is
         applied: another epoch than the one its agent's token came with (an agent's epoch
         is fixed for its token's life; a forged far-future epoch would otherwise outrank
-        every real update), or a revision far ahead of the applied one."""
+        every real update), or a revision further ahead of the applied one than the time
+        passed since allows (``REVISION_SLACK_MS``)."""
         old = self.remote.get(snap.agent_id)
-        return old is not None and (snap.epoch != old.epoch
-                                    or snap.revision > old.revision + MAX_REVISION_JUMP)
+        if old is None:
+            return False
+        now = time.monotonic() if now is None else now
+        passed_ms = int((now - self._applied_at.get(snap.agent_id, now)) * 1000)
+        return (snap.epoch != old.epoch
+                or snap.revision > old.revision + passed_ms + REVISION_SLACK_MS)
 
-    def apply_snapshot(self, snap: Snapshot, confirmed: bool = False) -> bool:
+    def apply_snapshot(self, snap: Snapshot, confirmed: bool = False,
+                       now: float | None = None) -> bool:
         """Apply a remote agent's snapshot unless older than the one applied;
         ``confirmed`` (the agent's own answer to a fetch) may also change the epoch."""
         if snap.agent_id == self.agent_id or snap.agent_id not in self.live_agents:
@@ -150,6 +161,7 @@ class RealmView:
                 confirmed and snap.epoch != old.epoch):
             return False
         self.remote[snap.agent_id] = snap
+        self._applied_at[snap.agent_id] = time.monotonic() if now is None else now
         changed = False
         for sid in set(snap.services) | set(old.services if old else ()):
             changed |= self._sync(snap.agent_id, sid)
@@ -165,6 +177,7 @@ class RealmView:
         token does; the kept snapshot is marked older than any, so the agent's next one
         applies when it comes back."""
         self.live_agents.discard(agent_id)
+        self._applied_at.pop(agent_id, None)
         old = self.remote.pop(agent_id, None)
         if old is None:
             return False

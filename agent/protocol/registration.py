@@ -82,7 +82,10 @@ every ``RESEND_S`` with the next ``seq`` (anti-entropy, in case a put was lost).
   (AgentInfo), epoch, revision, services: [{descriptor, instance, matches, satisfied,
   excluded}]}`` of A's live local services with their current matches and measured
   rates.  A publishes it whenever it changes; a newcomer fetches it when A's token
-  appears.  Snapshots older than the last applied one (``(epoch, revision)``) are ignored.
+  appears.  Snapshots older than the last applied one (``(epoch, revision)``) are ignored;
+  ``revision`` is A's milliseconds since it started (:func:`next_seq`), so one further
+  ahead than the time passed since the last one applied (plus a slack) is confirmed by
+  asking A before it is applied.
 - Every agent also watches all service tokens ``uma/R/svc/*/*``: a killed remote service is
   dropped on its own token's DELETE, without waiting for its agent's next snapshot.  A
   remote ability is offered to matching only while its descriptor is known (snapshot) *and*

@@ -105,32 +105,52 @@ class Presence:
             revision = svc._revision
             desc = encode_descriptor(svc._descriptor_locked())
         self._registering = True
-        answered: list[bool] = []
+        answers: list[tuple[bytes, bool]] = []
 
         def on_reply(reply: zenoh.Reply) -> None:
-            answered.append(True)
-            ok, data = (True, reply.ok.payload.to_bytes()) if reply.ok is not None else (
-                False, reply.err.payload.to_bytes())
-            svc._enqueue(self.on_register_reply, revision, data, ok)
+            if reply.ok is not None:  # an acceptance is taken at once
+                data = reply.ok.payload.to_bytes()
+                if not answers or not answers[0][1]:
+                    svc._enqueue(self.on_register_reply, revision, data, True)
+                answers.insert(0, (data, True))
+            else:
+                answers.append((reply.err.payload.to_bytes(), False))
 
         def on_done() -> None:
-            svc._enqueue(self._on_register_done, bool(answered))
+            svc._enqueue(self._on_register_answers, revision, answers)
         svc.session.get(keys.agent_register(svc.realm, svc.agent_id),
                         zenoh.handlers.Callback(on_reply, on_done),
                         payload=register_request(desc, self.instance, revision,
                                                  self._connected(), svc.control.key,
                                                  self._challenge),
+                        consolidation=zenoh.ConsolidationMode.NONE,
                         timeout=REGISTER_TIMEOUT_S)
+
+    def _on_register_answers(self, revision: int, answers: list[tuple[bytes, bool]]) -> None:
+        """Every answer to one registration, once its get ended: an acceptance (taken when
+        it came) wins over refusals, and a temporary refusal over a final one, so one
+        process answering in the agent's place cannot make the service give up (any
+        process may declare a queryable on a plain realm; on a secured site only the
+        agent's host can)."""
+        self._registering = False
+        if not answers:
+            self._schedule_retry()
+            return
+        if answers[0][1]:
+            return
+        parsed = [(_parse_reply(data), data) for data, _ in answers]
+        for rank in (lambda r: r.renew, lambda r: r.retry, lambda r: True):
+            chosen = next((data for r, data in parsed if rank(r)), None)
+            if chosen is not None:
+                self.on_register_reply(revision, chosen, False)
+                return
 
     def _connected(self) -> dict[str, list[str]]:
         return {n.name: [m.key for m in n.matches] for n in self._svc._needs.values()}
 
     def on_register_reply(self, revision: int, data: bytes, ok_reply: bool) -> None:
         svc = self._svc
-        try:
-            reply = parse_reply(data)
-        except DecodeError as exc:
-            reply = RegisterReply(False, f"unreadable reply from agent ({exc})", True)
+        reply = _parse_reply(data)
         ok, error, retry = reply.ok, reply.error, reply.retry
         if reply.challenge is not None:
             self._challenge = reply.challenge
@@ -171,11 +191,6 @@ class Presence:
         log.info("service %s: agent %s holds this instance without its key; registering as "
                  "instance %s", svc.service_id, svc.agent_id, self.instance)
 
-    def _on_register_done(self, answered: bool) -> None:
-        self._registering = False
-        if not answered:
-            self._schedule_retry()
-
     def _schedule_retry(self) -> None:
         self._next_try = time.monotonic() + self._backoff
         self._backoff = min(RETRY_MAX_S, self._backoff * 2)
@@ -191,3 +206,11 @@ class Presence:
                                                          self._connected()))
         finally:
             query.drop()
+
+
+def _parse_reply(data: bytes) -> RegisterReply:
+    """A register reply; an unreadable one counts as a temporary refusal."""
+    try:
+        return parse_reply(data)
+    except DecodeError as exc:
+        return RegisterReply(False, f"unreadable reply from agent ({exc})", True)
