@@ -214,7 +214,8 @@ def test_control_needs_the_key_the_epoch_and_the_next_seq() -> None:
     svc.presence.on_register_reply(0, reply_ok(7, key), True)
     assert svc.applied == [(m.key,)]
     svc.control.on_control(control_message(key, 8, 2, "head", [], True))         # another epoch
-    svc.control.on_control(control_message(key, 7, 2 + SEQ_WINDOW, "head", [], True))  # a jump
+    svc.control.on_control(control_message(key, 7, 2 + SEQ_WINDOW + 60_000, "head", [],
+                                           True))  # a jump far beyond the time passed
     svc.control.on_control(control_message(bytes(16), 7, 2, "head", [], True))   # a wrong key
     svc.control.on_control(control_message(key, 7, 1, "head", [], True))         # a replay
     assert svc.applied == [(m.key,)]
