@@ -30,8 +30,9 @@ from summary import median_p99
 from agent import geometry as geo
 from services.accel_rig import simulator as accel_sim
 from services.fusion.ekf import FusionEKF
-from services.fusion.evaluate import accel_model, calibrated_accelerometers
+from services.fusion.evaluate import accel_model
 from services.fusion.state import MODEL_FLOOR
+from services.sim.calibrations import calibrated_accelerometers
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
 from services.sim.trajectory import HeadTrajectory
 

@@ -200,7 +200,7 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     fusion's optical update, ``dots`` or ``pose``)."""
     from agent import Client
     from agent.daemon import Agent, AgentSettings
-    from services.fusion.evaluate import accel_calibration_file, laser_calibration_file
+    from services.sim.calibrations import accel_calibration_file, laser_calibration_file
     from services.sim.trajectory import HeadTrajectory
     from services.sim.world import IvyWorld, sim_time_s
 

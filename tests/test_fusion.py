@@ -499,8 +499,8 @@ def _dots_message(t_ns, points, ids, std=1e-3, sys_std=5e-4):
 
 def test_live_fusion_in_dot_mode_drops_bad_dots_with_a_reason():
     from services.fusion.dots import display_walls
-    from services.sim.ivy import intersect_beam, make_walls
-    from services.sim.laser_housing import BEAM_DIRECTIONS
+    from services.installation.ivy import intersect_beam, make_walls
+    from services.installation.laser_housing import BEAM_DIRECTIONS
 
     walls = list(make_walls().values())
     live, (p, q), attrs, rest = _live_at_rest(walls)
@@ -626,7 +626,7 @@ def test_a_lagging_inertial_stream_stays_the_clock_and_a_stalled_one_is_bypassed
 
 
 def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
-    from services.sim.laser_housing import BEAM_DIRECTIONS
+    from services.installation.laser_housing import BEAM_DIRECTIONS
     from services.sim.world import IvyWorld
 
     world = IvyWorld(seed=3, ideal=True)  # the filter models the ideal housing

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
+from services.installation.laser_housing import LABELS
 from services.laser_camera.tracker import (
     LaserTracker,
     NoPose,
@@ -17,7 +18,6 @@ from services.laser_camera.tracker import (
     WorldDots,
     residual_chi2,
 )
-from services.sim.laser_housing import LABELS
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import IvyWorld
 

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
+from services.installation.ivy import intersect_beam, make_walls, on_active_area, screen_to_world
+from services.installation.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.laser_camera.detection import (
     DetectorParams,
     _component_stats,
@@ -37,8 +39,6 @@ from services.laser_camera.tracker import (
     WorldDots,
     _ScreenMap,
 )
-from services.sim.ivy import intersect_beam, make_walls, on_active_area, screen_to_world
-from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
 from services.sim.render import SensorModel
 from services.sim.world import IvyWorld, WorldConfig
 

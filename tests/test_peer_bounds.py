@@ -378,8 +378,8 @@ def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monk
     import pytest
 
     import services.laser_camera
-    from services.fusion import evaluate
     from services.laser_camera.calibration import FORMAT_VERSION, Calibration
+    from services.sim import calibrations
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     made = []
 
@@ -391,12 +391,12 @@ def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monk
         if json.loads(path.read_text()) != {"made": True}:
             Calibration.load(path)  # the real loader meets the wrong structure
     pkgs = (services.laser_camera,)
-    target = evaluate.cached_file("t", pkgs, load, make)
+    target = calibrations.cached_file("t", pkgs, load, make)
     for cameras in ([1], 1):  # AttributeError, TypeError from the loader before
         target.write_text(json.dumps({"format": "uma-laser-camera-calibration",
                                       "version": FORMAT_VERSION, "cameras": cameras}))
         with caplog.at_level(logging.WARNING, logger="uma.eval"):
-            assert evaluate.cached_file("t", pkgs, load, make) == target
+            assert calibrations.cached_file("t", pkgs, load, make) == target
         assert "'cameras' must be a list of maps" in caplog.records[-1].getMessage()
     assert len(made) == 3
     target.unlink()
@@ -405,10 +405,10 @@ def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monk
         path.write_text("half")
         raise KeyboardInterrupt
     with pytest.raises(KeyboardInterrupt):
-        evaluate.cached_file("t", pkgs, load, interrupted)
+        calibrations.cached_file("t", pkgs, load, interrupted)
     orphan = target.with_suffix(".999999999.tmp")  # a writer killed mid-write
     orphan.write_text("half")
-    evaluate.cached_file("t", pkgs, load, make)
+    calibrations.cached_file("t", pkgs, load, make)
     assert sorted(p.name for p in target.parent.iterdir()) == [target.name]
 
 

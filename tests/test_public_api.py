@@ -213,3 +213,29 @@ def test_plugin_declarations_import_no_zenoh_and_name_what_runs() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+def test_real_hardware_code_never_imports_the_simulator() -> None:
+    """The trackers that run on a real site (the laser tracker and its calibration, the dead
+    reckoner, the fusion) know the installation (``services.installation``), never the
+    simulator (``services.sim``), which is built on the installation model."""
+    import ast
+    from pathlib import Path
+
+    root = Path(agent.__file__).parent.parent / "services"
+    real = [*(root / "installation").glob("*.py"), root / "kinematics.py", root / "frames.py",
+            *(root / "laser_camera" / f"{m}.py" for m in ("tracker", "calibration", "pose",
+                                                           "homography", "detection")),
+            *(root / "accel_rig" / f"{m}.py" for m in ("integrator", "rig", "sensor",
+                                                        "calibration", "pose_rates")),
+            *(root / "fusion" / f"{m}.py" for m in ("dots", "service", "ekf", "state",
+                                                     "tracker", "measurements", "process"))]
+    offences = []
+    for path in real:
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module
+                     else [a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [])
+            offences += [f"{path.relative_to(root.parent)}:{node.lineno}: {n}" for n in names
+                         if n == "services.sim" or n.startswith("services.sim.")]
+    assert len(real) > 20 and offences == []

@@ -42,7 +42,7 @@ def uma(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
 def recorded(tmp_path_factory) -> Path:
     """5 s of the simulator (100 Hz) and the laser-dot tracker (30 Hz) recorded by ``uma
     record`` in its own process."""
-    from services.fusion.evaluate import laser_calibration_file
+    from services.sim.calibrations import laser_calibration_file
     from services.sim.world import IvyWorld
 
     calibration = laser_calibration_file(IvyWorld(seed=SEED), announce=False)
@@ -266,7 +266,7 @@ def test_recorded_demo_replays_deterministically(tmp_path) -> None:
     assert live["recording"]["error"] is None, live["recording"]
     assert live["recording"]["messages"] > 1000 and live["recording"]["dropped"] == 0
     # replayed as the demo's fusion ran: in dot mode, on the walls of the demo's calibration
-    from services.fusion.evaluate import laser_calibration_file
+    from services.sim.calibrations import laser_calibration_file
     from services.sim.world import IvyWorld
 
     walls = str(laser_calibration_file(IvyWorld(seed=1)))

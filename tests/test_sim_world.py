@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
+from services.installation.ivy import CUBE_SIDE_M, WALL_NAMES, make_walls
+from services.installation.laser_housing import LABELS
 from services.sim import mounts
-from services.sim.ivy import WALL_NAMES, make_walls
-from services.sim.laser_housing import LABELS
 from services.sim.render import checkerboard, render_plane_pattern
-from services.sim.trajectory import CUBE_SIDE_M
 from services.sim.world import IvyWorld, WorldConfig
 
 # its module fixture is costly: every test of it on one worker
@@ -160,7 +159,7 @@ def test_bad_poses_are_refused(world: IvyWorld) -> None:
 
 
 def test_installation_imperfections_are_applied_when_asked() -> None:
-    from services.sim.ivy import screen_displacement
+    from services.installation.ivy import screen_displacement
 
     ideal = IvyWorld(seed=2, ideal=True)
     rough = IvyWorld(seed=2, config=WorldConfig.ideal(housing_error_deg=0.2,

@@ -43,7 +43,7 @@ import numpy as np
 from agent import geometry as geo
 from services.accel_rig.sensor import Calibration
 from services.frames import GRAVITY
-from services.sim.trajectory import KinematicState
+from services.kinematics import KinematicState
 
 Array = np.ndarray
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
-from services.sim.trajectory import KinematicState
+from services.kinematics import KinematicState
 
 Array = np.ndarray
 

@@ -26,8 +26,8 @@ from agent import geometry as geo
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout, marvin_six_table_4_1
 from services.frames import GRAVITY
+from services.kinematics import KinematicState
 from services.sim.mounts import HEAD_TO_ACCEL_RIG
-from services.sim.trajectory import KinematicState
 
 Array = np.ndarray
 

@@ -47,9 +47,9 @@ from services.alignment.simulate import (
 from services.alignment.solvers import Pose
 from services.alignment.timesync import PoseSeries
 from services.consistency import shared_error_nees_figures
-from services.fusion.evaluate import laser_calibration
 from services.laser_camera.tracker import LaserTracker, TrackerParams
 from services.sim import mounts
+from services.sim.calibrations import laser_calibration
 from services.sim.world import IvyWorld
 
 #: the laser-dot tracker's frame rate in the trials (its eval's default; the thesis ran

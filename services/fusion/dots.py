@@ -26,10 +26,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from services.fusion.ekf import FusionEKF
+from services.installation.ivy import Wall
+from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.calibration import Calibration
 from services.laser_camera.tracker import LabeledDots
-from services.sim.ivy import Wall
-from services.sim.laser_housing import BEAM_DIRECTIONS
 
 
 def display_walls(calibration: Calibration) -> list[Wall]:

@@ -39,10 +39,8 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -52,7 +50,6 @@ from agent import Graph
 from agent import geometry as geo
 from agent.runtime import EvalPlugin
 from services import consistency, frames
-from services.accel_rig import calibration as accel_cal
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import (
     add_device_arguments,
@@ -64,6 +61,7 @@ from services.fusion.dots import display_walls, update_dots
 from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
+from services.sim.calibrations import calibrated_accelerometers, laser_calibration
 from services.sim.world import IvyWorld
 
 log = logging.getLogger("uma.eval")
@@ -98,128 +96,11 @@ def simulation_graph() -> Graph:
     return g
 
 
-def calibrated_accelerometers(rate_hz: float, seed: int,
-                               device: Any = None) -> tuple[Any, Any]:
-    """The simulated device (MARVIN's by default) and its calibration from six static
-    orientations (§4.4.2).
-
-    The calibration is handed the device's true noise model and latency and its true
-    accelerometer positions (see ``given_by_simulator``): it estimates biases, gains and
-    axes only, so the filter's noise and latency model is exact, as a real rig's is not.
-    """
-    device = device or accel_sim.default_device()
-    recordings = [
-        accel_cal.StaticRecording(
-            accel_sim.axis_down_quaternion(label),
-            accel_sim.simulate_static(accel_sim.axis_down_quaternion(label), 2.0, rate_hz,
-                                      seed=seed * 100 + i, sensor=device))
-        for i, label in enumerate(accel_cal.SIX_POSES)]
-    cal = accel_cal.calibrate(device.layout, recordings, rate_hz, device.noise_model(),
-                              device.latency_s(rate_hz))
-    return device, cal
-
-
 def accel_model(cal: Any, head_to_accel: tuple[np.ndarray, np.ndarray], rate_hz: float,
                 model_floor: float) -> AccelModel:
     """The filter's view of the calibrated accelerometers, moved into the head frame."""
     return AccelModel.from_layout(cal.layout.positions, cal.layout.axes, head_to_accel,
                                   cal.accel_var(rate_hz), cal.latency_s, model_floor)
-
-
-def laser_calibration(world: IvyWorld, cache: bool) -> Any:
-    """The laser tracker's calibration from the world's calibration images.
-
-    Calibrating takes ~20 s, so the result is cached on disk, keyed by a hash of the
-    simulator's and the tracker's source: a calibration made by other code is never reused.
-    """
-    from services.laser_camera.calibration import Calibration, calibrate_sim
-
-    if not cache:
-        return calibrate_sim(world)
-    return Calibration.load(laser_calibration_file(world))
-
-
-def laser_calibration_file(world: IvyWorld, announce: bool = False) -> Path:
-    """The cached calibration file of ``world``'s cameras, calibrating on a cache miss."""
-    import services.laser_camera
-    import services.sim
-    from services.laser_camera.calibration import Calibration, calibrate_sim
-
-    return cached_file(f"laser_calibration_{world.config.n_cameras}cam",
-                       (services.sim, services.laser_camera), Calibration.load,
-                       lambda path: calibrate_sim(world).save(path),
-                       "calibrating the simulated cameras once (about 20 s)" if announce else "")
-
-
-def accel_calibration_file(seed: int = 0, announce: bool = False) -> Path:
-    """The cached static calibration (§4.4.2) of the simulated accelerometer device."""
-    import services.accel_rig
-    from services.accel_rig.sensor import Calibration
-
-    return cached_file(f"accel_calibration_{seed}", (services.accel_rig,), Calibration.load,
-                       lambda path: calibrated_accelerometers(
-                           accel_sim.DEFAULT_RATE_HZ, seed)[1].save(path),
-                       "calibrating the simulated accelerometers once" if announce else "")
-
-
-def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
-                announce: str = "") -> Path:
-    """``~/.cache/uma/<name>_<hash>.json``, made by ``make(path)`` unless a file that
-    ``load`` accepts exists.  The hash covers the sources of ``packages``, so a file made by
-    other code is never reused; written atomically (concurrent runs are safe).
-
-    A file ``load`` cannot use, whatever is wrong with it (not JSON, another structure: a
-    loader may then fail with any error), is said and made again; a temporary file is
-    removed when ``make`` fails, and those left by processes that died are removed too."""
-    import hashlib
-
-    h = hashlib.sha1()
-    for pkg in packages:
-        for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
-            h.update(f.read_bytes())
-    path = _cache_dir() / f"{name}_{h.hexdigest()[:12]}.json"
-    if path.exists():
-        try:
-            load(path)
-            return path
-        except Exception as exc:  # a cache file we cannot use is made again, never fatal
-            log.warning("cached %s is unusable (%s: %s); making it again", path,
-                        type(exc).__name__, exc)
-            path.unlink(missing_ok=True)
-    if announce:
-        print(f"{announce}; cached in {path.parent}", flush=True)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_orphans(path)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    try:
-        make(tmp)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
-
-
-def _remove_orphans(path: Path) -> None:
-    """Remove ``path``'s temporary files whose writing process is gone (killed mid-write)."""
-    for tmp in path.parent.glob(f"{path.stem}.*.tmp"):
-        pid = tmp.suffixes[-2][1:] if len(tmp.suffixes) >= 2 else ""
-        if pid.isdigit() and not _running(int(pid)):
-            tmp.unlink(missing_ok=True)
-
-
-def _running(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)  # signal 0: only asks whether the process exists
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # exists, another user's
-    return True
-
-
-def _cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "uma"
 
 
 def gap_schedule(seconds: float, lengths: list[float]) -> list[tuple[float, float]]:

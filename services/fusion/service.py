@@ -55,9 +55,9 @@ from services.fusion.dots import load_walls, update_dots
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import AccelModel, FusionConfig
 from services.fusion.tracker import MAX_AHEAD_S, MAX_COAST_S, FusionTracker
+from services.installation.ivy import Wall
+from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.tracker import LabeledDots
-from services.sim.ivy import Wall
-from services.sim.laser_housing import BEAM_DIRECTIONS
 
 log = logging.getLogger("uma.fusion")
 

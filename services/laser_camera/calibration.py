@@ -29,14 +29,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.camera.model import undistort_points
+from services.installation.ivy import Wall
 from services.laser_camera.detection import DetectorParams
 from services.laser_camera.homography import (
     apply_homography,
     dlt_homography,
     homography_scale,
 )
-from services.sim.camera import undistort_points
-from services.sim.ivy import Wall
 
 FORMAT_VERSION = 1
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-4)

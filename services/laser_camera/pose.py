@@ -5,7 +5,7 @@ each other, all through P0):
 
 * P0 is the foot of the perpendicular from P3 on the line P1P2 (§5.3);
 * beam 3 points from P0 to P3; the normal ``n = P0P1 x P0P3`` points along beam 4;
-* in the rig frame of ``services.sim.laser_housing`` (beams +y, -y, -x, +z) the rig's x
+* in the rig frame of ``services.installation.laser_housing`` (beams +y, -y, -x, +z) the rig's x
   axis is ``-unit(P0P3)``, its z axis ``unit(n)`` and y = z x x.
 
 The labels are unknown: all 24 assignments are scored by eq. 5.6,

@@ -55,6 +55,7 @@ from itertools import combinations
 import numpy as np
 
 from agent import geometry as geo
+from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
 from services.laser_camera.pose import (
@@ -62,7 +63,6 @@ from services.laser_camera.pose import (
     candidate_poses,
     frames_from_points,
 )
-from services.sim.laser_housing import BEAM_DIRECTIONS
 
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from services.sim.camera import Camera
+from services.installation.camera import Camera
 
 _SUB = (np.arange(3) - 1) / 3.0  # 3x3 sub-pixel sample offsets
 

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from agent import geometry as geo
-from services.sim import mounts
-from services.sim.camera import Camera, place_camera
-from services.sim.ivy import (
+from services.installation.camera import Camera, place_camera
+from services.installation.ivy import (
+    CUBE_SIDE_M,
     SCREEN_SIDE_M,
     WALL_NAMES,
     BeamHit,
@@ -31,7 +31,8 @@ from services.sim.ivy import (
     intersect_beams,
     make_walls,
 )
-from services.sim.laser_housing import BEAM_DIRECTIONS, LABELS
+from services.installation.laser_housing import BEAM_DIRECTIONS, LABELS
+from services.sim import mounts
 from services.sim.projection import ProjectedContent
 from services.sim.render import (
     NoiseBank,
@@ -41,7 +42,7 @@ from services.sim.render import (
     checkerboard,
     render_plane_pattern,
 )
-from services.sim.trajectory import CUBE_SIDE_M, HeadTrajectory
+from services.sim.trajectory import HeadTrajectory
 
 #: overlap (m) of the two cameras sharing the floor or the ceiling in the 8-camera layout
 SPLIT_OVERLAP_M = 0.1

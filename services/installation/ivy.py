@@ -26,8 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.sim.trajectory import CUBE_SIDE_M
-
+CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (Hogue 2003, ch. 5)
 #: default active screen side: "the 2.29m screen" (Hogue 2003, §5.2) in the 2.44 m cube,
 #: leaving a 7.5 cm band of frame and seams at each edge
 SCREEN_SIDE_M = 2.29

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.camera.model import undistort_points
-from services.sim.ivy import Wall
+from services.installation.ivy import Wall
 
 IMAGE_WIDTH = 640
 IMAGE_HEIGHT = 480
