@@ -11,12 +11,14 @@ are the intersections of the four fitted lines:
    each, the image profile across the side (``cv2.remap``, bilinear), from half a module
    inside (the black border) to half a module outside (the white quiet zone);
 2. where the profile crosses the middle between its two ends: one sub-pixel edge point;
-3. the edge points undistorted (the lens bends straight sides), one line per side
-   (``cv2.fitLine``), adjacent lines intersected: the corners in *ideal* pixels of the
-   camera matrix, i.e. with the lens distortion already removed.
+3. the edge points undistorted (the lens bends straight sides), one least-squares line per
+   side (the points' principal axis, as ``cv2.fitLine`` with ``DIST_L2``, vectorised over
+   all markers), adjacent lines intersected: the corners in *ideal* pixels of the camera
+   matrix, i.e. with the lens distortion already removed.
 
-A side whose profile has too little contrast or no crossing keeps the detector's corners
-for that marker (undistorted likewise).
+A side with fewer than ``MIN_POINTS`` edge points (too little contrast, no crossing) is
+the line through its detected corners; a marker whose fitted corners land far from the
+detected ones keeps the detected ones (undistorted likewise).
 """
 
 from __future__ import annotations
@@ -77,30 +79,28 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     edge = base + (s * reach)[..., None] * normal[:, :, None, :]
     ideal = camera.undistort(np.where(good[..., None], edge, base).reshape(-1, 2),
                              pixels=True).reshape(edge.shape)
-    out = fallback.copy()
-    for i in range(len(quads)):
-        lines = [_side_line(ideal[i, j][good[i, j]], fallback[i, j], fallback[i, (j + 1) % 4])
-                 for j in range(4)]
-        corners = [_intersect(lines[(j - 1) % 4], lines[j]) for j in range(4)]
-        if all(c is not None for c in corners):
-            out[i] = np.array(corners)
-    return out
-
-
-def _side_line(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The line (vx, vy, x0, y0) through a side's edge points, or through its detected
-    corners ``a``, ``b`` when fewer than ``MIN_POINTS`` edge points were found."""
-    if len(points) < MIN_POINTS:
-        d = (b - a) / np.linalg.norm(b - a)
-        return np.concatenate([d, a])
-    return cv2.fitLine(points.astype(np.float32), cv2.DIST_L2, 0, 0.01, 0.01).ravel()
-
-
-def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
-    """Intersection of two lines (vx, vy, x0, y0); ``None`` if nearly parallel."""
-    d1, p1, d2, p2 = l1[:2], l1[2:], l2[:2], l2[2:]
-    A = np.column_stack([d1, -d2])
-    if abs(np.linalg.det(A)) < 1e-6:
-        return None
-    s = np.linalg.solve(A, p2 - p1)
-    return p1 + s[0] * d1
+    # one line per side through its edge points (least squares: the points' principal
+    # axis), or through the side's detected corners when too few edge points were found
+    w = good.astype(np.float64)
+    count = w.sum(axis=-1)
+    mean = (w[..., None] * ideal).sum(axis=2) / np.maximum(count, 1)[..., None]
+    dev = ideal - mean[:, :, None, :]
+    cxx, cyy = (w * dev[..., 0] ** 2).sum(-1), (w * dev[..., 1] ** 2).sum(-1)
+    cxy = (w * dev[..., 0] * dev[..., 1]).sum(-1)
+    theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+    direction = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+    ends = np.roll(fallback, -1, axis=1) - fallback
+    chord = ends / np.maximum(np.linalg.norm(ends, axis=-1, keepdims=True), 1e-9)
+    few = (count < MIN_POINTS)[..., None]
+    point = np.where(few, fallback, mean)
+    direction = np.where(few, chord, direction)
+    # corner k: side k-1 (from corner k-1) meets side k
+    p1, d1 = np.roll(point, 1, axis=1), np.roll(direction, 1, axis=1)
+    det = d1[..., 0] * -direction[..., 1] + direction[..., 0] * d1[..., 1]
+    diff = point - p1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s1 = (diff[..., 0] * -direction[..., 1] + direction[..., 0] * diff[..., 1]) / det
+    corners = p1 + s1[..., None] * d1
+    ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1), axis=1) & \
+        np.all(np.linalg.norm(corners - fallback, axis=-1) < 3 * reach[..., 0], axis=1)
+    return np.where(ok[:, None, None], corners, fallback)

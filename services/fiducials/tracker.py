@@ -7,16 +7,16 @@
   pixels (lens distortion removed), where the poses are solved;
 * **pose**: :mod:`services.fiducials.pose` (IPPE candidates, LM refinement, covariance);
 * **corner noise**: not assumed: per body, the residuals of its last ``POOL_FRAMES``
-  fits pooled (``σ² = Σ RSS / Σ dof``, with a weak prior of ``PRIOR_DOF`` degrees of
-  freedom at the camera's calibrated pixel noise), so the covariance grows when the
-  marker is far, blurred or badly lit and its corners scatter more;
+  fits pooled (``σ² = Σ RSS / Σ dof``; the camera's calibrated pixel noise fills in
+  for the dof missing up to ``FULL_DOF``, then weighs ``PRIOR_DOF``), so the covariance
+  grows when the marker is far, blurred or badly lit and its corners scatter more;
 * **planar ambiguity**: when the second-best solution fits within ``AMBIGUITY_GAP``
-  (in units of σ², the χ² distance between the two fits) the choice is not trusted to
-  the residuals.  If the body's previous trusted estimate (at most ``HISTORY_S`` old) lies
-  clearly on one solution's side (within ``HISTORY_SIDE`` of the angle between the two),
-  that one is taken (``ambiguity = "history"``);
-  otherwise the better fit is reported with its covariance inflated by the other
-  solution's offset, so that the other one lies within one standard deviation
+  (in units of σ², at least the calibration's pixel noise: the χ² distance between the
+  two fits) the choice is not trusted to the residuals.  If the body's previous trusted
+  estimate (at most ``HISTORY_S`` old) lies clearly on one solution's side (within
+  ``HISTORY_SIDE`` of the angle between the two), that one is taken (``ambiguity =
+  "history"``); otherwise the better fit is reported with its covariance inflated by the
+  other solution's offset, so that the other one lies within one standard deviation
   (``ambiguity = "covered"``).  Never a silent flip: the sample says which.
 """
 
@@ -34,7 +34,14 @@ from services.fiducials import edges, pose
 from services.fiducials.bodies import Body, marker_body, marker_in_body
 
 POOL_FRAMES = 30
-PRIOR_DOF = 4
+#: the calibration's pixel noise counts as this many degrees of freedom: enough to start
+#: from, too few to matter after a frame (4 dof at 0.3 px held sub-0.1 px corners of near
+#: tags at 0.1 px and made their covariance 3x too large: mean NEES 1-3.6 at 0.5-1 m)
+PRIOR_DOF = 0.1
+#: ... but until the body's own fits add up to this many dof, the prior fills the rest: a
+#: noise estimate from a frame or two can be small by chance (and a covariance from it a
+#: silent flip)
+FULL_DOF = 20
 DEFAULT_PIXEL_STD = 0.3
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
@@ -59,10 +66,40 @@ class Estimate:
     alternative_gap: float  # χ² gap to the other solution (inf if there is none)
 
 
+def _moved(rvec: np.ndarray, tvec: np.ndarray, T_marker_body: np.ndarray,
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """A marker's pose (rvec, tvec) in the camera frame -> its body's."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec
+    T = T @ T_marker_body
+    return cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]
+
+
+def detector_parameters() -> cv2.aruco.DetectorParameters:
+    """OpenCV's defaults but two adaptive-threshold passes (windows 3 and 13 px) instead of
+    three (3, 13, 23): on simulated 640x480 frames of 8 cm tags at 0.6-3 m the third pass
+    found no marker the first two missed and cost 30 % of the detection time.  Corners
+    are not refined by OpenCV (:mod:`services.fiducials.edges` does it)."""
+    p = cv2.aruco.DetectorParameters()
+    p.adaptiveThreshWinSizeMax = 13
+    return p
+
+
 @dataclass
 class _BodyState:
-    pool: deque = field(default_factory=lambda: deque(maxlen=POOL_FRAMES))
+    pool: deque = field(default_factory=deque)  # (rss, dof) of the last POOL_FRAMES fits
+    rss: float = 0.0
+    dof: int = 0
     last: Estimate | None = None
+
+    def add(self, rss: float, dof: int) -> None:
+        self.pool.append((rss, dof))
+        self.rss += rss
+        self.dof += dof
+        if len(self.pool) > POOL_FRAMES:
+            old_rss, old_dof = self.pool.popleft()
+            self.rss -= old_rss
+            self.dof -= old_dof
 
 
 class FiducialTracker:
@@ -76,7 +113,7 @@ class FiducialTracker:
         self.size_m = size_m
         self.sizes = dict(sizes or {})
         d = dictionary(family)
-        self.detector = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
+        self.detector = cv2.aruco.ArucoDetector(d, detector_parameters())
         self._modules = d.markerSize + 2
         self._K = camera.K
         self._no_dist = np.zeros(0)
@@ -85,8 +122,9 @@ class FiducialTracker:
         self._name_of = dict(name_of or {})
         self._singles: dict[int, Body] = {}
         self._state: dict[str, _BodyState] = {}
+        self._frames: dict[tuple[str, int], tuple[np.ndarray, float]] = {}
         prior = camera.pixel_std if camera.pixel_std else DEFAULT_PIXEL_STD
-        self._prior_rss = PRIOR_DOF * prior ** 2
+        self._prior_sigma2 = prior ** 2
         #: ids seen that are neither in a bundle nor of a known size (no --size)
         self.unsized: set[int] = set()
 
@@ -136,22 +174,21 @@ class FiducialTracker:
         obj = np.concatenate([body.corners[i] for i in ids])
         img = np.concatenate([seen[i] for i in ids])
         biggest = max(ids, key=lambda i: cv2.contourArea(seen[i].astype(np.float32)))
-        T_body_marker = marker_in_body(body.corners[biggest])
-        size = float(np.linalg.norm(body.corners[biggest][1] - body.corners[biggest][0]))
-        candidates = []
-        for rvec, tvec in pose.square_candidates(seen[biggest], marker_corners(size), K, dist):
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec
-            T = T @ np.linalg.inv(T_body_marker)
-            candidates.append((cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]))
-        solutions = pose.solve(obj, img, K, dist, candidates)
+        T_marker_body, size = self._marker_frame(body, biggest)
+        candidates = pose.square_candidates(seen[biggest], marker_corners(size), K, dist)
+        if body.is_bundle:  # the marker's pose -> the bundle's
+            candidates = [_moved(rvec, tvec, T_marker_body) for rvec, tvec in candidates]
+        state = self._state.setdefault(body.name, _BodyState())
+        solutions = pose.solve(obj, img, K, dist, candidates,
+                               within_px2=1.5 * AMBIGUITY_GAP * max(self._sigma2(state),
+                                                                    self._prior_sigma2),
+                               iterations=pose.LM_ITERATIONS_BUNDLE if body.is_bundle
+                               else pose.LM_ITERATIONS_SINGLE)
         if not solutions:
             return None
-        state = self._state.setdefault(body.name, _BodyState())
         best = solutions[0]
-        state.pool.append((best.rss_px2, best.dof))
-        sigma2 = (sum(r for r, _ in state.pool) + self._prior_rss) / \
-            (sum(d for _, d in state.pool) + PRIOR_DOF)
+        state.add(best.rss_px2, best.dof)
+        sigma2 = self._sigma2(state)
         chosen, cov, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
         est = Estimate(body.name, t_ns, chosen.rotation, chosen.tvec, cov, float(np.sqrt(sigma2)),
                        float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), ambiguity,
@@ -160,6 +197,20 @@ class FiducialTracker:
             state.last = est
         return est
 
+    def _sigma2(self, state: _BodyState) -> float:
+        """The corner noise variance pooled over the body's recent fits."""
+        prior_dof = max(FULL_DOF - state.dof, PRIOR_DOF)
+        return (max(state.rss, 0.0) + prior_dof * self._prior_sigma2) / (state.dof + prior_dof)
+
+    def _marker_frame(self, body: Body, marker_id: int) -> tuple[np.ndarray, float]:
+        """(T_marker_body, side) of one of the body's markers, cached."""
+        key = (body.name, marker_id)
+        if key not in self._frames:
+            corners = body.corners[marker_id]
+            self._frames[key] = (np.linalg.inv(marker_in_body(corners)),
+                                 float(np.linalg.norm(corners[1] - corners[0])))
+        return self._frames[key]
+
     def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
                t_ns: int) -> tuple[pose.Solution, np.ndarray, str, float]:
         best = solutions[0]
@@ -167,7 +218,9 @@ class FiducialTracker:
         if len(solutions) == 1:
             return best, pose.covariance(best, sigma), "none", float("inf")
         other = solutions[1]
-        gap = (other.rss_px2 - best.rss_px2) / sigma2
+        # judged at no less than the calibration's pixel noise: a noise estimate from a
+        # few residual dof can be small by chance, and a gap it inflates is a silent flip
+        gap = (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
         if gap > AMBIGUITY_GAP:
             return best, pose.covariance(best, sigma), "none", gap
         last = state.last
