@@ -22,7 +22,9 @@ from services.laser_camera.evaluate import evaluate
 from services.laser_camera.sources import CaptureSource, parse_sources
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
 from services.sim import mounts
-from services.sim.world import IvyWorld, sim_time_s
+from services.sim.world import IvyWorld, WorldConfig, sim_time_s
+
+RNG_SEED = 36
 
 # its module fixture is costly: every test of it on one worker
 pytestmark = pytest.mark.xdist_group("test_laser_pipeline")
@@ -57,6 +59,69 @@ def test_calibration_recovers_every_screen_mapping(world, calibration) -> None:
         # tenths of a millimetre: a calibration error field this size would be a constant
         # offset of the pose, as large as its noise, that no covariance shows
         assert np.mean(err) < 1e-4 and np.max(err) < 6e-4, (cam.name, err.mean(), err.max())
+
+
+def test_the_calibration_knows_where_each_camera_is(world, calibration) -> None:
+    for cam in world.cameras:
+        assert np.linalg.norm(calibration.camera(cam.name).centre_world() - cam.center) < 5e-3
+
+
+def _dot_nees(world: IvyWorld, ideal: IvyWorld, tracker: LaserTracker,
+              rng: np.random.Generator, eyes: bool = True) -> list[float]:
+    """Each dot's error on its wall (the installation's: the housing's beams, the bent
+    screen seen by a camera turned since calibration) against the in-plane covariance the
+    tracker gives it, chi-square of 2 dof when honest (``ideal``'s flat hits are where the
+    tracker's model puts the dots); ``eyes=False``: as if the tracker did not know where
+    its cameras are."""
+    from dataclasses import replace
+
+    from services.laser_camera.tracker import _installation_covariance
+
+    out = []
+    for p, q in zip(*world.rig_pose(rng.uniform(0, 60, 12)), strict=True):
+        hits, flat = world.laser_hits(p, q), ideal.laser_hits(p, q)
+        for name, seen in world.dot_pixels(hits).items():
+            for k, uv in seen.items():
+                dots = tracker.locate({name: np.array([[uv[0], uv[1], 1.0, 1.0, 0.0]])})
+                if len(dots.points) != 1 or dots.walls[0] != flat[k].wall:
+                    continue
+                dots = dots if eyes else replace(dots, eyes=None)
+                e = dots.axes[0] @ (dots.points[0] - flat[k].point)
+                C = _installation_covariance(dots, [0], p, tracker.params)[0]
+                out.append(float(e @ np.linalg.solve(C + dots.std_m[0] ** 2 * np.eye(2), e)))
+    return out
+
+
+def test_each_dots_installation_error_is_covered_with_the_cameras_view(world,
+                                                                      calibration) -> None:
+    """Over installations drawn with the tolerances the tracker is told, its dots' errors
+    have the in-plane covariance it gives them (mean 2 for 2 dof) -- a bent screen is seen
+    from the camera behind it, whose ray's slope adds to the beam's; without the cameras'
+    centres that parallax is missed and the bend's share is off many times over."""
+    from services.sim import world as sim_world
+
+    rng = np.random.default_rng(RNG_SEED)
+    ideal = IvyWorld(seed=4, ideal=True)
+    tracker = LaserTracker(calibration)
+    bend_only = LaserTracker(calibration, TrackerParams(housing_dir_std_rad=0.0,
+                                                        housing_offset_std_m=0.0,
+                                                        camera_residual_std_m=0.0))
+    bend_cfg = WorldConfig(housing_error_deg=0.0, housing_offset_m=0.0,
+                           calibration_residual_deg=0.0)
+    honest, bend, bend_without_parallax = [], [], []
+    for s in range(100, 108):  # the world's flaws drawn anew: housing, screens, cameras
+        for cfg, tr, out, eyes in ((world.config, tracker, honest, True),
+                                   (bend_cfg, bend_only, bend, True),
+                                   (bend_cfg, bend_only, bend_without_parallax, False)):
+            world.beams, world.bulge_m = sim_world._imperfections(cfg, s)
+            world._tracking = sim_world._after_calibration(world.cameras, cfg, s)
+            out += _dot_nees(world, ideal, tr, rng, eyes)
+    flaws = world.install_seed
+    world.beams, world.bulge_m = sim_world._imperfections(world.config, flaws)
+    world._tracking = sim_world._after_calibration(world.cameras, world.config, flaws)
+    assert 1.4 < np.mean(honest) < 2.8, np.mean(honest)
+    assert 0.3 < np.mean(bend) < 2.0, np.mean(bend)  # one direction: 1 dof
+    assert np.mean(bend_without_parallax) > 5 * np.mean(bend), np.mean(bend_without_parallax)
 
 
 def test_calibration_file_round_trip_and_refusals(world, calibration, calibration_file,

@@ -74,6 +74,21 @@ class CameraCalibration:
             return default
         return float(rms / math.sqrt(2) * math.sqrt(8 / n))
 
+    def centre_world(self) -> np.ndarray:
+        """The camera's optical centre in world coordinates (3,), from its intrinsics and
+        its screen homography: ``H^-1 = s K [r1 r2 t]`` (Zhang's plane pose), the centre
+        ``-R^T t`` in the screen's frame (x, y on the screen, z along the outward
+        normal), then eq. 5.40.  The tracker needs it to know how a camera turned since
+        calibration, or a bent screen seen at an angle, moves a dot."""
+        M = np.linalg.solve(self.K, np.linalg.inv(self.H))
+        M /= 0.5 * (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
+        if M[2, 2] < 0:  # the screen lies in front of the camera
+            M = -M
+        r1, r2, t = M[:, 0], M[:, 1], M[:, 2]
+        c = -np.column_stack([r1, r2, np.cross(r1, r2)]).T @ t
+        w = self.wall
+        return w.rotation @ np.array([c[0], c[1], w.plane_distance + c[2]]) - w.translation
+
     def metres_per_pixel(self, uv_undistorted: np.ndarray) -> np.ndarray:
         """Linear scale of the image -> screen map at (undistorted) image points (n, 2)."""
         return homography_scale(self.H, uv_undistorted)

@@ -125,6 +125,10 @@ class TrackerParams:
     housing_offset_std_m: float = 0.0005
     screen_bulge_std_m: float = 0.002
     camera_residual_std_m: float = 0.0006
+    #: ... seen from the cameras' optical centres when the tracker knows them (from the
+    #: calibration): each camera turned by this much about each axis, which moves a dot
+    #: far from the camera's axis more (instead of ``camera_residual_std_m``)
+    camera_turn_std_rad: float = math.radians(0.015)
     #: while tracking, each dot is looked for only in a window of this half-size (pixels)
     #: around its predicted position (Dorfmueller-Ulhaas §2); 0: always the full frame
     roi_half_px: int = 24
@@ -159,14 +163,15 @@ class TrackerParams:
         if not (self.label_gate_m > 0 and self.label_gate_mps >= 0):
             raise ValueError("label_gate_m must be positive and label_gate_mps >= 0")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
-               self.camera_residual_std_m) < 0:
+               self.camera_residual_std_m, self.camera_turn_std_rad) < 0:
             raise ValueError("the installation's tolerances must be >= 0")
 
     @classmethod
     def ideal(cls, **overrides) -> TrackerParams:
         """Parameters for an ideal installation: no tolerances beyond the dots' own."""
         return cls(**{"housing_dir_std_rad": 0.0, "housing_offset_std_m": 0.0,
-                      "screen_bulge_std_m": 0.0, "camera_residual_std_m": 0.0, **overrides})
+                      "screen_bulge_std_m": 0.0, "camera_residual_std_m": 0.0,
+                      "camera_turn_std_rad": 0.0, **overrides})
 
 
 @dataclass(frozen=True)
@@ -181,6 +186,10 @@ class WorldDots:
     #: (n,) how far a bending screen moves at each dot, relative to its centre (0..1; None:
     #: unknown, taken as 1)
     bend: np.ndarray | None = None
+    #: (n, 3) the optical centre of the camera that saw each dot (None: unknown; then a
+    #: camera's turn moves a dot by ``camera_residual_std_m`` and a bent screen's parallax
+    #: towards the camera is not modelled)
+    eyes: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -388,14 +397,14 @@ class LaserTracker:
         k, lead = picked
         best, idx = fits[k].pose, fits[k].idx
         try:
-            sys_var = _installation_variance(dots, idx, best.position, p)
-            cov, systematic = _covariance(dots, idx, best.position, p, sys_var)
+            sys_cov = _installation_covariance(dots, idx, best.position, p)
+            cov, systematic = _covariance(dots, idx, best.position, p, sys_cov)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
-        sys_std = np.sqrt(sys_var)
+        sys_std = np.sqrt(0.5 * np.trace(sys_cov, axis1=1, axis2=2))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
             {k + 1: dots.points[i] for k, i in enumerate(idx)},
@@ -572,6 +581,7 @@ class _Screens:
         self.cameras = cameras
         self.index = {c.name: i for i, c in enumerate(cameras)}
         self.axes = np.array([c.wall.rotation[:, :2].T for c in cameras])  # in-plane axes
+        self.eyes = np.array([c.centre_world() for c in cameras])
         self.maps = [_ScreenMap(tuple(np.ravel(c.H).tolist()),
                                 tuple(np.ravel(c.wall.rotation).tolist()),
                                 tuple(np.ravel(c.wall.translation).tolist()),
@@ -597,7 +607,7 @@ class _Screens:
         points, std, bend = zip(*dots, strict=True)
         return WorldDots(np.array(points), np.array(std),
                          [self.cameras[i].wall.name for i in cams], self.axes[cams],
-                         [self.cameras[i].name for i in cams], np.array(bend))
+                         [self.cameras[i].name for i in cams], np.array(bend), self.eyes[cams])
 
 
 @dataclass(frozen=True)
@@ -759,35 +769,61 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
         return d
     k = np.flatnonzero(keep)
     return WorldDots(pts[k], std[k], [d.walls[i] for i in k], d.axes[k],
-                     [d.cameras[i] for i in k], None if d.bend is None else d.bend[k])
+                     [d.cameras[i] for i in k], None if d.bend is None else d.bend[k],
+                     None if d.eyes is None else d.eyes[k])
 
 
 def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
                            p: TrackerParams) -> np.ndarray:
     """Per-axis in-plane variance (m^2) each dot ``idx`` gets from the installation's
-    tolerances, averaged over the wall's two axes.
+    tolerances, averaged over the wall's two axes (half the trace of
+    :func:`_installation_covariance`): what a dot's published std says."""
+    cov = _installation_covariance(dots, idx, p0, p)
+    return 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+
+
+def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
+                             p: TrackerParams) -> np.ndarray:
+    """In-plane covariance (n, 2, 2) over the wall's two axes that each dot ``idx`` gets
+    from the installation's tolerances.
 
     A beam turned by ``d`` (two components, each ``housing_dir_std_rad``) or missing P0 by
-    ``o`` moves its dot by ``r d`` or ``o`` across the beam; along the beam's in-plane
-    direction that stretches by ``1 / cos(incidence)``.  A screen bent inwards by ``w``
-    moves the dot by ``w tan(incidence)`` along that direction; the cameras' turn since
-    calibration moves every dot the same in both axes.
-
-    Dot by dot in plain floats: on four dots numpy's per-call overhead cost more than the
-    arithmetic (some twenty calls, 9 % of ``_choose`` by line_profiler)."""
-    x0, y0, z0 = np.asarray(p0, float).tolist()
-    bends = [1.0] * len(idx) if dots.bend is None else dots.bend[idx].tolist()
-    out = []
-    for (x, y, z), ((ax, ay, az), (bx, by, bz)), bend in zip(
-            dots.points[idx].tolist(), dots.axes[idx].tolist(), bends, strict=True):
-        rx, ry, rz = x - x0, y - y0, z - z0
-        r = math.sqrt(rx * rx + ry * ry + rz * rz)
-        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx  # wall normal
-        c = min(max(abs(nx * rx + ny * ry + nz * rz) / r, 0.05), 1.0)  # cos(incidence)
+    ``o`` moves its dot by ``r d`` or ``o`` across the beam: across the beam's in-plane
+    direction ``u`` as it is, along ``u`` stretched by ``1 / cos(incidence)``.  A screen
+    bent inwards by ``w`` (times the bend's shape at the dot) meets the beam early, by
+    ``w tan(incidence)`` back along ``u``, and the camera behind it sees that spot off the
+    plane: the calibrated homography puts it where the camera's ray meets the plane,
+    another ``w`` times the ray's in-plane slope -- both one vector times ``w``.  A camera
+    turned by ``theta`` since calibration moves the dot where its turned ray meets the
+    plane: ``dX = dr - r (n . dr) / (n . r)``, ``dr = theta x r``, ``r`` from the camera's
+    centre to the dot, more far from the camera's axis.  Dots whose camera is unknown get
+    the bend without its parallax and ``camera_residual_std_m`` in both axes."""
+    p0 = np.asarray(p0, float)
+    out = np.empty((len(idx), 2, 2))
+    for j, i in enumerate(idx):
+        x, A = dots.points[i], dots.axes[i]  # A: (2, 3), the wall's in-plane axes
+        n = np.cross(A[0], A[1])  # outward
+        d = x - p0
+        r = float(np.linalg.norm(d))
+        dn = abs(float(n @ d))
+        c = min(max(dn / r, 0.05), 1.0)  # cos(incidence)
         across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
-        w_tan = p.screen_bulge_std_m * bend * math.sqrt(1 - c ** 2) / c
-        out.append(0.5 * (across * (1 + 1 / c ** 2) + w_tan ** 2) + p.camera_residual_std_m ** 2)
-    return np.array(out)
+        u = A @ d
+        u = u / np.linalg.norm(u) if np.linalg.norm(u) > 0 else np.array([1.0, 0.0])
+        cov = across * (np.eye(2) + (1 / c ** 2 - 1) * np.outer(u, u))
+        bend = 1.0 if dots.bend is None else float(dots.bend[i])
+        slope = -(A @ d) / max(dn, 0.05 * r)  # the beam's hit moves back along it
+        if dots.eyes is None:
+            cov += p.camera_residual_std_m ** 2 * np.eye(2)
+        else:
+            ray = dots.eyes[i] - x
+            slope = slope + (A @ ray) / abs(float(n @ ray))  # seen from the camera
+            back = x - dots.eyes[i]
+            turned = np.cross(np.eye(3), back)  # dr for a turn about each axis (rows)
+            J = A @ (turned - np.outer(turned @ n, back) / float(n @ back)).T  # (2, 3)
+            cov += p.camera_turn_std_rad ** 2 * (J @ J.T)
+        out[j] = cov + (p.screen_bulge_std_m * bend) ** 2 * np.outer(slope, slope)
+    return out
 
 
 @dataclass(frozen=True)
@@ -836,9 +872,11 @@ def residual_chi2(dots: WorldDots, orders: list[list[int]], origins: list[np.nda
     ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
     r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
     J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
-    var = np.array([dots.std_m[o] ** 2 + _installation_variance(dots, list(o), x, p)
-                    for o, x in zip(orders, origins, strict=True)])
-    S = np.einsum("mki,mk,mkj->mij", J, np.repeat(var, 2, axis=1), J)
+    cov = np.array([_installation_covariance(dots, list(o), x, p)
+                    for o, x in zip(orders, origins, strict=True)])  # (m, 4, 2, 2)
+    cov += dots.std_m[idx][..., None, None] ** 2 * np.eye(2)
+    Jd = J.reshape(m, 4, 2, 2)  # dot, its wall axis, residual component
+    S = np.einsum("mkai,mkab,mkbj->mij", Jd, cov, Jd)
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(S).all(axis=(1, 2)) & (np.linalg.det(np.nan_to_num(S)) > 0)
     out = np.full(m, np.inf)
@@ -871,14 +909,14 @@ def _rival(poses: list[LabeledPose], k: int, lead: np.ndarray, cov: np.ndarray,
 
 
 def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
-                installation_var: np.ndarray, step_m: float = 1e-5,
+                installation_cov: np.ndarray, step_m: float = 1e-5,
                 ) -> tuple[np.ndarray, np.ndarray]:
     """6x6 pose covariances (xi form): the whole, and its systematic part.
 
     Propagated by numeric Jacobian of the closed-form solution (each dot moves along its
     wall's two axes) from the dots' in-plane errors: their detection and calibration noise,
-    new in every frame, and the installation's tolerances (``installation_var``, per dot:
-    :func:`_installation_variance`, which the caller also publishes per dot), which hold
+    new in every frame, and the installation's tolerances (``installation_cov``, per dot
+    over its wall's axes: :func:`_installation_covariance`), which hold
     for the whole run; plus the model error the dots cannot show, systematic too.  A
     filter that averages frames must keep the systematic part apart
     (docs/FUSION_TUNING.md)."""
@@ -896,7 +934,8 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
     J[:3] += geo.skew3(p0) @ J[3:]
     random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
-    systematic = (J * np.repeat(installation_var, 2)) @ J.T
+    Jd = J.reshape(6, 4, 2)  # pose row, dot, its wall axis
+    systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd)
     if params.model_pos_std_m or params.model_rot_std_rad:  # else it adds zeros
         model = np.zeros((6, 6))
         model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
