@@ -15,6 +15,7 @@ from conftest import endpoint, free_port
 from test_agent_robustness import register_raw, wait_token
 from test_hostile_peers import PRODUCER, rss_mb, snapshot
 
+from agent import Client
 from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
@@ -245,3 +246,28 @@ def test_a_strangers_refusal_does_not_make_a_service_give_up(site, realm) -> Non
             poll(lambda: agent.view.local["cam2"].descriptor.abilities[0]
                  .attributes.frequency_hz == 42, 10, "the update registered")
         liar.undeclare()
+
+
+def test_refused_samples_are_not_counted_as_lost(site, realm) -> None:
+    """A publish refused for NaN takes no sequence number, and a sample the receiver
+    refuses (a day ahead of its clock) is not counted as lost on the way."""
+    ep, _, cam = site
+    out = cam._abilities["pose"]
+    def burst(n: int) -> None:
+        for _ in range(n):
+            out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+            time.sleep(0.01)
+    with Client(realm=realm, connect=[ep]) as c:
+        got: list = []
+        burst(20)  # the agent's graph learns the edge
+        sub = poll(lambda: c.subscribe("ivy/world", "alice/head", got.append), 10,
+                   "the edge known")
+        burst(20)
+        poll(lambda: len(got) >= 5, 10, "the stream")
+        with pytest.raises(ValueError, match="position"):
+            out.publish(time.time_ns(), [float("nan"), 0, 0], [0, 0, 0, 1])
+        out.publish(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1])
+        before = len(got)
+        burst(20)
+        poll(lambda: len(got) >= before + 15 and sub.refused == 1, 10, "the stream again")
+        assert sub.lost == 0

@@ -92,6 +92,7 @@ class _Stream:
                 t_ns, seq = peek_time_seq(data, expected_type=self.type)
             except DecodeError as exc:
                 self._log.warning(f"data {self.key}", f"dropped a malformed sample: {exc}")
+                self.gaps.skip()
                 continue
             self.gaps.see(seq)
             self.window.append((mono, 1, (wall_ns - t_ns) / 1e9))

@@ -21,11 +21,18 @@ def too_far_ahead(t_ns: int, now_ns: int) -> bool:
 
 
 class SequenceGaps:
-    """The samples missing from one stream's sequence so far."""
+    """The samples missing from one stream's sequence so far.  A sample that arrived but
+    was not taken (refused, malformed: its ``s`` unread) is no loss: :meth:`skip` tells,
+    and the next gap is that much smaller."""
 
     def __init__(self) -> None:
         self.last: int | None = None
         self.lost = 0
+        self._skipped = 0
+
+    def skip(self) -> None:
+        """A sample of this stream arrived and was not taken."""
+        self._skipped += 1
 
     def see(self, seq: int | None) -> int:
         """Take a sample's ``s`` (None: its publisher numbers none); returns how many were
@@ -33,6 +40,7 @@ class SequenceGaps:
         if seq is None:
             return 0
         gap = seq - self.last - 1 if self.last is not None and seq > self.last + 1 else 0
+        gap, self._skipped = max(0, gap - self._skipped), 0
         self.lost += gap
         self.last = seq
         return gap

@@ -117,16 +117,27 @@ class AbilityHandle:
         if self.ability.type != "pose6d":
             raise UmaError(f"ability {self.name!r} is {self.ability.type}; use "
                            "publish_measurement()")
-        self._put(encode_pose(t_ns, position, quaternion, covariance, seq=self._next_seq()))
+        data = encode_pose(t_ns, position, quaternion, covariance, seq=self._seq + 1)
+        self._seq += 1  # only once the sample is valid: a refused one leaves no gap
+        self._put(data)
 
     def publish_measurement(self, m: Measurement) -> None:
         """Publish a measurement of any type (must be this ability's type)."""
         if m.type != self.ability.type:
             raise UmaError(f"ability {self.name!r} publishes {self.ability.type}, "
                            f"not {m.type}")
-        if m.seq is None:
-            m.seq = self._next_seq()
-        self._put(encode_measurement(m))
+        numbered = m.seq is None
+        if numbered:
+            m.seq = self._seq + 1
+        try:
+            data = encode_measurement(m)
+        except ValueError:
+            if numbered:
+                m.seq = None
+            raise
+        if numbered:
+            self._seq += 1  # only once the sample is valid: a refused one leaves no gap
+        self._put(data)
 
     def publish_encoded(self, data: bytes) -> None:
         """Publish a sample that is already encoded, byte for byte (``uma play`` replays a
@@ -138,10 +149,6 @@ class AbilityHandle:
     def update(self, **attributes: Any) -> None:
         """Change advertised attributes at run time (re-advertised, re-matched)."""
         self._svc._update_ability(self, attributes)
-
-    def _next_seq(self) -> int:
-        self._seq += 1
-        return self._seq
 
     def _put(self, payload: bytes) -> None:
         pub = self._publisher

@@ -410,6 +410,8 @@ class Subscription:
             return None  # a sample of a route left meanwhile
         edge_key = feed[2]
         clock = self.queries.clock
+        gaps = self._gaps.setdefault(key, SequenceGaps())
+        seen = False
         try:
             m = decode_measurement(data, expected_type="pose6d")
             t = clock.to_local(agent, m.t_ns)
@@ -417,7 +419,7 @@ class Subscription:
                 self.refused += 1
                 raise InvalidInputError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
                                         f"clock: refused ({self.refused} so far)")
-            gap = self._gaps.setdefault(key, SequenceGaps()).see(m.seq)
+            gap, seen = gaps.see(m.seq), True
             if gap:
                 self._log.warning(f"subscription {key}", f"{gap} sample(s) lost before "
                                   f"s={m.seq} (dropped on the way, or this subscription fell "
@@ -428,6 +430,8 @@ class Subscription:
                                        m.quaternion, m.covariance, source=edge_key[2])
         except (DecodeError, ValueError) as exc:
             self.failed += 1
+            if not seen:  # it arrived: no loss when the next one's s skips it
+                gaps.skip()
             self.last_error = exc
             self._log.warning(f"subscription {key}", f"bad sample: {exc}")
             return None
