@@ -99,3 +99,42 @@ def test_uma_calibrate_rig_names_what_is_missing(tmp_path) -> None:
         _sources(args)
     with pytest.raises(SystemExit):
         p.parse_args(["--wand-video", "nofile"])
+
+
+def test_body_from_points_keeps_the_steady_markers_near_each_other() -> None:
+    from services.outside_in.bodies import body_from_points
+    from services.outside_in.simulator import standard_bodies
+    rng = np.random.default_rng(3)
+    truth = standard_bodies()[1].markers + np.array([0.2, 0.1, 1.2])
+    frames = []
+    for _ in range(30):
+        pts = [truth + rng.normal(0, 2e-4, truth.shape),
+               np.array([[1.5, -1.2, 0.3]]),                      # a reflection's ghost
+               rng.uniform(-1, 1, (2, 3))]                       # passing ghosts
+        frames.append(np.vstack(pts)[rng.permutation(len(truth) + 3)])
+    body, scatter = body_from_points("wand", frames)
+    assert len(body.markers) == 4 and scatter < 5e-4
+    assert np.allclose(np.sort(body.signature), np.sort(standard_bodies()[1].signature),
+                       atol=5e-4)
+    with pytest.raises(UmaError, match="three at least"):
+        body_from_points("none", [rng.uniform(-1, 1, (3, 3)) for _ in range(10)])
+
+
+def test_uma_calibrate_body_adds_a_body_and_warns_of_a_twin(tmp_path, capsys) -> None:
+    from agent.cli.main import main
+    from services.outside_in.bodies import load_bodies
+    from services.outside_in.rigfile import save_rig
+    sim = Simulation(seed=1, config=SimConfig(n_cameras=4))
+    rig = save_rig(tmp_path / "rig.toml", sim.cameras, np.zeros((4, 6, 6)), "lab/world",
+                   "lab", 0.03)
+    out = tmp_path / "bodies.toml"
+    for name in ("wand", "twin"):
+        assert main(["calibrate", "body", name, "--rig", str(rig), "--sim", "1",
+                     "--sim-body", "wand", "--bodies", str(out), "--json"]) == 0
+    captured = capsys.readouterr()
+    last = json.loads(captured.out.strip().splitlines()[-1])
+    assert last["not_distinguishable_from"] == ["wand"]
+    assert "warning: twin and wand" in captured.err
+    bodies = load_bodies(out)
+    assert [b.name for b in bodies] == ["wand", "twin"]
+    assert np.allclose(bodies[0].signature, sim.bodies[1].signature, atol=1e-3)

@@ -168,3 +168,36 @@ def identify(body: RigidBody, points: Array, tolerance_m: float, min_markers: in
             return None
     return Identification(cands[0][2], float(rms))
 
+
+
+def body_from_points(name: str, frames: list[Array], tolerance_m: float = 0.003,
+                     reach_m: float = 0.4) -> tuple[RigidBody, float]:
+    """A body from a few seconds of its markers held still: each frame's triangulated
+    points (k, 3); the points found in most frames, averaged.  The body's frame is the
+    world's axes at the markers' centroid.  Returns the body and the markers' scatter
+    (m, rms over frames), the noise its distances are known to."""
+    frames = [np.asarray(f, float).reshape(-1, 3) for f in frames if len(f)]
+    if not frames:
+        raise UmaError(f"body {name!r}: no markers were seen")
+    clusters: list[list[Array]] = []
+    for pts in frames:
+        for x in pts:
+            for c in clusters:
+                if np.linalg.norm(np.mean(c, axis=0) - x) < tolerance_m:
+                    c.append(x)
+                    break
+            else:
+                clusters.append([x])
+    steady = [np.array(c) for c in clusters if len(c) > len(frames) / 2]
+    if steady:
+        # a reflection seen by two cameras triangulates to a steady point too, but not
+        # next to the body: keep what lies within a body's reach of the points' median
+        centre = np.median([c.mean(axis=0) for c in steady], axis=0)
+        steady = [c for c in steady if np.linalg.norm(c.mean(axis=0) - centre) < reach_m]
+    if len(steady) < 3:
+        raise UmaError(f"body {name!r}: {len(steady)} markers were seen in most of the "
+                       f"{len(frames)} frames; three at least must be, held still")
+    markers = np.array([c.mean(axis=0) for c in steady])
+    scatter = float(np.sqrt(np.mean([np.mean(np.sum((c - c.mean(axis=0)) ** 2, axis=1))
+                                     for c in steady])))
+    return RigidBody(name, markers - markers.mean(axis=0)), scatter

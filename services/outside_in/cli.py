@@ -1,4 +1,4 @@
-"""What ``uma calibrate rig`` does (grammar in ``commands.py``)."""
+"""What ``uma calibrate rig`` and ``uma calibrate body`` do (grammar in ``commands.py``)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,12 @@ from services.camera.capture import Capture
 from services.camera.model import load as load_camera
 from services.camera.simulator import write_video
 from services.outside_in.blobs import find_blobs
+from services.outside_in.bodies import (
+    body_from_points,
+    distinguishable,
+    dump_bodies,
+    load_bodies,
+)
 from services.outside_in.calibration import (
     LFRAME,
     RigCalibration,
@@ -25,8 +31,15 @@ from services.outside_in.calibration import (
     wand_observations,
 )
 from services.outside_in.pose import absolute_orientation
-from services.outside_in.rigfile import save_rig, static_edges
-from services.outside_in.simulator import SimConfig, Simulation, WandWave, static_scene
+from services.outside_in.rigfile import load_rig, save_rig, static_edges
+from services.outside_in.simulator import (
+    SimConfig,
+    Simulation,
+    WandWave,
+    blocked,
+    static_scene,
+)
+from services.outside_in.triangulation import match_and_triangulate
 
 Array = np.ndarray
 #: wand frame sets per second the simulation records (a wand needs no more)
@@ -188,3 +201,63 @@ def _print(report: dict[str, Any], path: str) -> None:
                      f"{c['shape_rot_error_deg']:.4f} deg)")
         w(line + "\n")
     w(f"wrote {path}\n")
+
+
+def calibrate_body_command(args: argparse.Namespace) -> int:
+    cams, _, _ = load_rig(args.rig)
+    if args.sim is not None:
+        sim = Simulation(seed=args.sim, config=SimConfig(n_cameras=len(cams)))
+        names = [b.name for b in sim.bodies]
+        if args.sim_body not in names:
+            raise UmaError(f"--sim-body {args.sim_body!r}: the simulation has {names}")
+        k = names.index(args.sim_body)
+        frozen = sim.marker_positions(0.0)[k]
+        scene = static_body_scene(sim, k, frozen)
+        per_frame = [[find_blobs(sim.render(c, i, scene).image).uv for c in range(len(cams))]
+                     for i in range(60)]
+    else:
+        paths = dict(args.video)
+        missing = [c.name for c in cams if c.name not in paths]
+        if len(paths) < 2:
+            raise UmaError("give two cameras' videos at least: --video NAME=FILE")
+        used = [c for c in cams if c.name in paths]
+        per_frame = matched_blobs([paths[c.name] for c in used])
+        cams = used
+        if missing:
+            print(f"note: cameras {missing} have no video and are not used", file=sys.stderr)
+    points = [np.array([q.X for q in match_and_triangulate(
+        cams, [cam.normalize(uv) for cam, uv in zip(cams, frame, strict=True)])
+        if len(q.views) >= 2]).reshape(-1, 3) for frame in per_frame]
+    body, scatter = body_from_points(args.name, points)
+    path = Path(args.bodies)
+    others = [b for b in (load_bodies(path) if path.exists() else []) if b.name != body.name]
+    clashes = [b.name for b in others if not distinguishable(body, b, max(scatter, 2e-4))]
+    path.write_text(dump_bodies([*others, body]))
+    report = {"body": body.name, "markers": len(body.markers),
+              "scatter_mm": round(scatter * 1e3, 3),
+              "distances_mm": [round(float(d) * 1e3, 1) for d in body.signature],
+              "not_distinguishable_from": clashes, "file": str(path)}
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"body {body.name}: {len(body.markers)} markers, scatter "
+              f"{report['scatter_mm']:.2f} mm, distances {report['distances_mm']} mm; "
+              f"wrote {path}")
+    for name in clashes:
+        print(f"warning: {body.name} and {name} share three markers' distances within the "
+              "noise: the tracker may take one for the other; move a marker of one",
+              file=sys.stderr)
+    return 0
+
+
+def static_body_scene(sim: Simulation, k: int, world: Array):
+    """What each camera sees of body ``k`` held still at ``world`` (its own hull hides
+    markers behind it), the other bodies away."""
+    centre = world.mean(axis=0)
+
+    def see(camera: int, t: float) -> dict:
+        cam = sim.cameras[camera]
+        vis = cam.visible(world, margin_px=3)
+        return {(k, m): world[m] for m in np.nonzero(vis)[0]
+                if not blocked(cam.position, world[m], [centre])}
+    return see

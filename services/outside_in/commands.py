@@ -69,6 +69,34 @@ def _rig_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
 
 
+def _body_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", help="the body's name (its frame will be SITE/NAME)")
+    p.add_argument("--rig", required=True, metavar="FILE",
+                   help="the rig file of 'uma calibrate rig'")
+    p.add_argument("--video", type=named, action="append", default=[], metavar="NAME=FILE",
+                   help="a camera's video of the body held still in the volume, alone "
+                        "(a few seconds; repeat for every camera)")
+    p.add_argument("--sim", type=int, default=None, metavar="SEED",
+                   help="use the simulated rig instead, with its body --sim-body held still")
+    p.add_argument("--sim-body", default="wand", metavar="BODY",
+                   help="which simulated body (head, wand, hand; default wand)")
+    p.add_argument("--bodies", default="bodies.toml", metavar="FILE",
+                   help="the bodies file to add it to (created if missing; default "
+                        "bodies.toml); a body of the same name is replaced")
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+
+
+BODY = CommandPlugin(
+    name="body",
+    help="define a rigid body from a few seconds of its markers held still",
+    description="Triangulate the markers of one body held still in a calibrated rig, keep "
+                "those seen in most frames, and add the body (markers relative to their "
+                "centroid, world axes) to a bodies file; warns when its distances are not "
+                "distinguishable from another body's beyond the measured noise, which "
+                "would let the tracker mistake one for the other.",
+    add_arguments=_body_arguments,
+    run="services.outside_in.cli:calibrate_body_command")
+
 RIG = CommandPlugin(
     name="rig",
     help="calibrate an outside-in camera rig with a wand and an L-frame",

@@ -208,7 +208,7 @@ class Simulation:
         for k, pts in enumerate(self.marker_positions(t)):
             vis = cam.visible(pts, margin_px=3)
             for m in np.nonzero(vis)[0]:
-                if not _blocked(cam.position, pts[m], centres):
+                if not blocked(cam.position, pts[m], centres):
                     out[(k, int(m))] = pts[m]
         return out
 
@@ -264,7 +264,7 @@ def _to8(img: Array) -> Array:
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def _blocked(eye: Array, point: Array, centres: list[Array]) -> bool:
+def blocked(eye: Array, point: Array, centres: list[Array]) -> bool:
     """Whether the segment eye -> point crosses a hull sphere (before the point)."""
     d = point - eye
     L = np.linalg.norm(d)
