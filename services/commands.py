@@ -28,6 +28,10 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
                         "'view' extra) on http://127.0.0.1:PORT/")
     p.add_argument("--view-port", type=int, default=8080, metavar="PORT",
                    help="port of the view's page (default 8080)")
+    p.add_argument("--cameras", action="store_true",
+                   help="the camera demo instead: two simulated webcams on two agents track a "
+                        "printed tag; a need preferring accuracy follows the camera that sees "
+                        "it best, a client queries it in the world frame across the agents")
     p.add_argument("--optical", choices=("dots", "pose"), default="dots",
                    help="the fusion's optical update: one SCAAT update per labeled laser dot "
                         "(default; more accurate, docs/FUSION_TUNING.md) or the tracker's "

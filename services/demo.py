@@ -164,6 +164,10 @@ def main(args: argparse.Namespace) -> int:
     if not (math.isfinite(seconds) and 0 < seconds <= 3600):
         raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")
     logging.getLogger("uma").setLevel(logging.WARNING)
+    if args.cameras:
+        from services.fiducials.demo import main as cameras
+
+        return cameras(args)
     log_dir = None
     if args.logs is not None:
         log_dir = Path(args.logs)

@@ -17,7 +17,8 @@ previous frame supports, ``covered``: the covariance spans both solutions), ``si
 
 The attributes each ability advertises are measured: ``frequency_hz`` (samples over the
 last ``WINDOW_S``), ``latency_s`` (publication minus capture time, median), ``pos_std_m``
-and ``rot_std_rad`` (the root of the covariance's position and rotation traces, median),
+and ``rot_std_rad`` (the root of the covariance's position and rotation traces, median
+over the last ``ACCURACY_WINDOW_S``),
 ``confidence`` (share of frames with the body); re-advertised when one drifts by more
 than ``DRIFT`` (at most every ``UPDATE_S``), so a need with ``prefer="pos_std_m"`` moves
 to the camera that sees the body best as the body moves.
@@ -49,8 +50,10 @@ from services.fiducials.tracker import Estimate, FiducialTracker
 
 log = logging.getLogger("uma.fiducials")
 WINDOW_S = 2.0
-DRIFT = 0.25
-UPDATE_S = 0.25
+#: accuracy follows the body faster than rate and latency: it changes as the body moves
+ACCURACY_WINDOW_S = 0.4
+DRIFT = 0.2
+UPDATE_S = 0.2
 LOG_EVERY_S = 10.0
 
 
@@ -72,10 +75,11 @@ class _Quality:
         rows = np.array(self.times)
         span = max(rows[-1, 0] - rows[0, 0], 1e-3) if len(rows) > 1 else WINDOW_S
         rate = (len(rows) - 1) / span if len(rows) > 1 else 1.0 / WINDOW_S
+        recent = rows[rows[:, 0] >= rows[-1, 0] - ACCURACY_WINDOW_S]
         return {"frequency_hz": round(float(rate), 2),
                 "latency_s": round(float(np.median(rows[:, 1])), 4),
-                "pos_std_m": float(np.median(rows[:, 2])),
-                "rot_std_rad": float(np.median(rows[:, 3])),
+                "pos_std_m": float(np.median(recent[:, 2])),
+                "rot_std_rad": float(np.median(recent[:, 3])),
                 "confidence": round(min(1.0, len(rows) / max(frames_in_window, 1)), 3)}
 
 
