@@ -55,7 +55,7 @@ log = logging.getLogger("uma.client")
 
 #: routes tried before a query gives up
 MAX_ROUTES = 4
-#: reply keys whose parse is remembered
+#: reply keys whose parse is remembered, and error functions whose parse is
 MAX_REPLY_KEYS = 1024
 
 #: one segment's answer: its pose and (when asked for) its edges' details, as sent
@@ -116,10 +116,12 @@ class Queries:
         self.relay = True
         #: segments answered from the supernode cache of a route's first agent
         self.cached_parts = 0
+        #: error functions by their spec (``_error_function``)
+        self._error_fns: dict[str, ErrorFunction] = {}
         #: agent id (or None) by the key a reply came on
         self._reply_keys: dict[str, str | None] = {}
-        #: declared queriers by query key (every agent's, or one agent's)
-        self._queriers: dict[str, zenoh.Querier] = {}
+        #: declared queriers by agent id (None: every agent's query key)
+        self._queriers: dict[str | None, zenoh.Querier] = {}
 
     def close(self) -> None:
         with self._lock:
@@ -135,7 +137,7 @@ class Queries:
         """The pose of ``target`` in ``source``'s frame at ``at`` (ns on this clock; None:
         the latest common time): plan, ask each segment's agent, compose; on to the next
         route when an agent fails.  ``details``: with every edge's details."""
-        fn = error_function(error)
+        fn = self._error_function(error)
         at = check_time(at)
         view = self._realm()
         if source == target and any(source in s.frames for s in view.summaries.values()):
@@ -154,6 +156,17 @@ class Queries:
             raise causes[0]
         raise RouteError(f"no route from {source!r} to {target!r} worked ({len(causes)} "
                          f"tried): " + "; ".join(str(c) for c in causes))
+
+    def _error_function(self, spec: str) -> ErrorFunction:
+        """The error function ``spec`` names, parsed once (an expression's parse costs more
+        than a query's planning from cache); a bad one raises each time."""
+        fn = self._error_fns.get(spec)
+        if fn is None:
+            fn = error_function(spec)
+            if len(self._error_fns) >= MAX_REPLY_KEYS:
+                self._error_fns.clear()
+            self._error_fns[spec] = fn
+        return fn
 
     def _realm(self) -> RealmView:
         """The realm to plan on; ``NoAgentsError`` if nobody is in it."""
@@ -218,12 +231,12 @@ class Queries:
         """The latest time every measured segment has data (None: none is measured);
         segments answered at a later one are asked again at it (``answers`` updated in
         place).  True if any was: the chain composed as they arrived is then stale."""
-        measured = [r.t_ns for r, _ in answers if not r.attributes.get("static")]
+        times = [None if r.attributes.get("static") else r.t_ns for r, _ in answers]
+        measured = [t for t in times if t is not None]
         if not measured:
             return None, False
         common = min(measured)
-        again = [i for i, (r, _) in enumerate(answers)
-                 if not r.attributes.get("static") and r.t_ns != common]
+        again = [i for i, t in enumerate(times) if t is not None and t != common]
         if again:
             redo = self._segments([segments[i] for i in again], common, spec, details)
             for i, answer in zip(again, redo, strict=True):
@@ -410,13 +423,12 @@ class Queries:
         as soon as every agent in ``agents`` has answered (else when the query ends: all
         agents are done, or the timeout)."""
         expected, seen = set(agents), set()
-        selector = (keys.agent_query(self.realm, agents[0]) if len(agents) == 1
-                    else keys.all_agent_queries(self.realm))
+        querier = self._querier(agents[0] if len(agents) == 1 else None)
         t1 = time.time_ns()
         # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
         # that wakes this thread through an Event (the GIL hand-off costs that much).  The
         # query's timeout closes the channel, so the loop always ends.
-        for reply in self._querier(selector).get(payload=request):
+        for reply in querier.get(payload=request):
             t4 = time.time_ns()
             if reply.ok is None:
                 continue
@@ -449,15 +461,18 @@ class Queries:
             self._reply_keys[key] = agent
         return agent
 
-    def _querier(self, key: str) -> zenoh.Querier:
-        """The querier of one query key, declared once: Zenoh then resolves the key
-        expression once rather than at every get.  No consolidation: every agent replies on
+    def _querier(self, agent: str | None) -> zenoh.Querier:
+        """The querier of one agent's query key (None: every agent's), declared once: Zenoh
+        then resolves the key expression once rather than at every get, and the key is
+        built once.  No consolidation: every agent replies on
         its own key, so there is nothing to merge, and the default would hold every answer
         back until the slowest agent is done."""
         with self._lock:
-            querier = self._queriers.get(key)
+            querier = self._queriers.get(agent)
             if querier is None:
+                key = (keys.agent_query(self.realm, agent) if agent is not None
+                       else keys.all_agent_queries(self.realm))
                 querier = self.session.declare_querier(
                     key, timeout=self.timeout, consolidation=zenoh.ConsolidationMode.NONE)
-                self._queriers[key] = querier
+                self._queriers[agent] = querier
         return querier
