@@ -4,12 +4,14 @@ instance id is in its agent's snapshot) and sends what it likes."""
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 from collections.abc import Iterator
 
 import msgpack
 import pytest
+import zenoh
 from agent_helpers.harness import agent, poll, service
 from conftest import endpoint, free_port
 from test_agent_robustness import register_raw, wait_token
@@ -271,3 +273,28 @@ def test_refused_samples_are_not_counted_as_lost(site, realm) -> None:
         burst(20)
         poll(lambda: len(got) >= before + 15 and sub.refused == 1, 10, "the stream again")
         assert sub.lost == 0
+
+
+def test_a_query_answered_with_an_error_ends_at_once(site, realm) -> None:
+    """A plain get of a malformed request: the agent answers with an error and closes the
+    query, so the get ends with the answer, not at its timeout (60 s here).  The garbage
+    collector is off meanwhile: a query kept alive by a reference cycle (an exception's
+    traceback) would close only when it runs."""
+    ep = site[0]
+    unknown = {"v": 1, "op": "segment", "source": "nowhere/a", "target": "nowhere/b"}
+    with open_session(connect=[ep]) as s:
+        wait_token(s, keys.agent_token(realm, "hostA"))
+        gc.collect()
+        gc.disable()
+        try:
+            for payload in (b"\xc1 not msgpack", msgpack.packb({"v": 1, "op": "segment"}),
+                            msgpack.packb(unknown)):
+                replies: list = []
+                done = threading.Event()
+                s.get(keys.agent_query(realm, "hostA"), zenoh.handlers.Callback(
+                    replies.append, done.set), payload=payload, timeout=60.0)
+                assert done.wait(10), f"the get of {payload!r} waited for its timeout"
+                assert len(replies) == 1 and replies[0].ok is not None
+                assert msgpack.unpackb(replies[0].ok.payload.to_bytes())["ok"] is False
+        finally:
+            gc.enable()

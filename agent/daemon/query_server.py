@@ -64,17 +64,22 @@ class QueryServer:
                 self._relay.answer(query, proto.parse_request(msg, self.agent_id), t2)
                 return
             reply = self.handle(msg)
-            if reply is None:
-                return  # a multi-agent request with no part for this agent
         except (DecodeError, ValueError, LookupError, TypeError) as exc:
             reply = proto.error_reply(exc)
         except Exception as exc:  # never into Zenoh's thread: answer and log
             self._log.warning("query", f"{type(exc).__name__}: {exc}")
             reply = proto.internal_error_reply(exc)
         try:
-            query.reply(self.key, proto.stamped(reply, self.agent_id, t2, self._now_ns()))
+            if reply is not None:  # None: a multi-agent request with no part for us
+                query.reply(self.key, proto.stamped(reply, self.agent_id, t2,
+                                                    self._now_ns()))
         except (zenoh.ZError, ValueError) as exc:
             self._log.warning("query reply", str(exc))
+        finally:
+            # answered: close it now (an exception's traceback holds the query, and it
+            # would close only when the garbage collector frees that cycle, the asker
+            # waiting its whole timeout meanwhile)
+            query.drop()
 
     def handle(self, msg: dict[str, Any]) -> dict[str, Any] | None:
         """Answer one decoded query message (:mod:`agent.protocol.query`); None: not for us."""
