@@ -174,11 +174,14 @@ def test_without_the_extra_it_says_what_to_install():
 
 
 def test_taps_pull_the_newest_sample_and_measure_the_rate_from_sequence_numbers():
+    """A pose stream is read from its agent's digest (the newest sample of each of its
+    streams), the others from their own key."""
     import logging
     import time
 
     import zenoh
 
+    from agent.protocol.digest import digest_message
     from agent.view.taps import Taps
     from schemas.codec import encode_pose
 
@@ -186,26 +189,30 @@ def test_taps_pull_the_newest_sample_and_measure_the_rate_from_sequence_numbers(
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     session = zenoh.open(config)
+    pose, digest = "uma/r/data/a/s/pose", "uma/r/agent/a/digest"
     try:
-        taps = Taps(session, logging.getLogger("test"))
-        taps.follow([("uma/r/data/a/s/pose", "pose6d")])
-        assert taps.latest("uma/r/data/a/s/pose") is None
+        taps = Taps(session, logging.getLogger("test"), "r")
+        taps.follow([(pose, "pose6d")])
+        assert taps.latest(pose) is None
         t0 = time.time_ns()
         for k in range(51):   # 100 Hz in the samples' own time, sent in one burst
-            session.put("uma/r/data/a/s/pose", encode_pose(
-                t0 + k * 10_000_000, [0.01 * k, 0.0, 0.0], [0, 0, 0, 1], seq=k))
-            if k in (0, 50):
+            sample = encode_pose(t0 + k * 10_000_000, [0.01 * k, 0.0, 0.0], [0, 0, 0, 1], seq=k)
+            session.put(digest, digest_message("a", {("s", "pose"): sample}))
+            if k in (0, 25, 50):
                 time.sleep(0.2)
-                m = taps.latest("uma/r/data/a/s/pose")
+                m = taps.latest(pose)
                 assert m is not None and m.seq == k
-        facts = taps.facts("uma/r/data/a/s/pose")
+        facts = taps.facts(pose)
         assert facts.seq == 50 and facts.rate_hz == pytest.approx(100.0)
         assert facts.age_s is not None and facts.age_s < 5.0
-        session.put("uma/r/data/a/s/pose", b"\x00not msgpack")
+        session.put(digest, digest_message("a", {("s", "pose"): b"\x00not msgpack"}))
         time.sleep(0.2)
-        assert taps.latest("uma/r/data/a/s/pose").seq == 50  # the malformed one is skipped
+        assert taps.latest(pose).seq == 50  # the malformed sample is skipped
+        session.put(digest, digest_message("b", {("s", "pose"): sample}))  # not a's
+        time.sleep(0.2)
+        assert taps.latest(pose).seq == 50
         taps.follow([])
-        assert taps.facts("uma/r/data/a/s/pose") is None
+        assert taps.facts(pose) is None
     finally:
         session.close()
 
@@ -238,3 +245,52 @@ def test_the_watch_hides_services_whose_token_went_and_keeps_agents_alive_by_tok
     assert w._dead == {("lab", "cam")}
     w._forget_dropped(_realm({"lab": [_svc("sim")]}))
     assert w._dead == set()
+
+
+def test_the_agents_digest_is_put_only_while_someone_listens_and_holds_the_newest_samples():
+    import time
+
+    import zenoh
+
+    from agent.daemon.digest import StreamDigest
+    from agent.protocol import keys, read_digest
+
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    session = zenoh.open(config)
+    got: list = []
+    newest: dict = {}
+    seen = [0]
+
+    def note(local, data):  # what the graph store does per sample
+        newest[local] = data
+        seen[0] += 1
+    try:
+        digest = StreamDigest(session, "r", "a", lambda: newest, lambda: seen[0])
+        note(("s", "pose"), b"first")
+        digest.publish()  # nobody listens: nothing put, the change kept for later
+        sub = session.declare_subscriber(keys.agent_digest("r", "a"),
+                                         lambda s: got.append(s.payload.to_bytes()))
+        note(("s", "pose"), b"second")
+        note(("t", "pose"), b"other")
+        deadline = time.monotonic() + 5
+        while not got and time.monotonic() < deadline:
+            digest.publish()
+            time.sleep(0.05)
+        assert read_digest(got[0], "r", "a") == {"uma/r/data/a/s/pose": b"second",
+                                                 "uma/r/data/a/t/pose": b"other"}
+        count = len(got)
+        digest.publish()  # nothing new since: nothing put
+        del newest[("t", "pose")]  # the stream went
+        note(("s", "pose"), b"third")
+        digest.publish()
+        time.sleep(0.2)
+        assert len(got) == count + 1
+        assert read_digest(got[-1], "r", "a") == {"uma/r/data/a/s/pose": b"third"}
+        with pytest.raises(ValueError, match="not the agent of its key"):
+            read_digest(got[-1], "r", "b")
+        sub.undeclare()
+        digest.close()
+    finally:
+        session.close()

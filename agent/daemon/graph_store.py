@@ -72,6 +72,10 @@ class LocalGraph:
         self.refused = 0
         #: local samples not decoded yet: (service id, ability name), payload
         self._pending: deque[tuple[tuple[str, str], bytes]] = deque()
+        #: the newest payload of each local pose stream, and samples seen (the digest for
+        #: viewers puts them, :mod:`agent.daemon.digest`)
+        self.newest: dict[tuple[str, str], bytes] = {}
+        self.samples_seen = 0
         for i, edge in enumerate(static_edges):
             self._add_static(i, edge)
 
@@ -102,6 +106,7 @@ class LocalGraph:
                 continue
             stop()
             del self._local[(sid, name)]
+            self.newest.pop((sid, name), None)
             self.on_ability_removed(sid, ability)
         for name, ability in wanted.items():
             if (service_id, name) not in self._local:
@@ -117,6 +122,8 @@ class LocalGraph:
         if not pending:
             self._wake()
         pending.append((local, data))
+        self.newest[local] = data
+        self.samples_seen += 1
         if len(pending) >= MAX_PENDING:
             self.drain()
 

@@ -17,6 +17,8 @@ itself and puts each sample into its graph (``on_local_sample``), as tf2's
   ``uma/<realm>/agent/<id>/supernode`` whenever its graph's structure or attributes or its
   boundary (the frames other agents also know, learnt from their summaries) change, and
   answers queries there with the latest one;
+- puts the newest sample of each local pose stream on ``uma/<realm>/agent/<id>/digest``
+  while someone listens (:mod:`agent.daemon.digest`, for ``uma view``);
 - answers ``uma/<realm>/agent/<id>/query`` (the messages: :mod:`agent.protocol.query`),
   whole routes with :mod:`agent.daemon.relay` (its own segment, other agents' from its
   supernode cache, the rest asked of their agents).
@@ -51,6 +53,7 @@ from typing import Any
 
 import zenoh
 
+from agent.daemon.digest import StreamDigest
 from agent.daemon.graph_store import LocalGraph
 from agent.daemon.peer_frames import PeerFrames
 from agent.daemon.query_server import QueryServer
@@ -93,6 +96,9 @@ class SrgNode:
         self.queries = QueryServer(session, self.store, clock, self._log)
         self.peers = PeerFrames(session, realm, agent_id, lock, self._wake.set, self._log)
         self.publisher = SummaryPublisher(session, self.store, self.peers, self._log)
+        #: the newest sample of each local pose stream, for viewers
+        self.digest = StreamDigest(session, realm, agent_id, lambda: self.store.newest,
+                                   lambda: self.store.samples_seen)
         self._decls = [
             # answered in Zenoh's thread (a query costs tens of microseconds; a thread hop
             # would cost as much as the network round trip)
@@ -167,6 +173,7 @@ class SrgNode:
                 return
             try:
                 self.store.drain()
+                self.digest.publish()
                 self.peers.resync_if_due()
                 self.peers.fetch_new()
                 self.publisher.republish_if_changed()
@@ -181,6 +188,7 @@ class SrgNode:
         self._worker.join(2.0)
         self.queries.close()
         self.store.close()
+        self.digest.close()
         for decl in self._decls:
             with contextlib.suppress(zenoh.ZError):
                 decl.undeclare()

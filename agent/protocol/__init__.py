@@ -7,7 +7,8 @@ The names below are what a realm tool (``uma view``, ``uma record``, a service t
 its own key) reads off the wire: :mod:`agent.protocol.keys`, the key space; an agent's
 services snapshot (:func:`parse_snapshot`); a pose query's ``segments`` request and its
 answer (:class:`SegmentRequest`, :func:`segments_request`, :func:`decode_reply`,
-:func:`edge_from_wire`); a supernode summary (:class:`Summary`).  The rest is internal.
+:func:`edge_from_wire`); a supernode summary (:class:`Summary`); an agent's stream digest
+(:func:`read_digest`).  The rest is internal.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 from agent._lazy import lazy_attributes
 
 __all__ = ["EdgeDetail", "SegmentRequest", "Snapshot", "Summary", "decode_reply",
-           "edge_from_wire", "keys", "parse_snapshot", "segments_request"]
+           "edge_from_wire", "keys", "parse_snapshot", "read_digest", "segments_request"]
 
 __getattr__ = lazy_attributes(__name__, {
     "keys": "agent.protocol.keys",
@@ -27,4 +28,5 @@ __getattr__ = lazy_attributes(__name__, {
     "decode_reply": "agent.protocol.query",
     "edge_from_wire": "agent.protocol.query",
     "segments_request": "agent.protocol.query",
+    "read_digest": "agent.protocol.digest",
 })

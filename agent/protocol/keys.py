@@ -94,6 +94,12 @@ def agent_query(realm: str, agent_id: str) -> str:
     return f"{agent_token(realm, agent_id)}/query"
 
 
+def agent_digest(realm: str, agent_id: str) -> str:
+    """Publication: the newest sample of each of the agent's pose streams
+    (:mod:`agent.protocol.digest`), while someone listens."""
+    return f"{agent_token(realm, agent_id)}/digest"
+
+
 def all_agent_queries(realm: str) -> str:
     """Selector of every agent's query queryable (a client asks all in one get)."""
     return f"{realm_root(realm)}/agent/*/query"

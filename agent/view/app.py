@@ -124,7 +124,7 @@ class View:
     def __init__(self, client: Client, page: Any, hz: float, trail_s: float) -> None:
         self.client = client
         self.hz = min(float(hz), MAX_HZ)
-        self.taps = Taps(client.session, log)
+        self.taps = Taps(client.session, log, client.realm)
         self.watch = Watch(client)
         self.page = page
         page.on_query = self.query
