@@ -152,8 +152,8 @@ def _bilinear(pairs: dict[int, list[tuple[int, int, float]]], width: int) -> Arr
 
 
 _X, _Y, _Z, _W = range(4)
-#: up to this many numbers in, the outer-product forms below are the fast ones (measured:
-#: 3-4x faster for a few quaternions, 10x slower for 1e5)
+#: up to this many numbers in, the outer-product forms below are the fast ones (several
+#: times faster for a few quaternions, much slower for large batches)
 _SMALL = 256
 #: the Hamilton product as one outer product and one matrix product: a handful of numpy
 #: calls, where one call per component and term cost more than the arithmetic on the few

@@ -118,10 +118,9 @@ def settings_from(args: argparse.Namespace) -> AgentSettings:
 
 #: Zenoh's runtimes (rx, acc, net, app) all hand their work over to the tx runtime: an
 #: agent answers small queries and forwards small samples, and on a loaded host each hop
-#: between runtime threads costs a context switch.  Measured on a 2-core machine: ~7 -> 1.5
-#: context switches per agent per query, and the cross-agent query of
-#: ``bench/bench_query_remote.py`` from 3.8 to 3.1-3.5x a bare get.  A ZENOH_RUNTIME set by
-#: the user wins.
+#: between runtime threads costs a context switch: handing everything to tx saves most of
+#: an agent's context switches per query (``bench/bench_query_remote.py`` measures the
+#: query against a bare get).  A ZENOH_RUNTIME set by the user wins.
 AGENT_ZENOH_RUNTIME = "(rx: (handover: tx), acc: (handover: tx), net: (handover: tx), " \
                       "app: (handover: tx))"
 

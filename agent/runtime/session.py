@@ -1,7 +1,7 @@
 """Opening Zenoh sessions the way every uma process needs them.
 
 One place builds the Zenoh configuration so agents, services, clients and the router all
-behave alike (each choice measured with eclipse-zenoh 1.10 on loopback):
+behave alike:
 
 - **multicast scouting off**: it finds nobody on plain loopback and fails in many
   containers; peers meet through explicit ``connect`` endpoints and gossip.
@@ -9,8 +9,8 @@ behave alike (each choice measured with eclipse-zenoh 1.10 on loopback):
   so a peer that only connects is invisible to the other peers of its agent.
 - **lease 1000 ms** (``transport/link/tx/lease``, keep-alive every lease/4 = 250 ms): the
   lease that counts is the one of the process that *dies*; 1 s makes a frozen process or
-  a vanished host detected in ~1 s while a killed process is seen in ~2 ms anyway (the
-  kernel closes its sockets).  Override with ``UMA_LEASE_MS`` or ``lease_ms=``.
+  a vanished host detected within about a second, while a killed process is seen at once
+  anyway (the kernel closes its sockets).  Override with ``UMA_LEASE_MS`` or ``lease_ms=``.
 - **scouting/delay 0**: otherwise ``open()`` of a router waits 0.5 s.
 - **connect retry 250 ms doubling to 1 s**: a service whose agent restarts is linked again
   within ~1 s (Zenoh's default back-off reaches 4 s).

@@ -25,8 +25,8 @@ PALETTE = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
 #: a label follows its frame once it moved this far (m)
 LABEL_MOVE_M = 0.005
 #: labels moved per call of ``frames(labels=True)``, farthest-moved first: every update is
-#: one websocket message (about 1 ms of the view's time, measured with 200 moving frames),
-#: so with many moving frames labels trail their axes rather than slow the page
+#: one websocket message (about a millisecond of the view's time), so with many moving
+#: frames labels trail their axes rather than slow the page
 LABEL_MOVES = 10
 #: ellipsoids drawn at most (the frames with the largest covariance are not chosen: the
 #: first ones placed are, a stable choice)
