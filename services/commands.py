@@ -32,6 +32,9 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
                    help="the camera demo instead: two simulated webcams on two agents track a "
                         "printed tag; a need preferring accuracy follows the camera that sees "
                         "it best, a client queries it in the world frame across the agents")
+    p.add_argument("--outside-in", action="store_true",
+                   help="the outside-in marker tracker instead: simulated IR cameras on two "
+                        "agents, the reconstruction on one, body poses queried across them")
     p.add_argument("--optical", choices=("dots", "pose"), default="dots",
                    help="the fusion's optical update: one SCAAT update per labeled laser dot "
                         "(default; more accurate, docs/FUSION_TUNING.md) or the tracker's "

@@ -168,6 +168,10 @@ def main(args: argparse.Namespace) -> int:
         from services.fiducials.demo import main as cameras
 
         return cameras(args)
+    if args.outside_in:
+        from services.outside_in.demo import main as outside_in
+
+        return outside_in(args)
     log_dir = None
     if args.logs is not None:
         log_dir = Path(args.logs)

@@ -89,3 +89,15 @@ def test_cameras_on_two_hosts_and_the_reconstruction_give_a_body_pose(processes,
             return r
         got = poll(accurate, timeout=90, what="the wand's pose from four cameras on two hosts")
     assert got.covariance is not None and np.all(np.diag(got.covariance) > 0)
+
+
+@pytest.mark.slow
+def test_uma_demo_outside_in(capsys) -> None:
+    import json
+
+    from agent.cli.main import main
+    assert main(["demo", "--outside-in", "--seconds", "2", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["ok"]
+    for body in report["bodies"].values():
+        assert body["answers"] > 0 and body["position_error_mm_median"] < 2.0
