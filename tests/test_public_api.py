@@ -195,6 +195,11 @@ def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() ->
         geo.check_quaternion([0.0, 0.0, 0.0, 2.0])
     with pytest.raises(UmaError, match="integer ns"):
         check_time(1.5)
+    from agent import Service
+    pose = Service("s", realm="lab", agent="hostA").ability(
+        "pose", type="pose6d", edge=("a/w", "a/b"))
+    with pytest.raises(UmaError, match="ability 'pose': position"):
+        pose.publish(1, [0.0, float("nan"), 0.0], [0.0, 0.0, 0.0, 1.0])
 
 
 def test_plugin_declarations_import_no_zenoh_and_name_what_runs() -> None:

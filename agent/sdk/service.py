@@ -113,16 +113,21 @@ class AbilityHandle:
         return self.ability.name
 
     def publish(self, t_ns: int, position: Any, quaternion: Any, covariance: Any = None) -> None:
-        """Publish one pose (``pose6d`` abilities); ``ValueError`` names a bad field."""
+        """Publish one pose (``pose6d`` abilities); ``InvalidInputError`` (a ``ValueError``)
+        names a bad field."""
         if self.ability.type != "pose6d":
             raise UmaError(f"ability {self.name!r} is {self.ability.type}; use "
                            "publish_measurement()")
-        data = encode_pose(t_ns, position, quaternion, covariance, seq=self._seq + 1)
+        try:
+            data = encode_pose(t_ns, position, quaternion, covariance, seq=self._seq + 1)
+        except ValueError as exc:
+            raise InvalidInputError(f"ability {self.name!r}: {exc}") from None
         self._seq += 1  # only once the sample is valid: a refused one leaves no gap
         self._put(data)
 
     def publish_measurement(self, m: Measurement) -> None:
-        """Publish a measurement of any type (must be this ability's type)."""
+        """Publish a measurement of any type (must be this ability's type);
+        ``InvalidInputError`` (a ``ValueError``) names a bad field."""
         if m.type != self.ability.type:
             raise UmaError(f"ability {self.name!r} publishes {self.ability.type}, "
                            f"not {m.type}")
@@ -131,10 +136,10 @@ class AbilityHandle:
             m.seq = self._seq + 1
         try:
             data = encode_measurement(m)
-        except ValueError:
+        except ValueError as exc:
             if numbered:
                 m.seq = None
-            raise
+            raise InvalidInputError(f"ability {self.name!r}: {exc}") from None
         if numbered:
             self._seq += 1  # only once the sample is valid: a refused one leaves no gap
         self._put(data)
