@@ -5,8 +5,8 @@
 
 import numpy as np
 
+from agent import Graph
 from agent import geometry as geo
-from agent.srg import Graph
 
 g = Graph(buffer_s=10.0)
 # a calibrated camera: static, valid at all times

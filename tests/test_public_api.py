@@ -99,15 +99,15 @@ def _import_offences(path, own: str | None) -> list[str]:
 
 
 def test_services_view_and_record_use_only_the_public_api() -> None:
-    """Services, ``uma view`` and ``uma record`` import ``agent``'s ``__all__`` and the
-    modules ``agent.PUBLIC_MODULES`` names (only their public names), never the internals;
-    view and record may use their own modules."""
+    """Services, ``uma view``, ``uma record`` and the examples import ``agent``'s
+    ``__all__`` and the modules ``agent.PUBLIC_MODULES`` names (only their public names),
+    never the internals; view and record may use their own modules."""
     from pathlib import Path
 
     root = Path(agent.__file__).parent.parent
     offences = []
     for folder, own in (("services", None), ("agent/view", "agent.view"),
-                        ("agent/record", "agent.record")):
+                        ("agent/record", "agent.record"), ("examples", None)):
         for path in sorted((root / folder).rglob("*.py")):
             offences += _import_offences(path.relative_to(root), own)
     assert offences == [], "imports of agent internals:\n" + "\n".join(offences)
