@@ -26,7 +26,7 @@ from agent.protocol.registration import Match, control_message, register_request
 from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
-from schemas.codec import encode_descriptor
+from schemas.codec import encode_descriptor, encode_pose
 from schemas.models import ServiceDescriptor
 
 EDGE = ("ivy/world", "alice/head")
@@ -298,3 +298,61 @@ def test_a_query_answered_with_an_error_ends_at_once(site, realm) -> None:
                 assert msgpack.unpackb(replies[0].ok.payload.to_bytes())["ok"] is False
         finally:
             gc.enable()
+
+
+def test_a_needs_on_sample_gets_only_samples_the_stamp_rule_takes(site, realm) -> None:
+    """The rule the subscription and the graph apply, applied to a service's matched need
+    too: a day ahead, at t = 0 and a day behind the stream's newest sample are refused."""
+    ep, _, cam = site
+    out = cam._abilities["pose"]
+    got: list = []
+    with Service("app", realm=realm, agent="hostA", connect=[ep]) as app:
+        app.need("head", type="pose6d", edge=("ivy/world", "*/head"), on_sample=got.append)
+        app.start()
+        app.wait_matched("head", 1, timeout=10)
+        key = keys.data(realm, "hostA", "cam", "pose")
+        with open_session(connect=[ep]) as s:
+            wait_token(s, keys.agent_token(realm, "hostA"))
+            for _ in range(100):
+                out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+                time.sleep(0.005)
+                if got:
+                    break
+            day = 86_400 * 10**9
+            for t in (time.time_ns() + day, 0, time.time_ns() - day):
+                s.put(key, encode_pose(t, [5, 5, 5], [0, 0, 0, 1]))
+            time.sleep(0.2)
+            seen = len(got)
+            out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+            poll(lambda: any(m.position[0] == pytest.approx(0.1) for m in got[seen:]), 10,
+                 "the real stream after the forged samples")
+        assert [m.t_ns for m in got if m.position[0] != pytest.approx(0.1)] == []
+        assert app.links.refused == 3
+
+
+def test_old_stamped_samples_of_a_stranger_do_not_exclude_a_stream(site, realm) -> None:
+    """Samples stamped 3 s ago put on the camera's key at three times its rate would make
+    its measured latency 3 s and its need drop it (latency_s < 0.5); the monitor measures
+    latency only from samples newer than the stream's newest."""
+    ep = site[0]
+    with Service("app", realm=realm, agent="hostA", connect=[ep]) as app, \
+            Service("cam2", realm=realm, agent="hostA", connect=[ep]) as cam2:
+        out = cam2.ability("pose", type="pose6d", edge=("ivy/world", "bob/head"),
+                           frequency_hz=100, latency_s=0.01)
+        cam2.start()
+        app.need("head", type="pose6d", edge=("ivy/world", "bob/head"),
+                 where="latency_s < 0.5")
+        app.start()
+        key = keys.data(realm, "hostA", "cam2", "pose")
+        with open_session(connect=[ep]) as s:
+            wait_token(s, keys.agent_token(realm, "hostA"))
+            end = time.monotonic() + 3.0
+            matched = False
+            while time.monotonic() < end:
+                out.publish(time.time_ns(), [0.1, 0.2, 0.3], [0, 0, 0, 1])
+                for _ in range(3):
+                    s.put(key, encode_pose(time.time_ns() - 3 * 10**9, [5, 5, 5],
+                                           [0, 0, 0, 1]))
+                time.sleep(0.01)
+                matched = matched or bool(app.matches("head"))
+            assert matched and [m.service_id for m in app.matches("head")] == ["cam2"]

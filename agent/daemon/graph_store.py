@@ -21,7 +21,7 @@ from typing import Any
 
 from agent.daemon.streams import StreamHub
 from agent.protocol import keys
-from agent.protocol.sequence import too_far_ahead
+from agent.protocol.sequence import stamp_refusal
 from agent.runtime.logs import RateLimitedLog
 from agent.srg import Graph
 from schemas.codec import DecodeError, decode_measurement, unpack_covariance
@@ -144,10 +144,10 @@ class LocalGraph:
             return  # the ability went away meanwhile
         try:
             m = decode_measurement(data, expected_type="pose6d")
-            if too_far_ahead(m.t_ns, self._now_ns()):
+            refusal = stamp_refusal(m.t_ns, self._now_ns())
+            if refusal is not None:
                 self.refused += 1
-                raise DecodeError(f"stamped {(m.t_ns - self._now_ns()) / 1e9:.3g} s ahead of "
-                                  f"this host's clock ({self.refused} refused so far)")
+                raise DecodeError(f"{refusal} ({self.refused} refused so far)")
         except DecodeError as exc:
             key = keys.data(self.realm, self.agent_id, *local)
             self._log.warning(f"data {key}", f"dropped a malformed sample: {exc}")

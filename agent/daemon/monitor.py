@@ -59,9 +59,11 @@ class _Stream:
         #: arrivals the inbox had no room for (Zenoh's thread counts, the worker reads)
         self.overflow = 0
         self._overflow_seen = 0
-        #: (arrival mono, samples, latency s or None for uninspected overflow)
+        #: (arrival mono, samples, latency s or None: uninspected overflow, or out of order)
         self.window: deque[tuple[float, int, float | None]] = deque()
         self.gaps = SequenceGaps()
+        #: the newest stamp taken (samples stamped before it do not measure latency)
+        self.newest_ns = 0
         self.stop_listening: Callable[[], None] = lambda: None
         self._log = bad
 
@@ -95,7 +97,11 @@ class _Stream:
                 self.gaps.skip()
                 continue
             self.gaps.see(seq)
-            self.window.append((mono, 1, (wall_ns - t_ns) / 1e9))
+            # latency from the stream's present only: a sample stamped before the newest
+            # one taken (out of order: a forged or replayed one) counts in the rate only
+            latency = (wall_ns - t_ns) / 1e9 if t_ns >= self.newest_ns else None
+            self.newest_ns = max(self.newest_ns, t_ns)
+            self.window.append((mono, 1, latency))
         overflow = self.overflow
         if overflow > self._overflow_seen:
             self.window.append((now, overflow - self._overflow_seen, None))

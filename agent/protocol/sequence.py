@@ -15,9 +15,28 @@ from __future__ import annotations
 MAX_AHEAD_NS = 1_000_000_000
 
 
+#: how far behind the newest sample of its own stream a sample may be stamped: one stream's
+#: samples come in order, so one stamped that far back is not of its present (a forged or
+#: broken sender); a stream's first sample may be of any past (a recording replayed)
+MAX_BEHIND_NS = 10_000_000_000
+
+
 def too_far_ahead(t_ns: int, now_ns: int) -> bool:
     """Whether a sample stamped ``t_ns`` (receiver's clock) is refused at ``now_ns``."""
     return t_ns > now_ns + MAX_AHEAD_NS
+
+
+def stamp_refusal(t_ns: int, now_ns: int, newest_ns: int | None = None) -> str | None:
+    """Why a sample stamped ``t_ns`` (receiver's clock) is refused at ``now_ns``, None if
+    it is not: the one rule every receiver applies (subscriptions, the agent's graph, a
+    service's matched needs).  ``newest_ns``: the newest stamp taken from its stream."""
+    if t_ns <= 0:
+        return "stamped at or before 1970-01-01: not a time"
+    if too_far_ahead(t_ns, now_ns):
+        return f"stamped {(t_ns - now_ns) / 1e9:.3g} s ahead of this clock"
+    if newest_ns is not None and t_ns < newest_ns - MAX_BEHIND_NS:
+        return f"stamped {(newest_ns - t_ns) / 1e9:.3g} s behind its stream's newest sample"
+    return None
 
 
 class SequenceGaps:

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from agent.protocol.registration import Match
+from agent.protocol.sequence import stamp_refusal
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from schemas.codec import (
@@ -46,6 +48,8 @@ class _Link:
 
     match: Match
     subscriber: Any = None
+    #: the newest stamp taken from it (``stamp_refusal``)
+    newest_ns: int | None = None
 
 
 @dataclass
@@ -75,6 +79,8 @@ class NeedLinks:
         self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
             SAMPLE_QUEUE)
         self._thread: threading.Thread | None = None
+        #: samples refused by their stamp (``stamp_refusal``), not given to ``on_sample``
+        self.refused = 0
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._dispatch, daemon=True,
@@ -141,6 +147,13 @@ class NeedLinks:
             except DecodeError as exc:
                 self._log.warning(f"data {link.match.key}", f"dropped: {exc}")
                 continue
+            refusal = stamp_refusal(m.t_ns, time.time_ns(), link.newest_ns)
+            if refusal is not None:
+                self.refused += 1
+                self._log.warning(f"data {link.match.key}", f"refused: {refusal} "
+                                  f"({self.refused} refused so far)")
+                continue
+            link.newest_ns = max(m.t_ns, link.newest_ns or 0)
             m.edge, m.source, m.attributes = (link.match.edge, link.match.service_id,
                                               link.match.attributes)
             if need.on_sample is None:

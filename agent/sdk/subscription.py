@@ -49,7 +49,7 @@ from agent.attributes import EDGE_ATTRIBUTES
 from agent.errors import InvalidInputError, UmaError
 from agent.protocol import keys
 from agent.protocol.query import edge_from_wire
-from agent.protocol.sequence import SequenceGaps, too_far_ahead
+from agent.protocol.sequence import SequenceGaps, stamp_refusal
 from agent.result import PoseResult
 from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
@@ -140,6 +140,8 @@ class Subscription:
         self.answered = 0
         self.buffer_s = float(buffer_s)
         self._gaps: dict[str, SequenceGaps] = {}
+        #: the newest stamp taken from each feed (``stamp_refusal``)
+        self._newest: dict[str, int] = {}
         self.last_error: Exception | None = None
         self.status = "streaming"
         self.stall_s = stall_s
@@ -415,10 +417,11 @@ class Subscription:
         try:
             m = decode_measurement(data, expected_type="pose6d")
             t = clock.to_local(agent, m.t_ns)
-            if too_far_ahead(t, time.time_ns()):
+            refusal = stamp_refusal(t, time.time_ns(), self._newest.get(key))
+            if refusal is not None:
                 self.refused += 1
-                raise InvalidInputError(f"stamped {(t - time.time_ns()) / 1e9:.3g} s ahead of this "
-                                        f"clock: refused ({self.refused} so far)")
+                raise InvalidInputError(f"{refusal}: refused ({self.refused} so far)")
+            self._newest[key] = max(t, self._newest.get(key, 0))
             gap, seen = gaps.see(m.seq), True
             if gap:
                 self._log.warning(f"subscription {key}", f"{gap} sample(s) lost before "
