@@ -1,18 +1,21 @@
 """The filter that smooths and predicts a tracked body: Dorfmüller-Ulhaas's motion model.
 
-The state is the body's pose (``p``, ``R``) with its velocity ``v`` and angular velocity
-``omega`` (world frame).  Over ``dt`` the body moves as Theorem 1 of the paper says
-(``services.fusion.predictor``'s ``motion_matrices``, eqs. 3-6): ``R' = W R``,
-``p' = p + V v``, and the velocity turns with the body, ``v' = W v``, so the motion is
-the screw the exponential map describes.  The acceleration of the paper's model is left
-to the process noise (white, in both chains): at a marker camera's 120 Hz the pose
-measurements pin the motion far better than an estimated acceleration would.
+The state is the body's pose (``p``, ``R``), its velocity ``v``, angular velocity
+``omega`` and acceleration ``a`` (world frame): the paper's kinematic vector (eq. 9).
+Over ``dt`` the body turns by ``W`` of Theorem 1 (``services.fusion.predictor``'s
+``motion_matrices``, the exponential map, eqs. 4-6), ``R' = W R``, and moves as eq. 12
+says, ``v' = v + a dt``, ``omega`` and ``a`` constant; its origin follows
+``p' = p + v dt + a dt^2 / 2``.  (Theorem 1's ``V v + A a`` couples the translation to
+the rotation of the points it moves; for the body's own origin, over a marker camera's
+8 ms, that coupling is below a micrometre, and keeping it out keeps ``F`` linear in
+``v`` and ``a``.)  Process noise drives the acceleration with white jerk and ``omega``
+with white angular acceleration: the acceleration state is what lets the filter average
+several frames without lagging behind a hand's motion.
 
-The covariance is an error state ``[dp, dtheta, dv, domega]`` with the world-frame (left)
-rotation error, as the fusion filter keeps it (the quaternion outside the vector);
-``point_motion_jacobian`` (eq. 16, corrected) gives the rows of ``F`` that depend on
-``omega``.  A pose measurement farther than the gate from the prediction is refused;
-several in a row restart the filter at the measurement (the body was lost and found).
+The covariance is an error state ``[dp, dtheta, dv, domega, da]`` with the world-frame
+(left) rotation error, as the fusion filter keeps it (the quaternion outside the vector).
+A pose measurement farther than the gate from the prediction is refused; several in a row
+restart the filter at the measurement (the body was lost and found).
 """
 
 from __future__ import annotations
@@ -20,31 +23,35 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from filterpy.common import Q_continuous_white_noise
 
 from agent import geometry as geo
-from services.fusion.predictor import motion_matrices, point_motion_jacobian
+from services.fusion.predictor import motion_matrices
 
 Array = np.ndarray
 
 #: chi-square(6) at 99.9 %: a pose measurement further out is an outlier
 GATE_6 = 22.458
+N = 15
+P_, TH, V_, W_, A_ = (slice(3 * i, 3 * i + 3) for i in range(5))
 
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """Process noise (white accelerations) and start-up uncertainty."""
+    """Process noise (white jerk, white angular acceleration) and start-up uncertainty."""
 
-    accel_psd: float = 40.0          # (m/s^2)^2 / Hz
-    angular_accel_psd: float = 100.0  # (rad/s^2)^2 / Hz
-    initial_velocity_std: float = 2.0  # m/s
-    initial_omega_std: float = 6.0     # rad/s
+    jerk_psd: float = 200.0              # (m/s^3)^2 / Hz
+    angular_accel_psd: float = 5.0       # (rad/s^2)^2 / Hz
+    initial_velocity_std: float = 2.0    # m/s
+    initial_omega_std: float = 6.0       # rad/s
+    initial_accel_std: float = 10.0      # m/s^2
     gate: float = GATE_6
-    restart_after: int = 3             # refused measurements in a row
-    max_gap_s: float = 0.5             # a longer silence restarts the filter
+    restart_after: int = 3               # refused measurements in a row
+    max_gap_s: float = 0.5               # a longer silence restarts the filter
 
 
 class MotionFilter:
-    """One body's pose and velocities, updated with pose measurements."""
+    """One body's pose and motion, updated with pose measurements."""
 
     def __init__(self, config: MotionConfig | None = None):
         self.config = config or MotionConfig()
@@ -53,7 +60,8 @@ class MotionFilter:
         self.R = np.eye(3)
         self.v = np.zeros(3)
         self.omega = np.zeros(3)
-        self.P = np.eye(12)
+        self.a = np.zeros(3)
+        self.P = np.eye(N)
         self.refused_in_row = 0
         self.last_nis = float("nan")
 
@@ -73,59 +81,67 @@ class MotionFilter:
     def start(self, t: float, p: Array, R: Array, cov: Array) -> None:
         cfg = self.config
         self.t, self.p, self.R = t, np.asarray(p, float).copy(), np.asarray(R, float).copy()
-        self.v = np.zeros(3)
-        self.omega = np.zeros(3)
-        self.P = np.zeros((12, 12))
+        self.v, self.omega, self.a = np.zeros(3), np.zeros(3), np.zeros(3)
+        self.P = np.zeros((N, N))
         self.P[:6, :6] = cov
-        self.P[6:9, 6:9] = np.eye(3) * cfg.initial_velocity_std ** 2
-        self.P[9:, 9:] = np.eye(3) * cfg.initial_omega_std ** 2
+        self.P[V_, V_] = np.eye(3) * cfg.initial_velocity_std ** 2
+        self.P[W_, W_] = np.eye(3) * cfg.initial_omega_std ** 2
+        self.P[A_, A_] = np.eye(3) * cfg.initial_accel_std ** 2
         self.refused_in_row = 0
 
     def predicted_pose(self, t: float) -> tuple[Array, Array]:
         """Pose ``(p, R)`` at ``t`` without its covariance (cheap: a marker's window)."""
         if self.t is None:
             raise ValueError("motion filter: not started")
-        W, V, _ = motion_matrices(self.omega, t - self.t)
-        return self.p + V @ self.v, W @ self.R
+        dt = t - self.t
+        W, _, _ = motion_matrices(self.omega, dt)
+        return self.p + self.v * dt + 0.5 * dt * dt * self.a, W @ self.R
 
     def predicted(self, t: float) -> tuple[Array, Array, Array]:
         """Pose ``(p, R)`` and its 6x6 covariance at ``t`` (the state is not changed)."""
-        p, R, _, _, P = self._propagate(t)
-        return p, R, P[:6, :6]
+        p, R = self.predicted_pose(t)
+        return p, R, self._covariance_at(t)[:6, :6]
 
     def advance(self, t: float) -> None:
         """Move the state to time ``t``."""
-        self.p, self.R, self.v, self.omega, self.P = self._propagate(t)
+        P = self._covariance_at(t)
+        dt = t - self.t
+        self.p, self.R = self.predicted_pose(t)
+        self.v = self.v + self.a * dt
+        self.P = P
         self.t = t
 
-    def _propagate(self, t: float) -> tuple[Array, Array, Array, Array, Array]:
+    def _covariance_at(self, t: float) -> Array:
         if self.t is None:
             raise ValueError("motion filter: not started")
         dt = t - self.t
         if dt == 0.0:
-            return self.p.copy(), self.R.copy(), self.v.copy(), self.omega.copy(), self.P.copy()
-        W, V, _ = motion_matrices(self.omega, dt)
-        zero = np.zeros(3)
-        F = np.eye(12)
-        F[0:3, 6:9] = V
-        F[0:3, 9:12] = point_motion_jacobian(self.omega, zero, self.v, zero, dt)
-        F[3:6, 3:6] = W
-        F[3:6, 9:12] = dt * np.eye(3)
-        F[6:9, 6:9] = W
-        F[6:9, 9:12] = point_motion_jacobian(self.omega, self.v, zero, zero, dt)
+            return self.P.copy()
+        W, _, _ = motion_matrices(self.omega, dt)
+        eye = np.eye(3)
+        F = np.eye(N)
+        F[P_, V_] = dt * eye
+        F[P_, A_] = 0.5 * dt * dt * eye
+        F[V_, A_] = dt * eye
+        F[TH, TH] = W
+        F[TH, W_] = dt * eye
         P = F @ self.P @ F.T + self._noise(abs(dt))
-        return (self.p + V @ self.v, W @ self.R, W @ self.v, self.omega.copy(),
-                0.5 * (P + P.T))
+        return 0.5 * (P + P.T)
 
     def _noise(self, dt: float) -> Array:
-        """White accelerations: ``[[dt^3/3, dt^2/2], [dt^2/2, dt]] psd`` per chain."""
-        Q = np.zeros((12, 12))
+        """filterpy's continuous white noise: jerk on (p, v, a), angular acceleration on
+        (theta, omega)."""
+        Q = np.zeros((N, N))
         eye = np.eye(3)
-        for (a, b), psd in (((0, 6), self.config.accel_psd),
-                            ((3, 9), self.config.angular_accel_psd)):
-            Q[a:a + 3, a:a + 3] = eye * psd * dt ** 3 / 3
-            Q[a:a + 3, b:b + 3] = Q[b:b + 3, a:a + 3] = eye * psd * dt ** 2 / 2
-            Q[b:b + 3, b:b + 3] = eye * psd * dt
+        lin = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=self.config.jerk_psd)
+        for i, si in enumerate((P_, V_, A_)):
+            for j, sj in enumerate((P_, V_, A_)):
+                Q[si, sj] = lin[i, j] * eye
+        ang = Q_continuous_white_noise(dim=2, dt=dt,
+                                       spectral_density=self.config.angular_accel_psd)
+        for i, si in enumerate((TH, W_)):
+            for j, sj in enumerate((TH, W_)):
+                Q[si, sj] = ang[i, j] * eye
         return Q
 
     def update(self, t: float, p: Array, R: Array, cov: Array) -> bool:
@@ -151,11 +167,12 @@ class MotionFilter:
         self.refused_in_row = 0
         K = np.linalg.solve(S, self.P[:6, :]).T       # P H^T S^-1, H = [I6 0]
         dx = K @ y
-        self.p = self.p + dx[0:3]
-        self.R = geo.rodrigues(dx[3:6]) @ self.R
-        self.v = self.v + dx[6:9]
-        self.omega = self.omega + dx[9:12]
-        I_KH = np.eye(12)
+        self.p = self.p + dx[P_]
+        self.R = geo.rodrigues(dx[TH]) @ self.R
+        self.v = self.v + dx[V_]
+        self.omega = self.omega + dx[W_]
+        self.a = self.a + dx[A_]
+        I_KH = np.eye(N)
         I_KH[:, :6] -= K
         P = I_KH @ self.P @ I_KH.T + K @ cov @ K.T
         self.P = 0.5 * (P + P.T)
