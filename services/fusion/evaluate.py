@@ -75,6 +75,9 @@ RECOVERY_FRAMES = 3
 #: output error within which the filter counts as recovered: a few times its normal error
 RECOVERY_FACTOR = 3.0
 RECOVERY_HOLD_S = 0.1
+#: seconds after a (re)start over which its error is held to the optical pose's plus the
+#: filter's own 3 sigma
+RESET_WINDOW_S = 2.0
 
 
 # ---------------------------------------------------------------------- set-up
@@ -138,6 +141,8 @@ class Recording:
     uninitialised_t: np.ndarray
     #: dot mode: the tracker's counts of dots labeled by prediction and left unlabeled
     dot_labels: dict[str, int] = field(default_factory=dict)
+    #: times of the filter's starts, the first and every restart (its ``start_t``)
+    starts: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
@@ -168,7 +173,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     motion_t = accel.t - cal.latency_s
     n = len(motion_t)
     rec = {k: [] for k in ("t", "p", "q", "cov", "pp", "qp")}
-    opt_t, opt_p, opt_q, failures, waiting = [], [], [], {}, []
+    opt_t, opt_p, opt_q, failures, waiting, starts = [], [], [], {}, [], []
     cpu, k_frame = 0.0, 0
     pm, qm = geo.inverse(*head_to_laser)
     for i in range(n):
@@ -196,6 +201,8 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
             opt_t.append(t_f)
             opt_p.append(hp)
             opt_q.append(hq)
+        if ekf.start_t is not None and (not starts or starts[-1] != ekf.start_t):
+            starts.append(ekf.start_t)
         if not ekf.initialised:
             waiting.append(motion_t[i])
             continue
@@ -215,7 +222,8 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                      np.array(opt_t), np.array(opt_p).reshape(-1, 3),
                      np.array(opt_q).reshape(-1, 4), cpu, ekf.stats, failures,
                      np.array(waiting),
-                     {k: v for k, v in tracker.counts.items() if k.startswith("dot_")})
+                     {k: v for k, v in tracker.counts.items() if k.startswith("dot_")},
+                     np.array(starts))
 
 
 # ---------------------------------------------------------------------- baselines
@@ -481,6 +489,7 @@ def figures_of(rec: Recording, traj: Any, gaps: list[tuple[float, float]],
             for region, mask in (("all", after), ("inside_gaps", in_gap),
                                  ("outside_gaps", normal))}
     figures["gaps_by_length"] = recovery_figures(rec, ep, er, gaps, normal)
+    figures["resets"] = reset_figures(rec, ep, er, traj)
     pep, per = geo.pose_error(rec.p_pred, rec.q_pred, p_fut, q_fut)
     nep, ner = geo.pose_error(rec.p, rec.q, p_fut, q_fut)
     figures[f"prediction_{1e3 * horizon_s:g}ms"] = {
@@ -491,6 +500,37 @@ def figures_of(rec: Recording, traj: Any, gaps: list[tuple[float, float]],
     updates = rec.stats.measurement_updates + rec.stats.time_updates
     figures["filter_updates_per_cpu_s"] = updates / rec.cpu_s if rec.cpu_s > 0 else None
     return figures
+
+
+def reset_figures(rec: Recording, ep: np.ndarray, er: np.ndarray, traj: Any) -> dict[str, Any]:
+    """How far each start (the first and every restart) lets the error grow in the
+    ``RESET_WINDOW_S`` after it (or until the next start), against the error of the
+    optical pose it started from plus three of the filter's own standard deviations
+    (its covariance's largest axis) at each instant: a start that converges stays under
+    that bound (``excess`` <= 0)."""
+    rows = []  # per start: worst position (m), orientation (rad), their excesses
+    ends = np.append(rec.starts[1:], math.inf)[:rec.starts.size].tolist()
+    for s, nxt in zip(rec.starts.tolist(), ends, strict=True):
+        window = (rec.t >= s) & (rec.t < min(s + RESET_WINDOW_S, nxt))
+        used = np.flatnonzero(rec.optical_t <= s + 1e-9)
+        if not window.any() or not used.size:
+            continue
+        k = int(used[-1])  # the optical pose the filter started at
+        p_true, q_true = traj.pose(rec.optical_t[k])
+        e0p, e0r = geo.pose_error(rec.optical_p[k], rec.optical_q[k], p_true[0], q_true[0])
+        sp = np.sqrt(np.linalg.eigvalsh(rec.cov[window, :3, :3])[:, -1])
+        sr = np.sqrt(np.linalg.eigvalsh(rec.cov[window, 3:, 3:])[:, -1])
+        rows.append((ep[window].max(), er[window].max(),
+                     np.max(ep[window] - (e0p + 3 * sp)), np.max(er[window] - (e0r + 3 * sr))))
+    out: dict[str, Any] = {"starts": int(rec.starts.size), "window_s": RESET_WINDOW_S}
+    if rows:
+        worst = np.max(np.array(rows), axis=0)
+        out.update({"worst_position_mm": round(1e3 * worst[0], 3),
+                    "worst_orientation_deg": round(math.degrees(worst[1]), 4),
+                    "worst_position_excess_mm": round(1e3 * worst[2], 3),
+                    "worst_orientation_excess_deg": round(math.degrees(worst[3]), 4),
+                    "bounded": bool(worst[2] <= 0 and worst[3] <= 0)})
+    return out
 
 
 def _sample_counts(rec: Recording, after: np.ndarray, in_gap: np.ndarray, ep: np.ndarray,
@@ -605,8 +645,10 @@ PLUGIN = EvalPlugin(
          "the last pose; extrapolate at most one frame) over all samples, inside and "
          "outside the gaps; errors through optical gaps and recovery, +20 ms prediction "
          "error, NEES, updates/s.  Samples left out, filter restarts and rejections are "
-         "counted; 'given_by_simulator' lists what the run takes from the simulator's "
-         "truth (the accelerometers' noise model and latency).",
+         "counted; 'resets': the worst error in the 2 s after each (re)start against the "
+         "starting optical pose's error plus the filter's own 3 sigma; "
+         "'given_by_simulator' lists what the run takes from the simulator's truth (the "
+         "accelerometers' noise model and latency).",
     add_arguments=_add_arguments,
     run="services.fusion.evaluate:run",
     higher_is_better=frozenset({"output_rate_hz", "optical_poses",
