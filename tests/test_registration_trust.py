@@ -356,3 +356,42 @@ def test_old_stamped_samples_of_a_stranger_do_not_exclude_a_stream(site, realm) 
                 time.sleep(0.01)
                 matched = matched or bool(app.matches("head"))
             assert matched and [m.service_id for m in app.matches("head")] == ["cam2"]
+
+
+def test_token_churn_is_coalesced_and_bounded(site, realm) -> None:
+    """A stranger declaring and dropping liveliness tokens as fast as it can (new agent
+    ids, and service ids under hostA's prefix): the agent starts work (departure checks,
+    snapshot fetches) for a bounded share of them, its queue refuses nothing, and a new
+    service registers meanwhile."""
+    ep, agent, _ = site
+    stop = threading.Event()
+    sent = [0]
+
+    def churn() -> None:
+        with open_session(connect=[ep]) as s:
+            for i in range(4000):
+                if stop.is_set():
+                    break
+                for key in (keys.agent_token(realm, f"ghost{i}"),
+                            keys.service_token(realm, "hostA", f"ghost{i}")):
+                    s.liveliness().declare_token(key).undeclare()
+                    sent[0] += 1
+    checks = agent._checks + agent.registrar._checks
+    thread = threading.Thread(target=churn, daemon=True)
+    thread.start()
+    try:
+        time.sleep(0.5)
+        with Service("late", realm=realm, agent="hostA", connect=[ep]) as late:
+            late.ability("pose", type="pose6d", edge=("ivy/world", "carol/head"))
+            late.start()
+            assert late.wait_registered(10), late.error
+    finally:
+        stop.set()
+        thread.join(30)
+    started = agent._checks + agent.registrar._checks - checks
+    refused = sum(getattr(getattr(o, name, None), "refused", 0)
+                  for o, name in ((agent, "_agent_tokens"), (agent.registrar, "tokens")))
+    print(f"churn: {sent[0]} tokens, {started} checks started, {refused} events refused, "
+          f"{agent._worker.refused} calls refused by the work queue")
+    assert agent._worker.refused == 0
+    assert sent[0] > 2000 and started < sent[0] // 2

@@ -59,7 +59,7 @@ import zenoh
 from agent.daemon.matching import MatchResult, Offer, Requirement, rematch
 from agent.daemon.monitor import NeedId, StreamMonitor
 from agent.daemon.realm_view import Identity, NeedStatus, RealmView, build_snapshot
-from agent.daemon.registrar import DEPARTURE_CHECK_S, Registrar
+from agent.daemon.registrar import DEPARTURE_CHECK_S, Registrar, token_churn
 from agent.daemon.settings import AgentSettings
 from agent.daemon.streams import StreamHub
 from agent.errors import UmaError
@@ -75,6 +75,7 @@ from agent.protocol.registration import (
 )
 from agent.runtime import plugins
 from agent.runtime.callbacks import guarded
+from agent.runtime.limits import Coalescer, token_limits
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.runtime.session import ask_all, listening_endpoints, open_session, query
@@ -125,6 +126,10 @@ class Agent:
                               self.s.tick_s, settle=(self._rematch_if_dirty,
                                                      self._publish_if_dirty))
         self.registrar = Registrar(self.view, self.epoch, self._worker.put, self, self._log)
+        #: agent token events, coalesced per token and rated per agent (token churn)
+        self._agent_tokens = Coalescer(self._worker.put, self._on_agent_token, token_limits(),
+                                       lambda sender, why: token_churn(
+                                           self._log, sender, why, self._agent_tokens.refused))
         self.streams = StreamHub(local=keys.all_data(self.realm, self.agent_id))
         self.monitor = StreamMonitor(self.streams, self.s.grace_s, self.s.rate_window_s,
                                      self._log)
@@ -189,12 +194,13 @@ class Agent:
             sess.declare_queryable(keys.agent_services(r, a),
                                    lambda q: put(self._on_services_query, q)),
             sess.declare_subscriber(keys.all_agent_services(r), guarded(
-                lambda smp: put(self._on_snapshot, str(smp.key_expr),
-                                payload_bytes(smp.payload)),
+                lambda smp: self._worker.put_peer(self._on_snapshot, str(smp.key_expr),
+                                                  payload_bytes(smp.payload)),
                 keys.all_agent_services(r), self._log)),
             sess.liveliness().declare_subscriber(
-                keys.all_agent_tokens(r), lambda smp: put(self._on_agent_token, smp),
-                history=True),
+                keys.all_agent_tokens(r), lambda smp: self._agent_tokens.offer(
+                    str(smp.key_expr), keys.parse_agent_token(str(smp.key_expr), r) or "?",
+                    smp), history=True),
         ]
 
     def _start_srg(self) -> None:

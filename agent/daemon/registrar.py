@@ -75,7 +75,7 @@ from agent.protocol.registration import (
     reply_error,
     reply_ok,
 )
-from agent.runtime.limits import SenderLimits
+from agent.runtime.limits import Coalescer, SenderLimits, token_limits
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.session import ask_all
 from schemas.codec import DecodeError
@@ -211,17 +211,21 @@ class Registrar:
         #: registrations refused for an instance id without its key
         self.hijacks_refused = 0
         self.challenges = Challenges()
+        #: service token events, coalesced per token and rated per agent (token churn)
+        self.tokens = Coalescer(put, self._on_service_token, token_limits(),
+                                lambda sender, why: token_churn(self._log, sender, why,
+                                                                self.tokens.refused))
         self.gate = RegistrationGate(self.agent_id, bad, self._proves)
 
     def declare(self, session: zenoh.Session) -> None:
         """Answer registrations and watch the service tokens from now on."""
         self._session = session
-        put = self._put
         self._decls += [
             session.declare_queryable(keys.agent_register(self.realm, self.agent_id),
                                       self._on_register_query),
             session.liveliness().declare_subscriber(
-                keys.service_tokens(self.realm), lambda smp: put(self._on_service_token, smp),
+                keys.service_tokens(self.realm), lambda smp: self.tokens.offer(
+                    str(smp.key_expr), _token_sender(str(smp.key_expr), self.realm), smp),
                 history=True),
         ]
 
@@ -543,3 +547,16 @@ def _refuse(query: zenoh.Query, error: str, retry: bool = False, renew: bool = F
 
 def _payload(query: zenoh.Query) -> bytes | None:
     return None if query.payload is None else query.payload.to_bytes()
+
+
+def _token_sender(key: str, realm: str) -> str:
+    """Who a service token's events are rated as: the agent id in its key."""
+    parsed = keys.parse_service_token(key, realm)
+    return parsed[0] if parsed else "?"
+
+
+def token_churn(limited_log: RateLimitedLog, sender: str, why: str, refused: int) -> None:
+    """Say that token events of ``sender`` were refused (rate-limited lines)."""
+    limited_log.warning(f"liveliness of agent {sender[:64]}",
+                        f"token churn: events refused ({why} bound, {refused} so far); the "
+                        "periodic resync repairs what they would have told")

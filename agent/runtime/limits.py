@@ -7,6 +7,7 @@ through at once and ``rate`` per second after that; :class:`SenderLimits` keeps 
 per sender (a key the caller chooses: a service id, an agent id), at most ``max_senders``
 of them (the least recently used forgotten first, so a flood of distinct senders grows
 nothing), under one lock: Zenoh calls its callbacks from several threads.
+:class:`Coalescer` keeps only the latest event per key before the worker runs it.
 """
 
 from __future__ import annotations
@@ -14,6 +15,19 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+#: liveliness token events whose work (a query, a re-match) one sender, the agent id in
+#: the token's key, may start: at once, then per second; and all senders together (an
+#: agent joining a realm of a thousand services takes the rest from its next resync)
+TOKEN_BURST, TOKEN_RATE = 200, 20.0
+TOKEN_TOTAL_BURST, TOKEN_TOTAL_RATE = 1000, 100.0
+
+
+def token_limits() -> SenderLimits:
+    """The bounds on one component's liveliness token events (``TOKEN_*``)."""
+    return SenderLimits(TOKEN_RATE, TOKEN_BURST, (TOKEN_TOTAL_RATE, TOKEN_TOTAL_BURST))
 
 
 class TokenBucket:
@@ -70,3 +84,49 @@ class SenderLimits:
                 bucket.refund()
                 return "total"
             return None
+
+
+class Coalescer:
+    """Events from Zenoh's threads, keyed by what they are about (a liveliness token's
+    key): only the latest of each is kept until the worker takes them all in one call, so
+    a churning key costs one entry however fast it flips, and the worker's queue holds at
+    most one such call.  A key not already waiting is rated per sender first
+    (``limits``); a refused event is counted and told to ``on_refused`` (the caller's
+    periodic resync repairs what it missed)."""
+
+    def __init__(self, put: Callable[[Callable[[], None]], bool],
+                 handle: Callable[[Any], None], limits: SenderLimits,
+                 on_refused: Callable[[str, str], None], max_pending: int = 4096) -> None:
+        self._put, self._handle, self._limits = put, handle, limits
+        self._on_refused = on_refused
+        self.max_pending = max_pending
+        self._pending: dict[str, Any] = {}
+        self._scheduled = False  # a drain is queued with the worker
+        self._lock = threading.Lock()
+        #: events refused (rate or pending bound)
+        self.refused = 0
+
+    def offer(self, key: str, sender: str, event: Any) -> None:
+        with self._lock:
+            if key in self._pending:
+                self._pending[key] = event  # coalesced: the latest wins, no new work
+                return
+            why = self._limits.allow(sender)
+            if why is None and len(self._pending) >= self.max_pending:
+                why = "pending"
+            if why is not None:
+                self.refused += 1
+            else:
+                self._pending[key] = event
+                schedule, self._scheduled = not self._scheduled, True
+        if why is not None:
+            self._on_refused(sender, why)
+        elif schedule and not self._put(self._drain):
+            with self._lock:
+                self._scheduled = False  # the worker's queue was full: the next offer asks
+
+    def _drain(self) -> None:
+        with self._lock:
+            batch, self._pending, self._scheduled = self._pending, {}, False
+        for event in batch.values():
+            self._handle(event)

@@ -13,7 +13,8 @@ The queue holds at most ``MAX_QUEUED`` calls: callbacks are driven by what peers
 a peer flooding an agent or a service (forged control, tokens, snapshots) must not grow it
 without bound.  A call that does not fit is refused, counted (``refused``) and said in a
 rate-limited line; the components repair what a lost call missed by their periodic
-re-sends and resyncs.
+re-sends and resyncs.  What peers send unasked (``put_peer``) may take only
+``PEER_SHARE`` of the queue: the rest stays for the component's own work.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ from agent.runtime.logs import RateLimitedLog
 BATCH = 1000
 #: calls waiting at most (about 10 s of a busy agent's callbacks)
 MAX_QUEUED = 10_000
+#: the share of the queue that what peers send unasked may take (``Worker.put_peer``)
+PEER_SHARE = 0.5
 
 
 class Worker:
@@ -55,15 +58,28 @@ class Worker:
         #: the call running now and when it began (read by other threads: see ``stuck``)
         self._running: tuple[str, float] | None = None
 
-    def put(self, fn: Callable[..., None], *args: Any) -> None:
+    def put(self, fn: Callable[..., None], *args: Any) -> bool:
         """Have the worker call ``fn(*args)`` (from any thread, never blocking); refused
-        and counted when ``max_queued`` calls wait already."""
+        and counted when ``max_queued`` calls wait already.  True if queued."""
+        return self._put(fn, args, self._q.maxsize)
+
+    def put_peer(self, fn: Callable[..., None], *args: Any) -> bool:
+        """``put`` for what peers send unasked (their published snapshots, summaries):
+        refused once ``PEER_SHARE`` of the queue is taken, so the component's own work
+        (registrations, answers to its queries, re-sends) always finds room."""
+        return self._put(fn, args, int(self._q.maxsize * PEER_SHARE))
+
+    def _put(self, fn: Callable[..., None], args: tuple[Any, ...], room: int) -> bool:
         try:
+            if self._q.qsize() >= room:
+                raise queue.Full
             self._q.put_nowait((fn, args))
+            return True
         except queue.Full:
             self.refused += 1
-            self._log.warning(self.owner, f"work queue full ({self._q.maxsize} calls): "
-                              f"{_name(fn)} refused ({self.refused} refused so far)")
+            self._log.warning(self.owner, f"work queue full ({room} of {self._q.maxsize} "
+                              f"calls): {_name(fn)} refused ({self.refused} refused so far)")
+            return False
 
     def start(self) -> None:
         self._thread.start()
