@@ -8,9 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow
 def test_bench_host_load_reports_every_figure() -> None:
     out = subprocess.run([sys.executable, "bench/bench_host_load.py", "--services", "4",
                           "--per-process", "2", "--rate", "10", "--agents", "2",

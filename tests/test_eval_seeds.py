@@ -65,6 +65,7 @@ def test_bad_seeds_on_the_command_line_exit_2(args: list[str], fragment: str) ->
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_an_eval_over_seeds_reports_each_seed_and_the_spread() -> None:
     r = uma("eval", "alignment", "--seeds", "1-2", "--trials", "1", "--seconds", "20",
             "--json", timeout=300)

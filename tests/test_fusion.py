@@ -652,6 +652,7 @@ def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
         assert np.allclose(J, num, atol=1e-5), label
 
 
+@pytest.mark.slow
 def test_short_eval_measures_gaps_from_the_last_optical_pose():
     """A 9 s ``uma eval fusion`` (the 60 s runs are by hand) on the realistic installation:
     one 1 s gap, every figure.  The fused covariance carries the laser tracker's

@@ -182,6 +182,7 @@ def test_short_run_on_the_ideal_installation_is_ten_times_better(world, calibrat
     assert lo < fig["nees"]["mean"] < hi, (lo, fig["nees"]["mean"], hi)
 
 
+@pytest.mark.slow
 def test_eval_is_deterministic(world, calibration) -> None:
     a = evaluate(world, calibration, seconds=1.0)
     b = evaluate(world, calibration, seconds=1.0)
