@@ -3,12 +3,14 @@
 Every error uma raises at its user derives from :class:`UmaError`, so one ``except
 UmaError`` catches them all (as tf2's ``TransformException`` and zenoh's ``ZError``).  Each
 kind keeps the builtin base it has always had as a second parent, so code that catches
-``ValueError``, ``LookupError`` or ``TimeoutError`` still does.
+``ValueError``, ``LookupError`` or ``TimeoutError`` still does.  ``UmaError`` itself is
+defined in ``schemas.errors`` (the lowest layer), so the contracts' errors
+(``schemas.codec.DecodeError``, ``schemas.expr.ExprError``) are ``UmaError`` too.
 """
 
+from schemas.errors import UmaError
 
-class UmaError(Exception):
-    """A failure explained to the user (the CLI prints it without a traceback, exit 1)."""
+__all__ = ["InvalidInputError", "NotFoundError", "UmaError", "UmaTimeoutError"]
 
 
 class InvalidInputError(UmaError, ValueError):

@@ -49,6 +49,7 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
+from schemas.errors import UmaError
 from schemas.models import MEASUREMENT_TYPES, ServiceDescriptor, check_plain
 from schemas.quaternion import QUAT_NORM_TOL, unit_norm
 
@@ -94,7 +95,7 @@ _ROWS = {dim: [(int(_FULL[dim][i, i]),
                for i in range(dim)] for dim in (6, 3)}
 
 
-class DecodeError(ValueError):
+class DecodeError(UmaError, ValueError):
     """Bytes that are not a valid uma message; the message says why."""
 
 

@@ -41,6 +41,8 @@ import math
 import re
 from collections.abc import Callable, Collection, Mapping
 
+from schemas.errors import UmaError
+
 MAX_LENGTH = 1000
 MAX_DEPTH = 40
 
@@ -63,7 +65,7 @@ _HINTS = {"=": "use '==' to compare", "&": "use 'and'", "|": "use 'or'", "!": "u
           "**": "powers are not supported; multiply"}
 
 
-class ExprError(ValueError):
+class ExprError(UmaError, ValueError):
     """A syntax, type or evaluation error, pointing at a 0-based ``position`` in ``text``."""
 
     def __init__(self, reason: str, text: str, position: int, detail: str = "") -> None:

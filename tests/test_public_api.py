@@ -179,8 +179,11 @@ def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() ->
     from agent.sdk.planner import RouteError, SegmentError
     from agent.sdk.query import check_time
     from agent.srg import errors
+    from schemas.codec import DecodeError
+    from schemas.expr import ExprError
 
     for cls, base in ((InvalidInputError, ValueError), (NotFoundError, LookupError),
+                      (DecodeError, ValueError), (ExprError, ValueError),
                       (UmaTimeoutError, TimeoutError), (errors.SrgLookupError, LookupError),
                       (errors.BadErrorFunctionError, ValueError), (RouteError, LookupError),
                       (SegmentError, LookupError)):
