@@ -168,7 +168,7 @@ def _normal_matrix(M: np.ndarray, what: str) -> np.ndarray:
     """``M^T M``, refused if M is rank deficient (smallest/largest singular value < tol).
 
     Normal equations rather than SVD/QR of the tall M (3n or 6n rows, at most 8 columns):
-    multithreaded LAPACK on tall-thin matrices is 100x slower on a loaded machine, and
+    multithreaded LAPACK on tall-thin matrices is far slower on a loaded machine, and
     the rank test keeps the squared condition number harmless.
     """
     N = M.T @ M
