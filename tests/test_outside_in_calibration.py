@@ -79,6 +79,7 @@ def test_uma_calibrate_rig_on_generated_videos(tmp_path, capsys) -> None:
     for c in report["cameras"].values():
         assert c["world_pos_error_mm"] < 4 * max(c["pos_std_mm"], 0.1)
     assert 0.01 < report["rms_px"] < 0.08
+    assert 0.75 < report["rms_over_noise"] < 1.25     # the residuals are the noise
     cams, covs, _ = load_rig(out)
     assert len(cams) == 4 and covs.shape == (4, 6, 6)
     edges = tomllib.loads(static.read_text())["static"]
@@ -130,7 +131,8 @@ def test_uma_calibrate_body_adds_a_body_and_warns_of_a_twin(tmp_path, capsys) ->
     out = tmp_path / "bodies.toml"
     for name in ("wand", "twin"):
         assert main(["calibrate", "body", name, "--rig", str(rig), "--sim", "1",
-                     "--sim-body", "wand", "--bodies", str(out), "--json"]) == 0
+                     "--sim-body", "wand", "--frames", "20", "--bodies", str(out),
+                     "--json"]) == 0
     captured = capsys.readouterr()
     last = json.loads(captured.out.strip().splitlines()[-1])
     assert last["not_distinguishable_from"] == ["wand"]

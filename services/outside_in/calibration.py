@@ -412,6 +412,7 @@ class RigCalibration:
     wand_frames: int
     lframe_frames: int
     observations: int
+    wand_obs: Array             # (frames, cameras, 3, 2) the wand marker pixels used
 
     def std(self, c: int) -> tuple[float, float]:
         """Position (m) and rotation (rad) std of camera ``c``: sqrt of trace / 3."""
@@ -483,7 +484,8 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
         cov = _pose_covariance(R, t, final.camera_cov[c * n:c * n + 6, c * n:c * n + 6])
         covs.append(0.5 * (cov + cov.T))
     seen = int(np.sum(~np.isnan(wand_obs[:, :, 0, 0])))
-    return RigCalibration(cams, np.array(covs), final.rms_px, len(wand_obs), n_l, seen)
+    return RigCalibration(cams, np.array(covs), final.rms_px, len(wand_obs), n_l, seen,
+                          wand_obs)
 
 
 def _pose_covariance(R: Array, t: Array, cov_rt: Array) -> Array:

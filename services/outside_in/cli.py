@@ -53,11 +53,15 @@ def calibrate_rig_command(args: argparse.Namespace) -> int:
         raise UmaError(f"--wand: {exc}") from None
     truth = None
     if args.sim is not None:
+        if not 20 <= args.frames <= 100_000 or not 2 <= args.cameras <= 16:
+            raise UmaError(f"--frames must be 20 or more and --cameras 2-16, got "
+                           f"{args.frames} and {args.cameras}")
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(args.videos or tmp)
             sim = simulate_recordings(args.sim, args.cameras, args.frames, folder, wand)
             truth = sim.cameras
             cal = calibrate_from_files(_sim_sources(folder, sim), wand, args.refine_intrinsics)
+            noise = wand_noise_px(sim, WandWave(wand.distances, seed=args.sim), cal.wand_obs)
     else:
         cal = calibrate_from_files(_sources(args), wand, args.refine_intrinsics)
     save_rig(args.output, cal.cameras, cal.covariances, args.world, args.site, cal.rms_px)
@@ -66,6 +70,9 @@ def calibrate_rig_command(args: argparse.Namespace) -> int:
             "# world -> camera edges of 'uma calibrate rig'\n"
             + static_edges(cal.cameras, cal.covariances, args.world, args.site))
     report = rig_report(cal, truth)
+    if truth is not None:
+        report["simulated_noise_px"] = round(noise, 4)
+        report["rms_over_noise"] = round(cal.rms_px / noise, 3)
     if args.json:
         print(json.dumps(report))
     else:
@@ -110,6 +117,19 @@ def simulate_recordings(seed: int, n_cameras: int, n_frames: int, folder: Path,
         write_video(folder / f"{cam.name}.lframe.avi",
                     (sim.render(c, 10**6 + i, still).image for i in range(20)), SIM_WAND_HZ)
     return sim
+
+
+def wand_noise_px(sim: Simulation, wave: WandWave, obs: Array) -> float:
+    """The simulated wand images' true centroid error (px, rms per axis): each observed
+    marker against the true camera's projection of the true wand at that frame."""
+    stride = round(sim.config.rate_hz / SIM_WAND_HZ)
+    errors = []
+    for f in range(len(obs)):
+        for c, cam in enumerate(sim.cameras):
+            if not np.isnan(obs[f, c, 0, 0]):
+                t = sim.exposure_time(c, stride * f)
+                errors.append(obs[f, c] - cam.project(wave.markers(t)))
+    return float(np.sqrt(np.mean(np.square(errors))))
 
 
 def calibrate_from_files(sources: dict[str, tuple[str, str, str]], wand: Wand,
@@ -191,7 +211,9 @@ def _print(report: dict[str, Any], path: str) -> None:
     w = sys.stdout.write
     w(f"rig calibrated from {report['wand_frames']} wand frame sets "
       f"({report['wand_observations']} camera views) and {report['lframe_frames']} L-frame "
-      f"frame sets; reprojection RMS {report['rms_px']:.3f} px\n")
+      f"frame sets; reprojection RMS {report['rms_px']:.3f} px"
+      + (f" (the simulated centroid noise: {report['simulated_noise_px']:.3f} px)"
+         if "simulated_noise_px" in report else "") + "\n")
     for name, c in report["cameras"].items():
         line = (f"  {name}: position {c['position']} m  std {c['pos_std_mm']:.2f} mm "
                 f"{c['rot_std_deg']:.3f} deg")
@@ -206,6 +228,8 @@ def _print(report: dict[str, Any], path: str) -> None:
 def calibrate_body_command(args: argparse.Namespace) -> int:
     cams, _, _ = load_rig(args.rig)
     if args.sim is not None:
+        if not 3 <= args.frames <= 10_000:
+            raise UmaError(f"--frames must be 3 or more, got {args.frames}")
         sim = Simulation(seed=args.sim, config=SimConfig(n_cameras=len(cams)))
         names = [b.name for b in sim.bodies]
         if args.sim_body not in names:
@@ -214,7 +238,7 @@ def calibrate_body_command(args: argparse.Namespace) -> int:
         frozen = sim.marker_positions(0.0)[k]
         scene = static_body_scene(sim, k, frozen)
         per_frame = [[find_blobs(sim.render(c, i, scene).image).uv for c in range(len(cams))]
-                     for i in range(60)]
+                     for i in range(args.frames)]
     else:
         paths = dict(args.video)
         missing = [c.name for c in cams if c.name not in paths]

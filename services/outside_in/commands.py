@@ -80,6 +80,8 @@ def _body_arguments(p: argparse.ArgumentParser) -> None:
                    help="use the simulated rig instead, with its body --sim-body held still")
     p.add_argument("--sim-body", default="wand", metavar="BODY",
                    help="which simulated body (head, wand, hand; default wand)")
+    p.add_argument("--frames", type=int, default=60, metavar="N",
+                   help="simulated frame sets to average (with --sim; default 60)")
     p.add_argument("--bodies", default="bodies.toml", metavar="FILE",
                    help="the bodies file to add it to (created if missing; default "
                         "bodies.toml); a body of the same name is replaced")
