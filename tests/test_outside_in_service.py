@@ -101,3 +101,21 @@ def test_uma_demo_outside_in(capsys) -> None:
     assert report["ok"]
     for body in report["bodies"].values():
         assert body["answers"] > 0 and body["position_error_mm_median"] < 2.0
+
+
+def test_marker_camera_reads_a_generated_video_through_the_capture_path(tmp_path) -> None:
+    import threading
+
+    from services.camera.simulator import write_video
+    from services.outside_in.blobs import find_blobs
+    from services.outside_in.service import _capture_frames
+    sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=RATE))
+    rendered = [sim.render(0, i) for i in range(6)]
+    video = write_video(tmp_path / "cam0.avi", [f.image for f in rendered], fps=RATE)
+    got = list(_capture_frames(str(video), threading.Event(), None))
+    assert len(got) == 6
+    dt = np.diff([t for t, _ in got]) / 1e9
+    assert np.allclose(dt, 1 / RATE, atol=2e-3)
+    for (_, image), frame in zip(got, rendered, strict=True):
+        assert np.array_equal(image, frame.image)                # lossless, gray
+        assert len(find_blobs(image)) >= len(frame.marker_uv) - 2
