@@ -105,19 +105,37 @@ def test_the_most_recently_used_plan_survives_eviction() -> None:
 
 
 def test_summaries_from_too_many_agents_are_refused_and_counted(monkeypatch) -> None:
+    from types import SimpleNamespace
+
+    import zenoh
+
     from agent.daemon import peer_frames
     from schemas.codec import encode_message
     monkeypatch.setattr(peer_frames, "MAX_REMOTE_AGENTS", 50)
     n = _static_node()
-    for i in range(300):
+    n.peers.learn("uma/lab/agent/ghost/supernode",  # its agent never had a token
+                  encode_message({"agent": "ghost", "frames": ["g0"]}))
+    assert n.peers.frames == {} and n.summaries_refused == 1
+    for i in range(300):  # the first 50 tokens are remembered
+        n.peers.on_agent_token(SimpleNamespace(key_expr=f"uma/lab/agent/x{i}",
+                                               kind=zenoh.SampleKind.PUT))
         n.peers.learn(f"uma/lab/agent/x{i}/supernode",
                  encode_message({"agent": f"x{i}", "frames": [f"f{i}"]}))
     n.peers.learn("uma/lab/agent/big/supernode",
              encode_message({"agent": "x1", "frames": [f"f{i}" for i in range(5000)]}))
-    assert len(n.peers.frames) == 50 and n.summaries_refused == 251
+    assert len(n.peers.frames) == 50 and n.summaries_refused == 252
     assert n.peers.frames["x1"] == {"f1"}
     n.peers.learn("uma/lab/agent/x1/supernode", encode_message({"agent": "x1", "frames": ["g"]}))
     assert n.peers.frames["x1"] == {"g"}, "a known agent's summary still replaces its own"
+    assert "g" in n.peers.known_elsewhere() and "f1" not in n.peers.known_elsewhere()
+    for bad in (["a b"], ["x" * 201], [7]):  # frames are checked by name
+        n.peers.learn("uma/lab/agent/x2/supernode", encode_message({"agent": "x2",
+                                                                    "frames": bad}))
+    assert n.peers.frames["x2"] == {"f2"} and n.summaries_refused == 255
+    monkeypatch.setattr(peer_frames, "MAX_AGENT_FRAME_BYTES", 100)
+    n.peers.learn("uma/lab/agent/x3/supernode", encode_message(
+        {"agent": "x3", "frames": [f"frame{i:03d}" for i in range(20)]}))
+    assert n.peers.frames["x3"] == {"f3"} and n.summaries_refused == 256
 
 
 def test_a_flooded_worker_refuses_and_counts_instead_of_growing(caplog) -> None:

@@ -22,7 +22,13 @@ from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.settings import AgentSettings
 from agent.protocol import keys
-from agent.protocol.registration import Match, control_message, register_request, reply_error
+from agent.protocol.registration import (
+    Match,
+    control_message,
+    register_request,
+    reply_error,
+    snapshot_message,
+)
 from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
@@ -395,3 +401,32 @@ def test_token_churn_is_coalesced_and_bounded(site, realm) -> None:
           f"{agent._worker.refused} calls refused by the work queue")
     assert agent._worker.refused == 0
     assert sent[0] > 2000 and started < sent[0] // 2
+
+
+def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> None:
+    """24 invented agents, each with a token and a snapshot of ~0.8 MB (seven services
+    with large descriptors): the agent holds snapshots up to its byte bound, refuses the
+    rest and says so, and its memory stays within a bound."""
+    ep = endpoint(free_port())
+    host = agent(processes, realm, "hostA", ep)
+    with open_session(connect=[ep]) as s:
+        info = snapshot(s, realm, "hostA").info
+        before = rss_mb(host.popen.pid)
+        tokens = []
+        for i in range(24):
+            ghost = f"ghost{i}"
+            tokens.append(s.liveliness().declare_token(keys.agent_token(realm, ghost)))
+            services = [{"descriptor": encode_descriptor(ServiceDescriptor(
+                service_id=f"s{j}", agent_id=ghost, attributes={"blob": ["x" * 120] * 1000},
+                abilities=[{"name": "pose", "type": "pose6d", "edge": [f"{ghost}/a", "b/c"]}])),
+                "instance": "i"} for j in range(7)]
+            time.sleep(0.05)  # its token first
+            s.put(keys.agent_services(realm, ghost), snapshot_message(
+                {**info, "agent_id": ghost}, 1, 1, services))
+        host.wait_log("would take the snapshots held past")
+        time.sleep(1.0)
+        grew = rss_mb(host.popen.pid) - before
+        for t in tokens:
+            t.undeclare()
+    print(f"invented agents' snapshots: agent RSS +{grew:.1f} MB")
+    assert grew < 150

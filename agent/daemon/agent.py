@@ -141,6 +141,8 @@ class Agent:
         #: agents whose snapshot is being fetched; published snapshots held for confirmation
         self._fetching: set[str] = set()
         self.snapshots_suspect = 0
+        #: snapshots refused by the byte bound (``RealmView.snapshot_refusal``)
+        self.snapshots_refused = 0
         self._dirty = False           # re-match needed
         self._snapshot_dirty = False  # publish a new snapshot
         self._hosted: list[tuple[str, threading.Thread, threading.Event]] = []
@@ -474,6 +476,12 @@ class Agent:
             return
         for err in snap.errors:
             self._log.warning(f"snapshot {key}", f"service dropped: {err}")
+        refusal = self.view.snapshot_refusal(snap)
+        if refusal is not None:
+            self.snapshots_refused += 1
+            self._log.warning(f"snapshot {key}", f"refused: {refusal} "
+                              f"({self.snapshots_refused} so far)")
+            return
         if self.view.apply_snapshot(snap, confirmed):
             self._dirty = True
 

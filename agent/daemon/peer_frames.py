@@ -2,8 +2,11 @@
 agent's boundary (the frames its summary describes paths between).
 
 Summaries arrive from any peer (published on change, or asked for): each is checked (it
-names the agent of its key, frames are strings) and bounded (``MAX_REMOTE_AGENTS`` agents,
-``MAX_REMOTE_FRAMES`` frames each); an agent that appears is asked for its summary (it may
+names the agent of its key, every frame is a valid frame id) and bounded
+(``MAX_REMOTE_AGENTS`` agents, ``MAX_REMOTE_FRAMES`` frames and ``MAX_AGENT_FRAME_BYTES``
+each, ``MAX_FRAME_BYTES`` in all); only agents whose liveliness token was seen are kept
+(a summary of one that never had a token is not: a flood of invented agents holds
+nothing); an agent that appears is asked for its summary (it may
 have published before this agent was linked), one that leaves is forgotten, and every
 agent is asked again every ``RESYNC_S`` (a summary put before this agent's subscription
 reached its author is never sent again).  ``changed()`` is called when the frames known
@@ -13,6 +16,7 @@ elsewhere change.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -24,6 +28,7 @@ from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from schemas.codec import DecodeError, decode_message
+from schemas.models import FRAME_PATTERN, MAX_FRAME_LENGTH
 
 log = logging.getLogger("uma.srg")
 
@@ -33,6 +38,17 @@ RESYNC_S = 2.0
 #: arrive from any peer, so what they make this agent hold is bounded
 MAX_REMOTE_AGENTS = 1024
 MAX_REMOTE_FRAMES = 4096
+#: bytes of frame ids remembered per agent and in all (a frame id has up to 200)
+MAX_AGENT_FRAME_BYTES = 256 * 1024
+MAX_FRAME_BYTES = 16 * 1024 * 1024
+
+
+_FRAME = re.compile(FRAME_PATTERN)
+
+
+def _is_frame(value: object) -> bool:
+    return (isinstance(value, str) and len(value) <= MAX_FRAME_LENGTH
+            and _FRAME.match(value) is not None)
 
 
 class PeerFrames:
@@ -48,8 +64,15 @@ class PeerFrames:
         self._lock = lock
         self._changed = changed
         self._log = limited_log
-        #: frames by agent, as its latest summary named them
+        #: frames by agent, as its latest summary named them, and their bytes
         self.frames: dict[str, set[str]] = {}
+        self._bytes: dict[str, int] = {}
+        #: agents whose token was seen (and not removed since): only theirs are kept
+        self._live: set[str] = set()
+        #: every frame another agent knows, and what ``frames`` was when it was built
+        #: (its identity and size; ``learn`` and tokens clear it on a change)
+        self._union: frozenset[str] | None = None
+        self._union_of: tuple[int, int] = (0, 0)
         #: summaries refused: malformed, or beyond the bounds above
         self.refused = 0
         self._to_fetch: set[str] = set()  # agents whose summary to ask for
@@ -60,9 +83,12 @@ class PeerFrames:
         """Ask every agent for its summary."""
         self._session.get(keys.all_agent_supernodes(self.realm), self._on_reply, timeout=2.0)
 
-    def known_elsewhere(self) -> set[str]:
-        """Every frame another agent knows.  Lock held."""
-        return set().union(*self.frames.values()) if self.frames else set()
+    def known_elsewhere(self) -> frozenset[str]:
+        """Every frame another agent knows (rebuilt only after a change).  Lock held."""
+        of = (id(self.frames), len(self.frames))
+        if self._union is None or of != self._union_of:
+            self._union, self._union_of = frozenset().union(*self.frames.values()), of
+        return self._union
 
     def on_summary(self, sample: zenoh.Sample) -> None:
         self.learn(str(sample.key_expr), sample.payload)
@@ -77,9 +103,11 @@ class PeerFrames:
             data = payload if isinstance(payload, bytes) else payload_bytes(payload)
             msg = decode_message(data, required=("agent", "frames"))
             agent, frames = msg["agent"], msg["frames"]
-            if not isinstance(agent, str) or not isinstance(frames, list) or not all(
-                    isinstance(f, str) for f in frames):
-                raise DecodeError("agent must be a string and frames a list of strings")
+            if not isinstance(agent, str) or not isinstance(frames, list):
+                raise DecodeError("agent must be a string and frames a list of frame ids")
+            bad = next((f for f in frames if not _is_frame(f)), None)
+            if bad is not None:
+                raise DecodeError(f"frame {str(bad)[:64]!r} is not a frame id")
             if agent != keys.parse_agent_supernode(key, self.realm):
                 raise DecodeError(f"it names agent {agent[:64]!r}, not the agent of its key")
         except DecodeError as exc:
@@ -88,10 +116,15 @@ class PeerFrames:
             return
         if agent == self.agent_id:
             return
+        size = sum(len(f) for f in frames)
         with self._lock:
-            refused = self._refusal(agent, frames)
+            refused = self._refusal(agent, frames, size)
             if refused is None:
-                self.frames[agent] = set(frames)
+                kept = set(frames)
+                if self.frames.get(agent) == kept:
+                    return
+                self.frames[agent], self._bytes[agent] = kept, size
+                self._union = None
         if refused is not None:
             self.refused += 1
             self._log.warning(f"supernode {key}", f"summary refused: {refused} "
@@ -99,13 +132,19 @@ class PeerFrames:
             return
         self._changed()
 
-    def _refusal(self, agent: str, frames: list[str]) -> str | None:
-        """Why a summary would exceed what this node keeps of other agents, or None.  Lock
-        held."""
+    def _refusal(self, agent: str, frames: list[str], size: int) -> str | None:
+        """Why a summary is not kept, or None.  Lock held."""
+        if agent not in self._live:
+            return "its agent's liveliness token was never seen"
         if len(frames) > MAX_REMOTE_FRAMES:
             return f"{len(frames)} frames, more than {MAX_REMOTE_FRAMES}"
+        if size > MAX_AGENT_FRAME_BYTES:
+            return f"{size} bytes of frame ids, more than {MAX_AGENT_FRAME_BYTES}"
         if agent not in self.frames and len(self.frames) >= MAX_REMOTE_AGENTS:
             return f"frames of {MAX_REMOTE_AGENTS} agents kept already"
+        total = sum(self._bytes.values()) - self._bytes.get(agent, 0) + size
+        if total > MAX_FRAME_BYTES:
+            return f"{MAX_FRAME_BYTES} bytes of other agents' frame ids kept already"
         return None
 
     def on_agent_token(self, sample: zenoh.Sample) -> None:
@@ -116,9 +155,13 @@ class PeerFrames:
             return
         with self._lock:
             if sample.kind == zenoh.SampleKind.DELETE:
-                self.frames.pop(agent, None)
+                self._live.discard(agent)
+                if self.frames.pop(agent, None) is not None:
+                    self._union = None
+                self._bytes.pop(agent, None)
                 self._to_fetch.discard(agent)
-            else:
+            elif agent in self._live or len(self._live) < MAX_REMOTE_AGENTS:
+                self._live.add(agent)
                 self._to_fetch.add(agent)
         self._changed()
 

@@ -34,6 +34,10 @@ from schemas.models import AgentInfo, ServiceDescriptor
 #: was applied before it is confirmed with the agent: a forged jump holds the agent's own
 #: snapshots back this long at most
 REVISION_SLACK_MS = 2000
+#: bytes (on the wire) of other agents' snapshots held in all: a realm of twenty hosts
+#: with a hundred services each needs about 4 MiB; snapshots of invented agents (each
+#: with a token, on a plain realm) must not grow an agent without bound
+MAX_REMOTE_SNAPSHOT_BYTES = 16 * 1024 * 1024
 
 _log = RateLimitedLog(logging.getLogger("uma.agent"))
 
@@ -149,6 +153,15 @@ class RealmView:
         passed_ms = int((now - self._applied_at.get(snap.agent_id, now)) * 1000)
         return (snap.epoch != old.epoch
                 or snap.revision > old.revision + passed_ms + REVISION_SLACK_MS)
+
+    def snapshot_refusal(self, snap: Snapshot) -> str | None:
+        """Why a remote snapshot may not be held (the byte bound), or None."""
+        old = self.remote.get(snap.agent_id)
+        held = sum(s.size for s in self.remote.values()) - (old.size if old else 0)
+        if held + snap.size > MAX_REMOTE_SNAPSHOT_BYTES:
+            return (f"{snap.size} bytes would take the snapshots held past "
+                    f"{MAX_REMOTE_SNAPSHOT_BYTES} bytes")
+        return None
 
     def apply_snapshot(self, snap: Snapshot, confirmed: bool = False,
                        now: float | None = None) -> bool:

@@ -483,6 +483,8 @@ class Snapshot:
     services: dict[str, ServiceDescriptor]
     status: dict[str, dict[str, Any]]
     errors: list[str] = field(default_factory=list)
+    #: bytes on the wire (what holding it is bounded by)
+    size: int = 0
 
     @property
     def version(self) -> tuple[int, int]:
@@ -508,7 +510,8 @@ def parse_snapshot(data: bytes, agent_id: str | None = None) -> Snapshot:
         raise DecodeError("epoch and revision must be integers")
     if not isinstance(msg["services"], list):
         raise DecodeError("services: expected a list")
-    snap = Snapshot(info["agent_id"], msg["epoch"], msg["revision"], info, {}, {})
+    snap = Snapshot(info["agent_id"], msg["epoch"], msg["revision"], info, {}, {},
+                    size=len(data))
     for i, entry in enumerate(msg["services"]):
         try:
             if not isinstance(entry, dict) or not isinstance(entry.get("descriptor"), bytes):

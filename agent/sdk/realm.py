@@ -207,6 +207,11 @@ class RealmTracker:
                               f"({self.refused} refused so far)")
             return
         with self._lock:
+            if summary.agent not in self._tokens:  # never an agent: not kept
+                self.refused += 1
+                self._log.warning(f"supernode {key}", "dropped: its agent's liveliness token "
+                                  f"was never seen ({self.refused} refused so far)")
+                return
             if not self._room_for(summary.agent):
                 return
             old = self._summaries.get(summary.agent)
@@ -221,8 +226,7 @@ class RealmTracker:
                 self._summaries[summary.agent] = summary
                 self.summaries_rev += 1
                 self.topology += 1
-            if summary.agent in self._tokens:  # no token ever: not an agent (yet)
-                self._mark_alive(summary.agent, True)
+            self._mark_alive(summary.agent, True)
 
     def _room_for(self, agent: str) -> bool:
         """Whether a summary of ``agent`` may be kept (lock held): a known agent always; a
