@@ -1,9 +1,12 @@
 """What the checks against hostile peers cost where they run.
 
 Each row times a check and, as its anchor in the same run, the work that path did before
-it: a received pose's decode (the subscription's per-sample work) for the future-time and
-sequence-gap checks; ``peek_time`` for the monitor's ``peek_time_seq``; decoding a
-control message's body for its signature check; decoding a summary for its validation.
+it: a received pose's decode (the subscription's per-sample work) for the stamp rule
+(``stamp_refusal``) and sequence-gap checks; ``peek_time`` for the monitor's
+``peek_time_seq``; decoding a control message's body for its signature check; decoding a
+summary for its validation; decoding a register request for the registration gate (size,
+peek, proof of the key, rate); handing a liveliness token event to the worker's queue for
+the token coalescer (rate, coalescing).
 Figures are per call, median and p99 over batches of ``--calls`` calls.
 
     python bench/bench_hardening.py [--batches 200] [--calls 200] [--json]
@@ -12,6 +15,7 @@ Figures are per call, median and p99 over batches of ``--calls`` calls.
 from __future__ import annotations
 
 import argparse
+import queue
 import time
 from collections.abc import Callable
 
@@ -20,8 +24,16 @@ from summary import cpu_model, median_p99, report
 from agent.attributes import SUMMARY_ERRORS
 from agent.protocol import keys
 from agent.protocol.query import decode_summary
-from agent.protocol.registration import Match, control_message, parse_control
-from agent.protocol.sequence import SequenceGaps, too_far_ahead
+from agent.protocol.registration import (
+    Match,
+    control_message,
+    parse_control,
+    parse_register_request,
+    peek_register,
+    register_request,
+)
+from agent.protocol.sequence import SequenceGaps, stamp_refusal
+from agent.runtime.limits import Coalescer, SenderLimits
 from schemas.codec import (
     decode_measurement,
     decode_message,
@@ -71,12 +83,39 @@ def main() -> None:
     summary = summary_bytes(100)
 
     def sample_checks() -> None:
-        too_far_ahead(time.time_ns(), time.time_ns())
+        stamp_refusal(time.time_ns(), time.time_ns(), time.time_ns())
         gaps.see(next(seq))
+
+    desc = encode_message({"service_id": "cam", "agent_id": "hostA", "abilities": [
+        {"name": "pose", "type": "pose6d", "edge": ["ivy/world", "alice/head"],
+         "attributes": {"frequency_hz": 100.0, "latency_s": 0.005}}]})
+    request = register_request(desc, "inst", 3, {"head": ["k"]}, key, bytes(16))
+    unlimited = SenderLimits(1e12, 1e12, (1e12, 1e12))
+
+    def registration_gate() -> None:
+        claim = peek_register(request)
+        assert claim is not None and claim.proof is not None and claim.proof.verifies(key)
+        unlimited.allow(claim.service_id)
+
+    work: queue.Queue = queue.Queue()
+    tokens = Coalescer(lambda fn: work.put_nowait(fn) or True, lambda _: None, unlimited,
+                       lambda *_: None)
+    token_keys = [f"uma/lab/svc/hostA/s{i}" for i in range(64)]
+    counter = iter(range(10**9))
+
+    def token_put() -> None:
+        work.put_nowait(next(counter))
+        work.get_nowait()
+
+    def token_offer() -> None:
+        i = next(counter)
+        tokens.offer(token_keys[i % 64], "hostA", i)
+        if i % 64 == 63:
+            work.get_nowait()()
 
     rows = {
         "sample decode (anchor)": per_call_us(lambda: decode_measurement(pose), b, n),
-        "sample checks: future + gap": per_call_us(sample_checks, b, n),
+        "sample checks: stamp rule + gap": per_call_us(sample_checks, b, n),
         "peek_time (anchor)": per_call_us(lambda: peek_time(pose), b, n),
         "peek_time_seq": per_call_us(lambda: peek_time_seq(pose), b, n),
         "control body decode (anchor)": per_call_us(lambda: decode_message(body), b, n // 4),
@@ -85,12 +124,17 @@ def main() -> None:
         "summary 100 links decode (anchor)": per_call_us(lambda: decode_message(summary),
                                                          b // 4, 4),
         "summary 100 links validated": per_call_us(lambda: decode_summary(summary), b // 4, 4),
+        "register request decode (anchor)": per_call_us(
+            lambda: parse_register_request(request, "hostA"), b // 4, n // 4),
+        "registration gate": per_call_us(registration_gate, b // 4, n // 4),
+        "token event queued (anchor)": per_call_us(token_put, b, n),
+        "token event coalesced": per_call_us(token_offer, b, n),
     }
     figures: dict[str, object] = {"cpu": cpu_model()}
     for name, samples in rows.items():
         for k, v in median_p99(samples, "us").items():
             figures[f"{name} {k}"] = v
-    ratio = figures["sample checks: future + gap median_us"] / figures[
+    ratio = figures["sample checks: stamp rule + gap median_us"] / figures[
         "sample decode (anchor) median_us"]
     figures["sample checks / decode"] = ratio
     figures["peek_time_seq / peek_time"] = (figures["peek_time_seq median_us"]
@@ -100,6 +144,11 @@ def main() -> None:
     figures["summary validated / decode"] = (
         figures["summary 100 links validated median_us"]
         / figures["summary 100 links decode (anchor) median_us"])
+    figures["registration gate / request decode"] = (
+        figures["registration gate median_us"]
+        / figures["register request decode (anchor) median_us"])
+    figures["token coalesced / queued"] = (figures["token event coalesced median_us"]
+                                           / figures["token event queued (anchor) median_us"])
     report(figures, args.json)
 
 

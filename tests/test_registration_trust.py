@@ -5,6 +5,8 @@ instance id is in its agent's snapshot) and sends what it likes."""
 from __future__ import annotations
 
 import gc
+import os
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -32,6 +34,7 @@ from agent.protocol.registration import (
 from agent.runtime.limits import SenderLimits
 from agent.runtime.session import open_session
 from agent.sdk.service import Service
+from agent.srg.errors import UnknownFrameError
 from schemas.codec import encode_descriptor, encode_pose
 from schemas.models import ServiceDescriptor
 
@@ -430,3 +433,24 @@ def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> 
             t.undeclare()
     print(f"invented agents' snapshots: agent RSS +{grew:.1f} MB")
     assert grew < 150
+
+
+def test_an_unknown_frame_names_the_agent_that_did_not_answer(processes, realm) -> None:
+    """hostB, which alone knows bob/head, is frozen (its lease is 10 s, so its token stays):
+    a new client's query names it rather than only listing the frames it knows."""
+    ea, eb = endpoint(free_port()), endpoint(free_port())
+    agent(processes, realm, "hostA", ea)
+    host_b = agent(processes, realm, "hostB", eb, connect=(ea,),
+                   env={"UMA_LEASE_MS": "10000"})
+    service(processes, realm, "cam", "hostB", eb, "--ability", "pose", "--edge",
+            "lab/world", "bob/head")
+    with Client(realm=realm, connect=[ea]) as c:
+        poll(lambda: c.pose("lab/world", "bob/head"), 20, "the pose")
+    os.kill(host_b.popen.pid, signal.SIGSTOP)
+    try:
+        with Client(realm=realm, connect=[ea], timeout=1.0) as c, \
+                pytest.raises(UnknownFrameError) as caught:
+            c.pose("lab/world", "bob/head")
+        assert "hostB" in str(caught.value) and "did not answer" in str(caught.value)
+    finally:
+        os.kill(host_b.popen.pid, signal.SIGCONT)

@@ -239,3 +239,17 @@ def with_departed(exc: UnreachableError, summaries: Mapping[str, Summary],
         return exc
     return RouteError(f"{exc}; agent(s) {list_names(gone)} left the realm and held frames "
                       f"of these parts: the missing segment was probably theirs")
+
+
+def with_silent(exc: UnknownFrameError, summaries: Mapping[str, Summary],
+                alive: set[str]) -> UnknownFrameError:
+    """An unknown frame, naming the agents that are there (their token) but did not answer
+    with their summary (frozen, or unreachable from here): the frame may be theirs."""
+    silent = sorted(alive - set(summaries))
+    if not silent:
+        return exc
+    out = UnknownFrameError(exc.frame, ())
+    out.args = (f"frame {exc.frame!r} is not known to any agent that answered; agent(s) "
+                f"{list_names(silent)} did not answer (frozen, or unreachable from here) "
+                f"and may hold it; {exc}",)
+    return out

@@ -44,6 +44,7 @@ from agent.sdk.planner import (
     plan_routes,
     usable_routes,
     with_departed,
+    with_silent,
 )
 from agent.sdk.realm import RealmTracker, RealmView
 from agent.srg.composition import Composition, compose
@@ -193,6 +194,8 @@ class Queries:
                 return view, self._routes_on(view, source, target, fn)
         except UnreachableError as exc:
             raise with_departed(exc, view.summaries, view.alive) from None
+        except UnknownFrameError as exc:
+            raise with_silent(exc, view.summaries, view.alive) from None
 
     def _routes_on(self, view: RealmView, source: str, target: str,
                    fn: ErrorFunction) -> list[Route]:
