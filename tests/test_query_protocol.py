@@ -84,3 +84,25 @@ def test_a_measured_edge_without_a_key_reads_as_none():
         {"parent": "w", "child": "cam", "source": "t/pose", "static": False,
          "attributes": {"frequency_hz": 50.0}, "key": ""})))
     assert e.key is None and e.covariance is None and e.attributes == {"frequency_hz": 50.0}
+
+
+def test_a_route_request_and_its_composed_answer_read_back_and_malformed_ones_say_why():
+    parts = {"A": proto.SegmentRequest("w", "cam", "hops", 5),
+             "B": proto.SegmentRequest("cam", "head", "hops", 7)}
+    request = proto.parse_request(decode_message(proto.segments_request(parts, "route", True)),
+                                  "A")
+    assert request == proto.RouteRequest(parts, True)
+    assert list(request.parts) == ["A", "B"]  # route order kept
+    plain = proto.parse_request(decode_message(proto.segments_request(parts, "route")), "A")
+    assert plain.compose is False
+    with pytest.raises(ValueError, match="1 to 16 entries"):
+        proto.parse_request({"op": "route", "parts": {}}, "A")
+    assert proto.route_result({"ok": True, "parts": {}}) is None
+    result = {"source": "w", "target": "head"}
+    assert proto.route_result({"ok": True, "route": {"result": result,
+                                                     "times": {"A": None, "B": 7}}}) == (
+        result, {"A": None, "B": 7})
+    with pytest.raises(ValueError, match="times must be"):
+        proto.route_result({"ok": True, "route": {"result": result, "times": {"A": "x"}}})
+    with pytest.raises(ValueError, match="a map with a result"):
+        proto.route_result({"ok": True, "route": []})

@@ -394,3 +394,22 @@ def test_falls_back_to_the_next_path_when_the_best_has_no_data_at_t():
     assert g.pose("a", "b", at=round(0.25 * S), error="latency").edges[0]["source"] == "slow"
     with pytest.raises(NoValidPathError, match=r"2 candidates tried.*\[fast\].*\[slow\]"):
         g.pose("a", "b", at=round(0.5 * S), error="latency")
+
+
+def test_an_all_static_path_answers_alike_at_every_time_with_arrays_of_its_own():
+    from agent.srg import Graph
+
+    g = Graph()
+    g.add_static("a", "b", [1.0, 0.0, 0.0], [0, 0, 0, 1], pos_std_m=0.01)
+    g.add_static("b", "c", [0.0, 2.0, 0.0], [0, 0, 0.38268343, 0.92387953], rot_std_rad=0.02)
+    first, second = g.pose("a", "c", at=5), g.pose("a", "c", at=9)
+    assert (first.t_ns, second.t_ns) == (5, 9) and second.stamps == []
+    np.testing.assert_array_equal(first.position, second.position)
+    np.testing.assert_array_equal(first.covariance, second.covariance)
+    assert first.attributes == second.attributes
+    first.position[0] = 99.0  # a caller's change stays in its own result
+    first.covariance[0, 0] = 99.0
+    third = g.pose("a", "c", at=1)
+    assert third.position[0] == 1.0 and third.covariance[0, 0] != 99.0
+    g.add_static("b", "c", [0.0, 3.0, 0.0], [0, 0, 0, 1])  # a new value: a new answer
+    assert g.pose("a", "c", at=1).position[1] == 3.0

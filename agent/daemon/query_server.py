@@ -23,6 +23,7 @@ from agent.daemon.graph_store import LocalGraph
 from agent.daemon.relay import RouteRelay, SegmentCache
 from agent.protocol import keys
 from agent.protocol import query as proto
+from agent.result import PoseResult
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from schemas.codec import DecodeError
@@ -54,7 +55,7 @@ class QueryServer:
         #: other agents' segments this agent is asked for often, and whole routes
         self.segment_cache = SegmentCache(session, store.realm)
         self._relay = RouteRelay(session, store.realm, store.agent_id, self.own_part,
-                                 now_ns, self.segment_cache)
+                                 now_ns, self.segment_cache, self.own_result)
 
     def on_query(self, query: zenoh.Query) -> None:
         t2 = self._now_ns()
@@ -90,8 +91,16 @@ class QueryServer:
         if isinstance(request, proto.ClockRequest):
             return proto.clock_reply()
         if isinstance(request, proto.RouteRequest):  # what is here; no other agent asked
-            return {"ok": True, "parts": self._relay.local_parts(request)[0]}
+            whole = self._relay.composed(request) if request.compose else None
+            return whole or {"ok": True, "parts": self._relay.local_parts(request)[0]}
         return self._segment(request)
+
+    def own_result(self, req: proto.SegmentRequest) -> PoseResult:
+        """This agent's segment of a route composed here, on its clock (raises like
+        :meth:`agent.srg.Graph.pose`)."""
+        self._store.drain()
+        with self._store.lock:
+            return self._store.graph.pose(req.source, req.target, at=req.t, error=req.error)
 
     def own_part(self, req: proto.SegmentRequest) -> dict[str, Any]:
         """This agent's part of a route: its segment's answer, or the error saying why."""

@@ -33,8 +33,10 @@ import zenoh
 
 from agent.protocol import keys
 from agent.protocol import query as proto
+from agent.result import PoseResult
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
+from agent.srg.composition import compose
 
 log = logging.getLogger("uma.srg")
 
@@ -90,6 +92,13 @@ class SegmentCache:
     def answer(self, agent: str, req: proto.SegmentRequest) -> dict[str, Any] | None:
         """The wire result of ``agent``'s segment from the cache, or None (counted: a
         segment asked for often is kept from then on)."""
+        r = self.result(agent, req)
+        if r is None:
+            return None
+        return proto.result_to_wire(r, req.source, req.target, agent, self.time_of(agent, r, req))
+
+    def result(self, agent: str, req: proto.SegmentRequest) -> PoseResult | None:
+        """``agent``'s segment from the cache, on ``agent``'s clock, or None (counted)."""
         key = (agent, req.source, req.target, req.error)
         entry = None if req.details else self._kept.get(key)
         if entry is not None:
@@ -101,13 +110,20 @@ class SegmentCache:
             if r is not None:
                 entry[1] = time.monotonic()
                 self.hits += 1
-                t = r.t_ns if r.t_ns is not None else req.t if req.t is not None else (
-                    time.time_ns() + (self._client.clock.offset(agent) or 0))
-                return proto.result_to_wire(r, req.source, req.target, agent, t)
+                return r
         self.misses += 1
         if entry is None and not req.details:
             self._count(key)
         return None
+
+    def time_of(self, agent: str, r: PoseResult, req: proto.SegmentRequest) -> int:
+        """The time of a cached answer on ``agent``'s clock (an all-static one: the asked
+        time, or now on that clock)."""
+        if r.t_ns is not None:
+            return r.t_ns
+        if req.t is not None:
+            return req.t
+        return time.time_ns() + (self._client.clock.offset(agent) or 0)
 
     def _count(self, key: SegmentKey) -> None:
         now = time.monotonic()
@@ -212,11 +228,13 @@ class RouteRelay:
 
     def __init__(self, session: zenoh.Session, realm: str, agent_id: str,
                  own: Callable[[proto.SegmentRequest], dict[str, Any]],
-                 now_ns: Callable[[], int], cache: SegmentCache) -> None:
+                 now_ns: Callable[[], int], cache: SegmentCache,
+                 own_result: Callable[[proto.SegmentRequest], PoseResult]) -> None:
         self.session = session
         self.realm = realm
         self.agent_id = agent_id
         self._own = own
+        self._own_result = own_result
         self._now_ns = now_ns
         self.cache = cache
         self._key = keys.agent_query(realm, agent_id)
@@ -240,12 +258,46 @@ class RouteRelay:
                 missing[agent] = req
         return parts, missing
 
+    def composed(self, request: proto.RouteRequest) -> dict[str, Any] | None:
+        """The whole route composed here when every part is (this agent's own, the
+        cache's), as the ``route`` answer of :mod:`agent.protocol.query`; else None."""
+        parts = []
+        for agent, req in request.parts.items():
+            if agent == self.agent_id:
+                try:
+                    r = self._own_result(req)
+                except (LookupError, ValueError, TypeError):
+                    return None  # its error is answered with the parts
+            else:
+                r = self.cache.result(agent, req)
+                if r is None:
+                    return None
+            parts.append((agent, req, r))
+        whole = compose([r for _, _, r in parts], None)
+        edges, times = [], {}
+        for agent, req, r in parts:
+            static = not r.stamps
+            t = (r.t_ns if r.t_ns is not None else req.t if req.t is not None else 0)
+            edges += proto.wire_edges(r, agent, t)
+            times[agent] = None if static else r.t_ns
+        reference = next((t for t in times.values() if t is not None), 0)
+        first, last = parts[0][1], parts[-1][1]
+        result = proto.result_to_wire(whole, first.source, last.target, self.agent_id,
+                                      reference, edges)
+        return {"ok": True, "route": {"result": result, "times": times},
+                "cached": len(parts) - (self.agent_id in request.parts)}
+
     def answer(self, query: zenoh.Query, request: proto.RouteRequest, t2: int) -> None:
-        """Reply to ``query`` with every part of the route (now, or once the agents asked
-        for the missing parts have answered)."""
+        """Reply to ``query`` with the route composed here, or every part of it (now, or
+        once the agents asked for the missing parts have answered)."""
+        if request.compose:
+            whole = self.composed(request)
+            if whole is not None:
+                self.reply(query, whole, t2)
+                return
         parts, missing = self.local_parts(request)
         if not missing or not self._may_forward():
-            self.reply(query, parts, t2)
+            self.reply(query, {"ok": True, "parts": parts}, t2)
             return
         pending = _Pending(self, query, parts, t2, set(missing))
         selector = (keys.agent_query(self.realm, next(iter(missing))) if len(missing) == 1
@@ -273,10 +325,9 @@ class RouteRelay:
         with self._lock:
             self._forwards -= 1
 
-    def reply(self, query: zenoh.Query, parts: dict[str, dict[str, Any]], t2: int) -> None:
+    def reply(self, query: zenoh.Query, answer: dict[str, Any], t2: int) -> None:
         try:
-            query.reply(self._key, proto.stamped({"ok": True, "parts": parts}, self.agent_id,
-                                                 t2, self._now_ns()))
+            query.reply(self._key, proto.stamped(answer, self.agent_id, t2, self._now_ns()))
         except (zenoh.ZError, ValueError) as exc:
             self._log.warning("route reply", str(exc))
 
@@ -321,6 +372,6 @@ class _Pending:
         if query is None:
             return
         self.relay.forwarded()
-        self.relay.reply(query, self.parts, self.t2)
+        self.relay.reply(query, {"ok": True, "parts": self.parts}, self.t2)
         with contextlib.suppress(Exception):
             query.drop()

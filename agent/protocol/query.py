@@ -27,6 +27,13 @@ request                                 reply
                                         ``agent``, ``t2`` and ``t3`` (``"cached":
                                         true`` if from the cache); a part whose
                                         agent did not answer is left out
+``{"op": "route", "parts": {...},       when every part is there (its own, its
+"compose": true}``                      cache's): ``{"ok": true, "route": {"result":
+                                        PoseResult of the whole route, "times":
+                                        {agent id: its part's time or nil when
+                                        static}}, "cached": n, "t2", "t3"}``, each
+                                        edge's ``t_ns`` on its owner's clock; else
+                                        the ``parts`` answer above
 anything malformed or failing           ``{"ok": false, "error": message, "kind":
                                         exception class, "t2", "t3"}``
 ======================================  ==============================================
@@ -131,20 +138,27 @@ class SegmentRequest:
 
 @dataclass(frozen=True)
 class RouteRequest:
-    """``{"op": "route"}``: the segments of a route by agent id, asked of one agent."""
+    """``{"op": "route"}``: the segments of a route by agent id (in route order), asked of
+    one agent; ``compose``: the whole route, composed there, when it can."""
 
     parts: dict[str, SegmentRequest]
+    compose: bool = False
 
 
 def clock_request() -> bytes:
     return encode_message({"op": "clock"})
 
 
-def segments_request(parts: Mapping[str, SegmentRequest], op: str = "segments") -> bytes:
+def segments_request(parts: Mapping[str, SegmentRequest], op: str = "segments",
+                     compose: bool = False) -> bytes:
     """One request for several agents' segments (one per agent id): to every agent at once
-    (``segments``) or to one agent that answers the whole route (``route``)."""
-    return encode_message({"op": op,
-                           "parts": {agent: p.to_wire() for agent, p in parts.items()}})
+    (``segments``) or to one agent that answers the whole route (``route``, composed there
+    if ``compose``)."""
+    msg: dict[str, Any] = {"op": op,
+                           "parts": {agent: p.to_wire() for agent, p in parts.items()}}
+    if compose:
+        msg["compose"] = True
+    return encode_message(msg)
 
 
 def decode_request(data: bytes) -> dict[str, Any]:
@@ -168,7 +182,7 @@ def parse_request(msg: Mapping[str, Any], agent_id: str,
             if not isinstance(agent, str) or not isinstance(part, dict):
                 raise ValueError(f"route request: the part for {agent!r:.64} is not a map")
         return RouteRequest({agent: _segment_request(part, "segment")
-                             for agent, part in parts.items()})
+                             for agent, part in parts.items()}, msg.get("compose") is True)
     if op == "segments":
         parts = msg.get("parts")
         if not isinstance(parts, dict):
@@ -231,15 +245,24 @@ def stamped(reply: dict[str, Any], agent: str, t2: int, t3: int) -> bytes:
     return encode_message({**reply, "agent": agent, "t2": t2, "t3": t3})
 
 
-def result_to_wire(r: PoseResult, source: str, target: str, owner: str,
-                   t_ns: int) -> dict[str, Any]:
-    """A local result as a ``schemas.models.PoseResultMessage`` map (checked by the receiver)."""
+def wire_edges(r: PoseResult, owner: str, t_ns: int) -> list[dict[str, Any]]:
+    """A local result's edges as sent: each with its owner and the time of its sample (a
+    static edge: ``t_ns``)."""
     stamps = iter(r.stamps)
     edges = []
     for e in r.edges:
         t_edge = t_ns if e["static"] else next(stamps)[1]
         edges.append({"parent": e["parent"], "child": e["child"], "inverted": not e["forward"],
                       "owner": owner, "t_ns": int(t_edge)})
+    return edges
+
+
+def result_to_wire(r: PoseResult, source: str, target: str, owner: str,
+                   t_ns: int, edges: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """A local result as a ``schemas.models.PoseResultMessage`` map (checked by the
+    receiver); ``edges`` as sent when they are not all ``owner``'s (:func:`wire_edges`)."""
+    if edges is None:
+        edges = wire_edges(r, owner, t_ns)
     return {
         "source": source, "target": target, "t_ns": int(t_ns),
         "position": r.position.tolist(),  # numpy float64 -> Python floats in one call
@@ -289,6 +312,24 @@ def decode_reply(data: bytes) -> dict[str, Any]:
         return decode_message(data)
     except DecodeError as exc:
         return {"ok": False, "error": f"unreadable answer: {exc}"}
+
+
+def route_result(reply: Mapping[str, Any],
+                 ) -> tuple[dict[str, Any], dict[str, int | None]] | None:
+    """A composed ``route`` reply's result (as sent: :func:`pose_from_wire` reads it) and
+    each agent's part's time (None: static); None if the reply has the parts instead.
+    ``ValueError`` if it is malformed."""
+    route = reply.get("route") if reply.get("ok") else None
+    if route is None:
+        return None
+    if not isinstance(route, dict) or not isinstance(route.get("result"), dict):
+        raise ValueError("route reply: route must be a map with a result")
+    times = route.get("times")
+    if not isinstance(times, dict) or not all(
+            isinstance(a, str) and (t is None or (isinstance(t, int) and not isinstance(t, bool)))
+            for a, t in times.items()):
+        raise ValueError("route reply: times must be a map agent id -> integer ns or nil")
+    return route["result"], times
 
 
 def route_parts(reply: Mapping[str, Any]) -> dict[str, dict[str, Any]]:

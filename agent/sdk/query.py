@@ -106,7 +106,7 @@ class Queries:
         self._routes: dict[tuple[str, str, str], list[Route]] = {}
         #: encoded requests for the latest time (the same for every query of a round's
         #: segments), dropped with the routes
-        self._requests: dict[tuple[tuple[Segment, ...], str, bool, str], bytes] = {}
+        self._requests: dict[tuple[tuple[Segment, ...], str, bool, str, bool], bytes] = {}
         self._planned_on = 0
         #: answers of all-static segments (valid at all times) by (agent, source, target,
         #: error), with the (instance, revision) of the agent's summary they belong to
@@ -219,6 +219,10 @@ class Queries:
         if at is not None:
             self._sync_clocks([a for a in route.agents if not self.clock.known(a)])
         segments = route.segments
+        if self._composable(segments, spec, details):
+            pose = self._composed(segments, at, spec)
+            if pose is not None:
+                return Outcome(pose, [(s, []) for s in segments])
         chain = Composition(len(segments))
         answers = self._segments(segments, at, spec, details, chain)
         if at is not None:
@@ -285,12 +289,71 @@ class Queries:
                 return got
         return self._fan_out(todo, at, spec, details, chain)
 
-    def _relayed(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
-                 chain: Composition | None) -> dict[int, Answer] | None:
-        """The whole of ``todo`` asked of its first agent (module docstring); None if that
-        agent does not answer routes (the fan-out asks then)."""
-        entry = todo[0][1]
-        request = self._request([seg for _, seg in todo], at, spec, False, "route")
+    def _composable(self, segments: Sequence[Segment], spec: str, details: bool) -> bool:
+        """Whether the route's first agent may compose it: every segment asked (none of
+        them a cached static one), each of another agent, without details."""
+        return (self.relay and not details and len(segments) > 1
+                and len({s.agent for s in segments}) == len(segments)
+                and all(self._cached_static(s, spec) is None for s in segments))
+
+    def _composed(self, segments: Sequence[Segment], at: int | None, spec: str,
+                  ) -> PoseResult | None:
+        """The whole route asked of its first agent, composed there (module docstring):
+        one answer to read rather than one per segment.  When it could not compose (a part
+        it had to ask another agent for), its parts are composed here.  None if it does not
+        answer routes (the caller asks as before)."""
+        entry = segments[0]
+        request = self._request(segments, at, spec, False, "route", compose=True)
+        reply, t1, t4 = self._ask_entry(entry, request)
+        try:
+            routed = proto.route_result(reply)
+        except ValueError as exc:
+            raise SegmentError(entry, f"malformed answer: {exc}", False) from None
+        if routed is None:
+            got = self._route_parts(list(enumerate(segments)), entry, reply, spec, t1, t4,
+                                    None)
+            if got is None:
+                return None
+            answers = [got[i] for i in range(len(segments))]
+            if at is None:
+                at, _ = self._at_latest_common_time(segments, answers, spec, False)
+            return compose([r for r, _ in answers], at)
+        result, times = routed
+        offsets = {a: self.clock.offset(a) or 0 for a in times}
+        local = {a: t - offsets[a] for a, t in times.items() if t is not None}
+        if at is None and len(set(local.values())) > 1:
+            # each part at its latest time, and they differ: once more at the latest common
+            # one, as _at_latest_common_time does
+            return self._composed(segments, min(local.values()), spec)
+        t = at if at is not None else next(iter(local.values()), None)
+        try:
+            pose = self._on_local_clock(result, times, offsets, t)
+        except ValueError as exc:
+            raise SegmentError(entry, f"malformed answer: {exc}", False) from None
+        cached = reply.get("cached")
+        self.cached_parts += cached if isinstance(cached, int) else 0
+        return pose
+
+    @staticmethod
+    def _on_local_clock(result: dict[str, Any], times: dict[str, int | None],
+                        offsets: dict[str, int], t: int | None) -> PoseResult:
+        """A composed route's result at ``t`` (this clock), each edge's time moved by its
+        owner's offset (a static part's edges: ``t``); ``ValueError`` if it is malformed."""
+        pose = proto.pose_from_wire(result)
+        static_t = t if t is not None else time.time_ns()
+        for e in pose.edges:
+            owner = e["owner"]
+            if owner not in times:
+                raise ValueError(f"edge {e['parent']}->{e['child']} of agent {owner!r}, "
+                                 "which has no part of the route")
+            e["t_ns"] = static_t if times[owner] is None else e["t_ns"] - offsets[owner]
+        pose.t_ns = t
+        pose.stamps = [(e["t_ns"], e["t_ns"]) for e in pose.edges]
+        return pose
+
+    def _ask_entry(self, entry: Segment, request: bytes) -> tuple[dict[str, Any], int, int]:
+        """One request to the first agent of a route: its reply and our send and receive
+        times (its clock sample taken); SegmentError if it does not answer."""
         got = next((r for r in self.answers(request, [entry.agent]) if r[0] == entry.agent),
                    None)
         if got is None:
@@ -298,6 +361,22 @@ class Queries:
                                       f"{self.timeout:g} s (gone or unreachable)", True)
         _, reply, t1, t4 = got
         self._clock_sample(entry.agent, reply, t1, t4)
+        return reply, t1, t4
+
+    def _relayed(self, todo: Sequence[tuple[int, Segment]], at: int | None, spec: str,
+                 chain: Composition | None) -> dict[int, Answer] | None:
+        """The whole of ``todo`` asked of its first agent (module docstring); None if that
+        agent does not answer routes (the fan-out asks then)."""
+        entry = todo[0][1]
+        request = self._request([seg for _, seg in todo], at, spec, False, "route")
+        reply, t1, t4 = self._ask_entry(entry, request)
+        return self._route_parts(todo, entry, reply, spec, t1, t4, chain)
+
+    def _route_parts(self, todo: Sequence[tuple[int, Segment]], entry: Segment,
+                     reply: dict[str, Any], spec: str, t1: int, t4: int,
+                     chain: Composition | None) -> dict[int, Answer] | None:
+        """Each segment's answer from a route reply with parts (each also added to
+        ``chain``); None if the agent does not answer routes."""
         try:
             parts = proto.route_parts(reply)
         except (proto.RefusedError, ValueError) as exc:
@@ -344,9 +423,9 @@ class Queries:
         return out
 
     def _request(self, segments: Sequence[Segment], at: int | None, spec: str,
-                 details: bool, op: str = "segments") -> bytes:
+                 details: bool, op: str = "segments", compose: bool = False) -> bytes:
         """The request for one round; one for the latest time is encoded once."""
-        key = (tuple(segments), spec, details, op)
+        key = (tuple(segments), spec, details, op, compose)
         with self._lock:
             request = self._requests.get(key) if at is None else None
         if request is None:
@@ -354,7 +433,7 @@ class Queries:
                 seg.agent: proto.SegmentRequest(
                     seg.source, seg.target, spec,
                     None if at is None else self.clock.to_remote(seg.agent, at), details)
-                for seg in segments}, op)
+                for seg in segments}, op, compose)
             if at is None:
                 with self._lock:
                     self._requests[key] = request

@@ -93,6 +93,10 @@ class Chain:
         self.attributes = nominal_attributes(
             self.edge_attrs, [oriented(*edge.nominal(), fwd) for edge, fwd in steps])
         self._constant_attrs = path_constants(self.edge_attrs)
+        #: an all-static chain's value, covariance and attributes, computed once (the same
+        #: at every time; a change of its edges builds a new chain)
+        self._static: tuple[np.ndarray, np.ndarray, np.ndarray | None, dict[str, Any]] | None
+        self._static = None
 
     def _kernel_item(self, item: tuple) -> tuple:
         """An item as :mod:`agent.srg.kernel` takes it."""
@@ -114,6 +118,12 @@ class Chain:
         if t_ns is None and self._measured:  # latest_time() found an edge without samples
             empty = next(e for e, _, _ in self._measured if not len(e.buffer))
             raise NoSamplesError(empty.name, None)
+        if not self._measured:
+            return self._static_result(t_ns)
+        return self._evaluate_items(t_ns)
+
+    def _evaluate_items(self, t_ns: int | None) -> PoseResult:
+        """:meth:`evaluate`'s work: the kernel over the items, then the covariance."""
         uncertain = self._uncertain
         if not uncertain:  # samples may carry covariances the attributes did not announce
             for buf in self._buffers:
@@ -131,6 +141,16 @@ class Chain:
         constant = self._constant_attrs
         return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
                           lambda: {**constant, **uncertainty(p, cov)})
+
+    def _static_result(self, t_ns: int | None) -> PoseResult:
+        """An all-static chain's result at ``t_ns``: computed on the first call, copied
+        after (agents answer static segments at every query)."""
+        if self._static is None:
+            r = self._evaluate_items(t_ns)
+            self._static = (r.position, r.quaternion, r.covariance, r.attributes)
+        p, q, cov, attrs = self._static
+        return PoseResult(p.copy(), q.copy(), None if cov is None else cov.copy(), self.frames,
+                          self.edge_infos, t_ns, 0.0, [], dict(attrs))
 
     def _covariance(self, edges: list[kernel.EdgeValue], prefixes: list[kernel.Pose],
                     ) -> np.ndarray | None:
