@@ -78,9 +78,28 @@ def test_a_full_disk_stops_the_recording_and_leaves_a_readable_file(tmp_path) ->
         written = [m for m in rec.messages if m.channel.topic == KEY]
         assert len(written) > 100 and rec.damage and "without a footer" in rec.damage
         assert path.stat().st_size <= 192 * 1024
-        # nothing vanished silently: what is not in the file was counted as dropped or was
-        # still in the chunk being written when the disk filled
-        assert len(written) + stats.dropped[KEY] <= offered
+        # the counts are the file's: what is in it is counted written, everything else
+        # (the chunk being written when the disk filled included) dropped
+        assert stats.messages[KEY] == len(written)
+        assert len(written) + stats.dropped[KEY] == offered
+
+
+def test_a_disk_full_from_the_start_records_nothing_and_says_so(tmp_path) -> None:
+    from agent.record.sink import RecordingSink
+
+    rng = np.random.default_rng(2)
+    with small_disk(tmp_path / "disk", "64k") as disk:
+        with contextlib.suppress(OSError), open(disk / "filler", "wb") as f:
+            f.write(b"\0" * 128 * 1024)
+        path = disk / "full.mcap"
+        sink = RecordingSink(str(path), REALM, [], flush_s=0.05)
+        sink.offer(*_snapshot(), time.time_ns())
+        for i in range(200):
+            sink.offer(KEY, _pose(i, rng), time.time_ns())
+        stats = sink.close()
+        assert "the disk is full" in (stats.error or ""), stats.error
+        assert path.stat().st_size == 0
+        assert sum(stats.messages.values()) == 0 and stats.dropped[KEY] == 200
 
 
 def test_a_slow_disk_drops_are_counted_and_reported(tmp_path) -> None:

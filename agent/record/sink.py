@@ -54,7 +54,7 @@ def _uma_version() -> str:
 class SinkStats:
     """What was written, dropped and why the recording stopped."""
 
-    messages: Counter = field(default_factory=Counter)   # topic -> messages written
+    messages: Counter = field(default_factory=Counter)   # topic -> messages in the file
     dropped: Counter = field(default_factory=Counter)    # key -> samples not written
     undecodable: int = 0
     bytes_in: int = 0
@@ -82,6 +82,10 @@ class RecordingSink:
         self._flush_s = flush_s
         self._file: BinaryIO = open(path, "wb")  # noqa: SIM115 (closed by close())
         self._good = 0                            # file size after the last complete flush
+        #: messages handed to the writer since the last flush (counted as written only
+        #: once flushed: a failed write cuts the file back and they count as dropped)
+        self._unflushed: Counter = Counter()
+        self._sequence: Counter = Counter()       # topic -> the next message's sequence
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES,
                               compression=CompressionType[compression.upper()])
         self._channels: dict[str, int] = {}
@@ -190,8 +194,9 @@ class RecordingSink:
         if channel is None:
             channel = self._register(topic, metadata())
         self._writer.add_message(channel, log_time=log_ns, data=data, publish_time=publish_ns,
-                                 sequence=self.stats.messages[topic])
-        self.stats.messages[topic] += 1
+                                 sequence=self._sequence[topic])
+        self._sequence[topic] += 1
+        self._unflushed[topic] += 1
 
     def _register(self, topic: str, metadata: dict[str, str]) -> int:
         if topic in (layout.TF_TOPIC, layout.TF_STATIC_TOPIC):
@@ -228,11 +233,20 @@ class RecordingSink:
 
     def _flush(self) -> None:
         self._writer.flush()
+        self._file.flush()
         self._good = self._file.tell()
+        self._committed()
+
+    def _committed(self) -> None:
+        """What the writer was given so far is in the file."""
+        self.stats.messages.update(self._unflushed)
+        self._unflushed.clear()
 
     def _fail(self, exc: OSError) -> None:
         """Stop on a write error; cut the file back to its last complete chunk."""
         what = "the disk is full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else str(exc)
+        self.stats.dropped.update(self._unflushed)  # cut away with the unfinished chunk
+        self._unflushed.clear()
         written = sum(self.stats.messages.values())
         self.stats.error = (f"recording stopped: {what} (writing {self.path}); the file keeps "
                             f"what was flushed before, {self._good} bytes")
@@ -271,6 +285,7 @@ class RecordingSink:
                 "stopped_ns": str(time.time_ns())})
             self._writer.finish()
             self._file.close()
+            self._committed()
         except OSError as exc:
             self._fail(exc)
         return self.stats
