@@ -194,12 +194,15 @@ class OutsideInTracker:
         pairs = dict(marker_blobs)
         if start is None:
             p0, R0 = track.filter.predicted_pose(t_ref)
-            motion = Motion(track.filter.v, track.filter.omega)
+            f = track.filter
+            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega)
+            # what the motion is not known to: its std, per second of exposure difference
+            blur = _motion_std(f.P, float(np.max(np.linalg.norm(track.body.markers, axis=1))))
         else:
-            (p0, R0), motion = start, None
+            (p0, R0), motion, blur = start, None, 0.0
         fit = None
         while True:
-            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref)
+            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref, p0, blur)
             fit = refine_pose(track.body.markers, obs, p0, R0, motion)
             if fit is None:
                 break
@@ -267,9 +270,19 @@ class OutsideInTracker:
             track.missed = 0 if k in done else track.missed + 1
 
 
+def _motion_std(P: Array, reach_m: float) -> float:
+    """How far (m, std) a marker ``reach_m`` from the body's origin may be from where the
+    filter's motion puts it, per second of moving it: velocity and turn rate uncertainty."""
+    sv = np.sqrt(np.trace(P[6:9, 6:9]) / 3)
+    sw = np.sqrt(np.trace(P[9:12, 9:12]) / 3)
+    return float(np.hypot(sv, sw * reach_m))
+
+
 def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[RigCamera],
                   norm: dict[int, Array], blobs: dict[int, Blobs], times: dict[int, float],
-                  t_ref: float) -> list[Observation]:
+                  t_ref: float, near: Array, blur_m_per_s: float = 0.0) -> list[Observation]:
+    """The observations of a fit; a camera exposed ``dt`` before ``t_ref`` has its
+    centroid stds grown by the motion's uncertainty over ``dt`` (seen from ``near``)."""
     by_cam: dict[int, list[tuple[int, int]]] = {}
     for (c, m), (_, b) in pairs.items():
         by_cam.setdefault(c, []).append((m, b))
@@ -277,8 +290,12 @@ def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[R
     for c, mb in sorted(by_cam.items()):
         m = np.array([x for x, _ in mb])
         b = np.array([y for _, y in mb])
-        out.append(Observation(cameras[c], m, norm[c][b], blobs[c].std_px[b], times[c] - t_ref,
-                               index=c))
+        dt = times[c] - t_ref
+        std = blobs[c].std_px[b]
+        if dt and blur_m_per_s:
+            depth = max(float(np.linalg.norm(cameras[c].position - near)), 0.1)
+            std = np.hypot(std, cameras[c].focal_px * blur_m_per_s * abs(dt) / depth)
+        out.append(Observation(cameras[c], m, norm[c][b], std, dt, index=c))
     return out
 
 
