@@ -127,3 +127,19 @@ def test_pure_python_kernel_is_forced_by_the_environment():
                           "from agent.srg import kernel; print(kernel.NATIVE is None)"],
                          env=env, capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "True"
+
+
+def test_the_kernels_quaternion_products_are_geometrys() -> None:
+    """The kernel writes its quaternion products out (a call would cost as much); they are
+    ``agent.geometry.quat_product`` exactly, in composition and in slerp's log."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        q = rng.normal(size=(2, 4))
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        a = (*rng.normal(size=3).tolist(), *q[0].tolist())
+        b = (*rng.normal(size=3).tolist(), *q[1].tolist())
+        assert kernel.compose(a, b)[3:] == geo.quat_product(a[3:], b[3:])
+        conj = (-a[3], -a[4], -a[5], a[6])
+        np.testing.assert_allclose(kernel._log_between(a, b),
+                                   geo.quat_to_rotvec(np.array(geo.quat_product(conj, b[3:]))),
+                                   atol=1e-12)

@@ -7,7 +7,10 @@ edge (lerp, slerp as ``q0 Exp(a Log(q0^-1 q1))`` with the log cached per sample 
 composition) is a few dozen operations.  So the kernel works on tuples of floats, and a
 compiled twin (``agent/srg/_kernel.c``, built when a C compiler is there) does the same
 operations in the same order; :data:`NATIVE` is the compiled one unless it was not built
-or ``UMA_SRG_PURE_PYTHON=1`` is set.  Both are tested to agree.
+or ``UMA_SRG_PURE_PYTHON=1`` is set.  Both are tested to agree.  The quaternion products
+are written out here rather than calls of ``agent.geometry.quat_product`` (the same
+arithmetic, which ``tests/test_srg_kernel.py`` holds them to): a call costs as much as the
+product, and a query makes two per interpolated edge.
 
 ``items`` is the chain in path order; each entry is either ``(pose,)``, a constant (a
 folded run of static edges, already oriented), or ``(buffer, times, values, deltas,
@@ -25,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.geometry import _SMALL_ANGLE, quat_product
+from agent.geometry import _SMALL_ANGLE
 
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)
@@ -38,7 +41,12 @@ Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None, list[Pose] 
 
 def _log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
     """The rotation vector of ``q0^-1 q1`` (slerp's log), as ``geometry.quat_to_rotvec``."""
-    x, y, z, w = quat_product((-v0[3], -v0[4], -v0[5], v0[6]), v1[3:])
+    ax, ay, az, aw = -v0[3], -v0[4], -v0[5], v0[6]
+    bx, by, bz, bw = v1[3], v1[4], v1[5], v1[6]
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    w = aw * bw - ax * bx - ay * by - az * bz
     if w < 0:
         x, y, z, w = -x, -y, -z, -w
     s = math.sqrt(x * x + y * y + z * z)
@@ -51,9 +59,12 @@ def _interpolated(v0: Pose, v1: Pose, delta: tuple[float, float, float], a: floa
     rx, ry, rz = delta[0] * a, delta[1] * a, delta[2] * a
     th = math.sqrt(rx * rx + ry * ry + rz * rz)
     k = 0.5 - th * th / 48.0 if th < _SMALL_ANGLE else math.sin(0.5 * th) / th
+    bx, by, bz, bw = rx * k, ry * k, rz * k, math.cos(0.5 * th)
+    ax, ay, az, aw = v0[3], v0[4], v0[5], v0[6]
     return (v0[0] + (v1[0] - v0[0]) * a, v0[1] + (v1[1] - v0[1]) * a,
             v0[2] + (v1[2] - v0[2]) * a,
-            *quat_product(v0[3:], (rx * k, ry * k, rz * k, math.cos(0.5 * th))))
+            aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
 
 
 def _inverse(v: Pose) -> Pose:
@@ -73,8 +84,12 @@ def _rotate(x: float, y: float, z: float, w: float, vx: float, vy: float, vz: fl
 
 def compose(a: Pose, b: Pose) -> Pose:
     """``A B``: ``p_a + R_a p_b`` and ``q_a q_b``."""
-    rx, ry, rz = _rotate(a[3], a[4], a[5], a[6], b[0], b[1], b[2])
-    return (a[0] + rx, a[1] + ry, a[2] + rz, *quat_product(a[3:], b[3:]))
+    ax, ay, az, aw = a[3], a[4], a[5], a[6]
+    rx, ry, rz = _rotate(ax, ay, az, aw, b[0], b[1], b[2])
+    bx, by, bz, bw = b[3], b[4], b[5], b[6]
+    return (a[0] + rx, a[1] + ry, a[2] + rz,
+            aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
 
 
 def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndarray,
