@@ -146,10 +146,22 @@ def test_every_public_module_imports_without_zenoh_and_its_names_resolve() -> No
     assert out.returncode == 0, out.stderr
 
 
+def _imported(path) -> list[tuple[int, str]]:
+    """(line, module) of every absolute import of a file (``from M import x`` gives M)."""
+    import ast
+
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.lineno, node.module))
+        elif isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+    return found
+
+
 def test_protocol_and_srg_depend_only_on_schemas_and_the_pure_modules() -> None:
     """``agent/protocol`` and ``agent/srg`` import nothing of uma but ``schemas``, their own
     package and the pure modules beside them, and not each other (docs/ARCHITECTURE.md)."""
-    import ast
     from pathlib import Path
 
     root = Path(agent.__file__).parent
@@ -158,13 +170,9 @@ def test_protocol_and_srg_depend_only_on_schemas_and_the_pure_modules() -> None:
     offences = []
     for package in ("protocol", "srg"):
         for path in sorted((root / package).rglob("*.py")):
-            for node in ast.walk(ast.parse(path.read_text())):
-                names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module
-                         else [a.name for a in node.names] if isinstance(node, ast.Import)
-                         else [])
-                offences += [f"{path.name}:{node.lineno}: {n}" for n in names
-                             if n.startswith("agent") and n not in pure
-                             and not n.startswith(f"agent.{package}")]
+            offences += [f"{path.name}:{line}: {n}" for line, n in _imported(path)
+                         if n.startswith("agent") and n not in pure
+                         and not n.startswith(f"agent.{package}")]
     assert offences == []
 
 
@@ -227,7 +235,6 @@ def test_real_hardware_code_never_imports_the_simulator() -> None:
     """The trackers that run on a real site (the laser tracker and its calibration, the dead
     reckoner, the fusion) know the installation (``services.installation``), never the
     simulator (``services.sim``), which is built on the installation model."""
-    import ast
     from pathlib import Path
 
     root = Path(agent.__file__).parent.parent / "services"
@@ -240,10 +247,7 @@ def test_real_hardware_code_never_imports_the_simulator() -> None:
                                                      "tracker", "measurements", "process"))]
     offences = []
     for path in real:
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module
-                     else [a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [])
-            offences += [f"{path.relative_to(root.parent)}:{node.lineno}: {n}" for n in names
-                         if n == "services.sim" or n.startswith("services.sim.")]
+        offences += [f"{path.relative_to(root.parent)}:{line}: {n}"
+                     for line, n in _imported(path)
+                     if n == "services.sim" or n.startswith("services.sim.")]
     assert len(real) > 20 and offences == []
