@@ -251,3 +251,16 @@ def test_real_hardware_code_never_imports_the_simulator() -> None:
                      for line, n in _imported(path)
                      if n == "services.sim" or n.startswith("services.sim.")]
     assert len(real) > 20 and offences == []
+
+
+def test_every_public_name_is_in_the_readme() -> None:
+    """The README's table of the public API names everything ``agent.__all__`` and the
+    public modules' ``__all__`` export (a name added without a word there fails here)."""
+    import importlib
+    from pathlib import Path
+
+    readme = (Path(agent.__file__).parents[1] / "README.md").read_text()
+    missing = [f"{m}.{n}" for m in ("agent", *agent.PUBLIC_MODULES)
+               for n in getattr(importlib.import_module(m), "__all__", ())
+               if f"`{n}`" not in readme]
+    assert missing == []
