@@ -9,11 +9,12 @@ The procedure of commercial systems and of Dorfmüller-Ulhaas §2's one-step cal
    one end, and projection keeps the order of points on a line).
 2. **Initial extrinsics**: the essential matrix between camera pairs that saw the wand
    together (``cv2.findEssentialMat`` + ``recoverPose``), scaled by the wand's length,
-   chained along the strongest pairs from the first camera.
+   chained along the strongest pairs from the camera that saw the wand most.
 3. **Bundle adjustment** (``scipy.optimize.least_squares`` with ``jac_sparsity``): camera
    extrinsics (and ``fx, fy, cx, cy, k1, k2`` when asked) and each wand frame's pose (an
    end point and a direction: the distances are fixed, which fixes the scale), residuals
-   in pixels through ``cv2.projectPoints``, first with the first camera fixed.
+   in pixels through ``cv2.projectPoints``, first with that camera fixed; wand views the
+   adjusted rig cannot explain (a wand taken end for end) are dropped and it runs again.
 4. **World frame**: an L-frame of four markers on the floor, triangulated and identified
    (``bodies.identify``), gives world -> rig by absolute orientation; the adjustment then
    runs again with every camera free and the L-frame's markers fixed at their known world
@@ -134,8 +135,9 @@ def wand_in_image(uv: Array, camera: CameraModel, static: Array, wand: Wand,
 
 def initial_extrinsics(models: list[CameraModel], obs: Array, wand: Wand,
                        min_frames: int = 20) -> list[tuple[Array, Array]]:
-    """``(R_cw, t_cw)`` of every camera in the first camera's frame, from essential
-    matrices of camera pairs scaled by the wand, chained along the strongest pairs.
+    """``(R_cw, t_cw)`` of every camera in the frame of the camera that saw the wand most
+    (``reference_camera``), from essential matrices of camera pairs scaled by the wand,
+    chained along the strongest pairs.
     ``obs`` is (frames, cameras, 3, 2) distorted pixels, NaN where not seen."""
     C = len(models)
     seen = ~np.isnan(obs[:, :, 0, 0])
@@ -145,7 +147,8 @@ def initial_extrinsics(models: list[CameraModel], obs: Array, wand: Wand,
         if len(rows):
             norm[rows, c] = m.undistort(obs[rows, c].reshape(-1, 2)).reshape(-1, 3, 2)
     common = np.array([[np.sum(seen[:, i] & seen[:, j]) for j in range(C)] for i in range(C)])
-    poses: dict[int, tuple[Array, Array]] = {0: (np.eye(3), np.zeros(3))}
+    ref = reference_camera(obs)
+    poses: dict[int, tuple[Array, Array]] = {ref: (np.eye(3), np.zeros(3))}
     while len(poses) < C:
         cands = [(common[i, j], i, j) for i in poses for j in range(C)
                  if j not in poses and common[i, j] >= min_frames]
@@ -159,6 +162,11 @@ def initial_extrinsics(models: list[CameraModel], obs: Array, wand: Wand,
         R_i, t_i = poses[i]
         poses[j] = (R_ij @ R_i, R_ij @ t_i + t_ij)
     return [poses[c] for c in range(C)]
+
+
+def reference_camera(obs: Array) -> int:
+    """The camera that saw the wand most often: the rig's frame until the L-frame's."""
+    return int(np.argmax(np.sum(~np.isnan(obs[:, :, 0, 0]), axis=0)))
 
 
 def _pair_pose(norm: Array, seen: Array, i: int, j: int, wand: Wand) -> tuple[Array, Array]:
@@ -334,7 +342,7 @@ def adjust(models: list[CameraModel], extr: list[tuple[Array, Array]], obs: Arra
     x0 = prob.pack(extr, ends, dirs)
     fixed = extr[fixed_camera] if fixed_camera is not None else (np.eye(3), np.zeros(3))
     sol = least_squares(prob.residuals, x0, jac_sparsity=prob.sparsity(), method="trf",
-                        x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=100,
+                        x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=300,
                         args=(fixed,))
     cams = prob.cameras(sol.x, fixed)
     out_extr = [(cv2.Rodrigues(np.asarray(r, float))[0], np.asarray(t, float))
@@ -466,9 +474,18 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
         raise CalibrationError(f"cameras {', '.join(few)} saw the wand in fewer than 20 "
                                "frames")
     extr = initial_extrinsics(models, wand_obs, wand)
-    rel = adjust(models, extr, wand_obs, wand, sigma_px, fixed_camera=0)
+    ref = reference_camera(wand_obs)
+    rel = adjust(models, extr, wand_obs, wand, sigma_px, fixed_camera=ref)
+    # a wand taken end for end, or a stray blob on its line, fits no pose of the rig:
+    # views further than OUTLIER_SIGMAS from the adjusted rig are dropped, then the rig
+    # adjusted again -- unless so many are that the rig itself did not converge
+    kept = _without_outliers(rel, wand_obs, sigma_px)
+    dropped = np.sum(np.isnan(kept[:, :, 0, 0])) - np.sum(np.isnan(wand_obs[:, :, 0, 0]))
+    if 0 < dropped <= MAX_OUTLIER_SHARE * np.sum(~np.isnan(wand_obs[:, :, 0, 0])):
+        wand_obs = kept
+        rel = adjust(rel.models, rel.extrinsics, wand_obs, wand, sigma_px, fixed_camera=ref)
     rig_pts, lobs, n_l = lframe_observations(rel.models, rel.extrinsics, lframe_frames, lframe)
-    # world -> rig (the first camera's frame): the L-frame's known markers onto its points
+    # world -> rig (the reference camera's frame): the L-frame's known markers onto its points
     R_rw, p_rw = absolute_orientation(lframe.markers, rig_pts)
     world_extr = [(R @ R_rw, R @ p_rw + t) for R, t in rel.extrinsics]
     # a static marker's centroid keeps its pixel-sampling error in every frame: averaging
@@ -486,6 +503,27 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
     seen = int(np.sum(~np.isnan(wand_obs[:, :, 0, 0])))
     return RigCalibration(cams, np.array(covs), final.rms_px, len(wand_obs), n_l, seen,
                           wand_obs)
+
+
+#: a wand view whose worst marker is this many noise stds from the adjusted rig is an
+#: outlier; more than MAX_OUTLIER_SHARE of them say the adjustment failed, not the views
+OUTLIER_SIGMAS = 8.0
+MAX_OUTLIER_SHARE = 0.05
+
+
+def _without_outliers(adj: Adjusted, obs: Array, sigma_px: float) -> Array:
+    """``obs`` with the camera views of the wand that the adjusted rig cannot explain
+    set to NaN."""
+    out = obs.copy()
+    for c, ((R, t), m) in enumerate(zip(adj.extrinsics, adj.models, strict=True)):
+        rows = np.nonzero(~np.isnan(obs[:, c, 0, 0]))[0]
+        if not len(rows):
+            continue
+        uv, _ = cv2.projectPoints(adj.wand_points[rows].reshape(-1, 3),
+                                  cv2.Rodrigues(R)[0], t, m.K, m.dist)
+        err = np.linalg.norm(uv.reshape(-1, 3, 2) - obs[rows, c], axis=2).max(axis=1)
+        out[rows[err > OUTLIER_SIGMAS * sigma_px], c] = np.nan
+    return out
 
 
 def _pose_covariance(R: Array, t: Array, cov_rt: Array) -> Array:
