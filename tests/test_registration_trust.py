@@ -124,6 +124,13 @@ def test_a_readopted_service_renews_its_instance_and_a_stranger_cannot(site, rea
     poll(lambda: agent.registrar.control_key("cam") is not None, 10, "cam's new key")
 
 
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) process ``pid`` used so far."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def big(sid: str) -> bytes:
     """A valid descriptor of about 0.6 MB (what the flood of the audit sent)."""
     return encode_descriptor(ServiceDescriptor(
@@ -142,17 +149,18 @@ def test_a_registration_flood_is_bounded_in_size_and_rate(processes, realm) -> N
     cam.wait_for(lambda e: e.get("event") == "started")
     with open_session(connect=[ep]) as s:
         poll(lambda: "cam" in snapshot(s, realm, "hostA").services, 20, "cam registered")
-        before = rss_mb(host.popen.pid)
+        before, cpu = rss_mb(host.popen.pid), cpu_s(host.popen.pid)
         outcomes = [register_raw(s, realm, "hostA", register_request(
             big(f"big{i}"), f"b{i}", 1, {})) for i in range(60)]
         outcomes += [register_raw(s, realm, "hostA", register_request(
             forged(f"junk{i}", (f"j{i}/a", f"j{i}/b")), f"j{i}", 1, {})) for i in range(300)]
-        grew = rss_mb(host.popen.pid) - before
+        grew, cpu = rss_mb(host.popen.pid) - before, cpu_s(host.popen.pid) - cpu
         cam.send("update frequency_hz=77")
         poll(lambda: snapshot(s, realm, "hostA").services["cam"].abilities[0]
              .attributes.frequency_hz == 77, 20, "cam's update applied")
     accepted = [i for i, (ok, _) in enumerate(outcomes) if ok]
-    print(f"flood: {len(accepted)} of {len(outcomes)} accepted, agent RSS +{grew:.1f} MB")
+    print(f"flood: {len(accepted)} of {len(outcomes)} accepted, agent RSS +{grew:.1f} MB, "
+          f"agent CPU {cpu:.2f} s")
     assert all("more than 131072" in error for _, error in outcomes[:60]), outcomes[0]
     assert 0 < len(accepted) < 150 and all(i >= 60 for i in accepted)
     assert all("retry" in error for ok, error in outcomes[60:] if not ok)
