@@ -1,6 +1,9 @@
-"""Who may (re-)register a service with its agent: an agent and services in this process,
-a plain Zenoh session playing a stranger who knows what the realm publishes (a service's
-instance id is in its agent's snapshot) and sends what it likes."""
+"""What a stranger on a plain realm can make an agent, a service or a client do: an agent
+and services in this process (or in their own where memory or a frozen process is
+measured), a plain Zenoh session playing a stranger who knows what the realm publishes (a
+service's instance id is in its agent's snapshot) and sends what it likes: registrations
+(hijacks, floods, eavesdropping, refusals), control sequence jumps, token churn, invented
+agents' snapshots, samples with impossible stamps, and the counts a receiver reports."""
 
 from __future__ import annotations
 
