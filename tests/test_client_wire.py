@@ -12,7 +12,7 @@ import pytest
 from pydantic import ValidationError
 
 from agent import geometry as geo
-from agent.protocol.query import pose_from_wire, result_to_wire
+from agent.protocol.query import attributes_from_wire, pose_from_wire, result_to_wire
 from agent.srg import Graph
 from schemas.models import PoseResultMessage as PoseModel
 
@@ -164,3 +164,46 @@ def test_remembered_ids_change_no_verdict():
     for wrong in ("toolong", "B", 3, ["a"]):
         with pytest.raises(ValueError, match="id"):
             check(wrong, "id")
+
+
+@pytest.mark.parametrize("field", sorted(PoseModel.model_fields))
+def test_every_field_of_the_model_is_checked_by_both(field):
+    """Every field the model has, a new one included, is refused with the same verdict when
+    its value is of the wrong kind (no field accepts a string holding a NUL)."""
+    d = copy.deepcopy(answers()[3])
+    d[field] = "\x00"
+    assert not model_accepts(d)
+    with pytest.raises(ValueError, match=field):
+        pose_from_wire(d)
+
+
+@pytest.mark.parametrize("field", sorted(n for n, f in PoseModel.model_fields.items()
+                                         if f.is_required()))
+def test_every_required_field_is_required_by_both(field):
+    d = copy.deepcopy(answers()[3])
+    del d[field]
+    assert not model_accepts(d)
+    with pytest.raises(ValueError, match=field):
+        pose_from_wire(d)
+
+
+def test_the_optional_fields_take_the_models_defaults():
+    d = {k: v for k, v in answers()[0].items()
+         if PoseModel.model_fields[k].is_required()}
+    m, r = PoseModel.model_validate(d), pose_from_wire(d)
+    assert (r.covariance, r.path, r.edges, r.extrapolated_s) == (
+        m.covariance, m.path, m.edges, m.extrapolated_s)
+    assert r.attributes == attributes_from_wire(m.attributes)
+
+
+def test_a_local_result_is_sent_and_read_as_the_models_fields():
+    """What an agent sends is exactly the model's fields, and the runtime class takes every
+    one of them that is not the query's own (source and target)."""
+    import inspect
+
+    from agent.result import PoseResult
+
+    for d in answers():
+        assert d.keys() == PoseModel.model_fields.keys()
+    taken = set(inspect.signature(PoseResult).parameters)
+    assert set(PoseModel.model_fields) - {"source", "target"} <= taken

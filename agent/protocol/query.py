@@ -59,10 +59,12 @@ nil.  :func:`parse_summary` also reads a summary spelt out as ``summarize`` buil
 attributes}}``, no ``paths``): the same content, five to twenty times the bytes
 (``bench/bench_scale.py``).
 
-A segment answer is read by :func:`pose_from_wire`, the hot-path twin of
+A segment answer is read by :func:`pose_from_wire`, the hot-path form of
 ``schemas.models.PoseResultMessage.model_validate``: answers arrive at tracking rates, and the
 model costs ten times as much (pydantic validates descriptors and API results, not
-per-message hot paths).
+per-message hot paths).  The model stays the one definition of the answer's fields: the
+fast reader takes their names, which are required and their defaults from it, and has one
+check per field, which it refuses to import without.
 """
 
 from __future__ import annotations
@@ -474,48 +476,83 @@ def _wire_attributes(value: Any) -> dict[str, Any]:
     return attributes_from_wire(value)
 
 
+def _wire_quaternion(value: Any) -> np.ndarray:
+    """Four finite numbers of unit norm within the tolerance, renormalized (as the model)."""
+    q = _wire_floats(value, 4, "quaternion")
+    return np.array(q) / unit_norm(*q)
+
+
+def _wire_path(value: Any) -> list[str]:
+    if not isinstance(value, list):
+        raise ValueError(f"path: expected a list of frame ids, got {value!r:.60}")
+    for i, frame in enumerate(value):
+        _frame_id(frame, "path[%d]", i)
+    return list(value)
+
+
+def _wire_edges(value: Any, to_local: Callable[[int], int]) -> list[dict[str, Any]]:
+    if not isinstance(value, list):
+        raise ValueError(f"edges: expected a list, got {value!r:.60}")
+    return [_wire_edge(e, i, to_local) for i, e in enumerate(value)]
+
+
+def _wire_extrapolated(value: Any) -> float:
+    if (isinstance(value, bool) or not isinstance(value, float | int)
+            or not math.isfinite(value) or value < 0):
+        raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {value!r}")
+    return float(value)
+
+
+Reader = Callable[[Any, Callable[[int], int]], Any]
+
+#: the fast check of each field of ``PoseResultMessage``, with its value as
+#: :class:`PoseResult` takes it.  The model is the one definition of the fields: which
+#: exist, which are required and their defaults are read from it, and importing this
+#: module fails if the model has a field this table does not check.
+_READERS: dict[str, Reader] = {
+    "source": lambda v, _: _frame_id(v, "source"),
+    "target": lambda v, _: _frame_id(v, "target"),
+    "t_ns": lambda v, to_local: to_local(_wire_int(v, "t_ns")),
+    "position": lambda v, _: np.array(_wire_floats(v, 3, "position")),
+    "quaternion": lambda v, _: _wire_quaternion(v),
+    "covariance": lambda v, _: None if v is None else _wire_covariance(v),
+    "path": lambda v, _: _wire_path(v),
+    "edges": _wire_edges,
+    "attributes": lambda v, _: _wire_attributes(v),
+    "extrapolated_s": lambda v, _: _wire_extrapolated(v),
+}
+if _READERS.keys() != PoseResultMessage.model_fields.keys():
+    raise ImportError("agent.protocol.query checks the fields "
+                      f"{sorted(_READERS)} but PoseResultMessage has "
+                      f"{sorted(PoseResultMessage.model_fields)}: give each field its check")
+_REQUIRED = tuple(n for n, f in PoseResultMessage.model_fields.items() if f.is_required())
+_DEFAULTS = {n: f.get_default(call_default_factory=True)
+             for n, f in PoseResultMessage.model_fields.items() if not f.is_required()}
+
+
 def pose_from_wire(d: Any, to_local: Callable[[int], int] = lambda t: t) -> PoseResult:
     """A segment answer (a ``schemas.models.PoseResultMessage`` map) as a result, timestamps mapped
     by ``to_local``; ``ValueError`` names the first field that is wrong.
 
-    The same fields, shapes, ids, finiteness and unit quaternion (renormalized) as the
-    model, at a tenth of the cost (module docstring).  ``tests/test_client_wire.py`` holds
-    the two to the same verdicts.
+    The model's fields, required fields and defaults, each checked by its entry of
+    ``_READERS`` (shapes, ids, finiteness, unit quaternion renormalized) at a tenth of the
+    model's cost (module docstring).  ``tests/test_client_wire.py`` holds the two to the
+    same verdicts, field by field.
     """
     if not isinstance(d, dict):
         raise ValueError(f"pose result: expected a map, got {type(d).__name__}")
     if not d.keys() <= _WIRE_FIELDS:
         extra = sorted(map(str, d.keys() - _WIRE_FIELDS))
         raise ValueError(f"pose result: unexpected field(s) {', '.join(extra)}")
-    for name in ("source", "target", "t_ns", "position", "quaternion"):
+    for name in _REQUIRED:
         if name not in d:
             raise ValueError(f"pose result: missing field {name!r}")
-    _frame_id(d["source"], "source")
-    _frame_id(d["target"], "target")
-    t_ns = _wire_int(d["t_ns"], "t_ns")
-    position = _wire_floats(d["position"], 3, "position")
-    q = _wire_floats(d["quaternion"], 4, "quaternion")
-    norm = unit_norm(*q)
-    cov = d.get("covariance")
-    if cov is not None:
-        cov = _wire_covariance(cov)
-    path = d.get("path", [])
-    if not isinstance(path, list):
-        raise ValueError(f"path: expected a list of frame ids, got {path!r:.60}")
-    for i, frame in enumerate(path):
-        _frame_id(frame, "path[%d]", i)
-    edges = d.get("edges", [])
-    if not isinstance(edges, list):
-        raise ValueError(f"edges: expected a list, got {edges!r:.60}")
-    edges = [_wire_edge(e, i, to_local) for i, e in enumerate(edges)]
-    extrapolated = d.get("extrapolated_s", 0.0)
-    if (isinstance(extrapolated, bool) or not isinstance(extrapolated, float | int)
-            or not math.isfinite(extrapolated) or extrapolated < 0):
-        raise ValueError(f"extrapolated_s: expected a finite number >= 0, got {extrapolated!r}")
-    attributes = _wire_attributes(d.get("attributes", {}))
-    stamps = [(e["t_ns"], e["t_ns"]) for e in edges]
-    return PoseResult(np.array(position), np.array(q) / norm, cov, list(path), edges,
-                      to_local(t_ns), float(extrapolated), stamps, attributes)
+    v = {name: read(d[name] if name in d else _DEFAULTS[name], to_local)
+         for name, read in _READERS.items()}
+    edges = v["edges"]
+    return PoseResult(v["position"], v["quaternion"], v["covariance"], v["path"], edges,
+                      v["t_ns"], v["extrapolated_s"], [(e["t_ns"], e["t_ns"]) for e in edges],
+                      v["attributes"])
 
 
 def _wire_edge(e: Any, i: int, to_local: Callable[[int], int]) -> dict[str, Any]:
