@@ -111,8 +111,8 @@ def test_views_of_the_image_centre_only_need_more_views(tmp_path, capsys):
     frames, _ = render_board_views(seed=5, n=12, board=small, distance=(0.6, 0.7),
                                    centre_only=True)
     path = write_video(tmp_path / "centre.avi", frames, fps=10)
-    code = main(["calibrate", "camera", "--source", str(path), "--squares", "5x4", "-o",
-                 str(tmp_path / "c.yaml")])
+    code = main(["calibrate", "camera", "--source", str(path), "--squares", "5x4", "--square",
+                 "0.04", "-o", str(tmp_path / "c.yaml")])
     text = capsys.readouterr().out
     assert code == 3
     assert "verdict: needs more views" in text

@@ -30,9 +30,9 @@ MIN_CORNERS = 6
 MIN_VIEWS = 8
 GRID = 3
 MIN_CORNERS_PER_CELL = 4
-#: acceptance: focal length to 0.3 % (1 sigma 0.1 %), principal point to 1 px (0.33 px)
+#: acceptance: focal length to 0.3 % at 3 sigma, principal point to 1 px at 2 sigma
 MAX_FOCAL_REL_STD = 0.001
-MAX_CENTRE_STD_PX = 0.33
+MAX_CENTRE_STD_PX = 0.5
 MAX_RMS_PX = 1.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),

@@ -48,10 +48,11 @@ def _ids(text: str) -> list[int]:
 
 def add_board_arguments(p: argparse.ArgumentParser) -> None:
     """The ChArUco board's geometry (printing it and calibrating with it)."""
-    p.add_argument("--squares", type=_squares, default=(9, 6), metavar="COLSxROWS",
-                   help="chessboard squares of the ChArUco board (default 9x6)")
-    p.add_argument("--square", type=_length, default=0.04, metavar="M",
-                   help="side of one square as printed, metres (default 0.04: measure it)")
+    p.add_argument("--squares", type=_squares, default=(7, 5), metavar="COLSxROWS",
+                   help="chessboard squares of the ChArUco board (default 7x5: 245 x 175 mm "
+                        "with the default squares, on A4 or Letter)")
+    p.add_argument("--square", type=_length, default=0.035, metavar="M",
+                   help="side of one square as printed, metres (default 0.035: measure it)")
     p.add_argument("--marker", type=_length, default=None, metavar="M",
                    help="side of the markers in the white squares, metres (default: half the "
                         "square; larger markers bias the corners OpenCV finds)")

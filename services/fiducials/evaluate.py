@@ -21,7 +21,7 @@ many samples were flagged (``covered``: covariance inflated over both IPPE solut
 whose rotation error lies beyond chi2(3)'s 99.9 % point of their own rotation covariance
 and exceeds 5 degrees.
 
-A second scene puts four such tags on a 22 cm plate (a bundle, solved as one body) and
+A second scene puts four such tags on a 21 cm plate (a bundle, solved as one body) and
 compares the bundle's position error and claimed standard deviation with each single
 tag's (solved alone, on the same frames).
 """
