@@ -484,3 +484,35 @@ def test_a_listener_whose_chosen_port_was_taken_is_opened_on_another(monkeypatch
             sessions.close_session(s)
     finally:
         taken.close()
+
+
+def test_a_client_keeps_summaries_of_agents_with_tokens_within_a_byte_bound(monkeypatch,
+                                                                            realm) -> None:
+    """Invented agents on a plain realm may declare tokens too: what their summaries make a
+    client hold stays within ``MAX_SUMMARY_BYTES``; a summary of an agent whose token it
+    never saw is not kept at all."""
+    from types import SimpleNamespace
+
+    import msgpack
+    import zenoh
+
+    from agent.runtime.session import open_session
+    from agent.sdk import realm as realm_module
+    monkeypatch.setattr(realm_module, "MAX_SUMMARY_BYTES", 20_000)
+    with open_session() as session:
+        tracker = realm_module.RealmTracker(session, realm, 0.1, lambda agent: False)
+        try:
+            def summary(agent: str) -> bytes:
+                return msgpack.packb({"v": 1, "agent": agent, "rev": 1,
+                                      "frames": [f"{agent}/f{j}" for j in range(500)]})
+            tracker.take_summary(f"uma/{realm}/agent/nobody/supernode", summary("nobody"))
+            for i in range(20):
+                tracker._on_token(SimpleNamespace(key_expr=f"uma/{realm}/agent/g{i}",
+                                                  kind=zenoh.SampleKind.PUT))
+                tracker.take_summary(f"uma/{realm}/agent/g{i}/supernode", summary(f"g{i}"))
+            kept = tracker.view().summaries
+            assert "nobody" not in kept and 0 < len(kept) < 20
+            assert sum(len(summary(a)) for a in kept) <= 20_000
+            assert tracker.refused == 1 + 20 - len(kept)
+        finally:
+            tracker.close()

@@ -40,6 +40,10 @@ PROBE_S = 2.0
 MAX_AGENTS = 1000
 #: how far a published summary's revision may run ahead of the known one
 MAX_REVISION_JUMP = 10_000
+#: bytes (on the wire) of the summaries a client keeps in all: a realm of a hundred agents
+#: with a hundred links each needs about 4 MiB; invented agents (each with a token, on a
+#: plain realm) must not grow a client without bound
+MAX_SUMMARY_BYTES = 32 * 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -70,6 +74,7 @@ class RealmTracker:
         #: summaries refused: malformed, under another agent's key, or beyond MAX_AGENTS
         self.refused = 0
         self._summaries: dict[str, Summary] = {}
+        self._bytes: dict[str, int] = {}  # agent -> its summary's bytes on the wire
         self._alive: set[str] = set()
         #: when each agent last showed life (its token or a summary; monotonic s): a missed
         #: answer marks it gone only if that came before the query went out
@@ -212,7 +217,7 @@ class RealmTracker:
                 self._log.warning(f"supernode {key}", "dropped: its agent's liveliness token "
                                   f"was never seen ({self.refused} refused so far)")
                 return
-            if not self._room_for(summary.agent):
+            if not self._room_for(summary.agent, len(data)):
                 return
             old = self._summaries.get(summary.agent)
             if (old is not None and not answered and summary.instance == old.instance
@@ -224,19 +229,28 @@ class RealmTracker:
             if (old is None or summary.rev > old.rev or summary.instance != old.instance
                     or (answered and summary.rev != old.rev)):
                 self._summaries[summary.agent] = summary
+                self._bytes[summary.agent] = len(data)
                 self.summaries_rev += 1
                 self.topology += 1
             self._mark_alive(summary.agent, True)
 
-    def _room_for(self, agent: str) -> bool:
-        """Whether a summary of ``agent`` may be kept (lock held): a known agent always; a
-        new one while fewer than ``MAX_AGENTS`` are kept, making room by forgetting one not
-        alive if needed."""
+    def _room_for(self, agent: str, size: int) -> bool:
+        """Whether a summary of ``agent`` of ``size`` bytes may be kept (lock held): within
+        ``MAX_SUMMARY_BYTES`` in all, and a known agent always, a new one while fewer than
+        ``MAX_AGENTS`` are kept, making room by forgetting one not alive if needed."""
+        held = sum(self._bytes.values()) - self._bytes.get(agent, 0)
+        if held + size > MAX_SUMMARY_BYTES:
+            self.refused += 1
+            self._log.warning("supernode", f"summaries of {MAX_SUMMARY_BYTES} bytes kept "
+                              f"already; summary of {agent[:64]!r} dropped ({self.refused} "
+                              "refused so far)")
+            return False
         if agent in self._summaries or len(self._summaries) < MAX_AGENTS:
             return True
         dead = next((a for a in self._summaries if a not in self._alive), None)
         if dead is not None:
             del self._summaries[dead]
+            self._bytes.pop(dead, None)
             self._heard.pop(dead, None)
             return True
         self.refused += 1
