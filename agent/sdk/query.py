@@ -301,7 +301,7 @@ class Queries:
         """The whole route asked of its first agent, composed there (module docstring):
         one answer to read rather than one per segment.  When it could not compose (a part
         it had to ask another agent for), its parts are composed here.  None if it does not
-        answer routes (the caller asks as before)."""
+        answer routes (the caller then asks segment by segment)."""
         entry = segments[0]
         request = self._request(segments, at, spec, False, "route", compose=True)
         reply, t1, t4 = self._ask_entry(entry, request)
@@ -507,9 +507,9 @@ class Queries:
         expected, seen = set(agents), set()
         querier = self._querier(agents[0] if len(agents) == 1 else None)
         t1 = time.time_ns()
-        # Zenoh's FIFO channel, read here: measured ~300 us faster per query than a callback
-        # that wakes this thread through an Event (the GIL hand-off costs that much).  The
-        # query's timeout closes the channel, so the loop always ends.
+        # Zenoh's FIFO channel, read here: a callback waking this thread through an Event
+        # would add a GIL hand-off per reply (docs/MEASUREMENTS.md).  The query's timeout
+        # closes the channel, so the loop always ends.
         for reply in querier.get(payload=request):
             t4 = time.time_ns()
             if reply.ok is None:

@@ -20,7 +20,7 @@ agents: they may hold samples the mirror has not received.
 
 Latency is the point of a stream, so the fastest edge's samples are not handed from Zenoh's
 callback thread to ours through a Python queue (a lock, a condition and a GIL hand-off per
-sample: measured ~100-150 µs on loopback).  Its subscriber has a Zenoh ring channel that
+sample; docs/MEASUREMENTS.md).  Its subscriber has a Zenoh ring channel that
 the subscription's thread reads itself, blocking in Zenoh's own receive; a subscription
 that falls behind loses the oldest samples, counted in ``lost`` like any sequence gap.  The
 other (pulled) edges only update the mirror, so they go straight into it from Zenoh's

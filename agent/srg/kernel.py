@@ -10,7 +10,7 @@ operations in the same order; :data:`NATIVE` is the compiled one unless it was n
 or ``UMA_SRG_PURE_PYTHON=1`` is set.  Both are tested to agree.  The quaternion products
 are written out here rather than calls of ``agent.geometry.quat_product`` (the same
 arithmetic, which ``tests/test_srg_kernel.py`` holds them to): a call costs as much as the
-product, and a query makes two per interpolated edge.
+product, and a query makes two per interpolated edge (docs/MEASUREMENTS.md has the figure).
 
 ``items`` is the chain in path order; each entry is either ``(pose,)``, a constant (a
 folded run of static edges, already oriented), or ``(buffer, times, values, deltas,

@@ -56,7 +56,7 @@ NOISE_DENSITY_V = 20e-6
 #: (0.2 LSB rms) would not dither the 1 mV steps: a still rig's quantisation error would
 #: persist, bias the static calibration by up to 0.1 LSB and make the dead reckoner
 #: overconfident; one conversion per reading with the noise raised to half an LSB (50
-#: uV/sqrt(Hz), this model's earlier default) dithers, at 2.3 times the noise.
+#: uV/sqrt(Hz)) would dither, at 2.3 times the noise.
 ADC_CONVERSIONS = 8
 #: rms noise of one conversion (LSB), white from conversion to conversion.  Table C.2 gives
 #: no figure; 0.5 LSB is within its +/-1 LSB relative accuracy and dithers every conversion:
@@ -290,7 +290,7 @@ class Calibration:
             layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
                                name=str(d.get("layout", "custom")))
             bw = d.get("bandwidth_hz")
-            # files from before the averaging A/D describe one conversion per reading
+            # a file without the A/D's fields describes one conversion per reading
             noise = NoiseModel(float(d["noise_density_v_per_rthz"]), float(d["lsb_v"]),
                                bool(d["quantised"]), None if bw is None else float(bw),
                                int(d.get("adc_conversions", 1)),

@@ -59,7 +59,7 @@ _REFINE_GAPS = (5, 11, 23, 47)
 #: pair's residual is linear in the offset, well above the refinement's tolerance.
 _OFFSET_STEP_S = 0.002
 #: Newton steps on the parabolas after the golden section (each step changes the pairs the
-#: trim keeps, so it is repeated; measured to shrink 3-10x per step), and when to stop.
+#: trim keeps, so it is repeated until the step is below the tolerance), and when to stop.
 _NEWTON_STEPS = 4
 _NEWTON_TOL_S = 1e-5
 
@@ -331,11 +331,9 @@ def estimate_offset(a: PoseSeries, b: PoseSeries, options: AlignmentOptions,
 
     The refinement ends with Newton steps on the kept pairs' parabolas
     (``offset_parabolas``).  Why: the trimmed cost jumps wherever the trimmed set changes,
-    so the golden section stops at a jump, measured 0.18 ms rms from the minimum of the
-    smooth model (realistic laser tracker, seeds 1-10, 20 trials), larger than the
-    offset's own spread (0.13 ms); ``offset_std`` is the spread of that model's minimum,
-    so the estimate is that minimum: rms error 0.26 -> 0.14 ms, error/std rms 2.1 -> 1.2
-    (30 trials).
+    so the golden section stops at a jump, farther from the minimum of the smooth model
+    than the offset's own spread; ``offset_std`` is the spread of that model's minimum, so
+    the estimate is that minimum (figures: docs/MEASUREMENTS.md).
     """
     coarse, _ = coarse_offset(a, b, options.max_offset_s)
     refined = _golden_offset(a, b, coarse, options)
