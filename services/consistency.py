@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+from agent.errors import InvalidInputError
+
 
 def nees_figures(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
     """Errors (n, d) with their covariances (n, d, d): mean NEES, its 95 % band for the
@@ -110,7 +112,7 @@ def autocorrelation_time(x: np.ndarray, about: str) -> float:
     every lag, whose tapering keeps the sequence positive definite as Geyer's rule needs.
     """
     if about not in ("zero", "mean"):
-        raise ValueError(f"about must be 'zero' or 'mean', got {about!r}")
+        raise InvalidInputError(f"about must be 'zero' or 'mean', got {about!r}")
     x = np.asarray(x, float)
     n = x.size
     if about == "mean":

@@ -213,6 +213,32 @@ def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() ->
         pose.publish(1, [0.0, float("nan"), 0.0], [0.0, 0.0, 0.0, 1.0])
 
 
+def test_services_raise_no_plain_builtin_errors() -> None:
+    """A service's argument and input checks raise ``InvalidInputError`` (an ``UmaError``
+    and a ``ValueError``), as the SDK does, never a bare ``ValueError``."""
+    import ast
+    from pathlib import Path
+
+    import services
+
+    offences = []
+    for path in sorted(Path(services.__file__).parent.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call)
+                    and isinstance(node.exc.func, ast.Name) and node.exc.func.id == "ValueError"):
+                offences.append(f"{path.name}:{node.lineno}")
+    assert offences == []
+    from agent import UmaError
+    from services.accel_rig.sensor import NoiseModel
+    from services.vrpn.protocol import ProtocolError
+
+    assert issubclass(ProtocolError, UmaError) and issubclass(ProtocolError, ValueError)
+    import pytest
+
+    with pytest.raises(UmaError, match="conversions"):
+        NoiseModel(1e-6, 1e-3, True, None, 0, 0.0)
+
+
 def test_plugin_declarations_import_no_zenoh_and_name_what_runs() -> None:
     """Every service and evaluation plug-in is declared in a module light to import (``uma
     service run NAME --help`` loads it), and its ``run`` names a function that exists."""

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout
 from services.frames import GRAVITY
@@ -58,16 +59,16 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     """
     noise = sn.NoiseModel() if noise is None else noise
     if len(recordings) < 4:
-        raise ValueError(f"calibration needs at least 4 static orientations "
-                         f"(Hogue 2003, §4.4.2), got {len(recordings)}")
+        raise InvalidInputError(f"calibration needs at least 4 static orientations "
+                                f"(Hogue 2003, §4.4.2), got {len(recordings)}")
     n = layout.count
     forces, means, weights = [], [], []
     for i, rec in enumerate(recordings):
         q = geo.check_quaternion(rec.quaternion, f"calibration pose {i + 1} orientation")
         v = sn.check_volts(rec.volts, f"calibration pose {i + 1} voltages")
         if v.ndim != 2 or v.shape[1] != n or v.shape[0] < 1:
-            raise ValueError(f"calibration pose {i + 1}: voltages must be (samples, {n}), "
-                             f"got {v.shape}")
+            raise InvalidInputError(f"calibration pose {i + 1}: voltages must be (samples, {n}), "
+                                    f"got {v.shape}")
         _check_still(v, noise, rate_hz, i)
         forces.append(geo.quat_rotate(geo.quat_conjugate(q), -GRAVITY))
         means.append(v.mean(axis=0))
@@ -76,9 +77,9 @@ def calibrate(layout: RigLayout, recordings: Sequence[StaticRecording],
     W = np.array(weights, float)
     normal = A.T @ (W[:, None] * A)
     if np.linalg.cond(normal) > 1e10:
-        raise ValueError("calibration orientations do not determine bias and axis: the "
-                         "specific forces must span 3D and not all lie on one plane through "
-                         "the origin (use e.g. +x -x +y -z down, Hogue 2003, §4.4.2)")
+        raise InvalidInputError("calibration orientations do not determine bias and axis: the "
+                                "specific forces must span 3D and not all lie on one plane through "
+                                "the origin (use e.g. +x -x +y -z down, Hogue 2003, §4.4.2)")
     normal_inv = np.linalg.inv(normal)
     X = normal_inv @ (A.T @ (W[:, None] * np.array(means)))  # (4, N): [B; m]
     bias, m = X[0], X[1:].T
@@ -101,9 +102,10 @@ def _check_still(v: Array, noise: sn.NoiseModel, rate_hz: float, i: int) -> None
     spread = v.std(axis=0)
     worst = int(np.argmax(spread))
     if spread[worst] > MAX_STILL_SIGMAS * expected:
-        raise ValueError(f"calibration pose {i + 1}: accelerometer {worst + 1} varies by "
-                         f"{spread[worst] * 1e3:.2f} mV rms (noise {expected * 1e3:.2f} mV): "
-                         "the rig was not held still")
+        raise InvalidInputError(
+            f"calibration pose {i + 1}: accelerometer {worst + 1} varies by "
+            f"{spread[worst] * 1e3:.2f} mV rms (noise {expected * 1e3:.2f} mV): "
+            "the rig was not held still")
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ import math
 from dataclasses import replace
 from typing import Any
 
+from agent.errors import InvalidInputError
 from services.accel_rig import sensor as sn
 from services.accel_rig.simulator import SensorTruth
 
@@ -42,18 +43,19 @@ def device_from_args(device: SensorTruth, args: argparse.Namespace) -> SensorTru
     uv = getattr(args, "accel_noise_uv", None)
     if uv is not None:
         if not (math.isfinite(uv) and 0 <= uv <= 1000):
-            raise ValueError(f"--accel-noise-uv must be within 0..1000, got {uv!r}")
+            raise InvalidInputError(f"--accel-noise-uv must be within 0..1000, got {uv!r}")
         changes["noise_density_v"] = uv / 1e6
     n = getattr(args, "adc_conversions", None)
     if n is not None:
         if n < 1 or device.oversample % n:
-            raise ValueError(f"--adc-conversions must divide {device.oversample} (the analog "
-                             f"steps per sample), got {n!r}")
+            raise InvalidInputError(
+                f"--adc-conversions must divide {device.oversample} (the analog "
+                f"steps per sample), got {n!r}")
         changes["conversions"] = n
     lsb = getattr(args, "converter_noise_lsb", None)
     if lsb is not None:
         if not (math.isfinite(lsb) and 0 <= lsb <= 100):
-            raise ValueError(f"--converter-noise-lsb must be within 0..100, got {lsb!r}")
+            raise InvalidInputError(f"--converter-noise-lsb must be within 0..100, got {lsb!r}")
         changes["converter_noise_lsb"] = lsb
     return replace(device, **changes) if changes else device
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.accel_rig import sensor as sn
 from services.accel_rig.calibration import (
@@ -82,12 +83,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """The figures of the evaluation as a JSON-serialisable dict."""
     horizon = max(HORIZONS_S)
     if args.seconds <= horizon + 0.1:
-        raise ValueError(f"--seconds must exceed {horizon + 0.1:g}: the runs start at random "
-                         f"times in the first (seconds - {horizon:g}) s of the trajectory")
+        raise InvalidInputError(
+            f"--seconds must exceed {horizon + 0.1:g}: the runs start at random "
+            f"times in the first (seconds - {horizon:g}) s of the trajectory")
     if args.runs < 1:
-        raise ValueError("--runs must be at least 1")
+        raise InvalidInputError("--runs must be at least 1")
     if not (math.isfinite(args.pose_seconds) and args.pose_seconds > 0):
-        raise ValueError("--pose-seconds must be positive")
+        raise InvalidInputError("--pose-seconds must be positive")
     rate = DEFAULT_RATE_HZ
     nominal = layout_by_name(args.layout)
     truth_layout = layout_by_name("marvin-six-table-4.1") if args.layout == "marvin-six" \

@@ -41,6 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.accel_rig.sensor import Calibration
 from services.frames import GRAVITY
 from services.kinematics import KinematicState
@@ -160,7 +161,7 @@ class DeadReckoner:
     def __init__(self, calibration: Calibration, rate_hz: float = 300.0,
                  gravity: Array = GRAVITY):
         if not (math.isfinite(rate_hz) and rate_hz > 0):
-            raise ValueError(f"dead reckoner: rate_hz must be positive, got {rate_hz!r}")
+            raise InvalidInputError(f"dead reckoner: rate_hz must be positive, got {rate_hz!r}")
         self.calibration = calibration
         self.layout = calibration.layout
         self.rate_hz = float(rate_hz)
@@ -211,7 +212,7 @@ class DeadReckoner:
         """
         t = float(t)
         if not math.isfinite(t):
-            raise ValueError(f"reset: time must be finite, got {t!r}")
+            raise InvalidInputError(f"reset: time must be finite, got {t!r}")
         self._check_reset_time(t)
         p = geo.check_vector(position, "reset position").reshape(3).tolist()
         q = geo.check_quaternion(quaternion, "reset quaternion").reshape(4).tolist()
@@ -233,8 +234,8 @@ class DeadReckoner:
                 x = self._step(x, window, sample[0])
                 states.append(x)
         except _DivergedError as exc:
-            raise ValueError(f"reset at t={t:.3f} s refused: replaying the {len(after)} "
-                             f"samples since it diverged {exc}") from None
+            raise InvalidInputError(f"reset at t={t:.3f} s refused: replaying the {len(after)} "
+                                    f"samples since it diverged {exc}") from None
         while len(self._states) > kept:
             self._states.pop()
         self._states.extend(states)
@@ -245,11 +246,12 @@ class DeadReckoner:
             return
         first, last = self._history[0][0], self._history[-1][0]
         if t < first and len(self._history) == self._history.maxlen:
-            raise ValueError(f"reset: pose time {t:.3f} s is older than the kept samples "
-                             f"(from {first:.3f} s); it cannot be replayed")
+            raise InvalidInputError(f"reset: pose time {t:.3f} s is older than the kept samples "
+                                    f"(from {first:.3f} s); it cannot be replayed")
         if t > last + HISTORY_S:
-            raise ValueError(f"reset: pose time {t:.3f} s is {t - last:.3f} s after the newest "
-                             f"sample ({last:.3f} s); the clocks of poses and samples disagree")
+            raise InvalidInputError(
+                f"reset: pose time {t:.3f} s is {t - last:.3f} s after the newest "
+                f"sample ({last:.3f} s); the clocks of poses and samples disagree")
 
     def _base_at(self, t: float, kept: int, upto: list[_Sample], after: list[_Sample],
                  rates: dict[str, tuple[Array, Array] | None]) -> _State:
@@ -269,7 +271,7 @@ class DeadReckoner:
         """The current state and its pose covariance (geometry convention)."""
         x = self._x
         if x is None:
-            raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
+            raise InvalidInputError("dead reckoner: no pose; reset it with an absolute pose first")
         native = NATIVE
         if native is None:
             C, S = self._pose_covariance(x)
@@ -295,7 +297,7 @@ class DeadReckoner:
     def state_covariance(self) -> Array:
         """Full 12x12 covariance of ``[phi, rho, dv, domega]`` (noise + calibration)."""
         if self._x is None:
-            raise ValueError("dead reckoner: no pose; reset it with an absolute pose first")
+            raise InvalidInputError("dead reckoner: no pose; reset it with an absolute pose first")
         return self._full_covariance(self._x).copy()
 
     def _full_covariance(self, x: _State) -> Array:
@@ -319,23 +321,24 @@ class DeadReckoner:
         """
         a = np.asarray(accel, dtype=float)
         if a.shape != (self.layout.count,):
-            raise ValueError(f"accelerometer sample: expected {self.layout.count} values, "
-                             f"got shape {a.shape}")
+            raise InvalidInputError(f"accelerometer sample: expected {self.layout.count} values, "
+                                    f"got shape {a.shape}")
         vals = a.tolist()
         if not all(map(math.isfinite, vals)):
             j = next(j for j, x in enumerate(vals) if not math.isfinite(x))
-            raise ValueError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
-                             f"{vals[j]} (NaN samples are refused)")
+            raise InvalidInputError(f"accelerometer sample at t={t!r}: accelerometer {j + 1} is "
+                                    f"{vals[j]} (NaN samples are refused)")
         return self._update(t, vals)
 
     def _update(self, t: float, accel: list[float]) -> Estimate | None:
         """``update`` of a sample its caller has validated (N finite floats)."""
         tm = float(t) - self.calibration.latency_s
         if not math.isfinite(tm):
-            raise ValueError(f"accelerometer sample: time must be finite, got {t!r}")
+            raise InvalidInputError(f"accelerometer sample: time must be finite, got {t!r}")
         if self._samples and tm <= self._samples[-1][0]:
-            raise ValueError(f"accelerometer sample at t={t!r} is not after the previous "
-                             f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
+            raise InvalidInputError(
+                f"accelerometer sample at t={t!r} is not after the previous "
+                f"one (t={self._samples[-1][0] + self.calibration.latency_s!r})")
         sample = (tm, self.layout.project_floats(accel))
         self._samples = [*self._samples[-2:], sample]
         self._history.append(sample)
@@ -347,8 +350,8 @@ class DeadReckoner:
             except _DivergedError as exc:
                 self._x = None
                 self._states.clear()
-                raise ValueError(f"accelerometer sample at t={t!r}: the dead reckoning "
-                                 f"diverged {exc}; no pose until the next reset") from None
+                raise InvalidInputError(f"accelerometer sample at t={t!r}: the dead reckoning "
+                                        f"diverged {exc}; no pose until the next reset") from None
             self._x = x
             self._states.append(x)
         return self.estimate()
@@ -481,17 +484,17 @@ def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \
     given), or None when the reset does not set it."""
     if value is None:
         if cov is not None:
-            raise ValueError(f"reset: {name} covariance given without a {name}")
+            raise InvalidInputError(f"reset: {name} covariance given without a {name}")
         return None
     v = geo.check_vector(value, f"reset {name}").reshape(3)
     if name == "omega" and float(v @ v) > MAX_OMEGA_RAD_S**2:
-        raise ValueError(f"reset omega: {math.sqrt(v @ v):.4g} rad/s is beyond the "
-                         f"{MAX_OMEGA_RAD_S:g} rad/s a head-mounted rig can measure")
+        raise InvalidInputError(f"reset omega: {math.sqrt(v @ v):.4g} rad/s is beyond the "
+                                f"{MAX_OMEGA_RAD_S:g} rad/s a head-mounted rig can measure")
     C = np.zeros((3, 3)) if cov is None else \
         geo.check_covariance(cov, f"reset {name} covariance", dim=3)
     if float(C.max(initial=0.0)) > MAX_VARIANCE:
-        raise ValueError(f"reset {name} covariance: variance {C.max():.3g} is beyond "
-                         f"{MAX_VARIANCE:g} (no information)")
+        raise InvalidInputError(f"reset {name} covariance: variance {C.max():.3g} is beyond "
+                                f"{MAX_VARIANCE:g} (no information)")
     return v.tolist(), C
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.kinematics import KinematicState
 
 Array = np.ndarray
@@ -26,7 +27,7 @@ def _axis_index(axis: str) -> int:
     try:
         return "xyz".index(axis)
     except ValueError:
-        raise ValueError(f"axis must be 'x', 'y' or 'z', got {axis!r}") from None
+        raise InvalidInputError(f"axis must be 'x', 'y' or 'z', got {axis!r}") from None
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 
 Array = np.ndarray
 
@@ -81,10 +82,10 @@ class AbsolutePoses:
         """Keep one pose (validated); ``ValueError`` if it is not newer than the last."""
         t = float(t)
         if not math.isfinite(t):
-            raise ValueError(f"absolute pose: time must be finite, got {t!r}")
+            raise InvalidInputError(f"absolute pose: time must be finite, got {t!r}")
         if self._poses and t <= self._poses[-1][0]:
-            raise ValueError(f"absolute pose at t={t:.6f} s is not after the previous one "
-                             f"(t={self._poses[-1][0]:.6f} s)")
+            raise InvalidInputError(f"absolute pose at t={t:.6f} s is not after the previous one "
+                                    f"(t={self._poses[-1][0]:.6f} s)")
         p = geo.check_vector(position, "absolute pose position").reshape(3)
         q = geo.check_quaternion(quaternion, "absolute pose quaternion").reshape(4)
         pos_var = rot_var = 0.0

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.frames import GRAVITY
 
 Array = np.ndarray
@@ -84,16 +85,16 @@ class RigLayout:
         r = geo.check_vector(self.positions, "accelerometer positions")
         n = geo.check_vector(self.axes, "accelerometer axes")
         if r.ndim != 2 or n.shape != r.shape:
-            raise ValueError(f"accelerometer layout: positions {r.shape} and axes {n.shape} "
-                             "must both be (N, 3)")
+            raise InvalidInputError(f"accelerometer layout: positions {r.shape} and axes {n.shape} "
+                                    "must both be (N, 3)")
         if r.shape[0] < 6:
-            raise ValueError(f"accelerometer layout: {r.shape[0]} accelerometers cannot "
-                             "observe the 6 rigid-body accelerations (need at least 6)")
+            raise InvalidInputError(f"accelerometer layout: {r.shape[0]} accelerometers cannot "
+                                    "observe the 6 rigid-body accelerations (need at least 6)")
         norms = np.linalg.norm(n, axis=1)
         bad = np.flatnonzero(np.abs(norms - 1.0) > 0.01)
         if bad.size:
-            raise ValueError(f"accelerometer layout: axis {int(bad[0]) + 1} has norm "
-                             f"{norms[bad[0]]:.4g}, expected a unit vector")
+            raise InvalidInputError(f"accelerometer layout: axis {int(bad[0]) + 1} has norm "
+                                    f"{norms[bad[0]]:.4g}, expected a unit vector")
         n = n / norms[:, None]
         object.__setattr__(self, "positions", r)
         object.__setattr__(self, "axes", n)
@@ -134,14 +135,14 @@ class RigLayout:
         H = self.system_matrix
         rank = np.linalg.matrix_rank(H, tol=1e-9 * max(1.0, np.abs(H).max()))
         if rank < 6:
-            raise ValueError(f"singular accelerometer layout {self.name!r}: the system of "
-                             f"eq. 4.42 has rank {rank} < 6 ({self._unobserved(H)}); "
-                             "move or turn accelerometers so every axis and every rotation "
-                             "is sensed")
+            raise InvalidInputError(f"singular accelerometer layout {self.name!r}: the system of "
+                                    f"eq. 4.42 has rank {rank} < 6 ({self._unobserved(H)}); "
+                                    "move or turn accelerometers so every axis and every rotation "
+                                    "is sensed")
         cond = np.linalg.cond(H)
         if cond > MAX_CONDITION:
-            raise ValueError(f"near-singular accelerometer layout {self.name!r}: condition "
-                             f"number {cond:.3g} > {MAX_CONDITION:g}")
+            raise InvalidInputError(f"near-singular accelerometer layout {self.name!r}: condition "
+                                    f"number {cond:.3g} > {MAX_CONDITION:g}")
         C = self._centripetal()
         solved, A = np.array([], dtype=int), H
         if self.count >= 9:
@@ -339,11 +340,11 @@ def layout_by_name(name: str, delta: float = DEFAULT_DELTA_M) -> RigLayout:
     try:
         return LAYOUTS[name](delta)
     except KeyError:
-        raise ValueError(f"unknown accelerometer layout {name!r} "
-                         f"(known: {', '.join(LAYOUTS)})") from None
+        raise InvalidInputError(f"unknown accelerometer layout {name!r} "
+                                f"(known: {', '.join(LAYOUTS)})") from None
 
 
 def _check_delta(delta: float) -> None:
     if not np.isfinite(delta) or delta <= 0:
-        raise ValueError(f"accelerometer spacing delta must be a positive length in m, "
-                         f"got {delta!r}")
+        raise InvalidInputError(f"accelerometer spacing delta must be a positive length in m, "
+                                f"got {delta!r}")

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.accel_rig.rig import RigLayout
 from services.frames import GRAVITY
 
@@ -98,19 +99,19 @@ def _refuse_volts(v: Array, name: str) -> None:
     three checks."""
     if not np.all(np.isfinite(v)):
         idx = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
-        raise ValueError(f"{name}: non-finite value {float(v[idx])} at index {idx} "
-                         "(NaN samples are refused, not interpolated)")
+        raise InvalidInputError(f"{name}: non-finite value {float(v[idx])} at index {idx} "
+                                "(NaN samples are refused, not interpolated)")
     lo, hi = ADC_MIN_COUNT * LSB_V, ADC_MAX_COUNT * LSB_V
     out = np.abs(v) > max(-lo, hi) + 1e-9
     if np.any(out):
         idx = tuple(int(i) for i in np.argwhere(out)[0])
-        raise ValueError(f"{name}: {v[idx]:.4g} V at index {idx} is outside the A/D range "
-                         f"[{lo:.3f}, {hi:.3f}] V (are these volts?)")
+        raise InvalidInputError(f"{name}: {v[idx]:.4g} V at index {idx} is outside the A/D range "
+                                f"[{lo:.3f}, {hi:.3f}] V (are these volts?)")
     sat = np.abs(v) >= AMP_RAIL_V - SATURATION_MARGIN_V
     if np.any(sat):
         idx = tuple(int(i) for i in np.argwhere(sat)[0])
-        raise ValueError(f"{name}: {v[idx]:.4g} V at index {idx} is at the amplifier rail "
-                         f"(+/-{AMP_RAIL_V} V = +/-5 g): the accelerometer saturated")
+        raise InvalidInputError(f"{name}: {v[idx]:.4g} V at index {idx} is at the amplifier rail "
+                                f"(+/-{AMP_RAIL_V} V = +/-5 g): the accelerometer saturated")
 
 
 @dataclass(frozen=True)
@@ -136,12 +137,12 @@ class NoiseModel:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.conversions, int) and self.conversions >= 1):
-            raise ValueError(f"noise model: conversions must be a whole number >= 1, got "
-                             f"{self.conversions!r}")
+            raise InvalidInputError(f"noise model: conversions must be a whole number >= 1, got "
+                                    f"{self.conversions!r}")
         for name in ("density_v", "converter_noise_lsb"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"noise model: {name} must be >= 0, got {value!r}")
+                raise InvalidInputError(f"noise model: {name} must be >= 0, got {value!r}")
 
     def per_sample_var_v2(self, rate_hz: float) -> float:
         q = self.lsb_v**2 / 12.0 if self.quantised else 0.0
@@ -196,22 +197,24 @@ class Calibration:
         b = np.asarray(self.bias_v, float)
         k = np.asarray(self.gain_v_per_mps2, float)
         if b.shape != (n,) or k.shape != (n,):
-            raise ValueError(f"calibration: bias {b.shape} and gain {k.shape} must be ({n},) "
-                             f"for {n} accelerometers")
+            raise InvalidInputError(
+                f"calibration: bias {b.shape} and gain {k.shape} must be ({n},) "
+                f"for {n} accelerometers")
         if not (np.all(np.isfinite(b)) and np.all(np.isfinite(k))):
-            raise ValueError("calibration: bias and gain must be finite")
+            raise InvalidInputError("calibration: bias and gain must be finite")
         if np.any(k <= 0):
-            raise ValueError(f"calibration: gain of accelerometer {int(np.argmin(k)) + 1} is "
-                             f"{k.min():.4g} V/(m/s^2); gains are positive (sign goes in the axis)")
+            raise InvalidInputError(
+                f"calibration: gain of accelerometer {int(np.argmin(k)) + 1} is "
+                f"{k.min():.4g} V/(m/s^2); gains are positive (sign goes in the axis)")
         object.__setattr__(self, "bias_v", b)
         object.__setattr__(self, "gain_v_per_mps2", k)
         if self.param_cov is not None:
             c = np.asarray(self.param_cov, float)
             if c.shape != (n, 4, 4) or not np.all(np.isfinite(c)):
-                raise ValueError(f"calibration: param_cov must be finite ({n}, 4, 4)")
+                raise InvalidInputError(f"calibration: param_cov must be finite ({n}, 4, 4)")
             object.__setattr__(self, "param_cov", c)
         if not math.isfinite(self.latency_s) or self.latency_s < 0:
-            raise ValueError(f"calibration: latency_s must be >= 0, got {self.latency_s!r}")
+            raise InvalidInputError(f"calibration: latency_s must be >= 0, got {self.latency_s!r}")
 
     @property
     def axes(self) -> Array:
@@ -221,8 +224,9 @@ class Calibration:
         """Voltages (..., N) to accelerations along each sensing axis (m/s^2), validated."""
         v = check_volts(volts)
         if v.shape[-1] != self.layout.count:
-            raise ValueError(f"accelerometer voltages: {v.shape[-1]} channels, the calibration "
-                             f"has {self.layout.count}")
+            raise InvalidInputError(
+                f"accelerometer voltages: {v.shape[-1]} channels, the calibration "
+                f"has {self.layout.count}")
         return (v - self.bias_v) / self.gain_v_per_mps2
 
     def to_accel_floats(self, volts: Array) -> list[float]:
@@ -234,8 +238,8 @@ class Calibration:
         """
         v = np.asarray(volts, dtype=float)
         if v.shape != (self.layout.count,):
-            raise ValueError(f"accelerometer voltages: expected {self.layout.count} values, "
-                             f"got shape {v.shape}")
+            raise InvalidInputError(f"accelerometer voltages: expected {self.layout.count} values, "
+                                    f"got shape {v.shape}")
         vals = v.tolist()
         if not all(map(_SAFE_V.__gt__, map(abs, vals))):
             _refuse_volts(v, "accelerometer voltages")
@@ -282,10 +286,10 @@ class Calibration:
     def from_dict(cls, d: Any) -> Calibration:
         """Rebuild from ``to_dict``'s output; ``ValueError`` naming a missing/bad field."""
         if not isinstance(d, dict):
-            raise ValueError("calibration: expected a JSON object")
+            raise InvalidInputError("calibration: expected a JSON object")
         if d.get("format") != CALIBRATION_FORMAT:
-            raise ValueError(f"calibration: format {d.get('format')!r} is not "
-                             f"{CALIBRATION_FORMAT!r}")
+            raise InvalidInputError(f"calibration: format {d.get('format')!r} is not "
+                                    f"{CALIBRATION_FORMAT!r}")
         try:
             layout = RigLayout(np.asarray(d["positions_m"], float), np.asarray(d["axes"], float),
                                name=str(d.get("layout", "custom")))
@@ -301,9 +305,9 @@ class Calibration:
                        None if cov is None else np.asarray(cov, float), noise,
                        float(d["latency_s"]))
         except KeyError as exc:
-            raise ValueError(f"calibration: missing field {exc.args[0]!r}") from None
+            raise InvalidInputError(f"calibration: missing field {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"calibration: bad value ({exc})") from None
+            raise InvalidInputError(f"calibration: bad value ({exc})") from None
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
@@ -313,10 +317,10 @@ class Calibration:
         try:
             text = Path(path).read_text()
         except OSError as exc:
-            raise ValueError(f"calibration file {str(path)!r}: {exc.strerror}") from None
+            raise InvalidInputError(f"calibration file {str(path)!r}: {exc.strerror}") from None
         try:
             return cls.from_dict(json.loads(text))
         except json.JSONDecodeError as exc:
-            raise ValueError(f"calibration file {str(path)!r}: not JSON ({exc})") from None
+            raise InvalidInputError(f"calibration file {str(path)!r}: not JSON ({exc})") from None
         except ValueError as exc:
-            raise ValueError(f"calibration file {str(path)!r}: {exc}") from None
+            raise InvalidInputError(f"calibration file {str(path)!r}: {exc}") from None

@@ -43,6 +43,7 @@ import numpy as np
 
 from agent import Service
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from schemas.codec import Measurement
 from services import frames
 from services.accel_rig.calibration import (
@@ -92,10 +93,11 @@ def _check_args(args: argparse.Namespace) -> None:
                             ("speed", 0.0, 1000.0)):
         value = getattr(args, name)
         if not (math.isfinite(value) and low <= value <= high):
-            raise ValueError(f"--{name.replace('_', '-')} must be within [{low:g}, {high:g}], "
-                             f"got {value!r}")
+            raise InvalidInputError(
+                f"--{name.replace('_', '-')} must be within [{low:g}, {high:g}], "
+                f"got {value!r}")
     if args.pose and not args.calibrate:
-        raise ValueError("--pose is for --calibrate with recorded static poses")
+        raise InvalidInputError("--pose is for --calibrate with recorded static poses")
 
 
 def parse_mount(text: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -105,9 +107,10 @@ def parse_mount(text: str | None) -> tuple[np.ndarray, np.ndarray]:
     try:
         v = [float(x) for x in text.split(",")]
     except ValueError:
-        raise ValueError(f"--mount {text!r}: expected 7 numbers X,Y,Z,QX,QY,QZ,QW") from None
+        raise InvalidInputError(f"--mount {text!r}: expected 7 numbers X,Y,Z,QX,QY,QZ,QW") from None
     if len(v) != 7:
-        raise ValueError(f"--mount {text!r}: expected 7 numbers X,Y,Z,QX,QY,QZ,QW, got {len(v)}")
+        raise InvalidInputError(
+            f"--mount {text!r}: expected 7 numbers X,Y,Z,QX,QY,QZ,QW, got {len(v)}")
     return geo.check_vector(v[:3], "--mount position"), \
         geo.check_quaternion(v[3:], "--mount quaternion")
 
@@ -121,8 +124,8 @@ def _calibrate(args: argparse.Namespace, nominal) -> int:
         recs, device = _recorded_poses(args.pose, nominal.count), None
     else:
         if args.source != "sim":
-            raise ValueError("--calibrate with a real source needs one --pose LABEL=CSV per "
-                             "static orientation (at least 4)")
+            raise InvalidInputError("--calibrate with a real source needs one --pose LABEL=CSV per "
+                                    "static orientation (at least 4)")
         device = default_device()
         recs = []
         for i, label in enumerate(SIX_POSES, start=1):
@@ -145,18 +148,18 @@ def _recorded_poses(specs: list[str], channels: int) -> list[StaticRecording]:
     for spec in specs:
         label, _, file = spec.partition("=")
         if not file:
-            raise ValueError(f"--pose {spec!r}: expected LABEL=CSV, e.g. +x=px.csv")
+            raise InvalidInputError(f"--pose {spec!r}: expected LABEL=CSV, e.g. +x=px.csv")
         q = axis_down_quaternion(label)
         try:
             with open(file, encoding="ascii", errors="replace") as f:
                 rows = [parse_line(line, channels, f"{file} line {n}")
                         for n, line in enumerate(f, start=1)]
         except OSError as exc:
-            raise ValueError(f"--pose {spec!r}: cannot read {file!r} ({exc.strerror})") \
+            raise InvalidInputError(f"--pose {spec!r}: cannot read {file!r} ({exc.strerror})") \
                 from None
         volts = [v for r in rows if r is not None for v in [r[1]]]
         if not volts:
-            raise ValueError(f"--pose {spec!r}: {file!r} holds no samples")
+            raise InvalidInputError(f"--pose {spec!r}: {file!r} holds no samples")
         print(f"pose {label}: {len(volts)} samples from {file}")
         recs.append(StaticRecording(q, np.array(volts)))
     return recs
@@ -194,12 +197,12 @@ def _open(args: argparse.Namespace, nominal) -> tuple[Calibration, Any]:
             cal = calibrate(nominal, recs, args.rate_hz, noise=device.noise_model(),
                             latency_s=device.latency_s(args.rate_hz))
         if cal.layout.count != device.layout.count:
-            raise ValueError(f"calibration has {cal.layout.count} accelerometers, the "
-                             f"simulated rig {device.layout.count}")
+            raise InvalidInputError(f"calibration has {cal.layout.count} accelerometers, the "
+                                    f"simulated rig {device.layout.count}")
         return cal, SimSource(device, args.seed, args.rate_hz, HeadTrajectory(args.seed))
     if not args.calibration:
-        raise ValueError(f"--source {args.source}: real input needs --calibration FILE "
-                         "(write one with --calibrate --pose LABEL=CSV ...)")
+        raise InvalidInputError(f"--source {args.source}: real input needs --calibration FILE "
+                                "(write one with --calibrate --pose LABEL=CSV ...)")
     cal = Calibration.load(args.calibration)
     return cal, LineSource.open(args.source, cal.layout.count, args.speed)
 
@@ -242,10 +245,10 @@ class LiveRig:
         naming the sample and what is wrong with it."""
         t_ns = m.t_ns
         if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)):
-            raise ValueError(f"time stamp {t_ns!r} is not an integer of nanoseconds")
+            raise InvalidInputError(f"time stamp {t_ns!r} is not an integer of nanoseconds")
         where = f"at t_ns={int(t_ns)}"
         if m.position is None or m.quaternion is None:
-            raise ValueError(f"sample {where} carries no pose")
+            raise InvalidInputError(f"sample {where} carries no pose")
         p = geo.check_vector(m.position, f"position {where}").reshape(3)
         q = geo.check_quaternion(m.quaternion, f"quaternion {where}").reshape(4)
         C = None if m.covariance is None else \
@@ -294,8 +297,8 @@ class LiveRig:
             t = (t_ns - self.origin_ns) * 1e-9  # set by the first sample, before this
             try:
                 if t > t_sample + HISTORY_S:  # kept, it would block every later pose
-                    raise ValueError(f"absolute pose at t_ns={t_ns} is {t - t_sample:.3f} s "
-                                     "ahead of the samples; the clocks disagree")
+                    raise InvalidInputError(f"absolute pose at t_ns={t_ns} is {t - t_sample:.3f} s "
+                                            "ahead of the samples; the clocks disagree")
                 self.poses.add(t, p, q, C)
             except ValueError as exc:
                 self.events.warn(f"{self.reset_name} refused", exc)

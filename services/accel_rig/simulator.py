@@ -23,6 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.accel_rig import sensor as sn
 from services.accel_rig.rig import RigLayout, marvin_six_table_4_1
 from services.frames import GRAVITY
@@ -66,8 +67,9 @@ class SensorTruth:
     def __post_init__(self) -> None:
         if not (isinstance(self.conversions, int) and self.conversions >= 1
                 and self.oversample % self.conversions == 0):
-            raise ValueError(f"simulated device: conversions ({self.conversions!r}) must divide "
-                             f"the analog steps per sample ({self.oversample})")
+            raise InvalidInputError(
+                f"simulated device: conversions ({self.conversions!r}) must divide "
+                f"the analog steps per sample ({self.oversample})")
 
     @classmethod
     def draw(cls, seed: int = DEVICE_SEED, layout: RigLayout | None = None) -> SensorTruth:
@@ -146,9 +148,9 @@ def simulate(trajectory: Trajectory, seconds: float, rate_hz: float = DEFAULT_RA
     ``mount`` is the rig's pose in that frame (default: the simulated head mounting).
     """
     if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"simulate: seconds must be positive, got {seconds!r}")
+        raise InvalidInputError(f"simulate: seconds must be positive, got {seconds!r}")
     if not (math.isfinite(rate_hz) and rate_hz > 0):
-        raise ValueError(f"simulate: rate_hz must be positive, got {rate_hz!r}")
+        raise InvalidInputError(f"simulate: rate_hz must be positive, got {rate_hz!r}")
     sensor = default_device() if sensor is None else sensor
     n = round(seconds * rate_hz)
     t = t0 + np.arange(n) / rate_hz
@@ -205,7 +207,7 @@ def axis_down_quaternion(label: str) -> Array:
     along gravity, the calibration poses of Hogue 2003, §4.4.2."""
     axes = {"x": 0, "y": 1, "z": 2}
     if len(label) != 2 or label[0] not in "+-" or label[1] not in axes:
-        raise ValueError(f"calibration pose {label!r}: expected one of +x -x +y -y +z -z")
+        raise InvalidInputError(f"calibration pose {label!r}: expected one of +x -x +y -y +z -z")
     d = np.zeros(3)
     d[axes[label[1]]] = 1.0 if label[0] == "+" else -1.0
     down = np.array([0.0, 0.0, -1.0])

@@ -19,6 +19,7 @@ from typing import TextIO
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.accel_rig.simulator import SensorTruth, simulate
 from services.sim.world import sim_time_s
 
@@ -36,14 +37,14 @@ def parse_line(line: str, channels: int, where: str) -> tuple[float, np.ndarray]
         return None
     fields = [f for f in _SPLIT.split(text) if f]
     if len(fields) != channels + 1:
-        raise ValueError(f"{where}: expected a timestamp and {channels} voltages, got "
-                         f"{len(fields)} fields")
+        raise InvalidInputError(f"{where}: expected a timestamp and {channels} voltages, got "
+                                f"{len(fields)} fields")
     try:
         values = [float(f) for f in fields]
     except ValueError:
-        raise ValueError(f"{where}: not a number in {text[:80]!r}") from None
+        raise InvalidInputError(f"{where}: not a number in {text[:80]!r}") from None
     if not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{where}: non-finite value in {text[:80]!r}")
+        raise InvalidInputError(f"{where}: non-finite value in {text[:80]!r}")
     return values[0], np.array(values[1:])
 
 
@@ -66,11 +67,11 @@ class LineSource:
     def open(cls, spec: str, channels: int, speed: float) -> LineSource:
         kind, _, target = spec.partition(":")
         if kind not in ("csv", "serial") or not target:
-            raise ValueError(f"--source {spec!r}: expected sim, csv:FILE or serial:DEVICE")
+            raise InvalidInputError(f"--source {spec!r}: expected sim, csv:FILE or serial:DEVICE")
         try:
             stream = Path(target).open(encoding="ascii", errors="replace")  # noqa: SIM115
         except OSError as exc:
-            raise ValueError(f"--source {spec!r}: cannot open {target!r} ({exc.strerror})") \
+            raise InvalidInputError(f"--source {spec!r}: cannot open {target!r} ({exc.strerror})") \
                 from None
         return cls(stream, target, channels, speed if kind == "csv" else None)
 

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.alignment.solvers import (
     AlignmentError,
     DegenerateMotionError,
@@ -43,7 +44,8 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
     counts ``c_i * c_j`` times, ``c`` being how often each station was drawn.
     """
     if resamples < MIN_RESAMPLES:
-        raise ValueError(f"bootstrap needs at least {MIN_RESAMPLES} resamples, got {resamples}")
+        raise InvalidInputError(
+            f"bootstrap needs at least {MIN_RESAMPLES} resamples, got {resamples}")
     rng = rng if rng is not None else np.random.default_rng(0)
     ij = np.asarray(pairs_ij, dtype=int).reshape(-1, 2)
     stations = np.unique(ij)

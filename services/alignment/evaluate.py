@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
@@ -180,11 +181,11 @@ def _stats(values: list[tuple[float, float]]) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.trials < 1:
-        raise ValueError(f"--trials must be >= 1, got {args.trials}")
+        raise InvalidInputError(f"--trials must be >= 1, got {args.trials}")
     if not 0.0 <= args.outliers < 0.5:
-        raise ValueError(f"--outliers must lie in [0, 0.5), got {args.outliers}")
+        raise InvalidInputError(f"--outliers must lie in [0, 0.5), got {args.outliers}")
     if args.pos_noise_mm < 0 or args.rot_noise_deg < 0:
-        raise ValueError("--pos-noise-mm and --rot-noise-deg must be >= 0")
+        raise InvalidInputError("--pos-noise-mm and --rot-noise-deg must be >= 0")
     config = StreamConfig(seconds=args.seconds, pos_std_m=args.pos_noise_mm / 1e3,
                           rot_std_rad=float(np.radians(args.rot_noise_deg)))
     trials = [_trial(args.seed, k, config, args.outliers, args.ideal)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.alignment.covariance import bootstrap_covariance
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (
@@ -83,11 +84,12 @@ class AlignmentOptions:
 
     def __post_init__(self) -> None:
         if self.method not in SOLVERS:
-            raise ValueError(f"method must be one of {', '.join(SOLVERS)}, got {self.method!r}")
+            raise InvalidInputError(
+                f"method must be one of {', '.join(SOLVERS)}, got {self.method!r}")
         if self.max_stations < 3:
-            raise ValueError(f"max_stations must be >= 3, got {self.max_stations}")
+            raise InvalidInputError(f"max_stations must be >= 3, got {self.max_stations}")
         if self.max_pairs is not None and self.max_pairs < 2:
-            raise ValueError(f"max_pairs must be >= 2, got {self.max_pairs}")
+            raise InvalidInputError(f"max_pairs must be >= 2, got {self.max_pairs}")
 
 
 def solver_for(options: AlignmentOptions) -> WeightedSolver:

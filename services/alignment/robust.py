@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.alignment.solvers import (
     AlignmentError,
     DegenerateMotionError,
@@ -76,7 +77,7 @@ def ransac(pairs: MotionPairs, solver: Solver = daniilidis, iterations: int = 20
     if n < 3:
         raise AlignmentError(f"RANSAC needs at least 3 motion pairs, got {n}")
     if iterations < 1 or threshold_factor <= 0:
-        raise ValueError("RANSAC: iterations must be >= 1 and threshold_factor > 0")
+        raise InvalidInputError("RANSAC: iterations must be >= 1 and threshold_factor > 0")
     rng = rng if rng is not None else np.random.default_rng(0)
     lever = max(float(np.median(np.linalg.norm(pairs.pa, axis=-1))), _MIN_LEVER_M)
     best: Pose | None = None

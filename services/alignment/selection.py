@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.alignment.solvers import MotionPairs, axis_spread
 
 #: A fixed angle threshold (Klinker, Bauer 2005: "a threshold angle theta"): what the
@@ -59,7 +60,7 @@ def _angles(q: np.ndarray) -> np.ndarray:
 def angle_mask(pairs: MotionPairs, min_angle_rad: float = DEFAULT_MIN_ANGLE_RAD) -> np.ndarray:
     """Motions whose rotation angle lies in ``[theta, pi - theta]`` (both sensors)."""
     if not 0.0 <= min_angle_rad < np.pi / 2:
-        raise ValueError(f"min_angle_rad must lie in [0, pi/2), got {min_angle_rad!r}")
+        raise InvalidInputError(f"min_angle_rad must lie in [0, pi/2), got {min_angle_rad!r}")
     ok = np.ones(len(pairs), dtype=bool)
     for q in (pairs.qa, pairs.qb):
         angle = _angles(q)

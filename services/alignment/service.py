@@ -46,7 +46,7 @@ import numpy as np
 
 from agent import Service
 from agent import geometry as geo
-from agent.errors import UmaError, UmaTimeoutError
+from agent.errors import InvalidInputError, UmaError, UmaTimeoutError
 from agent.protocol import keys
 from agent.runtime import RateLimitedLog, guarded, open_session
 from schemas.codec import pack_covariance
@@ -96,17 +96,17 @@ def options_from(args: argparse.Namespace) -> AlignmentOptions:
                  "recalibrate_every", "max_pos_std_mm", "max_rot_std_deg"):
         value = getattr(args, name)
         if not math.isfinite(value) or value < 0:
-            raise ValueError(f"--{name.replace('_', '-')} must be a finite number >= 0, "
-                             f"got {value}")
+            raise InvalidInputError(f"--{name.replace('_', '-')} must be a finite number >= 0, "
+                                    f"got {value}")
     if not 0 < args.min_angle_deg < 90:
-        raise ValueError(f"--min-angle-deg must lie in (0, 90), got {args.min_angle_deg}")
+        raise InvalidInputError(f"--min-angle-deg must lie in (0, 90), got {args.min_angle_deg}")
     if args.min_pairs < 2:
-        raise ValueError(f"--min-pairs must be >= 2, got {args.min_pairs}")
+        raise InvalidInputError(f"--min-pairs must be >= 2, got {args.min_pairs}")
     if args.bootstrap < MIN_RESAMPLES:
-        raise ValueError(f"--bootstrap must be >= {MIN_RESAMPLES} (a 6-dof covariance from "
-                         f"fewer resamples has no unbiased inverse), got {args.bootstrap}")
+        raise InvalidInputError(f"--bootstrap must be >= {MIN_RESAMPLES} (a 6-dof covariance from "
+                                f"fewer resamples has no unbiased inverse), got {args.bootstrap}")
     if args.offset_ms is not None and not math.isfinite(args.offset_ms):
-        raise ValueError(f"--offset-ms must be finite, got {args.offset_ms}")
+        raise InvalidInputError(f"--offset-ms must be finite, got {args.offset_ms}")
     return AlignmentOptions(
         method=args.method,
         max_stations=args.max_stations, bootstrap=args.bootstrap,
@@ -450,7 +450,7 @@ def request_recalibration(realm: str, agent_id: str, service_id: str = "alignmen
 def recalibrate_command(args: argparse.Namespace) -> int:
     """``uma service recalibrate [SERVICE] --agent ID``: ``request_recalibration`` for people."""
     if not (math.isfinite(args.timeout) and args.timeout > 0):
-        raise ValueError(f"--timeout must be positive seconds, got {args.timeout!r}")
+        raise InvalidInputError(f"--timeout must be positive seconds, got {args.timeout!r}")
     ack = request_recalibration(args.realm, args.agent, args.service_id, args.connect,
                                 args.timeout)
     if ack.get("ok") is False:

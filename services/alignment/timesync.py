@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.alignment.solvers import AlignmentError
 
 #: Samples further apart than this are a gap; nothing is interpolated across it.
@@ -106,7 +107,7 @@ def coarse_offset(a: PoseSeries, b: PoseSeries, max_offset_s: float) -> tuple[fl
     max_offset_s]`` is refined by a parabola through its neighbours.
     """
     if not max_offset_s > 0:
-        raise ValueError(f"max_offset_s must be positive, got {max_offset_s!r}")
+        raise InvalidInputError(f"max_offset_s must be positive, got {max_offset_s!r}")
     ta, wa = angular_speed(a)
     tb, wb = angular_speed(b)
     overlap = min(ta[-1], tb[-1]) - max(ta[0], tb[0])

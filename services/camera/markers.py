@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.camera.simulator import PlanarTarget
 
 MM_PER_INCH = 25.4
@@ -55,7 +56,8 @@ def dictionary(family: str) -> cv2.aruco.Dictionary:
     """The ``cv2.aruco`` dictionary of ``family``; ``ValueError`` lists the known ones."""
     known = families()
     if family not in known:
-        raise ValueError(f"unknown marker family {family!r} (known: {', '.join(sorted(known))})")
+        raise InvalidInputError(
+            f"unknown marker family {family!r} (known: {', '.join(sorted(known))})")
     return cv2.aruco.getPredefinedDictionary(known[family])
 
 
@@ -71,7 +73,7 @@ def marker_image(family: str, marker_id: int, module_px: int, quiet_modules: int
     zone of ``quiet_modules`` cells around the black border."""
     d = dictionary(family)
     if not 0 <= marker_id < d.bytesList.shape[0]:
-        raise ValueError(f"{family} has ids 0..{d.bytesList.shape[0] - 1}, not {marker_id}")
+        raise InvalidInputError(f"{family} has ids 0..{d.bytesList.shape[0] - 1}, not {marker_id}")
     modules = d.markerSize + 2
     img = cv2.aruco.generateImageMarker(d, marker_id, modules * module_px, borderBits=1)
     q = quiet_modules * module_px
@@ -91,8 +93,8 @@ def charuco_board(squares: tuple[int, int], square_m: float, marker_m: float,
                   family: str = "aruco4x4_50") -> cv2.aruco.CharucoBoard:
     """A ChArUco board of ``squares`` (columns, rows)."""
     if marker_m >= square_m:
-        raise ValueError(f"a ChArUco marker ({marker_m} m) must be smaller than its square "
-                         f"({square_m} m)")
+        raise InvalidInputError(f"a ChArUco marker ({marker_m} m) must be smaller than its square "
+                                f"({square_m} m)")
     return cv2.aruco.CharucoBoard(squares, square_m, marker_m, dictionary(family))
 
 
@@ -120,13 +122,13 @@ def sheet(family: str, ids: list[int], size_m: float, dpi: float = 300.0,
     """A page (uint8, ``dpi``) of markers of side ``size_m``, each labelled with its
     family, id and size; ``ValueError`` if they do not fit."""
     if page not in PAGES_MM:
-        raise ValueError(f"page must be one of {', '.join(PAGES_MM)}")
+        raise InvalidInputError(f"page must be one of {', '.join(PAGES_MM)}")
     px_per_m = dpi / MM_PER_INCH * 1000.0
     modules = dictionary(family).markerSize + 2
     module_px = size_m * px_per_m / modules
     if module_px < 2:
-        raise ValueError(f"{size_m * 1000:g} mm tags at {dpi:g} dpi give {module_px:.1f} px "
-                         "per cell: raise --dpi")
+        raise InvalidInputError(f"{size_m * 1000:g} mm tags at {dpi:g} dpi give {module_px:.1f} px "
+                                "per cell: raise --dpi")
     w_mm, h_mm = PAGES_MM[page]
     page_px = (round(w_mm / MM_PER_INCH * dpi), round(h_mm / MM_PER_INCH * dpi))
     out = np.full((page_px[1], page_px[0]), 255, np.uint8)
@@ -136,11 +138,11 @@ def sheet(family: str, ids: list[int], size_m: float, dpi: float = 300.0,
     per_row = (page_px[0] - 2 * margin) // cell
     rows = (page_px[1] - 2 * margin) // (cell + label)
     if per_row * rows == 0:
-        raise ValueError(f"a {size_m * 1000:g} mm tag with its quiet zone does not fit on "
-                         f"a {page} page")
+        raise InvalidInputError(f"a {size_m * 1000:g} mm tag with its quiet zone does not fit on "
+                                f"a {page} page")
     if per_row * rows < len(ids):
-        raise ValueError(f"{len(ids)} tags of {size_m * 1000:g} mm do not fit on one {page} "
-                         f"page ({per_row * rows} do): print fewer ids per page")
+        raise InvalidInputError(f"{len(ids)} tags of {size_m * 1000:g} mm do not fit on one {page} "
+                                f"page ({per_row * rows} do): print fewer ids per page")
     side = round(modules * module_px)
     for k, marker_id in enumerate(ids):
         r, c = divmod(k, per_row)

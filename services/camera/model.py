@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 
 #: distortion vector lengths OpenCV accepts
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -75,17 +75,18 @@ class CameraModel:
         K = np.asarray(self.K, np.float64)
         dist = np.asarray(self.dist if self.dist is not None else (), np.float64).ravel()
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-            raise ValueError(f"camera matrix must be 3x3 and finite, got shape {K.shape}")
+            raise InvalidInputError(f"camera matrix must be 3x3 and finite, got shape {K.shape}")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[1:, 0]) or K[2, 1]:
-            raise ValueError("camera matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
-                             f"with fx, fy > 0, got {K.tolist()}")
+            raise InvalidInputError("camera matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
+                                    f"with fx, fy > 0, got {K.tolist()}")
         if dist.size not in DISTORTION_LENGTHS or not np.all(np.isfinite(dist)):
-            raise ValueError(f"distortion must have {', '.join(map(str, DISTORTION_LENGTHS))}"
-                             f" finite coefficients, got {dist.size}")
+            raise InvalidInputError(
+                f"distortion must have {', '.join(map(str, DISTORTION_LENGTHS))}"
+                f" finite coefficients, got {dist.size}")
         if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+            raise InvalidInputError(f"image size must be positive, got {self.width}x{self.height}")
         if self.pixel_std is not None and not (0 <= self.pixel_std < math.inf):
-            raise ValueError(f"pixel_std must be >= 0, got {self.pixel_std}")
+            raise InvalidInputError(f"pixel_std must be >= 0, got {self.pixel_std}")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "width", int(self.width))

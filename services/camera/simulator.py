@@ -32,6 +32,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.camera.model import CameraModel
 
 #: a trajectory: time (s) -> 4x4 pose of an object (or the camera) in the world
@@ -76,7 +77,7 @@ class PlanarTarget:
     def __post_init__(self) -> None:
         tex = np.asarray(self.texture)
         if tex.ndim != 2:
-            raise ValueError("a target's texture is a 2D gray image")
+            raise InvalidInputError("a target's texture is a 2D gray image")
         level = tex.astype(np.float32) / 255.0
         self._levels = [level]
         while min(level.shape) >= 8:
@@ -222,7 +223,7 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
             cv2.imwrite(str(path / f"frame_{i:06d}.png"), f)
         return path
     if path.suffix.lower() != ".avi":
-        raise ValueError(f"{path}: write an .avi (lossless FFV1) or a folder (no suffix)")
+        raise InvalidInputError(f"{path}: write an .avi (lossless FFV1) or a folder (no suffix)")
     writer = None
     try:
         for f in frames:

@@ -32,7 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from services.camera import markers
 
 
@@ -100,23 +100,23 @@ def load_bundles(path: str | Path, family: str) -> list[Body]:
 
 def _bundle(entry: Any, family: str) -> Body:
     if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
-        raise ValueError("needs a name")
+        raise InvalidInputError("needs a name")
     name = entry["name"]
     if "charuco" in entry:
         return charuco_body(name, entry["charuco"], family)
     rows = entry.get("marker")
     if not isinstance(rows, list) or not rows:
-        raise ValueError(f"{name!r} has no [[bundle.marker]] and no charuco board")
+        raise InvalidInputError(f"{name!r} has no [[bundle.marker]] and no charuco board")
     corners = {}
     for row in rows:
         marker_id, size = int(row["id"]), float(row["size"])
         if size <= 0:
-            raise ValueError(f"marker {marker_id}: size must be positive")
+            raise InvalidInputError(f"marker {marker_id}: size must be positive")
         position = np.asarray(row.get("position", (0, 0, 0)), np.float64)
         rotation = np.asarray(row.get("rotation", (0, 0, 0)), np.float64)
         if position.shape != (3,) or rotation.shape != (3,) or \
                 not np.all(np.isfinite(np.concatenate([position, rotation]))):
-            raise ValueError(f"marker {marker_id}: position and rotation are 3 numbers each")
+            raise InvalidInputError(f"marker {marker_id}: position and rotation are 3 numbers each")
         R = cv2.Rodrigues(rotation)[0]
         corners[marker_id] = markers.marker_corners(size) @ R.T + position
     return Body(name, corners)
@@ -128,7 +128,8 @@ def charuco_body(name: str, spec: Any, family: str) -> Body:
     board = markers.charuco_board(tuple(spec["squares"]), float(spec["square"]),
                                   float(spec["marker"]), spec.get("family", family))
     if spec.get("family", family) != family:
-        raise ValueError(f"its markers are {spec['family']}, the tracker's family is {family}")
+        raise InvalidInputError(
+            f"its markers are {spec['family']}, the tracker's family is {family}")
     return Body(name, {int(i): np.asarray(c, np.float64).reshape(4, 3)
                        for i, c in zip(board.getIds().ravel(), board.getObjPoints(),
                                        strict=True)})

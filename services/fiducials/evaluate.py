@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.camera.markers import dictionary, marker_corners
 from services.camera.simulator import SceneObject, SimCamera
@@ -62,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.fps > 0:
-        raise ValueError(f"--fps must be positive, got {args.fps}")
+        raise InvalidInputError(f"--fps must be positive, got {args.fps}")
     rng = np.random.default_rng(args.seed)
     camera = webcam(rng)
     sim = SimCamera(camera)

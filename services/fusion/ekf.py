@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.frames import GRAVITY
 from services.fusion import measurements
 from services.fusion.process import ProcessModel
@@ -194,7 +195,7 @@ class FusionEKF:
     def pose(self, horizon_s: float = 0.0) -> tuple[Array, Array]:
         """Head pose now, or extrapolated ``horizon_s`` ahead with the estimated motion."""
         if not self.initialised:
-            raise ValueError("fusion: no pose yet (waiting for the first optical pose)")
+            raise InvalidInputError("fusion: no pose yet (waiting for the first optical pose)")
         if horizon_s == 0.0:
             return self.x[P].copy(), self.q.copy()
         h = float(horizon_s)
@@ -274,7 +275,8 @@ class FusionEKF:
         """
         dt = b.t - a.t
         if not dt > 0:
-            raise ValueError(f"fusion: a start needs two poses in time order, got {a.t} and {b.t}")
+            raise InvalidInputError(
+                f"fusion: a start needs two poses in time order, got {a.t} and {b.t}")
         cfg = self.config
         _, sod, _, sa, _ = cfg.initial_std
         q_mid = geo.slerp(a.q, b.q, 0.5)
@@ -302,11 +304,11 @@ class FusionEKF:
     def predict_to(self, t: float) -> None:
         """Integrate the state to time ``t`` (eqs. 6.2-6.5); earlier times are refused."""
         if self.t is None:
-            raise ValueError("fusion: predict before initialisation")
+            raise InvalidInputError("fusion: predict before initialisation")
         dt = float(t) - self.t
         if dt < -1e-9:
-            raise ValueError(f"fusion: time {t:.6f} s is before the filter time "
-                             f"{self.t:.6f} s (measurements must come in time order)")
+            raise InvalidInputError(f"fusion: time {t:.6f} s is before the filter time "
+                                    f"{self.t:.6f} s (measurements must come in time order)")
         while dt > 1e-12:
             step = min(dt, self.config.max_step_s)
             self.q, self.x, self.P = self.process.step(self.q, self.x, self.P, step)
@@ -333,7 +335,8 @@ class FusionEKF:
         second; the time update's symmetrisation keeps that ``P`` from drifting.
         """
         if not math.isfinite(reading):
-            raise ValueError(f"fusion: accelerometer {j + 1} reading {reading!r} is not finite")
+            raise InvalidInputError(
+                f"fusion: accelerometer {j + 1} reading {reading!r} is not finite")
         pred, H = self.predict_reading(j)
         y = reading - pred
         PH = self.P @ H
@@ -354,11 +357,12 @@ class FusionEKF:
         """All accelerometers of one sample, one constraint at a time; returns accepted."""
         readings = np.asarray(readings, float).reshape(-1)
         if readings.shape != (self.accel.count,):
-            raise ValueError(f"fusion: {readings.size} accelerometer readings, the model has "
-                             f"{self.accel.count}")
+            raise InvalidInputError(
+                f"fusion: {readings.size} accelerometer readings, the model has "
+                f"{self.accel.count}")
         if not np.all(np.isfinite(readings)):
-            raise ValueError(f"fusion: accelerometer readings {readings.tolist()} are not "
-                             "all finite")
+            raise InvalidInputError(f"fusion: accelerometer readings {readings.tolist()} are not "
+                                    "all finite")
         self.predict_to(t - self.accel.latency_s)
         self._begin_scalar_updates()
         try:
@@ -493,9 +497,10 @@ class FusionEKF:
         (2, 3).  False if gated or if the predicted beam misses that wall."""
         point = geo.check_vector(point, "laser dot").reshape(3)
         if not (math.isfinite(std_m) and std_m > 0):
-            raise ValueError(f"fusion: laser dot std {std_m!r} must be positive")
+            raise InvalidInputError(f"fusion: laser dot std {std_m!r} must be positive")
         if not self.initialised:
-            raise ValueError("fusion: a laser dot needs an initialised filter (a pose first)")
+            raise InvalidInputError(
+                "fusion: a laser dot needs an initialised filter (a pose first)")
         self.predict_to(t)
         try:
             pred, J = self.predict_dot(beam_rig, plane, mount)

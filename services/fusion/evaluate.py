@@ -48,6 +48,7 @@ from scipy.stats import chi2
 
 from agent import Graph
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services import consistency, frames
 from services.accel_rig import simulator as accel_sim
@@ -240,7 +241,7 @@ def optical_baselines(rec: Recording) -> dict[str, tuple[np.ndarray, np.ndarray]
     """
     k = np.searchsorted(rec.optical_t, rec.t, side="right") - 1
     if np.any(k < 0):
-        raise ValueError("fusion eval: an output before the first optical pose")
+        raise InvalidInputError("fusion eval: an output before the first optical pose")
     hold_p, hold_q = rec.optical_p[k], rec.optical_q[k]
     k0 = np.clip(k - 1, 0, None)
     dt = rec.optical_t[k] - rec.optical_t[k0]
@@ -426,14 +427,14 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     """Run the simulated MARVIN once and compute every figure (``device``: another
     simulated accelerometer device than MARVIN's)."""
     if seconds < WARMUP_S + 2.0:
-        raise ValueError(f"--seconds must be at least {WARMUP_S + 2.0:g} (warm-up "
-                         f"{WARMUP_S:g} s plus some tracking)")
+        raise InvalidInputError(f"--seconds must be at least {WARMUP_S + 2.0:g} (warm-up "
+                                f"{WARMUP_S:g} s plus some tracking)")
     gaps = gap_schedule(seconds, gap_lengths)
     device = device or accel_sim.default_device()
     rec = run_fusion(seconds, seed, gaps, horizon_s, config or FusionConfig(), model_floor,
                      cache, dots, device, ideal)
     if rec.t.size == 0:
-        raise ValueError("fusion never started: the laser tracker found no pose")
+        raise InvalidInputError("fusion never started: the laser tracker found no pose")
     figures: dict[str, Any] = {
         "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
         "installation": "ideal" if ideal else "realistic",
@@ -586,13 +587,14 @@ def goals(f: dict[str, Any]) -> dict[str, bool]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.horizon_ms is not None and not (math.isfinite(args.horizon_ms)
                                             and 0 <= args.horizon_ms <= 500):
-        raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
+        raise InvalidInputError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     if args.from_file is not None:
         from services.fusion.replay import replay
 
         if args.optical == "dots" and not args.display_calibration:
-            raise ValueError("--from with --optical dots needs --display-calibration FILE "
-                             "(the laser tracker's calibration, whose walls the dots lie on)")
+            raise InvalidInputError(
+                "--from with --optical dots needs --display-calibration FILE "
+                "(the laser tracker's calibration, whose walls the dots lie on)")
         return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3,
                       display_calibration=args.display_calibration
                       if args.optical == "dots" else None)
@@ -600,9 +602,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         lengths = [float(x) for x in args.gaps.split(",") if x.strip()]
     except ValueError:
-        raise ValueError(f"--gaps: expected comma-separated seconds, got {args.gaps!r}") from None
+        raise InvalidInputError(
+            f"--gaps: expected comma-separated seconds, got {args.gaps!r}") from None
     if any(not (math.isfinite(x) and x > 0) for x in lengths):
-        raise ValueError(f"--gaps: gap lengths must be positive seconds, got {args.gaps!r}")
+        raise InvalidInputError(f"--gaps: gap lengths must be positive seconds, got {args.gaps!r}")
     device = device_from_args(accel_sim.default_device(), args)
     return evaluate(float(args.seconds), int(args.seed), lengths, horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.fusion.state import TH, WD, A, AccelModel, Array, P, StateLayout, W, size
 
 
@@ -77,10 +78,10 @@ def laser_dot(x: Array, R: Array, layout: StateLayout, beam_rig: Array,
     d = R @ geo.quat_rotate(mount[1], np.asarray(beam_rig, float))
     nd = float(n @ d)
     if nd <= 1e-6:
-        raise ValueError("fusion: the predicted beam does not reach that wall")
+        raise InvalidInputError("fusion: the predicted beam does not reach that wall")
     s = (c - float(n @ origin)) / nd
     if s <= 0:
-        raise ValueError("fusion: the wall is behind the predicted beam")
+        raise InvalidInputError("fusion: the wall is behind the predicted beam")
     M = np.eye(3) - np.outer(d, n) / nd
     J = np.zeros((3, layout.dim))
     J[:, P] = M

@@ -39,6 +39,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.fusion.state import check_config
 
 #: below this rotation per step (rad) the coefficient functions use their Taylor series
@@ -267,11 +268,11 @@ class DorfmullerPredictor:
         p = geo.check_vector(p, "predictor position").reshape(3)
         q = geo.check_quaternion(q, "predictor quaternion").reshape(4)
         if not np.isfinite(t_s):
-            raise ValueError(f"predictor: timestamp {t_s!r} is not finite")
+            raise InvalidInputError(f"predictor: timestamp {t_s!r} is not finite")
         last = self._last
         if last is not None and t_s <= last.t_s:
-            raise ValueError(f"predictor: timestamp {t_s:.6f} s does not increase "
-                             f"(last {last.t_s:.6f} s)")
+            raise InvalidInputError(f"predictor: timestamp {t_s:.6f} s does not increase "
+                                    f"(last {last.t_s:.6f} s)")
         if last is not None and t_s - last.t_s > self.config.max_gap_s:
             self.restart()
             last = None
@@ -345,10 +346,10 @@ class DorfmullerPredictor:
         ``W R`` and translation ``t + V v' + A a`` with ``v' = v + a horizon`` (eq. 12).
         """
         if self._last is None:
-            raise ValueError("predictor: no pose received yet")
+            raise InvalidInputError("predictor: no pose received yet")
         if not (np.isfinite(horizon_s) and horizon_s >= 0):
-            raise ValueError(f"predictor: horizon must be a finite number >= 0 s, "
-                             f"got {horizon_s!r}")
+            raise InvalidInputError(f"predictor: horizon must be a finite number >= 0 s, "
+                                    f"got {horizon_s!r}")
         if horizon_s == 0:
             return self._last.p.copy(), self._last.q.copy()
         x = self._ekf.x.copy()

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from agent import Service
+from agent.errors import InvalidInputError
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig
 
 log = logging.getLogger("uma.predictor")
@@ -72,14 +73,14 @@ class LivePredictor:
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
     if not (math.isfinite(args.horizon_ms) and 0 < args.horizon_ms <= 500):
-        raise ValueError(f"--horizon-ms must be within (0, 500], got {args.horizon_ms!r}")
+        raise InvalidInputError(f"--horizon-ms must be within (0, 500], got {args.horizon_ms!r}")
     if args.point_std_m is not None and not (np.isfinite(args.point_std_m)
                                              and args.point_std_m > 0):
-        raise ValueError(f"--point-std-m must be positive, got {args.point_std_m!r}")
+        raise InvalidInputError(f"--point-std-m must be positive, got {args.point_std_m!r}")
     output = args.output or f"{args.target}_predicted"
     if "*" in args.target:
-        raise ValueError("--target must be one frame (the output is a frame of its own), "
-                         f"got the pattern {args.target!r}")
+        raise InvalidInputError("--target must be one frame (the output is a frame of its own), "
+                                f"got the pattern {args.target!r}")
     live = LivePredictor(args.horizon_ms / 1e3, args.point_std_m)
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:

@@ -44,7 +44,7 @@ import numpy as np
 
 from agent import Client, Service
 from agent import geometry as geo
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,
@@ -252,20 +252,20 @@ def labeled_dots(m: Any, t: float, drop: Any) -> LabeledDots:
     counts it."""
     points = np.asarray(m.points if m.points is not None else np.zeros((0, 3)), float)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points of shape {points.shape}, expected (n, 3)")
+        raise InvalidInputError(f"points of shape {points.shape}, expected (n, 3)")
     n = len(points)
     ids = m.ids
     if ids is None or len(ids) != n:
-        raise ValueError(f"{'no' if ids is None else len(ids)} labels for {n} points")
+        raise InvalidInputError(f"{'no' if ids is None else len(ids)} labels for {n} points")
     extra = getattr(m, "extra", None) or {}
     stds = []
     for key in (DOT_STD, DOT_SYSTEMATIC_STD):
         try:
             v = np.asarray(extra[key], float).reshape(-1)
         except (KeyError, TypeError, ValueError):
-            raise ValueError(f"extra {key!r}: expected {n} numbers") from None
+            raise InvalidInputError(f"extra {key!r}: expected {n} numbers") from None
         if v.shape != (n,):
-            raise ValueError(f"extra {key!r}: {v.size} numbers for {n} points")
+            raise InvalidInputError(f"extra {key!r}: {v.size} numbers for {n} points")
         stds.append(v)
     std, sys_std = stds
     keep, seen = [], set()
@@ -302,7 +302,7 @@ def systematic_covariance(m: Any) -> np.ndarray | None:
     try:
         return unpack_covariance(packed, 6, name)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: expected 21 numbers ({exc})") from None
+        raise InvalidInputError(f"{name}: expected 21 numbers ({exc})") from None
 
 
 def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
@@ -313,15 +313,16 @@ def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
     if not (math.isfinite(args.horizon_ms) and 0 <= args.horizon_ms <= 500):
-        raise ValueError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
+        raise InvalidInputError(f"--horizon-ms must be within 0..500, got {args.horizon_ms!r}")
     if not (math.isfinite(args.model_floor) and args.model_floor >= 0):
-        raise ValueError(f"--model-floor must be >= 0, got {args.model_floor!r}")
+        raise InvalidInputError(f"--model-floor must be >= 0, got {args.model_floor!r}")
     if not (math.isfinite(args.optical_bias_mm) and args.optical_bias_mm >= 0):
-        raise ValueError(f"--optical-bias-mm must be >= 0, got {args.optical_bias_mm!r}")
+        raise InvalidInputError(f"--optical-bias-mm must be >= 0, got {args.optical_bias_mm!r}")
     if not (math.isfinite(args.optical_bias_tau_s) and args.optical_bias_tau_s > 0):
-        raise ValueError(f"--optical-bias-tau-s must be positive, got {args.optical_bias_tau_s!r}")
+        raise InvalidInputError(
+            f"--optical-bias-tau-s must be positive, got {args.optical_bias_tau_s!r}")
     if not (math.isfinite(args.max_coast_s) and args.max_coast_s > 0):
-        raise ValueError(f"--max-coast-s must be positive seconds, got {args.max_coast_s!r}")
+        raise InvalidInputError(f"--max-coast-s must be positive seconds, got {args.max_coast_s!r}")
     config = FusionConfig(optical_bias_std=args.optical_bias_mm / 1e3,
                           optical_bias_tau_s=args.optical_bias_tau_s)
     live = LiveFusion(args.horizon_ms / 1e3, args.model_floor, config=config,
@@ -352,11 +353,11 @@ def _walls(args: argparse.Namespace) -> list[Wall] | None:
     """The display's walls for dot mode (from the laser tracker's calibration file)."""
     if args.optical == "pose":
         if args.display_calibration:
-            raise ValueError("--display-calibration is for --optical dots")
+            raise InvalidInputError("--display-calibration is for --optical dots")
         return None
     if not args.display_calibration:
-        raise ValueError("--optical dots needs --display-calibration FILE (the laser "
-                         "tracker's calibration, whose walls the dots lie on)")
+        raise InvalidInputError("--optical dots needs --display-calibration FILE (the laser "
+                                "tracker's calibration, whose walls the dots lie on)")
     return load_walls(args.display_calibration)
 
 

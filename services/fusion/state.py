@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 
 Array = np.ndarray
 
@@ -56,12 +57,12 @@ class AccelModel:
         n = geo.check_vector(self.axes, "accelerometer axes")
         var = np.asarray(self.variance, float).reshape(-1)
         if r.ndim != 2 or n.shape != r.shape or var.shape != (r.shape[0],):
-            raise ValueError(f"accel model: positions {r.shape}, axes {n.shape} and "
-                             f"variance {var.shape} must be (N, 3), (N, 3), (N,)")
+            raise InvalidInputError(f"accel model: positions {r.shape}, axes {n.shape} and "
+                                    f"variance {var.shape} must be (N, 3), (N, 3), (N,)")
         if not np.all(np.isfinite(var)) or np.any(var <= 0):
-            raise ValueError("accel model: reading variances must be positive and finite")
+            raise InvalidInputError("accel model: reading variances must be positive and finite")
         if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
-            raise ValueError(f"accel model: latency_s must be >= 0, got {self.latency_s!r}")
+            raise InvalidInputError(f"accel model: latency_s must be >= 0, got {self.latency_s!r}")
         object.__setattr__(self, "positions", r)
         object.__setattr__(self, "axes", n / np.linalg.norm(n, axis=1, keepdims=True))
         object.__setattr__(self, "variance", var)
@@ -96,16 +97,16 @@ def check_config(config: object, what: str, positive: tuple[str, ...],
     for name in positive:
         value = getattr(config, name)
         if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{what}: {name} must be a positive number, got {value!r}")
+            raise InvalidInputError(f"{what}: {name} must be a positive number, got {value!r}")
     for name in non_negative:
         value = getattr(config, name)
         if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{what}: {name} must be >= 0, got {value!r}")
+            raise InvalidInputError(f"{what}: {name} must be >= 0, got {value!r}")
     blocks = initial_std.split(", ")
     stds = config.initial_std  # type: ignore[attr-defined]
     if len(stds) != len(blocks) or not all(x > 0 for x in stds):
-        raise ValueError(f"{what}: initial_std needs {len(blocks)} positive numbers "
-                         f"({initial_std}), got {stds!r}")
+        raise InvalidInputError(f"{what}: initial_std needs {len(blocks)} positive numbers "
+                                f"({initial_std}), got {stds!r}")
 
 
 @dataclass(frozen=True)

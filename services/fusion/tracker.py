@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.fusion.ekf import FilterState, FusionEKF
 
 #: keep this much history (s): optical poses older than this are dropped as too late
@@ -86,7 +87,7 @@ class FusionTracker:
     def __init__(self, ekf: FusionEKF, history_s: float = HISTORY_S,
                  max_wait_s: float = MAX_WAIT_S, max_coast_s: float = MAX_COAST_S):
         if not (math.isfinite(max_coast_s) and max_coast_s > 0):
-            raise ValueError(f"max_coast_s must be positive seconds, got {max_coast_s!r}")
+            raise InvalidInputError(f"max_coast_s must be positive seconds, got {max_coast_s!r}")
         self.ekf = ekf
         self.history_s = float(history_s)
         self.max_wait_s = float(max_wait_s)

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.errors import InvalidInputError
+
 CUBE_SIDE_M = 2.44  # IVY: an 8-ft cube (Hogue 2003, ch. 5)
 #: default active screen side: "the 2.29m screen" (Hogue 2003, §5.2) in the 2.44 m cube,
 #: leaving a 7.5 cm band of frame and seams at each edge
@@ -80,10 +82,11 @@ class Wall:
     def from_dict(cls, d: dict) -> Wall:
         R = np.asarray(d["rotation"], float)
         if R.shape != (3, 3) or abs(np.linalg.det(R) - 1.0) > 1e-6:
-            raise ValueError(f"wall {d.get('name')!r}: rotation must be a proper 3x3 rotation")
+            raise InvalidInputError(
+                f"wall {d.get('name')!r}: rotation must be a proper 3x3 rotation")
         T = np.asarray(d["translation"], float)
         if T.shape != (3,):
-            raise ValueError(f"wall {d.get('name')!r}: translation must have 3 values")
+            raise InvalidInputError(f"wall {d.get('name')!r}: translation must have 3 values")
         return cls(str(d["name"]), R, T, float(d["plane_distance"]), float(d["screen_side_m"]))
 
 
@@ -110,8 +113,8 @@ def make_walls(cube_side_m: float = CUBE_SIDE_M,
                screen_side_m: float = SCREEN_SIDE_M) -> dict[str, Wall]:
     """The six walls of a cube centred on the world origin (z up)."""
     if not 0 < screen_side_m <= cube_side_m:
-        raise ValueError(f"screen side {screen_side_m} m must be in (0, cube side "
-                         f"{cube_side_m} m]")
+        raise InvalidInputError(f"screen side {screen_side_m} m must be in (0, cube side "
+                                f"{cube_side_m} m]")
     half = cube_side_m / 2
     walls = {}
     for name, (ex, ey, n) in _FACES.items():
@@ -165,8 +168,8 @@ def intersect_beams(walls: dict[str, Wall], origins: np.ndarray, directions: np.
     first = np.argmin(s, axis=1)
     rows = np.arange(len(o))
     for i in np.flatnonzero(~np.isfinite(s[rows, first])):  # only possible from outside
-        raise ValueError(f"ray from {o[i].tolist()} along {d[i].tolist()} meets no wall; "
-                         "is the origin inside the cube?")
+        raise InvalidInputError(f"ray from {o[i].tolist()} along {d[i].tolist()} meets no wall; "
+                                "is the origin inside the cube?")
     hit = [ws[k] for k in first]
     c = cos[rows, first]
     p = o + s[rows, first][:, None] * d

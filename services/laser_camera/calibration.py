@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.camera.model import undistort_points
 from services.installation.ivy import Wall
 from services.laser_camera.detection import DetectorParams
@@ -115,9 +116,9 @@ class CameraCalibration:
                        int(d.get("width", 640)), int(d.get("height", 480)),
                        DetectorParams(**d.get("detector", {})), dict(d.get("quality", {})))
         except KeyError as exc:
-            raise ValueError(f"camera {name}: calibration lacks {exc}") from None
+            raise InvalidInputError(f"camera {name}: calibration lacks {exc}") from None
         except TypeError as exc:
-            raise ValueError(f"camera {name}: bad calibration entry ({exc})") from None
+            raise InvalidInputError(f"camera {name}: bad calibration entry ({exc})") from None
 
 
 @dataclass
@@ -130,17 +131,17 @@ class Calibration:
 
     def __post_init__(self) -> None:
         if not self.cameras:
-            raise ValueError("calibration has no cameras")
+            raise InvalidInputError("calibration has no cameras")
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
-            raise ValueError(f"calibration: duplicate camera names in {names}")
+            raise InvalidInputError(f"calibration: duplicate camera names in {names}")
 
     def camera(self, name: str) -> CameraCalibration:
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise ValueError(f"no camera {name!r} in the calibration "
-                         f"(cameras: {', '.join(c.name for c in self.cameras)})")
+        raise InvalidInputError(f"no camera {name!r} in the calibration "
+                                f"(cameras: {', '.join(c.name for c in self.cameras)})")
 
     def save(self, path: str | Path) -> None:
         data = {"format": "uma-laser-camera-calibration", "version": FORMAT_VERSION,
@@ -153,20 +154,20 @@ class Calibration:
         try:
             data = json.loads(p.read_text())
         except OSError as exc:
-            raise ValueError(f"cannot read calibration file {p}: {exc.strerror}") from None
+            raise InvalidInputError(f"cannot read calibration file {p}: {exc.strerror}") from None
         except json.JSONDecodeError as exc:
-            raise ValueError(f"calibration file {p} is not JSON ({exc})") from None
+            raise InvalidInputError(f"calibration file {p} is not JSON ({exc})") from None
         if not isinstance(data, dict) or data.get("format") != "uma-laser-camera-calibration":
-            raise ValueError(f"{p} is not a uma laser-camera calibration file")
+            raise InvalidInputError(f"{p} is not a uma laser-camera calibration file")
         if data.get("version") != FORMAT_VERSION:
-            raise ValueError(f"{p}: calibration format version {data.get('version')} "
-                             f"unsupported (this build reads {FORMAT_VERSION})")
+            raise InvalidInputError(f"{p}: calibration format version {data.get('version')} "
+                                    f"unsupported (this build reads {FORMAT_VERSION})")
         meta = data.get("meta", {})
         if not isinstance(meta, dict):
-            raise ValueError(f"{p}: 'meta' must be a map")
+            raise InvalidInputError(f"{p}: 'meta' must be a map")
         cameras = data.get("cameras", [])
         if not isinstance(cameras, list) or not all(isinstance(c, dict) for c in cameras):
-            raise ValueError(f"{p}: 'cameras' must be a list of maps")
+            raise InvalidInputError(f"{p}: 'cameras' must be a list of maps")
         return cls([CameraCalibration.from_dict(c) for c in cameras], meta)
 
 
@@ -187,8 +188,8 @@ def calibrate_intrinsics(views: list[tuple[np.ndarray, np.ndarray]],
         img_pts.append(corners.astype(np.float32).reshape(-1, 1, 2))
         size = img.shape[::-1]
     if len(obj_pts) < 3:
-        raise ValueError(f"intrinsic calibration: the board was found in {len(obj_pts)} of "
-                         f"{len(views)} views; need at least 3")
+        raise InvalidInputError(f"intrinsic calibration: the board was found in {len(obj_pts)} of "
+                                f"{len(views)} views; need at least 3")
     rms, K, dist, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None,
                                              flags=cv2.CALIB_FIX_K3)
     return K, dist.ravel()[:5], float(rms)
@@ -238,8 +239,8 @@ def order_board_corners(corners: np.ndarray, pattern: tuple[int, int], img: np.n
             if score > best_score:
                 best, best_score = g, score
     if best is None or best_score < 0.9:
-        raise ValueError("screen board: cannot tell the board's orientation (square colours "
-                         f"agree at best {best_score:.0%}); is rear_view set right?")
+        raise InvalidInputError("screen board: cannot tell the board's orientation (square colours "
+                                f"agree at best {best_score:.0%}); is rear_view set right?")
     return best.reshape(-1, 2)
 
 
@@ -249,7 +250,7 @@ def calibrate_screen(cam_K: np.ndarray, cam_dist: np.ndarray, img: np.ndarray,
     """Image -> screen homography from a projected checkerboard and its quality figures."""
     corners = find_corners(img, pattern)
     if corners is None:
-        raise ValueError(f"screen board: no {pattern[0]}x{pattern[1]} checkerboard found")
+        raise InvalidInputError(f"screen board: no {pattern[0]}x{pattern[1]} checkerboard found")
     corners = order_board_corners(corners, pattern, img, rear_view)
     und = undistort_points(corners, cam_K, cam_dist, cam_K)
     H = dlt_homography(und, corners_xy)
@@ -304,5 +305,5 @@ def sim_calibration(world, cache: str | Path | None = None) -> Calibration:
 def _matrix(v, shape: tuple[int, ...], name: str) -> np.ndarray:
     a = np.asarray(v, dtype=float)
     if a.shape != shape or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: expected finite values of shape {shape}, got {a.shape}")
+        raise InvalidInputError(f"{name}: expected finite values of shape {shape}, got {a.shape}")
     return a

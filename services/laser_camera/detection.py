@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
+
 #: columns of the detector's output rows
 U, V, FLUX, AREA, STD = range(5)
 #: the pixel columns u, v: a slice takes a view where a list of columns copies
@@ -44,11 +46,11 @@ class DetectorParams:
 
     def __post_init__(self) -> None:
         if not 0 < self.threshold < 255:
-            raise ValueError(f"threshold must be in 1..254 DN, got {self.threshold}")
+            raise InvalidInputError(f"threshold must be in 1..254 DN, got {self.threshold}")
         if self.min_area < 1 or self.max_area < self.min_area:
-            raise ValueError("need 1 <= min_area <= max_area")
+            raise InvalidInputError("need 1 <= min_area <= max_area")
         if self.merge_px < 0:
-            raise ValueError("merge_px must be >= 0")
+            raise InvalidInputError("merge_px must be >= 0")
 
 
 def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) -> np.ndarray:
@@ -104,9 +106,9 @@ def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int,
 
 def _check_gray8(image: np.ndarray) -> None:
     if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
-        raise ValueError("image must be a 2-D uint8 array (grayscale, 8 bit), got "
-                         f"{getattr(image, 'dtype', type(image))} "
-                         f"{getattr(image, 'shape', '')}")
+        raise InvalidInputError("image must be a 2-D uint8 array (grayscale, 8 bit), got "
+                                f"{getattr(image, 'dtype', type(image))} "
+                                f"{getattr(image, 'shape', '')}")
 
 
 def _boxes(image: np.ndarray, p: DetectorParams) -> list[tuple[int, int, int, int]]:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
@@ -70,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.rate_hz > 0:
-        raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
+        raise InvalidInputError(f"--rate-hz must be positive, got {args.rate_hz}")
     # every seed is another housing, screens and camera residual of the same installation
     world = IvyWorld(n_cameras=args.cameras, seed=args.seed, config=world_config(args),
                      imperfection_seed=args.seed)
@@ -79,8 +80,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         cal = Calibration.load(args.calibration)
         missing = {c.name for c in world.cameras} - {c.name for c in cal.cameras}
         if missing:
-            raise ValueError(f"calibration {args.calibration} lacks cameras "
-                             f"{sorted(missing)} of the {args.cameras}-camera world")
+            raise InvalidInputError(f"calibration {args.calibration} lacks cameras "
+                                    f"{sorted(missing)} of the {args.cameras}-camera world")
     else:
         cal = _calibration(world)
     calib_s = time.perf_counter() - t0

@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from agent.errors import InvalidInputError
+
 
 def normalising_transform(points: np.ndarray) -> np.ndarray:
     """``T`` of eqs. 5.19-5.22: centroid to the origin, mean distance sqrt(2)."""
     m = points.mean(axis=0)
     mean_dist = np.linalg.norm(points - m, axis=1).mean()
     if not mean_dist > 0:
-        raise ValueError("homography: all points coincide")
+        raise InvalidInputError("homography: all points coincide")
     s = np.sqrt(2.0) / mean_dist
     return np.array([[s, 0.0, -s * m[0]], [0.0, s, -s * m[1]], [0.0, 0.0, 1.0]])
 
@@ -34,9 +36,9 @@ def dlt_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     src = _points(src, "src")
     dst = _points(dst, "dst")
     if len(src) != len(dst):
-        raise ValueError(f"homography: {len(src)} source points but {len(dst)} destination")
+        raise InvalidInputError(f"homography: {len(src)} source points but {len(dst)} destination")
     if len(src) < 4:
-        raise ValueError(f"homography: need at least 4 correspondences, got {len(src)}")
+        raise InvalidInputError(f"homography: need at least 4 correspondences, got {len(src)}")
     T, Tp = normalising_transform(src), normalising_transform(dst)
     P = _homogeneous(src) @ T.T  # rows x_i, y_i, w_i
     Pp = _homogeneous(dst) @ Tp.T
@@ -49,10 +51,10 @@ def dlt_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     A[1::2, 6:9] = -xp * P
     _, sv, Vt = np.linalg.svd(A)
     if n > 4 and sv[-2] < 1e-12 * sv[0]:
-        raise ValueError("homography: degenerate configuration (points nearly collinear)")
+        raise InvalidInputError("homography: degenerate configuration (points nearly collinear)")
     H = np.linalg.solve(Tp, Vt[-1].reshape(3, 3) @ T)
     if abs(H[2, 2]) < 1e-15:
-        raise ValueError("homography: maps a source point to infinity (H[2,2] = 0)")
+        raise InvalidInputError("homography: maps a source point to infinity (H[2,2] = 0)")
     return H / H[2, 2]
 
 
@@ -83,7 +85,7 @@ def homography_scale(H: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _points(a: np.ndarray, name: str) -> np.ndarray:
     a = np.asarray(a, dtype=float).reshape(-1, 2)
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"homography: {name} has non-finite coordinates")
+        raise InvalidInputError(f"homography: {name} has non-finite coordinates")
     return a
 
 

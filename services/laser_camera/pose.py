@@ -29,6 +29,7 @@ from itertools import permutations
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 
 #: every assignment of four points to the diodes: PERMUTATIONS[i][k] = index of the point
 #: labeled diode k + 1
@@ -53,7 +54,7 @@ def frame_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     P0, R = frames_from_points(np.asarray(P, float)[None])
     if not np.all(np.isfinite(R)):
-        raise ValueError("pose: P1 and P2 coincide or P3 lies on the line P1P2")
+        raise InvalidInputError("pose: P1 and P2 coincide or P3 lies on the line P1P2")
     return P0[0], R[0]
 
 
@@ -130,7 +131,7 @@ def candidate_poses(points: np.ndarray, max_error: float) -> list[LabeledPose]:
     two best: the correct one and its reflection)."""
     points = np.asarray(points, float)
     if points.shape != (4, 3) or not np.all(np.isfinite(points)):
-        raise ValueError(f"pose: need four finite 3-D points, got shape {points.shape}")
+        raise InvalidInputError(f"pose: need four finite 3-D points, got shape {points.shape}")
     eps, P0, rays = _labelings(points)
     best = np.argsort(eps, kind="stable")
     best = best[eps[best] <= max_error]

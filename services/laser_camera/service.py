@@ -41,6 +41,7 @@ import numpy as np
 
 from agent import Service
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from schemas.codec import (
     DOT_STD,
     DOT_SYSTEMATIC_STD,
@@ -72,7 +73,7 @@ ATTRIBUTE_CHANGE = 0.25  # re-advertise when a figure drifted by more than this 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
     specs = parse_sources(args.source)
     if not 0 < args.rate_hz <= 240:
-        raise ValueError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
+        raise InvalidInputError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
     if args.calibrate:
         return _calibrate(args, specs)
     cal, source = _open(args, specs)
@@ -84,10 +85,10 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
 def _calibrate(args: argparse.Namespace, specs) -> int:
     if specs is not None:
-        raise ValueError("--calibrate calibrates the simulated display; real cameras need "
-                         "their checkerboard images calibrated with "
-                         "services.laser_camera.calibration (calibrate_intrinsics, "
-                         "calibrate_screen) and saved as a calibration file")
+        raise InvalidInputError("--calibrate calibrates the simulated display; real cameras need "
+                                "their checkerboard images calibrated with "
+                                "services.laser_camera.calibration (calibrate_intrinsics, "
+                                "calibrate_screen) and saved as a calibration file")
     path = Path(args.calibration or "laser_calibration.json")
     cal = calibrate_sim(IvyWorld(n_cameras=args.cameras, seed=args.seed, ideal=args.ideal))
     cal.save(path)
@@ -110,10 +111,10 @@ def _open(args: argparse.Namespace, specs) -> tuple[Calibration, SimSource | Cap
             cal = calibrate_sim(world)
         missing = {c.name for c in world.cameras} - {c.name for c in cal.cameras}
         if missing:
-            raise ValueError(f"calibration lacks the simulated cameras {sorted(missing)}")
+            raise InvalidInputError(f"calibration lacks the simulated cameras {sorted(missing)}")
         return cal, SimSource(world)
     if not args.calibration:
-        raise ValueError("real sources need --calibration FILE")
+        raise InvalidInputError("real sources need --calibration FILE")
     cal = Calibration.load(args.calibration)
     for s in specs:
         cal.camera(s.camera)  # ValueError naming the unknown camera

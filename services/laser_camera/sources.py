@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.sim.world import IvyWorld, sim_time_s
 
 
@@ -29,20 +30,20 @@ def parse_sources(values: list[str]) -> list[CaptureSpec] | None:
     if not values or values == ["sim"]:
         return None
     if "sim" in values:
-        raise ValueError("--source sim cannot be mixed with real captures")
+        raise InvalidInputError("--source sim cannot be mixed with real captures")
     specs = []
     for v in values:
         cam, eq, rest = v.partition("=")
         kind, colon, target = rest.partition(":")
         if not eq or not colon or not cam or not target or kind not in ("video", "camera"):
-            raise ValueError(f"--source {v!r}: expected CAMERA=video:FILE or "
-                             "CAMERA=camera:INDEX (or 'sim')")
+            raise InvalidInputError(f"--source {v!r}: expected CAMERA=video:FILE or "
+                                    "CAMERA=camera:INDEX (or 'sim')")
         if kind == "camera" and not target.isdigit():
-            raise ValueError(f"--source {v!r}: a camera index is a number")
+            raise InvalidInputError(f"--source {v!r}: a camera index is a number")
         specs.append(CaptureSpec(cam, kind, target))
     names = [s.camera for s in specs]
     if len(set(names)) != len(names):
-        raise ValueError(f"--source: camera named twice in {names}")
+        raise InvalidInputError(f"--source: camera named twice in {names}")
     return specs
 
 
@@ -71,7 +72,7 @@ class CaptureSource:
             for s in specs:
                 cap = cv2.VideoCapture(int(s.target) if s.kind == "camera" else s.target)
                 if not cap.isOpened():
-                    raise ValueError(f"camera {s.camera}: cannot open {s.kind} {s.target!r}")
+                    raise InvalidInputError(f"camera {s.camera}: cannot open {s.kind} {s.target!r}")
                 self.caps[s.camera] = cap
         except BaseException:
             self.close()

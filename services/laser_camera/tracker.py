@@ -55,6 +55,7 @@ from itertools import combinations
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
@@ -146,25 +147,25 @@ class TrackerParams:
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
-            raise ValueError("max_dots must be at least 4")
+            raise InvalidInputError("max_dots must be at least 4")
         if self.coherence_s <= 0 or self.max_labeling_error <= 0:
-            raise ValueError("coherence_s and max_labeling_error must be positive")
+            raise InvalidInputError("coherence_s and max_labeling_error must be positive")
         if min(self.max_residual_chi2, self.max_prediction_chi2, self.same_pose_chi2,
                self.accel_std_mps2,
                self.angular_accel_std_dps2, self.speed_std_mps,
                self.angular_speed_std_dps) <= 0 or min(self.min_margin,
                                                        self.init_margin_cos) < 0:
-            raise ValueError("the labeling gate's chi-square bounds and motion stds must be "
-                             "positive, its margins >= 0")
+            raise InvalidInputError("the labeling gate's chi-square bounds and motion stds must be "
+                                    "positive, its margins >= 0")
         if self.model_pos_std_m < 0 or self.model_rot_std_rad < 0:
-            raise ValueError("model_pos_std_m and model_rot_std_rad must be >= 0")
+            raise InvalidInputError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
-            raise ValueError("roi_half_px and roi_refresh_s must be >= 0")
+            raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
         if not (self.label_gate_m > 0 and self.label_gate_mps >= 0):
-            raise ValueError("label_gate_m must be positive and label_gate_mps >= 0")
+            raise InvalidInputError("label_gate_m must be positive and label_gate_mps >= 0")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
                self.camera_residual_std_m, self.camera_turn_std_rad) < 0:
-            raise ValueError("the installation's tolerances must be >= 0")
+            raise InvalidInputError("the installation's tolerances must be >= 0")
 
     @classmethod
     def ideal(cls, **overrides) -> TrackerParams:
@@ -348,13 +349,13 @@ class LaserTracker:
     def _camera(self, name: str, img: np.ndarray) -> CameraCalibration:
         """The calibration of camera ``name``, checked against its image."""
         if self.calibration is None:
-            raise ValueError("this tracker has no camera calibration; it can only solve() "
-                             "world-frame dots")
+            raise InvalidInputError("this tracker has no camera calibration; it can only solve() "
+                                    "world-frame dots")
         i = self._screens.index.get(name)
         cal = self.calibration.camera(name) if i is None else self._screens.cameras[i]
         if getattr(img, "shape", None) != (cal.height, cal.width):
-            raise ValueError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
-                             f" but calibrated for ({cal.height}, {cal.width}) gray")
+            raise InvalidInputError(f"camera {name}: image of shape {getattr(img, 'shape', None)}"
+                                    f" but calibrated for ({cal.height}, {cal.width}) gray")
         return cal
 
     def _to_world(self, detections: Mapping[str, np.ndarray]) -> WorldDots:
@@ -926,7 +927,7 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     Q[_PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
     p, R = frames_from_points(Q)
     if np.isnan(R[:, 0, 0]).any():  # a perturbed copy without a frame is NaN throughout
-        raise ValueError("pose: the dots define no frame (P3 on the line P1P2)")
+        raise InvalidInputError("pose: the dots define no frame (P3 on the line P1P2)")
     dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
     dR = dR.reshape(8, 9)
     dphi = 0.5 * (dR.take(_SKEW_PLUS, 1) - dR.take(_SKEW_MINUS, 1))

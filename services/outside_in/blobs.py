@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agent.errors import InvalidInputError
 from services.laser_camera.detection import (
     AREA,
     FLUX,
@@ -43,14 +44,14 @@ class BlobParams:
 
     def __post_init__(self) -> None:
         if not 0 < self.threshold < 255:
-            raise ValueError(f"blob threshold must be in 1..254 DN, got {self.threshold}")
+            raise InvalidInputError(f"blob threshold must be in 1..254 DN, got {self.threshold}")
         if not 1 <= self.min_area <= self.max_area:
-            raise ValueError(f"need 1 <= min_area <= max_area, got {self.min_area}, "
-                             f"{self.max_area}")
+            raise InvalidInputError(f"need 1 <= min_area <= max_area, got {self.min_area}, "
+                                    f"{self.max_area}")
         if not 0 <= self.min_roundness <= 1:
-            raise ValueError(f"min_roundness must be in [0, 1], got {self.min_roundness}")
+            raise InvalidInputError(f"min_roundness must be in [0, 1], got {self.min_roundness}")
         if self.window_px < 2:
-            raise ValueError(f"window_px must be >= 2, got {self.window_px}")
+            raise InvalidInputError(f"window_px must be >= 2, got {self.window_px}")
 
     def detector(self) -> DetectorParams:
         return DetectorParams(threshold=self.threshold, min_area=self.min_area,

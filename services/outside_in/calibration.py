@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from agent import geometry as geo
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from services.camera.model import CameraModel
 from services.outside_in.bodies import RigidBody, identify
 from services.outside_in.pose import absolute_orientation
@@ -62,8 +62,9 @@ class Wand:
     def __post_init__(self) -> None:
         a, b, c = self.distances
         if not (a == 0.0 < b < c) or abs(b - c / 2) < 0.1 * c:
-            raise ValueError(f"wand distances must be 0 < middle < end with the middle off "
-                             f"centre by a tenth of the length at least, got {self.distances}")
+            raise InvalidInputError(
+                f"wand distances must be 0 < middle < end with the middle off "
+                f"centre by a tenth of the length at least, got {self.distances}")
 
     @property
     def length(self) -> float:

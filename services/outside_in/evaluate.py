@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.outside_in.blobs import Blobs, find_blobs
@@ -103,7 +104,7 @@ class _Case:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.rate_hz > 0:
-        raise ValueError(f"--rate-hz must be positive, got {args.rate_hz}")
+        raise InvalidInputError(f"--rate-hz must be positive, got {args.rate_hz}")
     sim = Simulation(seed=args.seed, config=SimConfig(
         n_cameras=args.cameras, rate_hz=args.rate_hz, synchronized=not args.unsynchronized))
     return evaluate(sim, args.seconds, bump_deg=args.bump_deg)

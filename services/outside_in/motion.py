@@ -26,6 +26,7 @@ import numpy as np
 from filterpy.common import Q_continuous_white_noise
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.fusion.predictor import motion_matrices
 
 Array = np.ndarray
@@ -92,7 +93,7 @@ class MotionFilter:
     def predicted_pose(self, t: float) -> tuple[Array, Array]:
         """Pose ``(p, R)`` at ``t`` without its covariance (cheap: a marker's window)."""
         if self.t is None:
-            raise ValueError("motion filter: not started")
+            raise InvalidInputError("motion filter: not started")
         dt = t - self.t
         W, _, _ = motion_matrices(self.omega, dt)
         return self.p + self.v * dt + 0.5 * dt * dt * self.a, W @ self.R
@@ -113,7 +114,7 @@ class MotionFilter:
 
     def _covariance_at(self, t: float) -> Array:
         if self.t is None:
-            raise ValueError("motion filter: not started")
+            raise InvalidInputError("motion filter: not started")
         dt = t - self.t
         if dt == 0.0:
             return self.P.copy()

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.special import erfc
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.outside_in.bodies import RigidBody
 from services.outside_in.rig import RigCamera, look_at
 
@@ -61,9 +62,9 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         if not 2 <= self.n_cameras <= 16:
-            raise ValueError(f"n_cameras must be 2..16, got {self.n_cameras}")
+            raise InvalidInputError(f"n_cameras must be 2..16, got {self.n_cameras}")
         if not self.rate_hz > 0:
-            raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
+            raise InvalidInputError(f"rate_hz must be positive, got {self.rate_hz}")
 
 
 def standard_bodies() -> list[RigidBody]:

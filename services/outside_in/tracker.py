@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.outside_in.blobs import Blobs
 from services.outside_in.bodies import RigidBody, identify
 from services.outside_in.health import HealthParams, RigHealth
@@ -100,7 +101,8 @@ class OutsideInTracker:
     def __init__(self, cameras: list[RigCamera], bodies: list[RigidBody],
                  params: TrackerParams | None = None):
         if len(cameras) < 2:
-            raise ValueError(f"an outside-in rig needs 2 cameras at least, got {len(cameras)}")
+            raise InvalidInputError(
+                f"an outside-in rig needs 2 cameras at least, got {len(cameras)}")
         self.cameras = list(cameras)
         self.params = params or TrackerParams()
         self.tracks = [_Track(b, MotionFilter(self.params.motion)) for b in bodies]

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
+from agent.errors import InvalidInputError
 from services.installation.camera import Camera
 
 _SUB = (np.arange(3) - 1) / 3.0  # 3x3 sub-pixel sample offsets
@@ -154,10 +155,10 @@ def render_plane_pattern(cam: Camera, origin: np.ndarray, axis_a: np.ndarray,
     ``box`` (u0, u1, v0, v1), if given, is the only part of the image the pattern can
     cover (saves the ray casting elsewhere)."""
     if supersample < 2:
-        raise ValueError(f"supersample must be >= 2 (the blur's scale on the plane is taken "
-                         f"from neighbouring samples), got {supersample}")
+        raise InvalidInputError(f"supersample must be >= 2 (the blur's scale on the plane is taken "
+                                f"from neighbouring samples), got {supersample}")
     if not blur_px > 0:
-        raise ValueError(f"blur_px must be > 0 (a lens has a point spread), got {blur_px}")
+        raise InvalidInputError(f"blur_px must be > 0 (a lens has a point spread), got {blur_px}")
     k = supersample
     u0, u1, v0, v1 = box or (0, cam.width, 0, cam.height)
     u0, v0 = max(0, u0), max(0, v0)

@@ -16,6 +16,7 @@ import threading
 import time
 
 from agent import Service
+from agent.errors import InvalidInputError
 from services import frames
 from services.sim.plugin import MOUNTINGS
 from services.sim.trajectory import HeadTrajectory
@@ -27,7 +28,7 @@ STATIC_REPUBLISH_S = 1.0
 
 def run(args: argparse.Namespace, stop: threading.Event) -> int:
     if not 0 < args.rate_hz <= 2000:
-        raise ValueError(f"--rate-hz must be in (0, 2000], got {args.rate_hz}")
+        raise InvalidInputError(f"--rate-hz must be in (0, 2000], got {args.rate_hz}")
     trajectory = HeadTrajectory(args.seed)
     period = 1.0 / args.rate_hz
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.installation.camera import Camera, place_camera
 from services.installation.ivy import (
     CUBE_SIDE_M,
@@ -101,16 +102,16 @@ class WorldConfig:
 
     def __post_init__(self) -> None:
         if self.n_cameras not in (6, 8):
-            raise ValueError(f"n_cameras must be 6 (one per screen) or 8 (floor and ceiling "
-                             f"split, as in the thesis), got {self.n_cameras}")
+            raise InvalidInputError(f"n_cameras must be 6 (one per screen) or 8 (floor and ceiling "
+                                    f"split, as in the thesis), got {self.n_cameras}")
         if self.exposure_samples < 1 or self.exposure_s < 0:
-            raise ValueError("exposure_s must be >= 0 and exposure_samples >= 1")
+            raise InvalidInputError("exposure_s must be >= 0 and exposure_samples >= 1")
         if min(self.housing_error_deg, self.housing_offset_m, self.screen_bulge_m,
                self.calibration_residual_deg, self.projection_peak_dn, self.beam_divergence_rad,
                self.spot_falloff_exponent) < 0:
-            raise ValueError("housing_error_deg, housing_offset_m, screen_bulge_m, "
-                             "calibration_residual_deg, projection_peak_dn, "
-                             "beam_divergence_rad and spot_falloff_exponent must be >= 0")
+            raise InvalidInputError("housing_error_deg, housing_offset_m, screen_bulge_m, "
+                                    "calibration_residual_deg, projection_peak_dn, "
+                                    "beam_divergence_rad and spot_falloff_exponent must be >= 0")
 
 
 @dataclass
@@ -143,12 +144,12 @@ class IvyWorld:
         changes the calibration images, so worlds that differ only in it share one
         calibration."""
         if ideal and config is not None:
-            raise ValueError("give ideal=True or a config, not both")
+            raise InvalidInputError("give ideal=True or a config, not both")
         self.config = config or (WorldConfig.ideal(n_cameras=n_cameras) if ideal
                                  else WorldConfig(n_cameras=n_cameras))
         if config is not None and n_cameras != 6 and config.n_cameras != n_cameras:
-            raise ValueError(f"n_cameras={n_cameras} disagrees with config.n_cameras="
-                             f"{config.n_cameras}; give it in one place")
+            raise InvalidInputError(f"n_cameras={n_cameras} disagrees with config.n_cameras="
+                                    f"{config.n_cameras}; give it in one place")
         self.seed = seed
         self.install_seed = install_seed
         self.walls: dict[str, Wall] = make_walls(self.config.cube_side_m,
@@ -190,8 +191,8 @@ class IvyWorld:
         q = geo.check_quaternion(q, "rig quaternion").reshape(4)
         half = self.config.cube_side_m / 2
         if np.any(np.abs(p) >= half):
-            raise ValueError(f"rig position {p.tolist()} is outside the cube (half side "
-                             f"{half} m)")
+            raise InvalidInputError(f"rig position {p.tolist()} is outside the cube (half side "
+                                    f"{half} m)")
         R = geo.quat_to_matrix(q)
         offsets = np.array([off for off, _ in self.beams.values()])
         directions = np.array([d for _, d in self.beams.values()])
@@ -290,8 +291,8 @@ class IvyWorld:
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise ValueError(f"no camera {name!r} (cameras: "
-                         f"{', '.join(c.name for c in self.cameras)})")
+        raise InvalidInputError(f"no camera {name!r} (cameras: "
+                                f"{', '.join(c.name for c in self.cameras)})")
 
     def dark_frame(self, name: str, seed: int = 0) -> np.ndarray:
         """An image with the lasers off (for the sensor's dark level and noise)."""

@@ -28,6 +28,7 @@ import time
 from typing import Any
 
 from agent import Service
+from agent.errors import InvalidInputError
 from agent.runtime import RateLimitedLog
 from services.vrpn import protocol as vp
 from services.vrpn.client import TrackerClient
@@ -44,10 +45,10 @@ def sensor_frames(args: argparse.Namespace) -> dict[int, str]:
     out = {0: frame0}
     for n, frame in args.sensor:
         if n in out:
-            raise ValueError(f"--sensor {n}={frame}: sensor {n} is already "
-                             f"{out[n]} (sensor 0 is --edge's FRAME)")
+            raise InvalidInputError(f"--sensor {n}={frame}: sensor {n} is already "
+                                    f"{out[n]} (sensor 0 is --edge's FRAME)")
         if frame in out.values() or frame == world:
-            raise ValueError(f"--sensor {n}={frame}: frame {frame} is already used")
+            raise InvalidInputError(f"--sensor {n}={frame}: frame {frame} is already used")
         out[n] = frame
     return out
 

@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from agent import Client
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from services.vrpn.loop import run_until, wait_for_event
 from services.vrpn.plugin import Served
 from services.vrpn.server import TrackerServer
@@ -71,11 +71,11 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
 
     names = [s.name for s in args.serve]
     if len(set(names)) != len(names):
-        raise ValueError(f"--serve names a tracker twice: {names}")
+        raise InvalidInputError(f"--serve names a tracker twice: {names}")
     if not 0 <= args.port < 65536:
-        raise ValueError(f"--port {args.port} is not a port number")
+        raise InvalidInputError(f"--port {args.port} is not a port number")
     if not args.max_buffer_kb > 0:
-        raise ValueError(f"--max-buffer-kb must be > 0, got {args.max_buffer_kb}")
+        raise InvalidInputError(f"--max-buffer-kb must be > 0, got {args.max_buffer_kb}")
     server = TrackerServer(names, args.bind, args.port, int(args.max_buffer_kb * 1000))
     with Client(realm=args.realm, connect=args.connect, listen=args.listen or None) as client:
         subs = Subscriptions(client, args.serve, server)

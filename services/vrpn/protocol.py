@@ -46,6 +46,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.errors import InvalidInputError
+
 MAGIC = b"vrpn: ver. 07.38"
 #: what must match for two peers to talk: everything through the last '.' of MAGIC
 MAGIC_MAJOR = MAGIC[: MAGIC.rindex(b".") + 1]
@@ -74,7 +76,7 @@ _VELOCITY = struct.Struct(">ii3d4dd")
 _LOB_RE = re.compile(rb"^([A-Za-z0-9.]{1,199}) (\d{1,5})\x00?$")
 
 
-class ProtocolError(ValueError):
+class ProtocolError(InvalidInputError):
     """Bytes that are not what VRPN sends; the message says what was wrong."""
 
 
@@ -351,21 +353,21 @@ def parse_device(text: str) -> DeviceAddress:
     """A VRPN device name as VRPN's clients take it; ``ValueError`` names what is wrong."""
     name, at, location = text.partition("@")
     if not at or not name or not location:
-        raise ValueError(f"VRPN device {text!r} must be NAME@HOST[:PORT] or "
-                         "NAME@tcp://HOST[:PORT]")
+        raise InvalidInputError(f"VRPN device {text!r} must be NAME@HOST[:PORT] or "
+                                "NAME@tcp://HOST[:PORT]")
     try:
         check_name(name)
     except ProtocolError as exc:
-        raise ValueError(f"VRPN device {text!r}: {exc}") from None
+        raise InvalidInputError(f"VRPN device {text!r}: {exc}") from None
     tcp = location.startswith("tcp://")
     if tcp:
         location = location[len("tcp://"):]
     elif "://" in location:
-        raise ValueError(f"VRPN device {text!r}: only tcp:// or no scheme (UDP handshake) "
-                         "is supported")
+        raise InvalidInputError(f"VRPN device {text!r}: only tcp:// or no scheme (UDP handshake) "
+                                "is supported")
     host, colon, port_text = location.rpartition(":")
     if not colon:
         host, port_text = location, str(DEFAULT_PORT)
     if not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
-        raise ValueError(f"VRPN device {text!r}: bad host or port in {location!r}")
+        raise InvalidInputError(f"VRPN device {text!r}: bad host or port in {location!r}")
     return DeviceAddress(name, host, int(port_text), tcp)
