@@ -143,3 +143,25 @@ def test_the_kernels_quaternion_products_are_geometrys() -> None:
         np.testing.assert_allclose(kernel._log_between(a, b),
                                    geo.quat_to_rotvec(np.array(geo.quat_product(conj, b[3:]))),
                                    atol=1e-12)
+
+
+@needs_compiled
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_propagation_equals_the_adjoint_sum(seed: int) -> None:
+    """``propagate`` (compiled) is ``sum(Ad C Ad^T)`` with ``geometry.adjoint``, to float
+    rounding; covariances that are not 6x6 float64 arrays take the numpy form."""
+    rng = np.random.default_rng(seed)
+    poses, covs = [], []
+    for _ in range(int(rng.integers(1, 5))):
+        q = geo.rotvec_to_quat(rng.normal(size=3) * 2.0)
+        poses.append(tuple(float(x) for x in np.r_[rng.normal(size=3) * 3.0, q]))
+        L = rng.normal(size=(6, 6))
+        covs.append(L @ L.T)
+    M = np.array(poses)
+    Ad = geo.adjoint(M[:, :3], M[:, 3:])
+    expected = (Ad @ np.array(covs) @ Ad.transpose(0, 2, 1)).sum(axis=0)
+    np.testing.assert_allclose(kernel.propagate(poses, covs), expected, rtol=0,
+                               atol=1e-12 * np.abs(expected).max())
+    as_lists = [c.tolist() for c in covs]
+    np.testing.assert_allclose(kernel.propagate(poses, as_lists), expected, rtol=0,
+                               atol=1e-12 * np.abs(expected).max())

@@ -208,7 +208,7 @@ static int write_doubles(PyObject *target, const double *v, Py_ssize_t n) {
              && (strcmp(view.format, "d") == 0 || strcmp(view.format, "<d") == 0);
     if (ok) memcpy(view.buf, v, n * sizeof(double));
     PyBuffer_Release(&view);
-    if (!ok) PyErr_SetString(PyExc_ValueError, "the output must be float64 arrays of 3 and 4");
+    if (!ok) PyErr_SetString(PyExc_ValueError, "the output must be float64 arrays of 3, 4 or 36");
     return ok;
 }
 
@@ -269,10 +269,72 @@ fail:
     return NULL;
 }
 
+/* Read a C-contiguous float64 buffer of exactly n doubles (a numpy array); 0 if it is not
+ * one (no Python error left set: the caller falls back to numpy). */
+static int read_doubles(PyObject *source, double *out, Py_ssize_t n) {
+    Py_buffer view;
+    if (PyObject_GetBuffer(source, &view, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    int ok = view.itemsize == 8 && view.len == n * 8 && view.format != NULL
+             && (strcmp(view.format, "d") == 0 || strcmp(view.format, "<d") == 0);
+    if (ok) memcpy(out, view.buf, n * sizeof(double));
+    PyBuffer_Release(&view);
+    return ok;
+}
+
+/* out += Ad C Ad^T, Ad = [[R, [p]x R], [0, R]] the SE(3) adjoint of pose (p, q). */
+static void add_mapped(const double *pose, const double *C, double *out) {
+    double x = pose[3], y = pose[4], z = pose[5], w = pose[6], R[9], Ad[36] = {0}, T[36];
+    R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - z * w); R[2] = 2 * (x * z + y * w);
+    R[3] = 2 * (x * y + z * w); R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - x * w);
+    R[6] = 2 * (x * z - y * w); R[7] = 2 * (y * z + x * w); R[8] = 1 - 2 * (x * x + y * y);
+    const double px = pose[0], py = pose[1], pz = pose[2];
+    const double S[9] = {0, -pz, py, pz, 0, -px, -py, px, 0};
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            Ad[i * 6 + j] = Ad[(i + 3) * 6 + j + 3] = R[i * 3 + j];
+            Ad[i * 6 + j + 3] = S[i * 3] * R[j] + S[i * 3 + 1] * R[3 + j] + S[i * 3 + 2] * R[6 + j];
+        }
+    for (int i = 0; i < 6; i++) /* T = Ad C */
+        for (int j = 0; j < 6; j++) {
+            double s = 0;
+            for (int k = 0; k < 6; k++) s += Ad[i * 6 + k] * C[k * 6 + j];
+            T[i * 6 + j] = s;
+        }
+    for (int i = 0; i < 6; i++) /* out += T Ad^T */
+        for (int j = 0; j < 6; j++) {
+            double s = 0;
+            for (int k = 0; k < 6; k++) s += T[i * 6 + k] * Ad[j * 6 + k];
+            out[i * 6 + j] += s;
+        }
+}
+
+static PyObject *propagate(PyObject *Py_UNUSED(self), PyObject *args) {
+    PyObject *poses, *mats, *out;
+    if (!PyArg_ParseTuple(args, "O!O!O", &PyList_Type, &poses, &PyList_Type, &mats, &out))
+        return NULL;
+    Py_ssize_t n = PyList_GET_SIZE(poses);
+    if (n != PyList_GET_SIZE(mats)) Py_RETURN_FALSE;
+    double acc[36] = {0}, pose[7], C[36];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!read_floats(PyList_GET_ITEM(poses, i), pose, 7)
+            || !read_doubles(PyList_GET_ITEM(mats, i), C, 36))
+            Py_RETURN_FALSE;
+        add_mapped(pose, C, acc);
+    }
+    if (!write_doubles(out, acc, 36)) return NULL;
+    Py_RETURN_TRUE;
+}
+
 static PyMethodDef methods[] = {
     {"evaluate", evaluate, METH_VARARGS,
      "evaluate(t_ns, items, want_edges, p_out, q_out): agent.srg.kernel.evaluate "
      "compiled; None where it would raise."},
+    {"propagate", propagate, METH_VARARGS,
+     "propagate(poses, covariances, out): agent.srg.kernel.propagate compiled into out "
+     "(6x6 float64); False where an input is not a 7-float tuple or a 6x6 float64 array."},
     {NULL, NULL, 0, NULL},
 };
 

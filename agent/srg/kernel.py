@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from agent import geometry as geo
 from agent.geometry import _SMALL_ANGLE
 
 Pose = tuple[float, float, float, float, float, float, float]
@@ -130,6 +131,20 @@ def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndar
     return extrapolated, stamps, edges, prefixes
 
 
+def propagate(poses: list[Pose], covariances: list[np.ndarray]) -> np.ndarray:
+    """``sum(Ad(M_i) C_i Ad(M_i)^T)``: each 6x6 covariance mapped by the adjoint of its pose
+    and summed (a path's covariance).  Compiled with :data:`NATIVE` (a batched numpy form
+    costs tens of numpy calls for the two or three terms of a route); numpy otherwise, or
+    for covariances that are not 6x6 float64 arrays."""
+    if NATIVE is not None and _PROPAGATE is not None:
+        out = np.empty((6, 6))
+        if _PROPAGATE(poses, covariances, out):
+            return out
+    M = np.array(poses)
+    Ad = geo.adjoint(M[:, :3], M[:, 3:])
+    return (Ad @ np.array(covariances, dtype=float) @ Ad.transpose(0, 2, 1)).sum(axis=0)
+
+
 def _native() -> Callable[..., Result | None] | None:
     """The compiled kernel, or None (not built, or ``UMA_SRG_PURE_PYTHON=1``).  It returns
     None where :func:`evaluate` would raise, so that the error comes from one place."""
@@ -144,3 +159,6 @@ def _native() -> Callable[..., Result | None] | None:
 
 #: the compiled kernel in use (tests set it to None to run the pure-Python one)
 NATIVE: Any = _native()
+#: the compiled :func:`propagate`, used while :data:`NATIVE` is
+_PROPAGATE: Any = None if NATIVE is None else getattr(
+    __import__("agent.srg._kernel", fromlist=["propagate"]), "propagate", None)

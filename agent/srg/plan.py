@@ -215,11 +215,7 @@ class Chain:
                 pose = kernel.compose(pose, (*edges[j][3][:3], 0.0, 0.0, 0.0, 1.0))
             poses.append(pose)
             mats.append(c)
-        if not mats:
-            return None
-        M = np.array(poses)
-        Ad = geo.adjoint(M[:, :3], M[:, 3:])
-        return (Ad @ np.array(mats) @ Ad.transpose(0, 2, 1)).sum(axis=0)
+        return kernel.propagate(poses, mats) if mats else None
 
 
 _IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
