@@ -8,7 +8,7 @@ import time
 from unittest import mock
 
 from agent.daemon.streams import StreamHub
-from agent.runtime.worker import Worker
+from agent.runtime.worker import WakeLoop, Worker
 
 
 def _sample(data: bytes) -> mock.Mock:
@@ -154,3 +154,30 @@ def test_the_agents_own_keys_share_one_wildcard_subscriber() -> None:
     finally:
         hub.close()
         session.close()
+
+
+def test_wake_loop_runs_its_step_when_woken_says_why_a_step_failed_and_stops() -> None:
+    log = mock.Mock()
+    calls: list[int] = []
+    ran = threading.Event()
+
+    def step() -> None:
+        calls.append(len(calls))
+        ran.set()
+        if len(calls) == 1:
+            raise RuntimeError("bug")
+    loop = WakeLoop("test-wake", step, log, "test step", period_s=30.0)
+    loop.start()
+    try:
+        for expected in (1, 2):
+            loop.wake()
+            assert ran.wait(5.0)
+            ran.clear()
+            assert len(calls) == expected
+        log.warning.assert_called_once_with("test step", "RuntimeError: bug")
+    finally:
+        loop.close(2.0)
+    assert loop.stopping and not loop._thread.is_alive()
+    loop.wake()
+    time.sleep(0.05)
+    assert len(calls) == 2  # closed: no more steps

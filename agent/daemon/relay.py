@@ -36,6 +36,7 @@ from agent.protocol import query as proto
 from agent.result import PoseResult
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
+from agent.runtime.worker import WakeLoop
 from agent.srg.composition import compose
 
 log = logging.getLogger("uma.srg")
@@ -82,12 +83,9 @@ class SegmentCache:
         self._refused: dict[SegmentKey, float] = {}
         self.hits = 0
         self.misses = 0
-        self._wake = threading.Event()
-        self._stop = threading.Event()
         self._log = RateLimitedLog(log)
-        self._worker = threading.Thread(target=self._work, name="uma-segment-cache",
-                                        daemon=True)
-        self._worker.start()
+        self._loop = WakeLoop("uma-segment-cache", self._work, self._log, "segment cache")
+        self._loop.start()
 
     def answer(self, agent: str, req: proto.SegmentRequest) -> dict[str, Any] | None:
         """The wire result of ``agent``'s segment from the cache, or None (counted: a
@@ -135,7 +133,7 @@ class SegmentCache:
             if n >= HOT_REQUESTS and now >= self._refused.get(key, 0.0):
                 self._counts.pop(key, None)
                 self._wanted.add(key)
-                self._wake.set()
+                self._loop.wake()
                 return
             if len(self._counts) >= MAX_COUNTED and key not in self._counts:
                 self._counts.clear()
@@ -149,21 +147,14 @@ class SegmentCache:
     # ------------------------------------------------------------------ the worker
 
     def _work(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait(1.0)
-            self._wake.clear()
-            if self._stop.is_set():
+        """Drop the segments no longer used, keep those asked for often."""
+        self._drop_unused()
+        with self._lock:
+            wanted, self._wanted = self._wanted, set()
+        for key in sorted(wanted):
+            if self._loop.stopping:
                 return
-            try:
-                self._drop_unused()
-                with self._lock:
-                    wanted, self._wanted = self._wanted, set()
-                for key in sorted(wanted):
-                    if self._stop.is_set():
-                        return
-                    self._keep(key)
-            except Exception as exc:  # keep the agent alive; say why once in a while
-                self._log.warning("segment cache", f"{type(exc).__name__}: {exc}")
+            self._keep(key)
 
     def _keep(self, key: SegmentKey) -> None:
         """Keep one segment, making room first (the least recently used goes)."""
@@ -214,9 +205,7 @@ class SegmentCache:
             log.info("segment cache: dropped %s -> %s of agent %r", key[1], key[2], key[0])
 
     def close(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        self._worker.join(5.0)
+        self._loop.close(5.0)
         for key in list(self._kept):
             self._close(key)
         if self._client is not None:

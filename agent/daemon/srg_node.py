@@ -64,6 +64,7 @@ from agent.protocol import keys
 from agent.protocol import query as proto
 from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
+from agent.runtime.worker import WakeLoop
 from agent.srg import Graph
 
 log = logging.getLogger("uma.srg")
@@ -84,17 +85,17 @@ class SrgNode:
         #: test-only skew of this agent's clock (agent.protocol.query.SKEW_ENV)
         self.skew_ns = proto.skew_from_env()
         self._log = RateLimitedLog(log)
-        self._wake = threading.Event()
-        self._stop = threading.Event()
+        self._loop = WakeLoop("uma-srg", self._work, self._log, "supernode",
+                              pause_s=PUBLISH_CHECK_S)
         lock = threading.Lock()
 
         def clock() -> int:  # looked up at each call: tests replace now_ns
             return self.now_ns()
         self.store = LocalGraph(streams if streams is not None else StreamHub(session), realm,
-                                agent_id, static_edges or [], lock, clock, self._wake.set,
+                                agent_id, static_edges or [], lock, clock, self._loop.wake,
                                 self._log)
         self.queries = QueryServer(session, self.store, clock, self._log)
-        self.peers = PeerFrames(session, realm, agent_id, lock, self._wake.set, self._log)
+        self.peers = PeerFrames(session, realm, agent_id, lock, self._loop.wake, self._log)
         self.publisher = SummaryPublisher(session, self.store, self.peers, self._log)
         #: the newest sample of each local pose stream, for viewers
         self.digest = StreamDigest(session, realm, agent_id, lambda: self.store.newest,
@@ -112,9 +113,8 @@ class SrgNode:
                 self.peers.on_agent_token, "agent token", self._log), history=True),
         ]
         self.peers.ask_all()
-        self._worker = threading.Thread(target=self._work, name="uma-srg", daemon=True)
-        self._worker.start()
-        self._wake.set()
+        self._loop.start()
+        self._loop.wake()
 
     def now_ns(self) -> int:
         """This agent's clock (skewed in tests, see agent.protocol.query.SKEW_ENV)."""
@@ -166,26 +166,17 @@ class SrgNode:
     # ------------------------------------------------------------------ the worker
 
     def _work(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait(1.0)
-            self._wake.clear()
-            if self._stop.is_set():
-                return
-            try:
-                self.store.drain()
-                self.digest.publish()
-                self.peers.resync_if_due()
-                self.peers.fetch_new()
-                self.publisher.republish_if_changed()
-            except Exception as exc:  # keep the agent alive; say why once in a while
-                self._log.warning("supernode", f"{type(exc).__name__}: {exc}")
-            self._stop.wait(PUBLISH_CHECK_S)
+        """Take the queued samples, then publish what they changed, at most every
+        ``PUBLISH_CHECK_S``."""
+        self.store.drain()
+        self.digest.publish()
+        self.peers.resync_if_due()
+        self.peers.fetch_new()
+        self.publisher.republish_if_changed()
 
     def close(self) -> None:
         """Stop publishing, answering and listening (before the agent closes its session)."""
-        self._stop.set()
-        self._wake.set()
-        self._worker.join(2.0)
+        self._loop.close(2.0)
         self.queries.close()
         self.store.close()
         self.digest.close()

@@ -147,3 +147,57 @@ class Worker:
 
 def _name(fn: Callable[..., None]) -> str:
     return getattr(fn, "__name__", repr(fn))
+
+
+class WakeLoop:
+    """A thread that catches up with what changed: it runs ``step`` when woken, and at
+    least every ``period_s``, until closed.
+
+    For work where many wake-ups mean the same as one (republish a summary, keep the
+    segments asked for since the last run), so a wake-up is a flag, not a queued call.
+    ``pause_s`` after each step bounds how often it runs however often it is woken.  A step
+    that raises is said in a rate-limited line (``what``) and the loop goes on; a long step
+    checks :attr:`stopping` to end early.
+    """
+
+    def __init__(self, name: str, step: Callable[[], None], log: RateLimitedLog, what: str,
+                 period_s: float = 1.0, pause_s: float = 0.0) -> None:
+        self._step = step
+        self._log = log
+        self._what = what
+        self._period_s = period_s
+        self._pause_s = pause_s
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def wake(self) -> None:
+        """Have ``step`` run soon (once, however often this is called meanwhile)."""
+        self._wake.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def close(self, timeout_s: float) -> None:
+        """Stop after the current step; wait for it at most ``timeout_s``."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(self._period_s)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self._step()
+            except Exception as exc:  # keep the process alive; say why once in a while
+                self._log.warning(self._what, f"{type(exc).__name__}: {exc}")
+            if self._pause_s:
+                self._stop.wait(self._pause_s)
