@@ -79,6 +79,10 @@ BENCHES = {
               "match_all_warm_median_ms", "match_all_warm_p99_ms",
               "baseline_naive_median_ms", "baseline_naive_p99_ms")),
     ]),
+    "bench_outside_in.py": (["--frames", "3", "--cameras", "3"], [
+        ((name,), ("median_ms", "p99_ms"))
+        for name in ("detection", "anchor_contours", "tracker", "anchor_opencv_baseline")
+    ]),
     "bench_fusion.py": (["--seconds", "1"], [
         (("scaat",), ("sample_median_us", "sample_p99_us")),
         (("baseline_filterpy_batch",), ("sample_median_us", "sample_p99_us")),

@@ -1,0 +1,89 @@
+"""Benchmark of the outside-in tracker: marker blobs per 640x480 IR image and the whole
+tracker per frame set (six cameras by default, three bodies, 5 false blobs per camera).
+
+Anchors measured in the same run on the same images: blob detection with
+``cv2.findContours`` and intensity ``cv2.moments`` per contour (the usual OpenCV recipe),
+and per frame set the OpenCV-only baseline of ``uma eval outside-in`` (per body the best
+camera pair, ``cv2.triangulatePoints``, ``cv2.estimateAffine3D``).  The frames are
+rendered first, outside the timing.  ``frame_sets_per_s`` is what one core sustains
+(detection in every image plus the tracker), to hold against the cameras' 120 Hz.
+
+    python bench/bench_outside_in.py [--frames 120] [--cameras 6] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import cv2
+import numpy as np
+from summary import cpu_model, median_p99, report
+
+from services.outside_in.blobs import BlobParams, find_blobs
+from services.outside_in.evaluate import opencv_baseline
+from services.outside_in.simulator import SimConfig, Simulation
+from services.outside_in.tracker import CameraFrame, OutsideInTracker
+
+
+def contour_blobs(img: np.ndarray, p: BlobParams) -> np.ndarray:
+    """Blobs by findContours + intensity moments."""
+    _, mask = cv2.threshold(img, p.threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        x, y, w, h = cv2.boundingRect(c)
+        roi = img[y:y + h, x:x + w].astype(np.float32) - p.dark_level
+        roi[mask[y:y + h, x:x + w] == 0] = 0
+        m = cv2.moments(roi)
+        if m["m00"] > 0:
+            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
+    return np.array(out).reshape(-1, 2)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=120, help="frame sets (default 120)")
+    ap.add_argument("--cameras", type=int, default=6, help="cameras, 2-16 (default 6)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--json", action="store_true", help="also print one JSON object")
+    args = ap.parse_args()
+    if args.frames < 2 or not 2 <= args.cameras <= 16:
+        ap.error("--frames must be 2 or more and --cameras 2-16")
+    cv2.setNumThreads(1)
+    sim = Simulation(seed=args.seed, config=SimConfig(n_cameras=args.cameras))
+    sets = [[sim.render(c, i) for c in range(args.cameras)] for i in range(args.frames)]
+    tracker = OutsideInTracker(list(sim.cameras), sim.bodies)
+    detect, anchor_detect, track, anchor_track = [], [], [], []
+    for frames in sets:
+        blobs = []
+        for f in frames:
+            t = time.perf_counter()
+            blobs.append(find_blobs(f.image))
+            detect.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            contour_blobs(f.image, BlobParams())
+            anchor_detect.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        tracker.process([CameraFrame(c, f.t, b) for c, (f, b) in enumerate(zip(frames, blobs,
+                                                                             strict=True))])
+        track.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        for k, body in enumerate(sim.bodies):
+            opencv_baseline(sim.cameras, frames, blobs, k, body)
+        anchor_track.append(time.perf_counter() - t)
+    ms = np.array
+    d, ad = ms(detect) * 1e3, ms(anchor_detect) * 1e3
+    tr, at = ms(track) * 1e3, ms(anchor_track) * 1e3
+    per_set = tr + d.reshape(len(sets), -1).sum(axis=1)
+    figures = {"cpu": cpu_model(), "frames": args.frames, "cameras": args.cameras,
+               "detection": median_p99(d, "ms"), "anchor_contours": median_p99(ad, "ms"),
+               "detection_ratio_to_anchor": float(np.median(d) / np.median(ad)),
+               "tracker": median_p99(tr, "ms"), "anchor_opencv_baseline": median_p99(at, "ms"),
+               "tracker_ratio_to_anchor": float(np.median(tr) / np.median(at)),
+               "frame_sets_per_s": float(1e3 / np.median(per_set))}
+    report(figures, args.json)
+
+
+if __name__ == "__main__":
+    main()
