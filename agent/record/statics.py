@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -24,6 +23,7 @@ import msgpack
 import zenoh
 
 from agent.errors import UmaError
+from agent.runtime import RateLimitedLog, WakeLoop
 
 log = logging.getLogger("uma.record")
 
@@ -64,42 +64,32 @@ class StaticEdges:
         self._realm = realm
         self._offer = offer
         self._last: dict[str, list[dict[str, Any]]] = {}
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self._wake.set()
-        self._thread = threading.Thread(target=self._run, name="uma-record-statics",
-                                        daemon=True)
-        self._thread.start()
+        self._loop = WakeLoop("uma-record-statics", self._run, RateLimitedLog(log),
+                              "looking up static edges", period_s=RECHECK_S)
+        self._loop.start()
+        self._loop.wake()
 
     def changed(self) -> None:
-        self._wake.set()
+        self._loop.wake()
 
     def close(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        self._thread.join(5.0)
+        self._loop.close(5.0)
         with contextlib.suppress(Exception):
             self._client.close()
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait(RECHECK_S)
-            self._wake.clear()
-            if self._stop.is_set():
-                return
-            try:
-                self._client.refresh()
-                for agent_id, info in sorted(self._client.agents().items()):
-                    if info["alive"]:
-                        self._look(agent_id, info["frames"][:MAX_FRAMES])
-            except Exception as exc:  # a realm in flux: logged, tried again at the next change
-                log.warning("looking up static edges: %s", exc)
+        """Look at every live agent's frames; a realm in flux fails a look, logged, and the
+        next change or recheck tries again."""
+        self._client.refresh()
+        for agent_id, info in sorted(self._client.agents().items()):
+            if info["alive"]:
+                self._look(agent_id, info["frames"][:MAX_FRAMES])
 
     def _look(self, agent_id: str, frames: list[str]) -> None:
         edges = []
         for parent in frames:
             for child in frames:
-                if parent == child or self._stop.is_set():
+                if parent == child or self._loop.stopping:
                     continue
                 with contextlib.suppress(UmaError):
                     r = self._client.pose(parent, child, error="hops")

@@ -12,14 +12,15 @@ a command) and a long-running command may use; the modules behind them are inter
 - sessions: :func:`open_session`, :func:`close_session`, :func:`sdk_mode` (client or peer
   for these endpoints), :func:`query` (a bounded ``get``), :func:`lease_ms_default`;
 - :class:`RateLimitedLog` and :func:`guarded`: log a peer's bad input and a callback's
-  failures without flooding.
+  failures without flooding;
+- :class:`WakeLoop`: a thread that runs a step when woken (or every period) until closed.
 """
 
 from __future__ import annotations
 
 from agent._lazy import lazy_attributes
 
-__all__ = ["CommandPlugin", "EvalPlugin", "RateLimitedLog", "ServicePlugin",
+__all__ = ["CommandPlugin", "EvalPlugin", "RateLimitedLog", "ServicePlugin", "WakeLoop",
            "add_network_arguments", "close_session", "guarded", "lease_ms_default",
            "load_all", "open_session", "query", "sdk_mode", "stop_on_signals", "stop_processes"]
 
@@ -38,4 +39,5 @@ __getattr__ = lazy_attributes(__name__, {
     "sdk_mode": "agent.runtime.session",
     "stop_on_signals": "agent.runtime.processes",
     "stop_processes": "agent.runtime.processes",
+    "WakeLoop": "agent.runtime.worker",
 })
