@@ -76,10 +76,10 @@ class RigHealth:
             state = self.cams[c]
             cam = cameras[c]
             expected = used = 0
-            for p, R, markers, kept in poses:
-                world = markers @ R.T + p
-                expected += int(np.sum(cam.visible(world, margin_px=5)))
-                used += len(kept.get(c, {}))
+            if poses:
+                world = np.vstack([m @ R.T + p for p, R, m, _ in poses])
+                expected = int(np.sum(cam.visible(world, margin_px=5)))
+                used = sum(len(kept.get(c, {})) for *_, kept in poses)
             state.expected.append(expected)
             state.used.append(used)
             if not state.flagged and self._disagrees(state):

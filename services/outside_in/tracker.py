@@ -152,17 +152,26 @@ class OutsideInTracker:
         predicted image has one unambiguous blob; blobs claimed twice go to no one."""
         p = self.params
         owners: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
-        for k, track in enumerate(self.tracks):
-            if not track.filter.ready or track.missed >= p.lost_after:
-                continue
-            for f in frames:
-                cam = self.cameras[f.camera]
+        tracked = [(k, tr) for k, tr in enumerate(self.tracks)
+                   if tr.filter.ready and tr.missed < p.lost_after]
+        if not tracked:
+            return {}
+        for f in frames:
+            cam = self.cameras[f.camera]
+            worlds = []
+            for _, track in tracked:
                 pp, R = track.filter.predicted_pose(f.t)
-                world = track.body.markers @ R.T + pp
-                if not np.all(cam.to_camera(world)[:, 2] > 0.05):
+                worlds.append(track.body.markers @ R.T + pp)
+            # one projection per camera for every tracked body's markers
+            uv_all = cam.project(np.vstack(worlds))
+            z_all = cam.to_camera(np.vstack(worlds))[:, 2]
+            start = 0
+            for (k, _), world in zip(tracked, worlds, strict=True):
+                uv, z = uv_all[start:start + len(world)], z_all[start:start + len(world)]
+                start += len(world)
+                if not np.all(z > 0.05):
                     continue
-                d = np.linalg.norm(cam.project(world)[:, None, :] - f.blobs.uv[None, :, :],
-                                   axis=2)
+                d = np.linalg.norm(uv[:, None, :] - f.blobs.uv[None, :, :], axis=2)
                 order = np.argsort(d, axis=1)
                 for m in range(len(world)):
                     near = d[m, order[m, 0]]
