@@ -26,6 +26,10 @@ tracker service process registered with C), and one bare queryable process.  Mea
    reaching ``on_pose`` in this process; median and p99, against the anchor of the same
    run: a bare Zenoh put from the tracker's own session to a subscriber callback in this
    process (half a period after each sample, so the two never queue behind each other).
+   Before it, as long again, the tracker's encoded samples at a plain Zenoh callback in
+   this process (no subscription yet) against the bare put of that window: the part of
+   the ratio that is the publisher's encoding and the agents' handling of a sample on the
+   way, before the subscription's own work (decode, mirror, compose).
 
 Both are measured with the client as a Zenoh client of agent A (the default layout: A
 routes its queries to B and C and their answers back, and C's samples through A) and as a
@@ -59,8 +63,10 @@ import numpy as np
 from loopback import free_port, wait_listening
 from summary import cpu_model, median_p99
 
+from agent.protocol import keys
 from agent.protocol import query as proto
 from agent.runtime.processes import stop_processes
+from schemas.codec import peek_time
 
 WORLD, CAM, RIG, HEAD = "ivy/world", "cam/nw", "marvin/rig", "alice/head"
 EDGES = {
@@ -183,27 +189,45 @@ def _queries(c, bare, key: str, n: int) -> dict:
 
 def _streaming(c, realm: str, seconds: float) -> dict:
     """Publication -> composed pose at ``on_pose``, and the bare put -> callback anchor
-    between the same processes (the tracker's session and this client's)."""
-    latency_us: list[float] = []
+    between the same processes (the tracker's session and this client's); before that, as
+    long again, the tracker's encoded samples at a plain Zenoh callback here (no
+    subscription: what the publisher's encoding and the agents' hops cost before the
+    subscription's own work), against the bare put of that window."""
     oneway_us: list[float] = []
 
     def on_bare(sample) -> None:
         sent = struct.unpack("<q", sample.payload.to_bytes())[0]
         oneway_us.append((time.time_ns() - sent) / 1000)
+    bare_sub = c.session.declare_subscriber(f"bench/{realm}/oneway", on_bare)
+    raw_us: list[float] = []
+
+    def on_raw(sample) -> None:
+        now = time.time_ns()
+        sent = peek_time(sample.payload.to_bytes(), "pose6d")
+        raw_us.append((now - sent) / 1000)
+    raw_sub = c.session.declare_subscriber(keys.all_data(realm, "C"), on_raw)
+    time.sleep(seconds)
+    raw_sub.undeclare()
+    raw_anchor, oneway_us[:] = list(oneway_us), []
+    latency_us: list[float] = []
 
     def on_pose(r) -> None:
         published = c.clock.to_remote("C", r.t_ns)
         latency_us.append((time.time_ns() - published) / 1000)
-    bare_sub = c.session.declare_subscriber(f"bench/{realm}/oneway", on_bare)
     sub = c.subscribe(WORLD, HEAD, on_pose=on_pose, error="hops")
     time.sleep(seconds)
     sub.close()
     bare_sub.undeclare()
     out = {"streaming": _stats(latency_us) if latency_us else None,
-           "bare_put": _stats(oneway_us) if oneway_us else None}
+           "bare_put": _stats(oneway_us) if oneway_us else None,
+           "raw_sample": _stats(raw_us) if raw_us else None,
+           "raw_bare_put": _stats(raw_anchor) if raw_anchor else None}
     if latency_us and oneway_us:
         out["ratio_streaming_to_bare_put"] = (out["streaming"]["median_us"]
                                               / out["bare_put"]["median_us"])
+    if raw_us and raw_anchor:
+        out["ratio_raw_sample_to_bare_put"] = (out["raw_sample"]["median_us"]
+                                               / out["raw_bare_put"]["median_us"])
     return out
 
 
@@ -225,7 +249,13 @@ def _print(figures: dict) -> None:
                   + (" (goal <= 2.0)" if kind in ("latest", "past") else ""))
         print(f"[client as a Zenoh {mode}] segments answered from A's cache: "
               f"{f['parts_from_a_cache']}")
-        o, s = f["bare_put"], f["streaming"]
+        o, s, r = f["bare_put"], f["streaming"], f["raw_sample"]
+        if r and f["raw_bare_put"]:
+            print(f"[client as a Zenoh {mode}] the tracker's encoded sample at a plain Zenoh "
+                  f"callback here (no subscription, before it): median {r['median_us']:.0f} "
+                  f"us, p99 {r['p99_us']:.0f} us, ratio {f['ratio_raw_sample_to_bare_put']:.2f}"
+                  f" to the bare put of that window (median "
+                  f"{f['raw_bare_put']['median_us']:.0f} us)")
         if o:
             print(f"[client as a Zenoh {mode}] bare Zenoh put -> subscriber callback: median "
                   f"{o['median_us']:.0f} us, p99 {o['p99_us']:.0f} us ({o['n']} puts)")
