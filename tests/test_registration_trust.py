@@ -25,6 +25,7 @@ from test_hostile_peers import PRODUCER, rss_mb, snapshot
 from agent import Client
 from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
+from agent.daemon.registrar import UNPROVEN_TOTAL_BURST, UNPROVEN_TOTAL_RATE
 from agent.daemon.settings import AgentSettings
 from agent.protocol import keys
 from agent.protocol.registration import (
@@ -155,8 +156,10 @@ def test_a_registration_flood_is_bounded_in_size_and_rate(processes, realm) -> N
         before, cpu = rss_mb(host.popen.pid), cpu_s(host.popen.pid)
         outcomes = [register_raw(s, realm, "hostA", register_request(
             big(f"big{i}"), f"b{i}", 1, {})) for i in range(60)]
+        started = time.monotonic()
         outcomes += [register_raw(s, realm, "hostA", register_request(
             forged(f"junk{i}", (f"j{i}/a", f"j{i}/b")), f"j{i}", 1, {})) for i in range(300)]
+        took = time.monotonic() - started
         grew, cpu = rss_mb(host.popen.pid) - before, cpu_s(host.popen.pid) - cpu
         cam.send("update frequency_hz=77")
         poll(lambda: snapshot(s, realm, "hostA").services["cam"].abilities[0]
@@ -165,11 +168,13 @@ def test_a_registration_flood_is_bounded_in_size_and_rate(processes, realm) -> N
     print(f"flood: {len(accepted)} of {len(outcomes)} accepted, agent RSS +{grew:.1f} MB, "
           f"agent CPU {cpu:.2f} s")
     assert all("more than 131072" in error for _, error in outcomes[:60]), outcomes[0]
-    assert 0 < len(accepted) < 150 and all(i >= 60 for i in accepted)
+    bound = UNPROVEN_TOTAL_BURST + UNPROVEN_TOTAL_RATE * took + 1  # the shared bucket
+    assert 0 < len(accepted) <= min(bound, 250) and all(i >= 60 for i in accepted)
     assert all("retry" in error for ok, error in outcomes[60:] if not ok)
     assert grew < 40
     host.wait_log("registrations: refused (rate")
-    assert len([line for line in host.log if "registrations: refused (rate" in line]) == 1
+    lines = [line for line in host.log if "registrations: refused (rate" in line]
+    assert 1 <= len(lines) <= 1 + took // 10  # one line per kind per 10 s
 
 
 def test_sender_limits_bound_each_sender_and_all_together() -> None:
@@ -397,7 +402,7 @@ def test_token_churn_is_coalesced_and_bounded(site, realm) -> None:
     def churn() -> None:
         with open_session(connect=[ep]) as s:
             for i in range(4000):
-                if stop.is_set():
+                if stop.is_set() and i >= 500:  # at least 1,000 events, however fast
                     break
                 for key in (keys.agent_token(realm, f"ghost{i}"),
                             keys.service_token(realm, "hostA", f"ghost{i}")):
@@ -421,7 +426,7 @@ def test_token_churn_is_coalesced_and_bounded(site, realm) -> None:
     print(f"churn: {sent[0]} tokens, {started} checks started, {refused} events refused, "
           f"{agent._worker.refused} calls refused by the work queue")
     assert agent._worker.refused == 0
-    assert sent[0] > 2000 and started < sent[0] // 2
+    assert sent[0] >= 1000 and started < sent[0] // 2
 
 
 def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> None:
