@@ -229,11 +229,13 @@ def run_demo(seconds: float, seed: int, live: bool = True,
     recording: Any = None
     try:
         tracking = Agent(AgentSettings(realm=realm, agent_id="tracking", listen=[ep_tracking],
-                                       static_edges=_static_edges(), lease_ms=lease_ms))
+                                       static_edges=_static_edges(), lease_ms=lease_ms),
+                         client=Client)
         tracking.start()
         agents.append(tracking)
         app = Agent(AgentSettings(realm=realm, agent_id="application", listen=[ep_app],
-                                  connect=[ep_tracking], lease_ms=lease_ms))
+                                  connect=[ep_tracking], lease_ms=lease_ms),
+                    client=Client)
         app.start()
         agents.append(app)
         common = ["--realm", realm, "--agent", "tracking", "--connect", ep_tracking]

@@ -57,6 +57,7 @@ def test_a_route_answered_by_its_first_agent_equals_the_fan_out(world, realm):  
 
 def test_the_segment_cache_keeps_hot_segments_and_drops_unused_ones(world, realm,  # noqa: F811
                                                                      monkeypatch):
+    from agent import Client
     from agent.daemon import relay
     from agent.runtime.session import acquire_session, release_session
 
@@ -64,7 +65,7 @@ def test_the_segment_cache_keeps_hot_segments_and_drops_unused_ones(world, realm
     monkeypatch.setattr(relay, "MAX_KEPT", 1)
     eps, _, _ = world
     session = acquire_session("client", None, [eps["A"]], realm, shared=False, wait_s=2.0)
-    cache = relay.SegmentCache(session, realm)
+    cache = relay.SegmentCache(session, realm, Client)
     try:
         head = proto.SegmentRequest(HEAD, WORLD, "latency", None)
         world_ = proto.SegmentRequest(WORLD, HEAD, "latency", None)

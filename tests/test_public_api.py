@@ -176,6 +176,21 @@ def test_protocol_and_srg_depend_only_on_schemas_and_the_pure_modules() -> None:
     assert offences == []
 
 
+def test_the_daemon_and_the_sdk_never_import_each_other() -> None:
+    """Neither ``agent/daemon`` nor ``agent/sdk`` imports the other, not even inside a
+    function (docs/ARCHITECTURE.md): the agent gets the SDK's client handed in."""
+    from pathlib import Path
+
+    root = Path(agent.__file__).parent
+    offences = []
+    for package, other in (("daemon", "sdk"), ("sdk", "daemon")):
+        for path in sorted((root / package).rglob("*.py")):
+            offences += [f"{package}/{path.name}:{line}: {n}" for line, n in _imported(path)
+                         if n.startswith(f"agent.{other}")
+                         or (n == "agent" and package == "daemon")]
+    assert offences == []
+
+
 def test_every_error_a_user_sees_is_an_uma_error_and_keeps_its_builtin_base() -> None:
     """One ``except UmaError`` catches what the SDK raises at its user; code that catches
     the builtin base (``ValueError``, ``LookupError``, ``TimeoutError``) still does."""

@@ -46,6 +46,7 @@ from agent.daemon.settings import AgentSettings
 from agent.errors import UmaError
 from agent.runtime.processes import stop_on_signals
 from agent.runtime.ready import notify
+from agent.sdk.client import Client
 
 _TOP = {"realm", "id", "mode", "listen", "connect", "services", "matching", "zenoh", "static"}
 _MATCHING = {"grace_s", "rate_window_s"}
@@ -145,7 +146,7 @@ def main(args: argparse.Namespace) -> int:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = settings_from(args)
     stop = stop_on_signals()
-    agent = Agent(settings)
+    agent = Agent(settings, client=Client)
     _start_or_exit(agent)
     try:
         status = (f"uma agent {settings.agent_id} (realm {settings.realm}) listening on "

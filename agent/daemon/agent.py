@@ -51,6 +51,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -111,8 +112,14 @@ class NeedState:
 class Agent:
     """The per-host daemon (see the module docstring): ``start()``, then ``close()``."""
 
-    def __init__(self, settings: AgentSettings) -> None:
+    def __init__(self, settings: AgentSettings, client: Callable[..., Any] | None = None,
+                 ) -> None:
+        """``client``: the SDK's :class:`agent.Client` (or one called like it), with which
+        the agent keeps the segments of other agents it is asked for often
+        (:mod:`agent.daemon.relay`); the daemon does not import the SDK itself.  None: it
+        keeps none and forwards every such part."""
         self.s = settings.check()
+        self._client_class = client
         self.realm, self.agent_id = self.s.realm, self.s.agent_id
         self.epoch = time.time_ns()
         self.view = RealmView(self.realm, self.agent_id)
@@ -213,7 +220,7 @@ class Agent:
                         "agent.daemon.srg_node is not available (%s)", self.agent_id, exc)
             return
         self.srg = SrgNode(self.session, self.realm, self.agent_id, self.s.static_edges,
-                           self.streams)
+                           self.streams, self._client_class)
 
     def _host(self, name: str, plugin: plugins.ServicePlugin) -> None:
         """Run a service plug-in in a thread, registered with this agent."""

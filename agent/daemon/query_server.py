@@ -39,7 +39,9 @@ class QueryServer:
     """Answers pose queries, clock probes and routes for one agent (module docstring)."""
 
     def __init__(self, session: zenoh.Session, store: LocalGraph, now_ns: Callable[[], int],
-                 limited_log: RateLimitedLog) -> None:
+                 limited_log: RateLimitedLog, client: Callable[..., Any] | None = None) -> None:
+        """``client``: what the segment cache keeps other agents' segments with
+        (:class:`agent.daemon.relay.SegmentCache`; None: it keeps none)."""
         self._store = store
         self.agent_id = store.agent_id
         self._now_ns = now_ns
@@ -53,7 +55,7 @@ class QueryServer:
         #: answers evicted by the bound above
         self.answers_evicted = 0
         #: other agents' segments this agent is asked for often, and whole routes
-        self.segment_cache = SegmentCache(session, store.realm)
+        self.segment_cache = SegmentCache(session, store.realm, client)
         self._relay = RouteRelay(session, store.realm, store.agent_id, self.own_part,
                                  now_ns, self.segment_cache, self.own_result)
 

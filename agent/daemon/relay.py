@@ -8,7 +8,7 @@ from the cache is what that agent would say on the same samples.
 
 The supernode cache (:class:`SegmentCache`) holds the segments of other agents that this
 agent is asked for often (``HOT_REQUESTS`` within ``HOT_WINDOW_S``): each is a kept route
-(:meth:`agent.sdk.client.Client.keep` over this agent's session, the SDK's own mirror,
+(``Client.keep`` of the SDK over this agent's session, the SDK's own mirror,
 fed by subscription to the segment's data keys), used only while its route is exactly
 that agent's segment.  At most ``MAX_KEPT`` are kept; one unused for ``UNUSED_S`` is
 dropped, and the least recently used goes first when room is needed.
@@ -63,14 +63,18 @@ class SegmentCache:
     """Other agents' segments kept fresh by subscription (module docstring).
 
     ``answer`` runs on Zenoh's threads and never waits; keeping and dropping happen on
-    the cache's own thread, which opens a :class:`agent.sdk.client.Client` on the agent's
-    session when the first segment gets hot.
+    the cache's own thread, which opens a client (``client``: called as
+    ``client(realm, session=..., timeout=...)``, :class:`agent.Client` in ``uma agent``) on
+    the agent's session when the first segment gets hot.  The daemon never imports the SDK:
+    whoever starts the agent hands the client class in; without one nothing is kept.
     """
 
-    def __init__(self, session: zenoh.Session, realm: str, timeout_s: float = 2.0) -> None:
+    def __init__(self, session: zenoh.Session, realm: str,
+                 client: Callable[..., Any] | None, timeout_s: float = 2.0) -> None:
         self.session = session
         self.realm = realm
         self.timeout_s = timeout_s
+        self._open_client = client
         self._lock = threading.Lock()
         self._client: Any = None
         #: kept segments: key -> [subscription, last used (monotonic)], least recent first
@@ -158,12 +162,14 @@ class SegmentCache:
 
     def _keep(self, key: SegmentKey) -> None:
         """Keep one segment, making room first (the least recently used goes)."""
-        from agent.sdk.client import Client
-
         if key in self._kept:
             return
+        if self._open_client is None:
+            self._refuse(key, "this agent was started without a client to keep segments with")
+            return
         if self._client is None:
-            self._client = Client(self.realm, session=self.session, timeout=self.timeout_s)
+            self._client = self._open_client(self.realm, session=self.session,
+                                             timeout=self.timeout_s)
         while len(self._kept) >= MAX_KEPT:
             self._close(next(iter(self._kept)))
         agent, source, target, error = key

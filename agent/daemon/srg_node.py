@@ -49,6 +49,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -78,7 +79,10 @@ class SrgNode:
 
     def __init__(self, session: zenoh.Session, realm: str, agent_id: str,
                  static_edges: list[dict[str, Any]] | None = None,
-                 streams: StreamHub | None = None) -> None:
+                 streams: StreamHub | None = None, client: Callable[..., Any] | None = None,
+                 ) -> None:
+        """``client``: what the segment cache keeps other agents' segments with
+        (:class:`agent.daemon.relay.SegmentCache`; None: it keeps none)."""
         self.session = session
         self.realm = realm
         self.agent_id = agent_id
@@ -94,7 +98,7 @@ class SrgNode:
         self.store = LocalGraph(streams if streams is not None else StreamHub(session), realm,
                                 agent_id, static_edges or [], lock, clock, self._loop.wake,
                                 self._log)
-        self.queries = QueryServer(session, self.store, clock, self._log)
+        self.queries = QueryServer(session, self.store, clock, self._log, client)
         self.peers = PeerFrames(session, realm, agent_id, lock, self._loop.wake, self._log)
         self.publisher = SummaryPublisher(session, self.store, self.peers, self._log)
         #: the newest sample of each local pose stream, for viewers
