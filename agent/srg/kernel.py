@@ -8,9 +8,9 @@ composition) is a few dozen operations.  So the kernel works on tuples of floats
 compiled twin (``agent/srg/_kernel.c``, built when a C compiler is there) does the same
 operations in the same order; :data:`NATIVE` is the compiled one unless it was not built
 or ``UMA_SRG_PURE_PYTHON=1`` is set.  Both are tested to agree.  The quaternion products
-are written out here rather than calls of ``agent.geometry.quat_product`` (the same
-arithmetic, which ``tests/test_srg_kernel.py`` holds them to): a call costs as much as the
-product, and a query makes two per interpolated edge (docs/MEASUREMENTS.md has the figure).
+are ``agent.geometry.quat_product``, the one definition on floats: writing them out
+would spare this fallback a call per product, which the compiled kernel, the one that
+runs where it was built, does not make (docs/MEASUREMENTS.md).
 
 ``items`` is the chain in path order; each entry is either ``(pose,)``, a constant (a
 folded run of static edges, already oriented), or ``(buffer, times, values, deltas,
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
-from agent.geometry import _SMALL_ANGLE
+from agent.geometry import _SMALL_ANGLE, quat_product
 
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)
@@ -42,12 +42,7 @@ Result = tuple[float, list[tuple[int, int]], list[EdgeValue] | None, list[Pose] 
 
 def _log_between(v0: Sequence[float], v1: Sequence[float]) -> tuple[float, float, float]:
     """The rotation vector of ``q0^-1 q1`` (slerp's log), as ``geometry.quat_to_rotvec``."""
-    ax, ay, az, aw = -v0[3], -v0[4], -v0[5], v0[6]
-    bx, by, bz, bw = v1[3], v1[4], v1[5], v1[6]
-    x = aw * bx + ax * bw + ay * bz - az * by
-    y = aw * by - ax * bz + ay * bw + az * bx
-    z = aw * bz + ax * by - ay * bx + az * bw
-    w = aw * bw - ax * bx - ay * by - az * bz
+    x, y, z, w = quat_product((-v0[3], -v0[4], -v0[5], v0[6]), v1[3:])
     if w < 0:
         x, y, z, w = -x, -y, -z, -w
     s = math.sqrt(x * x + y * y + z * z)
@@ -60,12 +55,9 @@ def _interpolated(v0: Pose, v1: Pose, delta: tuple[float, float, float], a: floa
     rx, ry, rz = delta[0] * a, delta[1] * a, delta[2] * a
     th = math.sqrt(rx * rx + ry * ry + rz * rz)
     k = 0.5 - th * th / 48.0 if th < _SMALL_ANGLE else math.sin(0.5 * th) / th
-    bx, by, bz, bw = rx * k, ry * k, rz * k, math.cos(0.5 * th)
-    ax, ay, az, aw = v0[3], v0[4], v0[5], v0[6]
     return (v0[0] + (v1[0] - v0[0]) * a, v0[1] + (v1[1] - v0[1]) * a,
             v0[2] + (v1[2] - v0[2]) * a,
-            aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+            *quat_product(v0[3:], (rx * k, ry * k, rz * k, math.cos(0.5 * th))))
 
 
 def _inverse(v: Pose) -> Pose:
@@ -85,12 +77,8 @@ def _rotate(x: float, y: float, z: float, w: float, vx: float, vy: float, vz: fl
 
 def compose(a: Pose, b: Pose) -> Pose:
     """``A B``: ``p_a + R_a p_b`` and ``q_a q_b``."""
-    ax, ay, az, aw = a[3], a[4], a[5], a[6]
-    rx, ry, rz = _rotate(ax, ay, az, aw, b[0], b[1], b[2])
-    bx, by, bz, bw = b[3], b[4], b[5], b[6]
-    return (a[0] + rx, a[1] + ry, a[2] + rz,
-            aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+    rx, ry, rz = _rotate(a[3], a[4], a[5], a[6], b[0], b[1], b[2])
+    return (a[0] + rx, a[1] + ry, a[2] + rz, *quat_product(a[3:], b[3:]))
 
 
 def evaluate(t_ns: int, items: Sequence[tuple], want_edges: bool, p_out: np.ndarray,
