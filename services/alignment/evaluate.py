@@ -235,7 +235,7 @@ _SAME = 1e-9  # relative difference below which two medians are the same figure
 
 
 def _goals(f: dict[str, Any]) -> dict[str, Any]:
-    """The issue's acceptance figures, computed from the medians."""
+    """The acceptance figures, computed from the medians: ratios and yes/no checks."""
     cv = f["clean"]["cv2_daniilidis"]
     clean = f["clean"]["daniilidis_ransac_refined"]
     dirty = f["outliers"]["daniilidis_ransac_refined"]

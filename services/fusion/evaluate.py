@@ -559,7 +559,7 @@ def _filter_events(stats: FusionStats) -> dict[str, int]:
 
 
 def goals(f: dict[str, Any]) -> dict[str, bool]:
-    """The issue's targets, each a yes/no.  The fused RMSE must be at most half the better
+    """The targets, each a yes/no.  The fused RMSE must be at most half the better
     baseline's over all samples and in each region that has samples (inside the gaps the
     hold usually wins, outside them the one-frame extrapolation)."""
     half_best = all(

@@ -8,7 +8,7 @@ each).  Every frame set is rendered, its blobs found, and then:
 * **uma, all cameras**: ``OutsideInTracker`` on every camera.  Camera 0 is covered for
   2 s (or 30 % of a shorter run) from 40 % of the run: its frames are dark.  Poses are
   binned by how many cameras' rays they were fitted to (3 or more; exactly 2).
-* **uma, two cameras**: a second tracker on cameras 1 and 2 only, the issue's
+* **uma, two cameras**: a second tracker on cameras 1 and 2 only, the
   "exactly 2 cameras" case on the same frames.
 * **OpenCV baseline**, for both rigs: per body, the camera pair sharing the most of its
   markers, ``cv2.triangulatePoints`` on their (undistorted) blobs, the body's markers
