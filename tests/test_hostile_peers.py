@@ -4,6 +4,7 @@ every refusal is counted and said."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import msgpack
@@ -40,6 +41,19 @@ def snapshot(session: zenoh.Session, realm: str, agent_id: str):
         if reply.ok is not None:
             return parse_snapshot(reply.ok.payload.to_bytes(), agent_id)
     raise AssertionError(f"agent {agent_id} did not answer with its snapshot")
+
+
+def matched_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """A publisher on ``key`` once Zenoh says a subscriber of it is reachable: a fresh
+    session's put before its links are up is delivered to nobody."""
+    publisher = session.declare_publisher(key)
+    matched = threading.Event()
+    listener = publisher.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None)
+    if not publisher.matching_status.matching and not matched.wait(10.0):
+        raise AssertionError(f"no subscriber of {key} reachable after 10 s")
+    listener.undeclare()
+    return publisher
 
 
 def counts_grow(proc, source: str) -> None:
@@ -137,8 +151,8 @@ def test_forged_summaries_and_replies_are_refused_and_bounded(honest, realm,
 def test_a_sample_a_day_ahead_does_not_poison_the_edge(honest, realm) -> None:
     ep, host, _, _ = honest
     with open_session(connect=[ep]) as s, Client(realm=realm, connect=[ep]) as c:
-        s.put(keys.data(realm, "hostA", "cam", "pose"),
-              encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
+        forger = matched_publisher(s, keys.data(realm, "hostA", "cam", "pose"))
+        forger.put(encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
         host.wait_log("ahead of this clock")
         for _ in range(10):
             r = c.pose("ivy/world", "alice/head")
@@ -146,8 +160,7 @@ def test_a_sample_a_day_ahead_does_not_poison_the_edge(honest, realm) -> None:
             assert abs(r.t_ns - time.time_ns()) < 5 * 10**9
         got: list = []
         sub = c.subscribe("ivy/world", "alice/head", got.append)
-        s.put(keys.data(realm, "hostA", "cam", "pose"),
-              encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
+        forger.put(encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
         poll(lambda: sub.refused >= 1 and len(got) > 50, what="the stream going on")
         assert sub.status == "streaming"
         assert all(p.position[0] == pytest.approx(0.1) for p in got)
