@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from agent.errors import InvalidInputError
 from agent.result import PoseResult
 from agent.runtime.session import sdk_mode
 from agent.sdk.client import Client
@@ -30,10 +31,10 @@ def parse_at(text: str | None) -> int | None:
     try:
         value = int(text)
     except ValueError:
-        raise ValueError(f"--at {text!r}: expected integer nanoseconds since the epoch or "
-                         "'now'") from None
+        raise InvalidInputError(f"--at {text!r}: expected integer nanoseconds since the epoch or "
+                                "'now'") from None
     if value < 0:
-        raise ValueError(f"--at {value}: times are nanoseconds since the epoch, >= 0")
+        raise InvalidInputError(f"--at {value}: times are nanoseconds since the epoch, >= 0")
     return value
 
 

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from typing import Any
 
 from agent.daemon.streams import StreamHub
+from agent.errors import InvalidInputError
 from agent.protocol import keys
 from agent.protocol.sequence import stamp_refusal
 from agent.runtime.logs import RateLimitedLog
@@ -90,7 +91,7 @@ class LocalGraph:
                                   pos_std_m=edge.get("pos_std_m"),
                                   rot_std_rad=edge.get("rot_std_rad"))
         except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"static edge #{i + 1} ({edge!r}): {exc}") from None
+            raise InvalidInputError(f"static edge #{i + 1} ({edge!r}): {exc}") from None
 
     def set_local_abilities(self, service_id: str, abilities: list[Any]) -> None:
         """The abilities a local service has now (none: it went): listen to the data of

@@ -22,7 +22,7 @@ from typing import Any
 import msgpack
 import zenoh
 
-from agent.errors import UmaError
+from agent.errors import InvalidInputError, UmaError
 from agent.runtime import RateLimitedLog, WakeLoop
 
 log = logging.getLogger("uma.record")
@@ -43,13 +43,13 @@ def encode_statics(agent_id: str, edges: list[dict[str, Any]], offset_ns: int | 
 
 
 def decode_statics(data: bytes) -> dict[str, Any]:
-    """A static-edges message; ``ValueError`` says what is wrong."""
+    """A static-edges message; ``InvalidInputError`` (a ``ValueError``) says what is wrong."""
     try:
         msg = msgpack.unpackb(data, raw=False)
     except Exception as exc:  # msgpack raises many kinds
-        raise ValueError(f"static edges: not msgpack ({exc})") from None
+        raise InvalidInputError(f"static edges: not msgpack ({exc})") from None
     if not isinstance(msg, dict) or msg.get("v") != 1 or not isinstance(msg.get("edges"), list):
-        raise ValueError("static edges: expected {v: 1, agent, edges: [...]}")
+        raise InvalidInputError("static edges: expected {v: 1, agent, edges: [...]}")
     return msg
 
 
