@@ -204,6 +204,30 @@ def test_a_forged_snapshot_revision_jump_is_confirmed_first(processes, realm) ->
     assert not any(e.get("event") == "match" and not e["keys"] for e in consumer.events[mark:])
 
 
+def test_a_forged_snapshot_within_the_slack_is_not_applied(processes, realm) -> None:
+    """A snapshot of hostB under its real epoch, a few milliseconds ahead and with no
+    services, is within what the time passed allows; anyone can read the epoch, and here
+    the forger also answers for hostB.  hostA applies only what hostB's ask is answered
+    with, and refuses two different answers: the consumer keeps hostB's camera."""
+    ea, eb = endpoint(free_port()), endpoint(free_port())
+    host_a = agent(processes, realm, "hostA", ea)
+    agent(processes, realm, "hostB", eb, connect=(ea,))
+    consumer = service(processes, realm, "fusion", "hostA", ea, "--need", "head")
+    service(processes, realm, "cam", "hostB", eb, *PRODUCER)
+    consumer.wait_for(lambda e: first_from(e, "cam"))
+    mark = consumer.mark
+    with open_session(connect=[ea]) as s:
+        real = snapshot(s, realm, "hostB")
+        forged = snapshot_message(real.info, real.epoch, real.revision + 5, [])
+        key = keys.agent_services(realm, "hostB")
+        answering = s.declare_queryable(key, lambda q: (q.reply(key, forged), q.drop()))
+        matched_publisher(s, key).put(forged)
+        host_a.wait_log("another process answers for it")
+        answering.undeclare()
+    counts_grow(consumer, "cam")
+    assert not any(e.get("event") == "match" and not e["keys"] for e in consumer.events[mark:])
+
+
 class _Recorder(Service):
     """A Service whose control handling is driven by the test (no session)."""
 

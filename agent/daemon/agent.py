@@ -145,10 +145,12 @@ class Agent:
         #: agents whose token went, being asked whether they still answer (check number)
         self._agent_checks: dict[str, int] = {}
         self._checks = 0
-        #: agents whose snapshot is being fetched; published snapshots held for confirmation
+        #: agents whose snapshot is being fetched, and those published again meanwhile
         self._fetching: set[str] = set()
+        self._refetch: set[str] = set()
         self.snapshots_suspect = 0
-        #: snapshots refused by the byte bound (``RealmView.snapshot_refusal``)
+        #: snapshots refused by the byte bound (``RealmView.snapshot_refusal``) or because
+        #: another process answered for their agent with a different one
         self.snapshots_refused = 0
         self._dirty = False           # re-match needed
         self._snapshot_dirty = False  # publish a new snapshot
@@ -398,9 +400,11 @@ class Agent:
             self._dirty = True
 
     def _fetch_snapshot(self, agent_id: str) -> None:
-        """Ask the agent for its snapshot (it appeared, or a published one needs its
-        confirmation); its answers are applied as confirmed unless they disagree."""
+        """Ask the agent for its snapshot (it appeared, or it published one); its answers
+        are applied as confirmed unless they disagree.  One fetch per agent at a time: a
+        snapshot published during one is fetched again once it ends."""
         if agent_id in self._fetching:
+            self._refetch.add(agent_id)
             return
         assert self.session is not None
         self._fetching.add(agent_id)
@@ -412,12 +416,22 @@ class Agent:
     def _on_fetched(self, key: str, answers: list[bytes]) -> None:
         agent_id = keys.parse_agent_services(key, self.realm)
         self._fetching.discard(agent_id)
-        snaps = [s for s in (self._parse_snapshot(key, data) for data in answers) if s]
-        if len({s.epoch for s in snaps}) > 1:
+        if agent_id in self._refetch:
+            self._refetch.discard(agent_id)
+            self._fetch_snapshot(agent_id)
+        snaps = {data: s for data in set(answers)
+                 if (s := self._parse_snapshot(key, data)) is not None}
+        if len({s.epoch for s in snaps.values()}) > 1:
             self._log.warning(f"agent {agent_id}", "answers with snapshots of different "
                               "epochs: two processes claim its id; kept what was applied")
             return
-        for snap in snaps:
+        if len(snaps) > 1:
+            self.snapshots_refused += 1
+            self._log.warning(f"agent {agent_id}", f"{len(snaps)} different answers to one "
+                              "ask for its snapshot: another process answers for it; kept "
+                              f"what was applied ({self.snapshots_refused} refused so far)")
+            return
+        for snap in snaps.values():
             self._apply_snapshot(key, snap, confirmed=True)
 
     def _resync_agent_tokens(self) -> None:
@@ -448,19 +462,24 @@ class Agent:
             self._on_agent_token(smp)
 
     def _on_snapshot(self, key: str, data: bytes) -> None:
-        """A published snapshot: applied, or confirmed with its agent first if its version
-        is suspect (``RealmView.suspect``)."""
+        """A published snapshot only says that its agent changed: on a plain realm anyone
+        can put one under the agent's epoch, which every snapshot shows, so the agent is
+        asked (``_fetch_snapshot``) and its answer applied.  A version that its agent's run
+        cannot have reached (``RealmView.suspect``) is counted and said."""
         snap = self._parse_snapshot(key, data)
         if snap is None:
             return
+        if snap.agent_id == self.agent_id:
+            self._apply_snapshot(key, snap)
+            return
+        if snap.agent_id not in self.view.live_agents:
+            return  # fetched when its token comes
         if self.view.suspect(snap):
             self.snapshots_suspect += 1
             self._log.warning(f"snapshot {key}", f"epoch {snap.epoch} revision "
                               f"{snap.revision} is not the agent's current run; asking it "
                               f"({self.snapshots_suspect} so far)")
-            self._fetch_snapshot(snap.agent_id)
-            return
-        self._apply_snapshot(key, snap)
+        self._fetch_snapshot(snap.agent_id)
 
     def _parse_snapshot(self, key: str, data: bytes) -> Snapshot | None:
         agent_id = keys.parse_agent_services(key, self.realm)
