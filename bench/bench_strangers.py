@@ -1,0 +1,181 @@
+"""What strangers on a plain realm cost an agent: its memory, CPU and query latency before
+and after three floods a plain Zenoh session sends (no uma code on the wire side but the
+tree's own message builders):
+
+- **summaries**: forged supernode summaries of invented agents (no token), ``--frames``
+  frame ids each, as fast as the session puts them for ``--seconds``;
+- **fake agents**: ``--fakes`` invented agents with a liveliness token each, whose
+  snapshots (about ``--snapshot-kb`` KiB each) are published and answered when asked;
+- **token churn**: liveliness tokens of new agent ids declared and dropped as fast as the
+  session can for ``--seconds``.
+
+The realm: agent ``h0`` and agent ``h1`` (connected to ``h0``) with one static edge each, a
+client on ``h0`` querying ``world`` -> ``h1/world`` across both.  Figures: ``h0``'s RSS
+growth (MB) and CPU (% of one core) during each flood, and query latency (median, p99)
+before the floods and after each.  ``--tree`` runs the agents and the client from another
+checkout (a worktree of an older commit) to compare; the anchor is the query latency
+before any flood, in the same run.
+
+    python bench/bench_strangers.py [--tree PATH] [--seconds 10] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from contextlib import suppress
+from pathlib import Path
+
+import bench_host_load
+from bench_host_load import Child, cpu_s, free_endpoint, rss_mb
+from summary import cpu_model, median_p99, report
+
+STATIC = '[[static]]\nparent = "{p}"\nchild = "{c}"\nposition = [1.0, 0.0, 0.0]\n' \
+         'quaternion = [0.0, 0.0, 0.0, 1.0]\npos_std_m = 0.001\n'
+
+
+def start_realm(realm: str, tmp: Path) -> tuple[list[Child], str]:
+    eps = [free_endpoint(), free_endpoint()]
+    agents = []
+    for i, (parent, child) in enumerate((("world", "h0/world"), ("h0/world", "h1/world"))):
+        cfg = tmp / f"h{i}.toml"
+        cfg.write_text(STATIC.format(p=parent, c=child))
+        agents.append(Child("-m", "agent.cli", "agent", "--realm", realm, "--id", f"h{i}",
+                            "--config", str(cfg), "--listen", eps[i],
+                            *(["--connect", eps[0]] if i else [])))
+    deadline = time.monotonic() + 60
+    for a in agents:
+        a.wait_for("listening on", deadline)
+    return agents, eps[0]
+
+
+def query_figures(client, count: int) -> dict[str, float]:
+    ms = []
+    for _ in range(count):
+        t = time.perf_counter()
+        with suppress(Exception):
+            client.pose("world", "h1/world")
+            ms.append((time.perf_counter() - t) * 1e3)
+    return median_p99(ms or [float("nan")], "ms") | {"failed": count - len(ms)}
+
+
+def summaries_flood(session, realm: str, frames: int, seconds: float) -> dict[str, float]:
+    import msgpack
+
+    from agent.protocol import keys
+    sent = nbytes = 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:  # bounded: seconds
+        data = msgpack.packb({"v": 1, "agent": f"ghost{sent}", "rev": 1, "frames": [
+            f"ghost{sent}/frame-with-a-long-name-{k:06d}" for k in range(frames)]})
+        session.put(keys.agent_supernode(realm, f"ghost{sent}"), data)
+        sent += 1
+        nbytes += len(data)
+    return {"sent": sent, "sent_mb": nbytes / 1e6}
+
+
+def fake_agents_flood(session, realm: str, fakes: int, snapshot_kb: int) -> dict[str, float]:
+    """Tokens of ``fakes`` invented agents, their snapshots published and answered."""
+    from agent.protocol import keys
+    from agent.protocol.registration import snapshot_message
+    pad = "x" * 1000
+    snaps = {}
+    for i in range(fakes):
+        info = {"agent": f"fake{i}", "realm": realm, "endpoints": [], "pad": [
+            pad for _ in range(snapshot_kb)]}
+        snaps[keys.agent_services(realm, f"fake{i}")] = snapshot_message(info, 1000 + i, 1, [])
+    queryable = session.declare_queryable(keys.all_agent_services(realm), lambda q: (
+        q.reply(str(q.key_expr), snaps[str(q.key_expr)]) if str(q.key_expr) in snaps
+        else None, q.drop()))
+    tokens = [session.liveliness().declare_token(keys.agent_token(realm, f"fake{i}"))
+              for i in range(fakes)]
+    time.sleep(1.0)
+    for key, data in snaps.items():
+        session.put(key, data)
+    time.sleep(3.0)
+    return {"fakes": fakes, "sent_mb": sum(len(d) for d in snaps.values()) / 1e6,
+            "_keep": (queryable, tokens)}
+
+
+def churn_flood(session, realm: str, seconds: float) -> dict[str, float]:
+    from agent.protocol import keys
+    n = 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:  # bounded: seconds
+        session.liveliness().declare_token(keys.agent_token(realm, f"churn{n}")).undeclare()
+        n += 1
+    return {"tokens": n}
+
+
+def phase(name: str, target: Child, client, flood, queries: int) -> dict:
+    rss0, cpu0, t0 = rss_mb(target.pid), cpu_s(target.pid), time.monotonic()
+    out = flood()
+    keep = out.pop("_keep", None)
+    cpu_pct = 100 * (cpu_s(target.pid) - cpu0) / (time.monotonic() - t0)
+    time.sleep(3.0)  # what the agent does after the flood is part of its cost
+    after = query_figures(client, queries)
+    fig = {f"{name}_{k}": v for k, v in out.items()} | {
+        f"{name}_agent_cpu_pct": round(cpu_pct, 1),
+        f"{name}_rss_growth_mb": round(rss_mb(target.pid) - rss0, 1),
+        f"{name}_query_after_median_ms": after["median_ms"],
+        f"{name}_query_after_p99_ms": after["p99_ms"],
+        f"{name}_query_after_failed": after["failed"]}
+    del keep
+    return fig
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tree", default=None, help="checkout whose agents and client to run")
+    ap.add_argument("--seconds", type=float, default=10.0, help="length of each flood")
+    ap.add_argument("--frames", type=int, default=2000, help="frame ids per forged summary")
+    ap.add_argument("--fakes", type=int, default=60, help="invented agents with tokens")
+    ap.add_argument("--snapshot-kb", type=int, default=512, help="KiB per fake snapshot")
+    ap.add_argument("--queries", type=int, default=40)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    tree = Path(args.tree or Path(__file__).resolve().parent.parent).resolve()
+    if os.environ.get("PYTHONPATH") != str(tree):  # the tree's agent package, not this one
+        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]],
+                  dict(os.environ, PYTHONPATH=str(tree)))
+    bench_host_load.ROOT = tree
+    import zenoh
+    from loopback import zenoh_config
+
+    from agent import Client
+    realm = f"strangers{int(time.time())}"
+    with tempfile.TemporaryDirectory() as tmp:
+        agents, ep = start_realm(realm, Path(tmp))
+        try:
+            with Client(realm=realm, connect=[ep]) as client, \
+                    zenoh.open(zenoh_config("client", connect=ep)) as session:
+                for _ in range(100):  # bounded: the realm forms within ~10 s
+                    if query_figures(client, 1)["failed"] == 0:
+                        break
+                    time.sleep(0.1)
+                before = query_figures(client, args.queries)
+                fig: dict = {"tree": str(tree), "cpu": cpu_model(),
+                             "agent_rss_mb_start": round(rss_mb(agents[0].pid), 1),
+                             "query_before_median_ms": before["median_ms"],
+                             "query_before_p99_ms": before["p99_ms"]}
+                fig |= phase("summaries", agents[0], client, lambda: summaries_flood(
+                    session, realm, args.frames, args.seconds), args.queries)
+                fig |= phase("fake_agents", agents[0], client, lambda: fake_agents_flood(
+                    session, realm, args.fakes, args.snapshot_kb), args.queries)
+                fig |= phase("churn", agents[0], client, lambda: churn_flood(
+                    session, realm, args.seconds), args.queries)
+                fig["query_after_all_ratio"] = round(
+                    fig["churn_query_after_median_ms"] / before["median_ms"], 2)
+        finally:
+            for a in agents:
+                a.proc.terminate()
+            for a in agents:
+                a.proc.wait(10)
+    report(fig, args.json)
+
+
+if __name__ == "__main__":
+    main()
