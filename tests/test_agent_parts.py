@@ -156,6 +156,40 @@ def test_the_agents_own_keys_share_one_wildcard_subscriber() -> None:
         session.close()
 
 
+def test_a_local_listener_that_falls_behind_gets_the_newest_samples_not_a_backlog(
+        monkeypatch) -> None:
+    """Real Zenoh: while the local streams' listener is held up, at most ``LOCAL_RING``
+    samples wait for it; the oldest go, the newest arrive (the agent stays current)."""
+    from agent.daemon import streams
+    from agent.runtime.session import open_session
+
+    monkeypatch.setattr(streams, "LOCAL_RING", 4)
+    session = open_session("peer", [], [])
+    release, entered = threading.Event(), threading.Event()
+    got: list[bytes] = []
+
+    def slow(data: bytes) -> None:
+        entered.set()
+        release.wait(10.0)
+        got.append(data)
+    try:
+        hub = StreamHub(session, local="uma/r/data/A/*/*")
+        hub.listen("uma/r/data/A/s/a", slow)
+        session.put("uma/r/data/A/s/a", b"0")
+        assert entered.wait(5.0)  # the drain thread now waits in the listener with 0
+        for i in range(1, 20):
+            session.put("uma/r/data/A/s/a", str(i).encode())
+        time.sleep(0.2)
+        release.set()
+        _wait(lambda: got and got[-1] == b"19")
+        assert got[0] == b"0" and len(got) <= 1 + 4  # 0, then at most the ring's newest
+        assert got[1:] == [str(i).encode() for i in range(20 - len(got) + 1, 20)]
+    finally:
+        release.set()
+        hub.close()
+        session.close()
+
+
 def test_wake_loop_runs_its_step_when_woken_says_why_a_step_failed_and_stops() -> None:
     log = mock.Mock()
     calls: list[int] = []

@@ -4,7 +4,8 @@ Two parts of the daemon read the same local streams: the stream monitor (the tim
 every sample, ``agent.daemon.monitor``) and the SRG node (every local pose sample,
 ``agent.daemon.srg_node``).  Subscribing twice to one key would have Zenoh deliver and
 copy every sample twice; a :class:`StreamHub` declares one subscriber per key, takes each
-sample's bytes once and hands them to every listener of that key, in Zenoh's thread.
+sample's bytes once and hands them to every listener of that key, in Zenoh's thread (the
+local streams: in the thread that drains their ring, below).
 Listeners must therefore be quick (append to a queue, or a few microseconds of work) and
 should not raise: what one raises is logged (rate-limited) and the others still get the
 sample.  The subscriber goes when the key's last listener stops listening.
@@ -12,8 +13,13 @@ sample.  The subscriber goes when the key's last listener stops listening.
 The agent's own services' keys (``uma/R/data/A/*/*``, given as ``local``) share a single
 wildcard subscriber instead, declared while any of them is listened to: Zenoh calls one
 subscriber's callback at a fraction of the cost of a hundred (about half the receiving
-process's CPU with a hundred keys).  Samples of local keys nobody listens to (images, raw
-accelerometer data) are dropped by key before their payload is read.
+process's CPU with a hundred keys).  Its samples go through a bounded ring channel
+(``LOCAL_RING``) that one thread of ours drains, calling the listeners there: an
+unbounded hand-off let an agent short of CPU fall seconds behind its own streams (200
+streams at 100 Hz on a loaded 2-core host: the digest's samples 1-3.5 s old; with the
+ring 0.2 s), where dropping the oldest keeps it current.  Samples of local keys nobody
+listens to (images, raw accelerometer data) are dropped by key before their payload is
+read.
 """
 
 from __future__ import annotations
@@ -31,6 +37,12 @@ from agent.runtime.logs import RateLimitedLog
 
 log = logging.getLogger("uma.agent")
 
+#: local samples queued for the draining thread before the oldest is dropped: ~50 ms at
+#: 20,000 samples/s (200 streams at 100 Hz), five times a burst of one sample per stream.
+#: An agent starved of CPU thus stays current, its digest and graph at most this far
+#: behind, instead of queueing seconds of samples; what it drops shows as sequence gaps
+#: in the stream monitor
+LOCAL_RING = 1024
 #: what a listener is given: the sample's payload
 Listener = Callable[[bytes], None]
 
@@ -85,14 +97,27 @@ class StreamHub:
     def _declare_local(self) -> None:
         if self._local_subscriber is None:
             assert self._session is not None and self._local is not None
-            self._local_subscriber = self._session.declare_subscriber(self._local, guarded(
-                self._dispatch_local, f"data {self._local}", self._log))
+            sub = self._session.declare_subscriber(self._local,
+                                                   zenoh.handlers.RingChannel(LOCAL_RING))
+            self._local_subscriber = sub
+            threading.Thread(target=self._drain_local, args=(sub,), daemon=True,
+                             name="uma-local-streams").start()
 
-    def _dispatch_local(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        entry = self._keys.get(key)
-        if entry is not None:
-            self._dispatch(key, entry, sample)
+    def _drain_local(self, sub: zenoh.Subscriber) -> None:
+        """Hand the local streams' samples to their listeners on this thread, until ``sub``
+        is undeclared (Zenoh's thread only queues them, module docstring)."""
+        try:
+            for sample in sub:
+                key = str(sample.key_expr)
+                entry = self._keys.get(key)
+                if entry is None:
+                    continue
+                try:
+                    self._dispatch(key, entry, sample)
+                except Exception as exc:  # the next sample must still be read
+                    self._log.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
+        except zenoh.ZError as exc:
+            self._log.warning(f"data {self._local}", f"reading samples: {exc}")
 
     def subscribed(self) -> set[str]:
         """The keys subscribed to now."""
