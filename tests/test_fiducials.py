@@ -17,9 +17,10 @@ from agent import geometry as geo
 from services.camera.markers import marker_corners
 from services.camera.model import CameraModel
 from services.camera.simulator import SimCamera, static, write_video
+from services.consistency import nees_figures
 from services.fiducials import edges, pose
 from services.fiducials.bodies import Body, BundleFileError, load_bundles
-from services.fiducials.simulate import FACING, tags
+from services.fiducials.simulate import FACING, tags, wandering, webcam
 from services.fiducials.tracker import FiducialTracker
 
 K = np.array([[530.0, 0, 319.5], [0, 530.0, 239.5], [0, 0, 1]])
@@ -125,7 +126,7 @@ def test_edge_fitted_corners_beat_the_detectors_on_a_blurred_tag():
     tracker = FiducialTracker(LENS, "apriltag36h11", 0.08)
     raw, _, _ = tracker.detector.detectMarkers(image)
     detector_err = np.abs(LENS.undistort(raw[0].reshape(4, 2), pixels=True) - true).max()
-    ours = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, LENS)[0]
+    ours = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, LENS)[0][0]
     assert np.abs(ours - true).max() < 0.3 < detector_err
 
 
@@ -142,6 +143,46 @@ def test_tracker_on_rendered_frames_is_accurate_and_honest():
     assert np.linalg.norm(err[:3]) < 0.004 and math.degrees(np.linalg.norm(err[3:])) < 0.5
     assert e.name == "apriltag36h11-2" and e.ambiguity == "none"
     assert err @ np.linalg.solve(e.covariance, err) < 22.5  # chi2(6) 99.9 %
+
+
+def test_nees_of_rendered_moving_frames_is_inside_its_band():
+    """The per-corner covariances from the edge fits, propagated through the weighted
+    pose, are neither too small (the raw edge fits: mean NEES 13-16) nor too cautious (a
+    corner-noise floor: 1.1-1.3) on a webcam's blurred, noisy frames of a moving tag."""
+    rng = np.random.default_rng(7)
+    camera = webcam(rng)
+    traj = wandering(rng, camera, (0.6, 1.4), 6.0, max_tilt_rad=0.5)
+    sim, tracker = SimCamera(camera), FiducialTracker(camera, "apriltag36h11", 0.08)
+    errors, covariances = [], []
+    for k in range(60):
+        t = k / 10
+        (est,) = tracker.process(sim.render(tags("apriltag36h11", [4], 0.08, [traj]), t, rng),
+                                 round(t * 1e9))
+        if est.ambiguity == "none":
+            errors.append(decoupled_error(traj(t), est.R, est.t))
+            covariances.append(est.covariance)
+    figures = nees_figures(np.array(errors), np.array(covariances))
+    assert len(errors) >= 30 and figures["within_bounds"], figures
+
+
+def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
+    """Without blur each edge point's noise is its own: the edge fits' covariance alone
+    (before the tracker's allowance for blur-shared noise) is the corners' scatter."""
+    cam = SimCamera(IDEAL, blur_sigma_px=0.0, read_noise=8.0)
+    T = facing((0.3, -0.2, 0.1), (0.0, 0.0, 0.5))
+    scene = tags("apriltag36h11", [9], 0.08, [static(T)])
+    detector = FiducialTracker(IDEAL, "apriltag36h11", 0.08).detector
+    rng = np.random.default_rng(8)
+    corners, covs = [], []
+    for _ in range(60):
+        image = cam.render(scene, 0.0, rng)
+        raw, _, _ = detector.detectMarkers(image)
+        c, cov = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, IDEAL)
+        corners.append(c[0])
+        covs.append(cov[0])
+    scatter = np.var(np.array(corners), axis=0).sum(-1)  # (4,) per corner
+    claimed = np.trace(np.mean(covs, axis=0), axis1=-2, axis2=-1)
+    assert np.all((scatter / claimed > 0.4) & (scatter / claimed < 2.5)), scatter / claimed
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):

@@ -35,16 +35,20 @@ MIN_POINTS = 3
 #: how far across a side the profile reaches each way, in cells: past the one-cell black
 #: border's middle inside and into the one-cell white quiet zone outside
 REACH_MODULES = 0.8
+#: per-axis standard deviation (px) of a corner not located from its edges: the
+#: detector's own corner, what the edge fit falls back to
+FALLBACK_STD = 1.0
 
 
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
-           ) -> np.ndarray:
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
-    ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide."""
+    ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and their
+    covariances (n, 4, 2, 2) from the edge fits' scatter."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     fallback = camera.undistort(quads.reshape(-1, 2), pixels=True).reshape(-1, 4, 2)
     if len(quads) == 0:
-        return fallback
+        return fallback, np.zeros((0, 4, 2, 2))
     a = quads
     b = np.roll(quads, -1, axis=1)  # side k runs from corner k to corner k+1
     side = b - a
@@ -103,4 +107,41 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     corners = p1 + s1[..., None] * d1
     ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1), axis=1) & \
         np.all(np.linalg.norm(corners - fallback, axis=-1) < 3 * reach[..., 0], axis=1)
-    return np.where(ok[:, None, None], corners, fallback)
+    cov = _corner_covariance(corners, point, direction, dev, w, few)
+    cov = np.where(ok[:, None, None, None], cov, FALLBACK_STD ** 2 * np.eye(2))
+    return np.where(ok[:, None, None], corners, fallback), cov
+
+
+def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.ndarray,
+                       dev: np.ndarray, w: np.ndarray, few: np.ndarray) -> np.ndarray:
+    """Each corner's 2x2 covariance (n, 4, 2, 2) from the fits of the two lines it is the
+    intersection of.  A line fitted to N edge points scattered by s across it is off by
+    s/sqrt(N) at the points' mean and turned by s/sqrt(sum u^2) (u: the points' distances
+    along it from their mean), independently; at the corner, u away from the mean, it is
+    off by s^2 (1/N + u^2 / sum u^2) across itself.  s^2 is pooled over the marker's four
+    sides (their residuals across the fitted lines).  The corner moves by the two lines'
+    offsets through the inverse of the 2x2 matrix of their normals."""
+    normal = np.stack([-direction[..., 1], direction[..., 0]], axis=-1)  # (n, 4, 2)
+    across = np.einsum("nkjc,nkc->nkj", dev, normal)
+    along = np.einsum("nkjc,nkc->nkj", dev, direction)
+    count = w.sum(-1)
+    fitted = ~few[..., 0]
+    rss = np.where(fitted, (w * across ** 2).sum(-1), 0.0).sum(-1)
+    dof = np.where(fitted, np.maximum(count - 2, 0), 0).sum(-1)
+    s2 = np.where(dof > 0, rss / np.maximum(dof, 1), FALLBACK_STD ** 2)  # (n,)
+    s_uu = np.maximum((w * along ** 2).sum(-1), 1e-12)
+    # the variance across each side's line at the two corners it ends in
+    u_here = np.einsum("nkc,nkc->nk", corners - point, direction)  # corner k on side k
+    u_next = np.einsum("nkc,nkc->nk", np.roll(corners, -1, axis=1) - point, direction)
+    n_pts = np.maximum(count, 1)
+    var_here = s2[:, None] * (1 / n_pts + u_here ** 2 / s_uu)
+    var_next = s2[:, None] * (1 / n_pts + u_next ** 2 / s_uu)
+    chord = FALLBACK_STD ** 2
+    var_here = np.where(fitted, var_here, chord)
+    var_next = np.where(fitted, var_next, chord)
+    # corner k lies on side k-1 (at its far end) and on side k (at its near end)
+    v_a, v_b = np.roll(var_next, 1, axis=1), var_here
+    N = np.stack([np.roll(normal, 1, axis=1), normal], axis=-2)  # (n, 4, 2, 2): rows
+    Ninv = np.linalg.inv(N)
+    D = np.stack([v_a, v_b], axis=-1)[..., None, :]
+    return (Ninv * D) @ np.swapaxes(Ninv, -1, -2)

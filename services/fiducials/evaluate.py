@@ -6,7 +6,8 @@ AprilTag (36h11) moving smoothly between 0.5 and 3 m, tilting up to 40 degrees; 
 ``--fps`` for ``--seconds``.  The same frames go to
 
 * **uma**: :class:`~services.fiducials.tracker.FiducialTracker` (edge-fitted corners, IPPE
-  candidates refined by LM, covariance from the pooled residuals, ambiguity handling);
+  candidates refined by LM and weighted Gauss-Newton, covariance from the corners' edge
+  fits, ambiguity handling);
 * **bare**: ``cv2.aruco.ArucoDetector`` (OpenCV's defaults) + ``cv2.solvePnP`` with
   ``SOLVEPNP_IPPE_SQUARE`` and the lens distortion;
 * **apriltag**: ``pupil-apriltags`` (AprilTag 3's detector at full resolution, edge
@@ -211,12 +212,13 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
     for k in range(n):
         t = k / fps
         image = sim.render(scene, t, rng)
-        seen = alone.detect(image)
-        for est in together.estimate(seen, round(t * 1e9)):
+        seen, noise = alone.observe(image)
+        for est in together.estimate(seen, round(t * 1e9), noise):
             if len(est.markers) == 4:
                 bundle_err.append(_errors(plate(t), est.R, est.t)[1])
                 bundle_std.append(1000 * math.sqrt(np.trace(est.covariance[:3, :3])))
-        for est in alone.estimate({i: c for i, c in seen.items() if i in ids}, round(t * 1e9)):
+        for est in alone.estimate({i: c for i, c in seen.items() if i in ids}, round(t * 1e9),
+                                  noise):
             truth = plate(t) @ in_plate[ids.index(int(est.name.rsplit("-", 1)[1]))]
             single_err.append(_errors(truth, est.R, est.t)[1])
             single_std.append(1000 * math.sqrt(np.trace(est.covariance[:3, :3])))

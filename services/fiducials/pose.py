@@ -28,6 +28,9 @@ LM_ITERATIONS_SINGLE = 4
 LM_ITERATIONS_BUNDLE = 15
 #: two refined solutions closer than this (rad) are the same minimum
 SAME_SOLUTION_RAD = np.deg2rad(2.0)
+#: Gauss-Newton steps from the unweighted to the weighted minimum (close: one step
+#: reaches it to well under its standard deviation, the second checks)
+REWEIGH_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -102,15 +105,52 @@ def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
 def covariance(sol: Solution, sigma_px: float) -> np.ndarray:
     """Decoupled 6x6 covariance [position, camera-frame rotation] of ``sol`` for corner
     noise ``sigma_px`` per axis; ``inf`` variances if the corners do not fix the pose."""
-    ok, inverse = cv2.invert(sol.jacobian.T @ sol.jacobian, flags=cv2.DECOMP_CHOLESKY)
+    return _decoupled(sol, sol.jacobian.T @ sol.jacobian / sigma_px ** 2)
+
+
+def weighted_covariance(sol: Solution, information: np.ndarray) -> np.ndarray:
+    """Decoupled 6x6 covariance of ``sol`` for corners of known inverse covariances
+    ``information`` (n, 2, 2): ``(Jᵀ W J)⁻¹``, exact for the weighted fit
+    (:func:`reweigh`)."""
+    J = sol.jacobian.reshape(-1, 2, 6)
+    return _decoupled(sol, np.einsum("nai,nab,nbj->ij", J, information, J))
+
+
+def _decoupled(sol: Solution, normal_matrix: np.ndarray) -> np.ndarray:
+    ok, cov_rt = cv2.invert(normal_matrix, flags=cv2.DECOMP_CHOLESKY)
     if not ok:
         return np.diag(np.full(6, np.inf))
-    cov_rt = inverse * sigma_px ** 2
     G = np.zeros((6, 6))
     G[:3, 3:] = np.eye(3)
     G[3:, :3] = rotation_jacobian(sol.rvec)
     cov = G @ cov_rt @ G.T
     return (cov + cov.T) / 2
+
+
+def reweigh(sol: Solution, object_points: np.ndarray, image_points: np.ndarray,
+            K: np.ndarray, dist: np.ndarray, information: np.ndarray,
+            steps: int = REWEIGH_STEPS) -> Solution:
+    """``sol`` moved to the minimum of the corners' residuals weighted by their inverse
+    covariances ``information`` (n, 2, 2) by Gauss-Newton steps from the unweighted
+    minimum (``solvePnPRefineLM`` weighs every corner alike: a corner whose edges were
+    found on a short or noisy side would pull the pose as hard as a sharp one)."""
+    obj = np.ascontiguousarray(object_points, np.float64).reshape(-1, 3)
+    img = np.ascontiguousarray(image_points, np.float64).reshape(-1, 2)
+    rvec, tvec = sol.rvec.copy(), sol.tvec.copy()
+    for step in range(steps + 1):
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        r = img - proj.reshape(-1, 2)
+        if step == steps:
+            break
+        J = jac[:, :6].reshape(-1, 2, 6)
+        ok, delta = cv2.solve(np.einsum("nai,nab,nbj->ij", J, information, J),
+                              np.einsum("nai,nab,nb->i", J, information, r),
+                              flags=cv2.DECOMP_CHOLESKY)
+        if not ok:
+            return sol
+        rvec, tvec = rvec + delta[:3, 0], tvec + delta[3:, 0]
+    return Solution(rvec, tvec, float((r ** 2).sum()), len(obj), jac[:, :6].copy(),
+                    cv2.Rodrigues(rvec)[0])
 
 
 def rotation_jacobian(rvec: np.ndarray) -> np.ndarray:

@@ -5,27 +5,36 @@
 * **detection**: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; their corners
   are then located from their four sides (:mod:`services.fiducials.edges`), in ideal
   pixels (lens distortion removed), where the poses are solved;
-* **pose**: :mod:`services.fiducials.pose` (IPPE candidates, LM refinement, covariance);
-* **corner noise**: not assumed: per body, the residuals of its last ``POOL_FRAMES``
-  fits pooled (``σ² = Σ RSS / Σ dof``; the camera's calibrated pixel noise fills in
-  for the dof missing up to ``FULL_DOF``, then weighs ``PRIOR_DOF``), so the covariance
-  grows when the marker is far, blurred or badly lit and its corners scatter more; never
-  below :func:`corner_floor_px` of the marker's cell size in pixels (the error a small
-  tag's corners share, which its residuals do not show);
+* **pose**: :mod:`services.fiducials.pose` (IPPE candidates, LM refinement, then
+  Gauss-Newton steps weighted by the corners' covariances);
+* **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` each corner's 2x2 covariance from the two
+  edge lines it is the intersection of (:func:`edges.refine`: their fits' scatter, length
+  and angle), times ``EDGE_CORRELATION`` (neighbouring edge points share their noise
+  through the blur), plus ``SHARED_A / cell_px ** SHARED_B`` per axis (what a tiny tag's
+  edge fits cannot show).  So it grows when the marker is far, blurred, tilted or badly
+  lit, corner by corner;
+* **corner noise for the ambiguity judgement**: a separate, cautious figure: per body,
+  the residuals of its last ``POOL_FRAMES`` fits pooled (``σ² = Σ RSS / Σ dof``; the
+  camera's calibrated pixel noise fills in for the dof missing up to ``FULL_DOF``, then
+  weighs ``PRIOR_DOF``), never below :func:`corner_floor_px` of the marker's cell size
+  (it is also the covariance's noise when corners come without their covariances, as
+  in :meth:`FiducialTracker.estimate` called with bare corners);
 * **planar ambiguity**: when the second-best solution fits within ``AMBIGUITY_GAP``
   (in units of σ², at least the calibration's pixel noise: the χ² distance between the
   two fits) the choice is not trusted to the residuals.  If the body's previous trusted
   estimate (at most ``HISTORY_S`` old) lies clearly on one solution's side (within
   ``HISTORY_SIDE`` of the angle between the two), that one is taken (``ambiguity =
-  "history"``); otherwise the better fit is reported with its covariance inflated by the
-  other solution's offset, so that the other one lies within one standard deviation
-  (``ambiguity = "covered"``).  Never a silent flip: the sample says which.
+  "history"``, its covariance widened half way towards the other); otherwise the better
+  fit is reported with its covariance inflated by the other solution's offset and
+  spread, so that the other one lies within one standard deviation (``ambiguity =
+  "covered"``).  Never a silent flip: the sample says which.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -48,6 +57,17 @@ FULL_DOF = 20
 DEFAULT_PIXEL_STD = 0.3
 FLOOR_A = 1.2
 FLOOR_B = 1.58
+#: the edge points along a side share their noise through the blur and the bilinear
+#: sampling: the twelve of a side count as about 12 / ``EDGE_CORRELATION`` independent
+#: ones, so the edge fits' corner covariance is this many times what independent points
+#: give (fitted on seeds 1-10 of ``uma eval fiducials``: NEES 13-16 at 0.5-1.5 m without)
+EDGE_CORRELATION = 2.5
+#: what a tiny tag's edge fits cannot show (its reach across a side spans barely a cell,
+#: the code's cells bias the crossing): ``SHARED_A / cell_px ** SHARED_B`` per axis added
+#: to each corner (0.05 px at 1 m, 0.23 px at 2 m for an 8 cm tag; fitted on seeds 1-10:
+#: NEES 46 at 2-2.5 m without)
+SHARED_A = 1.45
+SHARED_B = 3.0
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
 #: the previous pose decides when it is within this share of the two solutions' angle
@@ -72,14 +92,35 @@ class Estimate:
 
 
 def corner_floor_px(module_px: float) -> float:
-    """The least corner noise (px, per axis) a marker of ``module_px``-pixel cells has:
-    what its residuals cannot show (the corners of a small, blurred tag move together, so
-    the pose absorbs the error).  On simulated 640x480 frames (seeds 1-10) the edge-fitted
-    corners' error against the truth went from 0.06 px at 8 px cells to 0.43 px at 2.3 px,
-    ``1.65 / module_px ** 1.58``; the floor is 0.73 of that (``FLOOR_A`` 1.2): the whole
-    of it made the covariances 2-5x too large in NEES, 0.8 let one sample of ten seeds
-    through as a silent flip, 1.2 none of thirteen."""
+    """The least corner noise (px, per axis) the ambiguity judgement assumes for a marker
+    of ``module_px``-pixel cells: what its residuals cannot show (the corners of a small,
+    blurred tag move together, so the pose absorbs the error).  On simulated 640x480
+    frames (seeds 1-10) the edge-fitted corners' error against the truth went from
+    0.06 px at 8 px cells to 0.43 px at 2.3 px, ``1.65 / module_px ** 1.58``; the floor
+    is 0.73 of that (``FLOOR_A`` 1.2): 0.8 let one sample of ten seeds through as a
+    silent flip, 1.2 none of thirteen."""
     return FLOOR_A / max(module_px, 0.5) ** FLOOR_B
+
+
+def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], ambiguity: str,
+                      cov_of: Callable[[pose.Solution], np.ndarray]) -> np.ndarray:
+    """What an ambiguous pose's covariance gains: the corners barely tell the two
+    solutions apart, so the error is not the quadratic bowl's around the chosen one.
+    ``history``: the truth may lie anywhere up to half way to the other solution;
+    ``covered``: the other solution, with its own spread, lies within one standard
+    deviation."""
+    other = max(solutions[:2], key=lambda s: pose.rotation_angle(s.rotation, chosen.rotation))
+    d = pose.difference(chosen, other)
+    if ambiguity == "history":
+        return np.outer(d, d) / 4
+    return np.outer(d, d) + cov_of(other)
+
+
+def corner_covariance(edge_fit: np.ndarray, module_px: float) -> np.ndarray:
+    """The corners' covariances (n, 2, 2) from their edge fits' (:func:`edges.refine`)
+    for a marker of ``module_px``-pixel cells."""
+    shared = SHARED_A / max(module_px, 0.5) ** SHARED_B
+    return EDGE_CORRELATION * edge_fit + shared ** 2 * np.eye(2)
 
 
 def _moved(rvec: np.ndarray, tvec: np.ndarray, T_marker_body: np.ndarray,
@@ -146,20 +187,31 @@ class FiducialTracker:
 
     def detect(self, image: np.ndarray) -> dict[int, np.ndarray]:
         """Marker id -> its four corners (4, 2) in ideal pixels (distortion removed)."""
+        return self.observe(image)[0]
+
+    def observe(self, image: np.ndarray,
+                ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Marker id -> its four corners (4, 2) in ideal pixels (distortion removed), and
+        marker id -> their covariances (4, 2, 2) from the edge fits."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, _ = self.detector.detectMarkers(gray)
         if ids is None:
-            return {}
-        ideal = edges.refine(gray, np.asarray(corners).reshape(-1, 4, 2), self._modules,
-                             self.camera)
-        return {int(i): c for i, c in zip(ids.ravel(), ideal, strict=True)}
+            return {}, {}
+        ideal, cov = edges.refine(gray, np.asarray(corners).reshape(-1, 4, 2), self._modules,
+                                  self.camera)
+        keys = [int(i) for i in ids.ravel()]
+        return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
 
     def process(self, image: np.ndarray, t_ns: int) -> list[Estimate]:
         """Every body seen in ``image`` (captured at ``t_ns``)."""
-        return self.estimate(self.detect(image), t_ns)
+        seen, noise = self.observe(image)
+        return self.estimate(seen, t_ns, noise)
 
-    def estimate(self, seen: dict[int, np.ndarray], t_ns: int) -> list[Estimate]:
-        """Every body among the detected markers ``seen`` (ideal-pixel corners)."""
+    def estimate(self, seen: dict[int, np.ndarray], t_ns: int,
+                 noise: dict[int, np.ndarray] | None = None) -> list[Estimate]:
+        """Every body among the detected markers ``seen`` (ideal-pixel corners).  With
+        ``noise`` (the corners' covariances, :meth:`observe`) the pose is weighted by it
+        and its covariance follows from it; without, from the pooled residuals."""
         groups: dict[str, tuple[Body, list[int]]] = {}
         for marker_id in sorted(seen):
             body = self._body(marker_id)
@@ -167,7 +219,7 @@ class FiducialTracker:
                 groups.setdefault(body.name, (body, []))[1].append(marker_id)
         out = []
         for body, ids in groups.values():
-            est = self._solve(body, ids, seen, t_ns)
+            est = self._solve(body, ids, seen, t_ns, noise)
             if est is not None:
                 out.append(est)
         return out
@@ -185,7 +237,7 @@ class FiducialTracker:
         return self._singles[marker_id]
 
     def _solve(self, body: Body, ids: list[int], seen: dict[int, np.ndarray], t_ns: int,
-               ) -> Estimate | None:
+               noise: dict[int, np.ndarray] | None) -> Estimate | None:
         K, dist = self._K, self._no_dist
         obj = np.concatenate([body.corners[i] for i in ids])
         img = np.concatenate([seen[i] for i in ids])
@@ -206,7 +258,20 @@ class FiducialTracker:
         state.add(best.rss_px2, best.dof)
         module_px = math.sqrt(cv2.contourArea(seen[biggest].astype(np.float32))) / self._modules
         sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
-        chosen, cov, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
+        chosen, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
+        if noise is not None and all(i in noise for i in ids):
+            information = np.linalg.inv(corner_covariance(
+                np.concatenate([noise[i] for i in ids]), module_px))
+            chosen = pose.reweigh(chosen, obj, img, K, dist, information)
+
+            def cov_of(sol: pose.Solution) -> np.ndarray:
+                return pose.weighted_covariance(sol, information)
+        else:
+            def cov_of(sol: pose.Solution) -> np.ndarray:
+                return pose.covariance(sol, float(np.sqrt(sigma2)))
+        cov = cov_of(chosen)
+        if ambiguity != "none":
+            cov = cov + _ambiguity_spread(chosen, solutions, ambiguity, cov_of)
         est = Estimate(body.name, t_ns, chosen.rotation, chosen.tvec, cov, float(np.sqrt(sigma2)),
                        float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), ambiguity,
                        tuple(ids), gap)
@@ -229,17 +294,17 @@ class FiducialTracker:
         return self._frames[key]
 
     def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
-               t_ns: int) -> tuple[pose.Solution, np.ndarray, str, float]:
+               t_ns: int) -> tuple[pose.Solution, str, float]:
+        """(the solution reported, how it was chosen, the χ² gap to the other)."""
         best = solutions[0]
-        sigma = float(np.sqrt(sigma2))
         if len(solutions) == 1:
-            return best, pose.covariance(best, sigma), "none", float("inf")
+            return best, "none", float("inf")
         other = solutions[1]
         # judged at no less than the calibration's pixel noise: a noise estimate from a
         # few residual dof can be small by chance, and a gap it inflates is a silent flip
         gap = (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
         if gap > AMBIGUITY_GAP:
-            return best, pose.covariance(best, sigma), "none", gap
+            return best, "none", gap
         last = state.last
         if last is not None and 0 <= t_ns - last.t_ns <= HISTORY_S * 1e9:
             d_best = pose.rotation_angle(best.rotation, last.R)
@@ -247,6 +312,5 @@ class FiducialTracker:
             apart = pose.rotation_angle(best.rotation, other.rotation)
             near = best if d_best <= d_other else other
             if min(d_best, d_other) < HISTORY_SIDE * apart:
-                return near, pose.covariance(near, sigma), "history", gap
-        d = pose.difference(best, other)
-        return best, pose.covariance(best, sigma) + np.outer(d, d), "covered", gap
+                return near, "history", gap
+        return best, "covered", gap
