@@ -9,6 +9,9 @@ Real processes on loopback: one agent (``uma agent``), a publisher (this script 
   the moment the page's text shows it as the newest sample drawn (a MutationObserver in the
   page stamps every change of that text; both clocks are this host's).  The 3D scene is
   sent in the same redraw as that text.
+- **age at the view**: the same sample's age when the view drew it (the page's text says
+  it): what the page's latency owes to the data path (publisher, agent, digest) rather than
+  to the page.
 - **viewer CPU**: the ``uma view`` process's user+system time over the measured window, in
   % of one core.
 - The anchor, measured in the same run: the same with 1 frame at RATE Hz.
@@ -31,6 +34,7 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 from summary import cpu_model, median_p99, report
 
 ROOT = str(Path(__file__).resolve().parents[1])
@@ -47,8 +51,9 @@ window.__uma = [];
 new MutationObserver(records => {
   const now = performance.timeOrigin + performance.now();
   for (const r of records) {
-    const m = (r.target.textContent || "").match(/newest sample drawn: t=(\\d+) ns/);
-    if (m) { window.__uma.push(now - Number(m[1]) / 1e6); break; }
+    const m = (r.target.textContent || "").match(
+      /newest sample drawn: t=(\\d+) ns \\((-?\\d+) ms old\\)/);
+    if (m) { window.__uma.push([now - Number(m[1]) / 1e6, Number(m[2])]); break; }
   }
 }).observe(document.body, {subtree: true, childList: true, characterData: true});
 """
@@ -111,12 +116,16 @@ def measure_page(url: str, pid: int, seconds: float, ready: str) -> dict[str, fl
         cpu0, t0 = _cpu_s(pid), time.monotonic()
         time.sleep(seconds)
         cpu = (_cpu_s(pid) - cpu0) / (time.monotonic() - t0)
-        latencies = browser.execute_script("return window.__uma;")
+        shown = browser.execute_script("return window.__uma;")
         text = page_text(browser)
+    latencies = [page for page, _ in shown]
+    at_view = [view for _, view in shown]
     placed = re.search(r"(\d+) frame\(s\) placed", text)
     nan = float("nan")
     stats = median_p99(latencies, "ms") if latencies else {"median_ms": nan, "p99_ms": nan}
-    return {**stats, "updates": float(len(latencies)), "cpu_pct": 100.0 * cpu,
+    view = ({"age_at_view_median_ms": float(np.median(at_view))} if at_view
+            else {"age_at_view_median_ms": nan})
+    return {**stats, **view, "updates": float(len(latencies)), "cpu_pct": 100.0 * cpu,
             "ready": float(reached), "frames_placed_at_end": float(placed.group(1)) if placed
             else 0.0, "agent_departures_seen": float(text.count("left the realm"))}
 
