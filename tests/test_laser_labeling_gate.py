@@ -213,6 +213,7 @@ def test_no_wrong_labeling_is_published_on_random_seeds() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # 40 seeds x 20 s of simulation: minutes on 2 busy cores
 def test_no_wrong_labeling_is_published_on_many_seeds() -> None:
     rng = np.random.default_rng(36)
     for seed in range(1, 41):
