@@ -1,7 +1,7 @@
 """The agent's stream digest (:mod:`agent.protocol.digest`): the newest sample of each local
 pose stream, put by the SRG node's worker at its tick while a subscriber listens.
 
-Zenoh's thread only stores a reference to each sample's bytes (the graph store keeps the
+The stream hub's thread only stores a reference to each sample's bytes (the graph store keeps the
 newest per stream, :class:`agent.daemon.graph_store.LocalGraph`); nothing is decoded or
 encoded unless someone listens, and a digest is put only when a stream had a new sample
 since the last one.

@@ -4,7 +4,7 @@ ability, fed from their data keys as tf2's ``TransformListener`` feeds its buffe
 It keeps a :class:`agent.srg.Graph` of the configuration's static edges (source ``config``)
 and one measured edge per local ``pose6d`` ability (source ``<service_id>/<ability>``, the
 data key's last two chunks); a static ability (a calibration) sets a static edge instead.
-Samples are queued in Zenoh's thread (their bytes, nothing decoded) and decoded into the
+Samples are queued in the stream hub's thread (their bytes, nothing decoded) and decoded into the
 graph in batches by :meth:`LocalGraph.drain`, which the agent's worker calls and every
 reader of the graph calls first (``agent.daemon.srg_node``, "Threads").  ``wake()`` wakes
 the agent's worker: samples wait to be decoded, or the graph's structure or attributes
@@ -117,7 +117,7 @@ class LocalGraph:
                 self._local[(service_id, name)] = (ability, stop)
 
     def _on_local_data(self, local: tuple[str, str], data: bytes) -> None:
-        """A local pose sample (Zenoh's thread): queued for the next batch (module
+        """A local pose sample (the stream hub's thread): queued for the next batch (module
         docstring); the first of a batch wakes the worker."""
         pending = self._pending
         if not pending:

@@ -46,7 +46,7 @@ INBOX = 2000
 
 
 class _Stream:
-    """Rate and latency of one data stream as this host receives it: Zenoh's thread appends
+    """Rate and latency of one data stream as this host receives it: the stream hub's thread appends
     (arrival, payload), ``measure`` (the worker) reads the sample times."""
 
     def __init__(self, key: str, type_: str, window_s: float, now: float,
@@ -56,7 +56,7 @@ class _Stream:
         self.window_s = window_s
         self.started = now
         self.inbox: deque[tuple[float, int, bytes]] = deque()
-        #: arrivals the inbox had no room for (Zenoh's thread counts, the worker reads)
+        #: arrivals the inbox had no room for (the hub's thread counts, the worker reads)
         self.overflow = 0
         self._overflow_seen = 0
         #: (arrival mono, samples, latency s or None: uninspected overflow, or out of order)

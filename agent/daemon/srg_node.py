@@ -34,7 +34,7 @@ tens of microseconds), queue local samples (their bytes, nothing decoded) and re
 agents' frames; the queued samples are decoded into the graph in batches, by the worker
 (every ``PUBLISH_CHECK_S`` while samples come) and before anything reads the graph (a
 query, a summary), so answers hold every sample that arrived before them.  Per sample
-that is a queue append on Zenoh's thread instead of a decode and an insert there: at
+that is a queue append on the stream hub's thread instead of a decode and an insert there: at
 tracking rates the thread hop into Python finds the interpreter's caches cold, and a
 batch decoded in one go is several times cheaper per sample.  One worker thread republishes the
 summary when needed (computed from a copy of the graph's topology, off the lock) and asks
