@@ -9,10 +9,12 @@ tree's own message builders):
 - **token churn**: liveliness tokens of new agent ids declared and dropped as fast as the
   session can for ``--seconds``.
 
-The realm: agent ``h0`` and agent ``h1`` (connected to ``h0``) with one static edge each, a
-client on ``h0`` querying ``world`` -> ``h1/world`` across both.  Figures: ``h0``'s RSS
-growth (MB) and CPU (% of one core) during each flood, and query latency (median, p99)
-before the floods and after each.  ``--tree`` runs the agents and the client from another
+The realm: agent ``h0`` and agent ``h1`` (connected to ``h0``) with one static edge each,
+a tracker on ``h1`` publishing ``h1/world`` -> ``h1/s0`` at 50 Hz, and a client on ``h0``
+querying ``world`` -> ``h1/s0`` across both (a moving pose: asked of the agents each
+time).  Each flood runs in its own process (``--attack``).  Figures: ``h0``'s RSS growth
+(MB) and CPU (% of one core) during each flood, and query latency (median, p99) before the
+floods and 3 s after each.  ``--tree`` runs the agents and the client from another
 checkout (a worktree of an older commit) to compare; the anchor is the query latency
 before any flood, in the same run.
 
@@ -22,6 +24,7 @@ before any flood, in the same run.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -49,7 +52,10 @@ def start_realm(realm: str, tmp: Path) -> tuple[list[Child], str]:
     deadline = time.monotonic() + 60
     for a in agents:
         a.wait_for("listening on", deadline)
-    return agents, eps[0]
+    tracker = Child("-m", "tests.agent_helpers.many_services", "--realm", realm, "--agent",
+                    "h1", "--connect", eps[1], "--count", "1", "--rate", "50")
+    tracker.wait_for("started", deadline)
+    return [*agents, tracker], eps[0]
 
 
 def query_figures(client, count: int) -> dict[str, float]:
@@ -57,7 +63,7 @@ def query_figures(client, count: int) -> dict[str, float]:
     for _ in range(count):
         t = time.perf_counter()
         with suppress(Exception):
-            client.pose("world", "h1/world")
+            client.pose("world", "h1/s0")
             ms.append((time.perf_counter() - t) * 1e3)
     return median_p99(ms or [float("nan")], "ms") | {"failed": count - len(ms)}
 
@@ -78,7 +84,8 @@ def summaries_flood(session, realm: str, frames: int, seconds: float) -> dict[st
 
 
 def fake_agents_flood(session, realm: str, fakes: int, snapshot_kb: int) -> dict[str, float]:
-    """Tokens of ``fakes`` invented agents, their snapshots published and answered."""
+    """Tokens of ``fakes`` invented agents, their snapshots published and answered (kept
+    until the attacker is stopped)."""
     from agent.protocol import keys
     from agent.protocol.registration import snapshot_message
     pad = "x" * 1000
@@ -96,8 +103,11 @@ def fake_agents_flood(session, realm: str, fakes: int, snapshot_kb: int) -> dict
     for key, data in snaps.items():
         session.put(key, data)
     time.sleep(3.0)
-    return {"fakes": fakes, "sent_mb": sum(len(d) for d in snaps.values()) / 1e6,
-            "_keep": (queryable, tokens)}
+    print(json.dumps({"fakes": len(tokens),
+                      "sent_mb": sum(len(d) for d in snaps.values()) / 1e6}), flush=True)
+    time.sleep(60)  # bounded: the bench stops this process after measuring
+    queryable.undeclare()
+    return {}
 
 
 def churn_flood(session, realm: str, seconds: float) -> dict[str, float]:
@@ -110,20 +120,43 @@ def churn_flood(session, realm: str, seconds: float) -> dict[str, float]:
     return {"tokens": n}
 
 
-def phase(name: str, target: Child, client, flood, queries: int) -> dict:
+def attack(args: argparse.Namespace) -> None:
+    """The attacker's process (``--attack``): one flood, its figures as a JSON line."""
+    import zenoh
+    from loopback import zenoh_config
+    with zenoh.open(zenoh_config("client", connect=args.connect)) as session:
+        time.sleep(1.0)  # its links
+        if args.attack == "summaries":
+            out = summaries_flood(session, args.realm, args.frames, args.seconds)
+        elif args.attack == "fake_agents":
+            out = fake_agents_flood(session, args.realm, args.fakes, args.snapshot_kb)
+        else:
+            out = churn_flood(session, args.realm, args.seconds)
+        print(json.dumps(out), flush=True)
+
+
+def phase(name: str, target: Child, client, args: argparse.Namespace, ep: str,
+          realm: str) -> dict:
+    """One flood by an attacker process: the target's CPU while it runs, its RSS growth
+    and the query latency 3 s after it."""
     rss0, cpu0, t0 = rss_mb(target.pid), cpu_s(target.pid), time.monotonic()
-    out = flood()
-    keep = out.pop("_keep", None)
+    attacker = Child(str(Path(__file__).resolve()), "--tree", str(bench_host_load.ROOT),
+                     "--attack", name, "--connect", ep,
+                     "--realm", realm, "--seconds", str(args.seconds), "--frames",
+                     str(args.frames), "--fakes", str(args.fakes), "--snapshot-kb",
+                     str(args.snapshot_kb))
+    out = json.loads(attacker.wait_for("{", time.monotonic() + args.seconds + 60))
     cpu_pct = 100 * (cpu_s(target.pid) - cpu0) / (time.monotonic() - t0)
     time.sleep(3.0)  # what the agent does after the flood is part of its cost
-    after = query_figures(client, queries)
+    after = query_figures(client, args.queries)
     fig = {f"{name}_{k}": v for k, v in out.items()} | {
         f"{name}_agent_cpu_pct": round(cpu_pct, 1),
         f"{name}_rss_growth_mb": round(rss_mb(target.pid) - rss0, 1),
         f"{name}_query_after_median_ms": after["median_ms"],
         f"{name}_query_after_p99_ms": after["p99_ms"],
         f"{name}_query_after_failed": after["failed"]}
-    del keep
+    attacker.proc.terminate()
+    attacker.proc.wait(10)
     return fig
 
 
@@ -136,37 +169,41 @@ def main() -> None:
     ap.add_argument("--snapshot-kb", type=int, default=512, help="KiB per fake snapshot")
     ap.add_argument("--queries", type=int, default=40)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--attack", choices=("summaries", "fake_agents", "churn"),
+                    help=argparse.SUPPRESS)
+    ap.add_argument("--connect", help=argparse.SUPPRESS)
+    ap.add_argument("--realm", help=argparse.SUPPRESS)
     args = ap.parse_args()
     tree = Path(args.tree or Path(__file__).resolve().parent.parent).resolve()
     if os.environ.get("PYTHONPATH") != str(tree):  # the tree's agent package, not this one
         os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]],
                   dict(os.environ, PYTHONPATH=str(tree)))
+    sys.path.insert(0, str(tree))  # before bench_host_load's own tree, whose modules go
+    for name in [m for m in sys.modules if m.split(".")[0] in ("agent", "schemas")]:
+        del sys.modules[name]
     bench_host_load.ROOT = tree
-    import zenoh
-    from loopback import zenoh_config
-
+    if args.attack:
+        attack(args)
+        return
+    import agent
     from agent import Client
     realm = f"strangers{int(time.time())}"
     with tempfile.TemporaryDirectory() as tmp:
         agents, ep = start_realm(realm, Path(tmp))
         try:
-            with Client(realm=realm, connect=[ep]) as client, \
-                    zenoh.open(zenoh_config("client", connect=ep)) as session:
+            with Client(realm=realm, connect=[ep]) as client:
                 for _ in range(100):  # bounded: the realm forms within ~10 s
                     if query_figures(client, 1)["failed"] == 0:
                         break
                     time.sleep(0.1)
                 before = query_figures(client, args.queries)
-                fig: dict = {"tree": str(tree), "cpu": cpu_model(),
+                fig: dict = {"tree": str(Path(agent.__file__).parent.parent),
+                             "cpu": cpu_model(),
                              "agent_rss_mb_start": round(rss_mb(agents[0].pid), 1),
                              "query_before_median_ms": before["median_ms"],
                              "query_before_p99_ms": before["p99_ms"]}
-                fig |= phase("summaries", agents[0], client, lambda: summaries_flood(
-                    session, realm, args.frames, args.seconds), args.queries)
-                fig |= phase("fake_agents", agents[0], client, lambda: fake_agents_flood(
-                    session, realm, args.fakes, args.snapshot_kb), args.queries)
-                fig |= phase("churn", agents[0], client, lambda: churn_flood(
-                    session, realm, args.seconds), args.queries)
+                for name in ("summaries", "fake_agents", "churn"):
+                    fig |= phase(name, agents[0], client, args, ep, realm)
                 fig["query_after_all_ratio"] = round(
                     fig["churn_query_after_median_ms"] / before["median_ms"], 2)
         finally:

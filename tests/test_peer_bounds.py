@@ -261,6 +261,8 @@ def test_an_oversized_summary_is_refused_before_it_is_copied(caplog) -> None:
     n = _static_node()
     big = zenoh.ZBytes(b"\x80" * (8 << 20))
     sample = SimpleNamespace(key_expr="uma/lab/agent/B/supernode", payload=big)
+    n.peers.on_agent_token(SimpleNamespace(key_expr="uma/lab/agent/B",
+                                           kind=zenoh.SampleKind.PUT))
     tracemalloc.start()
     try:
         with caplog.at_level(logging.WARNING, logger="uma.srg"):
@@ -271,6 +273,24 @@ def test_an_oversized_summary_is_refused_before_it_is_copied(caplog) -> None:
     assert peak < 1 << 20, f"{peak} bytes allocated for a refused 8 MiB summary"
     assert "exceeds the limit" in caplog.records[-1].getMessage()
     assert n.peers.frames == {}
+
+
+def test_a_summary_of_an_agent_without_a_token_is_refused_before_it_is_decoded() -> None:
+    """Decoding and checking a stranger's 20,000 frame ids cost the flood's CPU and memory;
+    the key names the agent, whose token was never seen: nothing is decoded."""
+    import tracemalloc
+
+    from schemas.codec import encode_message
+    n = _static_node()
+    data = encode_message({"agent": "ghost", "frames": [f"ghost/f{i:05d}" for i in range(20_000)]})
+    tracemalloc.start()
+    try:
+        n.peers.learn("uma/lab/agent/ghost/supernode", data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < len(data) // 4, f"{peak} bytes allocated for a {len(data)}-byte summary"
+    assert n.peers.frames == {} and n.summaries_refused == 1
 
 
 def _summary(agent: str, frames: list[str], links: list[tuple[str, str]]):

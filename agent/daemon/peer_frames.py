@@ -98,7 +98,15 @@ class PeerFrames:
             self.learn(str(reply.ok.key_expr), reply.ok.payload)
 
     def learn(self, key: str, payload: zenoh.ZBytes | bytes) -> None:
-        """Record the frames another agent knows (they decide our boundary)."""
+        """Record the frames another agent knows (they decide our boundary).  A summary
+        whose key names an agent without a seen token is refused before it is decoded:
+        decoding and checking a stranger's thousands of frame ids was the flood's cost."""
+        named = keys.parse_agent_supernode(key, self.realm)
+        if named is not None and named != self.agent_id and named not in self._live:
+            self.refused += 1
+            self._log.warning(f"supernode {key}", "summary refused: its agent's liveliness "
+                              f"token was never seen ({self.refused} refused so far)")
+            return
         try:
             data = payload if isinstance(payload, bytes) else payload_bytes(payload)
             msg = decode_message(data, required=("agent", "frames"))
