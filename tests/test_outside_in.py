@@ -13,7 +13,7 @@ from scipy.stats import chi2
 from agent import geometry as geo
 from agent.errors import UmaError
 from services.fusion.predictor import motion_matrices
-from services.outside_in.blobs import BlobParams, find_blobs
+from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import MotionFilter
 from services.outside_in.pose import Observation, absolute_orientation, refine_pose
@@ -87,6 +87,24 @@ def test_windows_find_what_the_whole_frame_finds() -> None:
     assert len(whole) == 3 and len(near) == 2
     for uv in near.uv:
         assert np.min(np.linalg.norm(whole.uv - uv, axis=1)) < 1e-9
+
+
+def test_fitted_centres_of_small_still_markers_lose_the_pixel_locking() -> None:
+    """Small far markers (a pixel in radius, 70 DN) averaged over 20 frames: their
+    centroids keep a bias that depends on the sub-pixel phase; the fitted model's centres
+    are more than twice as close."""
+    rng = np.random.default_rng(5)
+    centres = [(60 + 50 * i + rng.uniform(), 100 + 30 * (i % 3) + rng.uniform())
+               for i in range(10)]
+    mean = np.mean([blob_image(centres, radius=0.9, peak=70.0, seed=s).astype(float)
+                    for s in range(20)], axis=0)
+    blobs = find_blobs(np.rint(mean).astype(np.uint8), BlobParams(threshold=20))
+    assert len(blobs) == 10
+    order = np.argsort(blobs.uv[:, 0])
+    truth = np.array(centres)
+    centroid = np.sqrt(np.mean((blobs.uv[order] - truth) ** 2))
+    fitted = np.sqrt(np.mean((fit_centres(mean, blobs.uv)[order] - truth) ** 2))
+    assert fitted < 0.012 and fitted < 0.6 * centroid
 
 
 def test_blob_params_refuse_nonsense() -> None:

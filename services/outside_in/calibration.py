@@ -465,10 +465,12 @@ def lframe_observations(models: list[CameraModel], extr: list[tuple[Array, Array
 
 def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: list[list[Array]],
                   wand: Wand = Wand(), lframe: RigidBody = LFRAME, sigma_px: float = 0.05,
-                  static_px: float = 0.03, intrinsics: bool = False) -> RigCalibration:
+                  static_px: float = 0.015, intrinsics: bool = False,
+                  lframe_averaged: int = 1) -> RigCalibration:
     """The whole calibration (steps 2-4 of the module's docstring).  ``sigma_px`` is a
     wand marker image's noise, ``static_px`` the part of a still marker's centroid error
-    that does not average out over frames (pixel sampling)."""
+    that does not average out over frames (pixel sampling); each of ``lframe_frames`` may
+    be the average of ``lframe_averaged`` images of the still L-frame."""
     counts = np.sum(~np.isnan(wand_obs[:, :, 0, 0]), axis=0)
     if np.any(counts < 20):
         few = [models[c].name or f"#{c}" for c in np.nonzero(counts < 20)[0]]
@@ -491,7 +493,7 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
     world_extr = [(R @ R_rw, R @ p_rw + t) for R, t in rel.extrinsics]
     # a static marker's centroid keeps its pixel-sampling error in every frame: averaging
     # n frames divides the noise by sqrt(n), never that part (``static_px``)
-    weight = sigma_px / np.sqrt(sigma_px ** 2 / n_l + static_px ** 2)
+    weight = sigma_px / np.sqrt(sigma_px ** 2 / (n_l * lframe_averaged) + static_px ** 2)
     final = adjust(rel.models, world_extr, wand_obs, wand, sigma_px, fixed_camera=None,
                    points=lframe.markers, point_obs=lobs, point_weight=weight,
                    intrinsics=intrinsics)

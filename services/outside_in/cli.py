@@ -16,7 +16,7 @@ from agent.errors import UmaError
 from services.camera.capture import Capture
 from services.camera.model import load as load_camera
 from services.camera.simulator import write_video
-from services.outside_in.blobs import find_blobs
+from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import (
     body_from_points,
     distinguishable,
@@ -141,9 +141,40 @@ def calibrate_from_files(sources: dict[str, tuple[str, str, str]], wand: Wand,
         m = load_camera(sources[n][2])
         models.append(type(m)(m.K, m.dist, m.width, m.height, m.pixel_std, n))
     wand_frames = matched_blobs([sources[n][0] for n in names])
-    lframe_frames = matched_blobs([sources[n][1] for n in names])
+    lframe_blobs, averaged = still_blobs([sources[n][1] for n in names])
     obs = wand_observations(models, wand_frames, wand)
-    return calibrate_rig(models, obs, lframe_frames, wand, intrinsics=refine_intrinsics)
+    return calibrate_rig(models, obs, [lframe_blobs], wand, intrinsics=refine_intrinsics,
+                         lframe_averaged=averaged)
+
+
+#: DN above which a pixel of an averaged still image may belong to a marker: its noise is
+#: a few tenths of a DN, so markers far too faint for one frame's threshold are found
+STILL_THRESHOLD_DN = 20
+
+
+def still_blobs(paths: list[str], max_frames: int = 600) -> tuple[list[Array], int]:
+    """Blob pixels of recordings of a still scene (the L-frame on the floor), one array
+    per camera, and the fewest frames averaged in any.  Each recording's frames are
+    averaged into one image before segmentation: the noise falls by the square root of
+    their number, so the far markers, near one frame's threshold and found in that frame
+    only when its noise lifts them above it (which biases their centroids), are found in
+    every camera with a lower threshold, and located by a fitted model
+    (``fit_centres``) rather than their centroids."""
+    out, counts = [], []
+    params = BlobParams(threshold=STILL_THRESHOLD_DN)
+    for path in paths:
+        total, n = None, 0
+        with Capture(path, gray=True, max_frames=max_frames) as cap:
+            for frame in cap.frames():
+                img = frame.image.astype(np.float64)
+                total = img if total is None else total + img
+                n += 1
+        if total is None:
+            raise UmaError(f"{path}: no frames")
+        mean = total / n
+        out.append(fit_centres(mean, find_blobs(np.rint(mean).astype(np.uint8), params).uv))
+        counts.append(n)
+    return out, min(counts)
 
 
 def matched_blobs(paths: list[str], max_frames: int = 20_000) -> list[list[Array]]:
