@@ -15,7 +15,8 @@ The procedure of commercial systems and of Dorfmüller-Ulhaas §2's one-step cal
    end point and a direction: the distances are fixed, which fixes the scale), residuals
    in pixels through ``cv2.projectPoints``, first with that camera fixed; wand views the
    adjusted rig cannot explain (a wand taken end for end) are dropped and it runs again.
-4. **World frame**: an L-frame of four markers on the floor, triangulated and identified
+4. **World frame**: an L-frame of four markers on the floor (located in each camera's
+   average of its still frames, ``cli.still_blobs``), triangulated and identified
    (``bodies.identify``), gives world -> rig by absolute orientation; the adjustment then
    runs again with every camera free and the L-frame's markers fixed at their known world
    positions -- they are what defines the world -- so each camera's covariance (from the
