@@ -142,6 +142,14 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
     # corner k lies on side k-1 (at its far end) and on side k (at its near end)
     v_a, v_b = np.roll(var_next, 1, axis=1), var_here
     N = np.stack([np.roll(normal, 1, axis=1), normal], axis=-2)  # (n, 4, 2, 2): rows
-    Ninv = np.linalg.inv(N)
+    Ninv = inverse_2x2(N)
     D = np.stack([v_a, v_b], axis=-1)[..., None, :]
     return (Ninv * D) @ np.swapaxes(Ninv, -1, -2)
+
+
+def inverse_2x2(m: np.ndarray) -> np.ndarray:
+    """The inverses of a stack (..., 2, 2) of 2x2 matrices in closed form (``np.linalg.inv``
+    costs a LAPACK call per matrix)."""
+    a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
+    out = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2)
+    return out / (a * d - b * c)[..., None, None]

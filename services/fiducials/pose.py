@@ -6,11 +6,14 @@ Every object (one square marker, or a bundle of markers) is solved the same way:
    (``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)``), moved into the object's frame.
    A planar square seen from far away fits both of them almost equally well: the
    *planar ambiguity* (the marker tilted one way or the mirror way).
-2. **Refinement**: ``cv2.solvePnPRefineLM`` from each candidate over all the object's
-   corners; the distinct local minima are kept, ordered by their residual sum of squares.
-3. **Covariance** (:func:`covariance`): ``(Jᵀ J)⁻¹ σ²`` with ``J`` the reprojection
-   Jacobian over (rvec, tvec) that ``cv2.projectPoints`` returns, ``σ`` the corner noise
-   (per axis, pixels) the caller estimates from the residuals.  It is returned in the
+2. **Refinement**: Gauss-Newton steps (a lone marker's best candidate) or
+   ``cv2.solvePnPRefineLM`` from each candidate over all the object's corners; the
+   distinct local minima are kept, ordered by their residual sum of squares; then
+   (:func:`reweigh`) a step to the minimum weighted by the corners' covariances.
+3. **Covariance** (:func:`weighted_covariance`): ``(Jᵀ W J)⁻¹`` with ``J`` the
+   reprojection Jacobian over (rvec, tvec) that ``cv2.projectPoints`` returns and ``W``
+   the corners' inverse covariances (or :func:`covariance`, ``(Jᵀ J)⁻¹ σ²`` for one
+   corner noise ``σ`` per axis).  It is returned in the
    *decoupled* form, [position error (m), rotation error (rad) in the camera frame]
    (``R_true = exp(φ) R``); :func:`agent.geometry.decoupled_to_se3` gives uma's wire form.
 """
@@ -26,11 +29,12 @@ import numpy as np
 #: four iterations reach it to 1e-8 m; a bundle starts from one of its markers
 LM_ITERATIONS_SINGLE = 4
 LM_ITERATIONS_BUNDLE = 15
+#: a lone marker's best candidate is refined by this many undamped Gauss-Newton steps
+#: instead (one ``projectPoints`` each, where an LM iteration costs several); a rival
+#: candidate, near a flat valley between the two solutions, keeps LM's damping
+GAUSS_NEWTON_STEPS = 2
 #: two refined solutions closer than this (rad) are the same minimum
 SAME_SOLUTION_RAD = np.deg2rad(2.0)
-#: Gauss-Newton steps from the unweighted to the weighted minimum (close: one step
-#: reaches it to well under its standard deviation, the second checks)
-REWEIGH_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -43,6 +47,7 @@ class Solution:
     n_points: int
     jacobian: np.ndarray  # (2n, 6): d(pixels) / d(rvec, tvec)
     rotation: np.ndarray  # (3, 3), from rvec
+    residual: np.ndarray  # (2n,): observed - projected pixels
 
     @property
     def dof(self) -> int:
@@ -81,15 +86,36 @@ def solve(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray,
     for rss0, rvec0, tvec0 in scored:
         if found and rss0 - found[0].rss_px2 > within_px2:
             break
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec0.reshape(3, 1).copy(),
-                                          tvec0.reshape(3, 1).copy(), criteria)
-        rvec, tvec = rvec.ravel(), tvec.ravel()
+        if found or iterations > LM_ITERATIONS_SINGLE:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec0.reshape(3, 1).copy(),
+                                              tvec0.reshape(3, 1).copy(), criteria)
+            rvec, tvec = rvec.ravel(), tvec.ravel()
+        else:
+            rvec, tvec = _gauss_newton(obj, img, K, dist, rvec0, tvec0, GAUSS_NEWTON_STEPS)
         proj, jac = cv2.projectPoints(obj, rvec, tvec, K, dist)
-        rss = float(((img - proj.reshape(-1, 2)) ** 2).sum())
-        sol = Solution(rvec, tvec, rss, len(obj), jac[:, :6].copy(), cv2.Rodrigues(rvec)[0])
+        residual = (img - proj.reshape(-1, 2)).ravel()
+        sol = Solution(rvec, tvec, float(residual @ residual), len(obj), jac[:, :6].copy(),
+                       cv2.Rodrigues(rvec)[0], residual)
         if not any(_same(sol, f) for f in found):
             found.append(sol)
     return sorted(found, key=lambda s: s.rss_px2)
+
+
+def _gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                  rvec: np.ndarray, tvec: np.ndarray, steps: int,
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Undamped Gauss-Newton steps on the reprojection error: from IPPE's start, within a
+    millimetre of the minimum, each step squares the error, and one costs a
+    ``projectPoints`` where ``solvePnPRefineLM``'s iteration costs several."""
+    for _ in range(steps):
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        J = jac[:, :6]
+        ok, delta = cv2.solve(J.T @ J, J.T @ (img - proj.reshape(-1, 2)).ravel(),
+                              flags=cv2.DECOMP_CHOLESKY)
+        if not ok:
+            break
+        rvec, tvec = rvec + delta[:3, 0], tvec + delta[3:, 0]
+    return rvec, tvec
 
 
 def _same(a: Solution, b: Solution) -> bool:
@@ -112,8 +138,12 @@ def weighted_covariance(sol: Solution, information: np.ndarray) -> np.ndarray:
     """Decoupled 6x6 covariance of ``sol`` for corners of known inverse covariances
     ``information`` (n, 2, 2): ``(Jᵀ W J)⁻¹``, exact for the weighted fit
     (:func:`reweigh`)."""
-    J = sol.jacobian.reshape(-1, 2, 6)
-    return _decoupled(sol, np.einsum("nai,nab,nbj->ij", J, information, J))
+    return _decoupled(sol, _weighted_jacobian(sol, information).T @ sol.jacobian)
+
+
+def _weighted_jacobian(sol: Solution, information: np.ndarray) -> np.ndarray:
+    """``W J`` (2n, 6) for the block-diagonal ``W`` of the corners' 2x2 ``information``."""
+    return np.matmul(information, sol.jacobian.reshape(-1, 2, 6)).reshape(-1, 6)
 
 
 def _decoupled(sol: Solution, normal_matrix: np.ndarray) -> np.ndarray:
@@ -127,30 +157,21 @@ def _decoupled(sol: Solution, normal_matrix: np.ndarray) -> np.ndarray:
     return (cov + cov.T) / 2
 
 
-def reweigh(sol: Solution, object_points: np.ndarray, image_points: np.ndarray,
-            K: np.ndarray, dist: np.ndarray, information: np.ndarray,
-            steps: int = REWEIGH_STEPS) -> Solution:
+def reweigh(sol: Solution, information: np.ndarray) -> Solution:
     """``sol`` moved to the minimum of the corners' residuals weighted by their inverse
-    covariances ``information`` (n, 2, 2) by Gauss-Newton steps from the unweighted
-    minimum (``solvePnPRefineLM`` weighs every corner alike: a corner whose edges were
-    found on a short or noisy side would pull the pose as hard as a sharp one)."""
-    obj = np.ascontiguousarray(object_points, np.float64).reshape(-1, 3)
-    img = np.ascontiguousarray(image_points, np.float64).reshape(-1, 2)
-    rvec, tvec = sol.rvec.copy(), sol.tvec.copy()
-    for step in range(steps + 1):
-        proj, jac = cv2.projectPoints(obj, rvec, tvec, K, dist)
-        r = img - proj.reshape(-1, 2)
-        if step == steps:
-            break
-        J = jac[:, :6].reshape(-1, 2, 6)
-        ok, delta = cv2.solve(np.einsum("nai,nab,nbj->ij", J, information, J),
-                              np.einsum("nai,nab,nb->i", J, information, r),
-                              flags=cv2.DECOMP_CHOLESKY)
-        if not ok:
-            return sol
-        rvec, tvec = rvec + delta[:3, 0], tvec + delta[3:, 0]
-    return Solution(rvec, tvec, float((r ** 2).sum()), len(obj), jac[:, :6].copy(),
-                    cv2.Rodrigues(rvec)[0])
+    covariances ``information`` (n, 2, 2) (``solvePnPRefineLM`` weighs every corner
+    alike: a corner whose edges were found on a short or noisy side would pull the pose
+    as hard as a sharp one).  One Gauss-Newton step from the unweighted minimum with its
+    Jacobian: the step is a fraction of a standard deviation, over which the Jacobian
+    does not change to first order."""
+    WJ = _weighted_jacobian(sol, information)
+    ok, delta = cv2.solve(WJ.T @ sol.jacobian, WJ.T @ sol.residual, flags=cv2.DECOMP_CHOLESKY)
+    if not ok:
+        return sol
+    rvec, tvec = sol.rvec + delta[:3, 0], sol.tvec + delta[3:, 0]
+    residual = sol.residual - sol.jacobian @ delta[:, 0]
+    return Solution(rvec, tvec, float(residual @ residual), sol.n_points, sol.jacobian,
+                    cv2.Rodrigues(rvec)[0], residual)
 
 
 def rotation_jacobian(rvec: np.ndarray) -> np.ndarray:

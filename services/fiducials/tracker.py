@@ -260,9 +260,9 @@ class FiducialTracker:
         sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
         chosen, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
         if noise is not None and all(i in noise for i in ids):
-            information = np.linalg.inv(corner_covariance(
+            information = edges.inverse_2x2(corner_covariance(
                 np.concatenate([noise[i] for i in ids]), module_px))
-            chosen = pose.reweigh(chosen, obj, img, K, dist, information)
+            chosen = pose.reweigh(chosen, information)
 
             def cov_of(sol: pose.Solution) -> np.ndarray:
                 return pose.weighted_covariance(sol, information)
