@@ -536,3 +536,32 @@ def test_a_client_keeps_summaries_of_agents_with_tokens_within_a_byte_bound(monk
             assert tracker.refused == 1 + 20 - len(kept)
         finally:
             tracker.close()
+
+
+def test_token_churn_does_not_make_a_client_forget_a_live_agent(monkeypatch, realm) -> None:
+    """A client remembers a bounded number of agents that had a token; tokens of new agent
+    ids declared and dropped by a stranger pushed the oldest out, a live agent included,
+    whose summaries the client then dropped."""
+    from types import SimpleNamespace
+
+    import msgpack
+    import zenoh
+
+    from agent.runtime.session import open_session
+    from agent.sdk import realm as realm_module
+    monkeypatch.setattr(realm_module, "MAX_AGENTS", 50)
+    with open_session() as session:
+        tracker = realm_module.RealmTracker(session, realm, 0.1, lambda agent: False)
+        try:
+            def token(agent: str, kind: zenoh.SampleKind) -> None:
+                tracker._on_token(SimpleNamespace(key_expr=f"uma/{realm}/agent/{agent}",
+                                                  kind=kind))
+            token("real", zenoh.SampleKind.PUT)
+            for i in range(200):
+                token(f"churn{i}", zenoh.SampleKind.PUT)
+                token(f"churn{i}", zenoh.SampleKind.DELETE)
+            tracker.take_summary(f"uma/{realm}/agent/real/supernode", msgpack.packb(
+                {"v": 1, "agent": "real", "rev": 1, "frames": ["real/world"]}))
+            assert "real" in tracker.view().summaries and tracker.refused == 0
+        finally:
+            tracker.close()

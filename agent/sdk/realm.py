@@ -200,7 +200,12 @@ class RealmTracker:
     def take_summary(self, key: str, data: bytes, answered: bool = False) -> None:
         """A summary published or answered on ``key``: newer ones replace the known one.  A
         published one more than ``MAX_REVISION_JUMP`` revisions ahead is refused (a forged
-        revision would outrank every real one); an answer to our own ask is taken."""
+        revision would outrank every real one); an answer to our own ask is taken.  One
+        whose key names an agent without a seen token is refused before it is decoded."""
+        named = keys.parse_agent_supernode(key, self.realm)
+        if named is not None and named not in self._tokens:
+            self._refuse_tokenless(key)
+            return
         try:
             summary = decode_summary(data)
             if summary.agent != keys.parse_agent_supernode(key, self.realm):
@@ -213,9 +218,7 @@ class RealmTracker:
             return
         with self._lock:
             if summary.agent not in self._tokens:  # never an agent: not kept
-                self.refused += 1
-                self._log.warning(f"supernode {key}", "dropped: its agent's liveliness token "
-                                  f"was never seen ({self.refused} refused so far)")
+                self._refuse_tokenless(key)
                 return
             if not self._room_for(summary.agent, len(data)):
                 return
@@ -258,6 +261,11 @@ class RealmTracker:
                           f"dropped ({self.refused} refused so far)")
         return False
 
+    def _refuse_tokenless(self, key: str) -> None:
+        self.refused += 1
+        self._log.warning(f"supernode {key}", "dropped: its agent's liveliness token was "
+                          f"never seen ({self.refused} refused so far)")
+
     def _on_token(self, sample: zenoh.Sample) -> None:
         agent = keys.parse_agent_token(str(sample.key_expr), self.realm)
         if agent is None:
@@ -272,11 +280,13 @@ class RealmTracker:
 
     def _saw_token(self, agent: str) -> None:
         """Remember that ``agent`` had a token (lock held): only such an agent is made
-        alive by its summary; bounded, the oldest forgotten first."""
+        alive by its summary; bounded, the oldest agent that is not alive forgotten first,
+        so tokens a stranger declares and drops do not push a live agent out."""
         self._tokens.pop(agent, None)
         self._tokens[agent] = None
         while len(self._tokens) > MAX_AGENTS:
-            oldest = next(iter(self._tokens))
+            oldest = next((a for a in self._tokens if a not in self._alive),
+                          next(iter(self._tokens)))
             del self._tokens[oldest]
             self._departed.discard(oldest)
 
