@@ -46,9 +46,8 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and their
     covariances (n, 4, 2, 2) from the edge fits' scatter."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
-    fallback = camera.undistort(quads.reshape(-1, 2), pixels=True).reshape(-1, 4, 2)
     if len(quads) == 0:
-        return fallback, np.zeros((0, 4, 2, 2))
+        return quads, np.zeros((0, 4, 2, 2))
     a = quads
     b = np.roll(quads, -1, axis=1)  # side k runs from corner k to corner k+1
     side = b - a
@@ -81,8 +80,12 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     s = np.take_along_axis(where, pick[..., None], -1)[..., 0]
     good = (bright - dark > MIN_CONTRAST) & np.isfinite(s)
     edge = base + (s * reach)[..., None] * normal[:, :, None, :]
-    ideal = camera.undistort(np.where(good[..., None], edge, base).reshape(-1, 2),
-                             pixels=True).reshape(edge.shape)
+    # the detected corners and the edge points undistorted in one call
+    both = camera.undistort(np.concatenate([quads.reshape(-1, 2),
+                                            np.where(good[..., None], edge, base).reshape(-1, 2)]),
+                            pixels=True)
+    fallback = both[:quads.size // 2].reshape(quads.shape)
+    ideal = both[quads.size // 2:].reshape(edge.shape)
     # one line per side through its edge points (least squares: the points' principal
     # axis), or through the side's detected corners when too few edge points were found
     w = good.astype(np.float64)
