@@ -153,6 +153,8 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
 def inverse_2x2(m: np.ndarray) -> np.ndarray:
     """The inverses of a stack (..., 2, 2) of 2x2 matrices in closed form (``np.linalg.inv``
     costs a LAPACK call per matrix)."""
-    a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
-    out = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2)
-    return out / (a * d - b * c)[..., None, None]
+    det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+    out = np.empty_like(m)
+    out[..., 0, 0], out[..., 1, 1] = m[..., 1, 1], m[..., 0, 0]
+    out[..., 0, 1], out[..., 1, 0] = -m[..., 0, 1], -m[..., 1, 0]
+    return out / det[..., None, None]

@@ -241,7 +241,8 @@ class FiducialTracker:
         K, dist = self._K, self._no_dist
         obj = np.concatenate([body.corners[i] for i in ids])
         img = np.concatenate([seen[i] for i in ids])
-        biggest = max(ids, key=lambda i: cv2.contourArea(seen[i].astype(np.float32)))
+        areas = {i: cv2.contourArea(seen[i].astype(np.float32)) for i in ids}
+        biggest = max(ids, key=areas.__getitem__)
         T_marker_body, size = self._marker_frame(body, biggest)
         candidates = pose.square_candidates(seen[biggest], marker_corners(size), K, dist)
         if body.is_bundle:  # the marker's pose -> the bundle's
@@ -256,7 +257,7 @@ class FiducialTracker:
             return None
         best = solutions[0]
         state.add(best.rss_px2, best.dof)
-        module_px = math.sqrt(cv2.contourArea(seen[biggest].astype(np.float32))) / self._modules
+        module_px = math.sqrt(areas[biggest]) / self._modules
         sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
         chosen, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
         if noise is not None and all(i in noise for i in ids):
