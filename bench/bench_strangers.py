@@ -1,11 +1,14 @@
-"""What strangers on a plain realm cost an agent: its memory, CPU and query latency before
-and after three floods a plain Zenoh session sends (no uma code on the wire side but the
-tree's own message builders):
+"""What strangers on a plain realm (or members of the secured site) cost an agent: its
+memory, CPU and query latency before and after four floods a plain Zenoh session sends (no
+uma code on the wire side but the tree's own message builders):
 
 - **summaries**: forged supernode summaries of invented agents (no token), ``--frames``
   frame ids each, as fast as the session puts them for ``--seconds``;
 - **fake agents**: ``--fakes`` invented agents with a liveliness token each, whose
   snapshots (about ``--snapshot-kb`` KiB each) are published and answered when asked;
+- **registrations**: registrations with ``h0`` of 0.6 MB descriptors and of new service
+  ids, alternately, as fast as the session asks, ``--registrations`` at most (a tree that
+  keeps them could take gigabytes);
 - **token churn**: liveliness tokens of new agent ids declared and dropped as fast as the
   session can for ``--seconds``.
 
@@ -36,6 +39,7 @@ import bench_host_load
 from bench_host_load import Child, cpu_s, free_endpoint, rss_mb
 from summary import cpu_model, median_p99, report
 
+FLOODS = ("summaries", "registrations", "fake_agents", "churn")
 STATIC = '[[static]]\nparent = "{p}"\nchild = "{c}"\nposition = [1.0, 0.0, 0.0]\n' \
          'quaternion = [0.0, 0.0, 0.0, 1.0]\npos_std_m = 0.001\n'
 
@@ -110,6 +114,31 @@ def fake_agents_flood(session, realm: str, fakes: int, snapshot_kb: int) -> dict
     return {}
 
 
+def registrations_flood(session, realm: str, seconds: float, most: int) -> dict[str, float]:
+    """Registrations with ``h0``: one of a 0.6 MB descriptor, then one small one of a new
+    service id, over and over, not waiting for the answers."""
+    from agent.protocol import keys
+    from agent.protocol.registration import register_request
+    from schemas.codec import encode_descriptor
+    from schemas.models import ServiceDescriptor
+
+    def request(sid: str, blob: list[str]) -> bytes:
+        return register_request(encode_descriptor(ServiceDescriptor(
+            service_id=sid, agent_id="h0", attributes={"blob": blob}, abilities=[
+                {"name": "pose", "type": "pose6d", "edge": [f"{sid}/a", f"{sid}/b"]}])),
+            f"{len(sid):04d}{sid[-12:]:0>12}", 1, {})
+    big = request("big", ["x" * 600] * 1000)
+    sent = nbytes = 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and sent < most:  # bounded: seconds, count
+        payload = big if sent % 2 == 0 else request(f"junk{sent}", [])
+        session.get(keys.agent_register(realm, "h0"), lambda reply: None, payload=payload,
+                    timeout=2.0)
+        sent += 1
+        nbytes += len(payload)
+    return {"sent": sent, "sent_mb": nbytes / 1e6}
+
+
 def churn_flood(session, realm: str, seconds: float) -> dict[str, float]:
     from agent.protocol import keys
     n = 0
@@ -128,6 +157,8 @@ def attack(args: argparse.Namespace) -> None:
         time.sleep(1.0)  # its links
         if args.attack == "summaries":
             out = summaries_flood(session, args.realm, args.frames, args.seconds)
+        elif args.attack == "registrations":
+            out = registrations_flood(session, args.realm, args.seconds, args.registrations)
         elif args.attack == "fake_agents":
             out = fake_agents_flood(session, args.realm, args.fakes, args.snapshot_kb)
         else:
@@ -144,7 +175,7 @@ def phase(name: str, target: Child, client, args: argparse.Namespace, ep: str,
                      "--attack", name, "--connect", ep,
                      "--realm", realm, "--seconds", str(args.seconds), "--frames",
                      str(args.frames), "--fakes", str(args.fakes), "--snapshot-kb",
-                     str(args.snapshot_kb))
+                     str(args.snapshot_kb), "--registrations", str(args.registrations))
     out = json.loads(attacker.wait_for("{", time.monotonic() + args.seconds + 60))
     cpu_pct = 100 * (cpu_s(target.pid) - cpu0) / (time.monotonic() - t0)
     time.sleep(3.0)  # what the agent does after the flood is part of its cost
@@ -167,9 +198,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=2000, help="frame ids per forged summary")
     ap.add_argument("--fakes", type=int, default=60, help="invented agents with tokens")
     ap.add_argument("--snapshot-kb", type=int, default=512, help="KiB per fake snapshot")
+    ap.add_argument("--registrations", type=int, default=300,
+                    help="most registrations sent (half of them 0.6 MB)")
     ap.add_argument("--queries", type=int, default=40)
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--attack", choices=("summaries", "fake_agents", "churn"),
+    ap.add_argument("--attack", choices=FLOODS,
                     help=argparse.SUPPRESS)
     ap.add_argument("--connect", help=argparse.SUPPRESS)
     ap.add_argument("--realm", help=argparse.SUPPRESS)
@@ -202,7 +235,7 @@ def main() -> None:
                              "agent_rss_mb_start": round(rss_mb(agents[0].pid), 1),
                              "query_before_median_ms": before["median_ms"],
                              "query_before_p99_ms": before["p99_ms"]}
-                for name in ("summaries", "fake_agents", "churn"):
+                for name in FLOODS:
                     fig |= phase(name, agents[0], client, args, ep, realm)
                 fig["query_after_all_ratio"] = round(
                     fig["churn_query_after_median_ms"] / before["median_ms"], 2)
