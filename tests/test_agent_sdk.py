@@ -30,9 +30,10 @@ class FakeSrgNode:
 
     instances: ClassVar[list[FakeSrgNode]] = []
 
-    def __init__(self, session, realm, agent_id, static_edges, streams) -> None:
+    def __init__(self, session, realm, agent_id, static_edges, streams, client=None) -> None:
         self.args = (realm, agent_id, static_edges)
         self.streams = streams
+        self.client = client
         self.told: list[tuple[str, list[Ability]]] = []
         self.closed = False
         FakeSrgNode.instances.append(self)

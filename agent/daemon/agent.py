@@ -17,7 +17,7 @@
   connected to and excludes, for a need, one that fails its predicate as measured (the
   need is re-matched to the next best, and moves back once the stream recovers);
 - **SRG** (``agent.daemon.srg_node``): after opening its session the agent creates
-  ``SrgNode(session, realm, agent_id, static_edges, streams)`` and tells it which
+  ``SrgNode(session, realm, agent_id, static_edges, streams, client)`` and tells it which
   abilities each local service has (``set_local_abilities``); the node subscribes to the
   local pose streams itself.  At shutdown ``node.close()`` before the session closes.  If
   ``agent.daemon.srg_node`` cannot be imported the agent runs without an SRG and says so;

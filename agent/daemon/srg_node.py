@@ -1,6 +1,6 @@
 """The agent's SRG on the network: local graph, supernode summary, query service.
 
-The agent daemon creates one ``SrgNode(session, realm, agent_id, static_edges, streams)``
+The agent daemon creates one ``SrgNode(session, realm, agent_id, static_edges, streams, client)``
 after opening its Zenoh session (``static_edges``: the config file's ``[[static]]`` tables
 as checked by ``agent.daemon.settings.check_static_edge``; ``streams``: the daemon's
 ``agent.daemon.streams.StreamHub``, so the node and the stream monitor share one
