@@ -431,14 +431,18 @@ def test_token_churn_is_coalesced_and_bounded(site, realm) -> None:
 
 def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> None:
     """24 invented agents, each with a token and a snapshot of ~0.8 MB (seven services
-    with large descriptors): the agent holds snapshots up to its byte bound, refuses the
-    rest and says so, and its memory stays within a bound."""
+    with large descriptors) that it publishes and answers with when asked: the agent holds
+    snapshots up to its byte bound, refuses the rest and says so, and its memory stays
+    within a bound."""
     ep = endpoint(free_port())
     host = agent(processes, realm, "hostA", ep)
     with open_session(connect=[ep]) as s:
         info = snapshot(s, realm, "hostA").info
         before = rss_mb(host.popen.pid)
-        tokens = []
+        tokens, answers = [], {}
+        answering = s.declare_queryable(keys.all_agent_services(realm), lambda q: (
+            q.reply(str(q.key_expr), answers[str(q.key_expr)])
+            if str(q.key_expr) in answers else None, q.drop()))
         for i in range(24):
             ghost = f"ghost{i}"
             tokens.append(s.liveliness().declare_token(keys.agent_token(realm, ghost)))
@@ -446,10 +450,12 @@ def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> 
                 service_id=f"s{j}", agent_id=ghost, attributes={"blob": ["x" * 120] * 1000},
                 abilities=[{"name": "pose", "type": "pose6d", "edge": [f"{ghost}/a", "b/c"]}])),
                 "instance": "i"} for j in range(7)]
+            key = keys.agent_services(realm, ghost)
+            answers[key] = snapshot_message({**info, "agent_id": ghost}, 1, 1, services)
             time.sleep(0.05)  # its token first
-            s.put(keys.agent_services(realm, ghost), snapshot_message(
-                {**info, "agent_id": ghost}, 1, 1, services))
+            s.put(key, answers[key])
         host.wait_log("would take the snapshots held past")
+        answering.undeclare()
         time.sleep(1.0)
         grew = rss_mb(host.popen.pid) - before
         for t in tokens:
