@@ -26,9 +26,6 @@ from services.sim.world import IvyWorld, WorldConfig, sim_time_s
 
 RNG_SEED = 36
 
-# its module fixture is costly: every test of it on one worker
-pytestmark = pytest.mark.xdist_group("test_laser_pipeline")
-
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:

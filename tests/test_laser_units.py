@@ -42,9 +42,6 @@ from services.laser_camera.tracker import (
 from services.sim.render import SensorModel
 from services.sim.world import IvyWorld, WorldConfig
 
-# its module fixture is costly: every test of it on one worker
-pytestmark = pytest.mark.xdist_group("test_laser_units")
-
 RNG_SEED = 1234
 
 

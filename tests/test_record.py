@@ -23,9 +23,6 @@ from agent.record.reader import read
 from agent.record.statics import decode_statics
 from schemas.codec import decode_measurement, encode_pose
 
-# its module fixture is costly: every test of it on one worker
-pytestmark = pytest.mark.xdist_group("test_record")
-
 pytest.importorskip("mcap")
 pytest.importorskip("rosbags")
 

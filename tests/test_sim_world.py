@@ -14,9 +14,6 @@ from services.sim import mounts
 from services.sim.render import checkerboard, render_plane_pattern
 from services.sim.world import IvyWorld, WorldConfig
 
-# its module fixture is costly: every test of it on one worker
-pytestmark = pytest.mark.xdist_group("test_sim_world")
-
 
 @pytest.fixture(scope="module")
 def world() -> IvyWorld:

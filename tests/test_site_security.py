@@ -23,9 +23,6 @@ from agent_helpers.site import Site, unavailable
 from agent.deploy.certs import SiteSpec, create_site
 from agent.deploy.zenoh_config import write_configs
 
-# its module fixture is costly: every test of it on one worker
-pytestmark = pytest.mark.xdist_group("test_site_security")
-
 MARKER_NS = 123_456_789  # the sample time an intruder stamps its poses with
 
 
