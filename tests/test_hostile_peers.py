@@ -160,8 +160,17 @@ def test_a_sample_a_day_ahead_does_not_poison_the_edge(honest, realm) -> None:
             assert abs(r.t_ns - time.time_ns()) < 5 * 10**9
         got: list = []
         sub = c.subscribe("ivy/world", "alice/head", got.append)
-        forger.put(encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5], [0, 0, 0, 1]))
-        poll(lambda: sub.refused >= 1 and len(got) > 50, what="the stream going on")
+        # the subscription's Zenoh subscriber exists once it streams; a put before then
+        # reaches nobody, so the forger puts again until the subscription has refused one
+        poll(lambda: len(got) > 0, what="the subscription streaming")
+
+        def refused_and_streaming() -> bool:
+            if sub.refused == 0:
+                forger.put(encode_pose(time.time_ns() + 86_400 * 10**9, [5, 5, 5],
+                                       [0, 0, 0, 1]))
+            return sub.refused >= 1 and len(got) > 50
+
+        poll(refused_and_streaming, what="the stream going on")
         assert sub.status == "streaming"
         assert all(p.position[0] == pytest.approx(0.1) for p in got)
 
