@@ -276,6 +276,7 @@ class RecordingSink:
         if self._thread.is_alive():
             raise UmaError(f"the recording writer did not finish within {timeout:g} s")
         if self.stats.error is not None:
+            self._drain()  # what was offered while the failed writer drained its queue
             return self.stats
         try:
             self._retry_waiting(force=True)
