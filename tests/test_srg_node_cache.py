@@ -102,10 +102,12 @@ def test_a_summary_every_receiver_would_refuse_is_reported_by_its_agent(caplog):
     """Receivers refuse summaries of more than MAX_SUMMARY_FRAMES frames or links; the
     agent that publishes one says so, since elsewhere it only shows as unknown frames."""
     n = node()
-    for i in range(12):
-        n.graph.add_static("rig", f"tool{i}", [0.0, 0.0, 0.1 * i], [0.0, 0.0, 0.0, 1.0])
-    n.peers.frames["B"] = {"w", "cam", "rig"}  # shared with agent B: 15 x 3 - 6 links
+    # the node's own thread may republish as soon as the graph changes: the limit is
+    # lowered first, so whichever republish comes first says so
     with mock.patch("agent.protocol.query.MAX_SUMMARY_FRAMES", 20), caplog.at_level("WARNING"):
+        n.peers.frames["B"] = {"w", "cam", "rig"}  # shared with agent B: 15 x 3 - 6 links
+        for i in range(12):
+            n.graph.add_static("rig", f"tool{i}", [0.0, 0.0, 0.1 * i], [0.0, 0.0, 0.0, 1.0])
         n.publisher.republish_if_changed()
     assert "has 15 frames and 39 links (frames x 3 boundary frames)" in caplog.text
     assert "receivers refuse more than 20" in caplog.text

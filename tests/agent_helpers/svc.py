@@ -94,6 +94,7 @@ def main() -> int:
         svc.start()
     except UmaError as exc:
         emit(event="refused", error=str(exc))
+        svc.close()  # its session's callbacks must not outlive the interpreter
         return 3
     emit(event="started", registered=svc.wait_registered(0))
     rate = [args.rate]
