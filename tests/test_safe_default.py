@@ -6,6 +6,8 @@ network-namespace sites run (``agent_helpers.site``, ``test_site_faults``)."""
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +20,7 @@ from agent.runtime.session import exposed_endpoints
 
 
 def test_only_plain_listeners_other_hosts_reach_are_exposed() -> None:
+    """Endpoint strings only: nothing listens or connects."""
     assert exposed_endpoints([
         "tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:7447", "tls/0.0.0.0:7447",
         "quic/10.0.0.1:7447", "unixsock-stream//tmp/uma.sock", "tcp/0.0.0.0:7447",
@@ -25,9 +28,17 @@ def test_only_plain_listeners_other_hosts_reach_are_exposed() -> None:
         "tcp/0.0.0.0:7447", "udp/10.0.0.1:7447", "tcp/[::]:7447"]
 
 
+def _isolated() -> list[str]:
+    """A fresh network namespace holding only its own loopback: were the refusal ever to
+    fail, the agent's 'every interface' would still reach nothing beyond this test."""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("a network namespace of its own needs root and unshare(1)")
+    return ["unshare", "--net"]
+
+
 def uma(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "agent.cli", *args], cwd=ROOT, text=True,
-                          capture_output=True, timeout=20, env=env)
+    return subprocess.run([*_isolated(), sys.executable, "-m", "agent.cli", *args], cwd=ROOT,
+                          text=True, capture_output=True, timeout=20, env=env)
 
 
 @pytest.mark.parametrize("command", [

@@ -366,7 +366,8 @@ class Registrar:
         return held[1]
 
     def _prune_keys(self) -> None:
-        """Forget the keys of registrations no longer held (as many keys as services)."""
+        """Keep a key for each registration held, none for one that ended (as many keys as
+        services)."""
         for sid in [s for s in self._control_keys if s not in self.view.local]:
             del self._control_keys[sid]
 

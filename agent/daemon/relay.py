@@ -151,7 +151,7 @@ class SegmentCache:
     # ------------------------------------------------------------------ the worker
 
     def _work(self) -> None:
-        """Drop the segments no longer used, keep those asked for often."""
+        """Keep the segments asked for often; drop those unused for the idle time."""
         self._drop_unused()
         with self._lock:
             wanted, self._wanted = self._wanted, set()
