@@ -19,7 +19,7 @@ import time
 
 import cv2
 import numpy as np
-from summary import cpu_model, median_p99
+from summary import contour_centroids, cpu_model, median_p99
 
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.detection import DetectorParams, detect_dots
@@ -29,17 +29,7 @@ from services.sim.world import IvyWorld
 
 def contour_baseline(img: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Dots by findContours + intensity moments (no fragment merging)."""
-    _, mask = cv2.threshold(img, p.threshold, 255, cv2.THRESH_BINARY)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    out = []
-    for c in contours:
-        x, y, w, h = cv2.boundingRect(c)
-        roi = img[y:y + h, x:x + w].astype(np.float32) - p.dark_level
-        roi[mask[y:y + h, x:x + w] == 0] = 0
-        m = cv2.moments(roi)
-        if m["m00"] > 0 and cv2.countNonZero(mask[y:y + h, x:x + w]) >= p.min_area:
-            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
-    return np.array(out).reshape(-1, 2)
+    return contour_centroids(img, p.threshold, p.dark_level, p.min_area)
 
 
 def timed(fn, *args) -> tuple[float, float, object]:

@@ -18,7 +18,7 @@ import time
 
 import cv2
 import numpy as np
-from summary import cpu_model, median_p99, report
+from summary import contour_centroids, cpu_model, median_p99, report
 
 from services.outside_in.blobs import BlobParams, find_blobs
 from services.outside_in.evaluate import opencv_baseline
@@ -28,17 +28,7 @@ from services.outside_in.tracker import CameraFrame, OutsideInTracker
 
 def contour_blobs(img: np.ndarray, p: BlobParams) -> np.ndarray:
     """Blobs by findContours + intensity moments."""
-    _, mask = cv2.threshold(img, p.threshold, 255, cv2.THRESH_BINARY)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    out = []
-    for c in contours:
-        x, y, w, h = cv2.boundingRect(c)
-        roi = img[y:y + h, x:x + w].astype(np.float32) - p.dark_level
-        roi[mask[y:y + h, x:x + w] == 0] = 0
-        m = cv2.moments(roi)
-        if m["m00"] > 0:
-            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
-    return np.array(out).reshape(-1, 2)
+    return contour_centroids(img, p.threshold, p.dark_level)
 
 
 def main() -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -48,3 +49,21 @@ def report(figures: dict[str, object], as_json: bool) -> None:
         print(f"{k:40s} {v:.3f}" if isinstance(v, float) else f"{k:40s} {v}")
     if as_json:
         print(json.dumps(figures))
+
+
+def contour_centroids(img: np.ndarray, threshold: float, dark_level: float,
+                      min_area: int = 0) -> np.ndarray:
+    """The plain OpenCV anchor of the blob and dot detectors: findContours on the
+    thresholded image, each contour's intensity centroid above the dark level."""
+    _, mask = cv2.threshold(img, threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        x, y, w, h = cv2.boundingRect(c)
+        roi = img[y:y + h, x:x + w].astype(np.float32) - dark_level
+        roi[mask[y:y + h, x:x + w] == 0] = 0
+        m = cv2.moments(roi)
+        if m["m00"] > 0 and cv2.countNonZero(mask[y:y + h, x:x + w]) >= min_area:
+            out.append((x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]))
+    return np.array(out).reshape(-1, 2)
+
