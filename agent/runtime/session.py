@@ -36,6 +36,12 @@ behave alike:
   configuration, links and locators under ``@/**``.  Only a base configuration
   (``uma router --config``) can turn it on.  The real port of a ``:0`` listener is
   therefore chosen before opening (:func:`listening_endpoints`).
+- **the process ends after Zenoh's callback threads**: zenoh-python runs each Python
+  callback in a thread of its own, a daemon when the callback was declared from a daemon or
+  Zenoh thread, which Python does not wait for.  One still ending when the interpreter
+  finalizes cannot take the GIL and aborts the process ("FATAL: exception not rethrown"),
+  so at exit uma closes the sessions it opened and waits for those threads
+  (:func:`_end_callback_threads`, at most ``EXIT_WAIT_S``).
 - **closing never raises**: a session that cannot close in time (a starved host) is logged
   and left to the process's exit, so a ``with`` block or a command's result is never lost
   to a close error.
@@ -46,6 +52,7 @@ connection is required) become an :class:`agent.errors.UmaError` naming the endp
 
 from __future__ import annotations
 
+import atexit
 import ipaddress
 import json
 import logging
@@ -458,6 +465,33 @@ def release_session(session: zenoh.Session) -> None:
                 del _shared[key]
                 break
     close_session(session)
+
+
+#: how long a process's exit waits for the callback threads of its closed Zenoh sessions
+EXIT_WAIT_S = 2.0
+#: the name zenoh-python gives the thread that runs a Python callback
+_CALLBACK_THREAD = "(pyo3-closure)"
+
+
+@atexit.register
+def _end_callback_threads() -> None:
+    """Close the sessions still open and wait for their callback threads before Python
+    finalizes: a daemon thread that wakes during finalization aborts the whole process.
+    atexit runs after Python joined its non-daemon threads and before it finalizes."""
+    with _listening_lock:
+        still_open = [session for session, _ in _listening.values()]
+    for session in still_open:
+        if not session.is_closed():
+            close_session(session)
+    deadline = time.monotonic() + EXIT_WAIT_S
+    for thread in threading.enumerate():
+        if thread.daemon and thread.name.endswith(_CALLBACK_THREAD):
+            thread.join(max(0.0, deadline - time.monotonic()))
+    left = sum(t.daemon and t.name.endswith(_CALLBACK_THREAD) and t.is_alive()
+               for t in threading.enumerate())
+    if left:
+        log.warning("%d Zenoh callback thread(s) still running at exit (a session uma did "
+                    "not open?); the process may abort while finalizing", left)
 
 
 def close_session(session: zenoh.Session) -> None:
