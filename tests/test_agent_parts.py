@@ -190,6 +190,38 @@ def test_a_local_listener_that_falls_behind_gets_the_newest_samples_not_a_backlo
         session.close()
 
 
+def test_local_samples_come_in_batches_unless_a_listener_is_timely(monkeypatch) -> None:
+    """Real Zenoh: with only batch listeners on local keys, the local streams' thread
+    pauses after each batch (the samples wait in the ring) and ``flush_local`` hands the
+    waiting ones over at once, in order; a timely listener ends the pauses."""
+    from agent.daemon import streams
+    from agent.runtime.session import open_session
+
+    monkeypatch.setattr(streams, "LOCAL_PAUSE_S", 30.0)
+    session = open_session("peer", [], [])
+    try:
+        hub = StreamHub(session, local="uma/r/data/A/*/*")
+        batch: list[bytes] = []
+        hub.listen("uma/r/data/A/s/a", batch.append, timely=False)
+        session.put("uma/r/data/A/s/a", b"0")
+        _wait(lambda: batch == [b"0"])  # the first one wakes the thread, which then pauses
+        time.sleep(0.1)
+        for i in range(1, 6):
+            session.put("uma/r/data/A/s/a", str(i).encode())
+        time.sleep(0.3)
+        assert batch == [b"0"]  # waiting in the ring
+        hub.flush_local()
+        assert batch == [str(i).encode() for i in range(6)]
+        timely: list[bytes] = []
+        hub.listen("uma/r/data/A/s/b", timely.append)  # ends the pause
+        for data in (b"x", b"y"):
+            session.put("uma/r/data/A/s/b", data)
+        _wait(lambda: timely == [b"x", b"y"])
+    finally:
+        hub.close()
+        session.close()
+
+
 def test_wake_loop_runs_its_step_when_woken_says_why_a_step_failed_and_stops() -> None:
     log = mock.Mock()
     calls: list[int] = []

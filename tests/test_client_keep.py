@@ -8,6 +8,7 @@ tracker are separate processes.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -69,6 +70,8 @@ def test_kept_answers_equal_the_agents_and_fall_back_outside_the_buffer(world, r
             c.keep(WORLD, EYE, buffer_s=0)
         kept = c.keep(WORLD, EYE, buffer_s=1.0, stall_s=0.5)
         assert kept.clock_agent == "A" and kept.on_pose is None
+        # nothing waits for a kept route's samples: no thread is woken per sample
+        assert "uma-subscription" not in {t.name for t in threading.enumerate()}
         poll(lambda: _samples(kept) >= 60, what="60 samples kept")
         poll(lambda: c.pose(WORLD, EYE, at=time.time_ns() - 1_600_000_000),
              what="the tracker's first 1.6 s")

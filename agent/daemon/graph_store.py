@@ -4,9 +4,11 @@ ability, fed from their data keys as tf2's ``TransformListener`` feeds its buffe
 It keeps a :class:`agent.srg.Graph` of the configuration's static edges (source ``config``)
 and one measured edge per local ``pose6d`` ability (source ``<service_id>/<ability>``, the
 data key's last two chunks); a static ability (a calibration) sets a static edge instead.
-Samples are queued in the stream hub's thread (their bytes, nothing decoded) and decoded into the
-graph in batches by :meth:`LocalGraph.drain`, which the agent's worker calls and every
-reader of the graph calls first (``agent.daemon.srg_node``, "Threads").  ``wake()`` wakes
+Samples are queued in the stream hub's thread (their bytes, nothing decoded; the hub
+hands them over in batches, ``agent.daemon.streams``) and decoded into the graph in
+batches by :meth:`LocalGraph.drain`; :meth:`LocalGraph.catch_up` takes what waits in the
+hub too, and the agent's worker and every reader of the graph call it first
+(``agent.daemon.srg_node``, "Threads").  ``wake()`` wakes
 the agent's worker: samples wait to be decoded, or the graph's structure or attributes
 changed (the summary must be published again).
 """
@@ -113,7 +115,8 @@ class LocalGraph:
             if (service_id, name) not in self._local:
                 key = keys.data(self.realm, self.agent_id, service_id, name)
                 stop = self._streams.listen(
-                    key, lambda data, k=(service_id, name): self._on_local_data(k, data))
+                    key, lambda data, k=(service_id, name): self._on_local_data(k, data),
+                    timely=False)
                 self._local[(service_id, name)] = (ability, stop)
 
     def _on_local_data(self, local: tuple[str, str], data: bytes) -> None:
@@ -127,6 +130,12 @@ class LocalGraph:
         self.samples_seen += 1
         if len(pending) >= MAX_PENDING:
             self.drain()
+
+    def catch_up(self) -> None:
+        """Take the local samples that arrived so far into the graph: those the stream
+        hub still holds, then the queue (before reading the graph)."""
+        self._streams.flush_local()
+        self.drain()
 
     def drain(self) -> None:
         """Decode the queued local samples into the graph (any thread; each sample once)."""

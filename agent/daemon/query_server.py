@@ -89,7 +89,7 @@ class QueryServer:
         request = proto.parse_request(msg, self.agent_id)
         if request is None:
             return None
-        self._store.drain()
+        self._store.catch_up()
         if isinstance(request, proto.ClockRequest):
             return proto.clock_reply()
         if isinstance(request, proto.RouteRequest):  # what is here; no other agent asked
@@ -100,13 +100,13 @@ class QueryServer:
     def own_result(self, req: proto.SegmentRequest) -> PoseResult:
         """This agent's segment of a route composed here, on its clock (raises like
         :meth:`agent.srg.Graph.pose`)."""
-        self._store.drain()
+        self._store.catch_up()
         with self._store.lock:
             return self._store.graph.pose(req.source, req.target, at=req.t, error=req.error)
 
     def own_part(self, req: proto.SegmentRequest) -> dict[str, Any]:
         """This agent's part of a route: its segment's answer, or the error saying why."""
-        self._store.drain()
+        self._store.catch_up()
         try:
             return self._segment(req)
         except (ValueError, LookupError, TypeError) as exc:

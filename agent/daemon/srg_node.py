@@ -172,7 +172,7 @@ class SrgNode:
     def _work(self) -> None:
         """Take the queued samples, then publish what they changed, at most every
         ``PUBLISH_CHECK_S``."""
-        self.store.drain()
+        self.store.catch_up()
         self.digest.publish()
         self.peers.resync_if_due()
         self.peers.fetch_new()

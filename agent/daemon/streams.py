@@ -20,6 +20,14 @@ streams at 100 Hz on a loaded 2-core host: the digest's samples 1-3.5 s old; wit
 ring 0.2 s), where dropping the oldest keeps it current.  Samples of local keys nobody
 listens to (images, raw accelerometer data) are dropped by key before their payload is
 read.
+
+That thread wakes for every sample only while a listener of a local key must see each
+sample when it arrives (``timely``: the stream monitor measures latency as arrival time
+minus sample time).  Otherwise (the SRG node, which reads the samples in batches anyway)
+it takes what waits in the ring, then pauses ``LOCAL_PAUSE_S``: one wake-up per pause
+instead of one per sample, a wake-up costing about what the sample's own handling does
+(and taking a core from whatever routes the sample on), and whoever reads what the
+listeners keep calls :meth:`StreamHub.flush_local` first.
 """
 
 from __future__ import annotations
@@ -43,6 +51,9 @@ log = logging.getLogger("uma.agent")
 #: behind, instead of queueing seconds of samples; what it drops shows as sequence gaps
 #: in the stream monitor
 LOCAL_RING = 1024
+#: how long the local streams' thread lets samples gather while no listener is timely:
+#: the SRG node's batch period (``agent.daemon.srg_node.PUBLISH_CHECK_S``)
+LOCAL_PAUSE_S = 0.05
 #: what a listener is given: the sample's payload
 Listener = Callable[[bytes], None]
 
@@ -53,6 +64,8 @@ class _Key:
 
     def __init__(self) -> None:
         self.listeners: tuple[Listener, ...] = ()
+        #: the listeners that must see each sample when it arrives
+        self.timely: tuple[Listener, ...] = ()
         self.subscriber: Any = None
 
 
@@ -68,14 +81,21 @@ class StreamHub:
         self._local = local
         self._local_prefix = None if local is None else local.split("*", 1)[0]
         self._local_subscriber: Any = None
+        #: listeners of local keys that are timely (``listen``), and the lock that keeps
+        #: the local samples in order when another thread takes them (``flush_local``)
+        self._timely_local = 0
+        self._draining = threading.Lock()
+        #: ends the local streams' thread's pause (a timely listener came, or closing)
+        self._resume = threading.Event()
 
     def open(self, session: zenoh.Session) -> None:
         """Subscribe with ``session`` from now on (the daemon opens it after creating us)."""
         self._session = session
 
-    def listen(self, key: str, listener: Listener) -> Callable[[], None]:
+    def listen(self, key: str, listener: Listener, timely: bool = True) -> Callable[[], None]:
         """Call ``listener(payload)`` for every sample on ``key`` until the returned
-        function is called."""
+        function is called.  ``timely`` False: the listener may be called late, in batches
+        (a local key's samples; module docstring)."""
         if self._session is None:
             raise RuntimeError("StreamHub.listen before open(session)")
         with self._lock:
@@ -89,6 +109,10 @@ class StreamHub:
                         lambda sample: self._dispatch(key, entry, sample), f"data {key}",
                         self._log))
             entry.listeners = (*entry.listeners, listener)
+            if timely:
+                entry.timely = (*entry.timely, listener)
+                self._timely_local += self._is_local(key)
+                self._resume.set()
         return lambda: self._stop_listening(key, entry, listener)
 
     def _is_local(self, key: str) -> bool:
@@ -108,16 +132,43 @@ class StreamHub:
         is undeclared (Zenoh's thread only queues them, module docstring)."""
         try:
             for sample in sub:
-                key = str(sample.key_expr)
-                entry = self._keys.get(key)
-                if entry is None:
-                    continue
-                try:
-                    self._dispatch(key, entry, sample)
-                except Exception as exc:  # the next sample must still be read
-                    self._log.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
+                with self._draining:
+                    self._dispatch_local(sample)
+                    if not self._take_waiting(sub):
+                        return
+                if not self._timely_local:
+                    self._resume.wait(LOCAL_PAUSE_S)
+                    self._resume.clear()
         except zenoh.ZError as exc:
             self._log.warning(f"data {self._local}", f"reading samples: {exc}")
+
+    def flush_local(self) -> None:
+        """Hand the local samples waiting in the ring to their listeners now, on this
+        thread (before reading what the listeners keep)."""
+        sub = self._local_subscriber
+        if sub is not None:
+            with self._draining:
+                self._take_waiting(sub)
+
+    def _take_waiting(self, sub: zenoh.Subscriber) -> bool:
+        """Dispatch the samples waiting in ``sub``'s ring (lock held); False once ``sub``
+        is undeclared."""
+        try:
+            while (sample := sub.try_recv()) is not None:
+                self._dispatch_local(sample)
+        except zenoh.ZError:
+            return False
+        return True
+
+    def _dispatch_local(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        entry = self._keys.get(key)
+        if entry is None:
+            return
+        try:
+            self._dispatch(key, entry, sample)
+        except Exception as exc:  # the next sample must still be read
+            self._log.warning(f"data {key}", f"{type(exc).__name__}: {exc}")
 
     def subscribed(self) -> set[str]:
         """The keys subscribed to now."""
@@ -126,6 +177,7 @@ class StreamHub:
 
     def close(self) -> None:
         """Undeclare every subscriber (before the session closes)."""
+        self._resume.set()
         with self._lock:
             entries, self._keys = list(self._keys.values()), {}
             local, self._local_subscriber = self._local_subscriber, None
@@ -139,6 +191,9 @@ class StreamHub:
             if listener in rest:
                 rest.remove(listener)
             entry.listeners = tuple(rest)
+            if listener in entry.timely:
+                entry.timely = tuple(t for t in entry.timely if t is not listener)
+                self._timely_local -= self._is_local(key)
             if rest or self._keys.get(key) is not entry:
                 return
             del self._keys[key]

@@ -24,7 +24,12 @@ sample; docs/MEASUREMENTS.md).  Its subscriber has a Zenoh ring channel that
 the subscription's thread reads itself, blocking in Zenoh's own receive; a subscription
 that falls behind loses the oldest samples, counted in ``lost`` like any sequence gap.  The
 other (pulled) edges only update the mirror, so they go straight into it from Zenoh's
-callback.  A second thread follows the realm and watches for stalls.
+callback.  A second thread follows the realm and watches for stalls.  A kept route has
+no stream thread: nothing waits for its samples, so they wait in the ring, and the
+watcher takes them into the mirror every ``WATCH_S``, as does every answer before it
+reads the mirror (each answer holds every sample that arrived before it).  A thread woken
+per sample cost a kept route about as much CPU as everything else its process did with
+that sample, and put that wake-up on the path of every other stream of the host.
 
 It follows the realm: whenever the client's ``topology`` moves it plans again, and if the
 best route (or any edge of it) differs it rebuilds its mirror on the new route.  Of its
@@ -168,11 +173,13 @@ class Subscription:
         self._replan_failed: Exception | None = None
         self._closed = threading.Event()
         self._build(first)
-        self._streamer = threading.Thread(target=self._stream, name="uma-subscription",
-                                          daemon=True)
+        #: a kept route has no stream thread: its samples are taken by ``_catch_up``
+        self._streamer = None if on_pose is None else threading.Thread(
+            target=self._stream, name="uma-subscription", daemon=True)
         self._watcher = threading.Thread(target=self._watch, name="uma-subscription-watch",
                                          daemon=True)
-        self._streamer.start()
+        if self._streamer is not None:
+            self._streamer.start()
         self._watcher.start()
 
     # -- the mirror of one route
@@ -351,10 +358,28 @@ class Subscription:
                 log.exception("subscription %s -> %s: delivering failed", self.source,
                               self.target)
 
+    def _catch_up(self) -> None:
+        """A kept route: take the samples waiting in the pusher's ring into the mirror
+        (module docstring); they were received, so they count as pushed."""
+        if self.on_pose is not None:
+            return
+        with self._lock:
+            current = self._pushed_by
+            if current is None:
+                return
+            agent, key, sub = current
+            try:
+                while (sample := sub.try_recv()) is not None:
+                    self._take(agent, key, payload_bytes(sample.payload))
+            except (zenoh.ZError, DecodeError) as exc:
+                self._log.warning(f"subscription {key}", f"reading samples: {exc}")
+
     def _watch(self) -> None:
-        """Follow the realm and watch for stalls, every ``WATCH_S``."""
+        """Follow the realm and watch for stalls, every ``WATCH_S``; take a kept route's
+        samples."""
         while not self._closed.wait(WATCH_S):
             try:
+                self._catch_up()
                 self._follow()
             except Exception:  # a bug must not stop the stream; log it with its traceback
                 log.exception("subscription %s -> %s: re-planning failed", self.source,
@@ -467,6 +492,7 @@ class Subscription:
         if self.status != "streaming":
             return None
         with self._lock:
+            self._catch_up()
             if self.status != "streaming":
                 return None
             try:
@@ -502,7 +528,7 @@ class Subscription:
         if self._watcher is not me:
             self._watcher.join(1.0 + self.queries.timeout)  # it may be re-planning
         self._unsubscribe()  # after the watcher: it may have subscribed a new route
-        if self._streamer is not me:
+        if self._streamer is not None and self._streamer is not me:
             self._streamer.join(1.0)
         self.status = "closed"
         self._on_close(self)
