@@ -34,7 +34,14 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
                         "it best, a client queries it in the world frame across the agents")
     p.add_argument("--outside-in", action="store_true",
                    help="the outside-in marker tracker instead: simulated IR cameras on two "
-                        "agents, the reconstruction on one, body poses queried across them")
+                        "agents, the reconstruction on a third, body poses queried across "
+                        "them")
+    p.add_argument("--skew-ms", type=float, default=20.0, metavar="MS",
+                   help="with --outside-in: the first camera host's clock runs MS ahead of "
+                        "the reconstruction's, the second's MS behind (default 20)")
+    p.add_argument("--single-host", action="store_true",
+                   help="with --outside-in: every camera and the reconstruction on one agent "
+                        "with one clock (the reference for the distributed figures)")
     p.add_argument("--optical", choices=("dots", "pose"), default="dots",
                    help="the fusion's optical update: one SCAAT update per labeled laser dot "
                         "(default; more accurate, docs/FUSION_TUNING.md) or the tracker's "

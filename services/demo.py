@@ -119,13 +119,15 @@ class Children:
         self.log_dir = log_dir
         self.lease_ms = lease_ms
 
-    def start(self, name: str, argv: list[str]) -> None:
+    def start(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
         """The service ``name`` (``uma service run NAME ARGV``)."""
-        self.start_command(name, ["service", "run", name, *argv])
+        self.start_command(name, ["service", "run", name, *argv], env)
 
-    def start_command(self, name: str, argv: list[str]) -> None:
-        """``uma ARGV``, its log kept as ``name``'s."""
-        env = dict(os.environ, PYTHONUNBUFFERED="1", UMA_LEASE_MS=str(self.lease_ms))
+    def start_command(self, name: str, argv: list[str], env: dict[str, str] | None = None,
+                      ) -> None:
+        """``uma ARGV``, its log kept as ``name``'s; ``env`` on top of this process's."""
+        env = dict(os.environ, PYTHONUNBUFFERED="1", UMA_LEASE_MS=str(self.lease_ms),
+                   **(env or {}))
         # a file, not a pipe: a chatty child must never block on a full pipe (closed in stop())
         log_file = (tempfile.TemporaryFile("w+") if self.log_dir is None  # noqa: SIM115
                     else open(self.log_dir / f"{name}.log", "w+"))  # noqa: SIM115

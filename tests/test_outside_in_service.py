@@ -4,6 +4,8 @@ capture path), the reconstruction on the second, a client asking for a body's po
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from agent_helpers.harness import agent, poll, spawn
@@ -64,31 +66,42 @@ def test_reconstruction_completes_a_frame_set_per_exposure(tmp_path) -> None:
 
 
 @pytest.mark.slow
-def test_cameras_on_two_hosts_and_the_reconstruction_give_a_body_pose(processes, realm,
+def test_cameras_on_two_skewed_hosts_and_the_reconstruction_on_a_third(processes, realm,
                                                                       tmp_path) -> None:
+    """Camera hosts 20 ms ahead and behind the reconstruction's (every process of a host
+    skewed): the reconstruction's SDK moves their times onto its clock, so its frame sets
+    hold one exposure and the pose is as accurate as on one host."""
     sim, rig, bodies = _files(tmp_path)
-    ep_a, ep_b = endpoint(free_port()), endpoint(free_port())
-    agent(processes, realm, "hostA", ep_a)
-    agent(processes, realm, "hostB", ep_b, connect=(ep_a,))
+    skew = {"hostA": 20_000_000, "hostB": -20_000_000, "hostC": 0}
+    eps = {h: endpoint(free_port()) for h in skew}
+    env = {h: {"UMA_CLOCK_SKEW_NS": str(s)} for h, s in skew.items()}
+    agent(processes, realm, "hostA", eps["hostA"], env=env["hostA"])
+    for h in ("hostB", "hostC"):
+        agent(processes, realm, h, eps[h], connect=(eps["hostA"],), env=env[h])
     rec = spawn(processes, ["-m", "agent.cli", "service", "run", "outside-in", "--realm",
-                            realm, "--agent", "hostB", "--connect", ep_b, "--rig", str(rig),
-                            "--bodies", str(bodies), "--rate-hz", str(RATE)])
+                            realm, "--agent", "hostC", "--connect", eps["hostC"], "--rig",
+                            str(rig), "--bodies", str(bodies), "--rate-hz", str(RATE)],
+                env["hostC"])
     rec.wait_log("outside-in: tracking", timeout=90)
     common = ["--rig", str(rig), "--sim", str(SEED), "--rate-hz", str(RATE)]
-    for host, ep, cams in (("hostA", ep_a, ("cam0", "cam1")), ("hostB", ep_b, ("cam2", "cam3"))):
+    for host, cams in (("hostA", ("cam0", "cam1")), ("hostB", ("cam2", "cam3"))):
         spawn(processes, ["-m", "agent.cli", "service", "run", "marker-camera", "--realm", realm,
-                          "--agent", host, "--connect", ep, "--camera", cams[0], "--camera",
-                          cams[1], *common])
-    names = [b.name for b in sim.bodies]
-    with Client(realm=realm, connect=[ep_a]) as client:
-        def accurate():
+                          "--agent", host, "--connect", eps[host], "--camera", cams[0],
+                          "--camera", cams[1], *common], env[host])
+    wand = [b.name for b in sim.bodies].index("wand")
+    with Client(realm=realm, connect=[eps["hostA"]]) as client:
+        poll(lambda: client.pose("lab/world", "lab/wand"), timeout=90,
+             what="the wand's pose from four cameras on two skewed hosts")
+        errors = []
+        for _ in range(20):
             r = client.pose("lab/world", "lab/wand")
-            p, q = sim.body_pose(names.index("wand"), r.t_ns / 1e9)
-            dp, da = geo.pose_error(r.position, r.quaternion, p, q)
-            assert dp < 0.002 and da < np.radians(0.5), (dp, np.degrees(da))
-            return r
-        got = poll(accurate, timeout=90, what="the wand's pose from four cameras on two hosts")
-    assert got.covariance is not None and np.all(np.diag(got.covariance) > 0)
+            errors.append(geo.pose_error(r.position, r.quaternion,
+                                         *sim.body_pose(wand, r.t_ns / 1e9)))
+            time.sleep(0.05)
+    # one host: ~0.12 mm / 0.09 deg; the cameras' times not moved: ~4 mm / 1 deg
+    dp, da = np.median(errors, axis=0)
+    assert dp < 0.0005 and da < np.radians(0.25), (dp, np.degrees(da))
+    assert r.covariance is not None and np.all(np.diag(r.covariance) > 0)
 
 
 @pytest.mark.slow

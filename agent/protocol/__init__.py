@@ -8,20 +8,22 @@ its own key) reads off the wire: :mod:`agent.protocol.keys`, the key space; an a
 services snapshot (:func:`parse_snapshot`); a pose query's ``segments`` request and its
 answer (:class:`SegmentRequest`, :func:`segments_request`, :func:`decode_reply`,
 :func:`edge_from_wire`); a supernode summary (:class:`Summary`); an agent's stream digest
-(:func:`read_digest`).  The rest is internal.
+(:func:`read_digest`); the environment variable that skews a simulated host's clock, agent
+and services alike (:data:`SKEW_ENV`, for demos and tests).  The rest is internal.
 """
 
 from __future__ import annotations
 
 from agent._lazy import lazy_attributes
 
-__all__ = ["EdgeDetail", "SegmentRequest", "Snapshot", "Summary", "decode_reply",
+__all__ = ["SKEW_ENV", "EdgeDetail", "SegmentRequest", "Snapshot", "Summary", "decode_reply",
            "edge_from_wire", "keys", "parse_snapshot", "read_digest", "segments_request"]
 
 __getattr__ = lazy_attributes(__name__, {
     "keys": "agent.protocol.keys",
     "Snapshot": "agent.protocol.registration",
     "parse_snapshot": "agent.protocol.registration",
+    "SKEW_ENV": "agent.protocol.query",
     "EdgeDetail": "agent.protocol.query",
     "SegmentRequest": "agent.protocol.query",
     "Summary": "agent.protocol.query",

@@ -2,7 +2,9 @@
 agent told it to take) and the dispatch of their samples to the user's ``on_sample``.
 
 Samples are taken in Zenoh's thread and queued (at most ``SAMPLE_QUEUE``: the oldest data
-is worth least); one dispatch thread decodes them and calls ``on_sample``, one at a time.
+is worth least); one dispatch thread decodes them, moves their times onto this host's clock
+(:mod:`agent.sdk.sampleclock`: a sample from another host is stamped on that host's clock)
+and calls ``on_sample``, one at a time.
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ import contextlib
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -22,6 +23,7 @@ from agent.protocol.registration import Match
 from agent.protocol.sequence import stamp_refusal
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
+from agent.sdk.sampleclock import SampleClocks
 from schemas.codec import (
     MAX_IMAGE_BYTES,
     MAX_MESSAGE_BYTES,
@@ -81,6 +83,8 @@ class NeedLinks:
         self._thread: threading.Thread | None = None
         #: samples refused by their stamp (``stamp_refusal``), not given to ``on_sample``
         self.refused = 0
+        #: the clocks of the agents whose streams the needs take
+        self.clocks = SampleClocks(svc.agent_id, svc.realm, svc.now_ns, limited_log)
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._dispatch, daemon=True,
@@ -98,6 +102,7 @@ class NeedLinks:
             self._samples.put_nowait(None)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(1.0)
+        self.clocks.close()
 
     def apply(self, need: NeedHandle, matches: tuple[Match, ...], satisfied: bool) -> None:
         """Subscribe to exactly ``matches`` (keeping links that stay)."""
@@ -123,6 +128,8 @@ class NeedLinks:
                          ", ".join(m.key for m in matches) or "nothing")
             need.matches, need.satisfied = matches, satisfied
             svc._cond.notify_all()
+        self.clocks.follow(svc.session, {m.agent_id for n in list(svc._needs.values())
+                                         for m in n.matches})
 
     def _on_data(self, need: NeedHandle, link: _Link, smp: zenoh.Sample) -> None:
         limit = MAX_IMAGE_BYTES if need.need.type == "image" else MAX_MESSAGE_BYTES
@@ -147,7 +154,11 @@ class NeedLinks:
             except DecodeError as exc:
                 self._log.warning(f"data {link.match.key}", f"dropped: {exc}")
                 continue
-            refusal = stamp_refusal(m.t_ns, time.time_ns(), link.newest_ns)
+            t_ns = self.clocks.to_local(link.match.agent_id, m.t_ns)
+            if t_ns is None:
+                continue
+            m.t_ns = t_ns
+            refusal = stamp_refusal(t_ns, self._svc.now_ns(), link.newest_ns)
             if refusal is not None:
                 self.refused += 1
                 self._log.warning(f"data {link.match.key}", f"refused: {refusal} "

@@ -23,7 +23,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -87,21 +87,125 @@ class Outcome:
     parts: list[tuple[Segment, list[dict[str, Any]]]]
 
 
-class Queries:
-    """Pose queries over one realm (module docstring)."""
+class AgentQueries:
+    """Queries to the agents of a realm by agent id, and the clock offsets their answers
+    give: the transport every asker shares (:class:`Queries`' pose queries, a service's
+    clock round trips, :mod:`agent.sdk.needs`).  ``now`` is this host's clock, on which
+    the offsets are measured."""
 
     def __init__(self, session: zenoh.Session, realm: str, timeout: float,
-                 tracker: RealmTracker, clock: ClockOffsets, connect: Sequence[str]) -> None:
+                 clock: ClockOffsets, now: Callable[[], int] = time.time_ns) -> None:
         self.session = session
         self.realm = realm
         self.timeout = timeout
-        self.tracker = tracker
         self.clock = clock
-        self.connect = list(connect)
+        self.now = now
         self._lock = threading.Lock()
         self._log = RateLimitedLog(log)
         #: answers refused: they came on one agent's key naming another (or none)
         self.refused = 0
+        #: agent id (or None) by the key a reply came on
+        self._reply_keys: dict[str, str | None] = {}
+        #: declared queriers by agent id (None: every agent's query key)
+        self._queriers: dict[str | None, zenoh.Querier] = {}
+
+    def close(self) -> None:
+        with self._lock:
+            queriers, self._queriers = list(self._queriers.values()), {}
+        for querier in queriers:
+            with contextlib.suppress(zenoh.ZError):
+                querier.undeclare()
+
+    # ------------------------------------------------------------------ clocks
+
+    def probe(self, agent: str) -> bool:
+        """One clock round trip to ``agent`` alone; True if it answered."""
+        answered = False
+        try:
+            for who, reply, t1, t4 in self.answers(proto.clock_request(), [agent]):
+                self._clock_sample(who, reply, t1, t4)
+                answered = answered or who == agent
+        except zenoh.ZError as exc:
+            self._log.warning("probe", f"asking agent {agent!r}: {exc}")
+        return answered
+
+    def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
+        times = proto.reply_times(reply)
+        if times is not None:
+            self.clock.add(agent, t1, times[0], times[1], t4)
+
+    # ------------------------------------------------------------------ transport
+
+    def answers(self, request: bytes, agents: Sequence[str] = ()) -> Iterator[Reply]:
+        """One query (an encoded request) to the query key of every agent (or of the only
+        one in ``agents``); yields each answer as it arrives.  One query rather than one
+        per agent: a ``get`` costs about as much to issue as a loopback round trip.  Ends
+        as soon as every agent in ``agents`` has answered (else when the query ends: all
+        agents are done, or the timeout)."""
+        expected, seen = set(agents), set()
+        querier = self._querier(agents[0] if len(agents) == 1 else None)
+        t1 = self.now()
+        # Zenoh's FIFO channel, read here: a callback waking this thread through an Event
+        # would add a GIL hand-off per reply (docs/MEASUREMENTS.md).  The query's timeout
+        # closes the channel, so the loop always ends.
+        for reply in querier.get(payload=request):
+            t4 = self.now()
+            if reply.ok is None:
+                continue
+            key = str(reply.ok.key_expr)
+            agent = self._reply_agent(key)
+            if agent is None:
+                self._log.warning("query reply", f"unexpected key {key!r}")
+                continue
+            answer = proto.decode_reply(reply.ok.payload.to_bytes())
+            if answer.get("agent") != agent:
+                self.refused += 1
+                self._log.warning("query reply", f"on {key} names agent "
+                                  f"{str(answer.get('agent'))[:64]!r} "
+                                  f"({answer.get('error', 'not the agent of its key')}): "
+                                  f"refused ({self.refused} so far)")
+                continue
+            yield agent, answer, t1, t4
+            seen.add(agent)
+            if expected and expected <= seen:
+                return  # no need to wait for agents that have nothing to say
+
+    def _reply_agent(self, key: str) -> str | None:
+        """The agent id of a reply's key (None: not an agent's query key); the few keys
+        replies come on are parsed once."""
+        agent = self._reply_keys.get(key, False)
+        if agent is False:
+            agent = keys.parse_agent_query(key, self.realm)
+            if len(self._reply_keys) >= MAX_REPLY_KEYS:  # forged keys must not grow it
+                self._reply_keys.clear()
+            self._reply_keys[key] = agent
+        return agent
+
+    def _querier(self, agent: str | None) -> zenoh.Querier:
+        """The querier of one agent's query key (None: every agent's), declared once: Zenoh
+        then resolves the key expression once rather than at every get, and the key is
+        built once.  No consolidation: every agent replies on
+        its own key, so there is nothing to merge, and the default would hold every answer
+        back until the slowest agent is done."""
+        with self._lock:
+            querier = self._queriers.get(agent)
+            if querier is None:
+                key = (keys.agent_query(self.realm, agent) if agent is not None
+                       else keys.all_agent_queries(self.realm))
+                querier = self.session.declare_querier(
+                    key, timeout=self.timeout, consolidation=zenoh.ConsolidationMode.NONE)
+                self._queriers[agent] = querier
+        return querier
+
+
+class Queries(AgentQueries):
+    """Pose queries over one realm (module docstring)."""
+
+    def __init__(self, session: zenoh.Session, realm: str, timeout: float,
+                 tracker: RealmTracker, clock: ClockOffsets, connect: Sequence[str]) -> None:
+        super().__init__(session, realm, timeout, clock)
+        self.tracker = tracker
+        self.connect = list(connect)
         #: planned routes by (source, target, error), for summaries of ``_planned_on``
         self._routes: dict[tuple[str, str, str], list[Route]] = {}
         #: encoded requests for the latest time (the same for every query of a round's
@@ -119,17 +223,6 @@ class Queries:
         self.cached_parts = 0
         #: error functions by their spec (``_error_function``)
         self._error_fns: dict[str, ErrorFunction] = {}
-        #: agent id (or None) by the key a reply came on
-        self._reply_keys: dict[str, str | None] = {}
-        #: declared queriers by agent id (None: every agent's query key)
-        self._queriers: dict[str | None, zenoh.Querier] = {}
-
-    def close(self) -> None:
-        with self._lock:
-            queriers, self._queriers = list(self._queriers.values()), {}
-        for querier in queriers:
-            with contextlib.suppress(zenoh.ZError):
-                querier.undeclare()
 
     # ------------------------------------------------------------------ one query
 
@@ -479,82 +572,3 @@ class Queries:
             return
         for agent, reply, t1, t4 in self.answers(proto.clock_request()):
             self._clock_sample(agent, reply, t1, t4)
-
-    def probe(self, agent: str) -> bool:
-        """One clock round trip to ``agent`` alone; True if it answered."""
-        answered = False
-        try:
-            for who, reply, t1, t4 in self.answers(proto.clock_request(), [agent]):
-                self._clock_sample(who, reply, t1, t4)
-                answered = answered or who == agent
-        except zenoh.ZError as exc:
-            self._log.warning("probe", f"asking agent {agent!r}: {exc}")
-        return answered
-
-    def _clock_sample(self, agent: str, reply: dict[str, Any], t1: int, t4: int) -> None:
-        times = proto.reply_times(reply)
-        if times is not None:
-            self.clock.add(agent, t1, times[0], times[1], t4)
-
-    # ------------------------------------------------------------------ transport
-
-    def answers(self, request: bytes, agents: Sequence[str] = ()) -> Iterator[Reply]:
-        """One query (an encoded request) to the query key of every agent (or of the only
-        one in ``agents``); yields each answer as it arrives.  One query rather than one
-        per agent: a ``get`` costs about as much to issue as a loopback round trip.  Ends
-        as soon as every agent in ``agents`` has answered (else when the query ends: all
-        agents are done, or the timeout)."""
-        expected, seen = set(agents), set()
-        querier = self._querier(agents[0] if len(agents) == 1 else None)
-        t1 = time.time_ns()
-        # Zenoh's FIFO channel, read here: a callback waking this thread through an Event
-        # would add a GIL hand-off per reply (docs/MEASUREMENTS.md).  The query's timeout
-        # closes the channel, so the loop always ends.
-        for reply in querier.get(payload=request):
-            t4 = time.time_ns()
-            if reply.ok is None:
-                continue
-            key = str(reply.ok.key_expr)
-            agent = self._reply_agent(key)
-            if agent is None:
-                self._log.warning("query reply", f"unexpected key {key!r}")
-                continue
-            answer = proto.decode_reply(reply.ok.payload.to_bytes())
-            if answer.get("agent") != agent:
-                self.refused += 1
-                self._log.warning("query reply", f"on {key} names agent "
-                                  f"{str(answer.get('agent'))[:64]!r} "
-                                  f"({answer.get('error', 'not the agent of its key')}): "
-                                  f"refused ({self.refused} so far)")
-                continue
-            yield agent, answer, t1, t4
-            seen.add(agent)
-            if expected and expected <= seen:
-                return  # no need to wait for agents that have nothing to say
-
-    def _reply_agent(self, key: str) -> str | None:
-        """The agent id of a reply's key (None: not an agent's query key); the few keys
-        replies come on are parsed once."""
-        agent = self._reply_keys.get(key, False)
-        if agent is False:
-            agent = keys.parse_agent_query(key, self.realm)
-            if len(self._reply_keys) >= MAX_REPLY_KEYS:  # forged keys must not grow it
-                self._reply_keys.clear()
-            self._reply_keys[key] = agent
-        return agent
-
-    def _querier(self, agent: str | None) -> zenoh.Querier:
-        """The querier of one agent's query key (None: every agent's), declared once: Zenoh
-        then resolves the key expression once rather than at every get, and the key is
-        built once.  No consolidation: every agent replies on
-        its own key, so there is nothing to merge, and the default would hold every answer
-        back until the slowest agent is done."""
-        with self._lock:
-            querier = self._queriers.get(agent)
-            if querier is None:
-                key = (keys.agent_query(self.realm, agent) if agent is not None
-                       else keys.all_agent_queries(self.realm))
-                querier = self.session.declare_querier(
-                    key, timeout=self.timeout, consolidation=zenoh.ConsolidationMode.NONE)
-                self._queriers[agent] = querier
-        return querier

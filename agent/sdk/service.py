@@ -14,8 +14,13 @@
 ``handle(m)`` receives a ``schemas.codec.Measurement`` (``m.t_ns``, ``m.position``,
 ``m.quaternion``, ``m.covariance``, the other fields for other types) with ``m.edge``,
 ``m.source`` (the publishing service's id) and ``m.attributes`` (the ability's advertised
-attributes) filled in.  Callbacks run on the service's own dispatch thread, one at a time,
-never on a Zenoh thread; an exception in a callback is logged, not fatal.
+attributes) filled in.  ``m.t_ns`` is on this host's clock (``svc.now_ns()``) even when
+the sample comes from a service on another host: it is moved by the offset of that host's
+agent's clock, measured by round trips as a ``Client`` measures it
+(:mod:`agent.sdk.sampleclock`; until it is measured, that agent's samples are held back and
+counted in ``svc.links.clocks.unsynced``).  Callbacks run on the service's own dispatch
+thread, one at a time, never on a Zenoh thread; an exception in a callback is logged, not
+fatal.
 
 The service registers with its local agent (:mod:`agent.protocol.registration`): if
 the agent is not running yet, ``start()`` waits ``register_timeout`` seconds, then returns
@@ -55,6 +60,7 @@ from pydantic import ValidationError
 
 from agent.errors import InvalidInputError, UmaError, UmaTimeoutError
 from agent.protocol import keys
+from agent.protocol.query import skew_from_env
 from agent.protocol.registration import Match
 from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
@@ -186,6 +192,12 @@ class Service:
         self.zenoh_config = zenoh_config
         self.attributes = dict(attributes or {})
         self.register_timeout = register_timeout
+        try:
+            #: how far this host's clock is off the system clock: 0, but for tests that
+            #: skew a host (agent.protocol.query.SKEW_ENV, read by its agent too)
+            self.clock_skew_ns = skew_from_env()
+        except ValueError as exc:
+            raise InvalidInputError(str(exc)) from None
         _checked(ServiceDescriptor, f"service {service_id!r}", service_id=service_id,
                  agent_id=self.agent_id, attributes=self.attributes)
         self.session: zenoh.Session | None = None
@@ -213,6 +225,11 @@ class Service:
         """This run's instance id (a new one when the agent must be told apart from an
         adopted one)."""
         return self.presence.instance
+
+    def now_ns(self) -> int:
+        """This host's clock, the one its agent keeps and received samples' times are on
+        (ns since the epoch); publish samples stamped on it."""
+        return time.time_ns() + self.clock_skew_ns
 
     @property
     def error(self) -> str | None:

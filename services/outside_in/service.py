@@ -3,10 +3,11 @@
 A **marker camera** serves one or more cameras of a rig (each its own ``Service``
 ``markers-NAME``): every frame's blobs (``blobs.find_blobs``) go out as a ``markers2d``
 sample on the edge ``world -> SITE/NAME``, stamped with the capture time in this host's
-clock, with the camera's name and the calibration's version (a digest of the rig file)
-in ``extra``.  Frames come from ``services.camera.capture`` (devices, videos, folders,
-URLs) or from the simulated rig, whose time is the wall clock so that cameras on several
-hosts render one world.
+clock (``Service.now_ns``; the reconstruction's SDK moves it onto its own host's clock),
+with the camera's name and the calibration's version (a digest of the rig file) in
+``extra``.  Frames come from ``services.camera.capture`` (devices, videos, folders, URLs)
+or from the simulated rig, whose time is the wall clock so that cameras on several hosts
+render one world.
 
 The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
 whatever camera appears is used, one that stops is left out.  Samples are gathered into
@@ -91,7 +92,8 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
             extra = {MARKERS_CAMERA: name, MARKERS_CALIBRATION: version}
             frames = (_sim_frames(sim, by_name[name], stop, args.max_frames) if sim
                       else _capture_frames(sources[name], stop, args.max_frames))
-            t = threading.Thread(target=_publish_frames, args=(frames, out, extra),
+            t = threading.Thread(target=_publish_frames,
+                                 args=(frames, out, extra, svc.clock_skew_ns),
                                  name=f"uma-markers-{name}", daemon=True)
             t.start()
             threads.append(t)
@@ -104,10 +106,13 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
     return 0
 
 
-def _publish_frames(frames, out, extra: dict) -> None:
+def _publish_frames(frames, out, extra: dict, skew_ns: int) -> None:
+    """Each frame's blobs, stamped on this host's clock: the frames' times are the system
+    clock's (the capture's, the simulated world's), which a test may skew (``skew_ns``)."""
     for t_ns, image in frames:
         blobs = find_blobs(image)
-        out.publish_measurement(Measurement(type="markers2d", t_ns=t_ns, points=blobs.uv,
+        out.publish_measurement(Measurement(type="markers2d", t_ns=t_ns + skew_ns,
+                                            points=blobs.uv,
                                             values=blobs.std_px, extra=extra))
 
 
@@ -155,6 +160,8 @@ class Reconstruction:
         self.refused = RateLimitedLog(log)
         self.refused_count = 0
         self.frame_sets = 0
+        #: frames that came after their exposure's set was tracked, not used
+        self.late = 0
 
     def add(self, m: Measurement, now: float | None = None) -> list[BodyEstimate]:
         """One camera's sample; the poses of the frame set it completed, if any."""
@@ -168,6 +175,12 @@ class Reconstruction:
             self.period = min(self.period or np.inf, t - self.last_t[cam])
         self.last_t[cam] = t
         out: list[BodyEstimate] = []
+        if (self.period is not None and self.pending
+                and t < max(f.t for f in self.pending.values()) - 0.5 * self.period):
+            # of an exposure whose set was already tracked (it came late): it would make
+            # the pending set one of two exposures
+            self.late += 1
+            return out
         # a camera's next frame, or a frame of a later exposure than the pending set's:
         # the pending set is as complete as it gets
         later = (self.period is not None and self.pending
@@ -228,6 +241,6 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
         log.info("outside-in: tracking %s with %d cameras (calibration %s)",
                  ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
         while not stop.wait(5.0):
-            log.info("outside-in: %d frame sets, %s, %d samples refused", rec.frame_sets,
-                     dict(rec.tracker.counts), rec.refused_count)
+            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late",
+                     rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late)
     return 0
