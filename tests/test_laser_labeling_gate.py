@@ -100,6 +100,8 @@ def test_a_frame_set_with_two_housings_is_refused_not_guessed(world) -> None:
     assert "two labelings fit" in res.detail
     # tracking from the pose midway: the prediction cannot tell them apart either
     mid, wm = hits_of(world, 0.5 * (a + b), q)
+    assert tr.solve(dots_on_walls(world, mid, wm), 1.0 - 1 / RATE_HZ).reason == \
+        "unconfirmed_labeling"  # a start is held until the next frame set confirms it
     assert tr.solve(dots_on_walls(world, mid, wm), 1.0).ok
     assert tr.solve(dots_on_walls(world, mid, wm), 1.0 + 1 / RATE_HZ).ok
     res = tr.solve(both, 1.0 + 2 / RATE_HZ)
@@ -119,7 +121,8 @@ def test_a_head_pitched_so_far_that_its_reflection_is_as_upright_is_refused(worl
     assert isinstance(res, NoPose) and res.reason == "ambiguous_labeling", res
     q = upright(10, pitch_deg=10)  # upright enough: the reflection is beaten by far
     points, walls = hits_of(world, p, q)
-    res = tr.solve(dots_on_walls(world, points, walls), 1.0)
+    assert not tr.solve(dots_on_walls(world, points, walls), 1.0).ok  # held: a start
+    res = tr.solve(dots_on_walls(world, points, walls), 1.0 + 1 / RATE_HZ)
     assert isinstance(res, PoseEstimate) and labeling_is_right(res, world, p, q)
 
 
@@ -155,7 +158,52 @@ def test_a_stray_blob_replacing_a_dot_is_never_a_confident_pose(world) -> None:
             caught += i % 3 == 1
     assert published_wrong == 0
     assert caught >= 70  # the lost-spot frame sets are refused
-    assert tr.counts["pose"] >= 150  # the others are not
+    assert tr.counts["pose"] >= 145, tr.counts  # the others are not (a start is held)
+
+
+def test_a_stray_blob_in_a_lost_spots_place_at_a_start_is_refused(world) -> None:
+    """A stray blob 2 cm from a lost spot fits one pose within the installation's
+    covariance about one time in twenty; right after a start no prediction can tell, so a
+    start is held until the next frame set confirms its fourth dot's miss, which a stray
+    blob moves by far more than the dots' noise.  Each start: a clean frame set, then one
+    with a spot replaced by a blob 2 cm away, then a clean one again."""
+    traj = HeadTrajectory(seed=11)
+    rng = np.random.default_rng(3)
+    published_wrong = strays = confirmed = 0
+    for start in np.arange(0.0, 40.0, 0.25):
+        tr = LaserTracker(None)
+        for j in range(3):
+            t = start + j / RATE_HZ
+            p, q = traj.pose(t)
+            p, q = p[0], q[0]
+            hits = world.laser_hits(p, q)
+            if not all(hits[k].on_screen for k in LABELS):
+                break
+            points, walls = hits_of(world, p, q)
+            points = [x + 2e-4 * rng.normal(size=3) for x in points]
+            if j == 1:
+                k = int(rng.integers(4))
+                points[k] = points[k] + 0.02 * along_wall(world, walls[k],
+                                                          rng.uniform(0, 2 * np.pi))
+                strays += 1
+            res = tr.solve(dots_on_walls(world, points, walls), t)
+            if j == 0:
+                assert res.reason == "unconfirmed_labeling", res
+            if isinstance(res, PoseEstimate):
+                published_wrong += j == 1 and pose_outside_covariance(res, p, q)
+                confirmed += j == 2
+    assert strays >= 100
+    assert published_wrong == 0
+    assert confirmed >= 0.9 * strays  # the next clean frame set is published
+
+
+def pose_outside_covariance(res: PoseEstimate, p: np.ndarray, q: np.ndarray) -> bool:
+    """Whether the pose's error lies outside its covariance (chi2(6)'s 1 - 1e-4 quantile):
+    a confident wrong pose."""
+    e = np.concatenate([res.position - p, geo.quat_to_rotvec(
+        geo.quat_multiply(res.quaternion, geo.quat_conjugate(q)))])
+    return float(e @ np.linalg.solve(geo.se3_to_decoupled(res.position, res.covariance),
+                                     e)) > 27.9
 
 
 def _seeds() -> list[int]:

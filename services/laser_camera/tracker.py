@@ -68,9 +68,10 @@ from services.laser_camera.pose import (
 #: why a frame set gave no pose
 NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
                    "inconsistent_dots", "ambiguous_labeling", "not_upright", "gated_jump",
-                   "degenerate")
+                   "residual_jump", "unconfirmed_labeling", "degenerate")
 #: the reasons that refuse a frame set whose dots were all there: the labeling gate
-GATE_REASONS = ("inconsistent_dots", "ambiguous_labeling", "gated_jump")
+GATE_REASONS = ("inconsistent_dots", "ambiguous_labeling", "gated_jump", "residual_jump",
+                "unconfirmed_labeling")
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,13 @@ class TrackerParams:
     #: upright (cosine) unless its chi-square alone is that much worse
     min_margin: float = 10.0
     init_margin_cos: float = 0.25
+    #: the fourth beam's miss is mostly the installation's error, which holds from frame
+    #: set to frame set: a labeling is published only if its miss agrees with the last one
+    #: kept within the dots' noise, plus this share of the installation's part per metre
+    #: the dots moved since (the bent screens and turned cameras change it over tens of
+    #: centimetres: on seeds 1-5 the change over 9 frame sets, dots 0.3 m on, was about
+    #: 0.4 of it), plus all of it for a dot now on another wall
+    residual_drift_per_m: float = 2.0
     #: a rival whose pose lies within the chosen pose's covariance (Mahalanobis distance
     #: squared, 6 dof, at most this: chi2(6)'s 1 - 1e-4 quantile) is the same answer
     same_pose_chi2: float = 27.9
@@ -161,6 +169,8 @@ class TrackerParams:
             raise InvalidInputError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
+        if not self.residual_drift_per_m > 0:
+            raise InvalidInputError("residual_drift_per_m must be positive")
         if not (self.label_gate_m > 0 and self.label_gate_mps >= 0):
             raise InvalidInputError("label_gate_m must be positive and label_gate_mps >= 0")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
@@ -262,6 +272,8 @@ class LaserTracker:
         self._last: PoseEstimate | None = None
         self._prev: PoseEstimate | None = None  # the pose before ``_last``: its motion
         self._dots: WorldDots | None = None  # the dots of the last frame set solved
+        #: the fourth beam's miss of the last labeling published or held for confirmation
+        self._miss: _Miss | None = None
         #: diode label -> its last two labeled sightings (t, world point, wall)
         self._spots: dict[int, tuple[tuple[float, np.ndarray, str], ...]] = {}
         self._seen = _SeenDots()
@@ -272,6 +284,7 @@ class LaserTracker:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
         dots found in the full frames)."""
         self._last = self._prev = None
+        self._miss = None
         self._spots = {}
         self._seen = _SeenDots()
 
@@ -405,6 +418,9 @@ class LaserTracker:
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
+        refused = self._confirm(fits[k], dots, t, n)
+        if refused is not None:
+            return refused
         sys_std = np.sqrt(0.5 * np.trace(sys_cov, axis1=1, axis2=2))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
@@ -434,12 +450,48 @@ class LaserTracker:
             if not cands:
                 return NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
                               f"than a head can since the last pose {t - last.t:.3f} s ago")
-        chi2 = residual_chi2(dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
-        fits = [_Fit(c, idx, float(x)) for (c, idx), x in zip(cands, chi2, strict=True)
-                if x <= p.max_residual_chi2]
+        miss, random, systematic = fourth_beam_residuals(
+            dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
+        chi2 = _chi2(miss, random + systematic.sum(axis=1))
+        fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j])
+                for j, (c, idx) in enumerate(cands) if chi2[j] <= p.max_residual_chi2]
         return fits or NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
                               f"{p.max_residual_chi2:g}")
+
+    def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int) -> NoPose | None:
+        """The chosen labeling's fourth-beam miss against the last one kept (``_miss``):
+        None if they agree, else why not.
+
+        The miss is mostly the installation's error, the same from one frame set to the
+        next while the same diodes' dots stay on the same walls; a stray blob taken for a
+        lost spot moves it by up to the whole chi-square gate (centimetres where a screen
+        is seen obliquely) and is refused (``residual_jump``), the last published miss
+        kept.  A labeling with no miss to compare with (a start, dots moved far or two of
+        them to other walls: ``_Miss.change_chi2``) is held, its miss kept, until the next
+        frame set confirms it (``unconfirmed_labeling``); a held miss that the next one
+        does not confirm is replaced by it (either may be the stray).  Where the dots'
+        noise outweighs the installation's part (an ideal installation) the chi-square of
+        ``_fits`` is as sharp, and nothing is held."""
+        p, last = self.params, self._miss
+        now = _Miss(t, tuple(dots.walls[i] for i in fit.idx), dots.points[fit.idx], fit.miss,
+                    fit.random, fit.systematic)
+        if np.trace(fit.systematic.sum(axis=0)) <= np.trace(fit.random):
+            self._miss = replace(now, confirmed=True)  # the chi-square alone is as sharp
+            return None
+        chi2 = None if last is None or t <= last.t else last.change_chi2(
+            now, p.residual_drift_per_m)
+        if chi2 is None:
+            self._miss = now
+            return NoPose(t, "unconfirmed_labeling", n, "a labeling's first frame set is held "
+                          "until the next one confirms where its fourth dot lies")
+        if chi2 > p.max_residual_chi2:
+            if not last.confirmed:
+                self._miss = now
+            return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
+                          f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
+        self._miss = replace(now, confirmed=True)
+        return None
 
     def _pick_tracking(self, fits: list[_Fit], t: float,
                        n: int) -> tuple[int, np.ndarray] | NoPose:
@@ -834,6 +886,38 @@ class _Fit:
     pose: LabeledPose
     idx: list[int]  # dot index of diodes 1..4
     chi2: float  # ``residual_chi2``
+    miss: np.ndarray  # (2,) ``fourth_beam_residuals``: the fourth dot's miss, its
+    random: np.ndarray  # (2, 2) covariance from the dots' noise
+    systematic: np.ndarray  # (4, 2, 2) and from each dot's installation tolerances
+
+
+@dataclass(frozen=True)
+class _Miss:
+    """A labeling's fourth-beam miss in one frame set, and what it depends on."""
+
+    t: float
+    walls: tuple[str, ...]  # the walls of diodes 1..4's dots
+    points: np.ndarray  # (4, 3) those dots
+    miss: np.ndarray  # (2,)
+    random: np.ndarray  # (2, 2)
+    systematic: np.ndarray  # (4, 2, 2)
+    confirmed: bool = False  # published (it agreed with the miss before it)
+
+    def change_chi2(self, later: _Miss, drift_per_m: float) -> float | None:
+        """Chi-square (2 dof) of the miss's change to ``later``, or None if the change
+        cannot show a stray blob: the dots moved so far (``1 / drift_per_m``) that the
+        installation's part may have changed whole, or more than one dot changed walls.
+        Its covariance: both frame sets' noise, the installation's part of each dot that
+        stayed on its wall times ``drift_per_m`` per metre the dots moved, and all of it
+        (both frame sets', independent) for a dot on another wall."""
+        moved = float(np.max(np.linalg.norm(later.points - self.points, axis=1)))
+        other = [a != b for a, b in zip(self.walls, later.walls, strict=True)]
+        if drift_per_m * moved >= 1.0 or sum(other) > 1:
+            return None
+        both = self.systematic + later.systematic  # (4, 2, 2)
+        share = np.where(other, 1.0, 0.5 * (drift_per_m * moved) ** 2)
+        S = self.random + later.random + np.einsum("k,kij->ij", share, both)
+        return float(_chi2((later.miss - self.miss)[None], S[None])[0])
 
 
 def _pick_upright(fits: list[_Fit], t: float, n: int,
@@ -852,18 +936,30 @@ def _pick_upright(fits: list[_Fit], t: float, n: int,
 
 
 def residual_chi2(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
-                  p: TrackerParams, step_m: float = 1e-5) -> np.ndarray:
+                  p: TrackerParams) -> np.ndarray:
     """Chi-square (2 dof) of each labeling's dots against one pose: ``orders[j]`` the dot
-    indices of diodes 1..4, ``origins[j]`` its P0 (for the installation's error).
+    indices of diodes 1..4, ``origins[j]`` its P0 (for the installation's error); inf
+    where a labeling's dots give no frame (:func:`fourth_beam_residuals`)."""
+    r, random, systematic = fourth_beam_residuals(dots, orders, origins, p)
+    return _chi2(r, random + systematic.sum(axis=1))
+
+
+def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
+                          p: TrackerParams, step_m: float = 1e-5,
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each labeling's fourth dot lies off beam 4 of the pose its first three fix, (m,
+    2), and that miss's covariance: the part from the dots' noise, new in every frame set
+    (m, 2, 2), and each dot's part from the installation's tolerances, which a frame set
+    shares with the next ones while the dot stays on its wall (m, 4, 2, 2).
 
     The dots of diodes 1-3 fix the pose (six coordinates, six unknowns); the residual is
     where the fourth dot lies off beam 4 of that pose, across the beam (its components
     along the rig's x and y, times nothing: metres at the dot).  Its covariance comes by
-    numeric Jacobian from all four dots' in-plane errors, noise and installation both
-    (a single frame sees both).  Inf where a labeling's dots give no frame."""
+    numeric Jacobian from all four dots' in-plane errors.  NaN where a labeling's dots
+    give no frame."""
     m = len(orders)
     if not m:
-        return np.zeros(0)
+        return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
     idx = np.array(orders)  # (m, 4)
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(m, 8, 3)  # dot k moves along axes[:, 2k], axes[:, 2k + 1]
@@ -873,16 +969,23 @@ def residual_chi2(dots: WorldDots, orders: list[list[int]], origins: list[np.nda
     ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
     r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
     J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
-    cov = np.array([_installation_covariance(dots, list(o), x, p)
-                    for o, x in zip(orders, origins, strict=True)])  # (m, 4, 2, 2)
-    cov += dots.std_m[idx][..., None, None] ** 2 * np.eye(2)
     Jd = J.reshape(m, 4, 2, 2)  # dot, its wall axis, residual component
-    S = np.einsum("mkai,mkab,mkbj->mij", Jd, cov, Jd)
+    installation = np.array([_installation_covariance(dots, list(o), x, p)
+                             for o, x in zip(orders, origins, strict=True)])  # (m, 4, 2, 2)
+    systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
+    random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
+    return r[:, 0], random, systematic
+
+
+def _chi2(r: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``r_j^T S_j^-1 r_j`` of each residual (m, 2) under its covariance (m, 2, 2); inf where
+    either is not finite or ``S`` is singular."""
     with np.errstate(invalid="ignore"):
-        ok = np.isfinite(S).all(axis=(1, 2)) & (np.linalg.det(np.nan_to_num(S)) > 0)
-    out = np.full(m, np.inf)
+        ok = (np.isfinite(S).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+              & (np.linalg.det(np.nan_to_num(S)) > 0))
+    out = np.full(len(r), np.inf)
     if ok.any():
-        r0 = r[ok, 0]
+        r0 = r[ok]
         out[ok] = np.einsum("mi,mi->m", r0, np.linalg.solve(S[ok], r0[..., None])[..., 0])
     return out
 
