@@ -50,14 +50,13 @@ def test_covariance_matches_monte_carlo_for_the_noise_it_is_given():
     errors, nees = [], []
     for _ in range(300):
         img = true + rng.normal(0, 0.3, true.shape)
-        sols = pose.solve(obj, img, K, np.zeros(0), pose.square_candidates(img, obj, K,
-                                                                             np.zeros(0)))
+        sols = pose.solve(obj, img, K, pose.square_candidates(img, 0.08, K))
         best = sols[0]
         e = decoupled_error(T, best.rotation, best.tvec)
         errors.append(e)
-        nees.append(e @ np.linalg.solve(pose.covariance(best, 0.3), e))
+        nees.append(e @ np.linalg.solve(pose.covariance(pose.Fits.of([best]), [0.3])[0], e))
     empirical = np.cov(np.array(errors).T)
-    claimed = pose.covariance(sols[0], 0.3)
+    claimed = pose.covariance(pose.Fits.of(sols[:1]), [0.3])[0]
     for block in (slice(0, 3), slice(3, 6)):
         ratio = np.trace(empirical[block, block]) / np.trace(claimed[block, block])
         assert 0.8 < ratio < 1.25, ratio

@@ -40,6 +40,14 @@ REACH_MODULES = 0.8
 FALLBACK_STD = 1.0
 
 
+#: where along a side its edge points are sampled, and the profile's steps across it
+_FRAC = np.linspace(0.2, 0.8, SAMPLES)[:, None]
+_OFFS = np.linspace(-1.0, 1.0, STEPS)
+_CENTRE = STEPS // 2
+#: side k runs from corner k to corner k + 1; corner k lies on sides k - 1 and k
+_NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
+
+
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
            ) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
@@ -48,41 +56,34 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
         return quads, np.zeros((0, 4, 2, 2))
-    a = quads
-    b = np.roll(quads, -1, axis=1)  # side k runs from corner k to corner k+1
-    side = b - a
-    length = np.linalg.norm(side, axis=2, keepdims=True)
+    side = quads[:, _NEXT] - quads
+    length = np.sqrt(np.einsum("nkc,nkc->nk", side, side))[..., None]
     along = side / np.maximum(length, 1e-9)
     # OpenCV's corners run clockwise in the image: the outward normal is along's left turn
-    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)
+    normal = along[..., ::-1] * [1.0, -1.0]
     # half a module across each side: the cells' width there is the neighbouring sides'
     # length over the module count (a tilted tag is narrower one way than the other)
-    across = (np.roll(length, 1, axis=1) + np.roll(length, -1, axis=1)) / 2
-    reach = np.maximum(REACH_MODULES * across / modules, 1.0)  # (n, 4, 1) pixels
-    frac = np.linspace(0.2, 0.8, SAMPLES)
-    base = a[:, :, None, :] + frac[None, None, :, None] * side[:, :, None, :]
-    offs = np.linspace(-1.0, 1.0, STEPS)
-    pts = base[:, :, :, None, :] + (offs[None, None, None, :, None] * reach[..., None, None]
-                                    * normal[:, :, None, None, :])
-    flat = pts.reshape(-1, 2).astype(np.float32)
-    profile = cv2.remap(gray, flat[:, 0].reshape(1, -1), flat[:, 1].reshape(1, -1),
+    reach = np.maximum(REACH_MODULES / 2 / modules * (length[:, _PREV] + length[:, _NEXT]),
+                       1.0)  # (n, 4, 1) pixels
+    base = quads[:, :, None, :] + _FRAC * side[:, :, None, :]  # (n, 4, SAMPLES, 2)
+    step = reach[..., None] * normal[:, :, None, :]  # (n, 4, 1, 2)
+    pts = (base[:, :, :, None, :] + _OFFS[:, None] * step[:, :, :, None, :]).astype(np.float32)
+    profile = cv2.remap(gray, pts[..., 0].reshape(1, -1), pts[..., 1].reshape(1, -1),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     profile = profile.reshape(pts.shape[:-1]).astype(np.float64)
-    centre = STEPS // 2
-    dark = profile[..., :centre + 1].min(axis=-1)
-    bright = profile[..., centre:].max(axis=-1)
+    dark = profile[..., :_CENTRE + 1].min(axis=-1)
+    bright = profile[..., _CENTRE:].max(axis=-1)
     d = profile - ((dark + bright) / 2)[..., None]
-    rising = (d[..., :-1] < 0) & (d[..., 1:] >= 0)
+    lo, hi = d[..., :-1], d[..., 1:]
+    rising = (lo < 0) & (hi >= 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        where = offs[:-1] + d[..., :-1] / (d[..., :-1] - d[..., 1:]) * (offs[1] - offs[0])
-    where = np.where(rising, where, np.inf)
+        where = np.where(rising, _OFFS[:-1] + lo / (lo - hi) * (_OFFS[1] - _OFFS[0]), np.inf)
     pick = np.argmin(np.abs(where), axis=-1)
-    s = np.take_along_axis(where, pick[..., None], -1)[..., 0]
-    good = (bright - dark > MIN_CONTRAST) & np.isfinite(s)
-    edge = base + (s * reach)[..., None] * normal[:, :, None, :]
+    s = np.take_along_axis(where, pick[..., None], -1)
+    good = (bright - dark > MIN_CONTRAST) & np.isfinite(s[..., 0])
+    edge = base + np.where(good[..., None], s, 0.0) * step
     # the detected corners and the edge points undistorted in one call
-    both = camera.undistort(np.concatenate([quads.reshape(-1, 2),
-                                            np.where(good[..., None], edge, base).reshape(-1, 2)]),
+    both = camera.undistort(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]),
                             pixels=True)
     fallback = both[:quads.size // 2].reshape(quads.shape)
     ideal = both[quads.size // 2:].reshape(edge.shape)
@@ -90,26 +91,28 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     # axis), or through the side's detected corners when too few edge points were found
     w = good.astype(np.float64)
     count = w.sum(axis=-1)
-    mean = (w[..., None] * ideal).sum(axis=2) / np.maximum(count, 1)[..., None]
+    mean = np.einsum("nks,nksc->nkc", w, ideal) / np.maximum(count, 1)[..., None]
     dev = ideal - mean[:, :, None, :]
-    cxx, cyy = (w * dev[..., 0] ** 2).sum(-1), (w * dev[..., 1] ** 2).sum(-1)
-    cxy = (w * dev[..., 0] * dev[..., 1]).sum(-1)
+    wdev = w[..., None] * dev
+    cxx, cyy = np.einsum("nksc,nksc->cnk", wdev, dev)
+    cxy = np.einsum("nks,nks->nk", wdev[..., 0], dev[..., 1])
     theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
     direction = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
-    ends = np.roll(fallback, -1, axis=1) - fallback
-    chord = ends / np.maximum(np.linalg.norm(ends, axis=-1, keepdims=True), 1e-9)
+    chord = fallback[:, _NEXT] - fallback
+    chord /= np.maximum(np.sqrt(np.einsum("nkc,nkc->nk", chord, chord)), 1e-9)[..., None]
     few = (count < MIN_POINTS)[..., None]
     point = np.where(few, fallback, mean)
     direction = np.where(few, chord, direction)
     # corner k: side k-1 (from corner k-1) meets side k
-    p1, d1 = np.roll(point, 1, axis=1), np.roll(direction, 1, axis=1)
-    det = d1[..., 0] * -direction[..., 1] + direction[..., 0] * d1[..., 1]
+    p1, d1 = point[:, _PREV], direction[:, _PREV]
+    det = d1[..., 1] * direction[..., 0] - d1[..., 0] * direction[..., 1]
     diff = point - p1
     with np.errstate(divide="ignore", invalid="ignore"):
-        s1 = (diff[..., 0] * -direction[..., 1] + direction[..., 0] * diff[..., 1]) / det
+        s1 = (direction[..., 0] * diff[..., 1] - diff[..., 0] * direction[..., 1]) / det
     corners = p1 + s1[..., None] * d1
-    ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1), axis=1) & \
-        np.all(np.linalg.norm(corners - fallback, axis=-1) < 3 * reach[..., 0], axis=1)
+    moved = corners - fallback
+    ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1)
+                & (np.einsum("nkc,nkc->nk", moved, moved) < 9 * reach[..., 0] ** 2), axis=1)
     cov = _corner_covariance(corners, point, direction, dev, w, few)
     cov = np.where(ok[:, None, None, None], cov, FALLBACK_STD ** 2 * np.eye(2))
     return np.where(ok[:, None, None], corners, fallback), cov
@@ -124,29 +127,24 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
     off by s^2 (1/N + u^2 / sum u^2) across itself.  s^2 is pooled over the marker's four
     sides (their residuals across the fitted lines).  The corner moves by the two lines'
     offsets through the inverse of the 2x2 matrix of their normals."""
-    normal = np.stack([-direction[..., 1], direction[..., 0]], axis=-1)  # (n, 4, 2)
+    normal = direction[..., ::-1] * [-1.0, 1.0]  # (n, 4, 2)
     across = np.einsum("nkjc,nkc->nkj", dev, normal)
     along = np.einsum("nkjc,nkc->nkj", dev, direction)
     count = w.sum(-1)
     fitted = ~few[..., 0]
-    rss = np.where(fitted, (w * across ** 2).sum(-1), 0.0).sum(-1)
+    rss = np.where(fitted, np.einsum("nkj,nkj->nk", w, across * across), 0.0).sum(-1)
     dof = np.where(fitted, np.maximum(count - 2, 0), 0).sum(-1)
     s2 = np.where(dof > 0, rss / np.maximum(dof, 1), FALLBACK_STD ** 2)  # (n,)
-    s_uu = np.maximum((w * along ** 2).sum(-1), 1e-12)
-    # the variance across each side's line at the two corners it ends in
-    u_here = np.einsum("nkc,nkc->nk", corners - point, direction)  # corner k on side k
-    u_next = np.einsum("nkc,nkc->nk", np.roll(corners, -1, axis=1) - point, direction)
-    n_pts = np.maximum(count, 1)
-    var_here = s2[:, None] * (1 / n_pts + u_here ** 2 / s_uu)
-    var_next = s2[:, None] * (1 / n_pts + u_next ** 2 / s_uu)
-    chord = FALLBACK_STD ** 2
-    var_here = np.where(fitted, var_here, chord)
-    var_next = np.where(fitted, var_next, chord)
+    s_uu = np.maximum(np.einsum("nkj,nkj->nk", w, along * along), 1e-12)
+    # the variance across each side's line at the two corners it ends in: corner k
+    # (u_ends[..., 0]) and corner k + 1 (u_ends[..., 1])
+    ends = np.stack([corners, corners[:, _NEXT]], axis=2) - point[:, :, None, :]
+    u_ends = np.einsum("nkec,nkc->nke", ends, direction)
+    var = s2[:, None, None] * (1 / np.maximum(count, 1)[..., None] + u_ends ** 2 / s_uu[..., None])
+    var = np.where(fitted[..., None], var, FALLBACK_STD ** 2)
     # corner k lies on side k-1 (at its far end) and on side k (at its near end)
-    v_a, v_b = np.roll(var_next, 1, axis=1), var_here
-    N = np.stack([np.roll(normal, 1, axis=1), normal], axis=-2)  # (n, 4, 2, 2): rows
-    Ninv = inverse_2x2(N)
-    D = np.stack([v_a, v_b], axis=-1)[..., None, :]
+    D = np.stack([var[:, _PREV, 1], var[..., 0]], axis=-1)[..., None, :]
+    Ninv = inverse_2x2(np.stack([normal[:, _PREV], normal], axis=-2))  # (n, 4, 2, 2): rows
     return (Ninv * D) @ np.swapaxes(Ninv, -1, -2)
 
 

@@ -5,8 +5,9 @@
 * **detection**: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; their corners
   are then located from their four sides (:mod:`services.fiducials.edges`), in ideal
   pixels (lens distortion removed), where the poses are solved;
-* **pose**: :mod:`services.fiducials.pose` (IPPE candidates, LM refinement, then
-  Gauss-Newton steps weighted by the corners' covariances);
+* **pose**: :mod:`services.fiducials.pose` (IPPE candidates refined by Gauss-Newton
+  steps, LM for bundles, then a step weighted by the corners' covariances; a frame's
+  lone markers all at once);
 * **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` each corner's 2x2 covariance from the two
   edge lines it is the intersection of (:func:`edges.refine`: their fits' scatter, length
   and angle), times ``EDGE_CORRELATION`` (neighbouring edge points share their noise
@@ -32,7 +33,6 @@
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.camera.markers import dictionary, marker_corners
+from services.camera.markers import dictionary
 from services.camera.model import CameraModel
 from services.fiducials import edges, pose
 from services.fiducials.bodies import Body, marker_body, marker_in_body
@@ -116,20 +116,24 @@ def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], amb
     return np.outer(d, d) + cov_of(other)
 
 
-def corner_covariance(edge_fit: np.ndarray, module_px: float) -> np.ndarray:
-    """The corners' covariances (n, 2, 2) from their edge fits' (:func:`edges.refine`)
-    for a marker of ``module_px``-pixel cells."""
-    shared = SHARED_A / max(module_px, 0.5) ** SHARED_B
-    return EDGE_CORRELATION * edge_fit + shared ** 2 * np.eye(2)
+def corner_covariance(edge_fit: np.ndarray, module_px: np.ndarray) -> np.ndarray:
+    """The corners' covariances (m, n, 2, 2) of ``m`` bodies from their edge fits'
+    (:func:`edges.refine`), each body's solved with a marker of ``module_px`` (m,)
+    pixel cells."""
+    shared = SHARED_A / np.maximum(module_px, 0.5) ** SHARED_B
+    return EDGE_CORRELATION * edge_fit + (shared ** 2)[:, None, None, None] * np.eye(2)
 
 
-def _moved(rvec: np.ndarray, tvec: np.ndarray, T_marker_body: np.ndarray,
+def _moved(R: np.ndarray, t: np.ndarray, T_marker_body: np.ndarray,
            ) -> tuple[np.ndarray, np.ndarray]:
-    """A marker's pose (rvec, tvec) in the camera frame -> its body's."""
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec
-    T = T @ T_marker_body
-    return cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]
+    """A marker's pose (R, t) in the camera frame -> its body's."""
+    return R @ T_marker_body[:3, :3], R @ T_marker_body[:3, 3] + t
+
+
+def _quad_areas(quads: np.ndarray) -> np.ndarray:
+    """The areas (m,) of quadrilaterals (m, 4, 2) (the shoelace formula)."""
+    x, y = quads[..., 0], quads[..., 1]
+    return 0.5 * np.abs((x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1))
 
 
 def detector_parameters() -> cv2.aruco.DetectorParameters:
@@ -159,6 +163,20 @@ class _BodyState:
             self.dof -= old_dof
 
 
+@dataclass
+class _Pick:
+    """One body's solutions in a frame and what was chosen from them."""
+
+    body: Body
+    ids: list[int]
+    solutions: list[pose.Solution]
+    module_px: float
+    sigma2: float
+    chosen: pose.Solution
+    ambiguity: str
+    gap: float
+
+
 class FiducialTracker:
     """Tracks the markers of one family seen by one calibrated camera."""
 
@@ -173,7 +191,6 @@ class FiducialTracker:
         self.detector = cv2.aruco.ArucoDetector(d, detector_parameters())
         self._modules = d.markerSize + 2
         self._K = camera.K
-        self._no_dist = np.zeros(0)
         self.bundles = list(bundles or [])
         self._bundle_of = {i: b for b in self.bundles for i in b.corners}
         self._name_of = dict(name_of or {})
@@ -211,17 +228,20 @@ class FiducialTracker:
                  noise: dict[int, np.ndarray] | None = None) -> list[Estimate]:
         """Every body among the detected markers ``seen`` (ideal-pixel corners).  With
         ``noise`` (the corners' covariances, :meth:`observe`) the pose is weighted by it
-        and its covariance follows from it; without, from the pooled residuals."""
+        and its covariance follows from it; without, from the pooled residuals.  The
+        lone markers are solved together (:func:`pose.solve_squares`), each bundle on
+        its own."""
         groups: dict[str, tuple[Body, list[int]]] = {}
         for marker_id in sorted(seen):
             body = self._body(marker_id)
             if body is not None:
                 groups.setdefault(body.name, (body, []))[1].append(marker_id)
-        out = []
+        singles = [(body, ids) for body, ids in groups.values() if not body.is_bundle]
+        out = self._finish(singles, self._solve_singles(singles, seen), t_ns, noise)
         for body, ids in groups.values():
-            est = self._solve(body, ids, seen, t_ns, noise)
-            if est is not None:
-                out.append(est)
+            if body.is_bundle:
+                out += self._finish([(body, ids)], [self._solve_bundle(body, ids, seen)], t_ns,
+                                    noise)
         return out
 
     def _body(self, marker_id: int) -> Body | None:
@@ -236,49 +256,84 @@ class FiducialTracker:
             self._singles[marker_id] = marker_body(name, marker_id, size)
         return self._singles[marker_id]
 
-    def _solve(self, body: Body, ids: list[int], seen: dict[int, np.ndarray], t_ns: int,
-               noise: dict[int, np.ndarray] | None) -> Estimate | None:
-        K, dist = self._K, self._no_dist
-        obj = np.concatenate([body.corners[i] for i in ids])
-        img = np.concatenate([seen[i] for i in ids])
-        areas = {i: cv2.contourArea(seen[i].astype(np.float32)) for i in ids}
-        biggest = max(ids, key=areas.__getitem__)
-        T_marker_body, size = self._marker_frame(body, biggest)
-        candidates = pose.square_candidates(seen[biggest], marker_corners(size), K, dist)
-        if body.is_bundle:  # the marker's pose -> the bundle's
-            candidates = [_moved(rvec, tvec, T_marker_body) for rvec, tvec in candidates]
-        state = self._state.setdefault(body.name, _BodyState())
-        solutions = pose.solve(obj, img, K, dist, candidates,
-                               within_px2=1.5 * AMBIGUITY_GAP * max(self._sigma2(state),
-                                                                    self._prior_sigma2),
-                               iterations=pose.LM_ITERATIONS_BUNDLE if body.is_bundle
-                               else pose.LM_ITERATIONS_SINGLE)
-        if not solutions:
-            return None
-        best = solutions[0]
-        state.add(best.rss_px2, best.dof)
-        module_px = math.sqrt(areas[biggest]) / self._modules
-        sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
-        chosen, ambiguity, gap = self._judge(solutions, sigma2, state, t_ns)
-        if noise is not None and all(i in noise for i in ids):
-            information = edges.inverse_2x2(corner_covariance(
-                np.concatenate([noise[i] for i in ids]), module_px))
-            chosen = pose.reweigh(chosen, information)
+    def _within_px2(self, body: Body) -> float:
+        """How much worse than the best an unrefined candidate may fit and still be
+        refined as a rival: the ambiguity gap, with a margin, at the body's noise."""
+        state = self._state.get(body.name) or _BodyState()
+        return 1.5 * AMBIGUITY_GAP * max(self._sigma2(state), self._prior_sigma2)
 
-            def cov_of(sol: pose.Solution) -> np.ndarray:
-                return pose.weighted_covariance(sol, information)
-        else:
-            def cov_of(sol: pose.Solution) -> np.ndarray:
-                return pose.covariance(sol, float(np.sqrt(sigma2)))
-        cov = cov_of(chosen)
-        if ambiguity != "none":
-            cov = cov + _ambiguity_spread(chosen, solutions, ambiguity, cov_of)
-        est = Estimate(body.name, t_ns, chosen.rotation, chosen.tvec, cov, float(np.sqrt(sigma2)),
-                       float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), ambiguity,
-                       tuple(ids), gap)
-        if ambiguity != "covered":  # a guess between two solutions is no one's history
-            state.last = est
-        return est
+    def _solve_singles(self, singles: list[tuple[Body, list[int]]],
+                       seen: dict[int, np.ndarray]) -> list[tuple[list[pose.Solution], float]]:
+        """Each lone marker's solutions and module size (px), all markers at once."""
+        if not singles:
+            return []
+        corners = np.stack([seen[ids[0]] for _, ids in singles])
+        sizes = np.array([self._marker_frame(body, ids[0])[1] for body, ids in singles])
+        within = np.array([self._within_px2(body) for body, _ in singles])
+        solutions = pose.solve_squares(corners, sizes, self._K, within)
+        module_px = np.sqrt(_quad_areas(corners)) / self._modules
+        return list(zip(solutions, module_px.tolist(), strict=True))
+
+    def _solve_bundle(self, body: Body, ids: list[int], seen: dict[int, np.ndarray],
+                      ) -> tuple[list[pose.Solution], float]:
+        """A bundle's solutions from the candidates of its biggest marker in view, and
+        that marker's module size (px)."""
+        areas = _quad_areas(np.stack([seen[i] for i in ids]))
+        biggest = ids[int(np.argmax(areas))]
+        T_marker_body, size = self._marker_frame(body, biggest)
+        candidates = [_moved(R, t, T_marker_body)
+                      for R, t in pose.square_candidates(seen[biggest], size, self._K)]
+        solutions = pose.solve(np.concatenate([body.corners[i] for i in ids]),
+                               np.concatenate([seen[i] for i in ids]), self._K, candidates,
+                               within_px2=self._within_px2(body))
+        return solutions, float(np.sqrt(areas.max())) / self._modules
+
+    def _finish(self, bodies: list[tuple[Body, list[int]]],
+                solved: list[tuple[list[pose.Solution], float]], t_ns: int,
+                noise: dict[int, np.ndarray] | None) -> list[Estimate]:
+        """The estimates of bodies of as many corners each: per body the noise pooled and
+        the ambiguity judged; then, all bodies at once, the chosen poses weighted by
+        their corners' covariances and their own covariances."""
+        picks = []
+        for (body, ids), (solutions, module_px) in zip(bodies, solved, strict=True):
+            if not solutions:
+                continue
+            state = self._state.setdefault(body.name, _BodyState())
+            state.add(solutions[0].rss_px2, solutions[0].dof)
+            sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
+            picks.append(_Pick(body, ids, solutions, module_px, sigma2,
+                               *self._judge(solutions, sigma2, state, t_ns)))
+        if not picks:
+            return []
+        fit = pose.Fits.of([p.chosen for p in picks])
+        information = None
+        if noise is not None and all(i in noise for p in picks for i in p.ids):
+            information = edges.inverse_2x2(corner_covariance(
+                np.stack([np.concatenate([noise[i] for i in p.ids]) for p in picks]),
+                np.array([p.module_px for p in picks])))
+            fit = pose.reweigh(fit, information)
+        sigmas = np.sqrt([p.sigma2 for p in picks])
+
+        def covariances(f: pose.Fits, rows: slice) -> np.ndarray:
+            if information is not None:
+                return pose.weighted_covariance(f, information[rows])
+            return pose.covariance(f, sigmas[rows])
+
+        out = []
+        for k, (p, cov) in enumerate(zip(picks, covariances(fit, slice(None)), strict=True)):
+            chosen = fit.solution(k)
+            if p.ambiguity != "none":
+                cov = cov + _ambiguity_spread(
+                    chosen, p.solutions, p.ambiguity,
+                    lambda s, k=k: covariances(pose.Fits.of([s]), slice(k, k + 1))[0])
+            est = Estimate(p.body.name, t_ns, chosen.rotation, chosen.tvec, cov,
+                           float(sigmas[k]),
+                           float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), p.ambiguity,
+                           tuple(p.ids), p.gap)
+            if p.ambiguity != "covered":  # a guess between two solutions is no one's history
+                self._state[p.body.name].last = est
+            out.append(est)
+        return out
 
     def _sigma2(self, state: _BodyState) -> float:
         """The corner noise variance pooled over the body's recent fits."""
