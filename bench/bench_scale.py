@@ -11,8 +11,10 @@ row's, the first row of a sweep is its anchor):
   (its threads' ticks, registrations, summaries) weighs five times as much per sample.
   Per row: ``Client.pose`` across two agents (median,
   p99), a subscription's latency (sample time to ``on_pose``), the agents' CPU per 1,000
-  samples/s they receive (% of one core), the realm's CPU (agents and service processes)
-  against the 2 cores and how busy the machine was, the agents' RSS, the largest summary
+  samples/s they receive (% of one core; and of that, the part in Zenoh's own runtime
+  threads: links and routing, beyond what uma's Python can save), the realm's CPU (agents
+  and service processes) against the 2 cores and how busy the machine was, the agents'
+  RSS, the largest summary
   in bytes as sent and spelt out, and a new service's ``start()`` to its need's first sample
   (its source publishes every 10 ms).
 - **summary** (in-process): one host's SRG of F frames with B frames shared with other
@@ -164,7 +166,8 @@ def show(name: str, rows: list[dict[str, Any]], figures: Sequence[str]) -> None:
             text = "-" if v is None else f"{v:.4g}"
             parts.append(f"{key} {text}" + (f" (x{x:.2f})" if x is not None else ""))
         print("  " + "; ".join(parts), flush=True)
-        extra = {k: row[k] for k in ("query_p99_ms", "subscription_p99_ms", "machine_busy_pct",
+        extra = {k: row[k] for k in ("agent_zenoh_cpu_pct_per_1k_samples_s",
+                                     "query_p99_ms", "subscription_p99_ms", "machine_busy_pct",
                                      "agents_cpu_pct_total", "agent_rss_mb_max", "query_failed",
                                      "subscription_poses", "subscription_refused",
                                      "agent_restarts", "load_1min",

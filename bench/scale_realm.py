@@ -14,6 +14,7 @@ its PID when the realm closes.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 import time
 import uuid
@@ -156,10 +157,27 @@ def busy_fraction() -> tuple[int, int]:
     return sum(fields) - idle, sum(fields)
 
 
+#: the names Zenoh gives its runtime threads (tx-0, rx-1, ...): an agent's CPU in them is
+#: Zenoh's own work (links, routing), the rest is uma's Python
+ZENOH_THREAD = re.compile(r"(tx|rx|net|acc|app)-\d+")
+
+
+def zenoh_cpu_s(pid: int) -> float:
+    """CPU seconds of ``pid``'s Zenoh runtime threads so far (a thread that ended is lost:
+    Zenoh's runtime threads live as long as the session)."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with suppress(OSError):
+            if ZENOH_THREAD.fullmatch((task / "comm").read_text().strip()):
+                fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
 def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
     """Over ``seconds``: a subscription's latency (sample time to ``on_pose``, on the
-    agent's clock), the agents' CPU per 1,000 samples/s they receive, the realm's CPU,
-    how busy the machine was, and the agents' RSS."""
+    agent's clock), the agents' CPU per 1,000 samples/s they receive and the part of it in
+    Zenoh's own threads, the realm's CPU, how busy the machine was, and the agents' RSS."""
     latency_ms: list[float] = []
     owner = f"h{realm.n - 1}"
 
@@ -168,11 +186,14 @@ def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
     sub, refused = subscribe(client, realm.target, on_pose)
     try:
         busy0 = busy_fraction()
+        zenoh0, t0 = [zenoh_cpu_s(c.pid) for c in realm.agents], time.monotonic()
         cpu = cpu_percent(realm.agents + realm.services, seconds)
+        zenoh1, t1 = [zenoh_cpu_s(c.pid) for c in realm.agents], time.monotonic()
         busy1 = busy_fraction()
     finally:
         sub.close()
     agents_cpu = cpu[:realm.n]
+    zenoh_pct = 100 * (sum(zenoh1) - sum(zenoh0)) / (t1 - t0)
     per_agent_rate = realm.services_per_agent * RATE_HZ
     rss = [rss_mb(c.pid) for c in realm.agents]
     out: dict[str, Any] = {}
@@ -181,6 +202,7 @@ def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
     return out | {
         "subscription_poses": len(latency_ms), "subscription_refused": refused,
         "agent_cpu_pct_per_1k_samples_s": sum(agents_cpu) / realm.n / (per_agent_rate / 1e3),
+        "agent_zenoh_cpu_pct_per_1k_samples_s": zenoh_pct / realm.n / (per_agent_rate / 1e3),
         "agents_cpu_pct_total": sum(agents_cpu), "realm_cpu_pct": sum(cpu),
         "machine_busy_pct": 100.0 * (busy1[0] - busy0[0]) / max(1, busy1[1] - busy0[1]),
         "agent_rss_mb_median": sorted(rss)[len(rss) // 2], "agent_rss_mb_max": max(rss)}
