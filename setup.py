@@ -1,16 +1,19 @@
 """The build's one addition to pyproject.toml: the optional compiled kernels.
 
 ``optional=True``: where the C compiler or the Python headers are missing, the build goes
-on without them and :mod:`agent.srg.kernel` and the dead reckoner
+on without them and :mod:`agent.srg.kernel`, the pose decoder
+(:func:`schemas.codec.decode_pose`) and the dead reckoner
 (:mod:`services.accel_rig.integrator`) run in pure Python (same results, slower).  The
-dead reckoner's step is compiled without floating-point contraction, so that its vector
-arithmetic rounds as Python's does.
+pose decoder and the dead reckoner's step are compiled without floating-point contraction,
+so that their arithmetic rounds as Python's does.
 """
 
 from setuptools import Extension, setup
 
 setup(ext_modules=[
     Extension("agent.srg._kernel", ["agent/srg/_kernel.c"], optional=True),
+    Extension("schemas._pose", ["schemas/_pose.c"], optional=True,
+              extra_compile_args=["-ffp-contract=off"]),
     Extension("services.accel_rig._step", ["services/accel_rig/_step.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
 ])

@@ -40,7 +40,8 @@ limited to ``MAX_MESSAGE_BYTES`` (images: ``MAX_IMAGE_BYTES``).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+import os
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from operator import itemgetter
 from typing import Any
@@ -538,6 +539,46 @@ def decode_measurement(data: bytes, expected_type: str | None = None) -> Measure
         m.extra = _extra_in(obj["x"], kind)
     _DECODERS[kind](obj, m)
     return m
+
+
+#: a decoded ``pose6d``: time (ns), sequence number (None: not sent), position, unit
+#: quaternion (x, y, z, w: renormalised as decode_measurement does) and covariance (or None)
+PoseSample = tuple[int, int | None, tuple[float, float, float],
+                   tuple[float, float, float, float], np.ndarray | None]
+
+
+def _native_pose() -> Callable[[bytes], Any] | None:
+    """The compiled decoder of a common ``pose6d`` (``schemas/_pose.c``), or None (not
+    built, or ``UMA_CODEC_PURE_PYTHON=1``)."""
+    if os.environ.get("UMA_CODEC_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from schemas import _pose
+    except ImportError:
+        return None
+    _pose.configure(MAX_MESSAGE_BYTES, QUAT_NORM_TOL, PSD_TOL)
+    return _pose.decode
+
+
+_NATIVE_POSE = _native_pose()
+
+
+def decode_pose(data: bytes) -> PoseSample:
+    """A ``pose6d`` message as plain values: for whoever puts samples straight into an SRG
+    (no ``Measurement``, no arrays but the covariance).  It accepts and refuses exactly
+    what ``decode_measurement(data, "pose6d")`` does, with its ``DecodeError``: the common
+    message (floats, no extra field, a covariance its Gershgorin test passes) is decoded by
+    the compiled twin ``schemas/_pose.c`` where it was built; every other by
+    :func:`decode_measurement`, which also words every refusal."""
+    if _NATIVE_POSE is not None:
+        got = _NATIVE_POSE(data)
+        if got is not None:
+            t, seq, p, q, c = got
+            return t, seq, p, q, None if c is None else np.array(c, dtype=float)[_FULL[6]]
+    m = decode_measurement(data, expected_type="pose6d")
+    assert m.position is not None and m.quaternion is not None
+    return (m.t_ns, m.seq, tuple(m.position.tolist()), tuple(m.quaternion.tolist()),
+            m.covariance)
 
 
 def peek_time(data: bytes, expected_type: str | None = None) -> int:

@@ -21,13 +21,15 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from agent.daemon.streams import StreamHub
 from agent.errors import InvalidInputError
 from agent.protocol import keys
 from agent.protocol.sequence import stamp_refusal
 from agent.runtime.logs import RateLimitedLog
 from agent.srg import Graph
-from schemas.codec import DecodeError, decode_measurement, unpack_covariance
+from schemas.codec import DecodeError, Measurement, decode_pose, unpack_covariance
 
 log = logging.getLogger("uma.srg")
 
@@ -153,8 +155,8 @@ class LocalGraph:
         if entry is None:
             return  # the ability went away meanwhile
         try:
-            m = decode_measurement(data, expected_type="pose6d")
-            refusal = stamp_refusal(m.t_ns, self._now_ns())
+            t, _, p, q, cov = decode_pose(data)
+            refusal = stamp_refusal(t, self._now_ns())
             if refusal is not None:
                 self.refused += 1
                 raise DecodeError(f"{refusal} ({self.refused} refused so far)")
@@ -162,7 +164,15 @@ class LocalGraph:
             key = keys.data(self.realm, self.agent_id, *local)
             self._log.warning(f"data {key}", f"dropped a malformed sample: {exc}")
             return
-        self.on_local_sample(local[0], entry[0], m)
+        ability = entry[0]
+        if ability.attributes.static:
+            self.on_local_sample(local[0], ability, Measurement(
+                "pose6d", t, position=np.array(p), quaternion=np.array(q), covariance=cov))
+            return
+        source = f"{local[0]}/{ability.name}"
+        with self.lock:
+            self._declare(local, source, ability, self._known(local, source, ability))
+            self.graph.add_decoded(*ability.edge, t, p, q, cov, source=source)
 
     def on_local_sample(self, service_id: str, ability: Any, measurement: Any) -> None:
         """A sample of a local pose6d ability.  A static ability (a calibration, e.g. the
@@ -170,29 +180,38 @@ class LocalGraph:
         appends the sample to its measured edge."""
         key = (service_id, ability.name)
         source = f"{service_id}/{ability.name}"
-        parent, child = ability.edge
         with self.lock:
-            known = self._sources.get(key)
-            # the same Ability object comes with every sample until it changes (see
-            # set_local_abilities): `is` spares the per-sample model comparison
-            changed = known is None or (known[0] is not ability and known[0] != ability)
-            if changed and known is not None and (
-                    known[0].attributes.static != ability.attributes.static):
-                self.graph.remove_source(source)  # measured <-> static: a different edge kind
-                known = None
+            known = self._known(key, source, ability)
             if ability.attributes.static:
                 self._set_static(key, source, ability, measurement, known)
                 return
-            if changed:
-                self.graph.declare_measured(parent, child, source=source,
-                                            **ability_attributes(ability))
-                self._sources[key] = (ability, source)
-                self._data_keys[source] = keys.data(self.realm, self.agent_id, service_id,
-                                                    ability.name)
-                self._wake()
-            self.graph.add_measurement(parent, child, measurement.t_ns, measurement.position,
+            self._declare(key, source, ability, known)
+            self.graph.add_measurement(*ability.edge, measurement.t_ns, measurement.position,
                                        measurement.quaternion, measurement.covariance,
                                        source=source)
+
+    def _known(self, key: tuple[str, str], source: str,
+               ability: Any) -> tuple[Any, str] | None:
+        """What the graph holds of ``key``'s edge, None once a change of kind (measured <->
+        static: a different edge) removed it (lock held)."""
+        known = self._sources.get(key)
+        if known is not None and known[0] is not ability and (
+                known[0].attributes.static != ability.attributes.static):
+            self.graph.remove_source(source)
+            return None
+        return known
+
+    def _declare(self, key: tuple[str, str], source: str, ability: Any,
+                 known: tuple[Any, str] | None) -> None:
+        """Declare the measured edge of ``ability`` when it is new or changed (lock held).
+        The same Ability object comes with every sample until it changes (see
+        set_local_abilities): ``is`` spares the per-sample model comparison."""
+        if known is not None and (known[0] is ability or known[0] == ability):
+            return
+        self.graph.declare_measured(*ability.edge, source=source, **ability_attributes(ability))
+        self._sources[key] = (ability, source)
+        self._data_keys[source] = keys.data(self.realm, self.agent_id, *key)
+        self._wake()
 
     def _set_static(self, key: tuple[str, str], source: str, ability: Any, measurement: Any,
                     known: tuple[Any, str] | None) -> None:

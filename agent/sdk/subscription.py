@@ -63,7 +63,7 @@ from agent.sdk.planner import Segment, SegmentError
 from agent.sdk.query import Outcome, Queries
 from agent.srg import Graph
 from agent.srg.errors import EdgeUndefinedError
-from schemas.codec import DecodeError, decode_measurement
+from schemas.codec import DecodeError, decode_pose
 
 log = logging.getLogger("uma.client")
 
@@ -440,22 +440,22 @@ class Subscription:
         gaps = self._gaps.setdefault(key, SequenceGaps())
         seen = False
         try:
-            m = decode_measurement(data, expected_type="pose6d")
-            t = clock.to_local(agent, m.t_ns)
+            t_ns, seq, p, q, cov = decode_pose(data)
+            t = clock.to_local(agent, t_ns)
             refusal = stamp_refusal(t, time.time_ns(), self._newest.get(key))
             if refusal is not None:
                 self.refused += 1
                 raise InvalidInputError(f"{refusal}: refused ({self.refused} so far)")
             self._newest[key] = max(t, self._newest.get(key, 0))
-            gap, seen = gaps.see(m.seq), True
+            gap, seen = gaps.see(seq), True
             if gap:
                 self._log.warning(f"subscription {key}", f"{gap} sample(s) lost before "
-                                  f"s={m.seq} (dropped on the way, or this subscription fell "
+                                  f"s={seq} (dropped on the way, or this subscription fell "
                                   f"{RING} samples behind); {self.lost} so far")
-            on_route_clock = (m.t_ns if agent == self.clock_agent or self.clock_agent is None
+            on_route_clock = (t_ns if agent == self.clock_agent or self.clock_agent is None
                               else clock.to_remote(self.clock_agent, t))
-            self.graph.add_measurement(edge_key[0], edge_key[1], on_route_clock, m.position,
-                                       m.quaternion, m.covariance, source=edge_key[2])
+            self.graph.add_decoded(edge_key[0], edge_key[1], on_route_clock, p, q, cov,
+                                   source=edge_key[2])
         except (DecodeError, ValueError) as exc:
             self.failed += 1
             if not seen:  # it arrived: no loss when the next one's s skips it
@@ -469,12 +469,12 @@ class Subscription:
         if self.on_pose is None:
             return None  # a kept route: composed only when asked (answer)
         try:
-            r = self.graph.pose(self.source, self.target, at=m.t_ns, error="hops")
+            r = self.graph.pose(self.source, self.target, at=t_ns, error="hops")
         except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
             self.failed += 1
             self.last_error = exc
             return None
-        return _on_local_clock(r, m.t_ns - t)
+        return _on_local_clock(r, t_ns - t)
 
     def answer(self, at: int | None) -> PoseResult | None:
         """The route's pose at ``at`` (ns on this clock, checked by the caller; None: the

@@ -55,8 +55,11 @@ class SampleBuffer:
 
     def add(self, t_ns: int, p: np.ndarray, q: np.ndarray, cov: np.ndarray | None) -> None:
         """Insert a sample; a sample at an existing time replaces it (a re-send)."""
+        self.add_value(t_ns, tuple(p.tolist() + q.tolist()), cov)
+
+    def add_value(self, t_ns: int, value: tuple[float, ...], cov: np.ndarray | None) -> None:
+        """:meth:`add` of a sample's 7 floats (px, py, pz, qx, qy, qz, qw)."""
         times = self.times
-        value = tuple(p.tolist() + q.tolist())
         if not times or t_ns > times[-1]:
             times.append(t_ns)
             self.values.append(value)

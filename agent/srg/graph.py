@@ -18,6 +18,7 @@ JASS 2005.
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections import OrderedDict
 from collections.abc import Iterable
@@ -170,6 +171,28 @@ class Graph:
         q = geo.check_quaternion(quaternion, "quaternion").reshape(4)
         cov = None if covariance is None else geo.check_covariance(covariance)
         edge.buffer.add(t, p, q, cov)
+        self.samples += 1
+        return key
+
+    def add_decoded(self, parent: str, child: str, t_ns: int,
+                    position: tuple[float, float, float],
+                    quaternion: tuple[float, float, float, float],
+                    covariance: np.ndarray | None = None, *,
+                    source: str = DEFAULT_MEASURED_SOURCE) -> EdgeKey:
+        """:meth:`add_measurement` of a sample as ``schemas.codec.decode_pose`` gives it:
+        its values were checked there (finite, a unit quaternion, a checked covariance), so
+        they go into the buffer as they are, the quaternion renormalised as
+        ``add_measurement`` does (the agent and the SDK put every received sample here)."""
+        key = (parent, child, source)
+        edge = self._edges.get(key)
+        if edge is None:
+            edge = self._edges[self.declare_measured(parent, child, source=source)]
+            edge.last_kwargs = {}
+        elif edge.buffer is None:
+            raise InvalidInputError(f"edge {edge.name} is static; it takes no measurements")
+        x, y, z, w = quaternion
+        n = math.sqrt(x * x + y * y + z * z + w * w)
+        edge.buffer.add_value(t_ns, (*position, x / n, y / n, z / n, w / n), covariance)
         self.samples += 1
         return key
 
