@@ -186,18 +186,27 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise InvalidInputError(f"--outliers must lie in [0, 0.5), got {args.outliers}")
     if args.pos_noise_mm < 0 or args.rot_noise_deg < 0:
         raise InvalidInputError("--pos-noise-mm and --rot-noise-deg must be >= 0")
+    return figures(args, [trial(args, k) for k in range(args.trials)])
+
+
+def trial(args: argparse.Namespace, k: int) -> dict[str, Any]:
+    """Trial ``k`` of seed ``args.seed``: each depends on its seed and index alone, so the
+    trials of a seed may be run apart (in several processes) and given to ``figures``."""
     config = StreamConfig(seconds=args.seconds, pos_std_m=args.pos_noise_mm / 1e3,
                           rot_std_rad=float(np.radians(args.rot_noise_deg)))
-    trials = [_trial(args.seed, k, config, args.outliers, args.ideal)
-              for k in range(args.trials)]
-    figures: dict[str, Any] = {"trials": args.trials, "seconds": args.seconds,
-                               "outlier_fraction": args.outliers,
-                               "installation": "ideal" if args.ideal else "realistic"}
+    return _trial(args.seed, k, config, args.outliers, args.ideal)
+
+
+def figures(args: argparse.Namespace, trials: list[dict[str, Any]]) -> dict[str, Any]:
+    """The evaluation's figures from its trials (``trial``), in order."""
+    out: dict[str, Any] = {"trials": len(trials), "seconds": args.seconds,
+                           "outlier_fraction": args.outliers,
+                           "installation": "ideal" if args.ideal else "realistic"}
     for case in ("clean", "outliers"):
-        figures[case] = {name.split("/")[1]: _stats([t[name] for t in trials])
-                         for name in trials[0] if name.startswith(f"{case}/")}
+        out[case] = {name.split("/")[1]: _stats([t[name] for t in trials])
+                     for name in trials[0] if name.startswith(f"{case}/")}
     off = np.abs([t["offset_error_ms"] for t in trials])
-    figures["time_offset"] = {
+    out["time_offset"] = {
         "abs_error_ms_median": float(np.median(off)),
         "abs_error_ms_p95": float(np.percentile(off, 95)),
         "abs_error_ms_max": float(off.max()),
@@ -209,9 +218,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "error_over_std_rms": float(np.sqrt(np.mean(
             [(t["offset_error_ms"] / t["offset_std_ms"]) ** 2 for t in trials]))),
     }
-    figures["covariance"] = _covariance_figures(trials)
-    figures["goals"] = _goals(figures)
-    return figures
+    out["covariance"] = _covariance_figures(trials)
+    out["goals"] = _goals(out)
+    return out
 
 
 def _covariance_figures(trials: list[dict[str, Any]]) -> dict[str, Any]:

@@ -851,32 +851,52 @@ def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
     plane: ``dX = dr - r (n . dr) / (n . r)``, ``dr = theta x r``, ``r`` from the camera's
     centre to the dot, more far from the camera's axis.  Dots whose camera is unknown get
     the bend without its parallax and ``camera_residual_std_m`` in both axes."""
-    p0 = np.asarray(p0, float)
-    out = np.empty((len(idx), 2, 2))
-    for j, i in enumerate(idx):
-        x, A = dots.points[i], dots.axes[i]  # A: (2, 3), the wall's in-plane axes
-        n = np.cross(A[0], A[1])  # outward
-        d = x - p0
-        r = float(np.linalg.norm(d))
-        dn = abs(float(n @ d))
-        c = min(max(dn / r, 0.05), 1.0)  # cos(incidence)
-        across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
-        u = A @ d
-        u = u / np.linalg.norm(u) if np.linalg.norm(u) > 0 else np.array([1.0, 0.0])
-        cov = across * (np.eye(2) + (1 / c ** 2 - 1) * np.outer(u, u))
-        bend = 1.0 if dots.bend is None else float(dots.bend[i])
-        slope = -(A @ d) / max(dn, 0.05 * r)  # the beam's hit moves back along it
-        if dots.eyes is None:
-            cov += p.camera_residual_std_m ** 2 * np.eye(2)
-        else:
-            ray = dots.eyes[i] - x
-            slope = slope + (A @ ray) / abs(float(n @ ray))  # seen from the camera
-            back = x - dots.eyes[i]
-            turned = np.cross(np.eye(3), back)  # dr for a turn about each axis (rows)
-            J = A @ (turned - np.outer(turned @ n, back) / float(n @ back)).T  # (2, 3)
-            cov += p.camera_turn_std_rad ** 2 * (J @ J.T)
-        out[j] = cov + (p.screen_bulge_std_m * bend) ** 2 * np.outer(slope, slope)
-    return out
+    idx = list(idx)
+    return _installation_covariances(
+        dots.points[idx], dots.axes[idx], None if dots.bend is None else dots.bend[idx],
+        None if dots.eyes is None else dots.eyes[idx], np.asarray(p0, float), p)
+
+
+def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | None,
+                              eyes: np.ndarray | None, p0: np.ndarray,
+                              p: TrackerParams) -> np.ndarray:
+    """:func:`_installation_covariance` of dots ``x`` (k, 3) on walls with in-plane axes
+    ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
+    per dot), all at once (a frame set's labelings hold a few dozen dots)."""
+    n = _cross(A[:, 0], A[:, 1])  # outward
+    d = x - p0
+    r = np.sqrt(np.einsum("ki,ki->k", d, d))
+    dn = np.abs(np.einsum("ki,ki->k", n, d))
+    c = np.minimum(np.maximum(dn / r, 0.05), 1.0)  # cos(incidence)
+    across = (r * p.housing_dir_std_rad) ** 2 + p.housing_offset_std_m ** 2
+    Ad = np.einsum("kai,ki->ka", A, d)
+    norm = np.sqrt(np.einsum("ka,ka->k", Ad, Ad))
+    u = np.where((norm > 0)[:, None], Ad / np.where(norm > 0, norm, 1.0)[:, None], [1.0, 0.0])
+    cov = across[:, None, None] * (np.eye(2) + (1 / c ** 2 - 1)[:, None, None]
+                                   * np.einsum("ka,kb->kab", u, u))
+    shape = np.ones(len(x)) if bend is None else np.asarray(bend, float)
+    slope = -Ad / np.maximum(dn, 0.05 * r)[:, None]  # the beam's hit moves back along it
+    if eyes is None:
+        cov += p.camera_residual_std_m ** 2 * np.eye(2)
+    else:
+        back = x - eyes
+        nb = np.einsum("ki,ki->k", n, back)
+        slope = slope + np.einsum("kai,ki->ka", A, -back) / np.abs(nb)[:, None]  # from the camera
+        turned = _cross(np.eye(3)[None], back[:, None])  # (k, 3 turns, 3): dr per turn axis
+        towards = np.einsum("kti,ki->kt", turned, n)
+        moved = turned - np.einsum("kt,ki->kti", towards, back) / nb[:, None, None]
+        J = np.einsum("kai,kti->kat", A, moved)  # (k, 2, 3)
+        cov += p.camera_turn_std_rad ** 2 * np.einsum("kat,kbt->kab", J, J)
+    return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * np.einsum(
+        "ka,kb->kab", slope, slope)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product (broadcasting over leading axes): ``np.cross`` pays some
+    microseconds of axis handling per call, more than the arithmetic on a few dots."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -970,8 +990,12 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
     r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
     J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
     Jd = J.reshape(m, 4, 2, 2)  # dot, its wall axis, residual component
-    installation = np.array([_installation_covariance(dots, list(o), x, p)
-                             for o, x in zip(orders, origins, strict=True)])  # (m, 4, 2, 2)
+    flat = idx.ravel()
+    installation = _installation_covariances(
+        dots.points[flat], dots.axes[flat], None if dots.bend is None else dots.bend[flat],
+        None if dots.eyes is None else dots.eyes[flat], np.repeat(np.asarray(origins, float),
+                                                                  4, axis=0),
+        p).reshape(m, 4, 2, 2)
     systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
     random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
     return r[:, 0], random, systematic
