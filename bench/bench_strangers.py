@@ -98,7 +98,7 @@ def fake_agents_flood(session, realm: str, fakes: int, snapshot_kb: int) -> dict
     pad = "x" * 1000
     snaps = {}
     for i in range(fakes):
-        info = {"agent": f"fake{i}", "realm": realm, "endpoints": [], "pad": [
+        info = {"agent_id": f"fake{i}", "realm": realm, "endpoints": [], "pad": [
             pad for _ in range(snapshot_kb)]}
         snaps[keys.agent_services(realm, f"fake{i}")] = snapshot_message(info, 1000 + i, 1, [])
     queryable = session.declare_queryable(keys.all_agent_services(realm), lambda q: (

@@ -23,6 +23,7 @@ from test_agent_robustness import register_raw, wait_token
 from test_hostile_peers import PRODUCER, rss_mb, snapshot
 
 from agent import Client
+from agent.daemon import agent as agent_module
 from agent.daemon import registrar as registrar_module
 from agent.daemon.agent import Agent
 from agent.daemon.registrar import UNPROVEN_TOTAL_BURST, UNPROVEN_TOTAL_RATE
@@ -462,6 +463,58 @@ def test_snapshots_of_invented_agents_are_bounded_in_bytes(processes, realm) -> 
             t.undeclare()
     print(f"invented agents' snapshots: agent RSS +{grew:.1f} MB")
     assert grew < 150
+
+
+def test_invented_agents_snapshots_wait_for_room_in_flight(realm, monkeypatch) -> None:
+    """Forty invented agents publish snapshots of ~0.9 MB and answer with them at once: the
+    agent never holds more of them than its in-flight budget before handling them, handles
+    every one in turn (held up to the byte bound, the rest refused), and a real agent that
+    joins meanwhile is still fetched."""
+    monkeypatch.setattr(agent_module, "MAX_SNAPSHOT_BYTES_IN_FLIGHT", 4 * 2**20)
+    ep = endpoint(free_port())
+    host = Agent(AgentSettings(realm=realm, agent_id="hostA", listen=[ep]))
+    take, peak = host._in_flight.take, [0]
+
+    def counted_take(size: int) -> bool:
+        ok = take(size)
+        peak[0] = max(peak[0], host._in_flight.held)
+        return ok
+    host._in_flight.take = counted_take
+    host.start()
+    other = Agent(AgentSettings(realm=realm, agent_id="hostB", connect=[ep],
+                                listen=[endpoint(free_port())]))
+    try:
+        with open_session(connect=[ep]) as s:
+            info = snapshot(s, realm, "hostA").info
+            answers = {keys.agent_services(realm, f"ghost{i}"): snapshot_message(
+                {**info, "agent_id": f"ghost{i}", "pad": ["x" * 1000] * 900}, 1, 1, [])
+                for i in range(40)}
+            answering = s.declare_queryable(keys.all_agent_services(realm), lambda q: (
+                q.reply(str(q.key_expr), answers[str(q.key_expr)])
+                if str(q.key_expr) in answers else None, q.drop()))
+            tokens = [s.liveliness().declare_token(keys.agent_token(realm, f"ghost{i}"))
+                      for i in range(40)]
+            for key, data in answers.items():
+                s.put(key, data)
+            other.start()
+            poll(lambda: "hostB" in host.view.remote, 30, "hostB's snapshot")
+            ghosts: list[str] = []
+
+            def all_handled() -> bool:
+                ghosts[:] = [a for a in host.view.remote if a.startswith("ghost")]
+                return (not host._fetch_waiting and not host._fetching
+                        and len(ghosts) + host.snapshots_refused >= 40)
+            poll(all_handled, 60, "every invented agent's snapshot held or refused")
+            answering.undeclare()
+            for t in tokens:
+                t.undeclare()
+    finally:
+        other.close()
+        host.close()
+    print(f"peak in flight {peak[0] / 2**20:.1f} MiB, {len(ghosts)} held, "
+          f"{host.snapshots_refused} refused")
+    assert peak[0] <= 4 * 2**20
+    assert 10 <= len(ghosts) < 40 and host.snapshots_refused > 0
 
 
 def test_an_unknown_frame_names_the_agent_that_did_not_answer(processes, realm) -> None:

@@ -76,12 +76,12 @@ from agent.protocol.registration import (
 )
 from agent.runtime import plugins
 from agent.runtime.callbacks import guarded
-from agent.runtime.limits import Coalescer, token_limits
+from agent.runtime.limits import ByteBudget, Coalescer, token_limits
 from agent.runtime.logs import RateLimitedLog
 from agent.runtime.payload import payload_bytes
 from agent.runtime.session import ask_all, listening_endpoints, open_session, query
 from agent.runtime.worker import Worker
-from schemas.codec import DecodeError
+from schemas.codec import MAX_MESSAGE_BYTES, DecodeError
 
 log = logging.getLogger("uma.agent")
 
@@ -92,6 +92,10 @@ STARTUP_HOLD_S = 2.0
 LINK_WAIT_S = 1.0
 #: seconds to wait for a snapshot query's replies
 FETCH_TIMEOUT_S = 2.0
+#: bytes of other agents' snapshots (published, or answers to a fetch) held at once before
+#: the worker handles them: a flood of invented agents' snapshots, each up to a message's
+#: limit, waits for room instead of growing the agent
+MAX_SNAPSHOT_BYTES_IN_FLIGHT = 8 * MAX_MESSAGE_BYTES
 
 
 @dataclass
@@ -148,6 +152,9 @@ class Agent:
         #: agents whose snapshot is being fetched, and those published again meanwhile
         self._fetching: set[str] = set()
         self._refetch: set[str] = set()
+        #: agents to fetch once the snapshots in flight leave room (oldest first)
+        self._fetch_waiting: dict[str, None] = {}
+        self._in_flight = ByteBudget(MAX_SNAPSHOT_BYTES_IN_FLIGHT)
         self.snapshots_suspect = 0
         #: snapshots refused by the byte bound (``RealmView.snapshot_refusal``) or because
         #: another process answered for their agent with a different one
@@ -205,9 +212,7 @@ class Agent:
             sess.declare_queryable(keys.agent_services(r, a),
                                    lambda q: put(self._on_services_query, q)),
             sess.declare_subscriber(keys.all_agent_services(r), guarded(
-                lambda smp: self._worker.put_peer(self._on_snapshot, str(smp.key_expr),
-                                                  payload_bytes(smp.payload)),
-                keys.all_agent_services(r), self._log)),
+                self._offer_snapshot, keys.all_agent_services(r), self._log)),
             sess.liveliness().declare_subscriber(
                 keys.all_agent_tokens(r), lambda smp: self._agent_tokens.offer(
                     str(smp.key_expr), keys.parse_agent_token(str(smp.key_expr), r) or "?",
@@ -402,25 +407,60 @@ class Agent:
     def _fetch_snapshot(self, agent_id: str) -> None:
         """Ask the agent for its snapshot (it appeared, or it published one); its answers
         are applied as confirmed unless they disagree.  One fetch per agent at a time: a
-        snapshot published during one is fetched again once it ends."""
+        snapshot published during one is fetched again once it ends.  Without room for
+        another answer in flight, the fetch waits (``_start_waiting_fetch``)."""
         if agent_id in self._fetching:
             self._refetch.add(agent_id)
+            return
+        if not self._in_flight.room(MAX_MESSAGE_BYTES):
+            self._fetch_waiting[agent_id] = None
             return
         assert self.session is not None
         self._fetching.add(agent_id)
         key = keys.agent_services(self.realm, agent_id)
-        ask_all(self.session, key, FETCH_TIMEOUT_S,
-                lambda answers: self._worker.put(self._on_fetched, key, answers),
-                every_reply=True)
+        refused: list[int] = []
 
-    def _on_fetched(self, key: str, answers: list[bytes]) -> None:
+        def admit(size: int) -> bool:
+            if self._in_flight.take(size):
+                return True
+            refused.append(size)
+            return False
+
+        def done(answers: list[bytes]) -> None:
+            if not self._worker.put(self._on_fetched, key, answers, bool(refused)):
+                self._in_flight.give(sum(map(len, answers)))
+        ask_all(self.session, key, FETCH_TIMEOUT_S, done, every_reply=True, admit=admit)
+
+    def _start_waiting_fetch(self) -> None:
+        """Fetch the oldest waiting agent still here, if the answers in flight leave room."""
+        while self._fetch_waiting and self._in_flight.room(MAX_MESSAGE_BYTES):
+            agent_id = next(iter(self._fetch_waiting))
+            del self._fetch_waiting[agent_id]
+            if agent_id in self.view.live_agents:
+                self._fetch_snapshot(agent_id)
+                return
+
+    def _on_fetched(self, key: str, answers: list[bytes], incomplete: bool = False) -> None:
+        """``incomplete``: an answer found no room in flight; the agent is asked again
+        once there is."""
+        try:
+            self._apply_fetched(key, answers, incomplete)
+        finally:
+            self._in_flight.give(sum(map(len, answers)))
+            self._start_waiting_fetch()
+
+    def _apply_fetched(self, key: str, answers: list[bytes], incomplete: bool) -> None:
         agent_id = keys.parse_agent_services(key, self.realm)
         self._fetching.discard(agent_id)
+        if incomplete and agent_id is not None:
+            self._refetch.discard(agent_id)
+            self._fetch_waiting[agent_id] = None
+            return
         if agent_id in self._refetch:
             self._refetch.discard(agent_id)
             self._fetch_snapshot(agent_id)
         snaps = {data: s for data in set(answers)
-                 if (s := self._parse_snapshot(key, data)) is not None}
+                 if (s := self._parse_held(key, agent_id, data)) is not None}
         if len({s.epoch for s in snaps.values()}) > 1:
             self._log.warning(f"agent {agent_id}", "answers with snapshots of different "
                               "epochs: two processes claim its id; kept what was applied")
@@ -461,7 +501,38 @@ class Agent:
                 agent_id not in self.view.live_agents):
             self._on_agent_token(smp)
 
+    def _offer_snapshot(self, smp: zenoh.Sample) -> None:
+        """A published snapshot, in Zenoh's thread: handed to the worker with its bytes
+        while the snapshots in flight leave room, else as a bare notice that its agent
+        changed (``_on_snapshot_notice``)."""
+        key, size = str(smp.key_expr), len(smp.payload)
+        if not self._in_flight.take(size):
+            self._worker.put_peer(self._on_snapshot_notice, key)
+            return
+        try:
+            data = payload_bytes(smp.payload)
+        except DecodeError:
+            self._in_flight.give(size)
+            raise
+        if not self._worker.put_peer(self._on_snapshot, key, data):
+            self._in_flight.give(size)
+
+    def _on_snapshot_notice(self, key: str) -> None:
+        """A snapshot published while there was no room for its bytes: its agent is asked
+        as for any other (only the early look at its revision is missed)."""
+        agent_id = keys.parse_agent_services(key, self.realm)
+        if agent_id is not None and agent_id != self.agent_id and (
+                agent_id in self.view.live_agents):
+            self._fetch_snapshot(agent_id)
+
     def _on_snapshot(self, key: str, data: bytes) -> None:
+        try:
+            self._handle_snapshot(key, data)
+        finally:
+            self._in_flight.give(len(data))
+            self._start_waiting_fetch()
+
+    def _handle_snapshot(self, key: str, data: bytes) -> None:
         """A published snapshot only says that its agent changed: on a plain realm anyone
         can put one under the agent's epoch, which every snapshot shows, so the agent is
         asked (``_fetch_snapshot``) and its answer applied.  A version that its agent's run
@@ -480,6 +551,17 @@ class Agent:
                               f"{snap.revision} is not the agent's current run; asking it "
                               f"({self.snapshots_suspect} so far)")
         self._fetch_snapshot(snap.agent_id)
+
+    def _parse_held(self, key: str, agent_id: str | None, data: bytes) -> Snapshot | None:
+        """``_parse_snapshot`` for an answer that could be held: one that the byte bound on
+        held snapshots refuses anyway is refused before it is decoded."""
+        refusal = None if agent_id is None else self.view.size_refusal(agent_id, len(data))
+        if refusal is not None:
+            self.snapshots_refused += 1
+            self._log.warning(f"snapshot {key}", f"refused: {refusal} "
+                              f"({self.snapshots_refused} so far)")
+            return None
+        return self._parse_snapshot(key, data)
 
     def _parse_snapshot(self, key: str, data: bytes) -> Snapshot | None:
         agent_id = keys.parse_agent_services(key, self.realm)
@@ -564,6 +646,7 @@ class Agent:
                               self.view.index, now):
             self._dirty = True
         self.registrar.expire_pending(now)
+        self._start_waiting_fetch()
         if now - self._last_resend >= RESEND_S:
             self._last_resend = now
             self._resync_agent_tokens()

@@ -156,10 +156,14 @@ class RealmView:
 
     def snapshot_refusal(self, snap: Snapshot) -> str | None:
         """Why a remote snapshot may not be held (the byte bound), or None."""
-        old = self.remote.get(snap.agent_id)
+        return self.size_refusal(snap.agent_id, snap.size)
+
+    def size_refusal(self, agent_id: str, size: int) -> str | None:
+        """Why a snapshot of ``size`` bytes from ``agent_id`` may not be held, or None."""
+        old = self.remote.get(agent_id)
         held = sum(s.size for s in self.remote.values()) - (old.size if old else 0)
-        if held + snap.size > MAX_REMOTE_SNAPSHOT_BYTES:
-            return (f"{snap.size} bytes would take the snapshots held past "
+        if held + size > MAX_REMOTE_SNAPSHOT_BYTES:
+            return (f"{size} bytes would take the snapshots held past "
                     f"{MAX_REMOTE_SNAPSHOT_BYTES} bytes")
         return None
 

@@ -1,4 +1,4 @@
-"""Rate bounds on what peers make a component do: token buckets, one per sender.
+"""Rate and byte bounds on what peers make a component do: token buckets, one per sender.
 
 A peer's messages cost the receiver work (a registration is decoded, validated and
 re-matched; a liveliness token starts a query).  Bounding the bytes of one message is not
@@ -8,6 +8,7 @@ per sender (a key the caller chooses: a service id, an agent id), at most ``max_
 of them (the least recently used forgotten first, so a flood of distinct senders grows
 nothing), under one lock: Zenoh calls its callbacks from several threads.
 :class:`Coalescer` keeps only the latest event per key before the worker runs it.
+:class:`ByteBudget` bounds the bytes peers' messages occupy while they wait for the worker.
 """
 
 from __future__ import annotations
@@ -130,3 +131,31 @@ class Coalescer:
             batch, self._pending, self._scheduled = self._pending, {}, False
         for event in batch.values():
             self._handle(event)
+
+
+class ByteBudget:
+    """Bytes of peers' messages received and not yet handled, at most ``limit``: a flood
+    of large messages waits in Zenoh (or is not asked for) instead of in the worker's
+    queue, whose bound counts calls, not bytes."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.held = 0
+        self._lock = threading.Lock()
+
+    def take(self, size: int) -> bool:
+        """Whether ``size`` more bytes may be held now (then they are, until ``give``)."""
+        with self._lock:
+            if self.held + size > self.limit:
+                return False
+            self.held += size
+            return True
+
+    def give(self, size: int) -> None:
+        with self._lock:
+            self.held = max(0, self.held - size)
+
+    def room(self, size: int) -> bool:
+        """Whether ``size`` bytes would fit now (nothing is taken)."""
+        with self._lock:
+            return self.held + size <= self.limit

@@ -530,14 +530,16 @@ def query(session: zenoh.Session, selector: str, timeout: float, *,
 
 
 def ask_all(session: zenoh.Session, selector: str, timeout: float,
-            done: Callable[[list[bytes]], None], *, every_reply: bool = False) -> None:
+            done: Callable[[list[bytes]], None], *, every_reply: bool = False,
+            admit: Callable[[int], bool] | None = None) -> None:
     """Ask ``selector`` without waiting: ``done(payloads)`` with the payloads of every
     successful reply once the query ends (in Zenoh's thread: hand over, do not block).
-    ``every_reply``: keep the replies of two processes answering on one key."""
+    ``every_reply``: keep the replies of two processes answering on one key.  ``admit``
+    (a reply's size): whether to keep it; one refused is never copied out of Zenoh."""
     answers: list[bytes] = []
 
     def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is not None:
+        if reply.ok is not None and (admit is None or admit(len(reply.ok.payload))):
             answers.append(reply.ok.payload.to_bytes())
     extra = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
     session.get(selector, zenoh.handlers.Callback(
