@@ -222,6 +222,38 @@ def test_local_samples_come_in_batches_unless_a_listener_is_timely(monkeypatch) 
         session.close()
 
 
+def test_the_digest_is_put_only_while_someone_listens() -> None:
+    """Real Zenoh: the digest learns from Zenoh when a subscriber comes and goes, and puts
+    the newest samples only meanwhile (and only when a stream had a new one)."""
+    from agent.daemon.digest import StreamDigest
+    from agent.protocol import keys
+    from agent.protocol.digest import read_digest
+    from agent.runtime.session import open_session
+
+    session = open_session("peer", [], [])
+    newest = {("s", "a"): b"sample"}
+    seen = [1]
+    digest = StreamDigest(session, "r", "A", lambda: newest, lambda: seen[0])
+    try:
+        digest.publish()  # nobody listens: nothing put, the sample not taken as published
+        got: list[dict[str, bytes]] = []
+        sub = session.declare_subscriber(keys.agent_digest("r", "A"), lambda smp: got.append(
+            read_digest(smp.payload.to_bytes(), "r", "A")))
+        _wait(lambda: digest._matching)
+        digest.publish()
+        _wait(lambda: len(got) == 1)
+        digest.publish()  # no new sample since
+        seen[0] = 2
+        sub.undeclare()
+        _wait(lambda: not digest._matching)
+        digest.publish()
+        time.sleep(0.2)
+        assert len(got) == 1 and list(got[0].values()) == [b"sample"]
+    finally:
+        digest.close()
+        session.close()
+
+
 def test_wake_loop_runs_its_step_when_woken_says_why_a_step_failed_and_stops() -> None:
     log = mock.Mock()
     calls: list[int] = []

@@ -88,6 +88,10 @@ log = logging.getLogger("uma.agent")
 #: while the agent's view of the realm may be incomplete (just started), it does not tear
 #: down connections its services report (an agent restart must not interrupt data)
 STARTUP_HOLD_S = 2.0
+#: the worker's tick while no stream is measured (``tick_s`` otherwise): what is left to a
+#: tick then (re-sends, registrations that never got a token, the start-up hold) is
+#: counted in seconds, and every tick is a wake-up of an otherwise idle agent
+IDLE_TICK_S = 0.25
 #: how long start() waits for a first link to its connect endpoints
 LINK_WAIT_S = 1.0
 #: seconds to wait for a snapshot query's replies
@@ -638,6 +642,7 @@ class Agent:
 
     # -- time-driven work
     def _tick(self) -> None:
+        self._worker.pace(self.s.tick_s if self.monitor.watching else IDLE_TICK_S)
         now = time.monotonic()
         if not self._hold_over and now - self._started_mono >= STARTUP_HOLD_S:
             self._hold_over = True

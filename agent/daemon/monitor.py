@@ -174,6 +174,11 @@ class StreamMonitor:
         self._streams.clear()
 
     # -- measuring and judging
+    @property
+    def watching(self) -> bool:
+        """Whether any stream is measured (``judge`` has work at every tick)."""
+        return bool(self._streams)
+
     def judge(self, needs: Iterable[tuple[Requirement, set[str]]], index: OfferIndex,
               now: float) -> bool:
         """Measure every stream, then judge each need's connected and excluded streams;

@@ -84,6 +84,11 @@ class Worker:
     def start(self) -> None:
         self._thread.start()
 
+    def pace(self, tick_s: float) -> None:
+        """Tick every ``tick_s`` from the next tick on (the worker's thread: a component
+        with nothing time-driven to watch ticks less often, each tick a wake-up)."""
+        self._tick_s = tick_s
+
     def alive(self) -> bool:
         return self._thread.is_alive()
 
