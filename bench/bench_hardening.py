@@ -6,19 +6,25 @@ it: a received pose's decode (the subscription's per-sample work) for the stamp 
 ``peek_time_seq``; decoding a control message's body for its signature check; decoding a
 summary for its validation; decoding a register request for the registration gate (size,
 peek, proof of the key, rate); handing a liveliness token event to the worker's queue for
-the token coalescer (rate, coalescing).
-Figures are per call, median and p99 over batches of ``--calls`` calls.
+the token coalescer (rate, coalescing).  Figures are per call, median and p99 over
+batches of ``--calls`` calls.  One row runs two agents in this process over loopback: a
+published snapshot is applied only once its agent confirmed it (asked and answered), timed
+from the publishing agent's change to the other's view, against the same publication
+reaching a plain subscriber of the other agent's session (``--snapshots`` rounds).
 
-    python bench/bench_hardening.py [--batches 200] [--calls 200] [--json]
+    python bench/bench_hardening.py [--batches 200] [--calls 200] [--snapshots 100] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import queue
+import threading
 import time
 from collections.abc import Callable
 
+from bench_host_load import free_endpoint
 from summary import cpu_model, median_p99, report
 
 from agent.attributes import SUMMARY_ERRORS
@@ -65,10 +71,54 @@ def summary_bytes(links: int) -> bytes:
                                      for i in range(links)]})
 
 
+def snapshot_confirmation_ms(rounds: int) -> dict[str, list[float]]:
+    """Milliseconds from agent B's change to A's view applying it (confirmed by asking B)
+    and, as the anchor, to the publication reaching a subscriber of A's session."""
+    from agent.daemon.agent import Agent
+    from agent.daemon.settings import AgentSettings
+    realm = f"hardening{os.getpid()}"
+    ep = free_endpoint()
+    a = Agent(AgentSettings(realm=realm, agent_id="A", listen=[ep]))
+    b = Agent(AgentSettings(realm=realm, agent_id="B", connect=[ep], listen=[free_endpoint()]))
+    a.start()
+    b.start()
+    arrived = threading.Event()
+    out: dict[str, list[float]] = {"published": [], "confirmed": []}
+    try:
+        wait_until(lambda: "B" in a.view.remote, 10.0)
+        assert a.session is not None
+        sub = a.session.declare_subscriber(keys.agent_services(realm, "B"),
+                                           lambda _: arrived.set())
+        for _ in range(rounds):
+            revision = a.view.remote["B"].revision
+            arrived.clear()
+            t0 = time.perf_counter()
+            b._worker.put(setattr, b, "_snapshot_dirty", True)
+            arrived.wait(5.0)
+            out["published"].append((time.perf_counter() - t0) * 1e3)
+            wait_until(lambda old=revision: a.view.remote["B"].revision != old, 5.0)
+            out["confirmed"].append((time.perf_counter() - t0) * 1e3)
+        sub.undeclare()
+    finally:
+        b.close()
+        a.close()
+    return out
+
+
+def wait_until(test: Callable[[], bool], timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not test():  # bounded: timeout
+        if time.monotonic() > deadline:
+            raise TimeoutError("the agents did not get there in time")
+        time.sleep(0.0002)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, default=200)
     ap.add_argument("--calls", type=int, default=200)
+    ap.add_argument("--snapshots", type=int, default=100,
+                    help="snapshot changes timed from one agent to another")
     ap.add_argument("--json", action="store_true", help="also print one JSON line")
     args = ap.parse_args()
     b, n = args.batches, args.calls
@@ -134,6 +184,11 @@ def main() -> None:
     for name, samples in rows.items():
         for k, v in median_p99(samples, "us").items():
             figures[f"{name} {k}"] = v
+    snapshots = snapshot_confirmation_ms(args.snapshots)
+    for name, label in (("published", "snapshot published, at A's subscriber (anchor)"),
+                        ("confirmed", "snapshot confirmed and applied by A")):
+        for k, v in median_p99(snapshots[name], "ms").items():
+            figures[f"{label} {k}"] = v
     ratio = figures["sample checks: stamp rule + gap median_us"] / figures[
         "sample decode (anchor) median_us"]
     figures["sample checks / decode"] = ratio
@@ -149,6 +204,9 @@ def main() -> None:
         / figures["register request decode (anchor) median_us"])
     figures["token coalesced / queued"] = (figures["token event coalesced median_us"]
                                            / figures["token event queued (anchor) median_us"])
+    figures["snapshot confirmed / published"] = (
+        figures["snapshot confirmed and applied by A median_ms"]
+        / figures["snapshot published, at A's subscriber (anchor) median_ms"])
     report(figures, args.json)
 
 
