@@ -8,12 +8,18 @@ camera pair, ``cv2.triangulatePoints``, ``cv2.estimateAffine3D``).  The frames a
 rendered first, outside the timing.  ``frame_sets_per_s`` is what one core sustains
 (detection in every image plus the tracker), to hold against the cameras' 120 Hz.
 
+With ``--live SECONDS`` it runs the services instead, as processes on loopback
+(``outside_in_live``): exposure-to-pose latency next to the bare transport's, the
+published rate against the camera rate and every service's CPU.
+
     python bench/bench_outside_in.py [--frames 120] [--cameras 6] [--json]
+    python bench/bench_outside_in.py --live 10 [--cameras 8] [--rate-hz 120] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import cv2
@@ -37,9 +43,23 @@ def main() -> None:
     ap.add_argument("--cameras", type=int, default=6, help="cameras, 2-16 (default 6)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", action="store_true", help="also print one JSON object")
+    ap.add_argument("--live", type=float, default=None, metavar="SECONDS",
+                    help="run the services as processes and measure for SECONDS")
+    ap.add_argument("--rate-hz", type=float, default=120.0,
+                    help="with --live: the cameras' frame rate (default 120)")
+    ap.add_argument("--per-process", type=int, default=2, metavar="N",
+                    help="with --live: cameras per marker-camera process (default 2)")
     args = ap.parse_args()
     if args.frames < 2 or not 2 <= args.cameras <= 16:
         ap.error("--frames must be 2 or more and --cameras 2-16")
+    if args.live is not None:
+        if not (args.live > 0 and args.rate_hz > 0 and args.per_process >= 1):
+            ap.error("--live, --rate-hz and --per-process must be positive")
+        from outside_in_live import run
+        figures = {"cpu": cpu_model(), "load": os.getloadavg()[0],
+                   **run(args.cameras, args.rate_hz, args.live, args.per_process, args.seed)}
+        report(figures, args.json)
+        return
     cv2.setNumThreads(1)
     sim = Simulation(seed=args.seed, config=SimConfig(n_cameras=args.cameras))
     sets = [[sim.render(c, i) for c in range(args.cameras)] for i in range(args.frames)]

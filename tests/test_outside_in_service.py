@@ -132,3 +132,15 @@ def test_marker_camera_reads_a_generated_video_through_the_capture_path(tmp_path
     for (_, image), frame in zip(got, rendered, strict=True):
         assert np.array_equal(image, frame.image)                # lossless, gray
         assert len(find_blobs(image)) >= len(frame.marker_uv) - 2
+
+
+def test_simulated_cameras_deliver_each_frame_at_its_exposure_time() -> None:
+    """At 120 Hz (a period of no whole number of ns) as at 20 Hz: no frame waits for an
+    exposure far ahead of the wall clock."""
+    import threading
+
+    from services.outside_in.service import _sim_frames
+    for rate in (20.0, 120.0):
+        sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=rate))
+        ages = [time.time_ns() - t for t, _ in _sim_frames(sim, 0, threading.Event(), 6)]
+        assert all(0 <= a < 0.5e9 for a in ages), (rate, ages)

@@ -31,6 +31,8 @@ from services.fusion.predictor import motion_matrices
 
 Array = np.ndarray
 
+#: process noise matrices kept (by time step)
+MAX_CACHED_DT = 64
 #: chi-square(6) at 99.9 %: a pose measurement further out is an outlier
 GATE_6 = 22.458
 N = 15
@@ -65,6 +67,7 @@ class MotionFilter:
         self.P = np.eye(N)
         self.refused_in_row = 0
         self.last_nis = float("nan")
+        self._q: dict[float, Array] = {}
 
     @property
     def ready(self) -> bool:
@@ -131,7 +134,16 @@ class MotionFilter:
 
     def _noise(self, dt: float) -> Array:
         """filterpy's continuous white noise: jerk on (p, v, a), angular acceleration on
-        (theta, omega)."""
+        (theta, omega); kept per ``dt`` (a camera's frame period comes again and again, and
+        building it costs more than the rest of a prediction)."""
+        Q = self._q.get(dt)
+        if Q is None:
+            if len(self._q) >= MAX_CACHED_DT:
+                self._q.clear()
+            Q = self._q[dt] = self._build_noise(dt)
+        return Q
+
+    def _build_noise(self, dt: float) -> Array:
         Q = np.zeros((N, N))
         eye = np.eye(3)
         lin = Q_continuous_white_noise(dim=3, dt=dt, spectral_density=self.config.jerk_psd)

@@ -9,6 +9,16 @@ with the camera's name and the calibration's version (a digest of the rig file) 
 or from the simulated rig, whose time is the wall clock so that cameras on several hosts
 render one world.
 
+The reconstruction feeds its filter's predictions back (Dorfmüller-Ulhaas §2): after each
+frame set it publishes, per camera, where the tracked bodies' markers will image at that
+camera's next exposure (a ``markers2d`` ability ``windows-NAME`` on ``SITE/NAME ->
+SITE/NAME/windows``, its time the exposure's, ``extra["search"]`` true while a body is
+lost; each point's value the distance in pixels within which the reconstruction takes a
+blob).  Each marker camera needs its own and looks for blobs only in windows around those
+points (``find_blobs``' windowed mode: a fraction of the whole image's cost), and in the
+whole image when no prediction for this exposure has come, and every ``SEARCH_EVERY``-th
+frame while a body is lost.
+
 The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
 whatever camera appears is used, one that stops is left out.  Samples are gathered into
 frame sets (a set is complete when every live camera sent one, when a camera sends its
@@ -45,6 +55,10 @@ from services.outside_in.tracker import BodyEstimate, CameraFrame, OutsideInTrac
 log = logging.getLogger("uma.outside_in")
 #: a camera silent this long is not waited for when a frame set is complete
 LIVE_S = 0.5
+#: while a body is lost, every this many frames a camera searches its whole image
+SEARCH_EVERY = 4
+#: ``extra`` key of a windows sample: a body is lost, search whole images too
+SEARCH = "search"
 
 
 def calibration_version(path: str | Path) -> str:
@@ -80,6 +94,7 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
                                                       rate_hz=args.rate_hz))
            if args.sim is not None else None)
     threads = []
+    found: dict[str, Windows] = {}
     with contextlib.ExitStack() as stack:
         for name in names:
             svc = stack.enter_context(Service(f"markers-{name}", realm=args.realm,
@@ -88,29 +103,67 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
             out = svc.ability("markers", type="markers2d",
                               edge=(args.world, f"{args.site}/{name}"),
                               frequency_hz=args.rate_hz, latency_s=0.01)
+            windows = found[name] = Windows(version)
+            svc.need("windows", type="markers2d",
+                     edge=(f"{args.site}/{name}", f"{args.site}/{name}/windows"),
+                     on_sample=windows.on_sample)
             svc.start()
             extra = {MARKERS_CAMERA: name, MARKERS_CALIBRATION: version}
             frames = (_sim_frames(sim, by_name[name], stop, args.max_frames) if sim
                       else _capture_frames(sources[name], stop, args.max_frames))
             t = threading.Thread(target=_publish_frames,
-                                 args=(frames, out, extra, svc.clock_skew_ns),
+                                 args=(frames, out, extra, svc.clock_skew_ns, windows,
+                                       round(1e9 / args.rate_hz)),
                                  name=f"uma-markers-{name}", daemon=True)
             t.start()
             threads.append(t)
         log.info("marker-camera: serving %s (calibration %s)", ", ".join(names), version)
         while not stop.is_set() and any(t.is_alive() for t in threads):
-            stop.wait(0.2)
+            if stop.wait(5.0):
+                break
+            log.info("marker-camera: frames searched in the predicted windows / whole: %s",
+                     ", ".join(f"{n} {w.windowed}/{w.whole}" for n, w in found.items()))
         stop.set()
         for t in threads:
             t.join(timeout=5.0)
     return 0
 
 
-def _publish_frames(frames, out, extra: dict, skew_ns: int) -> None:
+class Windows:
+    """The reconstruction's latest prediction for one camera (its ``windows`` need): where
+    to look in the frame it is for."""
+
+    def __init__(self, version: str) -> None:
+        self.version = version
+        self.latest: Measurement | None = None
+        self.frames = 0
+        #: frames searched whole / in windows only
+        self.whole = 0
+        self.windowed = 0
+
+    def on_sample(self, m: Measurement) -> None:
+        if m.extra.get(MARKERS_CALIBRATION) == self.version:
+            self.latest = m      # a reference swap: the capture thread reads it as is
+
+    def find(self, image: np.ndarray, t_ns: int, period_ns: int) -> Blobs:
+        """The frame's blobs: in the predicted windows when a prediction for this
+        exposure (within half a period) came and no search is due, else in all of it."""
+        self.frames += 1
+        m = self.latest
+        fresh = m is not None and abs(m.t_ns - t_ns) <= period_ns // 2
+        if not fresh or (m.extra.get(SEARCH) and self.frames % SEARCH_EVERY == 0):
+            self.whole += 1
+            return find_blobs(image)
+        self.windowed += 1
+        return find_blobs(image, predicted_uv=m.points) if len(m.points) else Blobs.empty()
+
+
+def _publish_frames(frames, out, extra: dict, skew_ns: int, windows: Windows,
+                    period_ns: int) -> None:
     """Each frame's blobs, stamped on this host's clock: the frames' times are the system
     clock's (the capture's, the simulated world's), which a test may skew (``skew_ns``)."""
     for t_ns, image in frames:
-        blobs = find_blobs(image)
+        blobs = windows.find(image, t_ns + skew_ns, period_ns)
         out.publish_measurement(Measurement(type="markers2d", t_ns=t_ns + skew_ns,
                                             points=blobs.uv,
                                             values=blobs.std_px, extra=extra))
@@ -119,8 +172,13 @@ def _publish_frames(frames, out, extra: dict, skew_ns: int) -> None:
 def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames: int | None):
     """The simulated camera's frames, paced by the wall clock: frame ``i`` is exposed at
     ``i / rate`` seconds since the epoch (plus the camera's phase)."""
-    period_ns = round(1e9 / sim.config.rate_hz)
-    i = time.time_ns() // period_ns + 1
+    rate = sim.config.rate_hz
+
+    def now_index() -> int:
+        # from the rate, not a rounded period: at 120 Hz a period of 8333333 ns would put
+        # the index of today's date 18 s ahead of the exposure times i / rate
+        return int(time.time_ns() * rate / 1e9)
+    i = now_index() + 1
     n = 0
     while not stop.is_set() and (max_frames is None or n < max_frames):
         frame = sim.render(camera, i)
@@ -130,7 +188,7 @@ def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames:
             stop.wait(wait)
         yield t_ns, frame.image
         n += 1
-        i = max(i + 1, time.time_ns() // period_ns)   # a frame missed while busy is gone
+        i = max(i + 1, now_index())   # a frame missed while busy is gone
 
 
 def _capture_frames(source: str, stop: threading.Event, max_frames: int | None):
@@ -195,6 +253,20 @@ class Reconstruction:
             out += self._flush()
         return out
 
+    def windows(self) -> list[tuple[str, int, np.ndarray]]:
+        """Per camera seen so far: its name, its next exposure (ns, this clock) and where
+        the tracked bodies' markers will image then (none before the frame period is
+        known)."""
+        if self.period is None:
+            return []
+        names = {i: n for n, i in self.index.items()}
+        out = []
+        for cam, t in self.last_t.items():
+            t_next = t + self.period
+            out.append((names[cam], round(t_next * 1e9),
+                        self.tracker.predicted_images(cam, t_next)))
+        return out
+
     def _flush(self) -> list[BodyEstimate]:
         frames = list(self.pending.values())
         self.pending = {}
@@ -229,11 +301,25 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                                     pos_std_m=0.0005, rot_std_rad=0.002)
                 for b in rec.bodies}
 
+        windows = {name: svc.ability(f"windows-{name}", type="markers2d",
+                                     edge=(f"{args.site}/{name}", f"{args.site}/{name}/windows"),
+                                     frequency_hz=args.rate_hz, latency_s=0.01)
+                   for name in rec.index}
+
         def on_sample(m: Measurement) -> None:
             with lock:
+                sets = rec.frame_sets
                 estimates = rec.add(m)
+                ahead = rec.windows() if rec.frame_sets != sets else []
+                search = rec.tracker.searching
             for e in estimates:
                 outs[e.body].publish(round(e.t * 1e9), e.p, e.q, e.cov_se3)
+            extra = {MARKERS_CALIBRATION: rec.version, SEARCH: search}
+            for name, t_ns, uv in ahead:
+                windows[name].publish_measurement(Measurement(
+                    type="markers2d", t_ns=t_ns, points=uv,
+                    values=np.full(len(uv), rec.tracker.params.gate_px),
+                    extra={**extra, MARKERS_CAMERA: name}))
 
         svc.need("markers", type="markers2d", edge=(args.world, f"{args.site}/*"),
                  min_count=2, max_count=16, on_sample=on_sample)

@@ -135,6 +135,26 @@ class OutsideInTracker:
         self._check_cameras(t_ref, frames, out)
         return out
 
+    @property
+    def searching(self) -> bool:
+        """Whether a body is lost (or not found yet): the cameras' whole images are needed
+        to find it, not only the windows around the tracked bodies' markers."""
+        return any(not tr.filter.ready or tr.missed >= self.params.lost_after
+                   for tr in self.tracks)
+
+    def predicted_images(self, camera: int, t: float) -> Array:
+        """Where the tracked bodies' markers will image in ``camera`` at ``t`` (n, 2
+        distorted pixels; those in front of it and inside its image): the windows its
+        detector need look in (Dorfmüller-Ulhaas §2: the prediction projected into the
+        images finds the markers of the next frame)."""
+        tracked = [tr for tr in self.tracks
+                   if tr.filter.ready and tr.missed < self.params.lost_after]
+        if not tracked:
+            return np.zeros((0, 2))
+        cam = self.cameras[camera]
+        world = np.vstack([_markers_at(tr, t) for tr in tracked])
+        return cam.project(world[cam.visible(world)])
+
     def _check_cameras(self, t: float, frames: list[CameraFrame],
                        out: list[BodyEstimate]) -> None:
         """Feed the rig's health and put re-estimated cameras in place (``health``)."""
@@ -156,12 +176,12 @@ class OutsideInTracker:
                    if tr.filter.ready and tr.missed < p.lost_after]
         if not tracked:
             return {}
+        predicted: dict[float, list[Array]] = {}   # synchronised cameras share a time
         for f in frames:
             cam = self.cameras[f.camera]
-            worlds = []
-            for _, track in tracked:
-                pp, R = track.filter.predicted_pose(f.t)
-                worlds.append(track.body.markers @ R.T + pp)
+            worlds = predicted.get(f.t)
+            if worlds is None:
+                worlds = predicted[f.t] = [_markers_at(track, f.t) for _, track in tracked]
             # one projection per camera for every tracked body's markers
             uv_all = cam.project(np.vstack(worlds))
             z_all = cam.to_camera(np.vstack(worlds))[:, 2]
@@ -279,6 +299,12 @@ class OutsideInTracker:
     def _miss_all(self, done: set[int]) -> None:
         for k, track in enumerate(self.tracks):
             track.missed = 0 if k in done else track.missed + 1
+
+
+def _markers_at(track: _Track, t: float) -> Array:
+    """The track's markers in the world where its filter predicts them at ``t``."""
+    p, R = track.filter.predicted_pose(t)
+    return track.body.markers @ R.T + p
 
 
 def _motion_std(P: Array, reach_m: float) -> float:

@@ -1,0 +1,206 @@
+"""``bench_outside_in.py --live``: the outside-in services running, as processes on loopback.
+
+One ``uma agent``; the simulated rig's cameras as ``marker-camera`` services,
+``--per-process`` cameras to a process (each renders its frames at the wall clock's
+exposure times, finds their blobs in the windows the reconstruction predicts, publishes);
+the ``outside-in`` reconstruction; and in this process a ``Service`` that needs every
+body's pose.  Measured over ``--live`` seconds once every body has a pose:
+
+- **exposure to pose**: a pose's arrival here minus its time (the exposure of the frame
+  set it came from), median and p99: everything from the shutter to an application,
+  rendering, detection, two hops through the agent and the tracking included;
+- **bare transport**, in the same run: a child process puts a timestamp on a bare Zenoh
+  key at the camera rate and this process's bare subscriber takes it (both Zenoh clients
+  of the agent, as the services are): one hop without uma;
+- **published rate** per body against the camera rate, and each process's CPU (cores,
+  from ``/proc``); the frames the cameras searched whole and in windows come from their
+  logs.
+
+Rendering the simulated images is the marker cameras' own work here (a real camera
+delivers them): their CPU includes it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from loopback import free_port, wait_listening, zenoh_config
+from summary import median_p99
+
+ROOT = Path(__file__).resolve().parents[1]
+#: how long the services may take to give every body a pose
+FIRST_POSE_S = 90.0
+
+
+def bare_publisher(ep: str, key: str, rate_hz: float, seconds: float) -> int:
+    """Child: put the time (ns) on ``key`` at ``rate_hz`` for ``seconds``."""
+    import zenoh
+    session = zenoh.open(zenoh_config("client", connect=ep))
+    pub = session.declare_publisher(key)
+    period = 1.0 / rate_hz
+    end = time.monotonic() + seconds
+    next_t = time.monotonic()
+    while next_t < end:
+        pub.put(str(time.time_ns()).encode())
+        next_t += period
+        time.sleep(max(0.0, next_t - time.monotonic()))
+    session.close()
+    return 0
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class _Procs:
+    """Child processes by name, their logs in files, all stopped by PID."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, argv: list[str]) -> None:
+        log = open(self.folder / f"{name}.log", "w")  # noqa: SIM115 (closed by the child's end)
+        self.procs[name] = subprocess.Popen([sys.executable, *argv], cwd=ROOT, stdout=log,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+    def dead(self) -> list[str]:
+        return [n for n, p in self.procs.items() if p.poll() is not None]
+
+    def log(self, name: str) -> str:
+        return (self.folder / f"{name}.log").read_text(errors="replace")
+
+    def stop(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs.values():
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+
+
+def run(cameras: int, rate_hz: float, seconds: float, per_process: int,
+        seed: int) -> dict[str, Any]:
+    from services.outside_in.bodies import dump_bodies
+    from services.outside_in.rigfile import save_rig
+    from services.outside_in.simulator import SimConfig, Simulation
+
+    sim = Simulation(seed=seed, config=SimConfig(n_cameras=cameras, rate_hz=rate_hz))
+    realm = f"bench-oi-{uuid.uuid4().hex[:8]}"
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    net = ["--realm", realm, "--agent", "host", "--connect", ep]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        rig = save_rig(folder / "rig.toml", sim.cameras, np.zeros((cameras, 6, 6)),
+                       "lab/world", "lab", 0.0)
+        (folder / "bodies.toml").write_text(dump_bodies(sim.bodies))
+        procs = _Procs(folder)
+        try:
+            procs.start("agent", ["-m", "agent.cli", "agent", "--realm", realm, "--id", "host",
+                                  "--listen", ep])
+            wait_listening([port])
+            procs.start("outside-in", ["-m", "agent.cli", "service", "run", "outside-in",
+                                       *net, "--rig", str(rig), "--bodies",
+                                       str(folder / "bodies.toml"), "--rate-hz", str(rate_hz)])
+            names = [c.name for c in sim.cameras]
+            for i in range(0, cameras, per_process):
+                procs.start(f"cameras-{i // per_process}", [
+                    "-m", "agent.cli", "service", "run", "marker-camera", *net, "--rig",
+                    str(rig), "--sim", str(seed), "--rate-hz", str(rate_hz),
+                    *[x for n in names[i:i + per_process] for x in ("--camera", n)]])
+            figures = _measure(procs, realm, ep, [b.name for b in sim.bodies], rate_hz,
+                               seconds)
+        finally:
+            procs.stop()
+        figures["camera_frames_windowed_whole"] = _windowed(procs)
+    return {"cameras": cameras, "rate_hz": rate_hz, "seconds": seconds,
+            "cameras_per_process": per_process, **figures}
+
+
+def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], rate_hz: float,
+             seconds: float) -> dict[str, Any]:
+    import zenoh
+
+    from agent import Measurement, Service
+
+    lat: dict[str, list[float]] = {b: [] for b in bodies}
+    bare: list[float] = []
+    measuring = threading.Event()
+
+    def on_pose(m: Measurement) -> None:
+        now = time.time_ns()
+        name = m.edge[1].rsplit("/", 1)[-1] if m.edge else ""
+        if name in lat and (measuring.is_set() or not lat[name]):
+            lat[name].append((now - m.t_ns) / 1e6)
+
+    def on_bare(smp: zenoh.Sample) -> None:
+        if measuring.is_set():
+            bare.append((time.time_ns() - int(smp.payload.to_bytes())) / 1e6)
+
+    key = f"bench/{realm}/bare"
+    with Service("bench-sink", realm=realm, agent="host", connect=[ep]) as sink, \
+            contextlib.closing(zenoh.open(zenoh_config("client", connect=ep))) as session:
+        sink.need("poses", type="pose6d", edge=("lab/world", "lab/*"), max_count=len(bodies),
+                  on_sample=on_pose)
+        sink.start()
+        sub = session.declare_subscriber(key, on_bare)
+        deadline = time.monotonic() + FIRST_POSE_S
+        while not all(lat.values()):
+            if procs.dead() or time.monotonic() > deadline:
+                raise SystemExit(f"setup failed: no pose of every body within {FIRST_POSE_S:g}"
+                                 f" s (ended: {procs.dead() or 'none'})")
+            time.sleep(0.2)
+        procs.start("bare", [str(Path(__file__)), "--bare-publisher", ep, key, str(rate_hz),
+                             str(seconds + 3)])
+        time.sleep(2.0)     # the bare publisher's process is up and putting
+        for v in lat.values():
+            v.clear()
+        cpu0 = {n: _cpu_s(p.pid) for n, p in procs.procs.items() if p.poll() is None}
+        t0 = time.monotonic()
+        measuring.set()
+        time.sleep(seconds)
+        measuring.clear()
+        elapsed = time.monotonic() - t0
+        cpu = {n: round((_cpu_s(procs.procs[n].pid) - c) / elapsed, 3)
+               for n, c in cpu0.items() if procs.procs[n].poll() is None}
+        sub.undeclare()
+    services = {n: c for n, c in cpu.items() if n != "bare"}
+    every = np.concatenate([np.asarray(v) for v in lat.values()])
+    if not len(every):
+        tails = {n: procs.log(n).splitlines()[-3:] for n in procs.procs}
+        raise SystemExit(f"no pose arrived while measuring; the processes' last lines: {tails}")
+    return {"exposure_to_pose": median_p99(every, "ms"),
+            "bare_transport": median_p99(bare, "ms") if bare else None,
+            "published_hz": {b: round(len(v) / elapsed, 2) for b, v in lat.items()},
+            "cores": services, "cores_all_services": round(sum(services.values()), 3)}
+
+
+def _windowed(procs: _Procs) -> dict[str, str]:
+    """The cameras' last report of frames searched in windows / whole."""
+    out = {}
+    for name in procs.procs:
+        if name.startswith("cameras-"):
+            lines = [x for x in procs.log(name).splitlines() if "predicted windows" in x]
+            if lines:
+                out[name] = lines[-1].split("whole: ", 1)[-1]
+    return out
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["--bare-publisher"]:
+    sys.exit(bare_publisher(sys.argv[2], sys.argv[3], float(sys.argv[4]), float(sys.argv[5])))
