@@ -4,8 +4,7 @@ pose stream, put by the SRG node's worker at its tick while a subscriber listens
 The stream hub's thread only stores a reference to each sample's bytes (the graph store keeps the
 newest per stream, :class:`agent.daemon.graph_store.LocalGraph`); nothing is decoded or
 encoded unless someone listens, and a digest is put only when a stream had a new sample
-since the last one.  Whether someone listens is told by Zenoh when it changes (a matching
-listener), not asked at every tick.
+since the last one.
 """
 
 from __future__ import annotations
@@ -18,7 +17,6 @@ import zenoh
 
 from agent.protocol import keys
 from agent.protocol.digest import MAX_DIGEST_STREAMS, digest_message
-from agent.runtime.callbacks import guarded
 from agent.runtime.logs import RateLimitedLog
 
 log = logging.getLogger("uma.srg")
@@ -37,19 +35,17 @@ class StreamDigest:
         self._published = 0
         self._log = RateLimitedLog(log)
         self._publisher = session.declare_publisher(keys.agent_digest(realm, agent_id))
-        #: someone listens (kept by Zenoh's matching listener)
-        self._matching = self._publisher.matching_status.matching
-        self._listener = self._publisher.declare_matching_listener(
-            guarded(self._on_matching, "digest matching", self._log))
-
-    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
-        self._matching = status.matching
 
     def publish(self) -> None:
         """Put the digest if a stream had a sample since the last one and someone listens
         (the worker's thread)."""
         seen = self._seen()
-        if seen == self._published or not self._matching:
+        if seen == self._published:
+            return
+        try:
+            if not self._publisher.matching_status.matching:
+                return
+        except zenoh.ZError:
             return
         self._published = seen
         newest = dict(self._newest())
@@ -63,7 +59,5 @@ class StreamDigest:
             self._log.warning("digest", str(exc))
 
     def close(self) -> None:
-        with contextlib.suppress(zenoh.ZError):
-            self._listener.undeclare()
         with contextlib.suppress(zenoh.ZError):
             self._publisher.undeclare()

@@ -23,11 +23,14 @@ read.
 
 That thread wakes for every sample only while a listener of a local key must see each
 sample when it arrives (``timely``: the stream monitor measures latency as arrival time
-minus sample time).  Otherwise (the SRG node, which reads the samples in batches anyway)
-it takes what waits in the ring, then pauses ``LOCAL_PAUSE_S``: one wake-up per pause
-instead of one per sample, a wake-up costing about what the sample's own handling does
-(and taking a core from whatever routes the sample on), and whoever reads what the
-listeners keep calls :meth:`StreamHub.flush_local` first.
+minus sample time), or while the samples come too fast to gather (a batch of
+``LOCAL_BATCH`` or more).  Otherwise (the SRG node, which reads the samples in batches
+anyway) it takes what waits in the ring, then pauses ``LOCAL_PAUSE_S``: one wake-up per
+pause instead of one per sample, a wake-up costing about what the sample's own handling
+does (and taking a core from whatever routes the sample on), and whoever reads what the
+listeners keep calls :meth:`StreamHub.flush_local` first.  That never waits: while the
+thread hands samples over, it leaves them to it (it may be a Zenoh thread answering a
+query, which must not block).
 """
 
 from __future__ import annotations
@@ -54,6 +57,8 @@ LOCAL_RING = 1024
 #: how long the local streams' thread lets samples gather while no listener is timely:
 #: the SRG node's batch period (``agent.daemon.srg_node.PUBLISH_CHECK_S``)
 LOCAL_PAUSE_S = 0.05
+#: a batch this large means the ring fills faster than the pause allows: no pause then
+LOCAL_BATCH = LOCAL_RING // 8
 #: what a listener is given: the sample's payload
 Listener = Callable[[bytes], None]
 
@@ -134,9 +139,10 @@ class StreamHub:
             for sample in sub:
                 with self._draining:
                     self._dispatch_local(sample)
-                    if not self._take_waiting(sub):
-                        return
-                if not self._timely_local:
+                    taken = self._take_waiting(sub)
+                if taken < 0:
+                    return
+                if not self._timely_local and taken < LOCAL_BATCH:
                     self._resume.wait(LOCAL_PAUSE_S)
                     self._resume.clear()
         except zenoh.ZError as exc:
@@ -144,21 +150,26 @@ class StreamHub:
 
     def flush_local(self) -> None:
         """Hand the local samples waiting in the ring to their listeners now, on this
-        thread (before reading what the listeners keep)."""
+        thread (before reading what the listeners keep), unless the draining thread is
+        doing so right now (never waits: module docstring)."""
         sub = self._local_subscriber
-        if sub is not None:
-            with self._draining:
+        if sub is not None and self._draining.acquire(blocking=False):
+            try:
                 self._take_waiting(sub)
+            finally:
+                self._draining.release()
 
-    def _take_waiting(self, sub: zenoh.Subscriber) -> bool:
-        """Dispatch the samples waiting in ``sub``'s ring (lock held); False once ``sub``
-        is undeclared."""
+    def _take_waiting(self, sub: zenoh.Subscriber) -> int:
+        """Dispatch the samples waiting in ``sub``'s ring, at most a ring's worth (lock
+        held: others may want it); how many, -1 once ``sub`` is undeclared."""
+        taken = 0
         try:
-            while (sample := sub.try_recv()) is not None:
+            while taken < LOCAL_RING and (sample := sub.try_recv()) is not None:
                 self._dispatch_local(sample)
+                taken += 1
         except zenoh.ZError:
-            return False
-        return True
+            return -1
+        return taken
 
     def _dispatch_local(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
