@@ -133,7 +133,9 @@ class _AprilTag:
         self.detector = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
         self.maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K,
                                                 camera.size, cv2.CV_32FC1)
-        self.params = tuple(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]])
+        # AprilTag puts a pixel's centre at +0.5 (its corners came out 0.50 px right and
+        # down of OpenCV's), so its principal point is OpenCV's + 0.5
+        self.params = tuple(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]] + [0, 0, 0.5, 0.5])
 
     def __call__(self, image: np.ndarray, t_ns: int) -> tuple | None:
         flat = cv2.remap(image, *self.maps, cv2.INTER_LINEAR)

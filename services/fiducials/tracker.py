@@ -58,16 +58,17 @@ DEFAULT_PIXEL_STD = 0.3
 FLOOR_A = 1.2
 FLOOR_B = 1.58
 #: the edge points along a side share their noise through the blur and the bilinear
-#: sampling: the twelve of a side count as about 12 / ``EDGE_CORRELATION`` independent
+#: sampling: the eighteen of a side count as about 18 / ``EDGE_CORRELATION`` independent
 #: ones, so the edge fits' corner covariance is this many times what independent points
-#: give (fitted on seeds 1-10 of ``uma eval fiducials``: NEES 13-16 at 0.5-1.5 m without)
-EDGE_CORRELATION = 2.5
+#: give (fitted on seeds 1-10 of ``uma eval fiducials``: median of the seeds' mean NEES
+#: 7.3 at 0.5-1 m with 2.5, 6.2 with 3)
+EDGE_CORRELATION = 3.0
 #: what a tiny tag's edge fits cannot show (its reach across a side spans barely a cell,
 #: the code's cells bias the crossing): ``SHARED_A / cell_px ** SHARED_B`` per axis added
-#: to each corner (0.05 px at 1 m, 0.23 px at 2 m for an 8 cm tag; fitted on seeds 1-10:
-#: NEES 46 at 2-2.5 m without)
-SHARED_A = 1.45
-SHARED_B = 3.0
+#: to each corner (0.009 px at 1 m, 0.10 px at 2 m for an 8 cm tag; fitted on seeds 1-10:
+#: at 2-2.5 m the seeds' mean NEES 12-16 with 1.45 / cell_px ** 3, 8.3-11 now)
+SHARED_A = 3.0
+SHARED_B = 3.5
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
 #: the previous pose decides when it is within this share of the two solutions' angle
@@ -137,12 +138,19 @@ def _quad_areas(quads: np.ndarray) -> np.ndarray:
 
 
 def detector_parameters() -> cv2.aruco.DetectorParameters:
-    """OpenCV's defaults but two adaptive-threshold passes (windows 3 and 13 px) instead of
-    three (3, 13, 23): on simulated 640x480 frames of 8 cm tags at 0.6-3 m the third pass
-    found no marker the first two missed and cost 30 % of the detection time.  Corners
-    are not refined by OpenCV (:mod:`services.fiducials.edges` does it)."""
+    """OpenCV's defaults but for two things.  One adaptive-threshold pass with a 5 px
+    window instead of three (3, 13 and 23 px): a 3 px window alone lost sharp, close
+    tags (21-27 of 30 frames), 5 px none.  And 8 pixels per cell, not 4, in the
+    canonical image the bits are read from (a far tag's cells are read from less of their
+    blurred edges).  Tags found on the frames of ``uma eval fiducials`` seeds 1-10 at
+    0.5-1 / 1-1.5 / 1.5-2 / 2-2.5 / 2.5-3 m: 290 / 137 / 117 / 46 / 10, where OpenCV's
+    defaults found 290 / 136 / 112 / 45 / 5 and AprilTag 3 286 / 132 / 123 / 52 / 11;
+    198 of 200 at 0.2-0.6 m (the defaults 190) and as many as the defaults with ten tags
+    at 0.6-1.6 m (436), no wrong id, in 0.3-0.4 of the defaults' time.  Corners are not
+    refined by OpenCV (:mod:`services.fiducials.edges` does it)."""
     p = cv2.aruco.DetectorParameters()
-    p.adaptiveThreshWinSizeMax = 13
+    p.adaptiveThreshWinSizeMin = p.adaptiveThreshWinSizeMax = 5
+    p.perspectiveRemovePixelPerCell = 8
     return p
 
 
