@@ -14,9 +14,11 @@ clock already and are left as they are.
 Until an agent's offset is measured, its samples are held back: counted (``unsynced``) and
 said in a rate-limited line, never passed on with a time that may be tens of ms off.  One
 thread measures: ``BURST`` round trips when an agent's stream is first matched (the best of
-them bounds the error by half the smallest delay), then one every ``REFRESH_S`` so that
-the estimate follows a drifting clock and never ages out; an agent that does not answer is
-asked again every ``RETRY_S``.
+them bounds the error by half the smallest delay), one a second for the next ``EARLY``
+seconds (a loaded host's round trips vary: a millisecond's delay is half a millisecond of
+doubt, half a millimetre at a walking body's speed, and the filter keeps the fastest one
+it sees), then one every ``REFRESH_S`` so that the estimate follows a drifting clock and
+never ages out; an agent that does not answer is asked again every ``RETRY_S``.
 """
 
 from __future__ import annotations
@@ -36,7 +38,9 @@ log = logging.getLogger("uma.service")
 
 #: round trips when an agent is first matched
 BURST = 5
-#: seconds between round trips to an agent whose offset is known
+#: round trips one a second after the burst
+EARLY = 10
+#: seconds between round trips to an agent whose offset is known, after those
 REFRESH_S = 10.0
 #: seconds between tries while an agent has not answered
 RETRY_S = 0.5
@@ -57,6 +61,8 @@ class SampleClocks:
         self._queries: AgentQueries | None = None
         #: agent id -> when (monotonic s) it is next asked
         self._due: dict[str, float] = {}
+        #: agent id -> round trips it answered
+        self._answered: dict[str, int] = {}
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closed = threading.Event()
@@ -73,6 +79,7 @@ class SampleClocks:
                 self._queries = AgentQueries(session, self.realm, TIMEOUT_S, self.offsets,
                                              self.now)
             self._due = {a: self._due.get(a, 0.0) for a in remote}
+            self._answered = {a: n for a, n in self._answered.items() if a in remote}
             if remote and self._thread is None:
                 self._thread = threading.Thread(target=self._run, daemon=True,
                                                 name="uma-service-clocks")
@@ -122,13 +129,16 @@ class SampleClocks:
         answered = False
         for _ in range(1 if known else BURST):
             answered = queries.probe(agent) or answered
-        best = self.offsets.best(agent)
-        if best is not None and not known:
-            log.info("clock of agent %s: %+.3f ms from this host's (round trip %.3f ms)",
-                     agent, best.offset_ns / 1e6, best.delay_ns / 1e6)
         if not answered and not known:
             self._log.warning(f"clock of agent {agent}", "its agent does not answer clock "
                               f"round trips; asking again every {RETRY_S:g} s")
         with self._lock:
+            n = self._answered[agent] = self._answered.get(agent, 0) + answered
+        best = self.offsets.best(agent)
+        if best is not None and (not known or (answered and n == EARLY)):
+            log.info("clock of agent %s: %+.3f ms from this host's (fastest round trip "
+                     "%.3f ms)", agent, best.offset_ns / 1e6, best.delay_ns / 1e6)
+        with self._lock:
             if agent in self._due:
-                self._due[agent] = time.monotonic() + (REFRESH_S if answered else RETRY_S)
+                wait = RETRY_S if not answered else 1.0 if n <= EARLY else REFRESH_S
+                self._due[agent] = time.monotonic() + wait
