@@ -162,16 +162,17 @@ def busy_fraction() -> tuple[int, int]:
 ZENOH_THREAD = re.compile(r"(tx|rx|net|acc|app)-\d+")
 
 
-def zenoh_cpu_s(pid: int) -> float:
-    """CPU seconds of ``pid``'s Zenoh runtime threads so far (a thread that ended is lost:
-    Zenoh's runtime threads live as long as the session)."""
+def threads_cpu_s(pid: int, only: re.Pattern[str] | None = None) -> float:
+    """CPU seconds of ``pid``'s live threads so far (``only``: those whose name matches),
+    in nanoseconds (``/proc/PID/task/*/schedstat``): a 5 s window read in 10 ms jiffies is
+    +-0.2 % of a core, about 1 % of the per-1,000-samples figure at 200 samples/s.  An agent's
+    threads live as long as it does."""
     total = 0
     for task in Path(f"/proc/{pid}/task").iterdir():
-        with suppress(OSError):
-            if ZENOH_THREAD.fullmatch((task / "comm").read_text().strip()):
-                fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-                total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
+        with suppress(OSError, ValueError):
+            if only is None or only.fullmatch((task / "comm").read_text().strip()):
+                total += int((task / "schedstat").read_text().split()[0])
+    return total / 1e9
 
 
 def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
@@ -186,14 +187,18 @@ def stream_figures(client: Any, realm: Realm, seconds: float) -> dict[str, Any]:
     sub, refused = subscribe(client, realm.target, on_pose)
     try:
         busy0 = busy_fraction()
-        zenoh0, t0 = [zenoh_cpu_s(c.pid) for c in realm.agents], time.monotonic()
+        agents0 = [(threads_cpu_s(c.pid), threads_cpu_s(c.pid, ZENOH_THREAD))
+                   for c in realm.agents]
+        t0 = time.monotonic()
         cpu = cpu_percent(realm.agents + realm.services, seconds)
-        zenoh1, t1 = [zenoh_cpu_s(c.pid) for c in realm.agents], time.monotonic()
+        t1 = time.monotonic()
+        agents1 = [(threads_cpu_s(c.pid), threads_cpu_s(c.pid, ZENOH_THREAD))
+                   for c in realm.agents]
         busy1 = busy_fraction()
     finally:
         sub.close()
-    agents_cpu = cpu[:realm.n]
-    zenoh_pct = 100 * (sum(zenoh1) - sum(zenoh0)) / (t1 - t0)
+    agents_cpu = [100 * (a[0] - b[0]) / (t1 - t0) for a, b in zip(agents1, agents0, strict=True)]
+    zenoh_pct = 100 * sum(a[1] - b[1] for a, b in zip(agents1, agents0, strict=True)) / (t1 - t0)
     per_agent_rate = realm.services_per_agent * RATE_HZ
     rss = [rss_mb(c.pid) for c in realm.agents]
     out: dict[str, Any] = {}
