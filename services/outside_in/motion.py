@@ -78,6 +78,11 @@ class MotionFilter:
         """6x6 over ``[dp, phi]`` (decoupled, world-frame rotation error)."""
         return self.P[:6, :6].copy()
 
+    @property
+    def velocity_covariance(self) -> Array:
+        """6x6 over ``[v, omega]``."""
+        return self.P[V_.start:W_.stop, V_.start:W_.stop].copy()
+
     def reset(self) -> None:
         """Forget the body: the next measurement starts the filter again."""
         self.t = None

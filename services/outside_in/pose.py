@@ -55,10 +55,12 @@ class Observation:
 
 @dataclass(frozen=True)
 class Motion:
-    """Velocities that move observations to the pose's time (world frame)."""
+    """Velocities that move observations to the pose's time (world frame), and their
+    covariance (6 x 6 over ``[velocity, omega]``; None: taken as exact)."""
 
     velocity: Array   # m/s
     omega: Array      # rad/s
+    cov: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -107,6 +109,8 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e14:
         return None
     cov = np.linalg.inv(info)
+    if motion is not None and motion.cov is not None:
+        cov += _motion_share(stack, p, R, J, cov, motion.cov)
     pix = stack.pixels(zero, p, R)
     return PoseFit(p, R, 0.5 * (cov + cov.T), float(np.sqrt(np.mean(pix ** 2))), len(pix),
                    cams, pix)
@@ -144,6 +148,24 @@ def _gauss_newton(stack: _Stack, p: Array, R: Array) -> tuple[Array, Array, Arra
     return None
 
 
+def _motion_share(stack: _Stack, p: Array, R: Array, J: Array, cov: Array,
+                  motion_cov: Array) -> Array:
+    """The pose covariance that the velocities' uncertainty adds: a velocity error moves
+    every observation of a camera exposed ``dt`` from the pose's time by the same
+    ``dv dt`` (and turns them by ``dw dt``), one error shared by all of that camera's
+    markers, which the observations' own stds, taken as independent, cannot carry.  The
+    fit's sensitivity to the velocities, ``S = -cov J^T B`` (``B`` the residuals'
+    derivative by ``[v, omega]``), gives it: ``S motion_cov S^T``."""
+    dt = stack.dt
+    if not np.any(dt):
+        return np.zeros((6, 6))
+    # a velocity error dv shifts a marker by dv dt, a turn rate error dw turns it by dw dt
+    scale = (stack.scale * dt)[:, None, None]
+    B = (stack.by_shift_and_turn(np.zeros(6), p, R) * scale).reshape(-1, 6)
+    S = -cov @ (J.T @ B)
+    return S @ motion_cov @ S.T
+
+
 def _moved(motion: Motion | None, dt_s: float) -> tuple[Array, Array]:
     """``Exp(omega dt)`` and ``v dt``: how far the body moved between two exposures."""
     if motion is None or dt_s == 0.0:
@@ -164,11 +186,13 @@ class _Stack:
     scale: Array     # (k,) focal / std: normalised units -> standard deviations
     turn: Array      # (k, 3, 3) Exp(omega dt)
     shift: Array     # (k, 3) v dt
+    dt: Array        # (k,) exposure time minus the pose's time
 
     @staticmethod
     def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
         cols: dict[str, list[Array]] = {k: [] for k in
-                                        ("R", "t", "f", "b", "xy", "s", "turn", "shift")}
+                                        ("R", "t", "f", "b", "xy", "s", "turn", "shift",
+                                         "dt")}
         for o in obs:
             k = len(o.markers)
             turn, shift = _moved(motion, o.dt_s)
@@ -181,8 +205,10 @@ class _Stack:
             cols["s"].append(f / np.asarray(o.std_px, float))
             cols["turn"].append(np.broadcast_to(turn, (k, 3, 3)))
             cols["shift"].append(np.broadcast_to(shift, (k, 3)))
+            cols["dt"].append(np.full(k, o.dt_s))
         c = {k: np.concatenate(v) for k, v in cols.items()}
-        return _Stack(c["R"], c["t"], c["f"], c["b"], c["xy"], c["s"], c["turn"], c["shift"])
+        return _Stack(c["R"], c["t"], c["f"], c["b"], c["xy"], c["s"], c["turn"], c["shift"],
+                      c["dt"])
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:
         R = geo.rodrigues(x[3:]) @ R0
@@ -200,6 +226,13 @@ class _Stack:
         return ((xc[:, :2] / xc[:, 2:3] - self.xy) * self.scale[:, None]).reshape(-1)
 
     def jacobian(self, x: Array, p0: Array, R0: Array) -> Array:
+        """Residuals by ``[dp, phi]`` (a world-frame shift and left turn of the body)."""
+        J = self.by_shift_and_turn(x, p0, R0)
+        return (J * self.scale[:, None, None]).reshape(-1, 6)
+
+    def by_shift_and_turn(self, x: Array, p0: Array, R0: Array) -> Array:
+        """Each marker image's derivative (k, 2, 6), normalised units, by a shift of its
+        marker in the world and a left turn of its arm about the body's origin."""
         xc, arm = self._camera_points(x, p0, R0)
         z = xc[:, 2]
         proj = xc[:, :2] / z[:, None]
@@ -208,5 +241,4 @@ class _Stack:
         # d world / d phi = -Exp(omega dt) [R m]x ~ -[arm]x  (left perturbation; omega dt
         # is a fraction of a degree between two cameras' exposures)
         dphi = np.einsum("kij,kjl->kil", dpw, -geo.skew(arm))
-        J = np.concatenate([dpw, dphi], axis=2) * self.scale[:, None, None]
-        return J.reshape(-1, 6)
+        return np.concatenate([dpw, dphi], axis=2)

@@ -226,8 +226,11 @@ class OutsideInTracker:
         if start is None:
             p0, R0 = track.filter.predicted_pose(t_ref)
             f = track.filter
-            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega)
-            # what the motion is not known to: its std, per second of exposure difference
+            # the velocities' covariance: their error, shared by a camera's observations,
+            # goes into the fit's covariance (``pose``); what they are not known to also
+            # widens each observation's std, per second of exposure difference, so that the
+            # fit leans on the cameras exposed nearest the pose's time
+            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.velocity_covariance)
             blur = _motion_std(f.P, float(np.max(np.linalg.norm(track.body.markers, axis=1))))
         else:
             (p0, R0), motion, blur = start, None, 0.0
