@@ -228,6 +228,39 @@ def test_refined_pose_covariance_matches_its_errors() -> None:
     assert lo < np.mean(nees) < hi
 
 
+def test_velocity_error_shared_by_a_cameras_observations_is_in_the_covariance() -> None:
+    """Monte Carlo: cameras exposed 4-8 ms from the pose's time, moved there by velocities
+    known to their covariance; the mean NEES lies in its band only when that covariance
+    goes into the fit's."""
+    from services.outside_in.pose import Motion
+    rng = np.random.default_rng(11)
+    cams = rig(4)
+    body = standard_bodies()[0]
+    R = geo.rodrigues(np.array([0.2, -0.3, 0.5]))
+    p = np.array([0.1, 0.0, 1.3])
+    v, omega = np.array([0.8, -0.3, 0.2]), np.array([0.5, 1.0, -0.4])
+    motion_cov = np.diag([0.05 ** 2] * 3 + [0.3 ** 2] * 3)
+    dts = [-0.008, -0.006, -0.004, 0.0]
+    std = 0.03
+    nees: dict[bool, list[float]] = {False: [], True: []}
+    for _ in range(200):
+        obs = []
+        for c, dt in zip(cams, dts, strict=True):
+            turn = geo.rodrigues(omega * dt)
+            world = (body.markers @ R.T) @ turn.T + p + v * dt
+            obs.append(Observation(c, np.arange(5), c.normalize(
+                c.project(world) + rng.normal(0, std, (5, 2))), np.full(5, std), dt))
+        err = rng.multivariate_normal(np.zeros(6), motion_cov)
+        for shared in (False, True):
+            motion = Motion(v + err[:3], omega + err[3:], motion_cov if shared else None)
+            fit = refine_pose(body.markers, obs, p + 0.002, R, motion)
+            e = np.concatenate([p - fit.p, geo.rodrigues_inverse(R @ fit.R.T)])
+            nees[shared].append(e @ np.linalg.solve(fit.cov, e))
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * 200) / 200
+    assert lo < np.mean(nees[True]) < hi
+    assert np.mean(nees[False]) > hi
+
+
 def test_no_pose_from_one_camera() -> None:
     cams = rig(2)
     body = standard_bodies()[0]
