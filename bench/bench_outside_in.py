@@ -49,6 +49,8 @@ def main() -> None:
                     help="with --live: the cameras' frame rate (default 120)")
     ap.add_argument("--per-process", type=int, default=2, metavar="N",
                     help="with --live: cameras per marker-camera process (default 2)")
+    ap.add_argument("--logs", default=None, metavar="DIR",
+                    help="with --live: keep every process's log in DIR")
     args = ap.parse_args()
     if args.frames < 2 or not 2 <= args.cameras <= 16:
         ap.error("--frames must be 2 or more and --cameras 2-16")
@@ -57,7 +59,8 @@ def main() -> None:
             ap.error("--live, --rate-hz and --per-process must be positive")
         from outside_in_live import run
         figures = {"cpu": cpu_model(), "load": os.getloadavg()[0],
-                   **run(args.cameras, args.rate_hz, args.live, args.per_process, args.seed)}
+                   **run(args.cameras, args.rate_hz, args.live, args.per_process, args.seed,
+                          args.logs)}
         report(figures, args.json)
         return
     cv2.setNumThreads(1)

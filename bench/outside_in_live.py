@@ -95,7 +95,18 @@ class _Procs:
 
 
 def run(cameras: int, rate_hz: float, seconds: float, per_process: int,
-        seed: int) -> dict[str, Any]:
+        seed: int, logs: str | None = None) -> dict[str, Any]:
+    """The measurement (module docstring); ``logs``: a folder that keeps every process's
+    log (default: a temporary one)."""
+    if logs is not None:
+        Path(logs).mkdir(parents=True, exist_ok=True)
+        return _run(cameras, rate_hz, seconds, per_process, seed, Path(logs))
+    with tempfile.TemporaryDirectory() as tmp:
+        return _run(cameras, rate_hz, seconds, per_process, seed, Path(tmp))
+
+
+def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: int,
+         folder: Path) -> dict[str, Any]:
     from services.outside_in.bodies import dump_bodies
     from services.outside_in.rigfile import save_rig
     from services.outside_in.simulator import SimConfig, Simulation
@@ -105,30 +116,28 @@ def run(cameras: int, rate_hz: float, seconds: float, per_process: int,
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     net = ["--realm", realm, "--agent", "host", "--connect", ep]
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
-        rig = save_rig(folder / "rig.toml", sim.cameras, np.zeros((cameras, 6, 6)),
-                       "lab/world", "lab", 0.0)
-        (folder / "bodies.toml").write_text(dump_bodies(sim.bodies))
-        procs = _Procs(folder)
-        try:
-            procs.start("agent", ["-m", "agent.cli", "agent", "--realm", realm, "--id", "host",
-                                  "--listen", ep])
-            wait_listening([port])
-            procs.start("outside-in", ["-m", "agent.cli", "service", "run", "outside-in",
-                                       *net, "--rig", str(rig), "--bodies",
-                                       str(folder / "bodies.toml"), "--rate-hz", str(rate_hz)])
-            names = [c.name for c in sim.cameras]
-            for i in range(0, cameras, per_process):
-                procs.start(f"cameras-{i // per_process}", [
-                    "-m", "agent.cli", "service", "run", "marker-camera", *net, "--rig",
-                    str(rig), "--sim", str(seed), "--rate-hz", str(rate_hz),
-                    *[x for n in names[i:i + per_process] for x in ("--camera", n)]])
-            figures = _measure(procs, realm, ep, [b.name for b in sim.bodies], rate_hz,
-                               seconds)
-        finally:
-            procs.stop()
-        figures["camera_frames_windowed_whole"] = _windowed(procs)
+    rig = save_rig(folder / "rig.toml", sim.cameras, np.zeros((cameras, 6, 6)),
+                   "lab/world", "lab", 0.0)
+    (folder / "bodies.toml").write_text(dump_bodies(sim.bodies))
+    procs = _Procs(folder)
+    try:
+        procs.start("agent", ["-m", "agent.cli", "agent", "--realm", realm, "--id", "host",
+                              "--listen", ep])
+        wait_listening([port])
+        procs.start("outside-in", ["-m", "agent.cli", "service", "run", "outside-in",
+                                   *net, "--rig", str(rig), "--bodies",
+                                   str(folder / "bodies.toml"), "--rate-hz", str(rate_hz)])
+        names = [c.name for c in sim.cameras]
+        for i in range(0, cameras, per_process):
+            procs.start(f"cameras-{i // per_process}", [
+                "-m", "agent.cli", "service", "run", "marker-camera", *net, "--rig",
+                str(rig), "--sim", str(seed), "--rate-hz", str(rate_hz),
+                *[x for n in names[i:i + per_process] for x in ("--camera", n)]])
+        figures = _measure(procs, realm, ep, [b.name for b in sim.bodies], rate_hz,
+                           seconds)
+    finally:
+        procs.stop()
+    figures["camera_frames_windowed_whole"] = _windowed(procs)
     return {"cameras": cameras, "rate_hz": rate_hz, "seconds": seconds,
             "cameras_per_process": per_process, **figures}
 

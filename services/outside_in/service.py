@@ -57,6 +57,10 @@ log = logging.getLogger("uma.outside_in")
 LIVE_S = 0.5
 #: while a body is lost, every this many frames a camera searches its whole image
 SEARCH_EVERY = 4
+#: how long after the exposure it was made for a prediction still places the windows:
+#: the reconstruction's answer comes a frame or more late at 60-120 Hz, and a marker
+#: moving 1 m/s 3 m away moves 6 px in 40 ms, inside a window (``BlobParams.window_px``)
+PREDICTION_AGE_S = 0.04
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
 SEARCH = "search"
 
@@ -147,10 +151,13 @@ class Windows:
 
     def find(self, image: np.ndarray, t_ns: int, period_ns: int) -> Blobs:
         """The frame's blobs: in the predicted windows when a prediction for this
-        exposure (within half a period) came and no search is due, else in all of it."""
+        exposure (from half a period before it to ``PREDICTION_AGE_S`` after) came and no
+        search is due, else in all of it."""
         self.frames += 1
         m = self.latest
-        fresh = m is not None and abs(m.t_ns - t_ns) <= period_ns // 2
+        fresh = (m is not None
+                 and -period_ns // 2 <= t_ns - m.t_ns <= max(period_ns // 2,
+                                                             PREDICTION_AGE_S * 1e9))
         if not fresh or (m.extra.get(SEARCH) and self.frames % SEARCH_EVERY == 0):
             self.whole += 1
             return find_blobs(image)
