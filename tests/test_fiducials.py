@@ -5,6 +5,7 @@ reading a generated video through cv2.VideoCapture."""
 from __future__ import annotations
 
 import math
+import types
 
 import cv2
 import numpy as np
@@ -278,3 +279,50 @@ def test_readme_example_tracks_a_simulated_tag():
     assert done.returncode == 0, done.stderr
     first = done.stdout.splitlines()[0]
     assert first.startswith("apriltag36h11-0 none [ 100.") and first.endswith("mm")
+
+
+class _Handle:
+    def __init__(self, attrs: dict) -> None:
+        self.advertised = [dict(attrs)]
+
+    def update(self, **attrs: float) -> None:
+        self.advertised.append(attrs)
+
+    def publish_measurement(self, m: object) -> None:
+        pass
+
+
+def test_a_camera_that_loses_the_tag_advertises_it_lost_and_found_again():
+    """So that a need preferring accuracy leaves a camera that no longer sees the tag
+    (it would otherwise keep its last, good accuracy) and may come back."""
+    import argparse
+
+    from services.fiducials.service import LOST_FRAMES, LOST_STD_M, Publisher
+    from services.fiducials.tracker import Estimate
+
+    handles: list[_Handle] = []
+
+    def ability(name: str, type: str, edge: tuple, **attrs: float) -> _Handle:
+        handles.append(_Handle(attrs))
+        return handles[-1]
+
+    publish = Publisher(types.SimpleNamespace(ability=ability),
+                        argparse.Namespace(name=[], prefix="markers", frame="lab/cam"))
+    cov = np.diag([1e-6] * 3 + [1e-4] * 3)
+
+    def frame(k: int, seen: bool) -> None:
+        publish.frame(k * 33_000_000)
+        if seen:
+            publish(Estimate("apriltag36h11-1", k * 33_000_000, np.eye(3), np.ones(3), cov,
+                             0.2, 0.2, "none", (1,), math.inf), 1)
+
+    for k in range(10):
+        frame(k, True)
+    for k in range(10, 10 + LOST_FRAMES):  # missed: not yet lost
+        frame(k, False)
+    assert handles[0].advertised[-1].get("pos_std_m", 0) < 0.01
+    frame(10 + LOST_FRAMES, False)
+    assert handles[0].advertised[-1]["pos_std_m"] == LOST_STD_M
+    assert handles[0].advertised[-1]["confidence"] == 0.0
+    frame(11 + LOST_FRAMES, True)  # seen again: advertised at once
+    assert handles[0].advertised[-1]["pos_std_m"] < 0.01

@@ -5,6 +5,10 @@ Samples are taken in Zenoh's thread and queued (at most ``SAMPLE_QUEUE``: the ol
 is worth least); one dispatch thread decodes them, moves their times onto this host's clock
 (:mod:`agent.sdk.sampleclock`: a sample from another host is stamped on that host's clock)
 and calls ``on_sample``, one at a time.
+
+A need moved from one ability to another keeps the old subscription until the new one
+delivers its first sample (at most ``RETIRE_S``): make before break, so the stream has no
+gap while the new subscription reaches its publisher.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import contextlib
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -40,6 +45,8 @@ log = logging.getLogger("uma.service")
 
 #: bound on received samples waiting for the dispatch thread (oldest data is worth least)
 SAMPLE_QUEUE = 10_000
+#: how long a replaced subscription is kept at most while its successor has sent nothing
+RETIRE_S = 1.0
 
 OnSample = Callable[[Measurement], Any]
 
@@ -52,6 +59,8 @@ class _Link:
     subscriber: Any = None
     #: the newest stamp taken from it (``stamp_refusal``)
     newest_ns: int | None = None
+    #: when a replaced link is dropped at the latest (monotonic s); None while current
+    retire_at: float | None = None
 
 
 @dataclass
@@ -63,6 +72,8 @@ class NeedHandle:
     matches: tuple[Match, ...] = ()
     satisfied: bool = False
     links: dict[str, _Link] = field(default_factory=dict)
+    #: replaced links, delivering until a current link delivers (make before break)
+    retiring: dict[str, _Link] = field(default_factory=dict)
     last: tuple[int, int] = (-1, -1)  # (agent epoch, seq) of the last control applied
     last_at: float = 0.0  # when it was applied (monotonic s)
 
@@ -81,6 +92,8 @@ class NeedLinks:
         self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
             SAMPLE_QUEUE)
         self._thread: threading.Thread | None = None
+        #: guards the needs' ``retiring`` links (the control and dispatch threads)
+        self._retire_lock = threading.Lock()
         #: samples refused by their stamp (``stamp_refusal``), not given to ``on_sample``
         self.refused = 0
         #: the clocks of the agents whose streams the needs take
@@ -94,10 +107,13 @@ class NeedLinks:
     def close(self) -> None:
         """Undeclare every link and end the dispatch thread."""
         for need in self._svc._needs.values():
-            for link in need.links.values():
+            with self._retire_lock:
+                links = [*need.links.values(), *need.retiring.values()]
+                need.links.clear()
+                need.retiring.clear()
+            for link in links:
                 with contextlib.suppress(Exception):
                     link.subscriber.undeclare()
-            need.links.clear()
         with contextlib.suppress(queue.Full):
             self._samples.put_nowait(None)
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -105,14 +121,23 @@ class NeedLinks:
         self.clocks.close()
 
     def apply(self, need: NeedHandle, matches: tuple[Match, ...], satisfied: bool) -> None:
-        """Subscribe to exactly ``matches`` (keeping links that stay)."""
+        """Subscribe to exactly ``matches`` (keeping links that stay; a replaced link
+        delivers until its successor does)."""
         svc = self._svc
         assert svc.session is not None
         wanted = {m.key: m for m in matches}
-        for key in list(need.links):
-            if key not in wanted:
-                with contextlib.suppress(Exception):
-                    need.links.pop(key).subscriber.undeclare()
+        replaced = any(key not in need.links for key in wanted)
+        with self._retire_lock:
+            for key in list(need.links):
+                if key not in wanted:
+                    link = need.links.pop(key)
+                    link.retire_at = time.monotonic() + RETIRE_S
+                    need.retiring[key] = link
+            for key in list(need.retiring):
+                if key in wanted:  # wanted again before it was dropped
+                    need.links[key] = need.retiring.pop(key)
+                    need.links[key].retire_at = None
+            self._drop_retiring(need, expired_only=replaced)
         for key, m in wanted.items():
             link = need.links.get(key)
             if link is not None:
@@ -141,13 +166,33 @@ class NeedLinks:
             self._log.warning(f"service {self._svc.service_id} need {need.name}",
                               "callback queue full (on_sample too slow); samples dropped")
 
+    def _drop_retiring(self, need: NeedHandle, expired_only: bool = False) -> None:
+        """Undeclare the need's replaced links (only those past ``retire_at``); lock held."""
+        now = time.monotonic()
+        for key, link in list(need.retiring.items()):
+            if not expired_only or (link.retire_at or 0.0) <= now:
+                del need.retiring[key]
+                with contextlib.suppress(Exception):
+                    link.subscriber.undeclare()
+
+    def _current(self, need: NeedHandle, link: _Link) -> bool:
+        """Whether a sample of ``link`` is still delivered: the link is current (its
+        replaced predecessors are dropped then), or replaced but not yet succeeded."""
+        with self._retire_lock:
+            if need.links.get(link.match.key) is link:
+                if need.retiring:
+                    self._drop_retiring(need)
+                return True
+            self._drop_retiring(need, expired_only=True)
+            return need.retiring.get(link.match.key) is link
+
     def _dispatch(self) -> None:
         while True:
             item = self._samples.get()
             if item is None or self._svc.closed:
                 return
             need, link, data = item
-            if link.match.key not in need.links:
+            if not self._current(need, link):
                 continue  # disconnected meanwhile
             try:
                 m = decode_measurement(data, expected_type=need.need.type)

@@ -51,6 +51,8 @@ PERIOD_S = 12.0
 CAMERAS = {"left": -0.7, "right": 0.7}  # x of each camera in lab/world, m
 TOE_IN_RAD = 0.25
 TARGET = f"markers/{FAMILY}-{TAG_ID}"
+#: a camera without a sample this close to a moment does not see the tag then
+UNSEEN_S = 0.25
 
 
 def _endpoint() -> str:
@@ -87,6 +89,7 @@ class _Seen:
     """What the demo observes, shared by its threads."""
 
     claims: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # side: (t, std)
+    frames: dict[str, list[float]] = field(default_factory=dict)  # side: capture times, s
     stream: list[tuple[float, str]] = field(default_factory=list)  # (arrival, source)
     queries: list[tuple[float, float, list[str]]] = field(default_factory=list)
     failed_queries: list[str] = field(default_factory=list)
@@ -122,6 +125,8 @@ class _CameraLoop(threading.Thread):
                     t_ns = time.time_ns()
                     image = self.sim.render(self.scene, (t_ns - self.t0_ns) / 1e9, self.rng)
                     publish.frame(t_ns)
+                    with self.seen.lock:
+                        self.seen.frames.setdefault(self.side, []).append(t_ns / 1e9)
                     for est in self.tracker.process(image, t_ns):
                         publish(est, TAG_ID)
                         with self.seen.lock:
@@ -211,6 +216,7 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
     """Switches of the need, each against the moment the other camera became the better."""
     with seen.lock:
         stream, claims, queries = list(seen.stream), dict(seen.claims), list(seen.queries)
+        frames = {side: list(t) for side, t in seen.frames.items()}
     switches, delays = [], []
     for (t_prev, s_prev), (t, s) in itertools.pairwise(stream):
         if s != s_prev:  # the handover: last sample of the old camera to first of the new
@@ -228,6 +234,11 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
     return {"seconds": seconds, "samples_received": len(stream), "switches": switches,
             "better_camera_changes": len(better), "follow_delays_s": delays,
             "max_stream_gap_s": round(float(gaps.max()), 3),
+            "max_handover_gap_s": max((s["handover_gap_s"] for s in switches), default=None),
+            # a camera's own longest pause between frames (a loaded host): the stream
+            # cannot be steadier than its cameras
+            "max_frame_gap_s": {side: round(float(np.diff(t).max()), 3)
+                                for side, t in frames.items() if len(t) > 1},
             "max_gap_at_s": round(stream[worst][0] - stream[0][0], 2) if stream else None,
             "queries": len(queries), "queries_failed": len(seen.failed_queries),
             "first_query_failure": seen.failed_queries[0] if seen.failed_queries else None,
@@ -240,7 +251,8 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
 
 def _better_changes(claims: dict[str, list[tuple[float, float]]]) -> list[tuple[float, str]]:
     """(wall time, side) each time the other camera's claimed position std (smoothed over
-    half a second) becomes the smaller one."""
+    half a second) becomes the smaller one; a camera with no sample within ``UNSEEN_S``
+    of a moment does not see the tag then (worse than any claim)."""
     if len(claims) < 2:
         return []
     grid = np.arange(max(c[0][0] for c in claims.values()), min(c[-1][0] for c in
@@ -248,7 +260,11 @@ def _better_changes(claims: dict[str, list[tuple[float, float]]]) -> list[tuple[
     smooth = {}
     for side, rows in claims.items():
         t, s = np.array(rows).T
-        smooth[side] = np.interp(grid, t, np.convolve(s, np.ones(7) / 7, mode="same"))
+        at = np.interp(grid, t, np.convolve(np.pad(s, 3, mode="edge"), np.ones(7) / 7,
+                                            mode="valid"))
+        nearest = np.abs(t[np.clip(np.searchsorted(t, grid), 0, len(t) - 1)] - grid)
+        before = np.abs(t[np.clip(np.searchsorted(t, grid) - 1, 0, len(t) - 1)] - grid)
+        smooth[side] = np.where(np.minimum(nearest, before) > UNSEEN_S, np.inf, at)
     best = np.where(smooth["left"] <= smooth["right"], "left", "right")
     return [(float(grid[i]), str(best[i])) for i in range(1, len(best)) if best[i] != best[i - 1]]
 
@@ -263,7 +279,9 @@ def main(args: argparse.Namespace) -> int:
             for s in report["switches"]))
         print(f"better camera changed {report['better_camera_changes']} times; the need followed "
               f"after {report['follow_delays_s']} s; longest gap in its stream "
-              f"{report['max_stream_gap_s']} s (at {report['max_gap_at_s']} s)")
+              f"{report['max_stream_gap_s']} s (at {report['max_gap_at_s']} s), at a switch "
+              f"{report['max_handover_gap_s']} s; the cameras' longest pause between frames "
+              f"{report['max_frame_gap_s']} s")
         print(f"world-frame queries: {report['queries']} answered, {report['queries_failed']} "
               f"not, error {report['world_error_mm']} mm, "
               f"paths {report['paths']}")

@@ -20,8 +20,11 @@ last ``WINDOW_S``), ``latency_s`` (publication minus capture time, median), ``po
 and ``rot_std_rad`` (the root of the covariance's position and rotation traces, median
 over the last ``ACCURACY_WINDOW_S``),
 ``confidence`` (share of frames with the body); re-advertised when one drifts by more
-than ``DRIFT`` (at most every ``UPDATE_S``), so a need with ``prefer="pos_std_m"`` moves
-to the camera that sees the body best as the body moves.
+than ``DRIFT`` (the accuracy by more than ``ACCURACY_DRIFT``; at most every ``UPDATE_S``),
+and at once as lost (``pos_std_m`` ``LOST_STD_M``, ``confidence`` 0) when the body has
+not been seen in ``LOST_FRAMES`` frames in a row, so a need with ``prefer="pos_std_m"``
+moves to the camera that sees the body best as the body moves, and away from one that no
+longer sees it.
 """
 
 from __future__ import annotations
@@ -51,9 +54,17 @@ from services.fiducials.tracker import Estimate, FiducialTracker
 log = logging.getLogger("uma.fiducials")
 WINDOW_S = 2.0
 #: accuracy follows the body faster than rate and latency: it changes as the body moves
-ACCURACY_WINDOW_S = 0.4
+ACCURACY_WINDOW_S = 0.3
 DRIFT = 0.2
-UPDATE_S = 0.2
+#: two cameras' accuracies cross slowly: a 20 % drift held the advertised crossing back
+#: by up to 2 s
+ACCURACY_DRIFT = 0.05
+UPDATE_S = 0.1
+#: a body missing from this many frames in a row is advertised as lost: its position
+#: unknown (a finite stand-in, attributes are finite), its confidence 0 (one missed
+#: detection is not enough: a need would flap between cameras)
+LOST_FRAMES = 2
+LOST_STD_M = 1000.0
 LOG_EVERY_S = 10.0
 
 
@@ -64,6 +75,8 @@ class _Quality:
     times: deque = field(default_factory=deque)  # (capture s, latency s, pos std, rot std)
     advertised: dict[str, float] = field(default_factory=dict)
     updated: float = 0.0
+    lost: bool = False
+    seen_frame: int = 0  # the number of the last frame the body was seen in
 
     def add(self, t_s: float, latency_s: float, cov: np.ndarray) -> None:
         self.times.append((t_s, latency_s, math.sqrt(np.trace(cov[:3, :3])),
@@ -93,19 +106,31 @@ class Publisher:
         self.handles: dict[str, Any] = {}
         self.quality: dict[str, _Quality] = {}
         self.frame_times: deque = deque()
+        self.frames = 0
         self.published = 0
 
     def frame(self, t_ns: int) -> None:
+        """A frame captured at ``t_ns`` (before its estimates): counted for the rate and
+        confidence; a body missing from the ``LOST_FRAMES`` frames before it is
+        advertised as lost."""
         t = t_ns / 1e9
+        self.frames += 1
         self.frame_times.append(t)
         while self.frame_times and self.frame_times[0] < t - WINDOW_S:
             self.frame_times.popleft()
+        for name, q in self.quality.items():
+            if not q.lost and self.frames - 1 - q.seen_frame >= LOST_FRAMES:
+                attrs = {**q.advertised, "pos_std_m": LOST_STD_M, "rot_std_rad": math.pi,
+                         "confidence": 0.0}
+                self.handles[name].update(**attrs)
+                q.advertised, q.updated, q.lost = attrs, time.monotonic(), True
 
     def __call__(self, est: Estimate, marker_id: int | None) -> None:
         now = time.time_ns()
         cov = geo.decoupled_to_se3(est.t, est.covariance)
         q = self.quality.setdefault(est.name, _Quality())
         q.add(est.t_ns / 1e9, (now - est.t_ns) / 1e9, est.covariance)
+        q.seen_frame = self.frames
         handle = self.handles.get(est.name)
         if handle is None:
             target = self.frames_of.get(marker_id) if marker_id is not None else None
@@ -116,11 +141,11 @@ class Publisher:
             self.handles[est.name] = handle
             q.advertised, q.updated = attrs, time.monotonic()
             log.info("fiducials: %s -> %s (%s)", self.args.frame, target, attrs)
-        elif time.monotonic() - q.updated > UPDATE_S:
+        elif q.lost or time.monotonic() - q.updated > UPDATE_S:
             attrs = q.attributes(len(self.frame_times))
-            if _drifted(q.advertised, attrs):
+            if q.lost or _drifted(q.advertised, attrs):
                 handle.update(**attrs)
-                q.advertised, q.updated = attrs, time.monotonic()
+                q.advertised, q.updated, q.lost = attrs, time.monotonic(), False
         handle.publish_measurement(Measurement(
             type="pose6d", t_ns=est.t_ns, position=est.t, quaternion=geo.matrix_to_quat(est.R),
             covariance=cov,
@@ -130,8 +155,9 @@ class Publisher:
 
 
 def _drifted(advertised: dict[str, float], measured: dict[str, float]) -> bool:
-    return any(abs(v - advertised.get(k, 0.0)) > DRIFT * max(abs(advertised.get(k, 0.0)), 1e-9)
-               for k, v in measured.items())
+    return any(abs(v - advertised.get(k, 0.0)) > (ACCURACY_DRIFT if k.endswith("_std_m")
+                                                  or k.endswith("_std_rad") else DRIFT)
+               * max(abs(advertised.get(k, 0.0)), 1e-9) for k, v in measured.items())
 
 
 def tracker_from(args: argparse.Namespace) -> FiducialTracker:
