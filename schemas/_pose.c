@@ -1,12 +1,14 @@
-/* The compiled twin of schemas/codec.py's decode_pose() for the one common case: a pose6d
- * message of floats, with or without a sequence number and a covariance, and nothing else.
- * It reads the msgpack bytes itself and checks what decode_measurement() checks, with the
- * same arithmetic in the same order (the quaternion's norm, the covariance's Gershgorin
- * bound).  Anything else (another type, an unknown or repeated field, an integer where a
- * float is usual, a value the Python decoder would refuse, a covariance that needs the
- * Cholesky test) returns None, and the caller decodes in Python, which accepts it or raises
- * the precise error: errors are made in one place.  Optional: when this does not build,
- * schemas.codec decodes in pure Python. */
+/* The compiled twin of schemas/codec.py's decode_pose() and encode_pose() for the one common
+ * case: a pose6d message of floats, with or without a sequence number (and, decoding, a
+ * covariance), and nothing else.  Decoding reads the msgpack bytes itself and checks what
+ * decode_measurement() checks; encoding checks what encode_pose() checks and writes the
+ * bytes msgpack.packb() writes for its map; both with the same arithmetic in the same order
+ * (the quaternion's norm, the covariance's Gershgorin bound).  Anything else (another type,
+ * an unknown or repeated field, an integer where a float is usual, a value the Python codec
+ * would refuse, a covariance that needs the Cholesky test, a covariance to encode) returns
+ * None, and the caller does it in Python, which accepts it or raises the precise error:
+ * errors are made in one place.  Optional: when this does not build, schemas.codec runs in
+ * pure Python. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -223,6 +225,103 @@ static PyObject *decode(PyObject *self, PyObject *arg) {
     return out;
 }
 
+/* ------------------------------------------------------------------ encoding */
+
+typedef struct { unsigned char b[160]; Py_ssize_t n; } out_t;
+
+static void put(out_t *o, const void *p, size_t n) { memcpy(o->b + o->n, p, n); o->n += n; }
+static void put1(out_t *o, unsigned char c) { o->b[o->n++] = c; }
+static void put_be(out_t *o, uint64_t v, int n) {
+    for (int k = n - 1; k >= 0; k--) put1(o, (unsigned char)(v >> (8 * k)));
+}
+
+/* A non-negative integer as msgpack-python packs it: the smallest form. */
+static void put_uint(out_t *o, uint64_t v) {
+    if (v < 128) put1(o, (unsigned char)v);
+    else if (v <= 0xff) { put1(o, 0xcc); put_be(o, v, 1); }
+    else if (v <= 0xffff) { put1(o, 0xcd); put_be(o, v, 2); }
+    else if (v <= 0xffffffffu) { put1(o, 0xce); put_be(o, v, 4); }
+    else { put1(o, 0xcf); put_be(o, v, 8); }
+}
+
+static void put_double(out_t *o, double d) {
+    uint64_t u;
+    memcpy(&u, &d, 8);
+    put1(o, 0xcb);
+    put_be(o, u, 8);
+}
+
+/* An exact int (not a bool, not numpy's) in [0, 2**63); 0: Python decides. */
+static int int_arg(PyObject *x, int64_t *out) {
+    if (!PyLong_CheckExact(x)) return 0;
+    int overflow = 0;
+    long long v = PyLong_AsLongLongAndOverflow(x, &overflow);
+    if (overflow || v < 0 || (v == -1 && PyErr_Occurred())) { PyErr_Clear(); return 0; }
+    *out = v;
+    return 1;
+}
+
+/* n finite numbers from a list or tuple of floats and ints, or a 1-D float64 array; 0:
+ * Python decides (np.asarray(x, float) there takes more shapes and types). */
+static int floats_arg(PyObject *x, double *out, Py_ssize_t n) {
+    if (PyList_CheckExact(x) || PyTuple_CheckExact(x)) {
+        if (PySequence_Fast_GET_SIZE(x) != n) return 0;
+        PyObject **items = PySequence_Fast_ITEMS(x);
+        for (Py_ssize_t k = 0; k < n; k++) {
+            PyObject *v = items[k];
+            if (PyFloat_CheckExact(v)) out[k] = PyFloat_AS_DOUBLE(v);
+            else if (PyLong_CheckExact(v)) {
+                out[k] = PyLong_AsDouble(v); /* rounded as float(int) rounds */
+                if (out[k] == -1.0 && PyErr_Occurred()) { PyErr_Clear(); return 0; }
+            } else return 0;
+            if (!isfinite(out[k])) return 0;
+        }
+        return 1;
+    }
+    Py_buffer view;
+    if (PyObject_GetBuffer(x, &view, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    int ok = view.ndim == 1 && view.itemsize == 8 && view.format != NULL
+             && strcmp(view.format, "d") == 0 && view.len == n * 8;
+    if (ok) {
+        memcpy(out, view.buf, n * 8);
+        for (Py_ssize_t k = 0; k < n; k++) ok = ok && isfinite(out[k]);
+    }
+    PyBuffer_Release(&view);
+    return ok;
+}
+
+/* encode(t, position, quaternion, seq) -> the pose6d message without a covariance, as
+ * codec.encode_pose() makes it, or None: encode it in Python. */
+static PyObject *encode(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    int64_t t, seq = -1;
+    double p[3], q[4];
+    if (nargs != 4 || !int_arg(args[0], &t) || !floats_arg(args[1], p, 3)
+        || !floats_arg(args[2], q, 4) || (args[3] != Py_None && !int_arg(args[3], &seq)))
+        Py_RETURN_NONE;
+    double x = q[0], y = q[1], z = q[2], w = q[3];
+    double n = sqrt(x * x + y * y + z * z + w * w);
+    if (fabs(n - 1.0) > QUAT_NORM_TOL) Py_RETURN_NONE;
+    double qn[4] = {x / n, y / n, z / n, w / n};
+    out_t o = {.n = 0};
+    put1(&o, seq >= 0 ? 0x87 : 0x86);
+    put(&o, "\xa1v\x01\xa1k\xa6pose6d\xa1t", 14);
+    put_uint(&o, (uint64_t)t);
+    put(&o, "\xa1p\x93", 3);
+    for (int k = 0; k < 3; k++) put_double(&o, p[k]);
+    put(&o, "\xa1q\x94", 3);
+    for (int k = 0; k < 4; k++) put_double(&o, qn[k]);
+    put(&o, "\xa1" "c" "\xc0", 3);
+    if (seq >= 0) {
+        put(&o, "\xa1s", 2);
+        put_uint(&o, (uint64_t)seq);
+    }
+    return PyBytes_FromStringAndSize((const char *)o.b, o.n);
+}
+
 static PyObject *configure(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "ndd", &MAX_MESSAGE_BYTES, &QUAT_NORM_TOL, &PSD_TOL))
         return NULL;
@@ -230,6 +329,8 @@ static PyObject *configure(PyObject *self, PyObject *args) {
 }
 
 static PyMethodDef methods[] = {
+    {"encode", (PyCFunction)(void (*)(void))encode, METH_FASTCALL,
+     "encode(t, position, quaternion, seq) -> bytes or None (encode in Python)"},
     {"configure", configure, METH_VARARGS,
      "configure(max_message_bytes, quat_norm_tol, psd_tol): the codec's limits"},
     {"decode", decode, METH_O,

@@ -217,7 +217,19 @@ MARKERS_CALIBRATION = "calibration"
 
 def encode_pose(t_ns: int, position: Any, quaternion: Any, covariance: Any = None,
                 seq: int | None = None) -> bytes:
-    """A ``pose6d`` message (the hot path: validates, but builds no ``Measurement``)."""
+    """A ``pose6d`` message (the hot path: validates, but builds no ``Measurement``).
+    Without a covariance, plain floats (lists, tuples, float64 arrays) are encoded by the
+    compiled twin ``schemas/_pose.c`` where it was built, to the same bytes."""
+    if covariance is None and _NATIVE_ENCODE is not None:
+        data = _NATIVE_ENCODE(t_ns, position, quaternion, seq)
+        if data is not None:
+            return data
+    return _encode_pose(t_ns, position, quaternion, covariance, seq)
+
+
+def _encode_pose(t_ns: int, position: Any, quaternion: Any, covariance: Any,
+                 seq: int | None) -> bytes:
+    """:func:`encode_pose` in Python: every input it takes, and every refusal's words."""
     msg = {"v": WIRE_VERSION, "k": "pose6d", "t": _int_out(t_ns, "t_ns"),
            "p": _floats_out(position, 3, "position"), "q": _quat_out(quaternion),
            "c": None if covariance is None else pack_covariance(covariance, 6)}
@@ -547,9 +559,9 @@ PoseSample = tuple[int, int | None, tuple[float, float, float],
                    tuple[float, float, float, float], np.ndarray | None]
 
 
-def _native_pose() -> Callable[[bytes], Any] | None:
-    """The compiled decoder of a common ``pose6d`` (``schemas/_pose.c``), or None (not
-    built, or ``UMA_CODEC_PURE_PYTHON=1``)."""
+def _native_pose() -> Any:
+    """The compiled twin of a common ``pose6d``'s decoding and encoding
+    (``schemas/_pose.c``), or None (not built, or ``UMA_CODEC_PURE_PYTHON=1``)."""
     if os.environ.get("UMA_CODEC_PURE_PYTHON", "") not in ("", "0"):
         return None
     try:
@@ -557,10 +569,12 @@ def _native_pose() -> Callable[[bytes], Any] | None:
     except ImportError:
         return None
     _pose.configure(MAX_MESSAGE_BYTES, QUAT_NORM_TOL, PSD_TOL)
-    return _pose.decode
+    return _pose
 
 
-_NATIVE_POSE = _native_pose()
+_NATIVE: Any = _native_pose()
+_NATIVE_POSE: Callable[[bytes], Any] | None = None if _NATIVE is None else _NATIVE.decode
+_NATIVE_ENCODE: Callable[..., bytes | None] | None = None if _NATIVE is None else _NATIVE.encode
 
 
 def decode_pose(data: bytes) -> PoseSample:

@@ -123,3 +123,45 @@ def test_add_decoded_fills_the_buffer_as_add_measurement_does() -> None:
     b.add_static("w", "y", [0, 0, 0], [0, 0, 0, 1], source="cal")
     with pytest.raises(ValueError, match="static"):
         b.add_decoded("w", "y", 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), source="cal")
+
+
+def _encoded(encode, *args):
+    try:
+        return encode(*args)
+    except ValueError as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
+def test_encode_pose_makes_the_bytes_and_refusals_of_the_python_encoder() -> None:
+    rng = np.random.default_rng(11)
+    times = [0, 5, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**62, 2**63 - 1,
+             -1, 2**63, True, np.int64(5), 1.0]
+    positions = [[0.0, -0.0, 1e300], [1, 2, 3], (0.5, 2.0, -3.25), np.array([1.0, 2.0, 3.0]),
+                 np.array([1.0, 2.0, 3.0], dtype=np.float32), np.arange(6.0)[::2],
+                 [[1.0, 2.0, 3.0]], [1.0, 2.0], [1.0, math.nan, 3.0], [math.inf, 0.0, 0.0],
+                 ["a", 2.0, 3.0], [True, 2.0, 3.0], [2**70, 1.0, 2.0]]
+    quaternions = [[0.0, 0.0, 0.0, 1.0], [0, 0, 0, 1], (0.0, 0.0, 0.6, 0.8),
+                   np.array([0.0, 0.0, 0.0, 1.0004]), [0.0, 0.0, 0.0, 1.002], [0.0] * 4,
+                   [0.0, 0.0, 0.0], [0.0, math.nan, 0.0, 1.0], [0.1, 0.2, 0.3]]
+    seqs = [None, 0, 1, 300, 2**40, -1, True, 2**63]
+    for _ in range(100):
+        q = rng.normal(size=4)
+        quaternions.append((q * (1 + rng.uniform(-2e-3, 2e-3)) / np.linalg.norm(q)).tolist())
+        positions.append(rng.normal(size=3) * 10.0 ** rng.integers(-5, 5))
+    native = codec._NATIVE_ENCODE or codec._encode_pose
+    cases = 0
+    for k, t in enumerate(times):
+        for p in positions:
+            q = quaternions[(k + cases) % len(quaternions)]
+            seq = seqs[cases % len(seqs)]
+            cases += 1
+            want = _encoded(codec._encode_pose, t, p, q, None, seq)
+            assert _encoded(encode_pose, t, p, q, None, seq) == want
+            got = _encoded(native, t, p, q, seq) if native is not codec._encode_pose else want
+            assert got is None or got == want, (t, p, q, seq)
+    for q in quaternions:
+        want = _encoded(codec._encode_pose, 7, [1.0, 2.0, 3.0], q, None, 9)
+        assert _encoded(encode_pose, 7, [1.0, 2.0, 3.0], q, None, 9) == want
+    if codec._NATIVE_ENCODE is not None:  # the common case is the compiled one's
+        assert codec._NATIVE_ENCODE(1, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], 3) is not None
+        assert codec._NATIVE_ENCODE(1, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), None)
