@@ -15,8 +15,9 @@ is for:
 * Either way the pose is then refined against every camera's 2D observations at one
   time, the newest exposure of the set, with the filter's velocities bringing the other
   cameras' observations to it (``pose``); observations further than ``outlier_px`` from
-  the fit are dropped one by one.  A pose needs rays from 2 cameras at least.  The fit
-  then updates the filter (``motion``), whose pose and covariance are the output.
+  the fit, or than ``outlier_sigmas`` of their own std, are dropped one by one.  A pose
+  needs rays from 2 cameras at least.  The fit then updates the filter (``motion``),
+  whose pose and covariance are the output.
 """
 
 from __future__ import annotations
@@ -60,7 +61,8 @@ class TrackerParams:
     identify_tolerance_m: float = 0.005   # distance signature tolerance when searching
     gate_px: float = 5.0                  # blob distance to a predicted marker
     ambiguity_ratio: float = 0.6          # nearest / second nearest blob must be below it
-    outlier_px: float = 0.4               # an observation further from the fit is dropped
+    outlier_px: float = 0.4               # an observation further from the fit is dropped,
+    outlier_sigmas: float = 5.0           # ... or further than this many of its stds
     max_rms_px: float = 1.0               # a fit with a larger rms is refused
     lost_after: int = 5                   # frame sets without a pose before a new search
     health: HealthParams = field(default_factory=HealthParams)
@@ -240,8 +242,8 @@ class OutsideInTracker:
             fit = refine_pose(track.body.markers, obs, p0, R0, motion)
             if fit is None:
                 break
-            worst, err = _worst(fit, obs)
-            if err <= p.outlier_px:
+            worst, err, sigmas = _worst(fit, obs)
+            if err <= p.outlier_px and sigmas <= p.outlier_sigmas:
                 break
             del pairs[worst]
         if fit is None or fit.rms_px > p.max_rms_px:
@@ -339,8 +341,10 @@ def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[R
     return out
 
 
-def _worst(fit: PoseFit, obs: list[Observation]) -> tuple[tuple[int, int], float]:
-    """The observation furthest from the fitted pose: ``(camera, marker)`` and pixels."""
+def _worst(fit: PoseFit, obs: list[Observation]) -> tuple[tuple[int, int], float, float]:
+    """The observation furthest from the fitted pose for its std: ``(camera, marker)``,
+    its distance in pixels and in stds."""
     keys = [(o.index, int(m)) for o in obs for m in o.markers]
-    i = int(np.argmax(fit.errors_px))
-    return keys[i], float(fit.errors_px[i])
+    sigmas = fit.errors_px / np.concatenate([o.std_px for o in obs])
+    i = int(np.argmax(sigmas))
+    return keys[i], float(fit.errors_px[i]), float(sigmas[i])
