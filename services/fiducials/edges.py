@@ -7,9 +7,10 @@ far).  A straight edge's mid-level crossing does not move under a symmetric blur
 as ARToolKit and AprilTag do, each side is located along its whole length and the corners
 are the intersections of the four fitted lines:
 
-1. along each side of the detected quad, ``SAMPLES`` points away from the corners; at
-   each, the image profile across the side (``cv2.remap``, bilinear), from most of a
-   module inside (the black border) to as far outside (the white quiet zone);
+1. along each side, ``SAMPLES`` points away from the corners (placed from the corners
+   of a first pass of the same kind, started from the detected quad); at each, the
+   image profile across the side (``cv2.remap``, bilinear), from most of a module
+   inside (the black border) to as far outside (the white quiet zone);
 2. where the profile crosses the middle between its two ends: one sub-pixel edge point;
 3. the edge points undistorted (the lens bends straight sides), one least-squares line per
    side (the points' principal axis, as ``cv2.fitLine`` with ``DIST_L2``, vectorised over
@@ -28,13 +29,18 @@ import numpy as np
 
 from services.camera.model import CameraModel
 
-#: edge points per side, spread over its middle ``SPAN`` (the rest is the corners' blur;
-#: further out they follow the detector's corner jitter): on simulated 640x480 frames
-#: (seeds 1-10 of ``uma eval fiducials``) 18 over 0.7 of the side put the corners 0.109 /
-#: 0.122 / 0.187 / 0.362 px (RMS) from the truth at 0.5 / 1 / 1.5 / 2 m, where 12 over
-#: the middle 0.6 put them 0.118 / 0.134 / 0.215 / 0.401 px
-SAMPLES = 18
-SPAN = 0.7
+#: edge points per side over its middle ``SPAN`` (the rest is the corners' blur), placed
+#: from the corners of a first, cheaper pass (``FIRST_SAMPLES`` over ``FIRST_SPAN``, lines
+#: fitted in distorted pixels): placed from the detector's own corners, which jitter by
+#: up to a pixel, points that near a corner follow the jitter.  On simulated 640x480
+#: frames (seeds 1-10 of ``uma eval fiducials``) the corners came out 0.089 / 0.093 /
+#: 0.143 / 0.270 px (RMS) from the truth at 0.5 / 1 / 1.5 / 2 m, where one pass of 18 over
+#: 0.7 put them 0.111 / 0.117 / 0.173 / 0.335 px and 12 over 0.6 0.118 / 0.134 / 0.215 /
+#: 0.401 px (AprilTag 3's: 0.117 / 0.107 / 0.197 / 0.279 px)
+SAMPLES = 20
+SPAN = 0.86
+FIRST_SAMPLES = 8
+FIRST_SPAN = 0.6
 STEPS = 13
 MIN_CONTRAST = 20.0
 MIN_POINTS = 3
@@ -48,12 +54,18 @@ REACH_MIN_PX = 2.5
 FALLBACK_STD = 1.0
 
 
-#: where along a side its edge points are sampled, and the profile's steps across it
-_FRAC = np.linspace((1 - SPAN) / 2, (1 + SPAN) / 2, SAMPLES)[:, None]
+#: the profile's steps across a side
 _OFFS = np.linspace(-1.0, 1.0, STEPS)
 _CENTRE = STEPS // 2
 #: side k runs from corner k to corner k + 1; corner k lies on sides k - 1 and k
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
+
+
+def _fractions(span: float, samples: int) -> np.ndarray:
+    return np.linspace((1 - span) / 2, (1 + span) / 2, samples)[:, None]
+
+
+_FIRST, _SECOND = _fractions(FIRST_SPAN, FIRST_SAMPLES), _fractions(SPAN, SAMPLES)
 
 
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
@@ -64,16 +76,47 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
         return quads, np.zeros((0, 4, 2, 2))
+    # first pass, in distorted pixels: where to place the second's points
+    edge, good, reach = _edge_points(gray, quads, modules, _FIRST)
+    w = good.astype(np.float64)
+    mean, _, direction = _lines(edge, w)
+    placed, ok = _intersections(np.where((w.sum(-1) < MIN_POINTS)[..., None], quads, mean),
+                                direction, quads, reach)
+    placed = np.where(ok[:, None, None], placed, quads)
+    edge, good, reach = _edge_points(gray, placed, modules, _SECOND)
+    # the detected corners and the edge points undistorted in one call
+    both = camera.ideal_pixels(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]))
+    fallback = both[:quads.size // 2].reshape(quads.shape)
+    ideal = both[quads.size // 2:].reshape(edge.shape)
+    # one line per side through its edge points (least squares: the points' principal
+    # axis), or through the side's detected corners when too few edge points were found
+    w = good.astype(np.float64)
+    mean, dev, direction = _lines(ideal, w)
+    chord = fallback[:, _NEXT] - fallback
+    chord /= np.maximum(np.sqrt(np.einsum("nkc,nkc->nk", chord, chord)), 1e-9)[..., None]
+    few = (w.sum(-1) < MIN_POINTS)[..., None]
+    point = np.where(few, fallback, mean)
+    direction = np.where(few, chord, direction)
+    corners, ok = _intersections(point, direction, fallback, reach)
+    cov = _corner_covariance(corners, point, direction, dev, w, few)
+    cov = np.where(ok[:, None, None, None], cov, FALLBACK_STD ** 2 * np.eye(2))
+    return np.where(ok[:, None, None], corners, fallback), cov
+
+
+def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel edge points (n, 4, len(fractions), 2) along the sides of ``quads`` at
+    ``fractions`` of each side, whether each was found, and the reach (n, 4, 1) px."""
     side = quads[:, _NEXT] - quads
     length = np.sqrt(np.einsum("nkc,nkc->nk", side, side))[..., None]
     along = side / np.maximum(length, 1e-9)
     # OpenCV's corners run clockwise in the image: the outward normal is along's left turn
     normal = along[..., ::-1] * [1.0, -1.0]
-    # half a module across each side: the cells' width there is the neighbouring sides'
-    # length over the module count (a tilted tag is narrower one way than the other)
+    # the cells' width across a side is the neighbouring sides' length over the module
+    # count (a tilted tag is narrower one way than the other)
     reach = np.maximum(REACH_MODULES / 2 / modules * (length[:, _PREV] + length[:, _NEXT]),
-                       REACH_MIN_PX)  # (n, 4, 1) pixels
-    base = quads[:, :, None, :] + _FRAC * side[:, :, None, :]  # (n, 4, SAMPLES, 2)
+                       REACH_MIN_PX)
+    base = quads[:, :, None, :] + fractions * side[:, :, None, :]
     step = reach[..., None] * normal[:, :, None, :]  # (n, 4, 1, 2)
     pts = (base[:, :, :, None, :] + _OFFS[:, None] * step[:, :, :, None, :]).astype(np.float32)
     profile = cv2.remap(gray, pts[..., 0].reshape(1, -1), pts[..., 1].reshape(1, -1),
@@ -89,29 +132,13 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     pick = np.argmin(np.abs(where), axis=-1)
     s = np.take_along_axis(where, pick[..., None], -1)
     good = (bright - dark > MIN_CONTRAST) & np.isfinite(s[..., 0])
-    edge = base + np.where(good[..., None], s, 0.0) * step
-    # the detected corners and the edge points undistorted in one call
-    both = camera.undistort(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]),
-                            pixels=True)
-    fallback = both[:quads.size // 2].reshape(quads.shape)
-    ideal = both[quads.size // 2:].reshape(edge.shape)
-    # one line per side through its edge points (least squares: the points' principal
-    # axis), or through the side's detected corners when too few edge points were found
-    w = good.astype(np.float64)
-    count = w.sum(axis=-1)
-    mean = np.einsum("nks,nksc->nkc", w, ideal) / np.maximum(count, 1)[..., None]
-    dev = ideal - mean[:, :, None, :]
-    wdev = w[..., None] * dev
-    cxx, cyy = np.einsum("nksc,nksc->cnk", wdev, dev)
-    cxy = np.einsum("nks,nks->nk", wdev[..., 0], dev[..., 1])
-    theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
-    direction = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
-    chord = fallback[:, _NEXT] - fallback
-    chord /= np.maximum(np.sqrt(np.einsum("nkc,nkc->nk", chord, chord)), 1e-9)[..., None]
-    few = (count < MIN_POINTS)[..., None]
-    point = np.where(few, fallback, mean)
-    direction = np.where(few, chord, direction)
-    # corner k: side k-1 (from corner k-1) meets side k
+    return base + np.where(good[..., None], s, 0.0) * step, good, reach
+
+
+def _intersections(point: np.ndarray, direction: np.ndarray, fallback: np.ndarray,
+                   reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corner k where side k-1's line meets side k's, and per marker whether all four
+    are well defined and within three reaches of ``fallback``."""
     p1, d1 = point[:, _PREV], direction[:, _PREV]
     det = d1[..., 1] * direction[..., 0] - d1[..., 0] * direction[..., 1]
     diff = point - p1
@@ -121,9 +148,19 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     moved = corners - fallback
     ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1)
                 & (np.einsum("nkc,nkc->nk", moved, moved) < 9 * reach[..., 0] ** 2), axis=1)
-    cov = _corner_covariance(corners, point, direction, dev, w, few)
-    cov = np.where(ok[:, None, None, None], cov, FALLBACK_STD ** 2 * np.eye(2))
-    return np.where(ok[:, None, None], corners, fallback), cov
+    return corners, ok
+
+
+def _lines(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each side's least-squares line through its weighted points (n, 4, k, 2): the
+    points' mean, their deviations from it, the principal axis."""
+    mean = np.einsum("nks,nksc->nkc", w, points) / np.maximum(w.sum(-1), 1)[..., None]
+    dev = points - mean[:, :, None, :]
+    wdev = w[..., None] * dev
+    cxx, cyy = np.einsum("nksc,nksc->cnk", wdev, dev)
+    cxy = np.einsum("nks,nks->nk", wdev[..., 0], dev[..., 1])
+    theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+    return mean, dev, np.stack([np.cos(theta), np.sin(theta)], axis=-1)
 
 
 def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.ndarray,

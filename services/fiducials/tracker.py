@@ -58,11 +58,11 @@ DEFAULT_PIXEL_STD = 0.3
 FLOOR_A = 1.2
 FLOOR_B = 1.58
 #: the edge points along a side share their noise through the blur and the bilinear
-#: sampling: the eighteen of a side count as about 18 / ``EDGE_CORRELATION`` independent
+#: sampling: the twenty of a side count as about 20 / ``EDGE_CORRELATION`` independent
 #: ones, so the edge fits' corner covariance is this many times what independent points
-#: give (fitted on seeds 1-10 of ``uma eval fiducials``: median of the seeds' mean NEES
-#: 7.3 at 0.5-1 m with 2.5, 6.2 with 3)
-EDGE_CORRELATION = 3.0
+#: give (fitted on seeds 1-10 of ``uma eval fiducials``: NEES inside its band at 0.5-1 m
+#: on 9 of 10 seeds with 1.6, 2 of 10 with 3, where the means were 2.6-4.9)
+EDGE_CORRELATION = 1.6
 #: what a tiny tag's edge fits cannot show (its reach across a side spans barely a cell,
 #: the code's cells bias the crossing): ``SHARED_A / cell_px ** SHARED_B`` per axis added
 #: to each corner (0.009 px at 1 m, 0.10 px at 2 m for an 8 cm tag; fitted on seeds 1-10:
@@ -134,7 +134,8 @@ def _moved(R: np.ndarray, t: np.ndarray, T_marker_body: np.ndarray,
 def _quad_areas(quads: np.ndarray) -> np.ndarray:
     """The areas (m,) of quadrilaterals (m, 4, 2) (the shoelace formula)."""
     x, y = quads[..., 0], quads[..., 1]
-    return 0.5 * np.abs((x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1))
+    nxt = [1, 2, 3, 0]
+    return 0.5 * np.abs((x * y[:, nxt] - x[:, nxt] * y).sum(axis=1))
 
 
 def detector_parameters() -> cv2.aruco.DetectorParameters:
