@@ -50,6 +50,19 @@ def hits_of(world: IvyWorld, p: np.ndarray, q: np.ndarray) -> tuple[list[np.ndar
     return [hits[k].point for k in LABELS], [hits[k].wall for k in LABELS]
 
 
+def seen_hits(world: IvyWorld, traj: HeadTrajectory, t: float, rng: np.random.Generator,
+              ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[str]] | None:
+    """The rig's pose at ``t`` and its four hits with detection noise, diodes 1..4; None
+    if a beam misses the screens."""
+    p, q = traj.pose(t)
+    p, q = p[0], q[0]
+    hits = world.laser_hits(p, q)
+    if not all(hits[k].on_screen for k in LABELS):
+        return None
+    points, walls = hits_of(world, p, q)
+    return p, q, [x + 2e-4 * rng.normal(size=3) for x in points], walls
+
+
 def along_wall(world: IvyWorld, wall: str, angle: float) -> np.ndarray:
     """A unit vector in ``wall``'s plane."""
     R = world.walls[wall].rotation
@@ -137,13 +150,10 @@ def test_a_stray_blob_replacing_a_dot_is_never_a_confident_pose(world) -> None:
     published_wrong = caught = 0
     for i in range(240):
         t = i / RATE_HZ
-        p, q = traj.pose(t)
-        p, q = p[0], q[0]
-        hits = world.laser_hits(p, q)
-        if not all(hits[k].on_screen for k in LABELS):
+        seen = seen_hits(world, traj, t, rng)
+        if seen is None:
             continue
-        points, walls = hits_of(world, p, q)
-        points = [x + 2e-4 * rng.normal(size=3) for x in points]
+        p, q, points, walls = seen
         stray = points[1] + 0.03 * along_wall(world, walls[1], rng.uniform(0, 2 * np.pi))
         if i % 3 == 1:  # the true spot is lost: four dots, one of them the stray blob
             dots = dots_on_walls(world, [points[0], stray, *points[2:]], walls)
@@ -174,13 +184,10 @@ def test_a_stray_blob_in_a_lost_spots_place_at_a_start_is_refused(world) -> None
         tr = LaserTracker(None)
         for j in range(3):
             t = start + j / RATE_HZ
-            p, q = traj.pose(t)
-            p, q = p[0], q[0]
-            hits = world.laser_hits(p, q)
-            if not all(hits[k].on_screen for k in LABELS):
+            seen = seen_hits(world, traj, t, rng)
+            if seen is None:
                 break
-            points, walls = hits_of(world, p, q)
-            points = [x + 2e-4 * rng.normal(size=3) for x in points]
+            p, q, points, walls = seen
             if j == 1:
                 k = int(rng.integers(4))
                 points[k] = points[k] + 0.02 * along_wall(world, walls[k],
