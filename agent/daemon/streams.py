@@ -28,9 +28,10 @@ minus sample time), or while the samples come too fast to gather (a batch of
 anyway) it takes what waits in the ring, then pauses ``LOCAL_PAUSE_S``: one wake-up per
 pause instead of one per sample, a wake-up costing about what the sample's own handling
 does (and taking a core from whatever routes the sample on), and whoever reads what the
-listeners keep calls :meth:`StreamHub.flush_local` first.  That never waits: while the
-thread hands samples over, it leaves them to it (it may be a Zenoh thread answering a
-query, which must not block).
+listeners keep calls :meth:`StreamHub.flush_local` first.  That takes only what waits
+during a pause, and never waits: while the thread hands samples over, it leaves them to
+it (the caller may be a Zenoh thread answering a query, which must not block, nor take
+on the draining of a busy agent's streams).
 """
 
 from __future__ import annotations
@@ -90,6 +91,8 @@ class StreamHub:
         #: the local samples in order when another thread takes them (``flush_local``)
         self._timely_local = 0
         self._draining = threading.Lock()
+        #: the draining thread is pausing: samples wait in the ring for flush_local
+        self._pausing = False
         #: ends the local streams' thread's pause (a timely listener came, or closing)
         self._resume = threading.Event()
 
@@ -143,17 +146,19 @@ class StreamHub:
                 if taken < 0:
                     return
                 if not self._timely_local and taken < LOCAL_BATCH:
+                    self._pausing = True
                     self._resume.wait(LOCAL_PAUSE_S)
+                    self._pausing = False
                     self._resume.clear()
         except zenoh.ZError as exc:
             self._log.warning(f"data {self._local}", f"reading samples: {exc}")
 
     def flush_local(self) -> None:
         """Hand the local samples waiting in the ring to their listeners now, on this
-        thread (before reading what the listeners keep), unless the draining thread is
-        doing so right now (never waits: module docstring)."""
+        thread (before reading what the listeners keep), if the draining thread is pausing
+        (otherwise it hands them over itself; never waits: module docstring)."""
         sub = self._local_subscriber
-        if sub is not None and self._draining.acquire(blocking=False):
+        if sub is not None and self._pausing and self._draining.acquire(blocking=False):
             try:
                 self._take_waiting(sub)
             finally:
