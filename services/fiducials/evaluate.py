@@ -15,7 +15,9 @@ AprilTag (36h11) moving smoothly between 0.5 and 3 m, tilting up to 40 degrees; 
   distortion); skipped, and said so, when ``pupil_apriltags`` is not installed.
 
 Per true-distance bin (0.5 m wide): detections, position error (mm) and orientation error
-(deg), median / p95 / max; for uma also the NEES of its 6-dof covariance against chi2(6)
+(deg), median / p95 / max, each method over the frames it detected, and (``same_frames``)
+uma beside each other method over the frames both detected; for uma also the NEES of its
+6-dof covariance against chi2(6)
 (:func:`services.consistency.nees_figures`, over the samples not flagged ambiguous), how
 many samples were flagged (``covered``: covariance inflated over both IPPE solutions;
 ``history``: the solution the previous frame supports), and **silent flips**: samples
@@ -78,13 +80,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if oracle.available:
         methods["apriltag"] = oracle
     rows: dict[str, list] = {k: [] for k in methods}
-    for t in times:
+    for k, t in enumerate(times):
         image = sim.render(scene, float(t), rng)
         truth = traj(float(t))
         for name, method in methods.items():
             got = method(image, round(t * 1e9))
             if got is not None:
-                rows[name].append((truth, *got))
+                rows[name].append((k, truth, *got))
     out: dict[str, Any] = {"frames": n, "apriltag": "pupil-apriltags" if oracle.available
                            else f"skipped: {oracle.missing}"}
     depth = np.array([traj(float(t))[2, 3] for t in times])
@@ -165,7 +167,7 @@ def _stats(values: list[float]) -> dict[str, float] | None:
 def _bin(rows: dict[str, list], lo: float, hi: float, n_frames: int) -> dict[str, Any]:
     out: dict[str, Any] = {"frames": n_frames}
     for name, samples in rows.items():
-        inside = [s for s in samples if lo <= s[0][2, 3] < hi]
+        inside = [s[1:] for s in samples if lo <= s[1][2, 3] < hi]
         pos, rot, errs, covs = [], [], [], []
         flags = {"covered": 0, "history": 0}
         flips = 0
@@ -190,6 +192,20 @@ def _bin(rows: dict[str, list], lo: float, hi: float, n_frames: int) -> dict[str
                          nees=nees_figures(np.array(errs), np.array(covs)) if len(errs) > 2
                          else None)
         out[name] = entry
+    out["same_frames"] = {other: _same_frames(rows, other, lo, hi) for other in rows
+                          if other != "uma"}
+    return out
+
+
+def _same_frames(rows: dict[str, list], other: str, lo: float, hi: float) -> dict[str, Any]:
+    """uma's and ``other``'s errors on the frames of the bin both detected."""
+    theirs = {s[0]: s for s in rows[other] if lo <= s[1][2, 3] < hi}
+    pairs = [(s, theirs[s[0]]) for s in rows["uma"] if s[0] in theirs]
+    out: dict[str, Any] = {"frames": len(pairs)}
+    for name, column in (("uma", 0), (other, 1)):
+        errors = [_errors(p[column][1], p[column][2], p[column][3])[1:] for p in pairs]
+        out[name] = {"position_mm": _stats([e[0] for e in errors]),
+                     "orientation_deg": _stats([e[1] for e in errors])}
     return out
 
 
