@@ -53,6 +53,9 @@ TOE_IN_RAD = 0.25
 TARGET = f"markers/{FAMILY}-{TAG_ID}"
 #: a camera without a sample this close to a moment does not see the tag then
 UNSEEN_S = 0.25
+#: a camera counts as the better one when it stays so this long (the time within which
+#: the need should follow it)
+HOLD_S = 0.5
 
 
 def _endpoint() -> str:
@@ -251,8 +254,10 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
 
 def _better_changes(claims: dict[str, list[tuple[float, float]]]) -> list[tuple[float, str]]:
     """(wall time, side) each time the other camera's claimed position std (smoothed over
-    half a second) becomes the smaller one; a camera with no sample within ``UNSEEN_S``
-    of a moment does not see the tag then (worse than any claim)."""
+    half a second) becomes the smaller one and stays so for ``HOLD_S`` (a shorter lead
+    is noise a need should not chase); a camera with no sample within ``UNSEEN_S`` of a
+    moment does not see the tag then (worse than any claim), and while neither sees it
+    neither is the better."""
     if len(claims) < 2:
         return []
     grid = np.arange(max(c[0][0] for c in claims.values()), min(c[-1][0] for c in
@@ -262,11 +267,19 @@ def _better_changes(claims: dict[str, list[tuple[float, float]]]) -> list[tuple[
         t, s = np.array(rows).T
         at = np.interp(grid, t, np.convolve(np.pad(s, 3, mode="edge"), np.ones(7) / 7,
                                             mode="valid"))
-        nearest = np.abs(t[np.clip(np.searchsorted(t, grid), 0, len(t) - 1)] - grid)
-        before = np.abs(t[np.clip(np.searchsorted(t, grid) - 1, 0, len(t) - 1)] - grid)
-        smooth[side] = np.where(np.minimum(nearest, before) > UNSEEN_S, np.inf, at)
+        after = np.clip(np.searchsorted(t, grid), 0, len(t) - 1)
+        nearest = np.minimum(np.abs(t[after] - grid), np.abs(t[np.maximum(after - 1, 0)] - grid))
+        smooth[side] = np.where(nearest > UNSEEN_S, np.inf, at)
     best = np.where(smooth["left"] <= smooth["right"], "left", "right")
-    return [(float(grid[i]), str(best[i])) for i in range(1, len(best)) if best[i] != best[i - 1]]
+    seen = np.isfinite(np.minimum(smooth["left"], smooth["right"]))
+    hold = round(HOLD_S / 0.1)
+    changes, current = [], None
+    for i in np.flatnonzero(seen):
+        if best[i] != current and np.all(best[i:i + hold][seen[i:i + hold]] == best[i]):
+            if current is not None:
+                changes.append((float(grid[i]), str(best[i])))
+            current = best[i]
+    return changes
 
 
 def main(args: argparse.Namespace) -> int:
