@@ -44,6 +44,9 @@ from services.outside_in.triangulation import match_and_triangulate
 Array = np.ndarray
 #: wand frame sets per second the simulation records (a wand needs no more)
 SIM_WAND_HZ = 20
+#: seconds of the still L-frame the simulation records, at the cameras' own rate (what a
+#: real recording of "a second or two" holds; its frames are averaged)
+SIM_LFRAME_S = 1.0
 
 
 def calibrate_rig_command(args: argparse.Namespace) -> int:
@@ -115,7 +118,9 @@ def simulate_recordings(seed: int, n_cameras: int, n_frames: int, folder: Path,
                     (sim.render(c, stride * i, wave).image for i in range(n_frames)),
                     SIM_WAND_HZ)
         write_video(folder / f"{cam.name}.lframe.avi",
-                    (sim.render(c, 10**6 + i, still).image for i in range(20)), SIM_WAND_HZ)
+                    (sim.render(c, 10**6 + i, still).image
+                     for i in range(round(SIM_LFRAME_S * sim.config.rate_hz))),
+                    sim.config.rate_hz)
     return sim
 
 
