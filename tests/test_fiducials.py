@@ -266,16 +266,9 @@ def test_service_publishes_marker_poses_from_a_video(processes, realm, tmp_path)
 
 
 def test_readme_example_tracks_a_simulated_tag():
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
+    from agent_helpers.readme import readme_block, run_python
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    (code,) = [b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S)
-               if "FiducialTracker(camera" in b]
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60)
+    done = run_python(readme_block("FiducialTracker(camera"), timeout=60)
     assert done.returncode == 0, done.stderr
     first = done.stdout.splitlines()[0]
     assert first.startswith("apriltag36h11-0 none [ 100.") and first.endswith("mm")

@@ -192,17 +192,24 @@ def test_a_forged_snapshot_epoch_does_not_freeze_the_realm(processes, realm) -> 
     consumer.wait_for(lambda e: first_from(e, "cam"))
 
 
-def test_a_forged_snapshot_revision_jump_is_confirmed_first(processes, realm) -> None:
-    """A snapshot of hostB under its real epoch, 5,000 revisions ahead and with no services,
-    would take hostB's camera from hostA's matching until hostB's own revisions caught up
-    (for good when they counted one per change); it is more than the time passed allows,
-    so hostA asks hostB, which answers with its camera."""
+@pytest.fixture
+def camera_on_b(processes, realm):
+    """hostA (endpoint, process) with a consumer matched to the camera of hostB."""
     ea, eb = endpoint(free_port()), endpoint(free_port())
     host_a = agent(processes, realm, "hostA", ea)
     agent(processes, realm, "hostB", eb, connect=(ea,))
     consumer = service(processes, realm, "fusion", "hostA", ea, "--need", "head")
     service(processes, realm, "cam", "hostB", eb, *PRODUCER)
     consumer.wait_for(lambda e: first_from(e, "cam"))
+    return ea, host_a, consumer
+
+
+def test_a_forged_snapshot_revision_jump_is_confirmed_first(camera_on_b, realm) -> None:
+    """A snapshot of hostB under its real epoch, 5,000 revisions ahead and with no services,
+    would take hostB's camera from hostA's matching until hostB's own revisions caught up
+    (for good when they counted one per change); it is more than the time passed allows,
+    so hostA asks hostB, which answers with its camera."""
+    ea, host_a, consumer = camera_on_b
     with open_session(connect=[ea]) as s:
         real = snapshot(s, realm, "hostB")
         s.put(keys.agent_services(realm, "hostB"), snapshot_message(
@@ -213,17 +220,12 @@ def test_a_forged_snapshot_revision_jump_is_confirmed_first(processes, realm) ->
     assert not any(e.get("event") == "match" and not e["keys"] for e in consumer.events[mark:])
 
 
-def test_a_forged_snapshot_within_the_slack_is_not_applied(processes, realm) -> None:
+def test_a_forged_snapshot_within_the_slack_is_not_applied(camera_on_b, realm) -> None:
     """A snapshot of hostB under its real epoch, a few milliseconds ahead and with no
     services, is within what the time passed allows; anyone can read the epoch, and here
     the forger also answers for hostB.  hostA applies only what hostB's ask is answered
     with, and refuses two different answers: the consumer keeps hostB's camera."""
-    ea, eb = endpoint(free_port()), endpoint(free_port())
-    host_a = agent(processes, realm, "hostA", ea)
-    agent(processes, realm, "hostB", eb, connect=(ea,))
-    consumer = service(processes, realm, "fusion", "hostA", ea, "--need", "head")
-    service(processes, realm, "cam", "hostB", eb, *PRODUCER)
-    consumer.wait_for(lambda e: first_from(e, "cam"))
+    ea, host_a, consumer = camera_on_b
     mark = consumer.mark
     with open_session(connect=[ea]) as s:
         real = snapshot(s, realm, "hostB")

@@ -341,15 +341,9 @@ def test_eval_outside_in_meets_its_goals_on_a_seed() -> None:
 
 
 def test_readme_example_runs() -> None:
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    (block,) = [b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S)
-                if "OutsideInTracker(" in b]
-    done = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True,
-                          timeout=120)
+    from agent_helpers.readme import readme_block, run_python
+
+    done = run_python(readme_block("OutsideInTracker("), timeout=120)
     assert done.returncode == 0, done.stderr
     assert {"head", "wand", "hand"} <= {line.split()[0] for line in done.stdout.splitlines()}
 

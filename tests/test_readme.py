@@ -2,31 +2,14 @@
 
 from __future__ import annotations
 
-import re
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from agent_helpers.harness import agent
+from agent_helpers.readme import readme_block as _block
+from agent_helpers.readme import run_python as _run
 from conftest import endpoint, free_port
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def _blocks() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-
-
-def _block(marker: str) -> str:
-    found = [b for b in _blocks() if marker in b]
-    assert len(found) == 1, f"README has no single python example containing {marker!r}"
-    return found[0]
-
-
-def _run(code: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=timeout)
 
 
 def test_graph_example_runs() -> None:

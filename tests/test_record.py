@@ -285,13 +285,9 @@ def test_recorded_demo_replays_deterministically(tmp_path) -> None:
 
 
 def test_readme_rosbags_example_reads_a_recording(recorded) -> None:
-    import re
+    from agent_helpers.readme import readme_block, run_python
 
-    readme = (Path(ROOT) / "README.md").read_text()
-    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S)
-                 if "rosbags" in b)
-    out = subprocess.run([sys.executable, "-c", block.replace("lab.mcap", str(recorded))],
-                         capture_output=True, text=True, timeout=60)
+    out = run_python(readme_block("rosbags").replace("lab.mcap", str(recorded)), timeout=60)
     assert out.returncode == 0, out.stderr
     assert "ivy/world alice/head" in out.stdout
 

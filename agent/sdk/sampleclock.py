@@ -71,8 +71,8 @@ class SampleClocks:
         self.unsynced = 0
 
     def follow(self, session: zenoh.Session, agents: Iterable[str]) -> None:
-        """Measure the clocks of ``agents`` (those of the current matches) from now on;
-        agents no longer matched are no longer asked."""
+        """Measure the clocks of ``agents`` (those of the current matches) from now on,
+        and only theirs: an agent left out is not asked again."""
         remote = set(agents) - {self.own_agent}
         with self._lock:
             if self._queries is None and remote:
