@@ -145,3 +145,21 @@ def test_simulated_cameras_deliver_each_frame_at_its_exposure_time() -> None:
         sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=rate))
         ages = [time.time_ns() - t for t, _ in _sim_frames(sim, 0, threading.Event(), 6)]
         assert all(0 <= a < 0.5e9 for a in ages), (rate, ages)
+
+
+def test_prerendered_frames_are_the_rendered_ones_at_their_exposure_times() -> None:
+    """``--prerender``: the replayed images are the simulator's, to the pixel, delivered at
+    their exposure times, and the camera is silent before the first of them."""
+    import threading
+
+    from services.outside_in.service import _sim_frames
+    sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=60.0))
+    replay = sim.prerender(1, 100, 3)
+    for k in range(3):
+        t, image = replay.frame(100 + k)
+        frame = sim.render(1, 100 + k)
+        assert t == frame.t and np.array_equal(image, frame.image)
+    assert replay.frame(99) is None and replay.frame(103) is None
+    for t_ns, image in _sim_frames(sim, 0, threading.Event(), 4, prerender_s=0.1):
+        assert 0 <= time.time_ns() - t_ns < 0.5e9
+        assert np.array_equal(image, sim.render(0, round(t_ns * 60.0 / 1e9)).image)

@@ -33,6 +33,12 @@ def marker_camera_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frame rate of the simulated cameras (default 30)")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N",
                         help="stop after N frames per camera (default: never / the file's end)")
+    parser.add_argument("--prerender", type=float, default=0.0, metavar="SECONDS",
+                        help="with --sim: render SECONDS of frames first and replay them at "
+                             "their exposure times, so that the process's CPU is the "
+                             "segmentation's and not the simulator's (a real camera hands "
+                             "over finished images); frames after them are rendered live "
+                             "(default 0: all live)")
 
 
 def outside_in_arguments(parser: argparse.ArgumentParser) -> None:

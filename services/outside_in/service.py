@@ -49,7 +49,7 @@ from services.camera.capture import Capture
 from services.outside_in.blobs import Blobs, find_blobs
 from services.outside_in.bodies import load_bodies
 from services.outside_in.rigfile import load_rig
-from services.outside_in.simulator import SimConfig, Simulation
+from services.outside_in.simulator import Replay, SimConfig, Simulation
 from services.outside_in.tracker import BodyEstimate, CameraFrame, OutsideInTracker
 
 log = logging.getLogger("uma.outside_in")
@@ -92,6 +92,10 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
     if args.sim is None and set(names) - set(sources):
         raise UmaError(f"cameras {sorted(set(names) - set(sources))} need --source NAME=SOURCE "
                        "(or --sim SEED)")
+    if args.prerender and args.sim is None:
+        raise UmaError("--prerender needs --sim SEED (it renders the simulated frames ahead)")
+    if not 0 <= args.prerender <= 600:
+        raise UmaError(f"--prerender must be in [0, 600] seconds, got {args.prerender}")
     if not 0 < args.rate_hz <= 240:
         raise UmaError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
     sim = (Simulation(seed=args.sim, config=SimConfig(n_cameras=len(cams),
@@ -113,7 +117,8 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
                      on_sample=windows.on_sample)
             svc.start()
             extra = {MARKERS_CAMERA: name, MARKERS_CALIBRATION: version}
-            frames = (_sim_frames(sim, by_name[name], stop, args.max_frames) if sim
+            frames = (_sim_frames(sim, by_name[name], stop, args.max_frames,
+                                  args.prerender, len(names)) if sim
                       else _capture_frames(sources[name], stop, args.max_frames))
             t = threading.Thread(target=_publish_frames,
                                  args=(frames, out, extra, svc.clock_skew_ns, windows,
@@ -176,26 +181,53 @@ def _publish_frames(frames, out, extra: dict, skew_ns: int, windows: Windows,
                                             values=blobs.std_px, extra=extra))
 
 
-def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames: int | None):
+def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames: int | None,
+                prerender_s: float = 0.0, renderers: int = 1):
     """The simulated camera's frames, paced by the wall clock: frame ``i`` is exposed at
-    ``i / rate`` seconds since the epoch (plus the camera's phase)."""
+    ``i / rate`` seconds since the epoch (plus the camera's phase).  With ``prerender_s``
+    that many seconds of frames, starting once they are rendered (``renderers`` cameras
+    render at once), are rendered first and replayed (``Simulation.prerender``), the
+    camera silent until the first of them; frames after them are rendered live."""
     rate = sim.config.rate_hz
 
     def now_index() -> int:
         # from the rate, not a rounded period: at 120 Hz a period of 8333333 ns would put
         # the index of today's date 18 s ahead of the exposure times i / rate
         return int(time.time_ns() * rate / 1e9)
-    i = now_index() + 1
+    replay = _prerendered(sim, camera, now_index(), prerender_s, renderers) \
+        if prerender_s > 0 else None
+    i = max(now_index() + 1, replay.first if replay is not None else 0)
     n = 0
     while not stop.is_set() and (max_frames is None or n < max_frames):
-        frame = sim.render(camera, i)
-        t_ns = round(frame.t * 1e9)
+        ready = replay.frame(i) if replay is not None else None
+        if ready is None:
+            frame = sim.render(camera, i)
+            ready = frame.t, frame.image
+        t_ns = round(ready[0] * 1e9)
         wait = (t_ns - time.time_ns()) / 1e9
         if wait > 0:
             stop.wait(wait)
-        yield t_ns, frame.image
+        yield t_ns, ready[1]
         n += 1
         i = max(i + 1, now_index())   # a frame missed while busy is gone
+
+
+def _prerendered(sim: Simulation, camera: int, now: int, seconds: float,
+                 renderers: int) -> Replay:
+    """``seconds`` of the camera's frames from the index the rendering will have reached
+    when it is done (timed on a few frames, with a margin for the other cameras' rendering
+    and the machine's load)."""
+    rate = sim.config.rate_hz
+    count = max(1, round(seconds * rate))
+    sim.render(camera, now)            # the first render warms caches up: not timed
+    t0 = time.perf_counter()
+    for k in range(1, 4):
+        sim.render(camera, now + k)
+    lead_s = 1.5 * (time.perf_counter() - t0) / 3 * count * renderers + 1.0
+    replay = sim.prerender(camera, now + round(lead_s * rate), count)
+    log.info("marker-camera: %s: %d frames rendered ahead, replayed from %.3f (unix time)",
+             sim.cameras[camera].name, count, replay.times[0])
+    return replay
 
 
 def _capture_frames(source: str, stop: threading.Event, max_frames: int | None):

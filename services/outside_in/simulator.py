@@ -238,6 +238,19 @@ class Simulation:
                 self._splat(img, cam.focal_px, u, v, z, rng)
         return Frame(camera, t, img, truth)
 
+    def prerender(self, camera: int, first: int, count: int) -> Replay:
+        """Frames ``first .. first + count - 1`` of ``camera``, rendered now and kept as
+        what differs from its background, for ``Replay.frame`` to give back at a copy's
+        cost."""
+        bg = self._backgrounds[camera]
+        times, changes = [], []
+        for index in range(first, first + count):
+            frame = self.render(camera, index)
+            idx = np.flatnonzero(frame.image != bg).astype(np.int32)
+            times.append(frame.t)
+            changes.append((idx, frame.image.ravel()[idx]))
+        return Replay(first, times, bg, changes)
+
     def _splat(self, img: Array, focal: float, u: float, v: float, depth: float,
                rng: np.random.Generator) -> None:
         """Draw one marker's image (with fresh sensor noise) into ``img`` (uint8)."""
@@ -255,6 +268,28 @@ class Simulation:
         # a marker over a reflection (or another marker) shows the brighter of the two
         patch = img[y0:y1, x0:x1]
         patch[:] = np.maximum(patch, _to8(fresh))
+
+
+@dataclass(frozen=True)
+class Replay:
+    """A camera's frames rendered ahead (``Simulation.prerender``): a real camera hands
+    its host a finished image, so a benchmark of the services that replays these pays
+    for a copy per frame where live rendering would cost more than the services' work."""
+
+    first: int                            # the first frame's index
+    times: list[float]                    # exposure times (s)
+    background: Array                     # the camera's image without markers
+    changes: list[tuple[Array, Array]]    # per frame: flat pixel indices, their values
+
+    def frame(self, index: int) -> tuple[float, Array] | None:
+        """Frame ``index``'s exposure time and image; None outside the rendered ones."""
+        k = index - self.first
+        if not 0 <= k < len(self.times):
+            return None
+        img = self.background.copy()
+        idx, values = self.changes[k]
+        img.ravel()[idx] = values
+        return self.times[k], img
 
 
 #: what a camera sees at a time: ``(camera, t) -> {key: world point}``
