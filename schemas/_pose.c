@@ -261,15 +261,16 @@ static int int_arg(PyObject *x, int64_t *out) {
     return 1;
 }
 
-/* n finite numbers from a list or tuple of floats and ints, or a 1-D float64 array; 0:
- * Python decides (np.asarray(x, float) there takes more shapes and types). */
+/* n finite numbers from a list or tuple of floats (numpy's float64 is one) and ints, or a
+ * 1-D float64 array; 0: Python decides (np.asarray(x, float) there takes more shapes and
+ * types). */
 static int floats_arg(PyObject *x, double *out, Py_ssize_t n) {
     if (PyList_CheckExact(x) || PyTuple_CheckExact(x)) {
         if (PySequence_Fast_GET_SIZE(x) != n) return 0;
         PyObject **items = PySequence_Fast_ITEMS(x);
         for (Py_ssize_t k = 0; k < n; k++) {
             PyObject *v = items[k];
-            if (PyFloat_CheckExact(v)) out[k] = PyFloat_AS_DOUBLE(v);
+            if (PyFloat_Check(v)) out[k] = PyFloat_AS_DOUBLE(v); /* numpy float64 too */
             else if (PyLong_CheckExact(v)) {
                 out[k] = PyLong_AsDouble(v); /* rounded as float(int) rounds */
                 if (out[k] == -1.0 && PyErr_Occurred()) { PyErr_Clear(); return 0; }

@@ -139,7 +139,9 @@ def test_encode_pose_makes_the_bytes_and_refusals_of_the_python_encoder() -> Non
     positions = [[0.0, -0.0, 1e300], [1, 2, 3], (0.5, 2.0, -3.25), np.array([1.0, 2.0, 3.0]),
                  np.array([1.0, 2.0, 3.0], dtype=np.float32), np.arange(6.0)[::2],
                  [[1.0, 2.0, 3.0]], [1.0, 2.0], [1.0, math.nan, 3.0], [math.inf, 0.0, 0.0],
-                 ["a", 2.0, 3.0], [True, 2.0, 3.0], [2**70, 1.0, 2.0]]
+                 ["a", 2.0, 3.0], [True, 2.0, 3.0], [2**70, 1.0, 2.0],
+                 [np.float64(1.5), 2.0, 3.0], [np.float64(math.nan), 2.0, 3.0],
+                 [np.float32(1.5), 2.0, 3.0]]
     quaternions = [[0.0, 0.0, 0.0, 1.0], [0, 0, 0, 1], (0.0, 0.0, 0.6, 0.8),
                    np.array([0.0, 0.0, 0.0, 1.0004]), [0.0, 0.0, 0.0, 1.002], [0.0] * 4,
                    [0.0, 0.0, 0.0], [0.0, math.nan, 0.0, 1.0], [0.1, 0.2, 0.3]]
@@ -165,3 +167,5 @@ def test_encode_pose_makes_the_bytes_and_refusals_of_the_python_encoder() -> Non
     if codec._NATIVE_ENCODE is not None:  # the common case is the compiled one's
         assert codec._NATIVE_ENCODE(1, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], 3) is not None
         assert codec._NATIVE_ENCODE(1, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), None)
+        # numpy's float64 scalars in a list (a tracker's arithmetic) stay compiled
+        assert codec._NATIVE_ENCODE(1, [np.float64(0.5), 2.0, 3.0], [0, 0, 0, 1], 3) is not None
