@@ -2,10 +2,11 @@
 
 ``optional=True``: where the C compiler or the Python headers are missing, the build goes
 on without them and :mod:`agent.srg.kernel`, the pose decoder
-(:func:`schemas.codec.decode_pose`) and the dead reckoner
-(:mod:`services.accel_rig.integrator`) run in pure Python (same results, slower).  The
-pose decoder and the dead reckoner's step are compiled without floating-point contraction,
-so that their arithmetic rounds as Python's does.
+(:func:`schemas.codec.decode_pose`), the dead reckoner
+(:mod:`services.accel_rig.integrator`) and the marker segmentation
+(:mod:`services.outside_in.blobs`) run in pure Python (same results, slower).  The pose
+decoder, the dead reckoner's step and the segmentation are compiled without floating-point
+contraction, so that their arithmetic rounds as Python's does.
 """
 
 from setuptools import Extension, setup
@@ -15,5 +16,7 @@ setup(ext_modules=[
     Extension("schemas._pose", ["schemas/_pose.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
     Extension("services.accel_rig._step", ["services/accel_rig/_step.c"], optional=True,
+              extra_compile_args=["-ffp-contract=off"]),
+    Extension("services.outside_in._blobs", ["services/outside_in/_blobs.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
 ])

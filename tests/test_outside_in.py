@@ -5,6 +5,10 @@ filter, and the whole tracker on a few simulated frame sets."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from scipy.special import erfc
@@ -13,6 +17,7 @@ from scipy.stats import chi2
 from agent import geometry as geo
 from agent.errors import UmaError
 from services.fusion.predictor import motion_matrices
+from services.outside_in import blobs
 from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import MotionFilter
@@ -87,6 +92,55 @@ def test_windows_find_what_the_whole_frame_finds() -> None:
     assert len(whole) == 3 and len(near) == 2
     for uv in near.uv:
         assert np.min(np.linalg.norm(whole.uv - uv, axis=1)) < 1e-9
+
+
+def _same_blobs(image: np.ndarray, predicted_uv: np.ndarray | None = None) -> None:
+    """The compiled segmentation gives the pure-Python one's blobs, to the bit."""
+    compiled = blobs.NATIVE
+    try:
+        blobs.NATIVE = None
+        slow = find_blobs(image, predicted_uv=predicted_uv)
+    finally:
+        blobs.NATIVE = compiled
+    fast = find_blobs(image, predicted_uv=predicted_uv)
+    for field in ("uv", "std_px", "flux", "area", "roundness"):
+        a, b = getattr(slow, field), getattr(fast, field)
+        assert a.shape == b.shape and np.array_equal(a, b), field
+
+
+@pytest.mark.skipif(blobs.NATIVE is None, reason="the compiled segmentation is not built")
+def test_compiled_segmentation_finds_the_pure_python_blobs_to_the_bit() -> None:
+    """Simulated IR frames (markers, reflections, a rail, a lamp) whole and in windows,
+    windows that cut blobs, and random images of touching blobs, rings (the centroid
+    between pixels) and large blobs over several 32-pixel tiles of the moments."""
+    sim = Simulation(seed=2, config=SimConfig(n_cameras=4))
+    rng = np.random.default_rng(0)
+    for i in range(0, 40, 5):
+        for c in range(4):
+            image = sim.render(c, i).image
+            uv = find_blobs(image).uv
+            for predicted in (None, uv + rng.normal(0, 2, uv.shape),
+                              uv + rng.normal(0, 9, uv.shape), np.array([[np.nan, 1.0]])):
+                _same_blobs(image, predicted)
+    for _ in range(60):
+        h, w = rng.integers(5, 120, 2)
+        image = rng.integers(0, 60, (h, w)).astype(np.uint8)
+        yy, xx = np.mgrid[0:h, 0:w]
+        for _ in range(rng.integers(0, 10)):
+            d = np.hypot(yy - rng.integers(0, h), xx - rng.integers(0, w))
+            r = rng.uniform(0.5, 13.0)
+            m = np.abs(d - r) < 1 if rng.random() < 0.3 else d < r
+            image[m] = np.maximum(image[m], rng.integers(51, 256, m.sum()))
+        _same_blobs(image)
+        _same_blobs(image, rng.uniform(-5, max(h, w) + 5, (rng.integers(1, 6), 2)))
+
+
+def test_pure_python_segmentation_is_forced_by_the_environment() -> None:
+    env = dict(os.environ, UMA_BLOBS_PURE_PYTHON="1")
+    out = subprocess.run([sys.executable, "-c", "from services.outside_in import blobs; "
+                          "print(blobs.NATIVE is None)"],
+                         env=env, capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "True"
 
 
 def test_fitted_centres_of_small_still_markers_lose_the_pixel_locking() -> None:

@@ -60,7 +60,7 @@ def detect_dots(image: np.ndarray, params: DetectorParams = DetectorParams()) ->
     summed intensity above the dark level, ``std_px`` the centroid's standard deviation
     from sensor noise (with a floor for systematic effects).
     """
-    _check_gray8(image)
+    check_gray8(image)
     return _merge(_components(image, 0, 0, params), params)
 
 
@@ -70,13 +70,10 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
     ones are joined, so no dot is found twice): the dots, and whether they are whole --
     False when a bright pixel lies on a window's edge inside the image, where a spot cut by
     the window would have a biased centroid."""
-    _check_gray8(image)
+    check_gray8(image)
     h, w = image.shape
     rows, whole = [], True
-    for x0, y0, x1, y1 in _joined([(max(b[0], 0), max(b[1], 0), min(b[2], w), min(b[3], h))
-                                   for b in boxes]):
-        if x1 <= x0 or y1 <= y0:
-            continue
+    for x0, y0, x1, y1 in windows_in(boxes, w, h):
         # a window is small: labelled whole, without the band search of a full frame
         found, stats = _box_components(image[y0:y1, x0:x1], x0, y0, params)
         # a component reaching an edge of the window inside the image: a cut spot
@@ -85,6 +82,15 @@ def detect_dots_in(image: np.ndarray, boxes: list[tuple[int, int, int, int]],
                                   for x, y, bw, bh, _ in stats)
         rows += found
     return _merge(np.array(rows).reshape(-1, 5), params), whole
+
+
+def windows_in(boxes: list[tuple[int, int, int, int]], width: int, height: int
+               ) -> list[tuple[int, int, int, int]]:
+    """The windows ``(x0, y0, x1, y1)`` clipped to a ``width`` x ``height`` image and joined
+    where they overlap (``_joined``), empty ones left out: where ``detect_dots_in`` looks."""
+    return [b for b in _joined([(max(b[0], 0), max(b[1], 0), min(b[2], width),
+                                 min(b[3], height)) for b in boxes])
+            if b[2] > b[0] and b[3] > b[1]]
 
 
 def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
@@ -104,7 +110,7 @@ def _joined(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int,
     return out
 
 
-def _check_gray8(image: np.ndarray) -> None:
+def check_gray8(image: np.ndarray) -> None:
     if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
         raise InvalidInputError("image must be a 2-D uint8 array (grayscale, 8 bit), got "
                                 f"{getattr(image, 'dtype', type(image))} "

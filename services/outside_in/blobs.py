@@ -11,7 +11,9 @@ window cuts a blob.  Fragments are never merged: two markers close together must
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -22,6 +24,7 @@ from services.laser_camera.detection import (
     AREA,
     FLUX,
     DetectorParams,
+    check_gray8,
     detect_dots,
     detect_dots_in,
 )
@@ -86,26 +89,74 @@ def find_blobs(image: Array, params: BlobParams = BlobParams(),
                predicted_uv: Array | None = None) -> Blobs:
     """Round bright blobs of ``image``: in windows around ``predicted_uv`` (n, 2) when
     given, the whole frame when not or when a window cuts a blob."""
-    det = params.detector()
-    rows = None
+    check_gray8(image)
+    windows = None
     if predicted_uv is not None and len(predicted_uv):
+        uv = np.asarray(predicted_uv, float).reshape(-1, 2)
+        # int() of each: toward zero; far outside the image is as good as 1e9 away
+        centre = np.trunc(np.clip(uv[np.isfinite(uv).all(axis=1)], -1e9, 1e9)).astype(np.int64)
         r = params.window_px
-        boxes = [(int(u) - r, int(v) - r, int(u) + r + 1, int(v) + r + 1)
-                 for u, v in np.asarray(predicted_uv, float).reshape(-1, 2)
-                 if np.isfinite(u) and np.isfinite(v)]
-        found, whole = detect_dots_in(image, boxes, det)
-        if whole:
-            rows = found
-    if rows is None:
-        rows = detect_dots(image, det)
-    if len(rows) == 0:
+        windows = np.hstack([centre - r, centre + r + 1])   # x0, y0, x1, y1
+    segment = _segment if NATIVE is None else _segment_native
+    found = segment(image, params, windows)
+    if found is None:
+        found = segment(image, params, None)
+    refined, flux, area = found
+    if len(refined) == 0:
         return Blobs.empty()
-    refined = np.array([_refine(image, row, params) for row in rows]).reshape(-1, 4)
-    refined[:, 2] = np.hypot(refined[:, 2], crowding_px(refined[:, :2], rows[:, AREA], params))
+    refined[:, 2] = np.hypot(refined[:, 2], crowding_px(refined[:, :2], area, params))
     keep = refined[:, 3] >= params.min_roundness
-    rows, refined = rows[keep], refined[keep]
-    return Blobs(refined[:, :2].copy(), refined[:, 2].copy(), rows[:, FLUX].copy(),
-                 rows[:, AREA].copy(), refined[:, 3].copy())
+    refined = refined[keep]
+    return Blobs(refined[:, :2].copy(), refined[:, 2].copy(), flux[keep], area[keep],
+                 refined[:, 3].copy())
+
+
+Segments = tuple[Array, Array, Array]
+
+
+def _segment(image: Array, params: BlobParams, windows: Array | None) -> Segments | None:
+    """Every blob of the whole image, or of the ``windows`` ((k, 4) ``x0, y0, x1, y1``;
+    None when one cuts a blob): ``u, v, std, roundness`` (n, 4) refined (``_refine``), the
+    detector's flux and area."""
+    det = params.detector()
+    if windows is None:
+        rows = detect_dots(image, det)
+    else:
+        rows, whole = detect_dots_in(image, [tuple(b) for b in windows.tolist()], det)
+        if not whole:
+            return None
+    refined = np.array([_refine(image, row, params) for row in rows]).reshape(-1, 4)
+    return refined, rows[:, FLUX].copy(), rows[:, AREA].copy()
+
+
+def _segment_native(image: Array, params: BlobParams, windows: Array | None
+                    ) -> Segments | None:
+    """``_segment`` by the compiled twin (``_blobs.c``): the same blobs, to the bit."""
+    p = params
+    rows, whole = NATIVE.find(
+        np.ascontiguousarray(image), None if windows is None else np.ascontiguousarray(windows),
+        p.threshold, p.min_area, p.max_area, p.dark_level, p.gain, 2.0 * p.read_noise,
+        p.read_noise ** 2, 0.5 - 0.5 / np.pi, p.floor_px ** 2)
+    if not whole:
+        return None
+    out = np.frombuffer(rows, np.float64).reshape(-1, 6)
+    return out[:, :4].copy(), out[:, 4].copy(), out[:, 5].copy()
+
+
+def _native() -> Any:
+    """The compiled segmentation (``_blobs.c``), or None (not built, or
+    ``UMA_BLOBS_PURE_PYTHON=1``)."""
+    if os.environ.get("UMA_BLOBS_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from services.outside_in import _blobs
+    except ImportError:
+        return None
+    return _blobs
+
+
+#: the compiled segmentation in use (tests set it to None to run the pure-Python one)
+NATIVE: Any = _native()
 
 
 def _refine(image: Array, row: Array, p: BlobParams) -> list[float]:
