@@ -87,7 +87,19 @@ class MotionFilter:
         """Forget the body: the next measurement starts the filter again."""
         self.t = None
 
-    def start(self, t: float, p: Array, R: Array, cov: Array) -> None:
+    @property
+    def start_velocity_covariance(self) -> Array:
+        """6x6 over ``[v, omega]``: what a start knows of the velocities (zero)."""
+        cfg = self.config
+        return np.diag([cfg.initial_velocity_std ** 2] * 3 + [cfg.initial_omega_std ** 2] * 3)
+
+    def start(self, t: float, p: Array, R: Array, cov: Array,
+              sensitivity: Array | None = None) -> None:
+        """Start at a pose, at rest with the configured uncertainty.  A pose fitted to
+        cameras exposed at different times, taking the body at rest, is off by ``S dvw``
+        for the true velocities ``dvw`` (``sensitivity`` ``S``, 6 x 6 by ``[v, omega]``;
+        ``cov`` holds ``S P_v S^T``): its error and the velocities' are then correlated
+        by ``S P_v``, which the start keeps, so that the next poses correct both."""
         cfg = self.config
         self.t, self.p, self.R = t, np.asarray(p, float).copy(), np.asarray(R, float).copy()
         self.v, self.omega, self.a = np.zeros(3), np.zeros(3), np.zeros(3)
@@ -96,6 +108,10 @@ class MotionFilter:
         self.P[V_, V_] = np.eye(3) * cfg.initial_velocity_std ** 2
         self.P[W_, W_] = np.eye(3) * cfg.initial_omega_std ** 2
         self.P[A_, A_] = np.eye(3) * cfg.initial_accel_std ** 2
+        if sensitivity is not None:
+            cross = sensitivity @ self.P[V_.start:W_.stop, V_.start:W_.stop]
+            self.P[:6, V_.start:W_.stop] = cross
+            self.P[V_.start:W_.stop, :6] = cross.T
         self.refused_in_row = 0
 
     def predicted_pose(self, t: float) -> tuple[Array, Array]:

@@ -73,6 +73,8 @@ class PoseFit:
     n_cameras: int
     errors_px: Array  # (n_observations,) each marker image's distance from the fit, in the
                       # order of the observations and their markers
+    sensitivity: Array | None = None   # (6, 6) d pose / d [v, omega] of the velocities
+                                       # the fit was given (None: no camera moved)
 
     @property
     def q(self) -> Array:
@@ -109,11 +111,12 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e14:
         return None
     cov = np.linalg.inv(info)
-    if motion is not None and motion.cov is not None:
-        cov += _motion_share(stack, p, R, J, cov, motion.cov)
+    S = _sensitivity(stack, p, R, J, cov) if motion is not None else None
+    if S is not None and motion.cov is not None:
+        cov += S @ motion.cov @ S.T
     pix = stack.pixels(zero, p, R)
     return PoseFit(p, R, 0.5 * (cov + cov.T), float(np.sqrt(np.mean(pix ** 2))), len(pix),
-                   cams, pix)
+                   cams, pix, S)
 
 
 #: Gauss-Newton steps at most, and the step (m, rad) below which the fit has converged
@@ -148,22 +151,22 @@ def _gauss_newton(stack: _Stack, p: Array, R: Array) -> tuple[Array, Array, Arra
     return None
 
 
-def _motion_share(stack: _Stack, p: Array, R: Array, J: Array, cov: Array,
-                  motion_cov: Array) -> Array:
-    """The pose covariance that the velocities' uncertainty adds: a velocity error moves
-    every observation of a camera exposed ``dt`` from the pose's time by the same
+def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Array | None:
+    """How the fitted pose moves with the velocities it was given: 6 x 6 by ``[v,
+    omega]``, None when every camera exposed at the pose's time.  A velocity error dv
+    moves every observation of a camera exposed ``dt`` from the pose's time by the same
     ``dv dt`` (and turns them by ``dw dt``), one error shared by all of that camera's
-    markers, which the observations' own stds, taken as independent, cannot carry.  The
-    fit's sensitivity to the velocities, ``S = -cov J^T B`` (``B`` the residuals'
-    derivative by ``[v, omega]``), gives it: ``S motion_cov S^T``."""
+    markers, which the observations' own stds, taken as independent, cannot carry.  With
+    ``B`` the residuals' derivative by ``[v, omega]`` the fit moves by ``S = -cov J^T
+    B`` per unit of velocity error, and ``S motion_cov S^T`` is what that error adds to
+    the pose's covariance."""
     dt = stack.dt
     if not np.any(dt):
-        return np.zeros((6, 6))
+        return None
     # a velocity error dv shifts a marker by dv dt, a turn rate error dw turns it by dw dt
     scale = (stack.scale * dt)[:, None, None]
     B = (stack.by_shift_and_turn(np.zeros(6), p, R) * scale).reshape(-1, 6)
-    S = -cov @ (J.T @ B)
-    return S @ motion_cov @ S.T
+    return -cov @ (J.T @ B)
 
 
 def _moved(motion: Motion | None, dt_s: float) -> tuple[Array, Array]:

@@ -235,7 +235,11 @@ class OutsideInTracker:
             motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.velocity_covariance)
             blur = _motion_std(f.P, float(np.max(np.linalg.norm(track.body.markers, axis=1))))
         else:
-            (p0, R0), motion, blur = start, None, 0.0
+            # a body just found: its motion is not known yet, so the fit takes it at rest,
+            # and with cameras exposed at different times its covariance holds how far
+            # the start's velocity uncertainty moves it (the filter starts with both)
+            (p0, R0), blur = start, 0.0
+            motion = Motion(np.zeros(3), np.zeros(3), track.filter.start_velocity_covariance)
         fit = None
         while True:
             obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref, p0, blur)
@@ -249,7 +253,9 @@ class OutsideInTracker:
         if fit is None or fit.rms_px > p.max_rms_px:
             self.counts["refused_fit"] += 1
             return None
-        if not track.filter.update(t_ref, fit.p, fit.R, fit.cov):
+        if acquired:
+            track.filter.start(t_ref, fit.p, fit.R, fit.cov, fit.sensitivity)
+        elif not track.filter.update(t_ref, fit.p, fit.R, fit.cov):
             self.counts["refused_filter"] += 1
             return None
         self.counts["acquired" if acquired else "tracked"] += 1
@@ -291,7 +297,6 @@ class OutsideInTracker:
                                           X[[i for _, i in idx]])
             pairs = {(cams[ci], m): (cams[ci], keep[ci][b])
                      for m, i in idx for ci, b in points[i].views}
-            track.filter.reset()           # a new track: no motion to carry over
             est = self._estimate(track, pairs, frames, norm, t_ref, acquired=True,
                                  start=(p0, R0))
             if est is not None:
