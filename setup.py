@@ -2,17 +2,20 @@
 
 ``optional=True``: where the C compiler or the Python headers are missing, the build goes
 on without them and :mod:`agent.srg.kernel`, the pose decoder
-(:func:`schemas.codec.decode_pose`), the dead reckoner
+(:func:`schemas.codec.decode_pose`), the answer reader
+(:func:`agent.protocol.query.pose_from_wire`), the dead reckoner
 (:mod:`services.accel_rig.integrator`) and the marker segmentation
 (:mod:`services.outside_in.blobs`) run in pure Python (same results, slower).  The pose
-decoder, the dead reckoner's step and the segmentation are compiled without floating-point
-contraction, so that their arithmetic rounds as Python's does.
+decoder, the answer reader, the dead reckoner's step and the segmentation are compiled
+without floating-point contraction, so that their arithmetic rounds as Python's does.
 """
 
 from setuptools import Extension, setup
 
 setup(ext_modules=[
     Extension("agent.srg._kernel", ["agent/srg/_kernel.c"], optional=True),
+    Extension("agent.protocol._wire", ["agent/protocol/_wire.c"], optional=True,
+              extra_compile_args=["-ffp-contract=off"]),
     Extension("schemas._pose", ["schemas/_pose.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
     Extension("services.accel_rig._step", ["services/accel_rig/_step.c"], optional=True,

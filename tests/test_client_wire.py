@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from agent import geometry as geo
+from agent.protocol import query
 from agent.protocol.query import attributes_from_wire, pose_from_wire, result_to_wire
 from agent.srg import Graph
 from schemas.models import PoseResultMessage as PoseModel
@@ -160,7 +162,7 @@ def test_remembered_ids_change_no_verdict():
     check = _IdCheck(r"^[a-z]+$", 5, limit=2)
     for name in ("a", "b", "c", "a"):
         assert check(name, "id") == name
-    assert len(check._valid) <= 2
+    assert len(check.valid) <= 2
     for wrong in ("toolong", "B", 3, ["a"]):
         with pytest.raises(ValueError, match="id"):
             check(wrong, "id")
@@ -207,3 +209,90 @@ def test_a_local_result_is_sent_and_read_as_the_models_fields():
         assert d.keys() == PoseModel.model_fields.keys()
     taken = set(inspect.signature(PoseResult).parameters)
     assert set(PoseModel.model_fields) - {"source", "target"} <= taken
+
+
+compiled = pytest.mark.skipif(
+    query._NATIVE_RESULT is None,
+    reason="the compiled reader (agent/protocol/_wire.c) is not in use: not built, or "
+           "UMA_CODEC_PURE_PYTHON=1")
+
+
+def _compiled(d: dict, to_local=None):
+    """The compiled reader's own answer (None: it leaves ``d`` to Python)."""
+    p, q, cov = np.empty(3), np.empty(4), np.empty((6, 6))
+    return query._NATIVE_RESULT(d, query._frame_id.valid, query._agent_id.valid, to_local,
+                                p, q, cov)
+
+
+def _python(d: dict, to_local=query._same_time, monkeypatch=None):
+    monkeypatch.setattr(query, "_NATIVE_RESULT", None)
+    try:
+        return pose_from_wire(d, to_local)
+    finally:
+        monkeypatch.undo()
+
+
+def _same_result(a, b) -> None:
+    for name in ("position", "quaternion", "covariance"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None and y is None) or np.array_equal(x, y), name
+    assert (a.path, a.edges, a.t_ns, a.extrapolated_s, a.stamps, a.attributes) == (
+        b.path, b.edges, b.t_ns, b.extrapolated_s, b.stamps, b.attributes)
+
+
+@compiled
+@pytest.mark.parametrize("i", range(4))
+def test_the_compiled_reader_reads_answers_as_the_python_one(i, monkeypatch):
+    """An agent's answer, with ids already seen: read by the compiled twin (not left to
+    Python), to the same bits, times mapped by the same function."""
+    d = answers()[i]
+    d["quaternion"] = [x * 1.0004 for x in d["quaternion"]]  # renormalised alike
+    want = _python(d, lambda t: t - 5, monkeypatch)
+    assert _compiled(d, lambda t: t - 5) is not None
+    _same_result(pose_from_wire(d, lambda t: t - 5), want)
+    _same_result(pose_from_wire(d), _python(d, monkeypatch=monkeypatch))
+
+
+@compiled
+@pytest.mark.parametrize("name", sorted(DAMAGES))
+def test_the_compiled_reader_leaves_every_damage_to_python(name):
+    pose_from_wire(answers()[0])  # its ids are known
+    d = copy.deepcopy(answers()[0])
+    DAMAGES[name](d)
+    assert _compiled(d) is None
+
+
+LEFT_TO_PYTHON = {
+    "a nested attribute": _set(["attributes", "note"], [1, {"a": 2}]),
+    "integers in position": _set(["position"], [1, 2, 3]),
+    "a bool extrapolation": _set(["extrapolated_s"], False),
+    "no covariance": _set(["covariance"], None),
+    "an id not seen before": _set(["path", 0], "fresh/frame"),
+    "a default left out": _set(["extrapolated_s"], _DELETE),
+}
+
+
+@compiled
+@pytest.mark.parametrize("name", sorted(LEFT_TO_PYTHON))
+def test_answers_either_reader_may_take_are_read_alike(name, monkeypatch):
+    """Valid answers off the agents' usual form: whichever reader takes them, the same
+    result or the same refusal."""
+    pose_from_wire(answers()[0])
+    d = copy.deepcopy(answers()[0])
+    LEFT_TO_PYTHON[name](d)
+    try:
+        want = _python(d, monkeypatch=monkeypatch)
+    except ValueError as exc:
+        with pytest.raises(ValueError, match=re.escape(str(exc))):
+            pose_from_wire(d)
+        return
+    _same_result(pose_from_wire(d), want)
+
+
+@compiled
+def test_a_time_map_that_fails_fails_alike(monkeypatch):
+    def broken(t):
+        raise OverflowError("clock")
+    pose_from_wire(answers()[3])
+    with pytest.raises(OverflowError, match="clock"):
+        pose_from_wire(answers()[3], broken)
