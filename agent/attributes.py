@@ -132,10 +132,10 @@ def uncertainty(position: Any, covariance: np.ndarray | None) -> dict[str, float
     """``pos_std_m``, ``rot_std_rad`` and ``accuracy`` (the trace) of a path's covariance."""
     if covariance is None:
         return {"pos_std_m": 0.0, "rot_std_rad": 0.0, "accuracy": 0.0}
-    pos_trace, rot_trace = geo.decoupled_traces(position, covariance)
+    pos_trace, rot_trace, trace = geo.decoupled_traces(position, covariance)
     return {"pos_std_m": math.sqrt(max(pos_trace, 0.0) / 3.0),
             "rot_std_rad": math.sqrt(max(rot_trace, 0.0) / 3.0),
-            "accuracy": float(np.trace(covariance))}
+            "accuracy": trace}
 
 
 def combine(segments: Sequence[Mapping[str, Any]], position: Any,

@@ -499,9 +499,10 @@ def se3_to_decoupled(p: Array, C: Array) -> Array:
     return J @ np.asarray(C, float) @ J.T
 
 
-def decoupled_traces(p: Array, C: Array) -> tuple[float, float]:
+def decoupled_traces(p: Array, C: Array) -> tuple[float, float, float]:
     """Traces of the position and rotation blocks of ``se3_to_decoupled(p, C)``, without
-    building it: path attributes need only these two numbers, once per answer.
+    building it, and the trace of ``C`` itself (summed in ``np.trace``'s order): path
+    attributes need only these three numbers, once per answer.
 
     With ``dp = rho - [p]x phi``: tr Cov(dp) = tr C_rr - 2 tr([p]x C_fr) + |p|^2 tr C_ff
     - p^T C_ff p (``[p]x^T [p]x = |p|^2 I - p p^T``); the rotation block is unchanged.
@@ -514,7 +515,7 @@ def decoupled_traces(p: Array, C: Array) -> tuple[float, float]:
     pCp = (x * x * c[3][3] + y * y * c[4][4] + z * z * c[5][5] + x * y * (c[3][4] + c[4][3])
            + x * z * (c[3][5] + c[5][3]) + y * z * (c[4][5] + c[5][4]))
     pos = c[0][0] + c[1][1] + c[2][2] - 2.0 * cross + (x * x + y * y + z * z) * rot - pCp
-    return pos, rot
+    return pos, rot, c[0][0] + c[1][1] + c[2][2] + c[3][3] + c[4][4] + c[5][5]
 
 
 def covariance_from_std(p: Array, pos_std_m: float | None,

@@ -435,9 +435,11 @@ def test_decoupled_covariance_matches_monte_carlo() -> None:
     C_se3 = g.decoupled_to_se3(p, C_dec)
     _assert_close_in_distribution(np.cov(xi.T), C_se3, tol=0.06)
     np.testing.assert_allclose(g.se3_to_decoupled(p, C_se3), C_dec, atol=1e-15)
-    pos_trace, rot_trace = g.decoupled_traces(p, C_se3)  # the two traces, without the matrix
+    pos_trace, rot_trace, _ = g.decoupled_traces(p, C_se3)  # without the matrix
     assert pos_trace == pytest.approx(np.trace(C_dec[:3, :3]), rel=1e-12)
     assert rot_trace == pytest.approx(np.trace(C_dec[3:, 3:]), rel=1e-12)
+    for C in (C_se3, _spd(rng, STD), np.diag(rng.uniform(0, 1, 6)) * 1e-7):
+        assert g.decoupled_traces(p, C)[2] == float(np.trace(C))  # to the bit
     iso = g.covariance_from_std(p, 0.01, 0.002)
     np.testing.assert_allclose(iso, g.decoupled_to_se3(p, np.diag([1e-4] * 3 + [4e-6] * 3)))
     assert g.covariance_from_std(p, None, None) is None

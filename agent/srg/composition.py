@@ -15,14 +15,48 @@ import numpy as np
 from agent import geometry as geo
 from agent.attributes import combine
 from agent.result import PoseResult
+from agent.srg import kernel
 
 
 def compose(results: Sequence[PoseResult], t_ns: int | None) -> PoseResult:
-    """Chain segment answers source -> target, propagating the covariance (first order)."""
-    chain = Composition(len(results))
-    for i, r in enumerate(results):
-        chain.add(i, r)
-    return chain.result(t_ns)
+    """Chain segment answers source -> target, propagating the covariance (first order).
+
+    All answers are in (an agent composing a route it holds, a client's second round), so
+    the chain is composed in one pass on floats and every covariance mapped by the pose
+    before it in one compiled call (:func:`agent.srg.kernel.propagate`), rather than run by
+    run in numpy as :class:`Composition` must while answers arrive."""
+    if not results:
+        raise ValueError("a composition needs at least one segment")
+    before: list[kernel.Pose] = []
+    covs: list[np.ndarray] = []
+    pose = _IDENTITY
+    for r in results:
+        if r.covariance is not None:
+            before.append(pose)
+            covs.append(r.covariance)
+        pose = kernel.compose(pose, (*r.position.tolist(), *r.quaternion.tolist()))
+    cov = kernel.propagate(before, covs) if covs else None
+    return _chained(results, np.array(pose[:3]), np.array(pose[3:]), cov, t_ns)
+
+
+_IDENTITY: kernel.Pose = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def _chained(results: Sequence[PoseResult], p: np.ndarray, q: np.ndarray,
+             cov: np.ndarray | None, t_ns: int | None) -> PoseResult:
+    """The composed result of ``results`` with its pose and covariance: their paths, edges
+    and stamps joined, the largest extrapolation, the attributes combined when read."""
+    path: list[str] = []
+    edges: list[dict[str, Any]] = []
+    stamps: list[tuple[int, int]] = []
+    for r in results:
+        path.extend(r.path if not path else r.path[1:])
+        edges.extend(r.edges)
+        stamps.extend(r.stamps)
+    extrapolated = max(r.extrapolated_s for r in results)
+    parts = [r.attributes for r in results]
+    return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
+                      lambda: combine(parts, p, cov))
 
 
 class Composition:
@@ -71,21 +105,11 @@ class Composition:
             raise ValueError(f"segment(s) {missing} missing from the composition")
         results: list[PoseResult] = self._results  # type: ignore[assignment]
         whole = self._starting[0]
-        path: list[str] = []
-        edges: list[dict[str, Any]] = []
-        stamps: list[tuple[int, int]] = []
-        for r in results:
-            path.extend(r.path if not path else r.path[1:])
-            edges.extend(r.edges)
-            stamps.extend(r.stamps)
-        extrapolated = max(r.extrapolated_s for r in results)
-        parts = [r.attributes for r in results]
-        p, q, cov = np.array(whole.p), np.array(whole.q), whole.cov
+        cov = whole.cov
         # a run starts from a segment's own covariance: the result must not alias it
         if cov is not None and any(cov is r.covariance for r in results):
             cov = cov.copy()
-        return PoseResult(p, q, cov, path, edges, t_ns, extrapolated, stamps,
-                          lambda: combine(parts, p, cov))
+        return _chained(results, np.array(whole.p), np.array(whole.q), cov, t_ns)
 
 
 Vec = tuple[float, ...]
