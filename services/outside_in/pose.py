@@ -190,34 +190,51 @@ class _Stack:
     turn: Array      # (k, 3, 3) Exp(omega dt)
     shift: Array     # (k, 3) v dt
     dt: Array        # (k,) exposure time minus the pose's time
+    moving: bool     # whether any observation is moved (else turn is I, shift 0)
+    last: dict       # the last pose's camera points (``_camera_points``)
 
     @staticmethod
     def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
-        cols: dict[str, list[Array]] = {k: [] for k in
-                                        ("R", "t", "f", "b", "xy", "s", "turn", "shift",
-                                         "dt")}
-        for o in obs:
-            k = len(o.markers)
-            turn, shift = _moved(motion, o.dt_s)
-            f = o.camera.focal_px
-            cols["R"].append(np.broadcast_to(o.camera.R_cw, (k, 3, 3)))
-            cols["t"].append(np.broadcast_to(o.camera.t_cw, (k, 3)))
-            cols["f"].append(np.full(k, f))
-            cols["b"].append(markers[np.asarray(o.markers, int)])
-            cols["xy"].append(np.asarray(o.xy, float).reshape(k, 2))
-            cols["s"].append(f / np.asarray(o.std_px, float))
-            cols["turn"].append(np.broadcast_to(turn, (k, 3, 3)))
-            cols["shift"].append(np.broadcast_to(shift, (k, 3)))
-            cols["dt"].append(np.full(k, o.dt_s))
-        c = {k: np.concatenate(v) for k, v in cols.items()}
-        return _Stack(c["R"], c["t"], c["f"], c["b"], c["xy"], c["s"], c["turn"], c["shift"],
-                      c["dt"])
+        counts = [len(o.markers) for o in obs]
+
+        def per_image(values: list) -> Array:   # each observation's value for its markers
+            return np.repeat(np.asarray(values, float), counts, axis=0)
+
+        def per_image_by_marker(values: list) -> Array:
+            # laid out marker index fastest, as concatenated broadcasts are: einsum's sums
+            # then round as they always have
+            return np.moveaxis(np.ascontiguousarray(np.moveaxis(per_image(values), 0, -1)),
+                               -1, 0)
+
+        moved = [_moved(motion, o.dt_s) for o in obs]
+        focal = per_image([o.camera.focal_px for o in obs])
+        std = np.concatenate([np.asarray(o.std_px, float).reshape(-1) for o in obs])
+        return _Stack(per_image_by_marker([o.camera.R_cw for o in obs]),
+                      per_image_by_marker([o.camera.t_cw for o in obs]), focal,
+                      markers[np.concatenate([np.asarray(o.markers, int) for o in obs])],
+                      np.concatenate([np.asarray(o.xy, float).reshape(-1, 2) for o in obs]),
+                      focal / std, per_image_by_marker([turn for turn, _ in moved]),
+                      per_image_by_marker([shift for _, shift in moved]),
+                      per_image([o.dt_s for o in obs]),
+                      any(o.dt_s != 0.0 for o in obs) and motion is not None, {})
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:
+        """The markers in each observing camera's frame, and their arms ``Exp(omega dt) R
+        m`` (kept for the last pose ``p0, R0`` itself, unperturbed: a Gauss-Newton step
+        asks residuals and then the Jacobian there)."""
+        at = self.last.get("at")
+        still = not x.any()
+        if still and at is not None and at[0] is p0 and at[1] is R0:
+            return self.last["points"]
         R = geo.rodrigues(x[3:]) @ R0
-        arm = np.einsum("kij,kj->ki", self.turn, self.body @ R.T)   # Exp(omega dt) R m
+        arm = self.body @ R.T
+        if self.moving:
+            arm = np.einsum("kij,kj->ki", self.turn, arm)   # Exp(omega dt) R m
         world = arm + p0 + x[:3] + self.shift
-        return np.einsum("kij,kj->ki", self.R_cw, world) + self.t_cw, arm
+        got = np.einsum("kij,kj->ki", self.R_cw, world) + self.t_cw, arm
+        if still:
+            self.last["at"], self.last["points"] = (p0, R0), got
+        return got
 
     def pixels(self, x: Array, p0: Array, R0: Array) -> Array:
         xc, _ = self._camera_points(x, p0, R0)

@@ -62,7 +62,9 @@ class RigCamera:
     @property
     def t_cw(self) -> Array:
         """World -> camera translation: ``x_c = R_cw x_w + t_cw``."""
-        return -self.R_cw @ np.asarray(self.position, float)
+        if "t_cw" not in self._cache:
+            self._cache["t_cw"] = -self.R_cw @ np.asarray(self.position, float)
+        return self._cache["t_cw"]
 
     @property
     def rvec(self) -> Array:

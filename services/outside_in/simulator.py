@@ -42,6 +42,8 @@ Array = np.ndarray
 WIDTH, HEIGHT = 640, 480
 #: a body's hull radius (m): what hides its own markers and others'
 HULL_M = 0.035
+#: exposure times whose bodies' poses a simulation keeps
+MAX_SCENES = 4096
 
 
 @dataclass(frozen=True)
@@ -148,6 +150,7 @@ class Simulation:
                        else rng.uniform(0, 1 / cfg.rate_hz, cfg.n_cameras))
         self._backgrounds = [self._background(rng) for _ in self.cameras]
         self.hidden: set[int] = set()   # cameras covered (they see nothing but dark)
+        self._scenes: dict[float, tuple[list[Array], list[Array]]] = {}
 
     def _path(self, rng: np.random.Generator, k: int) -> _Path:
         a = 2 * np.pi * k / 3 + rng.uniform(-0.3, 0.3)
@@ -199,14 +202,27 @@ class Simulation:
             out.append(geo.quat_rotate(q, b.markers) + p)
         return out
 
+    def _scene_at(self, t: float) -> tuple[list[Array], list[Array]]:
+        """The bodies' centres and markers at ``t``, read-only, kept for the frames of the
+        other cameras exposed at the same time (the poses cost a third of a frame)."""
+        got = self._scenes.get(t)
+        if got is None:
+            if len(self._scenes) >= MAX_SCENES:
+                self._scenes.clear()
+            centres = [self.body_pose(k, t)[0] for k in range(len(self.bodies))]
+            got = self._scenes[t] = (centres, self.marker_positions(t))
+            for a in (*got[0], *got[1]):
+                a.flags.writeable = False
+        return got
+
     def visible(self, camera: int, t: float) -> dict[tuple[int, int], Array]:
         """``(body, marker) -> world point`` of the markers camera sees at ``t``."""
         cam = self.cameras[camera]
         if camera in self.hidden:
             return {}
-        centres = [self.body_pose(k, t)[0] for k in range(len(self.bodies))]
+        centres, markers = self._scene_at(t)
         out = {}
-        for k, pts in enumerate(self.marker_positions(t)):
+        for k, pts in enumerate(markers):
             vis = cam.visible(pts, margin_px=3)
             for m in np.nonzero(vis)[0]:
                 if not blocked(cam.position, pts[m], centres):

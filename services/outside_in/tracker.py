@@ -111,9 +111,12 @@ class OutsideInTracker:
         self.counts = {"tracked": 0, "acquired": 0, "refused_fit": 0, "refused_filter": 0,
                        "ambiguous_blobs": 0}
         self.health = RigHealth(len(self.cameras), self.params.health)
+        #: the tracked bodies' markers predicted at a time, kept until the next frame set
+        self._ahead: dict[float, Array] = {}
 
     def process(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
         """Poses of the bodies found in one set of frames (one per camera at most)."""
+        self._ahead = {}
         frames = [f for f in frames if len(f.blobs)]
         if not frames:
             self._miss_all(set())
@@ -149,12 +152,15 @@ class OutsideInTracker:
         distorted pixels; those in front of it and inside its image): the windows its
         detector need look in (Dorfmüller-Ulhaas §2: the prediction projected into the
         images finds the markers of the next frame)."""
-        tracked = [tr for tr in self.tracks
-                   if tr.filter.ready and tr.missed < self.params.lost_after]
-        if not tracked:
+        world = self._ahead.get(t)
+        if world is None:   # synchronised cameras share their next exposure
+            tracked = [tr for tr in self.tracks
+                       if tr.filter.ready and tr.missed < self.params.lost_after]
+            world = self._ahead[t] = (np.vstack([_markers_at(tr, t) for tr in tracked])
+                                      if tracked else np.zeros((0, 3)))
+        if not len(world):
             return np.zeros((0, 2))
         cam = self.cameras[camera]
-        world = np.vstack([_markers_at(tr, t) for tr in tracked])
         return cam.project(world[cam.visible(world)])
 
     def _check_cameras(self, t: float, frames: list[CameraFrame],
