@@ -437,7 +437,9 @@ class Subscription:
             return None  # a sample of a route left meanwhile
         edge_key = feed[2]
         clock = self.queries.clock
-        gaps = self._gaps.setdefault(key, SequenceGaps())
+        gaps = self._gaps.get(key)
+        if gaps is None:
+            gaps = self._gaps[key] = SequenceGaps()
         seen = False
         try:
             t_ns, seq, p, q, cov = decode_pose(data)

@@ -82,6 +82,9 @@ def error_function(spec: str | ErrorFunction) -> ErrorFunction:
     """A built-in by name, or an expression over path attributes; ``BadErrorFunctionError`` else."""
     if isinstance(spec, ErrorFunction):
         return spec
+    builtin = BUILTIN.get(spec) if type(spec) is str else None
+    if builtin is not None:  # the common case, before the checks
+        return builtin
     if not isinstance(spec, str) or not spec.strip():
         raise BadErrorFunctionError(f"error function must be a non-empty string, got {spec!r}")
     text = spec.strip()

@@ -54,6 +54,8 @@ def _frame(name: str, value: Any) -> str:
 
 
 def _time(t_ns: Any) -> int:
+    if type(t_ns) is int:  # the common case, before the slower abstract check
+        return t_ns
     if isinstance(t_ns, bool) or not isinstance(t_ns, numbers.Integral):
         raise InvalidInputError(f"time must be integer nanoseconds since the epoch, got {t_ns!r}")
     return int(t_ns)
