@@ -197,6 +197,68 @@ def test_two_poses_start_the_filter_with_their_motion_and_an_honest_covariance()
     assert 2.0 < np.mean(nees) < 9.0
 
 
+def test_reading_spread_is_the_variance_the_linearisation_leaves_out():
+    """Monte Carlo over the rotation error and angular velocity: the exact reading minus
+    its linearisation at the estimate varies as ``reading_spreads`` says (centripetal and
+    gravity terms): at a start's 0.5 rad/s some 0.05 m/s^2 (std), more than twice the
+    readings' noise here."""
+    ekf = FusionEKF(_model())
+    _set_true_state(ekf, HeadTrajectory(5), 2.1)
+    C = np.diag([0.03**2] * 3 + [0.5**2] * 3)
+    C[0:3, 3:6] = C[3:6, 0:3] = np.eye(3) * 0.3 * 0.03 * 0.5
+    ekf.P[:6, :6] = C
+    spreads = ekf.reading_spreads()
+    rng = np.random.default_rng(3)
+    errors = rng.multivariate_normal(np.zeros(6), C, 4000)
+    for j in range(ekf.accel.count):
+        h0, H = ekf.predict_reading(j)
+        left = []
+        for e in errors:
+            snap = ekf.snapshot()
+            d = np.zeros(ekf.dim)
+            d[:6] = e
+            ekf._inject(d)
+            left.append(ekf.predict_reading(j)[0] - h0 - H[:6] @ e)
+            ekf.restore(snap)
+        assert np.var(left) == pytest.approx(spreads[j], rel=0.15), j
+    assert spreads.max() > 5 * ekf.accel.variance.max()
+
+
+def test_a_start_from_poses_far_apart_coasts_within_its_covariance():
+    """Two poses 0.3 s apart (a lone pose, then frame sets without one) give a rate that is
+    off by tenths of a rad/s: the accelerometers alone over the next 0.5 s must not make
+    the filter surer of it than it is.  Linearised without its spread, the centripetal
+    term shrank the covariance about a rate the filter never measured, and half such
+    starts turned further than the starting pose's error plus three of the filter's own
+    standard deviations (seeds 3-8, 72 starts)."""
+    traj = HeadTrajectory(4)
+    device, cal = fe.calibrated_accelerometers(300.0, 4)
+    run = accel_sim.simulate(traj, 20.0, seed=4, sensor=device, calibration=cal)
+    model = fe.accel_model(cal, HEAD_TO_ACCEL_RIG, 300.0, MODEL_FLOOR)
+    motion_t = run.t - cal.latency_s
+    rng = np.random.default_rng(4)
+    ps, rs = 1e-3, np.radians(0.05)
+    cov = np.diag([ps**2] * 3 + [rs**2] * 3)
+    ratios = []
+    for t0 in np.linspace(2.0, 18.0, 8):
+        ekf = FusionEKF(model)
+        for ti in (t0 - 0.3, t0):
+            p, q = traj.pose(ti)
+            ekf.update_pose(ti, p[0] + rng.normal(0, ps, 3),
+                            geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0]),
+                            cov)
+        p, q = traj.pose(t0)
+        e0 = geo.pose_error(ekf.position[None], ekf.q[None], p, q)
+        for i in range(np.searchsorted(motion_t, t0, "right"), np.searchsorted(motion_t, t0 + 0.5)):
+            ekf.update_accel_sample(run.t[i], run.accel[i])
+            p, q = traj.pose(ekf.t)
+            ep, er = geo.pose_error(ekf.position[None], ekf.q[None], p, q)
+            C = ekf.pose_covariance_decoupled()
+            ratios.append(max(ep[0] / (e0[0][0] + 3 * np.sqrt(np.linalg.eigvalsh(C[:3, :3])[-1])),
+                              er[0] / (e0[1][0] + 3 * np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[-1]))))
+    assert max(ratios) < 1.0
+
+
 def test_poses_too_far_apart_do_not_start_the_filter():
     ekf = FusionEKF(_model(), FusionConfig(start_max_gap_s=0.2))
     cov = np.eye(6) * 1e-6

@@ -326,8 +326,15 @@ class FusionEKF:
         return measurements.accel_reading(self.x, self._R, self.accel, j, self.gravity,
                                           self.layout)
 
-    def update_accel(self, j: int, reading: float) -> bool:
+    def reading_spreads(self) -> Array:
+        """Each accelerometer's variance of what the linearisation at the estimate leaves
+        out (``measurements.accel_reading_spreads``), added to its reading's noise."""
+        return measurements.accel_reading_spreads(self.x, self._R, self.P[:6, :6],
+                                                  self.accel, self.gravity)
+
+    def update_accel(self, j: int, reading: float, spread: float | None = None) -> bool:
         """One SCAAT update with accelerometer ``j``'s reading (m/s^2); False if gated.
+        ``spread``: ``reading_spreads()[j]`` (computed now if None).
 
         Not the vector update of the optics (``_innovation`` / ``_apply``): with a scalar
         ``S`` the gain needs no solve and ``P - P H^T H P / s`` is one outer product, where
@@ -340,7 +347,8 @@ class FusionEKF:
         pred, H = self.predict_reading(j)
         y = reading - pred
         PH = self.P @ H
-        s = float(H @ PH) + self.accel.variance[j]
+        s = float(H @ PH) + self.accel.variance[j] + (
+            self.reading_spreads()[j] if spread is None else spread)
         if y * y / s > self.config.accel_gate:
             self.stats.accel_rejected += 1
             return False
@@ -365,8 +373,12 @@ class FusionEKF:
                                     "all finite")
         self.predict_to(t - self.accel.latency_s)
         self._begin_scalar_updates()
+        # one sample's readings share the spreads of the covariance before them: the
+        # updates between them only narrow it, so the later ones are weighed a little less
+        spreads = self.reading_spreads()
         try:
-            return sum(self.update_accel(j, float(a)) for j, a in enumerate(readings))
+            return sum(self.update_accel(j, float(a), float(spreads[j]))
+                       for j, a in enumerate(readings))
         finally:
             self._end_scalar_updates()
 

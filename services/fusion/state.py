@@ -51,6 +51,8 @@ class AccelModel:
     latency_s: float = 0.0     # a reading at t describes the motion at t - latency_s
     cross: Array = field(init=False, repr=False, compare=False)  # r_j x n_j
     n_dot_r: Array = field(init=False, repr=False, compare=False)
+    #: (N, 3, 3) the centripetal term's quadratic form: n . w x (w x r) = w^T M w
+    centripetal: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = geo.check_vector(self.positions, "accelerometer positions")
@@ -68,6 +70,8 @@ class AccelModel:
         object.__setattr__(self, "variance", var)
         object.__setattr__(self, "cross", np.cross(r, self.axes))
         object.__setattr__(self, "n_dot_r", np.einsum("ij,ij->i", r, self.axes))
+        object.__setattr__(self, "centripetal", _symmetric_outer(self.axes, r)
+                           - self.n_dot_r[:, None, None] * np.eye(3))
 
     @property
     def count(self) -> int:
@@ -87,6 +91,12 @@ class AccelModel:
         n = geo.quat_rotate(q, np.asarray(axes_rig, float))
         var = np.broadcast_to(np.asarray(variance, float), (r.shape[0],)) + model_floor**2
         return cls(r, n, var, latency_s)
+
+
+def _symmetric_outer(a: Array, b: Array) -> Array:
+    """``(a b^T + b a^T) / 2`` for each row of ``a`` and ``b`` (N, 3)."""
+    ab = np.einsum("ni,nj->nij", a, b)
+    return 0.5 * (ab + ab.transpose(0, 2, 1))
 
 
 def check_config(config: object, what: str, positive: tuple[str, ...],
