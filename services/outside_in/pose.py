@@ -9,8 +9,8 @@ equally, and gives the covariance ``(J^T J)^-1`` of the pose.
 
 Observations of cameras exposed at other times than the pose's time ``t`` are moved to it
 with the filter's velocities (``Motion``): the marker a camera saw ``tau`` seconds after
-``t`` stood at ``Exp(omega tau) R m + p + v tau``.  Unsynchronised cameras then refine
-one pose instead of several poses blurred together.
+``t`` stood at ``Exp(omega tau) R m + p + v tau + a tau^2 / 2``.  Unsynchronised cameras
+then refine one pose instead of several poses blurred together.
 
 The pose is ``world -> body``: ``x_world = R x_body + p``; the covariance is over
 ``[dp, phi]`` with ``R_true = Exp(phi) R`` (geometry's decoupled form).
@@ -61,6 +61,8 @@ class Motion:
     velocity: Array   # m/s
     omega: Array      # rad/s
     cov: Array | None = None
+    accel: Array | None = None   # m/s^2: a camera exposed dt away saw the body moved by
+                                 # v dt + a dt^2 / 2 (0.1 mm at 3 m/s^2 over 8 ms)
 
 
 @dataclass(frozen=True)
@@ -170,11 +172,14 @@ def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Arr
 
 
 def _moved(motion: Motion | None, dt_s: float) -> tuple[Array, Array]:
-    """``Exp(omega dt)`` and ``v dt``: how far the body moved between two exposures."""
+    """``Exp(omega dt)`` and ``v dt + a dt^2 / 2``: how far the body moved between two
+    exposures."""
     if motion is None or dt_s == 0.0:
         return np.eye(3), np.zeros(3)
-    return (geo.rodrigues(np.asarray(motion.omega, float) * dt_s),
-            np.asarray(motion.velocity, float) * dt_s)
+    shift = np.asarray(motion.velocity, float) * dt_s
+    if motion.accel is not None:
+        shift = shift + 0.5 * dt_s * dt_s * np.asarray(motion.accel, float)
+    return geo.rodrigues(np.asarray(motion.omega, float) * dt_s), shift
 
 
 @dataclass(frozen=True)

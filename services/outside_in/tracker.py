@@ -238,7 +238,7 @@ class OutsideInTracker:
             # goes into the fit's covariance (``pose``); what they are not known to also
             # widens each observation's std, per second of exposure difference, so that the
             # fit leans on the cameras exposed nearest the pose's time
-            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.velocity_covariance)
+            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.velocity_covariance, f.a)
             blur = _motion_std(f.P, float(np.max(np.linalg.norm(track.body.markers, axis=1))))
         else:
             # a body just found: its motion is not known yet, so the fit takes it at rest,
