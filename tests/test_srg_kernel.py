@@ -39,6 +39,9 @@ def _random_chain(seed: int, hops: int) -> list[tuple]:
         if rng.random() < 0.4:
             attrs = {"pos_std_m": float(rng.uniform(1e-3, 1e-2)),
                      "rot_std_rad": float(rng.uniform(0, 1e-2))}
+        elif rng.random() < 0.2:
+            L = rng.normal(size=(6, 6)) * 1e-3
+            attrs = {"covariance": L @ L.T}
         if rng.random() < 0.3:
             p = rng.normal(size=3)
             edges.append(("static", a, b, p, geo.rotvec_to_quat(rng.normal(size=3)), attrs))
@@ -62,8 +65,9 @@ def _graph(edges: list[tuple]) -> Graph:
         if kind == "static":
             g.add_static(a, b, value, q, **attrs)
         else:
+            g.declare_measured(a, b, **attrs)
             for t, p, sq, cov in value:
-                g.add_measurement(a, b, t, p, sq, cov, **attrs)
+                g.add_measurement(a, b, t, p, sq, cov)
     return g
 
 
@@ -119,6 +123,52 @@ def test_compiled_kernel_leaves_undefined_edges_to_python():
     assert COMPILED(10_000_000 + 10**9, items_ab, False, np.empty(3), np.empty(4)) is None
     with pytest.raises(ValueError, match="float64 arrays"):
         COMPILED(5_000_000, items_ab, False, np.empty(3, np.float32), np.empty(4))
+    chain = g.best_paths("a", "c")[0]
+    with_cov = kernel.NATIVE_COVARIANCE
+    assert with_cov(5_000_000, chain._kernel_items, chain._cov_items, np.empty(3),
+                    np.empty(4), np.empty((6, 6))) is None
+
+
+@needs_compiled
+def test_compiled_covariance_is_the_chains_own():
+    """An uncertain chain is evaluated with its covariance in one compiled call, to the
+    Python path's result; a covariance that is not a 6x6 float64 array leaves it to the
+    Python path."""
+    g = Graph(max_extrapolation_s=LIMIT_S)
+    g.add_static("a", "b", [1.0, 0.0, 0.0], [0, 0, 0, 1], pos_std_m=0.01, rot_std_rad=0.02)
+    g.add_measurement("c", "b", 0, [0, 1, 0], [0, 0, 0.6, 0.8], rot_std_rad=0.01)
+    g.add_measurement("c", "b", 10_000_000, [0, 2, 0], [0, 0, 0, 1], rot_std_rad=0.01)
+    chain = g.best_paths("a", "c")[0]
+    p, q, cov = np.empty(3), np.empty(4), np.empty((6, 6))
+    got = kernel.NATIVE_COVARIANCE(4_000_000, chain._kernel_items, chain._cov_items, p, q, cov)
+    assert got is not None and got[2] is True
+    kernel.NATIVE = None
+    try:
+        want = _graph_of(g).pose("a", "c", at=4_000_000)
+    finally:
+        kernel.NATIVE = COMPILED
+    np.testing.assert_allclose(cov, want.covariance, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(p, want.position, rtol=0, atol=1e-12)
+    covs = chain._cov_items[1][0]
+    odd = (chain._cov_items[0], (covs, 1, np.eye(6, dtype=np.float32)))
+    assert kernel.NATIVE_COVARIANCE(4_000_000, chain._kernel_items, odd, p, q, cov) is None
+
+
+def _graph_of(g: Graph) -> Graph:
+    """The same edges in a new graph (its own plan and slerp-log caches)."""
+    copy = Graph(max_extrapolation_s=LIMIT_S)
+    for e in g.edges():
+        edge = g.edge(e["parent"], e["child"], e["source"])
+        if edge.buffer is None:
+            p, q, _ = edge.value
+            copy.add_static(e["parent"], e["child"], p, q, source=e["source"], **edge.attrs)
+            continue
+        copy.declare_measured(e["parent"], e["child"], source=e["source"], **edge.attrs)
+        buf = edge.buffer
+        for t, v, c in zip(buf.times, buf.values, buf.covs, strict=True):
+            copy.add_measurement(e["parent"], e["child"], t, v[:3], v[3:], c,
+                                 source=e["source"])
+    return copy
 
 
 def test_pure_python_kernel_is_forced_by_the_environment():

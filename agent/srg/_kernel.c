@@ -149,11 +149,22 @@ static int bracket(PyObject *times, long long t, long long buffer_ns, double lim
     return 1;
 }
 
-/* One measured edge at t: its value as sampled into *value; stamps and, when edges is not
- * NULL, (i0, i1, factor, value) appended (evaluate then also appends the composed pose
- * after each item to its prefixes).  1 done, 0 undefined, -1 a Python error. */
-static int measured(PyObject *entry, long long t, pose_t *value, double *extrapolated,
-                    PyObject *stamps, PyObject *edges) {
+/* What the walk along a chain leaves of each item: the composed pose after it and, for a
+ * measured edge, its value as sampled (before an inversion) and its bracket. */
+typedef struct {
+    pose_t after, sampled;
+    Py_ssize_t i0, i1;
+    double f;
+} step_t;
+
+/* Chains longer than this are left to the Python kernel. */
+#define MAX_ITEMS 64
+
+/* One measured edge at t: its value as sampled into step->sampled, its bracket into step;
+ * its stamps appended.  1 done, 0 undefined, -1 a Python error. */
+static int measured(PyObject *entry, long long t, step_t *step, double *extrapolated,
+                    PyObject *stamps) {
+    pose_t *value = &step->sampled;
     PyObject *times = PyTuple_GET_ITEM(entry, 1), *values = PyTuple_GET_ITEM(entry, 2);
     PyObject *deltas = PyTuple_GET_ITEM(entry, 3);
     if (!PyList_CheckExact(times) || !PyList_CheckExact(values) || !PyList_CheckExact(deltas))
@@ -185,15 +196,45 @@ static int measured(PyObject *entry, long long t, pose_t *value, double *extrapo
         interpolate(&v0, &v1, delta, f, value);
     }
     if (ex > *extrapolated) *extrapolated = ex;
+    step->i0 = i0;
+    step->i1 = i1;
+    step->f = f;
     PyObject *stamp = Py_BuildValue("(OO)", PyList_GET_ITEM(times, i0),
                                     PyList_GET_ITEM(times, i1));
     if (stamp == NULL || PyList_Append(stamps, stamp) < 0) { Py_XDECREF(stamp); return -1; }
     Py_DECREF(stamp);
-    if (edges != NULL) {
-        PyObject *v = float_tuple(value->v, 7);
-        PyObject *e = v == NULL ? NULL : Py_BuildValue("(nndN)", i0, i1, f, v);
-        if (e == NULL || PyList_Append(edges, e) < 0) { Py_XDECREF(e); return -1; }
-        Py_DECREF(e);
+    return 1;
+}
+
+/* The chain at t: every item's step (the composed pose after it, a measured edge's value
+ * and bracket), the largest extrapolation, the stamps appended.  1 done, 0 undefined (or
+ * anything unexpected: the Python kernel decides), -1 a Python error. */
+static int walk(PyObject *t_obj, PyObject *items, step_t *steps, double *extrapolated,
+                PyObject *stamps) {
+    long long t = 0;
+    int have_t = 0;
+    Py_ssize_t count = PyTuple_GET_SIZE(items);
+    if (count == 0 || count > MAX_ITEMS) return 0;
+    for (Py_ssize_t k = 0; k < count; k++) {
+        PyObject *entry = PyTuple_GET_ITEM(items, k);
+        pose_t value;
+        if (!PyTuple_Check(entry)) return 0;
+        if (PyTuple_GET_SIZE(entry) == 1) {
+            if (!read_floats(PyTuple_GET_ITEM(entry, 0), value.v, 7)) return 0;
+        } else {
+            if (PyTuple_GET_SIZE(entry) != 7) return 0;
+            if (!have_t) {
+                t = PyLong_AsLongLong(t_obj); /* None or out of range: the Python kernel */
+                if (t == -1 && PyErr_Occurred()) { PyErr_Clear(); return 0; }
+                have_t = 1;
+            }
+            int r = measured(entry, t, &steps[k], extrapolated, stamps);
+            if (r <= 0) return r;
+            value = steps[k].sampled;
+            if (!PyObject_IsTrue(PyTuple_GET_ITEM(entry, 6))) inverse(&value);
+        }
+        if (k == 0) steps[k].after = value;
+        else compose(&steps[k - 1].after, &value, &steps[k].after);
     }
     return 1;
 }
@@ -218,55 +259,40 @@ static PyObject *evaluate(PyObject *Py_UNUSED(self), PyObject *args) {
     if (!PyArg_ParseTuple(args, "OO!pOO", &t_obj, &PyTuple_Type, &items, &want_edges, &p_out,
                           &q_out))
         return NULL;
-    long long t = 0;
-    int have_t = 0;
+    step_t steps[MAX_ITEMS];
     double extrapolated = 0.0;
-    pose_t acc, value;
     PyObject *stamps = PyList_New(0), *edges = NULL, *prefixes = NULL;
-    if (want_edges) {
-        edges = PyList_New(0);
-        prefixes = PyList_New(0);
-    }
-    if (stamps == NULL || (want_edges && (edges == NULL || prefixes == NULL))) goto fail;
+    if (stamps == NULL) return NULL;
+    int r = walk(t_obj, items, steps, &extrapolated, stamps);
+    if (r <= 0) goto done;
     Py_ssize_t count = PyTuple_GET_SIZE(items);
-    for (Py_ssize_t k = 0; k < count; k++) {
-        PyObject *entry = PyTuple_GET_ITEM(items, k);
-        if (!PyTuple_Check(entry)) goto undefined;
-        if (PyTuple_GET_SIZE(entry) == 1) {
-            if (!read_floats(PyTuple_GET_ITEM(entry, 0), value.v, 7)) goto undefined;
-        } else {
-            if (PyTuple_GET_SIZE(entry) != 7) goto undefined;
-            if (!have_t) {
-                t = PyLong_AsLongLong(t_obj); /* None or out of range: the Python kernel */
-                if (t == -1 && PyErr_Occurred()) { PyErr_Clear(); goto undefined; }
-                have_t = 1;
-            }
-            int r = measured(entry, t, &value, &extrapolated, stamps, edges);
-            if (r < 0) goto fail;
-            if (r == 0) goto undefined;
-            if (!PyObject_IsTrue(PyTuple_GET_ITEM(entry, 6))) inverse(&value);
-        }
-        if (k == 0) acc = value; else { pose_t c; compose(&acc, &value, &c); acc = c; }
-        if (prefixes != NULL) {
-            PyObject *a = float_tuple(acc.v, 7);
-            if (a == NULL || PyList_Append(prefixes, a) < 0) { Py_XDECREF(a); goto fail; }
-            Py_DECREF(a);
-        }
+    const pose_t *acc = &steps[count - 1].after;
+    if (!write_doubles(p_out, acc->v, 3) || !write_doubles(q_out, acc->v + 3, 4)) {
+        r = -1;
+        goto done;
     }
-    if (count == 0) goto undefined;
-    if (!write_doubles(p_out, acc.v, 3) || !write_doubles(q_out, acc.v + 3, 4)) goto fail;
     if (!want_edges) return Py_BuildValue("(dNOO)", extrapolated, stamps, Py_None, Py_None);
+    edges = PyList_New(0);
+    prefixes = PyList_New(count);
+    if (edges == NULL || prefixes == NULL) { r = -1; goto done; }
+    for (Py_ssize_t k = 0; k < count; k++) {
+        PyObject *a = float_tuple(steps[k].after.v, 7);
+        if (a == NULL) { r = -1; goto done; }
+        PyList_SET_ITEM(prefixes, k, a);
+        if (PyTuple_GET_SIZE(PyTuple_GET_ITEM(items, k)) == 1) continue;
+        PyObject *v = float_tuple(steps[k].sampled.v, 7);
+        PyObject *e = v == NULL ? NULL : Py_BuildValue("(nndN)", steps[k].i0, steps[k].i1,
+                                                       steps[k].f, v);
+        if (e == NULL || PyList_Append(edges, e) < 0) { Py_XDECREF(e); r = -1; goto done; }
+        Py_DECREF(e);
+    }
     return Py_BuildValue("(dNNN)", extrapolated, stamps, edges, prefixes);
-undefined:
+done:
     Py_XDECREF(stamps);
     Py_XDECREF(edges);
     Py_XDECREF(prefixes);
+    if (r < 0) return NULL;
     Py_RETURN_NONE;
-fail:
-    Py_XDECREF(stamps);
-    Py_XDECREF(edges);
-    Py_XDECREF(prefixes);
-    return NULL;
 }
 
 /* Read a C-contiguous float64 buffer of exactly n doubles (a numpy array); 0 if it is not
@@ -328,10 +354,98 @@ static PyObject *propagate(PyObject *Py_UNUSED(self), PyObject *args) {
     Py_RETURN_TRUE;
 }
 
+/* A measured edge's covariance at its bracket into C, as plan.Chain._edge_cov takes it:
+ * its samples' (interpolated between two, never extrapolated), else the edge's own (spec:
+ * (covs, kind, matrix), kind 0 none, 1 an SE(3) one, 2 a decoupled one to move to the
+ * edge's translation).  Returns the kind of C (0 none, 1 SE(3), 2 decoupled), -1: the
+ * Python path decides. */
+static int edge_covariance(PyObject *spec, const step_t *step, double *C) {
+    if (!PyTuple_Check(spec) || PyTuple_GET_SIZE(spec) != 3) return -1;
+    PyObject *covs = PyTuple_GET_ITEM(spec, 0);
+    if (!PyList_CheckExact(covs) || step->i1 >= PyList_GET_SIZE(covs)) return -1;
+    PyObject *c0 = PyList_GET_ITEM(covs, step->i0), *c1 = PyList_GET_ITEM(covs, step->i1);
+    if (c0 != Py_None && c1 != Py_None) {
+        double a = step->f < 0.0 ? 0.0 : step->f > 1.0 ? 1.0 : step->f, D[36];
+        if (!read_doubles(c0, C, 36)) return -1;
+        if (c0 == c1 || a == 0.0) return 1;
+        if (!read_doubles(c1, D, 36)) return -1;
+        for (int k = 0; k < 36; k++) C[k] = C[k] + (D[k] - C[k]) * a;
+        return 1;
+    }
+    if (c0 != Py_None || c1 != Py_None) return read_doubles(c0 != Py_None ? c0 : c1, C, 36) ? 1 : -1;
+    long kind = PyLong_AsLong(PyTuple_GET_ITEM(spec, 1));
+    if (kind < 0 || kind > 2) { PyErr_Clear(); return -1; }
+    if (kind == 0) return 0;
+    return read_doubles(PyTuple_GET_ITEM(spec, 2), C, 36) ? (int)kind : -1;
+}
+
+/* evaluate_covariance(t_ns, items, cov_items, p_out, q_out, cov_out): evaluate() and the
+ * chain's covariance (plan.Chain._covariance) in one call: each item's covariance mapped by
+ * the composed pose before it (after it, for an edge walked backwards; a decoupled one
+ * through the edge's translation first) and summed into cov_out.  cov_items holds, per
+ * item, (covariance or None,) for a constant and the spec of edge_covariance for a
+ * measured edge.  Returns (extrapolated_s, stamps, has_covariance), or None: the Python
+ * path decides. */
+static PyObject *evaluate_covariance(PyObject *Py_UNUSED(self), PyObject *args) {
+    PyObject *t_obj, *items, *cov_items, *p_out, *q_out, *cov_out;
+    if (!PyArg_ParseTuple(args, "OO!O!OOO", &t_obj, &PyTuple_Type, &items, &PyTuple_Type,
+                          &cov_items, &p_out, &q_out, &cov_out))
+        return NULL;
+    Py_ssize_t count = PyTuple_GET_SIZE(items);
+    if (PyTuple_GET_SIZE(cov_items) != count) Py_RETURN_NONE;
+    step_t steps[MAX_ITEMS];
+    double extrapolated = 0.0, acc[36] = {0}, C[36];
+    const pose_t identity = {{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0}};
+    int terms = 0;
+    PyObject *stamps = PyList_New(0);
+    if (stamps == NULL) return NULL;
+    int r = walk(t_obj, items, steps, &extrapolated, stamps);
+    if (r <= 0) goto done;
+    r = 0;
+    for (Py_ssize_t k = 0; k < count; k++) {
+        PyObject *entry = PyTuple_GET_ITEM(items, k), *spec = PyTuple_GET_ITEM(cov_items, k);
+        const pose_t *before = k ? &steps[k - 1].after : &identity;
+        if (PyTuple_GET_SIZE(entry) == 1) {
+            if (!PyTuple_Check(spec) || PyTuple_GET_SIZE(spec) != 1) goto done;
+            if (PyTuple_GET_ITEM(spec, 0) == Py_None) continue;
+            if (!read_doubles(PyTuple_GET_ITEM(spec, 0), C, 36)) goto done;
+            add_mapped(before->v, C, acc);
+            terms++;
+            continue;
+        }
+        int kind = edge_covariance(spec, &steps[k], C);
+        if (kind < 0) goto done;
+        if (kind == 0) continue;
+        pose_t at = PyObject_IsTrue(PyTuple_GET_ITEM(entry, 6)) ? *before : steps[k].after;
+        if (kind == 2) {
+            pose_t shift = {{steps[k].sampled.v[0], steps[k].sampled.v[1],
+                             steps[k].sampled.v[2], 0.0, 0.0, 0.0, 1.0}}, moved;
+            compose(&at, &shift, &moved);
+            at = moved;
+        }
+        add_mapped(at.v, C, acc);
+        terms++;
+    }
+    const pose_t *pose = &steps[count - 1].after;
+    if (!write_doubles(p_out, pose->v, 3) || !write_doubles(q_out, pose->v + 3, 4)
+        || (terms && !write_doubles(cov_out, acc, 36))) {
+        r = -1;
+        goto done;
+    }
+    return Py_BuildValue("(dNO)", extrapolated, stamps, terms ? Py_True : Py_False);
+done:
+    Py_DECREF(stamps);
+    if (r < 0) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"evaluate", evaluate, METH_VARARGS,
      "evaluate(t_ns, items, want_edges, p_out, q_out): agent.srg.kernel.evaluate "
      "compiled; None where it would raise."},
+    {"evaluate_covariance", evaluate_covariance, METH_VARARGS,
+     "evaluate_covariance(t_ns, items, cov_items, p_out, q_out, cov_out): evaluate with the "
+     "chain's covariance; None where the Python path decides."},
     {"propagate", propagate, METH_VARARGS,
      "propagate(poses, covariances, out): agent.srg.kernel.propagate compiled into out "
      "(6x6 float64); False where an input is not a 7-float tuple or a 6x6 float64 array."},

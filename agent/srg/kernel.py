@@ -147,6 +147,11 @@ def _native() -> Callable[..., Result | None] | None:
 
 #: the compiled kernel in use (tests set it to None to run the pure-Python one)
 NATIVE: Any = _native()
+#: the compiled evaluation with the chain's covariance, used while :data:`NATIVE` is
+#: (``plan.Chain`` takes it for uncertain chains)
+NATIVE_COVARIANCE: Any = None if NATIVE is None else getattr(
+    __import__("agent.srg._kernel", fromlist=["evaluate_covariance"]), "evaluate_covariance",
+    None)
 #: the compiled :func:`propagate`, used while :data:`NATIVE` is
 _PROPAGATE: Any = None if NATIVE is None else getattr(
     __import__("agent.srg._kernel", fromlist=["propagate"]), "propagate", None)

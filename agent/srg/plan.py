@@ -85,6 +85,7 @@ class Chain:
                 self._measured.append((edge, fwd, limit))
         self._items = items
         self._kernel_items = tuple(self._kernel_item(it) for it in items)
+        self._cov_items = tuple(self._cov_item(it) for it in items)
         self._buffers = tuple(e.buffer for e, _, _ in self._measured)
         self._backward = [not fwd for _, fwd, _ in self._measured]
         self._uncertain = any(it[3] is not None for it in items if it[0] == "c") or any(
@@ -105,6 +106,21 @@ class Chain:
         edge, fwd, limit = self._measured[item[1]]
         buf = edge.buffer
         return buf, buf.times, buf.values, buf.deltas, buf.buffer_ns, limit, fwd
+
+    def _cov_item(self, item: tuple) -> tuple:
+        """An item's covariance as the compiled kernel's ``evaluate_covariance`` takes it:
+        a constant's, or a measured edge's samples with its own covariance as
+        :meth:`_edge_cov` falls back to it (0: none, 1: SE(3), 2: decoupled)."""
+        if item[0] == "c":
+            return (item[3],)
+        edge = self._measured[item[1]][0]
+        covs = edge.buffer.covs
+        if "covariance" in edge.attrs:
+            return covs, 1, edge.attrs["covariance"]
+        if edge.std_cov is None:
+            return covs, 0, None
+        cov, rotates = edge.std_cov
+        return covs, 2 if rotates else 1, cov
 
     def latest_time(self) -> int | None:
         """The latest time at which every measured edge has data without extrapolating."""
@@ -132,12 +148,23 @@ class Chain:
                     break
         items = self._kernel_items
         p, q = np.empty(3), np.empty(4)
+        if uncertain and kernel.NATIVE is not None and kernel.NATIVE_COVARIANCE is not None:
+            # pose and covariance in one compiled call
+            cov = np.empty((6, 6))
+            got = kernel.NATIVE_COVARIANCE(t_ns, items, self._cov_items, p, q, cov)
+            if got is not None:
+                return self._result(p, q, cov if got[2] else None, t_ns, got[0], got[1])
         native = kernel.NATIVE
         out = None if native is None else native(t_ns, items, uncertain, p, q)
         if out is None:  # the Python kernel: also the one that raises for undefined edges
             out = kernel.evaluate(t_ns, items, uncertain, p, q)
         extrapolated, stamps, edges, prefixes = out
         cov = None if edges is None else self._covariance(edges, prefixes)
+        return self._result(p, q, cov, t_ns, extrapolated, stamps)
+
+    def _result(self, p: np.ndarray, q: np.ndarray, cov: np.ndarray | None,
+                t_ns: int | None, extrapolated: float,
+                stamps: list[tuple[int, int]]) -> PoseResult:
         constant = self._constant_attrs
         return PoseResult(p, q, cov, self.frames, self.edge_infos, t_ns, extrapolated, stamps,
                           lambda: {**constant, **uncertainty(p, cov)})
