@@ -75,6 +75,9 @@ class ClockOffsets:
     def best(self, agent: str) -> ClockSample | None:
         """The minimum-delay sample among the recent ones, or None if none is recent."""
         now = time.monotonic()
+        cached = self._best.get(agent)  # one atomic read: the lock only to rescan
+        if cached is not None and now < cached[1]:
+            return cached[0]
         with self._lock:
             cached = self._best.get(agent)
             if cached is not None and now < cached[1]:
