@@ -42,8 +42,8 @@ from loopback import free_port, wait_listening, zenoh_config
 from summary import median_p99
 
 ROOT = Path(__file__).resolve().parents[1]
-#: how long the services may take to give every body a pose
-FIRST_POSE_S = 90.0
+#: how long after the replayed frames' start the services may take to give every body a pose
+FIRST_POSE_S = 60.0
 #: the cameras' frames rendered ahead cover the measurement and this much before it (the
 #: first poses, the bare publisher's start)
 PRERENDER_MARGIN_S = 8.0
@@ -68,6 +68,18 @@ def bare_publisher(ep: str, key: str, rate_hz: float, seconds: float) -> int:
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _threads_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds so far of ``pid``'s live threads, by name with the digits taken out
+    (Zenoh's runtime ``rx-N``, ``tx-N``, ...; uma's ``uma-markers-camN``, ...), in
+    nanoseconds (``/proc/PID/task/*/schedstat``)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError, ValueError):
+            name = re.sub(r"\d+", "N", (task / "comm").read_text().strip())
+            out[name] = out.get(name, 0.0) + int((task / "schedstat").read_text().split()[0]) / 1e9
+    return out
 
 
 class _Procs:
@@ -135,23 +147,41 @@ def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: i
                                    *net, "--rig", str(rig), "--bodies",
                                    str(folder / "bodies.toml"), "--rate-hz", str(rate_hz)])
         names = [c.name for c in sim.cameras]
+        replay_s = seconds + PRERENDER_MARGIN_S
+        replay_at = time.time() + _render_time(sim, replay_s)
         for i in range(0, cameras, per_process):
             procs.start(f"cameras-{i // per_process}", [
                 "-m", "agent.cli", "service", "run", "marker-camera", *net, "--rig",
                 str(rig), "--sim", str(seed), "--rate-hz", str(rate_hz),
-                "--prerender", str(seconds + PRERENDER_MARGIN_S),
+                "--prerender", str(replay_s), "--replay-at", f"{replay_at:.3f}",
                 *[x for n in names[i:i + per_process] for x in ("--camera", n)]])
         figures = _measure(procs, realm, ep, [b.name for b in sim.bodies], cameras, rate_hz,
-                           seconds)
+                           seconds, replay_at + FIRST_POSE_S)
+        figures["replay_covered_measurement"] = figures.pop("measured_until") \
+            <= replay_at + replay_s
     finally:
         procs.stop()
     figures["camera_frames_windowed_whole"] = _windowed(procs)
+    figures["reconstruction_cpu_per_frame_set"] = _last(procs, "outside-in", "CPU per frame set: ")
     return {"cameras": cameras, "rate_hz": rate_hz, "seconds": seconds,
             "cameras_per_process": per_process, **figures}
 
 
+def _render_time(sim: Any, seconds: float) -> float:
+    """How long (s) the cameras' processes may take to start and render ``seconds`` of
+    every camera's frames: twice the CPU this process needs for them now (on this
+    machine, at its load), on one core, and 8 s to start."""
+    cameras = len(sim.cameras)
+    t0 = time.perf_counter()
+    for index in range(3):
+        for c in range(cameras):
+            sim.render(c, index)
+    per_frame = (time.perf_counter() - t0) / (3 * cameras)
+    return 8.0 + 2.0 * per_frame * cameras * seconds * sim.config.rate_hz
+
+
 def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int,
-             rate_hz: float, seconds: float) -> dict[str, Any]:
+             rate_hz: float, seconds: float, first_pose_by: float) -> dict[str, Any]:
     import zenoh
 
     from agent import Measurement, Service
@@ -177,12 +207,11 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
                   on_sample=on_pose)
         sink.start()
         sub = session.declare_subscriber(key, on_bare)
-        deadline = time.monotonic() + FIRST_POSE_S
         while not all(lat.values()) or (replayed := _replay_start(procs, cameras)) is None:
-            if procs.dead() or time.monotonic() > deadline:
+            if procs.dead() or time.time() > first_pose_by:
                 raise SystemExit(f"setup failed: no pose of every body from every camera's "
-                                 f"replayed frames within {FIRST_POSE_S:g} s (ended: "
-                                 f"{procs.dead() or 'none'})")
+                                 f"replayed frames within {FIRST_POSE_S:g} s of their start "
+                                 f"(ended: {procs.dead() or 'none'})")
             time.sleep(0.2)
         time.sleep(max(0.0, replayed - time.time()))
         procs.start("bare", [str(Path(__file__)), "--bare-publisher", ep, key, str(rate_hz),
@@ -191,6 +220,7 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         for v in lat.values():
             v.clear()
         cpu0 = {n: _cpu_s(p.pid) for n, p in procs.procs.items() if p.poll() is None}
+        threads0 = {n: _threads_cpu_s(procs.procs[n].pid) for n in cpu0}
         t0 = time.monotonic()
         measuring.set()
         time.sleep(seconds)
@@ -198,6 +228,9 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         elapsed = time.monotonic() - t0
         cpu = {n: round((_cpu_s(procs.procs[n].pid) - c) / elapsed, 3)
                for n, c in cpu0.items() if procs.procs[n].poll() is None}
+        threads = {n: _busiest({k: (v - threads0[n].get(k, 0.0)) / elapsed
+                                for k, v in _threads_cpu_s(procs.procs[n].pid).items()})
+                   for n in cpu if n != "bare"}
         sub.undeclare()
     services = {n: c for n, c in cpu.items() if n != "bare"}
     every = np.concatenate([np.asarray(v) for v in lat.values()])
@@ -207,7 +240,15 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
     return {"exposure_to_pose": median_p99(every, "ms"),
             "bare_transport": median_p99(bare, "ms") if bare else None,
             "published_hz": {b: round(len(v) / elapsed, 2) for b, v in lat.items()},
-            "cores": services, "cores_all_services": round(sum(services.values()), 3)}
+            "measured_until": time.time(),
+            "cores": services, "cores_all_services": round(sum(services.values()), 3),
+            "cores_by_thread": threads}
+
+
+def _busiest(cores: dict[str, float]) -> dict[str, float]:
+    """The threads that used 1 % of a core or more, busiest first."""
+    return {k: round(v, 3) for k, v in sorted(cores.items(), key=lambda kv: -kv[1])
+            if v >= 0.01}
 
 
 def _replay_start(procs: _Procs, cameras: int) -> float | None:
@@ -222,14 +263,17 @@ _REPLAY = re.compile(r"rendered ahead, replayed from ([0-9.]+) \(unix time\)")
 
 
 def _windowed(procs: _Procs) -> dict[str, str]:
-    """The cameras' last report of frames searched in windows / whole."""
-    out = {}
-    for name in procs.procs:
-        if name.startswith("cameras-"):
-            lines = [x for x in procs.log(name).splitlines() if "predicted windows" in x]
-            if lines:
-                out[name] = lines[-1].split("whole: ", 1)[-1]
-    return out
+    """The cameras' last report of frames searched in windows / whole and their CPU per
+    frame in segmentation and publishing (the rest of their process's CPU is the SDK's
+    and Zenoh's receiving and sending)."""
+    return {name: _last(procs, name, "whole: ") for name in procs.procs
+            if name.startswith("cameras-")}
+
+
+def _last(procs: _Procs, name: str, after: str) -> str | None:
+    """What follows ``after`` on the last line of process ``name``'s log that has it."""
+    lines = [x for x in procs.log(name).splitlines() if after in x]
+    return lines[-1].split(after, 1)[-1] if lines else None
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--bare-publisher"]:

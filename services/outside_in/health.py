@@ -72,12 +72,12 @@ class RigHealth:
         as ``(p, R, markers, kept)`` (``kept``: camera -> marker -> blob).  Returns the
         cameras re-estimated now, ``(index, camera)``."""
         out = []
+        world = np.vstack([m @ R.T + p for p, R, m, _ in poses]) if poses else None
         for c, uv in blobs.items():
             state = self.cams[c]
             cam = cameras[c]
             expected = used = 0
-            if poses:
-                world = np.vstack([m @ R.T + p for p, R, m, _ in poses])
+            if world is not None:
                 expected = int(np.sum(cam.visible(world, margin_px=5)))
                 used = sum(len(kept.get(c, {})) for *_, kept in poses)
             state.expected.append(expected)

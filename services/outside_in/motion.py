@@ -68,6 +68,8 @@ class MotionFilter:
         self.refused_in_row = 0
         self.last_nis = float("nan")
         self._q: dict[float, Array] = {}
+        #: predicted poses of the current state, by time
+        self._poses: dict[float, tuple[Array, Array]] = {}
 
     @property
     def ready(self) -> bool:
@@ -86,6 +88,7 @@ class MotionFilter:
     def reset(self) -> None:
         """Forget the body: the next measurement starts the filter again."""
         self.t = None
+        self._poses.clear()
 
     @property
     def start_velocity_covariance(self) -> Array:
@@ -101,6 +104,7 @@ class MotionFilter:
         ``cov`` holds ``S P_v S^T``): its error and the velocities' are then correlated
         by ``S P_v``, which the start keeps, so that the next poses correct both."""
         cfg = self.config
+        self._poses.clear()
         self.t, self.p, self.R = t, np.asarray(p, float).copy(), np.asarray(R, float).copy()
         self.v, self.omega, self.a = np.zeros(3), np.zeros(3), np.zeros(3)
         self.P = np.zeros((N, N))
@@ -115,12 +119,20 @@ class MotionFilter:
         self.refused_in_row = 0
 
     def predicted_pose(self, t: float) -> tuple[Array, Array]:
-        """Pose ``(p, R)`` at ``t`` without its covariance (cheap: a marker's window)."""
+        """Pose ``(p, R)`` at ``t`` without its covariance (cheap: a marker's window; kept
+        per ``t`` until the state changes, as a frame set asks it at one time several
+        times).  The arrays are the filter's: read them, do not change them."""
         if self.t is None:
             raise InvalidInputError("motion filter: not started")
-        dt = t - self.t
-        W, _, _ = motion_matrices(self.omega, dt)
-        return self.p + self.v * dt + 0.5 * dt * dt * self.a, W @ self.R
+        got = self._poses.get(t)
+        if got is None:
+            dt = t - self.t
+            W, _, _ = motion_matrices(self.omega, dt)
+            if len(self._poses) >= MAX_CACHED_DT:
+                self._poses.clear()
+            got = self._poses[t] = (self.p + self.v * dt + 0.5 * dt * dt * self.a,
+                                    W @ self.R)
+        return got
 
     def predicted(self, t: float) -> tuple[Array, Array, Array]:
         """Pose ``(p, R)`` and its 6x6 covariance at ``t`` (the state is not changed)."""
@@ -135,6 +147,7 @@ class MotionFilter:
         self.v = self.v + self.a * dt
         self.P = P
         self.t = t
+        self._poses.clear()
 
     def _covariance_at(self, t: float) -> Array:
         if self.t is None:
@@ -201,6 +214,7 @@ class MotionFilter:
         self.refused_in_row = 0
         K = np.linalg.solve(S, self.P[:6, :]).T       # P H^T S^-1, H = [I6 0]
         dx = K @ y
+        self._poses.clear()
         self.p = self.p + dx[P_]
         self.R = geo.rodrigues(dx[TH]) @ self.R
         self.v = self.v + dx[V_]

@@ -39,6 +39,10 @@ def marker_camera_arguments(parser: argparse.ArgumentParser) -> None:
                              "segmentation's and not the simulator's (a real camera hands "
                              "over finished images); frames after them are rendered live "
                              "(default 0: all live)")
+    parser.add_argument("--replay-at", type=float, default=None, metavar="UNIX_TIME",
+                        help="with --prerender: the rendered frames start at this time (unix "
+                             "seconds), so that cameras in several processes replay one "
+                             "world (default: once this process has rendered them)")
 
 
 def outside_in_arguments(parser: argparse.ArgumentParser) -> None:

@@ -35,6 +35,7 @@ import argparse
 import contextlib
 import hashlib
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -96,6 +97,9 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
         raise UmaError("--prerender needs --sim SEED (it renders the simulated frames ahead)")
     if not 0 <= args.prerender <= 600:
         raise UmaError(f"--prerender must be in [0, 600] seconds, got {args.prerender}")
+    if args.replay_at is not None and not (args.prerender and 0 < args.replay_at < 1e10):
+        raise UmaError("--replay-at needs --prerender and a unix time in seconds, got "
+                       f"{args.replay_at}")
     if not 0 < args.rate_hz <= 240:
         raise UmaError(f"--rate-hz must be in (0, 240], got {args.rate_hz}")
     sim = (Simulation(seed=args.sim, config=SimConfig(n_cameras=len(cams),
@@ -118,7 +122,7 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
             svc.start()
             extra = {MARKERS_CAMERA: name, MARKERS_CALIBRATION: version}
             frames = (_sim_frames(sim, by_name[name], stop, args.max_frames,
-                                  args.prerender, len(names)) if sim
+                                  args.prerender, len(names), args.replay_at) if sim
                       else _capture_frames(sources[name], stop, args.max_frames))
             t = threading.Thread(target=_publish_frames,
                                  args=(frames, out, extra, svc.clock_skew_ns, windows,
@@ -130,8 +134,12 @@ def run_marker_camera(args: argparse.Namespace, stop: threading.Event) -> int:
         while not stop.is_set() and any(t.is_alive() for t in threads):
             if stop.wait(5.0):
                 break
-            log.info("marker-camera: frames searched in the predicted windows / whole: %s",
-                     ", ".join(f"{n} {w.windowed}/{w.whole}" for n, w in found.items()))
+            log.info("marker-camera: frames searched in the predicted windows / whole: %s; "
+                     "CPU per frame, segmentation / publishing: %s",
+                     ", ".join(f"{n} {w.windowed}/{w.whole}" for n, w in found.items()),
+                     ", ".join(f"{n} {1e3 * w.cpu_s[0] / max(w.frames, 1):.3f}/"
+                               f"{1e3 * w.cpu_s[1] / max(w.frames, 1):.3f} ms"
+                               for n, w in found.items()))
         stop.set()
         for t in threads:
             t.join(timeout=5.0)
@@ -149,6 +157,8 @@ class Windows:
         #: frames searched whole / in windows only
         self.whole = 0
         self.windowed = 0
+        #: thread CPU (s) in segmentation, in publishing
+        self.cpu_s = [0.0, 0.0]
 
     def on_sample(self, m: Measurement) -> None:
         if m.extra.get(MARKERS_CALIBRATION) == self.version:
@@ -175,26 +185,31 @@ def _publish_frames(frames, out, extra: dict, skew_ns: int, windows: Windows,
     """Each frame's blobs, stamped on this host's clock: the frames' times are the system
     clock's (the capture's, the simulated world's), which a test may skew (``skew_ns``)."""
     for t_ns, image in frames:
+        t0 = time.thread_time()
         blobs = windows.find(image, t_ns + skew_ns, period_ns)
+        t1 = time.thread_time()
         out.publish_measurement(Measurement(type="markers2d", t_ns=t_ns + skew_ns,
                                             points=blobs.uv,
                                             values=blobs.std_px, extra=extra))
+        windows.cpu_s[0] += t1 - t0
+        windows.cpu_s[1] += time.thread_time() - t1
 
 
 def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames: int | None,
-                prerender_s: float = 0.0, renderers: int = 1):
+                prerender_s: float = 0.0, renderers: int = 1, replay_at: float | None = None):
     """The simulated camera's frames, paced by the wall clock: frame ``i`` is exposed at
     ``i / rate`` seconds since the epoch (plus the camera's phase).  With ``prerender_s``
     that many seconds of frames, starting once they are rendered (``renderers`` cameras
-    render at once), are rendered first and replayed (``Simulation.prerender``), the
-    camera silent until the first of them; frames after them are rendered live."""
+    render at once), are rendered first and replayed (``Simulation.prerender``) from
+    ``replay_at`` (unix time) or once rendered, the camera silent until the first of them;
+    frames after them are rendered live."""
     rate = sim.config.rate_hz
 
     def now_index() -> int:
         # from the rate, not a rounded period: at 120 Hz a period of 8333333 ns would put
         # the index of today's date 18 s ahead of the exposure times i / rate
         return int(time.time_ns() * rate / 1e9)
-    replay = _prerendered(sim, camera, now_index(), prerender_s, renderers) \
+    replay = _prerendered(sim, camera, now_index(), prerender_s, renderers, replay_at) \
         if prerender_s > 0 else None
     i = max(now_index() + 1, replay.first if replay is not None else 0)
     n = 0
@@ -212,21 +227,25 @@ def _sim_frames(sim: Simulation, camera: int, stop: threading.Event, max_frames:
         i = max(i + 1, now_index())   # a frame missed while busy is gone
 
 
-def _prerendered(sim: Simulation, camera: int, now: int, seconds: float,
-                 renderers: int) -> Replay:
-    """``seconds`` of the camera's frames from the index the rendering will have reached
-    when it is done (timed on a few frames, with a margin for the other cameras' rendering
-    and the machine's load)."""
+def _prerendered(sim: Simulation, camera: int, now: int, seconds: float, renderers: int,
+                 start: float | None) -> Replay:
+    """``seconds`` of the camera's frames from ``start`` (unix time; all cameras of a rig
+    given the same start replay one world), or when not given from the index the
+    rendering will have reached when it is done (timed on a few frames, with a margin for
+    the other cameras' rendering and the machine's load)."""
     rate = sim.config.rate_hz
     count = max(1, round(seconds * rate))
-    sim.render(camera, now)            # the first render warms caches up: not timed
-    t0 = time.perf_counter()
-    for k in range(1, 4):
-        sim.render(camera, now + k)
-    lead_s = 1.5 * (time.perf_counter() - t0) / 3 * count * renderers + 1.0
-    replay = sim.prerender(camera, now + round(lead_s * rate), count)
+    if start is None:
+        sim.render(camera, now)            # the first render warms caches up: not timed
+        t0 = time.perf_counter()
+        for k in range(1, 4):
+            sim.render(camera, now + k)
+        start = (now + 1) / rate + 1.5 * (time.perf_counter() - t0) / 3 * count * renderers \
+            + 1.0
+    replay = sim.prerender(camera, math.ceil(start * rate), count)
+    # frames whose time passed while rendering are skipped: the replay starts now then
     log.info("marker-camera: %s: %d frames rendered ahead, replayed from %.3f (unix time)",
-             sim.cameras[camera].name, count, replay.times[0])
+             sim.cameras[camera].name, count, max(replay.times[0], time.time()))
     return replay
 
 
@@ -346,11 +365,13 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                    for name in rec.index}
 
         def on_sample(m: Measurement) -> None:
+            t0 = time.thread_time()
             with lock:
                 sets = rec.frame_sets
                 estimates = rec.add(m)
                 ahead = rec.windows() if rec.frame_sets != sets else []
                 search = rec.tracker.searching
+            t1 = time.thread_time()
             for e in estimates:
                 outs[e.body].publish(round(e.t * 1e9), e.p, e.q, e.cov_se3)
             extra = {MARKERS_CALIBRATION: rec.version, SEARCH: search}
@@ -359,6 +380,10 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                     type="markers2d", t_ns=t_ns, points=uv,
                     values=np.full(len(uv), rec.tracker.params.gate_px),
                     extra={**extra, MARKERS_CAMERA: name}))
+            cpu[0] += t1 - t0
+            cpu[1] += time.thread_time() - t1
+
+        cpu = [0.0, 0.0]   # thread CPU (s) tracking, publishing
 
         svc.need("markers", type="markers2d", edge=(args.world, f"{args.site}/*"),
                  min_count=2, max_count=16, on_sample=on_sample)
@@ -366,6 +391,9 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
         log.info("outside-in: tracking %s with %d cameras (calibration %s)",
                  ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
         while not stop.wait(5.0):
-            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late",
-                     rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late)
+            n = max(rec.frame_sets, 1)
+            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late; CPU per "
+                     "frame set: tracking %.2f ms, publishing %.2f ms", rec.frame_sets,
+                     dict(rec.tracker.counts), rec.refused_count, rec.late,
+                     1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
     return 0

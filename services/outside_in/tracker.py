@@ -184,32 +184,31 @@ class OutsideInTracker:
                    if tr.filter.ready and tr.missed < p.lost_after]
         if not tracked:
             return {}
-        predicted: dict[float, list[Array]] = {}   # synchronised cameras share a time
+        predicted: dict[float, Array] = {}   # synchronised cameras share a time
+        bounds = np.cumsum([0, *(len(track.body.markers) for _, track in tracked)])
         for f in frames:
             cam = self.cameras[f.camera]
-            worlds = predicted.get(f.t)
-            if worlds is None:
-                worlds = predicted[f.t] = [_markers_at(track, f.t) for _, track in tracked]
-            # one projection per camera for every tracked body's markers
-            uv_all = cam.project(np.vstack(worlds))
-            z_all = cam.to_camera(np.vstack(worlds))[:, 2]
-            start = 0
-            for (k, _), world in zip(tracked, worlds, strict=True):
-                uv, z = uv_all[start:start + len(world)], z_all[start:start + len(world)]
-                start += len(world)
-                if not np.all(z > 0.05):
+            world = predicted.get(f.t)
+            if world is None:
+                world = predicted[f.t] = np.vstack([_markers_at(track, f.t)
+                                                    for _, track in tracked])
+            # every tracked body's markers at once: their nearest and second nearest blobs
+            uv = cam.project(world)
+            z = cam.to_camera(world)[:, 2]
+            d = np.linalg.norm(uv[:, None, :] - f.blobs.uv[None, :, :], axis=2)
+            order = np.argsort(d, axis=1)
+            rows = np.arange(len(d))
+            near = d[rows, order[:, 0]]
+            second = d[rows, order[:, 1]] if d.shape[1] > 1 else None
+            for (k, _), lo, hi in zip(tracked, bounds[:-1], bounds[1:], strict=True):
+                if not np.all(z[lo:hi] > 0.05):
                     continue
-                d = np.linalg.norm(uv[:, None, :] - f.blobs.uv[None, :, :], axis=2)
-                order = np.argsort(d, axis=1)
-                for m in range(len(world)):
-                    near = d[m, order[m, 0]]
-                    if near > p.gate_px:
-                        continue
-                    if d.shape[1] > 1 and near > p.ambiguity_ratio * d[m, order[m, 1]]:
+                for i in np.flatnonzero(~(near[lo:hi] > p.gate_px)) + lo:
+                    if second is not None and near[i] > p.ambiguity_ratio * second[i]:
                         self.counts["ambiguous_blobs"] += 1
                         continue
-                    owners.setdefault((f.camera, int(order[m, 0])), []).append(
-                        (k, f.camera, m))
+                    owners.setdefault((f.camera, int(order[i, 0])), []).append(
+                        (k, f.camera, int(i - lo)))
         claims: dict[int, dict[tuple[int, int], tuple[int, int]]] = {}
         for blob, keys in owners.items():
             if len(keys) > 1:
