@@ -4,8 +4,9 @@
 on without them and :mod:`agent.srg.kernel`, the pose decoder
 (:func:`schemas.codec.decode_pose`), the answer reader
 (:func:`agent.protocol.query.pose_from_wire`), the dead reckoner
-(:mod:`services.accel_rig.integrator`) and the marker segmentation
-(:mod:`services.outside_in.blobs`) run in pure Python (same results, slower).  The pose
+(:mod:`services.accel_rig.integrator`), the marker segmentation
+(:mod:`services.outside_in.blobs`) and the outside-in pose fit (:mod:`services.outside_in.pose`)
+run in pure Python (same results, slower; the fit's to rounding).  The pose
 decoder, the answer reader, the dead reckoner's step and the segmentation are compiled
 without floating-point contraction, so that their arithmetic rounds as Python's does.
 """
@@ -22,4 +23,5 @@ setup(ext_modules=[
               extra_compile_args=["-ffp-contract=off"]),
     Extension("services.outside_in._blobs", ["services/outside_in/_blobs.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
+    Extension("services.outside_in._fit", ["services/outside_in/_fit.c"], optional=True),
 ])

@@ -17,11 +17,11 @@ from scipy.stats import chi2
 from agent import geometry as geo
 from agent.errors import UmaError
 from services.fusion.predictor import motion_matrices
-from services.outside_in import blobs
+from services.outside_in import blobs, pose
 from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import MotionFilter
-from services.outside_in.pose import Observation, absolute_orientation, refine_pose
+from services.outside_in.pose import Motion, Observation, absolute_orientation, refine_pose
 from services.outside_in.rig import RigCamera, look_at
 from services.outside_in.simulator import SimConfig, Simulation, standard_bodies
 from services.outside_in.tracker import CameraFrame, OutsideInTracker
@@ -135,11 +135,14 @@ def test_compiled_segmentation_finds_the_pure_python_blobs_to_the_bit() -> None:
         _same_blobs(image, rng.uniform(-5, max(h, w) + 5, (rng.integers(1, 6), 2)))
 
 
-def test_pure_python_segmentation_is_forced_by_the_environment() -> None:
-    env = dict(os.environ, UMA_BLOBS_PURE_PYTHON="1")
-    out = subprocess.run([sys.executable, "-c", "from services.outside_in import blobs; "
-                          "print(blobs.NATIVE is None)"],
-                         env=env, capture_output=True, text=True, timeout=60, check=True)
+@pytest.mark.parametrize("variable, module, name", [("UMA_BLOBS_PURE_PYTHON", "blobs", "NATIVE"),
+                                                     ("UMA_FIT_PURE_PYTHON", "pose", "FIT")])
+def test_pure_python_paths_are_forced_by_the_environment(variable: str, module: str,
+                                                         name: str) -> None:
+    out = subprocess.run([sys.executable, "-c", f"from services.outside_in import {module}; "
+                          f"print({module}.{name} is None)"],
+                         env=dict(os.environ, **{variable: "1"}), capture_output=True,
+                         text=True, timeout=60, check=True)
     assert out.stdout.strip() == "True"
 
 
@@ -280,6 +283,44 @@ def test_refined_pose_covariance_matches_its_errors() -> None:
         nees.append(e @ np.linalg.solve(fit.cov, e))
     lo, hi = chi2.ppf([0.025, 0.975], 6 * 300) / 300
     assert lo < np.mean(nees) < hi
+
+
+@pytest.mark.skipif(pose.FIT is None, reason="the compiled fit is not built")
+def test_compiled_fit_agrees_with_the_pure_python_one() -> None:
+    """Synchronised and moved observations (cameras exposed before the pose, with the
+    filter's motion), starts near and far: the same pose, covariance and errors to
+    rounding, and the same refusals."""
+    rng = np.random.default_rng(3)
+    cams = rig(4)
+    body = standard_bodies()[1]
+    compiled, refused = pose.FIT, 0
+    for trial in range(40):
+        R = geo.rodrigues(rng.normal(0, 1, 3))
+        p = rng.normal([0, 0, 1.2], 0.3)
+        world = body.markers @ R.T + p
+        motion = Motion(rng.normal(0, 0.5, 3), rng.normal(0, 1, 3), np.eye(6) * 1e-4) \
+            if trial % 2 else None
+        obs = [Observation(c, np.arange(4), c.normalize(c.project(world)
+                                                        + rng.normal(0, 0.05, (4, 2))),
+                           np.full(4, 0.05), -0.004 * i if motion else 0.0, i)
+               for i, c in enumerate(cams)]
+        start = (p + rng.normal(0, 0.003 if trial % 5 else 0.3, 3),
+                 geo.rodrigues(rng.normal(0, 0.01 if trial % 5 else 1.0, 3)) @ R)
+        try:
+            pose.FIT = None
+            slow = refine_pose(body.markers, obs, *start, motion)
+        finally:
+            pose.FIT = compiled
+        fast = refine_pose(body.markers, obs, *start, motion)
+        assert (slow is None) == (fast is None)
+        if slow is None:
+            refused += 1
+            continue
+        assert np.allclose(fast.p, slow.p, rtol=0, atol=1e-12)
+        assert np.allclose(fast.R, slow.R, rtol=0, atol=1e-12)
+        assert np.allclose(fast.cov, slow.cov, rtol=1e-8, atol=0)
+        assert np.allclose(fast.errors_px, slow.errors_px, rtol=0, atol=1e-9)
+    assert refused < 40
 
 
 def test_velocity_error_shared_by_a_cameras_observations_is_in_the_covariance() -> None:

@@ -18,7 +18,9 @@ The pose is ``world -> body``: ``x_world = R x_body + p``; the covariance is ove
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -132,7 +134,17 @@ def _gauss_newton(stack: _Stack, p: Array, R: Array) -> tuple[Array, Array, Arra
     does not lower the cost or it has not converged (``least_squares``' Levenberg-
     Marquardt then takes over).  From a tracked body's prediction two or three steps
     converge; ``least_squares`` costs about a millisecond per call before its first
-    step, more than the whole fit, three bodies a frame set at 120 Hz."""
+    step, more than the whole fit, three bodies a frame set at 120 Hz.  The compiled
+    twin (``_fit.c``) takes the same steps."""
+    if FIT is not None:
+        c = np.ascontiguousarray
+        got = FIT.gauss_newton(c(stack.R_cw), c(stack.t_cw), c(stack.xy), c(stack.scale),
+                               c(stack.turn), c(stack.shift), c(stack.body), c(p, float),
+                               c(R, float), GN_STEPS, GN_TOLERANCE)
+        if got is None:
+            return None
+        return (np.frombuffer(got[0]).copy(), np.frombuffer(got[1]).reshape(3, 3).copy(),
+                np.frombuffer(got[2]).reshape(-1, 6).copy())
     zero = np.zeros(6)
     r = stack.residual(zero, p, R)
     cost = r @ r
@@ -151,6 +163,22 @@ def _gauss_newton(stack: _Stack, p: Array, R: Array) -> tuple[Array, Array, Arra
         if np.max(np.abs(dx)) < GN_TOLERANCE:
             return p, R, stack.jacobian(zero, p, R)
     return None
+
+
+def _native() -> Any:
+    """The compiled Gauss-Newton fit (``_fit.c``), or None (not built, or
+    ``UMA_FIT_PURE_PYTHON=1``)."""
+    if os.environ.get("UMA_FIT_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from services.outside_in import _fit
+    except ImportError:
+        return None
+    return _fit
+
+
+#: the compiled fit in use (tests set it to None to run the pure-Python one)
+FIT: Any = _native()
 
 
 def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Array | None:
