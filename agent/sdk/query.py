@@ -71,8 +71,8 @@ class NoAgentsError(UmaError):
 
 def check_time(at: Any) -> int | None:
     """A query's time as a plain int (None: the latest); ``ValueError`` for anything else."""
-    if at is None:
-        return None
+    if at is None or type(at) is int:
+        return at
     if isinstance(at, bool) or not isinstance(at, (int, np.integer)):
         raise InvalidInputError(f"at must be integer ns since the epoch or None, got {at!r}")
     return int(at)

@@ -364,15 +364,19 @@ class Subscription:
         if self.on_pose is not None:
             return
         with self._lock:
-            current = self._pushed_by
-            if current is None:
-                return
-            agent, key, sub = current
-            try:
-                while (sample := sub.try_recv()) is not None:
-                    self._take(agent, key, payload_bytes(sample.payload))
-            except (zenoh.ZError, DecodeError) as exc:
-                self._log.warning(f"subscription {key}", f"reading samples: {exc}")
+            self._take_waiting()
+
+    def _take_waiting(self) -> None:
+        """The body of :meth:`_catch_up` (lock held, a kept route)."""
+        current = self._pushed_by
+        if current is None:
+            return
+        agent, key, sub = current
+        try:
+            while (sample := sub.try_recv()) is not None:
+                self._take(agent, key, payload_bytes(sample.payload))
+        except (zenoh.ZError, DecodeError) as exc:
+            self._log.warning(f"subscription {key}", f"reading samples: {exc}")
 
     def _watch(self) -> None:
         """Follow the realm and watch for stalls, every ``WATCH_S``; take a kept route's
@@ -494,7 +498,8 @@ class Subscription:
         if self.status != "streaming":
             return None
         with self._lock:
-            self._catch_up()
+            if self.on_pose is None:
+                self._take_waiting()
             if self.status != "streaming":
                 return None
             try:
