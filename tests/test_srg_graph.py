@@ -355,6 +355,21 @@ def test_new_sample_does_not_invalidate_a_plan():
     assert r.stamps == [(round(0.2 * S), round(0.3 * S))]
 
 
+def test_a_kept_plan_answers_as_pose_until_the_graph_changes():
+    """``plan()`` is the plan ``pose()`` evaluates: the same answers while ``version`` stays,
+    new samples included; an edge change moves ``version`` and gives a new plan."""
+    g = chain_graph()
+    plan, version = g.plan("w", "y", "latency"), g.version
+    feed(g, "w", "x", [0.2, 0.3], latency_s=0.01)
+    for at in (round(0.05 * S), round(0.25 * S), None):
+        kept, asked = plan.evaluate(at), g.pose("w", "y", at=at, error="latency")
+        np.testing.assert_array_equal(kept.position, asked.position)
+        assert kept.stamps == asked.stamps and kept.t_ns == asked.t_ns
+    assert g.version == version and g.plan("w", "y", "latency") is plan
+    g.add_static("w", "y", [5, 0, 0], [0, 0, 0, 1], source="survey")
+    assert g.version != version and g.plan("w", "y", "latency") is not plan
+
+
 def test_attribute_change_invalidates_plans_that_use_the_edge_only():
     g = chain_graph()
     g.pose("w", "y", at=0, error="latency")

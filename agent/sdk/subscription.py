@@ -172,6 +172,8 @@ class Subscription:
         #: why the last re-planning failed while the route was kept (it still streamed)
         self._replan_failed: Exception | None = None
         self._closed = threading.Event()
+        #: the mirror's query plan: (graph, its version, plan), see _compose
+        self._plan: tuple[Graph, int, Any] | None = None
         self._build(first)
         #: a kept route has no stream thread: its samples are taken by ``_catch_up``
         self._streamer = None if on_pose is None else threading.Thread(
@@ -475,7 +477,7 @@ class Subscription:
         if self.on_pose is None:
             return None  # a kept route: composed only when asked (answer)
         try:
-            r = self.graph.pose(self.source, self.target, at=t_ns, error="hops")
+            r = self._compose(t_ns)
         except EdgeUndefinedError as exc:  # a pulled edge has no data at t yet
             self.failed += 1
             self.last_error = exc
@@ -503,13 +505,23 @@ class Subscription:
             if self.status != "streaming":
                 return None
             try:
-                r = self.graph.pose(self.source, self.target, at=at, error="hops")
+                r = self._compose(at)
             except LookupError:
                 return None
         if r.extrapolated_s:
             return None
         self.answered += 1
         return r
+
+    def _compose(self, at: int | None) -> PoseResult:
+        """The mirror's route at ``at`` (lock held): its graph's plan, kept while the graph
+        is unchanged (a mirror's graph changes only when it is rebuilt)."""
+        graph = self.graph
+        if self.source == self.target:
+            return graph.pose(self.source, self.target, at=at, error="hops")
+        if self._plan is None or self._plan[0] is not graph or self._plan[1] != graph.version:
+            self._plan = (graph, graph.version, graph.plan(self.source, self.target, "hops"))
+        return self._plan[2].evaluate(at)
 
     @property
     def lost(self) -> int:

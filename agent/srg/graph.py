@@ -306,6 +306,14 @@ class Graph:
             plan = self._build_plan(source, target, fn)
         return plan.evaluate(None if at is None else _time(at))
 
+    def plan(self, source: str, target: str, error: str | ErrorFunction = "hops") -> Plan:
+        """The compiled query of :meth:`pose` (``source`` != ``target``): its ``evaluate(at)``
+        answers as :meth:`pose` does, for as long as :attr:`version` is unchanged.  A caller
+        that asks the same route again and again (a kept route) keeps it."""
+        fn = error_function(error)
+        return self._cached_plan((source, target, fn.key)) or self._build_plan(source, target,
+                                                                                fn)
+
     def _cached_plan(self, key: PlanKey) -> Plan | None:
         """The cached plan of a query, marked as the most recently used."""
         plan = self._plans.get(key)
@@ -316,10 +324,7 @@ class Graph:
     def best_paths(self, source: str, target: str, error: str | ErrorFunction = "hops",
                    ) -> list[Chain]:
         """The ranked candidate paths (with their attributes) a query would try, best first."""
-        fn = error_function(error)
-        plan = self._cached_plan((source, target, fn.key)) or self._build_plan(source, target,
-                                                                                fn)
-        return list(plan.chains)
+        return list(self.plan(source, target, error).chains)
 
     def _build_plan(self, source: str, target: str, fn: ErrorFunction) -> Plan:
         for frame in (source, target):
