@@ -472,6 +472,7 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
     wand marker image's noise, ``static_px`` the part of a still marker's centroid error
     that does not average out over frames (pixel sampling); each of ``lframe_frames`` may
     be the average of ``lframe_averaged`` images of the still L-frame."""
+    wand_obs = _seen_twice(wand_obs)
     counts = np.sum(~np.isnan(wand_obs[:, :, 0, 0]), axis=0)
     if np.any(counts < 20):
         few = [models[c].name or f"#{c}" for c in np.nonzero(counts < 20)[0]]
@@ -486,7 +487,7 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
     kept = _without_outliers(rel, wand_obs, sigma_px)
     dropped = np.sum(np.isnan(kept[:, :, 0, 0])) - np.sum(np.isnan(wand_obs[:, :, 0, 0]))
     if 0 < dropped <= MAX_OUTLIER_SHARE * np.sum(~np.isnan(wand_obs[:, :, 0, 0])):
-        wand_obs = kept
+        wand_obs = _seen_twice(kept)
         rel = adjust(rel.models, rel.extrinsics, wand_obs, wand, sigma_px, fixed_camera=ref)
     rig_pts, lobs, n_l = lframe_observations(rel.models, rel.extrinsics, lframe_frames, lframe)
     # world -> rig (the reference camera's frame): the L-frame's known markers onto its points
@@ -507,6 +508,13 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
     seen = int(np.sum(~np.isnan(wand_obs[:, :, 0, 0])))
     return RigCalibration(cams, np.array(covs), final.rms_px, len(wand_obs), n_l, seen,
                           wand_obs)
+
+
+def _seen_twice(obs: Array) -> Array:
+    """The wand frames two cameras saw or more: a frame one camera saw has no
+    triangulated start (``_wand_start`` leaves it at the origin, the reference camera's
+    centre, where its projection overflows) and tells almost nothing of the rig."""
+    return obs[np.sum(~np.isnan(obs[:, :, 0, 0]), axis=1) >= 2]
 
 
 #: a wand view whose worst marker is this many noise stds from the adjusted rig is an
