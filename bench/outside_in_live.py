@@ -237,7 +237,14 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
     if not len(every):
         tails = {n: procs.log(n).splitlines()[-3:] for n in procs.procs}
         raise SystemExit(f"no pose arrived while measuring; the processes' last lines: {tails}")
+    per_set_ms = 1e3 * sum(services.values()) / max(np.mean([len(v) for v in lat.values()])
+                                                     / elapsed, 1e-9)
     return {"exposure_to_pose": median_p99(every, "ms"),
+            # load-independent: the services' CPU per published frame set, and what the
+            # camera rate would take at that cost
+            "cpu_ms_per_frame_set": round(per_set_ms, 3),
+            "cores_at_camera_rate": round(per_set_ms * rate_hz / 1e3, 3),
+            "load_after": os.getloadavg()[0],
             "bare_transport": median_p99(bare, "ms") if bare else None,
             "published_hz": {b: round(len(v) / elapsed, 2) for b, v in lat.items()},
             "measured_until": time.time(),

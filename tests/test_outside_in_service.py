@@ -65,6 +65,41 @@ def test_reconstruction_completes_a_frame_set_per_exposure(tmp_path) -> None:
         assert np.linalg.norm(e.p - p) < 0.001
 
 
+def test_windows_go_to_each_camera_in_time_and_not_at_every_frame_set(tmp_path) -> None:
+    """A camera's next windows are sent once its last are ``WINDOWS_EVERY_S`` older, and
+    not at all when they would come after ``PREDICTION_AGE_S`` past the exposure they
+    are for (the reconstruction behind)."""
+    from services.outside_in.blobs import find_blobs
+    from services.outside_in.service import PREDICTION_AGE_S, WINDOWS_EVERY_S
+    sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=120.0))
+    rig = save_rig(tmp_path / "rig.toml", sim.cameras, np.zeros((4, 6, 6)), "lab/world",
+                   "lab", 0.03)
+    (tmp_path / "bodies.toml").write_text(dump_bodies(sim.bodies))
+    rec = Reconstruction(rig, tmp_path / "bodies.toml", "lab")
+    sent: dict[str, list[int]] = {}
+    late = 0
+    for i in range(16):
+        for c in range(4):
+            fr = sim.render(c, i)
+            b = find_blobs(fr.image)
+            sets = rec.frame_sets
+            rec.add(Measurement("markers2d", round(fr.t * 1e9), points=b.uv, values=b.std_px,
+                                extra={MARKERS_CAMERA: f"cam{c}",
+                                       MARKERS_CALIBRATION: rec.version}), now=i / 120)
+            if rec.frame_sets != sets:
+                behind = i >= 12    # the answer would come 50 ms after the exposure
+                now_ns = round((fr.t + (0.05 if behind else 0.002)) * 1e9)
+                for name, t_ns, uv in rec.windows(now_ns):
+                    late += behind
+                    assert now_ns < t_ns + PREDICTION_AGE_S * 1e9 and len(uv)
+                    sent.setdefault(name, []).append(t_ns)
+    assert late == 0 and set(sent) == {f"cam{c}" for c in range(4)}
+    for times in sent.values():
+        gaps = np.diff(times) / 1e9
+        assert len(times) >= 3 and np.all(gaps >= WINDOWS_EVERY_S)
+        assert np.all(gaps < WINDOWS_EVERY_S + 1.5 / 120)
+
+
 @pytest.mark.slow
 def test_cameras_on_two_skewed_hosts_and_the_reconstruction_on_a_third(processes, realm,
                                                                       tmp_path) -> None:

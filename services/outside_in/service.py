@@ -9,15 +9,16 @@ with the camera's name and the calibration's version (a digest of the rig file) 
 or from the simulated rig, whose time is the wall clock so that cameras on several hosts
 render one world.
 
-The reconstruction feeds its filter's predictions back (Dorfmüller-Ulhaas §2): after each
-frame set it publishes, per camera, where the tracked bodies' markers will image at that
-camera's next exposure (a ``markers2d`` ability ``windows-NAME`` on ``SITE/NAME ->
+The reconstruction feeds its filter's predictions back (Dorfmüller-Ulhaas §2): after a
+frame set it publishes, per camera (at most every ``WINDOWS_EVERY_S``, and only while
+they can come in time: ``Reconstruction.windows``), where the tracked bodies' markers will
+image at that camera's next exposure (a ``markers2d`` ability ``windows-NAME`` on ``SITE/NAME ->
 SITE/NAME/windows``, its time the exposure's, ``extra["search"]`` true while a body is
 lost; each point's value the distance in pixels within which the reconstruction takes a
 blob).  Each marker camera needs its own and looks for blobs only in windows around those
 points (``find_blobs``' windowed mode: a fraction of the whole image's cost), and in the
-whole image when no prediction for this exposure has come, and every ``SEARCH_EVERY``-th
-frame while a body is lost.
+whole image when no prediction for this exposure (or up to ``PREDICTION_AGE_S`` before
+it) has come, and every ``SEARCH_EVERY``-th frame while a body is lost.
 
 The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
 whatever camera appears is used, one that stops is left out.  Samples are gathered into
@@ -62,6 +63,8 @@ SEARCH_EVERY = 4
 #: the reconstruction's answer comes a frame or more late at 60-120 Hz, and a marker
 #: moving 1 m/s 3 m away moves 6 px in 40 ms, inside a window (``BlobParams.window_px``)
 PREDICTION_AGE_S = 0.04
+#: the reconstruction sends a camera new windows once its last are this much older (s)
+WINDOWS_EVERY_S = 0.02
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
 SEARCH = "search"
 
@@ -278,6 +281,8 @@ class Reconstruction:
         self.frame_sets = 0
         #: frames that came after their exposure's set was tracked, not used
         self.late = 0
+        #: per camera, the exposure (ns) of the last windows sent
+        self.windows_sent: dict[int, int] = {}
 
     def add(self, m: Measurement, now: float | None = None) -> list[BodyEstimate]:
         """One camera's sample; the poses of the frame set it completed, if any."""
@@ -311,18 +316,28 @@ class Reconstruction:
             out += self._flush()
         return out
 
-    def windows(self) -> list[tuple[str, int, np.ndarray]]:
-        """Per camera seen so far: its name, its next exposure (ns, this clock) and where
-        the tracked bodies' markers will image then (none before the frame period is
-        known)."""
+    def windows(self, now_ns: int) -> list[tuple[str, int, np.ndarray]]:
+        """Per camera seen so far whose windows are due at ``now_ns`` (this clock): its
+        name, its next exposure (ns) and where the tracked bodies' markers will image then
+        (none before the frame period is known).
+
+        A camera takes a prediction for the frames up to ``PREDICTION_AGE_S`` after the
+        exposure it was made for: one that would come later is not sent (the
+        reconstruction is behind), nor one within ``WINDOWS_EVERY_S`` of the last sent to
+        that camera (at 120 Hz every third frame set; each message costs its sender,
+        the agent and the camera more than the windows save the segmentation)."""
         if self.period is None:
             return []
         names = {i: n for n, i in self.index.items()}
         out = []
         for cam, t in self.last_t.items():
             t_next = t + self.period
-            out.append((names[cam], round(t_next * 1e9),
-                        self.tracker.predicted_images(cam, t_next)))
+            due = round(t_next * 1e9)
+            if (now_ns >= due + PREDICTION_AGE_S * 1e9
+                    or due - self.windows_sent.get(cam, -2**62) < WINDOWS_EVERY_S * 1e9):
+                continue
+            self.windows_sent[cam] = due
+            out.append((names[cam], due, self.tracker.predicted_images(cam, t_next)))
         return out
 
     def _flush(self) -> list[BodyEstimate]:
@@ -369,7 +384,7 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
             with lock:
                 sets = rec.frame_sets
                 estimates = rec.add(m)
-                ahead = rec.windows() if rec.frame_sets != sets else []
+                ahead = rec.windows(svc.now_ns()) if rec.frame_sets != sets else []
                 search = rec.tracker.searching
             t1 = time.thread_time()
             for e in estimates:
