@@ -228,27 +228,18 @@ class _Stack:
 
     @staticmethod
     def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
-        counts = [len(o.markers) for o in obs]
-
-        def per_image(values: list) -> Array:   # each observation's value for its markers
-            return np.repeat(np.asarray(values, float), counts, axis=0)
-
-        def per_image_by_marker(values: list) -> Array:
-            # laid out marker index fastest, as concatenated broadcasts are: einsum's sums
-            # then round as they always have
-            return np.moveaxis(np.ascontiguousarray(np.moveaxis(per_image(values), 0, -1)),
-                               -1, 0)
-
+        # each observation's camera, motion and time, repeated for its markers
+        owner = np.repeat(np.arange(len(obs)), [len(o.markers) for o in obs])
         moved = [_moved(motion, o.dt_s) for o in obs]
-        focal = per_image([o.camera.focal_px for o in obs])
+        focal = np.array([o.camera.focal_px for o in obs])[owner]
         std = np.concatenate([np.asarray(o.std_px, float).reshape(-1) for o in obs])
-        return _Stack(per_image_by_marker([o.camera.R_cw for o in obs]),
-                      per_image_by_marker([o.camera.t_cw for o in obs]), focal,
+        return _Stack(np.array([o.camera.R_cw for o in obs])[owner],
+                      np.array([o.camera.t_cw for o in obs])[owner], focal,
                       markers[np.concatenate([np.asarray(o.markers, int) for o in obs])],
                       np.concatenate([np.asarray(o.xy, float).reshape(-1, 2) for o in obs]),
-                      focal / std, per_image_by_marker([turn for turn, _ in moved]),
-                      per_image_by_marker([shift for _, shift in moved]),
-                      per_image([o.dt_s for o in obs]),
+                      focal / std, np.array([turn for turn, _ in moved])[owner],
+                      np.array([shift for _, shift in moved])[owner],
+                      np.array([o.dt_s for o in obs], float)[owner],
                       any(o.dt_s != 0.0 for o in obs) and motion is not None, {})
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:

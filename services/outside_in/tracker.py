@@ -186,6 +186,7 @@ class OutsideInTracker:
             return {}
         predicted: dict[float, Array] = {}   # synchronised cameras share a time
         bounds = np.cumsum([0, *(len(track.body.markers) for _, track in tracked)])
+        body_of = np.repeat(np.arange(len(tracked)), np.diff(bounds)).tolist()
         for f in frames:
             cam = self.cameras[f.camera]
             world = predicted.get(f.t)
@@ -199,16 +200,20 @@ class OutsideInTracker:
             order = np.argsort(d, axis=1)
             rows = np.arange(len(d))
             near = d[rows, order[:, 0]]
-            second = d[rows, order[:, 1]] if d.shape[1] > 1 else None
-            for (k, _), lo, hi in zip(tracked, bounds[:-1], bounds[1:], strict=True):
-                if not np.all(z[lo:hi] > 0.05):
+            ambiguous = (near > p.ambiguity_ratio * d[rows, order[:, 1]] if d.shape[1] > 1
+                         else np.zeros(len(d), bool))
+            # markers near a blob, of bodies wholly in front of the camera
+            front = np.minimum.reduceat(z, bounds[:-1]) > 0.05
+            taken = ~(near > p.gate_px) & np.repeat(front, np.diff(bounds))
+            for i, amb, blob in zip(np.flatnonzero(taken).tolist(),
+                                    ambiguous[taken].tolist(), order[taken, 0].tolist(),
+                                    strict=True):
+                if amb:
+                    self.counts["ambiguous_blobs"] += 1
                     continue
-                for i in np.flatnonzero(~(near[lo:hi] > p.gate_px)) + lo:
-                    if second is not None and near[i] > p.ambiguity_ratio * second[i]:
-                        self.counts["ambiguous_blobs"] += 1
-                        continue
-                    owners.setdefault((f.camera, int(order[i, 0])), []).append(
-                        (k, f.camera, int(i - lo)))
+                b = body_of[i]
+                owners.setdefault((f.camera, blob), []).append(
+                    (tracked[b][0], f.camera, i - int(bounds[b])))
         claims: dict[int, dict[tuple[int, int], tuple[int, int]]] = {}
         for blob, keys in owners.items():
             if len(keys) > 1:
