@@ -286,11 +286,14 @@ def _time_kept(c, kept, n: int, rng: np.random.Generator) -> dict:
     route_times = rng.integers(lo + 1, hi, n)
     src, dst = KEPT_FRAMES[0], KEPT_FRAMES[4]
     answered = kept.answered
-    results: list = [None] * n
+    checked = max(1, n // 200)  # every checked-th kept answer is compared below
+    results: dict[int, object] = {}
     n_tm = max(1, n // 20)
 
     def kept_pose(i: int) -> None:
-        results[i] = c.pose(src, dst, at=int(route_times[i]) - offset, error="hops")
+        r = c.pose(src, dst, at=int(route_times[i]) - offset, error="hops")
+        if i % checked == 0:  # only those: thousands held alive would tax the collector
+            results[i] = r
 
     def graph_pose(i: int) -> None:
         g.pose(src, dst, at=int(route_times[i]))
@@ -305,7 +308,7 @@ def _time_kept(c, kept, n: int, rng: np.random.Generator) -> dict:
     us = _interleaved({"kept": kept_pose, "graph": graph_pose}, n)
     us["temporal"] = _timed(temporal, n_tm)
     assert kept.answered - answered == n + min(n, 500), "a kept query went to the network"
-    for i in range(0, n, max(1, n // 200)):
+    for i in range(0, n, checked):
         mine, local = results[i], g.pose(src, dst, at=int(route_times[i]))
         assert np.abs(mine.position - local.position).max() <= 1e-12
         assert np.abs(mine.quaternion - local.quaternion).max() <= 1e-12
