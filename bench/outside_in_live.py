@@ -268,18 +268,21 @@ def _at_camera_rate(procs: _Procs, figures: dict[str, Any], cameras: int,
                     rate_hz: float) -> dict[str, Any]:
     """What the services' CPU comes to per unit of work, so that a run on a loaded machine
     (where they get less CPU than they need and fall behind) still says what the camera
-    rate would take: the cameras' frames per second (from their last two reports), their
+    rate would take: the cameras' frames per second (over their reports while replaying,
+    5 s apart: a run of 10 s or more has two), their
     CPU per frame; the reconstruction's and the agent's per published frame set; and the
     cores all of it would take with every camera at the rate and a pose per frame set
     (linear in the work; an extrapolation, not a measurement)."""
     frames = 0.0
     for name in procs.procs:
         if name.startswith("cameras-"):
-            reports = [_REPORT.search(x) for x in procs.log(name).splitlines()]
-            reports = [m for m in reports if m]
-            if len(reports) >= 2:
-                (t0, n0), (t1, n1) = (_report(m) for m in reports[-2:])
-                frames += (n1 - n0) / max(t1 - t0, 1e-9)
+            # from its first report with frames (it is silent before its replay) to its last
+            found = [_REPORT.search(x) for x in procs.log(name).splitlines()]
+            reports = [r for r in (_report(m) for m in found if m) if r[1] > 0]
+            if len(reports) < 2:
+                return {}
+            (t0, n0), (t1, n1) = reports[0], reports[-1]
+            frames += (n1 - n0) / (t1 - t0)
     cores = figures["cores"]
     sets = float(np.mean(list(figures["published_hz"].values())))
     cam_cores = sum(v for k, v in cores.items() if k.startswith("cameras-"))
