@@ -43,6 +43,28 @@ def test_reconstruction_refuses_foreign_cameras_and_calibrations(tmp_path) -> No
     assert rec.version == calibration_version(rig)
 
 
+@pytest.mark.parametrize("args, msg", [
+    (["--camera", "cam0", "--source", "cam0=0", "--prerender", "5"], "--prerender needs --sim"),
+    (["--camera", "cam0", "--sim", "5", "--prerender", "nan"], "--prerender must be in"),
+    (["--camera", "cam0", "--sim", "5", "--replay-at", "1795756000"],
+     "--replay-at needs --prerender"),
+])
+def test_bad_replay_options_are_refused_with_the_reason(tmp_path, args, msg) -> None:
+    import argparse
+    import re
+    import threading
+
+    from agent.errors import UmaError
+    from agent.runtime import plugins
+    from services.outside_in.plugin import MARKER_CAMERA
+    _, rig, _ = _files(tmp_path)
+    parser = argparse.ArgumentParser()
+    plugins.add_service_arguments(parser, MARKER_CAMERA)
+    with pytest.raises(UmaError, match=re.escape(msg)):
+        plugins.runner(MARKER_CAMERA.run)(parser.parse_args(["--rig", str(rig), *args]),
+                                          threading.Event())
+
+
 def test_reconstruction_completes_a_frame_set_per_exposure(tmp_path) -> None:
     from services.outside_in.blobs import find_blobs
     sim, rig, bodies = _files(tmp_path)
