@@ -25,7 +25,7 @@ import numpy as np
 from summary import cpu_model, median_p99
 
 from services.camera.markers import dictionary, marker_corners
-from services.camera.simulator import SimCamera
+from services.camera.simulator import FAITHFUL, SimCamera
 from services.fiducials.simulate import tags, wandering, webcam
 from services.fiducials.tracker import FiducialTracker
 
@@ -40,7 +40,7 @@ def frames(n: int, n_tags: int, seed: int) -> tuple[list[np.ndarray], object]:
     trajectories = [wandering(rng, camera, (0.6, 1.6), 8.0, max_tilt_rad=0.5, fill=0.8)
                     for _ in range(n_tags)]
     scene = tags(FAMILY, list(range(n_tags)), SIZE_M, trajectories)
-    sim = SimCamera(camera)
+    sim = SimCamera(camera, supersampling=FAITHFUL)
     return [sim.render(scene, k / 30.0, rng) for k in range(n)], camera
 
 

@@ -9,9 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
+from agent.errors import InvalidInputError
 from services.camera.capture import Capture, CaptureError
 from services.camera.model import CameraFileError, CameraModel, load
 from services.camera.simulator import (
+    FAITHFUL,
     PlanarTarget,
     SceneObject,
     SimCamera,
@@ -135,6 +137,44 @@ def test_rendered_marker_corners_lie_where_the_model_projects_them():
     true = cam.model.project(np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
                              @ T[:3, :3].T + T[:3, 3])
     assert np.abs(corners[0].reshape(4, 2) - true).max() < 0.5
+
+
+def _edge_crossings(supersampling: int) -> np.ndarray:
+    """Row by row, how far a print's black-to-white edge crosses its mid-level from where
+    the model projects it: a half-black print, tilted 60 degrees so that a pixel spans
+    more of its texture across the edge than along it; no noise, no lens."""
+    tex = np.full((120, 120), 255, np.uint8)
+    tex[:, :60] = 0
+    cam = SimCamera(CameraModel(K, [], 640, 480), read_noise=0.0, shot_noise=0.0,
+                    supersampling=supersampling)
+    T = pose_matrix((np.pi, 0.0, 0.0), (0.013, 0.0, 0.9)) @ pose_matrix((0.0, 1.05, 0.03))
+    image = cam.render([SceneObject("print", PlanarTarget(tex, 0.12, 0.12), static(T))], 0.0,
+                       np.random.default_rng(0)).astype(float)
+    black, white = 0.08 * 255, 0.93 * 255
+    ends = cam.model.project(np.array([[0.0, 0.04, 0], [0.0, -0.04, 0]]) @ T[:3, :3].T
+                             + T[:3, 3])
+    errors = []
+    ends = ends[np.argsort(ends[:, 1])]
+    middle = (black + white) / 2
+    for v in range(int(ends[0, 1]) + 2, int(ends[1, 1]) - 1):
+        u_true = np.interp(v, ends[:, 1], ends[:, 0])
+        left = int(u_true) - 3
+        row = image[v, left:left + 8]
+        i = int(np.argmax(row >= middle))
+        errors.append(left + i - 1 + (middle - row[i - 1]) / (row[i] - row[i - 1]) - u_true)
+    return np.array(errors)
+
+
+def test_pixels_integrate_their_area_so_tilted_edges_do_not_lock_to_the_grid():
+    centres, faithful = _edge_crossings(1), _edge_crossings(FAITHFUL)
+    assert len(centres) > 20
+    assert np.sqrt(np.mean(faithful ** 2)) < 0.5 * np.sqrt(np.mean(centres ** 2))
+    assert np.abs(faithful).max() < 0.1
+
+
+def test_supersampling_is_a_whole_number():
+    with pytest.raises(InvalidInputError, match="supersampling"):
+        SimCamera(CameraModel(K, [], 640, 480), supersampling=0)
 
 
 def test_motion_blur_averages_more_instants_when_the_target_moves_fast():

@@ -113,7 +113,24 @@ def test_previous_frame_picks_the_solution_it_supports():
         kinds.append(est.ambiguity)
         if est.ambiguity == "history":  # the flipped solution lies 30-45 degrees off
             assert pose.rotation_angle(est.R, T[:3, :3]) < math.radians(20)
-    assert kinds.count("history") >= 5, kinds
+    # the clear frame's evidence carries over the next frames, then these frames' own
+    # (which cannot tell the two apart) wear it down: covered, never a silent guess
+    assert kinds[:2] == ["history", "history"] and set(kinds) <= {"history", "covered"}, kinds
+
+
+def test_weak_evidence_accumulates_over_frames():
+    T = facing((0.35, 0.2, 0.0), (0.1, 0.05, 1.6))  # each frame's gap is 1-5
+    for seed in range(3, 7):
+        rng = np.random.default_rng(seed)
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+        kinds = []
+        for k in range(8):
+            est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.1, (4, 2))},
+                                   k * 30_000_000)[0]
+            kinds.append(est.ambiguity)
+            assert est.alternative_gap <= 16
+            assert pose.rotation_angle(est.R, T[:3, :3]) < math.radians(5)
+        assert kinds[0] == "covered" and kinds[-4:] == ["history"] * 4, kinds
 
 
 def test_edge_fitted_corners_beat_the_detectors_on_a_blurred_tag():

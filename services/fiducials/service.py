@@ -12,8 +12,9 @@ FiducialTracker`.  Each body seen (a marker, or a bundle of ``--bundles``) becom
 bundle's name), with the edge ``FRAME -> PREFIX/NAME`` (``--name ID=FRAME`` renames a
 marker's frame).  Each sample carries the frame's capture time, the 6x6 covariance (uma's
 SE(3) form) and, in ``extra``: ``ambiguity`` (``none``, ``history``: the IPPE solution the
-previous frame supports, ``covered``: the covariance spans both solutions), ``sigma_px``
-(the corner noise estimated from the residuals), ``rms_px`` and ``markers`` (the ids used).
+track's accumulated evidence supports, ``covered``: the covariance spans both solutions),
+``sigma_px`` (the corner noise estimated from the residuals), ``rms_px`` and ``markers``
+(the ids used).
 
 The attributes each ability advertises are measured: ``frequency_hz`` (samples over the
 last ``WINDOW_S``), ``latency_s`` (publication minus capture time, median), ``pos_std_m``

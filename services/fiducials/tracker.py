@@ -20,15 +20,20 @@
   weighs ``PRIOR_DOF``), never below :func:`corner_floor_px` of the marker's cell size
   (it is also the covariance's noise when corners come without their covariances, as
   in :meth:`FiducialTracker.estimate` called with bare corners);
-* **planar ambiguity**: when the second-best solution fits within ``AMBIGUITY_GAP``
-  (in units of σ², at least the calibration's pixel noise: the χ² distance between the
-  two fits) the choice is not trusted to the residuals.  If the body's previous trusted
-  estimate (at most ``HISTORY_S`` old) lies clearly on one solution's side (within
-  ``HISTORY_SIDE`` of the angle between the two), that one is taken (``ambiguity =
-  "history"``, its covariance widened half way towards the other); otherwise the better
-  fit is reported with its covariance inflated by the other solution's offset and
-  spread, so that the other one lies within one standard deviation (``ambiguity =
-  "covered"``).  Never a silent flip: the sample says which.
+* **planar ambiguity**: the two IPPE solutions are two branches of a two-state hidden
+  Markov model (which one is the true pose), their evidence carried from frame to frame:
+  each frame adds its own log-likelihood ratio (half the χ² distance between the two
+  fits, in units of σ², at least the calibration's pixel noise), the branch a solution
+  continues is the previous favourite's if it lies clearly on its side (within
+  ``HISTORY_SIDE`` of the angle between the two), and between frames (at most
+  ``HISTORY_S`` apart) the branches may swap with probability ``BRANCH_SWITCH``, which
+  bounds what history alone can claim.  A frame whose own gap exceeds ``AMBIGUITY_GAP``
+  decides (``ambiguity = "none"``); otherwise the branch the evidence favours is
+  reported, as ``"history"`` when the carried evidence agrees and the total reaches
+  ``HISTORY_LLR`` (its covariance widened half way towards the other), else as
+  ``"covered"``, its covariance inflated by the other solution's offset and spread, so
+  that the other one lies within one standard deviation.  Never a silent flip: the
+  sample says which.
 """
 
 from __future__ import annotations
@@ -65,15 +70,25 @@ FLOOR_B = 1.58
 EDGE_CORRELATION = 1.6
 #: what a tiny tag's edge fits cannot show (its reach across a side spans barely a cell,
 #: the code's cells bias the crossing): ``SHARED_A / cell_px ** SHARED_B`` per axis added
-#: to each corner (0.009 px at 1 m, 0.10 px at 2 m for an 8 cm tag; fitted on seeds 1-10:
-#: at 2-2.5 m the seeds' mean NEES 12-16 with 1.45 / cell_px ** 3, 8.3-11 now)
-SHARED_A = 3.0
+#: to each corner (0.003 px at 1 m, 0.03 px at 2 m for an 8 cm tag; fitted on seeds 1-10
+#: of ``uma eval fiducials``, whose frames integrate each pixel's area: mean NEES of the
+#: unflagged samples at 1-1.5 m inside its band on 8 of 9 seeds with 1.0, 5 of 9 with 3.0)
+SHARED_A = 1.0
 SHARED_B = 3.5
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
-#: the previous pose decides when it is within this share of the two solutions' angle
-#: of one of them (clearly on its side)
+#: a solution continues the previous favourite branch when it is within this share of
+#: the two solutions' angle of it (clearly on its side)
 HISTORY_SIDE = 0.4
+#: a switch of the branches between frames (matched wrongly, the tag turned through the
+#: line of sight): history alone then claims at most log(0.98 / 0.02) = 3.9 (0.005 gave
+#: the same errors on seeds 1-10)
+BRANCH_SWITCH = 0.02
+#: the log-likelihood ratio (about 20 : 1) at which history reports its branch as such
+HISTORY_LLR = 3.0
+#: the log-likelihood ratio a frame with a single solution stores (any finite figure
+#: beyond what ``BRANCH_SWITCH`` lets history carry)
+_DECISIVE = 50.0
 
 
 @dataclass(frozen=True)
@@ -160,7 +175,9 @@ class _BodyState:
     pool: deque = field(default_factory=deque)  # (rss, dof) of the last POOL_FRAMES fits
     rss: float = 0.0
     dof: int = 0
-    last: Estimate | None = None
+    branch: np.ndarray | None = None  # rotation of the branch the evidence favours
+    llr: float = 0.0  # its log-likelihood ratio against the other (>= 0)
+    branch_ns: int = 0
 
     def add(self, rss: float, dof: int) -> None:
         self.pool.append((rss, dof))
@@ -335,13 +352,10 @@ class FiducialTracker:
                 cov = cov + _ambiguity_spread(
                     chosen, p.solutions, p.ambiguity,
                     lambda s, k=k: covariances(pose.Fits.of([s]), slice(k, k + 1))[0])
-            est = Estimate(p.body.name, t_ns, chosen.rotation, chosen.tvec, cov,
-                           float(sigmas[k]),
-                           float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))), p.ambiguity,
-                           tuple(p.ids), p.gap)
-            if p.ambiguity != "covered":  # a guess between two solutions is no one's history
-                self._state[p.body.name].last = est
-            out.append(est)
+            out.append(Estimate(p.body.name, t_ns, chosen.rotation, chosen.tvec, cov,
+                                float(sigmas[k]),
+                                float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))),
+                                p.ambiguity, tuple(p.ids), p.gap))
         return out
 
     def _sigma2(self, state: _BodyState) -> float:
@@ -360,22 +374,38 @@ class FiducialTracker:
 
     def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
                t_ns: int) -> tuple[pose.Solution, str, float]:
-        """(the solution reported, how it was chosen, the χ² gap to the other)."""
+        """(the solution reported, how it was chosen, the χ² gap to the other); the body's
+        branch evidence moved on to this frame."""
         best = solutions[0]
-        if len(solutions) == 1:
-            return best, "none", float("inf")
-        other = solutions[1]
+        other = solutions[1] if len(solutions) > 1 else None
         # judged at no less than the calibration's pixel noise: a noise estimate from a
         # few residual dof can be small by chance, and a gap it inflates is a silent flip
-        gap = (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
+        gap = float("inf") if other is None else \
+            (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
+        carried = self._carried(state, best, other, t_ns)
+        llr = carried + min(gap / 2, _DECISIVE)
+        chosen = best if llr >= 0 or other is None else other
+        state.branch, state.llr, state.branch_ns = chosen.rotation, abs(llr), t_ns
         if gap > AMBIGUITY_GAP:
             return best, "none", gap
-        last = state.last
-        if last is not None and 0 <= t_ns - last.t_ns <= HISTORY_S * 1e9:
-            d_best = pose.rotation_angle(best.rotation, last.R)
-            d_other = pose.rotation_angle(other.rotation, last.R)
-            apart = pose.rotation_angle(best.rotation, other.rotation)
-            near = best if d_best <= d_other else other
-            if min(d_best, d_other) < HISTORY_SIDE * apart:
-                return near, "history", gap
-        return best, "covered", gap
+        if carried * llr > 0 and abs(llr) >= HISTORY_LLR:
+            return chosen, "history", gap
+        return chosen, "covered", gap
+
+    @staticmethod
+    def _carried(state: _BodyState, best: pose.Solution, other: pose.Solution | None,
+                 t_ns: int) -> float:
+        """The log-likelihood ratio of ``best`` against ``other`` that the body's earlier
+        frames carry: their favourite's, through one possible switch of the branches,
+        signed by which solution continues it; 0 when none does clearly."""
+        if state.branch is None or other is None or \
+                not 0 <= t_ns - state.branch_ns <= HISTORY_S * 1e9:
+            return 0.0
+        d_best = pose.rotation_angle(best.rotation, state.branch)
+        d_other = pose.rotation_angle(other.rotation, state.branch)
+        if min(d_best, d_other) >= HISTORY_SIDE * pose.rotation_angle(best.rotation,
+                                                                      other.rotation):
+            return 0.0
+        p, x = BRANCH_SWITCH, min(state.llr, _DECISIVE)
+        kept = float(np.log(((1 - p) * np.exp(x) + p) / (p * np.exp(x) + 1 - p)))
+        return kept if d_best <= d_other else -kept
