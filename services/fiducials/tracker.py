@@ -38,6 +38,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -382,24 +383,24 @@ class FiducialTracker:
         # few residual dof can be small by chance, and a gap it inflates is a silent flip
         gap = float("inf") if other is None else \
             (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
-        carried = self._carried(state, best, other, t_ns)
-        llr = carried + min(gap / 2, _DECISIVE)
-        chosen = best if llr >= 0 or other is None else other
-        state.branch, state.llr, state.branch_ns = chosen.rotation, abs(llr), t_ns
-        if gap > AMBIGUITY_GAP:
+        if gap > AMBIGUITY_GAP:  # outweighs anything history carries
+            state.branch, state.llr, state.branch_ns = best.rotation, min(gap / 2, _DECISIVE), t_ns
             return best, "none", gap
+        carried = self._carried(state, best, other, t_ns)
+        llr = carried + gap / 2
+        chosen = best if llr >= 0 else other
+        state.branch, state.llr, state.branch_ns = chosen.rotation, abs(llr), t_ns
         if carried * llr > 0 and abs(llr) >= HISTORY_LLR:
             return chosen, "history", gap
         return chosen, "covered", gap
 
     @staticmethod
-    def _carried(state: _BodyState, best: pose.Solution, other: pose.Solution | None,
+    def _carried(state: _BodyState, best: pose.Solution, other: pose.Solution,
                  t_ns: int) -> float:
         """The log-likelihood ratio of ``best`` against ``other`` that the body's earlier
         frames carry: their favourite's, through one possible switch of the branches,
         signed by which solution continues it; 0 when none does clearly."""
-        if state.branch is None or other is None or \
-                not 0 <= t_ns - state.branch_ns <= HISTORY_S * 1e9:
+        if state.branch is None or not 0 <= t_ns - state.branch_ns <= HISTORY_S * 1e9:
             return 0.0
         d_best = pose.rotation_angle(best.rotation, state.branch)
         d_other = pose.rotation_angle(other.rotation, state.branch)
@@ -407,5 +408,5 @@ class FiducialTracker:
                                                                       other.rotation):
             return 0.0
         p, x = BRANCH_SWITCH, min(state.llr, _DECISIVE)
-        kept = float(np.log(((1 - p) * np.exp(x) + p) / (p * np.exp(x) + 1 - p)))
+        kept = math.log(((1 - p) * math.exp(x) + p) / (p * math.exp(x) + 1 - p))
         return kept if d_best <= d_other else -kept
