@@ -358,9 +358,9 @@ def test_velocity_error_shared_by_a_cameras_observations_is_in_the_covariance() 
 
 def test_a_body_found_moving_is_fitted_at_rest_with_the_start_uncertainty() -> None:
     """Monte Carlo: a body just found, moving as the filter's start allows (velocities
-    drawn from its start covariance), seen by cameras exposed 0-8 ms apart: fitted at
-    rest, its pose is millimetres off, and its covariance says so once the start's
-    velocity uncertainty goes in (mean NEES in its band; far above without)."""
+    and acceleration drawn from its start covariance), seen by cameras exposed 0-8 ms
+    apart: fitted at rest, its pose is millimetres off, and its covariance says so once
+    the start's motion uncertainty goes in (mean NEES in its band; far above without)."""
     from services.outside_in.motion import MotionFilter
     from services.outside_in.pose import Motion
     rng = np.random.default_rng(5)
@@ -368,16 +368,17 @@ def test_a_body_found_moving_is_fitted_at_rest_with_the_start_uncertainty() -> N
     body = standard_bodies()[2]
     R = geo.rodrigues(np.array([-0.3, 0.1, 0.7]))
     p = np.array([0.0, 0.2, 1.2])
-    start_cov = MotionFilter().start_velocity_covariance
+    start_cov = MotionFilter().start_motion_covariance
     at_rest = Motion(np.zeros(3), np.zeros(3), start_cov)
     dts = [-0.0075, -0.005, -0.002, 0.0]
     std = 0.03
     nees: dict[bool, list[float]] = {False: [], True: []}
     for _ in range(200):
-        u = rng.multivariate_normal(np.zeros(6), start_cov)
+        u = rng.multivariate_normal(np.zeros(9), start_cov)     # v, omega, a
         obs = []
         for c, dt in zip(cams, dts, strict=True):
-            world = (body.markers @ R.T) @ geo.rodrigues(u[3:] * dt).T + p + u[:3] * dt
+            world = ((body.markers @ R.T) @ geo.rodrigues(u[3:6] * dt).T + p + u[:3] * dt
+                     + 0.5 * u[6:] * dt * dt)
             obs.append(Observation(c, np.arange(5), c.normalize(
                 c.project(world) + rng.normal(0, std, (5, 2))), np.full(5, std), dt))
         for known in (False, True):

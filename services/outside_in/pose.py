@@ -58,7 +58,8 @@ class Observation:
 @dataclass(frozen=True)
 class Motion:
     """Velocities that move observations to the pose's time (world frame), and their
-    covariance (6 x 6 over ``[velocity, omega]``; None: taken as exact)."""
+    covariance (6 x 6 over ``[velocity, omega]``, or 9 x 9 over ``[velocity, omega,
+    accel]``; None: taken as exact)."""
 
     velocity: Array   # m/s
     omega: Array      # rad/s
@@ -77,8 +78,10 @@ class PoseFit:
     n_cameras: int
     errors_px: Array  # (n_observations,) each marker image's distance from the fit, in the
                       # order of the observations and their markers
-    sensitivity: Array | None = None   # (6, 6) d pose / d [v, omega] of the velocities
+    sensitivity: Array | None = None   # (6, 9) d pose / d [v, omega, accel] of the motion
                                        # the fit was given (None: no camera moved)
+    noise_cov: Array | None = None     # (6, 6) the centroids' part of cov: cov less what the
+                                       # given motion's error adds
 
     @property
     def q(self) -> Array:
@@ -114,13 +117,17 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     info = J.T @ J
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e14:
         return None
-    cov = np.linalg.inv(info)
-    S = _sensitivity(stack, p, R, J, cov) if motion is not None else None
+    noise = np.linalg.inv(info)
+    noise = 0.5 * (noise + noise.T)
+    cov = noise
+    S = _sensitivity(stack, p, R, J, noise) if motion is not None else None
     if S is not None and motion.cov is not None:
-        cov += S @ motion.cov @ S.T
+        Sm = S[:, :len(motion.cov)]
+        cov = noise + Sm @ motion.cov @ Sm.T
+        cov = 0.5 * (cov + cov.T)
     pix = stack.pixels(zero, p, R)
-    return PoseFit(p, R, 0.5 * (cov + cov.T), float(np.sqrt(np.mean(pix ** 2))), len(pix),
-                   cams, pix, S)
+    return PoseFit(p, R, cov, float(np.sqrt(np.mean(pix ** 2))), len(pix), cams, pix, S,
+                   noise)
 
 
 #: Gauss-Newton steps at most, and the step (m, rad) below which the fit has converged
@@ -182,20 +189,22 @@ FIT: Any = _native()
 
 
 def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Array | None:
-    """How the fitted pose moves with the velocities it was given: 6 x 6 by ``[v,
-    omega]``, None when every camera exposed at the pose's time.  A velocity error dv
+    """How the fitted pose moves with the motion it was given: 6 x 9 by ``[v, omega,
+    accel]``, None when every camera exposed at the pose's time.  A velocity error dv
     moves every observation of a camera exposed ``dt`` from the pose's time by the same
-    ``dv dt`` (and turns them by ``dw dt``), one error shared by all of that camera's
-    markers, which the observations' own stds, taken as independent, cannot carry.  With
-    ``B`` the residuals' derivative by ``[v, omega]`` the fit moves by ``S = -cov J^T
-    B`` per unit of velocity error, and ``S motion_cov S^T`` is what that error adds to
-    the pose's covariance."""
+    ``dv dt`` (an acceleration error by ``da dt^2 / 2``, a turn rate error turns them by
+    ``dw dt``): one error shared by all of that camera's markers, which the
+    observations' own stds, taken as independent, cannot carry.  With ``B`` the
+    residuals' derivative by the motion, the fit moves by ``S = -cov J^T B`` per unit of
+    its error: ``S P S^T`` is what a motion of covariance ``P`` adds to the pose's
+    covariance, and a filter whose own motion it was takes the fit as a measurement of
+    its pose less ``S`` times its motion's error (``motion.MotionFilter.update``)."""
     dt = stack.dt
     if not np.any(dt):
         return None
-    # a velocity error dv shifts a marker by dv dt, a turn rate error dw turns it by dw dt
-    scale = (stack.scale * dt)[:, None, None]
-    B = (stack.by_shift_and_turn(np.zeros(6), p, R) * scale).reshape(-1, 6)
+    by = stack.by_shift_and_turn(np.zeros(6), p, R) * stack.scale[:, None, None]
+    B = np.concatenate([by * dt[:, None, None], by[:, :, :3] * (0.5 * dt * dt)[:, None, None]],
+                       axis=2).reshape(-1, 9)
     return -cov @ (J.T @ B)
 
 

@@ -238,21 +238,18 @@ class OutsideInTracker:
         if start is None:
             p0, R0 = track.filter.predicted_pose(t_ref)
             f = track.filter
-            # the velocities' covariance: their error, shared by a camera's observations,
-            # goes into the fit's covariance (``pose``); what they are not known to also
-            # widens each observation's std, per second of exposure difference, so that the
-            # fit leans on the cameras exposed nearest the pose's time
-            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.velocity_covariance, f.a)
-            blur = _motion_std(f.P, float(np.max(np.linalg.norm(track.body.markers, axis=1))))
+            # the filter's motion brings other cameras' observations to t_ref; the fit
+            # says how it depends on it, and the filter's update counts that (``motion``)
+            motion = Motion(f.v + f.a * (t_ref - f.t), f.omega, f.motion_covariance, f.a)
         else:
             # a body just found: its motion is not known yet, so the fit takes it at rest,
             # and with cameras exposed at different times its covariance holds how far
-            # the start's velocity uncertainty moves it (the filter starts with both)
-            (p0, R0), blur = start, 0.0
-            motion = Motion(np.zeros(3), np.zeros(3), track.filter.start_velocity_covariance)
+            # the start's motion uncertainty moves it (the filter starts with both)
+            p0, R0 = start
+            motion = Motion(np.zeros(3), np.zeros(3), track.filter.start_motion_covariance)
         fit = None
         while True:
-            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref, p0, blur)
+            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref)
             fit = refine_pose(track.body.markers, obs, p0, R0, motion)
             if fit is None:
                 break
@@ -265,7 +262,8 @@ class OutsideInTracker:
             return None
         if acquired:
             track.filter.start(t_ref, fit.p, fit.R, fit.cov, fit.sensitivity)
-        elif not track.filter.update(t_ref, fit.p, fit.R, fit.cov):
+        elif not track.filter.update(t_ref, fit.p, fit.R, fit.cov, fit.sensitivity,
+                                     fit.noise_cov):
             self.counts["refused_filter"] += 1
             return None
         self.counts["acquired" if acquired else "tracked"] += 1
@@ -327,19 +325,10 @@ def _markers_at(track: _Track, t: float) -> Array:
     return track.body.markers @ R.T + p
 
 
-def _motion_std(P: Array, reach_m: float) -> float:
-    """How far (m, std) a marker ``reach_m`` from the body's origin may be from where the
-    filter's motion puts it, per second of moving it: velocity and turn rate uncertainty."""
-    sv = np.sqrt(np.trace(P[6:9, 6:9]) / 3)
-    sw = np.sqrt(np.trace(P[9:12, 9:12]) / 3)
-    return float(np.hypot(sv, sw * reach_m))
-
-
 def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[RigCamera],
                   norm: dict[int, Array], blobs: dict[int, Blobs], times: dict[int, float],
-                  t_ref: float, near: Array, blur_m_per_s: float = 0.0) -> list[Observation]:
-    """The observations of a fit; a camera exposed ``dt`` before ``t_ref`` has its
-    centroid stds grown by the motion's uncertainty over ``dt`` (seen from ``near``)."""
+                  t_ref: float) -> list[Observation]:
+    """The observations of a fit, each camera's with its exposure time less ``t_ref``."""
     by_cam: dict[int, list[tuple[int, int]]] = {}
     for (c, m), (_, b) in pairs.items():
         by_cam.setdefault(c, []).append((m, b))
@@ -347,12 +336,8 @@ def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[R
     for c, mb in sorted(by_cam.items()):
         m = np.array([x for x, _ in mb])
         b = np.array([y for _, y in mb])
-        dt = times[c] - t_ref
-        std = blobs[c].std_px[b]
-        if dt and blur_m_per_s:
-            depth = max(float(np.linalg.norm(cameras[c].position - near)), 0.1)
-            std = np.hypot(std, cameras[c].focal_px * blur_m_per_s * abs(dt) / depth)
-        out.append(Observation(cameras[c], m, norm[c][b], std, dt, index=c))
+        out.append(Observation(cameras[c], m, norm[c][b], blobs[c].std_px[b], times[c] - t_ref,
+                               index=c))
     return out
 
 
