@@ -13,7 +13,8 @@ AprilTag (36h11) moving smoothly between 0.5 and 3 m, tilting up to 40 degrees; 
   ``SOLVEPNP_IPPE_SQUARE`` and the lens distortion;
 * **apriltag**: ``pupil-apriltags`` (AprilTag 3's detector at full resolution, edge
   refinement and pose) on the image undistorted by ``cv2.remap`` (it knows no
-  distortion); skipped, and said so, when ``pupil_apriltags`` is not installed.
+  distortion), in a child process (:class:`_AprilTag`); skipped, and said so, when
+  ``pupil_apriltags`` is not installed.
 
 Per true-distance bin (0.5 m wide): detections, position error (mm) and orientation error
 (deg), median / p95 / max, each method over the frames it detected, and (``same_frames``)
@@ -36,6 +37,9 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import cv2
@@ -82,15 +86,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if oracle.available:
         methods["apriltag"] = oracle
     rows: dict[str, list] = {k: [] for k in methods}
-    for k, t in enumerate(times):
-        image = sim.render(scene, float(t), rng)
-        truth = traj(float(t))
-        for name, method in methods.items():
-            got = method(image, round(t * 1e9))
-            if got is not None:
-                rows[name].append((k, truth, *got))
+    try:
+        for k, t in enumerate(times):
+            image = sim.render(scene, float(t), rng)
+            truth = traj(float(t))
+            for name, method in methods.items():
+                got = method(image, round(t * 1e9))
+                if got is not None:
+                    rows[name].append((k, truth, *got))
+    finally:
+        oracle.close()
     out: dict[str, Any] = {"frames": n, "apriltag": "pupil-apriltags" if oracle.available
-                           else f"skipped: {oracle.missing}"}
+                           else f"skipped: {oracle.missing}",
+                           "apriltag_restarts": oracle.restarts}
     depth = np.array([traj(float(t))[2, 3] for t in times])
     out["bins"] = {f"{lo:g}-{hi:g} m": _bin(rows, lo, hi, int(np.sum((depth >= lo) & (depth < hi))))
                    for lo, hi in itertools.pairwise(BINS)}
@@ -127,27 +135,66 @@ class _Bare:
 
 
 class _AprilTag:
+    """AprilTag 3 (``pupil-apriltags``) in a child process of its own: its pose code
+    corrupts the heap now and then (a ``malloc()`` abort after "Error, more than one new
+    minima found", AprilRobotics/apriltag#130; twice in about thirty seeds of this eval).
+    A frame whose detection kills the child is given to a fresh one once more, and the
+    restarts are counted; a frame that kills that one too counts as not detected."""
+
     def __init__(self, camera: Any) -> None:
         try:
-            import pupil_apriltags
+            import pupil_apriltags  # noqa: F401
         except ImportError as exc:
             self.available, self.missing = False, f"pupil_apriltags not importable ({exc})"
-            return
-        self.available, self.missing = True, ""
-        self.detector = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
-        self.maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K,
-                                                camera.size, cv2.CV_32FC1)
-        # AprilTag puts a pixel's centre at +0.5 (its corners came out 0.50 px right and
-        # down of OpenCV's), so its principal point is OpenCV's + 0.5
-        self.params = tuple(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]] + [0, 0, 0.5, 0.5])
+        else:
+            self.available, self.missing = True, ""
+        self.camera = camera
+        self.restarts = 0
+        self._pool: ProcessPoolExecutor | None = None
 
     def __call__(self, image: np.ndarray, t_ns: int) -> tuple | None:
-        flat = cv2.remap(image, *self.maps, cv2.INTER_LINEAR)
-        found = self.detector.detect(flat, estimate_tag_pose=True, camera_params=self.params,
-                                     tag_size=SIZE_M)
-        if not found:
-            return None
-        return found[0].pose_R @ APRILTAG_TO_OPENCV, found[0].pose_t.ravel(), None, None
+        for _ in range(2):
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_apriltag_start,
+                    initargs=(self.camera.K, self.camera.dist, self.camera.size))
+            try:
+                return self._pool.submit(_apriltag_detect, image).result()
+            except BrokenProcessPool:
+                self._pool.shutdown(wait=False)
+                self._pool = None
+                self.restarts += 1
+        return None
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+_apriltag: dict[str, Any] = {}
+
+
+def _apriltag_start(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> None:
+    """The child's detector, undistortion maps and camera parameters."""
+    import pupil_apriltags
+
+    _apriltag["detector"] = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
+    _apriltag["maps"] = cv2.initUndistortRectifyMap(K, dist, None, K, size, cv2.CV_32FC1)
+    # AprilTag puts a pixel's centre at +0.5 (its corners came out 0.50 px right and down
+    # of OpenCV's), so its principal point is OpenCV's + 0.5
+    _apriltag["params"] = tuple(K[[0, 1, 0, 1], [0, 1, 2, 2]] + [0, 0, 0.5, 0.5])
+
+
+def _apriltag_detect(image: np.ndarray) -> tuple | None:
+    """AprilTag 3's pose of the tag in ``image`` (distorted), in OpenCV's marker frame."""
+    flat = cv2.remap(image, *_apriltag["maps"], cv2.INTER_LINEAR)
+    found = _apriltag["detector"].detect(flat, estimate_tag_pose=True,
+                                         camera_params=_apriltag["params"], tag_size=SIZE_M)
+    if not found:
+        return None
+    return found[0].pose_R @ APRILTAG_TO_OPENCV, found[0].pose_t.ravel(), None, None
 
 
 def _errors(truth: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float, float]:
