@@ -466,7 +466,7 @@ def lframe_observations(models: list[CameraModel], extr: list[tuple[Array, Array
 
 def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: list[list[Array]],
                   wand: Wand = Wand(), lframe: RigidBody = LFRAME, sigma_px: float = 0.05,
-                  static_px: float = 0.015, intrinsics: bool = False,
+                  static_px: float = 0.003, intrinsics: bool = False,
                   lframe_averaged: int = 1) -> RigCalibration:
     """The whole calibration (steps 2-4 of the module's docstring).  ``sigma_px`` is a
     wand marker image's noise, ``static_px`` the part of a still marker's centroid error
