@@ -168,3 +168,6 @@ def test_wand_frames_one_camera_saw_do_not_derail_the_adjustment() -> None:
                         lframe_averaged=100)
     for est, true in zip(cal.cameras, sim.cameras, strict=True):
         assert np.linalg.norm(est.position - true.position) < 0.001
+    # the views used, frame for frame as recorded (the report matches them to the truth)
+    assert cal.wand_obs.shape == obs.shape
+    assert np.all(np.isnan(cal.wand_obs[::10, :, 0, 0]))

@@ -337,6 +337,10 @@ def adjust(models: list[CameraModel], extr: list[tuple[Array, Array]], obs: Arra
     pts = np.zeros((0, 3)) if points is None else np.asarray(points, float)
     pobs = (np.full((len(models), 0, 2), np.nan) if point_obs is None
             else np.asarray(point_obs, float))
+    # a wand frame fewer than two cameras saw has no triangulated start and tells almost
+    # nothing of the rig: the adjustment has the others (``wand_points`` NaN for it)
+    used = np.sum(~np.isnan(obs[:, :, 0, 0]), axis=1) >= 2
+    full, obs = obs, obs[used]
     prob = _Problem(models, obs, wand, pts, pobs, point_weight, sigma_px, fixed_camera,
                     intrinsics)
     prob.prepare()
@@ -358,7 +362,9 @@ def adjust(models: list[CameraModel], extr: list[tuple[Array, Array]], obs: Arra
     wand_res = _wand_part(res, prob)
     dof = max(len(res) - len(sol.x), 1)
     rms = float(np.sqrt(np.sum(wand_res ** 2) / (n_wand * dof / len(res))))
-    return Adjusted(out_extr, out_models, cov, rms, wand_res, prob.wand_points(sol.x))
+    points = np.full((len(full), 3, 3), np.nan)
+    points[used] = prob.wand_points(sol.x)
+    return Adjusted(out_extr, out_models, cov, rms, wand_res, points)
 
 
 def _wand_part(res: Array, prob: _Problem) -> Array:
@@ -511,10 +517,12 @@ def calibrate_rig(models: list[CameraModel], wand_obs: Array, lframe_frames: lis
 
 
 def _seen_twice(obs: Array) -> Array:
-    """The wand frames two cameras saw or more: a frame one camera saw has no
-    triangulated start (``_wand_start`` leaves it at the origin, the reference camera's
-    centre, where its projection overflows) and tells almost nothing of the rig."""
-    return obs[np.sum(~np.isnan(obs[:, :, 0, 0]), axis=1) >= 2]
+    """``obs`` with the wand frames fewer than two cameras saw set to NaN (``adjust``
+    leaves them out: their start, untriangulated, was the reference camera's centre,
+    where a projection overflows)."""
+    out = obs.copy()
+    out[np.sum(~np.isnan(obs[:, :, 0, 0]), axis=1) < 2] = np.nan
+    return out
 
 
 #: a wand view whose worst marker is this many noise stds from the adjusted rig is an
