@@ -87,6 +87,32 @@ def test_reconstruction_completes_a_frame_set_per_exposure(tmp_path) -> None:
         assert np.linalg.norm(e.p - p) < 0.001
 
 
+def test_a_reconstruction_behind_skips_to_the_present(tmp_path) -> None:
+    """Samples 0.1 s (``STALE_S``) older than the freshest are not tracked, measured from
+    the least age seen (a transport's delay, or a replayed recording's hours): a steady
+    delay is no backlog."""
+    from services.outside_in.service import STALE_S
+    _, rig, bodies = _files(tmp_path)
+    for offset in (0.003, 3600.0):   # live; a recording replayed an hour later
+        rec = Reconstruction(rig, bodies, "lab")
+        tracked = []
+        for i in range(60):
+            t = 1795756000.0 + i / RATE
+            # a queue that grows by 10 ms a frame from frame 20, drained at frame 40
+            age = offset + (0.01 * (i - 20) if 20 <= i < 40 else 0.0)
+            sets = rec.frame_sets
+            for c in range(4):
+                rec.add(Measurement("markers2d", round(t * 1e9), points=np.zeros((0, 2)),
+                                    values=np.zeros(0),
+                                    extra={MARKERS_CAMERA: f"cam{c}",
+                                           MARKERS_CALIBRATION: rec.version}),
+                        now=i / RATE, now_ns=round((t + age) * 1e9))
+            tracked.append(rec.frame_sets != sets)
+        behind = [20 <= i < 40 and 0.01 * (i - 20) > STALE_S for i in range(60)]
+        assert rec.stale == 4 * sum(behind)
+        assert all(tracked[i] for i in range(1, 60) if not behind[i] and not behind[i - 1])
+
+
 def test_windows_go_to_each_camera_in_time_and_not_at_every_frame_set(tmp_path) -> None:
     """A camera's next windows are sent once its last are ``WINDOWS_EVERY_S`` older, and
     not at all when they would come after ``PREDICTION_AGE_S`` past the exposure they

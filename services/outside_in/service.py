@@ -25,7 +25,9 @@ whatever camera appears is used, one that stops is left out.  Samples are gather
 frame sets (a set is complete when every live camera sent one, when a camera sends its
 next frame, or when a frame of a later exposure arrives), run through
 ``OutsideInTracker``, and each body's pose is published on ``world -> SITE/BODY`` with its
-covariance.  A sample of another calibration than the
+covariance.  A sample ``STALE_S`` older than the freshest is not tracked: a reconstruction
+that fell behind (a busy machine) skips to the present instead of working through a
+growing queue.  A sample of another calibration than the
 rig file's, or of a camera the rig does not hold, is refused, counted and logged
 (rate-limited), never used.
 """
@@ -63,6 +65,11 @@ SEARCH_EVERY = 4
 #: the reconstruction's answer comes a frame or more late at 60-120 Hz, and a marker
 #: moving 1 m/s 3 m away moves 6 px in 40 ms, inside a window (``BlobParams.window_px``)
 PREDICTION_AGE_S = 0.04
+#: a sample this much older (s) than the freshest of the last ``FLOOR_S`` is not tracked:
+#: the reconstruction has fallen behind (its queue grows while the machine is busy) and
+#: catches up by skipping to the present, as a tracker's poses are for now
+STALE_S = 0.1
+FLOOR_S = 10.0
 #: the reconstruction sends a camera new windows once its last are this much older (s)
 WINDOWS_EVERY_S = 0.02
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
@@ -283,9 +290,16 @@ class Reconstruction:
         self.late = 0
         #: per camera, the exposure (ns) of the last windows sent
         self.windows_sent: dict[int, int] = {}
+        #: samples not tracked, too far behind the freshest (the reconstruction behind)
+        self.stale = 0
+        self._block = -1
+        self._floors: tuple[float, float] = (np.inf, np.inf)
 
-    def add(self, m: Measurement, now: float | None = None) -> list[BodyEstimate]:
-        """One camera's sample; the poses of the frame set it completed, if any."""
+    def add(self, m: Measurement, now: float | None = None,
+            now_ns: int | None = None) -> list[BodyEstimate]:
+        """One camera's sample; the poses of the frame set it completed, if any.  With
+        ``now_ns`` (this clock) a sample that is ``STALE_S`` older than the freshest of
+        the last ``FLOOR_S`` is not tracked (``stale``)."""
         now = time.monotonic() if now is None else now
         cam = self._camera(m)
         if cam is None:
@@ -296,6 +310,9 @@ class Reconstruction:
             self.period = min(self.period or np.inf, t - self.last_t[cam])
         self.last_t[cam] = t
         out: list[BodyEstimate] = []
+        if now_ns is not None and self._stale(now_ns - m.t_ns, now_ns):
+            self.stale += 1
+            return out
         if (self.period is not None and self.pending
                 and t < max(f.t for f in self.pending.values()) - 0.5 * self.period):
             # of an exposure whose set was already tracked (it came late): it would make
@@ -315,6 +332,17 @@ class Reconstruction:
         if live <= set(self.pending):
             out += self._flush()
         return out
+
+    def _stale(self, age_ns: int, now_ns: int) -> bool:
+        """Whether a sample of this age is ``STALE_S`` older than the freshest samples
+        (the least age in this and the last ``FLOOR_S`` block of time: the transport's
+        own delay, or a replayed recording's offset)."""
+        block = now_ns // round(FLOOR_S * 1e9)
+        if block != self._block:
+            self._floors = (self._floors[1] if block == self._block + 1 else np.inf, np.inf)
+            self._block = block
+        self._floors = (self._floors[0], min(self._floors[1], age_ns))
+        return age_ns > min(self._floors) + STALE_S * 1e9
 
     def windows(self, now_ns: int) -> list[tuple[str, int, np.ndarray]]:
         """Per camera seen so far whose windows are due at ``now_ns`` (this clock): its
@@ -383,7 +411,7 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
             t0 = time.thread_time()
             with lock:
                 sets = rec.frame_sets
-                estimates = rec.add(m)
+                estimates = rec.add(m, now_ns=svc.now_ns())
                 ahead = rec.windows(svc.now_ns()) if rec.frame_sets != sets else []
                 search = rec.tracker.searching
             t1 = time.thread_time()
@@ -407,8 +435,9 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                  ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
         while not stop.wait(5.0):
             n = max(rec.frame_sets, 1)
-            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late; CPU per "
-                     "frame set: tracking %.2f ms, publishing %.2f ms", rec.frame_sets,
-                     dict(rec.tracker.counts), rec.refused_count, rec.late,
+            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late, %d "
+                     "stale; CPU per frame set: tracking %.2f ms, publishing %.2f ms",
+                     rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late,
+                     rec.stale,
                      1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
     return 0
