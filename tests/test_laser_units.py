@@ -152,6 +152,27 @@ def _blob(img: np.ndarray, u: float, v: float, sigma: float, peak: float) -> Non
     np.add(img, g, out=img)
 
 
+def test_detection_std_covers_the_pixels_flipping_across_the_threshold() -> None:
+    """A dim spot drawn 400 times with the sensor noise the detector assumes: its
+    centroids spread as the reported std says, which holds the pixels that the noise puts
+    in or out of the spot (without them the reported variance was a twelfth of the
+    spread's)."""
+    p = DetectorParams(floor_px=0.0)
+    rng = np.random.default_rng(RNG_SEED)
+    clean = np.full((40, 40), p.dark_level)
+    _blob(clean, 20.3, 19.6, 1.3, 90.0)
+    found, stds = [], []
+    for _ in range(400):
+        noisy = clean + rng.normal(0.0, 1.0, clean.shape) * np.sqrt(
+            p.read_noise ** 2 + p.gain * (clean - p.dark_level))
+        dots = detect_dots(np.clip(np.rint(noisy), 0, 255).astype(np.uint8), p)
+        assert len(dots) == 1
+        found.append(dots[0, :2])
+        stds.append(dots[0, 4])
+    spread = np.mean(np.var(np.array(found), axis=0))
+    assert 0.8 < spread / np.mean(np.square(stds)) < 1.25
+
+
 def test_detection_merges_fragments_and_ignores_hot_pixels() -> None:
     img = np.full((480, 640), 8.0)
     _blob(img, 100.3, 200.7, 1.0, 400)
