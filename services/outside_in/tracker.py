@@ -13,8 +13,8 @@ is for:
   (``triangulation``), each lost body is searched among the points by its distance
   signature (``bodies``), its pose found by absolute orientation.
 * Either way the pose is then refined against every camera's 2D observations at one
-  time, the newest exposure of the set, with the filter's velocities bringing the other
-  cameras' observations to it (``pose``); observations further than ``outlier_px`` from
+  time, the set's mean exposure time, with the filter's motion bringing each camera's
+  observations to it (``pose``); observations further than ``outlier_px`` from
   the fit, or than ``outlier_sigmas`` of their own std, are dropped one by one.  A pose
   needs rays from 2 cameras at least.  The fit then updates the filter (``motion``),
   whose pose and covariance are the output.
@@ -121,7 +121,10 @@ class OutsideInTracker:
         if not frames:
             self._miss_all(set())
             return []
-        t_ref = max(f.t for f in frames)
+        # the pose's time: where the cameras' exposures measure it (with unsynchronised
+        # cameras the newest exposure's pose would be theirs moved by the filter's
+        # velocity, less certain and, on the simulator's smooth paths, less accurate)
+        t_ref = float(np.mean([f.t for f in frames]))
         norm = {f.camera: self.cameras[f.camera].normalize(f.blobs.uv) for f in frames}
         claims = self._predicted_claims(frames)
         used = {cb for mine in claims.values() for cb in mine.values()}
