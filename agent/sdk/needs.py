@@ -1,8 +1,10 @@
 """A service's needs on the wire: the subscriptions each need holds (exactly the streams its
 agent told it to take) and the dispatch of their samples to the user's ``on_sample``.
 
-Samples are taken in Zenoh's thread and queued (at most ``SAMPLE_QUEUE``: the oldest data
-is worth least); one dispatch thread decodes them, moves their times onto this host's clock
+Samples are taken in Zenoh's own receiving thread and queued (at most ``SAMPLE_QUEUE``:
+the oldest data is worth least): that callback only copies the bytes, so it runs there
+rather than in a Python thread of Zenoh's, which would add a thread hand-off per sample.
+One dispatch thread decodes them, moves their times onto this host's clock
 (:mod:`agent.sdk.sampleclock`: a sample from another host is stamped on that host's clock)
 and calls ``on_sample``, one at a time.
 
@@ -144,8 +146,8 @@ class NeedLinks:
                 link.match = m  # attributes may have changed
                 continue
             link = _Link(m)
-            link.subscriber = svc.session.declare_subscriber(
-                key, lambda smp, n=need, ln=link: self._on_data(n, ln, smp))
+            link.subscriber = svc.session.declare_subscriber(key, zenoh.handlers.Callback(
+                lambda smp, n=need, ln=link: self._on_data(n, ln, smp), indirect=False))
             need.links[key] = link
         with svc._cond:
             if need.matches != matches:
