@@ -308,6 +308,7 @@ def test_without_optics_the_output_stops_after_max_coast_and_the_optics_restart_
         FusionTracker(tracker.ekf, max_coast_s=float("nan"))
 
 
+@pytest.mark.slow
 def test_a_busy_host_slow_late_optics_and_bursty_accelerometers_stay_on_track():
     """What ``uma demo`` met on an overloaded CI machine: the laser tracker at 4 Hz, its
     poses 0.3 s late, the accelerometer samples in bursts up to 0.3 s apart.  A filter
@@ -765,6 +766,7 @@ def test_short_eval_measures_gaps_from_the_last_optical_pose():
     assert cv["outside_gaps"]["position_rmse_mm"] < hold["outside_gaps"]["position_rmse_mm"]
 
 
+@pytest.mark.slow
 def test_optical_covariance_is_matched_per_block():
     """A tracker that overstates its rotation noise 4x gets that block scaled down, never
     below half (the NIS cannot tell overstated noise from persistent errors), while its
@@ -779,6 +781,7 @@ def test_optical_covariance_is_matched_per_block():
     assert 2.0 < ekf.stats.pose_noise_scale[0] < 6.0
 
 
+@pytest.mark.slow
 def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
     """An optical tracker whose position is off by a constant (calibration) keeps a white
     filter overconfident: averaging frames shrinks its covariance but not the offset.  With
@@ -801,6 +804,7 @@ def test_a_trackers_persistent_offset_is_modelled_not_averaged_away():
     assert np.sqrt(np.mean(ep_b[late] ** 2)) < np.sqrt(np.mean(ep[late] ** 2)) + ps
 
 
+@pytest.mark.slow
 def test_a_reported_systematic_error_is_carried_into_the_fused_covariance():
     """A tracker off by a constant that it reports as the systematic part of its covariance
     (the laser tracker's installation tolerances): the filter keeps the systematic part

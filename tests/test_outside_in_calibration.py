@@ -61,6 +61,7 @@ def test_too_few_wand_frames_are_refused_with_the_camera_named() -> None:
         calibrate_rig([c.model for c in sim.cameras], obs, [])
 
 
+@pytest.mark.slow
 def test_uma_calibrate_rig_on_generated_videos(tmp_path, capsys) -> None:
     """Videos written by the simulator, read back by Capture: the rig's shape within a
     millimetre and 0.05 deg, its world frame within the L-frame's reach, the covariance
