@@ -4,6 +4,7 @@ the next sample or change."""
 
 from __future__ import annotations
 
+import re
 from unittest import mock
 
 import numpy as np
@@ -109,7 +110,10 @@ def test_a_summary_every_receiver_would_refuse_is_reported_by_its_agent(caplog):
         for i in range(12):
             n.graph.add_static("rig", f"tool{i}", [0.0, 0.0, 0.1 * i], [0.0, 0.0, 0.0, 1.0])
         n.publisher.republish_if_changed()
-    assert "has 15 frames and 39 links (frames x 3 boundary frames)" in caplog.text
+    # said once (rate-limited), by whichever republish came first: 13-15 frames by then
+    said = re.search(r"has (\d+) frames and (\d+) links \(frames x 3 boundary frames\)",
+                     caplog.text)
+    assert said and int(said.group(2)) > 20, caplog.text
     assert "receivers refuse more than 20" in caplog.text
     caplog.clear()
     n.graph.add_static("rig", "tool99", [0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0])
