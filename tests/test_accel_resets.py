@@ -92,6 +92,7 @@ def _run_fused_stream(reset_every_s: float, with_covariance: bool, lag_samples: 
     return live, np.array(rows)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("with_covariance", [True, False], ids=["covariance", "no-covariance"])
 def test_resets_at_300_hz_from_a_noisy_pose_stream_stay_finite_and_honest(with_covariance):
     """Every fused pose resets the rig (``--reset-every 0``), three samples late."""
@@ -109,6 +110,7 @@ def test_resets_at_300_hz_from_a_noisy_pose_stream_stay_finite_and_honest(with_c
     assert np.percentile(err[:, 2], 99) < 40.0
 
 
+@pytest.mark.slow
 def test_resets_once_a_second_from_a_300_hz_pose_stream_stay_finite_and_honest():
     """The default ``--reset-every 1``: a second of dead reckoning from rates fitted to the
     300 Hz poses (the three-point difference made them diverge within two seconds)."""

@@ -162,6 +162,7 @@ def test_tracker_on_rendered_frames_is_accurate_and_honest():
     assert err @ np.linalg.solve(e.covariance, err) < 22.5  # chi2(6) 99.9 %
 
 
+@pytest.mark.slow
 def test_nees_of_rendered_moving_frames_is_inside_its_band():
     """The per-corner covariances from the edge fits, propagated through the weighted
     pose, are neither too small (the raw edge fits: mean NEES 13-16) nor too cautious (a

@@ -137,6 +137,7 @@ def _simulate(seconds, seed, gaps=(), optical_noise=OPT_STD, config=None, claime
     return t, ep, er, np.array(nees), ekf
 
 
+@pytest.mark.slow
 def test_fusion_tracks_through_a_gap_and_beats_the_optical_rate():
     t, ep, er, nees, ekf = _simulate(9.0, seed=2, gaps=[(5.0, 5.5)])
     normal = (t > 2.0) & ((t < 5.0) | (t > 5.8))

@@ -92,9 +92,10 @@ def test_vrpn_out_streams_the_simulators_head_by_tcp_and_udp(processes, realm) -
                         and np.allclose(m.quaternion, r.quaternion, 0, 1e-9)]
                 assert len(same) == 1, f"{r} is not exactly one of the client's poses"
                 # its time on two clients' clocks: each estimates the agent's clock offset
-                # (well under a millisecond apart on one idle host, a few ms when loaded),
-                # and VRPN keeps microseconds; samples are 10 ms apart
-                assert abs(same[0].t_ns - r.t_ns) < 5_000_000
+                # (well under a millisecond apart on one idle host, 5 ms and more on a
+                # loaded 2-core one), and VRPN keeps microseconds; the pose itself has
+                # already named the sample, so the times need only agree within a period
+                assert abs(same[0].t_ns - r.t_ns) < 10_000_000
                 assert r.sensor == 0
     finally:
         tcp.close()
