@@ -13,7 +13,8 @@ a command) and a long-running command may use; the modules behind them are inter
   for these endpoints), :func:`query` (a bounded ``get``), :func:`lease_ms_default`;
 - :class:`RateLimitedLog` and :func:`guarded`: log a peer's bad input and a callback's
   failures without flooding;
-- :class:`WakeLoop`: a thread that runs a step when woken (or every period) until closed.
+- :class:`WakeLoop`: a thread that runs a step when woken (or every period) until closed;
+- :func:`compiled_twin`: a hot loop's optional compiled module, or None (pure Python).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from __future__ import annotations
 from agent._lazy import lazy_attributes
 
 __all__ = ["CommandPlugin", "EvalPlugin", "RateLimitedLog", "ServicePlugin", "WakeLoop",
-           "add_network_arguments", "close_session", "guarded", "lease_ms_default",
+           "add_network_arguments", "close_session", "compiled_twin", "guarded", "lease_ms_default",
            "load_all", "open_session", "query", "sdk_mode", "stop_on_signals", "stop_processes"]
 
 __getattr__ = lazy_attributes(__name__, {
@@ -40,4 +41,5 @@ __getattr__ = lazy_attributes(__name__, {
     "stop_on_signals": "agent.runtime.processes",
     "stop_processes": "agent.runtime.processes",
     "WakeLoop": "agent.runtime.worker",
+    "compiled_twin": "agent.runtime.native",
 })

@@ -32,7 +32,6 @@ system*, MSc thesis, York University 2003.
 from __future__ import annotations
 
 import math
-import os
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
@@ -42,6 +41,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
+from agent.runtime import compiled_twin
 from services.accel_rig.sensor import Calibration
 from services.frames import GRAVITY
 from services.kinematics import KinematicState
@@ -463,19 +463,8 @@ def _native_constants(corr: Array, gk: Array, noise_var_k: Array, rate_hz: float
     return np.concatenate([np.asarray(part, float).ravel() for part in parts])
 
 
-def _native() -> Any:
-    """The compiled step (``_step.c``), or None (not built, or ``UMA_ACCEL_PURE_PYTHON=1``)."""
-    if os.environ.get("UMA_ACCEL_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from services.accel_rig import _step
-    except ImportError:
-        return None
-    return _step
-
-
 #: the compiled step in use (tests set it to None to run the pure-Python one)
-NATIVE: Any = _native()
+NATIVE: Any = compiled_twin("services.accel_rig._step", "UMA_ACCEL_PURE_PYTHON")
 
 
 def _checked_rate(name: str, value: Array | None, cov: Array | None) -> \

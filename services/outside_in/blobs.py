@@ -11,7 +11,6 @@ window cuts a blob.  Fragments are never merged: two markers close together must
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +20,7 @@ from scipy.optimize import least_squares
 from scipy.special import erfc
 
 from agent.errors import InvalidInputError
+from agent.runtime import compiled_twin
 from services.laser_camera.detection import (
     AREA,
     FLUX,
@@ -144,20 +144,8 @@ def _segment_native(image: Array, params: BlobParams, windows: Array | None
     return out[:, :4].copy(), out[:, 4].copy(), out[:, 5].copy()
 
 
-def _native() -> Any:
-    """The compiled segmentation (``_blobs.c``), or None (not built, or
-    ``UMA_BLOBS_PURE_PYTHON=1``)."""
-    if os.environ.get("UMA_BLOBS_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from services.outside_in import _blobs
-    except ImportError:
-        return None
-    return _blobs
-
-
 #: the compiled segmentation in use (tests set it to None to run the pure-Python one)
-NATIVE: Any = _native()
+NATIVE: Any = compiled_twin("services.outside_in._blobs", "UMA_BLOBS_PURE_PYTHON")
 
 
 def _refine(image: Array, row: Array, p: BlobParams) -> list[float]:

@@ -18,7 +18,6 @@ The pose is ``world -> body``: ``x_world = R x_body + p``; the covariance is ove
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from agent import geometry as geo
+from agent.runtime import compiled_twin
 from services.outside_in.rig import RigCamera
 
 Array = np.ndarray
@@ -172,20 +172,8 @@ def _gauss_newton(stack: _Stack, p: Array, R: Array) -> tuple[Array, Array, Arra
     return None
 
 
-def _native() -> Any:
-    """The compiled Gauss-Newton fit (``_fit.c``), or None (not built, or
-    ``UMA_FIT_PURE_PYTHON=1``)."""
-    if os.environ.get("UMA_FIT_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from services.outside_in import _fit
-    except ImportError:
-        return None
-    return _fit
-
-
 #: the compiled fit in use (tests set it to None to run the pure-Python one)
-FIT: Any = _native()
+FIT: Any = compiled_twin("services.outside_in._fit", "UMA_FIT_PURE_PYTHON")
 
 
 def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Array | None:
