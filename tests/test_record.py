@@ -76,8 +76,15 @@ def test_info_shows_both_streams_at_their_rates(recorded) -> None:
     info = json.loads(out.stdout)
     rates = {c["topic"].split("/", 3)[-1]: c for c in info["channels"]}
     head, laser = rates["lab/sim/head"], rates["lab/laser-camera/pose"]
-    # generous bounds: two shared cores; the nominal rates are 100 and 30 Hz
-    assert 50 < head["rate_hz"] < 110 and 10 < laser["rate_hz"] < 33, (head, laser)
+    rec = read(recorded)
+    for suffix, channel in (("/sim/head", head), ("/laser-camera/pose", laser)):
+        stamps = sorted(m.log_ns for m in _samples(rec, suffix))
+        assert channel["messages"] == len(stamps) > 1
+        true_rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+        assert channel["rate_hz"] == pytest.approx(true_rate, rel=1e-9)
+    # the simulator is paced by the clock (100 Hz); the laser tracker's 30 Hz is a ceiling
+    # that a loaded 2-core machine may not reach
+    assert 50 < head["rate_hz"] < 110 and 0 < laser["rate_hz"] < 33, (head, laser)
     assert head["ability"]["attributes"]["ground_truth"] is True
     assert laser["ability"]["edge"] == ["ivy/world", "marvin/laser_rig"]
     assert 4.0 < info["duration_s"] < SECONDS + 1 and info["damage"] is None
