@@ -245,8 +245,11 @@ def matrix_to_quat(R: Array) -> Array:
     """Rotation matrices (..., 3, 3) to unit quaternions (w >= 0), Shepperd's method.
 
     The four candidates are written into one array rather than stacked (five np.stack
-    calls were most of the cost on the few matrices of a tracker's frame set)."""
+    calls were most of the cost on the few matrices of a tracker's frame set); one matrix
+    goes through plain floats, the same operations in the same order."""
     R = np.asarray(R, dtype=float)
+    if R.shape == (3, 3):
+        return _matrix_to_quat_one(R)
     lead = R.shape[:-2]
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(-1, 9).T
     trace = m00 + m11 + m22
@@ -260,6 +263,28 @@ def matrix_to_quat(R: Array) -> Array:
     q = cand[idx, :, np.arange(len(idx))]  # (n, 4)
     q = q / np.sqrt(np.add.reduce(q * q, axis=-1))[:, None]  # np.linalg.norm's sum
     return quat_canonical(q.reshape(*lead, 4))
+
+
+def _matrix_to_quat_one(R: Array) -> Array:
+    """:func:`matrix_to_quat` of one matrix on floats (equal to the bit): a tracker asks it
+    a few times per body and frame set, where the array form's dozen numpy calls cost
+    ten times its arithmetic."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.ravel().tolist()
+    trace = m00 + m11 + m22
+    pivots = (1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22)
+    best = pivots.index(max(pivots))   # the first of equal pivots, as np.argmax
+    if best == 0:
+        q = (m21 - m12, m02 - m20, m10 - m01, pivots[0])
+    elif best == 1:
+        q = (pivots[1], m01 + m10, m02 + m20, m21 - m12)
+    elif best == 2:
+        q = (m01 + m10, pivots[2], m12 + m21, m02 - m20)
+    else:
+        q = (m02 + m20, m12 + m21, pivots[3], m10 - m01)
+    x, y, z, w = q
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    s = -1.0 if w / n < 0 else 1.0
+    return np.array([s * (x / n), s * (y / n), s * (z / n), s * (w / n)])
 
 
 #: where each candidate of ``matrix_to_quat`` holds its pivot (4 w^2, 4 x^2, 4 y^2, 4 z^2)
@@ -285,6 +310,15 @@ def rotvec_to_quat(r: Array) -> Array:
 
 def quat_to_rotvec(q: Array) -> Array:
     """Logarithm map: unit quaternion(s) to rotation vector(s), angle in [0, pi]."""
+    q = np.asarray(q, dtype=float)
+    if q.shape == (4,):   # one quaternion, as a tracker's filter update asks: plain floats
+        x, y, z, w = q.tolist()
+        if w < 0:
+            x, y, z, w = -x, -y, -z, -w
+        s = math.sqrt(x * x + y * y + z * z)
+        # numpy's arctan2, not math's: they differ in the last bit on some inputs
+        k = 2.0 / w if s < _SMALL_ANGLE else 2.0 * float(np.arctan2(s, w)) / s
+        return np.array([x * k, y * k, z * k])
     q = quat_canonical(q)
     v = q[..., :3]
     s = np.linalg.norm(v, axis=-1, keepdims=True)

@@ -1,5 +1,6 @@
 """quat_multiply and quat_to_matrix take one numpy form for a few quaternions and another
-for large batches (agent.geometry._SMALL): both must give the same results."""
+for large batches (agent.geometry._SMALL), matrix_to_quat and quat_to_rotvec a float form
+for one: each must give the same results as the batch."""
 
 from __future__ import annotations
 
@@ -29,3 +30,22 @@ def test_hamilton_product_of_basis_quaternions():
     np.testing.assert_array_equal(geo.quat_multiply(j, i), -k)
     np.testing.assert_array_equal(geo.quat_multiply(i, i), -one)
     np.testing.assert_array_equal(geo.quat_to_matrix(one), np.eye(3))
+
+
+def test_one_matrix_and_one_quaternion_equal_the_batch_to_the_bit():
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(3000, 4))
+    unit = q / np.linalg.norm(q, axis=1, keepdims=True)
+    R = geo.quat_to_matrix(unit)
+    # every pivot of Shepperd's method, half-turns, the identity and tiny turns, off-unit
+    # matrices and quaternions, a negative w
+    R = np.concatenate([R, R + rng.normal(size=R.shape) * 1e-3, np.eye(3)[None],
+                        np.diag([1.0, -1, -1])[None], np.diag([-1.0, 1, -1])[None],
+                        np.diag([-1.0, -1, 1])[None], geo.rodrigues(np.array([[1e-10, 0, 0]]))])
+    batch = geo.matrix_to_quat(R)
+    for i in range(len(R)):
+        assert geo.matrix_to_quat(R[i]).tobytes() == batch[i].tobytes()
+    q = np.concatenate([unit, q, -unit, [[0, 0, 0, 1.0], [1e-12, 0, 0, 1], [1.0, 0, 0, 0]]])
+    rotvecs = geo.quat_to_rotvec(q)
+    for i in range(len(q)):
+        assert geo.quat_to_rotvec(q[i]).tobytes() == rotvecs[i].tobytes()
