@@ -450,6 +450,36 @@ def test_a_calibration_cache_of_the_wrong_structure_is_made_again(tmp_path, monk
     assert sorted(p.name for p in target.parent.iterdir()) == [target.name]
 
 
+def _make_slowly(path) -> None:
+    """A calibration that takes a while and counts how often it was made."""
+    import time
+    with open(path.parent / "made.log", "a") as log:
+        log.write("x")
+    time.sleep(0.5)
+    path.write_text("{}")
+
+
+def _cache_in_child(cache_home: str) -> str:
+    import os
+
+    import services.laser_camera
+    from services.sim import calibrations
+    os.environ["XDG_CACHE_HOME"] = cache_home
+    return str(calibrations.cached_file("slow", (services.laser_camera,), lambda p: None,
+                                        _make_slowly))
+
+
+def test_processes_missing_the_cache_at_once_make_the_file_once(tmp_path) -> None:
+    """Four test workers or two demos missing the cache together wait for the first one's
+    calibration instead of each making their own."""
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        paths = pool.map(_cache_in_child, [str(tmp_path)] * 2, chunksize=1)
+    assert len(set(paths)) == 1
+    assert (tmp_path / "uma" / "made.log").read_text() == "x"
+
+
 def test_an_exception_in_a_zenoh_callback_is_logged_rate_limited(capfd, caplog) -> None:
     """zenoh-python prints a traceback ("callback error") per exception a callback raises;
     uma's callbacks are guarded: 200 failing samples give one log line, no traceback."""

@@ -13,8 +13,11 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -88,11 +91,14 @@ def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
                 announce: str = "") -> Path:
     """``~/.cache/uma/<name>_<hash>.json``, made by ``make(path)`` unless a file that
     ``load`` accepts exists.  The hash covers the sources of ``packages``, so a file made by
-    other code is never reused; written atomically (concurrent runs are safe).
+    other code is never reused; written atomically.
 
-    A file ``load`` cannot use, whatever is wrong with it (not JSON, another structure: a
-    loader may then fail with any error), is said and made again; a temporary file is
-    removed when ``make`` fails, and those left by processes that died are removed too."""
+    Processes that miss the cache at once (the test workers, two demos) wait for the first
+    to make the file instead of each spending its ~20 s: the cache directory is locked
+    while a file is made.  A file ``load`` cannot use, whatever is wrong with it (not JSON,
+    another structure: a loader may then fail with any error), is said and made again; a
+    temporary file is removed when ``make`` fails, and those left by processes that died
+    are removed too."""
     import hashlib
 
     h = hashlib.sha1()
@@ -100,43 +106,49 @@ def cached_file(name: str, packages: tuple[Any, ...], load: Any, make: Any,
         for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
             h.update(f.read_bytes())
     path = _cache_dir() / f"{name}_{h.hexdigest()[:12]}.json"
-    if path.exists():
-        try:
-            load(path)
-            return path
-        except Exception as exc:  # a cache file we cannot use is made again, never fatal
-            log.warning("cached %s is unusable (%s: %s); making it again", path,
-                        type(exc).__name__, exc)
-            path.unlink(missing_ok=True)
-    if announce:
-        print(f"{announce}; cached in {path.parent}", flush=True)
+    if _usable(path, load):
+        return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_orphans(path)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    try:
-        make(tmp)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with _locked(path.parent):
+        if _usable(path, load):  # made by another process while this one waited
+            return path
+        if announce:
+            print(f"{announce}; cached in {path.parent}", flush=True)
+        for orphan in path.parent.glob(f"{path.stem}.*.tmp"):  # its writer died mid-write
+            orphan.unlink(missing_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        try:
+            make(tmp)
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)
     return path
 
 
-def _remove_orphans(path: Path) -> None:
-    """Remove ``path``'s temporary files whose writing process is gone (killed mid-write)."""
-    for tmp in path.parent.glob(f"{path.stem}.*.tmp"):
-        pid = tmp.suffixes[-2][1:] if len(tmp.suffixes) >= 2 else ""
-        if pid.isdigit() and not _running(int(pid)):
-            tmp.unlink(missing_ok=True)
-
-
-def _running(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)  # signal 0: only asks whether the process exists
-    except ProcessLookupError:
+def _usable(path: Path, load: Any) -> bool:
+    """Whether ``path`` exists and ``load`` accepts it; a file it refuses is removed."""
+    if not path.exists():
         return False
-    except PermissionError:
-        return True  # exists, another user's
-    return True
+    try:
+        load(path)
+        return True
+    except Exception as exc:  # a cache file we cannot use is made again, never fatal
+        log.warning("cached %s is unusable (%s: %s); making it again", path,
+                    type(exc).__name__, exc)
+        path.unlink(missing_ok=True)
+        return False
+
+
+@contextlib.contextmanager
+def _locked(directory: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``directory`` (released by the kernel if this process
+    dies), so only one process at a time writes into it."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 def _cache_dir() -> Path:
