@@ -405,6 +405,37 @@ def test_a_trackers_held_error_is_in_the_covariance() -> None:
     assert _nees_of(silent, x) > 50
 
 
+def test_an_error_the_stations_share_through_parameters_is_in_the_covariance() -> None:
+    """An error that differs from station to station but comes from parameters every
+    station shares (here sensor a's rotation read 2 % too large about each axis: its error
+    grows with how far the rig turned) neither cancels like a held error nor varies like
+    noise; given each sample's sensitivity to the parameters, X's covariance carries what
+    the motions make of it, where reading the same covariances as held misses it."""
+    rng = np.random.default_rng(0)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 1.0)
+    a, b = simulate_streams(4, LASER, x, world_b, StreamConfig(
+        seconds=30.0, offset_s=0.02, pos_std_m=2e-4, rot_std_rad=np.radians(0.02)))
+    turn = geo.quat_to_rotvec(geo.quat_multiply(a.quaternion,
+                                                geo.quat_conjugate(a.quaternion[0])))
+    S = np.zeros((len(a), 6, 3))  # per one std of each parameter
+    S[:, :3] = 0.005 * turn[:, :, None] * np.eye(3)
+    S[:, 3:] = 0.02 * turn[:, :, None] * np.eye(3)
+    e = S @ rng.normal(size=3)  # one draw of the parameters, shared by every sample
+    p = a.position + e[:, :3] + np.cross(e[:, 3:], a.position)
+    q = geo.quat_multiply(geo.rotvec_to_quat(e[:, 3:]), a.quaternion)
+    published = S @ np.swapaxes(S, 1, 2) + 1e-12 * np.eye(6)
+    options = AlignmentOptions(bootstrap=30, estimate_offset=False, offset_s=0.02)
+    shared = align_streams(PoseSeries(a.t, p, q, "a", published, S, ("x", "y", "z")), b,
+                           options)
+    held = align_streams(PoseSeries(a.t, p, q, "a", published), b, options)
+    assert _nees_of(shared, x) < 12.6  # chi2(6) 95 %
+    assert _nees_of(held, x) > 50
+    assert shared.shared_parameters == ("x", "y", "z")
+    assert shared.shared_sensitivity.shape == (6, 3) and held.shared_sensitivity.shape == (6, 0)
+    with pytest.raises(AlignmentError, match="sensitivities must be"):
+        PoseSeries(a.t, p, q, "a", published, S, ("x", "y"))
+
+
 def test_published_covariances_are_checked() -> None:
     t = np.arange(4.0)
     p, q = np.zeros((4, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (4, 1))
@@ -457,8 +488,10 @@ def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:
             S[:3, 3:] = -geo.skew(p)
             own = np.diag([1e-6] * 3 + [1e-7] * 3)
             shared = shared_scale * own
+            per_std = S @ np.sqrt(shared)  # X's error per one std of each shared parameter
             out.append({"nees": float(rng.chisquare(6)), "consistency": {
-                "covariance": S @ (own + shared) @ S.T, "sensitivity": S, "shared": shared}})
+                "covariance": S @ (own + shared) @ S.T,
+                "sensitivity": {f"parameter {j}": per_std[:, j] for j in range(6)}}})
         return out
     alone = _covariance_figures(trials(0.0))
     assert alone["effective_runs"] == pytest.approx(50)

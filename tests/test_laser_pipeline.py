@@ -121,6 +121,74 @@ def test_each_dots_installation_error_is_covered_with_the_cameras_view(world,
     assert np.mean(bend_without_parallax) > 5 * np.mean(bend), np.mean(bend_without_parallax)
 
 
+def _pose_with_sensitivity(world: IvyWorld, tracker: LaserTracker, p: np.ndarray,
+                           q: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray] | None:
+    """The pose from the four noise-free spots of a rig at ``(p, q)``, labeled by the
+    simulator: its error (xi, estimate = Exp(e) truth), its sensitivity to each of the
+    installation's parameters, and its covariance's part that is not the installation's."""
+    from services.laser_camera.pose import frame_from_points
+    from services.laser_camera.tracker import (
+        _covariance,
+        _installation_covariance,
+        installation_sensitivity,
+    )
+
+    rows, labels = {}, []
+    for name, seen in world.dot_pixels(world.laser_hits(p, q)).items():
+        rows[name] = np.array([[*uv, 1.0, 1.0, 0.0] for uv in seen.values()]).reshape(-1, 5)
+        labels += list(seen)
+    dots = tracker.locate(rows)
+    if sorted(labels) != [1, 2, 3, 4] or len(dots.points) != 4:
+        return None
+    idx = [labels.index(k) for k in (1, 2, 3, 4)]
+    p0, R = frame_from_points(dots.points[idx])
+    cov, systematic = _covariance(dots, idx, p0, tracker.params,
+                                  _installation_covariance(dots, idx, p0, tracker.params))
+    estimate = PoseEstimate(0.0, p0, geo.matrix_to_quat(R), cov,
+                            {k + 1: dots.points[i] for k, i in enumerate(idx)}, {}, 0.0, 4,
+                            False, systematic)
+    sensitivity = installation_sensitivity(dots, estimate, tracker.params)
+    S = np.array(list(sensitivity.values())).T
+    assert np.allclose(S @ S.T, systematic, rtol=1e-9, atol=1e-15)  # the same error, parted
+    phi = geo.quat_to_rotvec(geo.quat_multiply(estimate.quaternion, geo.quat_conjugate(q)))
+    return np.concatenate([p0 - p - np.cross(phi, p), phi]), sensitivity, cov - systematic
+
+
+def test_two_poses_installation_errors_relate_through_its_parameters(world,
+                                                                     calibration) -> None:
+    """Two poses in one installation err differently (each sees the housing, screens and
+    cameras from elsewhere) but not independently: their difference has the covariance the
+    difference of their sensitivities to the installation's parameters gives (6-dof NEES
+    6 on average, over installations drawn with the tolerances the tracker is told), where
+    an error held alike by both poses would leave only the dots' noise (NEES in the
+    thousands)."""
+    from services.sim import world as sim_world
+
+    rng = np.random.default_rng(RNG_SEED)
+    tracker = LaserTracker(calibration)
+    poses = list(zip(*world.rig_pose(rng.uniform(0, 60, 8)), strict=True))
+    shared, held = [], []
+    try:
+        for s in range(100, 116):  # the world's flaws drawn anew: housing, screens, cameras
+            world.beams, world.bulge_m = sim_world._imperfections(world.config, s)
+            world._tracking = sim_world._after_calibration(world.cameras, world.config, s)
+            got = [g for g in (_pose_with_sensitivity(world, tracker, p, q) for p, q in poses)
+                   if g is not None]
+            for (e1, s1, r1), (e2, s2, r2) in zip(got[::2], got[1::2], strict=True):
+                D = np.array([s1.get(n, np.zeros(6)) - s2.get(n, np.zeros(6))
+                              for n in sorted(set(s1) | set(s2))]).T
+                d = e1 - e2
+                shared.append(d @ np.linalg.solve(D @ D.T + r1 + r2, d))
+                held.append(d @ np.linalg.solve(r1 + r2, d))
+    finally:
+        flaws = world.install_seed
+        world.beams, world.bulge_m = sim_world._imperfections(world.config, flaws)
+        world._tracking = sim_world._after_calibration(world.cameras, world.config, flaws)
+    assert len(shared) >= 48
+    assert 4.5 < np.mean(shared) < 8.0, np.mean(shared)
+    assert np.mean(held) > 100, np.mean(held)
+
+
 def test_calibration_file_round_trip_and_refusals(world, calibration, calibration_file,
                                                   tmp_path) -> None:
     loaded = Calibration.load(calibration_file)

@@ -34,7 +34,6 @@ from services.alignment.pipeline import (
     align_at_offset,
     estimate_offset,
     fit_stations,
-    held_error_covariance,
     offset_std,
     station_times,
 )
@@ -115,7 +114,7 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: 
     rng = np.random.default_rng([seed, trial])
     x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
     config = replace(config, offset_s=rng.uniform(0.0, 0.1))
-    a, a_systematic, b = _streams(seed, trial, x, world_b, config, ideal)
+    a, b = _streams(seed, trial, x, world_b, config, ideal)
     options = AlignmentOptions(seed=trial)
     offset, coarse = estimate_offset(a, b, options)
     times = station_times(a, b, offset, options.max_stations)
@@ -133,37 +132,32 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: 
     out["offset_std_ms"] = 1e3 * std
     full = align_at_offset(a, b, offset, std, options)
     out["nees"] = _nees(full, x)
-    out["consistency"] = _consistency_terms(full, a, a_systematic, b, offset, options)
+    out["consistency"] = _consistency_terms(full)
     return out
 
 
-def _consistency_terms(result: Any, a: PoseSeries, a_systematic: np.ndarray, b: PoseSeries,
-                       offset: float, options: AlignmentOptions) -> dict[str, np.ndarray]:
+def _consistency_terms(result: Any) -> dict[str, Any]:
     """What the band of a seed's mean NEES needs from a trial: X's covariance in the NEES's
-    (decoupled) coordinates, and the installation's error that every trial of the seed
-    shares -- the laser tracker's systematic covariance held over the stations
-    (``held_error_covariance``), which moves X by the same left perturbation in sensor a
-    whatever X is -- with its sensitivity (the decoupled form of that perturbation)."""
-    times = station_times(a, b, offset, options.max_stations)
-    pa, qa, _ = a.at(times)
-    systematic = PoseSeries(a.t, a.position, a.quaternion, "systematic", a_systematic)
-    sensitivity = np.eye(6)
-    sensitivity[:3, 3:] = -geo.skew(result.position)  # dp = rho + phi x p
+    (decoupled) coordinates, and X's sensitivity to the installation's tolerances, whose
+    error every trial of the seed shares (``AlignmentResult.shared_sensitivity``, by
+    parameter name), in the same coordinates."""
+    decoupled = np.eye(6)
+    decoupled[:3, 3:] = -geo.skew(result.position)  # dp = rho + phi x p
     return {"covariance": geo.se3_to_decoupled(result.position, result.covariance),
-            "sensitivity": sensitivity,
-            "shared": held_error_covariance(pa, qa, systematic.covariance_at(times))}
+            "sensitivity": dict(zip(result.shared_parameters,
+                                    (decoupled @ result.shared_sensitivity).T, strict=True))}
 
 
 def _streams(seed: int, trial: int, x: Pose, world_b: Pose, config: StreamConfig,
-             ideal: bool) -> tuple[PoseSeries, np.ndarray, PoseSeries]:
-    """The laser tracker's stream (a) with its covariances' systematic parts, and tracker
-    b's, on one motion of the head."""
+             ideal: bool) -> tuple[PoseSeries, PoseSeries]:
+    """The laser tracker's stream (a) with its sensitivities to the installation, and
+    tracker b's, on one motion of the head."""
     world = IvyWorld(seed=seed * 100_003 + trial, ideal=ideal, imperfection_seed=seed)
     tracker = LaserTracker(laser_calibration(world, cache=True),
                            TrackerParams.ideal() if ideal else TrackerParams())
     rng = np.random.default_rng([seed, trial, 1])
-    a, a_systematic = laser_stream(world, tracker, config.seconds, LASER_RATE_HZ, rng)
-    return a, a_systematic, stream_b(world.trajectory, mounts_laser(), x, world_b, config, rng)
+    a = laser_stream(world, tracker, config.seconds, LASER_RATE_HZ, rng)
+    return a, stream_b(world.trajectory, mounts_laser(), x, world_b, config, rng)
 
 
 def mounts_laser() -> Pose:
@@ -226,15 +220,17 @@ def figures(args: argparse.Namespace, trials: list[dict[str, Any]]) -> dict[str,
 def _covariance_figures(trials: list[dict[str, Any]]) -> dict[str, Any]:
     """Mean NEES of the trials against its 95 % band, and the share of single NEES under
     chi2(6)'s 95 % quantile.  The trials of a seed share its installation (housing, screens,
-    cameras), so their errors share the laser tracker's systematic part: the band counts
-    that error once (``shared_error_effective_runs``; the shared covariance is the trials'
-    mean held systematic covariance).  The band of as many independent trials, narrower, is
-    given too."""
+    cameras), so their errors share the draw of its tolerances, each trial through its own
+    sensitivity: the band counts that error once (``shared_error_effective_runs``, one std
+    per tolerance).  The band of as many independent trials, narrower, is given too."""
     nees = np.array([t["nees"] for t in trials])
     terms = [t["consistency"] for t in trials]
+    names = sorted({name for c in terms for name in c["sensitivity"]})
+    sensitivity = np.array([[c["sensitivity"].get(name, np.zeros(6)) for name in names]
+                            for c in terms]).reshape(len(terms), len(names), 6)
     figures = shared_error_nees_figures(nees, np.array([c["covariance"] for c in terms]),
-                                        np.array([c["sensitivity"] for c in terms]),
-                                        np.mean([c["shared"] for c in terms], axis=0))
+                                        np.swapaxes(sensitivity, 1, 2),
+                                        np.eye(len(names)) if names else None)
     return {"nees_mean (ideal 6)": figures.pop("mean"),
             "within_chi2_95_fraction (ideal 0.95)": float(np.mean(nees <= _CHI2_6_95)),
             **figures}

@@ -123,6 +123,10 @@ class AlignmentResult:
     #: station index pairs (i, j) of the inlier motions X was solved from
     pairs_ij: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 2), int))
     time_offset_std_s: float = 0.0  # the offset's uncertainty, in the covariance
+    #: X's error (6, m; geometry's convention) per one std of each parameter the stations
+    #: of stream a share (``PoseSeries.sensitivity``), in the covariance; (6, 0) if none
+    shared_sensitivity: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 0)))
+    shared_parameters: tuple[str, ...] = ()
 
     @property
     def pose(self) -> Pose:
@@ -418,22 +422,60 @@ def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray 
     return np.mean(Ad @ covariances @ np.swapaxes(Ad, -1, -2), axis=0)
 
 
+def shared_error_sensitivity(stations: tuple[np.ndarray, ...], sensitivity: np.ndarray,
+                             result: AlignmentResult, options: AlignmentOptions) -> np.ndarray:
+    """X's change (6, m; geometry's convention) per one std of each parameter whose error
+    every station of a shares, each station by its own ``sensitivity`` (n, 6, m).
+
+    Why: an error that differs from station to station but is the same in every recording
+    (an installation's tolerance, seen through each station's geometry) is neither held
+    (it does not cancel from the motions) nor noise (no resample of the stations varies
+    it); the motions' geometry passes it to X, by several times its own size where the
+    stations' errors differ along what the motions determine least.  X is solved again
+    from the same motion pairs with every station of a moved by one std of the parameter
+    (first order: the tolerances move a pose by a fraction of a milliradian)."""
+    pa, qa, pb, qb = stations
+    solver = solver_for(options)
+    x0 = solver(relative_motions(pa, qa, pb, qb, result.pairs_ij))
+    columns = np.zeros((sensitivity.shape[2], 6))
+    for j in np.flatnonzero(np.any(sensitivity, axis=(0, 1))):  # a parameter moves a station
+        xi = sensitivity[:, :, j]
+        phi = xi[:, 3:]
+        moved_p = pa + xi[:, :3] + np.cross(phi, pa)  # dp = rho + phi x p
+        moved_q = geo.quat_multiply(geo.rotvec_to_quat(phi), qa)
+        x = solver(relative_motions(moved_p, moved_q, pb, qb, result.pairs_ij))
+        dphi = geo.quat_to_rotvec(geo.quat_multiply(x.quaternion, geo.quat_conjugate(
+            x0.quaternion)))
+        columns[j, :3] = x.position - x0.position - np.cross(dphi, x0.position)  # rho
+        columns[j, 3:] = dphi
+    return columns.T
+
+
 def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s: float,
                     options: AlignmentOptions) -> AlignmentResult:
     """X from the streams' stations at a given offset whose uncertainty is ``offset_std_s``.
 
     X's covariance adds to the bootstrap's the errors no station resample sees: the offset's
-    (``offset_covariance``) and each tracker's held error (``held_error_covariance``; b's
-    moves X by ``X E_b X^-1``, hence its adjoint)."""
+    (``offset_covariance``), the errors a's stations share through parameters whose
+    sensitivities a gives (``shared_error_sensitivity``), and each tracker's held error
+    (``held_error_covariance``; of a's covariances what those parameters do not explain;
+    b's moves X by ``X E_b X^-1``, hence its adjoint)."""
     times = station_times(a, b, offset_s, options.max_stations)
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + offset_s)
     result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s)
     ad_x = geo.adjoint(result.position, result.quaternion)
+    held_a = a.covariance_at(times)
+    shared = np.zeros((6, 0))
+    sensitivity = a.sensitivity_at(times)
+    if sensitivity is not None and held_a is not None:
+        held_a = held_a - sensitivity @ np.swapaxes(sensitivity, -1, -2)
+        shared = shared_error_sensitivity((pa, qa, pb, qb), sensitivity, result, options)
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
-             + held_error_covariance(pa, qa, a.covariance_at(times))
+             + shared @ shared.T + held_error_covariance(pa, qa, held_a)
              + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
-    return replace(result, covariance=result.covariance + added, time_offset_std_s=offset_std_s)
+    return replace(result, covariance=result.covariance + added, time_offset_std_s=offset_std_s,
+                   shared_sensitivity=shared, shared_parameters=a.parameters)
 
 
 def align_streams(a: PoseSeries, b: PoseSeries,

@@ -26,7 +26,7 @@ from agent import geometry as geo
 from services.alignment.solvers import Pose
 from services.alignment.timesync import PoseSeries
 from services.laser_camera.detection import AREA, FLUX, STD, U, V
-from services.laser_camera.tracker import LaserTracker
+from services.laser_camera.tracker import LaserTracker, installation_sensitivity
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import IvyWorld
 
@@ -97,12 +97,12 @@ def _sample_times(rate_hz: float, seconds: float, rng: np.random.Generator) -> n
 
 
 def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz: float,
-                 rng: np.random.Generator) -> tuple[PoseSeries, np.ndarray]:
+                 rng: np.random.Generator) -> PoseSeries:
     """The laser-dot tracker's poses of ``marvin/laser_rig`` in ``ivy/world`` with their
     published covariances over the world's head trajectory, at ``rate_hz`` from a random
-    phase; frames without a pose are left out (a gap in the stream, as on the wire).
-    Also returned: each covariance's systematic part (n, 6, 6), the installation's error,
-    which every recording in the same installation shares."""
+    phase; frames without a pose are left out (a gap in the stream, as on the wire).  With
+    them each pose's sensitivity to the installation's tolerances
+    (``installation_sensitivity``), which every recording in the same installation shares."""
     t_all = _sample_times(rate_hz, seconds, rng)
     rig_p, rig_q = world.rig_pose(t_all)  # one batched call: the trajectory is vectorised
     t, p, q, c, s = [], [], [], [], []
@@ -114,9 +114,11 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
             p.append(res.position)
             q.append(res.quaternion)
             c.append(res.covariance)
-            s.append(res.systematic)
-    return (PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c)),
-            np.array(s))
+            s.append(installation_sensitivity(dots, res, tracker.params))
+    names = tuple(sorted({name for one in s for name in one}))
+    sensitivity = np.array([[one.get(name, np.zeros(6)) for name in names] for one in s])
+    return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c),
+                      np.swapaxes(sensitivity, 1, 2), names)
 
 
 def _detections(world: IvyWorld, p: np.ndarray, q: np.ndarray, rng: np.random.Generator,

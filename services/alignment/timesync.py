@@ -31,13 +31,21 @@ _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 @dataclass(frozen=True)
 class PoseSeries:
     """A tracker's pose stream: times (s), positions (n, 3), xyzw quaternions (n, 4), and
-    the covariances (n, 6, 6, geometry's convention) it published with them, if any."""
+    the covariances (n, 6, 6, geometry's convention) it published with them, if any.
+
+    ``sensitivity`` (n, 6, m), if given: each pose's error (geometry's convention, as the
+    covariance) per one standard deviation of each of m parameters that every sample
+    shares (``parameters``, their names), e.g. an installation's tolerances.  The
+    covariance includes their outer products; unlike it they say how the errors of two
+    samples relate (``pipeline.shared_error_sensitivity``)."""
 
     t: np.ndarray
     position: np.ndarray
     quaternion: np.ndarray
     name: str = "stream"
     covariance: np.ndarray | None = None
+    sensitivity: np.ndarray | None = None
+    parameters: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -60,6 +68,14 @@ class PoseSeries:
                 raise AlignmentError(f"{self.name}: covariances must be {len(t)} finite 6x6 "
                                      f"matrices, got shape {c.shape}")
             object.__setattr__(self, "covariance", c)
+        if self.sensitivity is not None:
+            g = np.asarray(self.sensitivity, dtype=float)
+            if (g.shape != (len(t), 6, len(self.parameters)) or not np.all(np.isfinite(g))
+                    or self.covariance is None):
+                raise AlignmentError(f"{self.name}: sensitivities must be {len(t)} finite 6 x "
+                                     f"{len(self.parameters)} matrices (one column per "
+                                     f"parameter) beside covariances, got shape {g.shape}")
+            object.__setattr__(self, "sensitivity", g)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -84,12 +100,17 @@ class PoseSeries:
     def covariance_at(self, times: np.ndarray) -> np.ndarray | None:
         """The published covariance of the sample nearest each of ``times`` (None if the
         stream has none): a covariance changes slowly, so no interpolation."""
-        if self.covariance is None:
-            return None
+        return None if self.covariance is None else self.covariance[self._nearest(times)]
+
+    def sensitivity_at(self, times: np.ndarray) -> np.ndarray | None:
+        """The sensitivities of the sample nearest each of ``times`` (None if none)."""
+        return None if self.sensitivity is None else self.sensitivity[self._nearest(times)]
+
+    def _nearest(self, times: np.ndarray) -> np.ndarray:
+        """Index of the sample nearest each of ``times``."""
         times = np.asarray(times, dtype=float).reshape(-1)
         k = np.clip(np.searchsorted(self.t, times), 1, len(self.t) - 1)
-        k -= (times - self.t[k - 1]) < (self.t[k] - times)
-        return self.covariance[k]
+        return k - ((times - self.t[k - 1]) < (self.t[k] - times))
 
 
 def angular_speed(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:

@@ -881,20 +881,39 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     cov = across[:, None, None] * (np.eye(2) + (1 / c ** 2 - 1)[:, None, None]
                                    * np.einsum("ka,kb->kab", u, u))
     shape = np.ones(len(x)) if bend is None else np.asarray(bend, float)
-    slope = -Ad / np.maximum(dn, 0.05 * r)[:, None]  # the beam's hit moves back along it
+    slope = _bend_slopes(x, A, n, Ad, dn, r, eyes)
     if eyes is None:
         cov += p.camera_residual_std_m ** 2 * np.eye(2)
     else:
-        back = x - eyes
-        nb = np.einsum("ki,ki->k", n, back)
-        slope = slope + np.einsum("kai,ki->ka", A, -back) / np.abs(nb)[:, None]  # from the camera
-        turned = _cross(np.eye(3)[None], back[:, None])  # (k, 3 turns, 3): dr per turn axis
-        towards = np.einsum("kti,ki->kt", turned, n)
-        moved = turned - np.einsum("kt,ki->kti", towards, back) / nb[:, None, None]
-        J = np.einsum("kai,kti->kat", A, moved)  # (k, 2, 3)
+        J = _turn_jacobians(x, A, n, eyes)
         cov += p.camera_turn_std_rad ** 2 * np.einsum("kat,kbt->kab", J, J)
     return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * np.einsum(
         "ka,kb->kab", slope, slope)
+
+
+def _bend_slopes(x: np.ndarray, A: np.ndarray, n: np.ndarray, Ad: np.ndarray, dn: np.ndarray,
+                 r: np.ndarray, eyes: np.ndarray | None) -> np.ndarray:
+    """How far each dot moves on its wall (k, 2) per metre its screen bends inwards: the
+    beam's hit moves back along the beam, and the camera behind the screen sees the
+    off-plane spot along its ray (``_installation_covariance``)."""
+    slope = -Ad / np.maximum(dn, 0.05 * r)[:, None]
+    if eyes is None:
+        return slope
+    back = x - eyes
+    nb = np.einsum("ki,ki->k", n, back)
+    return slope + np.einsum("kai,ki->ka", A, -back) / np.abs(nb)[:, None]
+
+
+def _turn_jacobians(x: np.ndarray, A: np.ndarray, n: np.ndarray, eyes: np.ndarray,
+                    ) -> np.ndarray:
+    """How far each dot moves on its wall (k, 2, 3) per radian its camera turns about each
+    world axis: where the turned ray meets the plane, ``dX = dr - r (n . dr) / (n . r)``."""
+    back = x - eyes
+    nb = np.einsum("ki,ki->k", n, back)
+    turned = _cross(np.eye(3)[None], back[:, None])  # (k, 3 turns, 3): dr per turn axis
+    towards = np.einsum("kti,ki->kt", turned, n)
+    moved = turned - np.einsum("kt,ki->kti", towards, back) / nb[:, None, None]
+    return np.einsum("kai,kti->kat", A, moved)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1054,6 +1073,23 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     for the whole run; plus the model error the dots cannot show, systematic too.  A
     filter that averages frames must keep the systematic part apart
     (docs/FUSION_TUNING.md)."""
+    J = _pose_jacobian(dots, idx, p0, step_m)
+    random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
+    Jd = J.reshape(6, 4, 2)  # pose row, dot, its wall axis
+    systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd)
+    if params.model_pos_std_m or params.model_rot_std_rad:  # else it adds zeros
+        model = np.zeros((6, 6))
+        model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
+        model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
+        systematic += geo.decoupled_to_se3(p0, model)
+    whole = random + systematic
+    return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+
+
+def _pose_jacobian(dots: WorldDots, idx: list[int], p0: np.ndarray, step_m: float = 1e-5,
+                   ) -> np.ndarray:
+    """The pose's change (6, 8; xi form) per metre each dot ``idx`` moves along each of its
+    wall's two axes (column ``2k + a``), by numeric Jacobian of the closed-form solution."""
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
     Q = np.repeat(P[None], 9, axis=0)
@@ -1067,16 +1103,63 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     J = np.concatenate([p[1:] - p[0], dphi], axis=1).T / step_m  # (6, 8)
     # the decoupled -> xi map of geo.decoupled_to_se3, applied to J once for both
     J[:3] += geo.skew3(p0) @ J[3:]
-    random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
-    Jd = J.reshape(6, 4, 2)  # pose row, dot, its wall axis
-    systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd)
-    if params.model_pos_std_m or params.model_rot_std_rad:  # else it adds zeros
-        model = np.zeros((6, 6))
-        model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
-        model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
-        systematic += geo.decoupled_to_se3(p0, model)
-    whole = random + systematic
-    return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+    return J
+
+
+def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: TrackerParams,
+                             ) -> dict[str, np.ndarray]:
+    """The pose's error (6,; xi form, as ``covariance``) per one standard deviation of each
+    of the installation's parameters that moves its dots: each beam's tilt and miss of P0
+    across it (two rig-fixed axes each), each screen's bend, each camera's turn (three
+    world axes; two wall axes of ``camera_residual_std_m`` where the camera is unknown).
+
+    Why: ``systematic`` says how large the installation's error of one pose is, not how
+    the errors of two poses relate.  Two poses share a parameter's error through the
+    parameter, each with its own sensitivity, so a consumer that combines poses from
+    different places (an alignment over many stations) needs the sensitivities: their
+    outer products summed over the parameters give ``systematic`` less the model error,
+    the same dot by dot as :func:`_installation_covariance` (but where a beam meets its
+    wall within 3 degrees of grazing, where that clamps the stretch).  ``dots`` are the
+    frame set ``estimate`` was solved from."""
+    idx = [int(np.flatnonzero(np.all(dots.points == estimate.dots[label], axis=1))[0])
+           for label in sorted(estimate.dots)]
+    p0 = np.asarray(estimate.position, float)
+    Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
+    R = geo.quat_to_matrix(estimate.quaternion)
+    x, A = dots.points[idx], dots.axes[idx]
+    n = _cross(A[:, 0], A[:, 1])
+    d = x - p0
+    r = np.sqrt(np.einsum("ki,ki->k", d, d))
+    dn = np.abs(np.einsum("ki,ki->k", n, d))
+    eyes = None if dots.eyes is None else dots.eyes[idx]
+    shape = np.ones(4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
+    slope = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), dn, r, eyes)
+    turn = None if eyes is None else _turn_jacobians(x, A, n, eyes)
+    out: dict[str, np.ndarray] = {}
+
+    def add(name: str, k: int, moved: np.ndarray) -> None:
+        out[name] = out.get(name, np.zeros(6)) + Jd[:, k] @ moved
+
+    for k, label in enumerate(sorted(estimate.dots)):
+        beam = np.asarray(BEAM_DIRECTIONS[label], float)
+        unit = d[k] / r[k]
+        nd = float(n[k] @ unit)
+        nd = math.copysign(max(abs(nd), 0.05), nd)
+        for axis, f in zip("ab", (e for e in np.eye(3) if abs(e @ beam) < 0.5), strict=True):
+            across = R @ f
+            across -= (across @ unit) * unit
+            moved = A[k] @ (across - unit * (n[k] @ across) / nd)
+            add(f"beam {label} tilt {axis}", k, r[k] * p.housing_dir_std_rad * moved)
+            add(f"beam {label} offset {axis}", k, p.housing_offset_std_m * moved)
+        add(f"screen {dots.walls[idx[k]]} bend", k, p.screen_bulge_std_m * shape[k] * slope[k])
+        camera = dots.cameras[idx[k]]
+        if turn is None:
+            for a in range(2):
+                add(f"camera {camera} residual {a}", k, p.camera_residual_std_m * np.eye(2)[a])
+        else:
+            for a, axis in enumerate("xyz"):
+                add(f"camera {camera} turn {axis}", k, p.camera_turn_std_rad * turn[k][:, a])
+    return out
 
 
 #: the skew part of a rotation's small error, as flat indices into the row-major 3 x 3:
