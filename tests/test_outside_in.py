@@ -22,9 +22,9 @@ from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import MotionFilter
 from services.outside_in.pose import Motion, Observation, absolute_orientation, refine_pose
-from services.outside_in.rig import RigCamera, look_at
+from services.outside_in.rig import RigCamera, RigImages, look_at
 from services.outside_in.simulator import SimConfig, Simulation, standard_bodies
-from services.outside_in.tracker import CameraFrame, OutsideInTracker
+from services.outside_in.tracker import CameraFrame, OutsideInTracker, TrackerParams
 from services.outside_in.triangulation import (
     match_and_triangulate,
     refine_point,
@@ -421,6 +421,29 @@ def test_no_pose_from_one_camera() -> None:
     assert refine_pose(body.markers, obs, np.array([0, 0, 1.2]), np.eye(3)) is None
 
 
+@pytest.mark.parametrize("dist", [(), (-0.08, 0.03, 0.001, -0.002),
+                                  (-0.08, 0.03, 0.001, -0.002, 0.01),
+                                  (-0.08, 0.03, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005),
+                                  (-0.08, 0.03, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005,
+                                   0.001, 0.0, 0.0, 0.001)])
+def test_rig_images_are_opencvs_projection_in_every_camera(dist: tuple) -> None:
+    cams = [RigCamera.of(c.name, c.K, np.array(dist), c.position, c.quaternion)
+            for c in rig(5)]
+    points = np.random.default_rng(4).uniform([-2, -2, -0.5], [2, 2, 3], size=(40, 3))
+    images = RigImages(cams)
+    z, uv = images.depth_and_pixels(points)
+    for c, cam in enumerate(cams):
+        np.testing.assert_allclose(uv[c], cam.project(points), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(z[c], cam.to_camera(points)[:, 2], rtol=0, atol=1e-12)
+        inside = (z[c] > 0.05) & images.inside(uv, margin_px=5)[c]
+        np.testing.assert_array_equal(inside, cam.visible(points, margin_px=5))
+    some = [3, 1]
+    z2, uv2 = images.depth_and_pixels(points, some)
+    np.testing.assert_array_equal(z2, z[some])
+    np.testing.assert_array_equal(uv2, uv[some])
+    np.testing.assert_array_equal(images.inside(uv2, some), images.inside(uv)[some])
+
+
 # ------------------------------------------------------------------------ filter
 
 def test_motion_filter_learns_a_screw_motion_and_predicts_it() -> None:
@@ -463,6 +486,56 @@ def test_tracker_follows_three_bodies_on_simulated_frames() -> None:
     for n in names:
         assert len(errors[n]) >= 20, n
         assert np.sqrt(np.mean(np.square(errors[n]))) < 0.001, n
+
+
+def _tracked(params: TrackerParams | None = None) -> tuple[Simulation, OutsideInTracker]:
+    """Three bodies tracked over 6 frame sets of 4 simulated cameras."""
+    sim = Simulation(seed=3, config=SimConfig(n_cameras=4))
+    tracker = OutsideInTracker(sim.cameras, sim.bodies, params)
+    for i in range(6):
+        tracker.process([CameraFrame(c, sim.render(c, i).t, find_blobs(sim.render(c, i).image))
+                         for c in range(4)])
+    return sim, tracker
+
+
+def test_a_marker_between_two_blobs_takes_neither() -> None:
+    sim, tracker = _tracked()
+    frames = [CameraFrame(c, sim.render(c, 6).t, find_blobs(sim.render(c, 6).image))
+              for c in range(4)]
+    est = {e.body: e for e in tracker.process(frames)}
+    head = est["head"].blobs[0]          # camera 0: head's marker -> blob
+    marker, blob = next(iter(head.items()))
+    uv = frames[0].blobs.uv
+    # the same frame set again, that blob split into two 0.6 px either side of it
+    sim, tracker = _tracked()
+    split = np.vstack([np.delete(uv, blob, axis=0), uv[blob] + [0.6, 0], uv[blob] - [0.6, 0]])
+    n = len(split)
+    frames[0] = CameraFrame(0, frames[0].t, blobs.Blobs(split, np.full(n, 0.05), np.zeros(n),
+                                                        np.zeros(n), np.ones(n)))
+    before = tracker.counts["ambiguous_blobs"]
+    again = {e.body: e for e in tracker.process(frames)}
+    assert marker not in again["head"].blobs[0]
+    assert tracker.counts["ambiguous_blobs"] == before + 1
+    assert set(again["wand"].blobs[0].items()) <= set(est["wand"].blobs[0].items()) | {
+        (m, b if b < blob else b - 1) for m, b in est["wand"].blobs[0].items()}
+
+
+def test_a_blob_nearest_to_several_markers_goes_to_none() -> None:
+    """Any blob is near enough and none ambiguous: camera 0's one blob is every marker's
+    nearest, so all 14 markers of the three bodies claim it and none takes it."""
+    params = TrackerParams(gate_px=1000.0, ambiguity_ratio=1.0)
+    sim, tracker = _tracked(params)
+    frames = [CameraFrame(c, sim.render(c, 6).t, find_blobs(sim.render(c, 6).image))
+              for c in range(4)]
+    tracker.process(frames[1:])
+    without = tracker.counts["ambiguous_blobs"]
+    one = frames[0].blobs.uv[:1]
+    frames[0] = CameraFrame(0, frames[0].t, blobs.Blobs(one, np.full(1, 0.05), np.zeros(1),
+                                                        np.zeros(1), np.ones(1)))
+    sim, tracker = _tracked(params)
+    out = tracker.process(frames)
+    assert out and all(0 not in e.blobs for e in out)
+    assert tracker.counts["ambiguous_blobs"] == without + 14
 
 
 def test_bodies_found_by_unsynchronised_cameras_have_honest_covariances() -> None:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from agent import geometry as geo
-from services.outside_in.rig import RigCamera
+from services.outside_in.rig import RigCamera, RigImages
 
 Array = np.ndarray
 
@@ -65,22 +65,26 @@ class RigHealth:
     def flagged(self) -> list[int]:
         return [c for c, s in enumerate(self.cams) if s.flagged]
 
-    def observe(self, t: float, cameras: list[RigCamera], blobs: dict[int, Array],
+    def observe(self, t: float, images: RigImages, blobs: dict[int, Array],
                 poses: list[tuple[Array, Array, Array, dict[int, dict[int, int]]]]
                 ) -> list[tuple[int, RigCamera]]:
-        """One frame set: ``blobs`` per camera (pixels), ``poses`` of the tracked bodies
-        as ``(p, R, markers, kept)`` (``kept``: camera -> marker -> blob).  Returns the
-        cameras re-estimated now, ``(index, camera)``."""
+        """One frame set: ``blobs`` per camera (pixels; ``images.cameras`` the rig's
+        cameras), ``poses`` of the tracked bodies as ``(p, R, markers, kept)``
+        (``kept``: camera -> marker -> blob).  Returns the cameras re-estimated now,
+        ``(index, camera)``."""
         out = []
-        world = np.vstack([m @ R.T + p for p, R, m, _ in poses]) if poses else None
-        for c, uv in blobs.items():
+        cams = list(blobs)
+        expected = np.zeros(len(cams), int)
+        if poses:
+            world = np.vstack([m @ R.T + p for p, R, m, _ in poses])
+            z, uv = images.depth_and_pixels(world, cams)
+            expected = np.count_nonzero((z > 0.05) & images.inside(uv, cams, margin_px=5),
+                                        axis=1)
+        for c, uv, seen in zip(cams, blobs.values(), expected.tolist(), strict=True):
             state = self.cams[c]
-            cam = cameras[c]
-            expected = used = 0
-            if world is not None:
-                expected = int(np.sum(cam.visible(world, margin_px=5)))
-                used = sum(len(kept.get(c, {})) for *_, kept in poses)
-            state.expected.append(expected)
+            cam = images.cameras[c]
+            used = sum(len(kept.get(c, {})) for *_, kept in poses)
+            state.expected.append(seen)
             state.used.append(used)
             if not state.flagged and self._disagrees(state):
                 state.flagged = True

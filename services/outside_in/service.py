@@ -357,7 +357,7 @@ class Reconstruction:
         if self.period is None:
             return []
         names = {i: n for n, i in self.index.items()}
-        out = []
+        times = {}
         for cam, t in self.last_t.items():
             t_next = t + self.period
             due = round(t_next * 1e9)
@@ -365,8 +365,9 @@ class Reconstruction:
                     or due - self.windows_sent.get(cam, -2**62) < WINDOWS_EVERY_S * 1e9):
                 continue
             self.windows_sent[cam] = due
-            out.append((names[cam], due, self.tracker.predicted_images(cam, t_next)))
-        return out
+            times[cam] = t_next
+        images = self.tracker.predicted_images(times)
+        return [(names[cam], self.windows_sent[cam], images[cam]) for cam in times]
 
     def _flush(self) -> list[BodyEstimate]:
         frames = list(self.pending.values())

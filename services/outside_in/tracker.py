@@ -39,7 +39,7 @@ from services.outside_in.pose import (
     absolute_orientation,
     refine_pose,
 )
-from services.outside_in.rig import RigCamera
+from services.outside_in.rig import RigCamera, RigImages
 from services.outside_in.triangulation import MatchParams, match_and_triangulate
 
 Array = np.ndarray
@@ -106,13 +106,15 @@ class OutsideInTracker:
             raise InvalidInputError(
                 f"an outside-in rig needs 2 cameras at least, got {len(cameras)}")
         self.cameras = list(cameras)
+        self.images = RigImages(self.cameras)
         self.params = params or TrackerParams()
         self.tracks = [_Track(b, MotionFilter(self.params.motion)) for b in bodies]
         self.counts = {"tracked": 0, "acquired": 0, "refused_fit": 0, "refused_filter": 0,
                        "ambiguous_blobs": 0}
         self.health = RigHealth(len(self.cameras), self.params.health)
-        #: the tracked bodies' markers predicted at a time, kept until the next frame set
-        self._ahead: dict[float, Array] = {}
+        #: the tracked bodies' markers predicted at a time and where they image in every
+        #: camera, kept until the next frame set
+        self._ahead: dict[float, tuple[Array, Array]] = {}
 
     def process(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
         """Poses of the bodies found in one set of frames (one per camera at most)."""
@@ -150,80 +152,90 @@ class OutsideInTracker:
         return any(not tr.filter.ready or tr.missed >= self.params.lost_after
                    for tr in self.tracks)
 
-    def predicted_images(self, camera: int, t: float) -> Array:
-        """Where the tracked bodies' markers will image in ``camera`` at ``t`` (n, 2
-        distorted pixels; those in front of it and inside its image): the windows its
-        detector need look in (Dorfmüller-Ulhaas §2: the prediction projected into the
-        images finds the markers of the next frame)."""
-        world = self._ahead.get(t)
-        if world is None:   # synchronised cameras share their next exposure
-            tracked = [tr for tr in self.tracks
-                       if tr.filter.ready and tr.missed < self.params.lost_after]
-            world = self._ahead[t] = (np.vstack([_markers_at(tr, t) for tr in tracked])
-                                      if tracked else np.zeros((0, 3)))
-        if not len(world):
-            return np.zeros((0, 2))
-        cam = self.cameras[camera]
-        return cam.project(world[cam.visible(world)])
+    def predicted_images(self, times: dict[int, float]) -> dict[int, Array]:
+        """Where the tracked bodies' markers will image in each camera at its time
+        (``camera -> t``): n x 2 distorted pixels of those in front of it and inside its
+        image, the windows its detector need look in (Dorfmüller-Ulhaas §2: the
+        prediction projected into the images finds the markers of the next frame)."""
+        out = {}
+        for t in set(times.values()):   # synchronised cameras share their next exposure
+            got = self._ahead.get(t)
+            if got is None:
+                world = self._tracked_markers(t)
+                z, uv = self.images.depth_and_pixels(world)
+                got = self._ahead[t] = uv, (z > 0.05) & self.images.inside(uv)
+            uv, visible = got
+            out.update((c, uv[c][visible[c]]) for c, tc in times.items() if tc == t)
+        return out
+
+    def _tracked_markers(self, t: float) -> Array:
+        """The tracked bodies' markers in the world at ``t`` (n, 3)."""
+        tracked = [tr for tr in self.tracks
+                   if tr.filter.ready and tr.missed < self.params.lost_after]
+        return (np.vstack([_markers_at(tr, t) for tr in tracked]) if tracked
+                else np.zeros((0, 3)))
 
     def _check_cameras(self, t: float, frames: list[CameraFrame],
                        out: list[BodyEstimate]) -> None:
         """Feed the rig's health and put re-estimated cameras in place (``health``)."""
         markers = {tr.body.name: tr.body.markers for tr in self.tracks}
         poses = [(e.fit.p, e.fit.R, markers[e.body], e.blobs) for e in out if not e.acquired]
-        for c, cam in self.health.observe(t, self.cameras, {f.camera: f.blobs.uv
-                                                            for f in frames}, poses):
+        moved = self.health.observe(t, self.images, {f.camera: f.blobs.uv for f in frames},
+                                    poses)
+        for c, cam in moved:
             self.cameras[c] = cam
+        if moved:
+            self.images = RigImages(self.cameras)
 
     # ---------------------------------------------------------------- association
 
     def _predicted_claims(self, frames: list[CameraFrame]
                           ) -> dict[int, dict[tuple[int, int], tuple[int, int]]]:
         """Per tracked body, ``(camera, marker) -> (camera, blob)`` for every marker whose
-        predicted image has one unambiguous blob; blobs claimed twice go to no one."""
+        predicted image has one unambiguous blob; blobs claimed twice go to no one.  All
+        cameras at once: each marker's nearest and second nearest blob in each image."""
         p = self.params
-        owners: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
         tracked = [(k, tr) for k, tr in enumerate(self.tracks)
                    if tr.filter.ready and tr.missed < p.lost_after]
         if not tracked:
             return {}
-        predicted: dict[float, Array] = {}   # synchronised cameras share a time
         bounds = np.cumsum([0, *(len(track.body.markers) for _, track in tracked)])
-        body_of = np.repeat(np.arange(len(tracked)), np.diff(bounds)).tolist()
-        for f in frames:
-            cam = self.cameras[f.camera]
-            world = predicted.get(f.t)
-            if world is None:
-                world = predicted[f.t] = np.vstack([_markers_at(track, f.t)
-                                                    for _, track in tracked])
-            # every tracked body's markers at once: their nearest and second nearest blobs
-            uv = cam.project(world)
-            z = cam.to_camera(world)[:, 2]
-            d = np.linalg.norm(uv[:, None, :] - f.blobs.uv[None, :, :], axis=2)
-            order = np.argsort(d, axis=1)
-            rows = np.arange(len(d))
-            near = d[rows, order[:, 0]]
-            ambiguous = (near > p.ambiguity_ratio * d[rows, order[:, 1]] if d.shape[1] > 1
-                         else np.zeros(len(d), bool))
-            # markers near a blob, of bodies wholly in front of the camera
-            front = np.minimum.reduceat(z, bounds[:-1]) > 0.05
-            taken = ~(near > p.gate_px) & np.repeat(front, np.diff(bounds))
-            for i, amb, blob in zip(np.flatnonzero(taken).tolist(),
-                                    ambiguous[taken].tolist(), order[taken, 0].tolist(),
-                                    strict=True):
-                if amb:
-                    self.counts["ambiguous_blobs"] += 1
-                    continue
-                b = body_of[i]
-                owners.setdefault((f.camera, blob), []).append(
-                    (tracked[b][0], f.camera, i - int(bounds[b])))
+        cams = np.array([f.camera for f in frames])
+        z = np.empty((len(frames), bounds[-1]))
+        uv = np.empty((len(frames), bounds[-1], 2))
+        for t in {f.t for f in frames}:   # synchronised cameras share a time
+            at = np.flatnonzero([f.t == t for f in frames])
+            world = np.vstack([_markers_at(track, t) for _, track in tracked])
+            z[at], uv[at] = self.images.depth_and_pixels(world, cams[at])
+        # every camera's blobs, padded with blobs infinitely far
+        blobs = np.full((len(frames), max(len(f.blobs) for f in frames), 2), np.inf)
+        for i, f in enumerate(frames):
+            blobs[i, :len(f.blobs)] = f.blobs.uv
+        diff = uv[:, :, None, :] - blobs[:, None, :, :]
+        d = np.sqrt(np.add.reduce(diff * diff, axis=3))        # (frames, markers, blobs)
+        nearest = np.argmin(d, axis=2)
+        if d.shape[2] > 1:
+            near, second = np.moveaxis(np.partition(d, 1, axis=2)[..., :2], 2, 0)
+        else:
+            near, second = d[..., 0], np.full(d.shape[:2], np.inf)
+        ambiguous = near > p.ambiguity_ratio * second
+        # markers near a blob, of bodies wholly in front of the camera
+        front = np.minimum.reduceat(z, bounds[:-1], axis=1) > 0.05
+        taken = ~(near > p.gate_px) & np.repeat(front, np.diff(bounds), axis=1)
+        self.counts["ambiguous_blobs"] += int(np.count_nonzero(taken & ambiguous))
+        fi, mi = np.nonzero(taken & ~ambiguous)           # in the frames' and markers' order
+        bi = nearest[fi, mi]
+        # a blob claimed by two markers (of one body or two) goes to neither
+        _, first, count = np.unique(fi * blobs.shape[1] + bi, return_inverse=True,
+                                    return_counts=True)
+        twice = count[first] > 1
+        self.counts["ambiguous_blobs"] += int(np.count_nonzero(twice))
+        body = np.searchsorted(bounds, mi, side="right") - 1
         claims: dict[int, dict[tuple[int, int], tuple[int, int]]] = {}
-        for blob, keys in owners.items():
-            if len(keys) > 1:
-                self.counts["ambiguous_blobs"] += len(keys)
-                continue
-            k, c, m = keys[0]
-            claims.setdefault(k, {})[(c, m)] = blob
+        for f, m, b, k in zip(fi[~twice].tolist(), mi[~twice].tolist(), bi[~twice].tolist(),
+                              body[~twice].tolist(), strict=True):
+            c = frames[f].camera
+            claims.setdefault(tracked[k][0], {})[(c, m - int(bounds[k]))] = (c, b)
         return claims
 
     # ---------------------------------------------------------------- estimation
