@@ -70,6 +70,8 @@ MAX_NAME_LENGTH = ids.MAX_LENGTH
 #: Bounds on free-form attribute values (lists of numbers such as rig geometry, nesting).
 MAX_LIST_LENGTH = 1024
 MAX_PLAIN_DEPTH = 4
+#: Most next-best abilities a need may keep subscribed besides its chosen ones.
+MAX_STANDBY = 8
 #: Offsets of the diagonal in the 21 upper-triangular entries (row by row) of a 6x6 matrix.
 _TRIU6_DIAGONAL = (0, 6, 11, 15, 18, 20)
 
@@ -271,7 +273,9 @@ class Need(BaseModel):
 
     ``where`` is a predicate over the ability's attributes; ``prefer`` an expression to
     minimise.  Both are checked for syntax and types here; see the module docstring for
-    which names they may use.
+    which names they may use.  ``standby``: how many of the next-best abilities the service
+    subscribes to as well, so that a chosen one falling silent (a camera that lost its tag)
+    is stood in for at the next sample, before the agent has heard of it and matched anew.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -286,6 +290,9 @@ class Need(BaseModel):
                                description="expression to minimise, e.g. 'latency_s'")
     min_count: int = Field(1, ge=0, description="fewest abilities to connect")
     max_count: int = Field(1, ge=1, description="most abilities to connect")
+    standby: int = Field(0, ge=0, le=MAX_STANDBY, description=(
+        "next-best abilities kept subscribed as well; their samples are delivered while a "
+        "connected one sends nothing"))
 
     _where: expr.Expr | None = PrivateAttr(None)
     _prefer: expr.Expr | None = PrivateAttr(None)

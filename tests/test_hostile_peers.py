@@ -247,7 +247,7 @@ class _Recorder(Service):
         self.need("head", type="pose6d", edge=("ivy/world", "*/head"))
         self.applied: list[tuple[str, ...]] = []
         self.presence.token = object()  # as if declared: the test has no session
-        self.links.apply = lambda need, matches, satisfied: self.applied.append(
+        self.links.apply = lambda need, matches, satisfied, standby=(): self.applied.append(
             tuple(m.key for m in matches))
 
 

@@ -97,6 +97,16 @@ def test_multiplicity_min_and_max() -> None:
     assert not r.satisfied
 
 
+def test_standby_is_the_next_best_after_the_chosen() -> None:
+    idx = OfferIndex([offer(f"s{i}", cost=i) for i in range(5)] + [offer("x", cost=9)])
+    r = match(need(prefer="cost", where="cost != 1", max_count=2, standby=2), idx, "a")
+    assert chosen_services(r) == ["s0", "s2"]
+    assert [c.offer.service_id for c in r.standby] == ["s3", "s4"]
+    assert match(need(prefer="cost"), idx, "a").standby == ()  # none unless asked for
+    few = match(need(prefer="cost", where="cost < 2", standby=3), idx, "a")
+    assert chosen_services(few) == ["s0"] and [c.offer.service_id for c in few.standby] == ["s1"]
+
+
 def test_exactly_min_count_qualified_satisfies_and_one_fewer_does_not() -> None:
     """The boundary of the multiplicity rule: ``qualified == min_count`` is enough."""
     idx = OfferIndex([offer(f"s{i}", cost=i) for i in range(5)])

@@ -40,7 +40,7 @@ def random_need(rng: random.Random, j: int) -> Requirement:
                 edge=(rng.choice(["*/cam*", f"site{j % 3}/*", "*/*", "site0/cam1"]),
                       rng.choice(["*/head", f"p{j % 5}/head"])),
                 where=rng.choice(WHERE), prefer=rng.choice(PREFER),
-                max_count=rng.choice([1, 1, 2]))
+                max_count=rng.choice([1, 1, 2]), standby=rng.choice([0, 0, 1, 2]))
     return Requirement.of(f"svc{rng.randrange(40)}", need)
 
 

@@ -109,6 +109,7 @@ class NeedState:
     req: Requirement
     result: MatchResult | None = None
     sent: tuple[Match, ...] | None = None     # the set last sent to the service
+    sent_standby: tuple[Match, ...] = ()      # and its standby
     sent_at: float = 0.0
     seq: int = 0
 
@@ -620,25 +621,27 @@ class Agent:
     def _send_if_changed(self, state: NeedState, now: float) -> None:
         assert state.result is not None
         matches = tuple(_match(c.offer) for c in state.result.chosen)
-        if state.sent is not None and matches == state.sent:
+        standby = tuple(_match(c.offer) for c in state.result.standby)
+        if state.sent is not None and (matches, standby) == (state.sent, state.sent_standby):
             return
         if state.sent and now - self._started_mono < STARTUP_HOLD_S:
             return  # the view may still be filling up: keep what the service has
-        self._send(state, matches, now)
+        self._send(state, matches, now, standby)
 
-    def _send(self, state: NeedState, matches: tuple[Match, ...], now: float) -> None:
+    def _send(self, state: NeedState, matches: tuple[Match, ...], now: float,
+              standby: tuple[Match, ...]) -> None:
         assert self.session is not None and state.result is not None
         state.seq = next_seq(state.seq, now - self._started_mono)
         sid = state.req.service_id
         payload = control_message(self.registrar.control_key(sid), self.epoch, state.seq,
-                                  state.req.name, matches, state.result.satisfied)
+                                  state.req.name, matches, state.result.satisfied, standby)
         self.session.put(keys.control(self.realm, self.agent_id, sid), payload,
                          congestion_control=zenoh.CongestionControl.BLOCK)
         if matches != state.sent:
             log.info("need %s/%s -> %s", sid, state.req.name,
                      ", ".join(f"{m.agent_id}/{m.service_id}/{m.ability}" for m in matches)
                      or "nothing")
-        state.sent, state.sent_at = matches, now
+        state.sent, state.sent_standby, state.sent_at = matches, standby, now
 
     # -- time-driven work
     def _tick(self) -> None:
@@ -658,7 +661,7 @@ class Agent:
             self.registrar.resync()
             for state in self.needs.values():
                 if state.result is not None and state.sent is not None:
-                    self._send(state, state.sent, now)
+                    self._send(state, state.sent, now, state.sent_standby)
 
     # -- snapshot
     def _on_services_query(self, query: zenoh.Query) -> None:

@@ -19,7 +19,8 @@ An agent matches each need of its local services against every ability of the re
    before remote, then the currently connected one
    (no needless moves between equals), then the data key (a total, stable order);
 5. **multiplicity**: the best ``max_count`` are chosen; the need is *satisfied* when at least
-   ``min_count`` qualify.
+   ``min_count`` qualify; the next ``standby`` qualified ones are its standby (the service
+   keeps them subscribed and delivers their samples while a chosen one is silent).
 
 Abilities the agent has *excluded* for a need (their measured rate/latency failed the
 predicate for longer than the grace period) are skipped.
@@ -31,9 +32,9 @@ A result remembers what it was computed from (the need, its exclusions and curre
 whether its candidates were complete), and the index journals the abilities it gained or
 lost (``take_touched``), so after one change ``rematch`` keeps the result of every need
 whose edge patterns fit no touched ability and patches the others with the touched
-abilities alone (matching anew only when a chosen ability changed or left, since the next
-best is not kept): a change in a realm of 10,000 abilities and 1,000 needs costs a few
-predicate calls per need it concerns, not one per need and ability.
+abilities alone (matching anew only when a chosen or standby ability changed or left,
+since the next best is not kept): a change in a realm of 10,000 abilities and 1,000 needs
+costs a few predicate calls per need it concerns, not one per need and ability.
 ``bench/bench_matching.py`` and ``bench/bench_scale.py`` measure it.
 
 Bounds: abilities come from any peer of the realm, so the index keeps at most
@@ -123,8 +124,9 @@ class Choice:
 
 @dataclass(frozen=True)
 class MatchResult:
-    """The outcome for one need: the chosen abilities (best first) and a tally of why the
-    other abilities of its type and edge were rejected."""
+    """The outcome for one need: the chosen abilities (best first), its standby (the next
+    best, module docstring) and a tally of why the other abilities of its type and edge
+    were rejected."""
 
     requirement: Requirement
     chosen: tuple[Choice, ...]
@@ -135,6 +137,7 @@ class MatchResult:
     excluded: frozenset[str] = frozenset()
     current: frozenset[str] = frozenset()
     searched: tuple[int, bool] = field(default=(0, True), compare=False)
+    standby: tuple[Choice, ...] = ()
 
     @property
     def satisfied(self) -> bool:
@@ -339,9 +342,10 @@ def _result(req: Requirement, ranked: list[Ranked], qualified: int, rejected: di
             excluded: Collection[str], current: Collection[str],
             searched: tuple[int, bool]) -> MatchResult:
     ranked.sort(key=lambda r: r[:4])
-    chosen = tuple(r[4] for r in ranked[:req.need.max_count])
+    n, standby = req.need.max_count, req.need.standby
+    chosen = tuple(r[4] for r in ranked[:n])
     return MatchResult(req, chosen, qualified, rejected, frozenset(excluded),
-                       frozenset(current), searched)
+                       frozenset(current), searched, tuple(r[4] for r in ranked[n:n + standby]))
 
 
 def match(req: Requirement, index: OfferIndex, local_agent: str, *,
@@ -393,19 +397,20 @@ def _patch(previous: MatchResult, index: OfferIndex, local_agent: str,
            touched: list[Touch]) -> MatchResult | None:
     """``previous`` with each touched key's version before (the first journalled, if it
     was a removal) taken out and its version now (if it fits) put in; None when a chosen
-    ability is among them (the next best is not kept).  Both results' candidates must be
-    complete (every fitting offer).  The best ``max_count`` of the chosen and the new are
-    the best of all: every other candidate ranked after the chosen ones, which are all
-    still there."""
+    or standby ability is among them (the next best is not kept).  Both results'
+    candidates must be complete (every fitting offer).  The best ``max_count + standby``
+    of the kept and the new are the best of all: every other candidate ranked after the
+    kept ones, which are all still there."""
     req = previous.requirement
     need = req.need
     before: dict[str, Offer | None] = {}
     for offer, present in touched:
         before.setdefault(offer.key, None if present else offer)
-    if any(key in before for key in previous.keys):
+    kept = previous.chosen + previous.standby
+    if any(c.offer.key in before for c in kept):
         return None
     ex, cur = previous.excluded, previous.current
-    ranked = [r for c in previous.chosen
+    ranked = [r for c in kept
               if isinstance(r := _rank(req, c.offer, local_agent, ex, cur), tuple)]
     qualified, rejected = previous.qualified, dict(previous.rejected)
     for key, old in before.items():

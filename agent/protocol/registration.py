@@ -62,18 +62,20 @@ the functions below; ``R`` = realm, ``A`` = agent id, ``S`` = service id)
 **Agent -> its local services** (``uma/R/ctl/A/S``, put, congestion control BLOCK)
 
 ``{op: "signed", body, mac}`` with ``body`` = ``{op: "connect", epoch, seq, need, matches:
-[match...], satisfied}``: the complete set of abilities the need must be subscribed to now
-(``match`` = ``{key, agent_id, service_id, ability, type, edge, attributes}``, at most
-``MAX_CONTROL_MATCHES``), and ``mac`` = HMAC-SHA256 of ``body`` with the service's key
-(first 16 bytes).  The service applies only a message that verifies, whose ``epoch`` is the
-one its agent replied with, and whose ``seq`` is newer than the last applied but not
-further ahead than the milliseconds passed since then plus ``SEQ_WINDOW`` of the service:
-an agent's ``seq`` is the milliseconds since it started (:func:`next_seq`; one more when two
-messages of a need fall in one millisecond), so a forged jump, were the key ever known,
-holds the agent's real messages back for ``SEQ_WINDOW`` ms at most.  One that does not
-verify makes the service register again (its key may be one the agent has not given it
-yet).  Set semantics make messages idempotent, and the agent re-sends every need's set
-every ``RESEND_S`` with the next ``seq`` (anti-entropy, in case a put was lost).
+[match...], satisfied, standby: [match...]}``: the complete set of abilities the need must
+be subscribed to now (``match`` = ``{key, agent_id, service_id, ability, type, edge,
+attributes}``, at most ``MAX_CONTROL_MATCHES``) and its standby (the next best, subscribed
+as well, their samples delivered while a chosen one is silent; absent: none), and ``mac`` =
+HMAC-SHA256 of ``body`` with the service's key (first 16 bytes).  The service applies only a
+message that verifies, whose ``epoch`` is the one its agent replied with, and whose ``seq``
+is newer than the last applied but not further ahead than the milliseconds passed since then
+plus ``SEQ_WINDOW`` of the service: an agent's ``seq`` is the milliseconds since it started
+(:func:`next_seq`; one more when two messages of a need fall in one millisecond), so a
+forged jump, were the key ever known, holds the agent's real messages back for
+``SEQ_WINDOW`` ms at most.  One that does not verify makes the service register again (its
+key may be one the agent has not given it yet).  Set semantics make messages idempotent, and
+the agent re-sends every need's set every ``RESEND_S`` with the next ``seq`` (anti-entropy,
+in case a put was lost).
 
 **Agent <-> agents**
 
@@ -401,13 +403,15 @@ def _mac(key: bytes, body: bytes) -> bytes:
 
 
 def control_message(key: bytes | None, epoch: int, seq: int, need: str,
-                    matches: Iterable[Match], satisfied: bool) -> bytes:
+                    matches: Iterable[Match], satisfied: bool,
+                    standby: Iterable[Match] = ()) -> bytes:
     """A need's match set, signed with the service's control ``key`` (HMAC-SHA256, RFC
     2104); ``key`` None (the service never registered with this agent) sends it unsigned:
     the service refuses it and registers, which gives it a key."""
     body = encode_message({"op": "connect", "epoch": epoch, "seq": seq, "need": need,
                            "matches": [m.to_wire() for m in matches],
-                           "satisfied": satisfied})
+                           "satisfied": satisfied,
+                           "standby": [m.to_wire() for m in standby]})
     return encode_message({"op": "signed", "body": body,
                            "mac": b"" if key is None else _mac(key, body)})
 
@@ -419,6 +423,7 @@ class Control:
     need: str
     matches: tuple[Match, ...]
     satisfied: bool
+    standby: tuple[Match, ...] = ()
 
 
 def control_need(data: bytes) -> str | None:
@@ -447,13 +452,17 @@ def parse_control(data: bytes, realm: str, key: bytes | None) -> Control:
         raise DecodeError(f"unknown op {msg['op']!r} (expected 'connect')")
     if type(msg["epoch"]) is not int or type(msg["seq"]) is not int:
         raise DecodeError("epoch and seq must be integers")
-    if not isinstance(msg["need"], str) or not isinstance(msg["matches"], list):
-        raise DecodeError("need must be a string and matches a list")
-    if len(msg["matches"]) > MAX_CONTROL_MATCHES:
-        raise DecodeError(f"{len(msg['matches'])} matches, more than {MAX_CONTROL_MATCHES}")
-    matches = tuple(Match.from_wire(m, realm) for m in msg["matches"])
-    return Control(msg["epoch"], msg["seq"], msg["need"], matches,
-                   bool(msg.get("satisfied", True)))
+    standby = msg.get("standby", [])
+    if not isinstance(msg["need"], str) or not isinstance(msg["matches"], list) or (
+            not isinstance(standby, list)):
+        raise DecodeError("need must be a string, matches and standby lists")
+    if len(msg["matches"]) + len(standby) > MAX_CONTROL_MATCHES:
+        raise DecodeError(f"{len(msg['matches'])} matches and {len(standby)} standby, more "
+                          f"than {MAX_CONTROL_MATCHES}")
+    return Control(msg["epoch"], msg["seq"], msg["need"],
+                   tuple(Match.from_wire(m, realm) for m in msg["matches"]),
+                   bool(msg.get("satisfied", True)),
+                   tuple(Match.from_wire(m, realm) for m in standby))
 
 
 def descriptor_reply(desc_bytes: bytes, instance: str, revision: int,

@@ -81,7 +81,7 @@ class ControlGate:
                              "by more than the time passed")
                 return
         need.last, need.last_at = (ctl.epoch, ctl.seq), now
-        svc.links.apply(need, ctl.matches, ctl.satisfied)
+        svc.links.apply(need, ctl.matches, ctl.satisfied, ctl.standby)
 
     def _unverified_control(self, data: bytes, reason: str) -> None:
         """Keep it until the next registration gives a key (the agent may have signed it

@@ -263,10 +263,15 @@ class Service:
 
     def need(self, name: str, type: str, edge: tuple[str, str],
              where: str | None = None, prefer: str | None = None, min_count: int = 1,
-             max_count: int = 1, on_sample: OnSample | None = None) -> NeedHandle:
-        """Declare what this service wants; ``on_sample(m)`` receives each sample."""
+             max_count: int = 1, on_sample: OnSample | None = None,
+             standby: int = 0) -> NeedHandle:
+        """Declare what this service wants; ``on_sample(m)`` receives each sample.
+
+        ``standby``: how many next-best abilities to keep subscribed as well; a chosen one
+        that falls silent is stood in for by them at once (``agent.sdk.needs``)."""
         need = _checked(Need, f"need {name!r}", name=name, type=type, edge=tuple(edge),
-                        where=where, prefer=prefer, min_count=min_count, max_count=max_count)
+                        where=where, prefer=prefer, min_count=min_count, max_count=max_count,
+                        standby=standby)
         if on_sample is not None and not callable(on_sample):
             raise InvalidInputError(f"need {name!r}: on_sample must be callable")
         with self._lock:

@@ -11,14 +11,18 @@ On loopback, in a realm of its own, it starts
   publisher as ``uma service run fiducials`` on it (ability ``apriltag36h11-7``, edge
   ``lab/cam-X -> markers/apriltag36h11-7``, attributes measured);
 * an application service on ``left`` with a need for ``lab/* -> markers/apriltag36h11-7``
-  that prefers ``pos_std_m`` (the accuracy the cameras advertise), and a client on
-  ``right`` that queries the tag's pose in ``lab/world`` across the agents.
+  that prefers ``pos_std_m`` (the accuracy the cameras advertise) and keeps the other
+  camera as its standby (``standby=1``: its samples stand in at once while the chosen
+  camera sends none), and a client on ``right`` that queries the tag's pose in
+  ``lab/world`` across the agents.
 
 The tag (10 cm) swings from in front of the left camera to in front of the right one and
-back (period ``PERIOD_S``), so which camera sees it best changes; the summary says when the
-need moved to the better camera (the one whose samples claim the smaller position std),
-how long after the change, the longest gap in the need's stream, and the world-frame
-query's error against the ground truth.
+back (period ``PERIOD_S``), so which camera sees it best changes, and at the ends of the
+swing it leaves both cameras' views for a moment; the summary says when the need moved to
+the better camera (the one whose samples claim the smaller position std), how long after
+the change, the longest gap in the need's stream (and the longest while some camera saw
+the tag: a gap no camera could fill is not the need's), and the world-frame query's error
+against the ground truth.
 """
 
 from __future__ import annotations
@@ -178,7 +182,7 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
         with Service("app", realm=realm, agent="left", connect=[ep["left"]]) as app, \
                 Client(realm=realm, connect=[ep["right"]], timeout=1.0) as client:
             app.need("tag", type="pose6d", edge=("lab/*", TARGET), prefer="pos_std_m",
-                     on_sample=on_sample)
+                     standby=1, on_sample=on_sample)
             app.start()
             _watch(client, seconds, t0_ns, seen, live)
     finally:
@@ -233,6 +237,7 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
             delays.append(round(follow - mono, 3))
     gaps = np.diff([t for t, _ in stream]) if len(stream) > 1 else np.array([math.inf])
     worst = int(np.argmax(gaps)) if len(stream) > 1 else 0
+    seen_gaps = _gaps_while_seen(stream, claims)
     errors = [e for _, e, _ in queries]
     return {"seconds": seconds, "samples_received": len(stream), "switches": switches,
             "better_camera_changes": len(better), "follow_delays_s": delays,
@@ -243,6 +248,7 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
             "max_frame_gap_s": {side: round(float(np.diff(t).max()), 3)
                                 for side, t in frames.items() if len(t) > 1},
             "max_gap_at_s": round(stream[worst][0] - stream[0][0], 2) if stream else None,
+            "max_gap_while_seen_s": round(max(seen_gaps, default=0.0), 3),
             "queries": len(queries), "queries_failed": len(seen.failed_queries),
             "first_query_failure": seen.failed_queries[0] if seen.failed_queries else None,
             "world_error_mm": None if not errors else
@@ -250,6 +256,21 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
              "max": round(1000 * float(np.max(errors)), 2)},
             "paths": sorted({" -> ".join(p) for _, _, p in queries}),
             "errors": seen.errors[:10], "ok": bool(switches) and not seen.errors}
+
+
+def _gaps_while_seen(stream: list[tuple[float, str]],
+                     claims: dict[str, list[tuple[float, float]]]) -> list[float]:
+    """The gaps in the stream during which some camera saw the tag: a frame with the tag
+    was captured more than a frame interval before the gap ended (one captured just before
+    is the sample that ends it, or its twin of the other camera)."""
+    offset = time.monotonic() - time.time()  # claims are wall-clock capture times
+    seen = np.sort([t + offset for rows in claims.values() for t, _ in rows])
+    out = []
+    for (a, _), (b, _) in itertools.pairwise(stream):
+        i = np.searchsorted(seen, a, side="right")
+        if i < len(seen) and seen[i] < b - 1 / FPS:
+            out.append(b - a)
+    return out
 
 
 def _better_changes(claims: dict[str, list[tuple[float, float]]]) -> list[tuple[float, str]]:
@@ -292,7 +313,8 @@ def main(args: argparse.Namespace) -> int:
             for s in report["switches"]))
         print(f"better camera changed {report['better_camera_changes']} times; the need followed "
               f"after {report['follow_delays_s']} s; longest gap in its stream "
-              f"{report['max_stream_gap_s']} s (at {report['max_gap_at_s']} s), at a switch "
+              f"{report['max_stream_gap_s']} s (at {report['max_gap_at_s']} s), while a camera "
+              f"saw the tag {report['max_gap_while_seen_s']} s, at a switch "
               f"{report['max_handover_gap_s']} s; the cameras' longest pause between frames "
               f"{report['max_frame_gap_s']} s")
         print(f"world-frame queries: {report['queries']} answered, {report['queries_failed']} "
