@@ -27,7 +27,7 @@ from filterpy.common import Q_continuous_white_noise
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.fusion.predictor import motion_matrices
+from services.fusion.predictor import coefficients
 
 Array = np.ndarray
 
@@ -37,6 +37,15 @@ MAX_CACHED_DT = 64
 GATE_6 = 22.458
 N = 15
 P_, TH, V_, W_, A_ = (slice(3 * i, 3 * i + 3) for i in range(5))
+_EYE3, _EYE_N, _H = np.eye(3), np.eye(N), np.eye(6, N)
+
+
+def _turn(omega: Array, dt: float) -> Array:
+    """``W`` of ``motion_matrices`` alone, the same arithmetic: the body's turn over
+    ``dt`` (the filter's predictions need no ``V``, ``A``)."""
+    k = coefficients(float(np.linalg.norm(omega)), dt)
+    Om = geo.skew3(omega)
+    return _EYE3 + k.c1 * Om + k.c2 * (Om @ Om)
 
 
 @dataclass(frozen=True)
@@ -128,12 +137,12 @@ class MotionFilter:
         got = self._poses.get(t)
         if got is None:
             dt = t - self.t
-            W, _, _ = motion_matrices(self.omega, dt)
+            W = _turn(self.omega, dt)
             if len(self._poses) >= MAX_CACHED_DT:
                 self._poses.clear()
             got = self._poses[t] = (self.p + self.v * dt + 0.5 * dt * dt * self.a,
-                                    W @ self.R)
-        return got
+                                    W @ self.R, W)
+        return got[0], got[1]
 
     def predicted(self, t: float) -> tuple[Array, Array, Array]:
         """Pose ``(p, R)`` and its 6x6 covariance at ``t`` (the state is not changed)."""
@@ -142,9 +151,10 @@ class MotionFilter:
 
     def advance(self, t: float) -> None:
         """Move the state to time ``t``."""
+        p, R = self.predicted_pose(t)     # first: its turn serves the covariance too
         P = self._covariance_at(t)
         dt = t - self.t
-        self.p, self.R = self.predicted_pose(t)
+        self.p, self.R = p, R
         self.v = self.v + self.a * dt
         self.P = P
         self.t = t
@@ -156,9 +166,10 @@ class MotionFilter:
         dt = t - self.t
         if dt == 0.0:
             return self.P.copy()
-        W, _, _ = motion_matrices(self.omega, dt)
-        eye = np.eye(3)
-        F = np.eye(N)
+        got = self._poses.get(t)
+        W = got[2] if got is not None else _turn(self.omega, dt)
+        eye = _EYE3
+        F = _EYE_N.copy()
         F[P_, V_] = dt * eye
         F[P_, A_] = 0.5 * dt * dt * eye
         F[V_, A_] = dt * eye
@@ -213,7 +224,7 @@ class MotionFilter:
             self.advance(t)
         y = np.concatenate([np.asarray(p, float) - self.p,
                             geo.rodrigues_inverse(np.asarray(R, float) @ self.R.T)])
-        H = np.eye(6, N)
+        H = _H.copy()
         noise = cov
         if sensitivity is not None and noise_cov is not None:
             H[:, V_.start:] = -sensitivity
@@ -237,7 +248,7 @@ class MotionFilter:
         self.v = self.v + dx[V_]
         self.omega = self.omega + dx[W_]
         self.a = self.a + dx[A_]
-        I_KH = np.eye(N) - K @ H
+        I_KH = _EYE_N - K @ H
         P = I_KH @ self.P @ I_KH.T + K @ noise @ K.T
         self.P = 0.5 * (P + P.T)
         return True

@@ -115,7 +115,12 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     else:
         p, R, J = solved
     info = J.T @ J
-    if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e14:
+    if not np.all(np.isfinite(info)):
+        return None
+    # its condition number (eigenvalues, not np.linalg.cond's SVD: the same for a
+    # symmetric matrix, at a third of the cost)
+    low, high = np.linalg.eigvalsh(info)[[0, -1]]
+    if not low > high * 1e-14:
         return None
     noise = np.linalg.inv(info)
     noise = 0.5 * (noise + noise.T)
@@ -196,6 +201,9 @@ def _sensitivity(stack: _Stack, p: Array, R: Array, J: Array, cov: Array) -> Arr
     return -cov @ (J.T @ B)
 
 
+_EYE3 = np.eye(3)
+
+
 def _moved(motion: Motion | None, dt_s: float) -> tuple[Array, Array]:
     """``Exp(omega dt)`` and ``v dt + a dt^2 / 2``: how far the body moved between two
     exposures."""
@@ -226,18 +234,24 @@ class _Stack:
     @staticmethod
     def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
         # each observation's camera, motion and time, repeated for its markers
-        owner = np.repeat(np.arange(len(obs)), [len(o.markers) for o in obs])
-        moved = [_moved(motion, o.dt_s) for o in obs]
-        focal = np.array([o.camera.focal_px for o in obs])[owner]
+        counts = [len(o.markers) for o in obs]
+        k = sum(counts)
+        focal = np.repeat([o.camera.focal_px for o in obs], counts)
         std = np.concatenate([np.asarray(o.std_px, float).reshape(-1) for o in obs])
-        return _Stack(np.array([o.camera.R_cw for o in obs])[owner],
-                      np.array([o.camera.t_cw for o in obs])[owner], focal,
+        dt = np.repeat(np.array([o.dt_s for o in obs], float), counts)
+        moving = motion is not None and any(o.dt_s != 0.0 for o in obs)
+        if moving:
+            moved = [_moved(motion, o.dt_s) for o in obs]
+            turn = np.repeat([turn for turn, _ in moved], counts, axis=0)
+            shift = np.repeat([shift for _, shift in moved], counts, axis=0)
+        else:   # every camera at the pose's time: nothing moves
+            turn = np.broadcast_to(_EYE3, (k, 3, 3))
+            shift = np.zeros((k, 3))
+        return _Stack(np.repeat([o.camera.R_cw for o in obs], counts, axis=0),
+                      np.repeat([o.camera.t_cw for o in obs], counts, axis=0), focal,
                       markers[np.concatenate([np.asarray(o.markers, int) for o in obs])],
                       np.concatenate([np.asarray(o.xy, float).reshape(-1, 2) for o in obs]),
-                      focal / std, np.array([turn for turn, _ in moved])[owner],
-                      np.array([shift for _, shift in moved])[owner],
-                      np.array([o.dt_s for o in obs], float)[owner],
-                      any(o.dt_s != 0.0 for o in obs) and motion is not None, {})
+                      focal / std, turn, shift, dt, moving, {})
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:
         """The markers in each observing camera's frame, and their arms ``Exp(omega dt) R
@@ -247,7 +261,7 @@ class _Stack:
         still = not x.any()
         if still and at is not None and at[0] is p0 and at[1] is R0:
             return self.last["points"]
-        R = geo.rodrigues(x[3:]) @ R0
+        R = R0 if still else geo.rodrigues(x[3:]) @ R0
         arm = self.body @ R.T
         if self.moving:
             arm = np.einsum("kij,kj->ki", self.turn, arm)   # Exp(omega dt) R m
