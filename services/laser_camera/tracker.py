@@ -1121,45 +1121,56 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     the same dot by dot as :func:`_installation_covariance` (but where a beam meets its
     wall within 3 degrees of grazing, where that clamps the stretch).  ``dots`` are the
     frame set ``estimate`` was solved from."""
+    labels = sorted(estimate.dots)
     idx = [int(np.flatnonzero(np.all(dots.points == estimate.dots[label], axis=1))[0])
-           for label in sorted(estimate.dots)]
+           for label in labels]
     p0 = np.asarray(estimate.position, float)
     Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
-    R = geo.quat_to_matrix(estimate.quaternion)
     x, A = dots.points[idx], dots.axes[idx]
     n = _cross(A[:, 0], A[:, 1])
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
-    dn = np.abs(np.einsum("ki,ki->k", n, d))
+    unit = d / r[:, None]
+    dn = np.einsum("ki,ki->k", n, d)
+    nd = np.where(dn < 0, -1.0, 1.0) * np.maximum(np.abs(dn) / r, 0.05)  # cos(incidence)
+    # two rig-fixed axes across each beam, in the world, made square to the beam as it is
+    across = np.einsum("ij,kaj->kai", geo.quat_to_matrix(estimate.quaternion),
+                       _ACROSS_BEAM[np.array(labels) - 1])
+    across -= np.einsum("kai,ki->ka", across, unit)[..., None] * unit[:, None]
+    on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
+    beam = np.einsum("pkb,kab->pka", Jd, np.einsum("kbi,kai->kab", A, on_wall))
+    out = {}
+    for k, label in enumerate(labels):
+        for a, axis in enumerate("ab"):
+            out[f"beam {label} tilt {axis}"] = r[k] * p.housing_dir_std_rad * beam[:, k, a]
+            out[f"beam {label} offset {axis}"] = p.housing_offset_std_m * beam[:, k, a]
     eyes = None if dots.eyes is None else dots.eyes[idx]
     shape = np.ones(4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
-    slope = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), dn, r, eyes)
-    turn = None if eyes is None else _turn_jacobians(x, A, n, eyes)
-    out: dict[str, np.ndarray] = {}
-
-    def add(name: str, k: int, moved: np.ndarray) -> None:
-        out[name] = out.get(name, np.zeros(6)) + Jd[:, k] @ moved
-
-    for k, label in enumerate(sorted(estimate.dots)):
-        beam = np.asarray(BEAM_DIRECTIONS[label], float)
-        unit = d[k] / r[k]
-        nd = float(n[k] @ unit)
-        nd = math.copysign(max(abs(nd), 0.05), nd)
-        for axis, f in zip("ab", (e for e in np.eye(3) if abs(e @ beam) < 0.5), strict=True):
-            across = R @ f
-            across -= (across @ unit) * unit
-            moved = A[k] @ (across - unit * (n[k] @ across) / nd)
-            add(f"beam {label} tilt {axis}", k, r[k] * p.housing_dir_std_rad * moved)
-            add(f"beam {label} offset {axis}", k, p.housing_offset_std_m * moved)
-        add(f"screen {dots.walls[idx[k]]} bend", k, p.screen_bulge_std_m * shape[k] * slope[k])
-        camera = dots.cameras[idx[k]]
-        if turn is None:
-            for a in range(2):
-                add(f"camera {camera} residual {a}", k, p.camera_residual_std_m * np.eye(2)[a])
-        else:
-            for a, axis in enumerate("xyz"):
-                add(f"camera {camera} turn {axis}", k, p.camera_turn_std_rad * turn[k][:, a])
+    slope = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
+    bend = np.einsum("pka,ka->kp", Jd, slope) * (p.screen_bulge_std_m * shape)[:, None]
+    if eyes is None:
+        cameras = p.camera_residual_std_m * np.swapaxes(Jd, 0, 1)  # (4, 6, 2)
+        axes = ("residual 0", "residual 1")
+    else:
+        cameras = p.camera_turn_std_rad * np.einsum("pka,kat->kpt", Jd,
+                                                    _turn_jacobians(x, A, n, eyes))
+        axes = ("turn x", "turn y", "turn z")
+    for k, i in enumerate(idx):
+        _accumulate(out, f"screen {dots.walls[i]} bend", bend[k])
+        for t, axis in enumerate(axes):
+            _accumulate(out, f"camera {dots.cameras[i]} {axis}", cameras[k, :, t])
     return out
+
+
+def _accumulate(out: dict[str, np.ndarray], name: str, value: np.ndarray) -> None:
+    """``out[name] += value``, from zero: two dots may share a screen or a camera."""
+    out[name] = out[name] + value if name in out else value
+
+
+#: per beam (label - 1), two unit axes of the rig frame across it (beams +y, -y, -x, +z)
+_ACROSS_BEAM = np.array([[e for e in np.eye(3) if abs(e @ b) < 0.5]
+                         for b in (np.asarray(BEAM_DIRECTIONS[k], float)
+                                   for k in sorted(BEAM_DIRECTIONS))])
 
 
 #: the skew part of a rotation's small error, as flat indices into the row-major 3 x 3:
