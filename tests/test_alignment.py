@@ -499,3 +499,18 @@ def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:
     held = _covariance_figures(trials(100.0))
     assert 1.0 <= held["effective_runs"] < 1.2
     assert held["bounds_95"][1] > 2 * held["bounds_95_independent_runs"][1]
+
+
+def test_an_honest_seeds_share_spreads_wider_when_its_trials_share_the_installation() -> None:
+    """The share of trials inside chi2(6)'s 95 % bound that an honest covariance falls
+    below in 5 % of the cases: a binomial's over 100 independent trials (0.91), far lower
+    when most of each trial's error is the installation's one draw."""
+    from services.alignment.evaluate import _honest_share_quantile
+    rng = np.random.default_rng(4)
+    n = 100
+    base = np.array([np.diag(rng.uniform(0.5, 2.0, 6)) for _ in range(n)])
+    alone = _honest_share_quantile(base, np.zeros((n, 6, 3)))
+    assert alone == pytest.approx(0.91, abs=0.011)
+    S = rng.normal(size=(n, 6, 3))  # three tolerances, each trial its own sensitivity
+    shared = _honest_share_quantile(base + S @ np.swapaxes(S, 1, 2), S)
+    assert shared < 0.85
