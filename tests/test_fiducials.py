@@ -183,6 +183,26 @@ def test_nees_of_rendered_moving_frames_is_inside_its_band():
     assert len(errors) >= 30 and figures["within_bounds"], figures
 
 
+def test_edge_points_that_crossed_a_neighbouring_cell_do_not_move_the_line():
+    """A profile across a grazing tag's thin border can cross the edge of the cell behind
+    it: such a point, a cell off the side, is left out of the line fit."""
+    rng = np.random.default_rng(3)
+    u = np.linspace(-10.0, 10.0, 20)
+    points = np.zeros((1, 4, 20, 2))
+    for k, angle in enumerate(np.arange(4) * np.pi / 2):
+        d = np.array([np.cos(angle), np.sin(angle)])
+        points[0, k] = u[:, None] * d + rng.normal(0, 0.05, (20, 1)) * d[::-1] * [-1, 1]
+    normal = np.array([0.0, 1.0])  # side 0 runs along x
+    points[0, 0, 13:16] += 2.1 * normal  # three points on a cell edge 2.1 px away
+    w = np.ones((1, 4, 20))
+    _, dev, direction = edges._lines(points, w)
+    kept = edges._inliers(dev, direction, w, np.full((1, 4, 1), 2.1))
+    assert kept[0, 0].tolist() == [1.0] * 13 + [0.0] * 3 + [1.0] * 4 and kept[0, 1:].all()
+    before = edges._lines(points, w)[0][0, 0] @ normal
+    after = edges._lines(points, kept)[0][0, 0] @ normal
+    assert abs(after) < 0.05 < 0.2 < abs(before)
+
+
 def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
     """Without blur each edge point's noise is its own: the edge fits' covariance alone
     (before the tracker's allowance for blur-shared noise) is the corners' scatter."""

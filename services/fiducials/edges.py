@@ -49,6 +49,10 @@ MIN_POINTS = 3
 #: ``REACH_MIN_PX``, where a small tag's cells are narrower than the blur
 REACH_MODULES = 0.8
 REACH_MIN_PX = 2.5
+#: an edge point is an outlier beyond this many standard deviations of its marker's
+#: scatter (and beyond half a cell: ``_inliers``)
+OUTLIER_SIGMAS = 4.0
+MAD_TO_STD = 1.4826
 #: per-axis standard deviation (px) of a corner not located from its edges: the
 #: detector's own corner, what the edge fit falls back to
 FALLBACK_STD = 1.0
@@ -89,8 +93,11 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     fallback = both[:quads.size // 2].reshape(quads.shape)
     ideal = both[quads.size // 2:].reshape(edge.shape)
     # one line per side through its edge points (least squares: the points' principal
-    # axis), or through the side's detected corners when too few edge points were found
+    # axis) without the points that crossed a neighbouring cell's edge, or through the
+    # side's detected corners when too few edge points were found
     w = good.astype(np.float64)
+    mean, dev, direction = _lines(ideal, w)
+    w = _inliers(dev, direction, w, reach / REACH_MODULES)
     mean, dev, direction = _lines(ideal, w)
     chord = fallback[:, _NEXT] - fallback
     chord /= np.maximum(np.sqrt(np.einsum("nkc,nkc->nk", chord, chord)), 1e-9)[..., None]
@@ -133,6 +140,26 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
     s = np.take_along_axis(where, pick[..., None], -1)
     good = (bright - dark > MIN_CONTRAST) & np.isfinite(s[..., 0])
     return base + np.where(good[..., None], s, 0.0) * step, good, reach
+
+
+def _inliers(dev: np.ndarray, direction: np.ndarray, w: np.ndarray, cell: np.ndarray,
+             ) -> np.ndarray:
+    """The weights ``w`` (n, 4, k) without the edge points that lie further from their
+    side's line (``dev``: from its mean, along ``direction``) than half a cell (``cell``,
+    (n, 4, 1) px across the side) and ``OUTLIER_SIGMAS`` of the marker's scatter (the
+    median absolute distance, as a standard deviation): a profile that crossed the edge
+    of a cell next to the border (a tilted tag's cells are narrower than the reach)
+    instead of the side itself.  Least squares follows such a point: two or three of
+    twenty, 2 px off, put a corner of a grazing tag 1-2 px away."""
+    normal = direction[..., ::-1] * [-1.0, 1.0]
+    across = np.abs(np.einsum("nkjc,nkc->nkj", dev, normal))
+    found = (w > 0).reshape(len(w), -1)
+    ranked = np.sort(np.where(found, across.reshape(len(w), -1), np.inf), axis=1)
+    count = found.sum(1)
+    middle = np.take_along_axis(ranked, np.maximum(count - 1, 0)[:, None] // 2, 1)[:, 0]
+    scatter = np.where(count > 0, middle, 0.0) * MAD_TO_STD  # a median: the lower one
+    limit = np.maximum(cell / 2, OUTLIER_SIGMAS * scatter[:, None, None])
+    return np.where(across <= limit, w, 0.0)
 
 
 def _intersections(point: np.ndarray, direction: np.ndarray, fallback: np.ndarray,
