@@ -94,8 +94,7 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     or fewer than 2 cameras (no depth), or when the fit fails."""
     obs = [o for o in observations if len(o.markers)]
     cams = len({o.camera.name for o in obs})
-    seen = {int(m) for o in obs for m in o.markers}
-    if cams < 2 or len(seen) < 3:
+    if cams < 2 or len(set(np.concatenate([o.markers for o in obs]).tolist())) < 3:
         return None
     m = np.asarray(markers, float)
     stack = _Stack.of(obs, m, motion)
@@ -236,8 +235,9 @@ class _Stack:
         # each observation's camera, motion and time, repeated for its markers
         counts = [len(o.markers) for o in obs]
         k = sum(counts)
-        focal = np.repeat([o.camera.focal_px for o in obs], counts)
-        std = np.concatenate([np.asarray(o.std_px, float).reshape(-1) for o in obs])
+        rows = np.repeat(np.array([o.camera.stack_row for o in obs]), counts, axis=0)
+        focal = rows[:, 12]
+        std = np.concatenate([o.std_px for o in obs]).astype(float).reshape(-1)
         dt = np.repeat(np.array([o.dt_s for o in obs], float), counts)
         moving = motion is not None and any(o.dt_s != 0.0 for o in obs)
         if moving:
@@ -247,10 +247,9 @@ class _Stack:
         else:   # every camera at the pose's time: nothing moves
             turn = np.broadcast_to(_EYE3, (k, 3, 3))
             shift = np.zeros((k, 3))
-        return _Stack(np.repeat([o.camera.R_cw for o in obs], counts, axis=0),
-                      np.repeat([o.camera.t_cw for o in obs], counts, axis=0), focal,
-                      markers[np.concatenate([np.asarray(o.markers, int) for o in obs])],
-                      np.concatenate([np.asarray(o.xy, float).reshape(-1, 2) for o in obs]),
+        return _Stack(rows[:, :9].reshape(k, 3, 3), rows[:, 9:12], focal,
+                      markers[np.concatenate([o.markers for o in obs]).astype(int)],
+                      np.concatenate([o.xy for o in obs]).astype(float).reshape(-1, 2),
                       focal / std, turn, shift, dt, moving, {})
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:

@@ -78,6 +78,15 @@ class RigCamera:
         return 0.5 * float(self.K[0, 0] + self.K[1, 1])
 
     @property
+    def stack_row(self) -> Array:
+        """``R_cw`` (row by row), ``t_cw`` and ``focal_px`` in one row of 13: what a pose
+        fit repeats for each marker this camera saw (``pose``)."""
+        if "stack_row" not in self._cache:
+            self._cache["stack_row"] = np.concatenate([self.R_cw.ravel(), self.t_cw,
+                                                       [self.focal_px]])
+        return self._cache["stack_row"]
+
+    @property
     def projection(self) -> Array:
         """``[R_cw | t_cw]`` (3, 4): the projection of normalised coordinates."""
         return np.hstack([self.R_cw, self.t_cw[:, None]])
@@ -124,6 +133,7 @@ class RigImages:
     def __init__(self, cameras: list[RigCamera]):
         self.cameras = list(cameras)
         self.R = np.array([c.R_cw for c in self.cameras])             # (c, 3, 3)
+        self.Rt = self.R.transpose(0, 2, 1)
         self.t = np.array([c.t_cw for c in self.cameras])[:, None, :]  # (c, 1, 3)
         dist = np.zeros((len(self.cameras), 8))
         self.opencv = []   # cameras projected by OpenCV itself
@@ -132,21 +142,22 @@ class RigImages:
                 dist[i, :c.dist.size] = c.dist
             else:
                 self.opencv.append(i)
-        col = dist.T[:, :, None]                                      # (8, c, 1)
-        self.k1, self.k2, self.p1, self.p2, self.k3, self.k4, self.k5, self.k6 = col
         self.rational = bool(np.any(dist[:, 5:]))
         K = np.array([c.K for c in self.cameras])
-        self.fx, self.fy = K[:, 0, 0, None], K[:, 1, 1, None]
-        self.cx, self.cy = K[:, 0, 2, None], K[:, 1, 2, None]
-        self.skew = K[:, 0, 1, None]
+        # per camera: k1 k2 p1 p2 k3 k4 k5 k6, fx fy cx cy skew
+        self.lens = np.hstack([dist, K[:, [0, 1, 0, 1, 0], [0, 1, 2, 2, 1]]])[:, :, None]
         self.size = np.array([[c.width, c.height] for c in self.cameras], float)[:, None, :]
 
     def depth_and_pixels(self, points: Array, cams: Array | None = None
                          ) -> tuple[Array, Array]:
         """World points (n, 3) in the cameras ``cams`` (indices, default all): their
         depth along each optical axis (k, n) and distorted pixels (k, n, 2)."""
-        sel = slice(None) if cams is None else np.asarray(cams, int)
-        X = np.einsum("cij,nj->cni", self.R[sel], points) + self.t[sel]
+        if cams is None:
+            Rt, t, lens = self.Rt, self.t, self.lens
+        else:
+            cams = np.asarray(cams, int)
+            Rt, t, lens = self.Rt[cams], self.t[cams], self.lens[cams]
+        X = points @ Rt + t
         z = X[..., 2]
         inv = 1.0 / np.where(z != 0, z, 1.0)
         x, y = X[..., 0] * inv, X[..., 1] * inv
@@ -154,20 +165,19 @@ class RigImages:
         r4 = r2 * r2
         r6 = r4 * r2
         a1 = 2 * x * y
-        k1, k2, p1, p2, k3 = (a[sel] for a in (self.k1, self.k2, self.p1, self.p2, self.k3))
+        k1, k2, p1, p2, k3, k4, k5, k6, fx, fy, cx, cy, skew = lens.transpose(1, 0, 2)
         radial = 1 + k1 * r2 + k2 * r4 + k3 * r6
         if self.rational:
-            k4, k5, k6 = (a[sel] for a in (self.k4, self.k5, self.k6))
             radial = radial / (1 + k4 * r2 + k5 * r4 + k6 * r6)
         xd = x * radial + p1 * a1 + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * a1
         uv = np.empty((*z.shape, 2))
-        uv[..., 0] = xd * self.fx[sel] + self.skew[sel] * yd + self.cx[sel]
-        uv[..., 1] = yd * self.fy[sel] + self.cy[sel]
-        for i in self.opencv:
-            at = np.flatnonzero(np.arange(len(self.cameras))[sel] == i)
-            if len(at):
-                uv[at[0]] = self.cameras[i].project(points)
+        uv[..., 0] = xd * fx + skew * yd + cx
+        uv[..., 1] = yd * fy + cy
+        if self.opencv:
+            for row, i in enumerate(range(len(self.cameras)) if cams is None else cams.tolist()):
+                if i in self.opencv:
+                    uv[row] = self.cameras[i].project(points)
         return z, uv
 
     def inside(self, uv: Array, cams: Array | None = None, margin_px: float = 0.0) -> Array:

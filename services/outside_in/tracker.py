@@ -359,7 +359,11 @@ def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[R
 def _worst(fit: PoseFit, obs: list[Observation]) -> tuple[tuple[int, int], float, float]:
     """The observation furthest from the fitted pose for its std: ``(camera, marker)``,
     its distance in pixels and in stds."""
-    keys = [(o.index, int(m)) for o in obs for m in o.markers]
     sigmas = fit.errors_px / np.concatenate([o.std_px for o in obs])
     i = int(np.argmax(sigmas))
-    return keys[i], float(fit.errors_px[i]), float(sigmas[i])
+    at = i
+    for o in obs:
+        if at < len(o.markers):
+            return (o.index, int(o.markers[at])), float(fit.errors_px[i]), float(sigmas[i])
+        at -= len(o.markers)
+    raise AssertionError("the fit has more errors than observations")
