@@ -20,7 +20,7 @@ from services.fusion.predictor import motion_matrices
 from services.outside_in import blobs, pose
 from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
-from services.outside_in.motion import MotionFilter
+from services.outside_in.motion import ImmFilter, MotionConfig, MotionFilter
 from services.outside_in.pose import Motion, Observation, absolute_orientation, refine_pose
 from services.outside_in.rig import RigCamera, RigImages, look_at
 from services.outside_in.simulator import SimConfig, Simulation, standard_bodies
@@ -463,6 +463,40 @@ def test_motion_filter_learns_a_screw_motion_and_predicts_it() -> None:
     # an outlier is refused, the prediction kept
     assert not f.update(60 / 120, p + 0.05, R, cov)
     assert f.refused_in_row == 1
+
+
+def test_imm_filter_smooths_like_its_smooth_model_and_follows_a_swerve_it_refuses() -> None:
+    """A body drifting slowly, then swerving (its velocity changing by 2 m/s within
+    ~0.1 s, a hand's quick move): the smooth model alone refuses poses in the swerve
+    and restarts, the manoeuvre model alone averages less; the mixture refuses none,
+    gives the manoeuvre model the swerve and the smooth model the rest, and is more
+    accurate than the manoeuvre model where the motion is smooth."""
+    rng = np.random.default_rng(2)
+    std = 1e-4
+    cov = np.diag([std ** 2] * 3 + [1e-8] * 3)
+    cfg = MotionConfig()
+    models = {"smooth": MotionFilter(cfg), "mixture": ImmFilter(cfg),
+              "manoeuvre": MotionFilter(MotionConfig(jerk_psd=cfg.manoeuvre_jerk_psd,
+                                                     angular_accel_psd=5.0))}
+    refused = dict.fromkeys(models, 0)
+    errors: dict[str, list[float]] = {k: [] for k in models}
+    mu = []
+    for k in range(120):
+        t = k / 120
+        p = np.array([0.1 * np.sin(2 * t), 0.05 * np.cos(3 * t),
+                      1.0 + 2.0 * 0.03 * np.logaddexp(0.0, (t - 0.5) / 0.03)])
+        z = p + rng.normal(0, std, 3)
+        for name, f in models.items():
+            refused[name] += not f.update(t, z, np.eye(3), cov)
+            if 20 <= k < 50:
+                errors[name].append(float(np.linalg.norm(f.p - p)))
+        mu.append(models["mixture"].mu.copy())
+    mu = np.array(mu)
+    assert refused["smooth"] > 0 and refused["mixture"] == 0
+    assert mu[20:50, 0].min() > 0.9 and mu[-1, 0] > 0.9
+    assert mu[55:70, 1].max() > 0.5
+    rms = {k: np.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
+    assert rms["mixture"] < 0.95 * rms["manoeuvre"]
 
 
 # ------------------------------------------------------------------------ tracker

@@ -31,7 +31,7 @@ from agent.errors import InvalidInputError
 from services.outside_in.blobs import Blobs
 from services.outside_in.bodies import RigidBody, identify
 from services.outside_in.health import HealthParams, RigHealth
-from services.outside_in.motion import MotionConfig, MotionFilter
+from services.outside_in.motion import ImmFilter, MotionConfig
 from services.outside_in.pose import (
     Motion,
     Observation,
@@ -93,7 +93,7 @@ class BodyEstimate:
 @dataclass
 class _Track:
     body: RigidBody
-    filter: MotionFilter
+    filter: ImmFilter
     missed: int = 0
 
 
@@ -108,7 +108,7 @@ class OutsideInTracker:
         self.cameras = list(cameras)
         self.images = RigImages(self.cameras)
         self.params = params or TrackerParams()
-        self.tracks = [_Track(b, MotionFilter(self.params.motion)) for b in bodies]
+        self.tracks = [_Track(b, ImmFilter(self.params.motion)) for b in bodies]
         self.counts = {"tracked": 0, "acquired": 0, "refused_fit": 0, "refused_filter": 0,
                        "ambiguous_blobs": 0}
         self.health = RigHealth(len(self.cameras), self.params.health)
@@ -278,7 +278,8 @@ class OutsideInTracker:
         if acquired:
             track.filter.start(t_ref, fit.p, fit.R, fit.cov, fit.sensitivity)
         elif not track.filter.update(t_ref, fit.p, fit.R, fit.cov, fit.sensitivity,
-                                     fit.noise_cov):
+                                     fit.noise_cov, np.concatenate([motion.velocity,
+                                                                    motion.omega, motion.accel])):
             self.counts["refused_filter"] += 1
             return None
         self.counts["acquired" if acquired else "tracked"] += 1
