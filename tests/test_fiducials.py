@@ -17,7 +17,7 @@ from agent import Client
 from agent import geometry as geo
 from services.camera.markers import marker_corners
 from services.camera.model import CameraModel
-from services.camera.simulator import SimCamera, static, write_video
+from services.camera.simulator import FAITHFUL, SimCamera, static, write_video
 from services.consistency import nees_figures
 from services.fiducials import edges, pose
 from services.fiducials.bodies import Body, BundleFileError, load_bundles
@@ -164,13 +164,14 @@ def test_tracker_on_rendered_frames_is_accurate_and_honest():
 
 @pytest.mark.slow
 def test_nees_of_rendered_moving_frames_is_inside_its_band():
-    """The per-corner covariances from the edge fits, propagated through the weighted
-    pose, are neither too small (the raw edge fits: mean NEES 13-16) nor too cautious (a
-    corner-noise floor: 1.1-1.3) on a webcam's blurred, noisy frames of a moving tag."""
+    """The corners' joint covariance from the edge fits, propagated through the weighted
+    pose, is neither too small nor too cautious on a webcam's blurred, noisy frames (each
+    pixel its area's mean) of a moving tag."""
     rng = np.random.default_rng(7)
     camera = webcam(rng)
     traj = wandering(rng, camera, (0.6, 1.4), 6.0, max_tilt_rad=0.5)
-    sim, tracker = SimCamera(camera), FiducialTracker(camera, "apriltag36h11", 0.08)
+    sim = SimCamera(camera, supersampling=FAITHFUL)
+    tracker = FiducialTracker(camera, "apriltag36h11", 0.08)
     errors, covariances = [], []
     for k in range(60):
         t = k / 10
@@ -219,8 +220,21 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
         corners.append(c[0])
         covs.append(cov[0])
     scatter = np.var(np.array(corners), axis=0).sum(-1)  # (4,) per corner
-    claimed = np.trace(np.mean(covs, axis=0), axis1=-2, axis2=-1)
+    joint = np.mean(covs, axis=0)  # (8, 8): x, y of corner 0, 1, ...
+    claimed = np.array([np.trace(joint[2 * i:2 * i + 2, 2 * i:2 * i + 2]) for i in range(4)])
     assert np.all((scatter / claimed > 0.4) & (scatter / claimed < 2.5)), scatter / claimed
+    # the two corners of a side move with its line: across it, a shift moves them alike and
+    # a turn oppositely (the turn's share is the larger: they are anti-correlated)
+    c = np.array(corners)
+    side = c.mean(axis=0)[1] - c.mean(axis=0)[0]
+    normal = np.array([-side[1], side[0]]) / np.linalg.norm(side)
+    across = c[:, :2] @ normal  # (samples, 2): corners 0 and 1 across side 0
+    measured = np.corrcoef(across.T)[0, 1]
+    block = joint[:4, :4]
+    cov01 = np.array([[normal @ block[2 * i:2 * i + 2, 2 * j:2 * j + 2] @ normal
+                       for j in range(2)] for i in range(2)])
+    claimed_corr = cov01[0, 1] / np.sqrt(cov01[0, 0] * cov01[1, 1])
+    assert measured < -0.3 and abs(claimed_corr - measured) < 0.3, (measured, claimed_corr)
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):

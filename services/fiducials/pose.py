@@ -294,17 +294,10 @@ def covariance(fit: Fits, sigma_px: np.ndarray) -> np.ndarray:
 
 
 def weighted_covariance(fit: Fits, information: np.ndarray) -> np.ndarray:
-    """Decoupled covariances (m, 6, 6) of the poses of ``fit`` for corners of known inverse
-    covariances ``information`` (m, n, 2, 2): ``(Jᵀ W J)⁻¹``, exact for the weighted fit
-    (:func:`reweigh`)."""
-    return _inverse(np.einsum("mki,mkj->mij", _weighted_jacobian(fit, information),
-                              fit.jacobian))
-
-
-def _weighted_jacobian(fit: Fits, information: np.ndarray) -> np.ndarray:
-    """``W J`` (m, 2n, 6) for the block-diagonal ``W`` of the corners' 2x2 ``information``."""
-    m = len(fit.jacobian)
-    return np.matmul(information, fit.jacobian.reshape(m, -1, 2, 6)).reshape(m, -1, 6)
+    """Decoupled covariances (m, 6, 6) of the poses of ``fit`` for corners of known joint
+    inverse covariance ``information`` (m, 2n, 2n): ``(Jᵀ W J)⁻¹``, exact for the weighted
+    fit (:func:`reweigh`)."""
+    return _inverse(np.einsum("mki,mkj->mij", information @ fit.jacobian, fit.jacobian))
 
 
 def _inverse(normal: np.ndarray) -> np.ndarray:
@@ -325,12 +318,12 @@ def _inverse_one(normal: np.ndarray) -> np.ndarray:
 
 def reweigh(fit: Fits, information: np.ndarray) -> Fits:
     """The poses of ``fit`` moved to the minimum of the corners' residuals weighted by
-    their inverse covariances ``information`` (m, n, 2, 2) (Gauss-Newton and LM weigh every
-    corner alike: a corner whose edges were found on a short or noisy side would pull the
-    pose as hard as a sharp one).  One Gauss-Newton step from the unweighted minimum with
+    their joint inverse covariance ``information`` (m, 2n, 2n) (Gauss-Newton and LM weigh
+    every corner alike: a corner whose edges were found on a short or noisy side would
+    pull the pose as hard as a sharp one).  One Gauss-Newton step from the unweighted minimum with
     its Jacobian: the step is a fraction of a standard deviation, over which the Jacobian
     does not change to first order."""
-    WJ = _weighted_jacobian(fit, information)
+    WJ = information @ fit.jacobian
     delta = _solve(np.einsum("mki,mkj->mij", WJ, fit.jacobian),
                    np.einsum("mki,mk->mi", WJ, fit.residual))
     R, t = _moved(fit, delta)

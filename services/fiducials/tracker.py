@@ -8,12 +8,12 @@
 * **pose**: :mod:`services.fiducials.pose` (IPPE candidates refined by Gauss-Newton
   steps, LM for bundles, then a step weighted by the corners' covariances; a frame's
   lone markers all at once);
-* **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` each corner's 2x2 covariance from the two
-  edge lines it is the intersection of (:func:`edges.refine`: their fits' scatter, length
-  and angle), times ``EDGE_CORRELATION`` (neighbouring edge points share their noise
-  through the blur), plus ``SHARED_A / cell_px ** SHARED_B`` per axis (what a tiny tag's
-  edge fits cannot show).  So it grows when the marker is far, blurred, tilted or badly
-  lit, corner by corner;
+* **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` the corners' joint covariance from the four
+  edge lines they are the intersections of (:func:`edges.refine`: their fits' scatter,
+  length and angle; two corners of a side move with its line), times ``EDGE_CORRELATION``
+  (neighbouring edge points share their noise through the blur), plus ``SHARED_A / cell_px
+  ** SHARED_B`` per axis (what a tiny tag's edge fits cannot show).  So it grows when the
+  marker is far, blurred, tilted or badly lit, corner by corner;
 * **corner noise for the ambiguity judgement**: a separate, cautious figure: per body,
   the residuals of its last ``POOL_FRAMES`` fits pooled (``σ² = Σ RSS / Σ dof``; the
   camera's calibrated pixel noise fills in for the dof missing up to ``FULL_DOF``, then
@@ -134,11 +134,22 @@ def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], amb
 
 
 def corner_covariance(edge_fit: np.ndarray, module_px: np.ndarray) -> np.ndarray:
-    """The corners' covariances (m, n, 2, 2) of ``m`` bodies from their edge fits'
-    (:func:`edges.refine`), each body's solved with a marker of ``module_px`` (m,)
-    pixel cells."""
+    """The joint covariances (m, 2n, 2n) of the ``n`` corners of each of ``m`` bodies from
+    their edge fits' (:func:`edges.refine`, a marker's 8x8 blocks on the diagonal), each
+    body's solved with a marker of ``module_px`` (m,) pixel cells."""
     shared = SHARED_A / np.maximum(module_px, 0.5) ** SHARED_B
-    return EDGE_CORRELATION * edge_fit + (shared ** 2)[:, None, None, None] * np.eye(2)
+    return EDGE_CORRELATION * edge_fit + (shared ** 2)[:, None, None] * np.eye(edge_fit.shape[-1])
+
+
+def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:
+    """One matrix with ``blocks`` (square) along its diagonal."""
+    size = sum(len(b) for b in blocks)
+    out = np.zeros((size, size))
+    at = 0
+    for b in blocks:
+        out[at:at + len(b), at:at + len(b)] = b
+        at += len(b)
+    return out
 
 
 def _moved(R: np.ndarray, t: np.ndarray, T_marker_body: np.ndarray,
@@ -236,7 +247,7 @@ class FiducialTracker:
     def observe(self, image: np.ndarray,
                 ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
         """Marker id -> its four corners (4, 2) in ideal pixels (distortion removed), and
-        marker id -> their covariances (4, 2, 2) from the edge fits."""
+        marker id -> their joint covariance (8, 8) from the edge fits."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, _ = self.detector.detectMarkers(gray)
         if ids is None:
@@ -335,8 +346,9 @@ class FiducialTracker:
         fit = pose.Fits.of([p.chosen for p in picks])
         information = None
         if noise is not None and all(i in noise for p in picks for i in p.ids):
-            information = edges.inverse_2x2(corner_covariance(
-                np.stack([np.concatenate([noise[i] for i in p.ids]) for p in picks]),
+            information = np.linalg.inv(corner_covariance(
+                np.stack([noise[p.ids[0]] if len(p.ids) == 1 else
+                          _block_diagonal([noise[i] for i in p.ids]) for p in picks]),
                 np.array([p.module_px for p in picks])))
             fit = pose.reweigh(fit, information)
         sigmas = np.sqrt([p.sigma2 for p in picks])
