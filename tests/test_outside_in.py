@@ -17,7 +17,7 @@ from scipy.stats import chi2
 from agent import geometry as geo
 from agent.errors import UmaError
 from services.fusion.predictor import motion_matrices
-from services.outside_in import blobs, pose
+from services.outside_in import blobs, motion, pose
 from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import ImmFilter, MotionConfig, MotionFilter
@@ -136,7 +136,9 @@ def test_compiled_segmentation_finds_the_pure_python_blobs_to_the_bit() -> None:
 
 
 @pytest.mark.parametrize("variable, module, name", [("UMA_BLOBS_PURE_PYTHON", "blobs", "NATIVE"),
-                                                     ("UMA_FIT_PURE_PYTHON", "pose", "FIT")])
+                                                     ("UMA_FIT_PURE_PYTHON", "pose", "FIT"),
+                                                     ("UMA_FIT_PURE_PYTHON", "motion",
+                                                      "FILTER")])
 def test_pure_python_paths_are_forced_by_the_environment(variable: str, module: str,
                                                          name: str) -> None:
     out = subprocess.run([sys.executable, "-c", f"from services.outside_in import {module}; "
@@ -497,6 +499,45 @@ def test_imm_filter_smooths_like_its_smooth_model_and_follows_a_swerve_it_refuse
     assert mu[55:70, 1].max() > 0.5
     rms = {k: np.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
     assert rms["mixture"] < 0.95 * rms["manoeuvre"]
+
+
+@pytest.mark.skipif(motion.FILTER is None, reason="the compiled fit is not built")
+@pytest.mark.parametrize("kind", [MotionFilter, ImmFilter])
+def test_compiled_filter_step_agrees_with_the_numpy_one(kind: type) -> None:
+    """Two filters, one stepping in the compiled twin and one in numpy, given the same
+    measurements (with and without a fit's sensitivity and the motion it was given, some
+    far outside the gate, some at the state's own time): the same acceptances and
+    refusals, and states and covariances equal to rounding."""
+    rng = np.random.default_rng(5)
+    fast, slow = kind(), kind()
+    cov = np.diag([1e-8] * 3 + [1e-7] * 3)
+    p, R = np.array([0.0, 0.0, 1.0]), np.eye(3)
+    compiled, refused = motion.FILTER, 0
+    for k in range(80):
+        t = (k - (k % 13 == 5)) / 120            # now and then the last time again
+        p = p + np.array([0.002, -0.001, 0.0005]) + rng.normal(0, 1e-5, 3)
+        R = geo.rodrigues(np.array([0.0, 0.01, 0.005]) + rng.normal(0, 1e-4, 3)) @ R
+        meas = (p + (0.05 if k % 17 == 9 else 0.0), R)
+        extra = {}
+        if k % 3 == 1:
+            extra = {"sensitivity": rng.normal(0, 1e-3, (6, 9)), "noise_cov": cov * 0.5}
+            if kind is ImmFilter:
+                extra["motion"] = rng.normal(0, 0.1, 9)
+        ok_fast = fast.update(t, *meas, cov, **extra)
+        try:
+            motion.FILTER = None
+            ok_slow = slow.update(t, *meas, cov, **extra)
+        finally:
+            motion.FILTER = compiled
+        assert ok_fast == ok_slow and fast.refused_in_row == slow.refused_in_row, k
+        refused += not ok_fast
+        for name in ("p", "v", "omega", "a"):
+            np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-9,
+                                       atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(fast.R, slow.R, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-18)
+        assert fast.last_nis == pytest.approx(slow.last_nis, rel=1e-9, nan_ok=True)
+    assert fast.t == slow.t and refused >= 5
 
 
 # ------------------------------------------------------------------------ tracker

@@ -1,6 +1,7 @@
 /* The compiled twin of services/outside_in/pose.py's _gauss_newton: a body's pose fitted
  * to its stacked marker images by Gauss-Newton steps (each a left perturbation of the
- * pose, relinearised where it lands), with the Jacobian at the solution.
+ * pose, relinearised where it lands), with the Jacobian at the solution; and of
+ * motion.py's filter step (below), which costs the same interpreter overhead.
  *
  * The same algorithm, steps and tests as the Python one: residuals in units of each
  * image's std, the 6 x 6 normal equations solved by LU with partial pivoting (LAPACK's
@@ -91,8 +92,9 @@ static void jacobian(const stack_t *s, const double p[3], const double R[9], dou
     }
 }
 
-/* A x = b for 6 x 6 A by LU with partial pivoting (A and b overwritten); 0 when singular. */
-static int solve6(double A[36], double b[6]) {
+/* A X = B for 6 x 6 A and 6 x m B (row-major) by LU with partial pivoting (A and B
+ * overwritten, X in B); 0 when singular. */
+static int solve6m(double A[36], double *B, int m) {
     for (int c = 0; c < 6; c++) {
         int piv = c;
         for (int i = c + 1; i < 6; i++)
@@ -102,19 +104,22 @@ static int solve6(double A[36], double b[6]) {
             for (int j = 0; j < 6; j++) {
                 double t = A[6 * c + j]; A[6 * c + j] = A[6 * piv + j]; A[6 * piv + j] = t;
             }
-            double t = b[c]; b[c] = b[piv]; b[piv] = t;
+            for (int j = 0; j < m; j++) {
+                double t = B[m * c + j]; B[m * c + j] = B[m * piv + j]; B[m * piv + j] = t;
+            }
         }
         for (int i = c + 1; i < 6; i++) {
             double f = A[6 * i + c] / A[6 * c + c];
             for (int j = c; j < 6; j++) A[6 * i + j] -= f * A[6 * c + j];
-            b[i] -= f * b[c];
+            for (int j = 0; j < m; j++) B[m * i + j] -= f * B[m * c + j];
         }
     }
-    for (int i = 5; i >= 0; i--) {
-        double v = b[i];
-        for (int j = i + 1; j < 6; j++) v -= A[6 * i + j] * b[j];
-        b[i] = v / A[6 * i + i];
-    }
+    for (int i = 5; i >= 0; i--)
+        for (int j = 0; j < m; j++) {
+            double v = B[m * i + j];
+            for (int l = i + 1; l < 6; l++) v -= A[6 * i + l] * B[m * l + j];
+            B[m * i + j] = v / A[6 * i + i];
+        }
     return 1;
 }
 
@@ -133,7 +138,7 @@ static int fit(const stack_t *s, double p[3], double R[9], int steps, double tol
                 for (int j = 0; j < 6; j++) A[6 * i + j] += row[i] * row[j];
             }
         }
-        if (!solve6(A, g)) return 0;
+        if (!solve6m(A, g, 1)) return 0;
         double p_new[3], R_new[9], dR[9];
         for (int i = 0; i < 3; i++) p_new[i] = p[i] + g[i];
         rodrigues(g + 3, dR);
@@ -211,7 +216,203 @@ done:
     return res;
 }
 
+/* ------------------------------------------------------------------ the filter's step
+ * motion.py's MotionFilter.innovation once it has its prediction (the covariance moved
+ * over dt, F P F^T + Q, then the pose measurement's innovation, its covariance and
+ * chi-square) and MotionFilter.correct (the gain, the state's correction and the Joseph
+ * form).  The same arithmetic as the numpy there, summed in another order (results agree
+ * to rounding). */
+
+#define NS 15   /* error state: dp, dtheta, dv, domega, da */
+
+/* geometry.matrix_to_quat then quat_to_rotvec: rotation matrix -> rotation vector */
+static void rodrigues_inverse(const double M[9], double r[3]) {
+    double m00 = M[0], m01 = M[1], m02 = M[2], m10 = M[3], m11 = M[4], m12 = M[5],
+           m20 = M[6], m21 = M[7], m22 = M[8];
+    double tr = m00 + m11 + m22;
+    double piv[4] = {1 + tr, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22};
+    int best = 0;
+    for (int i = 1; i < 4; i++)
+        if (piv[i] > piv[best]) best = i;
+    double q[4];
+    if (best == 0) { q[0] = m21 - m12; q[1] = m02 - m20; q[2] = m10 - m01; q[3] = piv[0]; }
+    else if (best == 1) { q[0] = piv[1]; q[1] = m01 + m10; q[2] = m02 + m20; q[3] = m21 - m12; }
+    else if (best == 2) { q[0] = m01 + m10; q[1] = piv[2]; q[2] = m12 + m21; q[3] = m02 - m20; }
+    else { q[0] = m02 + m20; q[1] = m12 + m21; q[2] = piv[3]; q[3] = m10 - m01; }
+    double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    double x = q[0] / n, y = q[1] / n, z = q[2] / n, w = q[3] / n;
+    if (w < 0) { x = -x; y = -y; z = -z; w = -w; }
+    double sn = sqrt(x * x + y * y + z * z);
+    double k = sn < SMALL_ANGLE ? 2.0 / w : 2.0 * atan2(sn, w) / sn;
+    r[0] = x * k; r[1] = y * k; r[2] = z * k;
+}
+
+/* C (n x m) = A (n x l) B (l x m), or A B^T with B given as (m x l) when bt */
+static void mul(const double *A, const double *B, double *C, int n, int l, int m, int bt) {
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < m; j++) {
+            double v = 0.0;
+            for (int k = 0; k < l; k++) v += A[l * i + k] * (bt ? B[l * j + k] : B[m * k + j]);
+            C[m * i + j] = v;
+        }
+}
+
+/* A <- 0.5 (A + A^T), n x n */
+static void symmetrize(double *A, int n) {
+    for (int i = 0; i < n; i++)
+        for (int j = i + 1; j < n; j++) {
+            double v = 0.5 * (A[n * i + j] + A[n * j + i]);
+            A[n * i + j] = v; A[n * j + i] = v;
+        }
+}
+
+/* the state [p, R, v, omega, a, P] as one block of doubles */
+#define NX (21 + NS * NS)
+
+static int get_state(PyObject **o, buf_t *b, double x[NX]) {
+    static const char *what[] = {"p", "R", "v", "omega", "a", "P"};
+    const Py_ssize_t size[] = {3, 9, 3, 3, 3, NS * NS};
+    double *at = x;
+    for (int i = 0; i < 6; i++) {
+        if (!get(o[i], size[i], &b[i], what[i])) return 0;
+        memcpy(at, b[i].view.buf, size[i] * sizeof(double));
+        at += size[i];
+    }
+    return 1;
+}
+
+/* filter_innovation(p, R, v, omega, a, P, W, dt, Q, p_meas, R_meas, H, noise, motion)
+ *   -> (x, y, S, PHt, nis) as bytes of float64 (NX, 6, 36, 90) and a float, or None when
+ *   S is singular.  (p, R) is the pose predicted at the measurement's time and dt how far
+ *   that is ahead of the state (0: nothing moves; W and Q are then not read); x the state
+ *   there ([p, R, v, omega, a, P]).  motion (9, or None): the motion the fit was given,
+ *   whose difference from this state's the fit's sensitivity (H's last 9 columns, less)
+ *   turns into the pose it expects. */
+static PyObject *filter_innovation(PyObject *self, PyObject *args) {
+    PyObject *o[14];
+    double dt;
+    if (!PyArg_ParseTuple(args, "OOOOOOOdOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &dt, &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
+        return NULL;
+    buf_t b[14];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX];
+    double *p = x, *R = x + 3, *v = x + 12, *a = x + 18, *P = x + 21;
+    if (!get_state(o, b, x)) goto done;
+    static const char *what[] = {"W", "dt", "Q", "p_meas", "R_meas", "H", "noise", "motion"};
+    const Py_ssize_t size[] = {9, 0, NS * NS, 3, 9, 6 * NS, 36, 9};
+    for (int i = 6; i < 14; i++) {
+        if (i == 7 || (i == 13 && o[13] == Py_None)) continue;
+        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
+    }
+    const double *W = b[6].view.buf, *Q = b[8].view.buf, *pm = b[9].view.buf,
+                 *Rm = b[10].view.buf, *H = b[11].view.buf, *noise = b[12].view.buf;
+    if (dt != 0.0) {       /* the prediction: v + a dt, F P F^T + Q */
+        double F[NS * NS] = {0}, FP[NS * NS];
+        for (int i = 0; i < NS; i++) F[NS * i + i] = 1.0;
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) F[NS * (3 + i) + 3 + j] = W[3 * i + j];
+            F[NS * i + 6 + i] = dt;                 /* p by v */
+            F[NS * i + 12 + i] = 0.5 * dt * dt;     /* p by a */
+            F[NS * (6 + i) + 12 + i] = dt;          /* v by a */
+            F[NS * (3 + i) + 9 + i] = dt;           /* theta by omega */
+            v[i] = v[i] + a[i] * dt;
+        }
+        mul(F, P, FP, NS, NS, NS, 0);
+        mul(FP, F, P, NS, NS, NS, 1);
+        for (int i = 0; i < NS * NS; i++) P[i] += Q[i];
+        symmetrize(P, NS);
+    }
+    double y[6], RRt[9];
+    for (int i = 0; i < 3; i++) y[i] = pm[i] - p[i];
+    mul(Rm, R, RRt, 3, 3, 3, 1);
+    rodrigues_inverse(RRt, y + 3);
+    if (o[13] != Py_None) {   /* y - sens (motion - [v, omega, a]), sens = -H[:, 6:] */
+        const double *mo = b[13].view.buf;
+        for (int i = 0; i < 6; i++)
+            for (int j = 0; j < 9; j++) y[i] += H[NS * i + 6 + j] * (mo[j] - x[12 + j]);
+    }
+    double PHt[NS * 6], S[36], S2[36], Sy[6];
+    mul(P, H, PHt, NS, NS, 6, 1);
+    mul(H, PHt, S, 6, NS, 6, 0);
+    for (int i = 0; i < 36; i++) S[i] += noise[i];
+    memcpy(S2, S, sizeof S);
+    memcpy(Sy, y, sizeof y);
+    if (!solve6m(S2, Sy, 1)) {
+        res = Py_NewRef(Py_None);
+        goto done;
+    }
+    double nis = 0.0;
+    for (int i = 0; i < 6; i++) nis += y[i] * Sy[i];
+    res = Py_BuildValue("(y#y#y#y#d)", (const char *)x, (Py_ssize_t)sizeof x, (const char *)y,
+                        (Py_ssize_t)sizeof y, (const char *)S, (Py_ssize_t)sizeof S,
+                        (const char *)PHt, (Py_ssize_t)sizeof PHt, nis);
+done:
+    for (int i = 0; i < 14; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].view);
+    return res;
+}
+
+/* filter_correct(p, R, v, omega, a, P, y, H, S, PHt, noise) -> x (bytes of NX float64)
+ * or None when S is singular: the state corrected by the gain K = P H^T S^-1 and its
+ * covariance in the Joseph form (I - K H) P (I - K H)^T + K noise K^T. */
+static PyObject *filter_correct(PyObject *self, PyObject *args) {
+    PyObject *o[11];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10]))
+        return NULL;
+    buf_t b[11];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX];
+    double *p = x, *R = x + 3, *v = x + 12, *om = x + 15, *a = x + 18, *P = x + 21;
+    if (!get_state(o, b, x)) goto done;
+    static const char *what[] = {"y", "H", "S", "PHt", "noise"};
+    const Py_ssize_t size[] = {6, 6 * NS, 36, NS * 6, 36};
+    for (int i = 6; i < 11; i++)
+        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
+    const double *y = b[6].view.buf, *H = b[7].view.buf, *PHt = b[9].view.buf,
+                 *noise = b[10].view.buf;
+    double S[36], Kt[6 * NS];    /* S^-1 PHt^T = K^T */
+    memcpy(S, b[8].view.buf, sizeof S);
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < NS; j++) Kt[NS * i + j] = PHt[6 * j + i];
+    if (!solve6m(S, Kt, NS)) {
+        res = Py_NewRef(Py_None);
+        goto done;
+    }
+    double K[NS * 6], dx[NS], dR[9], Rn[9];
+    for (int i = 0; i < NS; i++)
+        for (int j = 0; j < 6; j++) K[6 * i + j] = Kt[NS * j + i];
+    mul(K, y, dx, NS, 6, 1, 0);
+    for (int i = 0; i < 3; i++) {
+        p[i] += dx[i]; v[i] += dx[6 + i]; om[i] += dx[9 + i]; a[i] += dx[12 + i];
+    }
+    rodrigues(dx + 3, dR);
+    matmul3(dR, R, Rn);
+    memcpy(R, Rn, sizeof Rn);
+    double IKH[NS * NS], T1[NS * NS], Kn[NS * 6], KnK[NS * NS];
+    mul(K, H, IKH, NS, 6, NS, 0);
+    for (int i = 0; i < NS * NS; i++) IKH[i] = (i % (NS + 1) == 0 ? 1.0 : 0.0) - IKH[i];
+    mul(IKH, P, T1, NS, NS, NS, 0);
+    mul(T1, IKH, P, NS, NS, NS, 1);
+    mul(K, noise, Kn, NS, 6, 6, 0);
+    mul(Kn, K, KnK, NS, 6, NS, 1);
+    for (int i = 0; i < NS * NS; i++) P[i] += KnK[i];
+    symmetrize(P, NS);
+    res = PyBytes_FromStringAndSize((const char *)x, sizeof x);
+done:
+    for (int i = 0; i < 11; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].view);
+    return res;
+}
+
 static PyMethodDef methods[] = {
+    {"filter_innovation", filter_innovation, METH_VARARGS,
+     "The motion filter's prediction and a pose measurement's innovation, or None."},
+    {"filter_correct", filter_correct, METH_VARARGS,
+     "The motion filter's state corrected by an innovation, or None."},
     {"gauss_newton", gauss_newton, METH_VARARGS,
      "A body's pose by Gauss-Newton steps on its stacked marker images, or None."},
     {NULL, NULL, 0, NULL},

@@ -17,7 +17,9 @@ how well each explains the poses.
 The covariance is an error state ``[dp, dtheta, dv, domega, da]`` with the world-frame
 (left) rotation error, as the fusion filter keeps it (the quaternion outside the vector).
 A pose measurement farther than the gate from the prediction is refused; several in a row
-restart the filter at the measurement (the body was lost and found).
+restart the filter at the measurement (the body was lost and found).  A model's
+prediction, innovation and correction run in the compiled twin (``_fit.filter_innovation``,
+``_fit.filter_correct``) where it was built (numpy otherwise; they agree to rounding).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from filterpy.common import Q_continuous_white_noise
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.fusion.predictor import coefficients
+from agent.runtime import compiled_twin
 
 Array = np.ndarray
 
@@ -41,14 +43,16 @@ GATE_6 = 22.458
 N = 15
 P_, TH, V_, W_, A_ = (slice(3 * i, 3 * i + 3) for i in range(5))
 _EYE3, _EYE_N, _H = np.eye(3), np.eye(N), np.eye(6, N)
+#: the compiled filter step in use (tests set it to None to run numpy's)
+FILTER: Any = compiled_twin("services.outside_in._fit", "UMA_FIT_PURE_PYTHON")
 
 
 def _turn(omega: Array, dt: float) -> Array:
-    """``W`` of ``motion_matrices`` alone, the same arithmetic: the body's turn over
-    ``dt`` (the filter's predictions need no ``V``, ``A``)."""
-    k = coefficients(float(np.linalg.norm(omega)), dt)
-    Om = geo.skew3(omega)
-    return _EYE3 + k.c1 * Om + k.c2 * (Om @ Om)
+    """``W`` of ``motion_matrices`` alone, the body's turn over ``dt``: ``exp(omega dt)``,
+    the same rotation by ``geometry.rodrigues`` (equal to rounding; its one-vector path
+    takes a third of the time of the coefficients' series, and a filter predicts several
+    times a frame set)."""
+    return geo.rodrigues(omega * dt)
 
 
 @dataclass(frozen=True)
@@ -86,7 +90,7 @@ class MotionFilter:
         self.last_nis = float("nan")
         self._q: dict[float, Array] = {}
         #: predicted poses of the current state, by time
-        self._poses: dict[float, tuple[Array, Array]] = {}
+        self._poses: dict[float, tuple[Array, Array, Array]] = {}
 
     @property
     def ready(self) -> bool:
@@ -247,20 +251,55 @@ class MotionFilter:
         yet applied.  ``motion`` (9: ``[v, omega, a]`` at ``t``) is the motion the fit
         was given when it was not this filter's own (``ImmFilter``: the models' mixture):
         the fit then expects the pose moved by ``S`` times the difference."""
+        H = _H.copy()
+        noise = cov
+        with_s = sensitivity is not None and noise_cov is not None
+        if with_s:
+            H[:, V_.start:] = -sensitivity
+            noise = noise_cov
+        if FILTER is not None:
+            got = self._innovation_compiled(t, p, R, H, noise, motion if with_s else None)
+            if got is not None:
+                return got
         if t > self.t:
             self.advance(t)
         y = np.concatenate([np.asarray(p, float) - self.p,
                             geo.rodrigues_inverse(np.asarray(R, float) @ self.R.T)])
-        H = _H.copy()
-        noise = cov
-        if sensitivity is not None and noise_cov is not None:
-            H[:, V_.start:] = -sensitivity
-            noise = noise_cov
-            if motion is not None:
-                y = y - sensitivity @ (np.asarray(motion, float) - self.motion)
+        if with_s and motion is not None:
+            y = y - sensitivity @ (np.asarray(motion, float) - self.motion)
         PHt = self.P @ H.T
         S = H @ PHt + noise
         return Innovation(y, H, S, noise, PHt, float(y @ np.linalg.solve(S, y)))
+
+    def _innovation_compiled(self, t: float, p: Array, R: Array, H: Array, noise: Array,
+                             motion: Array | None) -> Innovation | None:
+        """:meth:`innovation` in the compiled twin (``_fit.filter_innovation``: one call
+        where numpy takes some twenty-five, each costing more than its arithmetic); None
+        when its covariance is singular (numpy's then says so)."""
+        dt, W, Q = 0.0, _EYE3, _EYE_N
+        p_pred, R_pred = self.p, self.R
+        if t > self.t:
+            p_pred, R_pred = self.predicted_pose(t)
+            dt = t - self.t
+            W, Q = self._poses[t][2], self._noise(abs(dt))
+        c = np.ascontiguousarray
+        got = FILTER.filter_innovation(
+            c(p_pred), c(R_pred), c(self.v), c(self.omega), c(self.a), c(self.P), c(W), dt,
+            c(Q), c(p, float), c(R, float), H, c(noise, float),
+            None if motion is None else c(motion, float))
+        if got is None:
+            return None
+        self._set(np.frombuffer(got[0]).copy())
+        if dt:
+            self.t = t
+        return Innovation(np.frombuffer(got[1]), H, np.frombuffer(got[2]).reshape(6, 6),
+                          noise, np.frombuffer(got[3]).reshape(N, 6), got[4])
+
+    def _set(self, x: Array) -> None:
+        """The state from the compiled twin's block ``[p, R, v, omega, a, P]``."""
+        self._poses.clear()
+        self.p, self.R, self.v = x[0:3], x[3:12].reshape(3, 3), x[12:15]
+        self.omega, self.a, self.P = x[15:18], x[18:21], x[21:].reshape(N, N)
 
     @property
     def motion(self) -> Array:
@@ -269,6 +308,14 @@ class MotionFilter:
 
     def correct(self, inn: Innovation) -> None:
         """Apply an innovation of the state's present time (``innovation``)."""
+        if FILTER is not None:
+            c = np.ascontiguousarray
+            x = FILTER.filter_correct(c(self.p), c(self.R), c(self.v), c(self.omega),
+                                      c(self.a), c(self.P), c(inn.y), c(inn.H), c(inn.S),
+                                      c(inn.PHt), c(inn.noise, float))
+            if x is not None:
+                self._set(np.frombuffer(x).copy())
+                return
         K = np.linalg.solve(inn.S, inn.PHt.T).T       # P H^T S^-1
         self.set_state(self.t, K @ inn.y)
         I_KH = _EYE_N - K @ inn.H
