@@ -408,7 +408,52 @@ done:
     return res;
 }
 
+/* filter_mix(p, R, v, omega, a, P, p2, R2, v2, omega2, a2, P2, w, w2) -> x (bytes of NX
+ * float64): two states mixed about the first, weights w and w2 (summing to 1): the first
+ * moved by the mean of the second's difference from it, d = w2 (x2 - x), its covariance
+ * w (P + d d^T) + w2 (P2 + (x2 - x - d)(x2 - x - d)^T) (motion.py's MotionFilter.mix). */
+static PyObject *filter_mix(PyObject *self, PyObject *args) {
+    PyObject *o[12];
+    double w, w2;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOdd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &w, &w2))
+        return NULL;
+    buf_t b[12];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX], x2[NX];
+    double *p = x, *R = x + 3, *v = x + 12, *om = x + 15, *a = x + 18, *P = x + 21;
+    if (!get_state(o, b, x) || !get_state(o + 6, b + 6, x2)) goto done;
+    double d[NS], mean[NS], spread[NS], RRt[9], dR[9], Rn[9];
+    for (int i = 0; i < 3; i++) d[i] = x2[i] - p[i];
+    mul(x2 + 3, R, RRt, 3, 3, 3, 1);
+    rodrigues_inverse(RRt, d + 3);
+    for (int i = 6; i < NS; i++) d[i] = x2[6 + i] - x[6 + i];
+    for (int i = 0; i < NS; i++) {
+        mean[i] = w2 * d[i];
+        spread[i] = d[i] - mean[i];
+    }
+    for (int i = 0; i < NS; i++)
+        for (int j = 0; j < NS; j++)
+            P[NS * i + j] = w * (P[NS * i + j] + mean[i] * mean[j])
+                            + w2 * (x2[21 + NS * i + j] + spread[i] * spread[j]);
+    symmetrize(P, NS);
+    for (int i = 0; i < 3; i++) {
+        p[i] += mean[i]; v[i] += mean[6 + i]; om[i] += mean[9 + i]; a[i] += mean[12 + i];
+    }
+    rodrigues(mean + 3, dR);
+    matmul3(dR, R, Rn);
+    memcpy(R, Rn, sizeof Rn);
+    res = PyBytes_FromStringAndSize((const char *)x, sizeof x);
+done:
+    for (int i = 0; i < 12; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].view);
+    return res;
+}
+
 static PyMethodDef methods[] = {
+    {"filter_mix", filter_mix, METH_VARARGS,
+     "Two motion filter states mixed about the first (an interacting multiple model's)."},
     {"filter_innovation", filter_innovation, METH_VARARGS,
      "The motion filter's prediction and a pose measurement's innovation, or None."},
     {"filter_correct", filter_correct, METH_VARARGS,

@@ -335,6 +335,29 @@ class MotionFilter:
         if P is not None:
             self.P = 0.5 * (P + P.T)
 
+    def mix(self, ref: MotionFilter, other: MotionFilter, w_ref: float,
+            w_other: float) -> None:
+        """Become the mixture of ``ref`` and ``other`` (weights summing to 1) about
+        ``ref``: its state moved by the weighted mean of ``other``'s difference from it,
+        with the covariance of both about that mean (``ImmFilter``'s interaction and
+        output; in the compiled twin ``_fit.filter_mix`` where it was built)."""
+        if FILTER is not None:
+            c = np.ascontiguousarray
+            x = FILTER.filter_mix(c(ref.p), c(ref.R), c(ref.v), c(ref.omega), c(ref.a),
+                                  c(ref.P), c(other.p), c(other.R), c(other.v),
+                                  c(other.omega), c(other.a), c(other.P), float(w_ref),
+                                  float(w_other))
+            self._set(np.frombuffer(x).copy())
+            self.t = ref.t
+            return
+        d = other.minus(ref)
+        mean = w_other * d
+        spread = d - mean
+        P = w_ref * (ref.P + np.outer(mean, mean)) + w_other * (other.P + np.outer(spread,
+                                                                                 spread))
+        self.p, self.R, self.v, self.omega, self.a = ref.p, ref.R, ref.v, ref.omega, ref.a
+        self.set_state(ref.t, mean, P)
+
     def minus(self, other: MotionFilter) -> Array:
         """This state less ``other``'s, as an error state (15) of ``other``'s."""
         return np.concatenate([self.p - other.p, geo.rodrigues_inverse(self.R @ other.R.T),
@@ -437,25 +460,14 @@ class ImmFilter:
         prior = self.mu @ switch
         given = self.mu[:, None] * switch / np.maximum(prior, 1e-300)[None, :]
         smooth, quick = self.models
-        d = quick.minus(smooth)
-        mean = given[1, 0] * d
-        spread = d - mean
-        smooth.set_state(smooth.t, mean, given[0, 0] * (smooth.P + np.outer(mean, mean))
-                         + given[1, 0] * (quick.P + np.outer(spread, spread)))
+        smooth.mix(smooth, quick, given[0, 0], given[1, 0])
         return prior
 
     def _mix_output(self) -> None:
         """The mixture's state: the models' weighted mean about the likelier one, and
         its covariance with their spread."""
         k = int(np.argmax(self.mu))
-        ref, other = self.models[k], self.models[1 - k]
-        d = other.minus(ref)
-        mean = self.mu[1 - k] * d
-        spread = d - mean
-        out = self.mixed
-        out.p, out.R, out.v, out.omega, out.a = ref.p, ref.R, ref.v, ref.omega, ref.a
-        out.set_state(ref.t, mean, self.mu[k] * (ref.P + np.outer(mean, mean))
-                      + self.mu[1 - k] * (other.P + np.outer(spread, spread)))
+        self.mixed.mix(self.models[k], self.models[1 - k], self.mu[k], self.mu[1 - k])
 
 
 #: what an ``ImmFilter`` reads from its mixture
