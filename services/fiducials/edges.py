@@ -98,7 +98,7 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     w = good.astype(np.float64)
     mean, dev, direction = _lines(ideal, w)
     inliers = _inliers(dev, direction, w, reach / REACH_MODULES)
-    if not np.array_equal(inliers, w):
+    if inliers is not w:
         w = inliers
         mean, dev, direction = _lines(ideal, w)
     chord = fallback[:, _NEXT] - fallback
@@ -146,22 +146,26 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
 
 def _inliers(dev: np.ndarray, direction: np.ndarray, w: np.ndarray, cell: np.ndarray,
              ) -> np.ndarray:
-    """The weights ``w`` (n, 4, k) without the edge points that lie further from their
-    side's line (``dev``: from its mean, along ``direction``) than half a cell (``cell``,
-    (n, 4, 1) px across the side) and ``OUTLIER_SIGMAS`` of the marker's scatter (the
-    median absolute distance, as a standard deviation): a profile that crossed the edge
-    of a cell next to the border (a tilted tag's cells are narrower than the reach)
-    instead of the side itself.  Least squares follows such a point: two or three of
-    twenty, 2 px off, put a corner of a grazing tag 1-2 px away."""
+    """The weights ``w`` (n, 4, k) (``w`` itself when none is dropped) without the edge
+    points that lie further from their side's line (``dev``: from its mean, along
+    ``direction``) than half a cell (``cell``, (n, 4, 1) px across the side) and
+    ``OUTLIER_SIGMAS`` of the marker's scatter (the median absolute distance, as a
+    standard deviation): a profile that crossed the edge of a cell next to the border (a
+    tilted tag's cells are narrower than the reach) instead of the side itself.  Least
+    squares follows such a point: two or three of twenty, 2 px off, put a corner of a
+    grazing tag 1-2 px away."""
     normal = direction[..., ::-1] * [-1.0, 1.0]
     across = np.abs(np.einsum("nkjc,nkc->nkj", dev, normal))
+    if not np.any(across > cell / 2):
+        return w  # the usual frame: no point is a candidate
     found = (w > 0).reshape(len(w), -1)
     ranked = np.sort(np.where(found, across.reshape(len(w), -1), np.inf), axis=1)
     count = found.sum(1)
     middle = np.take_along_axis(ranked, np.maximum(count - 1, 0)[:, None] // 2, 1)[:, 0]
     scatter = np.where(count > 0, middle, 0.0) * MAD_TO_STD  # a median: the lower one
     limit = np.maximum(cell / 2, OUTLIER_SIGMAS * scatter[:, None, None])
-    return np.where(across <= limit, w, 0.0)
+    out = np.where(across <= limit, w, 0.0)
+    return w if np.array_equal(out, w) else out
 
 
 def _intersections(point: np.ndarray, direction: np.ndarray, fallback: np.ndarray,
