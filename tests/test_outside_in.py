@@ -571,6 +571,33 @@ def test_compiled_filter_step_agrees_with_the_numpy_one(kind: type) -> None:
 
 # ------------------------------------------------------------------------ tracker
 
+def test_imm_filter_forgets_a_body_whose_poses_it_keeps_refusing() -> None:
+    """Poses far off the prediction three times in a row come from the prediction's own
+    claims gone wrong: the body is forgotten (the tracker then searches for it by its
+    markers' distances) instead of restarting at such a pose."""
+    f = ImmFilter()
+    cov = np.diag([1e-8] * 3 + [1e-7] * 3)
+    for k in range(10):
+        assert f.update(k / 120, np.array([0.0, 0.0, 1.0]), np.eye(3), cov)
+    for k in range(10, 13):
+        assert not f.update(k / 120, np.array([0.02, 0.0, 1.0]), np.eye(3), cov)
+    assert not f.ready
+
+
+def test_a_camera_flagged_as_bumped_measures_nothing_until_re_estimated() -> None:
+    sim = Simulation(seed=3, config=SimConfig(n_cameras=4))
+    tracker = OutsideInTracker(sim.cameras, sim.bodies)
+    tracker.health.cams[3].flagged = True
+    poses = 0
+    for i in range(6):
+        rendered = [sim.render(c, i) for c in range(4)]
+        frames = [CameraFrame(c, r.t, find_blobs(r.image)) for c, r in enumerate(rendered)]
+        for est in tracker.process(frames):
+            poses += 1
+            assert 3 not in est.blobs and est.cameras <= 3
+    assert poses >= 12
+
+
 def test_tracker_follows_three_bodies_on_simulated_frames() -> None:
     sim = Simulation(seed=3, config=SimConfig(n_cameras=4))
     tracker = OutsideInTracker(sim.cameras, sim.bodies)

@@ -410,8 +410,10 @@ class ImmFilter:
         raise AttributeError(name)
 
     def reset(self) -> None:
+        """Forget the body (``MotionFilter.reset``)."""
         for m in (*self.models, self.mixed):
             m.reset()
+        self.refused_in_row = 0
 
     def start(self, t: float, p: Array, R: Array, cov: Array,
               sensitivity: Array | None = None) -> None:
@@ -437,8 +439,8 @@ class ImmFilter:
         if self.last_nis > self.config.gate:
             self.refused_in_row += 1
             if self.refused_in_row >= self.config.restart_after:
-                self.start(t, p, R, cov)
-                return True
+                self.reset()
+                return False
             self.mu = prior
             self._mix_output()
             return False
