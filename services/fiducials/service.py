@@ -13,6 +13,7 @@ bundle's name), with the edge ``FRAME -> PREFIX/NAME`` (``--name ID=FRAME`` rena
 marker's frame).  Each sample carries the frame's capture time, the 6x6 covariance (uma's
 SE(3) form) and, in ``extra``: ``ambiguity`` (``none``, ``history``: the IPPE solution the
 track's accumulated evidence supports, ``covered``: the covariance spans both solutions),
+``flip_probability`` (the evidence's chance that the other IPPE solution is the true pose),
 ``sigma_px`` (the corner noise estimated from the residuals), ``rms_px`` and ``markers``
 (the ids used).
 
@@ -150,7 +151,8 @@ class Publisher:
         handle.publish_measurement(Measurement(
             type="pose6d", t_ns=est.t_ns, position=est.t, quaternion=geo.matrix_to_quat(est.R),
             covariance=cov,
-            extra={"ambiguity": est.ambiguity, "sigma_px": round(est.sigma_px, 4),
+            extra={"ambiguity": est.ambiguity, "flip_probability": est.flip_probability,
+                   "sigma_px": round(est.sigma_px, 4),
                    "rms_px": round(est.rms_px, 4), "markers": list(est.markers)}))
         self.published += 1
 

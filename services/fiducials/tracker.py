@@ -26,14 +26,17 @@
   fits, in units of σ², at least the calibration's pixel noise), the branch a solution
   continues is the previous favourite's if it lies clearly on its side (within
   ``HISTORY_SIDE`` of the angle between the two), and between frames (at most
-  ``HISTORY_S`` apart) the branches may swap with probability ``BRANCH_SWITCH``, which
-  bounds what history alone can claim.  A frame whose own gap exceeds ``AMBIGUITY_GAP``
-  decides (``ambiguity = "none"``); otherwise the branch the evidence favours is
-  reported, as ``"history"`` when the carried evidence agrees and the total reaches
-  ``HISTORY_LLR`` (its covariance widened half way towards the other), else as
-  ``"covered"``, its covariance inflated by the other solution's offset and spread, so
-  that the other one lies within one standard deviation.  Never a silent flip: the
-  sample says which.
+  ``HISTORY_S`` apart) the branches may swap with a probability that depends on how far
+  apart the two solutions are against how far the pose moves in a frame interval
+  (:func:`branch_switch`): the true pose moves continuously, and can only pass to the
+  other solution's branch where the two meet (a view near fronto-parallel).  A frame
+  whose own gap exceeds ``AMBIGUITY_GAP`` decides (``ambiguity = "none"``); otherwise
+  the branch the evidence favours is reported, as ``"history"`` when the carried
+  evidence agrees and the total reaches ``HISTORY_LLR`` (its covariance the mixture's
+  of the two solutions, weighted by the evidence's chance of the other:
+  ``flip_probability``), else as ``"covered"``, its covariance inflated by the other
+  solution's offset and spread, so that the other one lies within one standard
+  deviation.  Never a silent flip: the sample says which, and how likely the other.
 """
 
 from __future__ import annotations
@@ -81,14 +84,21 @@ HISTORY_S = 0.5
 #: a solution continues the previous favourite branch when it is within this share of
 #: the two solutions' angle of it (clearly on its side)
 HISTORY_SIDE = 0.4
-#: a switch of the branches between frames (matched wrongly, the tag turned through the
-#: line of sight): history alone then claims at most log(0.98 / 0.02) = 3.9 (0.005 gave
-#: the same errors on seeds 1-10)
-BRANCH_SWITCH = 0.02
+#: the angular speed (rad/s) a track is assumed to turn at before it has shown its own
+#: (a hand-held or hand-moved tag; the eval's tags turn at up to about 1 rad/s)
+TURN_PRIOR_RAD_S = 1.0
+#: the weight of a frame's turn in the track's running mean square angular speed
+TURN_WEIGHT = 0.3
+#: the least rotation (rad) between frames the branch switch allows for: what the
+#: solutions' own noise and an unseen jerk can move them
+TURN_FLOOR_RAD = math.radians(1.0)
+#: the least chance per frame interval that the branches swapped: what the motion model
+#: cannot promise (a detection from another tag's corners, a jump between frames)
+SWITCH_FLOOR = 1e-6
 #: the log-likelihood ratio (about 20 : 1) at which history reports its branch as such
 HISTORY_LLR = 3.0
 #: the log-likelihood ratio a frame with a single solution stores (any finite figure
-#: beyond what ``BRANCH_SWITCH`` lets history carry)
+#: beyond what ``SWITCH_FLOOR`` lets history carry, log(1e6) = 13.8)
 _DECISIVE = 50.0
 
 
@@ -106,6 +116,7 @@ class Estimate:
     ambiguity: str  # "none", "history" or "covered"
     markers: tuple[int, ...]
     alternative_gap: float  # χ² gap to the other solution (inf if there is none)
+    flip_probability: float = 0.0  # the evidence's chance that the other solution is true
 
 
 def corner_floor_px(module_px: float) -> float:
@@ -119,17 +130,34 @@ def corner_floor_px(module_px: float) -> float:
     return FLOOR_A / max(module_px, 0.5) ** FLOOR_B
 
 
+def branch_switch(near_rad: float, far_rad: float, turn_rad: float) -> float:
+    """The chance that the true pose passed to the other IPPE branch between two frames:
+    the solution nearer the previous branch (``near_rad`` from it) continues it unless the
+    pose turned ``far_rad`` (to the other solution) in the interval instead.  With the
+    rotation between frames Gaussian of ``turn_rad`` per axis, the odds of the swap are
+    ``exp(-(far² - near²) / (2 turn²))``: next to nothing where the two solutions lie far
+    apart against the motion (a tilted tag, whose mirror pose is twice its tilt away),
+    an even chance where they nearly coincide (a fronto-parallel view, where the branches
+    meet and the pose can cross).  Never below ``SWITCH_FLOOR``."""
+    x = (far_rad ** 2 - near_rad ** 2) / (2 * turn_rad ** 2)
+    return max(1 / (1 + math.exp(min(x, 700.0))), SWITCH_FLOOR)
+
+
 def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], ambiguity: str,
+                      flip_probability: float,
                       cov_of: Callable[[pose.Solution], np.ndarray]) -> np.ndarray:
     """What an ambiguous pose's covariance gains: the corners barely tell the two
     solutions apart, so the error is not the quadratic bowl's around the chosen one.
-    ``history``: the truth may lie anywhere up to half way to the other solution;
+    ``history``: the second moment of the two solutions' mixture, the other weighted by
+    ``flip_probability`` (the evidence's chance of it, calibrated: where it is small the
+    other solution is as unlikely as it says), its spread taken as the chosen one's (at
+    a few percent at most it hardly counts, and it costs a covariance per pose);
     ``covered``: the other solution, with its own spread, lies within one standard
     deviation."""
     other = max(solutions[:2], key=lambda s: pose.rotation_angle(s.rotation, chosen.rotation))
     d = pose.difference(chosen, other)
     if ambiguity == "history":
-        return np.outer(d, d) / 4
+        return flip_probability * np.outer(d, d)
     return np.outer(d, d) + cov_of(other)
 
 
@@ -190,6 +218,7 @@ class _BodyState:
     branch: np.ndarray | None = None  # rotation of the branch the evidence favours
     llr: float = 0.0  # its log-likelihood ratio against the other (>= 0)
     branch_ns: int = 0
+    turn2: float = TURN_PRIOR_RAD_S ** 2  # running mean square angular speed, rad²/s²
 
     def add(self, rss: float, dof: int) -> None:
         self.pool.append((rss, dof))
@@ -213,6 +242,7 @@ class _Pick:
     chosen: pose.Solution
     ambiguity: str
     gap: float
+    flip_probability: float
 
 
 class FiducialTracker:
@@ -363,12 +393,12 @@ class FiducialTracker:
             chosen = fit.solution(k)
             if p.ambiguity != "none":
                 cov = cov + _ambiguity_spread(
-                    chosen, p.solutions, p.ambiguity,
+                    chosen, p.solutions, p.ambiguity, p.flip_probability,
                     lambda s, k=k: covariances(pose.Fits.of([s]), slice(k, k + 1))[0])
             out.append(Estimate(p.body.name, t_ns, chosen.rotation, chosen.tvec, cov,
                                 float(sigmas[k]),
                                 float(np.sqrt(chosen.rss_px2 / (2 * chosen.n_points))),
-                                p.ambiguity, tuple(p.ids), p.gap))
+                                p.ambiguity, tuple(p.ids), p.gap, p.flip_probability))
         return out
 
     def _sigma2(self, state: _BodyState) -> float:
@@ -386,9 +416,10 @@ class FiducialTracker:
         return self._frames[key]
 
     def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
-               t_ns: int) -> tuple[pose.Solution, str, float]:
-        """(the solution reported, how it was chosen, the χ² gap to the other); the body's
-        branch evidence moved on to this frame."""
+               t_ns: int) -> tuple[pose.Solution, str, float, float]:
+        """(the solution reported, how it was chosen, the χ² gap to the other, the chance
+        that the other is the true one); the body's branch evidence moved on to this
+        frame."""
         best = solutions[0]
         other = solutions[1] if len(solutions) > 1 else None
         # judged at no less than the calibration's pixel noise: a noise estimate from a
@@ -396,29 +427,49 @@ class FiducialTracker:
         gap = float("inf") if other is None else \
             (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
         if gap > AMBIGUITY_GAP:  # outweighs anything history carries
-            state.branch, state.llr, state.branch_ns = best.rotation, min(gap / 2, _DECISIVE), t_ns
-            return best, "none", gap
+            self._move_branch(state, best.rotation, min(gap / 2, _DECISIVE), t_ns)
+            return best, "none", gap, _flip(gap / 2)
         carried = self._carried(state, best, other, t_ns)
         llr = carried + gap / 2
         chosen = best if llr >= 0 else other
-        state.branch, state.llr, state.branch_ns = chosen.rotation, abs(llr), t_ns
+        self._move_branch(state, chosen.rotation, abs(llr), t_ns)
         if carried * llr > 0 and abs(llr) >= HISTORY_LLR:
-            return chosen, "history", gap
-        return chosen, "covered", gap
+            return chosen, "history", gap, _flip(abs(llr))
+        return chosen, "covered", gap, _flip(abs(llr))
+
+    @staticmethod
+    def _move_branch(state: _BodyState, rotation: np.ndarray, llr: float, t_ns: int) -> None:
+        """The favourite branch now at ``rotation`` with ``llr``; the track's mean square
+        angular speed updated by the turn from the previous branch, if recent."""
+        dt = (t_ns - state.branch_ns) / 1e9
+        if state.branch is not None and 0 < dt <= HISTORY_S:
+            speed2 = (pose.rotation_angle(rotation, state.branch) / dt) ** 2
+            state.turn2 += TURN_WEIGHT * (speed2 - state.turn2)
+        state.branch, state.llr, state.branch_ns = rotation, llr, t_ns
 
     @staticmethod
     def _carried(state: _BodyState, best: pose.Solution, other: pose.Solution,
                  t_ns: int) -> float:
         """The log-likelihood ratio of ``best`` against ``other`` that the body's earlier
-        frames carry: their favourite's, through one possible switch of the branches,
-        signed by which solution continues it; 0 when none does clearly."""
-        if state.branch is None or not 0 <= t_ns - state.branch_ns <= HISTORY_S * 1e9:
+        frames carry: their favourite's, through one possible switch of the branches
+        (:func:`branch_switch`, for the turn the track's angular speed makes in the
+        interval, or the one seen now if larger), signed by which solution continues it;
+        0 when none does clearly."""
+        dt = (t_ns - state.branch_ns) / 1e9
+        if state.branch is None or not 0 <= dt <= HISTORY_S:
             return 0.0
         d_best = pose.rotation_angle(best.rotation, state.branch)
         d_other = pose.rotation_angle(other.rotation, state.branch)
-        if min(d_best, d_other) >= HISTORY_SIDE * pose.rotation_angle(best.rotation,
-                                                                      other.rotation):
+        near, far = min(d_best, d_other), max(d_best, d_other)
+        if near >= HISTORY_SIDE * pose.rotation_angle(best.rotation, other.rotation):
             return 0.0
-        p, x = BRANCH_SWITCH, min(state.llr, _DECISIVE)
+        turn = max(math.sqrt(state.turn2) * dt, near, TURN_FLOOR_RAD)
+        p, x = branch_switch(near, far, turn), min(state.llr, _DECISIVE)
         kept = math.log(((1 - p) * math.exp(x) + p) / (p * math.exp(x) + 1 - p))
         return kept if d_best <= d_other else -kept
+
+
+def _flip(llr: float) -> float:
+    """The chance of the other solution for a log-likelihood ratio ``llr`` (>= 0) of the
+    chosen one against it (0 where there is no other)."""
+    return 0.0 if math.isinf(llr) else 1 / (1 + math.exp(min(llr, 700.0)))
