@@ -269,6 +269,7 @@ class OutsideInTracker:
             p0, R0 = start
             motion = Motion(np.zeros(3), np.zeros(3), track.filter.start_motion_covariance)
         fit = None
+        given = dict(pairs)
         while True:
             obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref)
             fit = refine_pose(track.body.markers, obs, p0, R0, motion)
@@ -278,6 +279,11 @@ class OutsideInTracker:
             if err <= p.outlier_px and sigmas <= p.outlier_sigmas:
                 break
             del pairs[worst]
+        if len(given) - len(pairs) > 1:
+            clean = self._without_a_camera(track, given, norm, blobs, times, t_ref, p0, R0,
+                                           motion)
+            if clean is not None and (fit is None or len(clean[0]) > len(pairs)):
+                pairs, fit = clean
         if fit is None or fit.rms_px > p.max_rms_px:
             self.counts["refused_fit"] += 1
             return None
@@ -297,6 +303,32 @@ class OutsideInTracker:
         return BodyEstimate(track.body.name, t_ref, f.p.copy(), geo.matrix_to_quat(f.R),
                             f.pose_covariance, fit.n_cameras, fit.n_observations, fit.rms_px,
                             acquired, by_cam, fit)
+
+    def _without_a_camera(self, track: _Track, pairs: dict, norm: dict[int, Array],
+                          blobs: dict[int, Blobs], times: dict[int, float], t_ref: float,
+                          p0: Array, R0: Array, motion: Motion
+                          ) -> tuple[dict, PoseFit] | None:
+        """The fit without one camera's observations that has no outlier left, for when
+        dropping the worst observation one at a time dropped more than that camera's: a
+        camera turned since its calibration (bumped, not noticed yet) sees every marker
+        a few pixels off, and a near one's sharp blobs outweigh the others, so the other
+        cameras' observations went instead (a hand then fitted 16 mm off to it and one
+        other).  Of several such fits the one keeping most observations; None when there
+        is none."""
+        p = self.params
+        cams = {c for c, _ in pairs}
+        best = None
+        for c in sorted(cams) if len(cams) > 2 else ():
+            kept = {k: v for k, v in pairs.items() if k[0] != c}
+            obs = _observations(kept, self.cameras, norm, blobs, times, t_ref)
+            fit = refine_pose(track.body.markers, obs, p0, R0, motion)
+            if fit is None:
+                continue
+            _, err, sigmas = _worst(fit, obs)
+            if (err <= p.outlier_px and sigmas <= p.outlier_sigmas
+                    and (best is None or len(kept) > len(best[0]))):
+                best = (kept, fit)
+        return best
 
     def _acquire(self, lost: list[int], frames: list[CameraFrame], norm: dict[int, Array],
                  used: set[tuple[int, int]], t_ref: float, done: set[int]
