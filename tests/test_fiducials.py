@@ -100,23 +100,27 @@ def test_planar_ambiguity_is_covered_never_silent():
 
 
 def test_previous_frame_picks_the_solution_it_supports():
-    T = _ambiguous_view()
     rng = np.random.default_rng(3)
-    tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
-    near = T.copy()
-    near[:3, 3] = (0.1, 0.05, 0.5)  # the same attitude seen clearly, just before
-    assert tracker.estimate({3: corners_of(near)}, 0)[0].ambiguity == "none"
-    kinds = []
-    for k in range(1, 10):
-        est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.3, (4, 2))},
-                               k * 30_000_000)[0]
-        kinds.append(est.ambiguity)
-        if est.ambiguity == "history":  # the flipped solution lies 30-45 degrees off
-            assert pose.rotation_angle(est.R, T[:3, :3]) < math.radians(20)
-    # the clear frame's evidence carries over to the next frame; then these frames'
-    # solutions jump by 10-40 degrees (noise, as much as they lie apart), so the branches
-    # may have swapped, and their own gaps cannot tell: covered, never a silent guess
-    assert kinds[0] == "history" and set(kinds) <= {"history", "covered"}, kinds
+    for tilt, carries in (((0.7, 0.4, 0.0), True), ((0.08, 0.05, 0.0), False)):
+        T = facing(tilt, (0.2, 0.1, 2.8))  # small and far: each frame's gap is under 1.5
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+        near = T.copy()
+        near[:3, 3] = (0.1, 0.05, 0.5)  # the same attitude seen clearly, just before
+        assert tracker.estimate({3: corners_of(near)}, 0)[0].ambiguity == "none"
+        kinds = []
+        for k in range(1, 10):
+            est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.3, (4, 2))},
+                                   k * 30_000_000)[0]
+            kinds.append(est.ambiguity)
+            if est.ambiguity == "history":  # the flipped solution lies 30-45 degrees off
+                assert pose.rotation_angle(est.R, T[:3, :3]) < math.radians(20)
+        # tilted 46 degrees, the clear frame's evidence carries over the next frames;
+        # tilted 5 degrees, less than the noise alone seems to tilt it (16 degrees), the
+        # pose may cross between the two solutions from frame to frame: covered
+        if carries:
+            assert kinds[:3] == ["history"] * 3 and set(kinds) <= {"history", "covered"}
+        else:
+            assert kinds == ["covered"] * 9, kinds
 
 
 def test_weak_evidence_accumulates_over_frames():
@@ -136,17 +140,20 @@ def test_weak_evidence_accumulates_over_frames():
 
 def test_branch_switch_is_unlikely_where_the_solutions_lie_far_apart():
     deg = math.radians
-    assert branch_switch(deg(2), deg(60), deg(3)) < 1e-5  # a tilted tag, turning slowly
-    assert branch_switch(deg(2), deg(20), deg(4)) < 1e-3
-    assert branch_switch(deg(2), deg(4), deg(3)) > 0.2  # the branches nearly meet
-    assert branch_switch(deg(2), deg(2), deg(3)) == 0.5
+    # (near, far, separation, turn, meet): a tilted tag, turning slowly
+    assert branch_switch(deg(2), deg(60), deg(60), deg(3), deg(5)) < 1e-5
+    assert branch_switch(deg(2), deg(20), deg(20), deg(4), deg(3)) < 1e-2
+    # ... a small far one, which noise alone seems to tilt by 10 degrees: it may cross
+    assert branch_switch(deg(2), deg(20), deg(20), deg(4), deg(10)) > 0.05
+    assert branch_switch(deg(2), deg(4), deg(4), deg(3), deg(3)) > 0.2  # nearly meeting
+    assert branch_switch(deg(2), deg(2), deg(2), deg(3), deg(3)) == 0.5
 
 
 @pytest.mark.parametrize("seed", [3, 4, 5])
 def test_flip_probability_falls_with_evidence_only_where_the_branches_stay_apart(seed):
     rng = np.random.default_rng(seed)
     flips = {}
-    for name, tilt in (("tilted", (0.35, 0.2, 0.0)), ("frontal", (0.02, 0.01, 0.0))):
+    for name, tilt in (("tilted", (0.6, 0.3, 0.0)), ("frontal", (0.02, 0.01, 0.0))):
         tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
         for k in range(8):  # turning slowly; each frame's own gap 0-6
             T = facing(np.add(tilt, (0.01 * k, 0.0, 0.0)), (0.1, 0.05, 1.6))

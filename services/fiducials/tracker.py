@@ -130,17 +130,34 @@ def corner_floor_px(module_px: float) -> float:
     return FLOOR_A / max(module_px, 0.5) ** FLOOR_B
 
 
-def branch_switch(near_rad: float, far_rad: float, turn_rad: float) -> float:
-    """The chance that the true pose passed to the other IPPE branch between two frames:
-    the solution nearer the previous branch (``near_rad`` from it) continues it unless the
-    pose turned ``far_rad`` (to the other solution) in the interval instead.  With the
-    rotation between frames Gaussian of ``turn_rad`` per axis, the odds of the swap are
-    ``exp(-(far² - near²) / (2 turn²))``: next to nothing where the two solutions lie far
-    apart against the motion (a tilted tag, whose mirror pose is twice its tilt away),
-    an even chance where they nearly coincide (a fronto-parallel view, where the branches
-    meet and the pose can cross).  Never below ``SWITCH_FLOOR``."""
+def apparent_tilt(sigma_px: float, side_px: float) -> float:
+    """The tilt (rad) a fronto-parallel marker of ``side_px`` seems to have under corner
+    noise ``sigma_px``: foreshortening is second order in the tilt (its corners move by
+    about ``side_px * tilt² / 4``), so noise alone puts IPPE's two solutions about twice
+    this apart where they really coincide (on simulated crossings at 1.2 m, 0.25 px:
+    9.6 degrees here, the solutions 8-24 degrees apart at the crossing)."""
+    return 2 * math.sqrt(sigma_px / max(side_px, 1.0))
+
+
+def branch_switch(near_rad: float, far_rad: float, separation_rad: float, turn_rad: float,
+                  meet_rad: float) -> float:
+    """The chance that the true pose passed to the other IPPE branch between two frames.
+    The pose turns continuously, ``turn_rad`` per axis in the interval (Gaussian), and
+    the solution nearer the previous branch (``near_rad`` from it) continues it unless
+
+    * the pose turned ``far_rad``, to the other solution, instead: odds
+      ``exp(-(far² - near²) / (2 turn²))``, next to nothing where the solutions lie far
+      apart against the motion (a tilted tag's mirror pose is twice its tilt away); or
+    * it crossed the view where the two branches meet (fronto-parallel): its tilt, half
+      the ``separation_rad`` seen, is known to ``meet_rad`` (:func:`apparent_tilt`) there,
+      and it crosses if it lies within the turn of it and turns towards it:
+      ``0.4 turn / meet * exp(-separation² / (8 meet²))`` (at most an even chance).
+
+    Never below ``SWITCH_FLOOR``."""
     x = (far_rad ** 2 - near_rad ** 2) / (2 * turn_rad ** 2)
-    return max(1 / (1 + math.exp(min(x, 700.0))), SWITCH_FLOOR)
+    moved = 1 / (1 + math.exp(min(x, 700.0)))
+    crossed = 0.4 * turn_rad / meet_rad * math.exp(-separation_rad ** 2 / (8 * meet_rad ** 2))
+    return max(moved, min(crossed, 0.5), SWITCH_FLOOR)
 
 
 def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], ambiguity: str,
@@ -370,7 +387,7 @@ class FiducialTracker:
             state.add(solutions[0].rss_px2, solutions[0].dof)
             sigma2 = max(self._sigma2(state), corner_floor_px(module_px) ** 2)
             picks.append(_Pick(body, ids, solutions, module_px, sigma2,
-                               *self._judge(solutions, sigma2, state, t_ns)))
+                               *self._judge(solutions, sigma2, module_px, state, t_ns)))
         if not picks:
             return []
         fit = pose.Fits.of([p.chosen for p in picks])
@@ -415,8 +432,8 @@ class FiducialTracker:
                                  float(np.linalg.norm(corners[1] - corners[0])))
         return self._frames[key]
 
-    def _judge(self, solutions: list[pose.Solution], sigma2: float, state: _BodyState,
-               t_ns: int) -> tuple[pose.Solution, str, float, float]:
+    def _judge(self, solutions: list[pose.Solution], sigma2: float, module_px: float,
+               state: _BodyState, t_ns: int) -> tuple[pose.Solution, str, float, float]:
         """(the solution reported, how it was chosen, the χ² gap to the other, the chance
         that the other is the true one); the body's branch evidence moved on to this
         frame."""
@@ -429,7 +446,9 @@ class FiducialTracker:
         if gap > AMBIGUITY_GAP:  # outweighs anything history carries
             self._move_branch(state, best.rotation, min(gap / 2, _DECISIVE), t_ns)
             return best, "none", gap, _flip(gap / 2)
-        carried = self._carried(state, best, other, t_ns)
+        meet = apparent_tilt(math.sqrt(max(sigma2, self._prior_sigma2)),
+                             module_px * self._modules)
+        carried = self._carried(state, best, other, t_ns, meet)
         llr = carried + gap / 2
         chosen = best if llr >= 0 else other
         self._move_branch(state, chosen.rotation, abs(llr), t_ns)
@@ -449,22 +468,24 @@ class FiducialTracker:
 
     @staticmethod
     def _carried(state: _BodyState, best: pose.Solution, other: pose.Solution,
-                 t_ns: int) -> float:
+                 t_ns: int, meet_rad: float) -> float:
         """The log-likelihood ratio of ``best`` against ``other`` that the body's earlier
         frames carry: their favourite's, through one possible switch of the branches
         (:func:`branch_switch`, for the turn the track's angular speed makes in the
-        interval, or the one seen now if larger), signed by which solution continues it;
-        0 when none does clearly."""
+        interval, or the one seen now if larger; ``meet_rad``: :func:`apparent_tilt`),
+        signed by which solution continues it; 0 when none does clearly."""
         dt = (t_ns - state.branch_ns) / 1e9
         if state.branch is None or not 0 <= dt <= HISTORY_S:
             return 0.0
         d_best = pose.rotation_angle(best.rotation, state.branch)
         d_other = pose.rotation_angle(other.rotation, state.branch)
         near, far = min(d_best, d_other), max(d_best, d_other)
-        if near >= HISTORY_SIDE * pose.rotation_angle(best.rotation, other.rotation):
+        separation = pose.rotation_angle(best.rotation, other.rotation)
+        if near >= HISTORY_SIDE * separation:
             return 0.0
         turn = max(math.sqrt(state.turn2) * dt, near, TURN_FLOOR_RAD)
-        p, x = branch_switch(near, far, turn), min(state.llr, _DECISIVE)
+        p = branch_switch(near, far, separation, turn, meet_rad)
+        x = min(state.llr, _DECISIVE)
         kept = math.log(((1 - p) * math.exp(x) + p) / (p * math.exp(x) + 1 - p))
         return kept if d_best <= d_other else -kept
 
