@@ -17,11 +17,9 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
-from services.accel_rig import integrator
 from services.accel_rig import rig as rg
 from services.accel_rig.integrator import DeadReckoner, dead_reckon_from_truth
 from services.accel_rig.motions import AxisRotation, SinusoidalTranslation
-from services.accel_rig.sensor import Calibration, NoiseModel
 from services.accel_rig.simulator import (
     SensorTruth,
     default_device,
@@ -270,41 +268,6 @@ def test_reset_keeps_unreset_velocity_and_takes_pose_covariance():
     np.testing.assert_allclose(e.covariance, cov, atol=1e-15)
     with pytest.raises(ValueError, match="positive semi-definite"):
         dr.reset(0.0, np.zeros(3), geo.quat_identity(), covariance=-np.eye(6))
-
-
-@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "python"])
-def test_a_tilt_covariance_moves_the_height_as_a_monte_carlo_of_the_rotation(compiled,
-                                                                              monkeypatch):
-    """A dead reckoner reset with a 30-50 mrad orientation covariance and fed 1 s of the
-    noise-free readings of a rig at rest in its estimated orientation.  The truths that
-    estimate and covariance allow are turned by phi ~ N(0, C) and integrate
-    Exp(-phi) u + g with u + g = 0: they sink by g |tilt|^2 / 2 whatever phi's sign.  The
-    estimate's height must be their mean, and its reported variance their spread, as a
-    Monte Carlo of the rotation gives them."""
-    if compiled and integrator.NATIVE is None:
-        pytest.skip("the compiled step is not built or is switched off")
-    monkeypatch.setattr(integrator, "NATIVE", integrator.NATIVE if compiled else None)
-    lay = rg.marvin_six()
-    quiet = NoiseModel(density_v=0.0, quantised=False, bandwidth_hz=None,
-                       converter_noise_lsb=0.0)
-    cal = Calibration(lay, np.zeros(lay.count), np.ones(lay.count), noise=quiet)
-    q = geo.rotvec_to_quat(np.array([0.3, -0.2, 1.0]))  # tilted and turned, at rest
-    L = np.array([[0.04, 0.0, 0.0], [0.015, 0.03, 0.0], [0.01, -0.02, 0.05]])
-    C_phi = L @ L.T
-    cov = np.zeros((6, 6))
-    cov[3:, 3:] = C_phi
-    rate, seconds = 100.0, 1.0
-    dr = DeadReckoner(cal, rate)
-    dr.reset(0.0, np.zeros(3), q, covariance=cov, velocity=np.zeros(3), omega=np.zeros(3))
-    readings = lay.h(np.zeros(3), q, np.zeros(3), np.zeros(3))
-    for k in range(1, int(rate * seconds) + 1):
-        est = dr.update(k / rate, readings)
-    phi = np.random.default_rng(3).multivariate_normal(np.zeros(3), C_phi, 200_000)
-    sink = 0.5 * seconds**2 * (geo.quat_rotate(geo.rotvec_to_quat(phi), -GRAVITY) + GRAVITY)
-    error = sink[:, 2] - est.position[2]  # truth minus estimate
-    assert sink[:, 2].mean() < -0.5 * sink[:, 2].std() < -1e-3  # millimetres, downward
-    assert abs(error.mean()) < 0.01 * error.std()
-    assert est.covariance[2, 2] == pytest.approx(error.var(), rel=0.03)
 
 
 def test_a_late_reset_is_applied_at_its_time_and_the_samples_since_replayed():

@@ -17,14 +17,6 @@ and axis of each accelerometer act as constant reading errors, carried as a sens
 matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
 error feeds back through the centripetal terms of eq. 4.42.
 
-To second order the orientation error also pulls on the acceleration (a tilt error shortens
-the specific force's up-component by g |tilt|^2 / 2 whatever its sign, ``_second_order``).
-Its mean, known from the covariance, is integrated with the motion; its spread is one draw
-that lasts as long as the orientation error does, so it is carried like a constant error
-(``_State.D``, integrated into velocity and position by the same propagation, ``D D^T``
-added to the covariance), not as fresh noise at every step, which would shrink it by the
-number of steps.
-
 The step and the estimate's arrays have a compiled twin (``_step.c``, built when a C
 compiler is there) doing the same operations on the same data: :data:`NATIVE` is it unless
 it was not built or ``UMA_ACCEL_PURE_PYTHON=1`` is set.  Both are tested to agree
@@ -148,7 +140,6 @@ class _State(NamedTuple):
     w: list[float]  # rig frame
     P: Array  # (12, 12) covariance of [phi, rho, dv, domega] from the reading noise
     S: Array  # (12, 4N) sensitivity of that error to the calibration parameters
-    D: Array  # (12,) the tilt's second-order error, one persistent draw (``_second_order``)
 
 
 _Sample = tuple[float, list[float]]  # (motion time, projected readings)
@@ -195,7 +186,7 @@ class DeadReckoner:
         self._states: deque[_State] = deque(maxlen=2 * keep)  # resets add states too
         self._x: _State | None = None
         self._rest = _State(0.0, [0.0] * 3, [0.0, 0.0, 0.0, 1.0], [0.0] * 3, [0.0] * 3,
-                            np.zeros((12, 12)), np.zeros((12, 4 * n)), np.zeros(12))
+                            np.zeros((12, 12)), np.zeros((12, 4 * n)))
 
     # ------------------------------------------------------------------ state
 
@@ -301,8 +292,6 @@ class DeadReckoner:
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
             S = x.S[_POSE_ORDER]
             C = S @ self._cal_cov @ S.T + C
-        d = x.D[_POSE_ORDER]
-        C = C + np.multiply.outer(d, d)
         return (C + C.T) * 0.5, S
 
     def state_covariance(self) -> Array:
@@ -312,10 +301,9 @@ class DeadReckoner:
         return self._full_covariance(self._x).copy()
 
     def _full_covariance(self, x: _State) -> Array:
-        P = x.P + np.multiply.outer(x.D, x.D)
         if self._cal_cov is None:
-            return P
-        return P + x.S @ self._cal_cov @ x.S.T
+            return x.P
+        return x.P + x.S @ self._cal_cov @ x.S.T
 
     # ------------------------------------------------------------------ integration
 
@@ -375,23 +363,23 @@ class DeadReckoner:
         Python (``_step_python``): the same operations, the same result to float rounding."""
         native = NATIVE
         if native is None:
-            p, q, v, w, norm, P, S, D = self._step_python(x, samples, t1)
+            p, q, v, w, norm, P, S = self._step_python(x, samples, t1)
             variances = P.diagonal().tolist()
             reason = _divergence(norm, w, sum(variances), max(variances))
         else:
-            P, D = np.empty((12, 12)), np.empty(12)
+            P = np.empty((12, 12))
             S = x.S if self._cal_cov is None else np.empty_like(x.S)
             p, q, v, w, norm, total, largest, fine = native.step(self._consts, x, samples, t1,
-                                                                 P, S, D)
+                                                                 P, S)
             reason = "" if fine else _divergence(norm, w, total, largest)
         if reason:
             raise _DivergedError(f"at t={t1:.3f} s: {reason}")
-        return _State(t1, p, q, v, w, P, S, D)
+        return _State(t1, p, q, v, w, P, S)
 
     def _step_python(self, x: _State, samples: list[_Sample], t1: float) -> \
-            tuple[list[float], list[float], list[float], list[float], float, Array, Array, Array]:
+            tuple[list[float], list[float], list[float], list[float], float, Array, Array]:
         """``_step`` before its divergence check: the new p, q (normalised unless its norm
-        is 0), v, omega, the norm of q before normalising, and the new P, S and D.
+        is 0), v, omega, the norm of q before normalising, and the new P and S.
 
         The 3- and 4-vectors are Python floats: a numpy call on them costs more than the
         arithmetic (see "small-vector arithmetic" below); the matrices stay numpy."""
@@ -410,12 +398,11 @@ class DeadReckoner:
         w4 = [w0[0] + h * s3[3], w0[1] + h * s3[4], w0[2] + h * s3[5]]
         s4 = solve(x1, w4)
         q1, q2, q3, q4 = _quaternion_rk4(x.q, (w0, w2, w3, w4), h)
-        # velocity / position stages: v' = R(q) f + g + the tilt's second-order mean, p' = v
+        # velocity / position stages: v' = R(q) f + g, p' = v
         R2 = _rotation(q2)
+        g = self._gravity
         a1, a2 = _rotate(x.q, s1), _mat_vec(R2, s2)
         a3, a4 = _rotate(q3, s3), _rotate(q4, s4)
-        pull, spread = _second_order(self._tilt_covariance(x), a2)
-        g = [self._gravity[0] + pull[0], self._gravity[1] + pull[1], self._gravity[2] + pull[2]]
         h6, hh6 = h / 6.0, h * h / 6.0
         p0, v0 = x.p, x.v
         p1, v1, w1 = [], [], []
@@ -425,37 +412,25 @@ class DeadReckoner:
             v1.append(v0[i] + h6 * ((a1[i] + gi) + 2.0 * (a2[i] + gi) + 2.0 * (a3[i] + gi)
                                     + (a4[i] + gi)))
             w1.append(w0[i] + h6 * (s1[3 + i] + 2.0 * s2[3 + i] + 2.0 * s3[3 + i] + s4[3 + i]))
-        P, S, D = self._propagate(x, h, R2, s2, w2,
-                                  [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
-                                   0.5 * (p1[2] + p0[2])],
-                                  [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
-                                   0.5 * (v1[2] + v0[2])], spread)
+        P, S = self._propagate(x.P, x.S, h, R2, s2, w2,
+                               [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
+                                0.5 * (p1[2] + p0[2])],
+                               [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
+                                0.5 * (v1[2] + v0[2])])
         a, b, c, d = q1
         norm = math.sqrt(a * a + b * b + c * c + d * d)
         if norm:  # else the divergence check refuses the state
             q1 = [a / norm, b / norm, c / norm, d / norm]
-        return p1, q1, v1, w1, norm, P, S, D
+        return p1, q1, v1, w1, norm, P, S
 
-    def _tilt_covariance(self, x: _State) -> Array:
-        """The 3x3 covariance of the orientation error phi (reading noise and
-        calibration; the block of ``_full_covariance``)."""
-        C = x.P[0:3, 0:3]
-        if self._cal_cov is None:
-            return C
-        S = x.S[0:3]
-        return S @ self._cal_cov @ S.T + C
-
-    def _propagate(self, x: _State, h: float, R: list[float], f: list[float],
-                   w: list[float], p: list[float], v: list[float],
-                   spread: list[float]) -> tuple[Array, Array, Array]:
-        """Error-state propagation of ``x.P``, ``x.S`` and ``x.D`` over one step,
-        linearised at the step's midpoint (``R`` row-major, 9 floats).
+    def _propagate(self, P: Array, S: Array, h: float, R: list[float], f: list[float],
+                   w: list[float], p: list[float], v: list[float]) -> tuple[Array, Array]:
+        """Error-state propagation of ``P`` and ``S`` over one step, linearised at the
+        step's midpoint (``R`` row-major, 9 floats).
 
         phi' = R domega;  rho' = dv + [p]x R domega + [v]x phi  (rho = dp - phi x p);
-        dv' = -[R f]x phi + R df (+ ``spread`` in D, see ``_second_order``);
-        domega' = d(omega_dot).
+        dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
         """
-        P, S = x.P, x.S
         J = self.layout.omega_jacobian_floats(w)  # d(f, wd)/d(omega)
         r0, r1, r2 = R[0:3], R[3:6], R[6:9]
         # A and the rows 6:9 of Bk = d(state error)/d(readings) / k (R G[:3] / k) as floats,
@@ -472,52 +447,7 @@ class DeadReckoner:
         P = F @ P @ F.T + (Bk * (self._noise_var_k * (h / self.rate_hz))) @ Bk.T
         if self._cal_cov is not None:  # a calibration error is a reading error ([1, f]/k)
             S = F @ S + np.multiply.outer(Bk, [h, h * f[0], h * f[1], h * f[2]]).reshape(12, -1)
-        D = F @ x.D
-        D[6:9] += [h * spread[0], h * spread[1], h * spread[2]]
-        return P, S, D
-
-
-def _second_order(C: Array, u: list[float]) -> tuple[list[float], list[float]]:
-    """The orientation error's second-order effect on the acceleration over a step: its
-    mean, which the estimate carries (the "pull", added to gravity), and the std-scaled
-    direction of what is left (the "spread", driving ``_State.D``), from the covariance
-    ``C`` of the orientation error phi and the estimate's world-frame specific force ``u``
-    (the step's midpoint).
-
-    The truths the estimate and its covariance allow have R = Exp(-phi) R_est, so their
-    specific force is Exp(-phi) u = u - phi x u + 1/2 phi x (phi x u) + O(|phi|^3).  The
-    first-order term is the linear propagation's (``-[R f]x phi``, linearised at the
-    estimate).  The second has a mean whatever phi's sign, 1/2 (C - tr(C) I) u: along u
-    -|u| tr(C_perp) / 2, C_perp the covariance of the tilt about the axes perpendicular to
-    u (a tilted rig's up-component is |u| cos|tilt|).  The estimate integrates it with the
-    motion, as a second-order filter does, so that the error stays mean-free in the frame
-    the covariance describes.
-
-    That sign is the one the covariance needs, though a rig at rest whose estimate is tilted
-    by phi0 already sinks by g |phi0|^2 / 2 against the truth: the linear part, linearised
-    at the estimate's tilted u, ties the height error to the horizontal one (the vertical
-    part of phi x u is -g phi . phi0), and given the horizontal error it expects a sink of
-    g |phi0|^2, twice the real one.  The pull closes that gap on average (what the pose's
-    NEES sees, all six components together); taking the sink out of the estimate instead
-    would leave the height unbiased on its own but twice as far from what the covariance
-    expects given the rest.
-
-    The spread along u is |u| / 2 (|phi_perp|^2 - tr C_perp), of variance
-    |u|^2 tr(C_perp^2) / 2 (a Gaussian quadratic form phi^T M phi has variance
-    2 tr((M C)^2)); it is uncorrelated with the linear errors (a Gaussian's odd moments
-    vanish), so it adds to the covariance with no cross terms.  Across u the second-order
-    terms, (phi . u) phi_perp / 2, are as small, but sit beside first-order ones larger by
-    1 / |phi| (the tilt error times |u|): left out.  The returned spread is
-    sqrt(tr(C_perp^2) / 2) u, the std along u times u's direction.
-    """
-    u_ = np.asarray(u, float)
-    pull = 0.5 * (C @ u_ - np.trace(C) * u_)
-    uu = float(u_ @ u_)
-    if uu == 0.0:  # no specific force: no second-order term
-        return pull.tolist(), [0.0, 0.0, 0.0]
-    perp = np.eye(3) - np.multiply.outer(u_, u_) / uu
-    M = perp @ C @ perp
-    return pull.tolist(), (math.sqrt(0.5 * float((M * M).sum())) * u_).tolist()
+        return P, S
 
 
 def _native_constants(corr: Array, gk: Array, noise_var_k: Array, rate_hz: float,
@@ -565,7 +495,6 @@ def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Arra
     is independent of the old estimate)."""
     P = np.zeros_like(base.P)
     S = np.zeros_like(base.S)
-    D = np.zeros_like(base.D)
     P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
     P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
     values, kept = {}, []
@@ -580,8 +509,7 @@ def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Arra
         for b in kept:
             P[a, b] = base.P[a, b]
         S[a] = base.S[a]
-        D[a] = base.D[a]
-    return _State(t, p, q, values["velocity"], values["omega"], P, S, D)
+    return _State(t, p, q, values["velocity"], values["omega"], P, S)
 
 
 def _divergence(q_norm: float, w: list[float], var_sum: float, var: float) -> str:
