@@ -18,6 +18,7 @@ RATE_HZ = 2.0
 
 
 @pytest.mark.slow
+@pytest.mark.alone
 def test_twenty_hosts_form_one_realm_that_lists_all_services(site, realm) -> None:
     s = site(AGENTS + 1)  # the last host runs only the client
     started = time.monotonic()
