@@ -9,11 +9,31 @@ on without them and :mod:`agent.srg.kernel`, the pose decoder
 run in pure Python (same results, slower; the fit's to rounding).  The pose
 decoder, the answer reader, the dead reckoner's step and the segmentation are compiled
 without floating-point contraction, so that their arithmetic rounds as Python's does.
+
+A kernel that fails to build also loses the copy an earlier build left beside its source
+(an editable install's): that copy was built from other source, and loading it would call
+the new Python with the old kernel's signatures.
 """
 
-from setuptools import Extension, setup
+from pathlib import Path
 
-setup(ext_modules=[
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+
+class BuildExt(build_ext):
+    """``build_ext`` that removes an optional kernel's stale in-tree copy when it fails."""
+
+    def build_extension(self, ext: Extension) -> None:
+        try:
+            super().build_extension(ext)
+        except Exception:
+            if ext.optional:
+                Path(self.get_ext_filename(ext.name)).unlink(missing_ok=True)
+            raise
+
+
+setup(cmdclass={"build_ext": BuildExt}, ext_modules=[
     Extension("agent.srg._kernel", ["agent/srg/_kernel.c"], optional=True),
     Extension("agent.protocol._wire", ["agent/protocol/_wire.c"], optional=True,
               extra_compile_args=["-ffp-contract=off"]),
