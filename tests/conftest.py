@@ -3,13 +3,16 @@ are always stopped (by the PID we started, never by name)."""
 
 from __future__ import annotations
 
+import itertools
 import os
+import random
 import signal
 import socket
 import subprocess
 import sys
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 from agent_helpers.site import Site, unavailable
@@ -23,8 +26,36 @@ settings.register_profile("uma", derandomize=True, deadline=None)
 settings.load_profile("uma")
 
 
+def _port_block() -> range:
+    """This test worker's own ports: below the kernel's ephemeral range (where bind(0) and
+    every outgoing connection take theirs, so a port found free there can be taken by
+    another worker's client before an agent listens on it), one block per xdist worker."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+    size = max(1, (low - 10000) // workers)
+    start = 10000 + (int(worker) % workers if worker.isdigit() else 0) * size
+    return range(start, start + size)
+
+
+_PORTS = _port_block()
+_next_port = itertools.count(random.randrange(len(_PORTS)) if len(_PORTS) > 1 else 0)
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    """A TCP port on 127.0.0.1 that nobody listens on right now, from this worker's block
+    (``_port_block``); bind(0)'s when the block has none."""
+    for _ in range(min(len(_PORTS), 500)):
+        port = _PORTS[next(_next_port) % len(_PORTS)]
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
