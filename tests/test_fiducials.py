@@ -20,9 +20,10 @@ from services.camera.model import CameraModel
 from services.camera.simulator import FAITHFUL, SimCamera, static, write_video
 from services.consistency import nees_figures
 from services.fiducials import edges, pose
+from services.fiducials import tracker as fiducial_tracker
 from services.fiducials.bodies import Body, BundleFileError, load_bundles
 from services.fiducials.simulate import FACING, tags, wandering, webcam
-from services.fiducials.tracker import FiducialTracker, branch_switch
+from services.fiducials.tracker import FiducialTracker, branch_switch, side_offset_covariance
 
 K = np.array([[530.0, 0, 319.5], [0, 530.0, 239.5], [0, 0, 1]])
 IDEAL = CameraModel(K, [], 640, 480, pixel_std=0.3)
@@ -270,6 +271,39 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
                        for j in range(2)] for i in range(2)])
     claimed_corr = cov01[0, 1] / np.sqrt(cov01[0, 0] * cov01[1, 1])
     assert measured < -0.3 and abs(claimed_corr - measured) < 0.3, (measured, claimed_corr)
+
+
+def test_side_offsets_move_the_corners_as_their_lines_do():
+    """The corners' covariance from the four sides' offsets is the corners' scatter when
+    the sides' lines are moved by such offsets and intersected again; the sides with narrow
+    cells across them (a tilted tag's long ones) are the less certain."""
+    quad = corners_of(facing((1.1, 0.0, 0.0), (0.0, 0.0, 1.6)))  # tilted 63 degrees
+    cov = side_offset_covariance(quad[None], 8)[0]
+    centre = quad.mean(axis=0)
+    lines = []
+    for k in range(4):
+        a, b = quad[k], quad[(k + 1) % 4]
+        normal = np.array([b[1] - a[1], a[0] - b[0]]) / np.linalg.norm(b - a)
+        normal *= np.sign(normal @ ((a + b) / 2 - centre))
+        lines.append((normal, normal @ a))
+    length = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
+    across = (np.roll(length, 1) + np.roll(length, -1)) / 16
+    tau = fiducial_tracker.SIDE_A * np.exp(-across / fiducial_tracker.SIDE_SCALE_PX)
+    rho = fiducial_tracker.SIDE_CORRELATION
+    shifts = np.random.default_rng(2).multivariate_normal(
+        np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)), 20000)
+    moved = np.empty((len(shifts), 4, 2))
+    for k in range(4):
+        (n0, d0), (n1, d1) = lines[k - 1], lines[k]
+        moved[:, k] = np.linalg.solve(np.array([n0, n1]), np.stack(
+            [d0 + shifts[:, k - 1], d1 + shifts[:, k]]))[None].T.reshape(-1, 2)
+    scatter = np.cov((moved - quad).reshape(len(shifts), 8).T)
+    assert np.allclose(scatter, cov, atol=0.05 * np.abs(cov).max()), (scatter, cov)
+    across_std = [np.sqrt(n @ (cov[2 * k:2 * k + 2, 2 * k:2 * k + 2]) @ n)
+                  for k, (n, _) in enumerate(lines)]
+    long_sides = np.argsort(length)[2:]
+    assert min(across_std[k] for k in long_sides) > 2 * max(
+        across_std[k] for k in np.argsort(length)[:2])
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):

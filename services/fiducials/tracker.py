@@ -11,9 +11,10 @@
 * **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` the corners' joint covariance from the four
   edge lines they are the intersections of (:func:`edges.refine`: their fits' scatter,
   length and angle; two corners of a side move with its line), times ``EDGE_CORRELATION``
-  (neighbouring edge points share their noise through the blur), plus ``SHARED_A / cell_px
-  ** SHARED_B`` per axis (what a tiny tag's edge fits cannot show).  So it grows when the
-  marker is far, blurred, tilted or badly lit, corner by corner;
+  (neighbouring edge points share their noise through the blur), plus what each side's
+  fit cannot show: its line's offset across it, larger where the cells across that side
+  are narrow, the four sides' together (:func:`side_offset_covariance`).  So it grows when
+  the marker is far, blurred, tilted or badly lit, corner by corner and side by side;
 * **corner noise for the ambiguity judgement**: a separate, cautious figure: per body,
   the residuals of its last ``POOL_FRAMES`` fits pooled (``σ² = Σ RSS / Σ dof``; the
   camera's calibrated pixel noise fills in for the dof missing up to ``FULL_DOF``, then
@@ -72,13 +73,19 @@ FLOOR_B = 1.58
 #: give (fitted on seeds 1-10 of ``uma eval fiducials``: NEES inside its band at 0.5-1 m
 #: on 9 of 10 seeds with 1.6, 2 of 10 with 3, where the means were 2.6-4.9)
 EDGE_CORRELATION = 1.6
-#: what a tiny tag's edge fits cannot show (its reach across a side spans barely a cell,
-#: the code's cells bias the crossing): ``SHARED_A / cell_px ** SHARED_B`` per axis added
-#: to each corner (0.003 px at 1 m, 0.03 px at 2 m for an 8 cm tag; fitted on seeds 1-10
-#: of ``uma eval fiducials``, whose frames integrate each pixel's area: mean NEES of the
-#: unflagged samples at 1-1.5 m inside its band on 8 of 9 seeds with 1.0, 5 of 9 with 3.0)
-SHARED_A = 1.0
-SHARED_B = 3.5
+#: what a side's edge fit cannot show: the line's offset across the side errs by about
+#: ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px beyond its fit's scatter, ``across`` the
+#: width (px) of the cells across that side (the black border inside it, the white quiet
+#: zone outside it, a cell each).  Where they are narrow against the blur, the profile's
+#: dark and bright ends are not the print's black and white and its mid-level crossing
+#: moves; the offsets of a tag's four sides err together (``SIDE_CORRELATION``: the tag
+#: looks smaller or larger as a whole).  Per side, not per tag: a tilted tag's long sides
+#: have narrow cells across them and err, its short sides have wide ones and do not
+#: (fitted on seeds 1-10 of ``uma eval fiducials``, the outward offsets of 4,500 sides
+#: against the truth by maximum likelihood: 0.38 px, 0.98 px, 0.59)
+SIDE_A = 0.38
+SIDE_SCALE_PX = 1.0
+SIDE_CORRELATION = 0.6
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
 #: a solution continues the previous favourite branch when it is within this share of
@@ -178,12 +185,39 @@ def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], amb
     return np.outer(d, d) + cov_of(other)
 
 
-def corner_covariance(edge_fit: np.ndarray, module_px: np.ndarray) -> np.ndarray:
-    """The joint covariances (m, 2n, 2n) of the ``n`` corners of each of ``m`` bodies from
-    their edge fits' (:func:`edges.refine`, a marker's 8x8 blocks on the diagonal), each
-    body's solved with a marker of ``module_px`` (m,) pixel cells."""
-    shared = SHARED_A / np.maximum(module_px, 0.5) ** SHARED_B
-    return EDGE_CORRELATION * edge_fit + (shared ** 2)[:, None, None] * np.eye(edge_fit.shape[-1])
+def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, modules: int) -> np.ndarray:
+    """The joint covariances (m, 8, 8) of the corners (m, 4, 2) of ``m`` markers ``modules``
+    cells wide, from their edge fits' (:func:`edges.refine`): those times
+    ``EDGE_CORRELATION``, plus the four sides' offsets that the fits cannot show
+    (:func:`side_offset_covariance`)."""
+    return EDGE_CORRELATION * edge_fit + side_offset_covariance(corners, modules)
+
+
+def side_offset_covariance(corners: np.ndarray, modules: int) -> np.ndarray:
+    """The corners' covariance (m, 8, 8) from their four sides' lines moving across
+    themselves (outwards, each by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, together at
+    ``SIDE_CORRELATION``): corner k is where sides k - 1 and k meet, so it moves by the
+    inverse of the matrix of their outward normals times their two offsets."""
+    corners = np.asarray(corners, np.float64)
+    side = corners[:, _NEXT] - corners
+    length = np.maximum(np.sqrt(np.einsum("mkc,mkc->mk", side, side)), 1e-9)
+    across = (length[:, _PREV] + length[:, _NEXT]) / (2 * modules)
+    tau = SIDE_A * np.exp(-across / SIDE_SCALE_PX)
+    normal = side[..., ::-1] * [1.0, -1.0] / length[..., None]
+    middle = (corners + corners[:, _NEXT]) / 2 - corners.mean(axis=1, keepdims=True)
+    normal *= np.sign(np.einsum("mkc,mkc->mk", normal, middle))[..., None]  # outwards
+    by = edges.inverse_2x2(np.stack([normal[:, _PREV], normal], axis=-2))  # (m, 4, 2, 2)
+    m = len(corners)
+    G = np.zeros((m, 4, 2, 4))
+    k = np.arange(4)
+    G[:, k, :, _PREV] = np.moveaxis(by[..., 0], 1, 0)
+    G[:, k, :, k] = np.moveaxis(by[..., 1], 1, 0)
+    G = G.reshape(m, 8, 4)
+    shared = SIDE_CORRELATION + (1 - SIDE_CORRELATION) * np.eye(4)
+    return G @ (tau[:, :, None] * tau[:, None, :] * shared) @ np.swapaxes(G, -1, -2)
+
+
+_NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
 
 
 def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:
@@ -294,13 +328,14 @@ class FiducialTracker:
     def observe(self, image: np.ndarray,
                 ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
         """Marker id -> its four corners (4, 2) in ideal pixels (distortion removed), and
-        marker id -> their joint covariance (8, 8) from the edge fits."""
+        marker id -> their joint covariance (8, 8) (:func:`corner_covariance`)."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, _ = self.detector.detectMarkers(gray)
         if ids is None:
             return {}, {}
         ideal, cov = edges.refine(gray, np.asarray(corners).reshape(-1, 4, 2), self._modules,
                                   self.camera)
+        cov = corner_covariance(cov, ideal, self._modules)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
 
@@ -393,10 +428,9 @@ class FiducialTracker:
         fit = pose.Fits.of([p.chosen for p in picks])
         information = None
         if noise is not None and all(i in noise for p in picks for i in p.ids):
-            information = np.linalg.inv(corner_covariance(
+            information = np.linalg.inv(
                 np.stack([noise[p.ids[0]] if len(p.ids) == 1 else
-                          _block_diagonal([noise[i] for i in p.ids]) for p in picks]),
-                np.array([p.module_px for p in picks])))
+                          _block_diagonal([noise[i] for i in p.ids]) for p in picks]))
             fit = pose.reweigh(fit, information)
         sigmas = np.sqrt([p.sigma2 for p in picks])
 
