@@ -104,6 +104,7 @@ def _reference_step(dr: DeadReckoner, x: _State, samples, t1: float):
     qs = np.array([q0, q2, q3, q4])
     Rs = (((qs[:, :, None] * qs[:, None, :]).reshape(4, 16) @ _ROTATION_QUADRATIC)
           / (qs * qs).sum(axis=1)[:, None]).reshape(4, 3, 3)
+    spread = _reference_second_order(dr, x, Rs[1] @ s2[:3])
     acc = (Rs @ xs[:, :3, None])[:, :, 0] + dr.gravity
     v0, p0 = np.array(x.v), np.array(x.p)
     p1 = p0 + h * v0 + h * h / 6.0 * (_WP @ acc)
@@ -129,7 +130,23 @@ def _reference_step(dr: DeadReckoner, x: _State, samples, t1: float):
     c = np.ones((G.shape[1], 4)) / dr.calibration.gain_v_per_mps2[:, None]
     c[:, 1:] *= f
     S = F @ x.S + h * (B[:, :, None] * c[None, :, :]).reshape(12, -1)
-    return p1, q1 / np.linalg.norm(q1), v1, w1, P, S
+    D = F @ x.D + h * np.concatenate([np.zeros(6), spread, np.zeros(3)])
+    return p1, q1 / np.linalg.norm(q1), v1, w1, P, S, D
+
+
+def _reference_second_order(dr: DeadReckoner, x: _State, u: np.ndarray):
+    """The root mean square of the orientation error's second-order effect along ``u``
+    times ``u``: for the tilt about each principal axis of C_perp (the orientation error's
+    covariance projected across ``u``, eigenvalue l), 1 - cos of it has mean
+    1 - exp(-l / 2) and variance (1 - exp(-l))^2 / 2."""
+    cal = integrator.calibration_covariance(dr.calibration)
+    C = x.P[:3, :3] + (0.0 if cal is None else x.S[:3] @ cal @ x.S[:3].T)
+    n = u / np.linalg.norm(u)
+    basis = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2]  # two axes across u
+    lam = np.clip(np.linalg.eigvalsh(basis.T @ C @ basis), 0.0, None)
+    mean = np.sum(1.0 - np.exp(-lam / 2))
+    var = np.sum(0.5 * (1.0 - np.exp(-lam)) ** 2)
+    return np.sqrt(mean**2 + var) * u
 
 
 # ---------------------------------------------------------------------- the comparisons
@@ -141,7 +158,7 @@ def _random_state(rng, n: int) -> _State:
     return _State(float(rng.uniform(0, 10)), rng.normal(size=3).tolist(),
                   (q / np.linalg.norm(q)).tolist(),
                   rng.normal(size=3).tolist(), rng.uniform(-4, 4, size=3).tolist(),
-                  L @ L.T, rng.normal(size=(12, 4 * n)) * 1e-3)
+                  L @ L.T, rng.normal(size=(12, 4 * n)) * 1e-3, rng.normal(size=12) * 1e-3)
 
 
 @pytest.mark.parametrize("make", LAYOUTS)
@@ -193,7 +210,7 @@ def test_step_equals_the_previous_numpy_step(make, samples_before, step_path):
         samples = [(t, (rng.normal(size=6) * 5).tolist()) for t in [*before[::-1], t1]]
         got = dr._step(x, samples, t1)
         want = _reference_step(dr, x, samples, t1)
-        for g, w in zip((got.p, got.q, got.v, got.w, got.P, got.S), want, strict=True):
+        for g, w in zip((got.p, got.q, got.v, got.w, got.P, got.S, got.D), want, strict=True):
             _close(g, w)
 
 

@@ -113,7 +113,7 @@ def test_compiled_and_python_estimates_agree_on_every_layout(make):
         q = rng.normal(size=4)
         dr._x = _State(1.0, rng.normal(size=3).tolist(), (q / np.linalg.norm(q)).tolist(),
                        rng.normal(size=3).tolist(), rng.normal(size=3).tolist(), L @ L.T,
-                       rng.normal(size=(12, 4 * n)) * 1e-3)
+                       rng.normal(size=(12, 4 * n)) * 1e-3, rng.normal(size=12) * 1e-3)
         with _path(True):
             a = dr.estimate()
         with _path(False):
@@ -168,11 +168,13 @@ def test_compiled_step_refuses_malformed_constants():
     dr = DeadReckoner(default_device().calibration(DEFAULT_RATE_HZ), DEFAULT_RATE_HZ)
     dr.reset(0.0, np.zeros(3), [0.0, 0.0, 0.0, 1.0])
     x = dr._x
-    P, S = np.empty((12, 12)), np.empty_like(x.S)
+    P, S, D = np.empty((12, 12)), np.empty_like(x.S), np.empty(12)
     with pytest.raises(ValueError, match="constants"):
-        COMPILED.step(dr._consts[:-1], x, [(0.1, [0.0] * 6)], 0.1, P, S)
+        COMPILED.step(dr._consts[:-1], x, [(0.1, [0.0] * 6)], 0.1, P, S, D)
     with pytest.raises(ValueError, match="P_out"):
-        COMPILED.step(dr._consts, x, [(0.1, [0.0] * 6)], 0.1, np.empty((12, 11)), S)
+        COMPILED.step(dr._consts, x, [(0.1, [0.0] * 6)], 0.1, np.empty((12, 11)), S, D)
+    with pytest.raises(ValueError, match="D_out"):
+        COMPILED.step(dr._consts, x, [(0.1, [0.0] * 6)], 0.1, P, S, np.empty(11))
 
 
 def test_pure_python_step_is_forced_by_the_environment():

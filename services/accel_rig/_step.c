@@ -255,10 +255,66 @@ static void mat_mul(const double *a, int sa, const double *b, int sb, int r, int
     }
 }
 
-/* _propagate: P_out = F P F^T + noise, S_out = F S + outer(Bk, [h, h f]) (cal only). */
-static void propagate(const consts_t *c, const double *P, const double *S, double h,
-                      const double *R, const double *f, const double *w, const double *p,
-                      const double *v, double *P_out, double *S_out) {
+/* out = Sr cal Sr^T (r x r, r <= 6) for r rows Sr of a sensitivity (4n wide): cal is
+ * block-diagonal, 4x4 per accelerometer, so only its blocks are multiplied. */
+static void cal_quadratic(const consts_t *c, const double *Sr, int r, double *out) {
+    Py_ssize_t m = 4 * c->n;
+    double T[6][4 * MAX_N];
+    for (Py_ssize_t j = 0; j < c->n; j++)
+        mat_mul(Sr + 4 * j, (int)m, c->cal + 16 * j, 4, r, 4, 4, &T[0][4 * j], 4 * MAX_N);
+    for (int a = 0; a < r; a++)
+        for (int b = 0; b < r; b++) {
+            double s = 0.0;
+            for (Py_ssize_t l = 0; l < m; l++) s += T[a][l] * Sr[b * m + l];
+            out[r * a + b] = s;
+        }
+}
+
+/* _tilt_covariance: the 3x3 block of P plus S3 cal S3^T (with a calibration covariance). */
+static void tilt_covariance(const consts_t *c, const double *P, const double *S, double *C) {
+    double SC[9] = {0.0};
+    if (c->cal != NULL) cal_quadratic(c, S, 3, SC);
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++) C[3 * a + b] = SC[3 * a + b] + P[a * E + b];
+}
+
+/* _along_rms: the root mean square of the second-order term along u per unit |u|, from
+ * the trace t and the sum of squares q of Cp. */
+static double along_rms(double t, double q) {
+    double d = sqrt(fmax(0.5 * q - 0.25 * t * t, 0.0));
+    double lam[2] = {fmax(0.5 * t + d, 0.0), fmax(0.5 * t - d, 0.0)};
+    double mean = 0.0, var = 0.0;
+    for (int i = 0; i < 2; i++) mean += -expm1(-0.5 * lam[i]);
+    for (int i = 0; i < 2; i++) {
+        double e = expm1(-lam[i]);
+        var += 0.5 * e * e;
+    }
+    return sqrt(mean * mean + var);
+}
+
+/* _second_order: along_rms(tr Cp, sum Cp^2) u, Cp = (I - u u^T / u.u) C (I - u u^T / u.u). */
+static void second_order(const double *C, const double *u, double *spread) {
+    double uu = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+    if (uu == 0.0) {
+        spread[0] = spread[1] = spread[2] = 0.0;
+        return;
+    }
+    double perp[9], PC[9], M[9], ss = 0.0;
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) perp[3 * i + j] = (i == j ? 1.0 : 0.0) - u[i] * u[j] / uu;
+    mat_mul(perp, 3, C, 3, 3, 3, 3, PC, 3);
+    mat_mul(PC, 3, perp, 3, 3, 3, 3, M, 3);
+    for (int i = 0; i < 9; i++) ss += M[i] * M[i];
+    double k = along_rms(M[0] + M[4] + M[8], ss);
+    for (int i = 0; i < 3; i++) spread[i] = k * u[i];
+}
+
+/* _propagate: P_out = F P F^T + noise, S_out = F S + outer(Bk, [h, h f]) (cal only),
+ * D_out = F D + h spread (rows 6:9). */
+static void propagate(const consts_t *c, const double *P, const double *S, const double *D,
+                      double h, const double *R, const double *f, const double *w,
+                      const double *p, const double *v, const double *spread, double *P_out,
+                      double *S_out, double *D_out) {
     double A[E][E], Bk[E][MAX_N], Ah[E][E], A2[E][E], F[E][E], Pt[E][E], FP[E][E], PF[E][E];
     double Bw[E][MAX_N], BkT[MAX_N][E];
     Py_ssize_t n = c->n, m = 4 * n;
@@ -285,6 +341,8 @@ static void propagate(const consts_t *c, const double *P, const double *S, doubl
     double noise[E][E];
     mat_mul(&Bw[0][0], MAX_N, &BkT[0][0], E, E, (int)n, E, &noise[0][0], E);
     for (int i = 0; i < E * E; i++) P_out[i] += (&noise[0][0])[i];
+    mat_mul(&F[0][0], E, D, 1, E, E, 1, D_out, 1);
+    for (int i = 0; i < 3; i++) D_out[6 + i] += h * spread[i];
     if (c->cal == NULL) return;
     mat_mul(&F[0][0], E, S, (int)m, E, E, (int)m, S_out, (int)m);
     double k[4] = {h, h * f[0], h * f[1], h * f[2]};
@@ -317,9 +375,9 @@ static int read_samples(PyObject *samples, double *ts, double xs[][6]) {
 
 typedef struct { double t, p[3], q[4], v[3], w[3]; } vec_state_t;
 
-/* The state's t, p, q, v, w (a _State: a tuple whose items 5 and 6 are P and S). */
+/* The state's t, p, q, v, w (a _State: a tuple whose items 5, 6 and 7 are P, S and D). */
 static int read_state(PyObject *x, vec_state_t *s) {
-    if (!PyTuple_Check(x) || PyTuple_GET_SIZE(x) != 7) {
+    if (!PyTuple_Check(x) || PyTuple_GET_SIZE(x) != 8) {
         PyErr_SetString(PyExc_ValueError, "step: expected a _State");
         return 0;
     }
@@ -334,7 +392,8 @@ static int read_state(PyObject *x, vec_state_t *s) {
 /* DeadReckoner._step before its divergence check: RK4 from x to t1 over the samples. */
 static void rk4_step(const consts_t *c, const vec_state_t *x, int m, const double *ts,
                      double xs[][6], double t1, const double *P, const double *S,
-                     vec_state_t *out, double *q_norm, double *P_out, double *S_out) {
+                     const double *D, vec_state_t *out, double *q_norm, double *P_out,
+                     double *S_out, double *D_out) {
     double h = t1 - x->t, hh = 0.5 * h;
     double x0[6], xm[6], x1[6], s1[6], s2[6], s3[6], s4[6], ws[4][3], end[4], st[3][4];
     interpolate(m, ts, xs, x->t, x0);
@@ -356,6 +415,9 @@ static void rk4_step(const consts_t *c, const vec_state_t *x, int m, const doubl
     mat_vec(R2, s2, a2);
     rotate(st[1], s3, a3);
     rotate(st[2], s4, a4);
+    double Ct[9], spread[3];
+    tilt_covariance(c, P, S, Ct);
+    second_order(Ct, a2, spread);
     double h6 = h / 6.0, hh6 = h * h / 6.0;
     for (int i = 0; i < 3; i++) {
         double gi = c->g[i];
@@ -367,7 +429,7 @@ static void rk4_step(const consts_t *c, const vec_state_t *x, int m, const doubl
         pm[i] = 0.5 * (out->p[i] + x->p[i]);
         vm[i] = 0.5 * (out->v[i] + x->v[i]);
     }
-    propagate(c, P, S, h, R2, s2, ws[1], pm, vm, P_out, S_out);
+    propagate(c, P, S, D, h, R2, s2, ws[1], pm, vm, spread, P_out, S_out, D_out);
     double a = end[0], b = end[1], cc = end[2], d = end[3];
     double norm = sqrt(a * a + b * b + cc * cc + d * d);
     for (int i = 0; i < 4; i++) out->q[i] = end[i] / norm;
@@ -375,17 +437,18 @@ static void rk4_step(const consts_t *c, const vec_state_t *x, int m, const doubl
     *q_norm = norm;
 }
 
-/* step(consts, x, samples, t1, P_out, S_out) -> (p, q, v, w, q_norm, var_sum, var_max, fine):
+/* step(consts, x, samples, t1, P_out, S_out, D_out)
+ *   -> (p, q, v, w, q_norm, var_sum, var_max, fine):
  * the new state's vectors as lists of floats, the norm of its quaternion before
  * normalisation, the sum and largest of P_out's diagonal, and whether _divergence would
  * find nothing (the same tests, so that Python only words a divergence); P_out (12 x 12)
- * and, with a calibration covariance, S_out (12 x 4n) are filled. */
+ * and, with a calibration covariance, S_out (12 x 4n) are filled, and D_out (12). */
 static PyObject *step(PyObject *Py_UNUSED(self), PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "step: expected 6 arguments");
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError, "step: expected 7 arguments");
         return NULL;
     }
-    buf_t cb = {0}, pb = {0}, sb = {0}, po = {0}, so = {0};
+    buf_t cb = {0}, pb = {0}, sb = {0}, db = {0}, po = {0}, so = {0}, dout = {0};
     PyObject *result = NULL;
     consts_t c;
     vec_state_t x, out;
@@ -397,11 +460,13 @@ static PyObject *step(PyObject *Py_UNUSED(self), PyObject *const *args, Py_ssize
         || (m = read_samples(args[2], ts, xs)) < 0
         || !get_doubles(PyTuple_GET_ITEM(args[1], 5), E * E, 0, &pb, "P")
         || !get_doubles(PyTuple_GET_ITEM(args[1], 6), E * 4 * c.n, 0, &sb, "S")
+        || !get_doubles(PyTuple_GET_ITEM(args[1], 7), E, 0, &db, "D")
         || !get_doubles(args[4], E * E, 1, &po, "P_out")
-        || (c.cal != NULL && !get_doubles(args[5], E * 4 * c.n, 1, &so, "S_out")))
+        || (c.cal != NULL && !get_doubles(args[5], E * 4 * c.n, 1, &so, "S_out"))
+        || !get_doubles(args[6], E, 1, &dout, "D_out"))
         goto done;
-    rk4_step(&c, &x, m, ts, xs, t1, pb.view.buf, sb.view.buf, &out, &q_norm, po.view.buf,
-             c.cal != NULL ? so.view.buf : NULL);
+    rk4_step(&c, &x, m, ts, xs, t1, pb.view.buf, sb.view.buf, db.view.buf, &out, &q_norm,
+             po.view.buf, c.cal != NULL ? so.view.buf : NULL, dout.view.buf);
     const double *P_new = po.view.buf;
     double var_sum = 0.0, var_max = P_new[0];
     for (int i = 0; i < E; i++) {
@@ -416,7 +481,8 @@ static PyObject *step(PyObject *Py_UNUSED(self), PyObject *const *args, Py_ssize
                            float_list(out.v, 3), float_list(out.w, 3), q_norm, var_sum,
                            var_max, fine ? Py_True : Py_False);
 done:
-    release(&cb); release(&pb); release(&sb); release(&po); release(&so);
+    release(&cb); release(&pb); release(&sb); release(&db); release(&po); release(&so);
+    release(&dout);
     return result;
 }
 
@@ -424,14 +490,14 @@ done:
  * x: its p, q, v, w (vec_out, 13), the 6x6 pose covariance, symmetrised, in geometry's
  * order [rho, phi] (C_out), and with a calibration covariance the pose rows of S (S6_out)
  * and S6 cal S6^T added to C (cal is block-diagonal: 4x4 per accelerometer, so only its
- * blocks are multiplied). */
+ * blocks are multiplied); then the pose rows of D, d d^T, added. */
 static PyObject *estimate(PyObject *Py_UNUSED(self), PyObject *const *args, Py_ssize_t nargs) {
     static const int order[6] = {3, 4, 5, 0, 1, 2};
     if (nargs != 5) {
         PyErr_SetString(PyExc_TypeError, "estimate: expected 5 arguments");
         return NULL;
     }
-    buf_t cb = {0}, pb = {0}, sb = {0}, vo = {0}, co = {0}, so = {0};
+    buf_t cb = {0}, pb = {0}, sb = {0}, db = {0}, vo = {0}, co = {0}, so = {0};
     consts_t c;
     vec_state_t x;
     PyObject *result = NULL;
@@ -439,6 +505,7 @@ static PyObject *estimate(PyObject *Py_UNUSED(self), PyObject *const *args, Py_s
         || !read_state(args[1], &x)
         || !get_doubles(PyTuple_GET_ITEM(args[1], 5), E * E, 0, &pb, "P")
         || !get_doubles(PyTuple_GET_ITEM(args[1], 6), E * 4 * c.n, 0, &sb, "S")
+        || !get_doubles(PyTuple_GET_ITEM(args[1], 7), E, 0, &db, "D")
         || !get_doubles(args[2], 13, 1, &vo, "vec_out")
         || !get_doubles(args[3], 36, 1, &co, "C_out")
         || (c.cal != NULL && !get_doubles(args[4], 24 * c.n, 1, &so, "S6_out")))
@@ -454,24 +521,21 @@ static PyObject *estimate(PyObject *Py_UNUSED(self), PyObject *const *args, Py_s
     for (int a = 0; a < 6; a++)
         for (int b = 0; b < 6; b++) M[a][b] = P[order[a] * E + order[b]];
     if (c.cal != NULL) {
-        double *S6 = so.view.buf, T[6][4 * MAX_N], SC[6][6];
+        double *S6 = so.view.buf, SC[6][6];
         for (int a = 0; a < 6; a++) memcpy(S6 + a * m, S + order[a] * m, m * sizeof(double));
-        for (Py_ssize_t j = 0; j < c.n; j++)
-            mat_mul(S6 + 4 * j, (int)m, c.cal + 16 * j, 4, 6, 4, 4, &T[0][4 * j], 4 * MAX_N);
-        for (int a = 0; a < 6; a++)
-            for (int b = 0; b < 6; b++) {
-                double s = 0.0;
-                for (Py_ssize_t l = 0; l < m; l++) s += T[a][l] * S6[b * m + l];
-                SC[a][b] = s;
-            }
+        cal_quadratic(&c, S6, 6, &SC[0][0]);
         for (int a = 0; a < 6; a++)
             for (int b = 0; b < 6; b++) M[a][b] = SC[a][b] + M[a][b];
     }
+    const double *D = db.view.buf;
+    for (int a = 0; a < 6; a++)
+        for (int b = 0; b < 6; b++) M[a][b] = M[a][b] + D[order[a]] * D[order[b]];
     for (int a = 0; a < 6; a++)
         for (int b = 0; b < 6; b++) C[6 * a + b] = (M[a][b] + M[b][a]) * 0.5;
     result = Py_NewRef(Py_None);
 done:
-    release(&cb); release(&pb); release(&sb); release(&vo); release(&co); release(&so);
+    release(&cb); release(&pb); release(&sb); release(&db); release(&vo); release(&co);
+    release(&so);
     return result;
 }
 

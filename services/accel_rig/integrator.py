@@ -17,6 +17,14 @@ and axis of each accelerometer act as constant reading errors, carried as a sens
 matrix).  It includes the instability of the six-accelerometer rig: an angular-velocity
 error feeds back through the centripetal terms of eq. 4.42.
 
+To second order the orientation error also changes the acceleration (a tilt error shortens
+the specific force's component along itself by |u| |tilt|^2 / 2 whatever its sign), which
+the linear propagation leaves out (``_second_order``).  The estimate is left as it is; the
+term enters the covariance as one draw that lasts as long as the orientation error does, so
+it is carried like a constant error (``_State.D``, integrated into velocity and position by
+the same propagation, ``D D^T`` added to the covariance), not as fresh noise at every step,
+which would shrink it by the number of steps.
+
 The step and the estimate's arrays have a compiled twin (``_step.c``, built when a C
 compiler is there) doing the same operations on the same data: :data:`NATIVE` is it unless
 it was not built or ``UMA_ACCEL_PURE_PYTHON=1`` is set.  Both are tested to agree
@@ -140,6 +148,7 @@ class _State(NamedTuple):
     w: list[float]  # rig frame
     P: Array  # (12, 12) covariance of [phi, rho, dv, domega] from the reading noise
     S: Array  # (12, 4N) sensitivity of that error to the calibration parameters
+    D: Array  # (12,) the tilt's second-order error, one persistent draw (``_second_order``)
 
 
 _Sample = tuple[float, list[float]]  # (motion time, projected readings)
@@ -186,7 +195,7 @@ class DeadReckoner:
         self._states: deque[_State] = deque(maxlen=2 * keep)  # resets add states too
         self._x: _State | None = None
         self._rest = _State(0.0, [0.0] * 3, [0.0, 0.0, 0.0, 1.0], [0.0] * 3, [0.0] * 3,
-                            np.zeros((12, 12)), np.zeros((12, 4 * n)))
+                            np.zeros((12, 12)), np.zeros((12, 4 * n)), np.zeros(12))
 
     # ------------------------------------------------------------------ state
 
@@ -292,6 +301,8 @@ class DeadReckoner:
         if self._cal_cov is not None:  # the pose rows of _full_covariance only
             S = x.S[_POSE_ORDER]
             C = S @ self._cal_cov @ S.T + C
+        d = x.D[_POSE_ORDER]
+        C = C + np.multiply.outer(d, d)
         return (C + C.T) * 0.5, S
 
     def state_covariance(self) -> Array:
@@ -301,9 +312,10 @@ class DeadReckoner:
         return self._full_covariance(self._x).copy()
 
     def _full_covariance(self, x: _State) -> Array:
+        P = x.P + np.multiply.outer(x.D, x.D)
         if self._cal_cov is None:
-            return x.P
-        return x.P + x.S @ self._cal_cov @ x.S.T
+            return P
+        return P + x.S @ self._cal_cov @ x.S.T
 
     # ------------------------------------------------------------------ integration
 
@@ -363,23 +375,23 @@ class DeadReckoner:
         Python (``_step_python``): the same operations, the same result to float rounding."""
         native = NATIVE
         if native is None:
-            p, q, v, w, norm, P, S = self._step_python(x, samples, t1)
+            p, q, v, w, norm, P, S, D = self._step_python(x, samples, t1)
             variances = P.diagonal().tolist()
             reason = _divergence(norm, w, sum(variances), max(variances))
         else:
-            P = np.empty((12, 12))
+            P, D = np.empty((12, 12)), np.empty(12)
             S = x.S if self._cal_cov is None else np.empty_like(x.S)
             p, q, v, w, norm, total, largest, fine = native.step(self._consts, x, samples, t1,
-                                                                 P, S)
+                                                                 P, S, D)
             reason = "" if fine else _divergence(norm, w, total, largest)
         if reason:
             raise _DivergedError(f"at t={t1:.3f} s: {reason}")
-        return _State(t1, p, q, v, w, P, S)
+        return _State(t1, p, q, v, w, P, S, D)
 
     def _step_python(self, x: _State, samples: list[_Sample], t1: float) -> \
-            tuple[list[float], list[float], list[float], list[float], float, Array, Array]:
+            tuple[list[float], list[float], list[float], list[float], float, Array, Array, Array]:
         """``_step`` before its divergence check: the new p, q (normalised unless its norm
-        is 0), v, omega, the norm of q before normalising, and the new P and S.
+        is 0), v, omega, the norm of q before normalising, and the new P, S and D.
 
         The 3- and 4-vectors are Python floats: a numpy call on them costs more than the
         arithmetic (see "small-vector arithmetic" below); the matrices stay numpy."""
@@ -403,6 +415,7 @@ class DeadReckoner:
         g = self._gravity
         a1, a2 = _rotate(x.q, s1), _mat_vec(R2, s2)
         a3, a4 = _rotate(q3, s3), _rotate(q4, s4)
+        spread = _second_order(self._tilt_covariance(x), a2)
         h6, hh6 = h / 6.0, h * h / 6.0
         p0, v0 = x.p, x.v
         p1, v1, w1 = [], [], []
@@ -412,25 +425,37 @@ class DeadReckoner:
             v1.append(v0[i] + h6 * ((a1[i] + gi) + 2.0 * (a2[i] + gi) + 2.0 * (a3[i] + gi)
                                     + (a4[i] + gi)))
             w1.append(w0[i] + h6 * (s1[3 + i] + 2.0 * s2[3 + i] + 2.0 * s3[3 + i] + s4[3 + i]))
-        P, S = self._propagate(x.P, x.S, h, R2, s2, w2,
-                               [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
-                                0.5 * (p1[2] + p0[2])],
-                               [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
-                                0.5 * (v1[2] + v0[2])])
+        P, S, D = self._propagate(x, h, R2, s2, w2,
+                                  [0.5 * (p1[0] + p0[0]), 0.5 * (p1[1] + p0[1]),
+                                   0.5 * (p1[2] + p0[2])],
+                                  [0.5 * (v1[0] + v0[0]), 0.5 * (v1[1] + v0[1]),
+                                   0.5 * (v1[2] + v0[2])], spread)
         a, b, c, d = q1
         norm = math.sqrt(a * a + b * b + c * c + d * d)
         if norm:  # else the divergence check refuses the state
             q1 = [a / norm, b / norm, c / norm, d / norm]
-        return p1, q1, v1, w1, norm, P, S
+        return p1, q1, v1, w1, norm, P, S, D
 
-    def _propagate(self, P: Array, S: Array, h: float, R: list[float], f: list[float],
-                   w: list[float], p: list[float], v: list[float]) -> tuple[Array, Array]:
-        """Error-state propagation of ``P`` and ``S`` over one step, linearised at the
-        step's midpoint (``R`` row-major, 9 floats).
+    def _tilt_covariance(self, x: _State) -> Array:
+        """The 3x3 covariance of the orientation error phi (reading noise and
+        calibration; the block of ``_full_covariance``)."""
+        C = x.P[0:3, 0:3]
+        if self._cal_cov is None:
+            return C
+        S = x.S[0:3]
+        return S @ self._cal_cov @ S.T + C
+
+    def _propagate(self, x: _State, h: float, R: list[float], f: list[float],
+                   w: list[float], p: list[float], v: list[float],
+                   spread: list[float]) -> tuple[Array, Array, Array]:
+        """Error-state propagation of ``x.P``, ``x.S`` and ``x.D`` over one step,
+        linearised at the step's midpoint (``R`` row-major, 9 floats).
 
         phi' = R domega;  rho' = dv + [p]x R domega + [v]x phi  (rho = dp - phi x p);
-        dv' = -[R f]x phi + R df;  domega' = d(omega_dot).
+        dv' = -[R f]x phi + R df (+ ``spread`` in D, see ``_second_order``);
+        domega' = d(omega_dot).
         """
+        P, S = x.P, x.S
         J = self.layout.omega_jacobian_floats(w)  # d(f, wd)/d(omega)
         r0, r1, r2 = R[0:3], R[3:6], R[6:9]
         # A and the rows 6:9 of Bk = d(state error)/d(readings) / k (R G[:3] / k) as floats,
@@ -447,7 +472,52 @@ class DeadReckoner:
         P = F @ P @ F.T + (Bk * (self._noise_var_k * (h / self.rate_hz))) @ Bk.T
         if self._cal_cov is not None:  # a calibration error is a reading error ([1, f]/k)
             S = F @ S + np.multiply.outer(Bk, [h, h * f[0], h * f[1], h * f[2]]).reshape(12, -1)
-        return P, S
+        D = F @ x.D
+        D[6:9] += [h * spread[0], h * spread[1], h * spread[2]]
+        return P, S, D
+
+
+def _second_order(C: Array, u: list[float]) -> list[float]:
+    """The orientation error's second-order effect on the acceleration over a step, as
+    what drives ``_State.D``: ``u``'s direction times the root mean square of the effect
+    along it, from the covariance ``C`` of the orientation error phi and the estimate's
+    world-frame specific force ``u`` (the step's midpoint).
+
+    The linear propagation takes the truth's specific force as u + phi x u, linearised at
+    the estimate's own u.  Rotating u by phi changes its component along u by
+    -|u| (1 - cos|phi|) |phi_perp|^2 / |phi|^2, about -|u| |phi_perp|^2 / 2 (phi_perp the
+    tilt across u): a rig at rest whose estimate is tilted sinks by g (1 - cos|tilt|)
+    whatever the tilt's sign.  The linear part cannot hold that, and worse, linearised at
+    the tilted u it expects, given the horizontal error, a sink of g |tilt|^2, twice the
+    real one.  So the covariance carries the term about zero (its mean squared plus its
+    variance): honest for the height given the other five components, where the gap
+    lies, without moving the estimate, which moving by the mean would put further from
+    the truth after a start with a large orientation uncertainty.
+
+    Along u, a tilt about each principal axis i of C_perp (eigenvalue l_i) contributes
+    1 - cos(phi_i), of mean 1 - exp(-l_i / 2) and variance (1 - exp(-l_i))^2 / 2; the two
+    added as independent give the second moment (sum of means)^2 + sum of variances,
+    times |u|^2: exact to fourth order in phi (there it is (tr C_p)^2 / 4 + tr(C_p^2) / 2,
+    a Gaussian quadratic form's), and bounded (by sqrt(5) |u|) however large C.  Across u the
+    second-order terms, (phi . u) phi_perp / 2, sit beside first-order ones larger by
+    1 / |phi|: left out."""
+    u_ = np.asarray(u, float)
+    uu = float(u_ @ u_)
+    if uu == 0.0:  # no specific force: no second-order term
+        return [0.0, 0.0, 0.0]
+    perp = np.eye(3) - np.multiply.outer(u_, u_) / uu
+    M = perp @ C @ perp
+    return (_along_rms(float(np.trace(M)), float((M * M).sum())) * u_).tolist()
+
+
+def _along_rms(t: float, q: float) -> float:
+    """``_second_order``'s root mean square per unit |u|, from the trace ``t`` and the
+    sum of squares ``q`` of C_perp (its two eigenvalues t / 2 +- sqrt(q / 2 - t^2 / 4))."""
+    d = math.sqrt(max(0.5 * q - 0.25 * t * t, 0.0))
+    lam = (max(0.5 * t + d, 0.0), max(0.5 * t - d, 0.0))
+    mean = sum(-math.expm1(-0.5 * x) for x in lam)
+    var = sum(0.5 * math.expm1(-x) ** 2 for x in lam)
+    return math.sqrt(mean * mean + var)
 
 
 def _native_constants(corr: Array, gk: Array, noise_var_k: Array, rate_hz: float,
@@ -495,6 +565,7 @@ def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Arra
     is independent of the old estimate)."""
     P = np.zeros_like(base.P)
     S = np.zeros_like(base.S)
+    D = np.zeros_like(base.D)
     P[3:6, 3:6], P[0:3, 0:3] = C[:3, :3], C[3:, 3:]
     P[0:3, 3:6], P[3:6, 0:3] = C[3:, :3], C[:3, 3:]
     values, kept = {}, []
@@ -509,7 +580,8 @@ def _reset_state(base: _State, t: float, p: list[float], q: list[float], C: Arra
         for b in kept:
             P[a, b] = base.P[a, b]
         S[a] = base.S[a]
-    return _State(t, p, q, values["velocity"], values["omega"], P, S)
+        D[a] = base.D[a]
+    return _State(t, p, q, values["velocity"], values["omega"], P, S, D)
 
 
 def _divergence(q_norm: float, w: list[float], var_sum: float, var: float) -> str:
