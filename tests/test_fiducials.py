@@ -276,9 +276,10 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
 def test_side_offsets_move_the_corners_as_their_lines_do():
     """The corners' covariance from the four sides' offsets is the corners' scatter when
     the sides' lines are moved by such offsets and intersected again; the sides with narrow
-    cells across them (a tilted tag's long ones) are the less certain."""
+    cells across them (a tilted tag's long ones) are the less certain, and so is a side
+    along a pixel axis (its edge points share one sub-pixel phase)."""
     quad = corners_of(facing((1.1, 0.0, 0.0), (0.0, 0.0, 1.6)))  # tilted 63 degrees
-    cov = side_offset_covariance(quad[None], 8)[0]
+    cov = side_offset_covariance(quad[None], quad[None], 8)[0]
     centre = quad.mean(axis=0)
     lines = []
     for k in range(4):
@@ -286,24 +287,31 @@ def test_side_offsets_move_the_corners_as_their_lines_do():
         normal = np.array([b[1] - a[1], a[0] - b[0]]) / np.linalg.norm(b - a)
         normal *= np.sign(normal @ ((a + b) / 2 - centre))
         lines.append((normal, normal @ a))
-    length = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
+    side = np.roll(quad, -1, axis=0) - quad
+    length = np.linalg.norm(side, axis=1)
     across = (np.roll(length, 1) + np.roll(length, -1)) / 16
     tau = fiducial_tracker.SIDE_A * np.exp(-across / fiducial_tracker.SIDE_SCALE_PX)
     rho = fiducial_tracker.SIDE_CORRELATION
+    sweep = edges.SPAN * np.abs(side).min(axis=1)
+    locking = (fiducial_tracker.LOCK_PX * np.sinc(sweep)) ** 2 / 2
     shifts = np.random.default_rng(2).multivariate_normal(
-        np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)), 20000)
+        np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)) + np.diag(locking),
+        20000)
     moved = np.empty((len(shifts), 4, 2))
     for k in range(4):
         (n0, d0), (n1, d1) = lines[k - 1], lines[k]
-        moved[:, k] = np.linalg.solve(np.array([n0, n1]), np.stack(
-            [d0 + shifts[:, k - 1], d1 + shifts[:, k]]))[None].T.reshape(-1, 2)
+        moved[:, k] = np.linalg.solve(np.array([n0, n1]),
+                                      np.stack([d0 + shifts[:, k - 1], d1 + shifts[:, k]])).T
     scatter = np.cov((moved - quad).reshape(len(shifts), 8).T)
     assert np.allclose(scatter, cov, atol=0.05 * np.abs(cov).max()), (scatter, cov)
-    across_std = [np.sqrt(n @ (cov[2 * k:2 * k + 2, 2 * k:2 * k + 2]) @ n)
-                  for k, (n, _) in enumerate(lines)]
-    long_sides = np.argsort(length)[2:]
-    assert min(across_std[k] for k in long_sides) > 2 * max(
-        across_std[k] for k in np.argsort(length)[:2])
+    # corner k lies on side k: its offset across that side is the side's own
+    across_std = np.array([np.sqrt(n @ cov[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ n)
+                           for k, (n, _) in enumerate(lines)])
+    order = np.argsort(length)
+    assert across_std[order[2:]].min() > 2 * across_std[order[:2]].max()
+    turned = side_offset_covariance(quad[None], quad[None] @ cv2.Rodrigues(
+        np.array([0.0, 0.0, 0.2]))[0][:2, :2].T, 8)[0]
+    assert np.all(np.diag(turned) < np.diag(cov))  # no side along a pixel axis any more
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):

@@ -81,11 +81,20 @@ EDGE_CORRELATION = 1.6
 #: moves; the offsets of a tag's four sides err together (``SIDE_CORRELATION``: the tag
 #: looks smaller or larger as a whole).  Per side, not per tag: a tilted tag's long sides
 #: have narrow cells across them and err, its short sides have wide ones and do not
-#: (fitted on seeds 1-10 of ``uma eval fiducials``, the outward offsets of 4,500 sides
-#: against the truth by maximum likelihood: 0.38 px, 0.98 px, 0.59)
-SIDE_A = 0.38
-SIDE_SCALE_PX = 1.0
+SIDE_A = 0.45
+SIDE_SCALE_PX = 0.9
 SIDE_CORRELATION = 0.6
+#: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
+#: locking) by up to ``LOCK_PX``: along a side that sweeps many pixels across its axis the
+#: phases vary and the error shows in the fit's scatter, but the points of a side nearly
+#: parallel to a pixel axis share one phase and their error moves the whole line, by
+#: ``LOCK_PX / sqrt(2) * sinc(sweep)`` (the error averaged over the phases the side's
+#: fitted span sweeps, ``sweep`` px; independent from side to side).  These four figures
+#: were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum likelihood, the outward
+#: offsets of 4,500 sides against the truth, four at a time (0.445 px, 0.89 px, 0.60,
+#: 0.052 px; fresh seeds 101-110 alone give 0.32, 0.85, 0.46, 0.058); sides sweeping less
+#: than half a pixel had 3.9 times the offset variance claimed without the last
+LOCK_PX = 0.05
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
 #: a solution continues the previous favourite branch when it is within this share of
@@ -185,24 +194,32 @@ def _ambiguity_spread(chosen: pose.Solution, solutions: list[pose.Solution], amb
     return np.outer(d, d) + cov_of(other)
 
 
-def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, modules: int) -> np.ndarray:
-    """The joint covariances (m, 8, 8) of the corners (m, 4, 2) of ``m`` markers ``modules``
-    cells wide, from their edge fits' (:func:`edges.refine`): those times
-    ``EDGE_CORRELATION``, plus the four sides' offsets that the fits cannot show
-    (:func:`side_offset_covariance`)."""
-    return EDGE_CORRELATION * edge_fit + side_offset_covariance(corners, modules)
+def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, detected: np.ndarray,
+                      modules: int) -> np.ndarray:
+    """The joint covariances (m, 8, 8) of the corners (m, 4, 2, ideal pixels) of ``m``
+    markers ``modules`` cells wide, detected at ``detected`` (m, 4, 2, the image's pixels),
+    from their edge fits' (:func:`edges.refine`): those times ``EDGE_CORRELATION``, plus
+    the four sides' offsets that the fits cannot show (:func:`side_offset_covariance`)."""
+    return EDGE_CORRELATION * edge_fit + side_offset_covariance(corners, detected, modules)
 
 
-def side_offset_covariance(corners: np.ndarray, modules: int) -> np.ndarray:
+def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
+                           modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
-    themselves (outwards, each by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, together at
-    ``SIDE_CORRELATION``): corner k is where sides k - 1 and k meet, so it moves by the
-    inverse of the matrix of their outward normals times their two offsets."""
+    themselves: outwards by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, together at
+    ``SIDE_CORRELATION``, and each by its pixel locking, ``LOCK_PX / sqrt(2) *
+    sinc(sweep)`` (``sweep``: how many pixels across its nearer image axis the side's
+    fitted span covers in the image, ``detected``).  Corner k is where sides k - 1 and k
+    meet, so it moves by the inverse of the matrix of their outward normals times their
+    two offsets."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
     length = np.maximum(np.sqrt(np.einsum("mkc,mkc->mk", side, side)), 1e-9)
     across = (length[:, _PREV] + length[:, _NEXT]) / (2 * modules)
     tau = SIDE_A * np.exp(-across / SIDE_SCALE_PX)
+    in_image = np.asarray(detected, np.float64)
+    sweep = edges.SPAN * np.abs(in_image[:, _NEXT] - in_image).min(axis=-1)
+    locking = (LOCK_PX * np.sinc(sweep)) ** 2 / 2
     normal = side[..., ::-1] * [1.0, -1.0] / length[..., None]
     middle = (corners + corners[:, _NEXT]) / 2 - corners.mean(axis=1, keepdims=True)
     normal *= np.sign(np.einsum("mkc,mkc->mk", normal, middle))[..., None]  # outwards
@@ -214,7 +231,8 @@ def side_offset_covariance(corners: np.ndarray, modules: int) -> np.ndarray:
     G[:, k, :, k] = np.moveaxis(by[..., 1], 1, 0)
     G = G.reshape(m, 8, 4)
     shared = SIDE_CORRELATION + (1 - SIDE_CORRELATION) * np.eye(4)
-    return G @ (tau[:, :, None] * tau[:, None, :] * shared) @ np.swapaxes(G, -1, -2)
+    offsets = tau[:, :, None] * tau[:, None, :] * shared + locking[:, :, None] * np.eye(4)
+    return G @ offsets @ np.swapaxes(G, -1, -2)
 
 
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
@@ -333,9 +351,9 @@ class FiducialTracker:
         corners, ids, _ = self.detector.detectMarkers(gray)
         if ids is None:
             return {}, {}
-        ideal, cov = edges.refine(gray, np.asarray(corners).reshape(-1, 4, 2), self._modules,
-                                  self.camera)
-        cov = corner_covariance(cov, ideal, self._modules)
+        detected = np.asarray(corners, np.float64).reshape(-1, 4, 2)
+        ideal, cov = edges.refine(gray, detected, self._modules, self.camera)
+        cov = corner_covariance(cov, ideal, detected, self._modules)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
 
