@@ -331,6 +331,50 @@ def test_the_second_order_spread_is_the_rotations_and_stays_bounded():
     assert np.linalg.norm(huge) == pytest.approx(math.sqrt(5.0) * np.linalg.norm(u))
 
 
+@pytest.mark.parametrize("history, offset", [(0, 0.0), (2, 0.3)],
+                         ids=["first-start", "between-samples"])
+def test_the_covariance_after_a_start_is_the_integrators_response_to_the_noise(history,
+                                                                             offset):
+    """0.1 s of dead reckoning on the head trajectory, started from the true state at a
+    sample's time with no earlier samples, or 0.3 of a period after the third sample: the
+    pose's covariance must be what the readings' white noise makes of the integration,
+    sum over samples of J_k var J_k^T with J_k each sample's effect on the pose (linear,
+    by finite differences).  Their ratio, tr(P^-1 C) / 6, is the mean NEES over 6; it was
+    1.035 before the samples the first steps use from the start's time counted."""
+    device = replace(SensorTruth.draw(7, rg.marvin_six_table_4_1()), bandwidth_hz=None,
+                     quantise=False)
+    cal = device.calibration(RATE)
+    last = history + 30
+    run = simulate(HeadTrajectory(2), (last + 3) / RATE, RATE, seed=0, t0=12.0,
+                   sensor=replace(device, noise_density_v=0.0))
+    t_start = run.t[history] + offset / RATE
+    start = HeadTrajectory(2).state(np.array([t_start])).rigid_offset(*HEAD_TO_ACCEL_RIG)
+
+    def pose(accel):
+        dr = DeadReckoner(cal, RATE)
+        for k in range(history + 1):
+            dr.update(run.t[k], accel[k])
+        dr.reset(t_start, start.position[0], start.quaternion[0],
+                 velocity=start.velocity[0], omega=start.omega_body[0])
+        for k in range(history + 1, last + 1):
+            est = dr.update(run.t[k], accel[k])
+        return est
+
+    base = pose(run.accel)
+    var, eps = cal.accel_var(RATE), 1e-5
+    C = np.zeros((6, 6))
+    for k in range(last + 1):
+        for j in range(cal.layout.count):
+            accel = run.accel.copy()
+            accel[k, j] += eps
+            est = pose(accel)
+            J = np.concatenate([est.position - base.position, geo.quat_to_rotvec(
+                geo.quat_multiply(est.quaternion, geo.quat_conjugate(base.quaternion)))]) / eps
+            C += var[j] * np.outer(J, J)
+    ratio = np.trace(np.linalg.solve(base.decoupled_covariance, C)) / 6.0
+    assert ratio == pytest.approx(1.0, abs=0.004)
+
+
 def test_a_late_reset_is_applied_at_its_time_and_the_samples_since_replayed():
     device = SensorTruth.ideal(rg.marvin_six_table_4_1())
     run = simulate(HeadTrajectory(4), 1.0, RATE, seed=0, t0=20.0, sensor=device)
