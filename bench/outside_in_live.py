@@ -14,7 +14,11 @@ body's pose.  Measured over ``--live`` seconds once every body has a pose:
   of the agent, as the services are): one hop without uma;
 - **published rate** per body against the camera rate, and each process's CPU (cores,
   from ``/proc``); the frames the cameras searched whole and in windows come from their
-  logs.
+  logs;
+- where a rate short of the cameras' comes from: per body the frame sets between its
+  poses that gave it none and when (``poses_missing``), and what the reconstruction
+  counted between its reports inside the measurement (frame sets, fits refused, samples
+  late, samples stale: skipped while it was behind).
 
 A real camera hands its host finished images; the simulator's rendering costs about as
 much as the services' work on them.  So the marker cameras render their frames first
@@ -148,7 +152,8 @@ def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: i
                                    str(folder / "bodies.toml"), "--rate-hz", str(rate_hz)])
         names = [c.name for c in sim.cameras]
         replay_s = seconds + PRERENDER_MARGIN_S
-        replay_at = time.time() + _render_time(sim, replay_s)
+        processes = -(-cameras // per_process)
+        replay_at = time.time() + _render_time(sim, replay_s, processes)
         for i in range(0, cameras, per_process):
             procs.start(f"cameras-{i // per_process}", [
                 "-m", "agent.cli", "service", "run", "marker-camera", *net, "--rig",
@@ -168,17 +173,21 @@ def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: i
             "cameras_per_process": per_process, **figures}
 
 
-def _render_time(sim: Any, seconds: float) -> float:
-    """How long (s) the cameras' processes may take to start and render ``seconds`` of
-    every camera's frames: twice the CPU this process needs for them now (on this
-    machine, at its load), on one core, and 8 s to start."""
+def _render_time(sim: Any, seconds: float, processes: int) -> float:
+    """How long (s) the cameras' ``processes`` may take to start and render ``seconds`` of
+    every camera's frames: twice the time this process takes for them now (on this
+    machine, at its load; the first frames, which warm caches up, not timed), shared
+    by the processes on the machine's cores, and 8 s to start."""
     cameras = len(sim.cameras)
+    for c in range(cameras):
+        sim.render(c, 0)
     t0 = time.perf_counter()
-    for index in range(3):
+    for index in range(1, 4):
         for c in range(cameras):
             sim.render(c, index)
     per_frame = (time.perf_counter() - t0) / (3 * cameras)
-    return 8.0 + 2.0 * per_frame * cameras * seconds * sim.config.rate_hz
+    parallel = max(1, min(processes, len(os.sched_getaffinity(0))))
+    return 8.0 + 2.0 * per_frame * cameras * seconds * sim.config.rate_hz / parallel
 
 
 def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int,
@@ -188,6 +197,7 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
     from agent import Measurement, Service
 
     lat: dict[str, list[float]] = {b: [] for b in bodies}
+    exposures: dict[str, list[int]] = {b: [] for b in bodies}
     bare: list[float] = []
     measuring = threading.Event()
 
@@ -196,6 +206,7 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         name = m.edge[1].rsplit("/", 1)[-1] if m.edge else ""
         if name in lat and (measuring.is_set() or not lat[name]):
             lat[name].append((now - m.t_ns) / 1e6)
+            exposures[name].append(m.t_ns)
 
     def on_bare(smp: zenoh.Sample) -> None:
         if measuring.is_set():
@@ -218,15 +229,17 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         procs.start("bare", [str(Path(__file__)), "--bare-publisher", ep, key, str(rate_hz),
                              str(seconds + 3)])
         time.sleep(2.0)     # the bare publisher's process is up and putting
-        for v in lat.values():
+        for v in (*lat.values(), *exposures.values()):
             v.clear()
         cpu0 = {n: _cpu_s(p.pid) for n, p in procs.procs.items() if p.poll() is None}
         threads0 = {n: _threads_cpu_s(procs.procs[n].pid) for n in cpu0}
         t0 = time.monotonic()
+        window = [time.time()]
         measuring.set()
         time.sleep(seconds)
         measuring.clear()
         elapsed = time.monotonic() - t0
+        window.append(time.time())
         cpu = {n: round((_cpu_s(procs.procs[n].pid) - c) / elapsed, 3)
                for n, c in cpu0.items() if procs.procs[n].poll() is None}
         threads = {n: _busiest({k: (v - threads0[n].get(k, 0.0)) / elapsed
@@ -242,9 +255,53 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
             "load_after": os.getloadavg()[0],
             "bare_transport": median_p99(bare, "ms") if bare else None,
             "published_hz": {b: round(len(v) / elapsed, 2) for b, v in lat.items()},
+            "poses_missing": _missing(exposures, rate_hz, window[0]),
+            "reconstruction_in_window": _counts_between(procs, *window),
             "measured_until": time.time(),
             "cores": services, "cores_all_services": round(sum(services.values()), 3),
             "cores_by_thread": threads}
+
+
+def _missing(exposures: dict[str, list[int]], rate_hz: float, start: float
+             ) -> dict[str, Any]:
+    """Per body, the frame sets between its first and last pose while measuring that
+    gave it none (a gap of more than 1.5 frame periods between poses' exposures), and
+    when the first of them were (s after the measurement's start): whether a rate short
+    of the cameras' comes from the window's start or from losses throughout it."""
+    period_ns = 1e9 / rate_hz
+    out: dict[str, Any] = {}
+    for body, times in exposures.items():
+        t = np.sort(np.asarray(times, np.int64))
+        gaps = np.diff(t)
+        lost = np.rint(gaps / period_ns).astype(int) - 1
+        at = np.flatnonzero(lost > 0)
+        out[body] = {"frame_sets": int(lost[at].sum()) if len(at) else 0,
+                     "at_s": [round(float(t[i] / 1e9 - start), 2) for i in at[:12]]}
+    return out
+
+
+def _counts_between(procs: _Procs, start: float, end: float) -> dict[str, Any] | None:
+    """What the reconstruction counted (frame sets, poses tracked, fits refused, samples
+    late and stale) between its first and last report inside ``start .. end`` (unix
+    times; it reports every 5 s), and over how many seconds."""
+    reports = []
+    for line in procs.log("outside-in").splitlines():
+        m = _RECONSTRUCTION.search(line)
+        if m:
+            t = _log_time(m.group(1))
+            if start <= t <= end:
+                reports.append((t, [int(x) for x in m.group(2, 3, 4, 5, 6)]))
+    if len(reports) < 2:
+        return None
+    (t0, a), (t1, b) = reports[0], reports[-1]
+    return {"seconds": round(t1 - t0, 2),
+            **{k: y - x for k, x, y in zip(("frame_sets", "tracked", "refused_fit", "late",
+                                            "stale"), a, b, strict=True)}}
+
+
+#: the reconstruction's report: its time, frame sets, poses tracked, fits refused, late, stale
+_RECONSTRUCTION = re.compile(r"^(\S+ \S+) .*outside-in: (\d+) frame sets, \{'tracked': (\d+)"
+                             r".*'refused_fit': (\d+).*, (\d+) late, (\d+) stale")
 
 
 def _busiest(cores: dict[str, float]) -> dict[str, float]:
@@ -303,9 +360,14 @@ _REPORT = re.compile(r"^(\S+ \S+) .*windows / whole: (.*?);")
 
 def _report(m: re.Match) -> tuple[float, int]:
     """A camera report's time (s) and its cameras' frames so far."""
-    t = time.mktime(time.strptime(m.group(1).split(",")[0], "%Y-%m-%d %H:%M:%S")) \
-        + int(m.group(1).split(",")[1]) / 1e3
-    return t, sum(int(a) + int(b) for a, b in re.findall(r"(\d+)/(\d+)", m.group(2)))
+    return _log_time(m.group(1)), sum(int(a) + int(b)
+                                      for a, b in re.findall(r"(\d+)/(\d+)", m.group(2)))
+
+
+def _log_time(stamp: str) -> float:
+    """A log line's time (``2026-01-02 10:11:12,345``, local) as a unix time."""
+    day, ms = stamp.split(",")
+    return time.mktime(time.strptime(day, "%Y-%m-%d %H:%M:%S")) + int(ms) / 1e3
 
 
 def _windowed(procs: _Procs) -> dict[str, str]:

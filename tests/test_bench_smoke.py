@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +146,35 @@ def test_bench_scale_quick_reports_every_sweep_with_its_growth() -> None:
     for key in ("query_median_ms", "subscription_median_ms", "agent_cpu_pct_per_1k_samples_s",
                 "agent_rss_mb_median", "new_need_connected_ms", "formed_s"):
         assert isinstance(row[key], float) and row[key] > 0, (key, row)
+
+
+def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tmp_path) -> None:
+    """``bench_outside_in --live``'s diagnostics of a rate short of the cameras': the
+    frame sets between a body's poses that gave it none, and the reconstruction's counts
+    between its first and last report inside the measurement."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_oi_live", BENCH / "outside_in_live.py")
+        live = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(live)
+    finally:
+        sys.path.remove(str(BENCH))
+    period = round(1e9 / 120)
+    got = live._missing({"a": [10 * period, 11 * period, 14 * period, 15 * period],
+                         "b": [10 * period, 11 * period]}, 120.0, 10 * period / 1e9)
+    assert got["a"]["frame_sets"] == 2 and got["a"]["at_s"] == [round(1 / 120, 2)]
+    assert got["b"] == {"frame_sets": 0, "at_s": []}
+
+    def report(clock: str, sets: int, stale: int) -> str:
+        return (f"2026-01-02 10:00:{clock} uma.outside_in INFO outside-in: {sets} frame sets, "
+                f"{{'tracked': {3 * sets}, 'acquired': 3, 'refused_fit': 1, 'refused_filter': "
+                f"0, 'ambiguous_blobs': 7}}, 0 samples refused, 2 late, {stale} stale; CPU per "
+                "frame set: tracking 2.00 ms, publishing 0.30 ms")
+    (tmp_path / "outside-in.log").write_text("\n".join(
+        [report("00,000", 10, 0), report("05,000", 610, 4), report("10,000", 1210, 9)]))
+    procs = live._Procs(tmp_path)
+    start = time.mktime(time.strptime("2026-01-02 10:00:01", "%Y-%m-%d %H:%M:%S"))
+    assert live._counts_between(procs, start, start + 9.5) == {
+        "seconds": 5.0, "frame_sets": 600, "tracked": 1800, "refused_fit": 0, "late": 0,
+        "stale": 5}
+    assert live._counts_between(procs, start, start + 5) is None
