@@ -129,17 +129,19 @@ class LoopSource:
             self.published.append(t)
 
     def check_published(self, r) -> None:
-        """AssertionError unless pose ``r`` is one published (to 1e-9) within 5 ms of its
+        """AssertionError unless pose ``r`` is one published (to 1e-9) within 50 ms of its
         time: its time differs only by the clients' clock offset estimates (the loop passes
-        two agents) and VRPN's microseconds, well under the 10 ms between samples."""
+        two agents; each estimate errs by up to half the round trip it was measured over,
+        tens of milliseconds on a loaded 2-core host) and VRPN's microseconds.  The pose
+        itself names the sample: no other time within the window has it."""
         published = list(self.published)
-        lo = bisect.bisect_left(published, r.t_ns - 5_000_000)
-        hi = bisect.bisect_right(published, r.t_ns + 5_000_000)
+        lo = bisect.bisect_left(published, r.t_ns - 50_000_000)
+        hi = bisect.bisect_right(published, r.t_ns + 50_000_000)
         for t in published[lo:hi]:
             p, q = self.pose(t)
             if np.allclose(p, r.position, 0, 1e-9) and np.allclose(q, r.quaternion, 0, 1e-9):
                 return
-        raise AssertionError(f"{r} was not published within 5 ms of its time")
+        raise AssertionError(f"{r} was not published within 50 ms of its time")
 
     def __enter__(self) -> LoopSource:
         self.svc.start()
