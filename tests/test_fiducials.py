@@ -275,9 +275,9 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
 
 def test_side_offsets_move_the_corners_as_their_lines_do():
     """The corners' covariance from the four sides' offsets is the corners' scatter when
-    the sides' lines are moved by such offsets and intersected again; the sides with narrow
-    cells across them (a tilted tag's long ones) are the less certain, and so is a side
-    along a pixel axis (its edge points share one sub-pixel phase)."""
+    the sides' lines are moved (and turned) by such offsets and intersected again; the
+    sides with narrow cells across them (a tilted tag's long ones) are the less certain,
+    and so is a side along a pixel axis (its edge points share one sub-pixel phase)."""
     quad = corners_of(facing((1.1, 0.0, 0.0), (0.0, 0.0, 1.6)))  # tilted 63 degrees
     cov = side_offset_covariance(quad[None], quad[None], 8)[0]
     centre = quad.mean(axis=0)
@@ -294,14 +294,17 @@ def test_side_offsets_move_the_corners_as_their_lines_do():
     rho = fiducial_tracker.SIDE_CORRELATION
     sweep = edges.SPAN * np.abs(side).min(axis=1)
     locking = (fiducial_tracker.LOCK_PX * np.sinc(sweep)) ** 2 / 2
-    shifts = np.random.default_rng(2).multivariate_normal(
+    rng = np.random.default_rng(2)
+    shifts = rng.multivariate_normal(
         np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)) + np.diag(locking),
         20000)
+    turns = rng.normal(0.0, fiducial_tracker.TURN_A * tau / fiducial_tracker.SIDE_A,
+                       shifts.shape)  # each end of a side moves by this, oppositely
     moved = np.empty((len(shifts), 4, 2))
-    for k in range(4):
+    for k in range(4):  # corner k: side k - 1's end, side k's start
         (n0, d0), (n1, d1) = lines[k - 1], lines[k]
-        moved[:, k] = np.linalg.solve(np.array([n0, n1]),
-                                      np.stack([d0 + shifts[:, k - 1], d1 + shifts[:, k]])).T
+        moved[:, k] = np.linalg.solve(np.array([n0, n1]), np.stack(
+            [d0 + shifts[:, k - 1] + turns[:, k - 1], d1 + shifts[:, k] - turns[:, k]])).T
     scatter = np.cov((moved - quad).reshape(len(shifts), 8).T)
     assert np.allclose(scatter, cov, atol=0.05 * np.abs(cov).max()), (scatter, cov)
     # corner k lies on side k: its offset across that side is the side's own

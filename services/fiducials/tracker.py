@@ -81,19 +81,23 @@ EDGE_CORRELATION = 1.6
 #: moves; the offsets of a tag's four sides err together (``SIDE_CORRELATION``: the tag
 #: looks smaller or larger as a whole).  Per side, not per tag: a tilted tag's long sides
 #: have narrow cells across them and err, its short sides have wide ones and do not
-SIDE_A = 0.45
+SIDE_A = 0.43
 SIDE_SCALE_PX = 0.9
 SIDE_CORRELATION = 0.6
+#: ... and that error changes along the side with the code's cells behind the border
+#: (black or white): it turns the line too, each end moving ``TURN_A * exp(-across /
+#: SIDE_SCALE_PX)`` px oppositely (independently from side to side)
+TURN_A = 0.47
 #: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
 #: locking) by up to ``LOCK_PX``: along a side that sweeps many pixels across its axis the
 #: phases vary and the error shows in the fit's scatter, but the points of a side nearly
 #: parallel to a pixel axis share one phase and their error moves the whole line, by
 #: ``LOCK_PX / sqrt(2) * sinc(sweep)`` (the error averaged over the phases the side's
-#: fitted span sweeps, ``sweep`` px; independent from side to side).  These four figures
-#: were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum likelihood, the outward
-#: offsets of 4,500 sides against the truth, four at a time (0.445 px, 0.89 px, 0.60,
-#: 0.052 px; fresh seeds 101-110 alone give 0.32, 0.85, 0.46, 0.058); sides sweeping less
-#: than half a pixel had 3.9 times the offset variance claimed without the last
+#: fitted span sweeps, ``sweep`` px; independent from side to side).  These five figures
+#: were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum likelihood, the errors
+#: of 2,100 tags' four corners against the truth (0.431 px, 0.90 px, 0.60, 0.470 px,
+#: 0.049 px; fresh seeds 101-110 alone give 0.19, 1.10, 0.42, 0.34, 0.051): the corners'
+#: mean NEES 7.5 of 8 (9.4 without the turn, 13.8 where the cells are under 2.5 px)
 LOCK_PX = 0.05
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
@@ -207,31 +211,38 @@ def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: outwards by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, together at
-    ``SIDE_CORRELATION``, and each by its pixel locking, ``LOCK_PX / sqrt(2) *
-    sinc(sweep)`` (``sweep``: how many pixels across its nearer image axis the side's
-    fitted span covers in the image, ``detected``).  Corner k is where sides k - 1 and k
-    meet, so it moves by the inverse of the matrix of their outward normals times their
-    two offsets."""
+    ``SIDE_CORRELATION``, and turning by ``TURN_A * exp(-across / SIDE_SCALE_PX)`` px at
+    each end; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
+    (``sweep``: how many pixels across its nearer image axis the side's fitted span
+    covers in the image, ``detected``).  Corner k is the end of side k - 1 and the start
+    of side k, so it moves by the inverse of the matrix of their outward normals times
+    their two lines' offsets there."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
     length = np.maximum(np.sqrt(np.einsum("mkc,mkc->mk", side, side)), 1e-9)
-    across = (length[:, _PREV] + length[:, _NEXT]) / (2 * modules)
-    tau = SIDE_A * np.exp(-across / SIDE_SCALE_PX)
+    narrow = np.exp(-(length[:, _PREV] + length[:, _NEXT]) / (2 * modules) / SIDE_SCALE_PX)
     in_image = np.asarray(detected, np.float64)
     sweep = edges.SPAN * np.abs(in_image[:, _NEXT] - in_image).min(axis=-1)
-    locking = (LOCK_PX * np.sinc(sweep)) ** 2 / 2
     normal = side[..., ::-1] * [1.0, -1.0] / length[..., None]
     middle = (corners + corners[:, _NEXT]) / 2 - corners.mean(axis=1, keepdims=True)
     normal *= np.sign(np.einsum("mkc,mkc->mk", normal, middle))[..., None]  # outwards
     by = edges.inverse_2x2(np.stack([normal[:, _PREV], normal], axis=-2))  # (m, 4, 2, 2)
     m = len(corners)
-    G = np.zeros((m, 4, 2, 4))
     k = np.arange(4)
-    G[:, k, :, _PREV] = np.moveaxis(by[..., 0], 1, 0)
-    G[:, k, :, k] = np.moveaxis(by[..., 1], 1, 0)
-    G = G.reshape(m, 8, 4)
-    shared = SIDE_CORRELATION + (1 - SIDE_CORRELATION) * np.eye(4)
-    offsets = tau[:, :, None] * tau[:, None, :] * shared + locking[:, :, None] * np.eye(4)
+    # corner k <- side k - 1's offset at its end, side k's at its start: [shift, turn]
+    G = np.zeros((m, 4, 2, 4, 2))
+    G[:, k, :, _PREV, 0] = G[:, k, :, _PREV, 1] = np.moveaxis(by[..., 0], 1, 0)
+    G[:, k, :, k, 0] = np.moveaxis(by[..., 1], 1, 0)
+    G[:, k, :, k, 1] = -G[:, k, :, k, 0]
+    G = G.reshape(m, 8, 8)
+    tau = SIDE_A * narrow
+    shift = (tau[:, :, None] * tau[:, None, :] * SIDE_CORRELATION
+             + np.eye(4) * ((1 - SIDE_CORRELATION) * tau ** 2
+                            + (LOCK_PX * np.sinc(sweep)) ** 2 / 2)[:, :, None])
+    offsets = np.zeros((m, 4, 2, 4, 2))
+    offsets[:, :, 0, :, 0] = shift
+    offsets[:, k, 1, k, 1] = (TURN_A * narrow) ** 2
+    offsets = offsets.reshape(m, 8, 8)
     return G @ offsets @ np.swapaxes(G, -1, -2)
 
 
