@@ -231,6 +231,14 @@ def test_short_run_on_the_realistic_installation_meets_marvins_figures(world,
     assert fig["orientation_error_deg"]["max"] <= 0.35
     assert 0.05 <= fig["position_error_cm"]["mean"] <= 1.0
     assert fig["nees"]["within_bounds"], fig["nees"]
+    # the error splits into the installation's (a tracker fed the spots' true pixels) and
+    # the measurement's: the first, nearly all of it, is honest on its own; the second
+    # errs some 1.2-1.4 times its variance (the detector's threshold cuts a spot's tail)
+    parts = fig["nees_parts"]
+    assert parts["installation"]["within_bounds"], parts
+    assert parts["installation"]["effective_samples"] < 5 < parts["measurement"][
+        "effective_samples"], parts
+    assert 4.0 < parts["measurement"]["mean"] < 12.0, parts
 
 
 def test_short_run_on_the_ideal_installation_is_ten_times_better(world, calibration) -> None:
@@ -248,6 +256,9 @@ def test_short_run_on_the_ideal_installation_is_ten_times_better(world, calibrat
     # image noise is its own; the calibration error they share is 0.03 mm)
     lo, hi = chi2.ppf([0.005, 0.995], 6 * fig["poses"]) / fig["poses"]
     assert lo < fig["nees"]["mean"] < hi, (lo, fig["nees"]["mean"], hi)
+    # no installation error: no installation part to split off
+    assert fig["nees_parts"]["installation"] is None
+    assert fig["nees_parts"]["measurement"]["mean"] > 0
 
 
 @pytest.mark.slow

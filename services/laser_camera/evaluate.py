@@ -25,6 +25,7 @@ from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.detection import AREA, FLUX, STD, UV, DetectorParams
 from services.laser_camera.tracker import (
     GATE_REASONS,
     NO_POSE_REASONS,
@@ -132,20 +133,30 @@ def _mm(x: float | None) -> float | None:
 
 def evaluate(world: IvyWorld, cal: Calibration, seconds: float, rate_hz: float = 30.0,
              params: TrackerParams | None = None) -> dict[str, Any]:
-    """Run the tracker over ``seconds`` of the world's trajectory; figures as a dict."""
+    """Run the tracker over ``seconds`` of the world's trajectory; figures as a dict.
+
+    Beside it a second tracker gets every spot's true pixel (no detector, no blur): its
+    pose errs by the installation alone, the measured pose by that plus the measurement
+    (``nees_parts``), so a seed whose NEES is off shows which part its covariance misses."""
     tracker = LaserTracker(cal, params)
+    exact = LaserTracker(cal, params)
     n = round(seconds * rate_hz)
     rot, pos, errors, covs, t_total, t_detect = [], [], [], [], [], []
+    parts: dict[str, list[list[np.ndarray]]] = {"installation": [[], []],
+                                                "measurement": [[], []]}
     four_truth = four_posed = labeled_ok = labeled_bad = 0
     for i in range(n):
         t = i / rate_hz
         frame = world.render(t)
         four_truth += len(frame.visible_labels) == 4
         res = tracker.process(frame.images, t)
+        ref = exact.solve(exact.locate(true_detections(frame)), t)
         t_total.append(res.timing_s["total"])
         t_detect.append(res.timing_s["detect"] / len(frame.images))
         if not isinstance(res, PoseEstimate):
             continue
+        if isinstance(ref, PoseEstimate):
+            _split(parts, res, ref, frame)
         four_posed += len(frame.visible_labels) == 4
         dp, da = geo.pose_error(res.position, res.quaternion, frame.rig_position,
                                 frame.rig_quaternion)
@@ -177,10 +188,40 @@ def evaluate(world: IvyWorld, cal: Calibration, seconds: float, rate_hz: float =
         "orientation_error_deg": _stats(rot_deg),
         "position_error_cm": _stats(pos_cm),
         "nees": nees_figures(np.array(errors), np.array(covs)) if errors else None,
+        "nees_parts": {name: nees_figures(np.array(e), np.array(c)) if e else None
+                       for name, (e, c) in parts.items()},
         "detection_ms_per_image_median": round(1e3 * float(np.median(t_detect)), 3),
         "pipeline_ms_per_frame_set_median": round(1e3 * float(np.median(t_total)), 3),
         "pipeline_ms_per_frame_set_p99": round(1e3 * float(np.percentile(t_total, 99)), 3),
     }
+
+
+def true_detections(frame: Frame) -> dict[str, np.ndarray]:
+    """Per camera, the detector's rows for the true pixels of the spots it sees (their
+    centres at ``frame.t``): what a perfect detector would report."""
+    out = {}
+    for name, spots in frame.image_points.items():
+        rows = np.zeros((len(spots), 5))
+        rows[:, UV] = list(spots.values()) if spots else np.zeros((0, 2))
+        rows[:, [FLUX, AREA]] = 1.0  # unused past detection
+        rows[:, STD] = DetectorParams().floor_px
+        out[name] = rows
+    return out
+
+
+def _split(parts: dict[str, list[list[np.ndarray]]], res: PoseEstimate, ref: PoseEstimate,
+           frame: Frame) -> None:
+    """Add one frame set to ``parts``: the exact tracker's error (true pose - ``ref``)
+    against ``ref``'s installation covariance, and the measurement's (``ref - res``)
+    against the rest of ``res``'s covariance (decoupled form, as ``_error``).  Without an
+    installation covariance (the ideal tracker) only the measurement part is kept."""
+    if np.any(ref.systematic):
+        parts["installation"][0].append(_difference(frame.rig_position, frame.rig_quaternion,
+                                                    ref))
+        parts["installation"][1].append(geo.se3_to_decoupled(ref.position, ref.systematic))
+    parts["measurement"][0].append(_difference(ref.position, ref.quaternion, res))
+    parts["measurement"][1].append(geo.se3_to_decoupled(res.position,
+                                                        res.covariance - res.systematic))
 
 
 def _labels_correct(res: PoseEstimate, frame: Frame) -> bool:
@@ -192,10 +233,15 @@ def _labels_correct(res: PoseEstimate, frame: Frame) -> bool:
 def _error(res: PoseEstimate, frame: Frame) -> np.ndarray:
     """The pose error [position, world-frame rotation vector], in the order of the
     decoupled covariance."""
-    dp = frame.rig_position - res.position
-    phi = geo.quat_to_rotvec(geo.quat_multiply(frame.rig_quaternion,
-                                               geo.quat_conjugate(res.quaternion)))
-    return np.concatenate([dp, phi])
+    return _difference(frame.rig_position, frame.rig_quaternion, res)
+
+
+def _difference(position: np.ndarray, quaternion: np.ndarray, res: PoseEstimate
+                ) -> np.ndarray:
+    """``(position, quaternion)`` less ``res``'s pose: [position, world-frame rotation
+    vector]."""
+    phi = geo.quat_to_rotvec(geo.quat_multiply(quaternion, geo.quat_conjugate(res.quaternion)))
+    return np.concatenate([position - res.position, phi])
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:
