@@ -23,7 +23,7 @@ from services.outside_in.bodies import RigidBody, distinguishable, identify, loa
 from services.outside_in.motion import ImmFilter, MotionConfig, MotionFilter
 from services.outside_in.pose import Motion, Observation, absolute_orientation, refine_pose
 from services.outside_in.rig import RigCamera, RigImages, look_at
-from services.outside_in.simulator import SimConfig, Simulation, standard_bodies
+from services.outside_in.simulator import SimConfig, Simulation, standard_bodies, static_scene
 from services.outside_in.tracker import CameraFrame, OutsideInTracker, TrackerParams
 from services.outside_in.triangulation import (
     match_and_triangulate,
@@ -103,6 +103,30 @@ def test_marker_centroid_stds_are_honest_for_small_and_large_blobs() -> None:
         zz = zz[np.all(np.abs(zz) < 4, axis=1)]      # a marker merged with a reflection
         assert len(zz) > 150, small
         assert 0.95 < np.sqrt(np.mean(zz ** 2)) < 1.05, small
+
+
+def test_simulated_pixels_around_a_marker_have_one_fresh_noise_draw_each() -> None:
+    """A still marker's faint tail, frame after frame: each pixel's mean over the frames
+    is its signal (the dark level out there), not lifted, and it scatters by the read
+    noise in every frame (no part of its noise frozen).  The brighter of a frozen
+    background draw and a fresh one, as the simulator once took, lifts it by 1.1 DN and
+    freezes part of its scatter."""
+    sim = Simulation(seed=1, config=SimConfig(n_cameras=4, false_blobs=0))
+    cam = sim.cameras[0]
+    point = cam.position + 2.0 * geo.quat_rotate(cam.quaternion, [0.0, 0.0, 1.0])
+    scene = static_scene(sim, point[None, :])
+    frames = [sim.render(0, i, scene) for i in range(60)]
+    u, v = frames[0].marker_uv[(0, 0)]
+    images = np.array([f.image[:, :].astype(float) for f in frames])
+    yy, xx = np.mgrid[0:images.shape[1], 0:images.shape[2]]
+    d = np.hypot(xx - u, yy - v)
+    tail = (d > 4.0) & (d < 5.0)          # the patch's edge: no light, fresh noise
+    assert tail.sum() > 20
+    cfg = sim.config
+    mean = images[:, tail].mean()
+    assert abs(mean - cfg.dark_level) < 0.15, mean
+    scatter = images[:, tail].std(axis=0)
+    assert abs(np.sqrt(np.mean(scatter ** 2)) - cfg.read_noise) < 0.2
 
 
 def test_elongated_and_huge_blobs_are_refused() -> None:

@@ -45,8 +45,8 @@ class BlobParams:
     dark_level: float = 8.0       # DN of a dark pixel
     read_noise: float = 2.0       # DN, std of a dark pixel
     gain: float = 0.15            # DN per electron: shot noise variance = gain * signal
-    floor_px: float = 0.009       # centroid error floor (pixel sampling, blob shape)
-    locking_px: float = 0.09      # pixel locking of a small blob: this over its area, px
+    floor_px: float = 0.005       # centroid error floor (pixel sampling, blob shape)
+    locking_px: float = 0.05      # pixel locking of a small blob: this over its area, px
     locking_area: int = 8         # ... for blobs of fewer pixels than this
     crowd_px: float = 0.18        # centroid error from a neighbour's light, edges touching
     crowd_scale_px: float = 1.9   # ... falling off with the gap between the blobs' edges
@@ -226,12 +226,12 @@ def locking_px(area: Array, p: BlobParams) -> Array:
 
     A marker two or three pixels across has its intensity-weighted centroid pulled
     toward or away from the pixel grid by where it falls within a pixel (the weights of
-    its few pixels and of its rim change in steps), up to 0.03 px: an error its noise
+    its few pixels and of its rim change in steps), up to 0.02 px: an error its noise
     model does not hold.  Measured on the simulated rig's isolated marker images of
     seeds 1-4 (their centroids against the true centres, outliers past 4 std left out):
-    areas 4-7 erred 1.10-1.15 times the std reported without this term, areas 8-13
-    0.90-0.97 times it with the floor then at 0.0125 px; with this term and the floor at
-    0.009 px, 0.98-1.05 and 1.00-1.11 on seeds 5-6."""
+    without this term and the floor, areas 3-4 erred 1.11 times the std reported, 5-7
+    1.07 times, 8-13 1.06 and larger ones 1.01; with this term and the floor at 0.005
+    px, 1.02, 1.02, 1.02 and 0.95, and on seeds 5-6 1.02, 1.01, 1.03 and 0.95."""
     a = np.asarray(area, float)
     return np.where(a < p.locking_area, p.locking_px / np.maximum(a, 1.0), 0.0)
 

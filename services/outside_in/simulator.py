@@ -12,8 +12,10 @@ What it models, and why:
   near the camera (the ring light falls off with the square of the distance), saturating
   at 255.  Pixel noise is the sensor's: shot noise (``gain`` DN per electron) and read
   noise -- the detector's own noise model (``BlobParams``), so the centroid stds it reports
-  are the truth's.  Fresh noise is drawn in each marker's patch; the rest of the image
-  keeps one frozen noise draw, far below the threshold, where it cannot make a blob.
+  are the truth's.  A frame's pixels around its markers are drawn once from their whole
+  signal (the background's, every marker's light summed) with fresh noise; the rest of
+  the image keeps one frozen noise draw, far below the threshold, where it cannot make a
+  blob and no centroid weighs it.
 * **Occlusion**: each body has a hull (a sphere at its origin, the markers on stalks
   outside it); a marker whose ray to a camera crosses any hull is hidden.
 * **False blobs**: 5 per camera -- three round reflections the size of a marker, an
@@ -148,7 +150,9 @@ class Simulation:
         self._paths = [self._path(rng, k) for k in range(len(self.bodies))]
         self._phase = (np.zeros(cfg.n_cameras) if cfg.synchronized
                        else rng.uniform(0, 1 / cfg.rate_hz, cfg.n_cameras))
-        self._backgrounds = [self._background(rng) for _ in self.cameras]
+        #: per camera: its image without markers (one frozen noise draw) and its signal
+        self._backgrounds, self._signals = zip(*(self._background(rng) for _ in self.cameras),
+                                               strict=True)
         self.hidden: set[int] = set()   # cameras covered (they see nothing but dark)
         self._scenes: dict[float, tuple[list[Array], list[Array]]] = {}
 
@@ -162,9 +166,12 @@ class Simulation:
                      rng.uniform(-0.35, 0.35, (n, 3)), rng.uniform(0, 2 * np.pi, (n, 3)),
                      rng.normal(0, 0.4, 3))
 
-    def _background(self, rng: np.random.Generator) -> Array:
+    def _background(self, rng: np.random.Generator) -> tuple[Array, Array]:
+        """A camera's image without markers (uint8, with noise) and its noise-free
+        signal (float DN, the dark level and the false blobs)."""
         cfg = self.config
-        img = cfg.dark_level + rng.normal(0, cfg.read_noise, (HEIGHT, WIDTH))
+        noise = rng.normal(0, cfg.read_noise, (HEIGHT, WIDTH))
+        img = np.full((HEIGHT, WIDTH), cfg.dark_level)
         yy, xx = np.mgrid[0:HEIGHT, 0:WIDTH]
         kinds = ["round", "round", "round", "rail", "lamp"][:cfg.false_blobs]
         kinds += ["round"] * (cfg.false_blobs - len(kinds))
@@ -183,7 +190,7 @@ class Simulation:
             else:
                 d = np.hypot(xx - u, yy - v)
                 img += 400 * 0.5 * erfc((d - 14) / (np.sqrt(2) * 2.0))
-        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        return _to8(img + noise), img
 
     # ------------------------------------------------------------------ truth
 
@@ -249,9 +256,12 @@ class Simulation:
             world = np.array([vis[k] for k in keys])
             uv = cam.project(world)
             depth = cam.to_camera(world)[:, 2]
+            light = np.zeros((HEIGHT, WIDTH))
+            patched = np.zeros((HEIGHT, WIDTH), bool)
             for key, (u, v), z in zip(keys, uv, depth, strict=True):
                 truth[key] = np.array([u, v])
-                self._splat(img, cam.focal_px, u, v, z, rng)
+                self._splat(light, patched, cam.focal_px, u, v, z)
+            self._expose(img, self._signals[camera], light, patched, rng)
         return Frame(camera, t, img, truth)
 
     def prerender(self, camera: int, first: int, count: int) -> Replay:
@@ -267,9 +277,9 @@ class Simulation:
             changes.append((idx, frame.image.ravel()[idx]))
         return Replay(first, times, bg, changes)
 
-    def _splat(self, img: Array, focal: float, u: float, v: float, depth: float,
-               rng: np.random.Generator) -> None:
-        """Draw one marker's image (with fresh sensor noise) into ``img`` (uint8)."""
+    def _splat(self, light: Array, patched: Array, focal: float, u: float, v: float,
+               depth: float) -> None:
+        """Add one marker's light (DN, no noise) to ``light`` and mark its patch."""
         cfg = self.config
         r = focal * cfg.marker_diameter_m / 2 / depth
         peak = cfg.peak_dn_at_2m * (2.0 / depth) ** 2
@@ -278,12 +288,22 @@ class Simulation:
         y0, y1 = max(round(float(v)) - half, 0), min(round(float(v)) + half + 1, HEIGHT)
         yy, xx = np.mgrid[y0:y1, x0:x1]
         d = np.hypot(xx - u, yy - v)
-        signal = peak * 0.5 * erfc((d - r) / (np.sqrt(2) * cfg.psf_sigma_px))
-        fresh = cfg.dark_level + signal + rng.normal(0, 1, signal.shape) * np.sqrt(
-            cfg.gain * signal + cfg.read_noise ** 2)
-        # a marker over a reflection (or another marker) shows the brighter of the two
-        patch = img[y0:y1, x0:x1]
-        patch[:] = np.maximum(patch, _to8(fresh))
+        light[y0:y1, x0:x1] += peak * 0.5 * erfc((d - r) / (np.sqrt(2) * cfg.psf_sigma_px))
+        patched[y0:y1, x0:x1] = True
+
+    def _expose(self, img: Array, background: Array, light: Array, patched: Array,
+                rng: np.random.Generator) -> None:
+        """The patched pixels of ``img`` (uint8) from their whole signal, the background's
+        and the markers', with one draw of the sensor's noise each: light adds (a marker
+        over a reflection or another marker's tail is brighter than either), and the
+        noise is the pixel's, not one draw of the background's and one of each marker's,
+        whose brighter would lift the tails and freeze part of their noise."""
+        cfg = self.config
+        idx = np.flatnonzero(patched)
+        base = background.ravel()[idx]
+        signal = base + light.ravel()[idx]
+        std = np.sqrt(cfg.gain * (signal - cfg.dark_level) + cfg.read_noise ** 2)
+        img.ravel()[idx] = _to8(signal + rng.normal(0, 1, len(idx)) * std)
 
 
 @dataclass(frozen=True)
