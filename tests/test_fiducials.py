@@ -139,6 +139,28 @@ def test_weak_evidence_accumulates_over_frames():
         assert kinds[0] == "covered" and kinds[-4:] == ["history"] * 4, kinds
 
 
+def test_a_history_pose_claims_its_own_solution_spread_not_the_other():
+    """A pose the track's evidence decides (``history``, the other solution's chance a
+    few percent at most) is as certain as its own fit: a covariance spanning the other
+    solution as a mixture would not keep a flip to it within its 99.9 % region, and
+    would be too wide for the likely case (mean NEES 4.8 here, under its band)."""
+    T = facing((0.35, 0.2, 0.0), (0.1, 0.05, 1.6))  # each frame's gap is 1-5
+    errors, covariances, chances = [], [], []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+        for k in range(8):
+            est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.1, (4, 2))},
+                                   k * 30_000_000, {3: 0.01 * np.eye(8)})[0]
+            if est.ambiguity == "history":
+                errors.append(decoupled_error(T, est.R, est.t))
+                covariances.append(est.covariance)
+                chances.append(est.flip_probability)
+    figures = nees_figures(np.array(errors), np.array(covariances))
+    assert len(errors) > 150 and figures["within_bounds"], figures
+    assert max(chances) < 1 / (1 + math.exp(3.0)) + 1e-9
+
+
 def test_branch_switch_is_unlikely_where_the_solutions_lie_far_apart():
     deg = math.radians
     # (near, far, separation, turn, meet): a tilted tag, turning slowly

@@ -20,10 +20,11 @@ Per true-distance bin (0.5 m wide): detections, position error (mm) and orientat
 (deg), median / p95 / max, each method over the frames it detected, and (``same_frames``)
 uma beside each other method over the frames both detected; for uma also the NEES of its
 6-dof covariance against chi2(6)
-(:func:`services.consistency.nees_figures`, over the samples not flagged ambiguous: a
-flagged sample's covariance carries a deliberate allowance for the other solution), how
+(:func:`services.consistency.nees_figures`, over the samples not ``covered``: a covered
+sample's covariance carries a deliberate allowance for the other solution), how
 many samples were flagged (``covered``: covariance inflated over both IPPE solutions;
-``history``: the solution the track's accumulated evidence supports), and **silent
+``history``: the solution the track's accumulated evidence supports, with its own
+covariance and the other's chance beside it), and **silent
 flips**: samples whose rotation error lies beyond chi2(3)'s 99.9 % point of their own
 rotation covariance and exceeds 5 degrees.
 
@@ -231,7 +232,7 @@ def _bin(rows: dict[str, list], lo: float, hi: float, n_frames: int) -> dict[str
             rot_m = float(e[3:] @ np.linalg.solve(cov[3:, 3:], e[3:]))
             if rot_m > FLIP_CHI2 and r_deg > FLIP_MIN_DEG:
                 flips += 1
-            if ambiguity == "none":
+            if ambiguity != "covered":
                 errs.append(e)
                 covs.append(cov)
         entry: dict[str, Any] = {"detected": len(inside), "position_mm": _stats(pos),
