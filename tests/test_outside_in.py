@@ -590,6 +590,12 @@ def test_compiled_filter_step_agrees_with_the_numpy_one(kind: type) -> None:
         np.testing.assert_allclose(fast.R, slow.R, rtol=0, atol=1e-13)
         np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-18)
         assert fast.last_nis == pytest.approx(slow.last_nis, rel=1e-9, nan_ok=True)
+        if kind is ImmFilter:   # both models and their probabilities
+            np.testing.assert_allclose(fast.mu, slow.mu, rtol=1e-9, atol=1e-15)
+            for a, b in zip(fast.models, slow.models, strict=True):
+                assert a.t == b.t
+                np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-18)
+                np.testing.assert_allclose(a.p, b.p, rtol=1e-9, atol=1e-12)
     assert fast.t == slow.t and refused >= 5
 
 

@@ -281,33 +281,17 @@ static int get_state(PyObject **o, buf_t *b, double x[NX]) {
     return 1;
 }
 
-/* filter_innovation(p, R, v, omega, a, P, W, dt, Q, p_meas, R_meas, H, noise, motion)
- *   -> (x, y, S, PHt, nis) as bytes of float64 (NX, 6, 36, 90) and a float, or None when
- *   S is singular.  (p, R) is the pose predicted at the measurement's time and dt how far
- *   that is ahead of the state (0: nothing moves; W and Q are then not read); x the state
- *   there ([p, R, v, omega, a, P]).  motion (9, or None): the motion the fit was given,
- *   whose difference from this state's the fit's sensitivity (H's last 9 columns, less)
- *   turns into the pose it expects. */
-static PyObject *filter_innovation(PyObject *self, PyObject *args) {
-    PyObject *o[14];
-    double dt;
-    if (!PyArg_ParseTuple(args, "OOOOOOOdOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
-                          &o[6], &dt, &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
-        return NULL;
-    buf_t b[14];
-    memset(b, 0, sizeof b);
-    PyObject *res = NULL;
-    double x[NX];
+/* The prediction and a pose measurement's innovation on the state block x, whose (p, R)
+ * are already the pose predicted dt ahead (0: nothing moves; W and Q are then not read):
+ * x moved to the measurement's time, the innovation y, its covariance S, P H^T, the
+ * chi-square and log |S|; 0 when S is singular.  mo (9, or NULL): the motion the fit
+ * was given, whose difference from this state's the fit's sensitivity (H's last 9
+ * columns, less) turns into the pose it expects. */
+static int innovate(double x[NX], const double *W, double dt, const double *Q,
+                    const double *pm, const double *Rm, const double *H, const double *noise,
+                    const double *mo, double y[6], double S[36], double PHt[NS * 6],
+                    double *nis, double *logdet) {
     double *p = x, *R = x + 3, *v = x + 12, *a = x + 18, *P = x + 21;
-    if (!get_state(o, b, x)) goto done;
-    static const char *what[] = {"W", "dt", "Q", "p_meas", "R_meas", "H", "noise", "motion"};
-    const Py_ssize_t size[] = {9, 0, NS * NS, 3, 9, 6 * NS, 36, 9};
-    for (int i = 6; i < 14; i++) {
-        if (i == 7 || (i == 13 && o[13] == Py_None)) continue;
-        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
-    }
-    const double *W = b[6].view.buf, *Q = b[8].view.buf, *pm = b[9].view.buf,
-                 *Rm = b[10].view.buf, *H = b[11].view.buf, *noise = b[12].view.buf;
     if (dt != 0.0) {       /* the prediction: v + a dt, F P F^T + Q */
         double F[NS * NS] = {0}, FP[NS * NS];
         for (int i = 0; i < NS; i++) F[NS * i + i] = 1.0;
@@ -324,64 +308,40 @@ static PyObject *filter_innovation(PyObject *self, PyObject *args) {
         for (int i = 0; i < NS * NS; i++) P[i] += Q[i];
         symmetrize(P, NS);
     }
-    double y[6], RRt[9];
+    double RRt[9];
     for (int i = 0; i < 3; i++) y[i] = pm[i] - p[i];
     mul(Rm, R, RRt, 3, 3, 3, 1);
     rodrigues_inverse(RRt, y + 3);
-    if (o[13] != Py_None) {   /* y - sens (motion - [v, omega, a]), sens = -H[:, 6:] */
-        const double *mo = b[13].view.buf;
+    if (mo) {   /* y - sens (motion - [v, omega, a]), sens = -H[:, 6:] */
         for (int i = 0; i < 6; i++)
             for (int j = 0; j < 9; j++) y[i] += H[NS * i + 6 + j] * (mo[j] - x[12 + j]);
     }
-    double PHt[NS * 6], S[36], S2[36], Sy[6];
+    double S2[36], Sy[6];
     mul(P, H, PHt, NS, NS, 6, 1);
     mul(H, PHt, S, 6, NS, 6, 0);
     for (int i = 0; i < 36; i++) S[i] += noise[i];
-    memcpy(S2, S, sizeof S);
-    memcpy(Sy, y, sizeof y);
-    if (!solve6m(S2, Sy, 1)) {
-        res = Py_NewRef(Py_None);
-        goto done;
+    memcpy(S2, S, sizeof S2);
+    memcpy(Sy, y, sizeof Sy);
+    if (!solve6m(S2, Sy, 1)) return 0;
+    *nis = 0.0;
+    *logdet = 0.0;
+    for (int i = 0; i < 6; i++) {
+        *nis += y[i] * Sy[i];
+        *logdet += log(fabs(S2[7 * i]));    /* S2 holds S's LU factor U */
     }
-    double nis = 0.0;
-    for (int i = 0; i < 6; i++) nis += y[i] * Sy[i];
-    res = Py_BuildValue("(y#y#y#y#d)", (const char *)x, (Py_ssize_t)sizeof x, (const char *)y,
-                        (Py_ssize_t)sizeof y, (const char *)S, (Py_ssize_t)sizeof S,
-                        (const char *)PHt, (Py_ssize_t)sizeof PHt, nis);
-done:
-    for (int i = 0; i < 14; i++)
-        if (b[i].held) PyBuffer_Release(&b[i].view);
-    return res;
+    return 1;
 }
 
-/* filter_correct(p, R, v, omega, a, P, y, H, S, PHt, noise) -> x (bytes of NX float64)
- * or None when S is singular: the state corrected by the gain K = P H^T S^-1 and its
- * covariance in the Joseph form (I - K H) P (I - K H)^T + K noise K^T. */
-static PyObject *filter_correct(PyObject *self, PyObject *args) {
-    PyObject *o[11];
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
-                          &o[6], &o[7], &o[8], &o[9], &o[10]))
-        return NULL;
-    buf_t b[11];
-    memset(b, 0, sizeof b);
-    PyObject *res = NULL;
-    double x[NX];
+/* x corrected by the gain K = P H^T S^-1 and its covariance in the Joseph form
+ * (I - K H) P (I - K H)^T + K noise K^T; 0 when S is singular. */
+static int correct(double x[NX], const double y[6], const double *H, const double *S_in,
+                   const double *PHt, const double *noise) {
     double *p = x, *R = x + 3, *v = x + 12, *om = x + 15, *a = x + 18, *P = x + 21;
-    if (!get_state(o, b, x)) goto done;
-    static const char *what[] = {"y", "H", "S", "PHt", "noise"};
-    const Py_ssize_t size[] = {6, 6 * NS, 36, NS * 6, 36};
-    for (int i = 6; i < 11; i++)
-        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
-    const double *y = b[6].view.buf, *H = b[7].view.buf, *PHt = b[9].view.buf,
-                 *noise = b[10].view.buf;
     double S[36], Kt[6 * NS];    /* S^-1 PHt^T = K^T */
-    memcpy(S, b[8].view.buf, sizeof S);
+    memcpy(S, S_in, sizeof S);
     for (int i = 0; i < 6; i++)
         for (int j = 0; j < NS; j++) Kt[NS * i + j] = PHt[6 * j + i];
-    if (!solve6m(S, Kt, NS)) {
-        res = Py_NewRef(Py_None);
-        goto done;
-    }
+    if (!solve6m(S, Kt, NS)) return 0;
     double K[NS * 6], dx[NS], dR[9], Rn[9];
     for (int i = 0; i < NS; i++)
         for (int j = 0; j < 6; j++) K[6 * i + j] = Kt[NS * j + i];
@@ -401,29 +361,14 @@ static PyObject *filter_correct(PyObject *self, PyObject *args) {
     mul(Kn, K, KnK, NS, 6, NS, 1);
     for (int i = 0; i < NS * NS; i++) P[i] += KnK[i];
     symmetrize(P, NS);
-    res = PyBytes_FromStringAndSize((const char *)x, sizeof x);
-done:
-    for (int i = 0; i < 11; i++)
-        if (b[i].held) PyBuffer_Release(&b[i].view);
-    return res;
+    return 1;
 }
 
-/* filter_mix(p, R, v, omega, a, P, p2, R2, v2, omega2, a2, P2, w, w2) -> x (bytes of NX
- * float64): two states mixed about the first, weights w and w2 (summing to 1): the first
- * moved by the mean of the second's difference from it, d = w2 (x2 - x), its covariance
- * w (P + d d^T) + w2 (P2 + (x2 - x - d)(x2 - x - d)^T) (motion.py's MotionFilter.mix). */
-static PyObject *filter_mix(PyObject *self, PyObject *args) {
-    PyObject *o[12];
-    double w, w2;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOdd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
-                          &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &w, &w2))
-        return NULL;
-    buf_t b[12];
-    memset(b, 0, sizeof b);
-    PyObject *res = NULL;
-    double x[NX], x2[NX];
+/* x <- the mixture of x and x2 about x, weights w and w2 (summing to 1): x moved by the
+ * mean of x2's difference from it, d = w2 (x2 - x), its covariance w (P + d d^T)
+ * + w2 (P2 + (x2 - x - d)(x2 - x - d)^T). */
+static void mix(double x[NX], const double x2[NX], double w, double w2) {
     double *p = x, *R = x + 3, *v = x + 12, *om = x + 15, *a = x + 18, *P = x + 21;
-    if (!get_state(o, b, x) || !get_state(o + 6, b + 6, x2)) goto done;
     double d[NS], mean[NS], spread[NS], RRt[9], dR[9], Rn[9];
     for (int i = 0; i < 3; i++) d[i] = x2[i] - p[i];
     mul(x2 + 3, R, RRt, 3, 3, 3, 1);
@@ -444,14 +389,194 @@ static PyObject *filter_mix(PyObject *self, PyObject *args) {
     rodrigues(mean + 3, dR);
     matmul3(dR, R, Rn);
     memcpy(R, Rn, sizeof Rn);
+}
+
+static void release(buf_t *b, int n) {
+    for (int i = 0; i < n; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].view);
+}
+
+/* filter_innovation(p, R, v, omega, a, P, W, dt, Q, p_meas, R_meas, H, noise, motion)
+ *   -> (x, y, S, PHt, nis) as bytes of float64 (NX, 6, 36, 90) and a float, or None when
+ *   S is singular (motion.py's MotionFilter.innovation once it has its prediction: (p, R)
+ *   the pose predicted at the measurement's time, dt how far that is ahead of the
+ *   state; x the state there, [p, R, v, omega, a, P]). */
+static PyObject *filter_innovation(PyObject *self, PyObject *args) {
+    PyObject *o[14];
+    double dt;
+    if (!PyArg_ParseTuple(args, "OOOOOOOdOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &dt, &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
+        return NULL;
+    buf_t b[14];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX];
+    if (!get_state(o, b, x)) goto done;
+    static const char *what[] = {"W", "dt", "Q", "p_meas", "R_meas", "H", "noise", "motion"};
+    const Py_ssize_t size[] = {9, 0, NS * NS, 3, 9, 6 * NS, 36, 9};
+    for (int i = 6; i < 14; i++) {
+        if (i == 7 || (i == 13 && o[13] == Py_None)) continue;
+        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
+    }
+    double y[6], S[36], PHt[NS * 6], nis, logdet;
+    if (!innovate(x, b[6].view.buf, dt, b[8].view.buf, b[9].view.buf, b[10].view.buf,
+                  b[11].view.buf, b[12].view.buf, o[13] == Py_None ? NULL : b[13].view.buf,
+                  y, S, PHt, &nis, &logdet)) {
+        res = Py_NewRef(Py_None);
+        goto done;
+    }
+    res = Py_BuildValue("(y#y#y#y#d)", (const char *)x, (Py_ssize_t)sizeof x, (const char *)y,
+                        (Py_ssize_t)sizeof y, (const char *)S, (Py_ssize_t)sizeof S,
+                        (const char *)PHt, (Py_ssize_t)sizeof PHt, nis);
+done:
+    release(b, 14);
+    return res;
+}
+
+/* filter_correct(p, R, v, omega, a, P, y, H, S, PHt, noise) -> x (bytes of NX float64)
+ * or None when S is singular (motion.py's MotionFilter.correct). */
+static PyObject *filter_correct(PyObject *self, PyObject *args) {
+    PyObject *o[11];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10]))
+        return NULL;
+    buf_t b[11];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX];
+    if (!get_state(o, b, x)) goto done;
+    static const char *what[] = {"y", "H", "S", "PHt", "noise"};
+    const Py_ssize_t size[] = {6, 6 * NS, 36, NS * 6, 36};
+    for (int i = 6; i < 11; i++)
+        if (!get(o[i], size[i - 6], &b[i], what[i - 6])) goto done;
+    res = correct(x, b[6].view.buf, b[7].view.buf, b[8].view.buf, b[9].view.buf,
+                  b[10].view.buf)
+          ? PyBytes_FromStringAndSize((const char *)x, sizeof x) : Py_NewRef(Py_None);
+done:
+    release(b, 11);
+    return res;
+}
+
+/* filter_mix(p, R, v, omega, a, P, p2, R2, v2, omega2, a2, P2, w, w2) -> x (bytes of NX
+ * float64): two states mixed about the first (motion.py's MotionFilter.mix). */
+static PyObject *filter_mix(PyObject *self, PyObject *args) {
+    PyObject *o[12];
+    double w, w2;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOdd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &w, &w2))
+        return NULL;
+    buf_t b[12];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    double x[NX], x2[NX];
+    if (!get_state(o, b, x) || !get_state(o + 6, b + 6, x2)) goto done;
+    mix(x, x2, w, w2);
     res = PyBytes_FromStringAndSize((const char *)x, sizeof x);
 done:
-    for (int i = 0; i < 12; i++)
-        if (b[i].held) PyBuffer_Release(&b[i].view);
+    release(b, 12);
+    return res;
+}
+
+/* One model's prediction and innovation in imm_update: its pose moved dt ahead (when
+ * dt > 0) and innovate(). */
+static int model_innovation(double x[NX], double dt, const double *Q, const double *pm,
+                            const double *Rm, const double *H, const double *noise,
+                            const double *mo, double y[6], double S[36], double PHt[NS * 6],
+                            double *nis, double *logdet) {
+    double W[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    if (dt > 0.0) {
+        double r[3], Rn[9];
+        for (int i = 0; i < 3; i++) {
+            r[i] = x[15 + i] * dt;
+            x[i] = x[i] + x[12 + i] * dt + 0.5 * dt * dt * x[18 + i];
+        }
+        rodrigues(r, W);
+        matmul3(W, x + 3, Rn);
+        memcpy(x + 3, Rn, sizeof Rn);
+    } else {
+        dt = 0.0;
+    }
+    return innovate(x, W, dt, Q, pm, Rm, H, noise, mo, y, S, PHt, nis, logdet);
+}
+
+/* imm_update(x_smooth, x_quick, Q_smooth, Q_quick, t_smooth, t_quick, t_mixed, t, mu,
+ *            switch_rate, p_meas, R_meas, H, noise, motion, gate)
+ *   -> (x_smooth, x_quick, x_mixed, mu, nis, accepted) or None when a covariance is
+ *   singular: motion.py's ImmFilter.update on state blocks (NX float64 each; mu 2): the
+ *   models' interaction, each model's prediction to t (Q its process noise over t less
+ *   its time) and innovation, the measurement refused when both chi-squares are above
+ *   the gate (mu then the prior), else the models' probabilities by their likelihoods
+ *   and both corrected; the mixture about the likelier model. */
+static PyObject *imm_update(PyObject *self, PyObject *args) {
+    PyObject *o[16];
+    double ts, tq, tm, t, rate, gate;
+    if (!PyArg_ParseTuple(args, "OOOOddddOdOOOOOd", &o[0], &o[1], &o[2], &o[3], &ts, &tq,
+                          &tm, &t, &o[8], &rate, &o[10], &o[11], &o[12], &o[13], &o[14],
+                          &gate))
+        return NULL;
+    buf_t b[16];
+    memset(b, 0, sizeof b);
+    PyObject *res = NULL;
+    static const char *what[] = {"x_smooth", "x_quick", "Q_smooth", "Q_quick", "", "", "",
+                                 "", "mu", "", "p_meas", "R_meas", "H", "noise", "motion"};
+    const Py_ssize_t size[] = {NX, NX, NS * NS, NS * NS, 0, 0, 0, 0, 2, 0, 3, 9, 6 * NS, 36, 9};
+    for (int i = 0; i < 15; i++) {
+        if ((i >= 4 && i <= 7) || i == 9 || (i == 14 && o[14] == Py_None)) continue;
+        if (!get(o[i], size[i], &b[i], what[i])) goto done;
+    }
+    double xs[NX], xq[NX], xm[NX];
+    memcpy(xs, b[0].view.buf, sizeof xs);
+    memcpy(xq, b[1].view.buf, sizeof xq);
+    const double *mu = b[8].view.buf, *pm = b[10].view.buf, *Rm = b[11].view.buf,
+                 *H = b[12].view.buf, *noise = b[13].view.buf;
+    const double *mo = o[14] == Py_None ? NULL : b[14].view.buf;
+    /* interaction: the smooth model starts from the mixture the switching makes */
+    double dtm = t - tm > 0.0 ? t - tm : 0.0;
+    double s = -expm1(-rate * dtm);
+    double sw[2][2] = {{1.0 - s, s}, {s, 1.0 - s}};
+    double prior[2], out[2];
+    for (int j = 0; j < 2; j++) prior[j] = mu[0] * sw[0][j] + mu[1] * sw[1][j];
+    double den = prior[0] > 1e-300 ? prior[0] : 1e-300;
+    mix(xs, xq, mu[0] * sw[0][0] / den, mu[1] * sw[1][0] / den);
+    double y[2][6], S[2][36], PHt[2][NS * 6], nis[2], logdet[2];
+    if (!model_innovation(xs, t - ts, b[2].view.buf, pm, Rm, H, noise, mo, y[0], S[0], PHt[0],
+                          &nis[0], &logdet[0])
+        || !model_innovation(xq, t - tq, b[3].view.buf, pm, Rm, H, noise, mo, y[1], S[1],
+                             PHt[1], &nis[1], &logdet[1])) {
+        res = Py_NewRef(Py_None);
+        goto done;
+    }
+    double least = nis[0] < nis[1] ? nis[0] : nis[1];
+    int accepted = !(least > gate);
+    if (accepted) {
+        double ll[2], w[2];
+        for (int i = 0; i < 2; i++) ll[i] = -0.5 * (nis[i] + logdet[i]);
+        double top = ll[0] > ll[1] ? ll[0] : ll[1];
+        for (int i = 0; i < 2; i++) w[i] = prior[i] * exp(ll[i] - top);
+        for (int i = 0; i < 2; i++) out[i] = w[i] / (w[0] + w[1]);
+        if (!correct(xs, y[0], H, S[0], PHt[0], noise)
+            || !correct(xq, y[1], H, S[1], PHt[1], noise)) {
+            res = Py_NewRef(Py_None);
+            goto done;
+        }
+    } else {
+        out[0] = prior[0];
+        out[1] = prior[1];
+    }
+    int k = out[1] > out[0];   /* numpy's argmax: the first of equals */
+    memcpy(xm, k ? xq : xs, sizeof xm);
+    mix(xm, k ? xs : xq, out[k], out[1 - k]);
+    res = Py_BuildValue("(y#y#y#(dd)di)", (const char *)xs, (Py_ssize_t)sizeof xs,
+                        (const char *)xq, (Py_ssize_t)sizeof xq, (const char *)xm,
+                        (Py_ssize_t)sizeof xm, out[0], out[1], least, accepted);
+done:
+    release(b, 16);
     return res;
 }
 
 static PyMethodDef methods[] = {
+    {"imm_update", imm_update, METH_VARARGS,
+     "The two-model filter's update on its models' state blocks, or None."},
     {"filter_mix", filter_mix, METH_VARARGS,
      "Two motion filter states mixed about the first (an interacting multiple model's)."},
     {"filter_innovation", filter_innovation, METH_VARARGS,

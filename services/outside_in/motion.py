@@ -19,7 +19,8 @@ The covariance is an error state ``[dp, dtheta, dv, domega, da]`` with the world
 A pose measurement farther than the gate from the prediction is refused; several in a row
 restart the filter at the measurement (the body was lost and found).  A model's
 prediction, innovation and correction run in the compiled twin (``_fit.filter_innovation``,
-``_fit.filter_correct``) where it was built (numpy otherwise; they agree to rounding).
+``_fit.filter_correct``), and ``ImmFilter``'s whole update in one call of it
+(``_fit.imm_update``), where it was built (numpy otherwise; they agree to rounding).
 """
 
 from __future__ import annotations
@@ -295,6 +296,11 @@ class MotionFilter:
         return Innovation(np.frombuffer(got[1]), H, np.frombuffer(got[2]).reshape(6, 6),
                           noise, np.frombuffer(got[3]).reshape(N, 6), got[4])
 
+    def _block(self) -> Array:
+        """The state as the compiled twin's block ``[p, R, v, omega, a, P]``."""
+        return np.concatenate((self.p, self.R.ravel(), self.v, self.omega, self.a,
+                               self.P.ravel()))
+
     def _set(self, x: Array) -> None:
         """The state from the compiled twin's block ``[p, R, v, omega, a, P]``."""
         self._poses.clear()
@@ -431,6 +437,10 @@ class ImmFilter:
         if self.mixed.t is None or t - self.mixed.t > self.config.max_gap_s:
             self.start(t, p, R, cov)
             return True
+        if FILTER is not None:
+            accepted = self._update_compiled(t, p, R, cov, sensitivity, noise_cov, motion)
+            if accepted is not None:
+                return accepted
         prior = self._interact(t)
         inns = [m.innovation(t, p, R, cov, sensitivity, noise_cov, motion)
                 for m in self.models]
@@ -452,6 +462,46 @@ class ImmFilter:
             m.correct(inn)
         self._mix_output()
         return True
+
+    def _update_compiled(self, t: float, p: Array, R: Array, cov: Array,
+                         sensitivity: Array | None, noise_cov: Array | None,
+                         motion: Array | None) -> bool | None:
+        """:meth:`update` in one call of the compiled twin (``_fit.imm_update``: the
+        interaction, both models' innovations and corrections, their probabilities and
+        the mixture, where they took six calls and the numpy between them); None when a
+        covariance is singular (numpy's path then says so), nothing changed."""
+        H, noise = _H, cov
+        if sensitivity is not None and noise_cov is not None:
+            H = _H.copy()
+            H[:, V_.start:] = -sensitivity
+            noise = noise_cov
+        else:
+            motion = None
+        smooth, quick = self.models
+        c = np.ascontiguousarray
+        got = FILTER.imm_update(
+            smooth._block(), quick._block(),
+            *(m._noise(abs(t - m.t)) if t > m.t else _EYE_N for m in self.models),
+            smooth.t, quick.t, self.mixed.t, t, self.mu, self.config.switch_rate_hz,
+            c(p, float), c(R, float), H, c(noise, float),
+            None if motion is None else c(motion, float), self.config.gate)
+        if got is None:
+            return None
+        x_smooth, x_quick, x_mixed, mu, self.last_nis, accepted = got
+        for m, x in ((smooth, x_smooth), (quick, x_quick)):
+            m._set(np.frombuffer(x).copy())
+            m.t = max(m.t, t)
+        if not accepted:
+            self.refused_in_row += 1
+            if self.refused_in_row >= self.config.restart_after:
+                self.reset()
+                return False
+        else:
+            self.refused_in_row = 0
+        self.mu = np.array(mu)
+        self.mixed._set(np.frombuffer(x_mixed).copy())
+        self.mixed.t = self.models[int(mu[1] > mu[0])].t
+        return bool(accepted)
 
     def _interact(self, t: float) -> Array:
         """Start each model from the mixture the switching chances make of both (at
