@@ -316,6 +316,13 @@ class LiveRig:
             self.events.warn("without a pose, a reset waits for three absolute poses close "
                              "together (for the velocities)")
             return
+        if not self.dr.initialised and not rates.settled:
+            # a fast source's first three poses, ms apart, give rates (0.8 rad/s of angular
+            # velocity from 1 mrad poses at 300 Hz) that turn the reckoning by a radian a
+            # second; the full window (50 ms) gives them ten times better
+            self.events.warn("without a pose, a reset waits for a full window of absolute "
+                             "poses (rates from its first few would be too uncertain)")
+            return
         if C is None and rates is not None:
             if not rates.settled:
                 self.events.warn("a reset without covariance waits for a full window of "
