@@ -42,6 +42,11 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--single-host", action="store_true",
                    help="with --outside-in: every camera and the reconstruction on one agent "
                         "with one clock (the reference for the distributed figures)")
+    p.add_argument("--compare", action="store_true",
+                   help="with --outside-in: the single-host and the three-host layouts at "
+                        "once, each in a realm of its own, on the same simulated frames; "
+                        "prints both and their errors on the frame sets both posed, three "
+                        "hosts over one")
     p.add_argument("--optical", choices=("dots", "pose"), default="dots",
                    help="the fusion's optical update: one SCAAT update per labeled laser dot "
                         "(default; more accurate, docs/FUSION_TUNING.md) or the tracker's "

@@ -200,6 +200,40 @@ def test_uma_demo_outside_in(capsys) -> None:
         assert body["answers"] > 0 and body["position_error_mm_median"] < 2.0
 
 
+@pytest.mark.slow
+def test_uma_demo_outside_in_compares_both_layouts_on_the_same_frames(capsys) -> None:
+    import json
+
+    from agent.cli.main import main
+    assert main(["demo", "--outside-in", "--compare", "--seconds", "3", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["ok"]
+    assert report["single_host"]["hosts"] == {"hostA": ["cam0", "cam1", "cam2", "cam3"]}
+    assert report["three_hosts"]["reconstruction_on"] == "hostC"
+    for name in ("head", "wand", "hand"):
+        paired = report["paired"][name]
+        # the same frames: most frame sets posed by both, their poses' times the same
+        # but for the clock offsets' error (well under a frame period)
+        assert paired["frame_sets"] > 20
+        assert paired["time_difference_median_max_ms"][0] < 5.0
+    assert all(r < 3.0 for r in report["paired"]["median_ratio"])
+
+
+def test_paired_figures_hold_the_same_frame_sets_of_both_layouts() -> None:
+    from services.outside_in.demo import _paired
+    one = {"wand": {i: (1e-4, 1e-3, 0.0) for i in range(10)}}
+    # three hosts, from a frame set later: the same frame sets but one, 10 % worse, 0.2
+    # ms late; and one after the single host's last (not in the time both measured)
+    three = {"wand": {i: (1.1e-4, 1e-3, 0.2e6) for i in range(1, 11) if i != 5}}
+    got = _paired(one, three)["wand"]
+    assert got["frame_sets"] == 8
+    assert got["only_single_host"] == 1 and got["only_three_hosts"] == 0
+    assert got["ratio"] == [1.1, 1.0]
+    assert got["error_difference_median_mm_deg"][0] == pytest.approx(0.01)
+    assert got["time_difference_median_max_ms"] == [0.2, 0.2]
+    assert _paired({"hand": {}}, {"hand": {1: (0.0, 0.0, 0.0)}})["hand"] == {"frame_sets": 0}
+
+
 def test_marker_camera_reads_a_generated_video_through_the_capture_path(tmp_path) -> None:
     import threading
 

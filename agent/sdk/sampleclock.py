@@ -14,11 +14,14 @@ clock already and are left as they are.
 Until an agent's offset is measured, its samples are held back: counted (``unsynced``) and
 said in a rate-limited line, never passed on with a time that may be tens of ms off.  One
 thread measures: ``BURST`` round trips when an agent's stream is first matched (the best of
-them bounds the error by half the smallest delay), one a second for the next ``EARLY``
-seconds (a loaded host's round trips vary: a millisecond's delay is half a millisecond of
+them bounds the error by half the smallest delay), then ``EARLY`` more ``EARLY_EVERY_S``
+apart (a loaded host's round trips vary: a millisecond's delay is half a millisecond of
 doubt, half a millimetre at a walking body's speed, and the filter keeps the fastest one
-it sees), then one every ``REFRESH_S`` so that the estimate follows a drifting clock and
-never ages out; an agent that does not answer is asked again every ``RETRY_S``.
+it sees; a burst on a host busy starting its services may be slow throughout, and ten
+round trips a second apart left the first ten seconds' offsets up to a millisecond off),
+then one every ``REFRESH_S`` so that the estimate follows a drifting clock and never ages
+out; an agent that does not answer is asked again every ``RETRY_S``.  The window of
+round trips the filter keeps holds all of them.
 """
 
 from __future__ import annotations
@@ -38,8 +41,9 @@ log = logging.getLogger("uma.service")
 
 #: round trips when an agent is first matched
 BURST = 5
-#: round trips one a second after the burst
-EARLY = 10
+#: round trips after the burst, EARLY_EVERY_S apart
+EARLY = 50
+EARLY_EVERY_S = 0.2
 #: seconds between round trips to an agent whose offset is known, after those
 REFRESH_S = 10.0
 #: seconds between tries while an agent has not answered
@@ -56,7 +60,7 @@ class SampleClocks:
         self.own_agent = own_agent
         self.realm = realm
         self.now = now
-        self.offsets = ClockOffsets()
+        self.offsets = ClockOffsets(window=BURST + EARLY + 16)
         self._log = limited_log
         self._queries: AgentQueries | None = None
         #: agent id -> when (monotonic s) it is next asked
@@ -140,5 +144,5 @@ class SampleClocks:
                      "%.3f ms)", agent, best.offset_ns / 1e6, best.delay_ns / 1e6)
         with self._lock:
             if agent in self._due:
-                wait = RETRY_S if not answered else 1.0 if n <= EARLY else REFRESH_S
+                wait = RETRY_S if not answered else EARLY_EVERY_S if n <= EARLY else REFRESH_S
                 self._due[agent] = time.monotonic() + wait
