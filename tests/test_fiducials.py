@@ -242,6 +242,29 @@ def test_nees_of_rendered_moving_frames_is_inside_its_band():
     assert len(errors) >= 30 and figures["within_bounds"], figures
 
 
+@pytest.mark.slow
+def test_nees_of_far_rendered_frames_decided_by_the_track_is_inside_its_band():
+    """At 1.5-2.4 m a tag's two solutions fit almost alike in every frame: the samples the
+    track decides (``history``) claim their own solution's covariance, from corners whose
+    sides' narrow cells and pixel locking are counted, and are neither too small nor too
+    cautious (the ``covered`` ones carry a deliberate allowance for the other solution)."""
+    rng = np.random.default_rng(13)
+    camera = webcam(rng)
+    traj = wandering(rng, camera, (1.5, 2.4), 6.0)
+    sim = SimCamera(camera, supersampling=FAITHFUL)
+    tracker = FiducialTracker(camera, "apriltag36h11", 0.08)
+    scene = tags("apriltag36h11", [5], 0.08, [traj])
+    errors, covariances = [], []
+    for k in range(60):
+        t = k / 10
+        for est in tracker.process(sim.render(scene, t, rng), round(t * 1e9)):
+            if est.ambiguity != "covered":
+                errors.append(decoupled_error(traj(t), est.R, est.t))
+                covariances.append(est.covariance)
+    figures = nees_figures(np.array(errors), np.array(covariances))
+    assert len(errors) >= 25 and figures["within_bounds"], figures
+
+
 def test_edge_points_that_crossed_a_neighbouring_cell_do_not_move_the_line():
     """A profile across a grazing tag's thin border can cross the edge of the cell behind
     it: such a point, a cell off the side, is left out of the line fit."""
