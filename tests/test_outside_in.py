@@ -21,10 +21,17 @@ from services.outside_in import blobs, motion, pose
 from services.outside_in.blobs import BlobParams, find_blobs, fit_centres
 from services.outside_in.bodies import RigidBody, distinguishable, identify, load_bodies
 from services.outside_in.motion import ImmFilter, MotionConfig, MotionFilter
-from services.outside_in.pose import Motion, Observation, absolute_orientation, refine_pose
+from services.outside_in.pose import (
+    Motion,
+    Observation,
+    Rows,
+    absolute_orientation,
+    refine_pose,
+    refine_rows,
+)
 from services.outside_in.rig import RigCamera, RigImages, look_at
 from services.outside_in.simulator import SimConfig, Simulation, standard_bodies, static_scene
-from services.outside_in.tracker import CameraFrame, OutsideInTracker, TrackerParams
+from services.outside_in.tracker import CameraFrame, OutsideInTracker, TrackerParams, _SetBlobs
 from services.outside_in.triangulation import (
     match_and_triangulate,
     refine_point,
@@ -338,6 +345,34 @@ def test_refined_pose_covariance_matches_its_errors() -> None:
         nees.append(e @ np.linalg.solve(fit.cov, e))
     lo, hi = chi2.ppf([0.025, 0.975], 6 * 300) / 300
     assert lo < np.mean(nees) < hi
+
+
+def test_a_bodys_claims_become_the_rows_of_its_observations_camera_by_camera() -> None:
+    """The tracker gathers a body's claims ``(camera, marker) -> (camera, blob)`` from the
+    frame set's blob arrays into the rows a fit sums: each camera's together in camera
+    order, in the claims' order within it, the same rows (to the bit) and the same fit
+    as the observations listed camera by camera."""
+    sim = Simulation(seed=2, config=SimConfig(n_cameras=4))
+    frames = [CameraFrame(c, sim.render(c, 3).t, find_blobs(sim.render(c, 3).image))
+              for c in (2, 0, 3)]
+    norm = {f.camera: sim.cameras[f.camera].normalize(f.blobs.uv) for f in frames}
+    t_ref = float(np.mean([f.t for f in frames]))
+    claims = {(2, 0): (2, 1), (0, 1): (0, 0), (2, 3): (2, 0), (0, 2): (0, 1), (3, 4): (3, 2)}
+    rows, given, blob = _SetBlobs.of(sim.cameras, frames, norm, t_ref).rows(claims)
+    assert rows.camera.tolist() == [0, 0, 2, 2, 3] and rows.markers.tolist() == [1, 2, 0, 3, 4]
+    assert blob.tolist() == [0, 1, 1, 0, 2] and given.tolist() == [1, 3, 0, 2, 4]
+    f = {fr.camera: fr for fr in frames}
+    obs = [Observation(sim.cameras[c], np.array(m), norm[c][b], f[c].blobs.std_px[b],
+                       f[c].t - t_ref) for c, m, b in ((0, [1, 2], [0, 1]), (2, [0, 3], [1, 0]),
+                                                       (3, [4], [2]))]
+    listed = Rows.of(obs)
+    for name in ("stack", "markers", "xy", "std_px", "dt_s"):
+        assert np.array_equal(getattr(rows, name), getattr(listed, name)), name
+    p, q = sim.body_pose(0, t_ref)
+    fit = refine_rows(sim.bodies[0].markers, rows, p, geo.quat_to_matrix(q))
+    same = refine_pose(sim.bodies[0].markers, obs, p, geo.quat_to_matrix(q))
+    assert fit is not None and np.array_equal(fit.p, same.p) and np.array_equal(fit.cov, same.cov)
+    assert rows.take(rows.camera != 2).camera.tolist() == [0, 0, 3]
 
 
 @pytest.mark.skipif(pose.FIT is None, reason="the compiled fit is not built")

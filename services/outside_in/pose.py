@@ -56,6 +56,43 @@ class Observation:
 
 
 @dataclass(frozen=True)
+class Rows:
+    """A fit's observations as one row per marker image, each camera's fields repeated
+    for its markers, in the order the fit sums them (one camera's rows together): the
+    tracker gathers them once per body and frame set and drops an outlier by its row,
+    where a list of ``Observation`` was built again for every fit."""
+
+    camera: Array   # (k,) int: which camera (its rows together)
+    stack: Array    # (k, 13) the camera's ``RigCamera.stack_row``
+    markers: Array  # (k,) marker indices
+    xy: Array       # (k, 2) undistorted normalised coordinates
+    std_px: Array   # (k,)
+    dt_s: Array     # (k,) the camera's exposure time less the pose's time
+
+    def __len__(self) -> int:
+        return len(self.markers)
+
+    @staticmethod
+    def of(observations: list[Observation]) -> Rows:
+        """The rows of ``observations``, in their order (cameras told apart by name)."""
+        counts = [len(o.markers) for o in observations]
+        names: dict[str, int] = {}
+        ids = [names.setdefault(o.camera.name, len(names)) for o in observations]
+        return Rows(np.repeat(np.array(ids, int), counts),
+                    np.repeat(np.array([o.camera.stack_row for o in observations]).reshape(
+                        -1, 13), counts, axis=0),
+                    np.concatenate([o.markers for o in observations]).astype(int),
+                    np.concatenate([o.xy for o in observations]).astype(float).reshape(-1, 2),
+                    np.concatenate([o.std_px for o in observations]).astype(float).reshape(-1),
+                    np.repeat(np.array([o.dt_s for o in observations], float), counts))
+
+    def take(self, rows: Array) -> Rows:
+        """The rows selected by ``rows`` (a mask or indices, in order)."""
+        return Rows(self.camera[rows], self.stack[rows], self.markers[rows], self.xy[rows],
+                    self.std_px[rows], self.dt_s[rows])
+
+
+@dataclass(frozen=True)
 class Motion:
     """Velocities that move observations to the pose's time (world frame), and their
     covariance (6 x 6 over ``[velocity, omega]``, or 9 x 9 over ``[velocity, omega,
@@ -93,11 +130,19 @@ def refine_pose(markers: Array, observations: list[Observation], p0: Array, R0: 
     """The pose that best explains the observations; None with fewer than 3 markers seen
     or fewer than 2 cameras (no depth), or when the fit fails."""
     obs = [o for o in observations if len(o.markers)]
-    cams = len({o.camera.name for o in obs})
-    if cams < 2 or len(set(np.concatenate([o.markers for o in obs]).tolist())) < 3:
+    if not obs:
+        return None
+    return refine_rows(markers, Rows.of(obs), p0, R0, motion)
+
+
+def refine_rows(markers: Array, rows: Rows, p0: Array, R0: Array,
+                motion: Motion | None = None) -> PoseFit | None:
+    """``refine_pose`` of observations given as ``Rows``."""
+    cams = len(set(rows.camera.tolist()))
+    if cams < 2 or len(set(rows.markers.tolist())) < 3:
         return None
     m = np.asarray(markers, float)
-    stack = _Stack.of(obs, m, motion)
+    stack = _Stack.of(rows, m, motion)
     p0 = np.asarray(p0, float)
     R0 = np.asarray(R0, float)
     zero = np.zeros(6)
@@ -231,26 +276,22 @@ class _Stack:
     last: dict       # the last pose's camera points (``_camera_points``)
 
     @staticmethod
-    def of(obs: list[Observation], markers: Array, motion: Motion | None) -> _Stack:
-        # each observation's camera, motion and time, repeated for its markers
-        counts = [len(o.markers) for o in obs]
-        k = sum(counts)
-        rows = np.repeat(np.array([o.camera.stack_row for o in obs]), counts, axis=0)
-        focal = rows[:, 12]
-        std = np.concatenate([o.std_px for o in obs]).astype(float).reshape(-1)
-        dt = np.repeat(np.array([o.dt_s for o in obs], float), counts)
-        moving = motion is not None and any(o.dt_s != 0.0 for o in obs)
-        if moving:
-            moved = [_moved(motion, o.dt_s) for o in obs]
-            turn = np.repeat([turn for turn, _ in moved], counts, axis=0)
-            shift = np.repeat([shift for _, shift in moved], counts, axis=0)
+    def of(rows: Rows, markers: Array, motion: Motion | None) -> _Stack:
+        k = len(rows)
+        focal = rows.stack[:, 12]
+        dt = rows.dt_s
+        moving = motion is not None and bool(np.any(dt != 0.0))
+        if moving:   # each camera's motion once, for its rows
+            times, at = np.unique(dt, return_inverse=True)
+            moved = [_moved(motion, float(t)) for t in times]
+            turn = np.array([turn for turn, _ in moved])[at]
+            shift = np.array([shift for _, shift in moved])[at]
         else:   # every camera at the pose's time: nothing moves
             turn = np.broadcast_to(_EYE3, (k, 3, 3))
             shift = np.zeros((k, 3))
-        return _Stack(rows[:, :9].reshape(k, 3, 3), rows[:, 9:12], focal,
-                      markers[np.concatenate([o.markers for o in obs]).astype(int)],
-                      np.concatenate([o.xy for o in obs]).astype(float).reshape(-1, 2),
-                      focal / std, turn, shift, dt, moving, {})
+        return _Stack(rows.stack[:, :9].reshape(k, 3, 3), rows.stack[:, 9:12], focal,
+                      markers[rows.markers], rows.xy, focal / rows.std_px, turn, shift, dt,
+                      moving, {})
 
     def _camera_points(self, x: Array, p0: Array, R0: Array) -> tuple[Array, Array]:
         """The markers in each observing camera's frame, and their arms ``Exp(omega dt) R

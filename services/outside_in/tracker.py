@@ -32,13 +32,7 @@ from services.outside_in.blobs import Blobs
 from services.outside_in.bodies import RigidBody, identify
 from services.outside_in.health import HealthParams, RigHealth
 from services.outside_in.motion import ImmFilter, MotionConfig
-from services.outside_in.pose import (
-    Motion,
-    Observation,
-    PoseFit,
-    absolute_orientation,
-    refine_pose,
-)
+from services.outside_in.pose import Motion, PoseFit, Rows, absolute_orientation, refine_rows
 from services.outside_in.rig import RigCamera, RigImages
 from services.outside_in.triangulation import MatchParams, match_and_triangulate
 
@@ -90,6 +84,44 @@ class BodyEstimate:
         return geo.decoupled_to_se3(self.p, self.cov)
 
 
+@dataclass(frozen=True)
+class _SetBlobs:
+    """A frame set's blobs in arrays over all its cameras, from which each body's claims
+    become the rows of its fit (``pose.Rows``) by indexing, not per marker."""
+
+    stack: Array    # (rig cameras, 13) each camera's ``RigCamera.stack_row``
+    offset: Array   # (rig cameras,) where each camera's blobs start in xy and std_px
+    xy: Array       # (n, 2) undistorted normalised coordinates
+    std_px: Array   # (n,)
+    dt_s: Array     # (rig cameras,) each camera's exposure time less the set's time
+
+    @staticmethod
+    def of(cameras: list[RigCamera], frames: list[CameraFrame], norm: dict[int, Array],
+           t_ref: float) -> _SetBlobs:
+        offset, dt = np.zeros(len(cameras), int), np.zeros(len(cameras))
+        at = 0
+        for f in frames:
+            offset[f.camera], dt[f.camera] = at, f.t - t_ref
+            at += len(f.blobs)
+        return _SetBlobs(np.array([c.stack_row for c in cameras]), offset,
+                         np.concatenate([norm[f.camera] for f in frames]).reshape(-1, 2),
+                         np.concatenate([f.blobs.std_px for f in frames]).astype(float), dt)
+
+    def rows(self, pairs: dict[tuple[int, int], tuple[int, int]]
+             ) -> tuple[Rows, Array, Array]:
+        """``(camera, marker) -> (camera, blob)`` as a fit's rows (each camera's
+        together, in the order given), each row's place among ``pairs`` and its blob."""
+        n = len(pairs)
+        cam = np.fromiter((c for c, _ in pairs), int, n)
+        marker = np.fromiter((m for _, m in pairs), int, n)
+        blob = np.fromiter((b for _, b in pairs.values()), int, n)
+        order = np.argsort(cam, kind="stable")
+        cam, marker, blob = cam[order], marker[order], blob[order]
+        at = self.offset[cam] + blob
+        return (Rows(cam, self.stack[cam], marker, self.xy[at], self.std_px[at],
+                     self.dt_s[cam]), order, blob)
+
+
 @dataclass
 class _Track:
     body: RigidBody
@@ -134,19 +166,20 @@ class OutsideInTracker:
         # velocity, less certain and, on the simulator's smooth paths, less accurate)
         t_ref = float(np.mean([f.t for f in frames]))
         norm = {f.camera: self.cameras[f.camera].normalize(f.blobs.uv) for f in frames}
+        blobs = _SetBlobs.of(self.cameras, frames, norm, t_ref)
         claims = self._predicted_claims(frames)
         used = {cb for mine in claims.values() for cb in mine.values()}
         out: list[BodyEstimate] = []
         done: set[int] = set()
         for k, mine in claims.items():
-            est = self._estimate(self.tracks[k], mine, frames, norm, t_ref, acquired=False)
+            est = self._estimate(self.tracks[k], mine, blobs, t_ref, acquired=False)
             if est is not None:
                 out.append(est)
                 done.add(k)
         lost = [k for k, tr in enumerate(self.tracks)
                 if k not in done and (not tr.filter.ready or tr.missed >= self.params.lost_after)]
         if lost:
-            out += self._acquire(lost, frames, norm, used, t_ref, done)
+            out += self._acquire(lost, blobs, norm, used, t_ref, done)
         self._miss_all(done)
         self._check_cameras(t_ref, seen, out)
         return out
@@ -247,15 +280,11 @@ class OutsideInTracker:
     # ---------------------------------------------------------------- estimation
 
     def _estimate(self, track: _Track, marker_blobs: dict[tuple[int, int], tuple[int, int]],
-                  frames: list[CameraFrame], norm: dict[int, Array], t_ref: float,
-                  acquired: bool, start: tuple[Array, Array] | None = None
-                  ) -> BodyEstimate | None:
+                  blobs: _SetBlobs, t_ref: float, acquired: bool,
+                  start: tuple[Array, Array] | None = None) -> BodyEstimate | None:
         """Refine the body's pose on ``(camera, marker) -> (camera, blob)`` and update
         its filter; None (counted) when the fit or the filter refuses it."""
         p = self.params
-        times = {f.camera: f.t for f in frames}
-        blobs = {f.camera: f.blobs for f in frames}
-        pairs = dict(marker_blobs)
         if start is None:
             p0, R0 = track.filter.predicted_pose(t_ref)
             f = track.filter
@@ -268,22 +297,22 @@ class OutsideInTracker:
             # the start's motion uncertainty moves it (the filter starts with both)
             p0, R0 = start
             motion = Motion(np.zeros(3), np.zeros(3), track.filter.start_motion_covariance)
-        fit = None
-        given = dict(pairs)
+        rows, given, blob = blobs.rows(marker_blobs)
+        keep = np.ones(len(rows), bool)
         while True:
-            obs = _observations(pairs, self.cameras, norm, blobs, times, t_ref)
-            fit = refine_pose(track.body.markers, obs, p0, R0, motion)
+            kept = rows.take(keep)
+            fit = refine_rows(track.body.markers, kept, p0, R0, motion)
             if fit is None:
                 break
-            worst, err, sigmas = _worst(fit, obs)
+            worst, err, sigmas = _worst(fit, kept)
             if err <= p.outlier_px and sigmas <= p.outlier_sigmas:
                 break
-            del pairs[worst]
-        if len(given) - len(pairs) > 1:
-            clean = self._without_a_camera(track, given, norm, blobs, times, t_ref, p0, R0,
-                                           motion)
-            if clean is not None and (fit is None or len(clean[0]) > len(pairs)):
-                pairs, fit = clean
+            keep[np.flatnonzero(keep)[worst]] = False
+        if len(rows) - np.count_nonzero(keep) > 1:
+            clean = self._without_a_camera(track, rows, p0, R0, motion)
+            if clean is not None and (fit is None
+                                      or np.count_nonzero(clean[0]) > np.count_nonzero(keep)):
+                keep, fit = clean
         if fit is None or fit.rms_px > p.max_rms_px:
             self.counts["refused_fit"] += 1
             return None
@@ -297,40 +326,40 @@ class OutsideInTracker:
         self.counts["acquired" if acquired else "tracked"] += 1
         track.missed = -1          # counted up to 0 at the end of the frame set
         by_cam: dict[int, dict[int, int]] = {}
-        for (c, m), (_, b) in pairs.items():
+        order = np.flatnonzero(keep)[np.argsort(given[keep])]   # the order they were given
+        for c, m, b in zip(rows.camera[order].tolist(), rows.markers[order].tolist(),
+                           blob[order].tolist(), strict=True):
             by_cam.setdefault(c, {})[m] = b
         f = track.filter
         return BodyEstimate(track.body.name, t_ref, f.p.copy(), geo.matrix_to_quat(f.R),
                             f.pose_covariance, fit.n_cameras, fit.n_observations, fit.rms_px,
                             acquired, by_cam, fit)
 
-    def _without_a_camera(self, track: _Track, pairs: dict, norm: dict[int, Array],
-                          blobs: dict[int, Blobs], times: dict[int, float], t_ref: float,
-                          p0: Array, R0: Array, motion: Motion
-                          ) -> tuple[dict, PoseFit] | None:
+    def _without_a_camera(self, track: _Track, rows: Rows, p0: Array, R0: Array,
+                          motion: Motion) -> tuple[Array, PoseFit] | None:
         """The fit without one camera's observations that has no outlier left, for when
         dropping the worst observation one at a time dropped more than that camera's: a
         camera turned since its calibration (bumped, not noticed yet) sees every marker
         a few pixels off, and a near one's sharp blobs outweigh the others, so the other
         cameras' observations went instead (a hand then fitted 16 mm off to it and one
-        other).  Of several such fits the one keeping most observations; None when there
-        is none."""
+        other).  Of several such fits the one keeping most observations (its rows, as a
+        mask of ``rows``); None when there is none."""
         p = self.params
-        cams = {c for c, _ in pairs}
+        cams = sorted(set(rows.camera.tolist()))
         best = None
-        for c in sorted(cams) if len(cams) > 2 else ():
-            kept = {k: v for k, v in pairs.items() if k[0] != c}
-            obs = _observations(kept, self.cameras, norm, blobs, times, t_ref)
-            fit = refine_pose(track.body.markers, obs, p0, R0, motion)
+        for c in cams if len(cams) > 2 else ():
+            keep = rows.camera != c
+            kept = rows.take(keep)
+            fit = refine_rows(track.body.markers, kept, p0, R0, motion)
             if fit is None:
                 continue
-            _, err, sigmas = _worst(fit, obs)
+            _, err, sigmas = _worst(fit, kept)
             if (err <= p.outlier_px and sigmas <= p.outlier_sigmas
-                    and (best is None or len(kept) > len(best[0]))):
-                best = (kept, fit)
+                    and (best is None or np.count_nonzero(keep) > np.count_nonzero(best[0]))):
+                best = (keep, fit)
         return best
 
-    def _acquire(self, lost: list[int], frames: list[CameraFrame], norm: dict[int, Array],
+    def _acquire(self, lost: list[int], blobs: _SetBlobs, norm: dict[int, Array],
                  used: set[tuple[int, int]], t_ref: float, done: set[int]
                  ) -> list[BodyEstimate]:
         """Search the lost bodies among the points triangulated from unclaimed blobs."""
@@ -359,7 +388,7 @@ class OutsideInTracker:
                                           X[[i for _, i in idx]])
             pairs = {(cams[ci], m): (cams[ci], keep[ci][b])
                      for m, i in idx for ci, b in points[i].views}
-            est = self._estimate(track, pairs, frames, norm, t_ref, acquired=True,
+            est = self._estimate(track, pairs, blobs, t_ref, acquired=True,
                                  start=(p0, R0))
             if est is not None:
                 blobs_taken = frozenset().union(*(views[i] for _, i in idx))
@@ -379,30 +408,9 @@ def _markers_at(track: _Track, t: float) -> Array:
     return track.body.markers @ R.T + p
 
 
-def _observations(pairs: dict[tuple[int, int], tuple[int, int]], cameras: list[RigCamera],
-                  norm: dict[int, Array], blobs: dict[int, Blobs], times: dict[int, float],
-                  t_ref: float) -> list[Observation]:
-    """The observations of a fit, each camera's with its exposure time less ``t_ref``."""
-    by_cam: dict[int, list[tuple[int, int]]] = {}
-    for (c, m), (_, b) in pairs.items():
-        by_cam.setdefault(c, []).append((m, b))
-    out = []
-    for c, mb in sorted(by_cam.items()):
-        m = np.array([x for x, _ in mb])
-        b = np.array([y for _, y in mb])
-        out.append(Observation(cameras[c], m, norm[c][b], blobs[c].std_px[b], times[c] - t_ref,
-                               index=c))
-    return out
-
-
-def _worst(fit: PoseFit, obs: list[Observation]) -> tuple[tuple[int, int], float, float]:
-    """The observation furthest from the fitted pose for its std: ``(camera, marker)``,
-    its distance in pixels and in stds."""
-    sigmas = fit.errors_px / np.concatenate([o.std_px for o in obs])
+def _worst(fit: PoseFit, rows: Rows) -> tuple[int, float, float]:
+    """The observation furthest from the fitted pose for its std: its row, its distance
+    in pixels and in stds."""
+    sigmas = fit.errors_px / rows.std_px
     i = int(np.argmax(sigmas))
-    at = i
-    for o in obs:
-        if at < len(o.markers):
-            return (o.index, int(o.markers[at])), float(fit.errors_px[i]), float(sigmas[i])
-        at -= len(o.markers)
-    raise AssertionError("the fit has more errors than observations")
+    return i, float(fit.errors_px[i]), float(sigmas[i])
