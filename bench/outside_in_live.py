@@ -4,7 +4,7 @@ One ``uma agent``; the simulated rig's cameras as ``marker-camera`` services,
 ``--per-process`` cameras to a process (each renders its frames at the wall clock's
 exposure times, finds their blobs in the windows the reconstruction predicts, publishes);
 the ``outside-in`` reconstruction; and in this process a ``Service`` that needs every
-body's pose.  Measured over ``--live`` seconds once every body has a pose:
+body's pose.  Measured over ``--live`` seconds once they run steadily (``_settle``):
 
 - **exposure to pose**: a pose's arrival here minus its time (the exposure of the frame
   set it came from), median and p99: everything from the shutter to an application,
@@ -12,13 +12,17 @@ body's pose.  Measured over ``--live`` seconds once every body has a pose:
 - **bare transport**, in the same run: a child process puts a timestamp on a bare Zenoh
   key at the camera rate and this process's bare subscriber takes it (both Zenoh clients
   of the agent, as the services are): one hop without uma;
-- **published rate** per body against the camera rate, and each process's CPU (cores,
-  from ``/proc``); the frames the cameras searched whole and in windows come from their
-  logs;
-- where a rate short of the cameras' comes from: per body the frame sets between its
-  poses that gave it none and when (``poses_missing``), and what the reconstruction
-  counted between its reports inside the measurement (frame sets, fits refused, samples
-  late, samples stale: skipped while it was behind).
+- **published rate** per body against the camera rate, over the cameras' window: the
+  poses of the frames exposed during the measurement, however late they came (up to
+  ``LATE_POSE_S``); ``arrived_hz`` counts the poses that arrived during it instead, off
+  the cameras' rate by however much the latency differs between the window's ends (a
+  pose 80 ms late at one end moves it by 10 poses, 1 per second over 10 s);
+- each process's CPU (cores, from ``/proc``); the frames the cameras searched whole and
+  in windows come from their logs;
+- where a rate short of the cameras' comes from: per body the frame sets exposed in the
+  window that gave it no pose and when the gaps were (``poses_missing``), and what the
+  reconstruction counted between its reports inside the measurement (frame sets, fits
+  refused, samples late, samples stale: skipped while it was behind).
 
 A real camera hands its host finished images; the simulator's rendering costs about as
 much as the services' work on them.  So the marker cameras render their frames first
@@ -51,6 +55,14 @@ FIRST_POSE_S = 60.0
 #: the cameras' frames rendered ahead cover the measurement and this much before it (the
 #: first poses, the bare publisher's start)
 PRERENDER_MARGIN_S = 8.0
+#: how long the measurement waits at most for the services to run steadily, and what
+#: counts as steady: every frame set of the last second with a pose of every body, none
+#: later than this after its exposure
+SETTLE_MAX_S = 4.0
+STEADY_LATENCY_S = 0.05
+#: how long after the measurement its last exposures' poses may take to come (a pose
+#: more than 0.1 s late is not made: the reconstruction skips stale samples)
+LATE_POSE_S = 1.0
 
 
 def bare_publisher(ep: str, key: str, rate_hz: float, seconds: float) -> int:
@@ -196,17 +208,15 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
 
     from agent import Measurement, Service
 
-    lat: dict[str, list[float]] = {b: [] for b in bodies}
-    exposures: dict[str, list[int]] = {b: [] for b in bodies}
+    poses: dict[str, list[tuple[int, int]]] = {b: [] for b in bodies}
     bare: list[float] = []
     measuring = threading.Event()
 
     def on_pose(m: Measurement) -> None:
         now = time.time_ns()
         name = m.edge[1].rsplit("/", 1)[-1] if m.edge else ""
-        if name in lat and (measuring.is_set() or not lat[name]):
-            lat[name].append((now - m.t_ns) / 1e6)
-            exposures[name].append(m.t_ns)
+        if name in poses:
+            poses[name].append((now, m.t_ns))
 
     def on_bare(smp: zenoh.Sample) -> None:
         if measuring.is_set():
@@ -219,7 +229,7 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
                   on_sample=on_pose)
         sink.start()
         sub = session.declare_subscriber(key, on_bare)
-        while not all(lat.values()) or (replayed := _replay_start(procs, cameras)) is None:
+        while not all(poses.values()) or (replayed := _replay_start(procs, cameras)) is None:
             if procs.dead() or time.time() > first_pose_by:
                 raise SystemExit(f"setup failed: no pose of every body from every camera's "
                                  f"replayed frames within {FIRST_POSE_S:g} s of their start "
@@ -229,53 +239,81 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         procs.start("bare", [str(Path(__file__)), "--bare-publisher", ep, key, str(rate_hz),
                              str(seconds + 3)])
         time.sleep(2.0)     # the bare publisher's process is up and putting
-        for v in (*lat.values(), *exposures.values()):
+        settled = _settle(poses, rate_hz)
+        for v in poses.values():
             v.clear()
         cpu0 = {n: _cpu_s(p.pid) for n, p in procs.procs.items() if p.poll() is None}
         threads0 = {n: _threads_cpu_s(procs.procs[n].pid) for n in cpu0}
         t0 = time.monotonic()
-        window = [time.time()]
+        start = time.time_ns()
         measuring.set()
         time.sleep(seconds)
         measuring.clear()
         elapsed = time.monotonic() - t0
-        window.append(time.time())
+        end = time.time_ns()
         cpu = {n: round((_cpu_s(procs.procs[n].pid) - c) / elapsed, 3)
                for n, c in cpu0.items() if procs.procs[n].poll() is None}
         threads = {n: _busiest({k: (v - threads0[n].get(k, 0.0)) / elapsed
                                 for k, v in _threads_cpu_s(procs.procs[n].pid).items()})
                    for n in cpu if n != "bare"}
+        time.sleep(LATE_POSE_S)    # the poses of the window's last exposures come in
         sub.undeclare()
     services = {n: c for n, c in cpu.items() if n != "bare"}
-    every = np.concatenate([np.asarray(v) for v in lat.values()])
-    if not len(every):
+    window = seconds * 1e9
+    # the rate over the cameras' window: the poses of the frames exposed while measuring
+    poses = {b: list(v) for b, v in poses.items()}
+    exposed = {b: [t for _, t in v if start <= t < start + window] for b, v in poses.items()}
+    lat = [(arrival - t) / 1e6 for v in poses.values() for arrival, t in v
+           if start <= t < start + window]
+    if not lat:
         tails = {n: procs.log(n).splitlines()[-3:] for n in procs.procs}
         raise SystemExit(f"no pose arrived while measuring; the processes' last lines: {tails}")
-    return {"exposure_to_pose": median_p99(every, "ms"),
+    return {"exposure_to_pose": median_p99(lat, "ms"),
             "load_after": os.getloadavg()[0],
             "bare_transport": median_p99(bare, "ms") if bare else None,
-            "published_hz": {b: round(len(v) / elapsed, 2) for b, v in lat.items()},
-            "poses_missing": _missing(exposures, rate_hz, window[0]),
-            "reconstruction_in_window": _counts_between(procs, *window),
+            "settled_after_s": settled,
+            "published_hz": {b: round(len(v) / seconds, 2) for b, v in exposed.items()},
+            "arrived_hz": {b: round(sum(start <= a < end for a, _ in v) / (end - start) * 1e9,
+                                    2) for b, v in poses.items()},
+            "poses_missing": _missing(exposed, rate_hz, start / 1e9, seconds),
+            "reconstruction_in_window": _counts_between(procs, start / 1e9, end / 1e9),
             "measured_until": time.time(),
             "cores": services, "cores_all_services": round(sum(services.values()), 3),
             "cores_by_thread": threads}
 
 
-def _missing(exposures: dict[str, list[int]], rate_hz: float, start: float
-             ) -> dict[str, Any]:
-    """Per body, the frame sets between its first and last pose while measuring that
-    gave it none (a gap of more than 1.5 frame periods between poses' exposures), and
-    when the first of them were (s after the measurement's start): whether a rate short
-    of the cameras' comes from the window's start or from losses throughout it."""
+def _settle(poses: dict[str, list[tuple[int, int]]], rate_hz: float) -> float | None:
+    """Wait (at most ``SETTLE_MAX_S``) until the services run steadily: the last second
+    of exposures gave every body a pose, each within ``STEADY_LATENCY_S``.  Their start
+    is no steady state: each camera searches its whole images until the reconstruction's
+    windows come, the bodies are acquired, the reconstruction catches up on samples
+    queued meanwhile (skipping the stale ones).  How long it took (s), None when it did
+    not settle (the measurement then starts anyway)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < SETTLE_MAX_S:
+        now = time.time_ns()
+        window = (now - round(1.1e9), now - round(0.1e9))
+        if all(sum(window[0] <= t < window[1] and a - t < STEADY_LATENCY_S * 1e9
+                   for a, t in v[-round(3 * rate_hz):]) >= rate_hz - 1
+               for v in list(poses.values())):
+            return round(time.monotonic() - t0, 2)
+        time.sleep(0.1)
+    return None
+
+
+def _missing(exposures: dict[str, list[int]], rate_hz: float, start: float,
+             seconds: float) -> dict[str, Any]:
+    """Per body, the frame sets exposed in the window (``seconds`` from ``start``, unix
+    time) that gave it no pose, and when the gaps between its poses were (s after the
+    start; a gap of more than 1.5 frame periods): whether a rate short of the cameras'
+    comes from losses throughout the window or at a time."""
     period_ns = 1e9 / rate_hz
     out: dict[str, Any] = {}
     for body, times in exposures.items():
         t = np.sort(np.asarray(times, np.int64))
-        gaps = np.diff(t)
-        lost = np.rint(gaps / period_ns).astype(int) - 1
+        lost = np.rint(np.diff(t) / period_ns).astype(int) - 1
         at = np.flatnonzero(lost > 0)
-        out[body] = {"frame_sets": int(lost[at].sum()) if len(at) else 0,
+        out[body] = {"frame_sets": max(round(seconds * rate_hz) - len(t), 0),
                      "at_s": [round(float(t[i] / 1e9 - start), 2) for i in at[:12]]}
     return out
 

@@ -161,7 +161,8 @@ def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tm
         sys.path.remove(str(BENCH))
     period = round(1e9 / 120)
     got = live._missing({"a": [10 * period, 11 * period, 14 * period, 15 * period],
-                         "b": [10 * period, 11 * period]}, 120.0, 10 * period / 1e9)
+                         "b": [k * period for k in range(10, 16)]}, 120.0, 10 * period / 1e9,
+                        6 / 120)
     assert got["a"]["frame_sets"] == 2 and got["a"]["at_s"] == [round(1 / 120, 2)]
     assert got["b"] == {"frame_sets": 0, "at_s": []}
 
