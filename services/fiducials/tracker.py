@@ -211,43 +211,40 @@ def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, detected: np.nd
 def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
-    themselves: outwards by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, together at
-    ``SIDE_CORRELATION``, and turning by ``TURN_A * exp(-across / SIDE_SCALE_PX)`` px at
-    each end; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
+    themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
+    at ``SIDE_CORRELATION``, and turning by ``TURN_A * exp(-across / SIDE_SCALE_PX)`` px
+    at each end; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
     (``sweep``: how many pixels across its nearer image axis the side's fitted span
-    covers in the image, ``detected``).  Corner k is the end of side k - 1 and the start
-    of side k, so it moves by the inverse of the matrix of their outward normals times
-    their two lines' offsets there."""
+    covers in the image, ``detected``).  Corner k is where side k - 1 ends and side k
+    starts: when side k moves across itself by ``o``, corner k slides along side k - 1
+    by ``o / sin`` of the angle between them, and when side k - 1 moves, back along side
+    k (the sides' outward directions all flip with the quad's orientation, which the
+    covariance does not see)."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
-    length = np.maximum(np.sqrt(np.einsum("mkc,mkc->mk", side, side)), 1e-9)
-    narrow = np.exp(-(length[:, _PREV] + length[:, _NEXT]) / (2 * modules) / SIDE_SCALE_PX)
+    length = np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)
+    along = side / length[..., None]
+    narrow = np.exp((length[:, _PREV] + length[:, _NEXT]) * (-0.5 / modules / SIDE_SCALE_PX))
     in_image = np.asarray(detected, np.float64)
-    sweep = edges.SPAN * np.abs(in_image[:, _NEXT] - in_image).min(axis=-1)
-    normal = side[..., ::-1] * [1.0, -1.0] / length[..., None]
-    middle = (corners + corners[:, _NEXT]) / 2 - corners.mean(axis=1, keepdims=True)
-    normal *= np.sign(np.einsum("mkc,mkc->mk", normal, middle))[..., None]  # outwards
-    by = edges.inverse_2x2(np.stack([normal[:, _PREV], normal], axis=-2))  # (m, 4, 2, 2)
-    m = len(corners)
-    k = np.arange(4)
-    # corner k <- side k - 1's offset at its end, side k's at its start: [shift, turn]
-    G = np.zeros((m, 4, 2, 4, 2))
-    G[:, k, :, _PREV, 0] = G[:, k, :, _PREV, 1] = np.moveaxis(by[..., 0], 1, 0)
-    G[:, k, :, k, 0] = np.moveaxis(by[..., 1], 1, 0)
-    G[:, k, :, k, 1] = -G[:, k, :, k, 0]
-    G = G.reshape(m, 8, 8)
+    sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = SIDE_A * narrow
-    shift = (tau[:, :, None] * tau[:, None, :] * SIDE_CORRELATION
-             + np.eye(4) * ((1 - SIDE_CORRELATION) * tau ** 2
-                            + (LOCK_PX * np.sinc(sweep)) ** 2 / 2)[:, :, None])
-    offsets = np.zeros((m, 4, 2, 4, 2))
-    offsets[:, :, 0, :, 0] = shift
-    offsets[:, k, 1, k, 1] = (TURN_A * narrow) ** 2
-    offsets = offsets.reshape(m, 8, 8)
-    return G @ offsets @ np.swapaxes(G, -1, -2)
+    own = (1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
+    before = along[:, _PREV]
+    sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
+    by_ending = -along[..., None] / sine * _ENDING  # (m, 4 corners, 2, 4 sides)
+    by_starting = before[..., None] / sine * _STARTING
+    shift = (by_ending + by_starting).reshape(-1, 8, 4)
+    turn = (by_ending - by_starting).reshape(-1, 8, 4)
+    common = (shift * tau[:, None, :]).sum(axis=-1)
+    return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
+            + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
+            + (turn * ((TURN_A * narrow) ** 2)[:, None, :]) @ np.swapaxes(turn, -1, -2))
 
 
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
+#: corner k is where side k - 1 ends and side k starts
+_ENDING = np.eye(4)[_PREV][:, None, :]
+_STARTING = np.eye(4)[:, None, :]
 
 
 def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:
