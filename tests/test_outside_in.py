@@ -790,6 +790,21 @@ def test_eval_outside_in_runs_both_trackers_and_the_baseline_on_the_same_frames(
         assert f[case]["position_rmse_mm"] < 2.0, case
     assert f["identity_swaps"] == 0
     assert "nees" in f["uma_3plus"] and "nees" not in f["opencv_3plus"]
+    # the ratio on the poses both gave: no more than either gave, and one of each body at
+    # most per frame set
+    both = f["common_2cam_rig"]
+    assert 0 < both["poses"] <= min(f["uma_2cam_rig"]["poses"], f["opencv_2cam_rig"]["poses"])
+    assert both["poses"] <= 3 * f["frames"] and 0 < both["ratio_position"] < 2.0
+
+
+def test_common_ratios_hold_two_cases_on_the_poses_both_gave() -> None:
+    from services.outside_in.evaluate import _Case, common_ratios
+    ours, theirs = _Case(), _Case()
+    ours.keyed = {(0, 0): np.full(6, 1.0), (1, 0): np.full(6, 9.0)}   # (1, 0): theirs none
+    theirs.keyed = {(0, 0): np.full(6, 2.0), (0, 1): np.full(6, 5.0)}
+    assert common_ratios(ours, theirs) == {"poses": 1, "ratio_position": 0.5,
+                                           "ratio_orientation": 0.5}
+    assert common_ratios(_Case(), theirs) == {"poses": 0}
 
 
 @pytest.mark.slow

@@ -21,7 +21,8 @@ With ``--bump-deg`` camera 3 is turned half-way through (its calibration kept): 
 says when the tracker noticed (``health``) and re-estimated it, and how far the new pose
 is from the truth.
 
-Figures: position and orientation RMSE per case, uma / OpenCV ratios, mean NEES against
+Figures: position and orientation RMSE per case, uma / OpenCV ratios (and the same on the
+poses both gave, ``common_*``), mean NEES against
 its 95 % band (``services.consistency``), identity swaps (a body's pose nearer another
 body's truth than its own), poses further than 2 cm or 2 deg (wrong), poses from fewer than
 two cameras (must be none), the share of body frames with a pose where two cameras saw
@@ -87,6 +88,8 @@ class _Case:
     covs: list[Array] = field(default_factory=list)
     wrong: int = 0
     swaps: int = 0
+    #: the same errors by (frame set, body), to hold two cases on the poses both gave
+    keyed: dict[tuple[int, int], Array] = field(default_factory=dict)
 
     def figures(self) -> dict[str, Any]:
         if not self.errors:
@@ -146,16 +149,16 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
                 coverage[0] += 1
                 coverage[1] += body.name in posed
         for e in est_full:
-            _score(sim, e, cases["uma_3plus" if e.cameras >= 3 else "uma_2"])
+            _score(sim, i, e, cases["uma_3plus" if e.cameras >= 3 else "uma_2"])
         for e in est_pair:
-            _score(sim, e, cases["uma_2cam_rig"])
+            _score(sim, i, e, cases["uma_2cam_rig"])
         for k, body in enumerate(sim.bodies):
             for cams, idx, case in ((calibrated, range(len(sim.cameras)), "opencv_3plus"),
                                     (pair_cams, PAIR, "opencv_2cam_rig")):
                 got = opencv_baseline(cams, [frames[c] for c in idx], [blobs[c] for c in idx],
                                       k, body)
                 if got is not None:
-                    _score_pose(sim, k, frames[idx[0]].t, got[0], got[1], None,
+                    _score_pose(sim, (i, k), frames[idx[0]].t, got[0], got[1], None,
                                 cases[case])
     figures: dict[str, Any] = {
         "cameras": len(sim.cameras), "rate_hz": sim.config.rate_hz, "frames": n,
@@ -181,7 +184,24 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
         for what in ("position_rmse_mm", "orientation_rmse_deg"):
             if a.get(what) and b.get(what):
                 figures[f"ratio_{what.split('_')[0]}_{rig}"] = round(a[what] / b[what], 4)
+        figures[f"common_{rig}"] = common_ratios(cases[ours], cases[theirs])
     return figures
+
+
+def common_ratios(ours: _Case, theirs: _Case) -> dict[str, Any]:
+    """uma's RMSE over the baseline's on the (frame set, body) poses both gave: each case
+    poses what it can (the baseline a body from three markers two cameras share, uma once
+    it has found four), and a hard pose one of them gave and the other did not weighs in
+    its RMSE alone."""
+    both = [key for key in ours.keyed if key in theirs.keyed]
+    out: dict[str, Any] = {"poses": len(both)}
+    if both:
+        a = np.array([ours.keyed[key] for key in both])
+        b = np.array([theirs.keyed[key] for key in both])
+        for what, cols in (("position", slice(0, 3)), ("orientation", slice(3, 6))):
+            out[f"ratio_{what}"] = round(float(np.sqrt(
+                np.sum(a[:, cols] ** 2) / np.sum(b[:, cols] ** 2))), 4)
+    return out
 
 
 def bumped(cam: RigCamera, deg: float) -> RigCamera:
@@ -217,13 +237,15 @@ def _seeable(frames: list[Frame], body: int, n_markers: int) -> bool:
     return sum(c >= 3 for c in per_cam) >= 2 and n_markers >= 3
 
 
-def _score(sim: Simulation, e: BodyEstimate, case: _Case) -> None:
+def _score(sim: Simulation, frame_set: int, e: BodyEstimate, case: _Case) -> None:
     k = [b.name for b in sim.bodies].index(e.body)
-    _score_pose(sim, k, e.t, e.p, geo.quat_to_matrix(e.q), e.cov, case)
+    _score_pose(sim, (frame_set, k), e.t, e.p, geo.quat_to_matrix(e.q), e.cov, case)
 
 
-def _score_pose(sim: Simulation, k: int, t: float, p: Array, R: Array, cov: Array | None,
-                case: _Case) -> None:
+def _score_pose(sim: Simulation, key: tuple[int, int], t: float, p: Array, R: Array,
+                cov: Array | None, case: _Case) -> None:
+    """Body ``key[1]``'s pose of frame set ``key[0]`` against the truth."""
+    k = key[1]
     p_true, q_true = sim.body_pose(k, t)
     err = np.concatenate([p_true - p, geo.rodrigues_inverse(geo.quat_to_matrix(q_true) @ R.T)])
     if np.linalg.norm(err[:3]) > WRONG_M or np.linalg.norm(err[3:]) > WRONG_RAD:
@@ -233,6 +255,7 @@ def _score_pose(sim: Simulation, k: int, t: float, p: Array, R: Array, cov: Arra
             case.swaps += 1
         return
     case.errors.append(err)
+    case.keyed[key] = err
     if cov is not None:
         case.covs.append(cov)
 
