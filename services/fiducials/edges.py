@@ -184,10 +184,12 @@ def _levels(profile: np.ndarray, dark: np.ndarray, bright: np.ndarray, thin: np.
     52-79 degrees from the line of sight) rendered with a four-cell margin: corners 0.30
     px RMS from the truth (median; max 0.89) with each profile's own middle, 0.10 (max
     0.22) with the marker's; with the one-cell margin unchanged."""
+    local = (dark + bright) / 2
+    if not thin.any():
+        return local
     contrast = (bright - dark > MIN_CONTRAST).astype(np.float64)
     fall = (bright - profile[..., -1]) / np.maximum(bright - dark, 1.0)
     plateau = thin & ((contrast * fall).sum(-1) < PLATEAU_FALL * contrast.sum(-1))
-    local = (dark + bright) / 2
     if not plateau.any():
         return local
     # the darker half of the darkest samples, the brighter half of the brightest: those off
