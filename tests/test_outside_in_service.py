@@ -285,3 +285,19 @@ def test_prerendered_frames_are_the_rendered_ones_at_their_exposure_times() -> N
     for t_ns, image in _sim_frames(sim, 0, threading.Event(), 4, prerender_s=0.1):
         assert 0 <= time.time_ns() - t_ns < 0.5e9
         assert np.array_equal(image, sim.render(0, round(t_ns * 60.0 / 1e9)).image)
+
+
+def test_a_services_startup_objects_are_left_out_of_the_collectors_scans() -> None:
+    """What a service made while starting is not scanned again by each full collection
+    (it lives as long as the process; scanning it paused the tracking for 50-90 ms)."""
+    import gc
+
+    from services.outside_in.service import keep_startup_objects
+    kept = [[i] for i in range(100)]        # containers the collector tracks
+    try:
+        keep_startup_objects()
+        assert gc.get_freeze_count() >= len(kept)
+        assert not any(o is kept[0] for o in gc.get_objects())
+    finally:
+        gc.unfreeze()
+    assert any(o is kept[0] for o in gc.get_objects())
