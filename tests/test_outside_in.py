@@ -790,11 +790,35 @@ def test_eval_outside_in_runs_both_trackers_and_the_baseline_on_the_same_frames(
         assert f[case]["position_rmse_mm"] < 2.0, case
     assert f["identity_swaps"] == 0
     assert "nees" in f["uma_3plus"] and "nees" not in f["opencv_3plus"]
+    assert "nees_fit" in f["uma_3plus"] and "nees_fit" not in f["opencv_3plus"]
     # the ratio on the poses both gave: no more than either gave, and one of each body at
     # most per frame set
     both = f["common_2cam_rig"]
     assert 0 < both["poses"] <= min(f["uma_2cam_rig"]["poses"], f["opencv_2cam_rig"]["poses"])
     assert both["poses"] <= 3 * f["frames"] and 0 < both["ratio_position"] < 2.0
+
+
+def test_eval_scores_the_fit_apart_from_the_filter() -> None:
+    """A pose's fit counts against its own covariance, the filtered pose against the
+    filter's, each with its own error; a wrong pose adds neither."""
+    from types import SimpleNamespace
+
+    from services.outside_in.evaluate import _Case, _score
+    sim = Simulation(seed=1, config=SimConfig(n_cameras=4))
+    t = 0.1
+    p, q = sim.body_pose(0, t)
+    R = geo.quat_to_matrix(q)
+    fit = SimpleNamespace(p=p + np.array([0.0, 0.0, 2e-4]), R=R, cov=np.eye(6) * 1e-8)
+    pose = SimpleNamespace(body=sim.bodies[0].name, t=t, p=p + np.array([1e-4, 0.0, 0.0]), q=q,
+                           cov=np.eye(6) * 4e-8, fit=fit)
+    case = _Case()
+    _score(sim, 0, pose, case)
+    nees = case.figures()
+    assert nees["nees"]["mean"] == pytest.approx(0.25, rel=1e-6)      # 1e-4^2 / 4e-8
+    assert nees["nees_fit"]["mean"] == pytest.approx(4.0, rel=1e-6)   # 2e-4^2 / 1e-8
+    wrong = SimpleNamespace(**{**vars(pose), "p": p + np.array([0.05, 0.0, 0.0])})
+    _score(sim, 1, wrong, case)
+    assert len(case.fit_errors) == len(case.errors) == 1 and case.wrong == 1
 
 
 def test_common_ratios_hold_two_cases_on_the_poses_both_gave() -> None:

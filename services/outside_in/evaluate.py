@@ -90,6 +90,9 @@ class _Case:
     swaps: int = 0
     #: the same errors by (frame set, body), to hold two cases on the poses both gave
     keyed: dict[tuple[int, int], Array] = field(default_factory=dict)
+    #: each pose's fit before the filter (its error and covariance, at the same time)
+    fit_errors: list[Array] = field(default_factory=list)
+    fit_covs: list[Array] = field(default_factory=list)
 
     def figures(self) -> dict[str, Any]:
         if not self.errors:
@@ -102,6 +105,8 @@ class _Case:
                    np.sum(e[:, 3:] ** 2, 1))))), 4)}
         if self.covs:
             out["nees"] = nees_figures(e, np.array(self.covs))
+        if self.fit_covs:
+            out["nees_fit"] = nees_figures(np.array(self.fit_errors), np.array(self.fit_covs))
         return out
 
 
@@ -238,16 +243,23 @@ def _seeable(frames: list[Frame], body: int, n_markers: int) -> bool:
 
 
 def _score(sim: Simulation, frame_set: int, e: BodyEstimate, case: _Case) -> None:
+    """The filtered pose, and where it counts, the fit it was updated with: that fit's
+    NEES against its own covariance (the centroids' noise and, with unsynchronised
+    cameras, the filter's motion error moved into it) apart from the filter's says which
+    of the two a covariance that is off comes from."""
     k = [b.name for b in sim.bodies].index(e.body)
+    n = len(case.errors)
     _score_pose(sim, (frame_set, k), e.t, e.p, geo.quat_to_matrix(e.q), e.cov, case)
+    if len(case.errors) > n:
+        case.fit_errors.append(_pose_error(sim, k, e.t, e.fit.p, e.fit.R))
+        case.fit_covs.append(e.fit.cov)
 
 
 def _score_pose(sim: Simulation, key: tuple[int, int], t: float, p: Array, R: Array,
                 cov: Array | None, case: _Case) -> None:
     """Body ``key[1]``'s pose of frame set ``key[0]`` against the truth."""
     k = key[1]
-    p_true, q_true = sim.body_pose(k, t)
-    err = np.concatenate([p_true - p, geo.rodrigues_inverse(geo.quat_to_matrix(q_true) @ R.T)])
+    err = _pose_error(sim, k, t, p, R)
     if np.linalg.norm(err[:3]) > WRONG_M or np.linalg.norm(err[3:]) > WRONG_RAD:
         case.wrong += 1
         others = [np.linalg.norm(sim.body_pose(j, t)[0] - p) for j in range(len(sim.bodies))]
@@ -258,6 +270,12 @@ def _score_pose(sim: Simulation, key: tuple[int, int], t: float, p: Array, R: Ar
     case.keyed[key] = err
     if cov is not None:
         case.covs.append(cov)
+
+
+def _pose_error(sim: Simulation, k: int, t: float, p: Array, R: Array) -> Array:
+    """Body ``k``'s pose error at ``t`` over ``[dp, phi]`` (truth less the pose)."""
+    p_true, q_true = sim.body_pose(k, t)
+    return np.concatenate([p_true - p, geo.rodrigues_inverse(geo.quat_to_matrix(q_true) @ R.T)])
 
 
 def opencv_baseline(cams: list[RigCamera], frames: list[Frame], blobs: list[Blobs], body: int,
