@@ -454,8 +454,10 @@ def test_service_publishes_marker_poses_from_a_video(processes, realm, tmp_path)
     cam = SimCamera(LENS)
     scene = tags("apriltag36h11", [4], 0.08, [static(T)])
     rng = np.random.default_rng(7)
-    video = write_video(tmp_path / "cam.avi", [cam.render(scene, 0.0, rng) for _ in range(80)],
-                        fps=10)  # 8 s: still running when listed
+    # 30 s at 10 frames/s (30 noise draws, each shown ten times): still running when listed
+    # on a loaded machine, where 8 s of video had ended and its ability was gone
+    shots = [cam.render(scene, 0.0, rng) for _ in range(30)]
+    video = write_video(tmp_path / "cam.avi", shots * 10, fps=10)
     calibration = LENS.save(tmp_path / "cam.yaml")
     ep = endpoint(free_port())
     agent(processes, realm, "host", ep)
