@@ -10,16 +10,15 @@ or from the simulated rig, whose time is the wall clock so that cameras on sever
 render one world.
 
 The reconstruction feeds its filter's predictions back (Dorfmüller-Ulhaas §2): after a
-frame set it publishes, per camera (at most every ``WINDOWS_EVERY_S``:
-``Reconstruction.windows``), where the tracked bodies' markers will image at that camera's
-next exposure, the first from now on when the reconstruction is behind (a ``markers2d``
-ability ``windows-NAME`` on ``SITE/NAME -> SITE/NAME/windows``, its time the exposure's,
-``extra["search"]`` true while a body is lost; each point's value the distance in pixels
-within which the reconstruction takes a blob).  Each marker camera needs its own and looks
-for blobs only in windows around those points (``find_blobs``' windowed mode: a fraction
-of the whole image's cost), and in the whole image when no prediction for this exposure
-(or up to ``PREDICTION_AGE_S`` before it) has come, and every ``SEARCH_EVERY``-th frame
-while a body is lost.
+frame set it publishes, per camera (at most every ``WINDOWS_EVERY_S``, and only while
+they can come in time: ``Reconstruction.windows``), where the tracked bodies' markers will
+image at that camera's next exposure (a ``markers2d`` ability ``windows-NAME`` on ``SITE/NAME ->
+SITE/NAME/windows``, its time the exposure's, ``extra["search"]`` true while a body is
+lost; each point's value the distance in pixels within which the reconstruction takes a
+blob).  Each marker camera needs its own and looks for blobs only in windows around those
+points (``find_blobs``' windowed mode: a fraction of the whole image's cost), and in the
+whole image when no prediction for this exposure (or up to ``PREDICTION_AGE_S`` before
+it) has come, and every ``SEARCH_EVERY``-th frame while a body is lost.
 
 The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
 whatever camera appears is used, one that stops is left out.  Samples are gathered into
@@ -74,10 +73,6 @@ STALE_S = 0.1
 FLOOR_S = 10.0
 #: the reconstruction sends a camera new windows once its last are this much older (s)
 WINDOWS_EVERY_S = 0.02
-#: how far past a camera's last frame (s) the reconstruction predicts its windows when it
-#: is behind (a prediction 1 m/s^2 off in acceleration strays 5 mm in 0.1 s: under 1 px
-#: 3 m away, well inside a window, ``BlobParams.window_px``)
-WINDOWS_AHEAD_S = 0.1
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
 SEARCH = "search"
 
@@ -368,26 +363,18 @@ class Reconstruction:
         (none before the frame period is known).
 
         A camera takes a prediction for the frames up to ``PREDICTION_AGE_S`` after the
-        exposure it was made for, so a reconstruction behind the cameras (a busy machine)
-        predicts for the camera's first exposure from ``now_ns`` on, not for the one after
-        its last frame, which has passed: the filter predicts that far (at most
-        ``WINDOWS_AHEAD_S`` past the camera's last frame, else none is sent), and the
-        cameras keep searching windows, not their whole images, which would cost them
-        and the reconstruction more and keep it behind.  None is sent within
-        ``WINDOWS_EVERY_S`` of the last sent to that camera (at 120 Hz every third frame
-        set; each message costs its sender, the agent and the camera more than the
-        windows save the segmentation)."""
+        exposure it was made for: one that would come later is not sent (the
+        reconstruction is behind), nor one within ``WINDOWS_EVERY_S`` of the last sent to
+        that camera (at 120 Hz every third frame set; each message costs its sender,
+        the agent and the camera more than the windows save the segmentation)."""
         if self.period is None:
             return []
         names = {i: n for n, i in self.index.items()}
         times = {}
-        now = now_ns / 1e9
         for cam, t in self.last_t.items():
             t_next = t + self.period
-            if now > t_next:
-                t_next += math.ceil((now - t_next) / self.period) * self.period
             due = round(t_next * 1e9)
-            if (t_next - t > WINDOWS_AHEAD_S
+            if (now_ns >= due + PREDICTION_AGE_S * 1e9
                     or due - self.windows_sent.get(cam, -2**62) < WINDOWS_EVERY_S * 1e9):
                 continue
             self.windows_sent[cam] = due
