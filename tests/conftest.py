@@ -26,6 +26,20 @@ settings.register_profile("uma", derandomize=True, deadline=None)
 settings.load_profile("uma")
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile uma's own sources once, in the controller: the suite starts some hundreds of
+    processes (agents, services, commands), and where bytecode is not written on import
+    (``PYTHONDONTWRITEBYTECODE``, as on shared CI hosts) each of them compiled every module
+    it imports again, about 0.15 s of CPU apiece."""
+    if hasattr(session.config, "workerinput"):
+        return
+    import compileall
+
+    root = Path(__file__).resolve().parent.parent
+    for package in ("agent", "schemas", "services"):
+        compileall.compile_dir(root / package, quiet=1)
+
+
 def _port_block() -> range:
     """This test worker's own ports: below the kernel's ephemeral range (where bind(0) and
     every outgoing connection take theirs, so a port found free there can be taken by
