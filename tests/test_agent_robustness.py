@@ -161,14 +161,22 @@ def test_services_wait_for_their_agent_and_survive_its_restart(processes, realm,
     # clients of the agent are routed by it: their samples flow again once it is back
     consumer.wait_for(lambda e: e.get("event") == "counts" and e["counts"]["cam"] > 50,
                       after=mark)
-    listed = {}
-    for _ in range(50):
+    def fusion_matches() -> list[str] | None:
+        """The restarted agent's matches of the fusion's need, once both services are
+        registered with it (matching follows registration: the listing may come between)."""
         listed = services_json(realm, ep)
-        if {s["service_id"] for a in listed["agents"] for s in a["services"]} == {"cam",
-                                                                                 "fusion"}:
+        services = {s["service_id"]: s for a in listed["agents"] for s in a["services"]}
+        if set(services) != {"cam", "fusion"}:
+            return None
+        return [m["service_id"] for m in services["fusion"]["needs"][0]["matches"]]
+
+    matches = None
+    for _ in range(50):
+        matches = fusion_matches()
+        if matches:
             break
-    fusion = next(s for s in listed["agents"][0]["services"] if s["service_id"] == "fusion")
-    assert [m["service_id"] for m in fusion["needs"][0]["matches"]] == ["cam"]
+        time.sleep(0.1)
+    assert matches == ["cam"]
     # the restart never disconnected the need
     assert not any(matched_to(e, "head") for e in consumer.events[mark:])
     assert cam.popen.poll() is None
