@@ -82,15 +82,16 @@ class Poses:
                                          f"subscription's status and last error {state})")
                 self.cond.wait(min(left, 0.2))
 
-    def via(self, name: str, after: int, count: int = 20) -> None:
-        """``count`` poses delivered after index ``after``, all over agent ``name``'s route."""
-        expected = np.add(RIG_IN_WORLD[name][0], HEAD_IN_RIG)
+    def via(self, names: str, after: int, count: int = 20) -> None:
+        """``count`` poses delivered after index ``after`` over the route of agent ``names``
+        (or of any of several, e.g. "AB")."""
+        expected = [np.add(RIG_IN_WORLD[name][0], HEAD_IN_RIG) for name in names]
 
         def enough() -> bool:
             new = [r for r in self.got[after:]
-                   if np.allclose(r.position, expected, atol=1e-9)]
+                   if any(np.allclose(r.position, e, atol=1e-9) for e in expected)]
             return len(new) >= count
-        self.wait(enough, f"{count} poses over agent {name}'s route")
+        self.wait(enough, f"{count} poses over the route of agent {' or '.join(names)}")
 
 
 def start_site(processes, realm: str, tmp_path) -> tuple[dict, dict]:
@@ -152,14 +153,14 @@ def test_subscription_follows_its_route_when_an_agent_dies_and_comes_back(
         assert [s.agent for s in sub.route] == ["A", "C"] and poses.errors == []
 
         # the route's agents die but its samples still arrive (the tracker's agent lives):
-        # no new plan, but the working stream goes on over the mirrored route (the one it
-        # is on when they die: on a loaded machine a re-plan may have moved it meanwhile)
-        kept = sub.route[0].agent
+        # no new plan, but the working stream goes on over a mirrored route (on a loaded
+        # machine a probe A answered late can have moved it to B's as they die, and the
+        # route named then is not always the one its samples come over: either goes on)
         for name in "AB":
             procs[name].popen.kill()
             procs[name].popen.wait(10)
         mark = len(poses.got)
-        poses.via(kept, mark, count=200)  # 2 s at 100 Hz: longer than a lease
+        poses.via("AB", mark, count=200)  # 2 s at 100 Hz: longer than a lease
         assert sub.status == "streaming" and poses.errors == []
 
         # and its samples stop too: no route, reported once
