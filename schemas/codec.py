@@ -105,8 +105,9 @@ class Measurement:
     """One sample of an ability's stream.
 
     Which fields are set depends on ``type`` (see the module docstring).  ``edge``,
-    ``source`` and ``attributes`` are context the receiving SDK fills in from the match; they
-    are not on the wire.
+    ``source`` and ``attributes`` are context the receiving SDK fills in from the match;
+    ``time_error_ns`` is the bound it gives on the error of ``t_ns`` once moved onto the
+    receiving host's clock (0: stamped on that clock).  None of them is on the wire.
     """
 
     type: str
@@ -123,6 +124,7 @@ class Measurement:
     edge: tuple[str, str] | None = None
     source: str | None = None
     attributes: Any = None
+    time_error_ns: int | None = None
 
 
 # --------------------------------------------------------------------------- covariance packing

@@ -144,8 +144,9 @@ class NeedLinks:
     def __init__(self, svc: Service, limited_log: RateLimitedLog) -> None:
         self._svc = svc
         self._log = limited_log
-        self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | None] = queue.Queue(
-            SAMPLE_QUEUE)
+        #: a sample, () to wake the thread, None to end it
+        self._samples: queue.Queue[tuple[NeedHandle, _Link, bytes] | tuple[()] | None] = (
+            queue.Queue(SAMPLE_QUEUE))
         self._thread: threading.Thread | None = None
         #: guards the needs' link sets and held samples (the control and dispatch threads)
         self._retire_lock = threading.Lock()
@@ -154,7 +155,8 @@ class NeedLinks:
         #: samples refused by their stamp (``stamp_refusal``), not given to ``on_sample``
         self.refused = 0
         #: the clocks of the agents whose streams the needs take
-        self.clocks = SampleClocks(svc.agent_id, svc.realm, svc.now_ns, limited_log)
+        self.clocks = SampleClocks(svc.agent_id, svc.realm, svc.now_ns, limited_log,
+                                   on_ready=self._wake)
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._dispatch, daemon=True,
@@ -241,6 +243,12 @@ class NeedLinks:
             self._log.warning(f"service {self._svc.service_id} need {need.name}",
                               "callback queue full (on_sample too slow); samples dropped")
 
+    def _wake(self, agent: str) -> None:
+        """Have the dispatch thread take the held samples of ``agent`` (a full queue
+        wakes it anyway)."""
+        with contextlib.suppress(queue.Full):
+            self._samples.put_nowait(())
+
     def _drop_retiring(self, need: NeedHandle, expired_only: bool = False) -> None:
         """Undeclare the need's replaced links (only those past ``retire_at``); lock held."""
         now = time.monotonic()
@@ -321,6 +329,9 @@ class NeedLinks:
                     self._deliver(need, link, data, standby=True)
             if self._holding:
                 self._release(now)
+            if self.clocks.holding:
+                for held in self.clocks.released():
+                    self._pass_on(*held)
 
     def _deliver(self, need: NeedHandle, link: _Link, data: bytes,
                  standby: bool = False) -> None:
@@ -331,10 +342,18 @@ class NeedLinks:
         except DecodeError as exc:
             self._log.warning(f"data {link.match.key}", f"dropped: {exc}")
             return
-        t_ns = self.clocks.to_local(link.match.agent_id, m.t_ns)
+        self._pass_on(need, link, m, standby, len(data))
+
+    def _pass_on(self, need: NeedHandle, link: _Link, m: Measurement, standby: bool,
+                 size: int) -> None:
+        """``_deliver`` of a decoded sample; held while its agent's clock offset is not
+        good enough yet (:mod:`agent.sdk.sampleclock`)."""
+        agent = link.match.agent_id
+        t_ns = self.clocks.to_local(agent, m.t_ns)
         if t_ns is None:
+            self.clocks.hold(agent, (need, link, m, standby, size), size)
             return
-        m.t_ns = t_ns
+        m.t_ns, m.time_error_ns = t_ns, self.clocks.error_ns(agent)
         if standby and need.newest_ns is not None and t_ns <= need.newest_ns:
             return
         refusal = stamp_refusal(t_ns, self._svc.now_ns(), link.newest_ns)

@@ -17,10 +17,10 @@
 attributes) filled in.  ``m.t_ns`` is on this host's clock (``svc.now_ns()``) even when
 the sample comes from a service on another host: it is moved by the offset of that host's
 agent's clock, measured by round trips as a ``Client`` measures it
-(:mod:`agent.sdk.sampleclock`; until it is measured, that agent's samples are held back and
-counted in ``svc.links.clocks.unsynced``).  Callbacks run on the service's own dispatch
-thread, one at a time, never on a Zenoh thread; an exception in a callback is logged, not
-fatal.
+(:mod:`agent.sdk.sampleclock`; until it is measured within 2 ms, that agent's samples are
+held back and counted in ``svc.links.clocks.unsynced``; ``m.time_error_ns`` is the bound).
+Callbacks run on the service's own dispatch thread, one at a time, never on a Zenoh thread;
+an exception in a callback is logged, not fatal.
 
 The service registers with its local agent (:mod:`agent.protocol.registration`): if
 the agent is not running yet, ``start()`` waits ``register_timeout`` seconds, then returns

@@ -48,6 +48,24 @@ def attr(text: str) -> tuple[str, object]:
         return name, value
 
 
+def read_late(n: int, late_ns: int) -> None:
+    """The answers of the first ``n`` round trips of every sample clock of this process
+    read ``late_ns`` late: each offset is ``late_ns / 2`` off, its bound says as much."""
+    from agent.sdk import sampleclock
+
+    left = [n]
+
+    class LateQueries(sampleclock.AgentQueries):
+        def answers(self, request, agents=()):
+            for who, reply, t1, t4 in super().answers(request, agents):
+                if left[0] > 0:
+                    left[0] -= 1
+                    t4 += late_ns
+                yield who, reply, t1, t4
+
+    sampleclock.AgentQueries = LateQueries
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--id", required=True)
@@ -66,7 +84,12 @@ def main() -> int:
     ap.add_argument("--each-sample", action="store_true")
     ap.add_argument("--skew-ns", type=int, default=0,
                     help="stamp samples this far ahead (a host whose clock is off)")
+    ap.add_argument("--late-round-trips", type=int, default=0,
+                    help="the first N clock round trips of the needs' sample clock are read "
+                         "100 ms late (a host too busy to read their answers in time)")
     args = ap.parse_args()
+    if args.late_round_trips:
+        read_late(args.late_round_trips, 100_000_000)
 
     counts: dict[str, int] = {}
     last_source: list[str | None] = [None]
@@ -77,7 +100,7 @@ def main() -> int:
             counts[m.source] = counts.get(m.source, 0) + 1
             if args.each_sample:
                 emit(event="sample", source=m.source, t_ns=m.t_ns, seq=m.seq,
-                     recv_ns=time.time_ns())
+                     recv_ns=time.time_ns(), time_error_ns=m.time_error_ns)
             if m.source != last_source[0]:
                 last_source[0] = m.source
                 emit(event="first", source=m.source, recv_ns=time.time_ns(), t_ns=m.t_ns,
