@@ -49,6 +49,13 @@ def main() -> None:
                     help="with --live: the cameras' frame rate (default 120)")
     ap.add_argument("--per-process", type=int, default=2, metavar="N",
                     help="with --live: cameras per marker-camera process (default 2)")
+    ap.add_argument("--stall", type=float, nargs="+", default=None,
+                    metavar="AT SECONDS [SHARE]",
+                    help="with --live: hold the reconstruction's process back AT seconds into "
+                         "the measurement for SECONDS: stopped (SIGSTOP), or with SHARE let "
+                         "run that share of every 20 ms (a busy machine's leftovers), then "
+                         "continued; reports whether and how soon its poses come at the "
+                         "camera rate again")
     ap.add_argument("--logs", default=None, metavar="DIR",
                     help="with --live: keep every process's log in DIR")
     args = ap.parse_args()
@@ -57,10 +64,17 @@ def main() -> None:
     if args.live is not None:
         if not (args.live > 0 and args.rate_hz > 0 and args.per_process >= 1):
             ap.error("--live, --rate-hz and --per-process must be positive")
-        from outside_in_live import run
+        from outside_in_live import Stall, run
+        stall = Stall(*args.stall) if args.stall is not None and len(args.stall) in (2, 3) \
+            else None
+        if args.stall is not None and not (stall and stall.at_s >= 0 and stall.seconds > 0
+                                           and stall.at_s + stall.seconds < args.live
+                                           and 0 <= stall.share < 1):
+            ap.error("--stall AT SECONDS [SHARE]: AT >= 0, SECONDS > 0, ending inside the "
+                     "measurement (--live), SHARE in [0, 1)")
         figures = {"cpu": cpu_model(), "load": os.getloadavg()[0],
                    **run(args.cameras, args.rate_hz, args.live, args.per_process, args.seed,
-                          args.logs)}
+                          args.logs, stall)}
         report(figures, args.json)
         return
     cv2.setNumThreads(1)

@@ -22,7 +22,10 @@ body's pose.  Measured over ``--live`` seconds once they run steadily (``_settle
 - where a rate short of the cameras' comes from: per body the frame sets exposed in the
   window that gave it no pose and when the gaps were (``poses_missing``), and what the
   reconstruction counted between its reports inside the measurement (frame sets, fits
-  refused, samples late, samples stale: skipped while it was behind).
+  refused, samples late, samples stale: skipped while it was behind);
+- with ``--stall AT SECONDS`` (``Stall``) the reconstruction's process is stopped for a
+  while during the measurement: whether and how soon its poses come at the camera rate
+  again.
 
 A real camera hands its host finished images; the simulator's rendering costs about as
 much as the services' work on them.  So the marker cameras render their frames first
@@ -36,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -130,18 +134,19 @@ class _Procs:
 
 
 def run(cameras: int, rate_hz: float, seconds: float, per_process: int,
-        seed: int, logs: str | None = None) -> dict[str, Any]:
+        seed: int, logs: str | None = None, stall: Stall | None = None) -> dict[str, Any]:
     """The measurement (module docstring); ``logs``: a folder that keeps every process's
-    log (default: a temporary one)."""
+    log (default: a temporary one); ``stall``: the reconstruction stopped for a while
+    during it (``Stall``)."""
     if logs is not None:
         Path(logs).mkdir(parents=True, exist_ok=True)
-        return _run(cameras, rate_hz, seconds, per_process, seed, Path(logs))
+        return _run(cameras, rate_hz, seconds, per_process, seed, Path(logs), stall)
     with tempfile.TemporaryDirectory() as tmp:
-        return _run(cameras, rate_hz, seconds, per_process, seed, Path(tmp))
+        return _run(cameras, rate_hz, seconds, per_process, seed, Path(tmp), stall)
 
 
 def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: int,
-         folder: Path) -> dict[str, Any]:
+         folder: Path, stall: Stall | None) -> dict[str, Any]:
     from services.outside_in.bodies import dump_bodies
     from services.outside_in.rigfile import save_rig
     from services.outside_in.simulator import SimConfig, Simulation
@@ -173,7 +178,7 @@ def _run(cameras: int, rate_hz: float, seconds: float, per_process: int, seed: i
                 "--prerender", str(replay_s), "--replay-at", f"{replay_at:.3f}",
                 *[x for n in names[i:i + per_process] for x in ("--camera", n)]])
         figures = _measure(procs, realm, ep, [b.name for b in sim.bodies], cameras, rate_hz,
-                           seconds, replay_at + FIRST_POSE_S)
+                           seconds, replay_at + FIRST_POSE_S, stall)
         figures["replay_covered_measurement"] = figures.pop("measured_until") \
             <= replay_at + replay_s
     finally:
@@ -203,7 +208,8 @@ def _render_time(sim: Any, seconds: float, processes: int) -> float:
 
 
 def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int,
-             rate_hz: float, seconds: float, first_pose_by: float) -> dict[str, Any]:
+             rate_hz: float, seconds: float, first_pose_by: float,
+             stall: Stall | None = None) -> dict[str, Any]:
     import zenoh
 
     from agent import Measurement, Service
@@ -247,7 +253,10 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
         t0 = time.monotonic()
         start = time.time_ns()
         measuring.set()
-        time.sleep(seconds)
+        if stall is not None:
+            stall.inflict(procs.procs["outside-in"].pid, seconds)
+        else:
+            time.sleep(seconds)
         measuring.clear()
         elapsed = time.monotonic() - t0
         end = time.time_ns()
@@ -276,10 +285,70 @@ def _measure(procs: _Procs, realm: str, ep: str, bodies: list[str], cameras: int
             "arrived_hz": {b: round(sum(start <= a < end for a, _ in v) / (end - start) * 1e9,
                                     2) for b, v in poses.items()},
             "poses_missing": _missing(exposed, rate_hz, start / 1e9, seconds),
+            **(stall.recovery(exposed, rate_hz, start / 1e9, seconds) if stall else {}),
             "reconstruction_in_window": _counts_between(procs, start / 1e9, end / 1e9),
             "measured_until": time.time(),
             "cores": services, "cores_all_services": round(sum(services.values()), 3),
             "cores_by_thread": threads}
+
+
+class Stall:
+    """The reconstruction's process held back ``at_s`` into the measurement for
+    ``seconds``, as a machine's load spike or a long pause would hold it: stopped
+    (``SIGSTOP``) all along, or with ``share`` > 0 let run that share of every
+    ``DUTY_S`` (stopped the rest: the CPU a busy machine would leave it, the same from run
+    to run), then continued (``SIGCONT``); whether, and how soon after, its poses come at
+    the camera rate again.  A stall that leaves the tracker in a lasting bad state
+    (behind, the cameras searching whole images, bodies lost) shows as a rate that does
+    not come back."""
+
+    #: the rate is counted over bins this long (s) of exposure time
+    BIN_S = 0.25
+    #: a bin counts as recovered with poses of this share of its frame sets
+    RECOVERED = 0.95
+    #: with a ``share``, the process runs that share of every this many seconds
+    DUTY_S = 0.02
+
+    def __init__(self, at_s: float, seconds: float, share: float = 0.0) -> None:
+        self.at_s, self.seconds, self.share = at_s, seconds, share
+
+    def inflict(self, pid: int, measure_s: float) -> None:
+        """Hold ``pid`` back at its times; return at the measurement's end."""
+        t0 = time.monotonic()
+        time.sleep(self.at_s)
+        end = time.monotonic() + self.seconds
+        stopped_s = (1.0 - self.share) * self.DUTY_S if self.share else self.seconds
+        try:
+            while (left := end - time.monotonic()) > 0:
+                os.kill(pid, signal.SIGSTOP)
+                time.sleep(min(left, stopped_s))
+                os.kill(pid, signal.SIGCONT)
+                time.sleep(self.share * self.DUTY_S)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        time.sleep(max(0.0, measure_s - (time.monotonic() - t0)))
+
+    def recovery(self, exposures: dict[str, list[int]], rate_hz: float, start: float,
+                 seconds: float) -> dict[str, Any]:
+        """Per ``BIN_S`` of exposure time, the share of its frame sets that gave every
+        body a pose (the least over the bodies), and ``recovered_after_s``: from how long
+        after the stall's end every later bin had ``RECOVERED`` of them (None: the last
+        bin had not)."""
+        bins = int(seconds / self.BIN_S)
+        per_bin = rate_hz * self.BIN_S
+        shares = np.ones(bins)
+        for times in exposures.values():
+            k = ((np.asarray(times, np.int64) / 1e9 - start) / self.BIN_S).astype(int)
+            shares = np.minimum(shares, np.bincount(k[(k >= 0) & (k < bins)],
+                                                    minlength=bins) / per_bin)
+        end = self.at_s + self.seconds
+        bad = [i for i in range(bins) if shares[i] < self.RECOVERED
+               and (i + 1) * self.BIN_S > end]
+        recovered = (None if bad and bad[-1] == bins - 1
+                     else round(max(0.0, ((bad[-1] + 1) if bad else 0) * self.BIN_S - end), 2))
+        return {"stall": {"at_s": self.at_s, "seconds": self.seconds, "share": self.share,
+                          "recovered_after_s": recovered,
+                          "share_by_bin": [round(float(x), 2) for x in shares]}}
 
 
 def _settle(poses: dict[str, list[tuple[int, int]]], rate_hz: float) -> float | None:

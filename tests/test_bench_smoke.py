@@ -179,3 +179,29 @@ def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tm
         "seconds": 5.0, "frame_sets": 600, "tracked": 1800, "refused_fit": 0, "late": 0,
         "stale": 5}
     assert live._counts_between(procs, start, start + 5) is None
+
+
+def test_outside_in_live_stall_says_when_the_rate_came_back() -> None:
+    """``bench_outside_in --live --stall``'s recovery figure: from how long after the
+    stall's end every bin of exposure time had poses of nearly all its frame sets, and
+    none when the last bin had not."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_oi_live", BENCH / "outside_in_live.py")
+        live = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(live)
+    finally:
+        sys.path.remove(str(BENCH))
+    period = 1 / 120
+    every = [k * period for k in range(round(4 / period))]        # 4 s of frame sets
+    # nothing during the stall (1.0-1.3 s), every other frame set until 2.0 s, then all
+    back = [t for t in every if not 1.0 <= t < 1.3 and (t >= 2.0 or t < 1.0
+                                                         or round(t / period) % 2)]
+    stall = live.Stall(1.0, 0.3)
+    got = stall.recovery({"a": [round(t * 1e9) for t in back],
+                          "b": [round(t * 1e9) for t in every]}, 120.0, 0.0, 4.0)["stall"]
+    assert got["recovered_after_s"] == 0.7 and got["share_by_bin"][:4] == [1.0] * 4
+    assert min(got["share_by_bin"][4:8]) < 0.6 and got["share_by_bin"][8:] == [1.0] * 8
+    never = [t for t in back if t < 3.75]
+    assert stall.recovery({"a": [round(t * 1e9) for t in never]}, 120.0, 0.0,
+                          4.0)["stall"]["recovered_after_s"] is None
