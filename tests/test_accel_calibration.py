@@ -235,6 +235,11 @@ def test_eval_plugin_reports_every_figure():
         "median"]
     for key in measured:  # the shared calibration error widens the band, never narrows it
         n = fig["nees"][key]
+        shape = n["shape"]
+        assert shape["orientation_nees"] + shape["position_given_orientation_nees"] == \
+            pytest.approx(n["mean"])
+        assert shape["nees_variance"] > 0 and -1 <= shape["orientation_position_correlation"] <= 1
+        assert "noise_draws" not in n
         lo, hi = n["bounds_95_independent_runs"]
         assert lo < 6 < hi
         assert 1 <= n["effective_runs"] <= 4 + 1e-9
@@ -242,3 +247,49 @@ def test_eval_plugin_reports_every_figure():
     with pytest.raises(ValueError, match="--seconds must exceed"):
         run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
                              poses="six", pose_seconds=2.0))
+
+
+def test_eval_noise_draws_repeat_the_runs_with_fresh_noise_only():
+    """``--noise-draws``: the eval's own runs are unchanged, each repeat has the same rig and
+    start times (its errors are of the same size) and other noise (another mean NEES)."""
+    from argparse import Namespace
+
+    from services.accel_rig.evaluate import run
+
+    base = dict(seconds=10.0, seed=2, json=True, runs=3, layout="marvin-six", poses="thesis",
+                pose_seconds=2.0)
+    plain = run(Namespace(**base))
+    fig = run(Namespace(**base, noise_draws=2))
+    assert fig["calibration"] == plain["calibration"]
+    for key in ("0.25s", "2s"):
+        own, draws = fig["nees"][key], fig["nees"][key]["noise_draws"]
+        assert {k: v for k, v in own.items() if k != "noise_draws"} == plain["nees"][key]
+        assert draws["draws"] == len(draws["means"]) == 2
+        assert len({own["mean"], *draws["means"]}) == 3
+        assert 0 <= draws["draws_within_bounds"] <= 2 and draws["spread_ratio"] >= 0
+        assert draws["pooled_mean"] == pytest.approx(np.mean([own["mean"], *draws["means"]]))
+    with pytest.raises(ValueError, match="--noise-draws"):
+        run(Namespace(**base, noise_draws=-1))
+
+
+def test_nees_shape_tells_an_honest_covariance_from_one_of_the_right_size_only():
+    """Honest Gaussian errors: two 3-dof parts of mean 3, uncorrelated, NEES variance 12.
+    Errors whose scale varies from run to run (the covariance right on average) keep the
+    mean, raise the variance and correlate the parts."""
+    from services.accel_rig.evaluate import _shape
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    A = rng.normal(size=(n, 6, 6))
+    cov = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    white = rng.standard_normal((n, 6))
+    err = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), white)
+    honest = _shape(err, cov)
+    assert 2.8 < honest["orientation_nees"] < 3.2
+    assert 2.8 < honest["position_given_orientation_nees"] < 3.2
+    assert 10.5 < honest["nees_variance"] < 13.5
+    assert abs(honest["orientation_position_correlation"]) < 0.06
+    scale = np.sqrt(rng.choice([0.5, 1.5], n))  # right on average, wrong run by run
+    mixed = _shape(err * scale[:, None], cov)
+    assert 5.6 < mixed["orientation_nees"] + mixed["position_given_orientation_nees"] < 6.4
+    assert mixed["nees_variance"] > 18 and mixed["orientation_position_correlation"] > 0.1

@@ -14,6 +14,12 @@ not independent, and the band of their mean counts that shared error once
 sensitivity each estimate reports).  The band of as many independent runs, narrower, is
 reported beside it (``bounds_95_independent_runs``).
 
+Per horizon, ``shape`` says whether the covariance has the errors' shape as well as their
+size (the NEES split into orientation and position given orientation, the per-run NEES
+variance: 12 for an honest 6-dof Gaussian), and ``--noise-draws K`` repeats the runs with
+fresh sensor noise on the same rig, calibration, trajectory and start times, which tells a
+seed that misses its band by its draw from one that misses by its rig.
+
 The calibration is handed the device's true noise model and latency (``_calibrate``; the
 output's ``given_by_simulator`` says so): it estimates biases, gains and axes, and the
 covariance it reports rests on a noise model a real rig would have to measure.
@@ -26,7 +32,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -76,6 +82,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds held still per calibration pose (default 20: the "
                              "calibration error is shared by every run, so it is kept well "
                              "below the noise of one run)")
+    parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
+                        help="repeat the runs K more times with fresh sensor noise on the "
+                             "same device, calibration, trajectory and start times and report "
+                             "each repeat's mean NEES (nees.*.noise_draws): a seed outside its "
+                             "band in the eval's draw but inside in fresh ones missed by its "
+                             "draw, one outside in all of them by its rig (default 0; each "
+                             "repeat costs as much as the eval)")
     add_device_arguments(parser)
 
 
@@ -88,6 +101,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f"times in the first (seconds - {horizon:g}) s of the trajectory")
     if args.runs < 1:
         raise InvalidInputError("--runs must be at least 1")
+    noise_draws = getattr(args, "noise_draws", 0)
+    if not 0 <= noise_draws <= 100:
+        raise InvalidInputError(f"--noise-draws must be within 0..100, got {noise_draws!r}")
     if not (math.isfinite(args.pose_seconds) and args.pose_seconds > 0):
         raise InvalidInputError("--pose-seconds must be positive")
     rate = DEFAULT_RATE_HZ
@@ -97,7 +113,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     device = device_from_args(SensorTruth.draw(1000 + args.seed, truth_layout), args)
     cal, cal_figures = _calibrate(device, nominal, POSE_SETS[args.poses], args.pose_seconds,
                                   rate, args.seed)
-    errors = _dead_reckon(device, cal, args.seed, args.runs, args.seconds - horizon, rate)
+    errors = _dead_reckon(device, cal, args.seed, args.runs, args.seconds - horizon, rate,
+                           noise_draws)
     return {"seed": args.seed, "runs": args.runs, "rate_hz": rate, "layout": args.layout,
             "accel_device": device_figures(device),
             "given_by_simulator": {
@@ -128,19 +145,69 @@ def _calibrate(device: SensorTruth, nominal, labels, seconds: float, rate: float
     }
 
 
+class _Runs(NamedTuple):
+    """Per run (rows) and horizon (columns): errors, NEES and what the band needs."""
+
+    ori: np.ndarray  # (runs, horizons) deg
+    pos: np.ndarray  # (runs, horizons) m
+    nees: np.ndarray  # (runs, horizons)
+    err: np.ndarray  # (horizons, runs, 6) [position error, world rotation error]
+    cov: np.ndarray  # (horizons, runs, 6, 6) its reported covariance
+    sens: np.ndarray  # (horizons, runs, 6, 4N) its calibration sensitivity
+
+
 def _dead_reckon(device: SensorTruth, cal: sn.Calibration, seed: int, runs: int,
-                 start_span_s: float, rate: float) -> dict[str, Any]:
+                 start_span_s: float, rate: float, noise_draws: int = 0) -> dict[str, Any]:
     traj = HeadTrajectory(seed)
-    rng = np.random.default_rng(seed)
+    starts = np.random.default_rng(seed).uniform(0.0, start_span_s, runs)
+    first = _runs(device, cal, traj, starts, [100_000 * seed + r for r in range(runs)], rate)
+    draws = [_runs(device, cal, traj, starts, _fresh_noise_seeds(seed, k, runs), rate)
+             for k in range(1, noise_draws + 1)]
+    out: dict[str, Any] = {"orientation_error_deg": {}, "position_error_m": {},
+                           "nees": {"dof": 6}}
+    cal_cov = calibration_covariance(cal)
+    for i, h in enumerate(HORIZONS_S):
+        key = f"{h:g}s"
+        out["orientation_error_deg"][key] = _stats(first.ori[:, i])
+        out["position_error_m"][key] = _stats(first.pos[:, i])
+        figures = _nees_figures(first.nees[:, i], first.cov[i], first.sens[i], cal_cov)
+        figures["shape"] = _shape(first.err[i], first.cov[i])
+        if draws:
+            figures["noise_draws"] = _draw_figures(
+                [_nees_figures(d.nees[:, i], d.cov[i], d.sens[i], cal_cov) for d in draws],
+                figures)
+        out["nees"][key] = figures
+    one = HORIZONS_S.index(1.0)
+    out["goals"] = {
+        "median_orientation_error_1s_le_1deg": bool(np.median(first.ori[:, one]) <= 1.0),
+        "nees_1s_within_95_bounds": out["nees"]["1s"]["within_bounds"],
+        "nees_within_factor_2_all_horizons": bool(all(
+            0.5 <= out["nees"][f"{h:g}s"]["ratio_to_dof"] <= 2.0 for h in HORIZONS_S)),
+    }
+    return out
+
+
+def _fresh_noise_seeds(seed: int, draw: int, runs: int) -> list[int]:
+    """Noise seeds of the runs of fresh draw ``draw`` (1, 2, ...), apart from the eval's own
+    (``100000 seed + run``) and from each other's for any number of runs."""
+    return [int(np.random.SeedSequence([seed, draw, r]).generate_state(1)[0])
+            for r in range(runs)]
+
+
+def _runs(device: SensorTruth, cal: sn.Calibration, traj: HeadTrajectory, starts: np.ndarray,
+          noise_seeds: list[int], rate: float) -> _Runs:
+    """Dead-reckon from the truth at each start time, with that run's noise seed."""
     steps = [round(h * rate) for h in HORIZONS_S]
+    runs = len(starts)
     ori = np.empty((runs, len(steps)))
     pos = np.empty_like(ori)
     nees = np.empty_like(ori)
+    err = np.empty((len(steps), runs, 6))
     cov = np.empty((len(steps), runs, 6, 6))
     sens = np.zeros((len(steps), runs, 6, 4 * cal.layout.count))
-    for r in range(runs):
-        sim = simulate(traj, max(HORIZONS_S) + 1.5 / rate, rate, seed=100_000 * seed + r,
-                       t0=rng.uniform(0.0, start_span_s), sensor=device, calibration=cal)
+    for r, (t0, noise_seed) in enumerate(zip(starts, noise_seeds, strict=True)):
+        sim = simulate(traj, max(HORIZONS_S) + 1.5 / rate, rate, seed=noise_seed,
+                       t0=float(t0), sensor=device, calibration=cal)
         est = dead_reckon_from_truth(cal, sim.t, sim.accel, sim.truth, rate)
         for i, k in enumerate(steps):
             e, s = est[k], sim.truth
@@ -151,25 +218,11 @@ def _dead_reckon(device: SensorTruth, cal: sn.Calibration, seed: int, runs: int,
             ori[r, i] = math.degrees(float(np.linalg.norm(dth)))
             pos[r, i] = float(np.linalg.norm(dp))
             nees[r, i] = float(x @ np.linalg.solve(e.decoupled_covariance, x))
+            err[i, r] = x
             cov[i, r] = e.decoupled_covariance
             if e.calibration_sensitivity is not None:
                 sens[i, r] = _decoupled_rows(e.position, e.calibration_sensitivity)
-    out: dict[str, Any] = {"orientation_error_deg": {}, "position_error_m": {},
-                           "nees": {"dof": 6}}
-    cal_cov = calibration_covariance(cal)
-    for i, h in enumerate(HORIZONS_S):
-        key = f"{h:g}s"
-        out["orientation_error_deg"][key] = _stats(ori[:, i])
-        out["position_error_m"][key] = _stats(pos[:, i])
-        out["nees"][key] = _nees_figures(nees[:, i], cov[i], sens[i], cal_cov)
-    one = HORIZONS_S.index(1.0)
-    out["goals"] = {
-        "median_orientation_error_1s_le_1deg": bool(np.median(ori[:, one]) <= 1.0),
-        "nees_1s_within_95_bounds": out["nees"]["1s"]["within_bounds"],
-        "nees_within_factor_2_all_horizons": bool(all(
-            0.5 <= out["nees"][f"{h:g}s"]["ratio_to_dof"] <= 2.0 for h in HORIZONS_S)),
-    }
-    return out
+    return _Runs(ori, pos, nees, err, cov, sens)
 
 
 def _decoupled_rows(position: np.ndarray, sensitivity: np.ndarray) -> np.ndarray:
@@ -187,6 +240,39 @@ def _nees_figures(nees: np.ndarray, cov: np.ndarray, sens: np.ndarray,
     return {**figures, "ratio_to_dof": figures["mean"] / 6.0}
 
 
+def _shape(err: np.ndarray, cov: np.ndarray) -> dict[str, float | None]:
+    """Whether the covariance has the errors' shape, not only their size.  Whitened by it,
+    orientation first and then position given orientation, the errors of an honest Gaussian
+    covariance split the NEES into two independent parts of 3 dof (mean 3 each, correlation
+    0), and the per-run NEES has variance 12.  A mean of 6 from errors of another shape has
+    a larger variance, so the means of 100 runs spread wider than their band assumes; a
+    correlation says how: large orientation errors come with large position errors."""
+    order = [3, 4, 5, 0, 1, 2]
+    L = np.linalg.cholesky(cov[:, order][:, :, order])
+    z = np.linalg.solve(L, err[:, order, None])[..., 0]
+    rot, pos = (z[:, :3] ** 2).sum(axis=1), (z[:, 3:] ** 2).sum(axis=1)
+    several = len(z) > 1 and np.ptp(rot) > 0 and np.ptp(pos) > 0
+    return {"nees_variance": float(np.var(rot + pos, ddof=1)) if len(z) > 1 else None,
+            "orientation_nees": float(rot.mean()),
+            "position_given_orientation_nees": float(pos.mean()),
+            "orientation_position_correlation":
+                float(np.corrcoef(rot, pos)[0, 1]) if several else None}
+
+
+def _draw_figures(draws: list[dict[str, Any]], own: dict[str, Any]) -> dict[str, Any]:
+    """The mean NEES of fresh noise draws on the same rig, calibration, trajectory and start
+    times, beside the eval's own.  A seed outside its band in the eval's draw and inside in
+    fresh ones missed by its draw; one outside in all of them by its rig.  ``spread_ratio``:
+    the variance of the draws' means (the eval's included) over what honest runs allow
+    (``2 dof / effective_runs``), 1 on average; above it, the runs of one draw share an
+    error the band does not count."""
+    means = [own["mean"], *(d["mean"] for d in draws)]
+    return {"draws": len(draws), "means": [d["mean"] for d in draws],
+            "draws_within_bounds": sum(d["within_bounds"] for d in draws),
+            "pooled_mean": float(np.mean(means)),
+            "spread_ratio": float(np.var(means, ddof=1) * own["effective_runs"] / 12.0)}
+
+
 def _stats(x: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95))}
 
@@ -199,4 +285,5 @@ PLUGIN = EvalPlugin(
          "reported covariance. --seconds is the span of trajectory the runs start in.",
     add_arguments=add_arguments,
     run="services.accel_rig.evaluate:run",
+    higher_is_better=frozenset({"draws_within_bounds"}),
 )
