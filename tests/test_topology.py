@@ -92,6 +92,52 @@ def test_a_service_started_before_its_agent_connects_when_it_comes(processes, re
         svc.close()
 
 
+class _AttachingSession:
+    """A real session, but for a sample published on the service's other thread just as
+    its publishers are declared (the moment a service started before its agent attaches)."""
+
+    def __init__(self, session: zenoh.Session, publish) -> None:
+        self._session, self._publish = session, publish
+
+    def __getattr__(self, name: str):
+        return getattr(self._session, name)
+
+    def declare_publisher(self, key: str):
+        self._publish()
+        return self._session.declare_publisher(key)
+
+
+def test_a_sample_published_while_the_service_attaches_is_unsent_not_an_error(
+        monkeypatch, realm) -> None:
+    from agent.runtime.session import open_session
+    from agent.sdk import service as service_module
+    svc = Service("early", realm=realm, agent="hostA", connect=[endpoint(free_port())],
+                  register_timeout=0.1)
+    out = svc.ability("pose", type="pose6d", edge=(WORLD, HEAD), frequency_hz=10)
+    published: list[BaseException | None] = []
+
+    def publish() -> None:   # on a thread of its own, as the service's own code publishes
+        def run() -> None:
+            try:
+                out.publish(time.time_ns(), [0.0, 0.0, 1.6], [0.0, 0.0, 0.0, 1.0])
+                published.append(None)
+            except UmaError as exc:
+                published.append(exc)
+        thread = threading.Thread(target=run)
+        thread.start()
+        thread.join(5.0)
+
+    monkeypatch.setattr(service_module, "acquire_session", lambda *args, **kw: (
+        _AttachingSession(open_session("peer", listen=[]), publish)))
+    try:
+        svc.start()
+        assert published == [None] and out.unsent == 1 and svc.session is not None
+        out.publish(time.time_ns(), [0.0, 0.0, 1.6], [0.0, 0.0, 0.0, 1.0])   # sent
+        assert out.unsent == 1
+    finally:
+        svc.close()
+
+
 class _StuckSession:
     """A session whose close times out, as Zenoh's does on a CPU-starved host."""
 

@@ -166,6 +166,8 @@ class AbilityHandle:
         if pub is None and self._svc.connecting:
             self.unsent += 1
             return
+        if pub is None:  # attached since it was read: the publisher is there before the session
+            pub = self._publisher
         if pub is None:
             raise UmaError(f"service {self._svc.service_id!r}: call start() before publishing "
                            f"on {self.name!r}" if not self._svc.closed else
@@ -370,9 +372,11 @@ class Service:
                 if self.closed:
                     release_session(sess)
                     return False
-                self.session = sess
                 for handle in self._abilities.values():
                     handle._publisher = sess.declare_publisher(handle.key)
+                # last: a publish that finds no publisher but a session looks again
+                # (AbilityHandle._put) and must then find its publisher
+                self.session = sess
             self._declare(sess)
             return True
 
