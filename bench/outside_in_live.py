@@ -22,7 +22,8 @@ body's pose.  Measured over ``--live`` seconds once they run steadily (``_settle
 - where a rate short of the cameras' comes from: per body the frame sets exposed in the
   window that gave it no pose and when the gaps were (``poses_missing``), and what the
   reconstruction counted between its reports inside the measurement (frame sets, fits
-  refused, samples late, samples stale: skipped while it was behind);
+  refused, samples late, samples stale: skipped while it was behind, frame sets
+  superseded: not tracked, it was behind the newest);
 - with ``--stall AT SECONDS`` (``Stall``) the reconstruction's process is stopped for a
   while during the measurement: whether and how soon its poses come at the camera rate
   again.
@@ -397,18 +398,20 @@ def _counts_between(procs: _Procs, start: float, end: float) -> dict[str, Any] |
         if m:
             t = _log_time(m.group(1))
             if start <= t <= end:
-                reports.append((t, [int(x) for x in m.group(2, 3, 4, 5, 6)]))
+                reports.append((t, [int(x or 0) for x in m.group(2, 3, 4, 5, 6, 7)]))
     if len(reports) < 2:
         return None
     (t0, a), (t1, b) = reports[0], reports[-1]
     return {"seconds": round(t1 - t0, 2),
             **{k: y - x for k, x, y in zip(("frame_sets", "tracked", "refused_fit", "late",
-                                            "stale"), a, b, strict=True)}}
+                                            "stale", "superseded"), a, b, strict=True)}}
 
 
-#: the reconstruction's report: its time, frame sets, poses tracked, fits refused, late, stale
+#: the reconstruction's report: its time, frame sets, poses tracked, fits refused, late,
+#: stale, superseded (frame sets not tracked: it was behind the newest)
 _RECONSTRUCTION = re.compile(r"^(\S+ \S+) .*outside-in: (\d+) frame sets, \{'tracked': (\d+)"
-                             r".*'refused_fit': (\d+).*, (\d+) late, (\d+) stale")
+                             r".*'refused_fit': (\d+).*, (\d+) late, (\d+) stale"
+                             r"(?:, (\d+) sets superseded)?")
 
 
 def _busiest(cores: dict[str, float]) -> dict[str, float]:

@@ -177,7 +177,7 @@ def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tm
     start = time.mktime(time.strptime("2026-01-02 10:00:01", "%Y-%m-%d %H:%M:%S"))
     assert live._counts_between(procs, start, start + 9.5) == {
         "seconds": 5.0, "frame_sets": 600, "tracked": 1800, "refused_fit": 0, "late": 0,
-        "stale": 5}
+        "stale": 5, "superseded": 0}
     assert live._counts_between(procs, start, start + 5) is None
 
 

@@ -18,6 +18,7 @@ from services.outside_in.bodies import dump_bodies
 from services.outside_in.rigfile import save_rig
 from services.outside_in.service import Reconstruction, calibration_version
 from services.outside_in.simulator import SimConfig, Simulation
+from services.outside_in.tracker import CameraFrame
 
 SEED = 5
 RATE = 20.0
@@ -296,3 +297,39 @@ def test_a_services_startup_objects_are_left_out_of_the_collectors_scans() -> No
     finally:
         gc.unfreeze()
     assert any(o is kept[0] for o in gc.get_objects())
+
+
+def test_lost_bodies_are_searched_for_within_a_share_of_the_time(tmp_path) -> None:
+    """A search for lost bodies costs several frame sets' tracking: the reconstruction
+    searches while the searches' CPU stays within ``SEARCH_SHARE`` of the exposure time
+    (after a first ``SEARCH_BURST_S``), so a body lost for good takes no more than that
+    share of a machine that has little to spare, and is still searched for."""
+    from services.outside_in.blobs import find_blobs
+    from services.outside_in.service import SEARCH_BURST_S, SEARCH_SHARE
+    sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=120.0))
+    rig = save_rig(tmp_path / "rig.toml", sim.cameras, np.zeros((4, 6, 6)), "lab/world",
+                   "lab", 0.03)
+    (tmp_path / "bodies.toml").write_text(dump_bodies(sim.bodies))
+    rec = Reconstruction(rig, tmp_path / "bodies.toml", "lab")
+    process = rec.tracker.process
+    searched: list[tuple[float, float]] = []    # (set time, CPU s) of each search
+
+    def timed(frames, search=True):
+        t0 = time.thread_time()
+        out = process(frames, search=search)
+        if search and rec.tracker.tracks[0].missed <= 0:
+            searched.append((frames[0].t, time.thread_time() - t0))
+        return out
+    rec.tracker.process = timed
+    sets = 60
+    for i in range(sets):
+        frames = [CameraFrame(c, (f := sim.render(c, i)).t, find_blobs(f.image))
+                  for c in range(4)]
+        if i >= 10:
+            rec.tracker.tracks[0].missed = rec.tracker.params.lost_after   # lost again
+        rec.track(frames)
+    after = [(t, cpu) for t, cpu in searched if t >= 10 / 120]
+    span = (sets - 10) / 120
+    assert 0 < len(after) < sets - 10
+    assert sum(cpu for _, cpu in after) <= SEARCH_BURST_S + SEARCH_SHARE * span + max(
+        cpu for _, cpu in after)

@@ -25,9 +25,13 @@ whatever camera appears is used, one that stops is left out.  Samples are gather
 frame sets (a set is complete when every live camera sent one, when a camera sends its
 next frame, or when a frame of a later exposure arrives), run through
 ``OutsideInTracker``, and each body's pose is published on ``world -> SITE/BODY`` with its
-covariance.  A sample ``STALE_S`` older than the freshest is not tracked: a reconstruction
-that fell behind (a busy machine) skips to the present instead of working through a
-growing queue.  A sample of another calibration than the
+covariance.  The service's dispatch thread gathers the samples into sets; its tracking
+thread tracks them, skipping to the present any set more than ``BEHIND_S`` older than
+the newest gathered (``RecentSets``), and a sample ``STALE_S`` older than the freshest is
+not even gathered: a reconstruction held back (a busy machine, a pause) goes on from the
+present, its windows in time for the cameras, instead of working through a queue.  Lost
+bodies are searched for within ``SEARCH_SHARE`` of the time (``Reconstruction.track``).
+A sample of another calibration than the
 rig file's, or of a camera the rig does not hold, is refused, counted and logged
 (rate-limited), never used.
 """
@@ -42,6 +46,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +78,13 @@ STALE_S = 0.1
 FLOOR_S = 10.0
 #: the reconstruction sends a camera new windows once its last are this much older (s)
 WINDOWS_EVERY_S = 0.02
+#: the share of the exposure time that searching for lost bodies may take (``track``)
+SEARCH_SHARE = 0.25
+SEARCH_BURST_S = 0.06
+#: the reconstruction tracks a frame set only while it is at most this much (s) older
+#: than the newest it has gathered: behind further, it skips to the present
+#: (``RecentSets``), its windows then still in time for the cameras (``PREDICTION_AGE_S``)
+BEHIND_S = 0.025
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
 SEARCH = "search"
 
@@ -305,14 +317,47 @@ class Reconstruction:
         self.windows_sent: dict[int, int] = {}
         #: samples not tracked, too far behind the freshest (the reconstruction behind)
         self.stale = 0
+        #: frame sets in which lost bodies were searched for, the CPU (s) searches may
+        #: still take, the last set's time (``track``)
+        self.searches = 0
+        self._search_budget = SEARCH_BURST_S
+        self._last_set_t: float | None = None
         self._block = -1
         self._floors: tuple[float, float] = (np.inf, np.inf)
 
     def add(self, m: Measurement, now: float | None = None,
             now_ns: int | None = None) -> list[BodyEstimate]:
-        """One camera's sample; the poses of the frame set it completed, if any.  With
-        ``now_ns`` (this clock) a sample that is ``STALE_S`` older than the freshest of
-        the last ``FLOOR_S`` is not tracked (``stale``)."""
+        """One camera's sample; the poses of the frame sets it completed, if any
+        (``gather`` then ``track``)."""
+        return [e for frames in self.gather(m, now, now_ns) for e in self.track(frames)]
+
+    def track(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
+        """The poses of one frame set (``gather``'s).  Lost bodies are searched for in it
+        while the searches' CPU is within ``SEARCH_SHARE`` of the exposure time (a
+        budget that grows by that share of the time between frame sets, up to
+        ``SEARCH_BURST_S``, and that each search spends): searching the whole images'
+        blobs costs about 20 ms a lost body at 8 cameras (eight frame sets' tracking),
+        and searching every set would take more than the camera rate leaves, the tracked
+        bodies' sets then skipped too."""
+        t = max(f.t for f in frames)
+        if self._last_set_t is not None and t > self._last_set_t:
+            self._search_budget = min(SEARCH_BURST_S, self._search_budget
+                                      + SEARCH_SHARE * (t - self._last_set_t))
+        self._last_set_t = t
+        search = self.tracker.searching and self._search_budget > 0
+        t0 = time.thread_time()
+        out = self.tracker.process(frames, search=search)
+        if search:
+            self._search_budget -= time.thread_time() - t0
+            self.searches += 1
+        return out
+
+    def gather(self, m: Measurement, now: float | None = None,
+               now_ns: int | None = None) -> list[list[CameraFrame]]:
+        """One camera's sample into its frame set; the frame sets it completed, oldest
+        first (none, one, or the pending one and this sample alone).  With ``now_ns``
+        (this clock) a sample that is ``STALE_S`` older than the freshest of the last
+        ``FLOOR_S`` is not gathered (``stale``)."""
         now = time.monotonic() if now is None else now
         cam = self._camera(m)
         if cam is None:
@@ -322,7 +367,7 @@ class Reconstruction:
         if cam in self.last_t and t > self.last_t[cam]:
             self.period = min(self.period or np.inf, t - self.last_t[cam])
         self.last_t[cam] = t
-        out: list[BodyEstimate] = []
+        out: list[list[CameraFrame]] = []
         if now_ns is not None and self._stale(now_ns - m.t_ns, now_ns):
             self.stale += 1
             return out
@@ -337,13 +382,13 @@ class Reconstruction:
         later = (self.period is not None and self.pending
                  and t - min(f.t for f in self.pending.values()) > 0.5 * self.period)
         if cam in self.pending or later:
-            out = self._flush()
+            out.append(self._flush())
         n = len(m.points)
         self.pending[cam] = CameraFrame(cam, t, Blobs(
             m.points, m.values, np.zeros(n), np.zeros(n), np.ones(n)))
         live = {c for c, t in self.last_seen.items() if now - t <= LIVE_S}
         if live <= set(self.pending):
-            out += self._flush()
+            out.append(self._flush())
         return out
 
     def _stale(self, age_ns: int, now_ns: int) -> bool:
@@ -382,11 +427,11 @@ class Reconstruction:
         images = self.tracker.predicted_images(times)
         return [(names[cam], self.windows_sent[cam], images[cam]) for cam in times]
 
-    def _flush(self) -> list[BodyEstimate]:
+    def _flush(self) -> list[CameraFrame]:
         frames = list(self.pending.values())
         self.pending = {}
         self.frame_sets += 1
-        return self.tracker.process(frames)
+        return frames
 
     def _camera(self, m: Measurement) -> int | None:
         name = m.extra.get(MARKERS_CAMERA)
@@ -405,9 +450,51 @@ class Reconstruction:
         self.refused.warning(source, f"markers2d refused: {reason}")
 
 
+class RecentSets:
+    """The frame sets gathered and not tracked yet, between the service's dispatch thread
+    (which gathers every sample into its set, a small cost, and puts each set it
+    completes) and its tracking thread (which takes them oldest first).  A set more than
+    ``BEHIND_S`` older than the newest gathered is not tracked (``superseded``): a tracker
+    that got less CPU than the camera rate needs for a while (a busy machine, a pause of
+    its process) goes on near the present at once, its windows in time for the cameras'
+    next frames, and tracks as many sets as it can.  Working through the queue instead
+    kept it behind: its windows came too late to be sent, the cameras searched their
+    whole images and the frame sets (cut by the stale samples) cost more."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._sets: deque[list[CameraFrame]] = deque()
+        self.superseded = 0
+
+    def put(self, frames: list[CameraFrame]) -> None:
+        with self._cond:
+            self._sets.append(frames)
+            self._cond.notify()
+
+    def take(self, timeout: float) -> list[CameraFrame] | None:
+        """The oldest set within ``BEHIND_S`` of the newest (None when none came within
+        ``timeout`` s)."""
+        with self._cond:
+            if not self._sets:
+                self._cond.wait(timeout)
+            if not self._sets:
+                return None
+            newest = _set_time(self._sets[-1])
+            while _set_time(self._sets[0]) < newest - BEHIND_S:
+                self._sets.popleft()
+                self.superseded += 1
+            return self._sets.popleft()
+
+
+def _set_time(frames: list[CameraFrame]) -> float:
+    return max(f.t for f in frames)
+
+
 def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
     rec = Reconstruction(args.rig, args.bodies, args.site)
-    lock = threading.Lock()
+    lock = threading.Lock()    # the frame sets' bookkeeping: dispatch and tracking threads
+    recent = RecentSets()
+    failed = RateLimitedLog(log)
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         outs = {b.name: svc.ability(b.name, type="pose6d",
@@ -422,12 +509,17 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                    for name in rec.index}
 
         def on_sample(m: Measurement) -> None:
-            t0 = time.thread_time()
             with lock:
-                sets = rec.frame_sets
-                estimates = rec.add(m, now_ns=svc.now_ns())
-                ahead = rec.windows(svc.now_ns()) if rec.frame_sets != sets else []
-                search = rec.tracker.searching
+                sets = rec.gather(m, now_ns=svc.now_ns())
+            for frames in sets:
+                recent.put(frames)
+
+        def track_one(frames: list[CameraFrame]) -> None:
+            t0 = time.thread_time()
+            estimates = rec.track(frames)
+            with lock:
+                ahead = rec.windows(svc.now_ns())
+            search = rec.tracker.searching
             t1 = time.thread_time()
             for e in estimates:
                 outs[e.body].publish(round(e.t * 1e9), e.p, e.q, e.cov_se3)
@@ -439,20 +531,36 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                     extra={**extra, MARKERS_CAMERA: name}))
             cpu[0] += t1 - t0
             cpu[1] += time.thread_time() - t1
+            cpu[2] += 1
 
-        cpu = [0.0, 0.0]   # thread CPU (s) tracking, publishing
+        def tracking() -> None:
+            while not stop.is_set():
+                frames = recent.take(0.5)
+                if frames is None:
+                    continue
+                try:
+                    track_one(frames)
+                except Exception as exc:   # one bad set must not end the tracking
+                    failed.warning("outside-in", f"a frame set failed: "
+                                                 f"{type(exc).__name__}: {exc}")
+
+        cpu = [0.0, 0.0, 0]   # tracking thread CPU (s) tracking, publishing; sets tracked
 
         svc.need("markers", type="markers2d", edge=(args.world, f"{args.site}/*"),
                  min_count=2, max_count=16, on_sample=on_sample)
+        tracker = threading.Thread(target=tracking, name="uma-outside-in-tracking",
+                                   daemon=True)
+        tracker.start()
         svc.start()
         keep_startup_objects()
         log.info("outside-in: tracking %s with %d cameras (calibration %s)",
                  ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
         while not stop.wait(5.0):
-            n = max(rec.frame_sets, 1)
+            n = max(cpu[2], 1)
             log.info("outside-in: %d frame sets, %s, %d samples refused, %d late, %d "
-                     "stale; CPU per frame set: tracking %.2f ms, publishing %.2f ms",
+                     "stale, %d sets superseded; CPU per frame set: tracking %.2f ms, "
+                     "publishing %.2f ms",
                      rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late,
-                     rec.stale,
-                     1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
+                     rec.stale, recent.superseded, 1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
+        tracker.join(timeout=5.0)
     return 0

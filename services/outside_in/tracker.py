@@ -148,8 +148,10 @@ class OutsideInTracker:
         #: camera, kept until the next frame set
         self._ahead: dict[float, tuple[Array, Array]] = {}
 
-    def process(self, frames: list[CameraFrame]) -> list[BodyEstimate]:
-        """Poses of the bodies found in one set of frames (one per camera at most)."""
+    def process(self, frames: list[CameraFrame], search: bool = True) -> list[BodyEstimate]:
+        """Poses of the bodies found in one set of frames (one per camera at most); with
+        ``search`` false the lost bodies are not searched for in it (a search costs
+        several frame sets' tracking: its caller may spread them out)."""
         self._ahead = {}
         seen = [f for f in frames if len(f.blobs)]
         # a camera flagged as bumped measures nothing until it is re-estimated: its rays
@@ -178,7 +180,7 @@ class OutsideInTracker:
                 done.add(k)
         lost = [k for k, tr in enumerate(self.tracks)
                 if k not in done and (not tr.filter.ready or tr.missed >= self.params.lost_after)]
-        if lost:
+        if lost and search:
             out += self._acquire(lost, blobs, norm, used, t_ref, done)
         self._miss_all(done)
         self._check_cameras(t_ref, seen, out)
