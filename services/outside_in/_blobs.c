@@ -479,9 +479,245 @@ static PyObject *find(PyObject *self, PyObject *args) {
     return res;
 }
 
+/* ---- blob_model.fit_centres: a blurred ball's image fitted to each blob's pixels ---- */
+
+#define FIT_PASSES 2
+#define FIT_STEPS 3
+#define FIT_MAX_SHIFT 0.5
+#define FIT_MISFIT_SIGMAS 3.0
+#define FIT_MAX_PIX 169   /* (2 * 6 + 1)^2: the largest square */
+static const double fit_lo[6] = {1.0, -INFINITY, -INFINITY, 0.05, 0.2, -INFINITY};
+static const double fit_hi[6] = {INFINITY, INFINITY, INFINITY, 8.0, 3.0, INFINITY};
+
+/* The model's pixels m and Jacobian J (n x 6) at x = amplitude, u, v, radius, blur,
+ * background (blob_model._model). */
+static void fit_model(const double *x, const double *px, const double *py, int n,
+                      double *m, double *J) {
+    const double a = x[0], cu = x[1], cv = x[2], r = x[3], s = x[4], b = x[5];
+    const double sq2 = sqrt(2.0), sqpi = sqrt(M_PI);
+    for (int k = 0; k < n; k++) {
+        double du = px[k] - cu, dv = py[k] - cv;
+        double d = sqrt(du * du + dv * dv);
+        double z = (d - r) / (sq2 * s);
+        double e = erfc(z);
+        m[k] = b + 0.5 * a * e;
+        double g = -a * exp(-z * z) / (sqpi * sq2 * s);
+        double ux = d > 0 ? du / d : 0.0, uy = d > 0 ? dv / d : 0.0;
+        double *j = J + 6 * k;
+        j[0] = 0.5 * e; j[1] = -g * ux; j[2] = -g * uy; j[3] = -g; j[4] = -g * (d - r) / s;
+        j[5] = 1.0;
+    }
+}
+
+/* Solve A x = b (6 x 6, Gaussian elimination with partial pivoting, A and b destroyed);
+ * 0 when A is singular. */
+static int solve6(double A[6][6], double *b, double *x) {
+    for (int c = 0; c < 6; c++) {
+        int piv = c;
+        for (int r = c + 1; r < 6; r++)
+            if (fabs(A[r][c]) > fabs(A[piv][c])) piv = r;
+        if (!(A[piv][c] != 0.0)) return 0;
+        if (piv != c) {
+            for (int k = 0; k < 6; k++) { double t = A[c][k]; A[c][k] = A[piv][k]; A[piv][k] = t; }
+            double t = b[c]; b[c] = b[piv]; b[piv] = t;
+        }
+        for (int r = c + 1; r < 6; r++) {
+            double f = A[r][c] / A[c][c];
+            for (int k = c; k < 6; k++) A[r][k] -= f * A[c][k];
+            b[r] -= f * b[c];
+        }
+    }
+    for (int r = 5; r >= 0; r--) {
+        double acc = b[r];
+        for (int k = r + 1; k < 6; k++) acc -= A[r][k] * x[k];
+        x[r] = acc / A[r][r];
+    }
+    return 1;
+}
+
+static void fit_normal(const double *J, const double *w, const double *res, int n,
+                       double H[6][6], double *g) {
+    memset(H, 0, 36 * sizeof(double));
+    memset(g, 0, 6 * sizeof(double));
+    for (int k = 0; k < n; k++) {
+        if (w[k] == 0.0) continue;
+        const double *j = J + 6 * k;
+        for (int a = 0; a < 6; a++) {
+            double wa = w[k] * j[a];
+            g[a] += wa * (res ? res[k] : 0.0);
+            for (int b = 0; b <= a; b++) H[a][b] += wa * j[b];
+        }
+    }
+    for (int a = 0; a < 6; a++)
+        for (int b = a + 1; b < 6; b++) H[a][b] = H[b][a];
+}
+
+/* One blob's fit (blob_model._fit_group for one blob): out = u, v, std, fitted. */
+static void fit_one(const uint8_t *img, int H, int W, const double *uv, const double *area,
+                    Py_ssize_t n, Py_ssize_t i, double dark, double gain, double rn,
+                    double *out) {
+    out[0] = uv[2 * i]; out[1] = uv[2 * i + 1]; out[2] = NAN; out[3] = 0.0;
+    int half = (int)(ceil(sqrt(area[i] / M_PI)) + 1);
+    half = half < 2 ? 2 : (half > 6 ? 6 : half);
+    int cu0 = (int)rint(uv[2 * i]), cv0 = (int)rint(uv[2 * i + 1]);
+    if (!(cu0 >= half && cu0 < W - half && cv0 >= half && cv0 < H - half)) return;
+    double px[FIT_MAX_PIX], py[FIT_MAX_PIX], pix[FIT_MAX_PIX], use[FIT_MAX_PIX];
+    double m[FIT_MAX_PIX], J[6 * FIT_MAX_PIX], w[FIT_MAX_PIX], res[FIT_MAX_PIX];
+    double tm[FIT_MAX_PIX], tJ[6 * FIT_MAX_PIX], tres[FIT_MAX_PIX];
+    int np_ = 0;
+    double peak = 0.0;
+    /* the blobs near enough to own a pixel of the square */
+    double reach = 2.0 * (half + 1.0) * sqrt(2.0);
+    for (int y = cv0 - half; y <= cv0 + half; y++) {
+        for (int x = cu0 - half; x <= cu0 + half; x++) {
+            double v = img[(size_t)y * W + x];
+            double ou = x - uv[2 * i], ov = y - uv[2 * i + 1];
+            double d_own = sqrt(ou * ou + ov * ov);
+            int own = 1;
+            for (Py_ssize_t j = 0; j < n && own; j++) {
+                if (j == i || fabs(uv[2 * j] - uv[2 * i]) > reach
+                    || fabs(uv[2 * j + 1] - uv[2 * i + 1]) > reach) continue;
+                double ju = x - uv[2 * j], jv = y - uv[2 * j + 1];
+                own = sqrt(ju * ju + jv * jv) >= d_own;
+            }
+            px[np_] = x; py[np_] = y; pix[np_] = v;
+            use[np_] = (v < 255 && own) ? 1.0 : 0.0;
+            if (v > peak) peak = v;
+            np_++;
+        }
+    }
+    double r0 = sqrt(area[i] / M_PI) - 0.5;
+    double x[6] = {peak - dark > 10.0 ? peak - dark : 10.0, uv[2 * i], uv[2 * i + 1],
+                   r0 > 1.0 ? r0 : 1.0, 0.7, dark};
+    double read2 = rn * rn + 1.0 / 12.0;
+    fit_model(x, px, py, np_, m, J);
+    double cost = 0.0;
+    int used = 0;
+    for (int k = 0; k < np_; k++) used += use[k] != 0.0;
+    for (int pass = 0; pass < FIT_PASSES; pass++) {
+        cost = 0.0;
+        for (int k = 0; k < np_; k++) {
+            double sig = m[k] - dark;
+            w[k] = use[k] / (gain * (sig > 0.0 ? sig : 0.0) + read2);
+            res[k] = m[k] - pix[k];
+            cost += w[k] * res[k] * res[k];
+        }
+        double lam = 1e-3;
+        for (int step = 0; step < FIT_STEPS; step++) {
+            double Hm[6][6], g[6], dx[6] = {0}, trial[6];
+            fit_normal(J, w, res, np_, Hm, g);
+            for (int a = 0; a < 6; a++) { Hm[a][a] += lam * Hm[a][a]; g[a] = -g[a]; }
+            if (!solve6(Hm, g, dx)) memset(dx, 0, sizeof dx);
+            for (int a = 0; a < 6; a++) {
+                double t = x[a] + dx[a];
+                trial[a] = t < fit_lo[a] ? fit_lo[a] : (t > fit_hi[a] ? fit_hi[a] : t);
+            }
+            fit_model(trial, px, py, np_, tm, tJ);
+            double tcost = 0.0;
+            for (int k = 0; k < np_; k++) {
+                tres[k] = tm[k] - pix[k];
+                tcost += w[k] * tres[k] * tres[k];
+            }
+            if (tcost < cost) {
+                memcpy(x, trial, sizeof x);
+                memcpy(m, tm, (size_t)np_ * sizeof(double));
+                memcpy(J, tJ, (size_t)np_ * 6 * sizeof(double));
+                memcpy(res, tres, (size_t)np_ * sizeof(double));
+                cost = tcost;
+                lam /= 3.0;
+            } else {
+                lam *= 4.0;
+            }
+        }
+    }
+    /* the centre's variance: the (u, v) diagonal of the information's inverse */
+    double info[6][6], g[6], var = 0.0;
+    fit_normal(J, w, NULL, np_, info, g);
+    for (int c = 1; c <= 2; c++) {
+        double A[6][6], e[6] = {0}, col[6];
+        memcpy(A, info, sizeof A);
+        e[c] = 1.0;
+        if (!solve6(A, e, col)) return;
+        var += 0.5 * col[c];
+    }
+    /* a blob the model does not describe: its std grows by sqrt(cost per dof) where that
+     * is 3 of its stds over 1 (blob_model._misfit) */
+    int dof = used - 6;
+    double per_dof = cost / (dof > 1 ? dof : 1);
+    if (per_dof > 1.0 + FIT_MISFIT_SIGMAS * sqrt(2.0 / (dof > 1 ? dof : 1))) var *= per_dof;
+    int finite = 1;
+    for (int a = 0; a < 6; a++) finite = finite && isfinite(x[a]);
+    if (!(finite && var > 0 && dof > 0
+          && hypot(x[1] - uv[2 * i], x[2] - uv[2 * i + 1]) <= FIT_MAX_SHIFT)) return;
+    out[0] = x[1]; out[1] = x[2]; out[2] = sqrt(var); out[3] = 1.0;
+}
+
+/* fit(image, uv, area, which, dark, gain, read_noise) -> bytes of float64 (n, 4): each
+ * blob's fitted u, v, std and 1.0 where it was fitted (else its centroid, nan, 0.0).
+ * image: C-contiguous uint8 (H, W); uv: C-contiguous float64 (n, 2); area: float64 (n,);
+ * which: uint8 (n,), the blobs to fit (all of them leave their pixels out of the others'). */
+static PyObject *fit(PyObject *self, PyObject *args) {
+    PyObject *image, *uvo, *areao, *whicho;
+    double dark, gain, rn;
+    if (!PyArg_ParseTuple(args, "OOOOddd", &image, &uvo, &areao, &whicho, &dark, &gain, &rn))
+        return NULL;
+    Py_buffer img, uv, area, which;
+    if (PyObject_GetBuffer(image, &img, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
+    if (img.ndim != 2 || img.itemsize != 1 || !img.format || strcmp(img.format, "B") != 0) {
+        PyBuffer_Release(&img);
+        PyErr_SetString(PyExc_ValueError, "image: expected a C-contiguous 2-D uint8 array");
+        return NULL;
+    }
+    if (PyObject_GetBuffer(uvo, &uv, PyBUF_C_CONTIGUOUS) < 0) {
+        PyBuffer_Release(&img);
+        return NULL;
+    }
+    if (PyObject_GetBuffer(areao, &area, PyBUF_C_CONTIGUOUS) < 0) {
+        PyBuffer_Release(&img);
+        PyBuffer_Release(&uv);
+        return NULL;
+    }
+    if (PyObject_GetBuffer(whicho, &which, PyBUF_C_CONTIGUOUS) < 0) {
+        PyBuffer_Release(&img); PyBuffer_Release(&uv); PyBuffer_Release(&area);
+        return NULL;
+    }
+    Py_ssize_t n = area.len / (Py_ssize_t)sizeof(double);
+    if (uv.itemsize != 8 || area.itemsize != 8 || uv.len != 2 * area.len
+        || which.itemsize != 1 || which.len != n) {
+        PyBuffer_Release(&img); PyBuffer_Release(&uv); PyBuffer_Release(&area);
+        PyBuffer_Release(&which);
+        PyErr_SetString(PyExc_ValueError,
+                        "uv, area, which: expected float64 (n, 2), (n,) and uint8 (n,)");
+        return NULL;
+    }
+    PyObject *res = PyBytes_FromStringAndSize(NULL, n * 4 * (Py_ssize_t)sizeof(double));
+    if (res) {
+        double *out = (double *)PyBytes_AS_STRING(res);
+        const uint8_t *pixels = img.buf;
+        int H = (int)img.shape[0], W = (int)img.shape[1];
+        Py_BEGIN_ALLOW_THREADS
+        const uint8_t *fit_it = which.buf;
+        const double *c = uv.buf;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double *o = out + 4 * i;
+            if (fit_it[i]) {
+                fit_one(pixels, H, W, uv.buf, area.buf, n, i, dark, gain, rn, o);
+            } else {
+                o[0] = c[2 * i]; o[1] = c[2 * i + 1]; o[2] = NAN; o[3] = 0.0;
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&img); PyBuffer_Release(&uv); PyBuffer_Release(&area);
+    PyBuffer_Release(&which);
+    return res;
+}
+
 static PyMethodDef methods[] = {
     {"find", find, METH_VARARGS,
      "Bright blobs of an 8-bit image: refined centroid, std, roundness, flux, area."},
+    {"fit", fit, METH_VARARGS,
+     "Blob centres by a blurred ball's image fitted to the pixels: u, v, std, fitted."},
     {NULL, NULL, 0, NULL},
 };
 

