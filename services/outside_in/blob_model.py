@@ -38,10 +38,19 @@ MISFIT_SIGMAS = 3.0
 MAX_SHIFT_PX = 0.5
 _LOWER = np.array([1.0, -np.inf, -np.inf, 0.05, 0.2, -np.inf])
 _UPPER = np.array([np.inf, np.inf, np.inf, 8.0, 3.0, np.inf])
-#: the compiled fit in use (tests set it to None to run the numpy one)
-NATIVE: Any = compiled_twin("services.outside_in._blobs", "UMA_BLOBS_PURE_PYTHON")
 _SQRT2 = np.sqrt(2.0)
 _SQRTPI = np.sqrt(np.pi)
+
+
+def _compiled() -> Any:
+    """The compiled twin, or None: not built, switched off (``UMA_BLOBS_PURE_PYTHON``),
+    or built from an older ``_blobs.c`` without the fit (a checkout not rebuilt since)."""
+    module = compiled_twin("services.outside_in._blobs", "UMA_BLOBS_PURE_PYTHON")
+    return module if hasattr(module, "fit") else None
+
+
+#: the compiled fit in use (tests set it to None to run the numpy one)
+NATIVE: Any = _compiled()
 
 
 def half_size(area: Array) -> Array:
