@@ -62,16 +62,16 @@ class MotionConfig:
     manoeuvre (``ImmFilter``'s two models; a ``MotionFilter`` uses the first), and
     start-up uncertainty.
 
-    The smooth model's densities are those of a body swaying at a fraction of a hertz
-    (the simulator's paths: sinusoids of 0.15-0.6 Hz, at the filter's bandwidth about
-    0.1 (m/s^3)^2/Hz of jerk and 0.06 (rad/s^2)^2/Hz of angular acceleration), not a
-    rougher motion's: a white-noise model whose body moves more smoothly than it says
+    The smooth model's densities are near those of a body swaying at a fraction of a
+    hertz (the simulator's paths: sinusoids of 0.15-0.6 Hz, at the filter's bandwidth
+    about 0.1 (m/s^3)^2/Hz of jerk and 0.06 (rad/s^2)^2/Hz of angular acceleration), not
+    a rougher motion's: a white-noise model whose body moves more smoothly than it says
     reports more variance than its error has, by nearly the same share at any density
     (its position 7-13 % at 120 Hz), since the lag its process noise allows for never
-    comes; only at the motion's own density does the lag fill it.  A hand's quicker
+    comes; only near the motion's own density does the lag fill it.  A hand's quicker
     moves are the manoeuvre model's."""
 
-    jerk_psd: float = 0.1                     # (m/s^3)^2 / Hz
+    jerk_psd: float = 1.0                     # (m/s^3)^2 / Hz
     angular_accel_psd: float = 0.06           # (rad/s^2)^2 / Hz
     manoeuvre_jerk_psd: float = 200.0         # (m/s^3)^2 / Hz
     manoeuvre_angular_accel_psd: float = 5.0  # (rad/s^2)^2 / Hz
