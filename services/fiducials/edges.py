@@ -12,7 +12,9 @@ are the intersections of the four fitted lines:
    image profile across the side (``cv2.remap``, bilinear), from most of a module
    inside (the black border) to as far outside (the white quiet zone);
 2. where the profile crosses the middle between black and white: one sub-pixel edge
-   point (which middle: :func:`_levels`);
+   point (which middle: :func:`_levels`); across a decoded tag's thinnest sides, where
+   no crossing is free of the cells around the border, the edge point of the tag's
+   modelled image fitted to the profiles (:mod:`services.fiducials.border`);
 3. the edge points undistorted (the lens bends straight sides), one least-squares line per
    side (the points' principal axis, as ``cv2.fitLine`` with ``DIST_L2``, vectorised over
    all markers), adjacent lines intersected: the corners in *ideal* pixels of the camera
@@ -29,6 +31,7 @@ import cv2
 import numpy as np
 
 from services.camera.model import CameraModel
+from services.fiducials import border
 
 #: edge points per side over its middle ``SPAN`` (the rest is the corners' blur), placed
 #: from the corners of a first, cheaper pass (``FIRST_SAMPLES`` over ``FIRST_SPAN``, lines
@@ -67,6 +70,19 @@ PLATEAU_FALL = 0.05
 #: wider, each profile's own middle is as good and its own noise is what the edge fits'
 #: scatter shows (the corners' covariance is built from it)
 THIN_CELL_PX = 3.5
+#: ... and across a side whose cells are narrower than this (px) the edge points are
+#: the fit of the tag's modelled image (:mod:`services.fiducials.border`), its code's
+#: cells known once decoded.  It costs about a millisecond a tag, so it is kept to the
+#: thinnest borders, where the crossings err most: on the eval's frames the worst misses
+#: were sides 1-1.5 px across (tags tilted 73-79 degrees at 0.6-1.3 m, 51-62 degrees at
+#: 2.2-2.4 m), and a limit of 1.7 px did as well there as 2.0 or 2.5; none of the bench's
+#: ten tags at 0.6-1.6 m is under 1.6 px
+MODEL_CELL_PX = 1.7
+#: how far (px) a profile's inner end may reach beyond a neighbouring side (an acute
+#: corner's): on the eval's frames (seeds 1-10 and 101-110, worst seed's position p95 per
+#: bin) 1 px left out too many of the short sides' points of tags tilted 73-76 degrees
+#: and 2 px did best; without the rule corners at 77-79 degrees were 0.3 px off
+CORNER_OVERSHOOT_PX = 2.0
 
 
 #: the profile's steps across a side
@@ -84,21 +100,29 @@ _FIRST, _SECOND = _fractions(FIRST_SPAN, FIRST_SAMPLES), _fractions(SPAN, SAMPLE
 
 
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
-           ) -> tuple[np.ndarray, np.ndarray]:
+           cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
     ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
-    marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter."""
+    marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
+    markers' ``cells`` (n, modules, modules, 1 white: their decoded codes) the thinnest
+    sides' edge points come from a model of their blurred image (:func:`_modelled`)."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
         return quads, np.zeros((0, 4, 2, 2))
     # first pass, in distorted pixels: where to place the second's points
-    edge, good, reach = _edge_points(gray, quads, modules, _FIRST)
+    edge, good, reach = _edge_points(gray, quads, modules, _FIRST, _sides(quads, modules))
     w = good.astype(np.float64)
     mean, _, direction = _lines(edge, w)
     placed, ok = _intersections(np.where((w.sum(-1) < MIN_POINTS)[..., None], quads, mean),
                                 direction, quads, reach)
     placed = np.where(ok[:, None, None], placed, quads)
-    edge, good, reach = _edge_points(gray, placed, modules, _SECOND, marker_levels=True)
+    sides = _sides(placed, modules)
+    edge, good, reach = _edge_points(gray, placed, modules, _SECOND, sides, marker_levels=True)
+    clear = _clear_of_corners(sides, reach)
+    if cells is not None:
+        edge, good, modelled = _modelled(gray, placed, sides, cells, edge, good)
+        clear |= modelled
+    good = good & clear
     # the detected corners and the edge points undistorted in one call
     both = camera.ideal_pixels(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]))
     fallback = both[:quads.size // 2].reshape(quads.shape)
@@ -123,19 +147,33 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     return np.where(ok[:, None, None], corners, fallback), cov
 
 
-def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: np.ndarray,
-                 marker_levels: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sub-pixel edge points (n, 4, len(fractions), 2) along the sides of ``quads`` at
-    ``fractions`` of each side, whether each was found, and the reach (n, 4, 1) px.  Each
-    profile is crossed at its own middle, or with ``marker_levels`` at :func:`_levels`'
-    (the first pass, which only places the second's points, spares the cost)."""
+def _sides(quads: np.ndarray, modules: int,
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The sides of ``quads`` (n, 4, 2) of markers ``modules`` cells wide: each side's
+    vector (n, 4, 2), its length (n, 4, 1), unit direction and outward normal (n, 4, 2),
+    and its cells' width across it (n, 4, px)."""
     side = quads[:, _NEXT] - quads
     length = np.sqrt(np.einsum("nkc,nkc->nk", side, side))[..., None]
     along = side / np.maximum(length, 1e-9)
     # OpenCV's corners run clockwise in the image: the outward normal is along's left turn
     normal = along[..., ::-1] * [1.0, -1.0]
-    # the cells' width across a side is the neighbouring sides' length over the module
-    # count (a tilted tag is narrower one way than the other)
+    # the cells' width across a side: along the neighbouring sides, times the sine of the
+    # angle they make with it (a tilted tag is narrower one way than the other)
+    sine = np.abs(along[..., 0] * along[:, _PREV, 1] - along[..., 1] * along[:, _PREV, 0])
+    across = (length[:, _PREV, 0] + length[:, _NEXT, 0]) / (2 * modules) \
+        * (sine + sine[:, _NEXT]) / 2
+    return side, length, along, normal, across
+
+
+def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: np.ndarray,
+                 sides: tuple[np.ndarray, ...], marker_levels: bool = False,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel edge points (n, 4, len(fractions), 2) along the sides of ``quads`` at
+    ``fractions`` of each side, whether each was found, and the reach (n, 4, 1) px.  Each
+    profile is crossed at its own middle, or with ``marker_levels`` at :func:`_levels`'
+    (the first pass, which only places the second's points, spares the cost).  ``sides``:
+    :func:`_sides` of ``quads``."""
+    side, length, _, normal, across = sides
     reach = np.maximum(REACH_MODULES / 2 / modules * (length[:, _PREV] + length[:, _NEXT]),
                        REACH_MIN_PX)
     base = quads[:, :, None, :] + fractions * side[:, :, None, :]
@@ -148,11 +186,6 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
     bright = profile[..., _CENTRE:].max(axis=-1)
     level = (dark + bright) / 2
     if marker_levels:
-        # the cells' width across a side: along the neighbouring sides, times the sine of
-        # the angle they make with it
-        sine = np.abs(along[..., 0] * along[:, _PREV, 1] - along[..., 1] * along[:, _PREV, 0])
-        across = (length[:, _PREV, 0] + length[:, _NEXT, 0]) / (2 * modules) \
-            * (sine + sine[:, _NEXT]) / 2
         level = _levels(profile, dark, bright, across < THIN_CELL_PX)
     d = profile - level[..., None]
     lo, hi = d[..., :-1], d[..., 1:]
@@ -163,6 +196,52 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
     s = np.take_along_axis(where, pick[..., None], -1)
     good = (bright - dark > MIN_CONTRAST) & np.isfinite(s[..., 0])
     return base + np.where(good[..., None], s, 0.0) * step, good, reach
+
+
+def _clear_of_corners(sides: tuple[np.ndarray, ...], reach: np.ndarray) -> np.ndarray:
+    """Whether each second-pass profile (n, 4, ``SAMPLES``) stays inside the tag: at an
+    acute corner of the tag's image (a steeply tilted tag's are 20-40 degrees) a profile
+    near the corner, reaching ``reach`` px inwards, leaves the tag through the
+    neighbouring side, and the blurred white beyond it moves its crossing outwards
+    (0.2-0.4 px on the eval's frames tilted 77-79 degrees, the corners 0.3 px off).  A
+    profile at ``a`` px from a corner of angle ``theta`` ends ``a sin(theta) - reach
+    cos(theta)`` px inside the neighbouring side; one that ends more than
+    ``CORNER_OVERSHOOT_PX`` outside it is left out.  ``sides``: :func:`_sides` of the
+    quads the profiles were placed on."""
+    _, length, along, _, _ = sides
+    cosine = -np.einsum("nkc,nkc->nk", along, along[:, _PREV])  # at corner k
+    sine = np.sqrt(np.maximum(1 - cosine ** 2, 0.0))
+    reach = reach[..., 0][..., None]
+    start = _SECOND[:, 0] * length * sine[..., None] - reach * cosine[..., None]
+    end = (1 - _SECOND[:, 0]) * length * sine[:, _NEXT, None] - reach * cosine[:, _NEXT, None]
+    return np.minimum(start, end) >= -CORNER_OVERSHOOT_PX
+
+
+def _modelled(gray: np.ndarray, quads: np.ndarray, sides: tuple[np.ndarray, ...],
+              cells: np.ndarray, edge: np.ndarray, good: np.ndarray,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The edge points ``edge`` (n, 4, k, 2) and whether found ``good`` (n, 4, k), those
+    of the sides whose cells are narrower across than :data:`MODEL_CELL_PX` replaced by
+    the fit of the tag's modelled image (:func:`border.fit_offsets`, the tags ``cells``
+    known from their codes) where it is trusted, and which were (n, 4, k).  The fit starts
+    from the crossings.  ``sides``: :func:`_sides` of ``quads``."""
+    side, _, _, normal, across = sides
+    thin = across < MODEL_CELL_PX
+    modelled = np.zeros(good.shape, bool)
+    if not thin.any():
+        return edge, good, modelled
+    pick = np.flatnonzero(thin.any(axis=1))
+    base = quads[pick, :, None, :] + _SECOND * side[pick, :, None, :]
+    start = np.einsum("nksc,nkc->nks", edge[pick] - base, normal[pick])
+    offset, ok = border.fit_offsets(gray, quads[pick], cells[pick], _SECOND, across[pick],
+                                    np.where(good[pick], start, 0.0))
+    use = ok & thin[pick][..., None]
+    edge, good = edge.copy(), good.copy()
+    edge[pick] = np.where(use[..., None], base + offset[..., None] * normal[pick, :, None, :],
+                          edge[pick])
+    good[pick] |= use
+    modelled[pick] = use
+    return edge, good, modelled
 
 
 def _levels(profile: np.ndarray, dark: np.ndarray, bright: np.ndarray, thin: np.ndarray,

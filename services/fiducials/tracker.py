@@ -3,8 +3,10 @@
 ``FiducialTracker.process(image, t_ns)`` returns one :class:`Estimate` per body seen:
 
 * **detection**: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; their corners
-  are then located from their four sides (:mod:`services.fiducials.edges`), in ideal
-  pixels (lens distortion removed), where the poses are solved;
+  are then located from their four sides (:mod:`services.fiducials.edges`; across the
+  thinnest borders from a model of the decoded tag's blurred image,
+  :mod:`services.fiducials.border`), in ideal pixels (lens distortion removed), where
+  the poses are solved;
 * **pose**: :mod:`services.fiducials.pose` (IPPE candidates refined by Gauss-Newton
   steps, LM for bundles, then a step weighted by the corners' covariances; a frame's
   lone markers all at once);
@@ -52,7 +54,7 @@ import numpy as np
 
 from services.camera.markers import dictionary
 from services.camera.model import CameraModel
-from services.fiducials import edges, pose
+from services.fiducials import border, edges, pose
 from services.fiducials.bodies import Body, marker_body, marker_in_body
 
 POOL_FRAMES = 30
@@ -336,6 +338,7 @@ class FiducialTracker:
         d = dictionary(family)
         self.detector = cv2.aruco.ArucoDetector(d, detector_parameters())
         self._modules = d.markerSize + 2
+        self._cells = border.code_cells(d)
         self._K = camera.K
         self.bundles = list(bundles or [])
         self._bundle_of = {i: b for b in self.bundles for i in b.corners}
@@ -361,7 +364,8 @@ class FiducialTracker:
         if ids is None:
             return {}, {}
         detected = np.asarray(corners, np.float64).reshape(-1, 4, 2)
-        ideal, cov = edges.refine(gray, detected, self._modules, self.camera)
+        ideal, cov = edges.refine(gray, detected, self._modules, self.camera,
+                                  self._cells[ids.ravel()])
         cov = corner_covariance(cov, ideal, detected, self._modules)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
