@@ -110,6 +110,9 @@ class Identification:
 
     points: tuple[int, ...]
     misfit_m: float
+    #: the markers that every near-equal assignment gave the same point (``identify``'s
+    #: ``agreed``), the rest of the best one's left out
+    agreed_only: bool = False
 
     @property
     def found(self) -> int:
@@ -118,9 +121,14 @@ class Identification:
 
 def identify(body: RigidBody, points: Array, tolerance_m: float, min_markers: int = 3,
              exclude: set[int] | frozenset[int] = frozenset(),
-             views: list[frozenset] | None = None) -> Identification | None:
+             views: list[frozenset] | None = None,
+             agreed: bool = False) -> Identification | None:
     """The body's markers among ``points`` (m, 3), or None when not found or ambiguous.
-    ``views`` (per point, the blobs it came from): two markers never share a blob."""
+    ``views`` (per point, the blobs it came from): two markers never share a blob.  With
+    ``agreed``, an ambiguous search gives the markers that every near-equal assignment
+    gave the same point, when there are ``min_markers`` of them: two markers whose images
+    run together in one camera triangulate to two points off by millimetres, each of which
+    fits either marker about as well, while the body's other markers are found alike."""
     P = np.asarray(points, float).reshape(-1, 3)
     n = len(body.markers)
     D = np.linalg.norm(P[:, None] - P[None], axis=2)
@@ -162,11 +170,16 @@ def identify(body: RigidBody, points: Array, tolerance_m: float, min_markers: in
     cands = sorted((b for b in best if b[0] == top), key=lambda b: b[1])
     pairs = top * (top - 1) / 2
     rms = np.sqrt(cands[0][1] / pairs)
-    if len(cands) > 1:
-        rms2 = np.sqrt(cands[1][1] / pairs)
-        if rms2 < max(3.0 * rms, 0.3 * tolerance_m):
-            return None
-    return Identification(cands[0][2], float(rms))
+    rivals = [c for c in cands[1:] if np.sqrt(c[1] / pairs) < max(3.0 * rms, 0.3 * tolerance_m)]
+    if not rivals:
+        return Identification(cands[0][2], float(rms))
+    if not agreed:
+        return None
+    common = tuple(i if all(c[2][m] == i for c in rivals) else -1
+                   for m, i in enumerate(cands[0][2]))
+    if sum(i >= 0 for i in common) < min_markers:
+        return None
+    return Identification(common, float(rms), agreed_only=True)
 
 
 

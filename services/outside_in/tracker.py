@@ -53,6 +53,8 @@ class TrackerParams:
     match: MatchParams = field(default_factory=MatchParams)
     motion: MotionConfig = field(default_factory=MotionConfig)
     identify_tolerance_m: float = 0.005   # distance signature tolerance when searching
+    confirm_px: float = 1.0               # a body found from three points: another of its
+                                          # markers must image this near a blob
     gate_px: float = 5.0                  # blob distance to a predicted marker
     ambiguity_ratio: float = 0.6          # nearest / second nearest blob must be below it
     outlier_px: float = 0.4               # an observation further from the fit is dropped,
@@ -378,16 +380,11 @@ class OutsideInTracker:
         views = [frozenset(q.views) for q in points]
         for k in lost:
             track = self.tracks[k]
-            # four markers at least where the body has them: three points can match a
-            # triangle of ghosts, which tracking would then follow
-            ident = identify(track.body, X, self.params.identify_tolerance_m,
-                             min_markers=min(4, len(track.body.markers)), exclude=taken,
-                             views=views)
-            if ident is None:
+            found = self._identify(track.body, X, views, taken, [self.cameras[c] for c in cams],
+                                   [norm[c] for c in cams])
+            if found is None:
                 continue
-            idx = [(m, i) for m, i in enumerate(ident.points) if i >= 0]
-            R0, p0 = absolute_orientation(track.body.markers[[m for m, _ in idx]],
-                                          X[[i for _, i in idx]])
+            idx, R0, p0 = found
             pairs = {(cams[ci], m): (cams[ci], keep[ci][b])
                      for m, i in idx for ci, b in points[i].views}
             est = self._estimate(track, pairs, blobs, t_ref, acquired=True,
@@ -399,6 +396,39 @@ class OutsideInTracker:
                 out.append(est)
         return out
 
+    def _identify(self, body: RigidBody, X: Array, views: list[frozenset], taken: set[int],
+                  cams: list[RigCamera], norm: list[Array]
+                  ) -> tuple[list[tuple[int, int]], Array, Array] | None:
+        """The body among the points ``X``: ``(marker, point)`` pairs and the pose from
+        them, or None.  Four markers at least where the body has them: three points can
+        match a triangle of ghosts (rays of two cameras crossing by chance), which
+        tracking would then follow.  Three (or only the markers that near-equal
+        assignments agree on, ``identify``'s ``agreed``) when the pose from them puts
+        another of the body's markers on a blob (``confirm_px``) in two of the cameras
+        that saw them: a ghost triangle's pose puts them where no blob is, while a true
+        body's further marker may well be imaged but not among the points -- its image run
+        together with a neighbour's in one camera, its point millimetres off.  With two
+        cameras the far head of some rigs was never found for that, or only when such a
+        point happened to fall within the tolerance."""
+        tol = self.params.identify_tolerance_m
+        n = len(body.markers)
+        ident = identify(body, X, tol, min_markers=min(4, n), exclude=taken, views=views)
+        if ident is None:
+            ident = identify(body, X, tol, min_markers=3, exclude=taken, views=views,
+                             agreed=True)
+        if ident is None:
+            return None
+        idx = [(m, i) for m, i in enumerate(ident.points) if i >= 0]
+        R, p = absolute_orientation(body.markers[[m for m, _ in idx]], X[[i for _, i in idx]])
+        if ident.agreed_only or len(idx) < min(4, n):
+            others = body.markers[[m for m in range(n) if ident.points[m] < 0]] @ R.T + p
+            seen = set().union(*(views[i] for _, i in idx))
+            confirmed = sum(_images_on_a_blob(cams[c], others, norm[c], self.params.confirm_px)
+                            for c in sorted({c for c, _ in seen}))
+            if confirmed < 2:
+                return None
+        return idx, R, p
+
     def _miss_all(self, done: set[int]) -> None:
         for k, track in enumerate(self.tracks):
             track.missed = 0 if k in done else track.missed + 1
@@ -408,6 +438,18 @@ def _markers_at(track: _Track, t: float) -> Array:
     """The track's markers in the world where its filter predicts them at ``t``."""
     p, R = track.filter.predicted_pose(t)
     return track.body.markers @ R.T + p
+
+
+def _images_on_a_blob(cam: RigCamera, world: Array, xy: Array, within_px: float) -> bool:
+    """Whether one of the points ``world`` (n, 3) images within ``within_px`` of a blob
+    (``xy``: the camera's blobs, undistorted normalised)."""
+    pc = cam.to_camera(world)
+    front = pc[:, 2] > 0.05
+    if not (len(xy) and front.any()):
+        return False
+    proj = pc[front, :2] / pc[front, 2:3]
+    d = np.linalg.norm(proj[:, None, :] - xy[None, :, :], axis=2)
+    return bool(d.min() * cam.focal_px < within_px)
 
 
 def _worst(fit: PoseFit, rows: Rows) -> tuple[int, float, float]:
