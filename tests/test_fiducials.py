@@ -329,6 +329,24 @@ def test_the_thinnest_borders_edges_come_from_the_decoded_tags_modelled_image(ma
     assert modelled < 0.7 * crossing and modelled < 0.45, (modelled, crossing)
 
 
+def test_profiles_that_leave_the_tag_through_an_acute_corner_are_left_out():
+    """Near a 25-degree corner of a steep tag's image a profile reaching 4 px inwards (0.8
+    of a 40 px tag's cell) ends beyond the neighbouring side, in the blurred white outside
+    it: left out of the line fit; none of a square's are."""
+    square = np.array([[[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]]])
+    angle = math.radians(25)
+    # a parallelogram, corners clockwise in the image: 25 degrees at corners 0 and 2
+    side = 40 * np.array([math.cos(angle), math.sin(angle)])
+    top = np.array([[100.0, 100.0], [140.0, 100.0]])
+    sheared = np.concatenate([top, top[::-1] + side])[None]
+    reach = np.full((1, 4, 1), 4.0)
+    assert edges._clear_of_corners(edges._sides(square, 8), reach).all()
+    clear = edges._clear_of_corners(edges._sides(sheared, 8), reach)[0]
+    # side k runs from corner k to corner k + 1
+    assert not clear[0, 0] and not clear[3, -1] and not clear[1, -1] and not clear[2, 0]
+    assert clear[0, -1] and clear[1, 0] and clear[:, 3:-3].all()
+
+
 def test_edge_points_that_crossed_a_neighbouring_cell_do_not_move_the_line():
     """A profile across a grazing tag's thin border can cross the edge of the cell behind
     it: such a point, a cell off the side, is left out of the line fit."""
