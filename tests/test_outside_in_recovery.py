@@ -21,14 +21,14 @@ from services.outside_in.rigfile import save_rig
 from services.outside_in.simulator import SimConfig, Simulation
 
 SEED = 5
-RATE = 60.0
+RATE = 30.0
 CAMERAS = 4
 #: the stall: long enough that every body's filter has lost it and the samples queued
 #: meanwhile are far more than the reconstruction tracks in a frame period
 STALL_S = 1.0
 #: a window of exposures counts as at the rate with poses of this share of its frame sets
 AT_RATE = 0.9
-WINDOW_S = 0.5
+WINDOW_S = 1.0
 
 
 class Poses:
