@@ -244,6 +244,14 @@ def test_eval_plugin_reports_every_figure():
         assert lo < 6 < hi
         assert 1 <= n["effective_runs"] <= 4 + 1e-9
         assert n["bounds_95"][0] <= lo + 1e-9 and n["bounds_95"][1] >= hi - 1e-9
+    # the calibration's error against its covariance (24 dof), and what it adds to the mean
+    # NEES of the runs, which share it, against what that covariance expects: a part of the
+    # pose covariance (so of the 6 dof) that grows with the horizon
+    assert cal["nees_dof"] == 24 and 0 < cal["nees"] < 100
+    shares = [fig["nees"][key]["calibration_share"] for key in measured]
+    assert all(sh["this_calibration"] >= 0 for sh in shares)
+    expected = [sh["expected"] for sh in shares]
+    assert 0 < expected[0] < expected[1] < expected[2] < expected[3] < 6
     with pytest.raises(ValueError, match="--seconds must exceed"):
         run(Namespace(seconds=2.0, seed=1, json=True, runs=4, layout="marvin-six",
                              poses="six", pose_seconds=2.0))

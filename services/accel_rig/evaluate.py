@@ -18,7 +18,10 @@ Per horizon, ``shape`` says whether the covariance has the errors' shape as well
 size (the NEES split into orientation and position given orientation, the per-run NEES
 variance: 12 for an honest 6-dof Gaussian), and ``--noise-draws K`` repeats the runs with
 fresh sensor noise on the same rig, calibration, trajectory and start times, which tells a
-seed that misses its band by its draw from one that misses by its rig.
+seed that misses its band by its draw from one that misses by its rig; ``calibration_share``
+says what this seed's calibration error (known to the simulator) adds to its runs' mean
+NEES against what the calibration covariance expects of it, and ``calibration.nees`` is
+that error against its covariance (``nees_dof`` = 4 per accelerometer).
 
 The calibration is handed the device's true noise model and latency (``_calibrate``; the
 output's ``given_by_simulator`` says so): it estimates biases, gains and axes, and the
@@ -134,7 +137,10 @@ def _calibrate(device: SensorTruth, nominal, labels, seconds: float, rate: float
     cal = calibrate(nominal, recs, rate, noise=device.noise_model(),
                     latency_s=device.latency_s(rate))
     err = calibration_errors(cal, device.bias_v, device.gain_v_per_mps2, device.layout.axes)
+    c = _calibration_error(device, cal)
     return cal, {
+        "nees": float(c @ np.linalg.solve(calibration_covariance(cal), c)),
+        "nees_dof": int(c.size),
         "poses": list(labels), "seconds_per_pose": seconds,
         "bias_lsb_max": float(np.abs(err.bias_lsb).max()),
         "bias_lsb_rms": float(np.sqrt(np.mean(err.bias_lsb**2))),
@@ -172,6 +178,9 @@ def _dead_reckon(device: SensorTruth, cal: sn.Calibration, seed: int, runs: int,
         out["position_error_m"][key] = _stats(first.pos[:, i])
         figures = _nees_figures(first.nees[:, i], first.cov[i], first.sens[i], cal_cov)
         figures["shape"] = _shape(first.err[i], first.cov[i])
+        if cal_cov is not None:
+            figures["calibration_share"] = _calibration_share(
+                first.cov[i], first.sens[i], cal_cov, _calibration_error(device, cal))
         if draws:
             figures["noise_draws"] = _draw_figures(
                 [_nees_figures(d.nees[:, i], d.cov[i], d.sens[i], cal_cov) for d in draws],
@@ -257,6 +266,26 @@ def _shape(err: np.ndarray, cov: np.ndarray) -> dict[str, float | None]:
             "position_given_orientation_nees": float(pos.mean()),
             "orientation_position_correlation":
                 float(np.corrcoef(rot, pos)[0, 1]) if several else None}
+
+
+def _calibration_error(device: SensorTruth, cal: sn.Calibration) -> np.ndarray:
+    """The calibration's error in its parameters ``[bias, gain * axis]`` per accelerometer
+    (true minus estimated, the order of ``calibration_covariance``): the simulator knows it."""
+    true = np.column_stack([device.bias_v, device.gain_v_per_mps2[:, None] * device.layout.axes])
+    est = np.column_stack([cal.bias_v, cal.gain_v_per_mps2[:, None] * cal.axes])
+    return (true - est).ravel()
+
+
+def _calibration_share(cov: np.ndarray, sens: np.ndarray, cal_cov: np.ndarray,
+                       cal_error: np.ndarray) -> dict[str, float]:
+    """What this calibration's error adds to the runs' mean NEES, ``c^T M c`` with ``M`` the
+    runs' mean ``S^T C^-1 S``, against what the calibration covariance expects of it,
+    ``tr(M C_cal)``.  Every run of a seed shares the error, so one calibration drawn far
+    out in the directions the pose is sensitive to moves the whole seed's mean: the seed
+    then misses its band by its rig, not by its runs' noise."""
+    M = np.einsum("rdi,rdj->ij", sens, np.linalg.solve(cov, sens)) / len(cov)
+    return {"expected": float(np.einsum("ij,ji->", M, cal_cov)),
+            "this_calibration": float(cal_error @ M @ cal_error)}
 
 
 def _draw_figures(draws: list[dict[str, Any]], own: dict[str, Any]) -> dict[str, Any]:
