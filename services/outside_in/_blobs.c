@@ -481,7 +481,7 @@ static PyObject *find(PyObject *self, PyObject *args) {
 
 /* ---- blob_model.fit_centres: a blurred ball's image fitted to each blob's pixels ---- */
 
-#define FIT_PASSES 2
+#define FIT_PASSES 1
 #define FIT_STEPS 3
 #define FIT_MAX_SHIFT 0.5
 #define FIT_MISFIT_SIGMAS 3.0
@@ -552,6 +552,20 @@ static void fit_normal(const double *J, const double *w, const double *res, int 
         for (int b = a + 1; b < 6; b++) H[a][b] = H[b][a];
 }
 
+/* Each pixel's weight (its noise from the model m: shot and read), residual, and the
+ * weighted cost. */
+static double fit_weights(const double *m, const double *use, const double *pix, int n,
+                          double dark, double gain, double read2, double *w, double *res) {
+    double cost = 0.0;
+    for (int k = 0; k < n; k++) {
+        double sig = m[k] - dark;
+        w[k] = use[k] / (gain * (sig > 0.0 ? sig : 0.0) + read2);
+        res[k] = m[k] - pix[k];
+        cost += w[k] * res[k] * res[k];
+    }
+    return cost;
+}
+
 /* One blob's fit (blob_model._fit_group for one blob): out = u, v, std, fitted. */
 static void fit_one(const uint8_t *img, int H, int W, const double *uv, const double *area,
                     Py_ssize_t n, Py_ssize_t i, double dark, double gain, double rn,
@@ -595,13 +609,7 @@ static void fit_one(const uint8_t *img, int H, int W, const double *uv, const do
     int used = 0;
     for (int k = 0; k < np_; k++) used += use[k] != 0.0;
     for (int pass = 0; pass < FIT_PASSES; pass++) {
-        cost = 0.0;
-        for (int k = 0; k < np_; k++) {
-            double sig = m[k] - dark;
-            w[k] = use[k] / (gain * (sig > 0.0 ? sig : 0.0) + read2);
-            res[k] = m[k] - pix[k];
-            cost += w[k] * res[k] * res[k];
-        }
+        cost = fit_weights(m, use, pix, np_, dark, gain, read2, w, res);
         double lam = 1e-3;
         for (int step = 0; step < FIT_STEPS; step++) {
             double Hm[6][6], g[6], dx[6] = {0}, trial[6];
@@ -630,6 +638,8 @@ static void fit_one(const uint8_t *img, int H, int W, const double *uv, const do
             }
         }
     }
+    /* the covariance and misfit with the weights of the model reached */
+    cost = fit_weights(m, use, pix, np_, dark, gain, read2, w, res);
     /* the centre's variance: the (u, v) diagonal of the information's inverse */
     double info[6][6], g[6], var = 0.0;
     fit_normal(J, w, NULL, np_, info, g);
