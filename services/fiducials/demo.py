@@ -36,6 +36,7 @@ import socket
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,8 +147,11 @@ class _CameraLoop(threading.Thread):
                 self.seen.errors.append(f"cam-{self.side}: {type(exc).__name__}: {exc}")
 
 
-def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
-    """Start everything, watch for ``seconds``, stop everything; the figures."""
+def run_demo(seconds: float, seed: int, live: bool = True,
+             done: Callable[[dict[str, Any]], bool] | None = None) -> dict[str, Any]:
+    """Start everything, watch for ``seconds`` (or less: until ``done(report)`` holds, asked
+    twice a second; a loaded host's startup and stalls then shorten only what is left of
+    the watch, not what it shows), stop everything; the figures."""
     from agent import Client, Service
     from agent.daemon import Agent, AgentSettings
 
@@ -184,7 +188,7 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
             app.need("tag", type="pose6d", edge=("lab/*", TARGET), prefer="pos_std_m",
                      standby=1, on_sample=on_sample)
             app.start()
-            _watch(client, seconds, t0_ns, seen, live)
+            _watch(client, seconds, t0_ns, seen, live, done)
     finally:
         stop.set()
         for loop in loops:
@@ -195,11 +199,13 @@ def run_demo(seconds: float, seed: int, live: bool = True) -> dict[str, Any]:
     return _report(seen, seconds)
 
 
-def _watch(client: Any, seconds: float, t0_ns: int, seen: _Seen, live: bool) -> None:
-    """Query the tag in the world frame twice a second; a live line per second."""
+def _watch(client: Any, seconds: float, t0_ns: int, seen: _Seen, live: bool,
+           done: Callable[[dict[str, Any]], bool] | None) -> None:
+    """Query the tag in the world frame twice a second, until ``seconds`` are up or
+    ``done`` holds for the report so far; a live line per second."""
     end = time.monotonic() + seconds
     last_line = 0.0
-    while time.monotonic() < end:
+    while time.monotonic() < end and not (done is not None and done(_report(seen, seconds))):
         try:
             r = client.pose("lab/world", TARGET)
         except Exception as exc:  # no route yet, or an agent slow to answer: counted
@@ -224,7 +230,7 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
     with seen.lock:
         stream, claims, queries = list(seen.stream), dict(seen.claims), list(seen.queries)
         frames = {side: list(t) for side, t in seen.frames.items()}
-    switches, delays = [], []
+    switches, delays, followed = [], [], set()
     for (t_prev, s_prev), (t, s) in itertools.pairwise(stream):
         if s != s_prev:  # the handover: last sample of the old camera to first of the new
             switches.append({"at_s": round(t - stream[0][0], 2), "from": s_prev, "to": s,
@@ -235,12 +241,15 @@ def _report(seen: _Seen, seconds: float) -> dict[str, Any]:
         follow = next((t for t, s in stream if t >= mono and s == f"cam-{side}"), None)
         if follow is not None:
             delays.append(round(follow - mono, 3))
+            followed.add(f"cam-{side}")
     gaps = np.diff([t for t, _ in stream]) if len(stream) > 1 else np.array([math.inf])
     worst = int(np.argmax(gaps)) if len(stream) > 1 else 0
     seen_gaps = _gaps_while_seen(stream, claims)
     errors = [e for _, e, _ in queries]
     return {"seconds": seconds, "samples_received": len(stream), "switches": switches,
             "better_camera_changes": len(better), "follow_delays_s": delays,
+            # the cameras the need moved to after they became the better one
+            "followed": sorted(followed),
             "max_stream_gap_s": round(float(gaps.max()), 3),
             "max_handover_gap_s": max((s["handover_gap_s"] for s in switches), default=None),
             # a camera's own longest pause between frames (a loaded host): the stream
