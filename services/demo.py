@@ -166,6 +166,12 @@ def main(args: argparse.Namespace) -> int:
     if not (math.isfinite(seconds) and 0 < seconds <= 3600):
         raise UmaError(f"--seconds must be in (0, 3600], got {args.seconds!r}")
     logging.getLogger("uma").setLevel(logging.WARNING)
+    log_dir = None
+    if args.logs is not None:
+        log_dir = Path(args.logs)
+        if log_dir.exists() and not log_dir.is_dir():
+            raise UmaError(f"--logs {args.logs}: exists and is not a directory")
+        log_dir.mkdir(parents=True, exist_ok=True)
     if args.cameras:
         from services.fiducials.demo import main as cameras
 
@@ -174,12 +180,6 @@ def main(args: argparse.Namespace) -> int:
         from services.outside_in.demo import main as outside_in
 
         return outside_in(args)
-    log_dir = None
-    if args.logs is not None:
-        log_dir = Path(args.logs)
-        if log_dir.exists() and not log_dir.is_dir():
-            raise UmaError(f"--logs {args.logs}: exists and is not a directory")
-        log_dir.mkdir(parents=True, exist_ok=True)
     if args.record is not None and not Path(args.record).resolve().parent.is_dir():
         raise UmaError(f"--record {args.record}: its directory does not exist")
     view_port = None

@@ -66,10 +66,11 @@ def test_demo_refuses_bad_seconds():
     assert p.returncode == 1 and "--seconds" in p.stderr
 
 
-def test_demo_refuses_a_log_dir_that_is_a_file(tmp_path):
+@pytest.mark.parametrize("which", [[], ["--outside-in"], ["--cameras"]])
+def test_demo_refuses_a_log_dir_that_is_a_file(tmp_path, which):
     f = tmp_path / "f"
     f.write_text("")
-    p = subprocess.run([sys.executable, "-m", "agent.cli", "demo", "--logs", str(f)],
+    p = subprocess.run([sys.executable, "-m", "agent.cli", "demo", *which, "--logs", str(f)],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "--logs" in p.stderr and "not a directory" in p.stderr
 
