@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -148,10 +149,8 @@ def test_bench_scale_quick_reports_every_sweep_with_its_growth() -> None:
         assert isinstance(row[key], float) and row[key] > 0, (key, row)
 
 
-def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tmp_path) -> None:
-    """``bench_outside_in --live``'s diagnostics of a rate short of the cameras': the
-    frame sets between a body's poses that gave it none, and the reconstruction's counts
-    between its first and last report inside the measurement."""
+def _outside_in_live() -> Any:
+    """bench/outside_in_live.py as a module (the bench's folder is no package)."""
     sys.path.insert(0, str(BENCH))
     try:
         spec = importlib.util.spec_from_file_location("bench_oi_live", BENCH / "outside_in_live.py")
@@ -159,6 +158,14 @@ def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tm
         spec.loader.exec_module(live)
     finally:
         sys.path.remove(str(BENCH))
+    return live
+
+
+def test_outside_in_live_counts_missing_frame_sets_and_reconstruction_reports(tmp_path) -> None:
+    """``bench_outside_in --live``'s diagnostics of a rate short of the cameras': the
+    frame sets between a body's poses that gave it none, and the reconstruction's counts
+    between its first and last report inside the measurement."""
+    live = _outside_in_live()
     period = round(1e9 / 120)
     got = live._missing({"a": [10 * period, 11 * period, 14 * period, 15 * period],
                          "b": [k * period for k in range(10, 16)]}, 120.0, 10 * period / 1e9,
@@ -185,13 +192,7 @@ def test_outside_in_live_stall_says_when_the_rate_came_back() -> None:
     """``bench_outside_in --live --stall``'s recovery figure: from how long after the
     stall's end every bin of exposure time had poses of nearly all its frame sets, and
     none when the last bin had not."""
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_oi_live", BENCH / "outside_in_live.py")
-        live = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(live)
-    finally:
-        sys.path.remove(str(BENCH))
+    live = _outside_in_live()
     period = 1 / 120
     every = [k * period for k in range(round(4 / period))]        # 4 s of frame sets
     # nothing during the stall (1.0-1.3 s), every other frame set until 2.0 s, then all
