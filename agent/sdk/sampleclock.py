@@ -106,7 +106,7 @@ class SampleClocks:
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
         #: samples held back so far, and of those the ones dropped (over the bounds, or
-        #: their agent no longer followed)
+        #: their agent not among those followed)
         self.unsynced = 0
         self.dropped = 0
 
@@ -125,7 +125,7 @@ class SampleClocks:
             self._since = {a: self._since.get(a, now) for a in remote}
             gone = [a for a in self._held if a not in remote]
             for agent in gone:
-                self._drop(agent, len(self._held[agent]), "its stream is no longer matched")
+                self._drop(agent, len(self._held[agent]), "no matched stream comes from it")
             if remote and self._thread is None:
                 self._thread = threading.Thread(target=self._run, daemon=True,
                                                 name="uma-service-clocks")

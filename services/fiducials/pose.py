@@ -26,13 +26,13 @@ once per frame instead of once per marker.
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from services.camera.markers import marker_corners
+from services.linalg import solve_stack
 
 #: LM iterations for a bundle, which starts from one of its markers' poses
 LM_ITERATIONS_BUNDLE = 15
@@ -143,18 +143,6 @@ def exp_rotation(phi: np.ndarray) -> np.ndarray:
     return out
 
 
-def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``A⁻¹ b`` for a stack of 6x6 normal matrices; zero where one is singular."""
-    try:
-        return np.linalg.solve(A, b[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        out = np.zeros_like(b)
-        for i in range(len(A)):
-            with contextlib.suppress(np.linalg.LinAlgError):
-                out[i] = np.linalg.solve(A[i], b[i])
-        return out
-
-
 def _moved(fit: Fits, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The poses of ``fit`` stepped by ``delta`` (m, 6) [position, rotation]."""
     return exp_rotation(delta[:, 3:]) @ fit.R, fit.t + delta[:, :3]
@@ -168,7 +156,8 @@ def gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, fit: Fits,
     turned = np.zeros(len(fit.R))
     for _ in range(steps):
         J = fit.jacobian
-        delta = _solve(np.einsum("mki,mkj->mij", J, J), np.einsum("mki,mk->mi", J, fit.residual))
+        delta = solve_stack(np.einsum("mki,mkj->mij", J, J),
+                            np.einsum("mki,mk->mi", J, fit.residual))
         turned = np.sqrt(np.einsum("mi,mi->m", delta[:, 3:], delta[:, 3:]))
         fit = fits(obj, img, K, *_moved(fit, delta))
     return fit, turned
@@ -324,7 +313,7 @@ def reweigh(fit: Fits, information: np.ndarray) -> Fits:
     its Jacobian: the step is a fraction of a standard deviation, over which the Jacobian
     does not change to first order."""
     WJ = information @ fit.jacobian
-    delta = _solve(np.einsum("mki,mkj->mij", WJ, fit.jacobian),
+    delta = solve_stack(np.einsum("mki,mkj->mij", WJ, fit.jacobian),
                    np.einsum("mki,mk->mi", WJ, fit.residual))
     R, t = _moved(fit, delta)
     residual = fit.residual - np.einsum("mki,mi->mk", fit.jacobian, delta)

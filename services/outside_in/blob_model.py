@@ -26,6 +26,7 @@ import numpy as np
 from scipy.special import erfc
 
 from agent.runtime import compiled_twin
+from services.linalg import solve_stack
 
 Array = np.ndarray
 
@@ -178,22 +179,6 @@ def _distance(du: Array, dv: Array) -> Array:
     return np.sqrt(du * du + dv * dv)
 
 
-def _solve(A: Array, b: Array) -> Array:
-    """``A x = b`` for each blob (n, 6, 6) and (n, 6); a blob whose ``A`` is singular
-    (every pixel left out) takes no step."""
-    with np.errstate(all="ignore"):
-        try:
-            return np.linalg.solve(A, b[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            out = np.zeros_like(b)
-            for i in range(len(b)):
-                try:
-                    out[i] = np.linalg.solve(A[i], b[i])
-                except np.linalg.LinAlgError:
-                    continue
-            return out
-
-
 def _model(x: Array, xx: Array, yy: Array) -> tuple[Array, Array]:
     """The model's pixels (n, p) at parameters ``x`` (n, 6: amplitude, centre u, v,
     radius, blur, background), and its Jacobian (n, p, 6)."""
@@ -223,7 +208,7 @@ def _levenberg_marquardt(x: Array, model: Array, J: Array, xx: Array, yy: Array,
         H = np.einsum("npi,np,npj->nij", J, weight, J)
         g = np.einsum("npi,np->ni", J, weight * res)
         damped = H + lam[:, None, None] * np.eye(6) * np.diagonal(H, axis1=1, axis2=2)[:, None, :]
-        step = _solve(damped, -g)
+        step = solve_stack(damped, -g)
         trial = np.clip(x + step, _LOWER, _UPPER)
         t_model, t_J = _model(trial, xx, yy)
         t_res = t_model - pix
