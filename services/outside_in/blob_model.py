@@ -95,9 +95,9 @@ def fit_centres(image: Array, uv: Array, area: Array, fit: Array, dark: float, g
 def _fit_group(img: Array, uv: Array, area: Array, sel: Array, half: int, dark: float,
                gain: float, read_noise: float) -> tuple[Array, Array, Array]:
     """The fit of blobs ``sel`` of ``uv``, all on squares of half side ``half``, from the
-    centroid, a radius from the area (a near marker's saturated disk, three pixels
-    across, was not reached in the steps from a pixel: its centre came out 0.07 px off,
-    15 times its std) and the blur of the simulated lens."""
+    centroid, a radius from the area (the few steps taken do not reach a near marker's
+    saturated disk, three pixels across, from a one-pixel start) and the blur of the
+    simulated lens."""
     n = len(sel)
     k = np.arange(-half, half + 1)
     centre = np.rint(uv[sel]).astype(int)
