@@ -501,6 +501,21 @@ def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:
     assert held["bounds_95"][1] > 2 * held["bounds_95_independent_runs"][1]
 
 
+def test_a_seeds_share_comes_with_its_wilson_interval() -> None:
+    """``uma eval alignment``'s share inside chi2(6)'s bound carries Wilson's 95 % interval
+    over the seed's trials: 13 of 17 cannot tell a share of 0.85 from one of 0.6."""
+    from services.alignment.evaluate import _covariance_figures, _wilson_95
+    assert _wilson_95(13, 17) == pytest.approx([0.527, 0.904], abs=1e-3)
+    assert _wilson_95(95, 100) == pytest.approx([0.888, 0.978], abs=1e-3)
+    rng = np.random.default_rng(5)
+    trials = [{"nees": float(x), "consistency": {"covariance": np.eye(6), "sensitivity": {}}}
+              for x in rng.chisquare(6, 40)]
+    f = _covariance_figures(trials)
+    inside = sum(t["nees"] <= 12.592 for t in trials)
+    assert f["within_chi2_95_fraction (ideal 0.95)"] == inside / 40
+    assert f["within_chi2_95_fraction_wilson_95"] == _wilson_95(inside, 40)
+
+
 def test_an_honest_seeds_share_spreads_wider_when_its_trials_share_the_installation() -> None:
     """The share of trials inside chi2(6)'s 95 % bound that an honest covariance falls
     below in 5 % of the cases: a binomial's over 100 independent trials (0.91), far lower
