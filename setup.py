@@ -13,8 +13,14 @@ without floating-point contraction, so that their arithmetic rounds as Python's 
 A kernel that fails to build also loses the copy an earlier build left beside its source
 (an editable install's): that copy was built from other source, and loading it would call
 the new Python with the old kernel's signatures.
+
+Each kernel is compiled with the SHA-256 of its source (``UMA_SOURCE_HASH``, the module's
+``SOURCE_HASH``): :func:`schemas.native.compiled_twin` runs a kernel only where that hash is
+the one of the ``.c`` file beside it (shipped as package data), so a copy built from older
+source is never used.
 """
 
+import hashlib
 from pathlib import Path
 
 from setuptools import Extension, setup
@@ -33,15 +39,22 @@ class BuildExt(build_ext):
             raise
 
 
+def twin(name: str, contract: bool = True) -> Extension:
+    """The optional kernel ``name`` (a dotted module, its source ``name``.c), built with the
+    hash of that source (the same as :func:`schemas.native.source_hash`); ``contract=False``
+    compiles it without floating-point contraction."""
+    source = name.replace(".", "/") + ".c"
+    digest = hashlib.sha256((Path(__file__).parent / source).read_bytes()).hexdigest()
+    return Extension(name, [source], optional=True,
+                     define_macros=[("UMA_SOURCE_HASH", f'"{digest}"')],
+                     extra_compile_args=[] if contract else ["-ffp-contract=off"])
+
+
 setup(cmdclass={"build_ext": BuildExt}, ext_modules=[
-    Extension("agent.srg._kernel", ["agent/srg/_kernel.c"], optional=True),
-    Extension("agent.protocol._wire", ["agent/protocol/_wire.c"], optional=True,
-              extra_compile_args=["-ffp-contract=off"]),
-    Extension("schemas._pose", ["schemas/_pose.c"], optional=True,
-              extra_compile_args=["-ffp-contract=off"]),
-    Extension("services.accel_rig._step", ["services/accel_rig/_step.c"], optional=True,
-              extra_compile_args=["-ffp-contract=off"]),
-    Extension("services.outside_in._blobs", ["services/outside_in/_blobs.c"], optional=True,
-              extra_compile_args=["-ffp-contract=off"]),
-    Extension("services.outside_in._fit", ["services/outside_in/_fit.c"], optional=True),
+    twin("agent.srg._kernel"),
+    twin("agent.protocol._wire", contract=False),
+    twin("schemas._pose", contract=False),
+    twin("services.accel_rig._step", contract=False),
+    twin("services.outside_in._blobs", contract=False),
+    twin("services.outside_in._fit"),
 ])

@@ -40,7 +40,6 @@ limited to ``MAX_MESSAGE_BYTES`` (images: ``MAX_IMAGE_BYTES``).
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from operator import itemgetter
@@ -52,6 +51,7 @@ from pydantic import ValidationError
 
 from schemas.errors import UmaError
 from schemas.models import MEASUREMENT_TYPES, ServiceDescriptor, check_plain
+from schemas.native import compiled_twin
 from schemas.quaternion import QUAT_NORM_TOL, unit_norm
 
 WIRE_VERSION = 1
@@ -563,12 +563,10 @@ PoseSample = tuple[int, int | None, tuple[float, float, float],
 
 def _native_pose() -> Any:
     """The compiled twin of a common ``pose6d``'s decoding and encoding
-    (``schemas/_pose.c``), or None (not built, or ``UMA_CODEC_PURE_PYTHON=1``)."""
-    if os.environ.get("UMA_CODEC_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from schemas import _pose
-    except ImportError:
+    (``schemas/_pose.c``), or None (not built, built from older source, or
+    ``UMA_CODEC_PURE_PYTHON=1``)."""
+    _pose = compiled_twin("schemas._pose", "UMA_CODEC_PURE_PYTHON")
+    if _pose is None:
         return None
     _pose.configure(MAX_MESSAGE_BYTES, QUAT_NORM_TOL, PSD_TOL)
     return _pose

@@ -89,6 +89,7 @@ from schemas.models import (
     PoseResultMessage,
     check_plain,
 )
+from schemas.native import compiled_twin
 from schemas.quaternion import QUAT_NORM_TOL, unit_norm
 
 #: environment variable that skews an agent's clock, as its ``t2``/``t3`` show it: the agent
@@ -572,12 +573,9 @@ def pose_from_wire(d: Any, to_local: Callable[[int], int] = _same_time) -> PoseR
 
 def _native_result() -> Callable[..., Any] | None:
     """The compiled twin of :func:`pose_from_wire` (``agent/protocol/_wire.c``), or None (not
-    built, or ``UMA_CODEC_PURE_PYTHON=1``)."""
-    if os.environ.get("UMA_CODEC_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from agent.protocol import _wire
-    except ImportError:
+    built, built from older source, or ``UMA_CODEC_PURE_PYTHON=1``)."""
+    _wire = compiled_twin("agent.protocol._wire", "UMA_CODEC_PURE_PYTHON")
+    if _wire is None:
         return None
     _wire.configure(QUAT_NORM_TOL, _INF_WHEN_NONE)
     return _wire.pose_result

@@ -41,5 +41,5 @@ __getattr__ = lazy_attributes(__name__, {
     "stop_on_signals": "agent.runtime.processes",
     "stop_processes": "agent.runtime.processes",
     "WakeLoop": "agent.runtime.worker",
-    "compiled_twin": "agent.runtime.native",
+    "compiled_twin": "schemas.native",
 })

@@ -22,7 +22,6 @@ qz, qw)``.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.geometry import _SMALL_ANGLE, quat_product
+from schemas.native import compiled_twin
 
 Pose = tuple[float, float, float, float, float, float, float]
 #: per measured edge, when asked for: (i0, i1, factor, interpolated pose as sampled)
@@ -134,15 +134,11 @@ def propagate(poses: list[Pose], covariances: list[np.ndarray]) -> np.ndarray:
 
 
 def _native() -> Callable[..., Result | None] | None:
-    """The compiled kernel, or None (not built, or ``UMA_SRG_PURE_PYTHON=1``).  It returns
-    None where :func:`evaluate` would raise, so that the error comes from one place."""
-    if os.environ.get("UMA_SRG_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from agent.srg import _kernel
-    except ImportError:
-        return None
-    return _kernel.evaluate
+    """The compiled kernel, or None (not built, built from older source, or
+    ``UMA_SRG_PURE_PYTHON=1``).  It returns None where :func:`evaluate` would raise, so
+    that the error comes from one place."""
+    kernel = compiled_twin("agent.srg._kernel", "UMA_SRG_PURE_PYTHON")
+    return None if kernel is None else kernel.evaluate
 
 
 #: the compiled kernel in use (tests set it to None to run the pure-Python one)

@@ -46,15 +46,8 @@ _SQRT2 = np.sqrt(2.0)
 _SQRTPI = np.sqrt(np.pi)
 
 
-def _compiled() -> Any:
-    """The compiled twin, or None: not built, switched off (``UMA_BLOBS_PURE_PYTHON``),
-    or built from an older ``_blobs.c`` without the fit (a checkout not rebuilt since)."""
-    module = compiled_twin("services.outside_in._blobs", "UMA_BLOBS_PURE_PYTHON")
-    return module if hasattr(module, "fit") else None
-
-
 #: the compiled fit in use (tests set it to None to run the numpy one)
-NATIVE: Any = _compiled()
+NATIVE: Any = compiled_twin("services.outside_in._blobs", "UMA_BLOBS_PURE_PYTHON")
 
 
 def half_size(area: Array) -> Array:
