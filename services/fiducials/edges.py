@@ -137,7 +137,7 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
         w = inliers
         mean, dev, direction = _lines(ideal, w)
     chord = fallback[:, _NEXT] - fallback
-    chord /= np.maximum(np.sqrt(np.einsum("nkc,nkc->nk", chord, chord)), 1e-9)[..., None]
+    chord /= np.maximum(np.sqrt(_dot2(chord, chord)), 1e-9)[..., None]
     few = (w.sum(-1) < MIN_POINTS)[..., None]
     point = np.where(few, fallback, mean)
     direction = np.where(few, chord, direction)
@@ -153,7 +153,7 @@ def _sides(quads: np.ndarray, modules: int,
     vector (n, 4, 2), its length (n, 4, 1), unit direction and outward normal (n, 4, 2),
     and its cells' width across it (n, 4, px)."""
     side = quads[:, _NEXT] - quads
-    length = np.sqrt(np.einsum("nkc,nkc->nk", side, side))[..., None]
+    length = np.sqrt(_dot2(side, side))[..., None]
     along = side / np.maximum(length, 1e-9)
     # OpenCV's corners run clockwise in the image: the outward normal is along's left turn
     normal = along[..., ::-1] * [1.0, -1.0]
@@ -178,12 +178,15 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
                        REACH_MIN_PX)
     base = quads[:, :, None, :] + fractions * side[:, :, None, :]
     step = reach[..., None] * normal[:, :, None, :]  # (n, 4, 1, 2)
-    pts = (base[:, :, :, None, :] + _OFFS[:, None] * step[:, :, :, None, :]).astype(np.float32)
-    profile = cv2.remap(gray, pts[..., 0].reshape(1, -1), pts[..., 1].reshape(1, -1),
-                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    profile = profile.reshape(pts.shape[:-1]).astype(np.float64)
-    dark = profile[..., :_CENTRE + 1].min(axis=-1)
-    bright = profile[..., _CENTRE:].max(axis=-1)
+    # each coordinate's samples built contiguous (the map cv2.remap takes) and the
+    # extremes taken on the 8-bit profile: no strided copies, no float pass
+    x = (base[..., 0, None] + _OFFS * step[..., 0, None]).astype(np.float32)
+    y = (base[..., 1, None] + _OFFS * step[..., 1, None]).astype(np.float32)
+    raw = cv2.remap(gray, x.reshape(1, -1), y.reshape(1, -1), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE).reshape(x.shape)
+    profile = raw.astype(np.float64)
+    dark = raw[..., :_CENTRE + 1].min(axis=-1).astype(np.float64)
+    bright = raw[..., _CENTRE:].max(axis=-1).astype(np.float64)
     level = (dark + bright) / 2
     if marker_levels:
         level = _levels(profile, dark, bright, across < THIN_CELL_PX)
@@ -209,7 +212,7 @@ def _clear_of_corners(sides: tuple[np.ndarray, ...], reach: np.ndarray) -> np.nd
     ``CORNER_OVERSHOOT_PX`` outside it is left out.  ``sides``: :func:`_sides` of the
     quads the profiles were placed on."""
     _, length, along, _, _ = sides
-    cosine = -np.einsum("nkc,nkc->nk", along, along[:, _PREV])  # at corner k
+    cosine = -_dot2(along, along[:, _PREV])  # at corner k
     sine = np.sqrt(np.maximum(1 - cosine ** 2, 0.0))
     reach = reach[..., 0][..., None]
     start = _SECOND[:, 0] * length * sine[..., None] - reach * cosine[..., None]
@@ -292,7 +295,7 @@ def _inliers(dev: np.ndarray, direction: np.ndarray, w: np.ndarray, cell: np.nda
     squares follows such a point: two or three of twenty, 2 px off, put a corner of a
     grazing tag 1-2 px away."""
     normal = direction[..., ::-1] * [-1.0, 1.0]
-    across = np.abs(np.einsum("nkjc,nkc->nkj", dev, normal))
+    across = np.abs(_dot2(dev, normal[:, :, None]))
     if not np.any(across > cell / 2):
         return w  # the usual frame: no point is a candidate
     found = (w > 0).reshape(len(w), -1)
@@ -317,18 +320,19 @@ def _intersections(point: np.ndarray, direction: np.ndarray, fallback: np.ndarra
     corners = p1 + s1[..., None] * d1
     moved = corners - fallback
     ok = np.all((np.abs(det) > 1e-6) & np.isfinite(s1)
-                & (np.einsum("nkc,nkc->nk", moved, moved) < 9 * reach[..., 0] ** 2), axis=1)
+                & (_dot2(moved, moved) < 9 * reach[..., 0] ** 2), axis=1)
     return corners, ok
 
 
 def _lines(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each side's least-squares line through its weighted points (n, 4, k, 2): the
     points' mean, their deviations from it, the principal axis."""
-    mean = np.einsum("nks,nksc->nkc", w, points) / np.maximum(w.sum(-1), 1)[..., None]
+    mean = (w[..., None, :] @ points)[..., 0, :] / np.maximum(w.sum(-1), 1)[..., None]
     dev = points - mean[:, :, None, :]
     wdev = w[..., None] * dev
-    cxx, cyy = np.einsum("nksc,nksc->cnk", wdev, dev)
-    cxy = np.einsum("nks,nks->nk", wdev[..., 0], dev[..., 1])
+    sums = (wdev * dev).sum(2)
+    cxx, cyy = sums[..., 0], sums[..., 1]
+    cxy = (wdev[..., 0] * dev[..., 1]).sum(-1)
     theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
     return mean, dev, np.stack([np.cos(theta), np.sin(theta)], axis=-1)
 
@@ -349,17 +353,17 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
     side with too few edge points (the line through its detected corners) is off by
     ``FALLBACK_STD`` at each end, independently."""
     normal = direction[..., ::-1] * [-1.0, 1.0]  # (n, 4, 2)
-    across = np.einsum("nkjc,nkc->nkj", dev, normal)
-    along = np.einsum("nkjc,nkc->nkj", dev, direction)
+    across = _dot2(dev, normal[:, :, None])
+    along = _dot2(dev, direction[:, :, None])
     count = w.sum(-1)
     fitted = ~few[..., 0]
-    rss = np.where(fitted, np.einsum("nkj,nkj->nk", w, across * across), 0.0).sum(-1)
+    rss = np.where(fitted, (w * (across * across)).sum(-1), 0.0).sum(-1)
     dof = np.where(fitted, np.maximum(count - 2, 0), 0).sum(-1)
     s2 = np.where(dof > 0, rss / np.maximum(dof, 1), FALLBACK_STD ** 2)[:, None]  # (n, 1)
-    s_uu = np.maximum(np.einsum("nkj,nkj->nk", w, along * along), 1e-12)
+    s_uu = np.maximum((w * (along * along)).sum(-1), 1e-12)
     # where corner k lies along side k (its near end) and along side k - 1 (its far end)
-    u_near = np.einsum("nkc,nkc->nk", corners - point, direction)
-    u_far = np.einsum("nkc,nkc->nk", corners - point[:, _PREV], direction[:, _PREV])
+    u_near = _dot2(corners - point, direction)
+    u_far = _dot2(corners - point[:, _PREV], direction[:, _PREV])
     # a fallback side's a and b are taken at its middle: each end then off by FALLBACK_STD
     # alone
     length = np.abs(u_far[:, _NEXT] - u_near)
@@ -380,6 +384,12 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
     G = G.reshape(n, 8, 8)
     lam = np.stack([var_a, var_b], axis=-1).reshape(n, 1, 8)
     return (G * lam) @ np.swapaxes(G, -1, -2)
+
+
+def _dot2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The dot products of (broadcast) 2-vectors along the last axis: ``einsum``'s sum,
+    without its dispatch, which costs more than the arithmetic on these small arrays."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
 
 
 def inverse_2x2(m: np.ndarray) -> np.ndarray:

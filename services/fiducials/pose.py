@@ -95,7 +95,7 @@ def project(obj: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
     """Ideal pixels (m, n, 2) of the object points ``obj`` (m, n, 3) at poses ``R`` (m, 3, 3),
     ``t`` (m, 3), and the Jacobian (m, 2n, 6) of each pixel by [position, rotation].
     No skew, as OpenCV's solvers."""
-    q = np.einsum("mij,mnj->mni", R, obj)  # the points turned, relative to the origin
+    q = obj @ np.swapaxes(R, 1, 2)  # the points turned, relative to the origin
     X = q + t[:, None, :]
     iz = 1.0 / X[..., 2]
     xn, yn = X[..., 0] * iz, X[..., 1] * iz
@@ -128,19 +128,17 @@ def exp_rotation(phi: np.ndarray) -> np.ndarray:
     half = np.sinc(np.sqrt(theta2) / (2 * np.pi))  # sin(θ/2) / (θ/2)
     a = half * np.cos(np.sqrt(theta2) / 2)  # sin θ / θ
     b = half * half / 2  # (1 - cos θ) / θ²
-    out = b[:, None, None] * np.einsum("mi,mj->mij", phi, phi)
-    diagonal = 1 - b * theta2
-    out[:, 0, 0] += diagonal
-    out[:, 1, 1] += diagonal
-    out[:, 2, 2] += diagonal
+    out = b[:, None, None] * (phi[:, :, None] * phi[:, None, :])
+    out[:, _DIAGONAL, _DIAGONAL] += (1 - b * theta2)[:, None]
     aphi = a[:, None] * phi
-    out[:, 0, 1] -= aphi[:, 2]
-    out[:, 1, 0] += aphi[:, 2]
-    out[:, 0, 2] += aphi[:, 1]
-    out[:, 2, 0] -= aphi[:, 1]
-    out[:, 1, 2] -= aphi[:, 0]
-    out[:, 2, 1] += aphi[:, 0]
+    out[:, _SKEW_ROW, _SKEW_COL] += aphi[:, _SKEW_AXIS]
+    out[:, _SKEW_COL, _SKEW_ROW] -= aphi[:, _SKEW_AXIS]
     return out
+
+
+#: [φ]x's entries: +φ_axis at (row, col), -φ_axis at (col, row)
+_DIAGONAL = np.arange(3)
+_SKEW_ROW, _SKEW_COL, _SKEW_AXIS = np.array([1, 0, 2]), np.array([0, 2, 1]), np.array([2, 1, 0])
 
 
 def _moved(fit: Fits, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -156,8 +154,7 @@ def gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, fit: Fits,
     turned = np.zeros(len(fit.R))
     for _ in range(steps):
         J = fit.jacobian
-        delta = solve_stack(np.einsum("mki,mkj->mij", J, J),
-                            np.einsum("mki,mk->mi", J, fit.residual))
+        delta = solve_stack(_gram(J, J), _gram(J, fit.residual))
         turned = np.sqrt(np.einsum("mi,mi->m", delta[:, 3:], delta[:, 3:]))
         fit = fits(obj, img, K, *_moved(fit, delta))
     return fit, turned
@@ -270,7 +267,7 @@ def _same(a: Solution, b: Solution) -> bool:
 
 def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
     """The angle (rad) between two rotations."""
-    c = (float(np.einsum("ij,ij->", Ra, Rb)) - 1) / 2
+    c = (float(np.vdot(Ra, Rb)) - 1) / 2
     return float(np.arccos(min(max(c, -1.0), 1.0)))
 
 
@@ -279,14 +276,22 @@ def covariance(fit: Fits, sigma_px: np.ndarray) -> np.ndarray:
     ``fit`` for corner noise ``sigma_px`` (m,) per axis; ``inf`` variances where the
     corners do not fix the pose."""
     J = fit.jacobian
-    return _inverse(np.einsum("mki,mkj->mij", J, J) / np.asarray(sigma_px)[:, None, None] ** 2)
+    return _inverse(_gram(J, J) / np.asarray(sigma_px)[:, None, None] ** 2)
 
 
 def weighted_covariance(fit: Fits, information: np.ndarray) -> np.ndarray:
     """Decoupled covariances (m, 6, 6) of the poses of ``fit`` for corners of known joint
     inverse covariance ``information`` (m, 2n, 2n): ``(Jᵀ W J)⁻¹``, exact for the weighted
     fit (:func:`reweigh`)."""
-    return _inverse(np.einsum("mki,mkj->mij", information @ fit.jacobian, fit.jacobian))
+    return _inverse(_gram(information @ fit.jacobian, fit.jacobian))
+
+
+def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``Aᵀ B`` for stacks (m, k, i) and (m, k, j) or (m, k): a batched ``matmul``, several
+    times faster than the equivalent ``einsum`` on these small shapes."""
+    if B.ndim == 2:
+        return (B[:, None, :] @ A)[:, 0]
+    return np.swapaxes(A, 1, 2) @ B
 
 
 def _inverse(normal: np.ndarray) -> np.ndarray:
@@ -313,10 +318,9 @@ def reweigh(fit: Fits, information: np.ndarray) -> Fits:
     its Jacobian: the step is a fraction of a standard deviation, over which the Jacobian
     does not change to first order."""
     WJ = information @ fit.jacobian
-    delta = solve_stack(np.einsum("mki,mkj->mij", WJ, fit.jacobian),
-                   np.einsum("mki,mk->mi", WJ, fit.residual))
+    delta = solve_stack(_gram(WJ, fit.jacobian), _gram(WJ, fit.residual))
     R, t = _moved(fit, delta)
-    residual = fit.residual - np.einsum("mki,mi->mk", fit.jacobian, delta)
+    residual = fit.residual - (fit.jacobian @ delta[..., None])[..., 0]
     return Fits(R, t, residual, fit.jacobian)
 
 
