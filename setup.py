@@ -5,10 +5,12 @@ on without them and :mod:`agent.srg.kernel`, the pose decoder
 (:func:`schemas.codec.decode_pose`), the answer reader
 (:func:`agent.protocol.query.pose_from_wire`), the dead reckoner
 (:mod:`services.accel_rig.integrator`), the marker segmentation
-(:mod:`services.outside_in.blobs`) and the outside-in pose fit (:mod:`services.outside_in.pose`)
-run in pure Python (same results, slower; the fit's to rounding).  The pose
-decoder, the answer reader, the dead reckoner's step and the segmentation are compiled
-without floating-point contraction, so that their arithmetic rounds as Python's does.
+(:mod:`services.outside_in.blobs`), the outside-in pose fit (:mod:`services.outside_in.pose`)
+and the fiducial tracker's fits and edge crossings (:mod:`services.fiducials.pose`,
+:mod:`services.fiducials.edges`) run in pure Python (same results, slower; the fits' to
+rounding).  The pose decoder, the answer reader, the dead reckoner's step, the segmentation
+and the fiducial kernels are compiled without floating-point contraction, so that their
+arithmetic rounds as Python's does.
 
 A kernel that fails to build also loses the copy an earlier build left beside its source
 (an editable install's): that copy was built from other source, and loading it would call
@@ -57,4 +59,5 @@ setup(cmdclass={"build_ext": BuildExt}, ext_modules=[
     twin("services.accel_rig._step", contract=False),
     twin("services.outside_in._blobs", contract=False),
     twin("services.outside_in._fit"),
+    twin("services.fiducials._kernels", contract=False),
 ])

@@ -27,9 +27,12 @@ detected ones keeps the detected ones (undistorted likewise).
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 
+from agent.runtime import compiled_twin
 from services.camera.model import CameraModel
 from services.fiducials import border
 
@@ -190,15 +193,31 @@ def _edge_points(gray: np.ndarray, quads: np.ndarray, modules: int, fractions: n
     level = (dark + bright) / 2
     if marker_levels:
         level = _levels(profile, dark, bright, across < THIN_CELL_PX)
+    s = _crossings(profile, level)
+    good = (bright - dark > MIN_CONTRAST) & np.isfinite(s)
+    return base + np.where(good, s, 0.0)[..., None] * step, good, reach
+
+
+def _crossings(profile: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Where each profile (..., ``STEPS``) first rises through its ``level`` (...) nearest
+    its centre, in units of the reach (linearly between samples); inf where it does not."""
+    if NATIVE is not None:
+        out = np.empty(level.shape)
+        NATIVE.crossings(np.ascontiguousarray(profile), np.ascontiguousarray(level, np.float64),
+                         _OFFS, out)
+        return out
     d = profile - level[..., None]
     lo, hi = d[..., :-1], d[..., 1:]
     rising = (lo < 0) & (hi >= 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         where = np.where(rising, _OFFS[:-1] + lo / (lo - hi) * (_OFFS[1] - _OFFS[0]), np.inf)
     pick = np.argmin(np.abs(where), axis=-1)
-    s = np.take_along_axis(where, pick[..., None], -1)
-    good = (bright - dark > MIN_CONTRAST) & np.isfinite(s[..., 0])
-    return base + np.where(good[..., None], s, 0.0) * step, good, reach
+    return np.take_along_axis(where, pick[..., None], -1)[..., 0]
+
+
+#: the compiled twin of :func:`_crossings` (``_kernels.c``, to the bit; tests set it to None
+#: to run the numpy code)
+NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
 def _clear_of_corners(sides: tuple[np.ndarray, ...], reach: np.ndarray) -> np.ndarray:

@@ -27,10 +27,12 @@ once per frame instead of once per marker.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
+from agent.runtime import compiled_twin
 from services.camera.markers import marker_corners
 from services.linalg import solve_stack
 
@@ -117,8 +119,24 @@ def project(obj: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
 def fits(obj: np.ndarray, img: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
          ) -> Fits:
     """The fits of poses ``R``, ``t`` to the observed ideal pixels ``img`` (m, n, 2)."""
+    if NATIVE is not None and len(R):
+        c = _contiguous
+        R, t = c(R), c(t)
+        m, n = obj.shape[:2]
+        residual, J = np.empty((m, 2 * n)), np.empty((m, 2 * n, 6))
+        NATIVE.fits(c(obj), c(img), _intrinsics(K), R, t, residual, J)
+        return Fits(R, t, residual, J)
     pixels, J = project(obj, K, R, t)
     return Fits(R, t, (img - pixels).reshape(len(R), -1), J)
+
+
+def _contiguous(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float64)
+
+
+def _intrinsics(K: np.ndarray) -> np.ndarray:
+    """fx, fy, cx, cy: what the compiled twin takes of the camera matrix (no skew)."""
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float64)
 
 
 def exp_rotation(phi: np.ndarray) -> np.ndarray:
@@ -151,6 +169,13 @@ def gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, fit: Fits,
     """Undamped Gauss-Newton steps on the reprojection error from the poses of ``fit``,
     and how far (rad) the last step turned each.  From IPPE's start each step squares
     the error."""
+    if NATIVE is not None and len(fit.R):
+        c = _contiguous
+        R, t = c(fit.R).copy(), c(fit.t).copy()
+        m, n = obj.shape[:2]
+        residual, J, turned = np.empty((m, 2 * n)), np.empty((m, 2 * n, 6)), np.empty(m)
+        NATIVE.gauss_newton(c(obj), c(img), _intrinsics(K), R, t, residual, J, turned, steps)
+        return Fits(R, t, residual, J), turned
     turned = np.zeros(len(fit.R))
     for _ in range(steps):
         J = fit.jacobian
@@ -158,6 +183,11 @@ def gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, fit: Fits,
         turned = np.sqrt(np.einsum("mi,mi->m", delta[:, 3:], delta[:, 3:]))
         fit = fits(obj, img, K, *_moved(fit, delta))
     return fit, turned
+
+
+#: the compiled twin of :func:`fits` and :func:`gauss_newton` (``_kernels.c``; tests set it
+#: to None to run the numpy code)
+NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
 def refine_lm(obj: np.ndarray, img: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,

@@ -1,0 +1,244 @@
+/* The compiled twin of the fiducial tracker's per-frame arithmetic on small arrays:
+ * pose.py's fits (the reprojection residuals and Jacobian of a stack of poses) and
+ * gauss_newton (their undamped Gauss-Newton steps), and edges.py's profile crossings (each
+ * profile's rising crossing of its level nearest the centre).
+ *
+ * The same arithmetic as the numpy code: the Jacobian in the decoupled [position,
+ * camera-frame rotation] form, the step's 6 x 6 normal equations solved by LU with
+ * partial pivoting (LAPACK's gesv, which numpy's solve calls, does the same; a singular
+ * system takes no step, as services.linalg.solve_stack), the rotation stepped by
+ * Rodrigues' formula as pose.exp_rotation.  The fits' sums run in another order than
+ * numpy's matrix products, so they agree to rounding (about 1e-15 relative), not to the
+ * bit; the crossings are the numpy code's operations on the same numbers and agree to the
+ * bit (compiled without floating-point contraction).  The interpreter was the cost: a
+ * frame's ten tags spent about 0.4 ms in some hundred numpy calls on a few hundred numbers.
+ * Optional: when this does not build, pose.py and edges.py run in pure Python. */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+/* Residuals (observed - projected, 2n) and Jacobian (2n x 6, row-major) of n object points
+ * obj (n x 3) at pose (R row-major, t) seen at ideal pixels img (n x 2); K = fx, fy, cx, cy. */
+static void fit_one(Py_ssize_t n, const double *obj, const double *img, const double *K,
+                    const double *R, const double *t, double *res, double *J) {
+    for (Py_ssize_t p = 0; p < n; p++) {
+        const double *o = obj + 3 * p;
+        double q[3];
+        for (int i = 0; i < 3; i++) q[i] = R[3 * i] * o[0] + R[3 * i + 1] * o[1] + R[3 * i + 2] * o[2];
+        double iz = 1.0 / (q[2] + t[2]);
+        double xn = (q[0] + t[0]) * iz, yn = (q[1] + t[1]) * iz;
+        res[2 * p] = img[2 * p] - (K[0] * xn + K[2]);
+        res[2 * p + 1] = img[2 * p + 1] - (K[1] * yn + K[3]);
+        double a = K[0] * iz, b = K[1] * iz, c = -xn * a, d = -yn * b;
+        double *u = J + 12 * p, *v = u + 6;
+        u[0] = a; u[1] = 0.0; u[2] = c;
+        u[3] = q[1] * c; u[4] = q[2] * a - q[0] * c; u[5] = -q[1] * a;
+        v[0] = 0.0; v[1] = b; v[2] = d;
+        v[3] = q[1] * d - q[2] * b; v[4] = -q[0] * d; v[5] = q[0] * b;
+    }
+}
+
+/* x = A^-1 b for a 6 x 6 system by LU with partial pivoting (the first largest pivot, as
+ * LAPACK's idamax picks); 0 where a pivot is exactly zero (singular). A and b are
+ * overwritten. */
+static int solve6(double A[36], double b[6], double x[6]) {
+    for (int k = 0; k < 6; k++) {
+        int p = k;
+        for (int i = k + 1; i < 6; i++)
+            if (fabs(A[6 * i + k]) > fabs(A[6 * p + k])) p = i;
+        if (A[6 * p + k] == 0.0 || isnan(A[6 * p + k])) return 0;
+        if (p != k) {
+            for (int j = 0; j < 6; j++) {
+                double s = A[6 * k + j]; A[6 * k + j] = A[6 * p + j]; A[6 * p + j] = s;
+            }
+            double s = b[k]; b[k] = b[p]; b[p] = s;
+        }
+        double inv = 1.0 / A[6 * k + k];
+        for (int i = k + 1; i < 6; i++) {
+            double l = A[6 * i + k] * inv;
+            for (int j = k + 1; j < 6; j++) A[6 * i + j] -= l * A[6 * k + j];
+            b[i] -= l * b[k];
+        }
+    }
+    for (int i = 5; i >= 0; i--) {
+        double s = b[i];
+        for (int j = i + 1; j < 6; j++) s -= A[6 * i + j] * x[j];
+        x[i] = s / A[6 * i + i];
+    }
+    return 1;
+}
+
+/* pose.exp_rotation of one rotation vector: I + sin(th)/th W + (1 - cos th)/th^2 (phi phi^T - th^2 I) */
+static void exp_rotation(const double phi[3], double E[9]) {
+    double theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2];
+    double theta = sqrt(theta2);
+    double half = theta == 0.0 ? 1.0 : sin(theta / 2) / (theta / 2);
+    double a = half * cos(theta / 2), b = half * half / 2;
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) E[3 * i + j] = b * (phi[i] * phi[j]);
+    for (int i = 0; i < 3; i++) E[4 * i] += 1 - b * theta2;
+    E[3] += a * phi[2]; E[1] -= a * phi[2];
+    E[2] += a * phi[1]; E[6] -= a * phi[1];
+    E[7] += a * phi[0]; E[5] -= a * phi[0];
+}
+
+typedef struct {
+    Py_buffer b[9];
+    int n;
+} buffers_t;
+
+static void release(buffers_t *bufs) {
+    for (int i = 0; i < bufs->n; i++) PyBuffer_Release(&bufs->b[i]);
+}
+
+/* The stack's sizes (poses m, points n) from its buffers, checked; -1 (error set) if they
+ * do not agree. */
+static Py_ssize_t stack_points(const buffers_t *s, Py_ssize_t *m) {
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    *m = s->b[3].len / (9 * d);
+    if (*m <= 0 || s->b[3].len != *m * 9 * d || s->b[4].len != *m * 3 * d
+        || s->b[2].len != 4 * d || s->b[0].len % (*m * 3 * d) != 0) {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent stack sizes");
+        return -1;
+    }
+    Py_ssize_t n = s->b[0].len / (*m * 3 * d);
+    if (s->b[1].len != *m * n * 2 * d || s->b[5].len != *m * n * 2 * d
+        || s->b[6].len != *m * n * 12 * d) {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent stack sizes");
+        return -1;
+    }
+    return n;
+}
+
+/* fits(obj, img, K, R, t, res, J): residuals and Jacobians of a stack of poses. */
+static PyObject *fits(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 7};
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*", &s.b[0], &s.b[1], &s.b[2], &s.b[3], &s.b[4],
+                          &s.b[5], &s.b[6]))
+        return NULL;
+    Py_ssize_t m, n = stack_points(&s, &m);
+    if (n >= 0) {
+        const double *obj = s.b[0].buf, *img = s.b[1].buf, *K = s.b[2].buf;
+        const double *R = s.b[3].buf, *t = s.b[4].buf;
+        double *res = s.b[5].buf, *J = s.b[6].buf;
+        for (Py_ssize_t i = 0; i < m; i++)
+            fit_one(n, obj + 3 * n * i, img + 2 * n * i, K, R + 9 * i, t + 3 * i,
+                    res + 2 * n * i, J + 12 * n * i);
+    }
+    release(&s);
+    if (n < 0) return NULL;
+    Py_RETURN_NONE;
+}
+
+/* gauss_newton(obj, img, K, R, t, res, J, turned, steps): R and t stepped in place, the
+ * fits at the last poses in res and J, how far (rad) the last step turned each. */
+static PyObject *gauss_newton(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 8};
+    int steps;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*w*w*w*w*i", &s.b[0], &s.b[1], &s.b[2], &s.b[3],
+                          &s.b[4], &s.b[5], &s.b[6], &s.b[7], &steps))
+        return NULL;
+    Py_ssize_t m, n = stack_points(&s, &m);
+    if (n >= 0 && s.b[7].len != m * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent stack sizes");
+        n = -1;
+    }
+    if (n >= 0) {
+        const double *obj = s.b[0].buf, *img = s.b[1].buf, *K = s.b[2].buf;
+        double *R = s.b[3].buf, *t = s.b[4].buf, *res = s.b[5].buf, *J = s.b[6].buf;
+        double *turned = s.b[7].buf;
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double *o = obj + 3 * n * i, *im = img + 2 * n * i;
+            double *Ri = R + 9 * i, *ti = t + 3 * i, *r = res + 2 * n * i, *Ji = J + 12 * n * i;
+            fit_one(n, o, im, K, Ri, ti, r, Ji);
+            turned[i] = 0.0;
+            for (int step = 0; step < steps; step++) {
+                double A[36] = {0}, g[6] = {0}, delta[6] = {0}, E[9], Rn[9];
+                for (Py_ssize_t k = 0; k < 2 * n; k++) {
+                    const double *row = Ji + 6 * k;
+                    for (int a = 0; a < 6; a++) {
+                        g[a] += row[a] * r[k];
+                        for (int c = 0; c < 6; c++) A[6 * a + c] += row[a] * row[c];
+                    }
+                }
+                if (!solve6(A, g, delta)) memset(delta, 0, sizeof delta);
+                turned[i] = sqrt(delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]);
+                exp_rotation(delta + 3, E);
+                for (int a = 0; a < 3; a++)
+                    for (int c = 0; c < 3; c++)
+                        Rn[3 * a + c] = E[3 * a] * Ri[c] + E[3 * a + 1] * Ri[3 + c]
+                                        + E[3 * a + 2] * Ri[6 + c];
+                memcpy(Ri, Rn, sizeof Rn);
+                for (int a = 0; a < 3; a++) ti[a] += delta[a];
+                fit_one(n, o, im, K, Ri, ti, r, Ji);
+            }
+        }
+    }
+    release(&s);
+    if (n < 0) return NULL;
+    Py_RETURN_NONE;
+}
+
+/* crossings(profile, level, offsets, out): per profile (its samples at offsets), where it
+ * first rises through its level nearest offset 0, linearly between samples; inf if never. */
+static PyObject *crossings(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 4};
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &s.b[0], &s.b[1], &s.b[2], &s.b[3])) return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    Py_ssize_t count = s.b[1].len / d, steps = s.b[2].len / d;
+    int ok = steps >= 2 && s.b[0].len == count * steps * d && s.b[3].len == count * d;
+    if (ok) {
+        const double *profile = s.b[0].buf, *level = s.b[1].buf, *offs = s.b[2].buf;
+        double *out = s.b[3].buf, spacing = offs[1] - offs[0];
+        for (Py_ssize_t p = 0; p < count; p++) {
+            const double *x = profile + steps * p;
+            double best = INFINITY, best_abs = INFINITY;
+            for (Py_ssize_t j = 0; j + 1 < steps; j++) {
+                double lo = x[j] - level[p], hi = x[j + 1] - level[p];
+                if (lo < 0 && hi >= 0) {
+                    double w = offs[j] + lo / (lo - hi) * spacing;
+                    if (fabs(w) < best_abs) {
+                        best_abs = fabs(w);
+                        best = w;
+                    }
+                }
+            }
+            out[p] = best;
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent profile sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"fits", fits, METH_VARARGS,
+     "Reprojection residuals and Jacobians of a stack of poses, into the given arrays."},
+    {"gauss_newton", gauss_newton, METH_VARARGS,
+     "Undamped Gauss-Newton steps of a stack of poses, in place, and their last fits."},
+    {"crossings", crossings, METH_VARARGS,
+     "Each profile's rising crossing of its level nearest the centre, or inf."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels", NULL, -1, methods,
+                                    NULL, NULL, NULL, NULL};
+
+/* setup.py defines the SHA-256 of this file; Python uses the module only where it matches
+   the source beside it (schemas/native.py), so a build older than its source is not run */
+#ifndef UMA_SOURCE_HASH
+#define UMA_SOURCE_HASH ""
+#endif
+
+PyMODINIT_FUNC PyInit__kernels(void) {
+    PyObject *m = PyModule_Create(&module);
+    if (m != NULL && PyModule_AddStringConstant(m, "SOURCE_HASH", UMA_SOURCE_HASH) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -1,0 +1,128 @@
+"""The fiducial tracker's compiled twin (services/fiducials/_kernels.c) against the numpy
+code it mirrors: the fits and Gauss-Newton steps to rounding, the edge crossings to the
+bit, and the whole tracker's estimates on rendered frames."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from services.camera.markers import marker_corners
+from services.camera.simulator import SimCamera
+from services.fiducials import edges, pose
+from services.fiducials.simulate import tags, wandering, webcam
+from services.fiducials.tracker import FiducialTracker
+
+native = pytest.mark.skipif(pose.NATIVE is None or edges.NATIVE is None,
+                            reason="the compiled fiducial kernels are not built")
+K = np.array([[530.0, 0, 319.5], [0, 531.0, 241.5], [0, 0, 1]])
+
+
+@pytest.fixture
+def numpy_only(monkeypatch):
+    """Runs the numpy code in the test's scope (the compiled twin set aside)."""
+    def use_numpy() -> None:
+        monkeypatch.setattr(pose, "NATIVE", None)
+        monkeypatch.setattr(edges, "NATIVE", None)
+    return use_numpy
+
+
+def _stack(rng: np.random.Generator, m: int, n: int) -> tuple[np.ndarray, ...]:
+    """``m`` objects of ``n`` points about 1 m in front of the camera, seen with pixel
+    noise, and poses near (not at) the ones that made the images."""
+    obj = rng.uniform(-0.1, 0.1, (m, n, 3)) * [1, 1, 0.2]
+    R = np.stack([cv2.Rodrigues(rng.normal(0, 0.5, 3))[0] for _ in range(m)])
+    t = np.column_stack([rng.uniform(-0.2, 0.2, (m, 2)), rng.uniform(0.6, 1.6, m)])
+    X = obj @ np.swapaxes(R, 1, 2) + t[:, None]
+    img = (X[..., :2] / X[..., 2:]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    img += rng.normal(0, 0.3, img.shape)
+    R0 = pose.exp_rotation(rng.normal(0, 0.03, (m, 3))) @ R
+    return obj, img, R0, t + rng.normal(0, 0.01, (m, 3))
+
+
+@native
+@pytest.mark.parametrize("n", [4, 12])
+def test_compiled_fits_and_steps_agree_with_numpy(numpy_only, n):
+    obj, img, R0, t0 = _stack(np.random.default_rng(n), 9, n)
+    # an object whose points all lie at its origin: its rotation is not fixed, the
+    # normal equations are singular and neither takes a step
+    obj[3] = 0.0
+    compiled = pose.fits(obj, img, K, R0, t0)
+    stepped, turned = pose.gauss_newton(obj, img, K, compiled)
+    numpy_only()
+    plain = pose.fits(obj, img, K, R0, t0)
+    plain_stepped, plain_turned = pose.gauss_newton(obj, img, K, plain)
+    for a, b in ((compiled, plain), (stepped, plain_stepped)):
+        for field in ("R", "t", "residual", "jacobian"):
+            np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-11,
+                                       atol=1e-11 * np.abs(getattr(b, field)).max())
+    np.testing.assert_allclose(turned, plain_turned, rtol=1e-9, atol=1e-15)
+    assert turned[3] == 0.0 and np.array_equal(stepped.R[3], R0[3])
+    assert np.all(stepped.rss[np.arange(9) != 3] < compiled.rss[np.arange(9) != 3])
+
+
+@native
+def test_compiled_crossings_agree_with_numpy_to_the_bit(numpy_only):
+    rng = np.random.default_rng(7)
+    # 8-bit profiles: steps, ramps, several crossings, none, flat at the level
+    profile = rng.integers(0, 256, (3, 4, 200, edges.STEPS)).astype(np.float64)
+    profile[0] = np.sort(profile[0], axis=-1)
+    profile[1, :, :50] = 128.0
+    level = rng.integers(0, 256, profile.shape[:-1]) + rng.choice([0.0, 0.5], profile.shape[:-1])
+    level[1, :, :50] = 128.0
+    compiled = edges._crossings(profile, level)
+    numpy_only()
+    plain = edges._crossings(profile, level)
+    assert np.isinf(plain).any() and np.isfinite(plain).any()
+    assert np.array_equal(compiled, plain)
+
+
+@native
+def test_tracker_estimates_agree_with_the_numpy_code(numpy_only):
+    # steep near tags (their thinnest sides from the border model) and far, nearly
+    # fronto-parallel ones (the ambiguity covered, then decided by the track)
+    rng = np.random.default_rng(3)
+    camera = webcam(rng)
+    trajectories = [wandering(rng, camera, (0.6, 1.5), 6.0, max_tilt_rad=1.3) for _ in range(4)] \
+        + [wandering(rng, camera, (2.0, 3.0), 6.0, max_tilt_rad=0.3) for _ in range(4)]
+    scene = tags("apriltag36h11", list(range(8)), 0.08, trajectories)
+    sim = SimCamera(camera)
+    frames = [sim.render(scene, k / 10, rng) for k in range(8)]
+
+    def run() -> list:
+        tracker = FiducialTracker(camera, "apriltag36h11", 0.08)
+        return [e for k, f in enumerate(frames) for e in tracker.process(f, k * 100_000_000)]
+
+    compiled = run()
+    numpy_only()
+    plain = run()
+    assert len(compiled) == len(plain) >= 30
+    assert {e.ambiguity for e in plain} == {"none", "covered", "history"}
+    for a, b in zip(compiled, plain, strict=True):
+        assert (a.name, a.ambiguity, a.markers) == (b.name, b.ambiguity, b.markers)
+        for field in ("R", "t", "covariance", "sigma_px", "rms_px", "flip_probability"):
+            np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-9,
+                                       atol=1e-12)
+
+
+def test_the_numpy_code_is_forced_by_the_environment():
+    out = subprocess.run([sys.executable, "-c", "from services.fiducials import edges, pose; "
+                          "print(pose.NATIVE is None and edges.NATIVE is None)"],
+                         env=dict(os.environ, UMA_FIDUCIALS_PURE_PYTHON="1"),
+                         capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "True"
+
+
+def test_a_stack_of_other_sizes_is_refused():
+    if pose.NATIVE is None:
+        pytest.skip("the compiled fiducial kernels are not built")
+    obj = np.ascontiguousarray(np.repeat(marker_corners(0.08)[None], 2, 0))
+    R, t = np.tile(np.eye(3), (2, 1, 1)), np.tile([0.0, 0.0, 1.0], (2, 1))
+    with pytest.raises(ValueError, match="inconsistent"):
+        pose.NATIVE.fits(obj, np.zeros((2, 3, 2)), pose._intrinsics(K), R, t,
+                         np.empty((2, 8)), np.empty((2, 8, 6)))
