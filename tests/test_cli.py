@@ -81,6 +81,33 @@ def test_bad_arguments_exit_2(args: list[str], fragment: str) -> None:
     assert "Traceback" not in r.stderr
 
 
+def test_an_evals_help_and_bad_options_do_not_import_the_evaluation() -> None:
+    """``uma eval NAME --help`` and a bad option are answered from the plug-in's light
+    declaration: the module that runs the evaluation (scipy.stats, the simulators: seconds
+    to import) is imported only when the evaluation runs."""
+    code = """
+import contextlib, io, sys
+from agent.cli.main import main
+from agent.runtime import plugins
+names = plugins.names(plugins.EVAL_GROUP)
+assert len(names) >= 7, names
+for name in names:
+    for args, status in ((["--help"], 0), (["--no-such-option"], 2)):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+            try:
+                main(["eval", name, *args])
+            except SystemExit as e:
+                assert e.code == status, (name, args, e.code, out.getvalue())
+        assert out.getvalue().startswith(f"usage: uma eval {name}"), out.getvalue()
+    runs = plugins.load(plugins.EVAL_GROUP, name).run.partition(":")[0]
+    assert runs not in sys.modules, f"uma eval {name} --help imported {runs}"
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+
+
 @pytest.mark.parametrize(("args", "fragment"), [
     (["eval", "nosuch"], "no eval named 'nosuch' (known: "),
     (["service", "run", "nosuch"], "no service named 'nosuch' (known: "),

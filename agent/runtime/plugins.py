@@ -54,8 +54,10 @@ class ServicePlugin:
 class EvalPlugin:
     """An accuracy evaluation against simulated ground truth.
 
-    ``run`` is ``"module:function"``; ``function(args)`` returns the figures as a
-    JSON-serialisable dict; ``args`` carries
+    The module that declares it must be light to import (``uma eval NAME --help`` and a bad
+    option load it, and an evaluation's module takes seconds): ``run`` is
+    ``"module:function"``, imported only when the evaluation runs; ``function(args)``
+    returns the figures as a JSON-serialisable dict; ``args`` carries
     ``seconds``, ``seed`` and ``json`` besides the plug-in's own options.  With ``--seeds``
     the CLI calls ``run`` once per seed; ``higher_is_better`` names the figures (leaf keys)
     whose worst seed is the one with the smallest value (shares, success counts).

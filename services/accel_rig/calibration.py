@@ -34,6 +34,8 @@ Array = np.ndarray
 THESIS_POSES = ("+x", "-x", "+y", "-z")
 #: All six faces down: least squares, and every axis sees +g and -g.
 SIX_POSES = ("+x", "-x", "+y", "-y", "+z", "-z")
+#: the calibration orientations by name (``uma eval accel-rig --poses``)
+POSE_SETS = {"thesis": THESIS_POSES, "six": SIX_POSES}
 #: A pose whose readings wander more than this many noise standard deviations was not still.
 MAX_STILL_SIGMAS = 8.0
 

@@ -41,22 +41,19 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services.accel_rig import sensor as sn
 from services.accel_rig.calibration import (
-    SIX_POSES,
-    THESIS_POSES,
+    POSE_SETS,
     StaticRecording,
     calibrate,
     calibration_errors,
 )
 from services.accel_rig.device_options import (
-    add_device_arguments,
     device_figures,
     device_from_args,
 )
 from services.accel_rig.integrator import calibration_covariance, dead_reckon_from_truth
-from services.accel_rig.rig import LAYOUTS, layout_by_name
+from services.accel_rig.rig import layout_by_name
 from services.accel_rig.simulator import (
     DEFAULT_RATE_HZ,
     SensorTruth,
@@ -68,31 +65,6 @@ from services.consistency import shared_error_nees_figures
 from services.sim.trajectory import HeadTrajectory
 
 HORIZONS_S = (0.25, 0.5, 1.0, 2.0)
-POSE_SETS = {"thesis": THESIS_POSES, "six": SIX_POSES}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=100,
-                        help="dead-reckoning runs from random starting points (default 100)")
-    parser.add_argument("--layout", default="marvin-six", choices=sorted(LAYOUTS),
-                        help="nominal accelerometer layout (default marvin-six; the simulated "
-                             "device has the table 4.1 axes for it)")
-    parser.add_argument("--poses", default="six", choices=sorted(POSE_SETS),
-                        help="calibration orientations: 'thesis' = +x -x +y -z down (the "
-                             "minimum of §4.4.2), 'six' = every face down, least squares "
-                             "(default six)")
-    parser.add_argument("--pose-seconds", type=float, default=20.0,
-                        help="seconds held still per calibration pose (default 20: the "
-                             "calibration error is shared by every run, so it is kept well "
-                             "below the noise of one run)")
-    parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
-                        help="repeat the runs K more times with fresh sensor noise on the "
-                             "same device, calibration, trajectory and start times and report "
-                             "each repeat's mean NEES (nees.*.noise_draws): a seed outside its "
-                             "band in the eval's draw but inside in fresh ones missed by its "
-                             "draw, one outside in all of them by its rig (default 0; each "
-                             "repeat costs as much as the eval)")
-    add_device_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -304,15 +276,3 @@ def _draw_figures(draws: list[dict[str, Any]], own: dict[str, Any]) -> dict[str,
 
 def _stats(x: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95))}
-
-
-PLUGIN = EvalPlugin(
-    name="accel-rig",
-    help="Accuracy of MARVIN's six-accelerometer tracker (Hogue 2003, ch. 4) on simulated data: "
-         "calibration errors from static poses, then orientation/position drift after "
-         "0.25/0.5/1/2 s of dead reckoning from random starting points, and the NEES of the "
-         "reported covariance. --seconds is the span of trajectory the runs start in.",
-    add_arguments=add_arguments,
-    run="services.accel_rig.evaluate:run",
-    higher_is_better=frozenset({"draws_within_bounds"}),
-)

@@ -1,13 +1,16 @@
-"""The ``accel-rig`` service's declaration: its options and where it runs
-(:func:`services.accel_rig.service.run`); light to import, as ``uma service run accel-rig --help``
-needs no Zenoh."""
+"""The ``accel-rig`` service's and evaluation's declarations: their options and where they
+run (:func:`services.accel_rig.service.run`, :func:`services.accel_rig.evaluate.run`); light
+to import, as ``uma service run accel-rig --help`` needs no Zenoh and ``uma eval accel-rig
+--help`` not the evaluation."""
 
 from __future__ import annotations
 
 import argparse
 
-from agent.runtime import ServicePlugin
+from agent.runtime import EvalPlugin, ServicePlugin
 from services import frames
+from services.accel_rig.calibration import POSE_SETS
+from services.accel_rig.device_options import add_device_arguments
 from services.accel_rig.rig import DEFAULT_DELTA_M, LAYOUTS
 from services.accel_rig.simulator import DEFAULT_RATE_HZ
 
@@ -66,4 +69,40 @@ ACCEL_RIG = ServicePlugin(
          "or a serial line, with a calibration file; '--calibrate' writes one.",
     add_arguments=add_arguments,
     run="services.accel_rig.service:run",
+)
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--runs", type=int, default=100,
+                        help="dead-reckoning runs from random starting points (default 100)")
+    parser.add_argument("--layout", default="marvin-six", choices=sorted(LAYOUTS),
+                        help="nominal accelerometer layout (default marvin-six; the simulated "
+                             "device has the table 4.1 axes for it)")
+    parser.add_argument("--poses", default="six", choices=sorted(POSE_SETS),
+                        help="calibration orientations: 'thesis' = +x -x +y -z down (the "
+                             "minimum of §4.4.2), 'six' = every face down, least squares "
+                             "(default six)")
+    parser.add_argument("--pose-seconds", type=float, default=20.0,
+                        help="seconds held still per calibration pose (default 20: the "
+                             "calibration error is shared by every run, so it is kept well "
+                             "below the noise of one run)")
+    parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
+                        help="repeat the runs K more times with fresh sensor noise on the "
+                             "same device, calibration, trajectory and start times and report "
+                             "each repeat's mean NEES (nees.*.noise_draws): a seed outside its "
+                             "band in the eval's draw but inside in fresh ones missed by its "
+                             "draw, one outside in all of them by its rig (default 0; each "
+                             "repeat costs as much as the eval)")
+    add_device_arguments(parser)
+
+
+EVAL = EvalPlugin(
+    name="accel-rig",
+    help="Accuracy of MARVIN's six-accelerometer tracker (Hogue 2003, ch. 4) on simulated data: "
+         "calibration errors from static poses, then orientation/position drift after "
+         "0.25/0.5/1/2 s of dead reckoning from random starting points, and the NEES of the "
+         "reported covariance. --seconds is the span of trajectory the runs start in.",
+    add_arguments=add_eval_arguments,
+    run="services.accel_rig.evaluate:run",
+    higher_is_better=frozenset({"draws_within_bounds"}),
 )

@@ -28,7 +28,6 @@ from scipy.stats import binomtest
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
     AlignmentOptions,
@@ -60,23 +59,6 @@ LASER_RATE_HZ = 30.0
 #: 95 % quantile of chi-square with 6 degrees of freedom (covariance consistency check).
 _CHI2_6_95 = 12.592
 Method = Callable[[tuple[np.ndarray, ...]], Pose]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--trials", type=int, default=20,
-                        help="number of random trials (default 20)")
-    parser.add_argument("--outliers", type=float, default=0.2,
-                        help="fraction of b's poses replaced by gross errors in the outlier "
-                             "case (default 0.2)")
-    parser.add_argument("--pos-noise-mm", type=float, default=1.0,
-                        help="tracker b's position noise per pose sample, mm per axis "
-                             "(default 1)")
-    parser.add_argument("--rot-noise-deg", type=float, default=0.1,
-                        help="tracker b's rotation noise per pose sample, degrees per axis "
-                             "(default 0.1)")
-    parser.add_argument("--ideal", action="store_true",
-                        help="tracker a on the ideal installation instead of the realistic "
-                             "default of docs/SIMULATION.md")
 
 
 def _methods(options: AlignmentOptions, rng: np.random.Generator) -> dict[str, Method]:
@@ -302,18 +284,3 @@ def _goals(f: dict[str, Any]) -> dict[str, Any]:
         "ransac_within_1_5x": bool(rot_ratio <= 1.5 and pos_ratio <= 1.5),
         "offset_within_2ms_all": bool(f["time_offset"]["abs_error_ms_max"] <= 2.0),
     }
-
-
-PLUGIN = EvalPlugin(
-    name="alignment",
-    help="Tracker alignment AX = XB on simulated pose streams with noise, a clock offset and "
-         "outliers: rotation (deg) and translation (mm) errors of Daniilidis and Tsai-Lenz, "
-         "with and without RANSAC, next to cv2.calibrateHandEye (TSAI, DANIILIDIS) on the same "
-         "stations; the time-offset error; the consistency of the reported covariance (NEES). "
-         "--seconds is the length of each trial's recording.",
-    add_arguments=add_arguments,
-    run="services.alignment.evaluate:run",
-    higher_is_better=frozenset({"within_2ms_fraction",
-                                "within_chi2_95_fraction (ideal 0.95)",
-                                "within_chi2_95_fraction_honest_5pct"}),
-)

@@ -1,12 +1,13 @@
-"""The ``alignment`` service's declaration: its options and where it runs
-(:func:`services.alignment.service.run`); light to import, as ``uma service run alignment --help``
-needs no Zenoh."""
+"""The ``alignment`` service's and evaluation's declarations: their options and where they
+run (:func:`services.alignment.service.run`, :func:`services.alignment.evaluate.run`); light
+to import, as ``uma service run alignment --help`` needs no Zenoh and ``uma eval alignment
+--help`` not the evaluation."""
 
 from __future__ import annotations
 
 import argparse
 
-from agent.runtime import ServicePlugin
+from agent.runtime import EvalPlugin, ServicePlugin
 from services.alignment import records
 from services.alignment.covariance import MIN_RESAMPLES
 
@@ -74,4 +75,36 @@ ALIGNMENT = ServicePlugin(
          "recorded pose pairs offline.",
     add_arguments=add_arguments,
     run="services.alignment.service:run",
+)
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--trials", type=int, default=20,
+                        help="number of random trials (default 20)")
+    parser.add_argument("--outliers", type=float, default=0.2,
+                        help="fraction of b's poses replaced by gross errors in the outlier "
+                             "case (default 0.2)")
+    parser.add_argument("--pos-noise-mm", type=float, default=1.0,
+                        help="tracker b's position noise per pose sample, mm per axis "
+                             "(default 1)")
+    parser.add_argument("--rot-noise-deg", type=float, default=0.1,
+                        help="tracker b's rotation noise per pose sample, degrees per axis "
+                             "(default 0.1)")
+    parser.add_argument("--ideal", action="store_true",
+                        help="tracker a on the ideal installation instead of the realistic "
+                             "default of docs/SIMULATION.md")
+
+
+EVAL = EvalPlugin(
+    name="alignment",
+    help="Tracker alignment AX = XB on simulated pose streams with noise, a clock offset and "
+         "outliers: rotation (deg) and translation (mm) errors of Daniilidis and Tsai-Lenz, "
+         "with and without RANSAC, next to cv2.calibrateHandEye (TSAI, DANIILIDIS) on the same "
+         "stations; the time-offset error; the consistency of the reported covariance (NEES). "
+         "--seconds is the length of each trial's recording.",
+    add_arguments=add_eval_arguments,
+    run="services.alignment.evaluate:run",
+    higher_is_better=frozenset({"within_2ms_fraction",
+                                "within_chi2_95_fraction (ideal 0.95)",
+                                "within_chi2_95_fraction_honest_5pct"}),
 )

@@ -48,7 +48,6 @@ import numpy as np
 from scipy.stats import chi2
 
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services.camera.markers import dictionary, marker_corners
 from services.camera.simulator import FAITHFUL, SceneObject, SimCamera
 from services.consistency import nees_figures
@@ -64,11 +63,6 @@ FLIP_MIN_DEG = 5.0
 #: pupil-apriltags' tag frame is OpenCV's marker frame turned half a turn about y
 APRILTAG_TO_OPENCV = np.diag([-1.0, 1.0, -1.0])
 PLATE_OFFSET_M = 0.055
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--fps", type=float, default=10.0,
-                        help="frames per simulated second (default 10)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -303,16 +297,3 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
 
 def _rms(values: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(values))))
-
-
-PLUGIN = EvalPlugin(
-    name="fiducials",
-    help="8 cm AprilTag poses at 0.5-3 m from a simulated 640x480 webcam: uma's fiducial "
-         "tracker beside bare OpenCV and AprilTag 3 (pupil-apriltags), NEES, silent flips, "
-         "a 4-tag bundle vs its single tags (try --seconds 20 --seeds 1-10)",
-    add_arguments=add_arguments,
-    run="services.fiducials.evaluate:run",
-    higher_is_better=frozenset({"detected", "bundle_samples", "single_samples",
-                                "share_inside_single_95", "effective_samples",
-                                "gain_measured", "gain_claimed"}),
-)

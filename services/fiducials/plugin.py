@@ -1,12 +1,13 @@
-"""The ``fiducials`` service's declaration: its options (with the parsers of their values)
-and where it runs (:func:`services.fiducials.service.run`); light to import, as ``uma
-service run fiducials --help`` needs no Zenoh."""
+"""The ``fiducials`` service's and evaluation's declarations: their options (with the
+parsers of their values) and where they run (:func:`services.fiducials.service.run`,
+:func:`services.fiducials.evaluate.run`); light to import, as ``uma service run fiducials
+--help`` needs no Zenoh and ``uma eval fiducials --help`` not the evaluation."""
 
 from __future__ import annotations
 
 import argparse
 
-from agent.runtime import ServicePlugin
+from agent.runtime import EvalPlugin, ServicePlugin
 
 
 def _id_size(text: str) -> tuple[int, float]:
@@ -65,4 +66,22 @@ FIDUCIALS = ServicePlugin(
          "rate, latency and accuracy advertised as measured.",
     add_arguments=add_arguments,
     run="services.fiducials.service:run",
+)
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fps", type=float, default=10.0,
+                        help="frames per simulated second (default 10)")
+
+
+EVAL = EvalPlugin(
+    name="fiducials",
+    help="8 cm AprilTag poses at 0.5-3 m from a simulated 640x480 webcam: uma's fiducial "
+         "tracker beside bare OpenCV and AprilTag 3 (pupil-apriltags), NEES, silent flips, "
+         "a 4-tag bundle vs its single tags (try --seconds 20 --seeds 1-10)",
+    add_arguments=add_eval_arguments,
+    run="services.fiducials.evaluate:run",
+    higher_is_better=frozenset({"detected", "bundle_samples", "single_samples",
+                                "share_inside_single_95", "effective_samples",
+                                "gain_measured", "gain_claimed"}),
 )

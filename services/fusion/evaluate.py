@@ -49,17 +49,16 @@ from scipy.stats import chi2
 from agent import Graph
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services import consistency, frames
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import (
-    add_device_arguments,
     device_figures,
     device_from_args,
 )
 from services.consistency import autocorrelation_time
 from services.fusion.dots import display_walls, update_dots
 from services.fusion.ekf import FusionEKF, FusionStats
+from services.fusion.plugin import GAP_SPACING_S
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
 from services.sim import mounts
 from services.sim.calibrations import calibrated_accelerometers, laser_calibration
@@ -69,8 +68,6 @@ log = logging.getLogger("uma.eval")
 
 OPTICAL_HZ = 15.0
 WARMUP_S = 3.0
-#: seconds of normal tracking between two scheduled gaps
-GAP_SPACING_S = 4.0
 #: optical frames after a scheduled gap still counted inside it (the filter recovering)
 RECOVERY_FRAMES = 3
 #: output error within which the filter counts as recovered: a few times its normal error
@@ -610,50 +607,3 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return evaluate(float(args.seconds), int(args.seed), lengths, horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device,
                     ideal=args.ideal)
-
-
-def _add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--gaps", default="0.25,0.5,1", metavar="S,S,...",
-                        help="lengths of the optical dropouts to schedule, cycled every "
-                             f"{GAP_SPACING_S:g} s after the warm-up (default 0.25,0.5,1)")
-    parser.add_argument("--horizon-ms", type=float, default=None,
-                        help="prediction horizon evaluated (default 20 ms; with --from, the "
-                             "recorded fusion's own)")
-    parser.add_argument("--optical", choices=("pose", "dots"), default="pose",
-                        help="optical update: the tracker's pose (default) or SCAAT with "
-                             "each labeled laser dot (predicted dot = beam of the predicted "
-                             "pose intersected with the wall)")
-    add_device_arguments(parser)
-    parser.add_argument("--ideal", action="store_true",
-                        help="the ideal simulated installation instead of the realistic "
-                             "default (docs/SIMULATION.md)")
-    parser.add_argument("--from", dest="from_file", default=None, metavar="FILE.mcap",
-                        help="run the fusion filter on a recording's optical and accelerometer "
-                             "samples instead of the simulator (uma record, uma demo --record); "
-                             "compared with its ground truth if it holds the simulator's")
-    parser.add_argument("--display-calibration", metavar="FILE", default=None,
-                        help="with --from and --optical dots: the laser tracker's calibration "
-                             "file, whose walls the recorded dots lie on (the one uma demo "
-                             "gives its fusion)")
-    parser.add_argument("--no-cache", action="store_true",
-                        help="recalibrate the laser tracker instead of reusing "
-                             "~/.cache/uma/laser_calibration_*.json")
-
-
-PLUGIN = EvalPlugin(
-    name="fusion",
-    help="The simulated MARVIN end to end: rendered camera images -> laser-dot tracker at "
-         "15 Hz, simulated accelerometers at 300 Hz -> EKF/SCAAT fusion, against ground "
-         "truth at 300 Hz: RMSE/max of the fused pose and of optical-only baselines (hold "
-         "the last pose; extrapolate at most one frame) over all samples, inside and "
-         "outside the gaps; errors through optical gaps and recovery, +20 ms prediction "
-         "error, NEES, updates/s.  Samples left out, filter restarts and rejections are "
-         "counted; 'resets': the worst error in the 2 s after each (re)start against the "
-         "starting optical pose's error plus the filter's own 3 sigma; "
-         "'given_by_simulator' lists what the run takes from the simulator's truth (the "
-         "accelerometers' noise model and latency).",
-    add_arguments=_add_arguments,
-    run="services.fusion.evaluate:run",
-    higher_is_better=frozenset({"output_rate_hz", "optical_poses",
-                                "filter_updates_per_cpu_s"}),
-)

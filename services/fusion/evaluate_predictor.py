@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from agent import geometry as geo
-from agent.runtime import EvalPlugin
 from services.fusion.predictor import DorfmullerPredictor, PredictorConfig, motion_matrices
 from services.sim.trajectory import HeadTrajectory
 
@@ -256,18 +255,3 @@ def _goal_met(figures: dict[str, Any]) -> bool:
             if any(v is None or v > 4 for v in judged.values()):
                 return False
     return True
-
-
-def _add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No options of its own: --seed drives the perturbations, --seconds the head run."""
-
-
-PLUGIN = EvalPlugin(
-    name="predictor",
-    help="Dorfmüller-Ulhaas's EKF motion predictor (§3.3): convergence of omega, v and a "
-         "on exact and perturbed simulated rigid-body motion, re-convergence after an "
-         "abrupt change (figs. 9-15), and +20 ms prediction on the simulated head "
-         "trajectory for --seconds. --seed drives the perturbations.",
-    add_arguments=_add_arguments,
-    run="services.fusion.evaluate_predictor:run",
-)

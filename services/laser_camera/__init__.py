@@ -2,7 +2,8 @@
 
 The pure pipeline (no I/O) for reuse in evaluations and other services::
 
-    from services.laser_camera import Calibration, LaserTracker
+    from services.laser_camera.calibration import Calibration, sim_calibration
+    from services.laser_camera.tracker import LaserTracker
     tracker = LaserTracker(Calibration.load("ivy.json"))
     result = tracker.process({"front": img, ...}, t)   # PoseEstimate or NoPose
 
@@ -13,10 +14,7 @@ The pure pipeline (no I/O) for reuse in evaluations and other services::
 
 Hogue 2003: Hogue, *MARVIN: a Mobile Automatic Realtime Visual and INertial tracking
 system*, MSc thesis, York University 2003.
+
+The package imports none of them itself: its ``plugin`` (``uma service run laser-camera
+--help``, ``uma eval laser-camera --help``) must stay light to import.
 """
-
-from services.laser_camera.calibration import Calibration, calibrate_sim, sim_calibration
-from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
-
-__all__ = ["Calibration", "LaserTracker", "NoPose", "PoseEstimate", "TrackerParams",
-           "calibrate_sim", "sim_calibration"]

@@ -22,7 +22,6 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.detection import AREA, FLUX, STD, UV, DetectorParams
@@ -37,37 +36,6 @@ from services.sim.world import Frame, IvyWorld, WorldConfig
 
 #: a labeled dot farther than this from its diode's true spot is a labeling error
 LABEL_TOLERANCE_M = 0.02
-#: the realistic installation's defaults, for the help texts
-REAL = WorldConfig()
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rate-hz", type=float, default=30.0,
-                        help="camera frame rate (default 30; the thesis ran at 15-20)")
-    parser.add_argument("--cameras", type=int, choices=(6, 8), default=6,
-                        help="6: one camera per screen (default); 8: floor and ceiling split "
-                             "in two, as in the thesis")
-    parser.add_argument("--ideal", action="store_true",
-                        help="the ideal installation (black screens, perfect housing, flat "
-                             "screens, no calibration residual) instead of the realistic "
-                             "default of docs/SIMULATION.md")
-    parser.add_argument("--housing-error-deg", type=float, default=None, metavar="DEG",
-                        help="laser housing whose beams are off by this much (std; default "
-                             f"{REAL.housing_error_deg:g}, ideal 0)")
-    parser.add_argument("--housing-offset-mm", type=float, default=None, metavar="MM",
-                        help="... and whose beams miss the common point P0 by this much "
-                             f"(std; default {REAL.housing_offset_m * 1e3:g}, ideal 0)")
-    parser.add_argument("--screen-bulge-mm", type=float, default=None, metavar="MM",
-                        help="fabric screens bent inwards by this much at their centres "
-                             f"(std; default {REAL.screen_bulge_m * 1e3:g}, ideal 0: flat)")
-    parser.add_argument("--model-rot-std-deg", type=float, default=0.0, metavar="DEG",
-                        help="rotation error the tracker adds to its covariance for what the "
-                             "dots cannot show (default 0)")
-    parser.add_argument("--model-pos-std-mm", type=float, default=0.0, metavar="MM",
-                        help="the same for position (default 0)")
-    parser.add_argument("--calibration", metavar="FILE", default=None,
-                        help="load this calibration instead of calibrating the simulated "
-                             "cameras first (about 15 s); it must match --cameras")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -247,18 +215,3 @@ def _difference(position: np.ndarray, quaternion: np.ndarray, res: PoseEstimate
 def _stats(x: np.ndarray) -> dict[str, float]:
     return {"mean": round(float(np.mean(x)), 4), "p95": round(float(np.percentile(x, 95)), 4),
             "max": round(float(np.max(x)), 4)}
-
-
-PLUGIN = EvalPlugin(
-    name="laser-camera",
-    help="MARVIN's laser-dot camera tracker on the simulated IVY display: calibrates the "
-         "simulated cameras, renders the head trajectory of --seed, runs the whole pipeline "
-         "(dot detection, homographies, 24 labelings, the labeling gate, temporal coherence) "
-         "and prints frames, labeling accuracy, frames the labeling gate refused, "
-         "orientation/position errors against ground truth and timings.",
-    add_arguments=add_arguments,
-    run="services.laser_camera.evaluate:run",
-    higher_is_better=frozenset({"pose_pct_when_four_visible", "poses", "labeling_correct_pct",
-                                "frames_with_four_visible_dots", "share_inside_single_95",
-                                "effective_samples"}),
-)

@@ -45,7 +45,6 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from agent.runtime import EvalPlugin
 from services.consistency import nees_figures
 from services.outside_in.blobs import BlobParams, Blobs, find_blobs
 from services.outside_in.bodies import RigidBody
@@ -69,21 +68,6 @@ BUMPED = 3
 #: the baseline's blobs: intensity-weighted centroids over each blob and its rim, made
 #: of OpenCV's threshold, connectedComponents, dilate and moments
 CENTROIDS = BlobParams(model_fit=False)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cameras", type=int, default=6, choices=range(4, 9),
-                        metavar="N", help="cameras around the volume, 4-8 (default 6)")
-    parser.add_argument("--rate-hz", type=float, default=120.0,
-                        help="camera frame rate (default 120); about 0.1 s of computing per "
-                             "frame set here: --seconds 3 is a quick look")
-    parser.add_argument("--bump-deg", type=float, default=0.0, metavar="DEG",
-                        help="turn camera 3 by this much half-way through the run (the "
-                             "tracker keeps its calibration): when it is noticed and "
-                             "re-estimated, and how far the new pose is from the truth")
-    parser.add_argument("--unsynchronized", action="store_true",
-                        help="every camera exposes at its own phase within the frame period "
-                             "(cheap cameras without a sync cable)")
 
 
 @dataclass
@@ -323,16 +307,3 @@ def _labels(frame: Frame, blobs: Blobs, body: int) -> dict[int, Array]:
         if d[j] < 1.0:
             out[m] = blobs.uv[j]
     return out
-
-
-PLUGIN = EvalPlugin(
-    name="outside-in",
-    help="The outside-in marker tracker (Dorfmüller-Ulhaas §2) on a simulated rig of IR "
-         "cameras with false blobs and a camera covered for 2 s: position and orientation "
-         "RMSE with 3+ cameras and with exactly 2, NEES, identity swaps, side by side with "
-         "an OpenCV-only baseline (triangulatePoints + estimateAffine3D) on the same images.",
-    add_arguments=add_arguments,
-    run="services.outside_in.evaluate:run",
-    higher_is_better=frozenset({"poses", "pose_pct_when_seeable", "effective_samples",
-                                "share_inside_single_95"}),
-)
