@@ -1,6 +1,7 @@
 """The fiducial tracker's compiled twin (services/fiducials/_kernels.c) against the numpy
-code it mirrors: the fits and Gauss-Newton steps to rounding, the edge crossings to the
-bit, and the whole tracker's estimates on rendered frames."""
+code it mirrors: the fits and Gauss-Newton steps, the side lines' fits and the corners'
+covariance to rounding, the edge crossings to the bit, and the whole tracker's estimates on
+rendered frames."""
 
 from __future__ import annotations
 
@@ -80,6 +81,31 @@ def test_compiled_crossings_agree_with_numpy_to_the_bit(numpy_only):
     plain = edges._crossings(profile, level)
     assert np.isinf(plain).any() and np.isfinite(plain).any()
     assert np.array_equal(compiled, plain)
+
+
+@native
+def test_compiled_line_fits_and_corner_covariance_agree_with_numpy(numpy_only):
+    rng = np.random.default_rng(11)
+    n, k = 6, edges.SAMPLES
+    corners = np.array([[0, 0], [40, 2], [42, 38], [-1, 40]], float) + rng.normal(0, 5, (n, 1, 2))
+    side = corners[:, [1, 2, 3, 0]] - corners
+    points = corners[:, :, None] + edges._SECOND * side[:, :, None] \
+        + rng.normal(0, 0.2, (n, 4, k, 2))
+    w = (rng.random((n, 4, k)) > 0.1).astype(float)
+    w[0, 1] = 0.0  # a side without edge points: its line from the detected corners
+    few = (w.sum(-1) < edges.MIN_POINTS)[..., None]
+
+    def both() -> tuple[np.ndarray, ...]:
+        mean, dev, direction = edges._lines(points, w)
+        point = np.where(few, corners, mean)
+        found, _ = edges._intersections(point, direction, corners, np.full((n, 4, 1), 5.0))
+        return mean, dev, direction, edges._corner_covariance(found, point, direction, dev, w,
+                                                              few)
+
+    compiled = both()
+    numpy_only()
+    for a, b in zip(compiled, both(), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * np.abs(b).max())
 
 
 @native

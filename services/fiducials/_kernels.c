@@ -215,6 +215,142 @@ static PyObject *crossings(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* lines(points, w, mean, dev, direction): per side (its k weighted points, x y), edges.py's
+ * _lines: the weighted mean, the points' deviations from it, the principal axis. */
+static PyObject *lines(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 5};
+    if (!PyArg_ParseTuple(args, "y*y*w*w*w*", &s.b[0], &s.b[1], &s.b[2], &s.b[3], &s.b[4]))
+        return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    Py_ssize_t sides = s.b[2].len / (2 * d), k = sides > 0 ? s.b[1].len / (sides * d) : 0;
+    int ok = sides > 0 && s.b[2].len == sides * 2 * d && s.b[4].len == sides * 2 * d
+             && s.b[1].len == sides * k * d && s.b[0].len == sides * k * 2 * d
+             && s.b[3].len == s.b[0].len;
+    if (ok) {
+        const double *points = s.b[0].buf, *w = s.b[1].buf;
+        double *mean = s.b[2].buf, *dev = s.b[3].buf, *direction = s.b[4].buf;
+        for (Py_ssize_t i = 0; i < sides; i++) {
+            const double *p = points + 2 * k * i, *wi = w + k * i;
+            double *di = dev + 2 * k * i;
+            double total = 0.0, sx = 0.0, sy = 0.0, cxx = 0.0, cyy = 0.0, cxy = 0.0;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                total += wi[j];
+                sx += wi[j] * p[2 * j];
+                sy += wi[j] * p[2 * j + 1];
+            }
+            double scale = total > 1.0 ? total : 1.0;
+            double mx = sx / scale, my = sy / scale;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                double dx = p[2 * j] - mx, dy = p[2 * j + 1] - my;
+                di[2 * j] = dx;
+                di[2 * j + 1] = dy;
+                cxx += wi[j] * dx * dx;
+                cyy += wi[j] * dy * dy;
+                cxy += wi[j] * dx * dy;
+            }
+            double theta = 0.5 * atan2(2 * cxy, cxx - cyy);
+            mean[2 * i] = mx;
+            mean[2 * i + 1] = my;
+            direction[2 * i] = cos(theta);
+            direction[2 * i + 1] = sin(theta);
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent line sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
+/* corner_covariance(corners, point, direction, dev, w, few, fallback_std, out): per marker
+ * (4 sides of k edge points), edges.py's _corner_covariance: the corners' joint covariance
+ * (8 x 8) from the four lines' fits, each line off by a at its points' mean and turned by
+ * b, corner c moved by sides c - 1 and c through the inverse of their normals. */
+static PyObject *corner_covariance(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 7};
+    double fallback;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dw*", &s.b[0], &s.b[1], &s.b[2], &s.b[3], &s.b[4],
+                          &s.b[5], &fallback, &s.b[6]))
+        return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    Py_ssize_t n = s.b[6].len / (64 * d), k = n > 0 ? s.b[4].len / (4 * n * d) : 0;
+    int ok = n > 0 && s.b[6].len == n * 64 * d && s.b[0].len == n * 8 * d
+             && s.b[1].len == n * 8 * d && s.b[2].len == n * 8 * d && s.b[5].len == n * 4
+             && s.b[4].len == n * 4 * k * d && s.b[3].len == n * 8 * k * d;
+    if (ok) {
+        static const int prev[4] = {3, 0, 1, 2}, next[4] = {1, 2, 3, 0};
+        const double *corners = s.b[0].buf, *point = s.b[1].buf, *direction = s.b[2].buf;
+        const double *dev = s.b[3].buf, *w = s.b[4].buf;
+        const unsigned char *few = s.b[5].buf;
+        double *out = s.b[6].buf, fallback2 = fallback * fallback;
+        for (Py_ssize_t m = 0; m < n; m++) {
+            const double *c = corners + 8 * m, *pt = point + 8 * m, *dir = direction + 8 * m;
+            const unsigned char *f = few + 4 * m;
+            double normal[8], count[4], s_uu[4], u_near[4], u_far[4], middle[4];
+            double var[8], G[64], rss = 0.0, dof = 0.0;
+            for (int e = 0; e < 4; e++) {
+                normal[2 * e] = -dir[2 * e + 1];
+                normal[2 * e + 1] = dir[2 * e];
+                const double *dv = dev + 2 * k * (4 * m + e), *we = w + k * (4 * m + e);
+                double total = 0.0, cross = 0.0, length2 = 0.0;
+                for (Py_ssize_t j = 0; j < k; j++) {
+                    double across = dv[2 * j] * normal[2 * e] + dv[2 * j + 1] * normal[2 * e + 1];
+                    double along = dv[2 * j] * dir[2 * e] + dv[2 * j + 1] * dir[2 * e + 1];
+                    total += we[j];
+                    cross += we[j] * (across * across);
+                    length2 += we[j] * (along * along);
+                }
+                count[e] = total;
+                s_uu[e] = length2 > 1e-12 ? length2 : 1e-12;
+                if (!f[e]) {
+                    rss += cross;
+                    dof += total - 2 > 0 ? total - 2 : 0;
+                }
+            }
+            double s2 = dof > 0 ? rss / (dof > 1 ? dof : 1) : fallback2;
+            for (int e = 0; e < 4; e++) {
+                const double *pp = pt + 2 * prev[e], *dp = dir + 2 * prev[e];
+                u_near[e] = (c[2 * e] - pt[2 * e]) * dir[2 * e]
+                            + (c[2 * e + 1] - pt[2 * e + 1]) * dir[2 * e + 1];
+                u_far[e] = (c[2 * e] - pp[0]) * dp[0] + (c[2 * e + 1] - pp[1]) * dp[1];
+            }
+            for (int e = 0; e < 4; e++) {
+                double length = fabs(u_far[next[e]] - u_near[e]);
+                middle[e] = f[e] ? (u_far[next[e]] + u_near[e]) / 2 : 0.0;
+                double least = length > 1e-6 ? length : 1e-6;
+                var[2 * e] = f[e] ? fallback2 / 2 : s2 / (count[e] > 1 ? count[e] : 1);
+                var[2 * e + 1] = f[e] ? 2 * fallback2 / (least * least) : s2 / s_uu[e];
+            }
+            memset(G, 0, sizeof G);
+            for (int e = 0; e < 4; e++) {
+                /* the inverse of [[normal of side e - 1], [normal of side e]] */
+                const double *a = normal + 2 * prev[e], *b = normal + 2 * e;
+                double det = a[0] * b[1] - a[1] * b[0];
+                double inv[4] = {b[1] / det, -a[1] / det, -b[0] / det, a[0] / det};
+                for (int xy = 0; xy < 2; xy++) {
+                    double *row = G + 8 * (2 * e + xy);
+                    row[2 * prev[e]] = inv[2 * xy];
+                    row[2 * prev[e] + 1] = inv[2 * xy] * (u_far[e] - middle[prev[e]]);
+                    row[2 * e] = inv[2 * xy + 1];
+                    row[2 * e + 1] = inv[2 * xy + 1] * (u_near[e] - middle[e]);
+                }
+            }
+            double *cov = out + 64 * m;
+            for (int r = 0; r < 8; r++)
+                for (int q = 0; q < 8; q++) {
+                    double sum = 0.0;
+                    for (int j = 0; j < 8; j++) sum += G[8 * r + j] * var[j] * G[8 * q + j];
+                    cov[8 * r + q] = sum;
+                }
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent covariance sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"fits", fits, METH_VARARGS,
      "Reprojection residuals and Jacobians of a stack of poses, into the given arrays."},
@@ -222,6 +358,10 @@ static PyMethodDef methods[] = {
      "Undamped Gauss-Newton steps of a stack of poses, in place, and their last fits."},
     {"crossings", crossings, METH_VARARGS,
      "Each profile's rising crossing of its level nearest the centre, or inf."},
+    {"lines", lines, METH_VARARGS,
+     "Each side's weighted line fit: mean, deviations, principal axis, into the given arrays."},
+    {"corner_covariance", corner_covariance, METH_VARARGS,
+     "Each marker's corners' joint covariance from its four line fits, into the given array."},
     {NULL, NULL, 0, NULL},
 };
 

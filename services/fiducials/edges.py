@@ -215,8 +215,9 @@ def _crossings(profile: np.ndarray, level: np.ndarray) -> np.ndarray:
     return np.take_along_axis(where, pick[..., None], -1)[..., 0]
 
 
-#: the compiled twin of :func:`_crossings` (``_kernels.c``, to the bit; tests set it to None
-#: to run the numpy code)
+#: the compiled twin of :func:`_crossings` (to the bit), :func:`_lines` and
+#: :func:`_corner_covariance` (to rounding) (``_kernels.c``; tests set it to None to run the
+#: numpy code)
 NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
@@ -346,6 +347,13 @@ def _intersections(point: np.ndarray, direction: np.ndarray, fallback: np.ndarra
 def _lines(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each side's least-squares line through its weighted points (n, 4, k, 2): the
     points' mean, their deviations from it, the principal axis."""
+    if NATIVE is not None:
+        points = np.ascontiguousarray(points, np.float64)
+        mean, dev, direction = np.empty((*w.shape[:-1], 2)), np.empty_like(points), \
+            np.empty((*w.shape[:-1], 2))
+        if w.size:
+            NATIVE.lines(points, np.ascontiguousarray(w, np.float64), mean, dev, direction)
+        return mean, dev, direction
     mean = (w[..., None, :] @ points)[..., 0, :] / np.maximum(w.sum(-1), 1)[..., None]
     dev = points - mean[:, :, None, :]
     wdev = w[..., None] * dev
@@ -371,6 +379,15 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
     much spread, mean NEES 4.1, under its band, where the joint covariance gives 6.6).  A
     side with too few edge points (the line through its detected corners) is off by
     ``FALLBACK_STD`` at each end, independently."""
+    if NATIVE is not None:
+        c = np.ascontiguousarray
+        out = np.empty((len(corners), 8, 8))
+        if len(corners):
+            NATIVE.corner_covariance(c(corners, np.float64), c(point, np.float64),
+                                     c(direction, np.float64), c(dev, np.float64),
+                                     c(w, np.float64), c(few[..., 0], np.uint8), FALLBACK_STD,
+                                     out)
+        return out
     normal = direction[..., ::-1] * [-1.0, 1.0]  # (n, 4, 2)
     across = _dot2(dev, normal[:, :, None])
     along = _dot2(dev, direction[:, :, None])
