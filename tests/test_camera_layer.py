@@ -230,3 +230,15 @@ def test_sources_that_cannot_be_opened_say_so(tmp_path):
     (tmp_path / "junk.avi").write_bytes(b"not a video")
     with pytest.raises(CaptureError, match="cannot open video file"):
         Capture(tmp_path / "junk.avi")
+
+
+def test_ideal_pixels_by_table_agree_with_the_iteration_inside_and_outside_the_image():
+    cam = CameraModel(K, [-0.16, 0.02, 0.0003, -0.0001, 0.0], 640, 480)
+    rng = np.random.default_rng(2)
+    inside = rng.uniform([0, 0], [638.9, 478.9], (500, 2))
+    outside = np.array([[-3.0, 10.0], [650.0, 200.0], [100.0, 479.5]])
+    pts = np.concatenate([inside, outside])
+    exact = cam.undistort(pts, pixels=True)
+    got = cam.ideal_pixels(pts)
+    assert np.abs(got - exact).max() < 5e-4
+    np.testing.assert_array_equal(got[-3:], exact[-3:])

@@ -133,8 +133,12 @@ class CameraModel:
         x0, y0 = x.astype(np.intp), y.astype(np.intp)
         fx, fy = (x - x0)[:, None], (y - y0)[:, None]
         at = y0 * self.width + x0
-        top = table[at] * (1 - fx) + table[at + 1] * fx
-        bottom = table[at + self.width] * (1 - fx) + table[at + self.width + 1] * fx
+        # the four neighbours' offsets in one gather (np.take: a fraction of the time of
+        # indexing rows by an integer array)
+        q = np.take(table, np.concatenate([at, at + 1, at + self.width, at + self.width + 1]),
+                    axis=0).reshape(4, -1, 2)
+        top = q[0] * (1 - fx) + q[1] * fx
+        bottom = q[2] * (1 - fx) + q[3] * fx
         return pts + top + (bottom - top) * fy
 
     def distortion_map(self, K_ideal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
