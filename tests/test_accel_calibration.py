@@ -280,6 +280,47 @@ def test_eval_noise_draws_repeat_the_runs_with_fresh_noise_only():
         run(Namespace(**base, noise_draws=-1))
 
 
+def test_eval_random_streams_are_all_apart():
+    """The eval's random streams over seeds 1-20 are all different: each run's noise in
+    each draw, the start times, the trajectory's parameters, the device's errors and the
+    calibration poses' noise.  A run that drew another seed's calibration noise, or start
+    times that were the trajectory's own draws, would tie what the bands take as
+    independent."""
+    from services.accel_rig.evaluate import (
+        _STARTS,
+        _device_seed,
+        _noise_streams,
+        _pose_seed,
+        _stream,
+    )
+
+    seeds = []
+    for s in range(1, 21):
+        seeds += [s, _device_seed(s), _stream(s, _STARTS)]
+        seeds += [_pose_seed(s, i) for i in range(len(SIX_POSES))]
+        seeds += [x for k in range(3) for x in _noise_streams(s, k, 100)]
+    first = {tuple(np.random.default_rng(x).bit_generator.random_raw(2)) for x in seeds}
+    assert len(first) == len(seeds) == 20 * (3 + 6 + 300)
+
+
+def test_eval_runs_do_not_depend_on_each_other():
+    """A run's errors follow from its start time and its noise stream alone: the same runs
+    in the reverse order, two of them overlapping in time, give the same figures to the
+    bit, so nothing carries over from one run to the next."""
+    from services.accel_rig.evaluate import _noise_streams, _runs
+
+    device = default_device()
+    cal = device.calibration(RATE)
+    traj = HeadTrajectory(3)
+    starts = np.array([4.0, 4.1, 9.0])
+    streams = _noise_streams(3, 0, len(starts))
+    ahead = _runs(device, cal, traj, starts, streams, RATE)
+    back = _runs(device, cal, traj, starts[::-1], streams[::-1], RATE)
+    assert np.array_equal(ahead.nees, back.nees[::-1])
+    assert np.array_equal(ahead.err, back.err[:, ::-1])
+    assert len(set(ahead.nees[:, 0])) == 3
+
+
 def test_nees_shape_tells_an_honest_covariance_from_one_of_the_right_size_only():
     """Honest Gaussian errors: two 3-dof parts of mean 3, uncorrelated, NEES variance 12.
     Errors whose scale varies from run to run (the covariance right on average) keep the

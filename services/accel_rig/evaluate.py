@@ -12,7 +12,9 @@ The runs of one seed share one calibration, hence one calibration error: their N
 not independent, and the band of their mean counts that shared error once
 (``services.consistency.shared_error_effective_runs``, from the covariance and calibration
 sensitivity each estimate reports).  The band of as many independent runs, narrower, is
-reported beside it (``bounds_95_independent_runs``).
+reported beside it (``bounds_95_independent_runs``).  Otherwise the runs are independent:
+each draws its noise from a stream of its own, and the start times come from another,
+apart from the trajectory's and the calibration's (``_stream``).
 
 Per horizon, ``shape`` says whether the covariance has the errors' shape as well as their
 size (the NEES split into orientation and position given orientation, the per-run NEES
@@ -85,7 +87,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     nominal = layout_by_name(args.layout)
     truth_layout = layout_by_name("marvin-six-table-4.1") if args.layout == "marvin-six" \
         else nominal
-    device = device_from_args(SensorTruth.draw(1000 + args.seed, truth_layout), args)
+    device = device_from_args(SensorTruth.draw(_device_seed(args.seed), truth_layout), args)
     cal, cal_figures = _calibrate(device, nominal, POSE_SETS[args.poses], args.pose_seconds,
                                   rate, args.seed)
     errors = _dead_reckon(device, cal, args.seed, args.runs, args.seconds - horizon, rate,
@@ -104,7 +106,7 @@ def _calibrate(device: SensorTruth, nominal, labels, seconds: float, rate: float
                seed: int) -> tuple[sn.Calibration, dict[str, Any]]:
     recs = [StaticRecording(axis_down_quaternion(lab),
                             simulate_static(axis_down_quaternion(lab), seconds, rate,
-                                            seed=10_000 * seed + i, sensor=device))
+                                            seed=_pose_seed(seed, i), sensor=device))
             for i, lab in enumerate(labels)]
     cal = calibrate(nominal, recs, rate, noise=device.noise_model(),
                     latency_s=device.latency_s(rate))
@@ -137,10 +139,9 @@ class _Runs(NamedTuple):
 def _dead_reckon(device: SensorTruth, cal: sn.Calibration, seed: int, runs: int,
                  start_span_s: float, rate: float, noise_draws: int = 0) -> dict[str, Any]:
     traj = HeadTrajectory(seed)
-    starts = np.random.default_rng(seed).uniform(0.0, start_span_s, runs)
-    first = _runs(device, cal, traj, starts, [100_000 * seed + r for r in range(runs)], rate)
-    draws = [_runs(device, cal, traj, starts, _fresh_noise_seeds(seed, k, runs), rate)
-             for k in range(1, noise_draws + 1)]
+    starts = np.random.default_rng(_stream(seed, _STARTS)).uniform(0.0, start_span_s, runs)
+    first, *draws = [_runs(device, cal, traj, starts, _noise_streams(seed, k, runs), rate)
+                     for k in range(noise_draws + 1)]
     out: dict[str, Any] = {"orientation_error_deg": {}, "position_error_m": {},
                            "nees": {"dof": 6}}
     cal_cov = calibration_covariance(cal)
@@ -168,15 +169,36 @@ def _dead_reckon(device: SensorTruth, cal: sn.Calibration, seed: int, runs: int,
     return out
 
 
-def _fresh_noise_seeds(seed: int, draw: int, runs: int) -> list[int]:
-    """Noise seeds of the runs of fresh draw ``draw`` (1, 2, ...), apart from the eval's own
-    (``100000 seed + run``) and from each other's for any number of runs."""
-    return [int(np.random.SeedSequence([seed, draw, r]).generate_state(1)[0])
-            for r in range(runs)]
+#: Spawn keys of a seed's random streams (``_stream``): the runs' start times, and the
+#: sensor noise of each run in each draw (draw 0 the eval's own, 1.. the ``--noise-draws``).
+_STARTS, _RUN_NOISE = 0, 1
+
+
+def _stream(seed: int, *key: int) -> np.random.SeedSequence:
+    """The seed's random stream ``key``.  A spawn key keeps it apart from every stream seeded
+    by a plain integer: the trajectory's (``seed``), the device's and the calibration
+    poses' noise, whose integers could equal another seed's run's, and from every other
+    key; so start times, runs and seeds are independent as the bands assume."""
+    return np.random.SeedSequence(seed, spawn_key=key)
+
+
+def _device_seed(seed: int) -> int:
+    """The integer seed of the seed's simulated device (its biases and gain errors)."""
+    return 1000 + seed
+
+
+def _pose_seed(seed: int, pose: int) -> int:
+    """The integer seed of the noise of the seed's calibration pose ``pose``."""
+    return 10_000 * seed + pose
+
+
+def _noise_streams(seed: int, draw: int, runs: int) -> list[np.random.SeedSequence]:
+    """The sensor noise of the runs of draw ``draw`` (0: the eval's own)."""
+    return [_stream(seed, _RUN_NOISE, draw, r) for r in range(runs)]
 
 
 def _runs(device: SensorTruth, cal: sn.Calibration, traj: HeadTrajectory, starts: np.ndarray,
-          noise_seeds: list[int], rate: float) -> _Runs:
+          noise_seeds: list[np.random.SeedSequence], rate: float) -> _Runs:
     """Dead-reckon from the truth at each start time, with that run's noise seed."""
     steps = [round(h * rate) for h in HORIZONS_S]
     runs = len(starts)

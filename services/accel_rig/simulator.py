@@ -139,13 +139,15 @@ class SimulatedRun:
 
 
 def simulate(trajectory: Trajectory, seconds: float, rate_hz: float = DEFAULT_RATE_HZ,
-             seed: int = 0, *, t0: float = 0.0, sensor: SensorTruth | None = None,
+             seed: int | np.random.SeedSequence = 0, *, t0: float = 0.0,
+             sensor: SensorTruth | None = None,
              mount: tuple[Array, Array] | None = HEAD_TO_ACCEL_RIG,
              calibration: sn.Calibration | None = None) -> SimulatedRun:
     """Simulate ``seconds`` of accelerometer output at ``rate_hz`` starting at ``t0``.
 
     ``trajectory.state(t)`` gives the head (or, with ``mount=None``, the rig itself);
     ``mount`` is the rig's pose in that frame (default: the simulated head mounting).
+    ``seed`` (an integer or a ``numpy.random.SeedSequence``) draws the noise.
     """
     if not (math.isfinite(seconds) and seconds > 0):
         raise InvalidInputError(f"simulate: seconds must be positive, got {seconds!r}")
