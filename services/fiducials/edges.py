@@ -150,6 +150,12 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     return np.where(ok[:, None, None], corners, fallback), cov
 
 
+def cell_widths(quads: np.ndarray, modules: int) -> np.ndarray:
+    """The width (n, 4, px) of the cells of markers ``modules`` cells wide across each
+    side of their ``quads`` (n, 4, 2)."""
+    return _sides(quads, modules)[-1]
+
+
 def _sides(quads: np.ndarray, modules: int,
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The sides of ``quads`` (n, 4, 2) of markers ``modules`` cells wide: each side's

@@ -54,7 +54,7 @@ import numpy as np
 
 from services.camera.markers import dictionary
 from services.camera.model import CameraModel
-from services.fiducials import border, edges, pose
+from services.fiducials import border, edges, image_fit, pose
 from services.fiducials.bodies import Body, marker_body, marker_in_body
 
 POOL_FRAMES = 30
@@ -364,9 +364,12 @@ class FiducialTracker:
         if ids is None:
             return {}, {}
         detected = np.asarray(corners, np.float64).reshape(-1, 4, 2)
-        ideal, cov = edges.refine(gray, detected, self._modules, self.camera,
-                                  self._cells[ids.ravel()])
+        cells = self._cells[ids.ravel()]
+        ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells)
         cov = corner_covariance(cov, ideal, detected, self._modules)
+        ideal, cov, _ = image_fit.refine(gray, ideal, cov,
+                                         edges.cell_widths(ideal, self._modules), cells,
+                                         self.camera)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
 

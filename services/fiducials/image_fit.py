@@ -1,0 +1,327 @@
+"""A steeply seen tag's corners from a model of its whole image fitted to the pixels.
+
+Seen at 70-80 degrees from its line of sight, a tag's short sides are a few pixels long and
+its cells 1-1.5 px across them: every edge profile there crosses the blurred sum of the
+border, the code cells behind it and the margin, and an acute corner of the image blurs
+into both of its sides.  Edge crossings (:mod:`services.fiducials.edges`, even across a
+modelled border, :mod:`services.fiducials.border`) leave such corners 0.1-0.7 px off, and
+a pose from them 8-17 mm off at 1.0-1.3 m.  Once the tag is decoded its whole print is
+known, so its whole image can be modelled and fitted instead:
+
+* the print: the tag's cells (its code inside the black border), a one-cell white margin,
+  and beyond it, per side, whatever lies there (one level each);
+* the geometry: the homography from the tag's cell coordinates to ideal pixels fixed by the
+  four corners (the parameters), the lens distortion through each pixel's ideal position
+  (:meth:`CameraModel.ideal_pixels`), each pixel the mean of ``SUBSAMPLES`` x
+  ``SUBSAMPLES`` points over its area (the light it integrates), then a Gaussian blur
+  whose width is fitted (optics, focus, motion: no kernel is assumed);
+* fitted by Levenberg-Marquardt to the pixels on the tag and its margin: the eight corner
+  coordinates, the blur and the levels (black, white, beyond each side).
+
+On the frames of ``uma eval fiducials`` the model's misfit at the true corners is the
+sensor's noise (3.1-3.3 gray levels RMS), and the fitted corners of tags tilted 73-79
+degrees lie 0.01-0.05 px from the truth.  The fit's own covariance, ``s² (JᵀJ)⁻¹`` of the
+corners, is what the pose is weighed by.  It costs a few milliseconds a tag, so it is kept
+to the tags whose cells are thinner across a side than ``CELL_PX``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.camera.model import CameraModel
+
+#: a tag is fitted when its cells are narrower than this (px) across one of its sides
+CELL_PX = 1.9
+#: the fit's own covariance of the corners times this: what the pixels' noise gives, and
+#: what the model misses (on seeds 1-10 of ``uma eval fiducials``, the fitted corners'
+#: mean 8-dof NEES against the truth was 9.5-11 without it)
+COVARIANCE_SCALE = 1.3
+#: each pixel the mean of this many points each way over its area
+SUBSAMPLES = 2
+#: the points' own smoothing (px): their spacing's half, so that the mean of a pixel's
+#: points moves smoothly with the edges
+SMOOTH_PX = 0.5 / SUBSAMPLES
+#: the pixels fitted: those whose centres lie within the tag and this much (cells) of its
+#: margin; the model covers ``SUPPORT_PX`` more around them for the blur
+MASK_CELLS = 0.7
+SUPPORT_PX = 3
+ITERATIONS = 10
+#: the fit has converged when no corner moved by more than this (px) in a step
+CONVERGED_PX = 5e-3
+SIGMA_START_PX = 0.8
+SIGMA_BOUNDS_PX = (0.25, 1.5)
+DAMPING = 1e-3
+#: the fit is kept where its corners moved less than this (px, or half a cell) from the
+#: edges' and its residuals' RMS is under this share of the tag's contrast
+MAX_MOVE_PX = 1.0
+MAX_RMS_SHARE = 0.15
+MIN_CONTRAST = 20.0
+
+_OFFSETS = (np.arange(SUBSAMPLES) + 0.5) / SUBSAMPLES - 0.5
+#: class of a cell of the extended print: black, white, beyond side 0 (top), 1, 2, 3
+_BLACK, _WHITE, _LEVELS = 0, 1, 6
+
+
+def refine(gray: np.ndarray, corners: np.ndarray, covariance: np.ndarray, across: np.ndarray,
+           cells: np.ndarray, camera: CameraModel,
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The corners (n, 4, 2, ideal pixels) and their joint covariances (n, 8, 8) of ``n``
+    decoded tags, those whose cells are thinner across a side (``across``, (n, 4) px) than
+    ``CELL_PX`` replaced by the fit of the tag's modelled image (``cells``: (n, m, m),
+    1 white) to ``gray`` where it succeeds; and which were (n,)."""
+    fitted = np.zeros(len(corners), bool)
+    steep = np.flatnonzero(np.asarray(across).min(axis=1) < CELL_PX)
+    if not len(steep):
+        return corners, covariance, fitted
+    corners, covariance = corners.copy(), covariance.copy()
+    for i in steep:
+        got = fit(gray, corners[i], cells[i], camera)
+        if got is not None:
+            corners[i], covariance[i] = got
+            fitted[i] = True
+    return corners, covariance, fitted
+
+
+def fit(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray, camera: CameraModel,
+        ) -> tuple[np.ndarray, np.ndarray] | None:
+    """One tag's corners (4, 2, ideal pixels) and their covariance (8, 8) from its image
+    in ``gray``, its cells ``cells`` (m, m, 1 white) known, started from ``corners``;
+    None where the fit fails (too little contrast, a poor fit, corners moved too far).
+
+    The parameters are the eight entries of the homography from ideal pixels (relative to
+    the tag's centre) to the tag's cells: every point's cell coordinates, and so the
+    model's derivatives, are closed forms in them; the corners and their covariance
+    follow at the end."""
+    corners = np.asarray(corners, np.float64)
+    scene = _Scene.around(gray, corners, cells, camera)
+    if scene is None:
+        return None
+    g, sigma = scene.start, SIGMA_START_PX
+    levels = np.linalg.lstsq(scene.shares(g, sigma).T, scene.obs, rcond=None)[0]
+    r, J = scene.residual(g, sigma, levels)
+    cost, lam, now = r @ r, DAMPING, scene.corners(g)
+    for _ in range(ITERATIONS):
+        A = J.T @ J
+        step = -np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-12 * np.eye(len(A)),
+                                J.T @ r)
+        g_try = g + step[:8]
+        sigma_try = float(np.clip(sigma + step[8], *SIGMA_BOUNDS_PX))
+        r_try, J_try = scene.residual(g_try, sigma_try, levels + step[9:])
+        if r_try @ r_try < cost:
+            g, sigma, levels, r, J = g_try, sigma_try, levels + step[9:], r_try, J_try
+            cost, lam = r @ r, lam / 3
+            before, now = now, scene.corners(g)
+            if np.abs(now - before).max() < CONVERGED_PX:
+                break
+        else:
+            lam *= 8
+    dof = len(r) - J.shape[1]
+    rms = np.sqrt(cost / max(dof, 1))
+    contrast = levels[_WHITE] - levels[_BLACK]
+    if dof < 1 or not contrast > MIN_CONTRAST or rms > MAX_RMS_SHARE * contrast \
+            or not np.abs(now - corners).max() < MAX_MOVE_PX:
+        return None
+    A = J.T @ J
+    try:
+        inverse = np.linalg.inv(A + 1e-12 * np.eye(len(A)))
+    except np.linalg.LinAlgError:
+        return None
+    by_g = scene.corner_jacobian(g)
+    return now, COVARIANCE_SCALE * rms ** 2 * by_g @ inverse[:8, :8] @ by_g.T
+
+
+class _Scene:
+    """What the fit of one tag's image keeps fixed: the pixels it models (a window around
+    the tag: where each of their points lies in ideal pixels, relative to ``centre``),
+    the observed values of those it fits, and the print's cells."""
+
+    def __init__(self, obs: np.ndarray, fitted: np.ndarray, support: np.ndarray,
+                 points: np.ndarray, centre: np.ndarray, classes: np.ndarray,
+                 start: np.ndarray) -> None:
+        self.obs, self.fitted, self.support = obs, fitted, support
+        self.x, self.y = points[:, 0], points[:, 1]
+        self.centre, self.classes, self.start = centre, classes, start
+        self.m = classes.shape[0] - 8
+        self.n = len(points)
+        self._square = _square(self.m)
+
+    @staticmethod
+    def around(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray,
+               camera: CameraModel) -> _Scene | None:
+        m = cells.shape[0]
+        centre = corners.mean(0)
+        to_cells = _homography(corners - centre, _square(m))
+        # the window: the tag with its margin and a blur's reach, in the image's pixels (the
+        # lens moves them by the ideal corners' offset, nearly constant over a tag)
+        reach = _square(m + 3.0) - 1.5
+        outline = _apply(np.linalg.inv(to_cells), reach) + centre
+        outline += (_distorted(camera, corners) - corners).mean(0)
+        lo = np.maximum(np.floor(outline.min(0)).astype(int) - SUPPORT_PX, 0)
+        hi = np.minimum(np.ceil(outline.max(0)).astype(int) + SUPPORT_PX + 1,
+                        [gray.shape[1], gray.shape[0]])
+        if np.any(hi - lo < 2 * SUPPORT_PX + 2):
+            return None
+        xs, ys = np.meshgrid(np.arange(lo[0], hi[0], dtype=np.float64),
+                             np.arange(lo[1], hi[1], dtype=np.float64))
+        shape = xs.shape
+        ideal = camera.ideal_pixels(np.column_stack([xs.ravel(), ys.ravel()]))
+        ideal = ideal.reshape(*shape, 2) - centre
+        uv = _apply(to_cells, ideal.reshape(-1, 2)).reshape(*shape, 2)
+        inside = ((uv > -MASK_CELLS) & (uv < m + MASK_CELLS)).all(-1)
+        fitted = np.zeros(shape, bool)
+        core = (slice(SUPPORT_PX, -SUPPORT_PX),) * 2
+        fitted[core] = inside[core]
+        if fitted.sum() < 20:
+            return None
+        kernel = np.ones((2 * SUPPORT_PX + 1, 2 * SUPPORT_PX + 1), np.uint8)
+        support = cv2.dilate(fitted.astype(np.uint8), kernel).astype(bool)
+        # each supported pixel's points, placed by the lens' local Jacobian
+        dy, dx = np.gradient(ideal, axis=(0, 1))
+        ox, oy = (o.reshape(1, -1, 1) for o in np.meshgrid(_OFFSETS, _OFFSETS))
+        points = ideal[support][:, None, :] + ox * dx[support][:, None, :] \
+            + oy * dy[support][:, None, :]
+        obs = gray[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float64)[fitted]
+        return _Scene(obs, fitted, support, points.reshape(-1, 2), centre, _classes(cells),
+                      (to_cells / to_cells[2, 2]).ravel()[:8])
+
+    def _memberships(self, g: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Each point's cell coordinates (u, v), ``1 / w`` of the homography ``g``, and
+        the nine cells around it: their classes, shares and the shares' derivatives by
+        u and by v (9, N)."""
+        x, y = self.x, self.y
+        iw = 1.0 / (g[6] * x + g[7] * y + 1.0)
+        u = (g[0] * x + g[1] * y + g[2]) * iw
+        v = (g[3] * x + g[4] * y + g[5]) * iw
+        # the points' smoothing in cells: |d(u, v)/d(x, y)| times SMOOTH_PX
+        su = np.hypot(g[0] - u * g[6], g[1] - u * g[7]) * (iw * SMOOTH_PX)
+        sv = np.hypot(g[3] - v * g[6], g[4] - v * g[7]) * (iw * SMOOTH_PX)
+        au, dau, k0 = _memberships(u, np.abs(su), self.m)
+        av, dav, l0 = _memberships(v, np.abs(sv), self.m)
+        cls = self.classes[l0[None] + _J[:, None], k0[None] + _I[:, None]]
+        return u, v, iw, cls, au[_I] * av[_J], dau[_I] * av[_J], au[_I] * dav[_J]
+
+    def _class_shares(self, cls: np.ndarray, wts: np.ndarray) -> np.ndarray:
+        index = (cls * self.n + np.arange(self.n)).ravel()
+        return np.bincount(index, wts.ravel(), _LEVELS * self.n).reshape(_LEVELS, self.n)
+
+    def shares(self, g: np.ndarray, sigma: float) -> np.ndarray:
+        """The fitted pixels' shares (``_LEVELS``, k) of each class of the print, blurred."""
+        _, _, _, cls, wts, _, _ = self._memberships(g)
+        return self._pixels(self._class_shares(cls, wts), sigma)
+
+    def residual(self, g: np.ndarray, sigma: float, levels: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """The model's misfit (k,) to the fitted pixels and its Jacobian (k, 9 + levels)
+        by the homography's entries, the blur and the levels."""
+        u, v, iw, cls, wts, wts_u, wts_v = self._memberships(g)
+        value = levels[cls]
+        g_u = np.einsum("kn,kn->n", wts_u, value) * iw
+        g_v = np.einsum("kn,kn->n", wts_v, value) * iw
+        x, y = self.x, self.y
+        g_w = -(g_u * u + g_v * v)
+        d = np.stack([g_u * x, g_u * y, g_u, g_v * x, g_v * y, g_v, g_w * x, g_w * y])
+        samples = self._class_shares(cls, wts)
+        blurred = self._pixels(np.concatenate([samples, d]), sigma)
+        shares = blurred[:_LEVELS]
+        d_sigma = levels @ (self._pixels(samples, sigma + _DSIGMA) - shares) / _DSIGMA
+        J = np.concatenate([blurred[_LEVELS:], d_sigma[None], shares]).T
+        return levels @ shares - self.obs, J
+
+    def corners(self, g: np.ndarray) -> np.ndarray:
+        """The tag's corners (4, 2, ideal pixels) for the homography entries ``g``."""
+        return _apply(np.linalg.inv(np.append(g, 1.0).reshape(3, 3)), self._square) \
+            + self.centre
+
+    def corner_jacobian(self, g: np.ndarray) -> np.ndarray:
+        """d(corners)/d(g) (8, 8): a corner is ``G⁻¹ s`` (homogeneous) for its square
+        corner ``s``, and d(G⁻¹) = -G⁻¹ dG G⁻¹."""
+        inverse = np.linalg.inv(np.append(g, 1.0).reshape(3, 3))
+        q = np.column_stack([self._square, np.ones(4)]) @ inverse.T  # (4, 3): G⁻¹ s
+        out = np.empty((4, 2, 8))
+        for i in range(8):
+            row, col = divmod(i, 3)
+            dq = -np.outer(q[:, col], inverse[:, row])  # -G⁻¹ E_(row, col) q
+            out[:, :, i] = (dq[:, :2] - q[:, :2] / q[:, 2:] * dq[:, 2:]) / q[:, 2:]
+        return out.reshape(8, 8)
+
+    def _pixels(self, samples: np.ndarray, sigma: float) -> np.ndarray:
+        """Per-point quantities (c, N) as the fitted pixels' (c, k): each pixel the mean
+        of its points, the window blurred by ``sigma``."""
+        per_pixel = samples.reshape(len(samples), -1, SUBSAMPLES * SUBSAMPLES).mean(-1)
+        image = np.zeros((*self.fitted.shape, len(samples)))
+        image[self.support] = per_pixel.T
+        image = cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        return image.reshape(*self.fitted.shape, -1)[self.fitted].T
+
+
+_I, _J = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
+_DSIGMA = 1e-3
+
+
+def _square(side: float) -> np.ndarray:
+    return np.float64([[0, 0], [side, 0], [side, side], [0, side]])
+
+
+def _distorted(camera: CameraModel, ideal: np.ndarray) -> np.ndarray:
+    """Where ideal pixels (n, 2) lie in the image (the lens' distortion applied)."""
+    K = camera.K
+    rays = np.column_stack([(ideal - K[:2, 2]) / np.diag(K)[:2], np.ones(len(ideal))])
+    return camera.project(rays)
+
+
+def _classes(cells: np.ndarray) -> np.ndarray:
+    """The extended print's cells (m + 8, m + 8): the tag's, a white margin, beyond it
+    each side's own class, out to where the memberships' neighbours reach."""
+    m = len(cells)
+    out = np.empty((m + 8, m + 8), np.intp)
+    idx = np.arange(m + 8) - 4  # index k holds the cells u in [k - 4, k - 3)
+    uu, vv = np.meshgrid(idx, idx)
+    out[:] = np.where(vv < -1, 2, np.where(vv > m, 4, np.where(uu < -1, 5, 3)))
+    margin = (uu >= -1) & (uu <= m) & (vv >= -1) & (vv <= m)
+    out[margin] = _WHITE
+    out[4:m + 4, 4:m + 4] = np.where(cells > 0.5, _WHITE, _BLACK)
+    return out
+
+
+def _memberships(u: np.ndarray, smooth: np.ndarray, m: int,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's shares (3, N) of the cell columns left of, at and right of the one it
+    lies in (smoothed by ``smooth`` cells), their derivatives by ``u``, and the index of
+    the left one in :func:`_classes`' table."""
+    ue = np.clip(u, -2.5, m + 2.5)
+    k = np.floor(ue)
+    f = ue - k
+    z0, z1 = -f / smooth, (f - 1) / smooth
+    left, right = _cdf(z0), _cdf(z1)
+    p0, p1 = _pdf(z0) / smooth, _pdf(z1) / smooth
+    shares = np.stack([left, 1 - left - right, right])
+    d = np.stack([-p0, p0 - p1, p1])
+    return shares, d, (k + 3).astype(np.intp)
+
+
+def _cdf(z: np.ndarray) -> np.ndarray:
+    return 0.5 + 0.5 * np.tanh(z * (0.7978845608 + 0.0356774081 * z * z))
+
+
+def _pdf(z: np.ndarray) -> np.ndarray:
+    return np.exp(-0.5 * z * z) * 0.3989422804
+
+
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The homography (3, 3) taking the four points ``src`` to ``dst`` (float64 throughout:
+    ``cv2.getPerspectiveTransform`` reads float32)."""
+    A = np.zeros((8, 8))
+    b = dst.reshape(-1)
+    for i, ((x, y), (X, Y)) in enumerate(zip(src, dst, strict=True)):
+        A[2 * i] = [x, y, 1, 0, 0, 0, -x * X, -y * X]
+        A[2 * i + 1] = [0, 0, 0, x, y, 1, -x * Y, -y * Y]
+    return np.append(np.linalg.solve(A, b), 1.0).reshape(3, 3)
+
+
+def _apply(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    q = pts @ h[:, :2].T + h[:, 2]
+    return q[:, :2] / q[:, 2:]
+
+
