@@ -211,6 +211,9 @@ def test_uma_demo_outside_in_compares_both_layouts_on_the_same_frames(capsys) ->
     assert report["ok"]
     assert report["single_host"]["hosts"] == {"hostA": ["cam0", "cam1", "cam2", "cam3"]}
     assert report["three_hosts"]["reconstruction_on"] == "hostC"
+    for layout in ("single_host", "three_hosts"):
+        # when the queries and the observer's stream each first carried every body
+        assert set(report[layout]["first_every_body_s"]) == {"queries", "published"}
     for name in ("head", "wand", "hand"):
         paired = report["paired"][name]
         # the same frames: most frame sets posed by both, their poses' times the same

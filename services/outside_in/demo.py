@@ -208,6 +208,8 @@ def _measure(sim: Simulation, started: dict[str, Any], seconds: float,
         observer.start()
         start = time.monotonic()
         first = None
+        # when each link first carried every body: which one came late, if one did
+        links: dict[str, float] = {}
         while time.monotonic() - start < FIRST_POSE_S + seconds:
             if children.dead():
                 raise UmaError(f"a demo process ended: {children.dead()}")
@@ -222,6 +224,9 @@ def _measure(sim: Simulation, started: dict[str, Any], seconds: float,
                 dp, da = geo.pose_error(r.position, r.quaternion, p, q)
                 errors[n].append((float(dp), float(da)))
                 got = True
+            if first is None:
+                _first_time(links, "queries", all(errors.values()), start)
+                _first_time(links, "published", published.seen_all(), start)
             # measured from when both the client's queries and the observer's stream
             # carry every body: on a loaded host the observer's link can come later
             if got and first is None and published.seen_all():
@@ -238,8 +243,15 @@ def _measure(sim: Simulation, started: dict[str, Any], seconds: float,
     ok = (first is not None and all(v["answers"] for v in queried.values())
           and all(v["answers"] for v in poses.values()))
     return {"ok": ok, "realm": realm, "first_pose_s": None if first is None else round(first, 1),
+            "first_every_body_s": links,
             "seconds": seconds, "failed_queries": failures, "bodies": queried,
             "published": poses, "published_at": at}
+
+
+def _first_time(links: dict[str, float], link: str, carried: bool, start: float) -> None:
+    """Note when ``link`` first ``carried`` every body (s since ``start``, monotonic)."""
+    if carried and link not in links:
+        links[link] = round(time.monotonic() - start, 1)
 
 
 def _paired(one: dict[str, dict[int, tuple[float, float, float]]],
@@ -313,7 +325,8 @@ def _client(realm: str, ep: str, children: Children) -> Client:
 def summary(r: dict[str, Any]) -> str:
     lines = [f"outside-in demo: cameras {r['hosts']}, the reconstruction on "
              f"{r['reconstruction_on']}, queries from {r['client_on']}, clocks skewed "
-             f"{r['clock_skew_ms']} ms; first pose after {r['first_pose_s']} s; errors "
+             f"{r['clock_skew_ms']} ms; first pose after {r['first_pose_s']} s "
+             f"(every body's: {_links(r['first_every_body_s'])}); errors "
              "against the simulator's truth (median, RMS):"]
     for n, b in r["bodies"].items():
         pub = r["published"][n]
@@ -340,6 +353,10 @@ def compare_summary(r: dict[str, Any]) -> str:
     lines.append(f"median ratio over the bodies (position, orientation): "
                  f"{r['paired']['median_ratio']}")
     return "\n".join(lines)
+
+
+def _links(first: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v} s" for k, v in first.items()) or "none"
 
 
 def _figures(b: dict[str, Any]) -> str:
