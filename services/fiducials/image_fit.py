@@ -27,6 +27,8 @@ to the tags whose cells are thinner across a side than ``CELL_PX``.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -209,7 +211,9 @@ class _Scene:
     def shares(self, g: np.ndarray, sigma: float) -> np.ndarray:
         """The fitted pixels' shares (``_LEVELS``, k) of each class of the print, blurred."""
         _, _, _, cls, wts, _, _ = self._memberships(g)
-        return self._pixels(self._class_shares(cls, wts), sigma)
+        image = self._window(self._class_shares(cls, wts))
+        kernel, _ = _kernels(sigma)
+        return self._fitted(_blur(image, kernel, kernel))
 
     def residual(self, g: np.ndarray, sigma: float, levels: np.ndarray,
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -222,11 +226,15 @@ class _Scene:
         x, y = self.x, self.y
         g_w = -(g_u * u + g_v * v)
         d = np.stack([g_u * x, g_u * y, g_u, g_v * x, g_v * y, g_v, g_w * x, g_w * y])
-        samples = self._class_shares(cls, wts)
-        blurred = self._pixels(np.concatenate([samples, d]), sigma)
+        image = self._window(np.concatenate([self._class_shares(cls, wts), d]))
+        kernel, d_kernel = _kernels(sigma)
+        blurred = self._fitted(_blur(image, kernel, kernel))
         shares = blurred[:_LEVELS]
-        d_sigma = levels @ (self._pixels(samples, sigma + _DSIGMA) - shares) / _DSIGMA
-        J = np.concatenate([blurred[_LEVELS:], d_sigma[None], shares]).T
+        # the blur's derivative: the (sharp) model image through the kernel's derivative
+        # along x and along y
+        model = image[..., :_LEVELS] @ levels
+        d_sigma = self._fitted(_blur(model, d_kernel, kernel) + _blur(model, kernel, d_kernel))
+        J = np.concatenate([blurred[_LEVELS:], d_sigma.reshape(1, -1), shares]).T
         return levels @ shares - self.obs, J
 
     def corners(self, g: np.ndarray) -> np.ndarray:
@@ -246,18 +254,35 @@ class _Scene:
             out[:, :, i] = (dq[:, :2] - q[:, :2] / q[:, 2:] * dq[:, 2:]) / q[:, 2:]
         return out.reshape(8, 8)
 
-    def _pixels(self, samples: np.ndarray, sigma: float) -> np.ndarray:
-        """Per-point quantities (c, N) as the fitted pixels' (c, k): each pixel the mean
-        of its points, the window blurred by ``sigma``."""
+    def _window(self, samples: np.ndarray) -> np.ndarray:
+        """Per-point quantities (c, N) as the window's image (h, w, c): each supported
+        pixel the mean of its points, the others 0."""
         per_pixel = samples.reshape(len(samples), -1, SUBSAMPLES * SUBSAMPLES).mean(-1)
         image = np.zeros((*self.fitted.shape, len(samples)))
         image[self.support] = per_pixel.T
-        image = cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        return image
+
+    def _fitted(self, image: np.ndarray) -> np.ndarray:
+        """The fitted pixels' values (c, k) of a window's image (h, w, c) or (h, w)."""
         return image.reshape(*self.fitted.shape, -1)[self.fitted].T
 
 
+def _kernels(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The sampled, normalised Gaussian kernel of ``sigma`` px (out to 4 sigma) and its
+    derivative by ``sigma``."""
+    offsets = np.arange(-math.ceil(4 * sigma), math.ceil(4 * sigma) + 1, dtype=np.float64)
+    weights = np.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = weights / weights.sum()
+    square = offsets ** 2 / sigma ** 3
+    return kernel, kernel * (square - kernel @ square)
+
+
+def _blur(image: np.ndarray, along_x: np.ndarray, along_y: np.ndarray) -> np.ndarray:
+    return cv2.sepFilter2D(image, cv2.CV_64F, along_x, along_y,
+                           borderType=cv2.BORDER_REPLICATE)
+
+
 _I, _J = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
-_DSIGMA = 1e-3
 
 
 def _square(side: float) -> np.ndarray:
