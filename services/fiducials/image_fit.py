@@ -143,6 +143,8 @@ class _Scene:
                  points: np.ndarray, centre: np.ndarray, classes: np.ndarray,
                  start: np.ndarray) -> None:
         self.obs, self.fitted, self.support = obs, fitted, support
+        self._supported = np.flatnonzero(support)
+        self._mean = np.full(SUBSAMPLES * SUBSAMPLES, 1.0 / SUBSAMPLES ** 2)
         self.x, self.y = points[:, 0], points[:, 1]
         self.centre, self.classes, self.start = centre, classes, start
         self.m = classes.shape[0] - 8
@@ -201,7 +203,8 @@ class _Scene:
         sv = np.hypot(g[3] - v * g[6], g[4] - v * g[7]) * (iw * SMOOTH_PX)
         au, dau, k0 = _memberships(u, np.abs(su), self.m)
         av, dav, l0 = _memberships(v, np.abs(sv), self.m)
-        cls = self.classes[l0[None] + _J[:, None], k0[None] + _I[:, None]]
+        width = self.classes.shape[1]
+        cls = self.classes.ravel().take((l0 * width + k0)[None] + (_J * width + _I)[:, None])
         return u, v, iw, cls, au[_I] * av[_J], dau[_I] * av[_J], au[_I] * dav[_J]
 
     def _class_shares(self, cls: np.ndarray, wts: np.ndarray) -> np.ndarray:
@@ -257,10 +260,10 @@ class _Scene:
     def _window(self, samples: np.ndarray) -> np.ndarray:
         """Per-point quantities (c, N) as the window's image (h, w, c): each supported
         pixel the mean of its points, the others 0."""
-        per_pixel = samples.reshape(len(samples), -1, SUBSAMPLES * SUBSAMPLES).mean(-1)
-        image = np.zeros((*self.fitted.shape, len(samples)))
-        image[self.support] = per_pixel.T
-        return image
+        per_pixel = samples.reshape(len(samples), -1, len(self._mean)) @ self._mean
+        image = np.zeros((self.fitted.size, len(samples)))
+        image[self._supported] = per_pixel.T
+        return image.reshape(*self.fitted.shape, -1)
 
     def _fitted(self, image: np.ndarray) -> np.ndarray:
         """The fitted pixels' values (c, k) of a window's image (h, w, c) or (h, w)."""
