@@ -210,10 +210,10 @@ def _measure(sim: Simulation, started: dict[str, Any], seconds: float,
         first = None
         # when each link first carried every body: which one came late, if one did
         links: dict[str, float] = {}
+        answered: set[str] = set()
         while time.monotonic() - start < FIRST_POSE_S + seconds:
             if children.dead():
                 raise UmaError(f"a demo process ended: {children.dead()}")
-            got = False
             for k, n in enumerate(names):
                 try:
                     r = client.pose("lab/world", f"lab/{n}")
@@ -223,13 +223,13 @@ def _measure(sim: Simulation, started: dict[str, Any], seconds: float,
                 p, q = sim.body_pose(k, r.t_ns / 1e9)
                 dp, da = geo.pose_error(r.position, r.quaternion, p, q)
                 errors[n].append((float(dp), float(da)))
-                got = True
-            if first is None:
-                _first_time(links, "queries", all(errors.values()), start)
+                answered.add(n)
+            _first_time(links, "queries", len(answered) == len(names), start)
+            if first is None:   # the measurement starts after it
                 _first_time(links, "published", published.seen_all(), start)
             # measured from when both the client's queries and the observer's stream
             # carry every body: on a loaded host the observer's link can come later
-            if got and first is None and published.seen_all():
+            if first is None and len(links) == 2:
                 first = time.monotonic() - start
                 errors = {n: [] for n in names}   # measure from here on
                 published.reset()
