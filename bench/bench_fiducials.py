@@ -1,6 +1,7 @@
 """Benchmark of the fiducial tracker's per-frame pipeline: 10 AprilTags (36h11, 8 cm) at
 0.6-1.6 m in front of a simulated 640x480 webcam (goals: <= 1.3x the anchor, >= 60
-frames/s).
+frames/s; judged on both the median frame and the total CPU over all frames, which counts
+the rare frames with a steep tag's image fit in full).
 
 Anchor, measured in the same run on the same frames: bare ``ArucoDetector.detectMarkers``
 (OpenCV's defaults) + ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` per marker, what a user of
@@ -89,7 +90,10 @@ def main() -> None:
                "markers_found_per_frame": {k: round(v / args.frames, 2) for k, v in found.items()},
                "bare_aruco_solvepnp": a, "uma_pipeline": o,
                "ratio_median": round(o["median_ms"] / a["median_ms"], 3),
+               # the whole run's CPU: a frame whose steep tags take the image fit counts fully
+               "ratio_total": round(sum(cpu["uma"]) / sum(cpu["bare"]), 3),
                "uma_frames_per_s": round(1e3 / o["median_ms"], 1),
+               "uma_frames_per_s_mean": round(1e3 * args.frames / sum(cpu["uma"]), 1),
                "wall": {k: median_p99(v, "ms") for k, v in wall.items()}}
     if args.json:
         print(json.dumps(figures))
@@ -101,6 +105,8 @@ def main() -> None:
         print(f"{name:28s} median {f['median_ms']:7.3f} ms  p99 {f['p99_ms']:7.3f} ms CPU")
     print(f"ratio (median) {figures['ratio_median']:.3f}  ->  {figures['uma_frames_per_s']:.0f} "
           "frames/s per core")
+    print(f"ratio (total CPU over all frames) {figures['ratio_total']:.3f}  ->  "
+          f"{figures['uma_frames_per_s_mean']:.0f} frames/s per core on average")
     print("wall clock (inflated by other processes): " + ", ".join(
         f"{k} median {v['median_ms']:.3f} ms p99 {v['p99_ms']:.3f} ms"
         for k, v in figures["wall"].items()))
