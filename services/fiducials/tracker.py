@@ -340,6 +340,7 @@ class FiducialTracker:
         self._modules = d.markerSize + 2
         self._cells = border.code_cells(d)
         self._K = camera.K
+        camera.ideal_offsets()  # the edge points' undistortion table, before the first frame
         self.bundles = list(bundles or [])
         self._bundle_of = {i: b for b in self.bundles for i in b.corners}
         self._name_of = dict(name_of or {})
