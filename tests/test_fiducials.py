@@ -392,6 +392,11 @@ def test_the_tracker_fits_the_steep_tags_image_and_its_pose_follows(monkeypatch)
     corners, _, fitted = image_fit.refine(image, wide, np.eye(8)[None],
                                           edges.cell_widths(wide, 8), _CELLS[[9]], camera)
     assert not fitted.any() and corners is wide
+    # a degenerate quad (its corners on one line) is not fitted either, and raises nothing
+    line = np.array([[[100.0, 100.0], [110.0, 100.0], [120.0, 100.0], [130.0, 100.0]]])
+    corners, _, fitted = image_fit.refine(image, line, np.eye(8)[None], np.ones((1, 4)),
+                                          _CELLS[[9]], camera)
+    assert not fitted.any() and np.array_equal(corners, line)
 
 
 def test_profiles_that_leave_the_tag_through_an_acute_corner_are_left_out():

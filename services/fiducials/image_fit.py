@@ -85,7 +85,10 @@ def refine(gray: np.ndarray, corners: np.ndarray, covariance: np.ndarray, across
         return corners, covariance, fitted
     corners, covariance = corners.copy(), covariance.copy()
     for i in steep:
-        got = fit(gray, corners[i], cells[i], camera)
+        try:
+            got = fit(gray, corners[i], cells[i], camera)
+        except np.linalg.LinAlgError:  # a degenerate quad: its edge fits' corners stay
+            got = None
         if got is not None:
             corners[i], covariance[i] = got
             fitted[i] = True
