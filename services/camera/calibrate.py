@@ -8,7 +8,10 @@
    ``min_shift`` of the image diagonal of a view already kept adds almost nothing but
    weight (a video of a board held still): it is rejected as a near-duplicate.
 3. **Estimate** (:func:`calibrate`): ``cv2.calibrateCameraExtended``: intrinsics, the RMS
-   reprojection error, each parameter's standard deviation and each view's error.
+   reprojection error, each parameter's standard deviation and each view's error.  The
+   RMS is OpenCV's: the plain mean over the corners, which the fit has pulled towards
+   them; the corners' own noise is estimated with the fit's degrees of freedom counted
+   (:func:`corner_noise`), and that is the noise the camera model carries.
 4. **Coverage and verdict**: corners are counted in a 3x3 grid of the image; distortion is
    only known where corners were seen, so every cell must hold some.  The verdict is
    "good" or "needs more views" with the reasons (too few distinct views, the cells not
@@ -55,7 +58,7 @@ class Result:
     """A calibration and what it says about itself."""
 
     model: CameraModel | None
-    rms_px: float
+    rms_px: float  # OpenCV's: sqrt(sum of squared residuals / corners), per corner
     std: dict[str, float]
     views_seen: int
     views_used: int
@@ -64,6 +67,9 @@ class Result:
     verdict: str
     reasons: list[str] = field(default_factory=list)
     per_view_rms_px: list[float] = field(default_factory=list)
+    noise_px: float = math.nan  # the corners' noise estimated from the residuals, per corner
+    corners: int = 0
+    parameters: int = 0  # estimated: intrinsics not held fixed, and six per view
 
     @property
     def uncovered(self) -> list[str]:
@@ -74,6 +80,8 @@ class Result:
         """JSON-ready figures."""
         m = self.model
         return {"verdict": self.verdict, "reasons": self.reasons, "rms_px": self.rms_px,
+                "noise_px": self.noise_px, "corners": self.corners,
+                "parameters": self.parameters,
                 "views_seen": self.views_seen, "views_used": self.views_used,
                 "near_duplicates_rejected": self.duplicates, "uncovered": self.uncovered,
                 "coverage_corners": self.coverage.tolist(),
@@ -160,13 +168,27 @@ def calibrate(views: list[View], board: cv2.aruco.CharucoBoard, size: tuple[int,
     dist = dist.ravel()
     std = {n: float(s) for n, s in zip(STD_NAMES, std_in.ravel()[:4 + dist.size],
                                        strict=False)}
-    model = CameraModel(K, dist, size[0], size[1], pixel_std=float(rms) / math.sqrt(2))
+    corners = sum(len(v.ids) for v in views)
+    parameters = int(np.count_nonzero(std_in)) + 6 * len(views)
+    noise = corner_noise(float(rms), corners, parameters)
+    model = CameraModel(K, dist, size[0], size[1], pixel_std=noise / math.sqrt(2))
     result = Result(model, float(rms), std, views_seen, len(views), duplicates, cover, "good",
-                    per_view_rms_px=[float(e) for e in per_view.ravel()])
+                    per_view_rms_px=[float(e) for e in per_view.ravel()], noise_px=noise,
+                    corners=corners, parameters=parameters)
     result.reasons = _reasons(result)
     if result.reasons:
         result.verdict = "needs more views"
     return result
+
+
+def corner_noise(rms_px: float, corners: int, parameters: int) -> float:
+    """The corners' noise (per corner, both axes, the unit of the RMS) from a fit's RMS:
+    the residuals of ``2 * corners`` coordinates that fitted ``parameters`` have
+    ``2 * corners - parameters`` degrees of freedom, so their mean square is that much
+    below the noise's (the fit follows the noise in as many directions as it has
+    parameters).  For 36 views of 25-30 corners the RMS is 0.93-0.95 of the noise."""
+    m = 2 * corners
+    return rms_px * math.sqrt(m / (m - parameters)) if m > parameters else math.nan
 
 
 def _reasons(r: Result) -> list[str]:

@@ -63,7 +63,9 @@ def _describe(r: calibrate.Result, output: str) -> str:
         lines += [f"fx {K[0, 0]:.2f} ± {s['fx']:.2f}  fy {K[1, 1]:.2f} ± {s['fy']:.2f}  "
                   f"cx {K[0, 2]:.2f} ± {s['cx']:.2f}  cy {K[1, 2]:.2f} ± {s['cy']:.2f} px",
                   "distortion " + " ".join(f"{d:.4g}" for d in r.model.dist),
-                  f"RMS reprojection error {r.rms_px:.3f} px", f"written to {output}"]
+                  f"RMS reprojection error {r.rms_px:.3f} px (corner noise {r.noise_px:.3f} px: "
+                  f"{r.corners} corners, {r.parameters} parameters fitted)",
+                  f"written to {output}"]
     lines.append("corners per image region (3x3): " +
                  " | ".join(" ".join(f"{n:4d}" for n in row) for row in r.coverage))
     lines.append(f"verdict: {r.verdict}")
