@@ -104,6 +104,44 @@ def test_uma_calibrate_camera_recovers_known_intrinsics(board_video, tmp_path, c
     assert summary["std"]["fx"] > 0 and summary["uncovered"] == []
 
 
+@pytest.mark.slow
+def test_the_detectors_own_error_is_absorbed_like_independent_noise():
+    """The detected corners' error is mostly the detector's own (the same views rendered
+    without sensor noise, refined from the same start), and the fit (9 intrinsics, 6 per
+    view, linearised at the truth) absorbs about as much of it as of independent noise,
+    p / 2n, so the RMS stays within 10 % of that error: no marker edge reaches a corner's
+    window to pull corners smoothly across a view."""
+    rng, quiet_rng = np.random.default_rng(107), np.random.default_rng(0)
+    cam, quiet = SimCamera(TRUTH), SimCamera(TRUTH, read_noise=0.0, shot_noise=0.0)
+    target, detector = board_target(BOARD), cv2.aruco.CharucoDetector(BOARD)
+    own, measured, jacobians = [], [], []
+    for T in board_poses(rng, 36):
+        scene = [SceneObject("board", target, static(T))]
+        image = cam.render(scene, 0.0, rng)
+        corners, ids, markers, _ = detector.detectBoard(image)
+        if ids is None or len(ids) < cal.MIN_CORNERS:
+            continue
+        outlines = [np.reshape(m, (4, 2)).astype(np.float64) for m in markers]
+        Tb = T @ board_in_target(BOARD)
+        uv, J = cv2.projectPoints(BOARD.getChessboardCorners()[ids.ravel()].astype(np.float64),
+                                  cv2.Rodrigues(Tb[:3, :3])[0], Tb[:3, 3], TRUTH.K, TRUTH.dist)
+        start, uv = corners.reshape(-1, 2), uv.reshape(-1, 2)
+        measured.append(cal.refine_corners(image, start, outlines) - uv)
+        own.append(cal.refine_corners(quiet.render(scene, 0.0, quiet_rng), start, outlines) - uv)
+        jacobians.append(J[:, :15])  # rvec, tvec, f, c, 5 distortion coefficients
+    J = np.zeros((sum(len(j) for j in jacobians), 9 + 6 * len(jacobians)))
+    row = 0
+    for k, j in enumerate(jacobians):
+        J[row:row + len(j), :9] = j[:, 6:]
+        J[row:row + len(j), 9 + 6 * k:15 + 6 * k] = j[:, :6]
+        row += len(j)
+    fit = np.linalg.qr(J)[0]
+    own_e, sensor_e = np.concatenate(own), np.concatenate(measured) - np.concatenate(own)
+    assert np.sqrt((sensor_e ** 2).sum(1).mean()) < 0.6 * np.sqrt((own_e ** 2).sum(1).mean())
+    absorbed = np.sum((fit.T @ own_e.ravel()) ** 2) / np.sum(own_e ** 2)
+    assert absorbed < J.shape[1] / J.shape[0] + 0.05
+
+
 def test_corner_noise_counts_the_fits_degrees_of_freedom():
     """Corners at their true projections plus independent noise of a known std: OpenCV's
     RMS falls short of that noise by the fit's parameters (9 intrinsics, 6 per view),
