@@ -472,7 +472,7 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
 
 def test_side_offsets_move_the_corners_as_their_lines_do():
     """The corners' covariance from the four sides' offsets is the corners' scatter when
-    the sides' lines are moved (and turned) by such offsets and intersected again; the
+    the sides' lines are moved by such offsets and intersected again; the
     sides with narrow cells across them (a tilted tag's long ones) are the less certain,
     and so is a side along a pixel axis (its edge points share one sub-pixel phase)."""
     quad = corners_of(facing((1.1, 0.0, 0.0), (0.0, 0.0, 1.6)))  # tilted 63 degrees
@@ -495,20 +495,18 @@ def test_side_offsets_move_the_corners_as_their_lines_do():
     shifts = rng.multivariate_normal(
         np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)) + np.diag(locking),
         20000)
-    turns = rng.normal(0.0, fiducial_tracker.TURN_A * tau / fiducial_tracker.SIDE_A,
-                       shifts.shape)  # each end of a side moves by this, oppositely
     moved = np.empty((len(shifts), 4, 2))
     for k in range(4):  # corner k: side k - 1's end, side k's start
         (n0, d0), (n1, d1) = lines[k - 1], lines[k]
         moved[:, k] = np.linalg.solve(np.array([n0, n1]), np.stack(
-            [d0 + shifts[:, k - 1] + turns[:, k - 1], d1 + shifts[:, k] - turns[:, k]])).T
+            [d0 + shifts[:, k - 1], d1 + shifts[:, k]])).T
     scatter = np.cov((moved - quad).reshape(len(shifts), 8).T)
     assert np.allclose(scatter, cov, atol=0.05 * np.abs(cov).max()), (scatter, cov)
     # corner k lies on side k: its offset across that side is the side's own
     across_std = np.array([np.sqrt(n @ cov[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ n)
                            for k, (n, _) in enumerate(lines)])
     order = np.argsort(length)
-    assert across_std[order[2:]].min() > 2 * across_std[order[:2]].max()
+    assert across_std[order[2:]].min() > 1.5 * across_std[order[:2]].max()
     turned = side_offset_covariance(quad[None], quad[None] @ cv2.Rodrigues(
         np.array([0.0, 0.0, 0.2]))[0][:2, :2].T, 8)[0]
     assert np.all(np.diag(turned) < np.diag(cov))  # no side along a pixel axis any more
@@ -650,3 +648,87 @@ def test_a_camera_that_loses_the_tag_advertises_it_lost_and_found_again():
     assert handles[0].advertised[-1]["confidence"] == 0.0
     frame(11 + LOST_FRAMES, True)  # seen again: advertised at once
     assert handles[0].advertised[-1]["pos_std_m"] < 0.01
+
+
+def test_the_code_cells_behind_a_thin_border_move_its_crossings_by_their_white():
+    """Across a border 2 px wide under a webcam's blur, a code row behind it all white
+    lifts the profile's darkest sample and moves the mid-level crossing outwards, all
+    black inwards, against an average code's (what :func:`edges.refine` subtracts from
+    the crossings of a decoded tag); across cells 5 px wide the code no longer reaches
+    the crossing."""
+    m = 8
+    black = np.zeros((1, m, m))
+    white = black.copy()
+    white[0, 1:-1, 1:-1] = 1.0
+
+    def bias(cells: np.ndarray, across_px: float) -> np.ndarray:
+        quad = 100 + m * across_px * np.array([[[0.0, 0.0], [1, 0], [1, 1], [0, 1]]])
+        reach = max(edges.REACH_MODULES * across_px, edges.REACH_MIN_PX)
+        sides = np.arange(4)
+        return border.crossing_bias(quad.repeat(4, 0), cells.repeat(4, 0), sides, edges._SECOND,
+                                    np.full(4, across_px), np.full((4, 1), reach) * edges._OFFS,
+                                    np.ones(4, bool))
+
+    inner = slice(5, 15)  # clear of the border's own black cells at the side's ends
+    assert np.all(bias(black, 2.0)[:, inner] < -0.02)
+    assert np.all(bias(white, 2.0)[:, inner] > 0.01)
+    spread = bias(white, 2.0)[:, inner] - bias(black, 2.0)[:, inner]
+    assert np.all((spread > 0.08) & (spread < 0.3))
+    assert np.abs(bias(black, 5.0)).max() < 0.01 and np.abs(bias(white, 5.0)).max() < 0.01
+
+
+def test_a_sides_crossings_are_corrected_for_the_code_behind_it():
+    """The eval's seed 7 at 3 s: a tag 2.1 m away tilted 58 degrees, the cells 1.7 px
+    across two of its sides.  Behind one of them the code row is black but for one cell:
+    its crossings lie 0.08 px inside the true side (the darkest samples stay dark while
+    the white margin outside is thin); corrected for its code, within 0.03 px."""
+    rng = np.random.default_rng(7)
+    camera = webcam(rng)
+    T = wandering(rng, camera, (0.5, 3.0), 10.0)(3.0)
+    image = SimCamera(camera, supersampling=FAITHFUL).render(
+        tags("apriltag36h11", [7], 0.08, [static(T)]), 0.0, np.random.default_rng(1))
+    true = camera.K @ (marker_corners(0.08) @ T[:3, :3].T + T[:3, 3]).T
+    true = (true[:2] / true[2]).T
+    raw, ids, _ = FiducialTracker(camera, "apriltag36h11", 0.08).detector.detectMarkers(image)
+    assert ids is not None and ids.ravel().tolist() == [7]
+    quads = np.asarray(raw, np.float64).reshape(-1, 4, 2)
+    cells = border.code_cells(dictionary("apriltag36h11"))[[7]]
+    assert np.rot90(cells[0], 2)[1].sum() == 1  # side 2: one white cell behind it
+
+    def offset(corners: np.ndarray, k: int) -> float:
+        a, b = true[k], true[(k + 1) % 4]
+        along = (b - a) / np.linalg.norm(b - a)
+        normal = np.array([along[1], -along[0]])  # outwards
+        return float(((corners[k] - a) @ normal + (corners[(k + 1) % 4] - b) @ normal) / 2)
+
+    crossed = edges.refine(image, quads, 8, camera)[0][0]
+    corrected = edges.refine(image, quads, 8, camera, cells)[0][0]
+    assert offset(crossed, 2) < -0.05
+    assert abs(offset(corrected, 2)) < 0.03
+
+
+def test_a_bundles_markers_share_their_tag_wide_side_offsets():
+    """Two tilted markers of one bundle (cells 2.5 px across their long sides): their
+    corners' joint covariance keeps each marker's own block and couples the two by their
+    tag-wide side offsets (seen alike, they look smaller or larger together), so the mean
+    of the two scales is no more certain than ``TAG_CORRELATION`` lets it be: it is not
+    averaged away.  A marker steep enough for the image fit shares nothing."""
+    quads = np.stack([corners_of(facing((0.8, 0.0, 0.0), (x, 0.0, 1.5))) for x in (-0.1, 0.1)])
+    edge_fits = 0.02 ** 2 * np.eye(8)  # what each marker's own edge fits add
+    blocks = list(side_offset_covariance(quads, quads, 8) + edge_fits)
+    joint = fiducial_tracker.bundle_covariance(blocks, list(quads), 8)
+    scale = fiducial_tracker.tag_scale(quads, 8)
+    rho = fiducial_tracker.TAG_CORRELATION
+    assert np.allclose(joint[:8, :8], blocks[0]) and np.allclose(joint[8:, 8:], blocks[1])
+    assert np.allclose(joint[:8, 8:], rho * np.outer(scale[0], scale[1]))
+    assert np.linalg.eigvalsh(joint).min() > -1e-12
+    # the two markers' scales (their corners on their own scale modes, in standard
+    # deviations), averaged: independent, the shared part would halve; it keeps rho of it
+    mean = np.concatenate(scale / np.einsum("ij,ij->i", scale, scale)[:, None]) / 2
+    independent = mean @ np.block([[blocks[0], np.zeros((8, 8))],
+                                   [np.zeros((8, 8)), blocks[1]]]) @ mean
+    assert np.isclose(mean @ joint @ mean - independent, rho / 2)
+    steep = np.stack([quads[0], corners_of(facing((1.1, 0.0, 0.0), (0.1, 0.0, 2.0)))])
+    assert edges.cell_widths(steep, 8)[1].min() < image_fit.CELL_PX
+    blocks = list(side_offset_covariance(steep, steep, 8) + edge_fits)
+    assert not fiducial_tracker.bundle_covariance(blocks, list(steep), 8)[:8, 8:].any()

@@ -31,6 +31,8 @@ covariance follow as for any side (:func:`services.fiducials.edges.refine`).
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -104,6 +106,86 @@ def fit_offsets(gray: np.ndarray, quads: np.ndarray, cells: np.ndarray,
         & (rms < MAX_RMS_SHARE * np.repeat(np.abs(g[:, 1:2] - g[:, :1]), 4, axis=0)) \
         & mask[..., STEPS // 2 - 3:STEPS // 2 + 4].all(-1)
     return np.where(ok, e, 0.0).reshape(n, 4, -1), ok.reshape(n, 4, -1)
+
+
+def crossing_bias(quads: np.ndarray, cells: np.ndarray, sides: np.ndarray,
+                  fractions: np.ndarray, across: np.ndarray, offsets: np.ndarray,
+                  own: np.ndarray) -> np.ndarray:
+    """How far (u, k) px, outwards, the code's cells behind ``u`` sides move the
+    mid-level crossings of the profiles at ``fractions`` (k, 1) of each side, against
+    those of an average code (half its cells white): side ``sides`` (u, 0-3) of the tag
+    ``quads`` (u, 4, 2, OpenCV's corner order) whose cells are ``cells`` (u, m, m, 1
+    white), about ``across`` (u,) px wide across the side; each profile sampled at
+    ``offsets`` (u, I) px along the side's outward normal and crossed at its own middle
+    (where ``own``, (u,)) or at the middle of the print's black and white.
+
+    Across a thin border a white cell behind it lifts the profile's darkest sample and
+    the blur carries some of its white across the border: the crossing moves.  Both
+    follow from the blurred print: black 0, the white margin 1, and ``ROWS`` code rows
+    behind the border at their white shares in the same sum of normal CDFs as
+    :func:`_residuals`, at the blur the fit starts from (``SIGMA_START_PX``: a webcam's
+    optics, its pixels' area and the profiles' bilinear sampling), the profile crossed
+    as the edge points are.  Where each row lies behind a point of the side, and how
+    wide the cells are there, comes from the quad's homography (a steep tag's cells are
+    slanted parallelograms: the cell behind a point is not the one beside it, and near
+    an acute corner the row reaches the white margin beyond the neighbouring side); each
+    row's cells are blended along the side by the blur.  The margin outside the side
+    itself is left out: it moves every code's crossings alike (the tag looks smaller or
+    larger as a whole), what is subtracted is the code's own part."""
+    m = cells.shape[-1]
+    each = np.arange(len(sides))[:, None]
+    rolled = quads[each, _ROLL[sides]]  # the side on top
+    at_row, at_col = _behind(m)
+    rows = cells[each[..., None], at_row[sides], at_col[sides]]  # (u, ROWS, m)
+    side = rolled[:, 1] - rolled[:, 0]
+    normal = side[:, ::-1] * [1.0, -1.0] / np.hypot(side[:, :1], side[:, 1:])
+    depth = (np.arange(ROWS + 1) + 0.5) * across[:, None]  # (u, ROWS + 1)
+    pts = (rolled[:, None, 0] + fractions * side[:, None])[:, :, None, :] \
+        - depth[:, None, :, None] * normal[:, None, None, :]  # (u, k, ROWS + 1, 2)
+    _, step, a, along_step = _tag_coordinates(rolled, pts, m)
+    edge_cdf = _cdf((np.arange(m + 1.0) - a[..., 1:, None])
+                    * (along_step[..., 1:] / SIGMA_START_PX)[..., None])  # (u, k, ROWS, m + 1)
+    # beyond the tag's neighbouring sides (a slanted row reaches them near an acute
+    # corner) lies the white margin; an average code has half its cells white between
+    # the border's black ones
+    average = np.zeros_like(rows)
+    average[..., 1:-1] = 0.5
+    white = np.einsum("vurc,ukrc->vukr", np.stack([rows, average]),
+                      edge_cdf[..., 1:] - edge_cdf[..., :-1]) \
+        + (edge_cdf[..., 0] + 1 - edge_cdf[..., -1])[None]  # (2, u, k, ROWS)
+    width = step[..., 0, None, None]  # the border's cells across, px (u, k, 1, 1)
+    s = offsets[:, None, None, :]  # (u, 1, 1, I)
+    cdf = _cdf((s + np.arange(1.0, ROWS + 2)[:, None] * width) / SIGMA_START_PX)
+    profile = _cdf(s[..., 0, :] / SIGMA_START_PX) \
+        + (white[..., None] * (cdf[..., 1:, :] - cdf[..., :-1, :])).sum(-2)  # (2, u, k, I)
+    centre = profile.shape[-1] // 2
+    local = (profile[..., :centre + 1].min(-1) + profile[..., centre:].max(-1)) / 2
+    level = np.where(own[:, None], local, 0.5)[..., None]
+    crossed = _crossing(profile - level, s[..., 0, :])
+    return crossed[0] - crossed[1]
+
+
+@functools.cache
+def _behind(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where (row, column; (4, ROWS, m) each) in a tag's cells (m, m) the ``ROWS`` rows
+    behind side s lie, along the side: the rows of the cells turned by s quarter turns
+    (``np.rot90``), as :func:`_profiles` turns them."""
+    r, j = np.arange(1, ROWS + 1)[:, None], np.arange(m)[None, :]
+    last = m - 1
+    rows = np.broadcast_arrays(r, j + 0 * r, last - r, last - j + 0 * r)
+    cols = np.broadcast_arrays(j + 0 * r, last - r, last - j + 0 * r, r)
+    return np.stack(rows), np.stack(cols)
+
+
+def _crossing(d: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Where the profiles ``d`` (..., I, less their levels) sampled at ``s`` (..., I)
+    rise through zero, nearest the middle (linear between samples; 0 where none does)."""
+    lo, hi = d[..., :-1], d[..., 1:]
+    rising = (lo < 0) & (hi >= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = np.where(rising, s[..., :-1] + lo / (lo - hi) * (s[..., 1:] - s[..., :-1]), np.inf)
+    near = np.take_along_axis(at, np.argmin(np.abs(at), axis=-1)[..., None], -1)[..., 0]
+    return np.where(np.isfinite(near), near, 0.0)
 
 
 def _profiles(gray: np.ndarray, quads: np.ndarray, cells: np.ndarray, fractions: np.ndarray,

@@ -82,25 +82,34 @@ EDGE_CORRELATION = 1.6
 #: dark and bright ends are not the print's black and white and its mid-level crossing
 #: moves; the offsets of a tag's four sides err together (``SIDE_CORRELATION``: the tag
 #: looks smaller or larger as a whole).  Per side, not per tag: a tilted tag's long sides
-#: have narrow cells across them and err, its short sides have wide ones and do not
-SIDE_A = 0.43
-SIDE_SCALE_PX = 0.9
-SIDE_CORRELATION = 0.6
-#: ... and that error changes along the side with the code's cells behind the border
-#: (black or white): it turns the line too, each end moving ``TURN_A * exp(-across /
-#: SIDE_SCALE_PX)`` px oppositely (independently from side to side)
-TURN_A = 0.47
+#: have narrow cells across them and err, its short sides have wide ones and do not.
+#: What the code's cells behind the border add, which also turned the line, is
+#: corrected (:func:`edges.refine`): this is what remains, and no turn does
+SIDE_A = 0.69
+SIDE_SCALE_PX = 0.52
+SIDE_CORRELATION = 1.0
 #: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
 #: locking) by up to ``LOCK_PX``: along a side that sweeps many pixels across its axis the
 #: phases vary and the error shows in the fit's scatter, but the points of a side nearly
 #: parallel to a pixel axis share one phase and their error moves the whole line, by
 #: ``LOCK_PX / sqrt(2) * sinc(sweep)`` (the error averaged over the phases the side's
-#: fitted span sweeps, ``sweep`` px; independent from side to side).  These five figures
+#: fitted span sweeps, ``sweep`` px; independent from side to side).  These four figures
 #: were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum likelihood, the errors
-#: of 2,100 tags' four corners against the truth (0.431 px, 0.90 px, 0.60, 0.470 px,
-#: 0.049 px; fresh seeds 101-110 alone give 0.19, 1.10, 0.42, 0.34, 0.051): the corners'
-#: mean NEES 7.5 of 8 (9.4 without the turn, 13.8 where the cells are under 2.5 px)
-LOCK_PX = 0.05
+#: of the four corners against the truth of the 577 tags the image fit leaves to the edge
+#: fits, their crossings corrected up to 3.5 px (0.691 px, 0.524 px, 1.0, 0.046 px, and
+#: a turn of each end of 0.0 px fitted beside them: a side's offset 0.015 px where its
+#: cells are 2 px across; before the code's part was corrected 0.047 px, and each end's
+#: turn 0.051 px); fresh seeds 101-110 alone give an offset of 0.010 px there and a turn
+#: of 0.023 px.  The corners' mean 8-dof NEES 6.4 (fresh 6.8)
+LOCK_PX = 0.046
+#: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
+#: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
+#: together, and averaging them does not average it away.  On the eval's bundle scenes
+#: (four tags on a plate, seeds 1-10) the tags' offsets, the mean over their four sides,
+#: correlated at 0.64-0.70 from tag to tag (uncentred) where the cells are under 3.5 px
+#: (0.19 wider, where the offset is small), their mean over the four tags 0.0105 px RMS
+#: against 0.0125 px for one
+TAG_CORRELATION = 0.65
 AMBIGUITY_GAP = 16.0
 HISTORY_S = 0.5
 #: a solution continues the previous favourite branch when it is within this share of
@@ -214,33 +223,45 @@ def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
-    at ``SIDE_CORRELATION``, and turning by ``TURN_A * exp(-across / SIDE_SCALE_PX)`` px
-    at each end; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
+    at ``SIDE_CORRELATION``; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
     (``sweep``: how many pixels across its nearer image axis the side's fitted span
     covers in the image, ``detected``).  Corner k is where side k - 1 ends and side k
     starts: when side k moves across itself by ``o``, corner k slides along side k - 1
     by ``o / sin`` of the angle between them, and when side k - 1 moves, back along side
     k (the sides' outward directions all flip with the quad's orientation, which the
     covariance does not see)."""
+    shift, narrow = _side_moves(corners, modules)
+    in_image = np.asarray(detected, np.float64)
+    sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
+    tau = SIDE_A * narrow
+    own = (1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
+    common = (shift * tau[:, None, :]).sum(axis=-1)
+    return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
+            + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2))
+
+
+def tag_scale(corners: np.ndarray, modules: int) -> np.ndarray:
+    """How the corners (m, 8) of ``m`` markers move with the tag-wide part of their
+    sides' offsets, one standard deviation (:func:`side_offset_covariance`'s first term
+    is its outer product)."""
+    shift, narrow = _side_moves(corners, modules)
+    return np.sqrt(SIDE_CORRELATION) * (shift * (SIDE_A * narrow)[:, None, :]).sum(axis=-1)
+
+
+def _side_moves(corners: np.ndarray, modules: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker of ``corners`` (m, 4, 2): how its corners (8) move when each side
+    (4) moves outwards by 1 px (m, 8, 4), and ``exp(-across / SIDE_SCALE_PX)`` per side
+    (m, 4)."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
     length = np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)
     along = side / length[..., None]
     narrow = np.exp((length[:, _PREV] + length[:, _NEXT]) * (-0.5 / modules / SIDE_SCALE_PX))
-    in_image = np.asarray(detected, np.float64)
-    sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
-    tau = SIDE_A * narrow
-    own = (1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
     before = along[:, _PREV]
     sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
     by_ending = -along[..., None] / sine * _ENDING  # (m, 4 corners, 2, 4 sides)
     by_starting = before[..., None] / sine * _STARTING
-    shift = (by_ending + by_starting).reshape(-1, 8, 4)
-    turn = (by_ending - by_starting).reshape(-1, 8, 4)
-    common = (shift * tau[:, None, :]).sum(axis=-1)
-    return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
-            + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
-            + (turn * ((TURN_A * narrow) ** 2)[:, None, :]) @ np.swapaxes(turn, -1, -2))
+    return (by_ending + by_starting).reshape(-1, 8, 4), narrow
 
 
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
@@ -249,15 +270,24 @@ _ENDING = np.eye(4)[_PREV][:, None, :]
 _STARTING = np.eye(4)[:, None, :]
 
 
-def _block_diagonal(blocks: list[np.ndarray]) -> np.ndarray:
-    """One matrix with ``blocks`` (square) along its diagonal."""
-    size = sum(len(b) for b in blocks)
-    out = np.zeros((size, size))
-    at = 0
-    for b in blocks:
-        out[at:at + len(b), at:at + len(b)] = b
-        at += len(b)
-    return out
+def bundle_covariance(blocks: list[np.ndarray], corners: list[np.ndarray],
+                      modules: int) -> np.ndarray:
+    """The joint covariance of a bundle's markers' corners: each marker's own (8, 8)
+    ``blocks`` along the diagonal, and between two markers their tag-wide side offsets
+    (:func:`tag_scale` of their ``corners``, (4, 2) each) at ``TAG_CORRELATION``.  A
+    marker whose corners come from the image fit (its cells under
+    ``image_fit.CELL_PX`` across a side) has errors of its own: it shares none; nor
+    does any marker more of that offset than its own block carries."""
+    stacked = np.stack(corners)
+    scale = tag_scale(stacked, modules)
+    scale[edges.cell_widths(stacked, modules).min(axis=1) < image_fit.CELL_PX] = 0.0
+    for k, b in enumerate(blocks):
+        scale[k] /= math.sqrt(max(1.0, scale[k] @ np.linalg.solve(b, scale[k])))
+    out = np.zeros((8 * len(blocks), 8 * len(blocks)))
+    for k, b in enumerate(blocks):
+        out[8 * k:8 * k + 8, 8 * k:8 * k + 8] = b - TAG_CORRELATION * np.outer(scale[k], scale[k])
+    flat = scale.reshape(-1)
+    return out + TAG_CORRELATION * np.outer(flat, flat)
 
 
 def _moved(R: np.ndarray, t: np.ndarray, T_marker_body: np.ndarray,
@@ -392,11 +422,11 @@ class FiducialTracker:
             if body is not None:
                 groups.setdefault(body.name, (body, []))[1].append(marker_id)
         singles = [(body, ids) for body, ids in groups.values() if not body.is_bundle]
-        out = self._finish(singles, self._solve_singles(singles, seen), t_ns, noise)
+        out = self._finish(singles, self._solve_singles(singles, seen), t_ns, seen, noise)
         for body, ids in groups.values():
             if body.is_bundle:
                 out += self._finish([(body, ids)], [self._solve_bundle(body, ids, seen)], t_ns,
-                                    noise)
+                                    seen, noise)
         return out
 
     def _body(self, marker_id: int) -> Body | None:
@@ -445,10 +475,12 @@ class FiducialTracker:
 
     def _finish(self, bodies: list[tuple[Body, list[int]]],
                 solved: list[tuple[list[pose.Solution], float]], t_ns: int,
+                seen: dict[int, np.ndarray],
                 noise: dict[int, np.ndarray] | None) -> list[Estimate]:
         """The estimates of bodies of as many corners each: per body the noise pooled and
         the ambiguity judged; then, all bodies at once, the chosen poses weighted by
-        their corners' covariances and their own covariances."""
+        their corners' covariances (a bundle's markers' joint: :func:`bundle_covariance`
+        of their corners ``seen``) and their own covariances."""
         picks = []
         for (body, ids), (solutions, module_px) in zip(bodies, solved, strict=True):
             if not solutions:
@@ -465,7 +497,8 @@ class FiducialTracker:
         if noise is not None and all(i in noise for p in picks for i in p.ids):
             information = np.linalg.inv(
                 np.stack([noise[p.ids[0]] if len(p.ids) == 1 else
-                          _block_diagonal([noise[i] for i in p.ids]) for p in picks]))
+                          bundle_covariance([noise[i] for i in p.ids], [seen[i] for i in p.ids],
+                                            self._modules) for p in picks]))
             fit = pose.reweigh(fit, information)
         sigmas = np.sqrt([p.sigma2 for p in picks])
 
