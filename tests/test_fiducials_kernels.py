@@ -1,7 +1,7 @@
 """The fiducial tracker's compiled twin (services/fiducials/_kernels.c) against the numpy
 code it mirrors: the fits and Gauss-Newton steps, the side lines' fits and the corners'
-covariance to rounding, the edge crossings to the bit, and the whole tracker's estimates on
-rendered frames."""
+covariance and the code cells' shift of thin sides' crossings to rounding, the edge
+crossings to the bit, and the whole tracker's estimates on rendered frames."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
-from services.camera.markers import marker_corners
+from services.camera.markers import dictionary, marker_corners
 from services.camera.simulator import SimCamera
-from services.fiducials import edges, pose
+from services.fiducials import border, edges, pose
 from services.fiducials.simulate import tags, wandering, webcam
 from services.fiducials.tracker import FiducialTracker
 
-native = pytest.mark.skipif(pose.NATIVE is None or edges.NATIVE is None,
+native = pytest.mark.skipif(pose.NATIVE is None or edges.NATIVE is None or border.NATIVE is None,
                             reason="the compiled fiducial kernels are not built")
 K = np.array([[530.0, 0, 319.5], [0, 531.0, 241.5], [0, 0, 1]])
 
@@ -30,6 +30,7 @@ def numpy_only(monkeypatch):
     def use_numpy() -> None:
         monkeypatch.setattr(pose, "NATIVE", None)
         monkeypatch.setattr(edges, "NATIVE", None)
+        monkeypatch.setattr(border, "NATIVE", None)
     return use_numpy
 
 
@@ -109,6 +110,29 @@ def test_compiled_line_fits_and_corner_covariance_agree_with_numpy(numpy_only):
 
 
 @native
+def test_compiled_code_crossing_bias_agrees_with_numpy(numpy_only, monkeypatch):
+    # steep tags' sides 1.7-3 px across, crossed at their own middles and at the print's
+    rng = np.random.default_rng(5)
+    cells = border.code_cells(dictionary("apriltag36h11"))[[3, 17, 200, 511]]
+    quad = np.array([[100, 100], [124, 103], [125, 121], [101, 118]], float)
+    quads = np.stack([quad * [1, s] + rng.uniform(0, 50, 2) for s in (0.6, 0.8, 1.0, 1.2)])
+    tag, side = np.repeat(np.arange(4), 4), np.tile(np.arange(4), 4)
+    across = edges._sides(quads, cells.shape[-1])[-1][tag, side]
+    offsets = rng.uniform(2.5, 4.0, (16, 1)) * edges._OFFS
+    own = np.arange(16) % 3 > 0
+
+    def bias() -> np.ndarray:
+        return border.crossing_bias(quads[tag], cells[tag], side, edges._SECOND[::2], across,
+                                    offsets, own)
+
+    compiled = bias()
+    monkeypatch.setattr(border, "NATIVE", None)
+    plain = bias()
+    assert np.abs(plain).max() > 0.01
+    np.testing.assert_allclose(compiled, plain, rtol=0, atol=1e-12)
+
+
+@native
 def test_tracker_estimates_agree_with_the_numpy_code(numpy_only):
     # steep near tags (their thinnest sides from the border model) and far, nearly
     # fronto-parallel ones (the ambiguity covered, then decided by the track)
@@ -137,8 +161,9 @@ def test_tracker_estimates_agree_with_the_numpy_code(numpy_only):
 
 
 def test_the_numpy_code_is_forced_by_the_environment():
-    out = subprocess.run([sys.executable, "-c", "from services.fiducials import edges, pose; "
-                          "print(pose.NATIVE is None and edges.NATIVE is None)"],
+    out = subprocess.run([sys.executable, "-c", "from services.fiducials import border, edges, "
+                          "pose; print(pose.NATIVE is None and edges.NATIVE is None "
+                          "and border.NATIVE is None)"],
                          env=dict(os.environ, UMA_FIDUCIALS_PURE_PYTHON="1"),
                          capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "True"

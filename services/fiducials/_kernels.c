@@ -1,7 +1,9 @@
 /* The compiled twin of the fiducial tracker's per-frame arithmetic on small arrays:
  * pose.py's fits (the reprojection residuals and Jacobian of a stack of poses) and
- * gauss_newton (their undamped Gauss-Newton steps), and edges.py's profile crossings (each
- * profile's rising crossing of its level nearest the centre).
+ * gauss_newton (their undamped Gauss-Newton steps); edges.py's profile crossings (each
+ * profile's rising crossing of its level nearest the centre), side lines' fits and the
+ * corners' covariance; border.py's crossing_bias (the modelled profiles across thin sides
+ * and their crossings).
  *
  * The same arithmetic as the numpy code: the Jacobian in the decoupled [position,
  * camera-frame rotation] form, the step's 6 x 6 normal equations solved by LU with
@@ -9,10 +11,12 @@
  * system takes no step, as services.linalg.solve_stack), the rotation stepped by
  * Rodrigues' formula as pose.exp_rotation.  The fits' sums run in another order than
  * numpy's matrix products, so they agree to rounding (about 1e-15 relative), not to the
- * bit; the crossings are the numpy code's operations on the same numbers and agree to the
- * bit (compiled without floating-point contraction).  The interpreter was the cost: a
- * frame's ten tags spent about 0.4 ms in some hundred numpy calls on a few hundred numbers.
- * Optional: when this does not build, pose.py and edges.py run in pure Python. */
+ * bit; the edge crossings are the numpy code's operations on the same numbers and agree to
+ * the bit (compiled without floating-point contraction); the modelled profiles' CDFs take
+ * the C library's tanh, numpy's may round differently, to about 1e-16.  The interpreter
+ * was the cost: a frame's ten tags spent about 0.4 ms in some hundred numpy calls on a few
+ * hundred numbers.  Optional: when this does not build, pose.py, edges.py and border.py run
+ * in pure Python. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -351,6 +355,108 @@ static PyObject *corner_covariance(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* code_crossings(rows, along, along_step, width, offsets, own, sigma, page_a, page_b, out):
+ * border.py's crossing_bias once each point's place is known.  Per side u (of a tag whose
+ * code rows behind it are rows (u, R, m), 1 white) and point k along it: each code row's
+ * white share at the point (the row's cells blended along the side by the blur: its
+ * position along (u, k, R) in cells, px per cell along_step (u, k, R); beyond the row's
+ * ends the white margin), for the tag's code (v = 0) and an average one (v = 1: half
+ * white between the border's black cells); the blurred print across the side at the
+ * side's offsets (u, I) px outwards: the margin's normal CDF plus each row's share times
+ * its band's, the border cells width (u, k) px wide; then the profile's crossing of its
+ * own middle (where own, (u) bytes) or of 0.5, nearest the middle, linear between
+ * samples, 0 where none: out (2, u, k).  The CDF is Page's tanh form, border._cdf's:
+ * 0.5 + 0.5 tanh(z (a + b z z)). */
+static double page_cdf(double z, double a, double b) {
+    return 0.5 + 0.5 * tanh(z * (a + b * z * z));
+}
+
+#define MAX_ROWS 8
+#define MAX_CELLS 64
+#define MAX_STEPS 64
+
+static PyObject *code_crossings(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 7};
+    double sigma, pa, pb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dddw*", &s.b[0], &s.b[1], &s.b[2], &s.b[3],
+                          &s.b[4], &s.b[5], &sigma, &pa, &pb, &s.b[6]))
+        return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    Py_ssize_t u = s.b[5].len, k = u > 0 ? s.b[3].len / (u * d) : 0;
+    Py_ssize_t steps = u > 0 ? s.b[4].len / (u * d) : 0;
+    Py_ssize_t rows = u > 0 && k > 0 ? s.b[1].len / (u * k * d) : 0;
+    Py_ssize_t m = u > 0 && rows > 0 ? s.b[0].len / (u * rows * d) : 0;
+    int ok = u > 0 && k > 0 && steps >= 2 && steps <= MAX_STEPS && rows >= 1
+             && rows <= MAX_ROWS && m >= 3 && m <= MAX_CELLS
+             && s.b[0].len == u * rows * m * d && s.b[1].len == u * k * rows * d
+             && s.b[2].len == s.b[1].len && s.b[3].len == u * k * d
+             && s.b[4].len == u * steps * d && s.b[6].len == 2 * u * k * d;
+    if (ok) {
+        const double *code = s.b[0].buf, *along = s.b[1].buf, *along_step = s.b[2].buf;
+        const double *width = s.b[3].buf, *offsets = s.b[4].buf;
+        const unsigned char *own = s.b[5].buf;
+        double *out = s.b[6].buf;
+        for (Py_ssize_t side = 0; side < u; side++) {
+            const double *at = offsets + steps * side;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                double white[2][MAX_ROWS], band[MAX_ROWS + 1][MAX_STEPS], margin[MAX_STEPS];
+                for (Py_ssize_t r = 0; r < rows; r++) {
+                    const double *cells = code + (side * rows + r) * m;
+                    Py_ssize_t p = (side * k + j) * rows + r;
+                    double scale = along_step[p] / sigma, edge[MAX_CELLS + 1];
+                    for (Py_ssize_t c = 0; c <= m; c++)
+                        edge[c] = page_cdf(((double)c - along[p]) * scale, pa, pb);
+                    double coded = 0.0, average = 0.0;
+                    for (Py_ssize_t c = 0; c < m; c++) {
+                        double share = edge[c + 1] - edge[c];
+                        coded += cells[c] * share;
+                        average += (c > 0 && c < m - 1 ? 0.5 : 0.0) * share;
+                    }
+                    double beyond = edge[0] + 1 - edge[m];
+                    white[0][r] = coded + beyond;
+                    white[1][r] = average + beyond;
+                }
+                double w = width[side * k + j];
+                for (Py_ssize_t t = 0; t < steps; t++) {
+                    margin[t] = page_cdf(at[t] / sigma, pa, pb);
+                    for (Py_ssize_t r = 0; r <= rows; r++)
+                        band[r][t] = page_cdf((at[t] + (double)(r + 1) * w) / sigma, pa, pb);
+                }
+                for (int v = 0; v < 2; v++) {
+                    double profile[MAX_STEPS], lowest = INFINITY, highest = -INFINITY;
+                    Py_ssize_t centre = steps / 2;
+                    for (Py_ssize_t t = 0; t < steps; t++) {
+                        double sum = white[v][0] * (band[1][t] - band[0][t]);
+                        for (Py_ssize_t r = 1; r < rows; r++)
+                            sum += white[v][r] * (band[r + 1][t] - band[r][t]);
+                        profile[t] = margin[t] + sum;
+                        if (t <= centre && profile[t] < lowest) lowest = profile[t];
+                        if (t >= centre && profile[t] > highest) highest = profile[t];
+                    }
+                    double level = own[side] ? (lowest + highest) / 2 : 0.5;
+                    double best = INFINITY, best_abs = INFINITY;
+                    for (Py_ssize_t t = 0; t + 1 < steps; t++) {
+                        double lo = profile[t] - level, hi = profile[t + 1] - level;
+                        if (lo < 0 && hi >= 0) {
+                            double x = at[t] + lo / (lo - hi) * (at[t + 1] - at[t]);
+                            if (fabs(x) < best_abs) {
+                                best_abs = fabs(x);
+                                best = x;
+                            }
+                        }
+                    }
+                    out[(v * u + side) * k + j] = isfinite(best) ? best : 0.0;
+                }
+            }
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent profile model sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"fits", fits, METH_VARARGS,
      "Reprojection residuals and Jacobians of a stack of poses, into the given arrays."},
@@ -360,6 +466,8 @@ static PyMethodDef methods[] = {
      "Each profile's rising crossing of its level nearest the centre, or inf."},
     {"lines", lines, METH_VARARGS,
      "Each side's weighted line fit: mean, deviations, principal axis, into the given arrays."},
+    {"code_crossings", code_crossings, METH_VARARGS,
+     "The modelled profiles' crossings across thin sides (border.crossing_bias), into out."},
     {"corner_covariance", corner_covariance, METH_VARARGS,
      "Each marker's corners' joint covariance from its four line fits, into the given array."},
     {NULL, NULL, 0, NULL},

@@ -32,9 +32,12 @@ covariance follow as for any side (:func:`services.fiducials.edges.refine`).
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import cv2
 import numpy as np
+
+from agent.runtime import compiled_twin
 
 #: code rows behind the border that the model includes (deeper ones lie beyond the
 #: profiles' reach and the blur)
@@ -143,6 +146,13 @@ def crossing_bias(quads: np.ndarray, cells: np.ndarray, sides: np.ndarray,
     pts = (rolled[:, None, 0] + fractions * side[:, None])[:, :, None, :] \
         - depth[:, None, :, None] * normal[:, None, None, :]  # (u, k, ROWS + 1, 2)
     _, step, a, along_step = _tag_coordinates(rolled, pts, m)
+    if NATIVE is not None:
+        c = np.ascontiguousarray
+        crossed = np.empty((2, *step.shape[:2]))
+        NATIVE.code_crossings(c(rows, np.float64), c(a[..., 1:]), c(along_step[..., 1:]),
+                              c(step[..., 0]), c(offsets, np.float64), c(own, np.uint8),
+                              SIGMA_START_PX, _PAGE_A, _PAGE_B, crossed)
+        return crossed[0] - crossed[1]
     edge_cdf = _cdf((np.arange(m + 1.0) - a[..., 1:, None])
                     * (along_step[..., 1:] / SIGMA_START_PX)[..., None])  # (u, k, ROWS, m + 1)
     # beyond the tag's neighbouring sides (a slanted row reaches them near an acute
@@ -163,6 +173,11 @@ def crossing_bias(quads: np.ndarray, cells: np.ndarray, sides: np.ndarray,
     level = np.where(own[:, None], local, 0.5)[..., None]
     crossed = _crossing(profile - level, s[..., 0, :])
     return crossed[0] - crossed[1]
+
+
+#: the compiled twin of :func:`crossing_bias` once its points are placed (``_kernels.c``;
+#: tests set it to None to run the numpy code)
+NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
 @functools.cache
