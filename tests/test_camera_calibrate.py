@@ -25,7 +25,14 @@ from services.camera.markers import (
     write_png,
 )
 from services.camera.model import CameraModel, load
-from services.camera.simulator import SceneObject, SimCamera, pose_matrix, static, write_video
+from services.camera.simulator import (
+    FAITHFUL,
+    SceneObject,
+    SimCamera,
+    pose_matrix,
+    static,
+    write_video,
+)
 
 TRUTH = CameraModel(np.array([[612.0, 0, 318.2], [0, 609.5, 242.7], [0, 0, 1]]),
                     [-0.21, 0.06, 0.0012, -0.0008, -0.01], 640, 480)
@@ -45,13 +52,15 @@ def board_poses(rng, n, distance=(0.45, 0.75), centre_only=False):
         yield T
 
 
-def render_board_views(seed, n, board=BOARD, **kw):
+def render_board_views(seed, n, board=BOARD, supersampling=FAITHFUL, **kw):
     """(frames, true corner noise in px) of ``n`` simulated views of ``board``: the noise
     of what the detector measures, the RMS of the detected corners against the true
     corners' projections over the views a calibration keeps (both axes, the unit of
-    OpenCV's RMS)."""
+    OpenCV's RMS).  Rendered as a sensor integrates light (``FAITHFUL``) by default:
+    sampled at the pixels' centres alone, the corners lock to the pixel grid by about
+    0.04 px (RMS)."""
     rng = np.random.default_rng(seed)
-    cam, target = SimCamera(TRUTH), board_target(board)
+    cam, target = SimCamera(TRUTH, supersampling=supersampling), board_target(board)
     detector = cv2.aruco.CharucoDetector(board)
     frames, views, truth = [], [], {}
     for T in board_poses(rng, n, **kw):
@@ -112,7 +121,8 @@ def test_the_detectors_own_error_is_absorbed_like_independent_noise():
     p / 2n, so the RMS stays within 10 % of that error: no marker edge reaches a corner's
     window to pull corners smoothly across a view."""
     rng, quiet_rng = np.random.default_rng(107), np.random.default_rng(0)
-    cam, quiet = SimCamera(TRUTH), SimCamera(TRUTH, read_noise=0.0, shot_noise=0.0)
+    cam = SimCamera(TRUTH, supersampling=FAITHFUL)
+    quiet = SimCamera(TRUTH, supersampling=FAITHFUL, read_noise=0.0, shot_noise=0.0)
     target, detector = board_target(BOARD), cv2.aruco.CharucoDetector(BOARD)
     own, measured, jacobians = [], [], []
     for T in board_poses(rng, 36):
@@ -137,9 +147,9 @@ def test_the_detectors_own_error_is_absorbed_like_independent_noise():
         row += len(j)
     fit = np.linalg.qr(J)[0]
     own_e, sensor_e = np.concatenate(own), np.concatenate(measured) - np.concatenate(own)
-    assert np.sqrt((sensor_e ** 2).sum(1).mean()) < 0.6 * np.sqrt((own_e ** 2).sum(1).mean())
+    assert np.sqrt((sensor_e ** 2).sum(1).mean()) < np.sqrt((own_e ** 2).sum(1).mean())
     absorbed = np.sum((fit.T @ own_e.ravel()) ** 2) / np.sum(own_e ** 2)
-    assert absorbed < J.shape[1] / J.shape[0] + 0.05
+    assert absorbed < J.shape[1] / J.shape[0] + 0.03
 
 
 def test_corner_noise_counts_the_fits_degrees_of_freedom():
@@ -178,8 +188,8 @@ def test_calibration_goals_hold_on_more_seeds(seed):
 
 def test_views_of_the_image_centre_only_need_more_views(tmp_path, capsys):
     small = charuco_board((5, 4), 0.04, 0.02)
-    frames, _ = render_board_views(seed=5, n=12, board=small, distance=(0.6, 0.7),
-                                   centre_only=True)
+    frames, _ = render_board_views(seed=5, n=12, board=small, supersampling=1,
+                                   distance=(0.6, 0.7), centre_only=True)
     path = write_video(tmp_path / "centre.avi", frames, fps=10)
     code = main(["calibrate", "camera", "--source", str(path), "--squares", "5x4", "--square",
                  "0.04", "-o", str(tmp_path / "c.yaml")])
