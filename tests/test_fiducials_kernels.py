@@ -1,7 +1,7 @@
 """The fiducial tracker's compiled twin (services/fiducials/_kernels.c) against the numpy
-code it mirrors: the fits and Gauss-Newton steps, the side lines' fits and the corners'
-covariance and the code cells' shift of thin sides' crossings to rounding, the edge
-crossings to the bit, and the whole tracker's estimates on rendered frames."""
+code it mirrors: to rounding the fits, the Gauss-Newton and weighted steps, the side lines'
+fits, the corners' covariance and the code cells' shift of thin sides' crossings; the edge
+crossings to the bit; and the whole tracker's estimates on rendered frames."""
 
 from __future__ import annotations
 
@@ -54,12 +54,16 @@ def test_compiled_fits_and_steps_agree_with_numpy(numpy_only, n):
     # an object whose points all lie at its origin: its rotation is not fixed, the
     # normal equations are singular and neither takes a step
     obj[3] = 0.0
+    root = np.random.default_rng(n + 1).normal(size=(9, 2 * n, 2 * n))
+    information = root @ np.swapaxes(root, 1, 2) + 2 * n * np.eye(2 * n)
     compiled = pose.fits(obj, img, K, R0, t0)
     stepped, turned = pose.gauss_newton(obj, img, K, compiled)
+    weighed = pose.reweigh(stepped, information)
     numpy_only()
     plain = pose.fits(obj, img, K, R0, t0)
     plain_stepped, plain_turned = pose.gauss_newton(obj, img, K, plain)
-    for a, b in ((compiled, plain), (stepped, plain_stepped)):
+    plain_weighed = pose.reweigh(plain_stepped, information)
+    for a, b in ((compiled, plain), (stepped, plain_stepped), (weighed, plain_weighed)):
         for field in ("R", "t", "residual", "jacobian"):
             np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-11,
                                        atol=1e-11 * np.abs(getattr(b, field)).max())

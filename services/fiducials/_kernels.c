@@ -219,6 +219,37 @@ static PyObject *crossings(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* moved(R, t, delta, R_out, t_out): pose.py's _moved, a stack of poses (R (m, 3, 3), t
+ * (m, 3)) stepped by delta (m, 6) [position, rotation]: exp(phi) R, t + dp. */
+static PyObject *moved(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 5};
+    if (!PyArg_ParseTuple(args, "y*y*y*w*w*", &s.b[0], &s.b[1], &s.b[2], &s.b[3], &s.b[4]))
+        return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double), m = s.b[1].len / (3 * d);
+    int ok = s.b[0].len == 9 * m * d && s.b[1].len == 3 * m * d && s.b[2].len == 6 * m * d
+             && s.b[3].len == s.b[0].len && s.b[4].len == s.b[1].len;
+    if (ok) {
+        const double *R = s.b[0].buf, *t = s.b[1].buf, *delta = s.b[2].buf;
+        double *R_out = s.b[3].buf, *t_out = s.b[4].buf;
+        for (Py_ssize_t i = 0; i < m; i++) {
+            double E[9];
+            const double *Ri = R + 9 * i, *di = delta + 6 * i;
+            exp_rotation(di + 3, E);
+            for (int a = 0; a < 3; a++) {
+                for (int c = 0; c < 3; c++)
+                    R_out[9 * i + 3 * a + c] = E[3 * a] * Ri[c] + E[3 * a + 1] * Ri[3 + c]
+                                               + E[3 * a + 2] * Ri[6 + c];
+                t_out[3 * i + a] = t[3 * i + a] + di[a];
+            }
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent stack sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 /* lines(points, w, mean, dev, direction): per side (its k weighted points, x y), edges.py's
  * _lines: the weighted mean, the points' deviations from it, the principal axis. */
 static PyObject *lines(PyObject *self, PyObject *args) {
@@ -462,6 +493,8 @@ static PyMethodDef methods[] = {
      "Reprojection residuals and Jacobians of a stack of poses, into the given arrays."},
     {"gauss_newton", gauss_newton, METH_VARARGS,
      "Undamped Gauss-Newton steps of a stack of poses, in place, and their last fits."},
+    {"moved", moved, METH_VARARGS,
+     "A stack of poses stepped by [position, rotation] deltas, into the given arrays."},
     {"crossings", crossings, METH_VARARGS,
      "Each profile's rising crossing of its level nearest the centre, or inf."},
     {"lines", lines, METH_VARARGS,

@@ -161,6 +161,11 @@ _SKEW_ROW, _SKEW_COL, _SKEW_AXIS = np.array([1, 0, 2]), np.array([0, 2, 1]), np.
 
 def _moved(fit: Fits, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The poses of ``fit`` stepped by ``delta`` (m, 6) [position, rotation]."""
+    if NATIVE is not None and len(delta):
+        c = _contiguous
+        R, t = np.empty(fit.R.shape), np.empty(fit.t.shape)
+        NATIVE.moved(c(fit.R), c(fit.t), c(delta), R, t)
+        return R, t
     return exp_rotation(delta[:, 3:]) @ fit.R, fit.t + delta[:, :3]
 
 
@@ -185,8 +190,8 @@ def gauss_newton(obj: np.ndarray, img: np.ndarray, K: np.ndarray, fit: Fits,
     return fit, turned
 
 
-#: the compiled twin of :func:`fits` and :func:`gauss_newton` (``_kernels.c``; tests set it
-#: to None to run the numpy code)
+#: the compiled twin of :func:`fits`, :func:`gauss_newton` and the step of :func:`reweigh`
+#: (``_kernels.c``; tests set it to None to run the numpy code)
 NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
