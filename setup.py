@@ -43,11 +43,13 @@ class BuildExt(build_ext):
 
 def twin(name: str, contract: bool = True) -> Extension:
     """The optional kernel ``name`` (a dotted module, its source ``name``.c), built with the
-    hash of that source (the same as :func:`schemas.native.source_hash`); ``contract=False``
-    compiles it without floating-point contraction."""
+    hash of that source (the same as :func:`schemas.native.source_hash`) and the module init
+    all twins share (``schemas/_twin.h``); ``contract=False`` compiles it without
+    floating-point contraction."""
     source = name.replace(".", "/") + ".c"
     digest = hashlib.sha256((Path(__file__).parent / source).read_bytes()).hexdigest()
-    return Extension(name, [source], optional=True,
+    return Extension(name, [source], optional=True, include_dirs=["schemas"],
+                     depends=["schemas/_twin.h"],
                      define_macros=[("UMA_SOURCE_HASH", f'"{digest}"')],
                      extra_compile_args=[] if contract else ["-ffp-contract=off"])
 

@@ -10,6 +10,7 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include "_twin.h"
 #include <math.h>
 #include <string.h>
 
@@ -219,17 +220,4 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_wire", NULL, -1, methods};
 
-/* setup.py defines the SHA-256 of this file; Python uses the module only where it matches
-   the source beside it (schemas/native.py), so a build older than its source is not run */
-#ifndef UMA_SOURCE_HASH
-#define UMA_SOURCE_HASH ""
-#endif
-
-PyMODINIT_FUNC PyInit__wire(void) {
-    PyObject *m = PyModule_Create(&module);
-    if (m != NULL && PyModule_AddStringConstant(m, "SOURCE_HASH", UMA_SOURCE_HASH) < 0) {
-        Py_DECREF(m);
-        return NULL;
-    }
-    return m;
-}
+PyMODINIT_FUNC PyInit__wire(void) { return uma_twin_module(&module); }
