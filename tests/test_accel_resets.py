@@ -12,6 +12,7 @@ import pytest
 
 from agent import geometry as geo
 from schemas.codec import encode_measurement, encode_pose
+from services.accel_rig.evaluate import _stream
 from services.accel_rig.integrator import MAX_OMEGA_RAD_S, DeadReckoner
 from services.accel_rig.pose_rates import AbsolutePoses
 from services.accel_rig.service import LiveRig
@@ -28,6 +29,10 @@ from services.sim.world import SIM_EPOCH_NS, sim_time_s
 RATE = 300.0
 FUSED_POS_STD = 0.0005  # m, a noisy fused head pose
 FUSED_ROT_STD = 0.001  # rad
+#: Spawn keys of a seed's random streams here (``evaluate._stream``: apart from the
+#: trajectory's ``HeadTrajectory(seed)``, every other integer-seeded stream and the eval's
+#: keys): the rig's sensor noise and the noise of the fused head poses that reset it.
+_SENSOR_NOISE, _RESET_NOISE = 100, 101
 
 
 class _Out:
@@ -71,9 +76,10 @@ def _run_fused_stream(reset_every_s: float, with_covariance: bool, lag_samples: 
     device = default_device()
     traj = HeadTrajectory(seed)
     t0 = 30.0
-    sim = simulate(traj, seconds, RATE, seed=seed + 10, t0=t0, sensor=device)
+    sim = simulate(traj, seconds, RATE, seed=_stream(seed, _SENSOR_NOISE), t0=t0,
+                   sensor=device)
     live = _live(reset_every_s)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_stream(seed, _RESET_NOISE))
     t_ns = SIM_EPOCH_NS + np.round(sim.t * 1e9).astype(np.int64)
     latency_ns = round(sim.latency_s * 1e9)
     heads = [_noisy_head(traj, int(t - latency_ns), rng, with_covariance) for t in t_ns]
@@ -112,15 +118,15 @@ def test_resets_at_300_hz_from_a_noisy_pose_stream_stay_finite_and_honest(with_c
 
 @pytest.mark.slow
 def test_resets_once_a_second_from_a_300_hz_pose_stream_stay_finite_and_honest():
-    """The default ``--reset-every 1``: a second of dead reckoning from rates fitted to the
-    300 Hz poses (the three-point difference made them diverge within two seconds)."""
+    """The default ``--reset-every 1``: a second of dead reckoning after each reset, from
+    rates fitted to a full window of the 300 Hz poses."""
     # the worst errors these seeds give, each after one of the resets once a second from
     # rates fitted to a full window of poses (0.066 rad/s of angular velocity std).  The
-    # first reset used to fit the first three poses, 3.3 ms apart (0.77 rad/s std): seeds
-    # 1-4 then reached 0.47 m / 26.4 deg, 0.37 / 8.1, 3.19 / 142.5 and 2.25 / 89.6 within
-    # that first second.  The runs are deterministic; 1.5x leaves room for another noise
-    # stream of the simulator, not for a reset that goes wrong
-    worst = {1: (0.131, 4.2), 2: (0.152, 5.4), 3: (0.376, 16.4), 4: (0.233, 8.7)}
+    # runs are deterministic: 1.5x leaves room for rounding (another platform's linear
+    # algebra, the compiled step), not for a reset that goes wrong.  Another noise draw
+    # moves a seed's worst error by up to 6 times, so a change of the noise streams
+    # needs this table measured again
+    worst = {1: (0.214, 8.2), 2: (0.266, 8.0), 3: (0.186, 6.1), 4: (0.153, 7.5)}
     for seed, (pos_m, ori_deg) in worst.items():
         live, err = _run_fused_stream(1.0, True, lag_samples=2, seed=seed)
         assert len(live.pose_out.poses) > 1150 and live.counts["resets"] == 4
@@ -139,7 +145,10 @@ def test_a_first_reset_from_a_fast_pose_stream_waits_for_a_full_fit_window():
     assert 10 <= waited <= 16 and live.counts["resets"] == 1
     first = sim_time_s(live.pose_out.poses[0][0]) - sim_time_s(SIM_EPOCH_NS) - 30.0
     assert 0.05 <= first < 0.07, first
-    assert err[:, 1].max() < 1.0, err.max(axis=0)
+    # the rest of the 0.2 s after a full window's reset turns by 1.0 deg at the median over
+    # seeds 1-10 and 101-120 (1.7 at worst, 1.04 here); after the first three poses' reset
+    # by 2.4-22 deg (16 here)
+    assert err[:, 1].max() < 2.0, err.max(axis=0)
 
 
 def test_rates_fitted_to_fast_noisy_poses_are_accurate_and_honest():
