@@ -471,45 +471,56 @@ def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
 
 
 def test_side_offsets_move_the_corners_as_their_lines_do():
-    """The corners' covariance from the four sides' offsets is the corners' scatter when
-    the sides' lines are moved by such offsets and intersected again; the
-    sides with narrow cells across them (a tilted tag's long ones) are the less certain,
-    and so is a side along a pixel axis (its edge points share one sub-pixel phase)."""
+    """The corners' covariance from the four sides' offsets and turns is the corners'
+    scatter when the sides' lines are moved (their two ends by the offset, each end by
+    the turn the other way) and intersected again; the sides with narrow cells across
+    them (a tilted tag's long ones) are the less certain, and so is a side along a pixel
+    axis (its edge points share one sub-pixel phase)."""
     quad = corners_of(facing((1.1, 0.0, 0.0), (0.0, 0.0, 1.6)))  # tilted 63 degrees
     cov = side_offset_covariance(quad[None], quad[None], 8)[0]
     centre = quad.mean(axis=0)
-    lines = []
+    normals = []
     for k in range(4):
         a, b = quad[k], quad[(k + 1) % 4]
         normal = np.array([b[1] - a[1], a[0] - b[0]]) / np.linalg.norm(b - a)
-        normal *= np.sign(normal @ ((a + b) / 2 - centre))
-        lines.append((normal, normal @ a))
+        normals.append(normal * np.sign(normal @ ((a + b) / 2 - centre)))
     side = np.roll(quad, -1, axis=0) - quad
     length = np.linalg.norm(side, axis=1)
-    across = (np.roll(length, 1) + np.roll(length, -1)) / 16
+    across = edges.cell_widths(quad[None], 8)[0]
     tau = fiducial_tracker.SIDE_A * np.exp(-across / fiducial_tracker.SIDE_SCALE_PX)
     rho = fiducial_tracker.SIDE_CORRELATION
     sweep = edges.SPAN * np.abs(side).min(axis=1)
-    locking = (fiducial_tracker.LOCK_PX * np.sinc(sweep)) ** 2 / 2
+    own = ((fiducial_tracker.LOCK_PX * np.sinc(sweep)) ** 2 / 2
+           + (fiducial_tracker.EDGE_SHARE * across) ** 2)
+    # pixel locking's slope along the span, carried out to the corners
+    x = np.pi * np.maximum(sweep, 1e-6)
+    slope = 12 * (np.sin(x) - x * np.cos(x)) / (2 * x ** 2) / (2 * edges.SPAN)
+    turns = (fiducial_tracker.LOCK_PX * slope) ** 2 / 2
     rng = np.random.default_rng(2)
+    n = 20000
     shifts = rng.multivariate_normal(
-        np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)) + np.diag(locking),
-        20000)
-    moved = np.empty((len(shifts), 4, 2))
+        np.zeros(4), np.outer(tau, tau) * (rho + (1 - rho) * np.eye(4)) + np.diag(own), n)
+    turned = rng.normal(size=(n, 4)) * np.sqrt(turns)
+    starts = quad + (shifts - turned)[..., None] * np.array(normals)  # (n, 4, 2)
+    ends = np.roll(quad, -1, axis=0) + (shifts + turned)[..., None] * np.array(normals)
+    moved = np.empty((n, 4, 2))
     for k in range(4):  # corner k: side k - 1's end, side k's start
-        (n0, d0), (n1, d1) = lines[k - 1], lines[k]
-        moved[:, k] = np.linalg.solve(np.array([n0, n1]), np.stack(
-            [d0 + shifts[:, k - 1], d1 + shifts[:, k]])).T
-    scatter = np.cov((moved - quad).reshape(len(shifts), 8).T)
+        p, r = starts[:, k - 1], ends[:, k - 1] - starts[:, k - 1]
+        q, s = starts[:, k], ends[:, k] - starts[:, k]
+        u = ((q - p)[:, 0] * s[:, 1] - (q - p)[:, 1] * s[:, 0]) / (
+            r[:, 0] * s[:, 1] - r[:, 1] * s[:, 0])
+        moved[:, k] = p + u[:, None] * r
+    scatter = np.cov((moved - quad).reshape(n, 8).T)
     assert np.allclose(scatter, cov, atol=0.05 * np.abs(cov).max()), (scatter, cov)
-    # corner k lies on side k: its offset across that side is the side's own
-    across_std = np.array([np.sqrt(n @ cov[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ n)
-                           for k, (n, _) in enumerate(lines)])
+    turn = cv2.Rodrigues(np.array([0.0, 0.0, 0.2]))[0][:2, :2]
+    turned = side_offset_covariance(quad[None], quad[None] @ turn.T, 8)[0]
+    assert np.all(np.diag(turned) < np.diag(cov))  # no side along a pixel axis any more
+    # corner k lies on side k: its offset across that side is the side's own; with no
+    # side along a pixel axis, the long sides' (narrow cells across them) are the larger
+    across_std = np.array([np.sqrt(nk @ turned[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ nk)
+                           for k, nk in enumerate(normals)])
     order = np.argsort(length)
     assert across_std[order[2:]].min() > 1.5 * across_std[order[:2]].max()
-    turned = side_offset_covariance(quad[None], quad[None] @ cv2.Rodrigues(
-        np.array([0.0, 0.0, 0.2]))[0][:2, :2].T, 8)[0]
-    assert np.all(np.diag(turned) < np.diag(cov))  # no side along a pixel axis any more
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):

@@ -12,10 +12,10 @@
   lone markers all at once);
 * **covariance**: ``(Jᵀ Σ⁻¹ J)⁻¹`` with ``Σ`` the corners' joint covariance from the four
   edge lines they are the intersections of (:func:`edges.refine`: their fits' scatter,
-  length and angle; two corners of a side move with its line), times ``EDGE_CORRELATION``
-  (neighbouring edge points share their noise through the blur), plus what each side's
+  length and angle; two corners of a side move with its line), plus what each side's
   fit cannot show: its line's offset across it, larger where the cells across that side
-  are narrow, the four sides' together (:func:`side_offset_covariance`).  So it grows when
+  are narrow, the four sides' together, and its pixel locking's offset and turn
+  (:func:`side_offset_covariance`).  So it grows when
   the marker is far, blurred, tilted or badly lit, corner by corner and side by side;
 * **corner noise for the ambiguity judgement**: a separate, cautious figure: per body,
   the residuals of its last ``POOL_FRAMES`` fits pooled (``σ² = Σ RSS / Σ dof``; the
@@ -69,39 +69,38 @@ FULL_DOF = 20
 DEFAULT_PIXEL_STD = 0.3
 FLOOR_A = 1.2
 FLOOR_B = 1.58
-#: the edge points along a side share their noise through the blur and the bilinear
-#: sampling: the twenty of a side count as about 20 / ``EDGE_CORRELATION`` independent
-#: ones, so the edge fits' corner covariance is this many times what independent points
-#: give (fitted on seeds 1-10 of ``uma eval fiducials``: NEES inside its band at 0.5-1 m
-#: on 9 of 10 seeds with 1.6, 2 of 10 with 3, where the means were 2.6-4.9)
-EDGE_CORRELATION = 1.6
 #: what a side's edge fit cannot show: the line's offset across the side errs by about
 #: ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px beyond its fit's scatter, ``across`` the
-#: width (px) of the cells across that side (the black border inside it, the white quiet
-#: zone outside it, a cell each).  Where they are narrow against the blur, the profile's
-#: dark and bright ends are not the print's black and white and its mid-level crossing
-#: moves; the offsets of a tag's four sides err together (``SIDE_CORRELATION``: the tag
-#: looks smaller or larger as a whole).  Per side, not per tag: a tilted tag's long sides
-#: have narrow cells across them and err, its short sides have wide ones and do not.
-#: What the code's cells behind the border add, which also turned the line, is
-#: corrected (:func:`edges.refine`): this is what remains, and no turn does
-SIDE_A = 0.69
-SIDE_SCALE_PX = 0.52
+#: width (px) of the cells across that side (:func:`edges.cell_widths`: the black border
+#: inside it, the white quiet zone outside it, a cell each).  Where they are narrow
+#: against the blur, the profile's dark and bright ends are not the print's black and
+#: white and its mid-level crossing moves; the offsets of a tag's four sides err together
+#: (``SIDE_CORRELATION``: the tag looks smaller or larger as a whole).  Per side, not per
+#: tag: a tilted tag's long sides have narrow cells across them and err, its short sides
+#: have wide ones and do not.  What the code's cells behind the border add is corrected
+#: (:func:`edges.refine`): this is what remains
+SIDE_A = 0.080
+SIDE_SCALE_PX = 1.07
 SIDE_CORRELATION = 1.0
 #: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
-#: locking) by up to ``LOCK_PX``: along a side that sweeps many pixels across its axis the
+#: locking), by ``LOCK_PX * sin(2π phase)`` (on the eval's frames 0.04-0.06 px where a
+#: side lies within a third of a pixel of an axis, its sign following the phase, on seeds
+#: 1-10 and 101-110 alike): along a side that sweeps many pixels across its axis the
 #: phases vary and the error shows in the fit's scatter, but the points of a side nearly
 #: parallel to a pixel axis share one phase and their error moves the whole line, by
-#: ``LOCK_PX / sqrt(2) * sinc(sweep)`` (the error averaged over the phases the side's
-#: fitted span sweeps, ``sweep`` px; independent from side to side).  These four figures
-#: were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum likelihood, the errors
-#: of the four corners against the truth of the 577 tags the image fit leaves to the edge
-#: fits, their crossings corrected up to 3.5 px (0.691 px, 0.524 px, 1.0, 0.046 px, and
-#: a turn of each end of 0.0 px fitted beside them: a side's offset 0.015 px where its
-#: cells are 2 px across; before the code's part was corrected 0.047 px, and each end's
-#: turn 0.051 px); fresh seeds 101-110 alone give an offset of 0.010 px there and a turn
-#: of 0.023 px.  The corners' mean 8-dof NEES 6.4 (fresh 6.8)
+#: ``LOCK_PX / sqrt(2) * sinc(sweep)``, and turns it (:func:`_locked_slope`), ``sweep``
+#: the pixels the side's fitted span sweeps across that axis, in the image (independent
+#: from side to side, offset and turn uncorrelated over the phase).  Beyond these the
+#: sides' offsets err by ``EDGE_SHARE`` of the cells' width across them, independently:
+#: what grows with the tag's size in the image (the near tags' corners at 7-10 px cells
+#: erred 1.2-1.8 times their edge fits' covariance, those at 2-5 px as it says).  With them
+#: the edge fits' own covariance needs no factor (fitted beside them it came out 0.96).
+#: The five figures were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum
+#: likelihood, the errors of the four corners against the truth of the 577 tags the image
+#: fit leaves to the edge fits (a side's offset 0.013 px where its cells are 2 px across).
+#: The corners' mean 8-dof NEES 7.8 (fresh seeds 101-110, nothing fitted there, 8.1)
 LOCK_PX = 0.046
+EDGE_SHARE = 0.00095
 #: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
 #: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
 #: together, and averaging them does not average it away.  On the eval's bundle scenes
@@ -213,31 +212,62 @@ def _covered_spread(chosen: pose.Solution, solutions: list[pose.Solution],
 def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, detected: np.ndarray,
                       modules: int) -> np.ndarray:
     """The joint covariances (m, 8, 8) of the corners (m, 4, 2, ideal pixels) of ``m``
-    markers ``modules`` cells wide, detected at ``detected`` (m, 4, 2, the image's pixels),
-    from their edge fits' (:func:`edges.refine`): those times ``EDGE_CORRELATION``, plus
-    the four sides' offsets that the fits cannot show (:func:`side_offset_covariance`)."""
-    return EDGE_CORRELATION * edge_fit + side_offset_covariance(corners, detected, modules)
+    markers ``modules`` cells wide, at ``detected`` in the image's pixels (m, 4, 2: where
+    the sides' pixel locking is), from their edge fits' (:func:`edges.refine`), plus the
+    four sides' offsets and turns that the fits cannot show
+    (:func:`side_offset_covariance`)."""
+    return edge_fit + side_offset_covariance(corners, detected, modules)
 
 
 def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
-    at ``SIDE_CORRELATION``; and each by its pixel locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``
-    (``sweep``: how many pixels across its nearer image axis the side's fitted span
-    covers in the image, ``detected``).  Corner k is where side k - 1 ends and side k
-    starts: when side k moves across itself by ``o``, corner k slides along side k - 1
-    by ``o / sin`` of the angle between them, and when side k - 1 moves, back along side
-    k (the sides' outward directions all flip with the quad's orientation, which the
-    covariance does not see)."""
+    at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
+    locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it (``sweep``: how many
+    pixels across its nearer image axis the side's fitted span covers in the image,
+    ``detected``: the refined corners there, not the detector's whole pixels, since a
+    pixel's difference in ``sweep`` is the whole term).  Corner k is where side k - 1
+    ends and side k starts: when side k moves across itself by ``o``, corner k slides
+    along side k - 1 by ``o / sin`` of the angle between them, and when side k - 1
+    moves, back along side k (the sides' outward directions all flip with the quad's
+    orientation, which the covariance does not see)."""
     shift, narrow = _side_moves(corners, modules)
+    turn = _side_turns(corners)
     in_image = np.asarray(detected, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = SIDE_A * narrow
-    own = (1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
+    own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
+           + (EDGE_SHARE * edges.cell_widths(corners, modules)) ** 2)
+    tilt = LOCK_PX ** 2 / 2 * _locked_slope(sweep) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
     return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
-            + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2))
+            + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
+            + (turn * tilt[:, None, :]) @ np.swapaxes(turn, -1, -2))
+
+
+def _locked_slope(sweep: np.ndarray) -> np.ndarray:
+    """How far (per unit of locking amplitude) pixel locking turns a side whose fitted span
+    sweeps ``sweep`` px across its nearer axis: the crossing's phase runs linearly along
+    the span, so its error ``sin(2π(φ + sweep·u))`` (u from -1/2 to 1/2) has a slope the
+    line fit takes up, ``12 ∫ u sin(2π sweep u) du``, moving the span's ends by half that
+    and the corners, ``1 / SPAN`` times farther out, by ``1 / (2 SPAN)`` of it (zero for a
+    side exactly along an axis, largest at about half a pixel, gone once the phases
+    average out over several)."""
+    x = np.pi * np.maximum(sweep, 1e-6)
+    return 12 * (np.sin(x) - x * np.cos(x)) / (2 * x ** 2) / (2 * edges.SPAN)
+
+
+def _side_turns(corners: np.ndarray) -> np.ndarray:
+    """How the corners (m, 8) of ``corners`` (m, 4, 2) move when each side (4) turns about
+    its middle, its end moving outwards by 1 px and its start inwards (m, 8, 4)."""
+    corners = np.asarray(corners, np.float64)
+    side = corners[:, _NEXT] - corners
+    along = side / np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)[..., None]
+    before = along[:, _PREV]
+    sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
+    turn = -along[..., None] / sine * _ENDING - before[..., None] / sine * _STARTING
+    return turn.reshape(-1, 8, 4)
 
 
 def tag_scale(corners: np.ndarray, modules: int) -> np.ndarray:
@@ -256,7 +286,7 @@ def _side_moves(corners: np.ndarray, modules: int) -> tuple[np.ndarray, np.ndarr
     side = corners[:, _NEXT] - corners
     length = np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)
     along = side / length[..., None]
-    narrow = np.exp((length[:, _PREV] + length[:, _NEXT]) * (-0.5 / modules / SIDE_SCALE_PX))
+    narrow = np.exp(edges.cell_widths(corners, modules) / -SIDE_SCALE_PX)
     before = along[:, _PREV]
     sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
     by_ending = -along[..., None] / sine * _ENDING  # (m, 4 corners, 2, 4 sides)
@@ -397,7 +427,10 @@ class FiducialTracker:
         detected = np.asarray(corners, np.float64).reshape(-1, 4, 2)
         cells = self._cells[ids.ravel()]
         ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells)
-        cov = corner_covariance(cov, ideal, detected, self._modules)
+        # the refined corners in the image's pixels: the distortion's offset is smooth, the
+        # detector's corner a pixel away has the same
+        in_image = ideal + detected - self.camera.ideal_pixels(detected).reshape(detected.shape)
+        cov = corner_covariance(cov, ideal, in_image, self._modules)
         ideal, cov, _ = image_fit.refine(gray, ideal, cov,
                                          edges.cell_widths(ideal, self._modules), cells,
                                          self.camera)
