@@ -13,9 +13,9 @@
  * numpy's matrix products, so they agree to rounding (about 1e-15 relative), not to the
  * bit; the edge crossings are the numpy code's operations on the same numbers and agree to
  * the bit (compiled without floating-point contraction); the modelled profiles' CDFs take
- * the C library's tanh, numpy's may round differently, to about 1e-16.  The interpreter
- * was the cost: a frame's ten tags spent about 0.4 ms in some hundred numpy calls on a few
- * hundred numbers.  Optional: when this does not build, pose.py, edges.py and border.py run
+ * the C library's tanh, numpy's may round differently, to about 1e-16.  Why compiled: in
+ * numpy a frame's ten tags spend about 0.4 ms in some hundred calls on a few hundred
+ * numbers, the interpreter's cost rather than the arithmetic's.  Optional: when this does not build, pose.py, edges.py and border.py run
  * in pure Python. */
 
 #define PY_SSIZE_T_CLEAN

@@ -266,12 +266,12 @@ def _code_corrected(edge: np.ndarray, quads: np.ndarray, sides: tuple[np.ndarray
     than :data:`CODE_CELL_PX` (and not modelled, :data:`MODEL_CELL_PX`) moved back by
     what the code's cells behind the border move their crossings
     (:func:`border.crossing_bias`, the tags' ``cells`` known from their codes; ``own``:
-    the sides crossed at their profiles' own middles).  Uncorrected, where the cells are
-    1.7-2.5 px across (seeds 1-10 of ``uma eval fiducials``) a side's offset followed
-    the white share of the code cells behind it (correlation 0.9, 0.2 px from all black
-    to all white at 1.7-2 px) and its turn their slope along it, so each tag's code set
-    its own error: the sides' offsets were 0.047 / 0.030 px RMS at 1.7-2.2 / 2.2-2.8 px,
-    corrected 0.018 / 0.014.  ``quads``: those the profiles were placed on; ``sides``:
+    the sides crossed at their profiles' own middles).  Why: where the cells are 1.7-2.5 px
+    across (seeds 1-10 of ``uma eval fiducials``) a side's crossing follows the white share
+    of the code cells behind it (correlation 0.9, 0.2 px from all black to all white at
+    1.7-2 px) and its turn their slope along it, so each tag's code sets its own error:
+    the sides' offsets are 0.047 / 0.030 px RMS at 1.7-2.2 / 2.2-2.8 px without this,
+    0.018 / 0.014 with it.  ``quads``: those the profiles were placed on; ``sides``:
     :func:`_sides` of them; ``reach`` (n, 4, 1) px, the profiles'."""
     _, _, _, normal, across = sides
     thin = (across < CODE_CELL_PX) & (across >= MODEL_CELL_PX)

@@ -38,13 +38,13 @@ import numpy as np
 from services.camera.model import CameraModel
 
 #: a tag is fitted when its cells are narrower than this (px) across one of its sides: on
-#: the eval's frames 1.9 px did as well as 2.2 in the cells where AprilTag 3 was ahead,
-#: and fits 7 of the 1,674 tags of ``bench/bench_fiducials.py`` where 2.2 fits 30; at 1.7
-#: two seeds' NEES left their band
+#: the eval's frames 1.9 px is as accurate as 2.2 in the bins where the edge fits alone
+#: fall behind AprilTag 3, and fits 7 of the 1,674 tags of ``bench/bench_fiducials.py``
+#: where 2.2 fits 30; at 1.7 two seeds' NEES leave their band
 CELL_PX = 1.9
 #: the fit's own covariance of the corners times this: what the pixels' noise gives, and
 #: what the model misses (on seeds 1-10 of ``uma eval fiducials``, the fitted corners'
-#: mean 8-dof NEES against the truth was 9.5-11 without it)
+#: mean 8-dof NEES against the truth is 9.5-11 without it)
 COVARIANCE_SCALE = 1.3
 #: each pixel the mean of this many points each way over its area
 SUBSAMPLES = 2
