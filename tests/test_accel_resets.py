@@ -12,7 +12,6 @@ import pytest
 
 from agent import geometry as geo
 from schemas.codec import encode_measurement, encode_pose
-from services.accel_rig.evaluate import _stream
 from services.accel_rig.integrator import MAX_OMEGA_RAD_S, DeadReckoner
 from services.accel_rig.pose_rates import AbsolutePoses
 from services.accel_rig.service import LiveRig
@@ -29,10 +28,16 @@ from services.sim.world import SIM_EPOCH_NS, sim_time_s
 RATE = 300.0
 FUSED_POS_STD = 0.0005  # m, a noisy fused head pose
 FUSED_ROT_STD = 0.001  # rad
-#: Spawn keys of a seed's random streams here (``evaluate._stream``: apart from the
-#: trajectory's ``HeadTrajectory(seed)``, every other integer-seeded stream and the eval's
-#: keys): the rig's sensor noise and the noise of the fused head poses that reset it.
+#: Spawn keys of a seed's random streams here (:func:`_stream`): the rig's sensor noise and
+#: the noise of the fused head poses that reset it.
 _SENSOR_NOISE, _RESET_NOISE = 100, 101
+
+
+def _stream(seed: int, key: int) -> np.random.SeedSequence:
+    """The seed's random stream ``key``: a spawn key keeps it apart from the trajectory's
+    ``HeadTrajectory(seed)`` and every other stream seeded by a plain integer, so the
+    noise does not repeat the trajectory's draws."""
+    return np.random.SeedSequence(seed, spawn_key=(key,))
 
 
 class _Out:
