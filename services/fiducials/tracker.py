@@ -232,8 +232,7 @@ def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
     along side k - 1 by ``o / sin`` of the angle between them, and when side k - 1
     moves, back along side k (the sides' outward directions all flip with the quad's
     orientation, which the covariance does not see)."""
-    shift, narrow = _side_moves(corners, modules)
-    turn = _side_turns(corners)
+    shift, turn, narrow = _side_moves(corners, modules)
     in_image = np.asarray(detected, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = SIDE_A * narrow
@@ -258,40 +257,30 @@ def _locked_slope(sweep: np.ndarray) -> np.ndarray:
     return 12 * (np.sin(x) - x * np.cos(x)) / (2 * x ** 2) / (2 * edges.SPAN)
 
 
-def _side_turns(corners: np.ndarray) -> np.ndarray:
-    """How the corners (m, 8) of ``corners`` (m, 4, 2) move when each side (4) turns about
-    its middle, its end moving outwards by 1 px and its start inwards (m, 8, 4)."""
-    corners = np.asarray(corners, np.float64)
-    side = corners[:, _NEXT] - corners
-    along = side / np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)[..., None]
-    before = along[:, _PREV]
-    sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
-    turn = -along[..., None] / sine * _ENDING - before[..., None] / sine * _STARTING
-    return turn.reshape(-1, 8, 4)
-
-
 def tag_scale(corners: np.ndarray, modules: int) -> np.ndarray:
     """How the corners (m, 8) of ``m`` markers move with the tag-wide part of their
     sides' offsets, one standard deviation (:func:`side_offset_covariance`'s first term
     is its outer product)."""
-    shift, narrow = _side_moves(corners, modules)
+    shift, _, narrow = _side_moves(corners, modules)
     return np.sqrt(SIDE_CORRELATION) * (shift * (SIDE_A * narrow)[:, None, :]).sum(axis=-1)
 
 
-def _side_moves(corners: np.ndarray, modules: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per marker of ``corners`` (m, 4, 2): how its corners (8) move when each side
-    (4) moves outwards by 1 px (m, 8, 4), and ``exp(-across / SIDE_SCALE_PX)`` per side
-    (m, 4)."""
+def _side_moves(corners: np.ndarray, modules: int,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per marker of ``corners`` (m, 4, 2): how its corners (8) move when each side (4)
+    moves outwards by 1 px (m, 8, 4), and when each side turns about its middle, its end
+    moving outwards by 1 px and its start inwards (m, 8, 4); and ``exp(-across /
+    SIDE_SCALE_PX)`` per side (m, 4)."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
-    length = np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)
-    along = side / length[..., None]
+    along = side / np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)[..., None]
     narrow = np.exp(edges.cell_widths(corners, modules) / -SIDE_SCALE_PX)
     before = along[:, _PREV]
     sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
     by_ending = -along[..., None] / sine * _ENDING  # (m, 4 corners, 2, 4 sides)
     by_starting = before[..., None] / sine * _STARTING
-    return (by_ending + by_starting).reshape(-1, 8, 4), narrow
+    return ((by_ending + by_starting).reshape(-1, 8, 4),
+            (by_ending - by_starting).reshape(-1, 8, 4), narrow)
 
 
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
