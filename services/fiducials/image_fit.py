@@ -151,7 +151,7 @@ class _Scene:
     def __init__(self, obs: np.ndarray, fitted: np.ndarray, support: np.ndarray,
                  points: np.ndarray, centre: np.ndarray, classes: np.ndarray,
                  start: np.ndarray) -> None:
-        self.obs, self.fitted, self.support = obs, fitted, support
+        self.obs, self.fitted = obs, fitted
         self._supported = np.flatnonzero(support)
         self._mean = np.full(SUBSAMPLES * SUBSAMPLES, 1.0 / SUBSAMPLES ** 2)
         self.x, self.y = points[:, 0], points[:, 1]
@@ -163,6 +163,10 @@ class _Scene:
     @staticmethod
     def around(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray,
                camera: CameraModel) -> _Scene | None:
+        """The scene of the tag at ``corners`` (4, 2, ideal pixels) with ``cells`` (m, m)
+        in ``gray``: the pixels within its margin fitted, those a blur's reach around them
+        modelled; None where the window, cut to the image, is too small or holds too few
+        pixels to fit."""
         m = cells.shape[0]
         centre = corners.mean(0)
         to_cells = _homography(corners - centre, _square(m))
@@ -210,13 +214,15 @@ class _Scene:
         # the points' smoothing in cells: |d(u, v)/d(x, y)| times SMOOTH_PX
         su = np.hypot(g[0] - u * g[6], g[1] - u * g[7]) * (iw * SMOOTH_PX)
         sv = np.hypot(g[3] - v * g[6], g[4] - v * g[7]) * (iw * SMOOTH_PX)
-        au, dau, k0 = _memberships(u, np.abs(su), self.m)
-        av, dav, l0 = _memberships(v, np.abs(sv), self.m)
+        au, dau, k0 = _axis_shares(u, np.abs(su), self.m)
+        av, dav, l0 = _axis_shares(v, np.abs(sv), self.m)
         width = self.classes.shape[1]
         cls = self.classes.ravel().take((l0 * width + k0)[None] + (_J * width + _I)[:, None])
         return u, v, iw, cls, au[_I] * av[_J], dau[_I] * av[_J], au[_I] * dav[_J]
 
     def _class_shares(self, cls: np.ndarray, wts: np.ndarray) -> np.ndarray:
+        """Each point's share (``_LEVELS``, N) of each class, summed over the nine cells
+        around it (classes ``cls``, shares ``wts``, (9, N))."""
         index = (cls * self.n + np.arange(self.n)).ravel()
         return np.bincount(index, wts.ravel(), _LEVELS * self.n).reshape(_LEVELS, self.n)
 
@@ -290,6 +296,8 @@ def _kernels(sigma: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _blur(image: np.ndarray, along_x: np.ndarray, along_y: np.ndarray) -> np.ndarray:
+    """``image`` filtered by the separable kernels ``along_x`` and ``along_y``, its edge
+    pixels repeated beyond the window."""
     return cv2.sepFilter2D(image, cv2.CV_64F, along_x, along_y,
                            borderType=cv2.BORDER_REPLICATE)
 
@@ -298,6 +306,7 @@ _I, _J = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
 
 
 def _square(side: float) -> np.ndarray:
+    """The corners (4, 2) of the square ``side`` cells wide, in OpenCV's corner order."""
     return np.float64([[0, 0], [side, 0], [side, side], [0, side]])
 
 
@@ -322,7 +331,7 @@ def _classes(cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def _memberships(u: np.ndarray, smooth: np.ndarray, m: int,
+def _axis_shares(u: np.ndarray, smooth: np.ndarray, m: int,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each point's shares (3, N) of the cell columns left of, at and right of the one it
     lies in (smoothed by ``smooth`` cells), their derivatives by ``u``, and the index of
@@ -339,10 +348,12 @@ def _memberships(u: np.ndarray, smooth: np.ndarray, m: int,
 
 
 def _cdf(z: np.ndarray) -> np.ndarray:
+    """The standard normal CDF to within 2e-4 (Page's tanh form, as :func:`border._cdf`)."""
     return 0.5 + 0.5 * np.tanh(z * (0.7978845608 + 0.0356774081 * z * z))
 
 
 def _pdf(z: np.ndarray) -> np.ndarray:
+    """The standard normal density."""
     return np.exp(-0.5 * z * z) * 0.3989422804
 
 
@@ -358,6 +369,7 @@ def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def _apply(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The points (n, 2) mapped by the homography ``h`` (3, 3)."""
     q = pts @ h[:, :2].T + h[:, 2]
     return q[:, :2] / q[:, 2:]
 
