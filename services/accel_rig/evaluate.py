@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -55,7 +56,7 @@ from services.accel_rig.device_options import (
     device_from_args,
 )
 from services.accel_rig.integrator import calibration_covariance, dead_reckon_from_truth
-from services.accel_rig.rig import layout_by_name
+from services.accel_rig.rig import RigLayout, layout_by_name
 from services.accel_rig.simulator import (
     DEFAULT_RATE_HZ,
     SensorTruth,
@@ -102,8 +103,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "calibration": cal_figures, **errors}
 
 
-def _calibrate(device: SensorTruth, nominal, labels, seconds: float, rate: float,
-               seed: int) -> tuple[sn.Calibration, dict[str, Any]]:
+def _calibrate(device: SensorTruth, nominal: RigLayout, labels: Sequence[str], seconds: float,
+               rate: float, seed: int) -> tuple[sn.Calibration, dict[str, Any]]:
+    """The device calibrated for the ``nominal`` layout from ``seconds`` held still in each
+    of the poses ``labels`` (their noise the seed's), and how far it is from the device's
+    true parameters."""
     recs = [StaticRecording(axis_down_quaternion(lab),
                             simulate_static(axis_down_quaternion(lab), seconds, rate,
                                             seed=_pose_seed(seed, i), sensor=device))
