@@ -131,6 +131,7 @@ def fits(obj: np.ndarray, img: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.n
 
 
 def _contiguous(a: np.ndarray) -> np.ndarray:
+    """``a`` as the compiled twin reads it: C-contiguous float64 (a copy only if needed)."""
     return np.ascontiguousarray(a, np.float64)
 
 

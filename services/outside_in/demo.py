@@ -356,6 +356,7 @@ def compare_summary(r: dict[str, Any]) -> str:
 
 
 def _links(first: dict[str, float]) -> str:
+    """When each link first carried every body, for the summary ("none" if none did)."""
     return ", ".join(f"{k} {v} s" for k, v in first.items()) or "none"
 
 
