@@ -37,6 +37,7 @@ MIN_CORNERS_PER_CELL = 4
 MAX_FOCAL_REL_STD = 0.001
 MAX_CENTRE_STD_PX = 0.5
 MAX_RMS_PX = 1.0
+#: how far (px) a corner's cornerSubPix window ends short of a marker (:func:`subpix_windows`)
 SUBPIX_MARGIN_PX = 2.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),
@@ -126,7 +127,7 @@ def refine_corners(image: np.ndarray, corners: np.ndarray,
 
 def subpix_windows(corners: np.ndarray, markers: list[np.ndarray]) -> np.ndarray:
     """Each corner's ``cornerSubPix`` half-window (px): a fifth of its distance to the
-    nearest other corner, and clear of every marker outline (4x4 corners, pixels) by
+    nearest other corner, and clear of every marker outline ((4, 2) corners, pixels) by
     ``SUBPIX_MARGIN_PX`` (the gradient's kernel and the optics' blur reach that far), in
     the window's own (square) measure; between 2 and 8 px."""
     pts = np.asarray(corners, np.float64).reshape(-1, 2)

@@ -55,14 +55,18 @@ SMOOTH_PX = 0.5 / SUBSAMPLES
 #: margin; the model covers ``SUPPORT_PX`` more around them for the blur
 MASK_CELLS = 0.7
 SUPPORT_PX = 3
+#: Levenberg-Marquardt's steps at most
 ITERATIONS = 10
 #: the fit has converged when no corner moved by more than this (px) in a step
 CONVERGED_PX = 5e-3
+#: the blur's width (px) the fit starts from, and the range it is kept in
 SIGMA_START_PX = 0.8
 SIGMA_BOUNDS_PX = (0.25, 1.5)
+#: Levenberg-Marquardt's starting damping, a share of the normal matrix's diagonal
 DAMPING = 1e-3
-#: the fit is kept where its corners moved less than this (px, or half a cell) from the
-#: edges' and its residuals' RMS is under this share of the tag's contrast
+#: the fit is kept where its corners moved less than this (px: about half a cell of the
+#: tags it fits) from the edges', its residuals' RMS is under this share of the tag's
+#: contrast, and that contrast (white less black, gray levels) is over ``MIN_CONTRAST``
 MAX_MOVE_PX = 1.0
 MAX_RMS_SHARE = 0.15
 MIN_CONTRAST = 20.0
