@@ -333,7 +333,7 @@ def test_the_thinnest_borders_edges_come_from_the_decoded_tags_modelled_image(ma
     raw, ids, _ = FiducialTracker(camera, "apriltag36h11", 0.08).detector.detectMarkers(image)
     assert ids is not None and ids.ravel().tolist() == [9]
     quads = np.asarray(raw).reshape(-1, 4, 2)
-    assert edges._sides(quads.astype(float), 8)[-1].min() < edges.MODEL_CELL_PX
+    assert edges.cell_widths(quads.astype(float), 8).min() < edges.MODEL_CELL_PX
     crossing = np.abs(edges.refine(image, quads, 8, camera)[0][0] - true).max()
     modelled = np.abs(edges.refine(image, quads, 8, camera, _CELLS[[9]])[0][0] - true).max()
     assert modelled < 0.7 * crossing and modelled < 0.45, (modelled, crossing)

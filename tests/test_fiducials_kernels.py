@@ -121,7 +121,7 @@ def test_compiled_code_crossing_bias_agrees_with_numpy(numpy_only, monkeypatch):
     quad = np.array([[100, 100], [124, 103], [125, 121], [101, 118]], float)
     quads = np.stack([quad * [1, s] + rng.uniform(0, 50, 2) for s in (0.6, 0.8, 1.0, 1.2)])
     tag, side = np.repeat(np.arange(4), 4), np.tile(np.arange(4), 4)
-    across = edges._sides(quads, cells.shape[-1])[-1][tag, side]
+    across = edges.cell_widths(quads, cells.shape[-1])[tag, side]
     offsets = rng.uniform(2.5, 4.0, (16, 1)) * edges._OFFS
     own = np.arange(16) % 3 > 0
 
