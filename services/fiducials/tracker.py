@@ -209,31 +209,31 @@ def _covered_spread(chosen: pose.Solution, solutions: list[pose.Solution],
     return np.outer(d, d) + cov_of(other)
 
 
-def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, detected: np.ndarray,
+def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, in_image: np.ndarray,
                       modules: int) -> np.ndarray:
     """The joint covariances (m, 8, 8) of the corners (m, 4, 2, ideal pixels) of ``m``
-    markers ``modules`` cells wide, at ``detected`` in the image's pixels (m, 4, 2: where
+    markers ``modules`` cells wide, at ``in_image`` in the image's pixels (m, 4, 2: where
     the sides' pixel locking is), from their edge fits' (:func:`edges.refine`), plus the
     four sides' offsets and turns that the fits cannot show
     (:func:`side_offset_covariance`)."""
-    return edge_fit + side_offset_covariance(corners, detected, modules)
+    return edge_fit + side_offset_covariance(corners, in_image, modules)
 
 
-def side_offset_covariance(corners: np.ndarray, detected: np.ndarray,
+def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
     at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
     locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it (``sweep``: how many
     pixels across its nearer image axis the side's fitted span covers in the image,
-    ``detected``: the refined corners there, not the detector's whole pixels, since a
+    ``in_image``: the refined corners there, not the detector's whole pixels, since a
     pixel's difference in ``sweep`` is the whole term).  Corner k is where side k - 1
     ends and side k starts: when side k moves across itself by ``o``, corner k slides
     along side k - 1 by ``o / sin`` of the angle between them, and when side k - 1
     moves, back along side k (the sides' outward directions all flip with the quad's
     orientation, which the covariance does not see)."""
     shift, turn, narrow = _side_moves(corners, modules)
-    in_image = np.asarray(detected, np.float64)
+    in_image = np.asarray(in_image, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = SIDE_A * narrow
     own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
