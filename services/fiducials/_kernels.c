@@ -397,7 +397,7 @@ static PyObject *corner_covariance(PyObject *self, PyObject *args) {
  * side's offsets (u, I) px outwards: the margin's normal CDF plus each row's share times
  * its band's, the border cells width (u, k) px wide; then the profile's crossing of its
  * own middle (where own, (u) bytes) or of 0.5, nearest the middle, linear between
- * samples, 0 where none: out (2, u, k).  The CDF is Page's tanh form, border._cdf's:
+ * samples, 0 where none: out (2, u, k).  The CDF is Page's tanh form, border.normal_cdf's:
  * 0.5 + 0.5 tanh(z (a + b z z)). */
 static double page_cdf(double z, double a, double b) {
     return 0.5 + 0.5 * tanh(z * (a + b * z * z));

@@ -153,7 +153,7 @@ def crossing_bias(quads: np.ndarray, cells: np.ndarray, sides: np.ndarray,
                               c(step[..., 0]), c(offsets, np.float64), c(own, np.uint8),
                               SIGMA_START_PX, _PAGE_A, _PAGE_B, crossed)
         return crossed[0] - crossed[1]
-    edge_cdf = _cdf((np.arange(m + 1.0) - a[..., 1:, None])
+    edge_cdf = normal_cdf((np.arange(m + 1.0) - a[..., 1:, None])
                     * (along_step[..., 1:] / SIGMA_START_PX)[..., None])  # (u, k, ROWS, m + 1)
     # beyond the tag's neighbouring sides (a slanted row reaches them near an acute
     # corner) lies the white margin; an average code has half its cells white between
@@ -165,8 +165,8 @@ def crossing_bias(quads: np.ndarray, cells: np.ndarray, sides: np.ndarray,
         + (edge_cdf[..., 0] + 1 - edge_cdf[..., -1])[None]  # (2, u, k, ROWS)
     width = step[..., 0, None, None]  # the border's cells across, px (u, k, 1, 1)
     s = offsets[:, None, None, :]  # (u, 1, 1, I)
-    cdf = _cdf((s + np.arange(1.0, ROWS + 2)[:, None] * width) / SIGMA_START_PX)
-    profile = _cdf(s[..., 0, :] / SIGMA_START_PX) \
+    cdf = normal_cdf((s + np.arange(1.0, ROWS + 2)[:, None] * width) / SIGMA_START_PX)
+    profile = normal_cdf(s[..., 0, :] / SIGMA_START_PX) \
         + (white[..., None] * (cdf[..., 1:, :] - cdf[..., :-1, :])).sum(-2)  # (2, u, k, I)
     centre = profile.shape[-1] // 2
     local = (profile[..., :centre + 1].min(-1) + profile[..., centre:].max(-1)) / 2
@@ -224,7 +224,7 @@ def _profiles(gray: np.ndarray, quads: np.ndarray, cells: np.ndarray, fractions:
     depth, step, along, along_step = _tag_coordinates(rolled, pts, m)
     # the code rows' cells blended along the side by the blur (at the starting blur: the
     # fit hardly moves it)
-    edge_cdf = _cdf((np.arange(m + 1.0) - along[..., None])
+    edge_cdf = normal_cdf((np.arange(m + 1.0) - along[..., None])
                     * (along_step / SIGMA_START_PX)[..., None])
     cw = np.einsum("urc,ukic->ruki", views.reshape(4 * n, m, m)[:, 1:ROWS + 1],
                    edge_cdf[..., 1:] - edge_cdf[..., :-1])
@@ -242,7 +242,7 @@ def _per_side(g: np.ndarray) -> np.ndarray:
 _ROLL = (np.arange(4)[:, None] + np.arange(4)) % 4  # side s: corners s, s + 1, ...
 
 
-def _cdf(z: np.ndarray) -> np.ndarray:
+def normal_cdf(z: np.ndarray) -> np.ndarray:
     """The standard normal CDF to within 2e-4 (the tanh form of Page 1977), five times
     faster than ``scipy.special.ndtr``: the fit evaluates some thousands per side and
     step, and 2e-4 of a tag's contrast is far below the sensor's noise."""
@@ -280,15 +280,15 @@ def _residuals(obs: np.ndarray, s: np.ndarray, step: np.ndarray, cw: np.ndarray,
     black, white, sigma, margin, back = (g[:, i, None, None] for i in range(5))
     rows = np.arange(1.0, ROWS + 2)[:, None, None, None]
     z = np.concatenate([np.stack([-s, -(s + margin * step)]), s - rows * step]) / sigma
-    cdf = _cdf(z)
+    cdf = normal_cdf(z)
     pdf = np.exp(-0.5 * z * z) / _SQRT_2PI
     code = cw * (cdf[2:-1] - cdf[3:])
     shares = cdf[0] - cdf[1] + code.sum(0)
     beyond = cdf[1]
     contrast, rise = white - black, back - black
     r = (black + contrast * shares + rise * beyond - obs) * mask
-    # d/ds of _cdf(+-s / sigma) is +-pdf / sigma (the first two terms fall with s);
-    # d/dsigma of _cdf(z) is -z pdf / sigma
+    # d/ds of normal_cdf(+-s / sigma) is +-pdf / sigma (the first two terms fall with s);
+    # d/dsigma of normal_cdf(z) is -z pdf / sigma
     code_pdf = (cw * (pdf[2:-1] - pdf[3:])).sum(0)
     d_s = (contrast * (code_pdf - pdf[0] + pdf[1]) - rise * pdf[1]) * (mask / sigma)
     zpdf = z * pdf

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from services.camera.model import CameraModel
+from services.fiducials.border import normal_cdf
 
 #: a tag is fitted when its cells are narrower than this (px) across one of its sides: on
 #: the eval's frames 1.9 px is as accurate as 2.2 in the bins where the edge fits alone
@@ -344,21 +345,19 @@ def _axis_shares(u: np.ndarray, smooth: np.ndarray, m: int,
     k = np.floor(ue)
     f = ue - k
     z0, z1 = -f / smooth, (f - 1) / smooth
-    left, right = _cdf(z0), _cdf(z1)
+    left, right = normal_cdf(z0), normal_cdf(z1)
     p0, p1 = _pdf(z0) / smooth, _pdf(z1) / smooth
     shares = np.stack([left, 1 - left - right, right])
     d = np.stack([-p0, p0 - p1, p1])
     return shares, d, (k + 3).astype(np.intp)
 
 
-def _cdf(z: np.ndarray) -> np.ndarray:
-    """The standard normal CDF to within 2e-4 (Page's tanh form, as :func:`border._cdf`)."""
-    return 0.5 + 0.5 * np.tanh(z * (0.7978845608 + 0.0356774081 * z * z))
-
-
 def _pdf(z: np.ndarray) -> np.ndarray:
-    """The standard normal density."""
-    return np.exp(-0.5 * z * z) * 0.3989422804
+    """The standard normal density: the derivative the fit takes for :func:`normal_cdf`'s."""
+    return np.exp(-0.5 * z * z) * _INV_SQRT_2PI
+
+
+_INV_SQRT_2PI = 1 / np.sqrt(2 * np.pi)
 
 
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
