@@ -16,9 +16,10 @@ A kernel that fails to build also loses the copy an earlier build left beside it
 (an editable install's): that copy was built from other source, and loading it would call
 the new Python with the old kernel's signatures.
 
-Each kernel is compiled with the SHA-256 of its source (``UMA_SOURCE_HASH``, the module's
-``SOURCE_HASH``): :func:`schemas.native.compiled_twin` runs a kernel only where that hash is
-the one of the ``.c`` file beside it (shipped as package data), so a copy built from older
+Each kernel is compiled with the SHA-256 of its source and of the init all kernels share
+(``schemas/_twin.h``) (``UMA_SOURCE_HASH``, the module's ``SOURCE_HASH``):
+:func:`schemas.native.compiled_twin` runs a kernel only where that hash is the one of the
+``.c`` file beside it and the header (shipped as package data), so a copy built from older
 source is never used.
 """
 
@@ -47,7 +48,9 @@ def twin(name: str, contract: bool = True) -> Extension:
     all twins share (``schemas/_twin.h``); ``contract=False`` compiles it without
     floating-point contraction."""
     source = name.replace(".", "/") + ".c"
-    digest = hashlib.sha256((Path(__file__).parent / source).read_bytes()).hexdigest()
+    root = Path(__file__).parent
+    digest = hashlib.sha256((root / source).read_bytes()
+                            + (root / "schemas" / "_twin.h").read_bytes()).hexdigest()
     return Extension(name, [source], optional=True, include_dirs=["schemas"],
                      depends=["schemas/_twin.h"],
                      define_macros=[("UMA_SOURCE_HASH", f'"{digest}"')],

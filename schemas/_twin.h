@@ -1,7 +1,7 @@
 /* What every compiled twin's module init shares: the module carries SOURCE_HASH, the SHA-256
-   of its C source that setup.py defines as UMA_SOURCE_HASH; schemas/native.py uses a twin
-   only where that hash is the one of the source beside it, so a build older than its
-   source is never run. */
+   of its C source and this header that setup.py defines as UMA_SOURCE_HASH;
+   schemas/native.py uses a twin only where that hash is the one of the sources beside it,
+   so a build older than its source is never run. */
 #ifndef UMA_TWIN_H
 #define UMA_TWIN_H
 

@@ -6,8 +6,9 @@ is stale.
 A twin is only as good as the source it was built from: a copy left by an earlier build
 (an editable install not rebuilt after a change to its ``.c`` file) would run the old C
 beside the new Python, with other results or other signatures.  So setup.py compiles the
-SHA-256 of each twin's C source into it (``SOURCE_HASH``), the source ships beside the
-module (package data), and a twin is used only where the two agree.  This lives in
+SHA-256 of each twin's C source and of the init they share (``_twin.h``) into it
+(``SOURCE_HASH``), both ship beside the modules (package data), and a twin is used only
+where the two agree.  This lives in
 ``schemas`` because every layer that has a twin (schemas, agent, services) may use it.
 """
 
@@ -60,5 +61,11 @@ def source_of(twin: ModuleType) -> Path:
 
 
 def source_hash(path: Path) -> str:
-    """The hash setup.py compiles into a twin: SHA-256 of its source's bytes, in hex."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """The hash setup.py compiles into a twin: SHA-256, in hex, of its source's bytes and
+    then those of the module init every twin includes (:data:`TWIN_HEADER`), so that a
+    change to either makes an older build stale."""
+    return hashlib.sha256(path.read_bytes() + TWIN_HEADER.read_bytes()).hexdigest()
+
+
+#: the module init all twins include (shipped beside this module)
+TWIN_HEADER = Path(__file__).parent / "_twin.h"
