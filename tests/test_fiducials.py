@@ -490,7 +490,7 @@ def test_side_offsets_move_the_corners_as_their_lines_do():
     tau = fiducial_tracker.SIDE_A * np.exp(-across / fiducial_tracker.SIDE_SCALE_PX)
     rho = fiducial_tracker.SIDE_CORRELATION
     sweep = edges.SPAN * np.abs(side).min(axis=1)
-    own = ((fiducial_tracker.LOCK_LEFT_PX * np.sinc(sweep)) ** 2 / 2
+    own = ((fiducial_tracker.LOCK_PX * np.sinc(sweep)) ** 2 / 2
            + (fiducial_tracker.EDGE_SHARE * across) ** 2)
     # pixel locking's slope along the span, carried out to the corners
     x = np.pi * np.maximum(sweep, 1e-6)
@@ -743,34 +743,3 @@ def test_a_bundles_markers_share_their_tag_wide_side_offsets():
     assert edges.cell_widths(steep, 8)[1].min() < image_fit.CELL_PX
     blocks = list(side_offset_covariance(steep, steep, 8) + edge_fits)
     assert not fiducial_tracker.bundle_covariance(blocks, list(steep), 8)[:8, 8:].any()
-
-
-def test_pixel_locking_of_a_side_along_an_axis_is_taken_out(monkeypatch):
-    """A tag's sides along the pixel axes (cells 3.1 px across), their edges stepped across
-    one pixel: the sides' crossings err by their sub-pixel phase (pixel locking) and,
-    every point of a side sharing it, move the whole side by about ``sin(2π phase)``
-    times 0.066 px; refine takes most of that out."""
-    cam = SimCamera(IDEAL, blur_sigma_px=0.6, read_noise=3.0)
-    detector = FiducialTracker(IDEAL, "apriltag36h11", 0.08).detector
-    z = 1.7
-
-    def locking() -> float:
-        rng = np.random.default_rng(1)
-        err, phase = [], []
-        for shift in np.arange(8) / 8:
-            T = facing((0.0, 0.0, 0.0), ((0.4 + shift) * z / K[0, 0], 0.0, z))
-            X = marker_corners(0.08) @ T[:3, :3].T + T[:3, 3]
-            true = (X @ K.T)[:, :2] / X[:, 2:3]
-            for _ in range(4):
-                image = cam.render(tags("apriltag36h11", [9], 0.08, [static(T)]), 0.0, rng)
-                raw, _, _ = detector.detectMarkers(image)
-                got = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, IDEAL)[0][0]
-                err.append(got[:, 0] - true[:, 0])  # across the sides along the y axis
-                phase.append(np.sin(2 * np.pi * true[:, 0]))
-        e, s = np.ravel(err), np.ravel(phase)
-        return float(e @ s / (s @ s))
-
-    corrected = locking()
-    monkeypatch.setattr(edges, "_unlocked", lambda edge, normal, reach: edge)
-    locked = locking()
-    assert locked > 0.03 and abs(corrected) < 0.5 * locked, (corrected, locked)

@@ -94,18 +94,6 @@ CODE_CELL_PX = 3.0
 #: bin) 1 px left out too many of the short sides' points of tags tilted 73-76 degrees
 #: and 2 px did best; without the rule corners at 77-79 degrees were 0.3 px off
 CORNER_OVERSHOOT_PX = 2.0
-#: the amplitude of the edge points' pixel locking (:func:`_unlocked`), px, fitted on
-#: seeds 1-10 of ``uma eval fiducials`` (the offsets against the truth of the sides whose
-#: span sweeps under 0.3 px across their nearer axis; seeds 101-110 gave 0.05 alike), and
-#: the profiles' sample spacing (px) below which it is taken out.  With it those sides'
-#: offsets went from 0.045 / 0.038 / 0.027 px RMS at 0-0.15 / 0.15-0.3 / 0.3-0.5 px of
-#: sweep to 0.032 / 0.019 / 0.017 (seeds 101-110: 0.036 / 0.044 / 0.036 to 0.018 / 0.027
-#: / 0.018), the rest's 0.011 as before.  On rendered tags along the pixel axes with
-#: cells 3.1 px across the locking's amplitude went from 0.066 to 0.023 px; where the
-#: samples lie 0.7-1.2 px apart (cells of 4.4-8.8 px) it was -0.016 to +0.039 px, its sign
-#: changing from one size to the next, and this correction made it up to 0.06 px
-LOCK_PX = 0.046
-LOCK_STEP_PX = 0.5
 
 
 #: the profile's steps across a side
@@ -148,7 +136,6 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
         edge, good, modelled = _modelled(gray, placed, sides, cells, edge, good)
         edge = np.where(modelled[..., None], edge, crossed)
         clear |= modelled
-    edge = _unlocked(edge, sides[3], reach)
     good = good & clear
     # the detected corners and the edge points undistorted in one call
     both = camera.ideal_pixels(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]))
@@ -172,27 +159,6 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     cov = _corner_covariance(corners, point, direction, dev, w, few)
     cov = np.where(ok[:, None, None], cov, FALLBACK_STD ** 2 * np.eye(8))
     return np.where(ok[:, None, None], corners, fallback), cov
-
-
-def _unlocked(edge: np.ndarray, normal: np.ndarray, reach: np.ndarray) -> np.ndarray:
-    """The edge points ``edge`` (n, 4, k, 2, distorted pixels) of each side whose profiles'
-    samples lie closer than :data:`LOCK_STEP_PX` moved back, along the image axis nearer
-    the side's ``normal`` (n, 4, 2), by the mean over its points of their pixel locking,
-    ``LOCK_PX * sin(2π x)``, ``x`` a point's coordinate on that axis (pixel centres at
-    whole numbers).  Why: a blurred step sampled bilinearly between pixel centres crosses
-    its middle level off the true edge by a periodic function of the edge's sub-pixel
-    position, zero at a pixel's centre and border, towards the next centre in between.
-    The points of a side nearly parallel to an axis share one phase, so their error moves
-    the whole line instead of averaging out in its fit; the mean is what moves its offset
-    (over a side that sweeps several pixels it is near zero).  Where the samples are a
-    pixel or so apart, the linear interpolation between them adds its own periodic error
-    and the sum changes sign from one tag size to the next: those sides are left alone.
-    ``reach`` (n, 4, 1) px, the profiles'."""
-    axis = np.argmax(np.abs(normal), axis=-1)[..., None, None]  # (n, 4, 1, 1)
-    x = np.take_along_axis(edge, axis, -1)
-    fine = (reach * (_OFFS[1] - _OFFS[0]) < LOCK_STEP_PX)[..., None]  # (n, 4, 1, 1)
-    bias = np.where(fine, LOCK_PX * np.sin(2 * np.pi * x).mean(axis=-2, keepdims=True), 0.0)
-    return edge - np.where(np.arange(2) == axis, bias, 0.0)
 
 
 def cell_widths(quads: np.ndarray, modules: int) -> np.ndarray:

@@ -83,26 +83,23 @@ SIDE_A = 0.080
 SIDE_SCALE_PX = 1.07
 SIDE_CORRELATION = 1.0
 #: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
-#: locking), by ``LOCK_PX * sin(2π phase)``: along a side that sweeps many pixels across
-#: its axis the phases vary and the error shows in the fit's scatter, but the points of a
-#: side nearly parallel to a pixel axis share one phase and their error moves the whole
-#: line and turns it (:func:`_locked_slope`).  :func:`edges.refine` takes the move out;
-#: what it leaves, ``LOCK_LEFT_PX / sqrt(2) * sinc(sweep)`` (fitted on seeds 1-10 of the
-#: eval's frames: the offsets of the sides within half a pixel of an axis 0.017-0.032 px
-#: RMS where the rest's are 0.011; seeds 101-110 0.018-0.027), and the turn,
-#: ``LOCK_PX / sqrt(2)`` times the slope, stay here, ``sweep`` the pixels the side's
-#: fitted span sweeps across that axis, in the image (independent from side to side,
-#: offset and turn uncorrelated over the phase).  Beyond these the sides' offsets err by
-#: ``EDGE_SHARE`` of the cells' width across them, independently: what grows with the
-#: tag's size in the image (the near tags' corners at 7-10 px cells erred 1.2-1.8 times
-#: their edge fits' covariance, those at 2-5 px as it says).  With them the edge fits'
-#: own covariance needs no factor (fitted beside them it came out 0.96).
+#: locking), by ``LOCK_PX * sin(2π phase)`` (on the eval's frames 0.04-0.06 px where a
+#: side lies within a third of a pixel of an axis, its sign following the phase, on seeds
+#: 1-10 and 101-110 alike): along a side that sweeps many pixels across its axis the
+#: phases vary and the error shows in the fit's scatter, but the points of a side nearly
+#: parallel to a pixel axis share one phase and their error moves the whole line, by
+#: ``LOCK_PX / sqrt(2) * sinc(sweep)``, and turns it (:func:`_locked_slope`), ``sweep``
+#: the pixels the side's fitted span sweeps across that axis, in the image (independent
+#: from side to side, offset and turn uncorrelated over the phase).  Beyond these the
+#: sides' offsets err by ``EDGE_SHARE`` of the cells' width across them, independently:
+#: what grows with the tag's size in the image (the near tags' corners at 7-10 px cells
+#: erred 1.2-1.8 times their edge fits' covariance, those at 2-5 px as it says).  With them
+#: the edge fits' own covariance needs no factor (fitted beside them it came out 0.96).
 #: The five figures were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum
 #: likelihood, the errors of the four corners against the truth of the 577 tags the image
 #: fit leaves to the edge fits (a side's offset 0.013 px where its cells are 2 px across).
 #: The corners' mean 8-dof NEES 7.8 (fresh seeds 101-110, nothing fitted there, 8.1)
-LOCK_PX = edges.LOCK_PX
-LOCK_LEFT_PX = 0.03
+LOCK_PX = 0.046
 EDGE_SHARE = 0.00095
 #: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
 #: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
@@ -226,9 +223,8 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
                            modules: int) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
-    at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by what its
-    pixel locking leaves, ``LOCK_LEFT_PX / sqrt(2) * sinc(sweep)``; the locking also turns
-    it, by ``LOCK_PX / sqrt(2)`` times :func:`_locked_slope` (``sweep``: how many
+    at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
+    locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it (``sweep``: how many
     pixels across its nearer image axis the side's fitted span covers in the image,
     ``in_image``: the refined corners there, not the detector's whole pixels, since a
     pixel's difference in ``sweep`` is the whole term).  Corner k is where side k - 1
@@ -240,7 +236,7 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
     in_image = np.asarray(in_image, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = SIDE_A * narrow
-    own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_LEFT_PX ** 2 / 2 * np.sinc(sweep) ** 2
+    own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
            + (EDGE_SHARE * edges.cell_widths(corners, modules)) ** 2)
     tilt = LOCK_PX ** 2 / 2 * _locked_slope(sweep) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
