@@ -76,10 +76,10 @@ THIN_CELL_PX = 3.5
 #: ... and across a side whose cells are narrower than this (px) the edge points are
 #: the fit of the tag's modelled image (:mod:`services.fiducials.border`), its code's
 #: cells known once decoded.  It costs about a millisecond a tag, so it is kept to the
-#: thinnest borders, where the crossings err most: on the eval's frames the worst misses
-#: were sides 1-1.5 px across (tags tilted 73-79 degrees at 0.6-1.3 m, 51-62 degrees at
-#: 2.2-2.4 m), and a limit of 1.7 px did as well there as 2.0 or 2.5; none of the bench's
-#: ten tags at 0.6-1.6 m is under 1.6 px
+#: thinnest borders, where the crossings err most: on the eval's frames the crossings'
+#: worst misses are sides 1-1.5 px across (tags tilted 73-79 degrees at 0.6-1.3 m, 51-62
+#: degrees at 2.2-2.4 m), and a limit of 1.7 px does as well there as 2.0 or 2.5; none of
+#: the bench's ten tags at 0.6-1.6 m is under 1.6 px
 MODEL_CELL_PX = 1.7
 #: ... and across a side whose cells are narrower than this (px), and not modelled, the
 #: crossings are corrected for the code's cells behind the border (:func:`_code_corrected`).

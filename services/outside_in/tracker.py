@@ -408,8 +408,8 @@ class OutsideInTracker:
         that saw them: a ghost triangle's pose puts them where no blob is, while a true
         body's further marker may well be imaged but not among the points -- its image run
         together with a neighbour's in one camera, its point millimetres off.  With two
-        cameras the far head of some rigs was never found for that, or only when such a
-        point happened to fall within the tolerance."""
+        cameras the far head of some rigs is otherwise never found, or only when such a
+        point happens to fall within the tolerance."""
         tol = self.params.identify_tolerance_m
         n = len(body.markers)
         ident = identify(body, X, tol, min_markers=min(4, n), exclude=taken, views=views)

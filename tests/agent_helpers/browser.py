@@ -28,8 +28,9 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 
 #: Run before every page's own scripts: ``requestAnimationFrame`` callbacks come at most five
 #: times a second.  A live scene is redrawn at every animation frame, and in software WebGL
-#: that was most of a browser test's CPU (about 0.85 CPU-s per second on a loaded 2-core
-#: host, 0.2 at five frames); the page's text, which the tests read, does not wait on frames.
+#: that is most of a browser test's CPU without this (about 0.85 CPU-s per second on a
+#: loaded 2-core host, 0.2 at five frames); the page's text, which the tests read, does
+#: not wait on frames.
 FIVE_FPS = """(() => {
   const raf = window.requestAnimationFrame.bind(window);
   const caf = window.cancelAnimationFrame.bind(window);
