@@ -317,9 +317,8 @@ class Reconstruction:
         self.windows_sent: dict[int, int] = {}
         #: samples not tracked, too far behind the freshest (the reconstruction behind)
         self.stale = 0
-        #: frame sets in which lost bodies were searched for, the CPU (s) searches may
-        #: still take, the last set's time (``track``)
-        self.searches = 0
+        #: the CPU (s) searches for lost bodies may still take, the last set's time
+        #: (``track``)
         self._search_budget = SEARCH_BURST_S
         self._last_set_t: float | None = None
         self._block = -1
@@ -349,7 +348,6 @@ class Reconstruction:
         out = self.tracker.process(frames, search=search)
         if search:
             self._search_budget -= time.thread_time() - t0
-            self.searches += 1
         return out
 
     def gather(self, m: Measurement, now: float | None = None,
