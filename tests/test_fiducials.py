@@ -370,6 +370,35 @@ def test_a_steep_tags_fitted_image_puts_its_corners_nearer_the_truth(margin, blu
     assert found >= 2
 
 
+def test_a_tag_left_to_the_image_fit_skips_the_border_model_unless_the_fit_fails(monkeypatch):
+    """The tracker gives a tag under ``image_fit.CELL_PX`` the fit's corners started from
+    its plain crossings (the border model and the code's correction are left out: the
+    fit replaces their corners); where the fit is rejected, the border model's corners
+    and their covariance, as :func:`edges.refine` with the tag's cells gives them."""
+    camera, _, _, (image,) = _steep_view(1, 0.6)
+    tracker = FiducialTracker(camera, "apriltag36h11", 0.08)
+    raw, ids, _ = tracker.detector.detectMarkers(image)
+    assert ids.ravel().tolist() == [9]
+    quads = np.asarray(raw, np.float64).reshape(-1, 4, 2)
+    placed = edges.place(image, quads, 8)
+    assert image_fit.gate(edges.cell_widths(camera.ideal_pixels(placed).reshape(1, 4, 2), 8))[0]
+    crossed, _ = edges.refine(image, quads, 8, camera, _CELLS[[9]], placed, np.array([False]))
+    modelled, edge_cov = edges.refine(image, quads, 8, camera, _CELLS[[9]])
+    assert np.abs(crossed - modelled).max() > 0.05  # the border model did move them
+    fitted = image_fit.fit(image, crossed[0], _CELLS[9], camera)
+    assert fitted is not None
+    corners, cov = tracker.observe(image)
+    assert np.array_equal(corners[9], fitted[0]) and np.array_equal(cov[9], fitted[1])
+    # the fit rejected (its corners may move no distance from where it started)
+    monkeypatch.setattr(image_fit, "MAX_MOVE_PX", 0.0)
+    assert image_fit.fit(image, crossed[0], _CELLS[9], camera) is None
+    corners, cov = tracker.observe(image)
+    in_image = modelled + (quads - camera.ideal_pixels(quads).reshape(quads.shape))
+    assert np.array_equal(corners[9], modelled[0])
+    assert np.array_equal(cov[9], fiducial_tracker.corner_covariance(edge_cov, modelled,
+                                                                     in_image, 8)[0])
+
+
 def test_the_tracker_fits_the_steep_tags_image_and_its_pose_follows(monkeypatch):
     """The tracker's position of :func:`_steep_view`'s tag from the fitted corners is
     several times nearer the truth than from the edge fits' (11 mm off: its short sides

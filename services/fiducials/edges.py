@@ -110,32 +110,51 @@ def _fractions(span: float, samples: int) -> np.ndarray:
 _FIRST, _SECOND = _fractions(FIRST_SPAN, FIRST_SAMPLES), _fractions(SPAN, SAMPLES)
 
 
-def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
-           cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
-    ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
-    marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
-    markers' ``cells`` (n, modules, modules, 1 white: their decoded codes) the thinnest
-    sides' edge points come from a model of their blurred image (:func:`_modelled`)."""
+def place(gray: np.ndarray, quads: np.ndarray, modules: int) -> np.ndarray:
+    """Where (n, 4, 2, distorted pixels) the second pass of :func:`refine` places its
+    edge points: the corners of a first, cheaper pass of the same kind (lines fitted in
+    distorted pixels) started from the detected ``quads`` (n, 4, 2) of markers
+    ``modules`` cells wide; a marker's detected corners where the pass fails.  Its
+    sides' cell widths (:func:`cell_widths`) are what every stage that follows is gated
+    on."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
-        return quads, np.zeros((0, 4, 2, 2))
-    # first pass, in distorted pixels: where to place the second's points
+        return quads
     edge, good, reach, _ = _edge_points(gray, quads, modules, _FIRST, _sides(quads, modules))
     w = good.astype(np.float64)
     mean, _, direction = _lines(edge, w)
     placed, ok = _intersections(np.where((w.sum(-1) < MIN_POINTS)[..., None], quads, mean),
                                 direction, quads, reach)
-    placed = np.where(ok[:, None, None], placed, quads)
+    return np.where(ok[:, None, None], placed, quads)
+
+
+def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
+           cells: np.ndarray | None = None, placed: np.ndarray | None = None,
+           modelled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
+    ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
+    marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
+    markers' ``cells`` (n, modules, modules, 1 white: their decoded codes) the thinnest
+    sides' edge points come from a model of their blurred image (:func:`_modelled`) and
+    the thin ones' crossings are corrected for the code behind the border
+    (:func:`_code_corrected`), on the markers ``modelled`` (n,; all by default): the
+    others' corners are only where a whole-image fit starts from, which replaces them.
+    ``placed``: :func:`place` of ``quads``, if already known."""
+    quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
+    if len(quads) == 0:
+        return quads, np.zeros((0, 4, 2, 2))
+    if placed is None:
+        placed = place(gray, quads, modules)
     sides = _sides(placed, modules)
     edge, good, reach, own = _edge_points(gray, placed, modules, _SECOND, sides,
                                           marker_levels=True)
     clear = _clear_of_corners(sides, reach)
     if cells is not None:
-        crossed = _code_corrected(edge, placed, sides, cells, reach, own)
-        edge, good, modelled = _modelled(gray, placed, sides, cells, edge, good)
-        edge = np.where(modelled[..., None], edge, crossed)
-        clear |= modelled
+        which = np.ones(len(quads), bool) if modelled is None else np.asarray(modelled, bool)
+        crossed = _code_corrected(edge, placed, sides, cells, reach, own, which)
+        edge, good, model = _modelled(gray, placed, sides, cells, edge, good, which)
+        edge = np.where(model[..., None], edge, crossed)
+        clear |= model
     good = good & clear
     # the detected corners and the edge points undistorted in one call
     both = camera.ideal_pixels(np.concatenate([quads.reshape(-1, 2), edge.reshape(-1, 2)]))
@@ -261,7 +280,8 @@ def _clear_of_corners(sides: tuple[np.ndarray, ...], reach: np.ndarray) -> np.nd
 
 
 def _code_corrected(edge: np.ndarray, quads: np.ndarray, sides: tuple[np.ndarray, ...],
-                    cells: np.ndarray, reach: np.ndarray, own: np.ndarray) -> np.ndarray:
+                    cells: np.ndarray, reach: np.ndarray, own: np.ndarray,
+                    which: np.ndarray) -> np.ndarray:
     """The edge points ``edge`` (n, 4, k, 2) of the sides whose cells are narrower across
     than :data:`CODE_CELL_PX` (and not modelled, :data:`MODEL_CELL_PX`) moved back by
     what the code's cells behind the border move their crossings
@@ -272,9 +292,10 @@ def _code_corrected(edge: np.ndarray, quads: np.ndarray, sides: tuple[np.ndarray
     1.7-2 px) and its turn their slope along it, so each tag's code sets its own error:
     the sides' offsets are 0.047 / 0.030 px RMS at 1.7-2.2 / 2.2-2.8 px without this,
     0.018 / 0.014 with it.  ``quads``: those the profiles were placed on; ``sides``:
-    :func:`_sides` of them; ``reach`` (n, 4, 1) px, the profiles'."""
+    :func:`_sides` of them; ``reach`` (n, 4, 1) px, the profiles'; ``which`` (n,): the
+    tags corrected."""
     _, _, _, normal, across = sides
-    thin = (across < CODE_CELL_PX) & (across >= MODEL_CELL_PX)
+    thin = (across < CODE_CELL_PX) & (across >= MODEL_CELL_PX) & which[:, None]
     if not thin.any():
         return edge
     tag, side = np.nonzero(thin)
@@ -294,15 +315,16 @@ _COARSE = np.r_[0:SAMPLES:2, SAMPLES - 1]
 
 
 def _modelled(gray: np.ndarray, quads: np.ndarray, sides: tuple[np.ndarray, ...],
-              cells: np.ndarray, edge: np.ndarray, good: np.ndarray,
+              cells: np.ndarray, edge: np.ndarray, good: np.ndarray, which: np.ndarray,
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The edge points ``edge`` (n, 4, k, 2) and whether found ``good`` (n, 4, k), those
     of the sides whose cells are narrower across than :data:`MODEL_CELL_PX` replaced by
     the fit of the tag's modelled image (:func:`border.fit_offsets`, the tags ``cells``
     known from their codes) where it is trusted, and which were (n, 4, k).  The fit starts
-    from the crossings.  ``sides``: :func:`_sides` of ``quads``."""
+    from the crossings.  ``sides``: :func:`_sides` of ``quads``; ``which`` (n,): the tags
+    modelled."""
     side, _, _, normal, across = sides
-    thin = across < MODEL_CELL_PX
+    thin = (across < MODEL_CELL_PX) & which[:, None]
     modelled = np.zeros(good.shape, bool)
     if not thin.any():
         return edge, good, modelled

@@ -85,7 +85,7 @@ def refine(gray: np.ndarray, corners: np.ndarray, covariance: np.ndarray, across
     ``CELL_PX`` replaced by the fit of the tag's modelled image (``cells``: (n, m, m),
     1 white) to ``gray`` where it succeeds; and which were (n,)."""
     fitted = np.zeros(len(corners), bool)
-    steep = np.flatnonzero(np.asarray(across).min(axis=1) < CELL_PX)
+    steep = np.flatnonzero(gate(across))
     if not len(steep):
         return corners, covariance, fitted
     corners, covariance = corners.copy(), covariance.copy()
@@ -98,6 +98,12 @@ def refine(gray: np.ndarray, corners: np.ndarray, covariance: np.ndarray, across
             corners[i], covariance[i] = got
             fitted[i] = True
     return corners, covariance, fitted
+
+
+def gate(across: np.ndarray) -> np.ndarray:
+    """Which of ``n`` tags (n,) are fitted: those whose cells are thinner than ``CELL_PX``
+    across a side (``across``, (n, 4) px)."""
+    return np.asarray(across).min(axis=1) < CELL_PX
 
 
 def fit(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray, camera: CameraModel,

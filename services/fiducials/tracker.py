@@ -6,7 +6,9 @@
   are then located from their four sides (:mod:`services.fiducials.edges`; across the
   thinnest borders from a model of the decoded tag's blurred image,
   :mod:`services.fiducials.border`), in ideal pixels (lens distortion removed), where
-  the poses are solved;
+  the poses are solved; a tag whose cells are thinnest has its whole image fitted
+  instead (:mod:`services.fiducials.image_fit`, started from its plain edge crossings;
+  the border model only where that fit is rejected);
 * **pose**: :mod:`services.fiducials.pose` (IPPE candidates refined by Gauss-Newton
   steps, LM for bundles, then a step weighted by the corners' covariances; a frame's
   lone markers all at once);
@@ -415,16 +417,37 @@ class FiducialTracker:
             return {}, {}
         detected = np.asarray(corners, np.float64).reshape(-1, 4, 2)
         cells = self._cells[ids.ravel()]
-        ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells)
-        # the refined corners in the image's pixels: the distortion's offset is smooth, the
-        # detector's corner a pixel away has the same
-        in_image = ideal + detected - self.camera.ideal_pixels(detected).reshape(detected.shape)
-        cov = corner_covariance(cov, ideal, in_image, self._modules)
-        ideal, cov, _ = image_fit.refine(gray, ideal, cov,
-                                         edges.cell_widths(ideal, self._modules), cells,
-                                         self.camera)
+        placed = edges.place(gray, detected, self._modules)
+        # the detector's corners and the first pass's undistorted in one call: the lens'
+        # offset at each corner, and the cells' widths the image fit is gated on
+        both = self.camera.ideal_pixels(np.concatenate([detected, placed])).reshape(-1, 4, 2)
+        lens = detected - both[:len(detected)]
+        across = edges.cell_widths(both[len(detected):], self._modules)
+        # the tags the image fit is for: their edge fits only start it, the border model
+        # and the code's correction of their crossings are left out unless it fails
+        whole = image_fit.gate(across)
+        ideal, cov = self._edge_fits(gray, detected, lens, placed, cells, ~whole)
+        ideal, cov, fitted = image_fit.refine(gray, ideal, cov, across, cells, self.camera)
+        failed = np.flatnonzero(whole & ~fitted)
+        if len(failed):
+            ideal[failed], cov[failed] = self._edge_fits(gray, detected[failed], lens[failed],
+                                                         placed[failed], cells[failed], None)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
+
+    def _edge_fits(self, gray: np.ndarray, detected: np.ndarray, lens: np.ndarray,
+                   placed: np.ndarray, cells: np.ndarray, modelled: np.ndarray | None,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """The corners (n, 4, 2, ideal pixels) of the ``detected`` markers (n, 4, 2) from
+        their edges (:func:`edges.refine`, from ``placed``: :func:`edges.place`; the thin
+        sides of those ``modelled`` (all where None) from their ``cells``), and their
+        joint covariances (n, 8, 8, :func:`corner_covariance`); ``lens`` (n, 4, 2): the
+        distortion's offset at the detected corners."""
+        ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells, placed,
+                                  modelled)
+        # the refined corners in the image's pixels: the distortion's offset is smooth, the
+        # detector's corner a pixel away has the same
+        return ideal, corner_covariance(cov, ideal, ideal + lens, self._modules)
 
     def process(self, image: np.ndarray, t_ns: int) -> list[Estimate]:
         """Every body seen in ``image`` (captured at ``t_ns``)."""
