@@ -121,8 +121,7 @@ def fit(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray, camera: Camera
     if scene is None:
         return None
     g, sigma = scene.start, SIGMA_START_PX
-    levels = np.linalg.lstsq(scene.shares(g, sigma).T, scene.obs, rcond=None)[0]
-    r, J = scene.residual(g, sigma, levels)
+    r, J, levels = scene.residual(g, sigma)
     cost, lam, now = r @ r, DAMPING, scene.corners(g)
     for _ in range(ITERATIONS):
         A = J.T @ J
@@ -130,9 +129,9 @@ def fit(gray: np.ndarray, corners: np.ndarray, cells: np.ndarray, camera: Camera
                                 J.T @ r)
         g_try = g + step[:8]
         sigma_try = float(np.clip(sigma + step[8], *SIGMA_BOUNDS_PX))
-        r_try, J_try = scene.residual(g_try, sigma_try, levels + step[9:])
+        r_try, J_try, levels_try = scene.residual(g_try, sigma_try, levels + step[9:])
         if r_try @ r_try < cost:
-            g, sigma, levels, r, J = g_try, sigma_try, levels + step[9:], r_try, J_try
+            g, sigma, levels, r, J = g_try, sigma_try, levels_try, r_try, J_try
             cost, lam = r @ r, lam / 3
             before, now = now, scene.corners(g)
             if np.abs(now - before).max() < CONVERGED_PX:
@@ -237,34 +236,31 @@ class _Scene:
         index = (cls * self.n + np.arange(self.n)).ravel()
         return np.bincount(index, wts.ravel(), _LEVELS * self.n).reshape(_LEVELS, self.n)
 
-    def shares(self, g: np.ndarray, sigma: float) -> np.ndarray:
-        """The fitted pixels' shares (``_LEVELS``, k) of each class of the print, blurred."""
-        _, _, _, cls, wts, _, _ = self._memberships(g)
-        image = self._window(self._class_shares(cls, wts))
-        kernel, _ = _kernels(sigma)
-        return self._fitted(_blur(image, kernel, kernel))
-
-    def residual(self, g: np.ndarray, sigma: float, levels: np.ndarray,
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """The model's misfit (k,) to the fitted pixels and its Jacobian (k, 9 + levels)
-        by the homography's entries, the blur and the levels."""
+    def residual(self, g: np.ndarray, sigma: float, levels: np.ndarray | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model's misfit (k,) to the fitted pixels, its Jacobian (k, 9 + levels) by
+        the homography's entries, the blur and the levels, and the levels: those given,
+        or (None) those that fit best for ``g`` and ``sigma`` (linear least squares on
+        the same blurred shares of the print's classes, not computed twice)."""
         u, v, iw, cls, wts, wts_u, wts_v = self._memberships(g)
+        kernel, d_kernel = _kernels(sigma)
+        sharp = self._window(self._class_shares(cls, wts))
+        shares = self._fitted(_blur(sharp, kernel, kernel))
+        if levels is None:
+            levels = np.linalg.lstsq(shares.T, self.obs, rcond=None)[0]
         value = levels[cls]
         g_u = np.einsum("kn,kn->n", wts_u, value) * iw
         g_v = np.einsum("kn,kn->n", wts_v, value) * iw
         x, y = self.x, self.y
         g_w = -(g_u * u + g_v * v)
         d = np.stack([g_u * x, g_u * y, g_u, g_v * x, g_v * y, g_v, g_w * x, g_w * y])
-        image = self._window(np.concatenate([self._class_shares(cls, wts), d]))
-        kernel, d_kernel = _kernels(sigma)
-        blurred = self._fitted(_blur(image, kernel, kernel))
-        shares = blurred[:_LEVELS]
+        by_g = self._fitted(_blur(self._window(d), kernel, kernel))
         # the blur's derivative: the (sharp) model image through the kernel's derivative
         # along x and along y
-        model = image[..., :_LEVELS] @ levels
+        model = sharp @ levels
         d_sigma = self._fitted(_blur(model, d_kernel, kernel) + _blur(model, kernel, d_kernel))
-        J = np.concatenate([blurred[_LEVELS:], d_sigma.reshape(1, -1), shares]).T
-        return levels @ shares - self.obs, J
+        J = np.concatenate([by_g, d_sigma.reshape(1, -1), shares]).T
+        return levels @ shares - self.obs, J, levels
 
     def corners(self, g: np.ndarray) -> np.ndarray:
         """The tag's corners (4, 2, ideal pixels) for the homography entries ``g``."""
