@@ -107,6 +107,30 @@ def test_planar_ambiguity_is_covered_never_silent():
     assert flagged > 20
 
 
+def test_a_covered_pose_claims_the_two_solutions_mixture_not_both_spreads():
+    """Tilted 0.35 rad at 1.6 m, a frame's gap is 1-5: covered, and the chosen solution is
+    the true one in nearly every frame.  The covariance is the mixture's second moment at
+    the other's published chance: a flip still lies inside its 99.9 % region, and the
+    likely case is not claimed twice over (the chosen spread plus the other's in full
+    gave a mean NEES of 2.5 here)."""
+    T = facing((0.35, 0.2, 0.0), (0.1, 0.05, 1.6))
+    rng = np.random.default_rng(2)
+    nees, chances = [], []
+    for _ in range(200):
+        tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)  # no history
+        est = tracker.estimate({3: corners_of(T) + rng.normal(0, 0.1, (4, 2))}, 0,
+                               {3: 0.01 * np.eye(8)})[0]
+        if est.ambiguity != "covered":
+            continue
+        e = decoupled_error(T, est.R, est.t)
+        nees.append(e @ np.linalg.solve(est.covariance, e))
+        chances.append(est.flip_probability)
+        rot_m = e[3:] @ np.linalg.solve(est.covariance[3:, 3:], e[3:])
+        assert rot_m < 16.3 or math.degrees(np.linalg.norm(e[3:])) < 5  # no silent flip
+    assert len(nees) > 150 and 4.0 < np.mean(nees) < 6.5, np.mean(nees)
+    assert 0.1 < np.mean(chances) < 0.3
+
+
 def test_previous_frame_picks_the_solution_it_supports():
     rng = np.random.default_rng(3)
     for tilt, carries in (((0.7, 0.4, 0.0), True), ((0.08, 0.05, 0.0), False)):
