@@ -145,13 +145,16 @@ class Recording:
 
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
                config: FusionConfig, model_floor: float, cache: bool,
-               dots: bool = False, device: Any = None, ideal: bool = False) -> Recording:
+               dots: bool = False, device: Any = None, ideal: bool = False,
+               estimate_installation: bool = False) -> Recording:
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
     pose only initialises the filter and brings its systematic covariance); frames where
     the tracker found no pose still contribute the dots it can label by the pose it
     predicts (``LaserTracker.label_dots``), as the live service publishes them.
+    ``estimate_installation``: the tracker corrects its poses by its online estimate of
+    the installation (``TrackerParams.estimate_installation``).
     """
     from services.laser_camera.tracker import LaserTracker, TrackerParams
 
@@ -162,8 +165,9 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     device, cal = calibrated_accelerometers(rate, seed, device)
     accel = accel_sim.simulate(world.trajectory, seconds, rate, seed=seed, sensor=device,
                                calibration=cal)
-    tracker = LaserTracker(laser_calibration(world, cache),
-                           TrackerParams.ideal() if ideal else TrackerParams())
+    tracker = LaserTracker(laser_calibration(world, cache), (
+        TrackerParams.ideal if ideal else TrackerParams)(
+        estimate_installation=estimate_installation))
     walls = display_walls(tracker.calibration)
     ekf = FusionEKF(accel_model(cal, head_to_accel, rate, model_floor), config)
     frames = [k / OPTICAL_HZ for k in range(int(seconds * OPTICAL_HZ))
@@ -420,7 +424,7 @@ def _recovery_s(rec: Recording, ep: np.ndarray, er: np.ndarray, b: float, p_lim:
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
              config: FusionConfig | None = None, model_floor: float = MODEL_FLOOR,
              cache: bool = True, dots: bool = False, device: Any = None,
-             ideal: bool = False) -> dict[str, Any]:
+             ideal: bool = False, estimate_installation: bool = False) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure (``device``: another
     simulated accelerometer device than MARVIN's)."""
     if seconds < WARMUP_S + 2.0:
@@ -429,12 +433,13 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
     gaps = gap_schedule(seconds, gap_lengths)
     device = device or accel_sim.default_device()
     rec = run_fusion(seconds, seed, gaps, horizon_s, config or FusionConfig(), model_floor,
-                     cache, dots, device, ideal)
+                     cache, dots, device, ideal, estimate_installation)
     if rec.t.size == 0:
         raise InvalidInputError("fusion never started: the laser tracker found no pose")
     figures: dict[str, Any] = {
         "seconds": seconds, "seed": seed, "optical_update": "dots" if dots else "pose",
         "installation": "ideal" if ideal else "realistic",
+        "installation_estimate": estimate_installation,
         "accel_device": device_figures(device),
         "given_by_simulator": given_by_simulator(device, accel_sim.DEFAULT_RATE_HZ),
         **figures_of(rec, IvyWorld(seed=seed).trajectory, gaps, horizon_s),
@@ -606,4 +611,4 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     device = device_from_args(accel_sim.default_device(), args)
     return evaluate(float(args.seconds), int(args.seed), lengths, horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device,
-                    ideal=args.ideal)
+                    ideal=args.ideal, estimate_installation=args.estimate_installation)

@@ -12,6 +12,7 @@ from agent.runtime import EvalPlugin, ServicePlugin
 from services import frames
 from services.accel_rig.device_options import add_device_arguments
 from services.fusion.state import MODEL_FLOOR
+from services.laser_camera.plugin import add_estimate_argument
 
 #: seconds of normal tracking between two scheduled gaps (``uma eval fusion``)
 GAP_SPACING_S = 4.0
@@ -101,6 +102,7 @@ def add_fusion_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ideal", action="store_true",
                         help="the ideal simulated installation instead of the realistic "
                              "default (docs/SIMULATION.md)")
+    add_estimate_argument(parser)
     parser.add_argument("--from", dest="from_file", default=None, metavar="FILE.mcap",
                         help="run the fusion filter on a recording's optical and accelerometer "
                              "samples instead of the simulator (uma record, uma demo --record); "

@@ -56,12 +56,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     calib_s = time.perf_counter() - t0
     make = TrackerParams.ideal if args.ideal else TrackerParams
     params = make(model_pos_std_m=args.model_pos_std_mm / 1000,
-                  model_rot_std_rad=np.radians(args.model_rot_std_deg))
+                  model_rot_std_rad=np.radians(args.model_rot_std_deg),
+                  estimate_installation=args.estimate_installation)
     figures = evaluate(world, cal, args.seconds, args.rate_hz, params)
     figures["calibration_s"] = round(calib_s, 2)
     figures["seed"] = args.seed
     c = world.config
     figures["installation"] = "ideal" if args.ideal else "realistic"
+    figures["installation_estimate"] = args.estimate_installation
     figures["imperfections"] = {"housing_error_deg": c.housing_error_deg,
                                 "housing_offset_mm": c.housing_offset_m * 1e3,
                                 "screen_bulge_mm": c.screen_bulge_m * 1e3,

@@ -11,6 +11,16 @@ import argparse
 from agent.runtime import EvalPlugin, ServicePlugin
 
 
+def add_estimate_argument(parser: argparse.ArgumentParser) -> None:
+    """``--estimate-installation``: the laser tracker's online installation estimate (the
+    service, its evaluation and the fusion's evaluation take it alike)."""
+    parser.add_argument("--estimate-installation", action="store_true",
+                        help="estimate the installation's errors (beams, screens' bend, "
+                             "cameras' turn and screen maps) from the fourth beam's miss, "
+                             "frame set by frame set, and correct each pose by the estimate "
+                             "so far; its covariance then carries what the estimate has not "
+                             "pinned down yet (default: off, the whole tolerances)")
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="laser-camera", help="service id (default: "
                         "laser-camera)")
@@ -39,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "cannot show, e.g. the housing's tolerance (default 0)")
     parser.add_argument("--model-pos-std-mm", type=float, default=0.0, metavar="MM",
                         help="the same for position (default 0)")
+    add_estimate_argument(parser)
 
 
 LASER_CAMERA = ServicePlugin(
@@ -85,6 +96,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", metavar="FILE", default=None,
                         help="load this calibration instead of calibrating the simulated "
                              "cameras first (about 15 s); it must match --cameras")
+    add_estimate_argument(parser)
 
 
 EVAL = EvalPlugin(

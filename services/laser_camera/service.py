@@ -181,7 +181,8 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
     """Track at the source's pace; advertise after a warm-up measured at that pace."""
     tracker = LaserTracker(cal, (TrackerParams.ideal if args.ideal else TrackerParams)(
         model_pos_std_m=args.model_pos_std_mm / 1000,
-        model_rot_std_rad=float(np.radians(args.model_rot_std_deg))))
+        model_rot_std_rad=float(np.radians(args.model_rot_std_deg)),
+        estimate_installation=args.estimate_installation))
     perf = _Performance()
     period = 1.0 / args.rate_hz if isinstance(source, SimSource) else 0.0
     with contextlib.ExitStack() as stack:

@@ -29,7 +29,10 @@ for having none out.
    ambiguous and gives no pose -- a confident wrong pose is worse than none;
 6. gating: a pose far from the prediction, or that moved or turned faster than a head
    can, is refused;
-7. a 6x6 covariance by first-order propagation of each dot's measured uncertainty.
+7. a 6x6 covariance by first-order propagation of each dot's measured uncertainty;
+8. optionally (``estimate_installation``) the pose corrected by the installation's errors
+   estimated so far from the fourth beam's misses (``installation_estimate``), its
+   covariance carrying what that estimate has not pinned down instead of the tolerances.
 
 Anything that prevents a pose (fewer than four dots, no consistent labeling, dots that
 fit no pose, an ambiguous labeling, a gated jump, ...) yields ``NoPose`` with the reason,
@@ -59,6 +62,7 @@ from agent.errors import InvalidInputError
 from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
+from services.laser_camera.installation_estimate import InstallationEstimate
 from services.laser_camera.pose import (
     LabeledPose,
     candidate_poses,
@@ -152,6 +156,18 @@ class TrackerParams:
     #: least 1.8 m apart (the beams are orthogonal)
     label_gate_m: float = 0.05
     label_gate_mps: float = 1.5
+    #: estimate the installation's errors online from the fourth beam's miss and correct
+    #: each pose by the estimate so far (``installation_estimate``); the pose's covariance
+    #: then carries the estimate's remaining error instead of the whole tolerances
+    estimate_installation: bool = False
+    #: the miss's noise in the estimate: the dots' own plus this (1 sigma, per axis), for
+    #: what holds over a few frame sets but is no parameter (a spot's centroid bias where
+    #: the projected imagery crosses it, the screen maps' error beyond a homography's)
+    estimate_miss_floor_m: float = 0.0002
+    #: a frame set's miss enters the estimate only if it agrees with the estimate so far:
+    #: chi-square (2 dof) of its innovation at most this (chi2(2)'s 1 - 1e-4 quantile, as
+    #: ``max_residual_chi2``, which is the same test against the tolerances alone)
+    estimate_gate_chi2: float = 18.4
 
     def __post_init__(self) -> None:
         if self.max_dots < 4:
@@ -171,6 +187,9 @@ class TrackerParams:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
         if not self.residual_drift_per_m > 0:
             raise InvalidInputError("residual_drift_per_m must be positive")
+        if not (self.estimate_miss_floor_m >= 0 and self.estimate_gate_chi2 > 0):
+            raise InvalidInputError("estimate_miss_floor_m must be >= 0 and estimate_gate_chi2 "
+                                    "positive")
         if not (self.label_gate_m > 0 and self.label_gate_mps >= 0):
             raise InvalidInputError("label_gate_m must be positive and label_gate_mps >= 0")
         if min(self.housing_dir_std_rad, self.housing_offset_std_m, self.screen_bulge_std_m,
@@ -223,6 +242,10 @@ class PoseEstimate:
     #: diode label -> per-axis in-plane std of that spot's installation error (the dot's
     #: share of ``systematic``)
     dot_systematic_std_m: dict[int, float] = field(default_factory=dict)
+    #: the pose's error per one standard deviation of each direction of the installation
+    #: estimate's remaining error (:func:`installation_sensitivity`), where the tracker
+    #: corrected the pose by its online estimate; None: not corrected
+    sensitivity: dict[str, np.ndarray] | None = None
 
     @property
     def ok(self) -> bool:
@@ -279,6 +302,10 @@ class LaserTracker:
         self._seen = _SeenDots()
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
+        #: the installation's errors estimated from the fourth beam's misses (None: off);
+        #: the installation does not change when tracking starts again, so ``reset`` keeps it
+        self.installation = InstallationEstimate(self.params.estimate_gate_chi2) \
+            if self.params.estimate_installation else None
 
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
@@ -431,7 +458,52 @@ class LaserTracker:
         self._prev = last if tracking else None
         self._last = est
         self._remember(t, [1, 2, 3, 4], dots.points[idx], [dots.walls[i] for i in idx])
-        return est
+        return est if self.installation is None else self._corrected(est, fits[k], dots, idx)
+
+    def _corrected(self, est: PoseEstimate, fit: _Fit, dots: WorldDots,
+                   idx: list[int]) -> PoseEstimate:
+        """``est`` corrected by the installation's estimate, after that took this frame
+        set's miss (if it agrees with the estimate so far: ``estimate_gate_chi2``).
+
+        Each parameter moves the four dots by ``D`` per std (:func:`_dot_moves`, and each
+        screen map's error: ``_Screens.map_moves``), the miss by ``Jm D`` and the pose by
+        ``Jp D``: the pose is moved back by ``Jp D mean``, its systematic covariance is
+        ``Jp D P (Jp D)^T`` (P the estimate's remaining covariance) instead of the whole
+        tolerances', and each dot is moved back by ``D mean`` with ``D P D^T`` as its
+        installation error.  The tracker's own gating and prediction keep the measured
+        pose (``_last``): the next frame set's candidates are measured ones too."""
+        p, estimate = self.params, self.installation
+        p0 = np.asarray(est.position, float)
+        moves = _dot_moves(dots, idx, [1, 2, 3, 4], p0, est.quaternion, p)
+        if self._screens is not None:
+            moves.update(self._screens.map_moves(dots, idx))
+        names = list(moves)
+        D = np.stack([moves[name] for name in names], axis=-1)  # (4 dots, 2 axes, params)
+        _, Jm = _miss_jacobians(dots, np.array([idx]))
+        H = np.einsum("kai,kam->mi", Jm[0], D)
+        noise = fit.random + p.estimate_miss_floor_m ** 2 * np.eye(2)
+        if not estimate.update(fit.miss, noise, dict(zip(names, H, strict=True))):
+            self.counts["installation_miss_refused"] += 1
+        mean, P = estimate.mean(names), estimate.covariance(names)
+        S = np.einsum("pka,kam->pm", _pose_jacobian(dots, idx, p0).reshape(6, 4, 2), D)
+        shift = S @ mean  # xi form: the pose's error the estimate explains
+        dphi = shift[3:]
+        position = p0 - (shift[:3] - geo.skew3(p0) @ dphi)
+        quaternion = geo.quat_multiply(geo.rotvec_to_quat(-dphi), est.quaternion)
+        systematic = S @ P @ S.T + _model_covariance(p0, p)
+        systematic = 0.5 * (systematic + systematic.T)
+        w, V = np.linalg.eigh(P)
+        root = S @ (V * np.sqrt(np.maximum(w, 0.0))) @ V.T  # S P^(1/2): one column per name
+        dot_shift = np.einsum("kam,m->ka", D, mean)
+        dot_cov = np.einsum("kam,mn,kbn->kab", D, P, D)
+        return replace(
+            est, position=position, quaternion=quaternion / np.linalg.norm(quaternion),
+            covariance=est.covariance - est.systematic + systematic, systematic=systematic,
+            dots={k + 1: dots.points[i] - dot_shift[k] @ dots.axes[i]
+                  for k, i in enumerate(idx)},
+            dot_systematic_std_m={k + 1: float(np.sqrt(0.5 * np.trace(dot_cov[k])))
+                                  for k in range(len(idx))},
+            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(names)})
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
@@ -646,6 +718,28 @@ class _Screens:
                                 tuple(np.ravel(c.wall.translation).tolist()),
                                 float(c.wall.plane_distance), float(c.wall.screen_side_m),
                                 c.screen_sigma_m(calib_sigma_m)) for c in cameras]
+
+    def map_moves(self, dots: WorldDots, idx: list[int]) -> dict[str, np.ndarray]:
+        """How far each dot ``idx`` moves along its wall's axes (len(idx), 2) per one
+        standard deviation of each of its camera's screen map parameters: the map's error
+        as a small change of its homography (``dX = a + b x + c y - X (g x + h y)``, x, y
+        the screen point scaled to [-1, 1]), each of its eight coefficients with the
+        calibration's reported per-axis accuracy (``screen_sigma_m``) as its std."""
+        out: dict[str, np.ndarray] = {}
+        for k, i in enumerate(idx):
+            c = self.index.get(dots.cameras[i])
+            if c is None:
+                continue
+            wall, sigma = self.cameras[c].wall, self.maps[c].sigma_m
+            x, y = 2 * wall.to_screen(dots.points[i])[0] / wall.screen_side_m - 1
+            basis = sigma * np.array([[1, x, y, 0, 0, 0, x * x, x * y],
+                                      [0, 0, 0, 1, x, y, x * y, y * y]])
+            for j in range(8):
+                name = f"camera {dots.cameras[i]} map {j}"
+                if name not in out:
+                    out[name] = np.zeros((len(idx), 2))
+                out[name][k] += basis[:, j]
+        return out
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
@@ -1006,15 +1100,7 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
     if not m:
         return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
     idx = np.array(orders)  # (m, 4)
-    P = dots.points[idx]
-    axes = dots.axes[idx].reshape(m, 8, 3)  # dot k moves along axes[:, 2k], axes[:, 2k + 1]
-    Q = np.repeat(P[:, None], 9, axis=1)
-    Q[:, _PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
-    p0, R = frames_from_points(Q.reshape(m * 9, 4, 3))
-    ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
-    r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
-    J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
-    Jd = J.reshape(m, 4, 2, 2)  # dot, its wall axis, residual component
+    r, Jd = _miss_jacobians(dots, idx, step_m)
     flat = idx.ravel()
     installation = _installation_covariances(
         dots.points[flat], dots.axes[flat], None if dots.bend is None else dots.bend[flat],
@@ -1023,7 +1109,24 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
         p).reshape(m, 4, 2, 2)
     systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
     random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
-    return r[:, 0], random, systematic
+    return r, random, systematic
+
+
+def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The fourth beam's miss of each labeling (the dot indices of diodes 1..4, (m, 4)),
+    (m, 2), and its change per metre each dot moves along each of its wall's axes (m, 4,
+    2, 2: dot, wall axis, miss component), by numeric Jacobian."""
+    m = len(idx)
+    P = dots.points[idx]
+    axes = dots.axes[idx].reshape(m, 8, 3)  # dot k moves along axes[:, 2k], axes[:, 2k + 1]
+    Q = np.repeat(P[:, None], 9, axis=1)
+    Q[:, _PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
+    p0, R = frames_from_points(Q.reshape(m * 9, 4, 3))
+    ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
+    r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
+    J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
+    return r[:, 0], J.reshape(m, 4, 2, 2)
 
 
 def _chi2(r: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -1076,14 +1179,20 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     J = _pose_jacobian(dots, idx, p0, step_m)
     random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
     Jd = J.reshape(6, 4, 2)  # pose row, dot, its wall axis
-    systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd)
-    if params.model_pos_std_m or params.model_rot_std_rad:  # else it adds zeros
-        model = np.zeros((6, 6))
-        model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
-        model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
-        systematic += geo.decoupled_to_se3(p0, model)
+    systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd) \
+        + _model_covariance(p0, params)
     whole = random + systematic
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+
+
+def _model_covariance(p0: np.ndarray, params: TrackerParams) -> np.ndarray | float:
+    """The model error the dots cannot show (xi form, 6 x 6), or 0 where there is none."""
+    if not (params.model_pos_std_m or params.model_rot_std_rad):
+        return 0.0
+    model = np.zeros((6, 6))
+    model[_DIAG3, _DIAG3] = params.model_pos_std_m ** 2
+    model[_DIAG3 + 3, _DIAG3 + 3] = params.model_rot_std_rad ** 2
+    return geo.decoupled_to_se3(p0, model)
 
 
 def _pose_jacobian(dots: WorldDots, idx: list[int], p0: np.ndarray, step_m: float = 1e-5,
@@ -1112,6 +1221,8 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     of the installation's parameters that moves its dots: each beam's tilt and miss of P0
     across it (two rig-fixed axes each), each screen's bend, each camera's turn (three
     world axes; two wall axes of ``camera_residual_std_m`` where the camera is unknown).
+    A pose corrected by the tracker's online estimate (``estimate_installation``) carries
+    its own: the estimate's remaining error, one column per direction of it.
 
     Why: ``systematic`` says how large the installation's error of one pose is, not how
     the errors of two poses relate.  Two poses share a parameter's error through the
@@ -1121,11 +1232,23 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     the same dot by dot as :func:`_installation_covariance` (but where a beam meets its
     wall within 3 degrees of grazing, where that clamps the stretch).  ``dots`` are the
     frame set ``estimate`` was solved from."""
+    if estimate.sensitivity is not None:
+        return estimate.sensitivity
     labels = sorted(estimate.dots)
     idx = [int(np.flatnonzero(np.all(dots.points == estimate.dots[label], axis=1))[0])
            for label in labels]
     p0 = np.asarray(estimate.position, float)
     Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
+    moves = _dot_moves(dots, idx, labels, p0, estimate.quaternion, p)
+    return {name: np.einsum("pka,ka->p", Jd, move) for name, move in moves.items()}
+
+
+def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
+               quaternion: np.ndarray, p: TrackerParams) -> dict[str, np.ndarray]:
+    """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
+    along its wall's two axes (4, 2) per one standard deviation of each of the
+    installation's parameters (:func:`installation_sensitivity` names them); a parameter
+    that moves none of them is left out."""
     x, A = dots.points[idx], dots.axes[idx]
     n = _cross(A[:, 0], A[:, 1])
     d = x - p0
@@ -1134,37 +1257,43 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     dn = np.einsum("ki,ki->k", n, d)
     nd = np.where(dn < 0, -1.0, 1.0) * np.maximum(np.abs(dn) / r, 0.05)  # cos(incidence)
     # two rig-fixed axes across each beam, in the world, made square to the beam as it is
-    across = np.einsum("ij,kaj->kai", geo.quat_to_matrix(estimate.quaternion),
+    across = np.einsum("ij,kaj->kai", geo.quat_to_matrix(quaternion),
                        _ACROSS_BEAM[np.array(labels) - 1])
     across -= np.einsum("kai,ki->ka", across, unit)[..., None] * unit[:, None]
     on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
-    beam = np.einsum("pkb,kab->pka", Jd, np.einsum("kbi,kai->kab", A, on_wall))
-    out = {}
+    beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
+    k4 = len(idx)
+    out: dict[str, np.ndarray] = {}
     for k, label in enumerate(labels):
         for a, axis in enumerate("ab"):
-            out[f"beam {label} tilt {axis}"] = r[k] * p.housing_dir_std_rad * beam[:, k, a]
-            out[f"beam {label} offset {axis}"] = p.housing_offset_std_m * beam[:, k, a]
+            move = np.zeros((k4, 2))
+            move[k] = beam[k, a]
+            out[f"beam {label} tilt {axis}"] = r[k] * p.housing_dir_std_rad * move
+            out[f"beam {label} offset {axis}"] = p.housing_offset_std_m * move
     eyes = None if dots.eyes is None else dots.eyes[idx]
-    shape = np.ones(4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
-    slope = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
-    bend = np.einsum("pka,ka->kp", Jd, slope) * (p.screen_bulge_std_m * shape)[:, None]
+    shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
+    bend = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes) \
+        * (p.screen_bulge_std_m * shape)[:, None]
     if eyes is None:
-        cameras = p.camera_residual_std_m * np.swapaxes(Jd, 0, 1)  # (4, 6, 2)
+        cameras = p.camera_residual_std_m * np.broadcast_to(np.eye(2), (k4, 2, 2))
         axes = ("residual 0", "residual 1")
     else:
-        cameras = p.camera_turn_std_rad * np.einsum("pka,kat->kpt", Jd,
-                                                    _turn_jacobians(x, A, n, eyes))
+        cameras = p.camera_turn_std_rad * _turn_jacobians(x, A, n, eyes)
         axes = ("turn x", "turn y", "turn z")
     for k, i in enumerate(idx):
-        _accumulate(out, f"screen {dots.walls[i]} bend", bend[k])
+        _accumulate_row(out, f"screen {dots.walls[i]} bend", k, bend[k], k4)
         for t, axis in enumerate(axes):
-            _accumulate(out, f"camera {dots.cameras[i]} {axis}", cameras[k, :, t])
+            _accumulate_row(out, f"camera {dots.cameras[i]} {axis}", k, cameras[k, :, t], k4)
     return out
 
 
-def _accumulate(out: dict[str, np.ndarray], name: str, value: np.ndarray) -> None:
-    """``out[name] += value``, from zero: two dots may share a screen or a camera."""
-    out[name] = out[name] + value if name in out else value
+def _accumulate_row(out: dict[str, np.ndarray], name: str, k: int, value: np.ndarray,
+                    rows: int) -> None:
+    """``out[name][k] += value``, from zeros (``rows`` dots): two dots may share a screen
+    or a camera."""
+    if name not in out:
+        out[name] = np.zeros((rows, 2))
+    out[name][k] += value
 
 
 #: per beam (label - 1), two unit axes of the rig frame across it (beams +y, -y, -x, +z)

@@ -1,0 +1,107 @@
+"""The installation's errors estimated online from the fourth beam's miss.
+
+Four dots on their walls hold eight coordinates for the pose's six; the two left over,
+where the fourth dot lies off beam 4 of the pose the other three fix (the miss), are
+mostly the installation's error: the housing's beams, the screens' bend, the cameras' turn
+since calibration and each camera's screen map, all held for the whole run.  Each frame set
+sees that error through another geometry, so frame set by frame set the misses pin down
+the parameters the dots move with, and each pose can be corrected by what is known so far.
+
+``InstallationEstimate`` is an information filter over named parameters, each in units of
+its own standard deviation with a prior N(0, 1), so a parameter no miss has seen yet keeps
+its tolerance and a pose that depends on it keeps its covariance.  A frame set enters as
+its miss, the miss's noise and its sensitivity to every parameter; a miss that the estimate
+so far does not explain within its covariance (chi-square, 2 dof) is refused, not absorbed:
+a stray blob or a clipped spot moves one frame set's miss, not the installation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.errors import InvalidInputError
+
+
+class InstallationEstimate:
+    """Held parameters (each N(0, 1) a priori, in units of its tolerance) estimated from
+    linear observations ``z = H theta + noise``: the fourth beam's misses."""
+
+    def __init__(self, gate_chi2: float):
+        if not gate_chi2 > 0:
+            raise InvalidInputError("the estimate's chi-square gate must be positive")
+        self.gate_chi2 = gate_chi2
+        self.names: list[str] = []
+        self._index: dict[str, int] = {}
+        self._info = np.zeros((0, 0))  # information matrix (inverse covariance)
+        self._b = np.zeros(0)  # information vector
+        self._mean = np.zeros(0)
+        self._cov = np.zeros((0, 0))
+        self.accepted = 0
+        self.refused = 0
+
+    def _columns(self, names: list[str]) -> np.ndarray:
+        """The state indices of ``names``, adding unseen ones at their prior."""
+        new = [n for n in names if n not in self._index]
+        if new:
+            m, k = len(self.names), len(new)
+            for n in new:
+                self._index[n] = len(self.names)
+                self.names.append(n)
+            info = np.eye(m + k)
+            info[:m, :m] = self._info
+            cov = np.eye(m + k)
+            cov[:m, :m] = self._cov
+            self._info, self._cov = info, cov
+            self._b = np.concatenate([self._b, np.zeros(k)])
+            self._mean = np.concatenate([self._mean, np.zeros(k)])
+        return np.array([self._index[n] for n in names], dtype=int)
+
+    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
+                        sensitivity: dict[str, np.ndarray]) -> float:
+        """Chi-square of ``z`` against what the estimate so far predicts of it: its
+        residual ``z - H mean`` under ``H P H^T + noise``."""
+        names = list(sensitivity)
+        idx = self._columns(names)
+        H = np.column_stack([sensitivity[n] for n in names])
+        v = z - H @ self._mean[idx]
+        S = H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
+        return float(v @ np.linalg.solve(S, v))
+
+    def update(self, z: np.ndarray, noise: np.ndarray,
+               sensitivity: dict[str, np.ndarray]) -> bool:
+        """Take the observation ``z`` (its ``noise`` covariance; ``sensitivity``: name ->
+        dz per one std of that parameter) if its innovation passes the gate; whether it
+        did."""
+        z = np.asarray(z, float)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(noise))):
+            self.refused += 1
+            return False
+        if self.innovation_chi2(z, noise, sensitivity) > self.gate_chi2:
+            self.refused += 1
+            return False
+        names = list(sensitivity)
+        idx = self._columns(names)
+        H = np.column_stack([sensitivity[n] for n in names])
+        W = np.linalg.inv(noise)
+        self._info[np.ix_(idx, idx)] += H.T @ W @ H
+        self._b[idx] += H.T @ W @ z
+        self._cov = np.linalg.inv(self._info)
+        self._cov = 0.5 * (self._cov + self._cov.T)
+        self._mean = self._cov @ self._b
+        self.accepted += 1
+        return True
+
+    def mean(self, names: list[str]) -> np.ndarray:
+        """The estimate of each named parameter (in stds; 0 if never seen)."""
+        return np.array([self._mean[self._index[n]] if n in self._index else 0.0
+                         for n in names])
+
+    def covariance(self, names: list[str]) -> np.ndarray:
+        """The estimate's remaining covariance over ``names`` (identity where unseen)."""
+        idx = self._columns(names)
+        return self._cov[np.ix_(idx, idx)]
+
+    def std(self, name: str) -> float:
+        """The remaining standard deviation of one parameter (1 if never seen)."""
+        i = self._index.get(name)
+        return 1.0 if i is None else float(np.sqrt(self._cov[i, i]))
