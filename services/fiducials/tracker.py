@@ -253,12 +253,12 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
     along side k - 1 by ``o / sin`` of the angle between them, and when side k - 1
     moves, back along side k (the sides' outward directions all flip with the quad's
     orientation, which the covariance does not see)."""
-    shift, turn, narrow = _side_moves(corners, modules)
+    shift, turn, across = _side_moves(corners, modules)
     in_image = np.asarray(in_image, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
-    tau = SIDE_A * narrow
+    tau = _side_offset_px(across)
     own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
-           + (EDGE_SHARE * edges.cell_widths(corners, modules)) ** 2)
+           + (EDGE_SHARE * across) ** 2)
     tilt = LOCK_PX ** 2 / 2 * _locked_slope(sweep) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
     return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
@@ -282,26 +282,31 @@ def tag_scale(corners: np.ndarray, modules: int) -> np.ndarray:
     """How the corners (m, 8) of ``m`` markers move with the tag-wide part of their
     sides' offsets, one standard deviation (:func:`side_offset_covariance`'s first term
     is its outer product)."""
-    shift, _, narrow = _side_moves(corners, modules)
-    return np.sqrt(SIDE_CORRELATION) * (shift * (SIDE_A * narrow)[:, None, :]).sum(axis=-1)
+    shift, _, across = _side_moves(corners, modules)
+    return np.sqrt(SIDE_CORRELATION) * (shift * _side_offset_px(across)[:, None, :]).sum(axis=-1)
+
+
+def _side_offset_px(across: np.ndarray) -> np.ndarray:
+    """How far (px, one standard deviation) a side's line errs across itself where its
+    cells are ``across`` px wide: ``SIDE_A * exp(-across / SIDE_SCALE_PX)``."""
+    return SIDE_A * np.exp(across / -SIDE_SCALE_PX)
 
 
 def _side_moves(corners: np.ndarray, modules: int,
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per marker of ``corners`` (m, 4, 2): how its corners (8) move when each side (4)
     moves outwards by 1 px (m, 8, 4), and when each side turns about its middle, its end
-    moving outwards by 1 px and its start inwards (m, 8, 4); and ``exp(-across /
-    SIDE_SCALE_PX)`` per side (m, 4)."""
+    moving outwards by 1 px and its start inwards (m, 8, 4); and the cells' width
+    across each side (m, 4, px: :func:`edges.cell_widths`)."""
     corners = np.asarray(corners, np.float64)
     side = corners[:, _NEXT] - corners
     along = side / np.sqrt(side[..., 0] ** 2 + side[..., 1] ** 2)[..., None]
-    narrow = np.exp(edges.cell_widths(corners, modules) / -SIDE_SCALE_PX)
     before = along[:, _PREV]
     sine = (before[..., 0] * along[..., 1] - before[..., 1] * along[..., 0])[..., None, None]
     by_ending = -along[..., None] / sine * _ENDING  # (m, 4 corners, 2, 4 sides)
     by_starting = before[..., None] / sine * _STARTING
     return ((by_ending + by_starting).reshape(-1, 8, 4),
-            (by_ending - by_starting).reshape(-1, 8, 4), narrow)
+            (by_ending - by_starting).reshape(-1, 8, 4), edges.cell_widths(corners, modules))
 
 
 _NEXT, _PREV = [1, 2, 3, 0], [3, 0, 1, 2]
