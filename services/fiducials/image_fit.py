@@ -19,7 +19,7 @@ known, so its whole image can be modelled and fitted instead:
   coordinates, the blur and the levels (black, white, beyond each side).
 
 On the frames of ``uma eval fiducials`` the model's misfit at the true corners is the
-sensor's noise (3.1-3.3 gray levels RMS); over the 323 tags under ``CELL_PX`` of seeds
+sensor's noise (3.1-3.3 gray levels RMS); over the 322 tags under ``CELL_PX`` of seeds
 1-10 and 101-110 the worst corner of each lies 0.026-0.033 px from the truth (median; at
 most 0.075 px) where the edge fits left 0.13-0.20 px (at most 0.74 px).  The fit's own
 covariance of the corners (:data:`COVARIANCE_SCALE`) is what the pose is weighed by.  It
@@ -40,8 +40,10 @@ from services.fiducials.border import normal_cdf
 
 #: a tag is fitted when its cells are narrower than this (px) across one of its sides: on
 #: the eval's frames 1.9 px is as accurate as 2.2 in the bins where the edge fits alone
-#: fall behind AprilTag 3, and fits 7 of the 1,674 tags of ``bench/bench_fiducials.py``
-#: where 2.2 fits 30; at 1.7 two seeds' NEES leave their band
+#: fall behind AprilTag 3, and fits 5 of the 1,674 tags of ``bench/bench_fiducials.py``
+#: where 2.2 fits about 30; at 1.7 two seeds' NEES leave their band.  The widths are
+#: those of the edges' first pass (:func:`edges.place`), undistorted: the tags fitted
+#: skip the border model, whose corners the fit replaces
 CELL_PX = 1.9
 #: the fit's own covariance of the corners times this: what the pixels' noise gives, and
 #: what the model misses (on seeds 1-10 of ``uma eval fiducials``, the fitted corners'
