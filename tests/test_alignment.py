@@ -372,7 +372,9 @@ def test_the_offset_uncertainty_is_in_the_covariance() -> None:
     assert 0.0 < result.time_offset_std_s < 2e-3
     assert abs(result.time_offset_s - 0.05) < 4 * result.time_offset_std_s + 1e-4
     alone = align_at_offset(a, b, result.time_offset_s, 0.0, options)
-    added = result.covariance - alone.covariance
+    added = result.added_covariance - alone.added_covariance
+    assert np.allclose(result.covariance, result.bootstrap.covariance(result.added_covariance),
+                       rtol=1e-12, atol=0)
     assert np.trace(added) > 0
     assert np.linalg.eigvalsh(added).min() > -1e-12 * np.trace(added)  # one direction, PSD
     assert np.linalg.matrix_rank(added, tol=1e-9 * np.trace(added)) == 1
@@ -449,8 +451,9 @@ def test_the_bootstraps_factor_makes_the_nested_estimates_inverse_unbiased() -> 
     """The bootstrap's covariance estimates from 40 stations an ideal bootstrap that 100
     resamples estimate again: with the factor of both, the mean NEES of an error drawn from
     the true covariance is 6; with the stations' alone it is ~6.5 (measured on the
-    alignment itself: 6.43, se 0.25)."""
-    from services.alignment.covariance import _inverse_unbiased
+    alignment itself: 6.43, se 0.25).  Where a computed covariance is added, the factor
+    shrinks with the estimate's share and the mean NEES stays 6."""
+    from services.alignment.covariance import _inverse_unbiased, inverse_unbiased
 
     rng = np.random.default_rng(5)
     stations, resamples, draws = 40, 100, 20000
@@ -472,6 +475,21 @@ def test_the_bootstraps_factor_makes_the_nested_estimates_inverse_unbiased() -> 
     assert np.mean(nees) / stations_only > 6.3
     with pytest.raises(AlignmentError, match="at least 9 solvable bootstrap resamples"):
         _inverse_unbiased(stations, 8)
+    assert inverse_unbiased(estimate[0], np.zeros((6, 6)), stations, resamples) \
+        == pytest.approx(both, rel=1e-12)
+    # half of the covariance computed, not estimated (an installation's shared tolerances):
+    # the factor of the whole-estimate case on the estimated half makes it conservative
+    added = sigma
+    e = rng.normal(size=(draws, 6)) @ np.linalg.cholesky(sigma + added).T
+    k = np.array([inverse_unbiased(s, added, stations, resamples) for s in estimate])
+    assert np.all((k > 1.0) & (k < both))
+
+    def mean_nees(factor: np.ndarray | float) -> float:
+        c = np.asarray(factor)[..., None, None] * estimate + added
+        return float(np.mean(np.einsum("di,di->d", e, np.linalg.solve(c, e[..., None])[..., 0])))
+
+    assert mean_nees(k) == pytest.approx(6.0, abs=0.15)
+    assert mean_nees(both) < 5.75
 
 
 def test_the_nees_band_counts_the_installation_error_the_trials_share() -> None:

@@ -16,6 +16,7 @@ Result in ``agent.geometry``'s convention: 6x6 over the left perturbation
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,13 +33,32 @@ from services.alignment.solvers import (
 WeightedSolver = Callable[[MotionPairs, np.ndarray], Pose]
 #: fewest resamples whose 6-dof covariance has an unbiased inverse (``_inverse_unbiased``)
 MIN_RESAMPLES = 9
+_DOF = 6
+
+
+@dataclass(frozen=True)
+class Bootstrap:
+    """The resamples' spread of X about the estimate (6x6, geometry's convention) and the
+    counts its inverse's bias rests on."""
+
+    spread: np.ndarray
+    stations: int
+    resamples: int  # the solvable ones
+
+    def covariance(self, added: np.ndarray | None = None) -> np.ndarray:
+        """X's covariance: the spread, scaled so that the inverse of the whole is unbiased,
+        plus ``added`` (6x6, the same convention), what the stations' resamples cannot see
+        and is computed rather than estimated from their noise (``inverse_unbiased``)."""
+        added = np.zeros((6, 6)) if added is None else added
+        return self.spread * inverse_unbiased(self.spread, added, self.stations,
+                                              self.resamples) + added
 
 
 def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
                          pairs_ij: np.ndarray, x: Pose, solver: WeightedSolver,
                          resamples: int = 100, rng: np.random.Generator | None = None,
-                         ) -> np.ndarray:
-    """Covariance of X from ``resamples`` solves on stations drawn with replacement.
+                         ) -> Bootstrap:
+    """X's spread over ``resamples`` solves on stations drawn with replacement.
 
     ``pairs_ij`` are the station index pairs that the estimate used; in a resample a pair
     counts ``c_i * c_j`` times, ``c`` being how often each station was drawn.
@@ -69,11 +89,38 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
                              "solvable; the motions barely determine X")
     D = np.array(deltas)
     decoupled = D.T @ D / (len(D) - 1)  # spread about the estimate itself, not the mean
-    return geo.decoupled_to_se3(x.position, decoupled) * _inverse_unbiased(len(stations),
-                                                                           len(D))
+    _inverse_unbiased(len(stations), len(D))  # refuse too few stations or resamples here
+    return Bootstrap(geo.decoupled_to_se3(x.position, decoupled), len(stations), len(D))
 
 
-def _inverse_unbiased(stations: int, resamples: int, dof: int = 6) -> float:
+def inverse_unbiased(spread: np.ndarray, added: np.ndarray, stations: int,
+                     resamples: int) -> float:
+    """The factor ``k`` on the bootstrap's ``spread`` S that makes the inverse of
+    ``k S + added`` unbiased, to second order in S's dispersion:
+    ``k = 1 + (f(nu_s) f(nu_b) - 1) (tr P^2 + (tr P)^2) / (7 tr P)``,
+    ``P = C^-1/2 S C^-1/2`` S's share of ``C = S + added``.
+
+    Why: only S is estimated from the stations' noise; ``added`` (the offset's, the shared
+    tolerances', the held errors) is computed from the trackers' own accounts and does not
+    scatter with that noise.  For an S that scatters like a Wishart estimate with ``nu``
+    degrees of freedom, ``E[(S - Sigma) A (S - Sigma)] = (Sigma A Sigma + tr(A Sigma)
+    Sigma) / nu``, so the mean NEES of an honest error against ``k S + added`` is
+    ``6 - (k - 1) tr P + (tr P^2 + (tr P)^2) / nu``, which is 6 at the ``k`` above (with
+    ``1 / nu`` read from the exact factor of the whole-S case, ``f - 1 ~ 7 / nu``).  With
+    nothing added (``P = I``) it is ``f(nu_s) f(nu_b)`` (``_inverse_unbiased``); with S
+    half of the covariance it is about half as far from 1: scaling S by the whole factor
+    there makes X's covariance conservative.  P is read from S itself (plug-in).
+    """
+    f = _inverse_unbiased(stations, resamples)
+    c = spread + added
+    share = np.linalg.solve(c, spread)  # C^-1 S, similar to P
+    tr, tr2 = float(np.trace(share)), float(np.trace(share @ share))
+    if tr <= 0.0:
+        return f
+    return 1.0 + (f - 1.0) * (tr2 + tr ** 2) / ((_DOF + 1) * tr)
+
+
+def _inverse_unbiased(stations: int, resamples: int, dof: int = _DOF) -> float:
     """``f(nu_s) f(nu_b)``, ``f(nu) = nu / (nu - d - 1)``, ``nu_s = stations - 1``,
     ``nu_b = resamples - 1``: the factor that makes the inverse of the bootstrap's
     covariance unbiased.

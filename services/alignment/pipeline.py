@@ -19,7 +19,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.alignment.covariance import bootstrap_covariance
+from services.alignment.covariance import Bootstrap, bootstrap_covariance
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (
     Selection,
@@ -127,6 +127,10 @@ class AlignmentResult:
     #: of stream a share (``PoseSeries.sensitivity``), in the covariance; (6, 0) if none
     shared_sensitivity: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 0)))
     shared_parameters: tuple[str, ...] = ()
+    #: the stations' bootstrap that ``covariance`` rests on (None: not bootstrapped here)
+    bootstrap: Bootstrap | None = field(repr=False, default=None)
+    #: what ``covariance`` adds to the bootstrap's part: the errors no resample sees
+    added_covariance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 6)))
 
     @property
     def pose(self) -> Pose:
@@ -215,10 +219,11 @@ def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarra
     options = options or AlignmentOptions()
     rng = np.random.default_rng(options.seed)
     fit = fit_stations(pa, qa, pb, qb, options, rng)
-    covariance = bootstrap_covariance(pa, qa, pb, qb, fit.pairs_ij[fit.inliers], fit.pose,
-                                      solver_for(options), options.bootstrap, rng)
+    bootstrap = bootstrap_covariance(pa, qa, pb, qb, fit.pairs_ij[fit.inliers], fit.pose,
+                                     solver_for(options), options.bootstrap, rng)
     return AlignmentResult(
-        position=fit.pose.position, quaternion=fit.pose.quaternion, covariance=covariance,
+        position=fit.pose.position, quaternion=fit.pose.quaternion,
+        covariance=bootstrap.covariance(), bootstrap=bootstrap,
         time_offset_s=time_offset_s, method=options.method, n_stations=len(pa),
         n_candidates=fit.selection.candidates, n_selected=len(fit.motions),
         n_inliers=int(fit.inliers.sum()), axis_spread_rad=fit.selection.axis_spread_rad,
@@ -459,7 +464,8 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     (``offset_covariance``), the errors a's stations share through parameters whose
     sensitivities a gives (``shared_error_sensitivity``), and each tracker's held error
     (``held_error_covariance``; of a's covariances what those parameters do not explain;
-    b's moves X by ``X E_b X^-1``, hence its adjoint)."""
+    b's moves X by ``X E_b X^-1``, hence its adjoint).  The bootstrap's part is scaled for
+    an unbiased inverse of the whole (``covariance.inverse_unbiased``)."""
     times = station_times(a, b, offset_s, options.max_stations)
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + offset_s)
@@ -474,7 +480,8 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
              + shared @ shared.T + held_error_covariance(pa, qa, held_a)
              + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
-    return replace(result, covariance=result.covariance + added, time_offset_std_s=offset_std_s,
+    return replace(result, covariance=result.bootstrap.covariance(added),
+                   added_covariance=added, time_offset_std_s=offset_std_s,
                    shared_sensitivity=shared, shared_parameters=a.parameters)
 
 
