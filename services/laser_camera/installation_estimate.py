@@ -24,7 +24,12 @@ from agent.errors import InvalidInputError
 
 class InstallationEstimate:
     """Held parameters (each N(0, 1) a priori, in units of its tolerance) estimated from
-    linear observations ``z = H theta + noise``: the fourth beam's misses."""
+    linear observations ``z = H theta + noise``: the fourth beam's misses.
+
+    Kept as mean and covariance, each observation a rank-2 Kalman update touching the
+    parameters it sees: a run holds some 90 parameters and an update costs tens of
+    microseconds, where inverting the information matrix each frame set cost a
+    millisecond."""
 
     def __init__(self, gate_chi2: float):
         if not gate_chi2 > 0:
@@ -32,8 +37,6 @@ class InstallationEstimate:
         self.gate_chi2 = gate_chi2
         self.names: list[str] = []
         self._index: dict[str, int] = {}
-        self._info = np.zeros((0, 0))  # information matrix (inverse covariance)
-        self._b = np.zeros(0)  # information vector
         self._mean = np.zeros(0)
         self._cov = np.zeros((0, 0))
         self.accepted = 0
@@ -47,24 +50,25 @@ class InstallationEstimate:
             for n in new:
                 self._index[n] = len(self.names)
                 self.names.append(n)
-            info = np.eye(m + k)
-            info[:m, :m] = self._info
             cov = np.eye(m + k)
             cov[:m, :m] = self._cov
-            self._info, self._cov = info, cov
-            self._b = np.concatenate([self._b, np.zeros(k)])
+            self._cov = cov
             self._mean = np.concatenate([self._mean, np.zeros(k)])
         return np.array([self._index[n] for n in names], dtype=int)
 
+    def _innovation(self, z: np.ndarray, noise: np.ndarray, sensitivity: dict[str, np.ndarray],
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The state indices, ``H`` over them, ``z``'s residual ``z - H mean`` and its
+        covariance ``H P H^T + noise``."""
+        idx = self._columns(list(sensitivity))
+        H = np.array(list(sensitivity.values())).T  # (2, k)
+        v = z - H @ self._mean[idx]
+        return idx, H, v, H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
+
     def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
                         sensitivity: dict[str, np.ndarray]) -> float:
-        """Chi-square of ``z`` against what the estimate so far predicts of it: its
-        residual ``z - H mean`` under ``H P H^T + noise``."""
-        names = list(sensitivity)
-        idx = self._columns(names)
-        H = np.column_stack([sensitivity[n] for n in names])
-        v = z - H @ self._mean[idx]
-        S = H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
+        """Chi-square of ``z`` against what the estimate so far predicts of it."""
+        _, _, v, S = self._innovation(np.asarray(z, float), noise, sensitivity)
         return float(v @ np.linalg.solve(S, v))
 
     def update(self, z: np.ndarray, noise: np.ndarray,
@@ -76,18 +80,16 @@ class InstallationEstimate:
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(noise))):
             self.refused += 1
             return False
-        if self.innovation_chi2(z, noise, sensitivity) > self.gate_chi2:
+        idx, H, v, S = self._innovation(z, noise, sensitivity)
+        if float(v @ np.linalg.solve(S, v)) > self.gate_chi2:
             self.refused += 1
             return False
-        names = list(sensitivity)
-        idx = self._columns(names)
-        H = np.column_stack([sensitivity[n] for n in names])
-        W = np.linalg.inv(noise)
-        self._info[np.ix_(idx, idx)] += H.T @ W @ H
-        self._b[idx] += H.T @ W @ z
-        self._cov = np.linalg.inv(self._info)
+        PHt = self._cov[:, idx] @ H.T  # (M, 2): every parameter's covariance with z
+        K = np.linalg.solve(S, PHt.T).T
+        self._mean += K @ v
+        # Joseph-free form, symmetrised: the gain is optimal and the update rank 2
+        self._cov -= K @ PHt.T
         self._cov = 0.5 * (self._cov + self._cov.T)
-        self._mean = self._cov @ self._b
         self.accepted += 1
         return True
 

@@ -492,8 +492,7 @@ class LaserTracker:
         quaternion = geo.quat_multiply(geo.rotvec_to_quat(-dphi), est.quaternion)
         systematic = S @ P @ S.T + _model_covariance(p0, p)
         systematic = 0.5 * (systematic + systematic.T)
-        w, V = np.linalg.eigh(P)
-        root = S @ (V * np.sqrt(np.maximum(w, 0.0))) @ V.T  # S P^(1/2): one column per name
+        root = S @ _cholesky(P)  # S L, L L^T = P: one column per name
         dot_shift = np.einsum("kam,m->ka", D, mean)
         dot_cov = np.einsum("kam,mn,kbn->kab", D, P, D)
         return replace(
@@ -1183,6 +1182,16 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
         + _model_covariance(p0, params)
     whole = random + systematic
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+
+
+def _cholesky(P: np.ndarray) -> np.ndarray:
+    """``L`` with ``L L^T = P`` for a covariance that rounding may have left a hair short
+    of positive definite (a parameter pinned down to 1e-8 of its tolerance)."""
+    try:
+        return np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(P)
+        return V * np.sqrt(np.maximum(w, 0.0))
 
 
 def _model_covariance(p0: np.ndarray, params: TrackerParams) -> np.ndarray | float:
