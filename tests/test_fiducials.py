@@ -610,6 +610,19 @@ rotation = [0.0, 1.5707963267948966, 0.0]
     assert np.trace(est.covariance) < np.trace(single.covariance) / 2
 
 
+def test_eval_bundle_scene_reports_the_gain_over_its_most_accurate_tag():
+    from services.fiducials.evaluate import _bundle
+
+    rng = np.random.default_rng(3)
+    camera = webcam(rng)
+    out = _bundle(rng, camera, SimCamera(camera, supersampling=FAITHFUL), 6, 10.0)
+    assert out["bundle_samples"] >= 4 and out["best_tag_samples"] >= 4
+    assert out["best_tag_rms_mm"] <= out["single_rms_mm"]  # the least of the tags' errors
+    assert out["best_gain_measured"] <= out["gain_measured"]
+    assert out["best_gain_claimed"] == pytest.approx(
+        out["best_tag_claimed_mm"] / out["bundle_claimed_mm"], rel=0.01)
+
+
 def test_a_bundle_judges_its_planar_ambiguity_by_its_corners_covariance():
     """Four tags on a 19 cm plate at 2.5 m, tilted 0.15 rad: the two solutions' residuals
     differ by a few times a lone tag's corner floor (covered), but by hundreds of times

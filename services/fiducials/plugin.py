@@ -83,5 +83,6 @@ EVAL = EvalPlugin(
     run="services.fiducials.evaluate:run",
     higher_is_better=frozenset({"detected", "bundle_samples", "single_samples",
                                 "share_inside_single_95", "effective_samples",
-                                "gain_measured", "gain_claimed"}),
+                                "gain_measured", "gain_claimed", "best_tag_samples",
+                                "best_gain_measured", "best_gain_claimed"}),
 )
