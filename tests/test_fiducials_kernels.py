@@ -1,7 +1,8 @@
 """The fiducial tracker's compiled twin (services/fiducials/_kernels.c) against the numpy
 code it mirrors: to rounding the fits, the Gauss-Newton and weighted steps, the side lines'
 fits, the corners' covariance and the code cells' shift of thin sides' crossings; the edge
-crossings to the bit; and the whole tracker's estimates on rendered frames."""
+crossings to the bit; and the whole tracker's estimates on rendered frames, and a
+bundle's on noisy corners."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ import numpy as np
 import pytest
 
 from services.camera.markers import dictionary, marker_corners
+from services.camera.model import CameraModel
 from services.camera.simulator import SimCamera
 from services.fiducials import border, edges, pose
+from services.fiducials.bodies import Body
 from services.fiducials.simulate import tags, wandering, webcam
 from services.fiducials.tracker import FiducialTracker
 
@@ -160,6 +163,43 @@ def test_tracker_estimates_agree_with_the_numpy_code(numpy_only):
     for a, b in zip(compiled, plain, strict=True):
         assert (a.name, a.ambiguity, a.markers) == (b.name, b.ambiguity, b.markers)
         for field in ("R", "t", "covariance", "sigma_px", "rms_px", "flip_probability"):
+            np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-9,
+                                       atol=1e-12)
+
+
+@native
+def test_bundle_estimates_agree_with_the_numpy_code(numpy_only):
+    # four tags on a plate at 2.5 m, tilted 0.15 rad: the two solutions judged by the
+    # corners' joint covariance, the pose weighted by it
+    plate = {i: marker_corners(0.08) + np.array([0.055 * dx, 0.055 * dy, 0.0])
+             for i, (dx, dy) in enumerate([(-1, 1), (1, 1), (1, -1), (-1, -1)], start=20)}
+    body = Body("plate", plate)
+    rng = np.random.default_rng(4)
+    frames = []
+    R, t = cv2.Rodrigues(np.array([0.15, 0.0, 0.0]))[0], np.array([0.1, 0.05, 2.5])
+    for _ in range(8):
+        seen = {}
+        for i, corners in plate.items():
+            X = corners @ R.T + t
+            seen[i] = X[:, :2] / X[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]] \
+                + rng.normal(0, 0.05, (4, 2))
+        frames.append(seen)
+    noise = {i: 0.05 ** 2 * np.eye(8) for i in plate}
+    camera = CameraModel(K, [], 640, 480, pixel_std=0.3)
+
+    def run() -> list:
+        tracker = FiducialTracker(camera, "apriltag36h11", None, bundles=[body])
+        return [e for k, f in enumerate(frames) for e in tracker.estimate(f, k * 100_000_000,
+                                                                          noise)]
+
+    compiled = run()
+    numpy_only()
+    plain = run()
+    assert len(compiled) == len(plain) == 8
+    assert sum(np.isfinite(e.alternative_gap) for e in plain) >= 3  # two solutions judged
+    for a, b in zip(compiled, plain, strict=True):
+        assert (a.ambiguity, a.markers) == (b.ambiguity, b.markers)
+        for field in ("R", "t", "covariance", "alternative_gap", "flip_probability"):
             np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-9,
                                        atol=1e-12)
 
