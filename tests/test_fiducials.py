@@ -839,3 +839,61 @@ def test_a_bundles_markers_share_their_tag_wide_side_offsets():
     assert edges.cell_widths(steep, 8)[1].min() < image_fit.CELL_PX
     blocks = list(side_offset_covariance(steep, steep, 8) + edge_fits)
     assert not fiducial_tracker.bundle_covariance(blocks, list(steep), 8)[:8, 8:].any()
+
+
+def _side_offsets_along_x(turn_deg: float, side_px: float, shifts: np.ndarray,
+                          locking: edges.Locking | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A tag ``side_px`` px across facing the ideal camera (blur 0.6 px, each pixel
+    integrated over its area, no noise), turned ``turn_deg`` in its plane and moved along
+    x by ``shifts`` px: its two nearly vertical sides' x offsets from the truth (refined
+    with ``locking``) and their true x."""
+    cam = SimCamera(IDEAL, blur_sigma_px=0.6, read_noise=0.0, shot_noise=0.0,
+                    supersampling=FAITHFUL)
+    detector = FiducialTracker(IDEAL, "apriltag36h11", 0.08).detector
+    z = K[0, 0] * 0.08 / side_px
+    err, where = [], []
+    for shift in shifts:
+        T = facing((0.0, 0.0, math.radians(turn_deg)), ((0.3 + shift) * z / K[0, 0], 0.0, z))
+        image = cam.render(tags("apriltag36h11", [9], 0.08, [static(T)]), 0.0,
+                           np.random.default_rng(0))
+        raw, _, _ = detector.detectMarkers(image)
+        got = edges.refine(image, np.asarray(raw).reshape(-1, 4, 2), 8, IDEAL,
+                           locking=locking)[0][0]
+        true = corners_of(T)
+        for a, b in ((1, 2), (3, 0)):  # the right and left sides
+            err.append((got[a, 0] + got[b, 0] - true[a, 0] - true[b, 0]) / 2)
+            where.append((true[a, 0] + true[b, 0]) / 2)
+    return np.array(err), np.array(where)
+
+
+def _locking_amplitude(err: np.ndarray, where: np.ndarray) -> float:
+    s = np.sin(2 * np.pi * where)
+    return float(err @ s / (s @ s))
+
+
+@pytest.mark.parametrize("side_px", [25.0, 42.6, 71.0])
+def test_pixel_locking_pulls_edges_towards_the_pixel_borders_at_every_sample_spacing(side_px):
+    """A side along a pixel axis, each pixel integrated over its area: its crossings, the
+    chords between pixel centres of a blurred step, lie off the edge towards the border
+    between the pixels, ``A sin(2π x)`` with ``A`` > 0, whether the profiles' samples lie
+    0.42, 0.71 or 1.18 px apart (sides of 25, 42.6 and 71 px)."""
+    err, where = _side_offsets_along_x(0.0, side_px, np.arange(8) / 8)
+    amplitude = _locking_amplitude(err, where)
+    assert 0.03 < amplitude < 0.1, amplitude
+
+
+def test_the_cameras_pixel_locking_is_learnt_from_its_frames_and_taken_out():
+    """The sides of a tag turned 5 degrees sweep several pixels across their axis: their
+    scatter teaches the camera's locking amplitude, which then takes the locking out of
+    the sides of a tag along the axes (whose points share one phase, so that it moves
+    their whole line and teaches nothing)."""
+    along_axes = edges.Locking()
+    _side_offsets_along_x(0.0, 42.6, np.arange(4) / 4, along_axes)
+    assert along_axes.amplitude == 0.0 and along_axes.spread == edges.LOCK_PRIOR_PX
+    locking = edges.Locking()
+    _side_offsets_along_x(5.0, 42.6, np.arange(4) / 4, locking)
+    assert 0.04 < locking.amplitude < 0.08 and locking.spread < 0.005
+    shifts = np.arange(8) / 8
+    before = _locking_amplitude(*_side_offsets_along_x(0.0, 42.6, shifts))
+    err, where = _side_offsets_along_x(0.0, 42.6, shifts, locking)
+    assert abs(_locking_amplitude(err, where)) < 0.3 * before, (before, err)

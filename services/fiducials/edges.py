@@ -27,6 +27,8 @@ detected ones keeps the detected ones (undistorted likewise).
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -94,6 +96,34 @@ CODE_CELL_PX = 3.0
 #: bin) 1 px left out too many of the short sides' points of tags tilted 73-76 degrees
 #: and 2 px did best; without the rule corners at 77-79 degrees were 0.3 px off
 CORNER_OVERSHOOT_PX = 2.0
+#: pixel locking: a profile sampled bilinearly between pixel centres crosses its middle
+#: off the true edge towards the nearer pixel border, by about ``A sin(2π x)`` along the
+#: image axis nearer the side's normal (x: the edge's coordinate on that axis, pixel
+#: centres at whole numbers).  Its sign follows from the sampling for any symmetric blur
+#: (a blurred step is concave on either side of its middle, so the chord between two
+#: pixel centres crosses the middle nearer the border between them); its size ``A``
+#: follows from the edge's profile at the pixel scale, which one profile cannot show
+#: (rendered tags along the axes, each pixel integrated over its area: 0.07-0.09 /
+#: 0.055-0.077 / 0.028-0.05 / 0.011-0.025 px at a blur of 0.3 / 0.6 / 1.0 / 1.3 px, of
+#: one sign at profile sample spacings of 0.42-1.18 px; sampled at the pixels' centres
+#: alone the rendered edges lock to the grid themselves and the sign changes with the
+#: tag's size).  So :class:`Locking` learns ``A`` from the camera's own frames, from the
+#: sides within ``LOCK_ANGLE_DEG`` of an axis (beyond, the locking turns two-dimensional
+#: and fades: 0.06 px at 3-10 degrees, 0.046 at 20, 0.01 at 30 on rendered tags), and
+#: those of them whose points sweep less than ``LOCK_SWEEP_PX`` across the axis, all at
+#: nearly one phase so that the locking moves their whole line, are corrected by it
+#: (:func:`_unlocked`); along the others it averages out in the line and stays in the
+#: scatter the corners' covariance is built from.  ``LOCK_PRIOR_PX``: the amplitude's
+#: prior spread, what the covariance carries before any evidence (the tracker's
+#: ``LOCK_PX``, fitted when nothing was corrected); ``LOCK_NOISE_PX``: a point's scatter
+#: about the locking's curve; ``LOCK_MEMORY``: the share of its evidence a camera keeps
+#: from one frame to the next
+LOCK_ANGLE_DEG = 10.0
+LOCK_SWEEP_PX = 1.0
+LOCK_TEACH_PX = 2.0
+LOCK_PRIOR_PX = 0.046
+LOCK_NOISE_PX = 0.03
+LOCK_MEMORY = 0.98
 
 
 #: the profile's steps across a side
@@ -108,6 +138,38 @@ def _fractions(span: float, samples: int) -> np.ndarray:
 
 
 _FIRST, _SECOND = _fractions(FIRST_SPAN, FIRST_SAMPLES), _fractions(SPAN, SAMPLES)
+
+
+@dataclass
+class Locking:
+    """A camera's pixel-locking amplitude (px), learnt from the edge points of its frames.
+
+    The points of a side within ``LOCK_ANGLE_DEG`` of a pixel axis that sweeps a pixel or
+    more across it lie at every phase of the pixel grid, so their scatter about the side's
+    line shows ``A sin(2π x)`` (what the line itself cannot take up: the sine less its
+    straight-line fit along the side); a side that lies along the axis has all its points
+    at one phase, its whole line moved by the same error and nothing of it in its scatter.
+    The first teach the amplitude, the second are corrected by it.  The estimate is the
+    regression of those scatters on the sine, over the frames seen (older ones fading by
+    ``LOCK_MEMORY`` a frame), shrunk towards zero by a prior of spread ``LOCK_PRIOR_PX``."""
+
+    evidence: float = 0.0  # sum of residual x sine (px)
+    weight: float = 0.0  # sum of sine squared
+
+    def add(self, evidence: float, weight: float) -> None:
+        """A frame's regression sums."""
+        self.evidence = LOCK_MEMORY * self.evidence + evidence
+        self.weight = LOCK_MEMORY * self.weight + weight
+
+    @property
+    def amplitude(self) -> float:
+        """The estimate (px); zero before any evidence."""
+        return self.evidence / (self.weight + (LOCK_NOISE_PX / LOCK_PRIOR_PX) ** 2)
+
+    @property
+    def spread(self) -> float:
+        """The estimate's standard deviation (px); ``LOCK_PRIOR_PX`` before any evidence."""
+        return LOCK_NOISE_PX / math.sqrt(self.weight + (LOCK_NOISE_PX / LOCK_PRIOR_PX) ** 2)
 
 
 def place(gray: np.ndarray, quads: np.ndarray, modules: int) -> np.ndarray:
@@ -130,7 +192,8 @@ def place(gray: np.ndarray, quads: np.ndarray, modules: int) -> np.ndarray:
 
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
            cells: np.ndarray | None = None, placed: np.ndarray | None = None,
-           modelled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+           modelled: np.ndarray | None = None, locking: Locking | None = None,
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
     ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
     marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
@@ -139,7 +202,9 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     the thin ones' crossings are corrected for the code behind the border
     (:func:`_code_corrected`), on the markers ``modelled`` (n,; all by default): the
     others' corners are only where a whole-image fit starts from, which replaces them.
-    ``placed``: :func:`place` of ``quads``, if already known."""
+    ``placed``: :func:`place` of ``quads``, if already known.  With the camera's
+    ``locking`` the points of the sides along a pixel axis are corrected for it, after it
+    has learnt what this frame shows of it (:func:`_unlocked`)."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
         return quads, np.zeros((0, 4, 2, 2))
@@ -169,6 +234,8 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     if inliers is not w:
         w = inliers
         mean, dev, direction = _lines(ideal, w)
+    if locking is not None and _unlocked(ideal, edge, dev, direction, w, locking):
+        mean, dev, direction = _lines(ideal, w)
     chord = fallback[:, _NEXT] - fallback
     chord /= np.maximum(np.sqrt(_dot2(chord, chord)), 1e-9)[..., None]
     few = (w.sum(-1) < MIN_POINTS)[..., None]
@@ -178,6 +245,67 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     cov = _corner_covariance(corners, point, direction, dev, w, few)
     cov = np.where(ok[:, None, None], cov, FALLBACK_STD ** 2 * np.eye(8))
     return np.where(ok[:, None, None], corners, fallback), cov
+
+
+def _locking_axes(edge: np.ndarray, direction: np.ndarray,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per side (n, 4) of the lines' ``direction``: whether it lies within
+    ``LOCK_ANGLE_DEG`` of a pixel axis; the coordinates (n, 4, k) of its points ``edge``
+    (distorted pixels, where the pixel grid is) on the axis nearer its normal; and that
+    axis as a unit vector (n, 4, 2)."""
+    axis = np.argmax(np.abs(direction), axis=-1) ^ 1  # the normal's larger component
+    along = np.take_along_axis(np.abs(direction), (axis ^ 1)[..., None], -1)[..., 0]
+    near = along >= math.cos(math.radians(LOCK_ANGLE_DEG))
+    x = np.take_along_axis(edge, axis[..., None, None], -1)[..., 0]
+    return near, x, np.eye(2)[axis]
+
+
+def _locking_evidence(dev: np.ndarray, direction: np.ndarray, w: np.ndarray,
+                      near: np.ndarray, x: np.ndarray, unit: np.ndarray) -> tuple[float, float]:
+    """The regression sums (:meth:`Locking.add`) of the ``near`` sides' points' scatter
+    across their lines (``dev``: from their means; ``w``: weights), as moves along their
+    axis (``unit``), on ``sin(2π x)`` less its own straight-line fit along the side: the
+    part of the locking a line fit leaves in its scatter."""
+    normal = direction[..., ::-1] * [-1.0, 1.0]
+    cos = np.abs(_dot2(normal, unit))
+    across = _dot2(dev, normal[:, :, None]) * np.sign(_dot2(normal, unit))[..., None]
+    u = _dot2(dev, direction[:, :, None])
+    sine = np.sin(2 * np.pi * x)
+    count = np.maximum(w.sum(-1, keepdims=True), 1.0)
+    centred = sine - (w * sine).sum(-1, keepdims=True) / count
+    spread = np.maximum((w * u * u).sum(-1, keepdims=True), 1e-12)
+    slope = (w * u * centred).sum(-1, keepdims=True) / spread
+    left = centred - slope * u
+    keep = (w * near[..., None]) > 0
+    moves = across / np.maximum(cos, 1e-6)[..., None]
+    return float(np.sum(np.where(keep, moves * left, 0.0))), \
+        float(np.sum(np.where(keep, left * left, 0.0)))
+
+
+def _unlocked(ideal: np.ndarray, edge: np.ndarray, dev: np.ndarray, direction: np.ndarray,
+              w: np.ndarray, locking: Locking) -> bool:
+    """Adds what the sides' edge points show of the pixel locking to ``locking`` and moves
+    the points ``ideal`` (n, 4, k, 2, in place) of the sides that sweep less than
+    ``LOCK_SWEEP_PX`` across their axis back by it, ``locking.amplitude * sin(2π x)``
+    along that axis (``x``: their coordinates on it in the image, ``edge``); whether any
+    moved.  ``dev``, ``direction``: the lines' fits of ``ideal`` with weights ``w``.  The
+    undistortion between the image and the ideal pixels is smooth and near unit scale over
+    a pixel, so the move is the same there."""
+    near, x, unit = _locking_axes(edge, direction)
+    if not near.any():
+        return False
+    along = _dot2(dev, direction[:, :, None])
+    extent = np.where(w > 0, along, -np.inf).max(-1) + np.where(w > 0, -along, -np.inf).max(-1)
+    sweep = extent * np.abs(_dot2(direction, unit))
+    teach = near & (sweep >= LOCK_TEACH_PX)
+    if teach.any():
+        locking.add(*_locking_evidence(dev, direction, w, teach, x, unit))
+    locked = near & (sweep < LOCK_SWEEP_PX)
+    if not locked.any():
+        return False
+    move = np.where(locked[..., None], locking.amplitude * np.sin(2 * np.pi * x), 0.0)
+    ideal -= move[..., None] * unit[:, :, None, :]
+    return True
 
 
 def cell_widths(quads: np.ndarray, modules: int) -> np.ndarray:

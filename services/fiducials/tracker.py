@@ -102,7 +102,8 @@ SIDE_CORRELATION = 1.0
 #: likelihood, the errors of the four corners against the truth of the 577 tags the image
 #: fit leaves to the edge fits (a side's offset 0.013 px where its cells are 2 px across).
 #: The corners' mean 8-dof NEES 7.8 (fresh seeds 101-110, nothing fitted there, 8.1)
-LOCK_PX = 0.046
+LOCK_PX = edges.LOCK_PRIOR_PX
+LOCK_LEFT_PX = 0.029
 EDGE_SHARE = 0.00095
 #: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
 #: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
@@ -231,17 +232,17 @@ def _covered(own: np.ndarray, chosen: pose.Solution, solutions: list[pose.Soluti
 
 
 def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, in_image: np.ndarray,
-                      modules: int) -> np.ndarray:
+                      modules: int, lock_px: float = LOCK_PX) -> np.ndarray:
     """The joint covariances (m, 8, 8) of the corners (m, 4, 2, ideal pixels) of ``m``
     markers ``modules`` cells wide, at ``in_image`` in the image's pixels (m, 4, 2: where
     the sides' pixel locking is), from their edge fits' (:func:`edges.refine`), plus the
     four sides' offsets and turns that the fits cannot show
-    (:func:`side_offset_covariance`)."""
-    return edge_fit + side_offset_covariance(corners, in_image, modules)
+    (:func:`side_offset_covariance`, pixel locking of amplitude ``lock_px``)."""
+    return edge_fit + side_offset_covariance(corners, in_image, modules, lock_px)
 
 
 def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
-                           modules: int) -> np.ndarray:
+                           modules: int, lock_px: float = LOCK_PX) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
     at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
@@ -257,9 +258,9 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
     in_image = np.asarray(in_image, np.float64)
     sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
     tau = _side_offset_px(across)
-    own = ((1 - SIDE_CORRELATION) * tau ** 2 + LOCK_PX ** 2 / 2 * np.sinc(sweep) ** 2
+    own = ((1 - SIDE_CORRELATION) * tau ** 2 + lock_px ** 2 / 2 * np.sinc(sweep) ** 2
            + (EDGE_SHARE * across) ** 2)
-    tilt = LOCK_PX ** 2 / 2 * _locked_slope(sweep) ** 2
+    tilt = lock_px ** 2 / 2 * _locked_slope(sweep) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
     return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
             + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
@@ -434,6 +435,7 @@ class FiducialTracker:
         self._cells = border.code_cells(d)
         self._K = camera.K
         camera.ideal_offsets()  # the edge points' undistortion table, before the first frame
+        self._locking = edges.Locking()
         self.bundles = list(bundles or [])
         self._bundle_of = {i: b for b in self.bundles for i in b.corners}
         self._name_of = dict(name_of or {})
@@ -486,10 +488,11 @@ class FiducialTracker:
         joint covariances (n, 8, 8, :func:`corner_covariance`); ``lens`` (n, 4, 2): the
         distortion's offset at the detected corners."""
         ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells, placed,
-                                  modelled)
+                                  modelled, self._locking)
         # the refined corners in the image's pixels: the distortion's offset is smooth, the
         # detector's corner a pixel away has the same
-        return ideal, corner_covariance(cov, ideal, ideal + lens, self._modules)
+        return ideal, corner_covariance(cov, ideal, ideal + lens, self._modules,
+                                        max(LOCK_LEFT_PX, self._locking.spread))
 
     def process(self, image: np.ndarray, t_ns: int) -> list[Estimate]:
         """Every body seen in ``image`` (captured at ``t_ns``)."""
