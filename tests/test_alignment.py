@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -547,3 +548,57 @@ def test_an_honest_seeds_share_spreads_wider_when_its_trials_share_the_installat
     S = rng.normal(size=(n, 6, 3))  # three tolerances, each trial its own sensitivity
     shared = _honest_share_quantile(base + S @ np.swapaxes(S, 1, 2), S)
     assert shared < 0.85
+
+
+def test_the_bootstraps_share_of_a_shared_error_is_what_its_resamples_make_of_it() -> None:
+    """An error that every recording shares but that differs between stations (here a
+    scale error of sensor a's rotations, per parameter) spreads the resamples as noise
+    would, and X's covariance counts it whole already; ``shared_spread``, the resamples'
+    spread of X's shift under each parameter (first order), matches solving each resample
+    again with the stations moved.  The covariance takes it out of the spread, in no
+    direction below the spread's resolution."""
+    from services.alignment.covariance import (
+        _inverse_unbiased,
+        bootstrap_covariance,
+        shared_spread,
+    )
+    from services.alignment.pipeline import moved_motions, solver_for
+    from services.alignment.solvers import relative_motions
+
+    stations, _ = _stations(11, n=20, noise=(0.001, np.radians(0.1)))
+    pa, qa = stations[:2]
+    turn = geo.quat_to_rotvec(qa)
+    sensitivity = np.zeros((len(pa), 6, 3))
+    sensitivity[:, :3] = 0.002 * turn[:, :, None] * np.eye(3)
+    sensitivity[:, 3:] = 0.005 * turn[:, :, None] * np.eye(3)
+    options = AlignmentOptions(bootstrap=20)
+    solver = solver_for(options)
+    ij = np.array([(i, j) for i in range(len(pa)) for j in range(i + 1, len(pa))])
+    motions = relative_motions(*stations, ij)
+    estimate = solver(motions)
+    boot = bootstrap_covariance(*stations, ij, estimate, solver, 20, np.random.default_rng(1))
+    moved = list(moved_motions(stations, sensitivity, ij).values())
+
+    def shift(pairs: MotionPairs, w: np.ndarray | None, origin: Pose) -> np.ndarray:
+        xk = solver(pairs, w)
+        dphi = geo.quat_to_rotvec(geo.quat_multiply(xk.quaternion,
+                                                    geo.quat_conjugate(origin.quaternion)))
+        return np.concatenate([xk.position - origin.position
+                               - np.cross(dphi, origin.position), dphi])
+
+    whole = [shift(m, None, estimate) for m in moved]
+    exact = np.zeros((6, 6))
+    for w in boot.weights:
+        used = w > 0
+        xb = solver(motions.subset(used), w[used])
+        for m, s in zip(moved, whole, strict=True):
+            e = shift(m.subset(used), w[used], xb) - s
+            exact += np.outer(e, e) / (boot.resamples - 1)
+    linear = shared_spread(boot, motions, moved, estimate)
+    # first order: each resample also re-weighs translation against rotation (4 % here)
+    assert np.linalg.norm(linear - exact) < 0.1 * np.linalg.norm(exact)
+    assert np.allclose(boot.covariance(),
+                       boot.spread * _inverse_unbiased(boot.stations, boot.resamples), rtol=1e-12)
+    twice = replace(boot, shared=2.0 * boot.spread)
+    floor = np.sqrt(2.0 / (boot.stations - 1))
+    assert np.allclose(twice.covariance(), boot.covariance() * floor, rtol=1e-9)

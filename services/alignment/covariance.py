@@ -16,7 +16,7 @@ Result in ``agent.geometry``'s convention: 6x6 over the left perturbation
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,6 +27,7 @@ from services.alignment.solvers import (
     DegenerateMotionError,
     MotionPairs,
     Pose,
+    linearised_residuals,
     relative_motions,
 )
 
@@ -38,20 +39,44 @@ _DOF = 6
 
 @dataclass(frozen=True)
 class Bootstrap:
-    """The resamples' spread of X about the estimate (6x6, geometry's convention) and the
-    counts its inverse's bias rests on."""
+    """The resamples' spread of X about the estimate (6x6, geometry's convention), the
+    counts its inverse's bias rests on, and the resamples themselves."""
 
     spread: np.ndarray
     stations: int
     resamples: int  # the solvable ones
+    pairs_ij: np.ndarray  # the station index pairs of the motions X was solved from
+    counts: np.ndarray  # (resamples, stations): how often each solvable resample drew each
+    #: the part of ``spread`` that errors shared by every recording make (``shared_spread``)
+    shared: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(resamples, pairs): each motion pair's weight in each solvable resample."""
+        return self.counts[:, self.pairs_ij[:, 0]] * self.counts[:, self.pairs_ij[:, 1]]
 
     def covariance(self, added: np.ndarray | None = None) -> np.ndarray:
-        """X's covariance: the spread, scaled so that the inverse of the whole is unbiased,
-        plus ``added`` (6x6, the same convention), what the stations' resamples cannot see
-        and is computed rather than estimated from their noise (``inverse_unbiased``)."""
+        """X's covariance: the spread less its ``shared`` part (counted in ``added``), scaled
+        so that the inverse of the whole is unbiased, plus ``added`` (6x6, the same
+        convention), what the stations' resamples cannot see, computed rather than
+        estimated from their noise (``inverse_unbiased``)."""
         added = np.zeros((6, 6)) if added is None else added
-        return self.spread * inverse_unbiased(self.spread, added, self.stations,
-                                              self.resamples) + added
+        noise = _less(self.spread, self.shared, np.sqrt(2.0 / (self.stations - 1)))
+        return noise * inverse_unbiased(noise, added, self.stations, self.resamples) + added
+
+
+def _less(spread: np.ndarray, part: np.ndarray, resolution: float) -> np.ndarray:
+    """``spread - part``, in no direction below ``resolution`` times the spread there
+    (in the spread's own metric, so that units and coordinates do not matter).
+
+    Why: ``part`` is an average over the draws of what it removes; where one draw left
+    less than average, the difference falls below what the spread can resolve (its
+    relative standard error, ``sqrt(2 / nu)`` for a Wishart estimate), and a variance set
+    to zero there would make any error in that direction infinitely unlikely."""
+    root = np.linalg.cholesky(spread)
+    w, v = np.linalg.eigh(np.linalg.solve(root, np.linalg.solve(root, part).T))
+    r = root @ v
+    return (r * np.clip(1.0 - w, resolution, None)) @ r.T
 
 
 def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
@@ -70,7 +95,7 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
     ij = np.asarray(pairs_ij, dtype=int).reshape(-1, 2)
     stations = np.unique(ij)
     motions = relative_motions(pa, qa, pb, qb, ij)
-    deltas = []
+    deltas, drawn = [], []
     for _ in range(resamples):
         counts = np.zeros(int(stations.max()) + 1)
         np.add.at(counts, rng.choice(stations, size=len(stations)), 1.0)
@@ -84,13 +109,37 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
         dphi = geo.quat_to_rotvec(geo.quat_multiply(xk.quaternion,
                                                     geo.quat_conjugate(x.quaternion)))
         deltas.append(np.concatenate([dp, dphi]))
+        drawn.append(counts)
     if len(deltas) < max(2, resamples // 2):
         raise AlignmentError(f"bootstrap: only {len(deltas)} of {resamples} resamples were "
                              "solvable; the motions barely determine X")
     D = np.array(deltas)
     decoupled = D.T @ D / (len(D) - 1)  # spread about the estimate itself, not the mean
     _inverse_unbiased(len(stations), len(D))  # refuse too few stations or resamples here
-    return Bootstrap(geo.decoupled_to_se3(x.position, decoupled), len(stations), len(D))
+    return Bootstrap(geo.decoupled_to_se3(x.position, decoupled), len(stations), len(D), ij,
+                     np.array(drawn))
+
+
+def shared_spread(bootstrap: Bootstrap, motions: MotionPairs, moved: list[MotionPairs],
+                  x: Pose) -> np.ndarray:
+    """What the bootstrap's spread holds, on average, of errors that every recording
+    shares (6x6, geometry's convention): ``moved`` are ``motions`` with every station moved
+    by one std of one such parameter each; the spread over the same resamples of X's
+    shift under each, summed (first order: the refinement's Gauss-Newton step at ``x``).
+
+    Why: such an error (an installation's tolerance seen through each station's pose)
+    differs from station to station, so the resamples see it as noise and spread X by it,
+    while X's covariance counts it whole as the parameters' (``shared_error_sensitivity``):
+    counted twice, by this much on average over the parameters' draws."""
+    r0, J, scale = linearised_residuals(motions, x)
+    jtj = np.einsum("pki,pkj->pij", J, J)
+    jtr = np.stack([np.einsum("pki,pk->pi", J, linearised_residuals(m, x, scale)[0] - r0)
+                    for m in moved], axis=-1)  # (pairs, 6, parameters)
+    whole = -np.linalg.solve(jtj.sum(0), jtr.sum(0))
+    w = bootstrap.weights
+    each = -np.linalg.solve(np.einsum("bp,pij->bij", w, jtj), np.einsum("bp,pim->bim", w, jtr))
+    e = each - whole
+    return np.einsum("bim,bjm->ij", e, e) / (len(w) - 1)
 
 
 def inverse_unbiased(spread: np.ndarray, added: np.ndarray, stations: int,

@@ -19,7 +19,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.alignment.covariance import Bootstrap, bootstrap_covariance
+from services.alignment.covariance import Bootstrap, bootstrap_covariance, shared_spread
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (
     Selection,
@@ -439,21 +439,31 @@ def shared_error_sensitivity(stations: tuple[np.ndarray, ...], sensitivity: np.n
     stations' errors differ along what the motions determine least.  X is solved again
     from the same motion pairs with every station of a moved by one std of the parameter
     (first order: the tolerances move a pose by a fraction of a milliradian)."""
-    pa, qa, pb, qb = stations
     solver = solver_for(options)
-    x0 = solver(relative_motions(pa, qa, pb, qb, result.pairs_ij))
+    x0 = solver(relative_motions(*stations, result.pairs_ij))
     columns = np.zeros((sensitivity.shape[2], 6))
-    for j in np.flatnonzero(np.any(sensitivity, axis=(0, 1))):  # a parameter moves a station
-        xi = sensitivity[:, :, j]
-        phi = xi[:, 3:]
-        moved_p = pa + xi[:, :3] + np.cross(phi, pa)  # dp = rho + phi x p
-        moved_q = geo.quat_multiply(geo.rotvec_to_quat(phi), qa)
-        x = solver(relative_motions(moved_p, moved_q, pb, qb, result.pairs_ij))
+    for j, motions in moved_motions(stations, sensitivity, result.pairs_ij).items():
+        x = solver(motions)
         dphi = geo.quat_to_rotvec(geo.quat_multiply(x.quaternion, geo.quat_conjugate(
             x0.quaternion)))
         columns[j, :3] = x.position - x0.position - np.cross(dphi, x0.position)  # rho
         columns[j, 3:] = dphi
     return columns.T
+
+
+def moved_motions(stations: tuple[np.ndarray, ...], sensitivity: np.ndarray,
+                  pairs_ij: np.ndarray) -> dict[int, MotionPairs]:
+    """The motion pairs ``pairs_ij`` with every station of a moved by one std of parameter
+    j (by its ``sensitivity`` (n, 6, m)), for each j that moves a station."""
+    pa, qa, pb, qb = stations
+    out = {}
+    for j in np.flatnonzero(np.any(sensitivity, axis=(0, 1))):
+        xi = sensitivity[:, :, j]
+        phi = xi[:, 3:]
+        moved_p = pa + xi[:, :3] + np.cross(phi, pa)  # dp = rho + phi x p
+        moved_q = geo.quat_multiply(geo.rotvec_to_quat(phi), qa)
+        out[int(j)] = relative_motions(moved_p, moved_q, pb, qb, pairs_ij)
+    return out
 
 
 def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s: float,
@@ -464,8 +474,10 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     (``offset_covariance``), the errors a's stations share through parameters whose
     sensitivities a gives (``shared_error_sensitivity``), and each tracker's held error
     (``held_error_covariance``; of a's covariances what those parameters do not explain;
-    b's moves X by ``X E_b X^-1``, hence its adjoint).  The bootstrap's part is scaled for
-    an unbiased inverse of the whole (``covariance.inverse_unbiased``)."""
+    b's moves X by ``X E_b X^-1``, hence its adjoint).  The bootstrap's part loses what
+    the shared errors spread its resamples by (``covariance.shared_spread``: counted
+    whole already) and is scaled for an unbiased inverse of the whole
+    (``covariance.inverse_unbiased``)."""
     times = station_times(a, b, offset_s, options.max_stations)
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + offset_s)
@@ -473,14 +485,20 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     ad_x = geo.adjoint(result.position, result.quaternion)
     held_a = a.covariance_at(times)
     shared = np.zeros((6, 0))
+    bootstrap = result.bootstrap
     sensitivity = a.sensitivity_at(times)
     if sensitivity is not None and held_a is not None:
         held_a = held_a - sensitivity @ np.swapaxes(sensitivity, -1, -2)
         shared = shared_error_sensitivity((pa, qa, pb, qb), sensitivity, result, options)
+        moved = moved_motions((pa, qa, pb, qb), sensitivity, result.pairs_ij)
+        if moved:
+            bootstrap = replace(bootstrap, shared=shared_spread(
+                bootstrap, relative_motions(pa, qa, pb, qb, result.pairs_ij),
+                list(moved.values()), result.pose))
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
              + shared @ shared.T + held_error_covariance(pa, qa, held_a)
              + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
-    return replace(result, covariance=result.bootstrap.covariance(added),
+    return replace(result, covariance=bootstrap.covariance(added), bootstrap=bootstrap,
                    added_covariance=added, time_offset_std_s=offset_std_s,
                    shared_sensitivity=shared, shared_parameters=a.parameters)
 

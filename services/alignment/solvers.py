@@ -311,6 +311,28 @@ def pair_residuals(pairs: MotionPairs, x: Pose) -> Residuals:
     return Residuals(geo.quat_angle(q_ax, q_xb), np.linalg.norm(p_ax - p_xb, axis=-1))
 
 
+def linearised_residuals(pairs: MotionPairs, x: Pose,
+                         scale: tuple[float, float] | None = None,
+                         ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """``refine``'s residuals (n, 6: translation, rotation) at ``x``, their Jacobian (n, 6,
+    6) over the left perturbation of X, and the RMS of each group, by which both are
+    divided (or by ``scale``, to compare other motions on the same footing)."""
+    p, q = np.asarray(x.position, float), np.asarray(x.quaternion, float)
+    D = geo.quat_to_matrix(pairs.qa) - np.eye(3)
+    rot = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_multiply(pairs.qa, q),
+                                               geo.quat_conjugate(geo.quat_multiply(q, pairs.qb))))
+    x_tb = geo.quat_rotate(q, pairs.pb)
+    pos = D @ p + pairs.pa - x_tb
+    if scale is None:
+        scale = (float(np.sqrt(np.mean(pos**2))), float(np.sqrt(np.mean(rot**2))))
+    s_pos, s_rot = max(scale[0], 1e-13), max(scale[1], 1e-13)
+    J = np.zeros((len(pairs), 6, 6))
+    J[:, :3, :3] = D / s_pos
+    J[:, :3, 3:] = (geo.skew(x_tb) - D @ geo.skew(p)) / s_pos
+    J[:, 3:, 3:] = D / s_rot
+    return np.concatenate([pos / s_pos, rot / s_rot], axis=-1), J, scale
+
+
 def refine(pairs: MotionPairs, x0: Pose, weights: np.ndarray | None = None,
            iterations: int = 10) -> Pose:
     """Gauss-Newton on the geometric residuals of eqs. 3.2 and 3.3, from a closed-form X.
@@ -324,23 +346,10 @@ def refine(pairs: MotionPairs, x0: Pose, weights: np.ndarray | None = None,
     """
     w = _row_weights(weights, len(pairs))
     p, q = np.asarray(x0.position, float), np.asarray(x0.quaternion, float)
-    D = geo.quat_to_matrix(pairs.qa) - np.eye(3)
     for _ in range(iterations):
-        rot = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_multiply(pairs.qa, q),
-                                                   geo.quat_conjugate(
-                                                       geo.quat_multiply(q, pairs.qb))))
-        x_tb = geo.quat_rotate(q, pairs.pb)
-        pos = D @ p + pairs.pa - x_tb
-        s_pos = float(np.sqrt(np.mean(pos**2)))
-        s_rot = float(np.sqrt(np.mean(rot**2)))
-        if max(s_pos, s_rot) < 1e-13:
+        r, J, scale = linearised_residuals(pairs, Pose(p, q))
+        if max(scale) < 1e-13:
             break  # exact already: nothing to weigh
-        s_pos, s_rot = max(s_pos, 1e-13), max(s_rot, 1e-13)
-        J = np.zeros((len(pairs), 6, 6))
-        J[:, :3, :3] = D / s_pos
-        J[:, :3, 3:] = (geo.skew(x_tb) - D @ geo.skew(p)) / s_pos
-        J[:, 3:, 3:] = D / s_rot
-        r = np.concatenate([pos / s_pos, rot / s_rot], axis=-1)
         step = _lstsq_full_rank((J * w[:, None, None]).reshape(-1, 6),
                                 -(r * w[:, None]).reshape(-1), "refinement")
         dq = geo.rotvec_to_quat(step[3:])
