@@ -209,13 +209,13 @@ def _covered(own: np.ndarray, chosen: pose.Solution, solutions: list[pose.Soluti
 
     Not the other solution within one standard deviation on top of the chosen one's own
     (``own`` + its offset and spread): that claims the other's whole spread in every
-    covered frame, where the chosen one is the true pose in 2,511 of the 2,544 covered
-    tag and bundle samples of the eval's bundle scenes (seeds 1-10 and 101-110; their
-    mean ``flip_probability`` 0.26); a tag's claimed position error would be 1.2-2.2x
-    its measured one there (seeds 5, 9, 106, 108, covered in 60-75 % of their frames),
-    and a bundle more accurate than that tag by less than the covariances say.  The 33
-    flipped ones, at ``flip_probability`` 0.4-0.5, lie within the mixture's 99.9 %
-    region (rotation Mahalanobis distance² at most 13.2).
+    covered frame, where the chosen one is the true pose in 2,505 of the 2,533 covered
+    tag samples of the eval's bundle scenes (seeds 1-10 and 101-110; their mean
+    ``flip_probability`` 0.26); a tag's claimed position error would be 1.2-2.2x its
+    measured one there (seeds 5, 9, 106, 108, covered in 60-85 % of their frames), and a
+    bundle more accurate than that tag by less than the covariances say.  The 28 flipped
+    ones, at ``flip_probability`` 0.49-0.5, lie within the mixture's 99.9 % region
+    (rotation Mahalanobis distance² at most 14.0).
 
     A ``history`` pose gains nothing: the chance of its other solution is at most
     ``1 / (1 + exp(HISTORY_LLR))`` (4.7 %), and a two-solution mixture's second moment
