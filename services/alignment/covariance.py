@@ -47,8 +47,15 @@ class Bootstrap:
     resamples: int  # the solvable ones
     pairs_ij: np.ndarray  # the station index pairs of the motions X was solved from
     counts: np.ndarray  # (resamples, stations): how often each solvable resample drew each
-    #: the part of ``spread`` that errors shared by every recording make (``shared_spread``)
-    shared: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    #: (resamples, 6, m): each resample's shift of X under each of m errors that every
+    #: recording shares, one std each (``shared_shifts``)
+    shared_shifts: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 0)))
+
+    @property
+    def shared(self) -> np.ndarray:
+        """What ``spread`` holds of the shared errors, averaged over their draws."""
+        e = self.shared_shifts
+        return np.einsum("bim,bjm->ij", e, e) / max(len(e) - 1, 1)
 
     @property
     def weights(self) -> np.ndarray:
@@ -62,7 +69,8 @@ class Bootstrap:
         estimated from their noise (``inverse_unbiased``)."""
         added = np.zeros((6, 6)) if added is None else added
         noise = _less(self.spread, self.shared, np.sqrt(2.0 / (self.stations - 1)))
-        return noise * inverse_unbiased(noise, added, self.stations, self.resamples) + added
+        return noise * inverse_unbiased(noise, added, self.stations, self.resamples,
+                                        self.shared_shifts) + added
 
 
 def _less(spread: np.ndarray, part: np.ndarray, resolution: float) -> np.ndarray:
@@ -120,12 +128,14 @@ def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.
                      np.array(drawn))
 
 
-def shared_spread(bootstrap: Bootstrap, motions: MotionPairs, moved: list[MotionPairs],
+def shared_shifts(bootstrap: Bootstrap, motions: MotionPairs, moved: list[MotionPairs],
                   x: Pose) -> np.ndarray:
-    """What the bootstrap's spread holds, on average, of errors that every recording
-    shares (6x6, geometry's convention): ``moved`` are ``motions`` with every station moved
-    by one std of one such parameter each; the spread over the same resamples of X's
-    shift under each, summed (first order: the refinement's Gauss-Newton step at ``x``).
+    """(resamples, 6, m): each resample's shift of X (geometry's convention) under each of
+    m errors that every recording shares, less the whole estimate's shift: ``moved`` are
+    ``motions`` with every station moved by one std of one such parameter each (first
+    order: the refinement's Gauss-Newton step at ``x``).  Their spread, summed over the
+    parameters, is what the bootstrap's spread holds of those errors on average over
+    their draws (``Bootstrap.shared``).
 
     Why: such an error (an installation's tolerance seen through each station's pose)
     differs from station to station, so the resamples see it as noise and spread X by it,
@@ -138,12 +148,11 @@ def shared_spread(bootstrap: Bootstrap, motions: MotionPairs, moved: list[Motion
     whole = -np.linalg.solve(jtj.sum(0), jtr.sum(0))
     w = bootstrap.weights
     each = -np.linalg.solve(np.einsum("bp,pij->bij", w, jtj), np.einsum("bp,pim->bim", w, jtr))
-    e = each - whole
-    return np.einsum("bim,bjm->ij", e, e) / (len(w) - 1)
+    return each - whole
 
 
 def inverse_unbiased(spread: np.ndarray, added: np.ndarray, stations: int,
-                     resamples: int) -> float:
+                     resamples: int, shifts: np.ndarray | None = None) -> float:
     """The factor ``k`` on the bootstrap's ``spread`` S that makes the inverse of
     ``k S + added`` unbiased, to second order in S's dispersion:
     ``k = 1 + (f(nu_s) f(nu_b) - 1) (tr P^2 + (tr P)^2) / (7 tr P)``,
@@ -159,6 +168,13 @@ def inverse_unbiased(spread: np.ndarray, added: np.ndarray, stations: int,
     nothing added (``P = I``) it is ``f(nu_s) f(nu_b)`` (``_inverse_unbiased``); with S
     half of the covariance it is about half as far from 1: scaling S by the whole factor
     there makes X's covariance conservative.  P is read from S itself (plug-in).
+
+    Where S had the shared errors' average part taken out (``shifts``, as in
+    ``shared_shifts``: ``Q(theta) = sum_jl theta_j theta_l C_jl``, ``C_jl`` the shifts'
+    spread between parameters j and l, was in it and ``E[Q]`` came out), S also errs by
+    ``Q(theta) - E[Q]``; for standard normal ``theta``, ``E[(Q - E Q) A (Q - E Q)] =
+    sum_jl C_jl A C_jl + C_jl A C_lj``, which adds ``sum_jl tr(G_jl G_jl + G_jl G_jl^T)``,
+    ``G_jl = C^-1/2 C_jl C^-1/2``, to the mean NEES, and to ``(k - 1) tr P`` likewise.
     """
     f = _inverse_unbiased(stations, resamples)
     c = spread + added
@@ -166,7 +182,12 @@ def inverse_unbiased(spread: np.ndarray, added: np.ndarray, stations: int,
     tr, tr2 = float(np.trace(share)), float(np.trace(share @ share))
     if tr <= 0.0:
         return f
-    return 1.0 + (f - 1.0) * (tr2 + tr ** 2) / ((_DOF + 1) * tr)
+    excess = (f - 1.0) * (tr2 + tr ** 2) / (_DOF + 1)
+    if shifts is not None and shifts.size:
+        white = np.linalg.solve(np.linalg.cholesky(c), shifts)  # C^-1/2 e, per resample
+        g = np.einsum("bim,bjn->mnij", white, white) / (len(shifts) - 1)
+        excess += float(np.einsum("mnij,mnji->", g, g) + np.einsum("mnij,mnij->", g, g))
+    return 1.0 + excess / tr
 
 
 def _inverse_unbiased(stations: int, resamples: int, dof: int = _DOF) -> float:

@@ -19,7 +19,7 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.alignment.covariance import Bootstrap, bootstrap_covariance, shared_spread
+from services.alignment.covariance import Bootstrap, bootstrap_covariance, shared_shifts
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (
     Selection,
@@ -475,7 +475,7 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     sensitivities a gives (``shared_error_sensitivity``), and each tracker's held error
     (``held_error_covariance``; of a's covariances what those parameters do not explain;
     b's moves X by ``X E_b X^-1``, hence its adjoint).  The bootstrap's part loses what
-    the shared errors spread its resamples by (``covariance.shared_spread``: counted
+    the shared errors spread its resamples by (``covariance.shared_shifts``: counted
     whole already) and is scaled for an unbiased inverse of the whole
     (``covariance.inverse_unbiased``)."""
     times = station_times(a, b, offset_s, options.max_stations)
@@ -492,7 +492,7 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
         shared = shared_error_sensitivity((pa, qa, pb, qb), sensitivity, result, options)
         moved = moved_motions((pa, qa, pb, qb), sensitivity, result.pairs_ij)
         if moved:
-            bootstrap = replace(bootstrap, shared=shared_spread(
+            bootstrap = replace(bootstrap, shared_shifts=shared_shifts(
                 bootstrap, relative_motions(pa, qa, pb, qb, result.pairs_ij),
                 list(moved.values()), result.pose))
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
