@@ -133,8 +133,8 @@ SWITCH_FLOOR = 1e-6
 HISTORY_LLR = 3.0
 #: the least chance a ``covered`` pose's covariance gives the other solution: its offset
 #: then lies within sqrt(8) standard deviations, a flip to it inside chi2(3)'s 99.9 %
-#: region (16.3) with room for its own spread (the chance itself, from 4.7 %, would put
-#: it at up to 4.6)
+#: region (16.3) with room for its own spread (at the chance itself, from 4.7 %, it could
+#: lie 4.6 standard deviations out)
 COVERED_CHANCE_FLOOR = 0.125
 #: the log-likelihood ratio a frame with a single solution stores (any finite figure
 #: beyond what ``SWITCH_FLOOR`` lets history carry, log(1e6) = 13.8)
@@ -347,7 +347,7 @@ def _weighted_gap(solutions: list[pose.Solution], information: np.ndarray,
     they share (:func:`bundle_covariance`).  On the eval's bundle scenes (seeds 1-10 and
     101-110) the bundle's two solutions lie 9-15 mm and 5-15 degrees apart where the
     floor's gap is 1-11 (61 of 1,717 frames ``covered`` or decided by history, the
-    chosen one right in all); weighted, 12-1,700: all but one decided."""
+    chosen one right in all); weighted, the gaps are 12-1,700 and decide."""
     two = pose.reweigh(pose.Fits.of(solutions[:2]), np.stack([information] * 2))
     chi2 = np.einsum("mi,ij,mj->m", two.residual, information, two.residual)
     order = [0, 1] if chi2[0] <= chi2[1] else [1, 0]
