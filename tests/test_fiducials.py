@@ -112,7 +112,7 @@ def test_a_covered_pose_claims_the_two_solutions_mixture_not_both_spreads():
     the true one in nearly every frame.  The covariance is the mixture's second moment at
     the other's published chance: a flip still lies inside its 99.9 % region, and the
     likely case is not claimed twice over (the chosen spread plus the other's in full
-    gave a mean NEES of 2.5 here)."""
+    gives a mean NEES of 2.5 here)."""
     T = facing((0.35, 0.2, 0.0), (0.1, 0.05, 1.6))
     rng = np.random.default_rng(2)
     nees, chances = [], []

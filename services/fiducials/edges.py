@@ -110,14 +110,16 @@ CORNER_OVERSHOOT_PX = 2.0
 #: tag's size).  So :class:`Locking` learns ``A`` from the camera's own frames, from the
 #: sides within ``LOCK_ANGLE_DEG`` of an axis (beyond, the locking turns two-dimensional
 #: and fades: 0.06 px at 3-10 degrees, 0.046 at 20, 0.01 at 30 on rendered tags), and
-#: those of them whose points sweep less than ``LOCK_SWEEP_PX`` across the axis, all at
+#: those of them whose points sweep ``LOCK_TEACH_PX`` or more across the axis, at every
+#: phase, teach it, and those whose points sweep less than ``LOCK_SWEEP_PX``, all at
 #: nearly one phase so that the locking moves their whole line, are corrected by it
 #: (:func:`_unlocked`); along the others it averages out in the line and stays in the
 #: scatter the corners' covariance is built from.  ``LOCK_PRIOR_PX``: the amplitude's
 #: prior spread, what the covariance carries before any evidence (the tracker's
-#: ``LOCK_PX``, fitted when nothing was corrected); ``LOCK_NOISE_PX``: a point's scatter
-#: about the locking's curve; ``LOCK_MEMORY``: the share of its evidence a camera keeps
-#: from one frame to the next
+#: ``LOCK_PX``, the amplitude of the locking left uncorrected, fitted by maximum
+#: likelihood on seeds 1-10 of ``uma eval fiducials``); ``LOCK_NOISE_PX``: a point's
+#: scatter about the locking's curve; ``LOCK_MEMORY``: the share of its evidence a camera
+#: keeps from one frame to the next
 LOCK_ANGLE_DEG = 10.0
 LOCK_SWEEP_PX = 1.0
 LOCK_TEACH_PX = 2.0
@@ -144,11 +146,12 @@ _FIRST, _SECOND = _fractions(FIRST_SPAN, FIRST_SAMPLES), _fractions(SPAN, SAMPLE
 class Locking:
     """A camera's pixel-locking amplitude (px), learnt from the edge points of its frames.
 
-    The points of a side within ``LOCK_ANGLE_DEG`` of a pixel axis that sweeps a pixel or
-    more across it lie at every phase of the pixel grid, so their scatter about the side's
-    line shows ``A sin(2π x)`` (what the line itself cannot take up: the sine less its
-    straight-line fit along the side); a side that lies along the axis has all its points
-    at one phase, its whole line moved by the same error and nothing of it in its scatter.
+    The points of a side within ``LOCK_ANGLE_DEG`` of a pixel axis that sweeps
+    ``LOCK_TEACH_PX`` or more across it lie at every phase of the pixel grid, so their
+    scatter about the side's line shows ``A sin(2π x)`` (what the line itself cannot take
+    up: the sine less its straight-line fit along the side); a side that lies along the
+    axis has all its points at one phase, its whole line moved by the same error and
+    nothing of it in its scatter.
     The first teach the amplitude, the second are corrected by it.  The estimate is the
     regression of those scatters on the sine, over the frames seen (older ones fading by
     ``LOCK_MEMORY`` a frame), shrunk towards zero by a prior of spread ``LOCK_PRIOR_PX``."""
