@@ -7,7 +7,7 @@ since calibration and each camera's screen map, all held for the whole run.  Eac
 sees that error through another geometry, so frame set by frame set the misses pin down
 the parameters the dots move with, and each pose can be corrected by what is known so far.
 
-``InstallationEstimate`` is an information filter over named parameters, each in units of
+``InstallationEstimate`` is a Kalman filter over named parameters, each in units of
 its own standard deviation with a prior N(0, 1), so a parameter no miss has seen yet keeps
 its tolerance and a pose that depends on it keeps its covariance.  A frame set enters as
 its miss, the miss's noise and its sensitivity to every parameter; a miss that the estimate
@@ -28,8 +28,8 @@ class InstallationEstimate:
 
     Kept as mean and covariance, each observation a rank-2 Kalman update touching the
     parameters it sees: a run holds some 90 parameters and an update costs tens of
-    microseconds, where inverting the information matrix each frame set cost a
-    millisecond."""
+    microseconds, where inverting an information matrix of that size each frame set costs
+    a millisecond."""
 
     def __init__(self, gate_chi2: float):
         if not gate_chi2 > 0:
@@ -64,12 +64,6 @@ class InstallationEstimate:
         H = np.array(list(sensitivity.values())).T  # (2, k)
         v = z - H @ self._mean[idx]
         return idx, H, v, H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
-
-    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
-                        sensitivity: dict[str, np.ndarray]) -> float:
-        """Chi-square of ``z`` against what the estimate so far predicts of it."""
-        _, _, v, S = self._innovation(np.asarray(z, float), noise, sensitivity)
-        return float(v @ np.linalg.solve(S, v))
 
     def update(self, z: np.ndarray, noise: np.ndarray,
                sensitivity: dict[str, np.ndarray]) -> bool:
