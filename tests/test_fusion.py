@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from agent import geometry as geo
+from agent.errors import InvalidInputError
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
@@ -882,6 +883,14 @@ def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
     with pytest.raises(ValueError, match="--display-calibration"):
         fe.run(SimpleNamespace(**{**base, "from_file": "demo.mcap", "optical": "dots",
                                   "display_calibration": None}))
+
+
+def test_eval_refuses_the_installation_estimate_on_a_recording():
+    """With --from no laser tracker runs, so --estimate-installation would do nothing."""
+    args = SimpleNamespace(horizon_ms=None, from_file="demo.mcap", optical="pose",
+                           display_calibration=None, estimate_installation=True)
+    with pytest.raises(InvalidInputError, match="--estimate-installation is for the simulated"):
+        fe.run(args)
 
 
 @pytest.mark.parametrize("argv, flag", [(["--optical-bias-mm", "-1"], "--optical-bias-mm"),

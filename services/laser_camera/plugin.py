@@ -21,6 +21,7 @@ def add_estimate_argument(parser: argparse.ArgumentParser) -> None:
                              "so far; its covariance then carries what the estimate has not "
                              "pinned down yet (default: off, the whole tolerances)")
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="laser-camera", help="service id (default: "
                         "laser-camera)")
