@@ -897,3 +897,28 @@ def test_the_cameras_pixel_locking_is_learnt_from_its_frames_and_taken_out():
     before = _locking_amplitude(*_side_offsets_along_x(0.0, 42.6, shifts))
     err, where = _side_offsets_along_x(0.0, 42.6, shifts, locking)
     assert abs(_locking_amplitude(err, where)) < 0.3 * before, (before, err)
+
+
+def test_a_frame_teaches_the_cameras_locking_once_when_a_tags_image_fit_is_rejected(
+        monkeypatch):
+    """A tag whose image fit is rejected has its edges fitted again (with the border
+    model); its sides have taught the camera's pixel locking in the frame's first pass
+    already, and teach nothing the second time."""
+    cam = SimCamera(IDEAL, blur_sigma_px=0.6, read_noise=0.0, shot_noise=0.0,
+                    supersampling=FAITHFUL)
+    z = K[0, 0] * 0.08 / 42.6
+    T = facing((0.0, 0.0, math.radians(5.0)), (0.3 * z / K[0, 0], 0.0, z))
+    image = cam.render(tags("apriltag36h11", [9], 0.08, [static(T)]), 0.0,
+                       np.random.default_rng(0))
+    monkeypatch.setattr(image_fit, "gate", lambda across: np.ones(len(across), bool))
+    monkeypatch.setattr(image_fit, "refine", lambda gray, corners, cov, *_: (
+        corners, cov, np.zeros(len(corners), bool)))
+    tracker = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+    tracker.observe(image)
+    raw, _, _ = tracker.detector.detectMarkers(image)
+    quads = np.asarray(raw, np.float64).reshape(-1, 4, 2)
+    once = edges.Locking()
+    edges.refine(image, quads, 8, IDEAL, _CELLS[[9]], edges.place(image, quads, 8),
+                 np.array([False]), once)
+    assert once.weight > 0  # the turned tag's sides teach
+    assert (tracker._locking.evidence, tracker._locking.weight) == (once.evidence, once.weight)

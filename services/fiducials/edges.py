@@ -196,7 +196,7 @@ def place(gray: np.ndarray, quads: np.ndarray, modules: int) -> np.ndarray:
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
            cells: np.ndarray | None = None, placed: np.ndarray | None = None,
            modelled: np.ndarray | None = None, locking: Locking | None = None,
-           ) -> tuple[np.ndarray, np.ndarray]:
+           learn: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
     ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
     marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
@@ -207,7 +207,8 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     others' corners are only where a whole-image fit starts from, which replaces them.
     ``placed``: :func:`place` of ``quads``, if already known.  With the camera's
     ``locking`` the points of the sides along a pixel axis are corrected for it, after it
-    has learnt what this frame shows of it (:func:`_unlocked`)."""
+    has learnt what this frame shows of it (:func:`_unlocked`) unless ``learn`` is False
+    (the frame's tags have taught it already: a frame teaches once)."""
     quads = np.asarray(quads, np.float64).reshape(-1, 4, 2)
     if len(quads) == 0:
         return quads, np.zeros((0, 4, 2, 2))
@@ -237,7 +238,7 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     if inliers is not w:
         w = inliers
         mean, dev, direction = _lines(ideal, w)
-    if locking is not None and _unlocked(ideal, edge, dev, direction, w, locking):
+    if locking is not None and _unlocked(ideal, edge, dev, direction, w, locking, learn):
         mean, dev, direction = _lines(ideal, w)
     chord = fallback[:, _NEXT] - fallback
     chord /= np.maximum(np.sqrt(_dot2(chord, chord)), 1e-9)[..., None]
@@ -286,14 +287,14 @@ def _locking_evidence(dev: np.ndarray, direction: np.ndarray, w: np.ndarray,
 
 
 def _unlocked(ideal: np.ndarray, edge: np.ndarray, dev: np.ndarray, direction: np.ndarray,
-              w: np.ndarray, locking: Locking) -> bool:
-    """Adds what the sides' edge points show of the pixel locking to ``locking`` and moves
-    the points ``ideal`` (n, 4, k, 2, in place) of the sides that sweep less than
-    ``LOCK_SWEEP_PX`` across their axis back by it, ``locking.amplitude * sin(2π x)``
-    along that axis (``x``: their coordinates on it in the image, ``edge``); whether any
-    moved.  ``dev``, ``direction``: the lines' fits of ``ideal`` with weights ``w``.  The
-    undistortion between the image and the ideal pixels is smooth and near unit scale over
-    a pixel, so the move is the same there."""
+              w: np.ndarray, locking: Locking, learn: bool) -> bool:
+    """Adds what the sides' edge points show of the pixel locking to ``locking`` (if
+    ``learn``) and moves the points ``ideal`` (n, 4, k, 2, in place) of the sides that
+    sweep less than ``LOCK_SWEEP_PX`` across their axis back by it, ``locking.amplitude *
+    sin(2π x)`` along that axis (``x``: their coordinates on it in the image, ``edge``);
+    whether any moved.  ``dev``, ``direction``: the lines' fits of ``ideal`` with weights
+    ``w``.  The undistortion between the image and the ideal pixels is smooth and near
+    unit scale over a pixel, so the move is the same there."""
     near, x, unit = _locking_axes(edge, direction)
     if not near.any():
         return False
@@ -301,7 +302,7 @@ def _unlocked(ideal: np.ndarray, edge: np.ndarray, dev: np.ndarray, direction: n
     extent = np.where(w > 0, along, -np.inf).max(-1) + np.where(w > 0, -along, -np.inf).max(-1)
     sweep = extent * np.abs(_dot2(direction, unit))
     teach = near & (sweep >= LOCK_TEACH_PX)
-    if teach.any():
+    if learn and teach.any():
         locking.add(*_locking_evidence(dev, direction, w, teach, x, unit))
     locked = near & (sweep < LOCK_SWEEP_PX)
     if not locked.any():

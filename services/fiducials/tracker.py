@@ -476,25 +476,28 @@ class FiducialTracker:
         # the tags the image fit is for: their edge fits only start it, the border model
         # and the code's correction of their crossings are left out unless it fails
         whole = image_fit.gate(across)
-        ideal, cov = self._edge_fits(gray, detected, lens, placed, cells, ~whole)
+        ideal, cov = self._edge_fits(gray, detected, lens, placed, cells, ~whole, True)
         ideal, cov, fitted = image_fit.refine(gray, ideal, cov, across, cells, self.camera)
         failed = np.flatnonzero(whole & ~fitted)
         if len(failed):
             ideal[failed], cov[failed] = self._edge_fits(gray, detected[failed], lens[failed],
-                                                         placed[failed], cells[failed], None)
+                                                         placed[failed], cells[failed], None,
+                                                         False)
         keys = [int(i) for i in ids.ravel()]
         return dict(zip(keys, ideal, strict=True)), dict(zip(keys, cov, strict=True))
 
     def _edge_fits(self, gray: np.ndarray, detected: np.ndarray, lens: np.ndarray,
                    placed: np.ndarray, cells: np.ndarray, modelled: np.ndarray | None,
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   learn: bool) -> tuple[np.ndarray, np.ndarray]:
         """The corners (n, 4, 2, ideal pixels) of the ``detected`` markers (n, 4, 2) from
         their edges (:func:`edges.refine`, from ``placed``: :func:`edges.place`; the thin
         sides of those ``modelled`` (all where None) from their ``cells``), and their
         joint covariances (n, 8, 8, :func:`corner_covariance`); ``lens`` (n, 4, 2): the
-        distortion's offset at the detected corners."""
+        distortion's offset at the detected corners; ``learn``: whether their sides teach
+        the camera's pixel locking (once a frame: not when the tags the image fit rejected
+        are fitted again)."""
         ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells, placed,
-                                  modelled, self._locking)
+                                  modelled, self._locking, learn)
         # the refined corners in the image's pixels: the distortion's offset is smooth, the
         # detector's corner a pixel away has the same
         return ideal, corner_covariance(cov, ideal, ideal + lens, self._modules,
