@@ -129,7 +129,8 @@ class AlignmentResult:
     shared_parameters: tuple[str, ...] = ()
     #: the stations' bootstrap that ``covariance`` rests on (None: not bootstrapped here)
     bootstrap: Bootstrap | None = field(repr=False, default=None)
-    #: what ``covariance`` adds to the bootstrap's part: the errors no resample sees
+    #: what ``covariance`` adds to the bootstrap's part: the errors the resamples cannot
+    #: count (the offset's, the shared tolerances' draw, the held ones)
     added_covariance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 6)))
 
     @property
@@ -434,8 +435,10 @@ def shared_error_sensitivity(stations: tuple[np.ndarray, ...], sensitivity: np.n
 
     Why: an error that differs from station to station but is the same in every recording
     (an installation's tolerance, seen through each station's geometry) is neither held
-    (it does not cancel from the motions) nor noise (no resample of the stations varies
-    it); the motions' geometry passes it to X, by several times its own size where the
+    (it does not cancel from the motions) nor noise (every resample of the stations holds
+    the same draw of it, so their spread cannot show how that draw varies; what they see
+    of it station by station comes out of their spread, ``covariance.shared_shifts``);
+    the motions' geometry passes it to X, by several times its own size where the
     stations' errors differ along what the motions determine least.  X is solved again
     from the same motion pairs with every station of a moved by one std of the parameter
     (first order: the tolerances move a pose by a fraction of a milliradian)."""
