@@ -119,7 +119,7 @@ CORNER_OVERSHOOT_PX = 2.0
 #: ``LOCK_PX``, the amplitude of the locking left uncorrected, fitted by maximum
 #: likelihood on seeds 1-10 of ``uma eval fiducials``); ``LOCK_NOISE_PX``: a point's
 #: scatter about the locking's curve; ``LOCK_MEMORY``: the share of its evidence a camera
-#: keeps from one frame to the next
+#: keeps from one frame that teaches to the next
 LOCK_ANGLE_DEG = 10.0
 LOCK_SWEEP_PX = 1.0
 LOCK_TEACH_PX = 2.0
@@ -154,7 +154,8 @@ class Locking:
     nothing of it in its scatter.
     The first teach the amplitude, the second are corrected by it.  The estimate is the
     regression of those scatters on the sine, over the frames seen (older ones fading by
-    ``LOCK_MEMORY`` a frame), shrunk towards zero by a prior of spread ``LOCK_PRIOR_PX``."""
+    ``LOCK_MEMORY`` with each frame that teaches: a camera that sees no side across an
+    axis keeps what it knows), shrunk towards zero by a prior of spread ``LOCK_PRIOR_PX``."""
 
     evidence: float = 0.0  # sum of residual x sine (px)
     weight: float = 0.0  # sum of sine squared
