@@ -50,7 +50,8 @@ def test_a_gross_observation_is_refused_and_leaves_the_estimate_alone() -> None:
     H = rng.normal(size=(2, 2))
     assert not est.update(H @ [1.0, -1.0] + [3.0, 0.0], noise, {"a": H[:, 0], "b": H[:, 1]})
     assert not est.update(np.array([np.nan, 0.0]), noise, {"a": H[:, 0], "b": H[:, 1]})
-    assert est.refused == 2 and est.accepted == 50
+    assert not est.update(H @ [1.0, -1.0], noise, {"a": [np.nan, 0.0], "b": H[:, 1]})
+    assert est.refused == 3 and est.accepted == 50
     assert np.array_equal(est.mean(["a", "b"]), before[0])
     assert np.array_equal(est.covariance(["a", "b"]), before[1])
     with pytest.raises(InvalidInputError):

@@ -75,7 +75,7 @@ class InstallationEstimate:
             self.refused += 1
             return False
         idx, H, v, S = self._innovation(z, noise, sensitivity)
-        if float(v @ np.linalg.solve(S, v)) > self.gate_chi2:
+        if not float(v @ np.linalg.solve(S, v)) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False
         PHt = self._cov[:, idx] @ H.T  # (M, 2): every parameter's covariance with z
