@@ -131,6 +131,23 @@ def test_a_covered_pose_claims_the_two_solutions_mixture_not_both_spreads():
     assert 0.1 < np.mean(chances) < 0.3
 
 
+def test_a_covered_pose_gives_an_unlikely_other_solution_at_least_the_floors_chance():
+    """Where the evidence puts the other solution's chance near zero but the track has not
+    decided, the covariance still holds it within sqrt(1 / COVERED_CHANCE_FLOOR) standard
+    deviations: the chance is judged on a few pixels' residuals, a flip stays covered."""
+    def solution(rotvec: tuple[float, float, float], t: tuple[float, float, float]):
+        R = cv2.Rodrigues(np.array(rotvec, float))[0]
+        return pose.Solution(R, np.array(t, float), 0.0, 4, np.zeros((8, 6)), np.zeros(8))
+
+    chosen, other = solution((0.3, 0.0, 0.0), (0, 0, 1.0)), solution((-0.3, 0.0, 0.0), (0, 0, 1.0))
+    d = pose.difference(chosen, other)
+    tiny = 1e-8 * np.eye(6)
+    for chance in (0.0, 0.01, 0.5):
+        cov = fiducial_tracker._covered(tiny, chosen, [chosen, other], lambda s: tiny, chance)
+        weight = max(chance, fiducial_tracker.COVERED_CHANCE_FLOOR)
+        assert d @ np.linalg.lstsq(cov, d, rcond=None)[0] == pytest.approx(1 / weight, rel=1e-6)
+
+
 def test_previous_frame_picks_the_solution_it_supports():
     rng = np.random.default_rng(3)
     for tilt, carries in (((0.7, 0.4, 0.0), True), ((0.08, 0.05, 0.0), False)):
