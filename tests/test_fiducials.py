@@ -4,6 +4,7 @@ reading a generated video through cv2.VideoCapture."""
 
 from __future__ import annotations
 
+import copy
 import math
 import types
 
@@ -939,3 +940,33 @@ def test_a_frame_teaches_the_cameras_locking_once_when_a_tags_image_fit_is_rejec
                  np.array([False]), once)
     assert once.weight > 0  # the turned tag's sides teach
     assert (tracker._locking.evidence, tracker._locking.weight) == (once.evidence, once.weight)
+
+
+def test_once_the_camera_has_learnt_its_locking_the_covariance_carries_what_is_left():
+    """A tag turned 5 degrees teaches the camera its pixel locking; a tag along the axes
+    then has its sides corrected, and its corners' covariance carries ``LOCK_LEFT_PX`` of
+    locking (the learnt amplitude's spread being smaller), not the prior's ``LOCK_PX``
+    that a camera which has learnt nothing carries."""
+    cam = SimCamera(IDEAL, blur_sigma_px=0.6, read_noise=0.0, shot_noise=0.0,
+                    supersampling=FAITHFUL)
+    z = K[0, 0] * 0.08 / 42.6
+
+    def frame(turn_deg: float, shift_px: float) -> np.ndarray:
+        T = facing((0.0, 0.0, math.radians(turn_deg)), ((0.3 + shift_px) * z / K[0, 0], 0.0, z))
+        return cam.render(tags("apriltag36h11", [9], 0.08, [static(T)]), 0.0,
+                          np.random.default_rng(0))
+
+    along = frame(0.0, 0.25)
+    fresh = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+    learnt = FiducialTracker(IDEAL, "apriltag36h11", 0.08)
+    learnt.observe(frame(5.0, 0.0))
+    assert learnt._locking.spread < fiducial_tracker.LOCK_LEFT_PX
+    raw, _, _ = learnt.detector.detectMarkers(along)
+    quads = np.asarray(raw, np.float64).reshape(-1, 4, 2)
+    for tracker, lock_px in ((fresh, fiducial_tracker.LOCK_PX),
+                             (learnt, fiducial_tracker.LOCK_LEFT_PX)):
+        ideal, edge_cov = edges.refine(along, quads, 8, IDEAL, _CELLS[[9]],
+                                       locking=copy.copy(tracker._locking))
+        _, cov = tracker.observe(along)  # the ideal camera: no lens offset
+        np.testing.assert_allclose(cov[9], fiducial_tracker.corner_covariance(
+            edge_cov, ideal, ideal, 8, lock_px)[0], rtol=1e-12, atol=0)
