@@ -91,7 +91,7 @@ def test_the_drawn_bend_is_recovered_within_its_claimed_std(run) -> None:
 def test_corrected_poses_err_less_and_within_their_covariance(run) -> None:
     """Once the estimate has settled the poses err less than the installation's draw
     made the uncorrected ones err (seed 105: 4 mm), and within the covariance they carry."""
-    _, _, poses = run
+    _, tracker, poses = run
     late = poses[len(poses) // 2:]
     errors = []
     nees = []
@@ -103,6 +103,10 @@ def test_corrected_poses_err_less_and_within_their_covariance(run) -> None:
         assert res.sensitivity is not None
         S = np.array(list(res.sensitivity.values()))
         assert np.allclose(S.T @ S, res.systematic, atol=1e-12)
+        # one column per parameter in the estimate's own order, so that a name means the
+        # same shared source in every pose (the estimate only appends names)
+        names = [name.removeprefix("estimate ") for name in res.sensitivity]
+        assert names == tracker.installation.names[:len(names)]
     assert np.sqrt(np.mean(np.square(errors))) < 0.0015
     assert np.mean(nees) < 14.4  # one run's band for a held error (6 dof)
 

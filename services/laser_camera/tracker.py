@@ -492,7 +492,7 @@ class LaserTracker:
         quaternion = geo.quat_multiply(geo.rotvec_to_quat(-dphi), est.quaternion)
         systematic = S @ P @ S.T + _model_covariance(p0, p)
         systematic = 0.5 * (systematic + systematic.T)
-        root = S @ _cholesky(P)  # S L, L L^T = P: one column per name
+        root = _estimate_root(S, names, estimate)
         dot_shift = np.einsum("kam,m->ka", D, mean)
         dot_cov = np.einsum("kam,mn,kbn->kab", D, P, D)
         return replace(
@@ -502,7 +502,7 @@ class LaserTracker:
                   for k, i in enumerate(idx)},
             dot_systematic_std_m={k + 1: float(np.sqrt(0.5 * np.trace(dot_cov[k])))
                                   for k in range(len(idx))},
-            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(names)})
+            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)})
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
@@ -1182,6 +1182,21 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
         + _model_covariance(p0, params)
     whole = random + systematic
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
+
+
+def _estimate_root(S: np.ndarray, names: list[str], estimate: InstallationEstimate,
+                   ) -> np.ndarray:
+    """``S`` (6 x len(names)) times a root of the estimate's whole remaining covariance, one
+    column per parameter in the estimate's own order (``estimate.names``).
+
+    Why the whole covariance in one fixed order: a consumer (the alignment) takes each
+    named column for one shared source across the poses it holds, which is true only if
+    every pose factors the same covariance in the same order, whatever parameters its own
+    dots see."""
+    order = {name: i for i, name in enumerate(estimate.names)}
+    every = np.zeros((S.shape[0], len(order)))
+    every[:, [order[name] for name in names]] = S
+    return every @ _cholesky(estimate.covariance(estimate.names))
 
 
 def _cholesky(P: np.ndarray) -> np.ndarray:
