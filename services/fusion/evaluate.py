@@ -597,10 +597,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise InvalidInputError(
                 "--from with --optical dots needs --display-calibration FILE "
                 "(the laser tracker's calibration, whose walls the dots lie on)")
-        if args.estimate_installation:
-            raise InvalidInputError(
-                "--estimate-installation is for the simulated run: with --from the optical "
-                "samples come tracked already, no laser tracker runs")
+        for flag, given in (("--estimate-installation", args.estimate_installation),
+                            ("--ideal", args.ideal)):
+            if given:
+                raise InvalidInputError(
+                    f"{flag} is for the simulated run: with --from the optical samples come "
+                    "tracked already, no simulated installation or laser tracker runs")
         return replay(args.from_file, None if args.horizon_ms is None else args.horizon_ms / 1e3,
                       display_calibration=args.display_calibration
                       if args.optical == "dots" else None)
