@@ -428,10 +428,12 @@ def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray 
     return np.mean(Ad @ covariances @ np.swapaxes(Ad, -1, -2), axis=0)
 
 
-def shared_error_sensitivity(stations: tuple[np.ndarray, ...], sensitivity: np.ndarray,
-                             result: AlignmentResult, options: AlignmentOptions) -> np.ndarray:
-    """X's change (6, m; geometry's convention) per one std of each parameter whose error
-    every station of a shares, each station by its own ``sensitivity`` (n, 6, m).
+def shared_error_sensitivity(stations: tuple[np.ndarray, ...], moved: dict[int, MotionPairs],
+                             m: int, result: AlignmentResult,
+                             options: AlignmentOptions) -> np.ndarray:
+    """X's change (6, m; geometry's convention) per one std of each of the m parameters
+    whose error every station of a shares, each station by its own sensitivity: ``moved``
+    (:func:`moved_motions`) holds the motion pairs with the stations moved by each.
 
     Why: an error that differs from station to station but is the same in every recording
     (an installation's tolerance, seen through each station's geometry) is neither held
@@ -444,8 +446,8 @@ def shared_error_sensitivity(stations: tuple[np.ndarray, ...], sensitivity: np.n
     (first order: the tolerances move a pose by a fraction of a milliradian)."""
     solver = solver_for(options)
     x0 = solver(relative_motions(*stations, result.pairs_ij))
-    columns = np.zeros((sensitivity.shape[2], 6))
-    for j, motions in moved_motions(stations, sensitivity, result.pairs_ij).items():
+    columns = np.zeros((m, 6))
+    for j, motions in moved.items():
         x = solver(motions)
         dphi = geo.quat_to_rotvec(geo.quat_multiply(x.quaternion, geo.quat_conjugate(
             x0.quaternion)))
@@ -492,8 +494,9 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     sensitivity = a.sensitivity_at(times)
     if sensitivity is not None and held_a is not None:
         held_a = held_a - sensitivity @ np.swapaxes(sensitivity, -1, -2)
-        shared = shared_error_sensitivity((pa, qa, pb, qb), sensitivity, result, options)
         moved = moved_motions((pa, qa, pb, qb), sensitivity, result.pairs_ij)
+        shared = shared_error_sensitivity((pa, qa, pb, qb), moved, sensitivity.shape[2],
+                                          result, options)
         if moved:
             bootstrap = replace(bootstrap, shared_shifts=shared_shifts(
                 bootstrap, relative_motions(pa, qa, pb, qb, result.pairs_ij),
