@@ -734,10 +734,8 @@ class _Screens:
             basis = sigma * np.array([[1, x, y, 0, 0, 0, x * x, x * y],
                                       [0, 0, 0, 1, x, y, x * y, y * y]])
             for j in range(8):
-                name = f"camera {dots.cameras[i]} map {j}"
-                if name not in out:
-                    out[name] = np.zeros((len(idx), 2))
-                out[name][k] += basis[:, j]
+                _accumulate_row(out, f"camera {dots.cameras[i]} map {j}", k, basis[:, j],
+                                len(idx))
         return out
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
