@@ -885,14 +885,15 @@ def test_eval_what_if_device_reaches_the_device_and_the_filter_model():
                                   "display_calibration": None}))
 
 
-@pytest.mark.parametrize("flag", ["--estimate-installation", "--ideal"])
+@pytest.mark.parametrize("flag", ["--estimate-installation", "--no-estimate-installation",
+                                  "--ideal"])
 def test_eval_refuses_simulation_options_on_a_recording(flag):
     """With --from no installation is simulated and no laser tracker runs, so these
     options would do nothing."""
+    estimate = {"--estimate-installation": True, "--no-estimate-installation": False}
     args = SimpleNamespace(horizon_ms=None, from_file="demo.mcap", optical="pose",
                            display_calibration=None,
-                           estimate_installation=flag == "--estimate-installation",
-                           ideal=flag == "--ideal")
+                           estimate_installation=estimate.get(flag), ideal=flag == "--ideal")
     with pytest.raises(InvalidInputError, match=f"{flag} is for the simulated run"):
         fe.run(args)
 

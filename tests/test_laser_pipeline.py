@@ -224,8 +224,10 @@ def test_short_run_on_the_realistic_installation_meets_marvins_figures(world,
                                                                       calibration) -> None:
     """The default world (projected imagery, housing, screens and camera residuals) lands
     near MARVIN's real-hardware figures (Hogue 2003, tables 5.2-5.3), and the covariance,
-    which models those imperfections, is honest."""
-    fig = evaluate(world, calibration, seconds=4.0, rate_hz=30.0)
+    which models those imperfections, is honest: without the installation's estimate, the
+    tolerances whole (the estimate's own tests: test_laser_installation_estimate.py)."""
+    fig = evaluate(world, calibration, seconds=4.0, rate_hz=30.0,
+                   params=TrackerParams(estimate_installation=False))
     # every frame set with four dots gives a pose but the first, held until the next
     # confirms its labeling
     assert fig["frames"] == 120 and fig["pose_pct_when_four_visible"] >= 99.0

@@ -60,6 +60,7 @@ from services.fusion.dots import display_walls, update_dots
 from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.plugin import GAP_SPACING_S
 from services.fusion.state import MODEL_FLOOR, AccelModel, FusionConfig
+from services.laser_camera import plugin as laser_plugin
 from services.sim import mounts
 from services.sim.calibrations import calibrated_accelerometers, laser_calibration
 from services.sim.world import IvyWorld
@@ -146,15 +147,16 @@ class Recording:
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
                config: FusionConfig, model_floor: float, cache: bool,
                dots: bool = False, device: Any = None, ideal: bool = False,
-               estimate_installation: bool = False) -> Recording:
+               estimate_installation: bool | None = None) -> Recording:
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
     pose only initialises the filter and brings its systematic covariance); frames where
     the tracker found no pose still contribute the dots it can label by the pose it
     predicts (``LaserTracker.label_dots``), as the live service publishes them.
-    ``estimate_installation``: the tracker corrects its poses by its online estimate of
-    the installation (``TrackerParams.estimate_installation``).
+    ``estimate_installation``: whether the tracker corrects its poses and dots by its
+    online estimate of the installation (``TrackerParams.estimate_installation``; None:
+    unless ``ideal``, as ``TrackerParams``).
     """
     from services.laser_camera.tracker import LaserTracker, TrackerParams
 
@@ -167,7 +169,8 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                                calibration=cal)
     tracker = LaserTracker(laser_calibration(world, cache), (
         TrackerParams.ideal if ideal else TrackerParams)(
-        estimate_installation=estimate_installation))
+        estimate_installation=not ideal if estimate_installation is None
+        else estimate_installation))
     walls = display_walls(tracker.calibration)
     ekf = FusionEKF(accel_model(cal, head_to_accel, rate, model_floor), config)
     frames = [k / OPTICAL_HZ for k in range(int(seconds * OPTICAL_HZ))
@@ -424,9 +427,12 @@ def _recovery_s(rec: Recording, ep: np.ndarray, er: np.ndarray, b: float, p_lim:
 def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: float,
              config: FusionConfig | None = None, model_floor: float = MODEL_FLOOR,
              cache: bool = True, dots: bool = False, device: Any = None,
-             ideal: bool = False, estimate_installation: bool = False) -> dict[str, Any]:
+             ideal: bool = False, estimate_installation: bool | None = None) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure (``device``: another
-    simulated accelerometer device than MARVIN's)."""
+    simulated accelerometer device than MARVIN's; ``estimate_installation``: as
+    :func:`run_fusion`)."""
+    if estimate_installation is None:
+        estimate_installation = not ideal
     if seconds < WARMUP_S + 2.0:
         raise InvalidInputError(f"--seconds must be at least {WARMUP_S + 2.0:g} (warm-up "
                                 f"{WARMUP_S:g} s plus some tracking)")
@@ -586,6 +592,11 @@ def goals(f: dict[str, Any]) -> dict[str, bool]:
     }
 
 
+def _estimate_flag(given: bool | None) -> str:
+    """The flag that set the laser tracker's installation estimate, for an error message."""
+    return "--no-estimate-installation" if given is False else "--estimate-installation"
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.horizon_ms is not None and not (math.isfinite(args.horizon_ms)
                                             and 0 <= args.horizon_ms <= 500):
@@ -597,7 +608,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise InvalidInputError(
                 "--from with --optical dots needs --display-calibration FILE "
                 "(the laser tracker's calibration, whose walls the dots lie on)")
-        for flag, given in (("--estimate-installation", args.estimate_installation),
+        estimate = getattr(args, "estimate_installation", None)
+        for flag, given in ((_estimate_flag(estimate), estimate is not None),
                             ("--ideal", args.ideal)):
             if given:
                 raise InvalidInputError(
@@ -617,4 +629,5 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     device = device_from_args(accel_sim.default_device(), args)
     return evaluate(float(args.seconds), int(args.seed), lengths, horizon_ms / 1e3,
                     cache=not args.no_cache, dots=args.optical == "dots", device=device,
-                    ideal=args.ideal, estimate_installation=args.estimate_installation)
+                    ideal=args.ideal,
+                    estimate_installation=laser_plugin.estimate_installation(args))

@@ -25,6 +25,7 @@ from agent.errors import InvalidInputError
 from services.consistency import nees_figures
 from services.laser_camera.calibration import Calibration, calibrate_sim
 from services.laser_camera.detection import AREA, FLUX, STD, UV, DetectorParams
+from services.laser_camera.plugin import estimate_installation
 from services.laser_camera.tracker import (
     GATE_REASONS,
     NO_POSE_REASONS,
@@ -55,15 +56,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         cal = _calibration(world)
     calib_s = time.perf_counter() - t0
     make = TrackerParams.ideal if args.ideal else TrackerParams
+    estimate = estimate_installation(args)
     params = make(model_pos_std_m=args.model_pos_std_mm / 1000,
                   model_rot_std_rad=np.radians(args.model_rot_std_deg),
-                  estimate_installation=args.estimate_installation)
+                  estimate_installation=estimate)
     figures = evaluate(world, cal, args.seconds, args.rate_hz, params)
     figures["calibration_s"] = round(calib_s, 2)
     figures["seed"] = args.seed
     c = world.config
     figures["installation"] = "ideal" if args.ideal else "realistic"
-    figures["installation_estimate"] = args.estimate_installation
+    figures["installation_estimate"] = estimate
     figures["imperfections"] = {"housing_error_deg": c.housing_error_deg,
                                 "housing_offset_mm": c.housing_offset_m * 1e3,
                                 "screen_bulge_mm": c.screen_bulge_m * 1e3,

@@ -12,14 +12,27 @@ from agent.runtime import EvalPlugin, ServicePlugin
 
 
 def add_estimate_argument(parser: argparse.ArgumentParser) -> None:
-    """``--estimate-installation``: the laser tracker's online installation estimate (the
-    service, its evaluation and the fusion's evaluation take it alike)."""
-    parser.add_argument("--estimate-installation", action="store_true",
-                        help="estimate the installation's errors (beams, screens' bend, "
+    """``--estimate-installation`` / ``--no-estimate-installation``: the laser tracker's
+    online installation estimate (the service, its evaluation and the fusion's evaluation
+    take it alike; :func:`estimate_installation` reads it)."""
+    parser.add_argument("--estimate-installation", action=argparse.BooleanOptionalAction,
+                        default=None,
+                        help="--estimate-installation (the default, but with --ideal): "
+                             "estimate the installation's errors (beams, screens' bend, "
                              "cameras' turn and screen maps) from the fourth beam's miss, "
-                             "frame set by frame set, and correct each pose by the estimate "
-                             "so far; its covariance then carries what the estimate has not "
-                             "pinned down yet (default: off, the whole tolerances)")
+                             "frame set by frame set, and correct each pose and its dots by "
+                             "the estimate so far; their covariance then carries what the "
+                             "estimate has not pinned down yet. --no-estimate-installation "
+                             "(the default with --ideal, which has no installation errors): "
+                             "no correction, every pose carries the whole tolerances as "
+                             "covariance")
+
+
+def estimate_installation(args: argparse.Namespace) -> bool:
+    """Whether the laser tracker estimates the installation: as asked, else on unless
+    ``--ideal`` (an ideal installation has nothing to estimate)."""
+    given = getattr(args, "estimate_installation", None)
+    return not getattr(args, "ideal", False) if given is None else bool(given)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -51,6 +51,7 @@ from schemas.codec import (
 )
 from services import frames
 from services.laser_camera.calibration import Calibration, calibrate_sim
+from services.laser_camera.plugin import estimate_installation
 from services.laser_camera.sources import CaptureSource, SimSource, parse_sources
 from services.laser_camera.tracker import (
     LabeledDots,
@@ -182,7 +183,7 @@ def _serve(args: argparse.Namespace, cal: Calibration, source, stop: threading.E
     tracker = LaserTracker(cal, (TrackerParams.ideal if args.ideal else TrackerParams)(
         model_pos_std_m=args.model_pos_std_mm / 1000,
         model_rot_std_rad=float(np.radians(args.model_rot_std_deg)),
-        estimate_installation=args.estimate_installation))
+        estimate_installation=estimate_installation(args)))
     perf = _Performance()
     period = 1.0 / args.rate_hz if isinstance(source, SimSource) else 0.0
     with contextlib.ExitStack() as stack:

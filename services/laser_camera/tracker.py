@@ -30,8 +30,8 @@ for having none out.
 6. gating: a pose far from the prediction, or that moved or turned faster than a head
    can, is refused;
 7. a 6x6 covariance by first-order propagation of each dot's measured uncertainty;
-8. optionally (``estimate_installation``) the pose corrected by the installation's errors
-   estimated so far from the fourth beam's misses (``installation_estimate``), its
+8. the pose corrected by the installation's errors estimated so far from the fourth beam's
+   misses (``installation_estimate``; ``estimate_installation``, on by default), its
    covariance carrying what that estimate has not pinned down instead of the tolerances.
 
 Anything that prevents a pose (fewer than four dots, no consistent labeling, dots that
@@ -157,9 +157,10 @@ class TrackerParams:
     label_gate_m: float = 0.05
     label_gate_mps: float = 1.5
     #: estimate the installation's errors online from the fourth beam's miss and correct
-    #: each pose by the estimate so far (``installation_estimate``); the pose's covariance
-    #: then carries the estimate's remaining error instead of the whole tolerances
-    estimate_installation: bool = False
+    #: each pose and its dots by the estimate so far (``installation_estimate``); the
+    #: pose's covariance then carries the estimate's remaining error instead of the whole
+    #: tolerances.  False: every pose carries the whole tolerances as covariance
+    estimate_installation: bool = True
     #: the miss's noise in the estimate: the dots' own plus this (1 sigma, per axis), for
     #: what holds over a few frame sets but is no parameter (a spot's centroid bias where
     #: the projected imagery crosses it, the screen maps' error beyond a homography's)
@@ -198,10 +199,12 @@ class TrackerParams:
 
     @classmethod
     def ideal(cls, **overrides) -> TrackerParams:
-        """Parameters for an ideal installation: no tolerances beyond the dots' own."""
+        """Parameters for an ideal installation: no tolerances beyond the dots' own, so
+        no installation to estimate either (unless ``estimate_installation`` is given)."""
         return cls(**{"housing_dir_std_rad": 0.0, "housing_offset_std_m": 0.0,
                       "screen_bulge_std_m": 0.0, "camera_residual_std_m": 0.0,
-                      "camera_turn_std_rad": 0.0, **overrides})
+                      "camera_turn_std_rad": 0.0, "estimate_installation": False,
+                      **overrides})
 
 
 @dataclass(frozen=True)
@@ -474,11 +477,7 @@ class LaserTracker:
         pose (``_last``): the next frame set's candidates are measured ones too."""
         p, estimate = self.params, self.installation
         p0 = np.asarray(est.position, float)
-        moves = _dot_moves(dots, idx, [1, 2, 3, 4], p0, est.quaternion, p)
-        if self._screens is not None:
-            moves.update(self._screens.map_moves(dots, idx))
-        names = list(moves)
-        D = np.stack([moves[name] for name in names], axis=-1)  # (4 dots, 2 axes, params)
+        names, D = self._moves(dots, idx, [1, 2, 3, 4], p0, est.quaternion)
         _, Jm = _miss_jacobians(dots, np.array([idx]))
         H = np.einsum("kai,kam->mi", Jm[0], D)
         noise = fit.random + p.estimate_miss_floor_m ** 2 * np.eye(2)
@@ -493,16 +492,24 @@ class LaserTracker:
         systematic = S @ P @ S.T + _model_covariance(p0, p)
         systematic = 0.5 * (systematic + systematic.T)
         root = _estimate_root(S, names, estimate)
-        dot_shift = np.einsum("kam,m->ka", D, mean)
-        dot_cov = np.einsum("kam,mn,kbn->kab", D, P, D)
+        points, dot_std = _corrected_dots(dots, idx, D, mean, P)
         return replace(
             est, position=position, quaternion=quaternion / np.linalg.norm(quaternion),
             covariance=est.covariance - est.systematic + systematic, systematic=systematic,
-            dots={k + 1: dots.points[i] - dot_shift[k] @ dots.axes[i]
-                  for k, i in enumerate(idx)},
-            dot_systematic_std_m={k + 1: float(np.sqrt(0.5 * np.trace(dot_cov[k])))
-                                  for k in range(len(idx))},
+            dots={k + 1: points[k] for k in range(len(idx))},
+            dot_systematic_std_m={k + 1: float(dot_std[k]) for k in range(len(idx))},
             sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)})
+
+    def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
+               quaternion: np.ndarray) -> tuple[list[str], np.ndarray]:
+        """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
+        along its wall's axes per one std of each installation parameter that moves it, the
+        screen maps' included: the parameters' names and the moves (dots, 2 axes, params)."""
+        moves = _dot_moves(dots, idx, labels, p0, quaternion, self.params)
+        if self._screens is not None:
+            moves.update(self._screens.map_moves(dots, idx))
+        names = list(moves)
+        return names, np.stack([moves[name] for name in names], axis=-1)
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
@@ -595,7 +602,10 @@ class LaserTracker:
         last two labeled sightings on that wall at their velocity, which chains through a
         run of frame sets without a pose; failing that, as the beam hit of the pose
         predicted from the last two.  A dot that gets no label is counted in ``counts``
-        under ``dot_unlabeled_<why>``, never passed on with a guessed label."""
+        under ``dot_unlabeled_<why>``, never passed on with a guessed label.  With the
+        installation's estimate the dots are corrected by it as a pose's are (through the
+        predicted pose's beams), each with the estimate's remaining error as its
+        installation std."""
         if isinstance(result, PoseEstimate):
             labels = sorted(result.dots)
             return LabeledDots(result.t, labels, np.array([result.dots[k] for k in labels]),
@@ -619,7 +629,13 @@ class LaserTracker:
         self._remember(t, labels, dots.points[idx], [dots.walls[i] for i in idx])
         p0 = pose[0] if pose is not None else (
             self._last.position if self._last is not None else np.zeros(3))
-        return _labeled(t, dots, idx, labels, p0, self.params)
+        labeled = _labeled(t, dots, idx, labels, p0, self.params)
+        if self.installation is None or not idx or pose is None:
+            return labeled
+        names, D = self._moves(dots, idx, labels, p0, pose[1])
+        points, dot_std = _corrected_dots(dots, idx, D, self.installation.mean(names),
+                                          self.installation.covariance(names))
+        return replace(labeled, points=points, systematic_std_m=dot_std)
 
     def _predicted_spot(self, dots: WorldDots, i: int, label: int, t: float,
                         pose: tuple[np.ndarray, np.ndarray] | None
@@ -899,6 +915,17 @@ def _labeled(t: float, dots: WorldDots, idx: list[int], labels: list[int], p0: n
     sys_var = _installation_variance(dots, idx, p0, params) if idx else np.zeros(0)
     return LabeledDots(t, labels, dots.points[idx].reshape(-1, 3), dots.std_m[idx],
                        np.sqrt(sys_var), predicted=True)
+
+
+def _corrected_dots(dots: WorldDots, idx: list[int], D: np.ndarray, mean: np.ndarray,
+                    P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The dots ``idx`` moved back by the installation's estimate (``D``: each dot's move
+    along its wall's axes per parameter, ``mean`` and ``P`` the estimate over those
+    parameters), and the per-axis std of each dot's installation error left (D P D^T)."""
+    shift = np.einsum("kam,m->ka", D, mean)
+    cov = np.einsum("kam,mn,kbn->kab", D, P, D)
+    points = dots.points[idx] - np.einsum("ka,kai->ki", shift, dots.axes[idx])
+    return points, np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
 
 
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
