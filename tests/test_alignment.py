@@ -408,6 +408,30 @@ def test_a_trackers_held_error_is_in_the_covariance() -> None:
     assert _nees_of(silent, x) > 50
 
 
+def test_only_the_part_a_tracker_calls_systematic_is_held() -> None:
+    """A sample's own noise differs from station to station, so the bootstrap counts it; a
+    tracker that says which part of its covariance persists (``systematic``) has only that
+    part held, not its noise again; without it the whole covariance is held."""
+    rng = np.random.default_rng(8)
+    x, world_b = random_pose(rng, 0.2), random_pose(rng, 1.0)
+    a, b = simulate_streams(4, LASER, x, world_b, StreamConfig(seconds=30.0, offset_s=0.02))
+    n = len(a)
+    held = np.broadcast_to(np.diag([1e-6] * 3 + [1e-7] * 3), (n, 6, 6))
+    noise = np.broadcast_to(np.diag([4e-6] * 3 + [3e-6] * 3), (n, 6, 6))
+    options = AlignmentOptions(bootstrap=30, estimate_offset=False, offset_s=0.02)
+
+    def added(series: PoseSeries) -> np.ndarray:
+        return align_streams(series, b, options).added_covariance
+
+    told = added(PoseSeries(a.t, a.position, a.quaternion, "a", held + noise, systematic=held))
+    assert np.allclose(told, added(PoseSeries(a.t, a.position, a.quaternion, "a", held)),
+                       rtol=1e-9, atol=0)
+    untold = added(PoseSeries(a.t, a.position, a.quaternion, "a", held + noise))
+    assert np.trace(untold) > 3 * np.trace(told)
+    with pytest.raises(AlignmentError, match="systematic covariances must be"):
+        PoseSeries(a.t, a.position, a.quaternion, "a", held + noise, systematic=held[1:])
+
+
 def test_an_error_the_stations_share_through_parameters_is_in_the_covariance() -> None:
     """An error that differs from station to station but comes from parameters every
     station shares (here sensor a's rotation read 2 % too large about each axis: its error

@@ -108,6 +108,11 @@ def test_corrected_poses_err_less_and_within_their_covariance(run) -> None:
         # same shared source in every pose (the estimate only appends names)
         names = [name.removeprefix("estimate ") for name in res.sensitivity]
         assert names == tracker.installation.names[:len(names)]
+        # what every run in the installation shares (S P, the draw the estimate has not
+        # taken out) is part of what this run's poses share (S P S^T, P <= I)
+        assert list(res.draw_sensitivity) == names
+        D = np.array(list(res.draw_sensitivity.values()))
+        assert np.linalg.eigvalsh(res.systematic - D.T @ D).min() > -1e-12
     assert np.sqrt(np.mean(np.square(errors))) < 0.0015
     assert np.mean(nees) < 14.4  # one run's band for a held error (6 dof)
 

@@ -134,6 +134,7 @@ def _pose_with_sensitivity(world: IvyWorld, tracker: LaserTracker, p: np.ndarray
     from services.laser_camera.tracker import (
         _covariance,
         _installation_covariance,
+        installation_draw_sensitivity,
         installation_sensitivity,
     )
 
@@ -152,6 +153,10 @@ def _pose_with_sensitivity(world: IvyWorld, tracker: LaserTracker, p: np.ndarray
                             {k + 1: dots.points[i] for k, i in enumerate(idx)}, {}, 0.0, 4,
                             False, systematic)
     sensitivity = installation_sensitivity(dots, estimate, tracker.params)
+    # an uncorrected pose's error is the draw's alone: every run in the installation shares it
+    draw = installation_draw_sensitivity(dots, estimate, tracker.params)
+    assert draw.keys() == sensitivity.keys()
+    assert all(np.array_equal(draw[name], sensitivity[name]) for name in draw)
     S = np.array(list(sensitivity.values())).T
     assert np.allclose(S @ S.T, systematic, rtol=1e-9, atol=1e-15)  # the same error, parted
     phi = geo.quat_to_rotvec(geo.quat_multiply(estimate.quaternion, geo.quat_conjugate(q)))

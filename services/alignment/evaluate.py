@@ -31,10 +31,13 @@ from agent.errors import InvalidInputError
 from services.alignment import opencv_reference
 from services.alignment.pipeline import (
     AlignmentOptions,
+    AlignmentResult,
     align_at_offset,
     estimate_offset,
     fit_stations,
+    moved_motions,
     offset_std,
+    shared_error_sensitivity,
     station_times,
 )
 from services.alignment.simulate import (
@@ -97,7 +100,7 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: 
     rng = np.random.default_rng([seed, trial])
     x, world_b = random_pose(rng, 0.2), random_pose(rng, 2.0)
     config = replace(config, offset_s=rng.uniform(0.0, 0.1))
-    a, b = _streams(seed, trial, x, world_b, config, ideal)
+    a, a_draw, b = _streams(seed, trial, x, world_b, config, ideal)
     options = AlignmentOptions(seed=trial)
     offset, coarse = estimate_offset(a, b, options)
     times = station_times(a, b, offset, options.max_stations)
@@ -115,32 +118,47 @@ def _trial(seed: int, trial: int, config: StreamConfig, outliers: float, ideal: 
     out["offset_std_ms"] = 1e3 * std
     full = align_at_offset(a, b, offset, std, options)
     out["nees"] = _nees(full, x)
-    out["consistency"] = _consistency_terms(full)
+    out["consistency"] = _consistency_terms(full, _draw_sensitivity(a_draw, b, full, options),
+                                            a_draw.parameters)
     return out
 
 
-def _consistency_terms(result: Any) -> dict[str, Any]:
+def _draw_sensitivity(a_draw: PoseSeries, b: PoseSeries, result: AlignmentResult,
+                      options: AlignmentOptions) -> np.ndarray:
+    """X's error (6, m; geometry's convention) per one std of each installation
+    parameter's draw (``a_draw``'s sensitivities, ``simulate.laser_stream``), solved as
+    ``shared_error_sensitivity`` solves the run's own shared error, on the same stations."""
+    times = station_times(a_draw, b, result.time_offset_s, options.max_stations)
+    stations = (*a_draw.at(times)[:2], *b.at(times + result.time_offset_s)[:2])
+    moved = moved_motions(stations, a_draw.sensitivity_at(times), result.pairs_ij)
+    return shared_error_sensitivity(stations, moved, len(a_draw.parameters), result, options)
+
+
+def _consistency_terms(result: AlignmentResult, draw: np.ndarray, names: tuple[str, ...],
+                       ) -> dict[str, Any]:
     """What the band of a seed's mean NEES needs from a trial: X's covariance in the NEES's
-    (decoupled) coordinates, and X's sensitivity to the installation's tolerances, whose
-    error every trial of the seed shares (``AlignmentResult.shared_sensitivity``, by
-    parameter name), in the same coordinates."""
+    (decoupled) coordinates, and X's sensitivity to the installation's draw (``draw``, one
+    column per parameter of ``names``; ``result.shared_sensitivity`` is the run's own),
+    whose error every trial of the seed shares, in the same coordinates.  Without the laser
+    tracker's online estimate the two are the same; with it, each trial has its own
+    estimate, and only what of the draw that estimate leaves is shared."""
     decoupled = np.eye(6)
     decoupled[:3, 3:] = -geo.skew(result.position)  # dp = rho + phi x p
     return {"covariance": geo.se3_to_decoupled(result.position, result.covariance),
-            "sensitivity": dict(zip(result.shared_parameters,
-                                    (decoupled @ result.shared_sensitivity).T, strict=True))}
+            "sensitivity": dict(zip(names, (decoupled @ draw).T, strict=True))}
 
 
 def _streams(seed: int, trial: int, x: Pose, world_b: Pose, config: StreamConfig,
-             ideal: bool) -> tuple[PoseSeries, PoseSeries]:
-    """The laser tracker's stream (a) with its sensitivities to the installation, and
+             ideal: bool) -> tuple[PoseSeries, PoseSeries, PoseSeries]:
+    """The laser tracker's stream (a) with its sensitivities to the installation, the same
+    with its sensitivities to the installation's draw (``simulate.laser_stream``), and
     tracker b's, on one motion of the head."""
     world = IvyWorld(seed=seed * 100_003 + trial, ideal=ideal, imperfection_seed=seed)
     tracker = LaserTracker(laser_calibration(world, cache=True),
                            TrackerParams.ideal() if ideal else TrackerParams())
     rng = np.random.default_rng([seed, trial, 1])
-    a = laser_stream(world, tracker, config.seconds, LASER_RATE_HZ, rng)
-    return a, stream_b(world.trajectory, mounts_laser(), x, world_b, config, rng)
+    a, a_draw = laser_stream(world, tracker, config.seconds, LASER_RATE_HZ, rng)
+    return a, a_draw, stream_b(world.trajectory, mounts_laser(), x, world_b, config, rng)
 
 
 def mounts_laser() -> Pose:

@@ -411,16 +411,16 @@ def offset_covariance(b: PoseSeries, stations_a: tuple[np.ndarray, np.ndarray],
 
 def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray | None,
                           ) -> np.ndarray:
-    """A tracker's published covariances (n, 6, 6, world frame) at its stations ``(p, q)``
-    read as one error that holds in its sensor's frame for all of them: their mean in that
-    frame (``Ad(T^-1) C Ad(T^-1)^T``).
+    """A tracker's persistent covariances (n, 6, 6, world frame; ``PoseSeries.held_at``) at
+    its stations ``(p, q)`` read as one error that holds in its sensor's frame for all of
+    them: their mean in that frame (``Ad(T^-1) C Ad(T^-1)^T``).
 
     Why: an error ``E`` that stays with the sensor (``A_k -> A_k E``: a laser housing's
     beams, a marker body's geometry) cancels from every residual of ``A X = X B`` and moves
     X by exactly ``E``; no resampling of the stations can see it, so only the tracker's own
-    account of its errors can.  Reading the whole published covariance as held is the
-    conservative choice; its part that changes from sample to sample is counted again by the
-    bootstrap, which is small where the installation dominates (docs/SIMULATION.md).
+    account of its errors can.  A sample's own noise is no such error: the bootstrap counts
+    it, so only the part the tracker calls systematic is held here; a tracker that does not
+    say which part persists has its whole covariance read as held (conservative).
     """
     if covariances is None:
         return np.zeros((6, 6))
@@ -488,7 +488,7 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
     pb, qb, _ = b.at(times + offset_s)
     result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s)
     ad_x = geo.adjoint(result.position, result.quaternion)
-    held_a = a.covariance_at(times)
+    held_a = a.held_at(times)
     shared = np.zeros((6, 0))
     bootstrap = result.bootstrap
     sensitivity = a.sensitivity_at(times)
@@ -503,7 +503,7 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
                 list(moved.values()), result.pose))
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
              + shared @ shared.T + held_error_covariance(pa, qa, held_a)
-             + ad_x @ held_error_covariance(pb, qb, b.covariance_at(times + offset_s)) @ ad_x.T)
+             + ad_x @ held_error_covariance(pb, qb, b.held_at(times + offset_s)) @ ad_x.T)
     return replace(result, covariance=bootstrap.covariance(added), bootstrap=bootstrap,
                    added_covariance=added, time_offset_std_s=offset_std_s,
                    shared_sensitivity=shared, shared_parameters=a.parameters)

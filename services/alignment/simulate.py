@@ -18,7 +18,7 @@ rendered images of the realistic installation instead.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,7 +26,11 @@ from agent import geometry as geo
 from services.alignment.solvers import Pose
 from services.alignment.timesync import PoseSeries
 from services.laser_camera.detection import AREA, FLUX, STD, U, V
-from services.laser_camera.tracker import LaserTracker, installation_sensitivity
+from services.laser_camera.tracker import (
+    LaserTracker,
+    installation_draw_sensitivity,
+    installation_sensitivity,
+)
 from services.sim.trajectory import HeadTrajectory
 from services.sim.world import IvyWorld
 
@@ -97,15 +101,18 @@ def _sample_times(rate_hz: float, seconds: float, rng: np.random.Generator) -> n
 
 
 def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz: float,
-                 rng: np.random.Generator) -> PoseSeries:
+                 rng: np.random.Generator) -> tuple[PoseSeries, PoseSeries]:
     """The laser-dot tracker's poses of ``marvin/laser_rig`` in ``ivy/world`` with their
-    published covariances over the world's head trajectory, at ``rate_hz`` from a random
-    phase; frames without a pose are left out (a gap in the stream, as on the wire).  With
-    them each pose's sensitivity to the installation's tolerances
-    (``installation_sensitivity``), which every recording in the same installation shares."""
+    published covariances and their systematic parts over the world's head trajectory, at
+    ``rate_hz`` from a random phase; frames without a pose are left out (a gap in the
+    stream, as on the wire).  With them each pose's sensitivity to the installation's
+    errors that the whole recording shares (``installation_sensitivity``); and the same
+    stream with each pose's sensitivity to the installation's draw instead, which every
+    recording in the same installation shares (``installation_draw_sensitivity``: with
+    the tracker's online estimate, what of the draw the estimate has not taken out)."""
     t_all = _sample_times(rate_hz, seconds, rng)
     rig_p, rig_q = world.rig_pose(t_all)  # one batched call: the trajectory is vectorised
-    t, p, q, c, s = [], [], [], [], []
+    t, p, q, c, held, s, draw = [], [], [], [], [], [], []
     for tk, pk, qk in zip(t_all, rig_p, rig_q, strict=True):
         dots = tracker.locate(_detections(world, pk, qk, rng))
         res = tracker.solve(dots, float(tk))
@@ -114,11 +121,21 @@ def laser_stream(world: IvyWorld, tracker: LaserTracker, seconds: float, rate_hz
             p.append(res.position)
             q.append(res.quaternion)
             c.append(res.covariance)
+            held.append(res.systematic)
             s.append(installation_sensitivity(dots, res, tracker.params))
-    names = tuple(sorted({name for one in s for name in one}))
-    sensitivity = np.array([[one.get(name, np.zeros(6)) for name in names] for one in s])
-    return PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c),
-                      np.swapaxes(sensitivity, 1, 2), names)
+            draw.append(installation_draw_sensitivity(dots, res, tracker.params))
+    series = PoseSeries(np.array(t), np.array(p), np.array(q), "laser stream", np.array(c),
+                        *_columns(s), np.array(held))
+    draw_columns, draw_names = _columns(draw)
+    return series, replace(series, sensitivity=draw_columns, parameters=draw_names)
+
+
+def _columns(per_pose: list[dict[str, np.ndarray]]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Named sensitivities of each pose as one array (n, 6, m) over every name any pose
+    has (a pose without one: zeros), and the names."""
+    names = tuple(sorted({name for one in per_pose for name in one}))
+    columns = np.array([[one.get(name, np.zeros(6)) for name in names] for one in per_pose])
+    return np.swapaxes(columns.reshape(len(per_pose), len(names), 6), 1, 2), names
 
 
 def _detections(world: IvyWorld, p: np.ndarray, q: np.ndarray, rng: np.random.Generator,

@@ -46,6 +46,7 @@ class PoseSeries:
     covariance: np.ndarray | None = None
     sensitivity: np.ndarray | None = None
     parameters: tuple[str, ...] = ()
+    systematic: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -76,6 +77,14 @@ class PoseSeries:
                                      f"{len(self.parameters)} matrices (one column per "
                                      f"parameter) beside covariances, got shape {g.shape}")
             object.__setattr__(self, "sensitivity", g)
+        if self.systematic is not None:
+            c = np.asarray(self.systematic, dtype=float)
+            if (c.shape != (len(t), 6, 6) or not np.all(np.isfinite(c))
+                    or self.covariance is None):
+                raise AlignmentError(f"{self.name}: systematic covariances must be {len(t)} "
+                                     f"finite 6x6 matrices beside covariances, got shape "
+                                     f"{c.shape}")
+            object.__setattr__(self, "systematic", c)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -101,6 +110,17 @@ class PoseSeries:
         """The published covariance of the sample nearest each of ``times`` (None if the
         stream has none): a covariance changes slowly, so no interpolation."""
         return None if self.covariance is None else self.covariance[self._nearest(times)]
+
+    def held_at(self, times: np.ndarray) -> np.ndarray | None:
+        """The part of the published covariance that persists from sample to sample, of the
+        sample nearest each of ``times``: the ``systematic`` part where the tracker gives it,
+        else the whole covariance (None if the stream has none).
+
+        Why: a sample's own noise differs from station to station, so the stations'
+        bootstrap counts it already (``covariance.bootstrap_covariance``); only an error
+        that persists escapes the resamples (``pipeline.held_error_covariance``)."""
+        held = self.covariance if self.systematic is None else self.systematic
+        return None if held is None else held[self._nearest(times)]
 
     def sensitivity_at(self, times: np.ndarray) -> np.ndarray | None:
         """The sensitivities of the sample nearest each of ``times`` (None if none)."""

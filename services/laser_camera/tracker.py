@@ -249,6 +249,10 @@ class PoseEstimate:
     #: estimate's remaining error (:func:`installation_sensitivity`), where the tracker
     #: corrected the pose by its online estimate; None: not corrected
     sensitivity: dict[str, np.ndarray] | None = None
+    #: the pose's error per one standard deviation of each installation parameter's draw,
+    #: which every run in the same installation shares (:func:`installation_draw_sensitivity`),
+    #: where the tracker corrected the pose by its online estimate; None: not corrected
+    draw_sensitivity: dict[str, np.ndarray] | None = None
 
     @property
     def ok(self) -> bool:
@@ -491,14 +495,15 @@ class LaserTracker:
         quaternion = geo.quat_multiply(geo.rotvec_to_quat(-dphi), est.quaternion)
         systematic = S @ P @ S.T + _model_covariance(p0, p)
         systematic = 0.5 * (systematic + systematic.T)
-        root = _estimate_root(S, names, estimate)
+        root, draw = _estimate_columns(S, names, estimate)
         points, dot_std = _corrected_dots(dots, idx, D, mean, P)
         return replace(
             est, position=position, quaternion=quaternion / np.linalg.norm(quaternion),
             covariance=est.covariance - est.systematic + systematic, systematic=systematic,
             dots={k + 1: points[k] for k in range(len(idx))},
             dot_systematic_std_m={k + 1: float(dot_std[k]) for k in range(len(idx))},
-            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)})
+            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)},
+            draw_sensitivity={name: draw[:, j] for j, name in enumerate(estimate.names)})
 
     def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
                quaternion: np.ndarray) -> tuple[list[str], np.ndarray]:
@@ -1209,19 +1214,24 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
 
 
-def _estimate_root(S: np.ndarray, names: list[str], estimate: InstallationEstimate,
-                   ) -> np.ndarray:
-    """``S`` (6 x len(names)) times a root of the estimate's whole remaining covariance, one
-    column per parameter in the estimate's own order (``estimate.names``).
+def _estimate_columns(S: np.ndarray, names: list[str], estimate: InstallationEstimate,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``S`` (6 x len(names)) times a root of the estimate's whole remaining covariance P,
+    and ``S`` times P itself, each one column per parameter in the estimate's own order
+    (``estimate.names``).
 
     Why the whole covariance in one fixed order: a consumer (the alignment) takes each
-    named column for one shared source across the poses it holds, which is true only if
-    every pose factors the same covariance in the same order, whatever parameters its own
-    dots see."""
+    named column of the root for one shared source across the poses it holds, which is
+    true only if every pose factors the same covariance in the same order, whatever
+    parameters its own dots see.  Why ``S P``: the estimate's error is ``P theta`` (theta
+    the installation's draw, in stds, prior N(0, I)) less what this run's misses' noise
+    left in it, so ``S P`` is what of the pose's error every run in the same installation
+    shares; the rest is the run's own."""
     order = {name: i for i, name in enumerate(estimate.names)}
     every = np.zeros((S.shape[0], len(order)))
     every[:, [order[name] for name in names]] = S
-    return every @ _cholesky(estimate.covariance(estimate.names))
+    P = estimate.covariance(estimate.names)
+    return every @ _cholesky(P), every @ P
 
 
 def _cholesky(P: np.ndarray) -> np.ndarray:
@@ -1290,6 +1300,23 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
     moves = _dot_moves(dots, idx, labels, p0, estimate.quaternion, p)
     return {name: np.einsum("pka,ka->p", Jd, move) for name, move in moves.items()}
+
+
+def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: TrackerParams,
+                                  ) -> dict[str, np.ndarray]:
+    """The pose's error (6,; xi form) per one standard deviation of each installation
+    parameter's draw, which every run in the same installation shares: without the online
+    estimate the same as :func:`installation_sensitivity`; with it ``S P``, what of the
+    draw the estimate has not taken out (``_estimate_columns``), by the parameters' names.
+
+    Why apart from :func:`installation_sensitivity`: with the estimate, what two poses of
+    one run share (the estimate's remaining error, noise of the run's misses included) is
+    not what two runs in the same installation share (only the draw), and a consumer that
+    judges many runs of one installation together (the alignment's evaluation, its band
+    of a seed's trials) needs the latter."""
+    if estimate.draw_sensitivity is not None:
+        return estimate.draw_sensitivity
+    return installation_sensitivity(dots, estimate, p)
 
 
 def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
