@@ -642,6 +642,9 @@ def test_eval_bundle_scene_reports_the_gain_over_its_most_accurate_tag():
     assert out["best_gain_measured"] <= out["gain_measured"]
     assert out["best_gain_claimed"] == pytest.approx(
         out["best_tag_claimed_mm"] / out["bundle_claimed_mm"], rel=0.01)
+    # the bundle's own 6-dof covariance against its errors, over its samples
+    assert out["nees"]["dof"] == 6 and out["nees"]["mean"] > 0
+    assert 0 < out["nees"]["effective_samples"] <= out["bundle_samples"]
 
 
 def test_a_bundle_judges_its_planar_ambiguity_by_its_corners_covariance():

@@ -32,7 +32,9 @@ A second scene puts four such tags on a 21 cm plate (a bundle, solved as one bod
 compares the bundle's position error and claimed standard deviation with its single
 tags' (solved alone, on the same frames): pooled, and (``best_*``) the most accurate
 tag's, the one of least RMS error (chosen by its measured error, so even an honest
-covariance measures a smaller gain over it than it claims: the luckiest of four).
+covariance measures a smaller gain over it than it claims: the luckiest of four); and
+the NEES of the bundle's own 6-dof covariance (``nees``): whether the factor it claims
+rests on a covariance of the right size.
 """
 
 from __future__ import annotations
@@ -273,7 +275,7 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
                           for i, T in zip(ids, in_plate, strict=True)})
     together = FiducialTracker(camera, FAMILY, None, bundles=[body])
     alone = FiducialTracker(camera, FAMILY, SIZE_M)
-    bundle_err, bundle_std = [], []
+    bundle_err, bundle_std, bundle_e, bundle_cov = [], [], [], []
     per_tag: dict[int, tuple[list[float], list[float]]] = {i: ([], []) for i in ids}
     for k in range(n):
         t = k / fps
@@ -281,8 +283,11 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
         seen, noise = alone.observe(image)
         for est in together.estimate(seen, round(t * 1e9), noise):
             if len(est.markers) == 4:
-                bundle_err.append(_errors(plate(t), est.R, est.t)[1])
+                e, p_mm, _ = _errors(plate(t), est.R, est.t)
+                bundle_err.append(p_mm)
                 bundle_std.append(1000 * math.sqrt(np.trace(est.covariance[:3, :3])))
+                bundle_e.append(e)
+                bundle_cov.append(est.covariance)
         for est in alone.estimate({i: c for i, c in seen.items() if i in ids}, round(t * 1e9),
                                   noise):
             marker = int(est.name.rsplit("-", 1)[1])
@@ -305,7 +310,9 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
             "best_tag": f"{FAMILY}-{best}", "best_tag_samples": len(per_tag[best][0]),
             "best_tag_rms_mm": round(rms_t, 3), "best_tag_claimed_mm": round(claimed_t, 3),
             "best_gain_measured": round(rms_t / rms_b, 3),
-            "best_gain_claimed": round(claimed_t / claimed_b, 3)}
+            "best_gain_claimed": round(claimed_t / claimed_b, 3),
+            "nees": nees_figures(np.array(bundle_e), np.array(bundle_cov))
+            if len(bundle_e) > 2 else None}
 
 
 def _rms(values: list[float]) -> float:
