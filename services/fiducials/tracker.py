@@ -111,6 +111,22 @@ EDGE_SHARE = 0.00095
 #: of theirs and are kept): the corners' 8-dof NEES by cell width 7.3-7.8 (over 7 px:
 #: 10.6), fresh seeds 7.2-8.5
 LOCK_LEFT_PX = 0.029
+#: ... and a side whose cells are ``CODE_CELL_PX`` or wider across it, whose crossings
+#: are not corrected for the code's cells behind its border (:func:`edges.refine`), is
+#: turned by them: the white share of the cells behind it changes along it, and the
+#: blur carries more white across the border where it is larger.  Its ends move by
+#: ``CODE_TURN_A * exp(-across / CODE_TURN_SCALE_PX)`` px, the one outwards, the other
+#: inwards (0.015 px at 3 px, 0.0075 at 3.5, 0.0009 at 5), independently from side to
+#: side.  On seeds 1-10 of ``uma eval fiducials`` (the 577 edge-fitted tags' corners)
+#: how far the sides' ends move oppositely against the truth jumps at the gate: 0.020 /
+#: 0.017 px RMS at 2.6-2.8 / 2.8-3.0 px, 0.024 / 0.027 at 3.0-3.2 / 3.2-3.4 (fresh seeds
+#: 101-110: 0.019 / 0.018, 0.025 / 0.028), where the other terms claim 0.021-0.024.  The
+#: two figures are fitted by maximum likelihood on those corners, the others kept
+#: (refitted beside them they move by 1-14 %, the likelihood by nothing).  The sides'
+#: offsets do not jump alike on the fresh seeds, and an offset beside the turn puts the
+#: poses' NEES at 1.5-2 m under its band: none is carried
+CODE_TURN_A = 1.11
+CODE_TURN_SCALE_PX = 0.70
 #: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
 #: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
 #: together, and averaging them does not average it away.  On the eval's bundle scenes
@@ -252,7 +268,8 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
     at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
-    locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it (``sweep``: how many
+    locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it, as the code's cells
+    behind an uncorrected side do (:func:`_code_turn_px`) (``sweep``: how many
     pixels across its nearer image axis the side's fitted span covers in the image,
     ``in_image``: the refined corners there, not the detector's whole pixels, since a
     pixel's difference in ``sweep`` is the whole term).  Corner k is where side k - 1
@@ -266,7 +283,7 @@ def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
     tau = _side_offset_px(across)
     own = ((1 - SIDE_CORRELATION) * tau ** 2 + lock_px ** 2 / 2 * np.sinc(sweep) ** 2
            + (EDGE_SHARE * across) ** 2)
-    tilt = lock_px ** 2 / 2 * _locked_slope(sweep) ** 2
+    tilt = lock_px ** 2 / 2 * _locked_slope(sweep) ** 2 + _code_turn_px(across) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
     return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
             + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
@@ -297,6 +314,15 @@ def _side_offset_px(across: np.ndarray) -> np.ndarray:
     """How far (px, one standard deviation) a side's line errs across itself where its
     cells are ``across`` px wide: ``SIDE_A * exp(-across / SIDE_SCALE_PX)``."""
     return SIDE_A * np.exp(across / -SIDE_SCALE_PX)
+
+
+def _code_turn_px(across: np.ndarray) -> np.ndarray:
+    """How far (px, one standard deviation) the code's cells behind a side turn it, its
+    ends moving oppositely, where its cells are ``across`` px wide: ``CODE_TURN_A *
+    exp(-across / CODE_TURN_SCALE_PX)`` where its crossings are not corrected for them
+    (``edges.CODE_CELL_PX`` or wider), none where they are."""
+    return np.where(across >= edges.CODE_CELL_PX,
+                    CODE_TURN_A * np.exp(across / -CODE_TURN_SCALE_PX), 0.0)
 
 
 def _side_moves(corners: np.ndarray, modules: int,
