@@ -232,8 +232,8 @@ def test_component_statistics_are_opencvs() -> None:
 def test_the_trackers_plain_float_screen_map_is_the_shared_numpy_one() -> None:
     """The tracker maps each dot image -> screen -> world on floats (``_ScreenMap``); it must
     say what eqs. 5.39-5.40's numpy functions say: the same point, the same std (pixel std
-    through the homography's scale, calibration and edge terms), the same bend, and None
-    exactly off the active area."""
+    through the homography's scale, calibration and edge terms), the same bend, the same
+    edge term, and None exactly off the active area."""
     rng = np.random.default_rng(RNG_SEED)
     p = TrackerParams()
     for wall in make_walls().values():
@@ -257,7 +257,8 @@ def test_the_trackers_plain_float_screen_map_is_the_shared_numpy_one() -> None:
             assert (dot is not None) == on[k]
             if dot is not None:
                 np.testing.assert_allclose(dot[0], world[k], rtol=1e-12, atol=1e-12)
-                assert dot[1:] == pytest.approx((std[k], bend[k]), rel=1e-12, abs=1e-15)
+                assert dot[1:] == pytest.approx((std[k], bend[k], edge[k]), rel=1e-12,
+                                                abs=1e-15)
 
 
 def test_detection_in_windows_is_detection_in_full_where_the_windows_are() -> None:

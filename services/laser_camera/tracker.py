@@ -124,6 +124,10 @@ class TrackerParams:
     #: a rival whose pose lies within the chosen pose's covariance (Mahalanobis distance
     #: squared, 6 dof, at most this: chi2(6)'s 1 - 1e-4 quantile) is the same answer
     same_pose_chi2: float = 27.9
+    #: a blob nearer a spot than this is part of it for the detector (a spot is some 5
+    #: mm wide, std): a labeling is published only if its fourth dot's miss would show a
+    #: stray blob farther away in the place of any dot that fixes the pose
+    stray_min_m: float = 0.01
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
@@ -184,6 +188,8 @@ class TrackerParams:
                                     "positive, its margins >= 0")
         if self.model_pos_std_m < 0 or self.model_rot_std_rad < 0:
             raise InvalidInputError("model_pos_std_m and model_rot_std_rad must be >= 0")
+        if not self.stray_min_m > 0:
+            raise InvalidInputError("stray_min_m must be positive")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
         if not self.residual_drift_per_m > 0:
@@ -223,6 +229,10 @@ class WorldDots:
     #: camera's turn moves a dot by ``camera_residual_std_m`` and a bent screen's parallax
     #: towards the camera is not modelled)
     eyes: np.ndarray | None = None
+    #: (n,) the part of ``std_m`` a dot has for lying within ``edge_guard_m`` of its
+    #: screen's edge (None: none): a clipped spot's centroid is biased by where the edge
+    #: cuts it, which moves with the spot, not from frame set to frame set
+    edge_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -452,7 +462,7 @@ class LaserTracker:
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
-        refused = self._confirm(fits[k], dots, t, n)
+        refused = self._confirm(fits[k], dots, t, n, cov)
         if refused is not None:
             return refused
         sys_std = np.sqrt(0.5 * np.trace(sys_cov, axis1=1, axis2=2))
@@ -542,7 +552,8 @@ class LaserTracker:
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
                               f"{p.max_residual_chi2:g}")
 
-    def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int) -> NoPose | None:
+    def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int,
+                 cov: np.ndarray) -> NoPose | None:
         """The chosen labeling's fourth-beam miss against the last one kept (``_miss``):
         None if they agree, else why not.
 
@@ -560,13 +571,15 @@ class LaserTracker:
         noise outweighs the installation's part (an ideal installation) the chi-square of
         ``_fits`` is as sharp, and nothing is held."""
         p, last = self.params, self._miss
+        noise, edge, edge_m = _edge_parts(dots, fit)
         now = _Miss(t, tuple(dots.walls[i] for i in fit.idx), dots.points[fit.idx], fit.miss,
-                    fit.random, fit.systematic)
-        if np.trace(fit.systematic.sum(axis=0)) <= np.trace(fit.random):
+                    noise, fit.systematic, edge, edge_m)
+        if np.trace(fit.systematic.sum(axis=0) + edge.sum(axis=0)) <= np.trace(noise):
             self._miss = replace(now, confirmed=True)  # the chi-square alone is as sharp
             return None
-        chi2 = None if last is None or t <= last.t else last.change_chi2(
+        change = None if last is None or t <= last.t else last.change(
             now, p.residual_drift_per_m)
+        chi2, S = (None, None) if change is None else change
         if chi2 is None and last is not None and last.confirmed:
             self._miss = replace(now, confirmed=True)
             return None
@@ -579,6 +592,10 @@ class LaserTracker:
                 self._miss = now
             return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
                           f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
+        unseen = None if last.confirmed else _unseen_stray(dots, fit, S, cov, p)
+        if unseen is not None:
+            self._miss = now
+            return NoPose(t, "ambiguous_labeling", n, unseen)
         self._miss = replace(now, confirmed=True)
         return None
 
@@ -762,7 +779,7 @@ class _Screens:
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
         cams: list[int] = []
-        dots: list[tuple[list[float], float, float]] = []
+        dots: list[tuple[list[float], float, float, float]] = []
         for name, d in detections.items():
             if not len(d):
                 continue
@@ -775,10 +792,11 @@ class _Screens:
                     dots.append(dot)
         if not dots:
             return _no_dots()
-        points, std, bend = zip(*dots, strict=True)
+        points, std, bend, edge = zip(*dots, strict=True)
         return WorldDots(np.array(points), np.array(std),
                          [self.cameras[i].wall.name for i in cams], self.axes[cams],
-                         [self.cameras[i].name for i in cams], np.array(bend), self.eyes[cams])
+                         [self.cameras[i].name for i in cams], np.array(bend), self.eyes[cams],
+                         np.array(edge))
 
 
 @dataclass(frozen=True)
@@ -794,11 +812,11 @@ class _ScreenMap:
     sigma_m: float  # the image -> screen map's calibration error (1 sigma, per axis)
 
     def world_dot(self, x: float, y: float, std_px: float,
-                  p: TrackerParams) -> tuple[list[float], float, float] | None:
+                  p: TrackerParams) -> tuple[list[float], float, float, float] | None:
         """The world point of the dot at undistorted pixel ``(x, y)``, its in-plane std
         (the pixel std scaled by the map's Jacobian, the calibration's, and
-        ``edge_std_m`` near the screen's edge) and how far the bending screen moves there
-        (0..1); None off the active area."""
+        ``edge_std_m`` near the screen's edge), how far the bending screen moves there
+        (0..1) and its edge std (0 away from the edge); None off the active area."""
         h0, h1, h2, h3, h4, h5, h6, h7, h8 = self.H
         w = h6 * x + h7 * y + h8
         if w == 0.0:  # the horizon of the screen's plane: no point on it
@@ -817,7 +835,7 @@ class _ScreenMap:
         r, t, z = self.rotation, self.translation, self.plane_m
         point = [r[0] * sx + r[1] * sy + r[2] * z - t[0], r[3] * sx + r[4] * sy + r[5] * z - t[1],
                  r[6] * sx + r[7] * sy + r[8] * z - t[2]]
-        return point, std, bend
+        return point, std, bend, edge
 
 
 class _SeenDots:
@@ -941,18 +959,20 @@ def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
         return d
     keep = np.ones(n, bool)
     pts, std = d.points.copy(), d.std_m.copy()
+    edge = np.zeros(n) if d.edge_m is None else d.edge_m.copy()
     for i, j in same_wall:
         if keep[i] and keep[j] and np.linalg.norm(pts[i] - pts[j]) < tol:
             wi, wj = 1 / std[i] ** 2, 1 / std[j] ** 2
             pts[i] = (wi * pts[i] + wj * pts[j]) / (wi + wj)
             std[i] = 1 / np.sqrt(wi + wj)
+            edge[i] = np.hypot(wi * edge[i], wj * edge[j]) / (wi + wj)
             keep[j] = False
     if keep.all():
         return d
     k = np.flatnonzero(keep)
     return WorldDots(pts[k], std[k], [d.walls[i] for i in k], d.axes[k],
                      [d.cameras[i] for i in k], None if d.bend is None else d.bend[k],
-                     None if d.eyes is None else d.eyes[k])
+                     None if d.eyes is None else d.eyes[k], edge[k])
 
 
 def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
@@ -1067,25 +1087,92 @@ class _Miss:
     walls: tuple[str, ...]  # the walls of diodes 1..4's dots
     points: np.ndarray  # (4, 3) those dots
     miss: np.ndarray  # (2,)
-    random: np.ndarray  # (2, 2)
-    systematic: np.ndarray  # (4, 2, 2)
+    random: np.ndarray  # (2, 2) from the dots' noise, new in every frame set
+    systematic: np.ndarray  # (4, 2, 2) from each dot's installation tolerances
+    edge: np.ndarray  # (4, 2, 2) from each dot's edge std (``_edge_parts``)
+    edge_m: np.ndarray  # (4,) each dot's edge std
     confirmed: bool = False  # published (it agreed with the miss before it)
 
-    def change_chi2(self, later: _Miss, drift_per_m: float) -> float | None:
-        """Chi-square (2 dof) of the miss's change to ``later``, or None if the change
+    def change(self, later: _Miss, drift_per_m: float) -> tuple[float, np.ndarray] | None:
+        """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, or
+        None if the change
         cannot show a stray blob: the dots moved so far (``1 / drift_per_m``) that the
         installation's part may have changed whole, or more than one dot changed walls.
         Its covariance: both frame sets' noise, the installation's part of each dot that
         stayed on its wall times ``drift_per_m`` per metre the dots moved, and all of it
-        (both frame sets', independent) for a dot on another wall."""
-        moved = float(np.max(np.linalg.norm(later.points - self.points, axis=1)))
+        (both frame sets', independent) for a dot on another wall.  A dot near its
+        screen's edge adds its edge part as far as the dot moved: a clipped spot's
+        centroid bias changes by at most the spot's move (the derivative of a truncated
+        spot's mean is below 1), so by its edge std only once it moved that far; counting
+        that part as new noise in both frame sets made a 4 mm dot hide a stray blob 2 cm
+        from another dot."""
+        each = np.linalg.norm(later.points - self.points, axis=1)
+        moved = float(np.max(each))
         other = [a != b for a, b in zip(self.walls, later.walls, strict=True)]
         if drift_per_m * moved >= 1.0 or sum(other) > 1:
             return None
         both = self.systematic + later.systematic  # (4, 2, 2)
         share = np.where(other, 1.0, 0.5 * (drift_per_m * moved) ** 2)
-        S = self.random + later.random + np.einsum("k,kij->ij", share, both)
-        return float(_chi2((later.miss - self.miss)[None], S[None])[0])
+        edge_m = np.maximum(self.edge_m, later.edge_m)
+        edge_share = np.where(other, 1.0, np.minimum(
+            1.0, 0.5 * (each / np.where(edge_m > 0, edge_m, 1.0)) ** 2))
+        S = self.random + later.random + np.einsum("k,kij->ij", share, both) \
+            + np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
+        return float(_chi2((later.miss - self.miss)[None], S[None])[0]), S
+
+
+def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
+                  p: TrackerParams) -> str | None:
+    """Why the miss's change (covariance ``S``) cannot vouch for the fit's pose (covariance
+    ``cov``): a stray blob in the place of one of the dots that fix the pose (diodes 1-3),
+    at least ``stray_min_m`` from it, could pass the change's test (chi-square at most
+    ``max_residual_chi2``) yet put the pose outside its covariance (Mahalanobis distance
+    squared above ``same_pose_chi2``); None if none could.  ``S`` is wide where a dot
+    near its screen's edge moved (its clipped centroid) or the dots moved far since the
+    last miss (the installation's part).
+
+    Per dot, with ``A = Jp^T C^-1 Jp`` and ``B = Jm^T S^-1 Jm`` (the pose's and the miss's
+    change per move of the dot along its wall), the move the test passes that moves the
+    pose most is the generalised eigenvector ``v`` of ``(A, B)`` with the largest
+    eigenvalue ``lam``, scaled to ``v^T B v = max_residual_chi2``: it is harmful if
+    ``lam`` exceeds the ratio of the two bounds, and a blob if ``|v| >= stray_min_m``."""
+    Jp = _pose_jacobian(dots, fit.idx, fit.pose.position).reshape(6, 4, 2)[:, :3]
+    _, Jm = _miss_jacobians(dots, np.array([fit.idx]))
+    Jm = Jm[0, :3]  # (dot, wall axis, miss component)
+    A = np.einsum("pka,pq,qkb->kab", Jp, np.linalg.inv(cov), Jp)
+    B = np.einsum("kai,ij,kbj->kab", Jm, np.linalg.inv(S), Jm)
+    # the largest root of det(A - lam B) = 0, a quadratic per dot (B > 0: S and Jm are
+    # regular wherever the fit passed its chi-square)
+    a = np.linalg.det(B)
+    b = A[:, 0, 0] * B[:, 1, 1] + A[:, 1, 1] * B[:, 0, 0] - A[:, 0, 1] * B[:, 1, 0] \
+        - A[:, 1, 0] * B[:, 0, 1]
+    lam = (b + np.sqrt(np.maximum(b * b - 4 * a * np.linalg.det(A), 0.0))) / (2 * a)
+    M = A - lam[:, None, None] * B  # singular: v spans its null space
+    rows = np.stack([np.stack([-M[:, 0, 1], M[:, 0, 0]], -1),
+                     np.stack([-M[:, 1, 1], M[:, 1, 0]], -1)], 1)  # (dot, row, 2)
+    v = rows[np.arange(3), np.argmax(np.einsum("kra,kra->kr", rows, rows), axis=1)]
+    length = np.sqrt(p.max_residual_chi2 * np.einsum("ka,ka->k", v, v)
+                     / np.einsum("ka,kab,kb->k", v, B, v))
+    harmful = (lam * p.max_residual_chi2 > p.same_pose_chi2) & (length >= p.stray_min_m)
+    if not harmful.any():
+        return None
+    k = int(np.argmax(np.where(harmful, lam, -np.inf)))
+    return (f"a stray blob {length[k] * 100:.1f} cm from diode {k + 1}'s dot would move the "
+            f"pose {np.sqrt(lam[k] * p.max_residual_chi2):.1f} sigma, unseen by the fourth "
+            "dot's miss")
+
+
+def _edge_parts(dots: WorldDots, fit: _Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fit's miss covariance from the dots' noise without their edge std (2, 2), each
+    dot's part from its edge std (4, 2, 2), and those stds (4,): the edge std is a clipped
+    spot's bias, which holds while the spot moves little (``_Miss.change_chi2``).  The
+    miss's Jacobian is taken again only where a dot lies near an edge."""
+    e = np.zeros(4) if dots.edge_m is None else dots.edge_m[fit.idx]
+    if not e.any():
+        return fit.random, np.zeros((4, 2, 2)), e
+    _, Jd = _miss_jacobians(dots, np.array([fit.idx]))
+    edge = np.einsum("kai,k,kaj->kij", Jd[0], e ** 2, Jd[0])
+    return fit.random - edge.sum(axis=0), edge, e
 
 
 def _pick_upright(fits: list[_Fit], t: float, n: int,
