@@ -124,8 +124,14 @@ LOCK_ANGLE_DEG = 10.0
 #: its first zero; below it the locking moves the whole line (up to ``A / sqrt(2)``),
 #: beyond it at most 0.22 of that and the rest is scatter.  At 0.5 px the corners were
 #: 0.0292 px RMS from the truth and the poses at 2-2.5 / 2.5-3 m 3.13 / 3.53 mm RMS
-#: against 3.00 / 3.32; at 1.5 px the corners 0.0283 px and the poses 2.99 / 3.35 mm:
-#: neither better throughout, the period kept
+#: against 3.00 / 3.32; at 1.5 px the corners 0.0283 px and the poses 2.99 / 3.35 mm.
+#: Correcting every side within ``LOCK_ANGLE_DEG`` puts the corners at 0.0274 px (fresh
+#: seeds 101-110: 0.0259 against 0.0273) and the poses 1-5 % nearer at 0.5-2.5 m, and
+#: takes the locking's sine out of those sides' scatter, which the edge fits' covariance
+#: otherwise counts as noise (at 3-10 degrees from an axis the edge fits' variance of a
+#: side's offset falls from 1.37e-4 to 0.85e-4 px², its measured variance stays at
+#: 1.59e-4); but the covariance's other terms, refitted to it, leave the poses' NEES at
+#: 0.5-1 m over its band on seeds 1-10 (6.88 against 6.79): the period kept
 LOCK_SWEEP_PX = 1.0
 #: the sides that teach sweep at least this (px): over two periods the sine less its
 #: straight-line fit along the side keeps 0.94 of its variance (averaged over the phase;
