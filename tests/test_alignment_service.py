@@ -21,6 +21,7 @@ from agent import geometry as geo
 from agent.cli import main
 from agent.cli.agent import load_config
 from agent.daemon.settings import check_static_edge
+from schemas.codec import SYSTEMATIC_COVARIANCE, pack_covariance
 from services import frames
 from services.alignment import records
 from services.alignment.service import StreamBuffer
@@ -128,6 +129,26 @@ def test_stream_buffer_drops_bad_samples_and_restarts_on_a_new_edge() -> None:
     assert sum(buf.dropped.values()) == 3 and len(buf.samples) == 11
     buf.add(m(2_200_000_000, e=("ivy/world", "y/rig")))
     assert len(buf.samples) == 1 and buf.edge == ("ivy/world", "y/rig")
+
+
+def test_stream_buffer_keeps_the_systematic_part_a_tracker_sends() -> None:
+    """A laser pose carries the part of its covariance that persists (``extra``); the
+    series holds it so that the alignment holds only that part, not the pose's noise too."""
+    buf = StreamBuffer("stream a", window_s=10.0)
+    held = np.diag([1e-6] * 3 + [1e-8] * 3)
+
+    def m(t: int, extra: dict) -> SimpleNamespace:
+        return SimpleNamespace(t_ns=t, position=np.zeros(3), quaternion=np.array(
+            [0.0, 0.0, 0.0, 1.0]), edge=None, covariance=2 * held, extra=extra)
+
+    for t in range(3):
+        buf.add(m(t * 100_000_000, {SYSTEMATIC_COVARIANCE: pack_covariance(held)}))
+    buf.add(m(300_000_000, {SYSTEMATIC_COVARIANCE: [1.0, "x"]}))  # malformed: dropped
+    assert sum(buf.dropped.values()) == 1
+    series = buf.series(0)
+    np.testing.assert_allclose(series.held_at(np.array([0.1])), held[None])
+    buf.add(m(400_000_000, {}))  # one sample without it: nothing is known to persist less
+    np.testing.assert_allclose(buf.series(0).held_at(np.array([0.1])), 2 * held[None])
 
 
 def _feed(realm: str, ep: str, stop: threading.Event, speed: float = 20.0) -> None:

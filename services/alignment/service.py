@@ -61,6 +61,7 @@ from services.alignment.pipeline import (
 from services.alignment.selection import DEFAULT_MIN_ANGLE_RAD, select_pairs
 from services.alignment.solvers import AlignmentError, all_pairs, relative_motions
 from services.alignment.timesync import PoseSeries
+from services.fusion.service import systematic_covariance
 
 log = logging.getLogger("uma.alignment")
 _log = RateLimitedLog(log)
@@ -177,8 +178,10 @@ class StreamBuffer:
     def __init__(self, name: str, window_s: float) -> None:
         self.name = name
         self.window_ns = int(window_s * 1e9)
-        #: (t_ns, position, quaternion, published covariance or None)
-        self.samples: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = deque()
+        #: (t_ns, position, quaternion, published covariance or None, its systematic part
+        #: or None)
+        self.samples: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray | None,
+                                  np.ndarray | None]] = deque()
         self.edge: tuple[str, str] | None = None
         self.dropped: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -188,6 +191,7 @@ class StreamBuffer:
             p = geo.check_vector(m.position, f"{self.name} position")
             q = geo.check_quaternion(m.quaternion, f"{self.name} quaternion")
             t = int(m.t_ns)
+            held = systematic_covariance(m)
         except (TypeError, ValueError) as exc:
             self._drop(str(exc).split(":")[0], str(exc))
             return
@@ -203,7 +207,7 @@ class StreamBuffer:
                 self._drop("out of order", f"{self.name}: sample at {t} ns not after "
                                            f"{self.samples[-1][0]} ns")
                 return
-            self.samples.append((t, p, q, getattr(m, "covariance", None)))
+            self.samples.append((t, p, q, getattr(m, "covariance", None), held))
             while self.samples and self.samples[0][0] < t - self.window_ns:
                 self.samples.popleft()
 
@@ -224,7 +228,8 @@ class StreamBuffer:
     def series(self, t0_ns: int) -> PoseSeries | None:
         """The buffer as seconds since ``t0_ns``, or None with fewer than 3 samples; with
         the published covariances when every sample had one (they go into X's, as the
-        tracker's held error: ``pipeline.held_error_covariance``)."""
+        tracker's held error: ``pipeline.held_error_covariance``), and their systematic
+        parts when every sample had one too (then only those are held)."""
         with self._lock:
             if len(self.samples) < 3:
                 return None
@@ -232,8 +237,10 @@ class StreamBuffer:
             p = np.array([s[1] for s in self.samples])
             q = np.array([s[2] for s in self.samples])
             c = [s[3] for s in self.samples]
+            held = [s[4] for s in self.samples]
         cov = None if any(x is None for x in c) else np.array(c)
-        return PoseSeries((t - t0_ns) / 1e9, p, q, self.name, cov)
+        held_part = None if cov is None or any(x is None for x in held) else np.array(held)
+        return PoseSeries((t - t0_ns) / 1e9, p, q, self.name, cov, systematic=held_part)
 
 
 def readiness(a: PoseSeries | None, b: PoseSeries | None, options: AlignmentOptions,
