@@ -16,7 +16,8 @@
   edge lines they are the intersections of (:func:`edges.refine`: their fits' scatter,
   length and angle; two corners of a side move with its line), plus what each side's
   fit cannot show: its line's offset across it, larger where the cells across that side
-  are narrow, the four sides' together, and its pixel locking's offset and turn
+  are narrow, the four sides' together, its pixel locking's offset and turn, and the
+  turn the code's cells give it where its crossings are not corrected for them
   (:func:`side_offset_covariance`).  So it grows when
   the marker is far, blurred, tilted or badly lit, corner by corner and side by side;
 * **corner noise for the ambiguity judgement**: a separate, cautious figure: per body,
