@@ -5,7 +5,8 @@ pipeline <= 1.5 ms median).
 Baseline measured in the same run: detection with ``cv2.findContours`` and intensity
 ``cv2.moments`` per contour, the usual OpenCV recipe.  Both detectors are also scored
 against the true spot centres.  The pipeline runs as configured (windows around the
-predicted dots while tracking) and, for reference, on full frames only.  By default OpenCV
+predicted dots while tracking, with the installation's online estimate) and, for reference,
+on full frames only and without the estimate (the estimate's cost, same run).  By default OpenCV
 runs on one thread, so the figures are per core (``--threads 0`` leaves OpenCV's default).
 
     python bench/bench_laser.py [--frames 120] [--calibration FILE] [--json]
@@ -100,6 +101,8 @@ def main() -> None:
     pipe_wall, pipe_cpu = time_pipeline(tracker, frames)
     full_frame = LaserTracker(cal, TrackerParams(roi_half_px=0))
     full_wall, _ = time_pipeline(full_frame, frames)
+    plain = LaserTracker(cal, TrackerParams(estimate_installation=False))
+    plain_wall, plain_cpu = time_pipeline(plain, frames)
 
     det, base = stats_ms(det_wall), stats_ms(base_wall)
     pipe = stats_ms(pipe_wall)
@@ -120,6 +123,13 @@ def main() -> None:
         "pipeline_cpu_ms_per_frame_set_median": stats_ms(pipe_cpu)["median_ms"],
         "pipeline_detection_passes": dict(tracker.passes),
         "pipeline_full_frames_only_ms_per_frame_set": stats_ms(full_wall),
+        "pipeline_without_estimate_ms_per_frame_set": stats_ms(plain_wall),
+        "pipeline_without_estimate_cpu_ms_per_frame_set_median":
+            stats_ms(plain_cpu)["median_ms"],
+        "pipeline_over_without_estimate_ratio": round(
+            pipe["median_ms"] / stats_ms(plain_wall)["median_ms"], 3),
+        "pipeline_over_without_estimate_cpu_ratio": round(
+            stats_ms(pipe_cpu)["median_ms"] / stats_ms(plain_cpu)["median_ms"], 3),
         "poses": tracker.counts["pose"],
         "poses_full_frames_only": full_frame.counts["pose"],
     }
