@@ -144,7 +144,8 @@ def test_stream_buffer_keeps_the_systematic_part_a_tracker_sends() -> None:
     for t in range(3):
         buf.add(m(t * 100_000_000, {SYSTEMATIC_COVARIANCE: pack_covariance(held)}))
     buf.add(m(300_000_000, {SYSTEMATIC_COVARIANCE: [1.0, "x"]}))  # malformed: dropped
-    assert sum(buf.dropped.values()) == 1
+    buf.add(m(300_000_000, {SYSTEMATIC_COVARIANCE: [float("nan")] * 21}))  # dropped too
+    assert sum(buf.dropped.values()) == 2
     series = buf.series(0)
     np.testing.assert_allclose(series.held_at(np.array([0.1])), held[None])
     buf.add(m(400_000_000, {}))  # one sample without it: nothing is known to persist less

@@ -294,15 +294,19 @@ def _attributes(a: Any) -> dict[str, Any]:
 
 def systematic_covariance(m: Any) -> np.ndarray | None:
     """An optical pose's systematic covariance (``SYSTEMATIC_COVARIANCE`` in its extra map),
-    None if its tracker sends none; ``ValueError`` names a malformed one."""
+    None if its tracker sends none; ``ValueError`` names a malformed or non-finite one
+    (the wire's decoder checks the pose's own covariance, not its extra map)."""
     packed = (getattr(m, "extra", None) or {}).get(SYSTEMATIC_COVARIANCE)
     if packed is None:
         return None
     name = f"optical pose extra {SYSTEMATIC_COVARIANCE!r}"
     try:
-        return unpack_covariance(packed, 6, name)
+        cov = unpack_covariance(packed, 6, name)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"{name}: expected 21 numbers ({exc})") from None
+    if not np.all(np.isfinite(cov)):
+        raise InvalidInputError(f"{name}: non-finite value")
+    return cov
 
 
 def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
