@@ -862,7 +862,7 @@ def test_the_systematic_covariance_crosses_the_wire_and_old_poses_still_work():
     m.extra = {SYSTEMATIC_COVARIANCE: [1.0, "x"]}
     with pytest.raises(ValueError, match=f"extra '{SYSTEMATIC_COVARIANCE}'"):
         systematic_covariance(m)
-    m.extra = {SYSTEMATIC_COVARIANCE: [float("nan")] + pack_covariance(sys)[1:]}
+    m.extra = {SYSTEMATIC_COVARIANCE: [float("nan"), *pack_covariance(sys)[1:]]}
     with pytest.raises(ValueError, match=f"extra '{SYSTEMATIC_COVARIANCE}': non-finite"):
         systematic_covariance(m)
 
