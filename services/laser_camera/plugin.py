@@ -17,7 +17,7 @@ def add_estimate_argument(parser: argparse.ArgumentParser) -> None:
     take it alike; :func:`estimate_installation` reads it)."""
     parser.add_argument("--estimate-installation", action=argparse.BooleanOptionalAction,
                         default=None,
-                        help="--estimate-installation (the default, but with --ideal): "
+                        help="--estimate-installation (the default, except with --ideal): "
                              "estimate the installation's errors (beams, screens' bend, "
                              "cameras' turn and screen maps) from the fourth beam's miss, "
                              "frame set by frame set, and correct each pose and its dots by "

@@ -562,7 +562,7 @@ class LaserTracker:
         lost spot moves it by up to the whole chi-square gate (centimetres where a screen
         is seen obliquely) and is refused (``residual_jump``), the last published miss
         kept.  A labeling whose miss cannot be compared (dots moved far or two of them to
-        other walls: ``_Miss.change_chi2``) stands on its chi-square and the prediction, as
+        other walls: ``_Miss.change``) stands on its chi-square and the prediction, as
         one after a loss must: holding those lengthened the optical gaps a fusion bridges
         (seed 103 at 15 Hz: 2.1 -> 10 mm RMSE).  The first labeling after a start
         (``reset``) has no miss at all: it is held until the next frame set confirms it
@@ -1103,9 +1103,9 @@ class _Miss:
         (both frame sets', independent) for a dot on another wall.  A dot near its
         screen's edge adds its edge part as far as the dot moved: a clipped spot's
         centroid bias changes by at most the spot's move (the derivative of a truncated
-        spot's mean is below 1), so by its edge std only once it moved that far; counting
-        that part as new noise in both frame sets made a 4 mm dot hide a stray blob 2 cm
-        from another dot."""
+        spot's mean is below 1), so by its edge std only once it moved that far; counted
+        as new noise in both frame sets instead, a 4 mm dot's part would hide a stray blob
+        2 cm from another dot."""
         each = np.linalg.norm(later.points - self.points, axis=1)
         moved = float(np.max(each))
         other = [a != b for a, b in zip(self.walls, later.walls, strict=True)]
@@ -1165,7 +1165,7 @@ def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
 def _edge_parts(dots: WorldDots, fit: _Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fit's miss covariance from the dots' noise without their edge std (2, 2), each
     dot's part from its edge std (4, 2, 2), and those stds (4,): the edge std is a clipped
-    spot's bias, which holds while the spot moves little (``_Miss.change_chi2``).  The
+    spot's bias, which holds while the spot moves little (``_Miss.change``).  The
     miss's Jacobian is taken again only where a dot lies near an edge."""
     e = np.zeros(4) if dots.edge_m is None else dots.edge_m[fit.idx]
     if not e.any():
