@@ -147,7 +147,7 @@ class Recording:
 def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horizon_s: float,
                config: FusionConfig, model_floor: float, cache: bool,
                dots: bool = False, device: Any = None, ideal: bool = False,
-               estimate_installation: bool | None = None) -> Recording:
+               estimate_installation: bool = True) -> Recording:
     """Render, track, simulate and fuse ``seconds`` of motion; record everything.
 
     ``dots``: SCAAT with the laser dots one at a time instead of the tracker's pose (the
@@ -155,8 +155,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
     the tracker found no pose still contribute the dots it can label by the pose it
     predicts (``LaserTracker.label_dots``), as the live service publishes them.
     ``estimate_installation``: whether the tracker corrects its poses and dots by its
-    online estimate of the installation (``TrackerParams.estimate_installation``; None:
-    unless ``ideal``, as ``TrackerParams``).
+    online estimate of the installation (``TrackerParams.estimate_installation``).
     """
     from services.laser_camera.tracker import LaserTracker, TrackerParams
 
@@ -169,8 +168,7 @@ def run_fusion(seconds: float, seed: int, gaps: list[tuple[float, float]], horiz
                                calibration=cal)
     tracker = LaserTracker(laser_calibration(world, cache), (
         TrackerParams.ideal if ideal else TrackerParams)(
-        estimate_installation=not ideal if estimate_installation is None
-        else estimate_installation))
+        estimate_installation=estimate_installation))
     walls = display_walls(tracker.calibration)
     ekf = FusionEKF(accel_model(cal, head_to_accel, rate, model_floor), config)
     frames = [k / OPTICAL_HZ for k in range(int(seconds * OPTICAL_HZ))
@@ -430,7 +428,7 @@ def evaluate(seconds: float, seed: int, gap_lengths: list[float], horizon_s: flo
              ideal: bool = False, estimate_installation: bool | None = None) -> dict[str, Any]:
     """Run the simulated MARVIN once and compute every figure (``device``: another
     simulated accelerometer device than MARVIN's; ``estimate_installation``: as
-    :func:`run_fusion`)."""
+    :func:`run_fusion`, None: unless ``ideal``, as ``TrackerParams``)."""
     if estimate_installation is None:
         estimate_installation = not ideal
     if seconds < WARMUP_S + 2.0:
