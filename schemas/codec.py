@@ -206,6 +206,26 @@ def _plain_default(obj: Any) -> Any:
 #: sample to sample (an installation's imperfections), packed as ``c`` is.  Optional:
 #: receivers that do not know it ignore it, and its absence means "not known"
 SYSTEMATIC_COVARIANCE = "c_sys"
+
+
+def systematic_covariance(m: Any) -> np.ndarray | None:
+    """A received pose's systematic covariance (``SYSTEMATIC_COVARIANCE`` in its extra
+    map), None if its tracker sends none; ``DecodeError`` names a malformed or non-finite
+    one.  Read by the consumers that hold it apart (the fusion, the alignment), not at
+    decode: the decoder checks a pose's own ``c`` only, and leaves ``x`` to its readers."""
+    packed = (getattr(m, "extra", None) or {}).get(SYSTEMATIC_COVARIANCE)
+    if packed is None:
+        return None
+    name = f"pose extra {SYSTEMATIC_COVARIANCE!r}"
+    try:
+        cov = unpack_covariance(packed, 6, name)
+    except (TypeError, ValueError) as exc:
+        raise DecodeError(f"{name}: expected 21 numbers ({exc})") from None
+    if not np.all(np.isfinite(cov)):
+        raise DecodeError(f"{name}: non-finite value")
+    return cov
+
+
 #: ``extra`` keys of a ``points3d`` of laser dots: per point, the per-axis in-plane standard
 #: deviation (m) of its noise, new in every sample, and of its installation error, which
 #: persists.  Optional: a receiver that needs them refuses points without them

@@ -848,8 +848,8 @@ def test_the_systematic_covariance_crosses_the_wire_and_old_poses_still_work():
         decode_measurement,
         encode_measurement,
         pack_covariance,
+        systematic_covariance,
     )
-    from services.fusion.service import systematic_covariance
 
     sys = np.diag([1e-6, 2e-6, 3e-6, 1e-8, 2e-8, 3e-8])
     sys[0, 4] = sys[4, 0] = 1e-8

@@ -49,7 +49,7 @@ from agent import geometry as geo
 from agent.errors import InvalidInputError, UmaError, UmaTimeoutError
 from agent.protocol import keys
 from agent.runtime import RateLimitedLog, guarded, open_session
-from schemas.codec import pack_covariance
+from schemas.codec import pack_covariance, systematic_covariance
 from services.alignment import records
 from services.alignment.covariance import MIN_RESAMPLES
 from services.alignment.pipeline import (
@@ -61,7 +61,6 @@ from services.alignment.pipeline import (
 from services.alignment.selection import DEFAULT_MIN_ANGLE_RAD, select_pairs
 from services.alignment.solvers import AlignmentError, all_pairs, relative_motions
 from services.alignment.timesync import PoseSeries
-from services.fusion.service import systematic_covariance
 
 log = logging.getLogger("uma.alignment")
 _log = RateLimitedLog(log)

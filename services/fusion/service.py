@@ -45,12 +45,7 @@ import numpy as np
 from agent import Client, Service
 from agent import geometry as geo
 from agent.errors import InvalidInputError, UmaError
-from schemas.codec import (
-    DOT_STD,
-    DOT_SYSTEMATIC_STD,
-    SYSTEMATIC_COVARIANCE,
-    unpack_covariance,
-)
+from schemas.codec import DOT_STD, DOT_SYSTEMATIC_STD, systematic_covariance
 from services.fusion.dots import load_walls, update_dots
 from services.fusion.ekf import FusionEKF
 from services.fusion.state import AccelModel, FusionConfig
@@ -290,23 +285,6 @@ def _attributes(a: Any) -> dict[str, Any]:
     if isinstance(a, dict):
         return dict(a)
     return a.model_dump()
-
-
-def systematic_covariance(m: Any) -> np.ndarray | None:
-    """An optical pose's systematic covariance (``SYSTEMATIC_COVARIANCE`` in its extra map),
-    None if its tracker sends none; ``ValueError`` names a malformed or non-finite one
-    (the wire's decoder checks the pose's own covariance, not its extra map)."""
-    packed = (getattr(m, "extra", None) or {}).get(SYSTEMATIC_COVARIANCE)
-    if packed is None:
-        return None
-    name = f"optical pose extra {SYSTEMATIC_COVARIANCE!r}"
-    try:
-        cov = unpack_covariance(packed, 6, name)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: expected 21 numbers ({exc})") from None
-    if not np.all(np.isfinite(cov)):
-        raise InvalidInputError(f"{name}: non-finite value")
-    return cov
 
 
 def _same_pose(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
