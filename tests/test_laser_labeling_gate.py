@@ -343,3 +343,32 @@ def test_a_blob_in_a_lost_spots_place_is_not_published_on_30_seeds() -> None:
                 wrong[kind] += pose_outside_covariance(res, p, q)
     assert min(blobs.values()) >= 800, blobs
     assert wrong == {"start": 0, "tracking": 0}, (wrong, blobs)
+
+
+def test_a_clipped_dots_edge_std_counts_in_the_misss_change_as_far_as_it_moved() -> None:
+    """A dot near its screen's edge carries ``edge_std_m`` for its clipped centroid's bias,
+    which moves with the spot: the miss's change counts that part not at all for a dot
+    that stayed, whole (both frame sets') once it moved sqrt(2) edge stds or changed walls;
+    counted whole always, it would hide a stray blob beside such a dot."""
+    from services.laser_camera.tracker import _Miss
+
+    walls = ("left", "front", "right", "floor")
+    points = np.zeros((4, 3))
+    edge_m = np.array([0.004, 0.0, 0.0, 0.0])
+    edge = np.zeros((4, 2, 2))
+    edge[0] = np.diag([3e-6, 1e-6])  # the edge std's part of the miss's covariance
+    noise = np.diag([1e-8, 2e-8])
+    before = _Miss(0.0, walls, points, np.zeros(2), noise, np.zeros((4, 2, 2)), edge, edge_m)
+
+    def covariance(moved_m: float, walls_later: tuple[str, ...] = walls) -> np.ndarray:
+        later = replace(before, t=1 / RATE_HZ, walls=walls_later,
+                        points=points + np.array([moved_m, 0.0, 0.0]),
+                        miss=np.array([1e-3, 0.0]))
+        return before.change(later, drift_per_m=0.0)[1]
+
+    np.testing.assert_allclose(covariance(0.0), 2 * noise)
+    np.testing.assert_allclose(covariance(0.5 * np.sqrt(2) * 0.004),
+                               2 * noise + 0.25 * 2 * edge[0])
+    np.testing.assert_allclose(covariance(0.05), 2 * noise + 2 * edge[0])
+    other = ("ceiling", *walls[1:])
+    np.testing.assert_allclose(covariance(0.0, other), 2 * noise + 2 * edge[0])
