@@ -18,14 +18,14 @@ def add_estimate_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimate-installation", action=argparse.BooleanOptionalAction,
                         default=None,
                         help="--estimate-installation (the default, except with --ideal): "
-                             "estimate the installation's errors (beams, screens' bend, "
-                             "cameras' turn and screen maps) from the fourth beam's miss, "
-                             "frame set by frame set, and correct each pose and its dots by "
-                             "the estimate so far; their covariance then carries what the "
-                             "estimate has not pinned down yet. --no-estimate-installation "
-                             "(the default with --ideal, which has no installation errors): "
-                             "no correction, every pose carries the whole tolerances as "
-                             "covariance")
+                             "the laser tracker estimates the installation's errors (its "
+                             "beams, the screens' bend, the cameras' turn and screen maps) "
+                             "from the fourth beam's miss, frame set by frame set, and "
+                             "corrects each pose and its dots by the estimate so far; their "
+                             "covariance then carries what the estimate has not pinned down "
+                             "yet. --no-estimate-installation (the default with --ideal, "
+                             "which has no installation errors): no correction, every pose "
+                             "carries the installation's whole tolerances as covariance")
 
 
 def estimate_installation(args: argparse.Namespace) -> bool:
