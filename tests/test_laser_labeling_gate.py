@@ -199,6 +199,56 @@ def test_a_stray_blob_beside_a_dot_at_a_screens_edge_is_not_published_at_a_start
     assert published_wrong == 0
 
 
+def test_a_miss_the_installations_estimate_does_not_explain_is_refused_after_a_jump(
+        world) -> None:
+    """Where the dots moved too far for the last miss to vouch for them (here over half a
+    metre, on walls the tracker has seen), the installation's estimate still predicts the
+    miss: a fourth dot 4 mm off where the estimate puts it (within the whole tolerances,
+    so the chi-square alone passes it) is refused, and tracking goes on within a few
+    frame sets."""
+    rng = np.random.default_rng(8)
+    tr = LaserTracker(None)
+    ts = np.arange(0.0, 8.0, 1 / 15)
+    P, Q = world.rig_pose(ts)
+
+    def frame(i: int) -> tuple[list[np.ndarray], list[str]] | None:
+        hits = world.laser_hits(P[i], Q[i])
+        if not all(hits[k].on_screen for k in LABELS):
+            return None
+        return ([hits[k].point + 2e-4 * rng.normal(size=3) for k in LABELS],
+                [hits[k].wall for k in LABELS])
+
+    seen: set[str] = set()
+    last = None
+    for i in range(30):
+        f = frame(i)
+        if f is not None and tr.solve(dots_on_walls(world, *f), ts[i]).ok:
+            seen.update(f[1])
+            last = np.array(f[0])
+    assert last is not None and tr.counts["pose"] >= 25
+    jumps = resumed = 0
+    for i in range(40, len(ts) - 3, 8):
+        f = frame(i)
+        if f is None or not set(f[1]) <= seen \
+                or np.linalg.norm(np.array(f[0]) - last, axis=1).max() < 0.5:
+            continue
+        points, walls = f
+        points[3] = points[3] + 0.004 * along_wall(world, walls[3], rng.uniform(0, np.pi))
+        assert residual_chi2(dots_on_walls(world, points, walls), [[0, 1, 2, 3]], [P[i]],
+                             tr.params)[0] <= tr.params.max_residual_chi2
+        res = tr.solve(dots_on_walls(world, points, walls), ts[i])
+        assert res.reason == "residual_jump", res
+        jumps += 1
+        for j in range(i + 1, i + 4):
+            f = frame(j)
+            if f is not None and tr.solve(dots_on_walls(world, *f), ts[j]).ok:
+                resumed += 1
+                last = np.array(f[0])
+                break
+    assert jumps >= 2
+    assert resumed == jumps
+
+
 def starts_with_a_blob(world: IvyWorld, rng: np.random.Generator,
                        edge_std_m: float) -> tuple[int, int, int]:
     """Starts every 0.25 s over 40 s: a clean frame set, one with a spot replaced by a

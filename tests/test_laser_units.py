@@ -38,6 +38,7 @@ from services.laser_camera.tracker import (
     TrackerParams,
     WorldDots,
     _ScreenMap,
+    clipped_spot_bias,
 )
 from services.sim.render import SensorModel
 from services.sim.world import IvyWorld, WorldConfig
@@ -229,6 +230,23 @@ def test_component_statistics_are_opencvs() -> None:
         assert _component_stats(mask, labels, n) == stats[1:].tolist()
 
 
+def test_a_clipped_spots_bias_is_its_cut_centroids_offset() -> None:
+    """``clipped_spot_bias``: a Gaussian spot (std ``edge_std_m * sqrt(pi / 2)``) cut by a
+    straight edge has its centroid pulled inwards; given where that centroid lies, the
+    bias is how far the spot's centre lies from it (sampled here on a fine grid), capped
+    at ``edge_std_m`` -- a dot 8 mm inside a screen's edge is not 4 mm uncertain."""
+    edge_std = 0.004
+    sigma = edge_std * np.sqrt(np.pi / 2)
+    u = np.linspace(-0.06, 0.06, 24001)
+    for centre in (-0.002, 0.0, 0.003, 0.006, 0.009, 0.012):
+        w = np.exp(-0.5 * ((u - centre) / sigma) ** 2) * (u >= 0)
+        centroid = float(np.sum(w * u) / np.sum(w))
+        expected = min(edge_std, centroid - centre)
+        assert clipped_spot_bias(centroid, edge_std) == pytest.approx(expected, abs=2e-5)
+    assert clipped_spot_bias(0.008, edge_std) < 0.001
+    assert clipped_spot_bias(0.0, edge_std) == edge_std
+
+
 def test_the_trackers_plain_float_screen_map_is_the_shared_numpy_one() -> None:
     """The tracker maps each dot image -> screen -> world on floats (``_ScreenMap``); it must
     say what eqs. 5.39-5.40's numpy functions say: the same point, the same std (pixel std
@@ -246,7 +264,9 @@ def test_the_trackers_plain_float_screen_map_is_the_shared_numpy_one() -> None:
         uv = rng.uniform(-40, 680, (200, 2))  # some beyond the screen's image
         xy = apply_homography(H, uv)
         on = on_active_area(xy, side)
-        edge = np.where(on_active_area(xy, side, p.edge_guard_m), 0.0, p.edge_std_m)
+        inside = np.minimum(xy, side - xy).min(axis=1)
+        edge = np.where(on_active_area(xy, side, p.edge_guard_m), 0.0,
+                        [clipped_spot_bias(d, p.edge_std_m) for d in inside])
         std = np.sqrt((0.3 * homography_scale(H, uv)) ** 2 + 0.001 ** 2 + edge ** 2)
         u = 2 * xy / side - 1
         bend = np.maximum(0, 1 - u[:, 0] ** 2) * np.maximum(0, 1 - u[:, 1] ** 2)

@@ -65,6 +65,13 @@ class InstallationEstimate:
         v = z - H @ self._mean[idx]
         return idx, H, v, H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
 
+    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
+                        sensitivity: dict[str, np.ndarray]) -> float:
+        """Chi-square (2 dof) of ``z`` against what the estimate so far predicts for it
+        (``update``'s gate, without taking it); NaN for a non-finite ``z``."""
+        _, _, v, S = self._innovation(np.asarray(z, float), noise, sensitivity)
+        return float(v @ np.linalg.solve(S, v))
+
     def update(self, z: np.ndarray, noise: np.ndarray,
                sensitivity: dict[str, np.ndarray]) -> bool:
         """Take the observation ``z`` (its ``noise`` covariance; ``sensitivity``: name ->

@@ -84,7 +84,9 @@ class TrackerParams:
 
     max_labeling_error: float = 0.08  # eps of eq. 5.6 (sum of cosines + m^2 + 0/1)
     #: a dot this close to a screen's edge may be clipped by it (a biased centroid): it is
-    #: kept with ``edge_std_m`` more uncertainty, so a pose is still possible, at its cost
+    #: kept with more uncertainty, so a pose is still possible, at its cost: the centroid
+    #: bias of a Gaussian spot the edge cuts there (``clipped_spot_bias``), at most
+    #: ``edge_std_m``, which is also the bias of a spot centred on the edge (std 5 mm)
     edge_guard_m: float = 0.012
     edge_std_m: float = 0.004
     merge_world_m: float = 0.03  # dots of overlapping cameras closer than this are one
@@ -491,11 +493,8 @@ class LaserTracker:
         pose (``_last``): the next frame set's candidates are measured ones too."""
         p, estimate = self.params, self.installation
         p0 = np.asarray(est.position, float)
-        names, D = self._moves(dots, idx, [1, 2, 3, 4], p0, est.quaternion)
-        _, Jm = _miss_jacobians(dots, np.array([idx]))
-        H = np.einsum("kai,kam->mi", Jm[0], D)
-        noise = fit.random + p.estimate_miss_floor_m ** 2 * np.eye(2)
-        if not estimate.update(fit.miss, noise, dict(zip(names, H, strict=True))):
+        names, D, sensitivity, noise = self._miss_model(fit, dots)
+        if not estimate.update(fit.miss, noise, sensitivity):
             self.counts["installation_miss_refused"] += 1
         mean, P = estimate.mean(names), estimate.covariance(names)
         S = np.einsum("pka,kam->pm", _pose_jacobian(dots, idx, p0).reshape(6, 4, 2), D)
@@ -514,6 +513,18 @@ class LaserTracker:
             dot_systematic_std_m={k + 1: float(dot_std[k]) for k in range(len(idx))},
             sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)},
             draw_sensitivity={name: draw[:, j] for j, name in enumerate(estimate.names)})
+
+    def _miss_model(self, fit: _Fit, dots: WorldDots,
+                    ) -> tuple[list[str], np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """The installation parameters that move the fit's dots, those moves
+        (``_moves``), the miss's sensitivity to each (name -> dmiss per std) and the
+        miss's noise as the estimate takes it."""
+        names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
+                               fit.pose.quaternion)
+        _, Jm = _miss_jacobians(dots, np.array([fit.idx]))
+        H = np.einsum("kai,kam->mi", Jm[0], D)
+        noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
+        return names, D, dict(zip(names, H, strict=True)), noise
 
     def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
                quaternion: np.ndarray) -> tuple[list[str], np.ndarray]:
@@ -562,9 +573,12 @@ class LaserTracker:
         lost spot moves it by up to the whole chi-square gate (centimetres where a screen
         is seen obliquely) and is refused (``residual_jump``), the last published miss
         kept.  A labeling whose miss cannot be compared (dots moved far or two of them to
-        other walls: ``_Miss.change``) stands on its chi-square and the prediction, as
-        one after a loss must: holding those lengthened the optical gaps a fusion bridges
-        (seed 103 at 15 Hz: 2.1 -> 10 mm RMSE).  The first labeling after a start
+        other walls: ``_Miss.change``) stands on its chi-square, the prediction and the
+        installation's estimate, which predicts the miss at the new dots within its
+        remaining covariance (``_unexplained_miss``; a miss it does not explain is
+        refused and held for the next frame set to confirm); it is not held otherwise, as
+        one after a loss must not be: holding those lengthened the optical gaps a fusion
+        bridges (seed 103 at 15 Hz: 2.1 -> 10 mm RMSE).  The first labeling after a start
         (``reset``) has no miss at all: it is held until the next frame set confirms it
         (``unconfirmed_labeling``); a held miss that the next one does not confirm is
         replaced by it (either may be the stray).  Where the dots'
@@ -581,8 +595,9 @@ class LaserTracker:
             now, p.residual_drift_per_m)
         chi2, S = (None, None) if change is None else change
         if chi2 is None and last is not None and last.confirmed:
-            self._miss = replace(now, confirmed=True)
-            return None
+            unexplained = self._unexplained_miss(fit, dots)
+            self._miss = replace(now, confirmed=unexplained is None)
+            return None if unexplained is None else NoPose(t, "residual_jump", n, unexplained)
         if chi2 is None:
             self._miss = now
             return NoPose(t, "unconfirmed_labeling", n, "a labeling's first frame set is held "
@@ -598,6 +613,21 @@ class LaserTracker:
             return NoPose(t, "ambiguous_labeling", n, unseen)
         self._miss = replace(now, confirmed=True)
         return None
+
+    def _unexplained_miss(self, fit: _Fit, dots: WorldDots) -> str | None:
+        """Why the installation's estimate does not explain the fit's miss (chi-square of
+        its innovation above ``estimate_gate_chi2``), None if it does or there is no
+        estimate.  Where the last miss cannot be compared (the dots moved far, changed
+        walls), the estimate still predicts the installation's part of the miss at the new
+        dots, within its remaining covariance instead of the whole tolerances."""
+        if self.installation is None:
+            return None
+        _, _, sensitivity, noise = self._miss_model(fit, dots)
+        chi2 = self.installation.innovation_chi2(fit.miss, noise, sensitivity)
+        if chi2 <= self.params.estimate_gate_chi2:
+            return None
+        return ("the fourth dot's miss disagrees with the installation's estimate: "
+                f"chi-square {chi2:.1f} > {self.params.estimate_gate_chi2:g}")
 
     def _pick_tracking(self, fits: list[_Fit], t: float,
                        n: int) -> tuple[int, np.ndarray] | NoPose:
@@ -814,8 +844,8 @@ class _ScreenMap:
     def world_dot(self, x: float, y: float, std_px: float,
                   p: TrackerParams) -> tuple[list[float], float, float, float] | None:
         """The world point of the dot at undistorted pixel ``(x, y)``, its in-plane std
-        (the pixel std scaled by the map's Jacobian, the calibration's, and
-        ``edge_std_m`` near the screen's edge), how far the bending screen moves there
+        (the pixel std scaled by the map's Jacobian, the calibration's, and a clipped
+        spot's bias near the screen's edge), how far the bending screen moves there
         (0..1) and its edge std (0 away from the edge); None off the active area."""
         h0, h1, h2, h3, h4, h5, h6, h7, h8 = self.H
         w = h6 * x + h7 * y + h8
@@ -825,7 +855,8 @@ class _ScreenMap:
         side, g = self.side_m, p.edge_guard_m
         if not (0.0 <= sx <= side and 0.0 <= sy <= side):
             return None
-        edge = 0.0 if g <= sx <= side - g and g <= sy <= side - g else p.edge_std_m
+        inside = min(sx, side - sx, sy, side - sy)
+        edge = 0.0 if inside >= g else clipped_spot_bias(inside, p.edge_std_m)
         # the Jacobian of the homography: (H[:2, :2] - screen point x H[2, :2]) / w
         scale = math.sqrt(abs((h0 - sx * h6) / w * ((h4 - sy * h7) / w)
                               - (h1 - sx * h7) / w * ((h3 - sy * h6) / w)))
@@ -949,6 +980,34 @@ def _corrected_dots(dots: WorldDots, idx: list[int], D: np.ndarray, mean: np.nda
     cov = np.einsum("kam,mn,kbn->kab", D, P, D)
     points = dots.points[idx] - np.einsum("ka,kai->ki", shift, dots.axes[idx])
     return points, np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+
+
+def _truncated_means() -> tuple[np.ndarray, np.ndarray]:
+    """Where a unit Gaussian spot whose centre lies ``x`` inside a straight edge has the
+    centroid of its part inside (``x + phi(x) / Phi(x)``, increasing in ``x``), and the
+    bias ``phi(x) / Phi(x)`` of that centroid, on a grid of ``x``."""
+    x = np.linspace(-6.0, 8.0, 561)
+    phi = np.exp(-0.5 * x * x) / math.sqrt(2 * math.pi)
+    Phi = 0.5 * (1 + np.array([math.erf(v / math.sqrt(2)) for v in x]))
+    return x + phi / Phi, phi / Phi
+
+
+_CENTROIDS, _BIASES = _truncated_means()
+
+
+def clipped_spot_bias(inside_m: float, edge_std_m: float) -> float:
+    """How far a Gaussian spot's centroid is pulled inwards by a screen's edge that cuts
+    it, given where the centroid lies (``inside_m`` from the edge): the truncated mean's
+    bias at the spot centre that puts the centroid there.  The spot's std is the one
+    whose bias when centred on the edge is ``edge_std_m`` (``edge_std_m * sqrt(pi / 2)``);
+    the result is capped at ``edge_std_m``.  A dot 6 mm inside carries 1.7 mm, 10 mm
+    inside 0.35 mm: a flat ``edge_std_m`` over the whole guard band hid a stray blob 2 cm
+    from another dot from the fourth beam's miss."""
+    sigma = edge_std_m * math.sqrt(math.pi / 2)
+    if sigma <= 0.0:
+        return 0.0
+    bias = sigma * float(np.interp(inside_m / sigma, _CENTROIDS, _BIASES))
+    return min(edge_std_m, bias)
 
 
 def _merge_duplicates(d: WorldDots, tol: float) -> WorldDots:
