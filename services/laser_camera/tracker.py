@@ -1001,8 +1001,8 @@ def clipped_spot_bias(inside_m: float, edge_std_m: float) -> float:
     bias at the spot centre that puts the centroid there.  The spot's std is the one
     whose bias when centred on the edge is ``edge_std_m`` (``edge_std_m * sqrt(pi / 2)``);
     the result is capped at ``edge_std_m``.  A dot 6 mm inside carries 1.7 mm, 10 mm
-    inside 0.35 mm: a flat ``edge_std_m`` over the whole guard band hid a stray blob 2 cm
-    from another dot from the fourth beam's miss."""
+    inside 0.32 mm: a flat ``edge_std_m`` over the whole guard band would hide a stray
+    blob 2 cm from another dot from the fourth beam's miss."""
     sigma = edge_std_m * math.sqrt(math.pi / 2)
     if sigma <= 0.0:
         return 0.0
