@@ -533,9 +533,8 @@ class LaserTracker:
         screen maps' included: the parameters' names and the moves (dots, 2 axes, params)."""
         moves = _dot_moves(dots, idx, labels, p0, quaternion, self.params)
         if self._screens is not None:
-            moves.update(self._screens.map_moves(dots, idx))
-        names = list(moves)
-        return names, np.stack([moves[name] for name in names], axis=-1)
+            self._screens.map_moves(dots, idx, moves)
+        return moves.names, moves.array()
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
@@ -786,13 +785,12 @@ class _Screens:
                                 float(c.wall.plane_distance), float(c.wall.screen_side_m),
                                 c.screen_sigma_m(calib_sigma_m)) for c in cameras]
 
-    def map_moves(self, dots: WorldDots, idx: list[int]) -> dict[str, np.ndarray]:
-        """How far each dot ``idx`` moves along its wall's axes (len(idx), 2) per one
+    def map_moves(self, dots: WorldDots, idx: list[int], out: _MoveTable) -> None:
+        """Add to ``out`` how far each dot ``idx`` moves along its wall's axes per one
         standard deviation of each of its camera's screen map parameters: the map's error
         as a small change of its homography (``dX = a + b x + c y - X (g x + h y)``, x, y
         the screen point scaled to [-1, 1]), each of its eight coefficients with the
         calibration's reported per-axis accuracy (``screen_sigma_m``) as its std."""
-        out: dict[str, np.ndarray] = {}
         for k, i in enumerate(idx):
             c = self.index.get(dots.cameras[i])
             if c is None:
@@ -801,10 +799,7 @@ class _Screens:
             x, y = 2 * wall.to_screen(dots.points[i])[0] / wall.screen_side_m - 1
             basis = sigma * np.array([[1, x, y, 0, 0, 0, x * x, x * y],
                                       [0, 0, 0, 1, x, y, x * y, y * y]])
-            for j in range(8):
-                _accumulate_row(out, f"camera {dots.cameras[i]} map {j}", k, basis[:, j],
-                                len(idx))
-        return out
+            out.add([f"camera {dots.cameras[i]} map {j}" for j in range(8)], k, basis)
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
@@ -1445,7 +1440,9 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
     p0 = np.asarray(estimate.position, float)
     Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
     moves = _dot_moves(dots, idx, labels, p0, estimate.quaternion, p)
-    return {name: np.einsum("pka,ka->p", Jd, move) for name, move in moves.items()}
+    D = moves.array()
+    return {name: np.einsum("pka,ka->p", Jd, D[..., j].copy())
+            for j, name in enumerate(moves.names)}
 
 
 def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: TrackerParams,
@@ -1466,11 +1463,12 @@ def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tr
 
 
 def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
-               quaternion: np.ndarray, p: TrackerParams) -> dict[str, np.ndarray]:
+               quaternion: np.ndarray, p: TrackerParams) -> _MoveTable:
     """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
-    along its wall's two axes (4, 2) per one standard deviation of each of the
-    installation's parameters (:func:`installation_sensitivity` names them); a parameter
-    that moves none of them is left out."""
+    along its wall's two axes per one standard deviation of each of the installation's
+    parameters (:func:`installation_sensitivity` names them); a parameter that moves none
+    of them is left out.  Room is left for each dot's camera's screen map
+    (``_Screens.map_moves``)."""
     x, A = dots.points[idx], dots.axes[idx]
     n = _cross(A[:, 0], A[:, 1])
     d = x - p0
@@ -1485,13 +1483,12 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
     beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
     k4 = len(idx)
-    out: dict[str, np.ndarray] = {}
+    out = _MoveTable(k4, k4 * (4 + 1 + 3 + 8))
     for k, label in enumerate(labels):
-        for a, axis in enumerate("ab"):
-            move = np.zeros((k4, 2))
-            move[k] = beam[k, a]
-            out[f"beam {label} tilt {axis}"] = r[k] * p.housing_dir_std_rad * move
-            out[f"beam {label} offset {axis}"] = p.housing_offset_std_m * move
+        tilt, offset = r[k] * p.housing_dir_std_rad, p.housing_offset_std_m
+        out.add([f"beam {label} {kind} {axis}" for axis in "ab" for kind in ("tilt", "offset")],
+                k, np.stack([tilt * beam[k, 0], offset * beam[k, 0],
+                             tilt * beam[k, 1], offset * beam[k, 1]], axis=1))
     eyes = None if dots.eyes is None else dots.eyes[idx]
     shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
     bend = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes) \
@@ -1503,19 +1500,36 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
         cameras = p.camera_turn_std_rad * _turn_jacobians(x, A, n, eyes)
         axes = ("turn x", "turn y", "turn z")
     for k, i in enumerate(idx):
-        _accumulate_row(out, f"screen {dots.walls[i]} bend", k, bend[k], k4)
-        for t, axis in enumerate(axes):
-            _accumulate_row(out, f"camera {dots.cameras[i]} {axis}", k, cameras[k, :, t], k4)
+        out.add([f"screen {dots.walls[i]} bend"], k, bend[k][:, None])
+        out.add([f"camera {dots.cameras[i]} {axis}" for axis in axes], k, cameras[k])
     return out
 
 
-def _accumulate_row(out: dict[str, np.ndarray], name: str, k: int, value: np.ndarray,
-                    rows: int) -> None:
-    """``out[name][k] += value``, from zeros (``rows`` dots): two dots may share a screen
-    or a camera."""
-    if name not in out:
-        out[name] = np.zeros((rows, 2))
-    out[name][k] += value
+class _MoveTable:
+    """Each dot's move along its wall's two axes per one std of named parameters, built in
+    place as the columns of one array (dots, 2, parameters): a frame set's four dots see
+    some sixty parameters, and a small array per parameter, stacked afterwards, cost
+    more than the arithmetic."""
+
+    def __init__(self, rows: int, capacity: int):
+        self.names: list[str] = []
+        self._column: dict[str, int] = {}
+        self._moves = np.zeros((rows, 2, capacity))
+
+    def add(self, names: list[str], k: int, moves: np.ndarray) -> None:
+        """Add ``moves`` (2, len(names)) to dot ``k``'s moves per each of ``names``, which
+        are always added together (a beam's, a camera's turn, a screen map's): two dots
+        may share a screen or a camera."""
+        j = self._column.get(names[0])
+        if j is None:
+            j = len(self.names)
+            self._column.update((name, j + m) for m, name in enumerate(names))
+            self.names += names
+        self._moves[k, :, j:j + len(names)] += moves
+
+    def array(self) -> np.ndarray:
+        """The moves (dots, 2, len(names)), one column per name in ``names``' order."""
+        return self._moves[..., :len(self.names)].copy()
 
 
 #: per beam (label - 1), two unit axes of the rig frame across it (beams +y, -y, -x, +z)
