@@ -134,6 +134,7 @@ def _pose_with_sensitivity(world: IvyWorld, tracker: LaserTracker, p: np.ndarray
     from services.laser_camera.tracker import (
         _covariance,
         _installation_covariance,
+        _pose_jacobian,
         installation_draw_sensitivity,
         installation_sensitivity,
     )
@@ -147,7 +148,8 @@ def _pose_with_sensitivity(world: IvyWorld, tracker: LaserTracker, p: np.ndarray
         return None
     idx = [labels.index(k) for k in (1, 2, 3, 4)]
     p0, R = frame_from_points(dots.points[idx])
-    cov, systematic = _covariance(dots, idx, p0, tracker.params,
+    cov, systematic = _covariance(_pose_jacobian(dots, idx, p0), dots.std_m[idx], p0,
+                                  tracker.params,
                                   _installation_covariance(dots, idx, p0, tracker.params))
     estimate = PoseEstimate(0.0, p0, geo.matrix_to_quat(R), cov,
                             {k + 1: dots.points[i] for k, i in enumerate(idx)}, {}, 0.0, 4,

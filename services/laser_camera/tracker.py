@@ -319,6 +319,8 @@ class LaserTracker:
         #: diode label -> its last two labeled sightings (t, world point, wall)
         self._spots: dict[int, tuple[tuple[float, np.ndarray, str], ...]] = {}
         self._seen = _SeenDots()
+        #: the last fit's miss model (``_miss_model``): a frame set asks for it twice
+        self._model: tuple[_Fit, WorldDots, tuple] | None = None
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
         #: the installation's errors estimated from the fourth beam's misses (None: off);
@@ -458,7 +460,8 @@ class LaserTracker:
         best, idx = fits[k].pose, fits[k].idx
         try:
             sys_cov = _installation_covariance(dots, idx, best.position, p)
-            cov, systematic = _covariance(dots, idx, best.position, p, sys_cov)
+            J = _pose_jacobian(dots, idx, best.position)
+            cov, systematic = _covariance(J, dots.std_m[idx], best.position, p, sys_cov)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
@@ -477,10 +480,10 @@ class LaserTracker:
         self._prev = last if tracking else None
         self._last = est
         self._remember(t, [1, 2, 3, 4], dots.points[idx], [dots.walls[i] for i in idx])
-        return est if self.installation is None else self._corrected(est, fits[k], dots, idx)
+        return est if self.installation is None else self._corrected(est, fits[k], dots, idx, J)
 
-    def _corrected(self, est: PoseEstimate, fit: _Fit, dots: WorldDots,
-                   idx: list[int]) -> PoseEstimate:
+    def _corrected(self, est: PoseEstimate, fit: _Fit, dots: WorldDots, idx: list[int],
+                   J: np.ndarray) -> PoseEstimate:
         """``est`` corrected by the installation's estimate, after that took this frame
         set's miss (if it agrees with the estimate so far: ``estimate_gate_chi2``).
 
@@ -490,14 +493,15 @@ class LaserTracker:
         ``Jp D P (Jp D)^T`` (P the estimate's remaining covariance) instead of the whole
         tolerances', and each dot is moved back by ``D mean`` with ``D P D^T`` as its
         installation error.  The tracker's own gating and prediction keep the measured
-        pose (``_last``): the next frame set's candidates are measured ones too."""
+        pose (``_last``): the next frame set's candidates are measured ones too.  ``J``:
+        the pose's Jacobian (:func:`_pose_jacobian`) at ``est``."""
         p, estimate = self.params, self.installation
         p0 = np.asarray(est.position, float)
         names, D, sensitivity, noise = self._miss_model(fit, dots)
         if not estimate.update(fit.miss, noise, sensitivity):
             self.counts["installation_miss_refused"] += 1
         mean, P = estimate.mean(names), estimate.covariance(names)
-        S = np.einsum("pka,kam->pm", _pose_jacobian(dots, idx, p0).reshape(6, 4, 2), D)
+        S = np.einsum("pka,kam->pm", J.reshape(6, 4, 2), D)
         shift = S @ mean  # xi form: the pose's error the estimate explains
         dphi = shift[3:]
         position = p0 - (shift[:3] - geo.skew3(p0) @ dphi)
@@ -519,12 +523,16 @@ class LaserTracker:
         """The installation parameters that move the fit's dots, those moves
         (``_moves``), the miss's sensitivity to each (name -> dmiss per std) and the
         miss's noise as the estimate takes it."""
+        if self._model is not None and self._model[0] is fit and self._model[1] is dots:
+            return self._model[2]
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
                                fit.pose.quaternion)
         _, Jm = _miss_jacobians(dots, np.array([fit.idx]))
         H = np.einsum("kai,kam->mi", Jm[0], D)
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
-        return names, D, dict(zip(names, H, strict=True)), noise
+        model = names, D, dict(zip(names, H, strict=True)), noise
+        self._model = fit, dots, model
+        return model
 
     def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
                quaternion: np.ndarray) -> tuple[list[str], np.ndarray]:
@@ -1334,9 +1342,8 @@ def _rival(poses: list[LabeledPose], k: int, lead: np.ndarray, cov: np.ndarray,
     return None
 
 
-def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: TrackerParams,
-                installation_cov: np.ndarray, step_m: float = 1e-5,
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _covariance(J: np.ndarray, std_m: np.ndarray, p0: np.ndarray, params: TrackerParams,
+                installation_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """6x6 pose covariances (xi form): the whole, and its systematic part.
 
     Propagated by numeric Jacobian of the closed-form solution (each dot moves along its
@@ -1345,9 +1352,9 @@ def _covariance(dots: WorldDots, idx: list[int], p0: np.ndarray, params: Tracker
     over its wall's axes: :func:`_installation_covariance`), which hold
     for the whole run; plus the model error the dots cannot show, systematic too.  A
     filter that averages frames must keep the systematic part apart
-    (docs/FUSION_TUNING.md)."""
-    J = _pose_jacobian(dots, idx, p0, step_m)
-    random = (J * np.repeat(dots.std_m[idx] ** 2, 2)) @ J.T
+    (docs/FUSION_TUNING.md).  ``J``: the pose's Jacobian (:func:`_pose_jacobian`) at the
+    dots, whose in-plane noise stds are ``std_m``."""
+    random = (J * np.repeat(std_m ** 2, 2)) @ J.T
     Jd = J.reshape(6, 4, 2)  # pose row, dot, its wall axis
     systematic = np.einsum("ika,kab,jkb->ij", Jd, installation_cov, Jd) \
         + _model_covariance(p0, params)
