@@ -58,12 +58,13 @@ class InstallationEstimate:
 
     def _innovation(self, z: np.ndarray, noise: np.ndarray, sensitivity: dict[str, np.ndarray],
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The state indices, ``H`` over them, ``z``'s residual ``z - H mean`` and its
-        covariance ``H P H^T + noise``."""
+        """The state indices, every parameter's covariance with ``z`` (``P H^T``, (M, 2)),
+        ``z``'s residual ``z - H mean`` and its covariance ``H P H^T + noise``."""
         idx = self._columns(list(sensitivity))
         H = np.array(list(sensitivity.values())).T  # (2, k)
         v = z - H @ self._mean[idx]
-        return idx, H, v, H @ self._cov[np.ix_(idx, idx)] @ H.T + noise
+        PHt = self._cov[:, idx] @ H.T
+        return idx, PHt, v, H @ PHt[idx] + noise
 
     def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
                         sensitivity: dict[str, np.ndarray]) -> float:
@@ -81,11 +82,10 @@ class InstallationEstimate:
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(noise))):
             self.refused += 1
             return False
-        idx, H, v, S = self._innovation(z, noise, sensitivity)
+        _, PHt, v, S = self._innovation(z, noise, sensitivity)
         if not float(v @ np.linalg.solve(S, v)) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False
-        PHt = self._cov[:, idx] @ H.T  # (M, 2): every parameter's covariance with z
         K = np.linalg.solve(S, PHt.T).T
         self._mean += K @ v
         # Joseph-free form, symmetrised: the gain is optimal and the update rank 2
@@ -101,6 +101,8 @@ class InstallationEstimate:
 
     def covariance(self, names: list[str]) -> np.ndarray:
         """The estimate's remaining covariance over ``names`` (identity where unseen)."""
+        if names == self.names:
+            return self._cov.copy()
         idx = self._columns(names)
         return self._cov[np.ix_(idx, idx)]
 

@@ -979,10 +979,11 @@ def _corrected_dots(dots: WorldDots, idx: list[int], D: np.ndarray, mean: np.nda
     """The dots ``idx`` moved back by the installation's estimate (``D``: each dot's move
     along its wall's axes per parameter, ``mean`` and ``P`` the estimate over those
     parameters), and the per-axis std of each dot's installation error left (D P D^T)."""
-    shift = np.einsum("kam,m->ka", D, mean)
-    cov = np.einsum("kam,mn,kbn->kab", D, P, D)
+    shift = D @ mean
+    rows = D.reshape(-1, D.shape[-1])  # (dot, axis) rows: only D P D^T's diagonal is needed
+    var = np.einsum("im,im->i", rows @ P, rows).reshape(len(D), 2).sum(axis=1)
     points = dots.points[idx] - np.einsum("ka,kai->ki", shift, dots.axes[idx])
-    return points, np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+    return points, np.sqrt(0.5 * var)
 
 
 def _truncated_means() -> tuple[np.ndarray, np.ndarray]:
