@@ -527,8 +527,7 @@ class LaserTracker:
             return self._model[2]
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
                                fit.pose.quaternion)
-        _, Jm = _miss_jacobians(dots, np.array([fit.idx]))
-        H = np.einsum("kai,kam->mi", Jm[0], D)
+        H = np.einsum("kai,kam->mi", fit.jacobian, D)
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
         model = names, D, dict(zip(names, H, strict=True)), noise
         self._model = fit, dots, model
@@ -561,10 +560,10 @@ class LaserTracker:
             if not cands:
                 return NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
                               f"than a head can since the last pose {t - last.t:.3f} s ago")
-        miss, random, systematic = fourth_beam_residuals(
+        miss, random, systematic, jacobian = fourth_beam_residuals(
             dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
         chi2 = _chi2(miss, random + systematic.sum(axis=1))
-        fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j])
+        fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j], jacobian[j])
                 for j, (c, idx) in enumerate(cands) if chi2[j] <= p.max_residual_chi2]
         return fits or NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
@@ -1140,6 +1139,7 @@ class _Fit:
     miss: np.ndarray  # (2,) ``fourth_beam_residuals``: the fourth dot's miss, its
     random: np.ndarray  # (2, 2) covariance from the dots' noise
     systematic: np.ndarray  # (4, 2, 2) and from each dot's installation tolerances
+    jacobian: np.ndarray  # (4, 2, 2) its change per metre each dot moves along each wall axis
 
 
 @dataclass(frozen=True)
@@ -1200,8 +1200,7 @@ def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
     eigenvalue ``lam``, scaled to ``v^T B v = max_residual_chi2``: it is harmful if
     ``lam`` exceeds the ratio of the two bounds, and a blob if ``|v| >= stray_min_m``."""
     Jp = _pose_jacobian(dots, fit.idx, fit.pose.position).reshape(6, 4, 2)[:, :3]
-    _, Jm = _miss_jacobians(dots, np.array([fit.idx]))
-    Jm = Jm[0, :3]  # (dot, wall axis, miss component)
+    Jm = fit.jacobian[:3]  # (dot, wall axis, miss component)
     A = np.einsum("pka,pq,qkb->kab", Jp, np.linalg.inv(cov), Jp)
     B = np.einsum("kai,ij,kbj->kab", Jm, np.linalg.inv(S), Jm)
     # the largest root of det(A - lam B) = 0, a quadratic per dot (B > 0: S and Jm are
@@ -1228,13 +1227,11 @@ def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
 def _edge_parts(dots: WorldDots, fit: _Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fit's miss covariance from the dots' noise without their edge std (2, 2), each
     dot's part from its edge std (4, 2, 2), and those stds (4,): the edge std is a clipped
-    spot's bias, which holds while the spot moves little (``_Miss.change``).  The
-    miss's Jacobian is taken again only where a dot lies near an edge."""
+    spot's bias, which holds while the spot moves little (``_Miss.change``)."""
     e = np.zeros(4) if dots.edge_m is None else dots.edge_m[fit.idx]
     if not e.any():
         return fit.random, np.zeros((4, 2, 2)), e
-    _, Jd = _miss_jacobians(dots, np.array([fit.idx]))
-    edge = np.einsum("kai,k,kaj->kij", Jd[0], e ** 2, Jd[0])
+    edge = np.einsum("kai,k,kaj->kij", fit.jacobian, e ** 2, fit.jacobian)
     return fit.random - edge.sum(axis=0), edge, e
 
 
@@ -1258,17 +1255,19 @@ def residual_chi2(dots: WorldDots, orders: list[list[int]], origins: list[np.nda
     """Chi-square (2 dof) of each labeling's dots against one pose: ``orders[j]`` the dot
     indices of diodes 1..4, ``origins[j]`` its P0 (for the installation's error); inf
     where a labeling's dots give no frame (:func:`fourth_beam_residuals`)."""
-    r, random, systematic = fourth_beam_residuals(dots, orders, origins, p)
+    r, random, systematic, _ = fourth_beam_residuals(dots, orders, origins, p)
     return _chi2(r, random + systematic.sum(axis=1))
 
 
 def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
                           p: TrackerParams, step_m: float = 1e-5,
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Where each labeling's fourth dot lies off beam 4 of the pose its first three fix, (m,
     2), and that miss's covariance: the part from the dots' noise, new in every frame set
     (m, 2, 2), and each dot's part from the installation's tolerances, which a frame set
-    shares with the next ones while the dot stays on its wall (m, 4, 2, 2).
+    shares with the next ones while the dot stays on its wall (m, 4, 2, 2); and the miss's
+    change per metre each dot moves along each of its wall's axes (m, 4, 2, 2:
+    :func:`_miss_jacobians`), which the chosen labeling's estimate and gates take again.
 
     The dots of diodes 1-3 fix the pose (six coordinates, six unknowns); the residual is
     where the fourth dot lies off beam 4 of that pose, across the beam (its components
@@ -1277,7 +1276,7 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
     give no frame."""
     m = len(orders)
     if not m:
-        return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
+        return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros((0, 4, 2, 2))
     idx = np.array(orders)  # (m, 4)
     r, Jd = _miss_jacobians(dots, idx, step_m)
     flat = idx.ravel()
@@ -1288,7 +1287,7 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
         p).reshape(m, 4, 2, 2)
     systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
     random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
-    return r, random, systematic
+    return r, random, systematic, Jd
 
 
 def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
@@ -1492,11 +1491,10 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
     k4 = len(idx)
     out = _MoveTable(k4, k4 * (4 + 1 + 3 + 8))
+    tilt, offset = (r * p.housing_dir_std_rad)[:, None, None] * beam, p.housing_offset_std_m * beam
+    per_beam = np.stack([tilt[:, 0], offset[:, 0], tilt[:, 1], offset[:, 1]], axis=-1)
     for k, label in enumerate(labels):
-        tilt, offset = r[k] * p.housing_dir_std_rad, p.housing_offset_std_m
-        out.add([f"beam {label} {kind} {axis}" for axis in "ab" for kind in ("tilt", "offset")],
-                k, np.stack([tilt * beam[k, 0], offset * beam[k, 0],
-                             tilt * beam[k, 1], offset * beam[k, 1]], axis=1))
+        out.add(_BEAM_NAMES[label], k, per_beam[k])
     eyes = None if dots.eyes is None else dots.eyes[idx]
     shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
     bend = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes) \
@@ -1540,6 +1538,10 @@ class _MoveTable:
         return self._moves[..., :len(self.names)].copy()
 
 
+#: per beam label, its parameters' names in ``_dot_moves``' order
+_BEAM_NAMES = {label: [f"beam {label} {kind} {axis}"
+                       for axis in "ab" for kind in ("tilt", "offset")]
+               for label in BEAM_DIRECTIONS}
 #: per beam (label - 1), two unit axes of the rig frame across it (beams +y, -y, -x, +z)
 _ACROSS_BEAM = np.array([[e for e in np.eye(3) if abs(e @ b) < 0.5]
                          for b in (np.asarray(BEAM_DIRECTIONS[k], float)
