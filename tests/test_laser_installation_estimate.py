@@ -32,7 +32,7 @@ def test_linear_parameters_are_recovered_within_their_claimed_std() -> None:
     for _ in range(200):
         H = rng.normal(size=(2, 3))
         z = H @ truth + rng.normal(0.0, 0.1, 2)
-        assert est.update(z, noise, {"a": H[:, 0], "b": H[:, 1], "c": H[:, 2]})
+        assert est.update(z, noise, ["a", "b", "c"], H)
     names = ["a", "b", "c"]
     err = est.mean(names) - truth
     assert err @ np.linalg.solve(est.covariance(names), err) < 16.3  # chi2(3), 1 - 1e-3
@@ -46,12 +46,13 @@ def test_a_gross_observation_is_refused_and_leaves_the_estimate_alone() -> None:
     noise = 0.1 ** 2 * np.eye(2)
     for _ in range(50):
         H = rng.normal(size=(2, 2))
-        est.update(H @ [1.0, -1.0] + rng.normal(0.0, 0.1, 2), noise, {"a": H[:, 0], "b": H[:, 1]})
+        est.update(H @ [1.0, -1.0] + rng.normal(0.0, 0.1, 2), noise, ["a", "b"], H)
     before = est.mean(["a", "b"]).copy(), est.covariance(["a", "b"]).copy()
     H = rng.normal(size=(2, 2))
-    assert not est.update(H @ [1.0, -1.0] + [3.0, 0.0], noise, {"a": H[:, 0], "b": H[:, 1]})
-    assert not est.update(np.array([np.nan, 0.0]), noise, {"a": H[:, 0], "b": H[:, 1]})
-    assert not est.update(H @ [1.0, -1.0], noise, {"a": [np.nan, 0.0], "b": H[:, 1]})
+    assert not est.update(H @ [1.0, -1.0] + [3.0, 0.0], noise, ["a", "b"], H)
+    assert not est.update(np.array([np.nan, 0.0]), noise, ["a", "b"], H)
+    assert not est.update(H @ [1.0, -1.0], noise, ["a", "b"],
+                          np.column_stack([[np.nan, 0.0], H[:, 1]]))
     assert est.refused == 3 and est.accepted == 50
     assert np.array_equal(est.mean(["a", "b"]), before[0])
     assert np.array_equal(est.covariance(["a", "b"]), before[1])

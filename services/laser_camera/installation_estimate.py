@@ -56,33 +56,34 @@ class InstallationEstimate:
             self._mean = np.concatenate([self._mean, np.zeros(k)])
         return np.array([self._index[n] for n in names], dtype=int)
 
-    def _innovation(self, z: np.ndarray, noise: np.ndarray, sensitivity: dict[str, np.ndarray],
+    def _innovation(self, z: np.ndarray, noise: np.ndarray, names: list[str], H: np.ndarray,
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The state indices, every parameter's covariance with ``z`` (``P H^T``, (M, 2)),
         ``z``'s residual ``z - H mean`` and its covariance ``H P H^T + noise``."""
-        idx = self._columns(list(sensitivity))
-        H = np.array(list(sensitivity.values())).T  # (2, k)
+        idx = self._columns(names)
         v = z - H @ self._mean[idx]
         PHt = self._cov[:, idx] @ H.T
         return idx, PHt, v, H @ PHt[idx] + noise
 
-    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray,
-                        sensitivity: dict[str, np.ndarray]) -> float:
+    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray, names: list[str],
+                        H: np.ndarray) -> float:
         """Chi-square (2 dof) of ``z`` against what the estimate so far predicts for it
         (``update``'s gate, without taking it); NaN for a non-finite ``z``."""
-        _, _, v, S = self._innovation(np.asarray(z, float), noise, sensitivity)
+        _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
         return float(v @ np.linalg.solve(S, v))
 
-    def update(self, z: np.ndarray, noise: np.ndarray,
-               sensitivity: dict[str, np.ndarray]) -> bool:
-        """Take the observation ``z`` (its ``noise`` covariance; ``sensitivity``: name ->
-        dz per one std of that parameter) if its innovation passes the gate; whether it
-        did."""
+    def update(self, z: np.ndarray, noise: np.ndarray, names: list[str], H: np.ndarray,
+               ) -> bool:
+        """Take the observation ``z`` (its ``noise`` covariance; ``H`` (2, len(names)): dz
+        per one std of each named parameter, one column each) if its innovation passes the
+        gate; whether it did.  Names and one array, not a dict of columns: the tracker
+        builds ``H`` as one array product, and a dict taken apart again each frame set
+        costs more than the update's arithmetic."""
         z = np.asarray(z, float)
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(noise))):
             self.refused += 1
             return False
-        _, PHt, v, S = self._innovation(z, noise, sensitivity)
+        _, PHt, v, S = self._innovation(z, noise, names, np.asarray(H, float))
         if not float(v @ np.linalg.solve(S, v)) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False

@@ -497,8 +497,8 @@ class LaserTracker:
         the pose's Jacobian (:func:`_pose_jacobian`) at ``est``."""
         p, estimate = self.params, self.installation
         p0 = np.asarray(est.position, float)
-        names, D, sensitivity, noise = self._miss_model(fit, dots)
-        if not estimate.update(fit.miss, noise, sensitivity):
+        names, D, H, noise = self._miss_model(fit, dots)
+        if not estimate.update(fit.miss, noise, names, H):
             self.counts["installation_miss_refused"] += 1
         mean, P = estimate.mean(names), estimate.covariance(names)
         S = np.einsum("pka,kam->pm", J.reshape(6, 4, 2), D)
@@ -519,17 +519,17 @@ class LaserTracker:
             draw_sensitivity={name: draw[:, j] for j, name in enumerate(estimate.names)})
 
     def _miss_model(self, fit: _Fit, dots: WorldDots,
-                    ) -> tuple[list[str], np.ndarray, dict[str, np.ndarray], np.ndarray]:
+                    ) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
         """The installation parameters that move the fit's dots, those moves
-        (``_moves``), the miss's sensitivity to each (name -> dmiss per std) and the
-        miss's noise as the estimate takes it."""
+        (``_moves``), the miss's sensitivity to each (2, len(names): dmiss per std) and
+        the miss's noise as the estimate takes it."""
         if self._model is not None and self._model[0] is fit and self._model[1] is dots:
             return self._model[2]
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
                                fit.pose.quaternion)
         H = np.einsum("kai,kam->mi", fit.jacobian, D)
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
-        model = names, D, dict(zip(names, H, strict=True)), noise
+        model = names, D, H.T, noise
         self._model = fit, dots, model
         return model
 
@@ -628,8 +628,8 @@ class LaserTracker:
         dots, within its remaining covariance instead of the whole tolerances."""
         if self.installation is None:
             return None
-        _, _, sensitivity, noise = self._miss_model(fit, dots)
-        chi2 = self.installation.innovation_chi2(fit.miss, noise, sensitivity)
+        names, _, H, noise = self._miss_model(fit, dots)
+        chi2 = self.installation.innovation_chi2(fit.miss, noise, names, H)
         if chi2 <= self.params.estimate_gate_chi2:
             return None
         return ("the fourth dot's miss disagrees with the installation's estimate: "
