@@ -54,6 +54,7 @@ from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from itertools import combinations
+from typing import NamedTuple
 
 import numpy as np
 
@@ -321,6 +322,8 @@ class LaserTracker:
         self._seen = _SeenDots()
         #: the last fit's miss model (``_miss_model``): a frame set asks for it twice
         self._model: tuple[_Fit, WorldDots, tuple] | None = None
+        #: the chosen fit's dots' slopes (``_dot_slopes``): its miss model moves the same dots
+        self._slopes: tuple[_Fit, _DotSlopes] | None = None
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
         #: the installation's errors estimated from the fourth beam's misses (None: off);
@@ -458,12 +461,15 @@ class LaserTracker:
             return picked
         k, lead = picked
         best, idx = fits[k].pose, fits[k].idx
+        self._slopes = None
         try:
-            sys_cov = _installation_covariance(dots, idx, best.position, p)
+            slopes = _dot_slopes(dots, idx, best.position)
+            sys_cov = _installation_covariance(dots, idx, best.position, p, slopes)
             J = _pose_jacobian(dots, idx, best.position)
             cov, systematic = _covariance(J, dots.std_m[idx], best.position, p, sys_cov)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
+        self._slopes = fits[k], slopes
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
@@ -525,8 +531,10 @@ class LaserTracker:
         the miss's noise as the estimate takes it."""
         if self._model is not None and self._model[0] is fit and self._model[1] is dots:
             return self._model[2]
+        slopes = self._slopes[1] if self._slopes is not None and self._slopes[0] is fit \
+            else None
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
-                               fit.pose.quaternion)
+                               fit.pose.quaternion, slopes)
         H = np.einsum("kai,kam->mi", fit.jacobian, D)
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
         model = names, D, H.T, noise
@@ -534,11 +542,13 @@ class LaserTracker:
         return model
 
     def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
-               quaternion: np.ndarray) -> tuple[list[str], np.ndarray]:
+               quaternion: np.ndarray, slopes: _DotSlopes | None = None,
+               ) -> tuple[list[str], np.ndarray]:
         """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
         along its wall's axes per one std of each installation parameter that moves it, the
-        screen maps' included: the parameters' names and the moves (dots, 2 axes, params)."""
-        moves = _dot_moves(dots, idx, labels, p0, quaternion, self.params)
+        screen maps' included: the parameters' names and the moves (dots, 2 axes, params).
+        ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if already taken."""
+        moves = _dot_moves(dots, idx, labels, p0, quaternion, self.params, slopes)
         if self._screens is not None:
             self._screens.map_moves(dots, idx, moves)
         return moves.names, moves.array()
@@ -1047,7 +1057,7 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
 
 
 def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
-                             p: TrackerParams) -> np.ndarray:
+                             p: TrackerParams, slopes: _DotSlopes | None = None) -> np.ndarray:
     """In-plane covariance (n, 2, 2) over the wall's two axes that each dot ``idx`` gets
     from the installation's tolerances.
 
@@ -1061,16 +1071,17 @@ def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
     turned by ``theta`` since calibration moves the dot where its turned ray meets the
     plane: ``dX = dr - r (n . dr) / (n . r)``, ``dr = theta x r``, ``r`` from the camera's
     centre to the dot, more far from the camera's axis.  Dots whose camera is unknown get
-    the bend without its parallax and ``camera_residual_std_m`` in both axes."""
+    the bend without its parallax and ``camera_residual_std_m`` in both axes.  ``slopes``:
+    the dots' :func:`_dot_slopes` at ``p0`` if already taken."""
     idx = list(idx)
     return _installation_covariances(
         dots.points[idx], dots.axes[idx], None if dots.bend is None else dots.bend[idx],
-        None if dots.eyes is None else dots.eyes[idx], np.asarray(p0, float), p)
+        None if dots.eyes is None else dots.eyes[idx], np.asarray(p0, float), p, slopes)
 
 
 def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | None,
                               eyes: np.ndarray | None, p0: np.ndarray,
-                              p: TrackerParams) -> np.ndarray:
+                              p: TrackerParams, slopes: _DotSlopes | None = None) -> np.ndarray:
     """:func:`_installation_covariance` of dots ``x`` (k, 3) on walls with in-plane axes
     ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
     per dot), all at once (a frame set's labelings hold a few dozen dots)."""
@@ -1086,14 +1097,44 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     cov = across[:, None, None] * (np.eye(2) + (1 / c ** 2 - 1)[:, None, None]
                                    * np.einsum("ka,kb->kab", u, u))
     shape = np.ones(len(x)) if bend is None else np.asarray(bend, float)
-    slope = _bend_slopes(x, A, n, Ad, dn, r, eyes)
+    if slopes is None:
+        slopes = _slopes(x, A, n, Ad, dn, r, eyes)
+    slope = slopes.bend
     if eyes is None:
         cov += p.camera_residual_std_m ** 2 * np.eye(2)
     else:
-        J = _turn_jacobians(x, A, n, eyes)
+        J = slopes.turn
         cov += p.camera_turn_std_rad ** 2 * np.einsum("kat,kbt->kab", J, J)
     return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * np.einsum(
         "ka,kb->kab", slope, slope)
+
+
+class _DotSlopes(NamedTuple):
+    """How far each of a pose's dots moves on its wall per metre its screen bends inwards
+    (``bend``, (k, 2): :func:`_bend_slopes`) and per radian its camera turns (``turn``,
+    (k, 2, 3): :func:`_turn_jacobians`; None where the cameras are unknown): the chosen
+    pose's covariance and its installation estimate's moves take the same ones."""
+
+    bend: np.ndarray
+    turn: np.ndarray | None
+
+
+def _dot_slopes(dots: WorldDots, idx: list[int], p0: np.ndarray) -> _DotSlopes:
+    """The :class:`_DotSlopes` of dots ``idx`` for a rig at ``p0``."""
+    x, A = dots.points[idx], dots.axes[idx]
+    n = _cross(A[:, 0], A[:, 1])
+    d = x - np.asarray(p0, float)
+    r = np.sqrt(np.einsum("ki,ki->k", d, d))
+    dn = np.abs(np.einsum("ki,ki->k", n, d))
+    return _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), dn, r,
+                   None if dots.eyes is None else dots.eyes[idx])
+
+
+def _slopes(x: np.ndarray, A: np.ndarray, n: np.ndarray, Ad: np.ndarray, dn: np.ndarray,
+            r: np.ndarray, eyes: np.ndarray | None) -> _DotSlopes:
+    """:class:`_DotSlopes` from the dots' geometry (as :func:`_installation_covariances`)."""
+    return _DotSlopes(_bend_slopes(x, A, n, Ad, dn, r, eyes),
+                      None if eyes is None else _turn_jacobians(x, A, n, eyes))
 
 
 def _bend_slopes(x: np.ndarray, A: np.ndarray, n: np.ndarray, Ad: np.ndarray, dn: np.ndarray,
@@ -1470,12 +1511,14 @@ def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tr
 
 
 def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
-               quaternion: np.ndarray, p: TrackerParams) -> _MoveTable:
+               quaternion: np.ndarray, p: TrackerParams, slopes: _DotSlopes | None = None,
+               ) -> _MoveTable:
     """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
     along its wall's two axes per one standard deviation of each of the installation's
     parameters (:func:`installation_sensitivity` names them); a parameter that moves none
     of them is left out.  Room is left for each dot's camera's screen map
-    (``_Screens.map_moves``)."""
+    (``_Screens.map_moves``).  ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if
+    already taken."""
     x, A = dots.points[idx], dots.axes[idx]
     n = _cross(A[:, 0], A[:, 1])
     d = x - p0
@@ -1497,13 +1540,14 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
         out.add(_BEAM_NAMES[label], k, per_beam[k])
     eyes = None if dots.eyes is None else dots.eyes[idx]
     shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
-    bend = _bend_slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes) \
-        * (p.screen_bulge_std_m * shape)[:, None]
+    if slopes is None:
+        slopes = _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
+    bend = slopes.bend * (p.screen_bulge_std_m * shape)[:, None]
     if eyes is None:
         cameras = p.camera_residual_std_m * np.broadcast_to(np.eye(2), (k4, 2, 2))
         axes = ("residual 0", "residual 1")
     else:
-        cameras = p.camera_turn_std_rad * _turn_jacobians(x, A, n, eyes)
+        cameras = p.camera_turn_std_rad * slopes.turn
         axes = ("turn x", "turn y", "turn z")
     for k, i in enumerate(idx):
         out.add([f"screen {dots.walls[i]} bend"], k, bend[k][:, None])
