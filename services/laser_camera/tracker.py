@@ -324,6 +324,7 @@ class LaserTracker:
         self._model: tuple[_Fit, WorldDots, tuple] | None = None
         #: the chosen fit's dots' slopes (``_dot_slopes``): its miss model moves the same dots
         self._slopes: tuple[_Fit, _DotSlopes] | None = None
+        self._keys: list[str] = []
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
         #: the installation's errors estimated from the fourth beam's misses (None: off);
@@ -521,8 +522,16 @@ class LaserTracker:
             covariance=est.covariance - est.systematic + systematic, systematic=systematic,
             dots={k + 1: points[k] for k in range(len(idx))},
             dot_systematic_std_m={k + 1: float(dot_std[k]) for k in range(len(idx))},
-            sensitivity={f"estimate {name}": root[:, j] for j, name in enumerate(estimate.names)},
-            draw_sensitivity={name: draw[:, j] for j, name in enumerate(estimate.names)})
+            sensitivity=dict(zip(self._estimate_keys(), root.T, strict=True)),
+            draw_sensitivity=dict(zip(estimate.names, draw.T, strict=True)))
+
+    def _estimate_keys(self) -> list[str]:
+        """The sensitivity's name of each of the estimate's parameters (``"estimate "`` and
+        its name), in its order: built once per parameter, since the estimate only ever
+        appends parameters, not per frame set (some ninety strings)."""
+        names = self.installation.names
+        self._keys += [f"estimate {name}" for name in names[len(self._keys):]]
+        return self._keys
 
     def _miss_model(self, fit: _Fit, dots: WorldDots,
                     ) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
