@@ -192,15 +192,11 @@ def test_a_stray_blob_beside_a_dot_at_a_screens_edge_is_not_published_at_a_start
     the fourth beam's miss alone cannot tell a stray blob 2 cm from another dot: right
     after a start, with such a dot in every frame set, the blob's labeling must not be
     published as a confident pose (the clipped centroid's bias holds while the spot moves
-    little, and a labeling the miss cannot vouch for is refused), while the clean frame
-    set after it is published where it is the third in a row with continuous misses (not
-    where the blob's miss was refused and replaced the held one: 63 of 137 here, 1 of 137
-    when every start was held until the miss could show such a blob)."""
-    published_wrong, strays, confirmed = starts_with_a_blob(
+    little, and a labeling the miss cannot vouch for is refused)."""
+    published_wrong, strays, _ = starts_with_a_blob(
         world, np.random.default_rng(5), LaserTracker(None).params.edge_std_m)
     assert strays >= 100
     assert published_wrong == 0
-    assert confirmed >= 0.4 * strays
 
 
 def test_a_miss_the_installations_estimate_does_not_explain_is_refused_after_a_jump(
@@ -251,28 +247,6 @@ def test_a_miss_the_installations_estimate_does_not_explain_is_refused_after_a_j
                 break
     assert jumps >= 2
     assert resumed == jumps
-
-
-def test_a_start_with_noisy_dots_is_published_within_a_few_frame_sets() -> None:
-    """Liveness of the start's hold: with every dot's std raised by ``calib_sigma_m`` (what
-    a calibration that states no dot error gets), the miss's change cannot show a stray
-    blob beside a dot, yet three frame sets in a row with continuous misses confirm the
-    start: the first pose comes within 0.2 s (it came after 0.9-16 s on these seeds when
-    every such frame set was refused)."""
-    cal = laser_calibration(IvyWorld(seed=1), cache=True)
-    for seed in (1, 2, 3, 4):
-        world = IvyWorld(seed=seed, imperfection_seed=seed)
-        tr = LaserTracker(cal)
-        P, Q = world.rig_pose(np.arange(0, 0.5, 1 / RATE_HZ))
-        rng = np.random.default_rng(0)
-        first = None
-        for i, (p, q) in enumerate(zip(P, Q, strict=True)):
-            d = tr.locate(_detections(world, p, q, rng))
-            d = replace(d, std_m=np.hypot(d.std_m, tr.params.calib_sigma_m))
-            if isinstance(tr.solve(d, i / RATE_HZ), PoseEstimate):
-                first = i / RATE_HZ
-                break
-        assert first is not None and first <= 0.2, (seed, first)
 
 
 def starts_with_a_blob(world: IvyWorld, rng: np.random.Generator,

@@ -131,12 +131,6 @@ class TrackerParams:
     #: mm wide, std): a labeling is published only if its fourth dot's miss would show a
     #: stray blob farther away in the place of any dot that fixes the pose
     stray_min_m: float = 0.01
-    #: ... unless this many frame sets in a row gave continuous misses (each passing the
-    #: change test against the one before): a held start is confirmed then even where the
-    #: miss could not show such a blob, since a blob beside a moving dot does not keep its
-    #: offset and a blob in one frame set is the second of them at most; without a bound
-    #: a start with noisy dots (calib_sigma_m) was held for up to 16 s
-    start_confirm_sets: int = 3
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
@@ -199,8 +193,6 @@ class TrackerParams:
             raise InvalidInputError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if not self.stray_min_m > 0:
             raise InvalidInputError("stray_min_m must be positive")
-        if self.start_confirm_sets < 2:
-            raise InvalidInputError("start_confirm_sets must be at least 2")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
         if not self.residual_drift_per_m > 0:
@@ -640,11 +632,9 @@ class LaserTracker:
                 self._miss = now
             return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
                           f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
-        streak = last.streak + 1
-        unseen = None if last.confirmed or streak >= p.start_confirm_sets - 1 \
-            else _unseen_stray(dots, fit, S, cov, p)
+        unseen = None if last.confirmed else _unseen_stray(dots, fit, S, cov, p)
         if unseen is not None:
-            self._miss = replace(now, streak=streak)
+            self._miss = now
             return NoPose(t, "ambiguous_labeling", n, unseen)
         self._miss = replace(now, confirmed=True)
         return None
@@ -1215,7 +1205,6 @@ class _Miss:
     edge: np.ndarray  # (4, 2, 2) from each dot's edge std (``_edge_parts``)
     edge_m: np.ndarray  # (4,) each dot's edge std
     confirmed: bool = False  # published (it agreed with the miss before it)
-    streak: int = 0  # frame sets before it held in a row, each miss continuous with the last
 
     def change(self, later: _Miss, drift_per_m: float) -> tuple[float, np.ndarray] | None:
         """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, or
