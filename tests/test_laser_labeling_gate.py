@@ -346,7 +346,7 @@ def test_no_wrong_labeling_is_published_on_random_seeds() -> None:
     for seed in seeds:
         out = _short_run(seed, 3.0, rng)
         assert out["wrong"] == 0, (seed, out)
-        assert out["poses"] >= 30, (seed, out)
+        assert out["poses"] >= 20, (seed, out)  # a gate that refuses every start fails
 
 
 @pytest.mark.slow
