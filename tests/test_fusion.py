@@ -554,6 +554,18 @@ def _live_at_rest(walls=None):
     return live, (p, q), attrs, np.array(reading)
 
 
+def test_live_fusion_drops_a_pose_whose_systematic_covariance_is_malformed():
+    """A NaN in a pose's systematic part (its ``c_sys`` extra, which the decoder leaves to
+    its readers) is dropped and counted by name, not raised into the subscriber."""
+    from schemas.codec import SYSTEMATIC_COVARIANCE, pack_covariance
+
+    live, (p, q), _, _ = _live_at_rest()
+    bad = [float("nan"), *pack_covariance(np.eye(6) * 1e-6)[1:]]
+    live.on_optical(SimpleNamespace(t_ns=1_003_000_000, position=p, quaternion=q,
+                                    covariance=None, extra={SYSTEMATIC_COVARIANCE: bad}))
+    assert [n for why, n in live.dropped.items() if "non-finite" in why] == [1]
+
+
 def _dots_message(t_ns, points, ids, std=1e-3, sys_std=5e-4):
     from schemas.codec import DOT_STD, DOT_SYSTEMATIC_STD, Measurement
 

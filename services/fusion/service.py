@@ -140,8 +140,12 @@ class LiveFusion:
         cov = m.covariance
         if cov is None:
             cov = geo.covariance_from_std(m.position, *DEFAULT_OPTICAL_STD)
-        ahead = self.tracker.stats.optical_too_far_ahead
-        systematic, mount = systematic_covariance(m), self.optical_mount
+        try:
+            systematic = systematic_covariance(m)
+        except ValueError as exc:  # DecodeError: names the malformed extra
+            self._drop(f"optical pose refused: {exc}")
+            return
+        ahead, mount = self.tracker.stats.optical_too_far_ahead, self.optical_mount
         t = self._seconds(m.t_ns)
         if self.walls is None or not self.tracker.ekf.initialised:
             self.tracker.add_rig_pose(t, m.position, m.quaternion, cov, mount,
