@@ -5,6 +5,8 @@ absorbed."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -215,3 +217,15 @@ def test_the_estimate_is_the_default_but_on_the_ideal_installation() -> None:
     for argv, on in (([], True), (["--no-estimate-installation"], False), (["--ideal"], False),
                      (["--ideal", "--estimate-installation"], True)):
         assert estimate_installation(parser.parse_args(argv)) is on, argv
+
+
+def test_the_sensitivity_names_follow_the_estimate_in_the_tracker() -> None:
+    """The tracker names each estimated parameter once, as the estimate appends it; another
+    estimate put in its place gets its own names, not the last one's."""
+    tracker = LaserTracker(None, TrackerParams(estimate_installation=True))
+    tracker.installation = SimpleNamespace(names=["beam 1 tilt a", "beam 1 offset b"])
+    assert tracker._estimate_keys() == ["estimate beam 1 tilt a", "estimate beam 1 offset b"]
+    tracker.installation.names.append("wall front bend")
+    assert tracker._estimate_keys()[-1] == "estimate wall front bend"
+    tracker.installation = SimpleNamespace(names=["camera left turn x"])
+    assert tracker._estimate_keys() == ["estimate camera left turn x"]

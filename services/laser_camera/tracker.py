@@ -325,6 +325,7 @@ class LaserTracker:
         #: the chosen fit's dots' slopes (``_dot_slopes``): its miss model moves the same dots
         self._slopes: tuple[_Fit, _DotSlopes] | None = None
         self._keys: list[str] = []
+        self._keys_of: object = None  # the estimate ``_keys`` name
         self._screens = None if calibration is None else _Screens(
             calibration.cameras, self.params.calib_sigma_m)
         #: the installation's errors estimated from the fourth beam's misses (None: off);
@@ -527,8 +528,11 @@ class LaserTracker:
 
     def _estimate_keys(self) -> list[str]:
         """The sensitivity's name of each of the estimate's parameters (``"estimate "`` and
-        its name), in its order: built once per parameter, since the estimate only ever
-        appends parameters, not per frame set (some ninety strings)."""
+        its name), in its order: built once per parameter, since an estimate only ever
+        appends parameters, not per frame set (some ninety strings); built afresh for
+        another estimate put in ``installation``."""
+        if self._keys_of is not self.installation:
+            self._keys, self._keys_of = [], self.installation
         names = self.installation.names
         self._keys += [f"estimate {name}" for name in names[len(self._keys):]]
         return self._keys
