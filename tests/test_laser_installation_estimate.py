@@ -62,6 +62,34 @@ def test_a_gross_observation_is_refused_and_leaves_the_estimate_alone() -> None:
         InstallationEstimate(gate_chi2=0.0)
 
 
+def test_the_root_and_the_rows_follow_every_change_of_the_covariance() -> None:
+    """The root of the whole covariance is kept while the covariance holds (a refused
+    observation leaves it alone) and taken again after an update or a new parameter; the
+    rows of named parameters add unseen ones at their prior, as ``covariance`` does."""
+    rng = np.random.default_rng(3)
+    est = InstallationEstimate(gate_chi2=18.4)
+    noise = 0.1 ** 2 * np.eye(2)
+    truth = {"a": 0.5, "b": -0.3, "c": 0.2, "d": 1.0}
+    for names in (["a", "b"], ["b", "c", "a"], ["d"]):
+        for _ in range(5):
+            H = rng.normal(size=(2, len(names)))
+            z = H @ [truth[n] for n in names] + rng.normal(0.0, 0.1, 2)
+            assert est.update(z, noise, names, H)
+            L = est.root()
+            assert np.allclose(L @ L.T, est.covariance(est.names), rtol=0, atol=1e-14)
+    root = est.root()
+    H = rng.normal(size=(2, 2))
+    assert not est.update(np.array([50.0, 0.0]), noise, ["a", "c"], H)
+    assert est.root() is root
+    idx, mean, rows = est.rows(["c", "e"])
+    assert est.names == ["a", "b", "c", "d", "e"] and list(idx) == [2, 4]
+    assert mean[1] == 0.0 and np.array_equal(rows[1], np.eye(5)[4])
+    assert np.array_equal(rows, est.covariance(est.names)[idx])
+    assert np.array_equal(mean, est.mean(["c", "e"]))
+    L = est.root()
+    assert L is not root and np.allclose(L @ L.T, est.covariance(est.names), rtol=0, atol=1e-14)
+
+
 @pytest.fixture(scope="module")
 def run() -> tuple[IvyWorld, LaserTracker, list[tuple[float, np.ndarray, np.ndarray]]]:
     """Seed 105's installation tracked for 6 s at 20 Hz from the cameras' true pixels plus
@@ -229,3 +257,21 @@ def test_the_sensitivity_names_follow_the_estimate_in_the_tracker() -> None:
     assert tracker._estimate_keys()[-1] == "estimate wall front bend"
     tracker.installation = SimpleNamespace(names=["camera left turn x"])
     assert tracker._estimate_keys() == ["estimate camera left turn x"]
+
+
+def test_dots_moves_taken_together_are_each_dots_own(run) -> None:
+    """The installation's moves of several dots, taken at once into shared columns (two
+    dots on one screen seen by one camera share its bend, turn and map), are each dot's
+    own moves taken alone, and nothing in the other parameters' columns."""
+    _, tracker, poses = run
+    dots, res = tracker._dots, poses[-1][0]
+    idx, labels = [0, 0, 1, 2], [1, 2, 3, 4]  # the first dot twice: the same wall and camera
+    names, D = tracker._moves(dots, idx, labels, res.position, res.quaternion)
+    assert len(set(names)) == len(names) and D.shape == (4, 2, len(names))
+    assert any(" map " in name for name in names)
+    for k, (i, label) in enumerate(zip(idx, labels, strict=True)):
+        own, alone = tracker._moves(dots, [i], [label], res.position, res.quaternion)
+        cols = [names.index(name) for name in own]
+        assert np.array_equal(D[k][:, cols], alone[0])
+        rest = np.delete(D[k], cols, axis=1)
+        assert not rest.any()

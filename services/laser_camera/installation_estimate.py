@@ -17,6 +17,9 @@ a stray blob or a clipped spot moves one frame set's miss, not the installation.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import numpy as np
 
 from agent.errors import InvalidInputError
@@ -37,14 +40,24 @@ class InstallationEstimate:
         self.gate_chi2 = gate_chi2
         self.names: list[str] = []
         self._index: dict[str, int] = {}
+        #: the state indices of each sequence of names asked for (``_columns``): a tracker
+        #: asks for the same few dozen names, in the same order, frame set after frame set
+        self._indices: dict[tuple[str, ...], np.ndarray] = {}
         self._mean = np.zeros(0)
         self._cov = np.zeros((0, 0))
+        self._root: np.ndarray | None = None  # ``root``'s, until the covariance changes
         self.accepted = 0
         self.refused = 0
 
-    def _columns(self, names: list[str]) -> np.ndarray:
-        """The state indices of ``names``, adding unseen ones at their prior."""
-        new = [n for n in names if n not in self._index]
+    def _columns(self, names: Sequence[str]) -> np.ndarray:
+        """The state indices of ``names``, adding unseen ones at their prior (read-only:
+        shared by every call with the same names; an estimate only appends parameters, so
+        a name's index never changes)."""
+        key = tuple(names)
+        idx = self._indices.get(key)
+        if idx is not None:
+            return idx
+        new = [n for n in dict.fromkeys(key) if n not in self._index]
         if new:
             m, k = len(self.names), len(new)
             for n in new:
@@ -54,10 +67,14 @@ class InstallationEstimate:
             cov[:m, :m] = self._cov
             self._cov = cov
             self._mean = np.concatenate([self._mean, np.zeros(k)])
-        return np.array([self._index[n] for n in names], dtype=int)
+            self._root = None
+        idx = np.array([self._index[n] for n in key], dtype=int)
+        idx.flags.writeable = False
+        self._indices[key] = idx
+        return idx
 
-    def _innovation(self, z: np.ndarray, noise: np.ndarray, names: list[str], H: np.ndarray,
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _innovation(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str],
+                    H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The state indices, every parameter's covariance with ``z`` (``P H^T``, (M, 2)),
         ``z``'s residual ``z - H mean`` and its covariance ``H P H^T + noise``."""
         idx = self._columns(names)
@@ -65,14 +82,14 @@ class InstallationEstimate:
         PHt = self._cov[:, idx] @ H.T
         return idx, PHt, v, H @ PHt[idx] + noise
 
-    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray, names: list[str],
+    def innovation_chi2(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str],
                         H: np.ndarray) -> float:
         """Chi-square (2 dof) of ``z`` against what the estimate so far predicts for it
         (``update``'s gate, without taking it); NaN for a non-finite ``z``."""
         _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
-        return float(v @ np.linalg.solve(S, v))
+        return _chi2(v, _inverse2(S))
 
-    def update(self, z: np.ndarray, noise: np.ndarray, names: list[str], H: np.ndarray,
+    def update(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str], H: np.ndarray,
                ) -> bool:
         """Take the observation ``z`` (its ``noise`` covariance; ``H`` (2, len(names)): dz
         per one std of each named parameter, one column each) if its innovation passes the
@@ -84,16 +101,40 @@ class InstallationEstimate:
             self.refused += 1
             return False
         _, PHt, v, S = self._innovation(z, noise, names, np.asarray(H, float))
-        if not float(v @ np.linalg.solve(S, v)) <= self.gate_chi2:  # NaN: refused too
+        Sinv = _inverse2(S)
+        if not _chi2(v, Sinv) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False
-        K = np.linalg.solve(S, PHt.T).T
+        K = PHt @ Sinv.T
         self._mean += K @ v
         # Joseph-free form, symmetrised: the gain is optimal and the update rank 2
-        self._cov -= K @ PHt.T
-        self._cov = 0.5 * (self._cov + self._cov.T)
+        cov = self._cov
+        cov -= K @ PHt.T
+        np.add(cov, cov.T, out=cov)
+        cov *= 0.5
+        self._root = None
         self.accepted += 1
         return True
+
+    def rows(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The state indices of ``names`` (adding unseen ones at their prior), their
+        estimate and their rows of the whole covariance (len(names), len(self.names)): a
+        pose corrected by the estimate takes its own parameters' covariance and their
+        covariance with every parameter from the same rows."""
+        idx = self._columns(names)
+        return idx, self._mean[idx], self._cov[idx]
+
+    def root(self) -> np.ndarray:
+        """``L`` with ``L L^T`` the whole remaining covariance (``names``' order), lower
+        triangular (Cholesky) where rounding leaves the covariance positive definite;
+        kept until the covariance changes (a refused miss leaves it as it was)."""
+        if self._root is None:
+            try:
+                self._root = np.linalg.cholesky(self._cov)
+            except np.linalg.LinAlgError:  # a parameter pinned down to 1e-8 of its tolerance
+                w, V = np.linalg.eigh(self._cov)
+                self._root = V * np.sqrt(np.maximum(w, 0.0))
+        return self._root
 
     def mean(self, names: list[str]) -> np.ndarray:
         """The estimate of each named parameter (in stds; 0 if never seen)."""
@@ -111,3 +152,19 @@ class InstallationEstimate:
         """The remaining standard deviation of one parameter (1 if never seen)."""
         i = self._index.get(name)
         return 1.0 if i is None else float(np.sqrt(self._cov[i, i]))
+
+
+def _inverse2(S: np.ndarray) -> np.ndarray:
+    """The inverse of a 2 x 2 matrix in closed form (NaN throughout where it is singular or
+    not finite): ``np.linalg.solve`` on a 2 x 2 costs more in its argument handling than
+    the arithmetic."""
+    (a, b), (c, d) = S.tolist()
+    det = a * d - b * c
+    if det == 0.0 or not math.isfinite(det):
+        return np.full((2, 2), np.nan)
+    return np.array([[d, -b], [-c, a]]) / det
+
+
+def _chi2(v: np.ndarray, Sinv: np.ndarray) -> float:
+    """``v^T S^-1 v`` of a residual ``v`` (2,) given ``S^-1``."""
+    return float(v @ Sinv @ v)

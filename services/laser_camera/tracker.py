@@ -53,6 +53,7 @@ import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from itertools import combinations
 from typing import NamedTuple
 
@@ -495,8 +496,8 @@ class LaserTracker:
         """``est`` corrected by the installation's estimate, after that took this frame
         set's miss (if it agrees with the estimate so far: ``estimate_gate_chi2``).
 
-        Each parameter moves the four dots by ``D`` per std (:func:`_dot_moves`, and each
-        screen map's error: ``_Screens.map_moves``), the miss by ``Jm D`` and the pose by
+        Each parameter moves the four dots by ``D`` per std (:func:`_dot_moves`, each
+        screen map's error included), the miss by ``Jm D`` and the pose by
         ``Jp D``: the pose is moved back by ``Jp D mean``, its systematic covariance is
         ``Jp D P (Jp D)^T`` (P the estimate's remaining covariance) instead of the whole
         tolerances', and each dot is moved back by ``D mean`` with ``D P D^T`` as its
@@ -508,16 +509,16 @@ class LaserTracker:
         names, D, H, noise = self._miss_model(fit, dots)
         if not estimate.update(fit.miss, noise, names, H):
             self.counts["installation_miss_refused"] += 1
-        mean, P = estimate.mean(names), estimate.covariance(names)
-        S = np.einsum("pka,kam->pm", J.reshape(6, 4, 2), D)
+        at, mean, rows = estimate.rows(names)
+        S = J @ D.reshape(8, -1)  # J's column 2k + a: dot k along its wall's axis a
         shift = S @ mean  # xi form: the pose's error the estimate explains
         dphi = shift[3:]
         position = p0 - (shift[:3] - geo.skew3(p0) @ dphi)
         quaternion = geo.quat_multiply(geo.rotvec_to_quat(-dphi), est.quaternion)
-        systematic = S @ P @ S.T + _model_covariance(p0, p)
+        root, draw = _estimate_columns(S, at, rows, estimate)
+        systematic = draw[:, at] @ S.T + _model_covariance(p0, p)  # S P S^T
         systematic = 0.5 * (systematic + systematic.T)
-        root, draw = _estimate_columns(S, names, estimate)
-        points, dot_std = _corrected_dots(dots, idx, D, mean, P)
+        points, dot_std = _corrected_dots(dots, idx, D, mean, rows[:, at])
         return replace(
             est, position=position, quaternion=quaternion / np.linalg.norm(quaternion),
             covariance=est.covariance - est.systematic + systematic, systematic=systematic,
@@ -548,23 +549,20 @@ class LaserTracker:
             else None
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
                                fit.pose.quaternion, slopes)
-        H = np.einsum("kai,kam->mi", fit.jacobian, D)
+        H = fit.jacobian.reshape(8, 2).T @ D.reshape(8, -1)  # sum over each dot's axes
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
-        model = names, D, H.T, noise
+        model = names, D, H, noise
         self._model = fit, dots, model
         return model
 
     def _moves(self, dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
                quaternion: np.ndarray, slopes: _DotSlopes | None = None,
-               ) -> tuple[list[str], np.ndarray]:
+               ) -> tuple[tuple[str, ...], np.ndarray]:
         """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
         along its wall's axes per one std of each installation parameter that moves it, the
         screen maps' included: the parameters' names and the moves (dots, 2 axes, params).
         ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if already taken."""
-        moves = _dot_moves(dots, idx, labels, p0, quaternion, self.params, slopes)
-        if self._screens is not None:
-            self._screens.map_moves(dots, idx, moves)
-        return moves.names, moves.array()
+        return _dot_moves(dots, idx, labels, p0, quaternion, self.params, slopes, self._screens)
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
         """The labelings of every 4-subset whose geometry fits the housing (eps of eq.
@@ -809,27 +807,29 @@ class _Screens:
         self.index = {c.name: i for i, c in enumerate(cameras)}
         self.axes = np.array([c.wall.rotation[:, :2].T for c in cameras])  # in-plane axes
         self.eyes = np.array([c.centre_world() for c in cameras])
+        #: each camera's wall's screen -> world transform and side, and its map's accuracy
+        self.translation = np.array([c.wall.translation for c in cameras], float)
+        self.rotation = np.array([c.wall.rotation for c in cameras], float)
+        self.side = np.array([c.wall.screen_side_m for c in cameras], float)
+        self.sigma = np.array([c.screen_sigma_m(calib_sigma_m) for c in cameras])
         self.maps = [_ScreenMap(tuple(np.ravel(c.H).tolist()),
                                 tuple(np.ravel(c.wall.rotation).tolist()),
                                 tuple(np.ravel(c.wall.translation).tolist()),
                                 float(c.wall.plane_distance), float(c.wall.screen_side_m),
                                 c.screen_sigma_m(calib_sigma_m)) for c in cameras]
 
-    def map_moves(self, dots: WorldDots, idx: list[int], out: _MoveTable) -> None:
-        """Add to ``out`` how far each dot ``idx`` moves along its wall's axes per one
-        standard deviation of each of its camera's screen map parameters: the map's error
-        as a small change of its homography (``dX = a + b x + c y - X (g x + h y)``, x, y
-        the screen point scaled to [-1, 1]), each of its eight coefficients with the
-        calibration's reported per-axis accuracy (``screen_sigma_m``) as its std."""
-        for k, i in enumerate(idx):
-            c = self.index.get(dots.cameras[i])
-            if c is None:
-                continue
-            wall, sigma = self.cameras[c].wall, self.maps[c].sigma_m
-            x, y = 2 * wall.to_screen(dots.points[i])[0] / wall.screen_side_m - 1
-            basis = sigma * np.array([[1, x, y, 0, 0, 0, x * x, x * y],
-                                      [0, 0, 0, 1, x, y, x * y, y * y]])
-            out.add([f"camera {dots.cameras[i]} map {j}" for j in range(8)], k, basis)
+    def map_bases(self, points: np.ndarray, cams: list[int]) -> np.ndarray:
+        """How far each dot ``points`` (k, 3) seen by camera ``cams[k]`` moves along its
+        wall's axes per one standard deviation of each of that camera's screen map
+        parameters (k, 2, 8): the map's error as a small change of its homography
+        (``dX = a + b x + c y - X (g x + h y)``, x, y the screen point scaled to [-1, 1]),
+        each of its eight coefficients with the calibration's reported per-axis accuracy
+        (``screen_sigma_m``) as its std."""
+        screen = np.einsum("ki,kij->kj", points + self.translation[cams],
+                           self.rotation[cams])[:, :2]
+        x, y = (2 * screen / self.side[cams][:, None] - 1).T
+        terms = np.stack([np.ones(len(x)), x, y, x * x, x * y, y * y, np.zeros(len(x))], -1)
+        return (self.sigma[cams][:, None] * terms)[:, _MAP_TERMS]
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
@@ -1416,11 +1416,12 @@ def _covariance(J: np.ndarray, std_m: np.ndarray, p0: np.ndarray, params: Tracke
     return 0.5 * (whole + whole.T), 0.5 * (systematic + systematic.T)
 
 
-def _estimate_columns(S: np.ndarray, names: list[str], estimate: InstallationEstimate,
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """``S`` (6 x len(names)) times a root of the estimate's whole remaining covariance P,
-    and ``S`` times P itself, each one column per parameter in the estimate's own order
-    (``estimate.names``).
+def _estimate_columns(S: np.ndarray, at: np.ndarray, rows: np.ndarray,
+                      estimate: InstallationEstimate) -> tuple[np.ndarray, np.ndarray]:
+    """``S`` (6 x len(at); its columns the parameters at the estimate's indices ``at``,
+    whose rows of the estimate's covariance are ``rows``) times a root of the estimate's
+    whole remaining covariance P, and ``S`` times P itself, each one column per parameter
+    in the estimate's own order (``estimate.names``).
 
     Why the whole covariance in one fixed order: a consumer (the alignment) takes each
     named column of the root for one shared source across the poses it holds, which is
@@ -1429,21 +1430,9 @@ def _estimate_columns(S: np.ndarray, names: list[str], estimate: InstallationEst
     the installation's draw, in stds, prior N(0, I)) less what this run's misses' noise
     left in it, so ``S P`` is what of the pose's error every run in the same installation
     shares; the rest is the run's own."""
-    order = {name: i for i, name in enumerate(estimate.names)}
-    every = np.zeros((S.shape[0], len(order)))
-    every[:, [order[name] for name in names]] = S
-    P = estimate.covariance(estimate.names)
-    return every @ _cholesky(P), every @ P
-
-
-def _cholesky(P: np.ndarray) -> np.ndarray:
-    """``L`` with ``L L^T = P`` for a covariance that rounding may have left a hair short
-    of positive definite (a parameter pinned down to 1e-8 of its tolerance)."""
-    try:
-        return np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(P)
-        return V * np.sqrt(np.maximum(w, 0.0))
+    every = np.zeros((S.shape[0], len(estimate.names)))
+    every[:, at] = S
+    return every @ estimate.root(), S @ rows
 
 
 def _model_covariance(p0: np.ndarray, params: TrackerParams) -> np.ndarray | float:
@@ -1500,10 +1489,8 @@ def installation_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tracker
            for label in labels]
     p0 = np.asarray(estimate.position, float)
     Jd = _pose_jacobian(dots, idx, p0).reshape(6, 4, 2)
-    moves = _dot_moves(dots, idx, labels, p0, estimate.quaternion, p)
-    D = moves.array()
-    return {name: np.einsum("pka,ka->p", Jd, D[..., j].copy())
-            for j, name in enumerate(moves.names)}
+    names, D = _dot_moves(dots, idx, labels, p0, estimate.quaternion, p)
+    return {name: np.einsum("pka,ka->p", Jd, D[..., j].copy()) for j, name in enumerate(names)}
 
 
 def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: TrackerParams,
@@ -1525,13 +1512,19 @@ def installation_draw_sensitivity(dots: WorldDots, estimate: PoseEstimate, p: Tr
 
 def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarray,
                quaternion: np.ndarray, p: TrackerParams, slopes: _DotSlopes | None = None,
-               ) -> _MoveTable:
+               screens: _Screens | None = None) -> tuple[tuple[str, ...], np.ndarray]:
     """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
     along its wall's two axes per one standard deviation of each of the installation's
-    parameters (:func:`installation_sensitivity` names them); a parameter that moves none
-    of them is left out.  Room is left for each dot's camera's screen map
-    (``_Screens.map_moves``).  ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if
-    already taken."""
+    parameters (:func:`installation_sensitivity` names them), and with ``screens`` of
+    each of its camera's screen map's (:meth:`_Screens.map_bases`): the parameters' names
+    and the moves (dots, 2 axes, parameters); a parameter that moves none of the dots is
+    left out.  ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if already taken.
+
+    Each dot's moves are one block (its beam's four parameters, its screen's bend, its
+    camera's turn, its camera's map), computed for all dots at once and scattered into
+    the columns :func:`_move_layout` keeps for the dots' labels, walls and cameras: a frame
+    set's four dots see some sixty parameters, and numpy's per-call overhead, not the
+    arithmetic, is the cost of building them parameter by parameter."""
     x, A = dots.points[idx], dots.axes[idx]
     n = _cross(A[:, 0], A[:, 1])
     d = x - p0
@@ -1546,53 +1539,64 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
     beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
     k4 = len(idx)
-    out = _MoveTable(k4, k4 * (4 + 1 + 3 + 8))
-    tilt, offset = (r * p.housing_dir_std_rad)[:, None, None] * beam, p.housing_offset_std_m * beam
-    per_beam = np.stack([tilt[:, 0], offset[:, 0], tilt[:, 1], offset[:, 1]], axis=-1)
-    for k, label in enumerate(labels):
-        out.add(_BEAM_NAMES[label], k, per_beam[k])
     eyes = None if dots.eyes is None else dots.eyes[idx]
+    cams = () if screens is None else tuple(screens.index.get(dots.cameras[i]) for i in idx)
+    mapped = tuple(c is not None for c in cams)
+    names, src, dst, width = _move_layout(
+        tuple(labels), tuple(dots.walls[i] for i in idx), tuple(dots.cameras[i] for i in idx),
+        eyes is not None, mapped)
+    blocks = np.empty((k4, 2, width))
+    # per beam: tilt a, offset a, tilt b, offset b (``_BEAM_NAMES``' order)
+    scale = np.stack([r * p.housing_dir_std_rad, np.full(k4, p.housing_offset_std_m)], -1)
+    blocks[..., :4] = (beam.transpose(0, 2, 1)[..., None] * scale[:, None, None]).reshape(
+        k4, 2, 4)
     shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
     if slopes is None:
         slopes = _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
-    bend = slopes.bend * (p.screen_bulge_std_m * shape)[:, None]
+    blocks[..., 4] = slopes.bend * (p.screen_bulge_std_m * shape)[:, None]
     if eyes is None:
-        cameras = p.camera_residual_std_m * np.broadcast_to(np.eye(2), (k4, 2, 2))
-        axes = ("residual 0", "residual 1")
+        blocks[..., 5:7] = p.camera_residual_std_m * np.eye(2)
     else:
-        cameras = p.camera_turn_std_rad * slopes.turn
-        axes = ("turn x", "turn y", "turn z")
-    for k, i in enumerate(idx):
-        out.add([f"screen {dots.walls[i]} bend"], k, bend[k][:, None])
-        out.add([f"camera {dots.cameras[i]} {axis}" for axis in axes], k, cameras[k])
-    return out
+        blocks[..., 5:8] = p.camera_turn_std_rad * slopes.turn
+    if any(mapped):
+        blocks[..., width - 8:] = screens.map_bases(x, [c or 0 for c in cams])
+    out = np.zeros(k4 * 2 * len(names))
+    out[dst] = blocks.take(src)
+    return names, out.reshape(k4, 2, len(names))
 
 
-class _MoveTable:
-    """Each dot's move along its wall's two axes per one std of named parameters, built in
-    place as the columns of one array (dots, 2, parameters): a frame set's four dots see
-    some sixty parameters, and a small array per parameter, stacked afterwards, cost
-    more than the arithmetic."""
-
-    def __init__(self, rows: int, capacity: int):
-        self.names: list[str] = []
-        self._column: dict[str, int] = {}
-        self._moves = np.zeros((rows, 2, capacity))
-
-    def add(self, names: list[str], k: int, moves: np.ndarray) -> None:
-        """Add ``moves`` (2, len(names)) to dot ``k``'s moves per each of ``names``, which
-        are always added together (a beam's, a camera's turn, a screen map's): two dots
-        may share a screen or a camera."""
-        j = self._column.get(names[0])
-        if j is None:
-            j = len(self.names)
-            self._column.update((name, j + m) for m, name in enumerate(names))
-            self.names += names
-        self._moves[k, :, j:j + len(names)] += moves
-
-    def array(self) -> np.ndarray:
-        """The moves (dots, 2, len(names)), one column per name in ``names``' order."""
-        return self._moves[..., :len(self.names)].copy()
+@lru_cache(maxsize=4096)
+def _move_layout(labels: tuple[int, ...], walls: tuple[str, ...], cameras: tuple[str, ...],
+                 turn: bool, mapped: tuple[bool, ...],
+                 ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, int]:
+    """The parameters that move dots of diodes ``labels`` on ``walls`` seen by ``cameras``
+    (their turn known: ``turn``; their screen maps held where ``mapped``), in the order
+    :func:`_dot_moves` names them: each beam's, then each dot's screen bend and camera
+    turn, then each dot's camera map, a parameter shared by two dots (a screen, a camera)
+    named once; and where each dot's block of moves goes: flat indices into the blocks
+    (dots, 2, ``width``) and into the moves (dots, 2, parameters).  Depends on the dots'
+    labels, walls and cameras alone, which a tracked head keeps for many frame sets."""
+    axes = ("turn x", "turn y", "turn z") if turn else ("residual 0", "residual 1")
+    width = 5 + len(axes) + (8 if any(mapped) else 0)
+    groups = [(k, _BEAM_NAMES[label], 0) for k, label in enumerate(labels)]
+    for k, (wall, camera) in enumerate(zip(walls, cameras, strict=True)):
+        groups += [(k, [f"screen {wall} bend"], 4),
+                   (k, [f"camera {camera} {axis}" for axis in axes], 5)]
+    groups += [(k, [f"camera {camera} map {j}" for j in range(8)], width - 8)
+               for k, camera in enumerate(cameras) if mapped and mapped[k]]
+    names: list[str] = []
+    column: dict[str, int] = {}
+    places = []  # (dot, block column, parameter column)
+    for k, group, first in groups:
+        j = column.setdefault(group[0], len(names))
+        if j == len(names):
+            column.update((name, j + m) for m, name in enumerate(group))
+            names += group
+        places += [(k, first + m, j + m) for m in range(len(group))]
+    m = len(names)
+    src = [(2 * k + a) * width + b for a in range(2) for k, b, _ in places]
+    dst = [(2 * k + a) * m + j for a in range(2) for k, _, j in places]
+    return tuple(names), np.array(src), np.array(dst), width
 
 
 #: per beam label, its parameters' names in ``_dot_moves``' order
@@ -1605,6 +1609,9 @@ _ACROSS_BEAM = np.array([[e for e in np.eye(3) if abs(e @ b) < 0.5]
                                    for k in sorted(BEAM_DIRECTIONS))])
 
 
+#: a screen map's moves per coefficient, taken from the terms (1, x, y, xx, xy, yy, 0) of
+#: the dot's screen point: ``dX = a + b x + c y - X (g x + h y)`` along each axis
+_MAP_TERMS = np.array([[0, 1, 2, 6, 6, 6, 3, 4], [6, 6, 6, 0, 1, 2, 4, 5]])
 #: the skew part of a rotation's small error, as flat indices into the row-major 3 x 3:
 #: component j is R[(2, 0, 1)[j], (1, 2, 0)[j]] minus its transposed entry (flat indices
 #: take one ``take`` each, where a row and column index pair takes a slower fancy index)
