@@ -227,7 +227,10 @@ def _threshold_variance(roi: np.ndarray, sel: np.ndarray, signal: np.ndarray,
         z = (roi - float(p.threshold)) / np.sqrt(var_i)
     inside = ndtr(z)
     weight = inside * (1.0 - inside) * sel * signal * signal  # inf z -> 0
-    m = cv2.moments(np.nan_to_num(weight))
+    # 0 / 0 (a pixel at the threshold without noise: unselected or saturated) -> weight 0;
+    # in place: nan_to_num's inf handling costs more than the rest of this on a window
+    np.copyto(weight, 0.0, where=np.isnan(weight))
+    m = cv2.moments(weight)
     return float(m["m20"] + m["m02"] - 2.0 * (u * m["m10"] + v * m["m01"])
                  + (u * u + v * v) * m["m00"])
 

@@ -323,8 +323,6 @@ class LaserTracker:
         self._seen = _SeenDots()
         #: the last fit's miss model (``_miss_model``): a frame set asks for it twice
         self._model: tuple[_Fit, WorldDots, tuple] | None = None
-        #: the chosen fit's dots' slopes (``_dot_slopes``): its miss model moves the same dots
-        self._slopes: tuple[_Fit, _DotSlopes] | None = None
         self._keys: list[str] = []
         self._keys_of: object = None  # the estimate ``_keys`` name
         self._screens = None if calibration is None else _Screens(
@@ -463,16 +461,12 @@ class LaserTracker:
         if isinstance(picked, NoPose):
             return picked
         k, lead = picked
-        best, idx = fits[k].pose, fits[k].idx
-        self._slopes = None
+        best, idx, sys_cov = fits[k].pose, fits[k].idx, fits[k].installation
         try:
-            slopes = _dot_slopes(dots, idx, best.position)
-            sys_cov = _installation_covariance(dots, idx, best.position, p, slopes)
             J = _pose_jacobian(dots, idx, best.position)
             cov, systematic = _covariance(J, dots.std_m[idx], best.position, p, sys_cov)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
-        self._slopes = fits[k], slopes
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
@@ -545,10 +539,8 @@ class LaserTracker:
         the miss's noise as the estimate takes it."""
         if self._model is not None and self._model[0] is fit and self._model[1] is dots:
             return self._model[2]
-        slopes = self._slopes[1] if self._slopes is not None and self._slopes[0] is fit \
-            else None
         names, D = self._moves(dots, fit.idx, [1, 2, 3, 4], fit.pose.position,
-                               fit.pose.quaternion, slopes)
+                               fit.pose.quaternion, fit.slopes)
         H = fit.jacobian.reshape(8, 2).T @ D.reshape(8, -1)  # sum over each dot's axes
         noise = fit.random + self.params.estimate_miss_floor_m ** 2 * np.eye(2)
         model = names, D, H, noise
@@ -561,7 +553,7 @@ class LaserTracker:
         """How far each dot ``idx`` (diodes ``labels``, rig at ``p0``, ``quaternion``) moves
         along its wall's axes per one std of each installation parameter that moves it, the
         screen maps' included: the parameters' names and the moves (dots, 2 axes, params).
-        ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if already taken."""
+        ``slopes``: the dots' :class:`_DotSlopes` at ``p0`` if already taken."""
         return _dot_moves(dots, idx, labels, p0, quaternion, self.params, slopes, self._screens)
 
     def _fits(self, dots: WorldDots, t: float) -> list[_Fit] | NoPose:
@@ -581,10 +573,11 @@ class LaserTracker:
             if not cands:
                 return NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
                               f"than a head can since the last pose {t - last.t:.3f} s ago")
-        miss, random, systematic, jacobian = fourth_beam_residuals(
+        miss, random, systematic, jacobian, installation, slopes = _fourth_beam_parts(
             dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
         chi2 = _chi2(miss, random + systematic.sum(axis=1))
-        fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j], jacobian[j])
+        fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j], jacobian[j],
+                     installation[j], slopes.four(j))
                 for j, (c, idx) in enumerate(cands) if chi2[j] <= p.max_residual_chi2]
         return fits or NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
@@ -1070,7 +1063,7 @@ def _installation_variance(dots: WorldDots, idx: list[int], p0: np.ndarray,
 
 
 def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
-                             p: TrackerParams, slopes: _DotSlopes | None = None) -> np.ndarray:
+                             p: TrackerParams) -> np.ndarray:
     """In-plane covariance (n, 2, 2) over the wall's two axes that each dot ``idx`` gets
     from the installation's tolerances.
 
@@ -1084,20 +1077,20 @@ def _installation_covariance(dots: WorldDots, idx: list[int], p0: np.ndarray,
     turned by ``theta`` since calibration moves the dot where its turned ray meets the
     plane: ``dX = dr - r (n . dr) / (n . r)``, ``dr = theta x r``, ``r`` from the camera's
     centre to the dot, more far from the camera's axis.  Dots whose camera is unknown get
-    the bend without its parallax and ``camera_residual_std_m`` in both axes.  ``slopes``:
-    the dots' :func:`_dot_slopes` at ``p0`` if already taken."""
+    the bend without its parallax and ``camera_residual_std_m`` in both axes."""
     idx = list(idx)
     return _installation_covariances(
         dots.points[idx], dots.axes[idx], None if dots.bend is None else dots.bend[idx],
-        None if dots.eyes is None else dots.eyes[idx], np.asarray(p0, float), p, slopes)
+        None if dots.eyes is None else dots.eyes[idx], np.asarray(p0, float), p)[0]
 
 
 def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | None,
                               eyes: np.ndarray | None, p0: np.ndarray,
-                              p: TrackerParams, slopes: _DotSlopes | None = None) -> np.ndarray:
+                              p: TrackerParams) -> tuple[np.ndarray, _DotSlopes]:
     """:func:`_installation_covariance` of dots ``x`` (k, 3) on walls with in-plane axes
     ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
-    per dot), all at once (a frame set's labelings hold a few dozen dots)."""
+    per dot), all at once (a frame set's labelings hold a few dozen dots), and the dots'
+    :class:`_DotSlopes` it took (the chosen labeling's estimate moves its dots by them)."""
     n = _cross(A[:, 0], A[:, 1])  # outward
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
@@ -1110,8 +1103,7 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     cov = across[:, None, None] * (np.eye(2) + (1 / c ** 2 - 1)[:, None, None]
                                    * np.einsum("ka,kb->kab", u, u))
     shape = np.ones(len(x)) if bend is None else np.asarray(bend, float)
-    if slopes is None:
-        slopes = _slopes(x, A, n, Ad, dn, r, eyes)
+    slopes = _slopes(x, A, n, Ad, dn, r, eyes)
     slope = slopes.bend
     if eyes is None:
         cov += p.camera_residual_std_m ** 2 * np.eye(2)
@@ -1119,7 +1111,7 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
         J = slopes.turn
         cov += p.camera_turn_std_rad ** 2 * np.einsum("kat,kbt->kab", J, J)
     return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * np.einsum(
-        "ka,kb->kab", slope, slope)
+        "ka,kb->kab", slope, slope), slopes
 
 
 class _DotSlopes(NamedTuple):
@@ -1131,16 +1123,10 @@ class _DotSlopes(NamedTuple):
     bend: np.ndarray
     turn: np.ndarray | None
 
-
-def _dot_slopes(dots: WorldDots, idx: list[int], p0: np.ndarray) -> _DotSlopes:
-    """The :class:`_DotSlopes` of dots ``idx`` for a rig at ``p0``."""
-    x, A = dots.points[idx], dots.axes[idx]
-    n = _cross(A[:, 0], A[:, 1])
-    d = x - np.asarray(p0, float)
-    r = np.sqrt(np.einsum("ki,ki->k", d, d))
-    dn = np.abs(np.einsum("ki,ki->k", n, d))
-    return _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), dn, r,
-                   None if dots.eyes is None else dots.eyes[idx])
+    def four(self, j: int) -> _DotSlopes:
+        """The slopes of dots ``4 j .. 4 j + 3``: labeling ``j``'s, of a stack of them."""
+        return _DotSlopes(self.bend[4 * j:4 * j + 4],
+                          None if self.turn is None else self.turn[4 * j:4 * j + 4])
 
 
 def _slopes(x: np.ndarray, A: np.ndarray, n: np.ndarray, Ad: np.ndarray, dn: np.ndarray,
@@ -1194,6 +1180,8 @@ class _Fit:
     random: np.ndarray  # (2, 2) covariance from the dots' noise
     systematic: np.ndarray  # (4, 2, 2) and from each dot's installation tolerances
     jacobian: np.ndarray  # (4, 2, 2) its change per metre each dot moves along each wall axis
+    installation: np.ndarray  # (4, 2, 2) each dot's in-plane installation covariance
+    slopes: _DotSlopes  # the dots' slopes that covariance took
 
 
 @dataclass(frozen=True)
@@ -1328,20 +1316,32 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
     along the rig's x and y, times nothing: metres at the dot).  Its covariance comes by
     numeric Jacobian from all four dots' in-plane errors.  NaN where a labeling's dots
     give no frame."""
+    return _fourth_beam_parts(dots, orders, origins, p, step_m)[:4]
+
+
+def _fourth_beam_parts(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
+                       p: TrackerParams, step_m: float = 1e-5,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                  _DotSlopes]:
+    """:func:`fourth_beam_residuals`, and each labeling's dots' installation covariance (m,
+    4, 2, 2) and :class:`_DotSlopes` (over the m * 4 dots, labeling by labeling) it took:
+    the chosen labeling's pose covariance and estimate take them again."""
     m = len(orders)
     if not m:
-        return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros((0, 4, 2, 2))
+        return (np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
+                np.zeros((0, 4, 2, 2)), np.zeros((0, 4, 2, 2)),
+                _DotSlopes(np.zeros((0, 2)), None))
     idx = np.array(orders)  # (m, 4)
     r, Jd = _miss_jacobians(dots, idx, step_m)
     flat = idx.ravel()
-    installation = _installation_covariances(
+    installation, slopes = _installation_covariances(
         dots.points[flat], dots.axes[flat], None if dots.bend is None else dots.bend[flat],
         None if dots.eyes is None else dots.eyes[flat], np.repeat(np.asarray(origins, float),
-                                                                  4, axis=0),
-        p).reshape(m, 4, 2, 2)
+                                                                  4, axis=0), p)
+    installation = installation.reshape(m, 4, 2, 2)
     systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
     random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
-    return r, random, systematic, Jd
+    return r, random, systematic, Jd, installation, slopes
 
 
 def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
@@ -1363,15 +1363,15 @@ def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
 
 def _chi2(r: np.ndarray, S: np.ndarray) -> np.ndarray:
     """``r_j^T S_j^-1 r_j`` of each residual (m, 2) under its covariance (m, 2, 2); inf where
-    either is not finite or ``S`` is singular."""
-    with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(S).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
-              & (np.linalg.det(np.nan_to_num(S)) > 0))
-    out = np.full(len(r), np.inf)
-    if ok.any():
-        r0 = r[ok]
-        out[ok] = np.einsum("mi,mi->m", r0, np.linalg.solve(S[ok], r0[..., None])[..., 0])
-    return out
+    either is not finite or ``S`` is singular (a determinant not above 0).  In closed form:
+    ``np.linalg.solve`` and ``det`` on 2 x 2 blocks cost more in their argument handling
+    than the arithmetic."""
+    a, b, c, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 0], S[:, 1, 1]
+    r0, r1 = r[:, 0], r[:, 1]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        det = a * d - b * c
+        chi2 = (d * r0 * r0 - (b + c) * r0 * r1 + a * r1 * r1) / det
+        return np.where((det > 0) & np.isfinite(det) & np.isfinite(chi2), chi2, np.inf)
 
 
 def _rival(poses: list[LabeledPose], k: int, lead: np.ndarray, cov: np.ndarray,
@@ -1518,7 +1518,7 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     parameters (:func:`installation_sensitivity` names them), and with ``screens`` of
     each of its camera's screen map's (:meth:`_Screens.map_bases`): the parameters' names
     and the moves (dots, 2 axes, parameters); a parameter that moves none of the dots is
-    left out.  ``slopes``: the dots' :func:`_dot_slopes` at ``p0`` if already taken.
+    left out.  ``slopes``: the dots' :class:`_DotSlopes` at ``p0`` if already taken.
 
     Each dot's moves are one block (its beam's four parameters, its screen's bend, its
     camera's turn, its camera's map), computed for all dots at once and scattered into
