@@ -105,13 +105,12 @@ class InstallationEstimate:
         if not _chi2(v, Sinv) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False
-        K = PHt @ Sinv.T
-        self._mean += K @ v
-        # Joseph-free form, symmetrised: the gain is optimal and the update rank 2
-        cov = self._cov
-        cov -= K @ PHt.T
-        np.add(cov, cov.T, out=cov)
-        cov *= 0.5
+        self._mean += PHt @ Sinv.T @ v
+        # Joseph-free form (the gain is optimal), its rank-2 part P H^T S^-1 H P taken as
+        # Y Y^T (Y = P H^T G, G G^T = S^-1): a product with its own transpose is exactly
+        # symmetric, so the covariance stays so without a pass to symmetrise it
+        Y = PHt @ _root2(Sinv)
+        self._cov -= Y @ Y.T
         self._root = None
         self.accepted += 1
         return True
@@ -163,6 +162,15 @@ def _inverse2(S: np.ndarray) -> np.ndarray:
     if det == 0.0 or not math.isfinite(det):
         return np.full((2, 2), np.nan)
     return np.array([[d, -b], [-c, a]]) / det
+
+
+def _root2(A: np.ndarray) -> np.ndarray:
+    """``G`` lower triangular with ``G G^T`` the symmetric part of a positive definite 2 x 2
+    matrix ``A`` (Cholesky, in closed form)."""
+    (a, b), (c, d) = A.tolist()
+    g00 = math.sqrt(a)
+    g10 = 0.5 * (b + c) / g00
+    return np.array([[g00, 0.0], [g10, math.sqrt(max(d - g10 * g10, 0.0))]])
 
 
 def _chi2(v: np.ndarray, Sinv: np.ndarray) -> float:

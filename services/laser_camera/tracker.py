@@ -463,7 +463,7 @@ class LaserTracker:
         k, lead = picked
         best, idx, sys_cov = fits[k].pose, fits[k].idx, fits[k].installation
         try:
-            J = _pose_jacobian(dots, idx, best.position)
+            J = _pose_jacobian(dots, idx, best.position, frames=fits[k].frames)
             cov, systematic = _covariance(J, dots.std_m[idx], best.position, p, sys_cov)
         except ValueError as exc:
             return NoPose(t, "degenerate", n, str(exc))
@@ -573,11 +573,12 @@ class LaserTracker:
             if not cands:
                 return NoPose(t, "gated_jump", n, "every labeling moved or turned faster "
                               f"than a head can since the last pose {t - last.t:.3f} s ago")
-        miss, random, systematic, jacobian, installation, slopes = _fourth_beam_parts(
-            dots, [idx for _, idx in cands], [c.position for c, _ in cands], p)
+        miss, random, systematic, jacobian, installation, slopes, (p0s, Rs) = \
+            _fourth_beam_parts(dots, [idx for _, idx in cands], [c.position for c, _ in cands],
+                               p)
         chi2 = _chi2(miss, random + systematic.sum(axis=1))
         fits = [_Fit(c, idx, float(chi2[j]), miss[j], random[j], systematic[j], jacobian[j],
-                     installation[j], slopes.four(j))
+                     installation[j], slopes.four(j), (p0s[j], Rs[j]))
                 for j, (c, idx) in enumerate(cands) if chi2[j] <= p.max_residual_chi2]
         return fits or NoPose(t, "inconsistent_dots", n, "no labeling's dots fit one pose: "
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
@@ -820,9 +821,10 @@ class _Screens:
         (``screen_sigma_m``) as its std."""
         screen = np.einsum("ki,kij->kj", points + self.translation[cams],
                            self.rotation[cams])[:, :2]
-        x, y = (2 * screen / self.side[cams][:, None] - 1).T
-        terms = np.stack([np.ones(len(x)), x, y, x * x, x * y, y * y, np.zeros(len(x))], -1)
-        return (self.sigma[cams][:, None] * terms)[:, _MAP_TERMS]
+        xy = 2 * screen / self.side[cams][:, None] - 1
+        terms = np.concatenate([np.ones((len(xy), 1)), xy, xy.take(_SQUARES_A, 1)
+                                * xy.take(_SQUARES_B, 1)], axis=1)  # 1, x, y, xx, xy, yy
+        return ((self.sigma[cams][:, None] * terms) @ _MAP_TERMS).reshape(len(xy), 2, 8)
 
     def to_world(self, detections: Mapping[str, np.ndarray], p: TrackerParams) -> WorldDots:
         """The dots on the active screens, before duplicates are merged."""
@@ -1182,6 +1184,8 @@ class _Fit:
     jacobian: np.ndarray  # (4, 2, 2) its change per metre each dot moves along each wall axis
     installation: np.ndarray  # (4, 2, 2) each dot's in-plane installation covariance
     slopes: _DotSlopes  # the dots' slopes that covariance took
+    #: the frames (P0 (9, 3), R (9, 3, 3)) of its dots and their perturbed copies
+    frames: tuple[np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -1322,17 +1326,18 @@ def fourth_beam_residuals(dots: WorldDots, orders: list[list[int]], origins: lis
 def _fourth_beam_parts(dots: WorldDots, orders: list[list[int]], origins: list[np.ndarray],
                        p: TrackerParams, step_m: float = 1e-5,
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                  _DotSlopes]:
+                                  _DotSlopes, tuple[np.ndarray, np.ndarray]]:
     """:func:`fourth_beam_residuals`, and each labeling's dots' installation covariance (m,
-    4, 2, 2) and :class:`_DotSlopes` (over the m * 4 dots, labeling by labeling) it took:
-    the chosen labeling's pose covariance and estimate take them again."""
+    4, 2, 2) and :class:`_DotSlopes` (over the m * 4 dots, labeling by labeling) it took,
+    and the frames of its dots' perturbed copies (:func:`_miss_jacobians`): the chosen
+    labeling's pose covariance and estimate take them again."""
     m = len(orders)
     if not m:
         return (np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
                 np.zeros((0, 4, 2, 2)), np.zeros((0, 4, 2, 2)),
-                _DotSlopes(np.zeros((0, 2)), None))
+                _DotSlopes(np.zeros((0, 2)), None), (np.zeros((0, 9, 3)), np.zeros((0, 9, 3, 3))))
     idx = np.array(orders)  # (m, 4)
-    r, Jd = _miss_jacobians(dots, idx, step_m)
+    r, Jd, frames = _miss_jacobians(dots, idx, step_m)
     flat = idx.ravel()
     installation, slopes = _installation_covariances(
         dots.points[flat], dots.axes[flat], None if dots.bend is None else dots.bend[flat],
@@ -1341,14 +1346,16 @@ def _fourth_beam_parts(dots: WorldDots, orders: list[list[int]], origins: list[n
     installation = installation.reshape(m, 4, 2, 2)
     systematic = np.einsum("mkai,mkab,mkbj->mkij", Jd, installation, Jd)
     random = np.einsum("mkai,mk,mkaj->mij", Jd, dots.std_m[idx] ** 2, Jd)
-    return r, random, systematic, Jd, installation, slopes
+    return r, random, systematic, Jd, installation, slopes, frames
 
 
 def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """The fourth beam's miss of each labeling (the dot indices of diodes 1..4, (m, 4)),
     (m, 2), and its change per metre each dot moves along each of its wall's axes (m, 4,
-    2, 2: dot, wall axis, miss component), by numeric Jacobian."""
+    2, 2: dot, wall axis, miss component), by numeric Jacobian; and the frames (P0 (m, 9,
+    3), R (m, 9, 3, 3)) of each labeling's dots and their eight perturbed copies, which
+    the chosen labeling's pose Jacobian takes again (:func:`_pose_jacobian`)."""
     m = len(idx)
     P = dots.points[idx]
     axes = dots.axes[idx].reshape(m, 8, 3)  # dot k moves along axes[:, 2k], axes[:, 2k + 1]
@@ -1358,7 +1365,7 @@ def _miss_jacobians(dots: WorldDots, idx: np.ndarray, step_m: float = 1e-5,
     ray = (Q[:, :, 3] - p0.reshape(m, 9, 3))  # P0 -> the fourth dot
     r = np.einsum("mcij,mci->mcj", R.reshape(m, 9, 3, 3)[..., :2], ray)  # across beam 4
     J = (r[:, 1:] - r[:, :1]) / step_m  # (m, 8, 2)
-    return r[:, 0], J.reshape(m, 4, 2, 2)
+    return r[:, 0], J.reshape(m, 4, 2, 2), (p0.reshape(m, 9, 3), R.reshape(m, 9, 3, 3))
 
 
 def _chi2(r: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -1446,14 +1453,18 @@ def _model_covariance(p0: np.ndarray, params: TrackerParams) -> np.ndarray | flo
 
 
 def _pose_jacobian(dots: WorldDots, idx: list[int], p0: np.ndarray, step_m: float = 1e-5,
-                   ) -> np.ndarray:
+                   frames: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The pose's change (6, 8; xi form) per metre each dot ``idx`` moves along each of its
-    wall's two axes (column ``2k + a``), by numeric Jacobian of the closed-form solution."""
-    P = dots.points[idx]
-    axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
-    Q = np.repeat(P[None], 9, axis=0)
-    Q[_PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
-    p, R = frames_from_points(Q)
+    wall's two axes (column ``2k + a``), by numeric Jacobian of the closed-form solution.
+    ``frames``: the frames (P0 (9, 3), R (9, 3, 3)) of the dots and their perturbed copies
+    (:func:`_miss_jacobians`) if already taken."""
+    if frames is None:
+        P = dots.points[idx]
+        axes = dots.axes[idx].reshape(8, 3)  # dot k moves along axes[2k], axes[2k + 1]
+        Q = np.repeat(P[None], 9, axis=0)
+        Q[_PERTURBED_COPY, _PERTURBED_DOT] += step_m * axes
+        frames = frames_from_points(Q)
+    p, R = frames
     if np.isnan(R[:, 0, 0]).any():  # a perturbed copy without a frame is NaN throughout
         raise InvalidInputError("pose: the dots define no frame (P3 on the line P1P2)")
     dR = R[1:] @ R[0].T  # world-frame (left) rotation error, small: read it off the skew part
@@ -1609,9 +1620,20 @@ _ACROSS_BEAM = np.array([[e for e in np.eye(3) if abs(e @ b) < 0.5]
                                    for k in sorted(BEAM_DIRECTIONS))])
 
 
-#: a screen map's moves per coefficient, taken from the terms (1, x, y, xx, xy, yy, 0) of
-#: the dot's screen point: ``dX = a + b x + c y - X (g x + h y)`` along each axis
-_MAP_TERMS = np.array([[0, 1, 2, 6, 6, 6, 3, 4], [6, 6, 6, 0, 1, 2, 4, 5]])
+def _map_terms() -> np.ndarray:
+    """A screen map's moves per coefficient (2 axes x 8, flattened) as a 0/1 selection of
+    the terms (1, x, y, xx, xy, yy) of the dot's screen point, ``dX = a + b x + c y - X (g x
+    + h y)`` along each axis: a product with it gives the terms exactly (times 1, plus 0)."""
+    out = np.zeros((6, 16))
+    for j, term in enumerate([0, 1, 2, -1, -1, -1, 3, 4, -1, -1, -1, 0, 1, 2, 4, 5]):
+        if term >= 0:
+            out[term, j] = 1.0
+    return out
+
+
+_MAP_TERMS = _map_terms()
+#: the screen point's quadratic terms xx, xy, yy as products of its coordinates
+_SQUARES_A, _SQUARES_B = np.array([0, 0, 1]), np.array([0, 1, 1])
 #: the skew part of a rotation's small error, as flat indices into the row-major 3 x 3:
 #: component j is R[(2, 0, 1)[j], (1, 2, 0)[j]] minus its transposed entry (flat indices
 #: take one ``take`` each, where a row and column index pair takes a slower fancy index)
