@@ -245,12 +245,15 @@ def matrix_to_quat(R: Array) -> Array:
     """Rotation matrices (..., 3, 3) to unit quaternions (w >= 0), Shepperd's method.
 
     The four candidates are written into one array rather than stacked (five np.stack
-    calls were most of the cost on the few matrices of a tracker's frame set); one matrix
-    goes through plain floats, the same operations in the same order."""
+    calls were most of the cost on the few matrices of a tracker's frame set); one matrix,
+    or each of a few (``_FEW_MATRICES``: a frame set's candidate poses), goes through plain
+    floats, the same operations in the same order."""
     R = np.asarray(R, dtype=float)
     if R.shape == (3, 3):
         return _matrix_to_quat_one(R)
     lead = R.shape[:-2]
+    if R.size <= 9 * _FEW_MATRICES:
+        return np.array([_matrix_to_quat_one(r) for r in R.reshape(-1, 3, 3)]).reshape(*lead, 4)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(-1, 9).T
     trace = m00 + m11 + m22
     # Four candidate solutions; pick per element the one with the largest pivot (stable).
@@ -287,6 +290,9 @@ def _matrix_to_quat_one(R: Array) -> Array:
     return np.array([s * (x / n), s * (y / n), s * (z / n), s * (w / n)])
 
 
+#: up to this many matrices ``matrix_to_quat`` takes one by one on floats: below it the
+#: array form's dozen numpy calls cost more than a loop over the matrices
+_FEW_MATRICES = 8
 #: where each candidate of ``matrix_to_quat`` holds its pivot (4 w^2, 4 x^2, 4 y^2, 4 z^2)
 _PIVOT_ROWS, _PIVOT_COLS = np.arange(4), np.array([3, 0, 1, 2])
 
@@ -522,14 +528,14 @@ def decoupled_to_se3(p: Array, C: Array) -> Array:
     perturbation the translation part is ``rho = dp - phi x p``.
     """
     J = np.eye(6)
-    J[:3, 3:] = skew(p)
+    J[:3, 3:] = skew3(np.asarray(p, float).reshape(3))  # one 3-vector: the hot-path form
     return J @ np.asarray(C, float) @ J.T
 
 
 def se3_to_decoupled(p: Array, C: Array) -> Array:
     """Inverse of ``decoupled_to_se3``: ``dp = rho + phi x p``."""
     J = np.eye(6)
-    J[:3, 3:] = -skew(p)
+    J[:3, 3:] = -skew3(np.asarray(p, float).reshape(3))  # one 3-vector: the hot-path form
     return J @ np.asarray(C, float) @ J.T
 
 

@@ -45,6 +45,10 @@ def test_one_matrix_and_one_quaternion_equal_the_batch_to_the_bit():
     batch = geo.matrix_to_quat(R)
     for i in range(len(R)):
         assert geo.matrix_to_quat(R[i]).tobytes() == batch[i].tobytes()
+    few = geo._FEW_MATRICES
+    assert geo.matrix_to_quat(R[:few]).tobytes() == batch[:few].tobytes()
+    assert geo.matrix_to_quat(R[-few:].reshape(2, -1, 3, 3)).tobytes() == batch[-few:].tobytes()
+    assert geo.matrix_to_quat(R[:0]).shape == (0, 4)
     q = np.concatenate([unit, q, -unit, [[0, 0, 0, 1.0], [1e-12, 0, 0, 1], [1.0, 0, 0, 0]]])
     rotvecs = geo.quat_to_rotvec(q)
     for i in range(len(q)):

@@ -68,6 +68,7 @@ from services.laser_camera.installation_estimate import InstallationEstimate
 from services.laser_camera.pose import (
     LabeledPose,
     candidate_poses,
+    cross_rows,
     frames_from_points,
 )
 
@@ -1093,7 +1094,7 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
     per dot), all at once (a frame set's labelings hold a few dozen dots), and the dots'
     :class:`_DotSlopes` it took (the chosen labeling's estimate moves its dots by them)."""
-    n = _cross(A[:, 0], A[:, 1])  # outward
+    n = cross_rows(A[:, 0], A[:, 1])  # outward
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
     dn = np.abs(np.einsum("ki,ki->k", n, d))
@@ -1103,7 +1104,7 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     norm = np.sqrt(np.einsum("ka,ka->k", Ad, Ad))
     u = np.where((norm > 0)[:, None], Ad / np.where(norm > 0, norm, 1.0)[:, None], [1.0, 0.0])
     cov = across[:, None, None] * (np.eye(2) + (1 / c ** 2 - 1)[:, None, None]
-                                   * np.einsum("ka,kb->kab", u, u))
+                                   * (u[:, :, None] * u[:, None]))
     shape = np.ones(len(x)) if bend is None else np.asarray(bend, float)
     slopes = _slopes(x, A, n, Ad, dn, r, eyes)
     slope = slopes.bend
@@ -1112,8 +1113,8 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     else:
         J = slopes.turn
         cov += p.camera_turn_std_rad ** 2 * np.einsum("kat,kbt->kab", J, J)
-    return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * np.einsum(
-        "ka,kb->kab", slope, slope), slopes
+    return cov + (p.screen_bulge_std_m * shape)[:, None, None] ** 2 * (
+        slope[:, :, None] * slope[:, None]), slopes
 
 
 class _DotSlopes(NamedTuple):
@@ -1157,18 +1158,16 @@ def _turn_jacobians(x: np.ndarray, A: np.ndarray, n: np.ndarray, eyes: np.ndarra
     world axis: where the turned ray meets the plane, ``dX = dr - r (n . dr) / (n . r)``."""
     back = x - eyes
     nb = np.einsum("ki,ki->k", n, back)
-    turned = _cross(np.eye(3)[None], back[:, None])  # (k, 3 turns, 3): dr per turn axis
+    turned = back[:, _TURNED] * _TURNED_SIGN  # (k, 3 turns, 3): dr = e_t x r per turn axis
     towards = np.einsum("kti,ki->kt", turned, n)
-    moved = turned - np.einsum("kt,ki->kti", towards, back) / nb[:, None, None]
+    moved = turned - towards[:, :, None] * back[:, None] / nb[:, None, None]
     return np.einsum("kai,kti->kat", A, moved)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product (broadcasting over leading axes): ``np.cross`` pays some
-    microseconds of axis handling per call, more than the arithmetic on a few dots."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+#: ``e_t x r`` for each world axis ``t`` (rows) as signed components of ``r``:
+#: (0, -r_z, r_y), (r_z, 0, -r_x), (-r_y, r_x, 0)
+_TURNED = np.array([[0, 2, 1], [2, 0, 0], [1, 0, 0]])
+_TURNED_SIGN = np.array([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -1537,7 +1536,7 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     set's four dots see some sixty parameters, and numpy's per-call overhead, not the
     arithmetic, is the cost of building them parameter by parameter."""
     x, A = dots.points[idx], dots.axes[idx]
-    n = _cross(A[:, 0], A[:, 1])
+    n = cross_rows(A[:, 0], A[:, 1])
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
     unit = d / r[:, None]
