@@ -36,8 +36,28 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     import compileall
 
     root = Path(__file__).resolve().parent.parent
-    for package in ("agent", "schemas", "services"):
+    for package in ("agent", "schemas", "services", "tests/agent_helpers"):
         compileall.compile_dir(root / package, quiet=1)
+    _write_rewritten_test_modules(session.config, root / "tests")
+
+
+def _write_rewritten_test_modules(config: pytest.Config, tests: Path) -> None:
+    """Write pytest's assertion-rewritten bytecode of the test modules once, in the
+    controller: where bytecode is not written on import, each xdist worker otherwise
+    rewrites every test module it collects (about 3.5 s of CPU per worker, before its first
+    test). Workers read these files through pytest's own check (the source's hash), so a
+    stale or missing one is rewritten there as usual."""
+    from _pytest.assertion import rewrite
+
+    state = config.stash.get(rewrite.assertstate_key, None)
+    if state is None:  # --assert=plain: nothing is rewritten
+        return
+    for source in sorted(tests.glob("test_*.py")):
+        cache = rewrite.get_cache_dir(source)
+        pyc = cache / (source.name[:-3] + rewrite.PYC_TAIL)
+        if rewrite._read_pyc(source, pyc) is None and rewrite.try_makedirs(cache):
+            source_hash, code = rewrite._rewrite_test(source, config)
+            rewrite._write_pyc(state, code, source_hash, pyc)
 
 
 def _port_block() -> range:
