@@ -12,6 +12,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from agent_helpers.harness import agent, poll, spawn
 from conftest import endpoint, free_port
 
@@ -66,6 +67,10 @@ class Poses:
         return np.min(got, axis=0) / (RATE * WINDOW_S)
 
 
+# slow (CI's second step): live cameras rendering at their rate beside the reconstruction;
+# the default run holds its parts in-process (tests/test_outside_in_service.py: a backlog is
+# skipped to the present, lost bodies are searched for within a share of the time)
+@pytest.mark.slow
 def test_the_reconstruction_comes_back_to_the_camera_rate_after_a_stall(processes, realm,
                                                                       tmp_path) -> None:
     sim = Simulation(seed=SEED, config=SimConfig(n_cameras=CAMERAS, rate_hz=RATE))
