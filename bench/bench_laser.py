@@ -6,7 +6,8 @@ Baseline measured in the same run: detection with ``cv2.findContours`` and inten
 ``cv2.moments`` per contour, the usual OpenCV recipe.  Both detectors are also scored
 against the true spot centres.  The pipeline runs as configured (windows around the
 predicted dots while tracking, with the installation's online estimate) and, for reference,
-on full frames only and without the estimate (the estimate's cost, same run).  By default OpenCV
+on full frames only and without the estimate (the estimate's cost, same run), the three
+trackers taking each frame set in turn.  By default OpenCV
 runs on one thread, so the figures are per core (``--threads 0`` leaves OpenCV's default).
 
     python bench/bench_laser.py [--frames 120] [--calibration FILE] [--json]
@@ -50,14 +51,19 @@ def centroid_errors(found: np.ndarray, truth: dict) -> list[float]:
     return errs
 
 
-def time_pipeline(tracker: LaserTracker, frames: list) -> tuple[list[float], list[float]]:
-    """Wall and CPU seconds of ``tracker.process`` per frame set."""
-    wall, cpu = [], []
+def time_pipelines(trackers: list[LaserTracker], frames: list,
+                   ) -> list[tuple[list[float], list[float]]]:
+    """Wall and CPU seconds of each tracker's ``process`` per frame set, the trackers taking
+    each frame set in turn: a burst of load on a shared machine then falls on all of them
+    alike, so their ratios hold where one pass after the other would not (each tracker
+    keeps its own state, so the turns do not change what it computes)."""
+    out: list[tuple[list[float], list[float]]] = [([], []) for _ in trackers]
     for f in frames:
-        w, c, _ = timed(tracker.process, f.images, f.t)
-        wall.append(w)
-        cpu.append(c)
-    return wall, cpu
+        for tracker, (wall, cpu) in zip(trackers, out, strict=True):
+            w, c, _ = timed(tracker.process, f.images, f.t)
+            wall.append(w)
+            cpu.append(c)
+    return out
 
 
 def stats_ms(x: list[float]) -> dict[str, float]:
@@ -98,11 +104,10 @@ def main() -> None:
             err_base += centroid_errors(base, f.image_points[name])
 
     tracker = LaserTracker(cal)
-    pipe_wall, pipe_cpu = time_pipeline(tracker, frames)
     full_frame = LaserTracker(cal, TrackerParams(roi_half_px=0))
-    full_wall, _ = time_pipeline(full_frame, frames)
     plain = LaserTracker(cal, TrackerParams(estimate_installation=False))
-    plain_wall, plain_cpu = time_pipeline(plain, frames)
+    (pipe_wall, pipe_cpu), (full_wall, _), (plain_wall, plain_cpu) = time_pipelines(
+        [tracker, full_frame, plain], frames)
 
     det, base = stats_ms(det_wall), stats_ms(base_wall)
     pipe = stats_ms(pipe_wall)
