@@ -1,6 +1,7 @@
 """quat_multiply and quat_to_matrix take one numpy form for a few quaternions and another
 for large batches (agent.geometry._SMALL), matrix_to_quat and quat_to_rotvec a float form
-for one: each must give the same results as the batch."""
+for one: each must give the same results as the batch. quat_rotate's cross products must
+give np.cross's."""
 
 from __future__ import annotations
 
@@ -53,3 +54,27 @@ def test_one_matrix_and_one_quaternion_equal_the_batch_to_the_bit():
     rotvecs = geo.quat_to_rotvec(q)
     for i in range(len(q)):
         assert geo.quat_to_rotvec(q[i]).tobytes() == rotvecs[i].tobytes()
+
+
+def test_rotations_equal_np_cross_to_the_bit():
+    """quat_rotate's cross products (per component, without np.cross's axis handling) give
+    np.cross's bits, also broadcast, for zeros of either sign, parallel vectors and
+    far-apart magnitudes."""
+    rng = np.random.default_rng(5)
+
+    def reference(q, v):
+        u, w = q[..., :3], q[..., 3:4]
+        t = 2.0 * np.cross(u, v)
+        return v + w * t + np.cross(u, t)
+
+    for shape in [(), (1,), (5,), (2, 3), (300,)]:
+        for scale in (1e-300, 1.0, 1e200):
+            q = rng.normal(size=(*shape, 4))
+            q /= np.linalg.norm(q, axis=-1, keepdims=True)
+            v = rng.normal(size=(*shape, 3)) * scale
+            assert geo.quat_rotate(q, v).tobytes() == reference(q, v).tobytes()
+    q, v = rng.normal(size=4), rng.normal(size=(7, 3))
+    assert geo.quat_rotate(q, v).tobytes() == reference(q, v).tobytes()  # broadcast
+    for a, b in [(np.zeros(3), np.ones(3)), (np.array([1.0, -0.0, 0.0]), np.array([2.0, 0, 0])),
+                 (np.array([-0.0, 0, 1]), np.array([0.0, -1, 0])), (np.ones((2, 3)), np.ones(3))]:
+        assert geo._cross(a, b).tobytes() == np.cross(a, b).tobytes()
