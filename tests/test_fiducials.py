@@ -5,6 +5,7 @@ reading a generated video through cv2.VideoCapture."""
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import types
 
@@ -346,11 +347,24 @@ def test_a_steep_tags_corners_do_not_follow_its_thin_border(monkeypatch, margin)
 _CELLS = border.code_cells(dictionary("apriltag36h11"))
 
 
+_STEEP_DRAWS = 3  # the most frames a test of the steep view asks for
+
+
 def _steep_view(margin: int, blur_px: float, draws: int = 1):
     """A tag tilted 76 degrees from the line of sight at 1.3 m (the eval's seed 9 at
     1.9 s; across its long sides the one-cell border is 1.1 px wide), printed with
     ``margin`` white cells, rendered ``draws`` times with fresh sensor noise: the camera,
-    the true pose, the true corners (ideal pixels) and the frames."""
+    the true pose, the true corners (ideal pixels) and the frames (read-only: the first
+    ``draws`` of :func:`_steep_frames`, shared by the tests of this view)."""
+    camera, T, true, frames = _steep_frames(margin, blur_px)
+    return camera, T, true, list(frames[:draws])
+
+
+@functools.cache
+def _steep_frames(margin: int, blur_px: float):
+    """:func:`_steep_view` with its ``_STEEP_DRAWS`` frames, rendered once per view (about
+    2 s of CPU a frame at the faithful supersampling; the noise draws follow one another,
+    so a test's first frames are the same with or without this cache)."""
     rng = np.random.default_rng(9)
     camera = webcam(rng)
     T = wandering(rng, camera, (0.5, 3.0), 10.0)(1.9)
@@ -360,8 +374,11 @@ def _steep_view(margin: int, blur_px: float, draws: int = 1):
     sim = SimCamera(camera, supersampling=FAITHFUL, blur_sigma_px=blur_px)
     true = camera.K @ (marker_corners(0.08) @ T[:3, :3].T + T[:3, 3]).T
     noise = np.random.default_rng(1)
-    return camera, T, (true[:2] / true[2]).T, [sim.render(scene, 0.0, noise)
-                                               for _ in range(draws)]
+    frames = tuple(sim.render(scene, 0.0, noise) for _ in range(_STEEP_DRAWS))
+    true = (true[:2] / true[2]).T
+    for array in (T, true, *frames):
+        array.flags.writeable = False
+    return camera, T, true, frames
 
 
 @pytest.mark.parametrize(("margin", "blur_px"), [(1, 0.6), (3, 0.8)])
