@@ -157,6 +157,7 @@ def evaluate(world: IvyWorld, cal: Calibration, seconds: float, rate_hz: float =
         "frames_without_pose": n - poses,
         "no_pose_reasons": {r: tracker.counts[r] for r in NO_POSE_REASONS if tracker.counts[r]},
         "frames_refused_by_labeling_gate": sum(tracker.counts[r] for r in GATE_REASONS),
+        "poses_covering_a_stray": tracker.counts["covered_stray"],
         "labeling_correct_pct": round(100.0 * labeled_ok / poses, 3) if poses else None,
         "labeling_errors": labeled_bad,
         "orientation_error_deg": _stats(rot_deg),

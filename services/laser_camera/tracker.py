@@ -133,6 +133,13 @@ class TrackerParams:
     #: mm wide, std): a labeling is published only if its fourth dot's miss would show a
     #: stray blob farther away in the place of any dot that fixes the pose
     stray_min_m: float = 0.01
+    #: ... or, where it would not, only once this many frame sets in a row held the
+    #: labeling with continuous misses, and then with the pose's covariance widened by
+    #: every pose such a blob could give (``_unseen_stray``): a blob's frame set is
+    #: refused up to there, and at that one covered, never a confident wrong pose, while
+    #: noisier dots (a calibration that states no error gets ``calib_sigma_m``), whose
+    #: miss can rarely show such a blob, cannot hold a start without bound
+    start_confirm_sets: int = 3
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
@@ -195,6 +202,9 @@ class TrackerParams:
             raise InvalidInputError("model_pos_std_m and model_rot_std_rad must be >= 0")
         if not self.stray_min_m > 0:
             raise InvalidInputError("stray_min_m must be positive")
+        if self.start_confirm_sets < 2:
+            raise InvalidInputError("start_confirm_sets must be at least 2 (a held labeling "
+                                    "is confirmed by a later frame set)")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
         if not self.residual_drift_per_m > 0:
@@ -471,9 +481,9 @@ class LaserTracker:
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
-        refused = self._confirm(fits[k], dots, t, n, cov)
-        if refused is not None:
-            return refused
+        cov = self._confirm(fits[k], dots, t, n, cov)
+        if isinstance(cov, NoPose):
+            return cov
         sys_std = np.sqrt(0.5 * np.trace(sys_cov, axis1=1, axis2=2))
         est = PoseEstimate(
             t, best.position, best.quaternion, cov,
@@ -586,9 +596,9 @@ class LaserTracker:
                               f"{p.max_residual_chi2:g}")
 
     def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int,
-                 cov: np.ndarray) -> NoPose | None:
+                 cov: np.ndarray) -> NoPose | np.ndarray:
         """The chosen labeling's fourth-beam miss against the last one kept (``_miss``):
-        None if they agree, else why not.
+        the pose's covariance ``cov`` to publish if they agree, else why not.
 
         The miss is mostly the installation's error, the same from one frame set to the
         next while the same diodes' dots stay on the same walls; a stray blob taken for a
@@ -603,7 +613,11 @@ class LaserTracker:
         bridges (seed 103 at 15 Hz: 2.1 -> 10 mm RMSE).  The first labeling after a start
         (``reset``) has no miss at all: it is held until the next frame set confirms it
         (``unconfirmed_labeling``); a held miss that the next one does not confirm is
-        replaced by it (either may be the stray).  Where the dots'
+        replaced by it (either may be the stray).  A labeling that confirms a held one is
+        refused where a stray blob in its frame set could pass the miss's change unseen
+        (``_unseen_stray``), up to ``start_confirm_sets`` frame sets held in a row: that
+        one is published with its covariance widened to cover every pose such a blob
+        could give.  Where the dots'
         noise outweighs the installation's part (an ideal installation) the chi-square of
         ``_fits`` is as sharp, and nothing is held."""
         p, last = self.params, self._miss
@@ -612,14 +626,14 @@ class LaserTracker:
                     noise, fit.systematic, edge, edge_m)
         if np.trace(fit.systematic.sum(axis=0) + edge.sum(axis=0)) <= np.trace(noise):
             self._miss = replace(now, confirmed=True)  # the chi-square alone is as sharp
-            return None
+            return cov
         change = None if last is None or t <= last.t else last.change(
             now, p.residual_drift_per_m)
         chi2, S = (None, None) if change is None else change
         if chi2 is None and last is not None and last.confirmed:
             unexplained = self._unexplained_miss(fit, dots)
             self._miss = replace(now, confirmed=unexplained is None)
-            return None if unexplained is None else NoPose(t, "residual_jump", n, unexplained)
+            return cov if unexplained is None else NoPose(t, "residual_jump", n, unexplained)
         if chi2 is None:
             self._miss = now
             return NoPose(t, "unconfirmed_labeling", n, "a labeling's first frame set is held "
@@ -630,11 +644,16 @@ class LaserTracker:
             return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
                           f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
         unseen = None if last.confirmed else _unseen_stray(dots, fit, S, cov, p)
-        if unseen is not None:
-            self._miss = now
-            return NoPose(t, "ambiguous_labeling", n, unseen)
+        if unseen is None:
+            self._miss = replace(now, confirmed=True)
+            return cov
+        held = last.held + 1
+        if unseen.cover is None or held < p.start_confirm_sets:
+            self._miss = replace(now, held=held)
+            return NoPose(t, "ambiguous_labeling", n, unseen.detail)
         self._miss = replace(now, confirmed=True)
-        return None
+        self.counts["covered_stray"] += 1
+        return cov + unseen.cover
 
     def _unexplained_miss(self, fit: _Fit, dots: WorldDots) -> str | None:
         """Why the installation's estimate does not explain the fit's miss (chi-square of
@@ -1200,6 +1219,9 @@ class _Miss:
     edge: np.ndarray  # (4, 2, 2) from each dot's edge std (``_edge_parts``)
     edge_m: np.ndarray  # (4,) each dot's edge std
     confirmed: bool = False  # published (it agreed with the miss before it)
+    #: frame sets held in a row up to this one, each miss passing the change test
+    #: against the one before (``start_confirm_sets``)
+    held: int = 1
 
     def change(self, later: _Miss, drift_per_m: float) -> tuple[float, np.ndarray] | None:
         """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, or
@@ -1229,27 +1251,49 @@ class _Miss:
         return float(_chi2((later.miss - self.miss)[None], S[None])[0]), S
 
 
+class _Unseen(NamedTuple):
+    """A stray blob the miss's change cannot show: why, and what covers it."""
+
+    detail: str
+    #: (6, 6; xi form) added to the pose's covariance, every pose such a blob could give
+    #: lies within its 1-sigma ellipsoid; None where a blob could move the pose without
+    #: bound (a dot's move the miss does not see)
+    cover: np.ndarray | None
+
+
 def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
-                  p: TrackerParams) -> str | None:
-    """Why the miss's change (covariance ``S``) cannot vouch for the fit's pose (covariance
-    ``cov``): a stray blob in the place of one of the dots that fix the pose (diodes 1-3),
-    at least ``stray_min_m`` from it, could pass the change's test (chi-square at most
-    ``max_residual_chi2``) yet put the pose outside its covariance (Mahalanobis distance
-    squared above ``same_pose_chi2``); None if none could.  ``S`` is wide where a dot
-    near its screen's edge moved (its clipped centroid) or the dots moved far since the
-    last miss (the installation's part).
+                  p: TrackerParams) -> _Unseen | None:
+    """Whether the miss's change (covariance ``S``) cannot vouch for the fit's pose
+    (covariance ``cov``): a stray blob in the place of one of the dots that fix the pose
+    (diodes 1-3), at least ``stray_min_m`` from it, could pass the change's test
+    (chi-square at most ``max_residual_chi2``) yet put the pose outside its covariance
+    (Mahalanobis distance squared above ``same_pose_chi2``); None if none could.  ``S``
+    is wide where a dot near its screen's edge moved (its clipped centroid) or the dots
+    moved far since the last miss (the installation's part), and where the dots are noisy.
 
     Per dot, with ``A = Jp^T C^-1 Jp`` and ``B = Jm^T S^-1 Jm`` (the pose's and the miss's
     change per move of the dot along its wall), the move the test passes that moves the
     pose most is the generalised eigenvector ``v`` of ``(A, B)`` with the largest
     eigenvalue ``lam``, scaled to ``v^T B v = max_residual_chi2``: it is harmful if
-    ``lam`` exceeds the ratio of the two bounds, and a blob if ``|v| >= stray_min_m``."""
+    ``lam`` exceeds the ratio of the two bounds, and a blob if ``|v| >= stray_min_m``.
+    Every move the test passes changes the miss by ``m`` with ``m^T S^-1 m`` at most
+    ``max_residual_chi2`` and the pose by ``Jp Jm^-T m``: the cover is that map of
+    ``max_residual_chi2 S``, summed over the harmful dots.  A dot whose ``Jm`` is singular
+    has a move the miss does not see at all: the blob is unbounded, and no cover is
+    given."""
     Jp = _pose_jacobian(dots, fit.idx, fit.pose.position).reshape(6, 4, 2)[:, :3]
     Jm = fit.jacobian[:3]  # (dot, wall axis, miss component)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        blind = ~(np.linalg.cond(Jm) < _SINGULAR_COND)
+    if blind.any():
+        k = int(np.argmax(blind))
+        return _Unseen(f"a stray blob beside diode {k + 1}'s dot could move the pose along "
+                       "a line the fourth dot's miss does not see (its Jacobian is singular)",
+                       None)
     A = np.einsum("pka,pq,qkb->kab", Jp, np.linalg.inv(cov), Jp)
     B = np.einsum("kai,ij,kbj->kab", Jm, np.linalg.inv(S), Jm)
-    # the largest root of det(A - lam B) = 0, a quadratic per dot (B > 0: S and Jm are
-    # regular wherever the fit passed its chi-square)
+    # the largest root of det(A - lam B) = 0, a quadratic per dot (B > 0: S > 0 and Jm
+    # regular)
     a = np.linalg.det(B)
     b = A[:, 0, 0] * B[:, 1, 1] + A[:, 1, 1] * B[:, 0, 0] - A[:, 0, 1] * B[:, 1, 0] \
         - A[:, 1, 0] * B[:, 0, 1]
@@ -1264,9 +1308,15 @@ def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
     if not harmful.any():
         return None
     k = int(np.argmax(np.where(harmful, lam, -np.inf)))
-    return (f"a stray blob {length[k] * 100:.1f} cm from diode {k + 1}'s dot would move the "
-            f"pose {np.sqrt(lam[k] * p.max_residual_chi2):.1f} sigma, unseen by the fourth "
-            "dot's miss")
+    G = np.einsum("pka,kia->kpi", Jp[:, harmful], np.linalg.inv(Jm[harmful]))  # Jp Jm^-T
+    cover = p.max_residual_chi2 * np.einsum("kpi,ij,kqj->pq", G, S, G)
+    return _Unseen(f"a stray blob {length[k] * 100:.1f} cm from diode {k + 1}'s dot would "
+                   f"move the pose {np.sqrt(lam[k] * p.max_residual_chi2):.1f} sigma, unseen "
+                   "by the fourth dot's miss", 0.5 * (cover + cover.T))
+
+
+#: a dot's miss Jacobian (2 x 2) this ill-conditioned has a move the miss does not see
+_SINGULAR_COND = 1e8
 
 
 def _edge_parts(dots: WorldDots, fit: _Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
