@@ -529,8 +529,10 @@ class LaserTracker:
             covariance=est.covariance - est.systematic + systematic, systematic=systematic,
             dots={k + 1: points[k] for k in range(len(idx))},
             dot_systematic_std_m={k + 1: float(dot_std[k]) for k in range(len(idx))},
-            sensitivity=dict(zip(self._estimate_keys(), root.T, strict=True)),
-            draw_sensitivity=dict(zip(estimate.names, draw.T, strict=True)))
+            # each column a row of a contiguous copy: views into a transposed array cost
+            # twice as much to make, and a pose holds some ninety of each
+            sensitivity=dict(zip(self._estimate_keys(), root.T.copy(), strict=True)),
+            draw_sensitivity=dict(zip(estimate.names, draw.T.copy(), strict=True)))
 
     def _estimate_keys(self) -> list[str]:
         """The sensitivity's name of each of the estimate's parameters (``"estimate "`` and
