@@ -3,6 +3,7 @@ are always stopped (by the PID we started, never by name)."""
 
 from __future__ import annotations
 
+import inspect
 import itertools
 import os
 import random
@@ -10,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import types
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -45,19 +47,58 @@ def _write_rewritten_test_modules(config: pytest.Config, tests: Path) -> None:
     """Write pytest's assertion-rewritten bytecode of the test modules once, in the
     controller: where bytecode is not written on import, each xdist worker otherwise
     rewrites every test module it collects (about 3.5 s of CPU per worker, before its first
-    test). Workers read these files through pytest's own check (the source's hash), so a
-    stale or missing one is rewritten there as usual."""
-    from _pytest.assertion import rewrite
+    test). Workers read these files through pytest's own check of the source, so a stale or
+    missing one is rewritten there as usual.
 
+    This is an optimisation over pytest's private rewrite functions (the same ones its
+    import hook calls, with the same arguments from pytest 8.0 on): where a pytest lacks them
+    or takes other arguments, nothing is written and the workers rewrite as pytest always
+    does. A module that does not parse is left to the worker that collects it, which reports
+    it as that module's collection error instead of failing the whole session here."""
+    rewrite = _rewrite_api()
+    if rewrite is None:
+        return
     state = config.stash.get(rewrite.assertstate_key, None)
     if state is None:  # --assert=plain: nothing is rewritten
         return
     for source in sorted(tests.glob("test_*.py")):
         cache = rewrite.get_cache_dir(source)
         pyc = cache / (source.name[:-3] + rewrite.PYC_TAIL)
-        if rewrite._read_pyc(source, pyc) is None and rewrite.try_makedirs(cache):
-            source_hash, code = rewrite._rewrite_test(source, config)
-            rewrite._write_pyc(state, code, source_hash, pyc)
+        if rewrite._read_pyc(source, pyc) is not None or not rewrite.try_makedirs(cache):
+            continue
+        try:
+            rewritten = rewrite._rewrite_test(source, config)
+        except SyntaxError:
+            continue
+        if not (isinstance(rewritten, tuple) and len(rewritten) == 2
+                and isinstance(rewritten[1], types.CodeType)):
+            return
+        source_check, code = rewritten
+        rewrite._write_pyc(state, code, source_check, pyc)
+
+
+def _rewrite_api() -> types.ModuleType | None:
+    """pytest's assertion-rewrite module where it has the private functions
+    ``_write_rewritten_test_modules`` calls, taking the arguments it passes; None where
+    not (another pytest), so the optimisation is skipped rather than the session failed."""
+    try:
+        from _pytest.assertion import rewrite
+    except ImportError:
+        return None
+    calls = {"_read_pyc": 2, "_rewrite_test": 2, "_write_pyc": 4, "get_cache_dir": 1,
+             "try_makedirs": 1}
+    for name, arguments in calls.items():
+        function = getattr(rewrite, name, None)
+        if not callable(function):
+            return None
+        try:
+            inspect.signature(function).bind(*range(arguments))
+        except (TypeError, ValueError):
+            return None
+    if not hasattr(rewrite, "assertstate_key") or not isinstance(
+            getattr(rewrite, "PYC_TAIL", None), str):
+        return None
+    return rewrite
 
 
 def _port_block() -> range:
