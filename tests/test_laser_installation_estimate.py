@@ -275,3 +275,17 @@ def test_dots_moves_taken_together_are_each_dots_own(run) -> None:
         assert np.array_equal(D[k][:, cols], alone[0])
         rest = np.delete(D[k], cols, axis=1)
         assert not rest.any()
+
+
+def test_a_noise_that_is_not_a_covariance_is_refused() -> None:
+    """A residual covariance that is not positive definite (here a negative ``noise``) has
+    no meaningful chi-square: the observation is refused and the estimate left alone,
+    neither taken (which would grow the covariance) nor raised from the update's root."""
+    est = InstallationEstimate(gate_chi2=9.0)
+    names, H = ["a", "b"], np.eye(2)
+    for noise in (-2.0 * np.eye(2), np.array([[1.0, 0.0], [0.0, -3.0]])):
+        assert np.isnan(est.innovation_chi2(np.array([0.1, 0.0]), noise, names, H))
+        assert not est.update(np.array([0.1, 0.0]), noise, names, H)
+    assert est.refused == 2 and est.accepted == 0
+    assert np.array_equal(est.covariance(names), np.eye(2))
+    assert np.array_equal(est.mean(names), np.zeros(2))

@@ -85,9 +85,10 @@ class InstallationEstimate:
     def innovation_chi2(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str],
                         H: np.ndarray) -> float:
         """Chi-square (2 dof) of ``z`` against what the estimate so far predicts for it
-        (``update``'s gate, without taking it); NaN for a non-finite ``z``."""
+        (``update``'s gate, without taking it); NaN for a non-finite ``z`` or a residual
+        covariance that is not positive definite (a ``noise`` that is not a covariance)."""
         _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
-        return _chi2(v, _inverse2(S))
+        return _chi2(v, _covariance_inverse2(S))
 
     def update(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str], H: np.ndarray,
                ) -> bool:
@@ -101,7 +102,7 @@ class InstallationEstimate:
             self.refused += 1
             return False
         _, PHt, v, S = self._innovation(z, noise, names, np.asarray(H, float))
-        Sinv = _inverse2(S)
+        Sinv = _covariance_inverse2(S)
         if not _chi2(v, Sinv) <= self.gate_chi2:  # NaN: refused too
             self.refused += 1
             return False
@@ -153,13 +154,15 @@ class InstallationEstimate:
         return 1.0 if i is None else float(np.sqrt(self._cov[i, i]))
 
 
-def _inverse2(S: np.ndarray) -> np.ndarray:
-    """The inverse of a 2 x 2 matrix in closed form (NaN throughout where it is singular or
-    not finite): ``np.linalg.solve`` on a 2 x 2 costs more in its argument handling than
-    the arithmetic."""
+def _covariance_inverse2(S: np.ndarray) -> np.ndarray:
+    """The inverse of a 2 x 2 covariance in closed form; NaN throughout where it is not
+    positive definite or not finite, so the chi-square from it is NaN and the gate refuses:
+    an update through an indefinite ``S`` would grow the covariance (and ``_root2`` has no
+    real root of it).  ``np.linalg.solve`` on a 2 x 2 costs more in its argument handling
+    than the arithmetic."""
     (a, b), (c, d) = S.tolist()
     det = a * d - b * c
-    if det == 0.0 or not math.isfinite(det):
+    if not (a > 0.0 and det > 0.0 and math.isfinite(det)):
         return np.full((2, 2), np.nan)
     return np.array([[d, -b], [-c, a]]) / det
 
