@@ -19,6 +19,8 @@ from services.laser_camera.tracker import (
     PoseEstimate,
     TrackerParams,
     WorldDots,
+    _dot_moves,
+    _installation_covariance,
     _pose_jacobian,
     _unseen_stray,
     residual_chi2,
@@ -549,3 +551,27 @@ def test_a_clipped_dots_edge_std_counts_in_the_misss_change_as_far_as_it_moved()
     np.testing.assert_allclose(covariance(0.05), 2 * noise + 2 * edge[0])
     other = ("ceiling", *walls[1:])
     np.testing.assert_allclose(covariance(0.0, other), 2 * noise + 2 * edge[0])
+
+
+@pytest.mark.parametrize("seen_from", [None, (2.0, 1.0, 0.5)])
+def test_a_fits_kept_parts_equal_those_taken_again_to_the_bit(world, seen_from) -> None:
+    """A frame set's fits keep what the chosen one's covariance and estimate take again
+    (its dots' installation covariance and slopes, the frames of their perturbed copies):
+    kept or taken again from the fit's dots and pose, the same bits, with and without the
+    cameras' centres (the turn's slopes) for every labeling of the frame set."""
+    p = TrackerParams()
+    for yaw in (20, 95):
+        dots = dots_on_walls(world, *hits_of(world, np.array([0.1, -0.1, 0.3]), upright(yaw)))
+        dots = replace(dots, bend=np.array([0.3, 0.7, 1.0, 0.5]),
+                       eyes=None if seen_from is None else np.array([seen_from] * 4))
+        fits = LaserTracker(None)._fits(dots, 0.0)
+        assert len(fits) >= 2
+        for f in fits:
+            p0, q = f.pose.position, f.pose.quaternion
+            kept = _pose_jacobian(dots, f.idx, p0, frames=f.frames)
+            assert kept.tobytes() == _pose_jacobian(dots, f.idx, p0).tobytes()
+            again = _installation_covariance(dots, f.idx, p0, p)
+            assert again.tobytes() == f.installation.tobytes()
+            names, moves = _dot_moves(dots, f.idx, LABELS, p0, q, p, f.slopes)
+            names_again, moves_again = _dot_moves(dots, f.idx, LABELS, p0, q, p)
+            assert names == names_again and moves.tobytes() == moves_again.tobytes()
