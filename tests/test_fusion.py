@@ -17,6 +17,7 @@ from agent.errors import InvalidInputError
 from services.accel_rig import simulator as accel_sim
 from services.accel_rig.device_options import device_figures, device_from_args
 from services.accel_rig.rig import marvin_six, marvin_six_table_4_1
+from services.consistency import mean_nees_band_95
 from services.fusion import evaluate as fe
 from services.fusion.ekf import FusionEKF, FusionStats
 from services.fusion.service import LiveFusion, accel_model_from_attributes
@@ -730,6 +731,33 @@ def test_laser_dot_prediction_and_jacobian_match_the_simulated_world():
         assert np.allclose(J, num, atol=1e-5), label
 
 
+def test_the_nees_band_counts_the_samples_of_the_whitened_errors():
+    """An error that lasts the run (1 mm, honestly claimed) with short outages where it is
+    ten times larger and new each time, also honestly claimed: the NEES is made of the one
+    lasting error, so its band is that of one sample.  Unwhitened, the outages (94 % of
+    the squared error) made it 16 samples, [4.42, 7.82], which this honest run's mean NEES,
+    10.5, lies above."""
+    n, outage = 6000, 60
+    t = np.arange(n) / 300.0
+    std = np.full(n, 1e-3)
+    gaps = np.zeros(n, bool)
+    for start in range(150, n, 300):
+        gaps[start:start + outage] = True
+    std[gaps] = 1e-2
+    rng = np.random.default_rng(3)
+    e = np.tile(rng.standard_normal(6), (n, 1))
+    e[gaps] = np.repeat(rng.standard_normal((gaps.sum() // outage, 6)), outage, axis=0)
+    e *= std[:, None]
+    rec = SimpleNamespace(t=t, p=np.zeros((n, 3)), q=np.tile([0, 0, 0, 1.0], (n, 1)),
+                          cov=np.eye(6) * (std**2)[:, None, None],
+                          optical_t=t[~gaps][::20])
+    p_true = e[:, :3]
+    q_true = geo.rotvec_to_quat(e[:, 3:])
+    about_zero = fe.nees_figures(rec, p_true, q_true, np.ones(n, bool))["errors_about_zero"]
+    assert about_zero["effective_samples"] < 1.5
+    assert about_zero["bounds_95"][0] < 1.3 and about_zero["bounds_95"][1] > 14
+
+
 @pytest.mark.slow
 def test_short_eval_measures_gaps_from_the_last_optical_pose():
     """A 9 s ``uma eval fusion`` (the 60 s runs are by hand) on the realistic installation:
@@ -840,6 +868,32 @@ def test_a_reported_systematic_error_is_carried_into_the_fused_covariance():
     assert np.all(np.sqrt(np.diag(ekf.pose_covariance_decoupled())[:3]) >= 4e-4)
     # the random part still averages out: the fused position is off by about the offset
     assert np.sqrt(np.mean(ep[late] ** 2)) < np.linalg.norm(offset) + ps
+
+
+def test_the_fused_covariance_counts_the_optics_systematic_part_once():
+    """Poses off by one installation error each run (drawn from their systematic part) plus
+    new noise each frame, weighed by their whole covariance: the filter follows the error,
+    so the fused pose carries it whole, and the share ``P`` took in as if it were new in
+    each frame (``P_sys``) is not counted again.  Counted twice, the mean NEES of 80 runs
+    was 3.3, under the band of 60 independent samples, [5.16, 6.91]."""
+    rng = np.random.default_rng(7)
+    random = np.diag([3e-4**2] * 3 + [np.radians(0.02)**2] * 3)
+    sys = np.diag([1e-3**2] * 3 + [np.radians(0.06)**2] * 3)
+    ekf = FusionEKF(_model(), FusionConfig(adapt_pose_noise=False))
+    runs, frames = 60, 15
+    draws = rng.standard_normal((runs, frames + 1, 6))
+    nees = []
+    for run in range(runs):
+        ekf.stop()
+        error = draws[run, 0] * np.sqrt(np.diag(sys))
+        for k in range(frames):
+            e = error + draws[run, k + 1] * np.sqrt(np.diag(random))
+            assert ekf.update_pose(k / 15, e[:3], geo.rotvec_to_quat(e[3:]), random + sys, sys)
+        p, q = ekf.pose()
+        err = -np.concatenate([p, geo.quat_to_rotvec(q)])
+        nees.append(float(err @ np.linalg.solve(ekf.pose_covariance_decoupled(), err)))
+    lo, hi = mean_nees_band_95(6, runs)
+    assert lo <= float(np.mean(nees)) <= hi
 
 
 def test_a_systematic_part_larger_than_the_covariance_is_refused_by_name():

@@ -20,7 +20,6 @@ system*, MSc thesis, York University 2003.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -59,8 +58,7 @@ def update_dots(ekf: FusionEKF, dots: LabeledDots, walls: Sequence[Wall],
     for label, point, std, sys_std in zip(dots.labels, dots.points, dots.std_m,
                                           dots.systematic_std_m, strict=True):
         wall = wall_of(walls, point)
-        accepted += ekf.update_dot(dots.t, point, math.hypot(std, sys_std),
-                                   BEAM_DIRECTIONS[label],
+        accepted += ekf.update_dot(dots.t, point, std, BEAM_DIRECTIONS[label],
                                    (wall.normal, float(wall.normal @ point)),
-                                   wall.rotation[:, :2].T, mount)
+                                   wall.rotation[:, :2].T, mount, sys_std)
     return accepted

@@ -77,6 +77,7 @@ class FilterState:
     last_rejected: OpticalPose | None
     last_optical_t: float | None
     systematic: Array
+    P_random: Array
 
 
 @dataclass
@@ -101,11 +102,13 @@ class FusionStats:
 @dataclass(frozen=True)
 class Innovation:
     """One vector measurement against the prediction: residual ``y``, Jacobian ``H``, noise
-    ``R``, ``P H^T``, ``S = H P H^T + R`` and the normalised innovation squared."""
+    ``R`` and its systematic part ``R_sys``, ``P H^T``, ``S = H P H^T + R`` and the
+    normalised innovation squared."""
 
     y: Array
     H: Array
     R: Array
+    R_sys: Array
     PHt: Array
     S: Array
     nis: float
@@ -136,8 +139,15 @@ class FusionEKF:
         self.start_t: float | None = None  # when the filter last (re)started
         self.last_optical_t: float | None = None  # the newest optical measurement it used
         #: the persistent part of the newest optical pose's error covariance (over [dp,
-        #: dtheta]), which the fused pose carries on top of ``P`` (``pose_covariance``)
+        #: dtheta]), which the fused pose carries on top of ``P_random`` (``pose_covariance``)
         self.systematic = np.zeros((6, 6))
+        #: ``P`` without the share the optics' systematic parts put there, each frame's
+        #: counted as if it were new (the filter weighs the optics by their whole
+        #: covariance): the covariance of the error the random parts leave, propagated with
+        #: ``P``'s own transitions and gains and every noise but the systematic parts; the
+        #: fused covariance is it plus the systematic part whole
+        #: (``pose_covariance_decoupled``)
+        self.P_random = np.eye(self.dim)
         self._R = geo.quat_to_matrix(self.q)
         self._dtheta = np.zeros(3)
 
@@ -178,15 +188,18 @@ class FusionEKF:
         return self.x[self.layout.optical_bias].copy()
 
     def pose_covariance_decoupled(self) -> Array:
-        """6x6 covariance of the head pose over ``[dp, dtheta]``: the filter's own, plus the
+        """6x6 covariance of the head pose over ``[dp, dtheta]``: the filter's own without
+        the share the optics' systematic parts put in it (``P_random``), plus the
         systematic part of the newest optical pose's.
 
         The filter follows the optical poses, so an error they share from frame to frame
         (the installation's) is in the fused pose too, whole, where ``P`` has it divided by
-        the frames it averaged (Schmidt's "consider" covariance, the persistent error
-        passed through at full gain; docs/FUSION_TUNING.md says why ``P`` keeps its share
-        rather than the filter weighing the poses by their random part alone)."""
-        return self.P[np.ix_(POSE_INDEX, POSE_INDEX)] + self.systematic
+        the frames it averaged, as if new in each (Schmidt's "consider" covariance, the
+        persistent error passed through at full gain; docs/FUSION_TUNING.md says why the
+        filter still weighs the poses by their whole covariance).  Counted both ways, the
+        systematic part made the fused covariance claim about a quarter more than the
+        errors show."""
+        return self.P_random[np.ix_(POSE_INDEX, POSE_INDEX)] + self.systematic
 
     def pose_covariance(self) -> Array:
         """6x6 covariance of the head pose in geometry's ``xi = [rho, phi]`` convention."""
@@ -206,7 +219,7 @@ class FusionEKF:
     def snapshot(self) -> FilterState:
         return FilterState(self.t, self.q.copy(), self.x.copy(), self.P.copy(),
                            self._rejected_in_row, self._last_rejected, self.last_optical_t,
-                           self.systematic.copy())
+                           self.systematic.copy(), self.P_random.copy())
 
     def restore(self, s: FilterState) -> None:
         """Go back to a snapshot (statistics keep counting)."""
@@ -215,6 +228,7 @@ class FusionEKF:
         self._last_rejected = s.last_rejected
         self.last_optical_t = s.last_optical_t
         self.systematic = s.systematic.copy()
+        self.P_random = s.P_random.copy()
         self._R = geo.quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ initialisation
@@ -222,7 +236,10 @@ class FusionEKF:
     def initialise(self, t: float, p: Array, q: Array, cov_decoupled: Array,
                    systematic: Array | None = None) -> None:
         """Start (or restart) from an absolute pose; motion unknown (initial_std).
-        ``systematic``: the part of the pose's error that persists (``update_pose``)."""
+        ``systematic``: the part of the pose's error that persists (``update_pose``).
+        ``P_random`` starts as ``P``: the start's covariance counts its systematic part as
+        if it were new, and the rates of a start from two poses keep it whole
+        (``start_from_poses``), where it may not cancel, until the updates replace it."""
         cfg, lay = self.config, self.layout
         so, sod, sv, sa, _ = cfg.initial_std
         self.t = float(t)
@@ -248,6 +265,7 @@ class FusionEKF:
             P0[P, P] += np.eye(3) * var
             P0[P, ob] = P0[ob, P] = -np.eye(3) * var
         self.P = P0
+        self.P_random = P0.copy()
         self.systematic = np.zeros((6, 6)) if systematic is None else systematic
         self._R = geo.quat_to_matrix(self.q)
         self.stats.reinitialised += 1
@@ -296,6 +314,7 @@ class FusionEKF:
             self.P[pos, rate] = (cb - ca) @ rot / (2 * dt)
             self.P[rate, pos] = self.P[pos, rate].T
             self.P[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
+        self.P_random = self.P.copy()
         self._update_with(b)
         self.start_t = b.t
 
@@ -311,7 +330,8 @@ class FusionEKF:
                                     f"{self.t:.6f} s (measurements must come in time order)")
         while dt > 1e-12:
             step = min(dt, self.config.max_step_s)
-            self.q, self.x, self.P = self.process.step(self.q, self.x, self.P, step)
+            self.q, self.x, self.P, self.P_random = self.process.step(
+                self.q, self.x, self.P, step, self.P_random)
             self.t += step
             self.stats.time_updates += 1
             dt -= step
@@ -353,6 +373,7 @@ class FusionEKF:
             self.stats.accel_rejected += 1
             return False
         dx = PH * (y / s)
+        self._random_scalar_update(PH / s, H, s - float(H @ PH))
         # small rotation: keep R current to first order, fold into q once per sample
         self._dtheta += dx[TH]
         self._R += geo.skew3(dx[TH]) @ self._R
@@ -409,8 +430,9 @@ class FusionEKF:
         self.predict_to(pose.t)
         predicted, H = measurements.optical_pose(self.x, self.q, self.layout)
         d = np.sqrt(np.repeat(self.stats.pose_noise_scale, 3))
+        scale = np.outer(d, d)
         inn = self._innovation(measurements.pose_residual(pose.p, pose.q, predicted), H,
-                               pose.cov * np.outer(d, d))
+                               pose.cov * scale, pose.systematic * scale)
         self.stats.last_pose_nis = inn.nis
         self._adapt_pose_noise(inn)
         if inn.nis > self.config.pose_gate:
@@ -503,13 +525,18 @@ class FusionEKF:
 
     def update_dot(self, t: float, point: Array, std_m: float, beam_rig: Array,
                    plane: tuple[Array, float], axes: Array,
-                   mount: tuple[Array, Array]) -> bool:
+                   mount: tuple[Array, Array], systematic_std_m: float = 0.0) -> bool:
         """SCAAT update with one labeled laser dot (Hogue 2003 ch. 6: "intersect the laser
         beam with the walls of IVY"): a 2-D constraint in the wall's in-plane ``axes``
-        (2, 3).  False if gated or if the predicted beam misses that wall."""
+        (2, 3), weighed by its noise ``std_m`` and its installation error
+        ``systematic_std_m`` (the share that persists, left out of ``P_random``).  False if
+        gated or if the predicted beam misses that wall."""
         point = geo.check_vector(point, "laser dot").reshape(3)
         if not (math.isfinite(std_m) and std_m > 0):
             raise InvalidInputError(f"fusion: laser dot std {std_m!r} must be positive")
+        if not (math.isfinite(systematic_std_m) and systematic_std_m >= 0):
+            raise InvalidInputError(
+                f"fusion: laser dot systematic std {systematic_std_m!r} must be >= 0")
         if not self.initialised:
             raise InvalidInputError(
                 "fusion: a laser dot needs an initialised filter (a pose first)")
@@ -520,7 +547,9 @@ class FusionEKF:
             self.stats.dot_rejected += 1
             return False
         A2 = np.asarray(axes, float).reshape(2, 3)
-        inn = self._innovation(A2 @ (point - pred), A2 @ J, np.eye(2) * std_m**2)
+        inn = self._innovation(A2 @ (point - pred), A2 @ J,
+                               np.eye(2) * (std_m**2 + systematic_std_m**2),
+                               np.eye(2) * systematic_std_m**2)
         J_pose = inn.H[:, POSE_INDEX]
         if self._gate_nis(inn, J_pose @ self.systematic @ J_pose.T) > self.config.dot_gate:
             self.stats.dot_rejected += 1
@@ -531,11 +560,12 @@ class FusionEKF:
 
     # ------------------------------------------------------------------ internals
 
-    def _innovation(self, y: Array, H: Array, R: Array) -> Innovation:
-        """The optical measurement ``y`` (residual), ``H``, ``R`` against the prediction."""
+    def _innovation(self, y: Array, H: Array, R: Array, R_sys: Array) -> Innovation:
+        """The optical measurement ``y`` (residual), ``H``, ``R`` (``R_sys`` of it
+        systematic) against the prediction."""
         PHt = self.P @ H.T
         S = H @ PHt + R
-        return Innovation(y, H, R, PHt, S, float(y @ np.linalg.solve(S, y)))
+        return Innovation(y, H, R, R_sys, PHt, S, float(y @ np.linalg.solve(S, y)))
 
     @staticmethod
     def _gate_nis(inn: Innovation, systematic: Array) -> float:
@@ -558,7 +588,17 @@ class FusionEKF:
         self._inject(K @ inn.y)
         I_KH = np.eye(self.dim) - K @ inn.H
         self.P = I_KH @ self.P @ I_KH.T + K @ inn.R @ K.T
+        self.P_random = I_KH @ self.P_random @ I_KH.T + K @ (inn.R - inn.R_sys) @ K.T
         self.last_optical_t = self.t
+
+    def _random_scalar_update(self, K: Array, H: Array, r: float) -> None:
+        """``P_random`` through a scalar update with gain ``K`` and noise variance ``r``
+        (a reading with no systematic part): ``(I - K H) P_random (I - K H)^T + K r K^T``,
+        as two outer products."""
+        u = self.P_random @ H
+        w = u - (0.5 * (float(H @ u) + r)) * K
+        M = np.outer(K, w)
+        self.P_random -= M + M.T
 
     def _inject(self, dx: Array) -> None:
         """Apply an error-state correction: rotation on the manifold, the rest additively."""

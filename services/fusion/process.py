@@ -30,8 +30,10 @@ class ProcessModel:
         self.layout = layout
         self._cache: dict[float, tuple[Array, Array, Array]] = {}
 
-    def step(self, q: Array, x: Array, P_: Array, dt: float) -> tuple[Array, Array, Array]:
-        """``(q, x, P)`` after ``dt`` seconds; ``x`` is updated in place and returned."""
+    def step(self, q: Array, x: Array, P_: Array, dt: float, P_random: Array
+             ) -> tuple[Array, Array, Array, Array]:
+        """``(q, x, P, P_random)`` after ``dt`` seconds; ``x`` is updated in place and
+        returned.  ``P_random`` (``FusionEKF.P_random``) moves as ``P`` does."""
         F, Q, qa = self.matrices(dt)
         ang_jerk = self.layout.angular_jerk
         # q(t+dt) = q Exp(omega dt + omega_dot dt^2 / 2 [+ jerk dt^3 / 6]): body-frame
@@ -53,10 +55,10 @@ class ProcessModel:
         Q[TH, WD] = qa[0, 2] * R
         Q[W, TH] = qa[1, 0] * R.T
         Q[WD, TH] = qa[2, 0] * R.T
-        P_ = F @ P_ @ F.T + Q
         # the scalar updates subtract outer products; with the stiff jerk states rounding
         # would otherwise make P drift from symmetric to indefinite within seconds
-        return q, x, 0.5 * (P_ + P_.T)
+        P_, P_random = (0.5 * (C + C.T) for C in (F @ P_ @ F.T + Q, F @ P_random @ F.T + Q))
+        return q, x, P_, P_random
 
     def matrices(self, dt: float) -> tuple[Array, Array, Array]:
         """The rotation-independent parts of F and Q for a step ``dt``, and the angular
