@@ -1,13 +1,19 @@
-"""The covariance of an estimated X, by bootstrap over stations.
+"""The covariance of an estimated X: propagated from the stations' own noise where both
+trackers publish covariances, else by bootstrap over stations.
 
-Why bootstrap and not first-order propagation of the pair residuals: motion pairs are
+Why not first-order propagation of the pair residuals as if independent: motion pairs are
 formed from all combinations of stations, so each station's measurement noise enters many
 pairs and the pair residuals are strongly correlated.  Treating them as independent (the
 Gauss-Newton ``(J^T W J)^-1``) understates the uncertainty by roughly the square root of
-the number of pairs per station.  Resampling the *stations* (the independent
-measurements) with replacement and re-solving keeps that correlation, needs no noise model,
-and also covers the solver's own non-linearity.  A solve costs a few hundred microseconds,
-so a hundred resamples are cheap next to collecting the motions.
+the number of pairs per station.  Both ways here keep that correlation.
+``propagated_covariance`` moves each station by its own noise and sums what each moves X
+by (the pairs that share a station move together): the covariance is computed from the
+trackers' accounts of their noise, not estimated, so it has no scatter of its own.
+``bootstrap_covariance`` resamples the *stations* (the independent measurements) with
+replacement and re-solves: it needs no noise model, which is what it is for (a tracker
+that publishes no covariance), but its spread is an estimate from some 40 stations whose
+own scatter makes X's NEES heavier-tailed than chi-square(6) (``inverse_unbiased`` makes
+its inverse unbiased, not its tails right).
 
 Result in ``agent.geometry``'s convention: 6x6 over the left perturbation
 ``X_true = Exp(xi) X``, ``xi = [rho (m), phi (rad)]`` in sensor_a's frame.
@@ -85,6 +91,57 @@ def _less(spread: np.ndarray, part: np.ndarray, resolution: float) -> np.ndarray
     w, v = np.linalg.eigh(np.linalg.solve(root, np.linalg.solve(root, part).T))
     r = root @ v
     return (r * np.clip(1.0 - w, resolution, None)) @ r.T
+
+
+def moved_poses(p: np.ndarray, q: np.ndarray, xi: np.ndarray,
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(p, q)`` moved by the left perturbations ``xi`` (n, 6; geometry's
+    convention): ``dp = rho + phi x p``, ``q <- Exp(phi) q``."""
+    phi = xi[:, 3:]
+    return p + xi[:, :3] + np.cross(phi, p), geo.quat_multiply(geo.rotvec_to_quat(phi), q)
+
+
+def propagated_covariance(stations: tuple[np.ndarray, ...], pairs_ij: np.ndarray, x: Pose,
+                          noise_a: np.ndarray, noise_b: np.ndarray) -> np.ndarray:
+    """X's covariance from each station's own noise (``noise_a``, ``noise_b``: (n, 6, 6)
+    per station of each tracker, geometry's convention), to first order through the
+    refinement's objective at ``x`` (``solvers.refine``): ``sum_s K_s Sigma_s K_s^T``,
+    ``K_s = -H^-1 J^T dr/dz_s`` the implicit function's derivative of X by station s's
+    pose, ``H = J^T J``.
+
+    Each station is moved by each column of a root of its covariance, alone: every pair
+    it belongs to moves with it, which keeps the correlation of the pairs that share a
+    station exactly.  The stations' noise must be independent from station to station;
+    what they share (a tracker's held error, an installation's tolerances) is the
+    caller's to add."""
+    pa, qa, pb, qb = stations
+    ij = np.asarray(pairs_ij, dtype=int).reshape(-1, 2)
+    n = len(pa)
+    r0, J, scale = linearised_residuals(relative_motions(pa, qa, pb, qb, ij), x)
+    gradient = np.zeros((n, 6, 2 * _DOF))  # d(J^T r) per station and root column
+    for side, noise in enumerate((noise_a, noise_b)):
+        root = _root(noise)
+        for k in range(_DOF):
+            moved = list(stations)
+            moved[2 * side:2 * side + 2] = moved_poses(*stations[2 * side:2 * side + 2],
+                                                       root[:, :, k])
+            both = [np.concatenate([s, m]) for s, m in zip(stations, moved, strict=True)]
+            for end in (0, 1):  # move the pairs' first stations, then their second ones
+                shifted = ij.copy()
+                shifted[:, end] += n
+                dr = linearised_residuals(relative_motions(*both, shifted), x, scale)[0] - r0
+                np.add.at(gradient[:, :, _DOF * side + k], ij[:, end],
+                          np.einsum("pki,pk->pi", J, dr))
+    shift = np.linalg.solve(np.einsum("pki,pkj->ij", J, J), gradient)  # (n, 6, columns)
+    return np.einsum("sik,sjk->ij", shift, shift)
+
+
+def _root(covariances: np.ndarray) -> np.ndarray:
+    """``L`` with ``L L^T = C`` for each of the (n, 6, 6) ``covariances``; a tracker's
+    covariance less its systematic part may fall a rounding error below zero in some
+    direction, which counts as zero."""
+    w, v = np.linalg.eigh(0.5 * (covariances + np.swapaxes(covariances, -1, -2)))
+    return v * np.sqrt(np.clip(w, 0.0, None))[:, None, :]
 
 
 def bootstrap_covariance(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,

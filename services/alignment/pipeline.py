@@ -2,11 +2,12 @@
 
 ``align_stations`` works on synchronous pose pairs (stations): it forms the motion pairs of
 every two stations, selects them (angle threshold, axis criterion), eliminates outliers by
-RANSAC, solves, and bootstraps the covariance.  ``align_streams`` first estimates the time
-offset of two free-running streams: coarsely from the angular speeds, then jointly with X
-by minimising the ``A X = X B`` misfit over the offset (golden section), and interpolates
-stream b at the stations' times.  Conventions: ``solvers`` (A, B, X) and ``timesync``
-(offset).
+RANSAC, solves, and propagates the covariance from the stations' own noise (or, where the
+trackers publish none, bootstraps it over the stations).  ``align_streams`` first
+estimates the time offset of two free-running streams: coarsely from the angular speeds,
+then jointly with X by minimising the ``A X = X B`` misfit over the offset (golden
+section), and interpolates stream b at the stations' times.  Conventions: ``solvers``
+(A, B, X) and ``timesync`` (offset).
 """
 
 from __future__ import annotations
@@ -19,7 +20,13 @@ import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
-from services.alignment.covariance import Bootstrap, bootstrap_covariance, shared_shifts
+from services.alignment.covariance import (
+    Bootstrap,
+    bootstrap_covariance,
+    moved_poses,
+    propagated_covariance,
+    shared_shifts,
+)
 from services.alignment.robust import misfit, ransac
 from services.alignment.selection import (
     Selection,
@@ -127,10 +134,12 @@ class AlignmentResult:
     #: of stream a share (``PoseSeries.sensitivity``), in the covariance; (6, 0) if none
     shared_sensitivity: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 0)))
     shared_parameters: tuple[str, ...] = ()
-    #: the stations' bootstrap that ``covariance`` rests on (None: not bootstrapped here)
+    #: the stations' bootstrap that ``covariance`` rests on (None: propagated from the
+    #: stations' noise instead, ``covariance.propagated_covariance``)
     bootstrap: Bootstrap | None = field(repr=False, default=None)
-    #: what ``covariance`` adds to the bootstrap's part: the errors the resamples cannot
-    #: count (the offset's, the shared tolerances' draw, the held ones)
+    #: what ``covariance`` adds to the stations' noise part: the errors that differ from
+    #: station to station by no noise of theirs (the offset's, the shared tolerances'
+    #: draw, the held ones)
     added_covariance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((6, 6)))
 
     @property
@@ -215,16 +224,27 @@ def fit_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
 
 def align_stations(pa: np.ndarray, qa: np.ndarray, pb: np.ndarray, qb: np.ndarray,
                    options: AlignmentOptions | None = None, time_offset_s: float = 0.0,
-                   ) -> AlignmentResult:
-    """X from synchronous pose pairs: ``(pa, qa)[k]`` = A_k and ``(pb, qb)[k]`` = B_k."""
+                   noise: tuple[np.ndarray, np.ndarray] | None = None) -> AlignmentResult:
+    """X from synchronous pose pairs: ``(pa, qa)[k]`` = A_k and ``(pb, qb)[k]`` = B_k.
+
+    X's covariance is propagated from ``noise``, each station's own noise covariance
+    (n, 6, 6) of tracker a and of tracker b (``covariance.propagated_covariance``), where
+    given; else, where the trackers publish no covariance, it is the bootstrap's over
+    stations (``covariance.bootstrap_covariance``)."""
     options = options or AlignmentOptions()
     rng = np.random.default_rng(options.seed)
     fit = fit_stations(pa, qa, pb, qb, options, rng)
-    bootstrap = bootstrap_covariance(pa, qa, pb, qb, fit.pairs_ij[fit.inliers], fit.pose,
-                                     solver_for(options), options.bootstrap, rng)
+    inliers = fit.pairs_ij[fit.inliers]
+    bootstrap = None
+    if noise is None:
+        bootstrap = bootstrap_covariance(pa, qa, pb, qb, inliers, fit.pose,
+                                         solver_for(options), options.bootstrap, rng)
+        covariance = bootstrap.covariance()
+    else:
+        covariance = propagated_covariance((pa, qa, pb, qb), inliers, fit.pose, *noise)
     return AlignmentResult(
         position=fit.pose.position, quaternion=fit.pose.quaternion,
-        covariance=bootstrap.covariance(), bootstrap=bootstrap,
+        covariance=covariance, bootstrap=bootstrap,
         time_offset_s=time_offset_s, method=options.method, n_stations=len(pa),
         n_candidates=fit.selection.candidates, n_selected=len(fit.motions),
         n_inliers=int(fit.inliers.sum()), axis_spread_rad=fit.selection.axis_spread_rad,
@@ -418,9 +438,10 @@ def held_error_covariance(p: np.ndarray, q: np.ndarray, covariances: np.ndarray 
     Why: an error ``E`` that stays with the sensor (``A_k -> A_k E``: a laser housing's
     beams, a marker body's geometry) cancels from every residual of ``A X = X B`` and moves
     X by exactly ``E``; no resampling of the stations can see it, so only the tracker's own
-    account of its errors can.  A sample's own noise is no such error: the bootstrap counts
-    it, so only the part the tracker calls systematic is held here; a tracker that does not
-    say which part persists has its whole covariance read as held (conservative).
+    account of its errors can.  A sample's own noise is no such error: X's noise part counts
+    it (propagated or bootstrapped), so only the part the tracker calls systematic is held
+    here; a tracker that does not say which part persists has its whole covariance read as
+    held (conservative).
     """
     if covariances is None:
         return np.zeros((6, 6))
@@ -461,32 +482,31 @@ def moved_motions(stations: tuple[np.ndarray, ...], sensitivity: np.ndarray,
     """The motion pairs ``pairs_ij`` with every station of a moved by one std of parameter
     j (by its ``sensitivity`` (n, 6, m)), for each j that moves a station."""
     pa, qa, pb, qb = stations
-    out = {}
-    for j in np.flatnonzero(np.any(sensitivity, axis=(0, 1))):
-        xi = sensitivity[:, :, j]
-        phi = xi[:, 3:]
-        moved_p = pa + xi[:, :3] + np.cross(phi, pa)  # dp = rho + phi x p
-        moved_q = geo.quat_multiply(geo.rotvec_to_quat(phi), qa)
-        out[int(j)] = relative_motions(moved_p, moved_q, pb, qb, pairs_ij)
-    return out
+    return {int(j): relative_motions(*moved_poses(pa, qa, sensitivity[:, :, j]), pb, qb,
+                                     pairs_ij)
+            for j in np.flatnonzero(np.any(sensitivity, axis=(0, 1)))}
 
 
 def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s: float,
                     options: AlignmentOptions) -> AlignmentResult:
     """X from the streams' stations at a given offset whose uncertainty is ``offset_std_s``.
 
-    X's covariance adds to the bootstrap's the errors no station resample sees: the offset's
-    (``offset_covariance``), the errors a's stations share through parameters whose
-    sensitivities a gives (``shared_error_sensitivity``), and each tracker's held error
-    (``held_error_covariance``; of a's covariances what those parameters do not explain;
-    b's moves X by ``X E_b X^-1``, hence its adjoint).  The bootstrap's part loses what
-    the shared errors spread its resamples by (``covariance.shared_shifts``: counted
+    X's covariance is the stations' own noise's (propagated from both streams' noise,
+    ``PoseSeries.noise_at``, where both say which part of their covariance is noise; else
+    the stations' bootstrap) plus the errors that no station's own noise holds: the
+    offset's (``offset_covariance``), the errors a's stations share through parameters
+    whose sensitivities a gives (``shared_error_sensitivity``), and each tracker's held
+    error (``held_error_covariance``; of a's covariances what those parameters do not
+    explain; b's moves X by ``X E_b X^-1``, hence its adjoint).  A bootstrap's part loses
+    what the shared errors spread its resamples by (``covariance.shared_shifts``: counted
     whole already) and is scaled for an unbiased inverse of the whole
     (``covariance.inverse_unbiased``)."""
     times = station_times(a, b, offset_s, options.max_stations)
     pa, qa, _ = a.at(times)
     pb, qb, _ = b.at(times + offset_s)
-    result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s)
+    noise = (a.noise_at(times), b.noise_at(times + offset_s))
+    result = align_stations(pa, qa, pb, qb, options, time_offset_s=offset_s,
+                            noise=None if any(c is None for c in noise) else noise)
     ad_x = geo.adjoint(result.position, result.quaternion)
     held_a = a.held_at(times)
     shared = np.zeros((6, 0))
@@ -497,14 +517,15 @@ def align_at_offset(a: PoseSeries, b: PoseSeries, offset_s: float, offset_std_s:
         moved = moved_motions((pa, qa, pb, qb), sensitivity, result.pairs_ij)
         shared = shared_error_sensitivity((pa, qa, pb, qb), moved, sensitivity.shape[2],
                                           result, options)
-        if moved:
+        if moved and bootstrap is not None:
             bootstrap = replace(bootstrap, shared_shifts=shared_shifts(
                 bootstrap, relative_motions(pa, qa, pb, qb, result.pairs_ij),
                 list(moved.values()), result.pose))
     added = (offset_covariance(b, (pa, qa), times, result, offset_std_s, options)
              + shared @ shared.T + held_error_covariance(pa, qa, held_a)
              + ad_x @ held_error_covariance(pb, qb, b.held_at(times + offset_s)) @ ad_x.T)
-    return replace(result, covariance=bootstrap.covariance(added), bootstrap=bootstrap,
+    covariance = result.covariance + added if bootstrap is None else bootstrap.covariance(added)
+    return replace(result, covariance=covariance, bootstrap=bootstrap,
                    added_covariance=added, time_offset_std_s=offset_std_s,
                    shared_sensitivity=shared, shared_parameters=a.parameters)
 

@@ -80,7 +80,7 @@ def simulate_streams(seed: int, mount_a: Pose, x: Pose, world_b: Pose,
     t_a = _sample_times(config.rate_a_hz, config.seconds, rng)
     p, q = add_pose_noise(*geo.compose(*trajectory.pose(t_a), *mount_a), config.pos_std_m,
                           config.rot_std_rad, rng)
-    return (PoseSeries(t_a, p, q, "stream a"),
+    return (_noisy_series(t_a, p, q, config, "stream a"),
             stream_b(trajectory, mount_a, x, world_b, config, rng))
 
 
@@ -92,7 +92,19 @@ def stream_b(trajectory: HeadTrajectory, mount_a: Pose, x: Pose, world_b: Pose,
     p, q = geo.compose(*trajectory.pose(t), *mount_a)
     p, q = geo.compose(*geo.compose(world_b.position, world_b.quaternion, p, q), *x)
     p, q = add_pose_noise(p, q, config.pos_std_m, config.rot_std_rad, rng)
-    return PoseSeries(t + config.offset_s, p, q, "stream b")
+    return _noisy_series(t + config.offset_s, p, q, config, "stream b")
+
+
+def _noisy_series(t: np.ndarray, p: np.ndarray, q: np.ndarray, config: StreamConfig,
+                  name: str) -> PoseSeries:
+    """A stream of poses noisy as ``add_pose_noise`` makes them, with that noise as each
+    sample's published covariance (geometry's convention: ``rho = dp - phi x p``), none of
+    it systematic: the simulated tracker's honest account of its noise."""
+    decoupled = np.diag([config.pos_std_m ** 2] * 3 + [config.rot_std_rad ** 2] * 3)
+    J = np.tile(np.eye(6), (len(p), 1, 1))
+    J[:, :3, 3:] = geo.skew(p)
+    covariance = J @ decoupled @ np.swapaxes(J, 1, 2)
+    return PoseSeries(t, p, q, name, covariance, systematic=np.zeros_like(covariance))
 
 
 def _sample_times(rate_hz: float, seconds: float, rng: np.random.Generator) -> np.ndarray:

@@ -97,13 +97,36 @@ class PoseSeries:
         and not in a gap; the poses at the other times are meaningless.
         """
         times = np.asarray(times, dtype=float).reshape(-1)
-        k = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 2)
-        t0, t1 = self.t[k], self.t[k + 1]
-        valid = (times >= self.t[0]) & (times <= self.t[-1]) & (t1 - t0 <= max_gap_s)
-        alpha = np.clip((times - t0) / (t1 - t0), 0.0, 1.0)
+        k, alpha = self._bracket(times)
+        valid = ((times >= self.t[0]) & (times <= self.t[-1])
+                 & (self.t[k + 1] - self.t[k] <= max_gap_s))
         p, q = geo.interpolate(self.position[k], self.quaternion[k], self.position[k + 1],
                                self.quaternion[k + 1], alpha)
         return p, q, valid
+
+    def noise_at(self, times: np.ndarray) -> np.ndarray | None:
+        """The covariance (n, 6, 6) of each sample's own noise, its covariance less the
+        ``systematic`` part, interpolated at ``times`` as ``at`` interpolates the poses:
+        ``(1 - alpha)^2 C_k + alpha^2 C_k+1``.  None where the tracker does not say which
+        part of its covariance persists: then its noise is unknown (``held_at`` holds the
+        whole covariance, and X's covariance rests on the stations' bootstrap).
+
+        Why: the noise of two samples is independent (what persists is the systematic
+        part), so a pose interpolated between them has less of it than either sample, by
+        the weights squared: two thirds on average between samples of equal noise."""
+        if self.covariance is None or self.systematic is None:
+            return None
+        own = self.covariance - self.systematic
+        k, alpha = self._bracket(np.asarray(times, dtype=float).reshape(-1))
+        w = alpha[:, None, None]
+        return (1.0 - w) ** 2 * own[k] + w ** 2 * own[k + 1]
+
+    def _bracket(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sample before each of ``times`` (the last but one at most) and the weight of
+        the sample after it, in [0, 1]."""
+        k = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 2)
+        t0, t1 = self.t[k], self.t[k + 1]
+        return k, np.clip((times - t0) / (t1 - t0), 0.0, 1.0)
 
 
     def covariance_at(self, times: np.ndarray) -> np.ndarray | None:
@@ -116,9 +139,9 @@ class PoseSeries:
         sample nearest each of ``times``: the ``systematic`` part where the tracker gives it,
         else the whole covariance (None if the stream has none).
 
-        Why: a sample's own noise differs from station to station, so the stations'
-        bootstrap counts it already (``covariance.bootstrap_covariance``); only an error
-        that persists escapes the resamples (``pipeline.held_error_covariance``)."""
+        Why: a sample's own noise differs from station to station, so X's noise part
+        counts it already (``noise_at``, or the stations' bootstrap); only an error that
+        persists escapes it (``pipeline.held_error_covariance``)."""
         held = self.covariance if self.systematic is None else self.systematic
         return None if held is None else held[self._nearest(times)]
 
