@@ -284,7 +284,7 @@ def test_a_noise_that_is_not_a_covariance_is_refused() -> None:
     est = InstallationEstimate(gate_chi2=9.0)
     names, H = ["a", "b"], np.eye(2)
     for noise in (-2.0 * np.eye(2), np.array([[1.0, 0.0], [0.0, -3.0]])):
-        assert np.isnan(est.innovation_chi2(np.array([0.1, 0.0]), noise, names, H))
+        assert np.isnan(est.innovation_chi2(np.array([0.1, 0.0]), noise, names, H)[0])
         assert not est.update(np.array([0.1, 0.0]), noise, names, H)
     assert est.refused == 2 and est.accepted == 0
     assert np.array_equal(est.covariance(names), np.eye(2))

@@ -83,12 +83,14 @@ class InstallationEstimate:
         return idx, PHt, v, H @ PHt[idx] + noise
 
     def innovation_chi2(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str],
-                        H: np.ndarray) -> float:
+                        H: np.ndarray) -> tuple[float, np.ndarray]:
         """Chi-square (2 dof) of ``z`` against what the estimate so far predicts for it
-        (``update``'s gate, without taking it); NaN for a non-finite ``z`` or a residual
-        covariance that is not positive definite (a ``noise`` that is not a covariance)."""
+        (``update``'s gate, without taking it; NaN for a non-finite ``z`` or a residual
+        covariance that is not positive definite, a ``noise`` that is not a covariance),
+        and the covariance it is taken under (2, 2): what a change of ``z`` must exceed to
+        show."""
         _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
-        return _chi2(v, _covariance_inverse2(S))
+        return _chi2(v, _covariance_inverse2(S)), S
 
     def update(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str], H: np.ndarray,
                ) -> bool:

@@ -130,15 +130,16 @@ class TrackerParams:
     #: squared, 6 dof, at most this: chi2(6)'s 1 - 1e-4 quantile) is the same answer
     same_pose_chi2: float = 27.9
     #: a blob nearer a spot than this is part of it for the detector (a spot is some 5
-    #: mm wide, std): a labeling is published only if its fourth dot's miss would show a
-    #: stray blob farther away in the place of any dot that fixes the pose
+    #: mm wide, std): a labeling is published with its own covariance only if its fourth
+    #: dot's miss would show a stray blob farther away in the place of any dot that fixes
+    #: the pose; else with the covariance widened by every pose such a blob could give
+    #: (``_unseen_stray``), never a confident wrong pose
     stray_min_m: float = 0.01
-    #: ... or, where it would not, only once this many frame sets in a row held the
-    #: labeling with continuous misses, and then with the pose's covariance widened by
-    #: every pose such a blob could give (``_unseen_stray``): a blob's frame set is
-    #: refused up to there, and at that one covered, never a confident wrong pose, while
-    #: noisier dots (a calibration that states no error gets ``calib_sigma_m``), whose
-    #: miss can rarely show such a blob, cannot hold a start without bound
+    #: ... and a labeling that confirms a held one (a start's) is refused for that until
+    #: this many frame sets in a row held it with continuous misses, and that one widened:
+    #: a blob in one frame set of a start is refused where it can be, while noisier dots
+    #: (a calibration that states no error gets ``calib_sigma_m``), whose miss can rarely
+    #: show such a blob, cannot hold a start without bound
     start_confirm_sets: int = 3
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
@@ -481,7 +482,7 @@ class LaserTracker:
         rival = _rival([f.pose for f in fits], k, lead, cov, p.min_margin, p.same_pose_chi2)
         if rival is not None:
             return NoPose(t, "ambiguous_labeling", n, rival)
-        cov = self._confirm(fits[k], dots, t, n, cov)
+        cov = self._confirm(fits[k], dots, t, n, cov, J)
         if isinstance(cov, NoPose):
             return cov
         sys_std = np.sqrt(0.5 * np.trace(sys_cov, axis1=1, axis2=2))
@@ -597,10 +598,11 @@ class LaserTracker:
                               f"residual chi-square {float(np.min(chi2)):.1f} > "
                               f"{p.max_residual_chi2:g}")
 
-    def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int,
-                 cov: np.ndarray) -> NoPose | np.ndarray:
+    def _confirm(self, fit: _Fit, dots: WorldDots, t: float, n: int, cov: np.ndarray,
+                 J: np.ndarray) -> NoPose | np.ndarray:
         """The chosen labeling's fourth-beam miss against the last one kept (``_miss``):
-        the pose's covariance ``cov`` to publish if they agree, else why not.
+        the pose's covariance ``cov`` (``J``: its Jacobian) to publish if they agree, else
+        why not.
 
         The miss is mostly the installation's error, the same from one frame set to the
         next while the same diodes' dots stay on the same walls; a stray blob taken for a
@@ -615,11 +617,13 @@ class LaserTracker:
         bridges (seed 103 at 15 Hz: 2.1 -> 10 mm RMSE).  The first labeling after a start
         (``reset``) has no miss at all: it is held until the next frame set confirms it
         (``unconfirmed_labeling``); a held miss that the next one does not confirm is
-        replaced by it (either may be the stray).  A labeling that confirms a held one is
-        refused where a stray blob in its frame set could pass the miss's change unseen
-        (``_unseen_stray``), up to ``start_confirm_sets`` frame sets held in a row: that
-        one is published with its covariance widened to cover every pose such a blob
-        could give.  Where the dots'
+        replaced by it (either may be the stray).  Where a stray blob in the frame set
+        could pass the miss's test unseen (``_unseen_stray``: against the last miss, or
+        the estimate's prediction where the last cannot be compared), a labeling that
+        confirms a held one is refused up to ``start_confirm_sets`` frame sets held in a
+        row; that one, and such a labeling while tracking (the prediction cannot tell a
+        centimetre within a frame set either), is published with its covariance widened
+        to cover every pose the blob could give.  Where the dots'
         noise outweighs the installation's part (an ideal installation) the chi-square of
         ``_fits`` is as sharp, and nothing is held."""
         p, last = self.params, self._miss
@@ -632,45 +636,52 @@ class LaserTracker:
         change = None if last is None or t <= last.t else last.change(
             now, p.residual_drift_per_m)
         chi2, S = (None, None) if change is None else change
+        bound = p.max_residual_chi2
         if chi2 is None and last is not None and last.confirmed:
-            unexplained = self._unexplained_miss(fit, dots)
-            self._miss = replace(now, confirmed=unexplained is None)
-            return cov if unexplained is None else NoPose(t, "residual_jump", n, unexplained)
-        if chi2 is None:
+            unexplained, S, bound = self._unexplained_miss(fit, dots)
+            if unexplained is not None:
+                self._miss = now
+                return NoPose(t, "residual_jump", n, unexplained)
+        elif chi2 is None:
             self._miss = now
             return NoPose(t, "unconfirmed_labeling", n, "a labeling's first frame set is held "
                           "until the next one confirms where its fourth dot lies")
-        if chi2 > p.max_residual_chi2:
+        elif chi2 > p.max_residual_chi2:
             if not last.confirmed:
                 self._miss = now
             return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
                           f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
-        unseen = None if last.confirmed else _unseen_stray(dots, fit, S, cov, p)
+        unseen = _unseen_stray(fit, J, S, cov, p, bound)
         if unseen is None:
             self._miss = replace(now, confirmed=True)
             return cov
         held = last.held + 1
-        if unseen.cover is None or held < p.start_confirm_sets:
-            self._miss = replace(now, held=held)
+        if unseen.cover is None or not (last.confirmed or held >= p.start_confirm_sets):
+            if not last.confirmed:
+                self._miss = replace(now, held=held)
             return NoPose(t, "ambiguous_labeling", n, unseen.detail)
         self._miss = replace(now, confirmed=True)
         self.counts["covered_stray"] += 1
         return cov + unseen.cover
 
-    def _unexplained_miss(self, fit: _Fit, dots: WorldDots) -> str | None:
+    def _unexplained_miss(self, fit: _Fit, dots: WorldDots,
+                          ) -> tuple[str | None, np.ndarray, float]:
         """Why the installation's estimate does not explain the fit's miss (chi-square of
         its innovation above ``estimate_gate_chi2``), None if it does or there is no
-        estimate.  Where the last miss cannot be compared (the dots moved far, changed
-        walls), the estimate still predicts the installation's part of the miss at the new
-        dots, within its remaining covariance instead of the whole tolerances."""
+        estimate; and the covariance and bound the miss was tested under (without an
+        estimate: the fit's own chi-square against the whole tolerances).  Where the last
+        miss cannot be compared (the dots moved far, changed walls), the estimate still
+        predicts the installation's part of the miss at the new dots, within its remaining
+        covariance instead of the whole tolerances."""
+        p = self.params
         if self.installation is None:
-            return None
+            return None, fit.random + fit.systematic.sum(axis=0), p.max_residual_chi2
         names, _, H, noise = self._miss_model(fit, dots)
-        chi2 = self.installation.innovation_chi2(fit.miss, noise, names, H)
-        if chi2 <= self.params.estimate_gate_chi2:
-            return None
+        chi2, S = self.installation.innovation_chi2(fit.miss, noise, names, H)
+        if chi2 <= p.estimate_gate_chi2:
+            return None, S, p.estimate_gate_chi2
         return ("the fourth dot's miss disagrees with the installation's estimate: "
-                f"chi-square {chi2:.1f} > {self.params.estimate_gate_chi2:g}")
+                f"chi-square {chi2:.1f} > {p.estimate_gate_chi2:g}"), S, p.estimate_gate_chi2
 
     def _pick_tracking(self, fits: list[_Fit], t: float,
                        n: int) -> tuple[int, np.ndarray] | NoPose:
@@ -1263,40 +1274,40 @@ class _Unseen(NamedTuple):
     cover: np.ndarray | None
 
 
-def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
-                  p: TrackerParams) -> _Unseen | None:
-    """Whether the miss's change (covariance ``S``) cannot vouch for the fit's pose
-    (covariance ``cov``): a stray blob in the place of one of the dots that fix the pose
-    (diodes 1-3), at least ``stray_min_m`` from it, could pass the change's test
-    (chi-square at most ``max_residual_chi2``) yet put the pose outside its covariance
+def _unseen_stray(fit: _Fit, J: np.ndarray, S: np.ndarray, cov: np.ndarray,
+                  p: TrackerParams, bound: float) -> _Unseen | None:
+    """Whether the miss's test (covariance ``S``, chi-square at most ``bound``) cannot
+    vouch for the fit's pose (covariance ``cov``, Jacobian ``J``: :func:`_pose_jacobian`):
+    a stray blob in the place of one of the dots that fix the pose (diodes 1-3), at least
+    ``stray_min_m`` from it, could pass the test yet put the pose outside its covariance
     (Mahalanobis distance squared above ``same_pose_chi2``); None if none could.  ``S``
-    is wide where a dot near its screen's edge moved (its clipped centroid) or the dots
-    moved far since the last miss (the installation's part), and where the dots are noisy.
+    is wide where a dot near its screen's edge moved (its clipped centroid), the dots
+    moved far since the last miss (the installation's part), or the dots are noisy.
 
     Per dot, with ``A = Jp^T C^-1 Jp`` and ``B = Jm^T S^-1 Jm`` (the pose's and the miss's
     change per move of the dot along its wall), the move the test passes that moves the
     pose most is the generalised eigenvector ``v`` of ``(A, B)`` with the largest
-    eigenvalue ``lam``, scaled to ``v^T B v = max_residual_chi2``: it is harmful if
-    ``lam`` exceeds the ratio of the two bounds, and a blob if ``|v| >= stray_min_m``.
-    Every move the test passes changes the miss by ``m`` with ``m^T S^-1 m`` at most
-    ``max_residual_chi2`` and the pose by ``Jp Jm^-T m``: the cover is that map of
-    ``max_residual_chi2 S``, summed over the harmful dots.  A dot whose ``Jm`` is singular
-    has a move the miss does not see at all: the blob is unbounded, and no cover is
-    given."""
-    Jp = _pose_jacobian(dots, fit.idx, fit.pose.position).reshape(6, 4, 2)[:, :3]
+    eigenvalue ``lam``, scaled to ``v^T B v = bound``: it is harmful if ``lam`` exceeds
+    the ratio of the two bounds, and a blob if ``|v| >= stray_min_m`` (no move the test
+    passes is that long where ``bound`` over ``B``'s least eigenvalue is less: most frame
+    sets).  Every move the test passes changes the miss by ``m`` with ``m^T S^-1 m`` at
+    most ``bound`` and the pose by ``Jp Jm^-T m``: the cover is that map of ``bound S``,
+    summed over the harmful dots.  A dot whose ``Jm`` is singular has a move the miss
+    does not see at all: the blob is unbounded, and no cover is given."""
     Jm = fit.jacobian[:3]  # (dot, wall axis, miss component)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        blind = ~(np.linalg.cond(Jm) < _SINGULAR_COND)
-    if blind.any():
-        k = int(np.argmax(blind))
+    longest = _longest_passing_moves(Jm, S)
+    if math.inf in longest:
+        k = longest.index(math.inf)
         return _Unseen(f"a stray blob beside diode {k + 1}'s dot could move the pose along "
                        "a line the fourth dot's miss does not see (its Jacobian is singular)",
                        None)
-    A = np.einsum("pka,pq,qkb->kab", Jp, np.linalg.inv(cov), Jp)
+    if bound * max(longest) < p.stray_min_m ** 2:
+        return None
     B = np.einsum("kai,ij,kbj->kab", Jm, np.linalg.inv(S), Jm)
-    # the largest root of det(A - lam B) = 0, a quadratic per dot (B > 0: S > 0 and Jm
-    # regular)
-    a = np.linalg.det(B)
+    a = np.linalg.det(B)  # > 0: S > 0 and Jm regular
+    Jp = J.reshape(6, 4, 2)[:, :3]
+    A = np.einsum("pka,pq,qkb->kab", Jp, np.linalg.inv(cov), Jp)
+    # the largest root of det(A - lam B) = 0, a quadratic per dot
     b = A[:, 0, 0] * B[:, 1, 1] + A[:, 1, 1] * B[:, 0, 0] - A[:, 0, 1] * B[:, 1, 0] \
         - A[:, 1, 0] * B[:, 0, 1]
     lam = (b + np.sqrt(np.maximum(b * b - 4 * a * np.linalg.det(A), 0.0))) / (2 * a)
@@ -1304,20 +1315,47 @@ def _unseen_stray(dots: WorldDots, fit: _Fit, S: np.ndarray, cov: np.ndarray,
     rows = np.stack([np.stack([-M[:, 0, 1], M[:, 0, 0]], -1),
                      np.stack([-M[:, 1, 1], M[:, 1, 0]], -1)], 1)  # (dot, row, 2)
     v = rows[np.arange(3), np.argmax(np.einsum("kra,kra->kr", rows, rows), axis=1)]
-    length = np.sqrt(p.max_residual_chi2 * np.einsum("ka,ka->k", v, v)
-                     / np.einsum("ka,kab,kb->k", v, B, v))
-    harmful = (lam * p.max_residual_chi2 > p.same_pose_chi2) & (length >= p.stray_min_m)
+    length = np.sqrt(bound * np.einsum("ka,ka->k", v, v) / np.einsum("ka,kab,kb->k", v, B, v))
+    harmful = (lam * bound > p.same_pose_chi2) & (length >= p.stray_min_m)
     if not harmful.any():
         return None
     k = int(np.argmax(np.where(harmful, lam, -np.inf)))
     G = np.einsum("pka,kia->kpi", Jp[:, harmful], np.linalg.inv(Jm[harmful]))  # Jp Jm^-T
-    cover = p.max_residual_chi2 * np.einsum("kpi,ij,kqj->pq", G, S, G)
+    cover = bound * np.einsum("kpi,ij,kqj->pq", G, S, G)
     return _Unseen(f"a stray blob {length[k] * 100:.1f} cm from diode {k + 1}'s dot would "
-                   f"move the pose {np.sqrt(lam[k] * p.max_residual_chi2):.1f} sigma, unseen "
-                   "by the fourth dot's miss", 0.5 * (cover + cover.T))
+                   f"move the pose {np.sqrt(lam[k] * bound):.1f} sigma, unseen by the fourth "
+                   "dot's miss", 0.5 * (cover + cover.T))
 
 
-#: a dot's miss Jacobian (2 x 2) this ill-conditioned has a move the miss does not see
+def _longest_passing_moves(Jm: np.ndarray, S: np.ndarray) -> list[float]:
+    """Per dot (``Jm``: (3, wall axis, miss component)), the squared length of the
+    longest move along its wall whose change of the miss ``m`` has ``m^T S^-1 m = 1``:
+    one over the least eigenvalue of ``B = Jm^T S^-1 Jm``; inf where ``Jm`` is singular
+    (a move the miss does not see).  On plain floats: it runs for every labeling
+    published, and numpy's per-call overhead on 2 x 2 matrices costs more than this."""
+    (s00, s01), (s10, s11) = S.tolist()
+    det_s = s00 * s11 - s01 * s10
+    i00, i01, i10, i11 = s11 / det_s, -s01 / det_s, -s10 / det_s, s00 / det_s
+    out = []
+    for (m00, m01), (m10, m11) in Jm.tolist():
+        det_m = m00 * m11 - m01 * m10
+        # a 2 x 2 matrix's determinant over its squared norm is about its condition's
+        # inverse
+        if not abs(det_m) > (m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11) / _SINGULAR_COND:
+            out.append(math.inf)
+            continue
+        b00 = m00 * (i00 * m00 + i01 * m01) + m01 * (i10 * m00 + i11 * m01)
+        b11 = m10 * (i00 * m10 + i01 * m11) + m11 * (i10 * m10 + i11 * m11)
+        half = 0.5 * (b00 + b11)
+        det_b = det_m * det_m / det_s
+        # 1 / least = largest / det_b: no cancellation where the two differ by far
+        largest = half + math.sqrt(max(half * half - det_b, 0.0))
+        out.append(largest / det_b if det_b > 0 else math.inf)
+    return out
+
+
+#: a dot's miss Jacobian (2 x 2) about this ill-conditioned has a move the miss does not
+#: see
 _SINGULAR_COND = 1e8
 
 
