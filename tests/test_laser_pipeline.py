@@ -22,7 +22,7 @@ from services.laser_camera.evaluate import evaluate
 from services.laser_camera.sources import CaptureSource, parse_sources
 from services.laser_camera.tracker import LaserTracker, NoPose, PoseEstimate, TrackerParams
 from services.sim import mounts
-from services.sim.calibrations import laser_calibration
+from services.sim.calibrations import laser_calibration, laser_calibration_name
 from services.sim.world import IvyWorld, WorldConfig, sim_time_s
 
 RNG_SEED = 36
@@ -225,6 +225,15 @@ def test_calibration_file_round_trip_and_refusals(world, calibration, calibratio
     bad.write_text(json.dumps(data))
     with pytest.raises(ValueError, match="no cameras"):
         Calibration.load(bad)
+
+
+def test_the_cached_calibration_is_one_per_installation() -> None:
+    """Worlds that differ in their trajectory or their imperfections' draw share one
+    calibration; the ideal installation, whose calibration records another installation,
+    gets its own, so the order in which tests and evals first calibrate cannot matter."""
+    name = laser_calibration_name(IvyWorld(seed=4))
+    assert name == laser_calibration_name(IvyWorld(seed=9, imperfection_seed=9))
+    assert name != laser_calibration_name(IvyWorld(seed=4, ideal=True))
 
 
 def test_short_run_on_the_realistic_installation_meets_marvins_figures(world,

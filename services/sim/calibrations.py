@@ -69,11 +69,23 @@ def laser_calibration_file(world: IvyWorld, announce: bool = False) -> Path:
     import services.sim
     from services.laser_camera.calibration import Calibration, calibrate_sim
 
-    return cached_file(f"laser_calibration_{world.config.n_cameras}cam",
+    return cached_file(laser_calibration_name(world),
                        (services.sim, services.installation, services.laser_camera),
                        Calibration.load,
                        lambda path: calibrate_sim(world).save(path),
                        "calibrating the simulated cameras once (about 20 s)" if announce else "")
+
+
+def laser_calibration_name(world: IvyWorld) -> str:
+    """The cache name of ``world``'s laser calibration: one per installation
+    (``IvyWorld.installation``), since the ideal and the realistic installation render other
+    calibration images and a calibration records the installation it was made for; worlds
+    that differ only in their trajectory or their imperfections' draw share it."""
+    import hashlib
+    import json
+
+    digest = hashlib.sha1(json.dumps(world.installation, sort_keys=True).encode())
+    return f"laser_calibration_{world.config.n_cameras}cam_{digest.hexdigest()[:10]}"
 
 
 def accel_calibration_file(seed: int = 0, announce: bool = False) -> Path:
