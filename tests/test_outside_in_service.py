@@ -202,6 +202,8 @@ def test_uma_demo_outside_in(capsys) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # a reconstruction behind skips to the present: beside other long runs
+# the two layouts skip different frame sets and few are left to pair
 def test_uma_demo_outside_in_compares_both_layouts_on_the_same_frames(capsys) -> None:
     import json
 
