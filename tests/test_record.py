@@ -268,6 +268,7 @@ def test_bad_files_and_arguments_get_clear_errors(tmp_path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # beside the other long runs the live demo's fusion can be starved of poses
 def test_recorded_demo_replays_deterministically(tmp_path) -> None:
     path = tmp_path / "demo.mcap"
     demo = uma("demo", "--seconds", "6", "--json", "--record", str(path), timeout=300)
