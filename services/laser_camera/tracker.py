@@ -68,7 +68,6 @@ from services.laser_camera.installation_estimate import InstallationEstimate
 from services.laser_camera.pose import (
     LabeledPose,
     candidate_poses,
-    cross_rows,
     frames_from_points,
 )
 
@@ -1126,7 +1125,7 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
     per dot), all at once (a frame set's labelings hold a few dozen dots), and the dots'
     :class:`_DotSlopes` it took (the chosen labeling's estimate moves its dots by them)."""
-    n = cross_rows(A[:, 0], A[:, 1])  # outward
+    n = geo.cross(A[:, 0], A[:, 1])  # outward
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
     dn = np.abs(np.einsum("ki,ki->k", n, d))
@@ -1626,7 +1625,7 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     set's four dots see some sixty parameters, and numpy's per-call overhead, not the
     arithmetic, is the cost of building them parameter by parameter."""
     x, A = dots.points[idx], dots.axes[idx]
-    n = cross_rows(A[:, 0], A[:, 1])
+    n = geo.cross(A[:, 0], A[:, 1])
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
     unit = d / r[:, None]
