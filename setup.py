@@ -6,10 +6,11 @@ on without them and :mod:`agent.srg.kernel`, the pose decoder
 (:func:`agent.protocol.query.pose_from_wire`), the dead reckoner
 (:mod:`services.accel_rig.integrator`), the marker segmentation
 (:mod:`services.outside_in.blobs`), the outside-in pose fit (:mod:`services.outside_in.pose`)
-and the fiducial tracker's fits and edge crossings (:mod:`services.fiducials.pose`,
-:mod:`services.fiducials.edges`) run in pure Python (same results, slower; the fits' to
-rounding).  The pose decoder, the answer reader, the dead reckoner's step, the segmentation
-and the fiducial kernels are compiled without floating-point contraction, so that their
+the fiducial tracker's fits and edge crossings (:mod:`services.fiducials.pose`,
+:mod:`services.fiducials.edges`) and the laser tracker's installation moves
+(:mod:`services.laser_camera.tracker`) run in pure Python (same results, slower; the fits' to
+rounding).  The pose decoder, the answer reader, the dead reckoner's step, the segmentation,
+the fiducial and the laser kernels are compiled without floating-point contraction, so that their
 arithmetic rounds as Python's does.
 
 A kernel that fails to build also loses the copy an earlier build left beside its source
@@ -65,4 +66,5 @@ setup(cmdclass={"build_ext": BuildExt}, ext_modules=[
     twin("services.outside_in._blobs", contract=False),
     twin("services.outside_in._fit"),
     twin("services.fiducials._kernels", contract=False),
+    twin("services.laser_camera._kernels", contract=False),
 ])

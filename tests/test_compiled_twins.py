@@ -14,7 +14,7 @@ from schemas.native import REBUILD, compiled_twin, source_hash
 
 TWINS = ("agent.srg._kernel", "agent.protocol._wire", "schemas._pose",
          "services.accel_rig._step", "services.outside_in._blobs", "services.outside_in._fit",
-         "services.fiducials._kernels")
+         "services.fiducials._kernels", "services.laser_camera._kernels")
 #: an environment switch nobody sets: these tests ask for the twin itself
 SWITCH = "UMA_TEST_TWINS_UNSET"
 

@@ -5,6 +5,7 @@ absorbed."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,6 +15,7 @@ from agent import geometry as geo
 from agent.errors import InvalidInputError
 from services.alignment.simulate import _detections
 from services.installation.laser_housing import BEAM_DIRECTIONS
+from services.laser_camera import tracker as tracker_module
 from services.laser_camera.installation_estimate import InstallationEstimate
 from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams, _beam_hit
 from services.sim.calibrations import laser_calibration
@@ -275,6 +277,40 @@ def test_dots_moves_taken_together_are_each_dots_own(run) -> None:
         assert np.array_equal(D[k][:, cols], alone[0])
         rest = np.delete(D[k], cols, axis=1)
         assert not rest.any()
+
+
+@pytest.mark.skipif(tracker_module.KERNELS is None, reason="the laser kernels are not built")
+@pytest.mark.parametrize("known", ["cameras", "no eyes", "no maps"])
+def test_the_compiled_moves_are_numpys(run, monkeypatch: pytest.MonkeyPatch, known: str) -> None:
+    """The compiled twin of the installation's dot moves gives numpy's moves (to rounding:
+    a few 1e-16 of the largest), with the cameras' centres and screen maps, without the
+    centres (the turn's residual instead) and without the maps; the dots' parameter
+    columns alike."""
+    _, tracker, poses = run
+    dots, res = tracker._dots, poses[-1][0]
+    if known == "no eyes":
+        dots = replace(dots, eyes=None, bend=None)
+    screens = None if known == "no maps" else tracker._screens
+    args = (dots, [0, 0, 1, 2], [1, 2, 3, 4], res.position, res.quaternion, tracker.params)
+    names, compiled = tracker_module._dot_moves(*args, screens=screens)
+    monkeypatch.setattr(tracker_module, "KERNELS", None)
+    names_py, numpy_moves = tracker_module._dot_moves(*args, screens=screens)
+    assert names == names_py and (" map " in "".join(names)) == (screens is not None)
+    assert np.abs(compiled - numpy_moves).max() <= 1e-15 * np.abs(numpy_moves).max()
+    assert np.count_nonzero(compiled) == np.count_nonzero(numpy_moves)
+
+
+@pytest.mark.skipif(tracker_module.KERNELS is None, reason="the laser kernels are not built")
+def test_the_compiled_moves_refuse_arrays_of_the_wrong_kind() -> None:
+    """Arrays of another type or size than the moves need raise a ValueError naming the
+    argument, not a read past their end."""
+    k, f = tracker_module.KERNELS, np.zeros
+    good = [f(3), f(6), f(3), np.array([0.0, 0.0, 0.0, 1.0]), f(6), np.ones(1), f(2), f(6),
+            f(0), f(0), f(0), f(0), np.zeros(0, np.int64), np.zeros(0, np.int64), f(16)]
+    k.dot_moves(*good, (None,), 8, 1.0, 1.0, 1.0, 1.0, 1.0)
+    for i, bad in [(0, f(4)), (0, np.zeros(3, np.float32)), (12, np.zeros(1, np.int64))]:
+        with pytest.raises(ValueError, match="laser kernel"):
+            k.dot_moves(*good[:i], bad, *good[i + 1:], (None,), 8, 1.0, 1.0, 1.0, 1.0, 1.0)
 
 
 def test_a_noise_that_is_not_a_covariance_is_refused() -> None:

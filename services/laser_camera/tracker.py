@@ -55,12 +55,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from itertools import combinations
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
+from agent.runtime import compiled_twin
 from services.installation.laser_housing import BEAM_DIRECTIONS
 from services.laser_camera.calibration import Calibration, CameraCalibration
 from services.laser_camera.detection import STD, UV, detect_dots, detect_dots_in
@@ -1620,61 +1621,92 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
     left out.  ``slopes``: the dots' :class:`_DotSlopes` at ``p0`` if already taken.
 
     Each dot's moves are one block (its beam's four parameters, its screen's bend, its
-    camera's turn, its camera's map), computed for all dots at once and scattered into
-    the columns :func:`_move_layout` keeps for the dots' labels, walls and cameras: a frame
-    set's four dots see some sixty parameters, and numpy's per-call overhead, not the
-    arithmetic, is the cost of building them parameter by parameter."""
+    camera's turn, its camera's map: :func:`_move_blocks`, or its compiled twin), computed
+    for all dots at once and scattered into the columns :func:`_move_layout` keeps for the
+    dots' labels, walls and cameras: a frame set's four dots see some sixty parameters,
+    and numpy's per-call overhead, not the arithmetic, is the cost of building them
+    parameter by parameter."""
     x, A = dots.points[idx], dots.axes[idx]
-    n = geo.cross(A[:, 0], A[:, 1])
-    d = x - p0
-    r = np.sqrt(np.einsum("ki,ki->k", d, d))
-    unit = d / r[:, None]
-    dn = np.einsum("ki,ki->k", n, d)
-    nd = np.where(dn < 0, -1.0, 1.0) * np.maximum(np.abs(dn) / r, 0.05)  # cos(incidence)
-    # two rig-fixed axes across each beam, in the world, made square to the beam as it is
-    across = np.einsum("ij,kaj->kai", geo.quat_to_matrix(quaternion),
-                       _ACROSS_BEAM[np.array(labels) - 1])
-    across -= np.einsum("kai,ki->ka", across, unit)[..., None] * unit[:, None]
-    on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
-    beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
     k4 = len(idx)
     eyes = None if dots.eyes is None else dots.eyes[idx]
     cams = () if screens is None else tuple(screens.index.get(dots.cameras[i]) for i in idx)
     mapped = tuple(c is not None for c in cams)
-    names, src, dst, width = _move_layout(
+    names, src, dst, width, across = _move_layout(
         tuple(labels), tuple(dots.walls[i] for i in idx), tuple(dots.cameras[i] for i in idx),
         eyes is not None, mapped)
+    shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
+    if slopes is None:
+        n, d, r, dn = _dot_geometry(x, A, p0)
+        slopes = _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
+    out = np.zeros(k4 * 2 * len(names))
+    if KERNELS is None:
+        out[dst] = _move_blocks(x, A, p0, quaternion, across, shape, slopes, p, width,
+                                screens, cams).take(src)
+    else:
+        maps = (screens.translation, screens.rotation, screens.side, screens.sigma) \
+            if any(mapped) else _NO_MAPS
+        KERNELS.dot_moves(
+            x, A, np.ascontiguousarray(p0, float), np.ascontiguousarray(quaternion, float),
+            across, shape, slopes.bend, _NO_MAPS[0] if slopes.turn is None else slopes.turn,
+            *maps, src, dst, out, cams or (None,) * k4, width, p.housing_dir_std_rad,
+            p.housing_offset_std_m, p.screen_bulge_std_m, p.camera_turn_std_rad,
+            p.camera_residual_std_m)
+    return names, out.reshape(k4, 2, len(names))
+
+
+def _dot_geometry(x: np.ndarray, A: np.ndarray, p0: np.ndarray,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each dot's wall normal (k, 3; outward), its ray from P0 (k, 3), that ray's length
+    (k,) and the normal's dot product with it (k,)."""
+    n = geo.cross(A[:, 0], A[:, 1])
+    d = x - p0
+    return n, d, np.sqrt(np.einsum("ki,ki->k", d, d)), np.einsum("ki,ki->k", n, d)
+
+
+def _move_blocks(x: np.ndarray, A: np.ndarray, p0: np.ndarray, quaternion: np.ndarray,
+                 across: np.ndarray, shape: np.ndarray, slopes: _DotSlopes, p: TrackerParams,
+                 width: int, screens: _Screens | None, cams: tuple[int | None, ...],
+                 ) -> np.ndarray:
+    """Each dot's block of moves (k, 2 axes, ``width``): per beam tilt a, offset a, tilt b,
+    offset b (``_BEAM_NAMES``' order; ``across`` (k, 2, 3): the beam's two rig axes across
+    it), its screen's bend (``shape`` at the dot), its camera's turn (or residual), and
+    where ``cams`` holds any camera its map's eight coefficients."""
+    n, d, r, dn = _dot_geometry(x, A, p0)
+    k4 = len(x)
+    unit = d / r[:, None]
+    nd = np.where(dn < 0, -1.0, 1.0) * np.maximum(np.abs(dn) / r, 0.05)  # cos(incidence)
+    # two rig-fixed axes across each beam, in the world, made square to the beam as it is
+    across = np.einsum("ij,kaj->kai", geo.quat_to_matrix(quaternion), across)
+    across -= np.einsum("kai,ki->ka", across, unit)[..., None] * unit[:, None]
+    on_wall = across - np.einsum("kai,ki->ka", across, n)[..., None] * (unit / nd[:, None])[:, None]
+    beam = np.einsum("kbi,kai->kab", A, on_wall)  # dot k's move (b) per unit across (a)
     blocks = np.empty((k4, 2, width))
-    # per beam: tilt a, offset a, tilt b, offset b (``_BEAM_NAMES``' order)
     scale = np.stack([r * p.housing_dir_std_rad, np.full(k4, p.housing_offset_std_m)], -1)
     blocks[..., :4] = (beam.transpose(0, 2, 1)[..., None] * scale[:, None, None]).reshape(
         k4, 2, 4)
-    shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
-    if slopes is None:
-        slopes = _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
     blocks[..., 4] = slopes.bend * (p.screen_bulge_std_m * shape)[:, None]
-    if eyes is None:
+    if slopes.turn is None:
         blocks[..., 5:7] = p.camera_residual_std_m * np.eye(2)
     else:
         blocks[..., 5:8] = p.camera_turn_std_rad * slopes.turn
-    if any(mapped):
+    if any(c is not None for c in cams):
         blocks[..., width - 8:] = screens.map_bases(x, [c or 0 for c in cams])
-    out = np.zeros(k4 * 2 * len(names))
-    out[dst] = blocks.take(src)
-    return names, out.reshape(k4, 2, len(names))
+    return blocks
 
 
 @lru_cache(maxsize=4096)
 def _move_layout(labels: tuple[int, ...], walls: tuple[str, ...], cameras: tuple[str, ...],
                  turn: bool, mapped: tuple[bool, ...],
-                 ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, int]:
+                 ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, int, np.ndarray]:
     """The parameters that move dots of diodes ``labels`` on ``walls`` seen by ``cameras``
     (their turn known: ``turn``; their screen maps held where ``mapped``), in the order
     :func:`_dot_moves` names them: each beam's, then each dot's screen bend and camera
     turn, then each dot's camera map, a parameter shared by two dots (a screen, a camera)
     named once; and where each dot's block of moves goes: flat indices into the blocks
-    (dots, 2, ``width``) and into the moves (dots, 2, parameters).  Depends on the dots'
-    labels, walls and cameras alone, which a tracked head keeps for many frame sets."""
+    (dots, 2, ``width``) and into the moves (dots, 2, parameters); and each dot's beam's
+    two rig axes across it (dots, 2, 3).  Depends on the dots' labels, walls and cameras
+    alone, which a tracked head keeps for many frame sets.  (Read-only: shared by every
+    call with the same key.)"""
     axes = ("turn x", "turn y", "turn z") if turn else ("residual 0", "residual 1")
     width = 5 + len(axes) + (8 if any(mapped) else 0)
     groups = [(k, _BEAM_NAMES[label], 0) for k, label in enumerate(labels)]
@@ -1695,9 +1727,17 @@ def _move_layout(labels: tuple[int, ...], walls: tuple[str, ...], cameras: tuple
     m = len(names)
     src = [(2 * k + a) * width + b for a in range(2) for k, b, _ in places]
     dst = [(2 * k + a) * m + j for a in range(2) for k, _, j in places]
-    return tuple(names), np.array(src), np.array(dst), width
+    out = (np.array(src, np.int64), np.array(dst, np.int64),
+           _ACROSS_BEAM[np.array(labels, int) - 1])
+    for a in out:
+        a.flags.writeable = False
+    return tuple(names), out[0], out[1], width, out[2]
 
 
+#: the compiled twin of ``_dot_moves``' blocks and scatter (None: the numpy code runs)
+KERNELS: Any = compiled_twin("services.laser_camera._kernels", "UMA_LASER_PURE_PYTHON")
+#: no screen maps, no camera turns: the compiled twin's empty arrays
+_NO_MAPS = (np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
 #: per beam label, its parameters' names in ``_dot_moves``' order
 _BEAM_NAMES = {label: [f"beam {label} {kind} {axis}"
                        for axis in "ab" for kind in ("tilt", "offset")]

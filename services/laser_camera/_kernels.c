@@ -1,0 +1,212 @@
+/* The compiled twin of the laser tracker's installation estimate arithmetic on small
+ * arrays: tracker.py's _dot_moves (how far each of a pose's dots moves along its wall's
+ * axes per one std of each installation parameter, scattered into the parameters'
+ * columns).
+ *
+ * The same arithmetic as the numpy code, operation by operation, compiled without
+ * floating-point contraction: the products of a 3 x 3 matrix and the 3-term dot products
+ * sum in numpy's order, so the results agree with it to rounding (a few 1e-16 relative)
+ * where numpy's matrix products take another order.  Why compiled: a frame set's four dots
+ * see some sixty parameters, and the numpy code spends about thirty calls per frame set on
+ * a few hundred numbers, the interpreter's cost rather than the arithmetic's.  Optional:
+ * when this does not build, tracker.py runs in pure Python. */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include "_twin.h"
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define NBUF 15
+
+typedef struct {
+    Py_buffer b[NBUF];
+    int n;
+} buffers_t;
+
+static void release(buffers_t *bufs) {
+    for (int i = 0; i < bufs->n; i++) PyBuffer_Release(&bufs->b[i]);
+}
+
+static int sized(const Py_buffer *b, Py_ssize_t n, const char *what) {
+    if (b->len == n * (Py_ssize_t)sizeof(double)) return 1;
+    PyErr_Format(PyExc_ValueError, "laser kernel: %s holds %zd bytes, expected %zd doubles",
+                 what, b->len, n);
+    return 0;
+}
+
+/* Whether a buffer holds 8-byte items of float64 (integer: int64), in native byte order. */
+static int of_kind(const Py_buffer *b, int integer) {
+    const char *f = b->format;
+    if (f == NULL || b->itemsize != 8) return 0;
+    if (*f == '@' || *f == '=' || *f == '<') f++;
+    return integer ? !strcmp(f, "l") || !strcmp(f, "q") : !strcmp(f, "d");
+}
+
+static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+/* geometry.quat_to_matrix of a unit quaternion (x, y, z, w), row-major */
+static void quat_matrix(const double *q, double R[9]) {
+    double x = q[0], y = q[1], z = q[2], w = q[3];
+    R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - z * w);     R[2] = 2 * (x * z + y * w);
+    R[3] = 2 * (x * y + z * w);     R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - x * w);
+    R[6] = 2 * (x * z - y * w);     R[7] = 2 * (y * z + x * w);     R[8] = 1 - 2 * (x * x + y * y);
+}
+
+/* The block of moves of dot k (2 axes x width): its beam's tilt a, offset a, tilt b,
+ * offset b, its screen's bend, its camera's turn (three axes) or residual (two), its
+ * camera's map (eight coefficients, where cam >= 0). */
+static void dot_block(const double *x, const double *A, const double *p0, const double R[9],
+                      const double *across_rig, double shape, const double *bend,
+                      const double *turn, long cam, const double *T, const double *Rot,
+                      const double *side, const double *sigma, const double *std,
+                      Py_ssize_t width, double *block) {
+    const double *A0 = A, *A1 = A + 3;
+    double n[3] = {A0[1] * A1[2] - A0[2] * A1[1], A0[2] * A1[0] - A0[0] * A1[2],
+                   A0[0] * A1[1] - A0[1] * A1[0]};
+    double d[3] = {x[0] - p0[0], x[1] - p0[1], x[2] - p0[2]};
+    double r = sqrt(dot3(d, d));
+    double unit[3] = {d[0] / r, d[1] / r, d[2] / r};
+    double dn = dot3(n, d);
+    double c0 = fabs(dn) / r;  /* cos(incidence), at least 0.05 (NaN stays NaN: np.maximum) */
+    double nd = (dn < 0 ? -1.0 : 1.0) * (c0 < 0.05 ? 0.05 : c0);
+    double slant[3] = {unit[0] / nd, unit[1] / nd, unit[2] / nd};
+    double beam[2][2];  /* beam[a][b]: the dot's move along wall axis b per unit across a */
+    for (int a = 0; a < 2; a++) {
+        const double *e = across_rig + 3 * a;
+        double c[3], w[3];
+        for (int i = 0; i < 3; i++) c[i] = R[3 * i] * e[0] + R[3 * i + 1] * e[1] + R[3 * i + 2] * e[2];
+        double along = dot3(c, unit);
+        for (int i = 0; i < 3; i++) c[i] -= along * unit[i];
+        double toward = dot3(c, n);
+        for (int i = 0; i < 3; i++) w[i] = c[i] - toward * slant[i];
+        for (int b = 0; b < 2; b++) beam[a][b] = dot3(A + 3 * b, w);
+    }
+    double scale[2] = {r * std[0], std[1]};
+    double bulge = std[2] * shape;
+    for (int b = 0; b < 2; b++) {
+        double *row = block + b * width;
+        for (int a = 0; a < 2; a++)
+            for (int s = 0; s < 2; s++) row[2 * a + s] = beam[a][b] * scale[s];
+        row[4] = bend[b] * bulge;
+        if (turn != NULL)
+            for (int t = 0; t < 3; t++) row[5 + t] = std[3] * turn[3 * b + t];
+        else
+            for (int c = 0; c < 2; c++) row[5 + c] = std[4] * (b == c ? 1.0 : 0.0);
+    }
+    if (cam < 0) return;
+    /* _Screens.map_bases: the screen point's terms 1, x, y, xx, xy, yy times the map's std */
+    const double *t = T + 3 * cam, *M = Rot + 9 * cam;
+    double y[3] = {x[0] + t[0], x[1] + t[1], x[2] + t[2]}, xy[2];
+    for (int j = 0; j < 2; j++)
+        xy[j] = 2 * (y[0] * M[j] + y[1] * M[3 + j] + y[2] * M[6 + j]) / side[cam] - 1;
+    double s = sigma[cam];
+    double terms[6] = {s * 1.0, s * xy[0], s * xy[1], s * (xy[0] * xy[0]), s * (xy[0] * xy[1]),
+                       s * (xy[1] * xy[1])};
+    /* tracker._map_terms: each axis' eight coefficients as terms (-1: none, 0) */
+    static const int pick[16] = {0, 1, 2, -1, -1, -1, 3, 4, -1, -1, -1, 0, 1, 2, 4, 5};
+    for (int b = 0; b < 2; b++)
+        for (int j = 0; j < 8; j++) {
+            int term = pick[8 * b + j];
+            block[b * width + width - 8 + j] = term < 0 ? 0.0 : terms[term];
+        }
+}
+
+/* dot_moves(x, A, p0, q, across, shape, bend, turn, T, Rot, side, sigma, src, dst, out,
+ *           cams, width, dir_std, offset_std, bulge_std, turn_std, residual_std):
+ * each dot's block of moves (tracker._dot_moves), scattered as out[dst] = blocks[src]
+ * (out zeroed by the caller). turn: empty where the cameras are unknown; cams: each dot's
+ * camera index into T, Rot, side, sigma, or None where its map is not held. */
+static PyObject *dot_moves(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[NBUF], *cams;
+    Py_ssize_t width;
+    double std[5];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOnddddd", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13],
+                          &o[14], &cams, &width, &std[0], &std[1], &std[2], &std[3], &std[4]))
+        return NULL;
+    for (int i = 0; i < NBUF; i++) {
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i == 14 ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
+        s.n++;
+        if (!of_kind(&s.b[i], i == 12 || i == 13)) {
+            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
+                         i, i == 12 || i == 13 ? "int64" : "float64");
+            release(&s);
+            return NULL;
+        }
+    }
+    PyObject *res = NULL, *fast = NULL;
+    double *blocks = NULL;
+    Py_ssize_t k = s.b[0].len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t ncam = s.b[10].len / (Py_ssize_t)sizeof(double);
+    int turned = s.b[7].len > 0;
+    Py_ssize_t places = s.b[12].len / (Py_ssize_t)sizeof(int64_t);
+    if (!(sized(&s.b[0], 3 * k, "x") && sized(&s.b[1], 6 * k, "A") && sized(&s.b[2], 3, "p0")
+          && sized(&s.b[3], 4, "q") && sized(&s.b[4], 6 * k, "across")
+          && sized(&s.b[5], k, "shape") && sized(&s.b[6], 2 * k, "bend")
+          && (!turned || sized(&s.b[7], 6 * k, "turn")) && sized(&s.b[8], 3 * ncam, "T")
+          && sized(&s.b[9], 9 * ncam, "Rot") && sized(&s.b[11], ncam, "sigma")))
+        goto done;
+    if (s.b[13].len != s.b[12].len || width < (turned ? 8 : 7)) {
+        PyErr_SetString(PyExc_ValueError, "laser kernel: src and dst differ or width too small");
+        goto done;
+    }
+    fast = PySequence_Fast(cams, "laser kernel: cams must be a sequence");
+    if (fast == NULL) goto done;
+    if (PySequence_Fast_GET_SIZE(fast) != k) {
+        PyErr_SetString(PyExc_ValueError, "laser kernel: one camera per dot");
+        goto done;
+    }
+    Py_ssize_t nblock = k * 2 * width, nout = s.b[14].len / (Py_ssize_t)sizeof(double);
+    blocks = calloc(nblock > 0 ? nblock : 1, sizeof(double));
+    if (blocks == NULL) { PyErr_NoMemory(); goto done; }
+    double R[9];
+    quat_matrix(s.b[3].buf, R);
+    const double *x = s.b[0].buf, *A = s.b[1].buf, *across = s.b[4].buf, *shape = s.b[5].buf;
+    const double *bend = s.b[6].buf, *turn = turned ? s.b[7].buf : NULL;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        PyObject *c = PySequence_Fast_GET_ITEM(fast, i);
+        long cam = -1;
+        if (c != Py_None) {
+            cam = PyLong_AsLong(c);
+            if (cam == -1 && PyErr_Occurred()) goto done;
+            if (cam < 0 || cam >= ncam || width < (turned ? 16 : 15)) {
+                PyErr_SetString(PyExc_ValueError, "laser kernel: camera index out of range");
+                goto done;
+            }
+        }
+        dot_block(x + 3 * i, A + 6 * i, s.b[2].buf, R, across + 6 * i, shape[i],
+                  bend + 2 * i, turn ? turn + 6 * i : NULL, cam, s.b[8].buf, s.b[9].buf,
+                  s.b[10].buf, s.b[11].buf, std, width, blocks + 2 * width * i);
+    }
+    const int64_t *src = s.b[12].buf, *dst = s.b[13].buf;
+    double *out = s.b[14].buf;
+    for (Py_ssize_t i = 0; i < places; i++) {
+        if (src[i] < 0 || src[i] >= nblock || dst[i] < 0 || dst[i] >= nout) {
+            PyErr_SetString(PyExc_ValueError, "laser kernel: a move's index out of range");
+            goto done;
+        }
+        out[dst[i]] = blocks[src[i]];
+    }
+    res = Py_NewRef(Py_None);
+done:
+    Py_XDECREF(fast);
+    free(blocks);
+    release(&s);
+    return res;
+}
+
+static PyMethodDef methods[] = {
+    {"dot_moves", dot_moves, METH_VARARGS,
+     "Each dot's moves per installation parameter (tracker._dot_moves), into out."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels", NULL, -1, methods,
+                                    NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return uma_twin_module(&module); }
