@@ -664,6 +664,13 @@ def test_eval_bundle_scene_reports_the_gain_over_its_most_accurate_tag():
     assert out["best_gain_measured"] <= out["gain_measured"]
     assert out["best_gain_claimed"] == pytest.approx(
         out["best_tag_claimed_mm"] / out["bundle_claimed_mm"], rel=0.01)
+    # the tag claimed most accurate claims the least gain; read strictly, the goal's share
+    # against every tag is at most its share against either of these two
+    assert out["prior_gain_claimed"] <= out["best_gain_claimed"]
+    assert out["prior_tag"].startswith("apriltag36h11-")
+    assert 0 < out["least_gain_share"] <= min(
+        out["best_gain_measured"] / out["best_gain_claimed"],
+        out["prior_gain_measured"] / out["prior_gain_claimed"]) + 0.002
     # the bundle's own 6-dof covariance against its errors, over its samples
     assert out["nees"]["dof"] == 6 and out["nees"]["mean"] > 0
     assert 0 < out["nees"]["effective_samples"] <= out["bundle_samples"]

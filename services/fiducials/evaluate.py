@@ -32,9 +32,12 @@ A second scene puts four such tags on a 21 cm plate (a bundle, solved as one bod
 compares the bundle's position error and claimed standard deviation with its single
 tags' (solved alone, on the same frames): pooled, and (``best_*``) the most accurate
 tag's, the one of least RMS error (chosen by its measured error, so even an honest
-covariance measures a smaller gain over it than it claims: the luckiest of four); and
-the NEES of the bundle's own 6-dof covariance (``nees``): whether the factor it claims
-rests on a covariance of the right size.
+covariance measures a smaller gain over it than it claims: the luckiest of four);
+(``prior_*``) the tag whose own covariance claims it most accurate (chosen before its
+errors are seen); ``least_gain_share``: the least over the tags of the measured gain
+over it in units of the claimed (the goal read strictly: at least 1 against every tag);
+and the NEES of the bundle's own 6-dof covariance (``nees``): whether the factor it
+claims rests on a covariance of the right size.
 """
 
 from __future__ import annotations
@@ -260,7 +263,7 @@ def _same_frames(rows: dict[str, list], other: str, lo: float, hi: float) -> dic
 def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
             fps: float) -> dict[str, Any]:
     """Four tags on a plate: the bundle's position error and claimed std vs its tags'
-    (pooled, and the most accurate one's)."""
+    (pooled, the most accurate one's, the one claimed most accurate, and every one's)."""
     ids = [int(i) for i in rng.choice(500, 4, replace=False)]
     offsets = [(-1, 1), (1, 1), (1, -1), (-1, -1)]
     in_plate = []
@@ -300,8 +303,12 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
     single_std = [s for _, stds in per_tag.values() for s in stds]
     rms_b, rms_s = _rms(bundle_err), _rms(single_err)
     claimed_b, claimed_s = _rms(bundle_std), _rms(single_std)
-    best = min((i for i in ids if per_tag[i][0]), key=lambda i: _rms(per_tag[i][0]))
-    rms_t, claimed_t = _rms(per_tag[best][0]), _rms(per_tag[best][1])
+    seen = [i for i in ids if per_tag[i][0]]
+    rms_of = {i: _rms(per_tag[i][0]) for i in seen}
+    claimed_of = {i: _rms(per_tag[i][1]) for i in seen}
+    best = min(seen, key=rms_of.__getitem__)
+    prior = min(seen, key=claimed_of.__getitem__)
+    rms_t, claimed_t = rms_of[best], claimed_of[best]
     return {"frames": n, "bundle_samples": len(bundle_err), "single_samples": len(single_err),
             "bundle_rms_mm": round(rms_b, 3), "single_rms_mm": round(rms_s, 3),
             "bundle_claimed_mm": round(claimed_b, 3), "single_claimed_mm": round(claimed_s, 3),
@@ -311,6 +318,11 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
             "best_tag_rms_mm": round(rms_t, 3), "best_tag_claimed_mm": round(claimed_t, 3),
             "best_gain_measured": round(rms_t / rms_b, 3),
             "best_gain_claimed": round(claimed_t / claimed_b, 3),
+            "prior_tag": f"{FAMILY}-{prior}",
+            "prior_gain_measured": round(rms_of[prior] / rms_b, 3),
+            "prior_gain_claimed": round(claimed_of[prior] / claimed_b, 3),
+            "least_gain_share": round(min(rms_of[i] / claimed_of[i] for i in seen)
+                                      * claimed_b / rms_b, 3),
             "nees": nees_figures(np.array(bundle_e), np.array(bundle_cov))
             if len(bundle_e) > 2 else None}
 

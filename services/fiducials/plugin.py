@@ -84,5 +84,7 @@ EVAL = EvalPlugin(
     higher_is_better=frozenset({"detected", "bundle_samples", "single_samples",
                                 "share_inside_single_95", "effective_samples",
                                 "gain_measured", "gain_claimed", "best_tag_samples",
-                                "best_gain_measured", "best_gain_claimed"}),
+                                "best_gain_measured", "best_gain_claimed",
+                                "prior_gain_measured", "prior_gain_claimed",
+                                "least_gain_share"}),
 )
