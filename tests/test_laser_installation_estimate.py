@@ -15,6 +15,7 @@ from agent import geometry as geo
 from agent.errors import InvalidInputError
 from services.alignment.simulate import _detections
 from services.installation.laser_housing import BEAM_DIRECTIONS
+from services.laser_camera import installation_estimate as estimate_module
 from services.laser_camera import tracker as tracker_module
 from services.laser_camera.installation_estimate import InstallationEstimate
 from services.laser_camera.tracker import LaserTracker, PoseEstimate, TrackerParams, _beam_hit
@@ -311,6 +312,44 @@ def test_the_compiled_moves_refuse_arrays_of_the_wrong_kind() -> None:
     for i, bad in [(0, f(4)), (0, np.zeros(3, np.float32)), (12, np.zeros(1, np.int64))]:
         with pytest.raises(ValueError, match="laser kernel"):
             k.dot_moves(*good[:i], bad, *good[i + 1:], (None,), 8, 1.0, 1.0, 1.0, 1.0, 1.0)
+
+
+@pytest.mark.skipif(estimate_module.KERNELS is None, reason="the laser kernels are not built")
+def test_the_compiled_update_is_numpys(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled innovation and update give numpy's chi-squares, covariances of the
+    innovation, decisions, means and covariances (to rounding), through observations that
+    add parameters as they come, a gross one refused and one whose noise is no covariance
+    (the sums run in another order: within 1e-12 of the largest entry, of a std for the
+    estimate)."""
+    rng = np.random.default_rng(7)
+    names, truth = [f"p{j}" for j in range(12)], rng.normal(size=12)
+    steps = []
+    for step in range(40):
+        at = rng.choice(4 + step // 5, size=3, replace=False)
+        seen, H = [names[j] for j in at], rng.normal(size=(2, 3))
+        z = H @ truth[at] + rng.normal(0.0, 0.1, 2) + (5.0 if step == 20 else 0.0)
+        noise = (-1.0 if step == 30 else 0.01) * np.eye(2)
+        steps.append((z, noise, seen, H))
+
+    def replay() -> tuple[list, InstallationEstimate]:
+        est, out = InstallationEstimate(gate_chi2=9.0), []
+        for z, noise, seen, H in steps:
+            chi2, S = est.innovation_chi2(z, noise, seen, H)
+            out.append((chi2, S, est.update(z, noise, seen, H)))
+        return out, est
+
+    compiled, est = replay()
+    monkeypatch.setattr(estimate_module, "KERNELS", None)
+    numpy_steps, est_py = replay()
+    assert [s[2] for s in compiled] == [s[2] for s in numpy_steps]
+    assert not compiled[20][2] and not compiled[30][2] and np.isnan(compiled[30][0])
+    assert est.accepted == est_py.accepted > 30 and est.names == est_py.names
+    for (chi2, S, _), (chi2_py, S_py, _) in zip(compiled, numpy_steps, strict=True):
+        assert chi2 == pytest.approx(chi2_py, rel=1e-12, nan_ok=True)
+        assert np.abs(S - S_py).max() <= 1e-12 * np.abs(S_py).max()
+    # in units of the prior's std, which the rounding of every update adds to
+    assert np.abs(est.mean(est.names) - est_py.mean(est.names)).max() <= 1e-12
+    assert np.abs(est.covariance(est.names) - est_py.covariance(est.names)).max() <= 1e-12
 
 
 def test_a_noise_that_is_not_a_covariance_is_refused() -> None:

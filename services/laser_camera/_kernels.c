@@ -1,7 +1,7 @@
 /* The compiled twin of the laser tracker's installation estimate arithmetic on small
  * arrays: tracker.py's _dot_moves (how far each of a pose's dots moves along its wall's
  * axes per one std of each installation parameter, scattered into the parameters'
- * columns).
+ * columns) and installation_estimate.py's innovation and rank-2 Kalman update.
  *
  * The same arithmetic as the numpy code, operation by operation, compiled without
  * floating-point contraction: the products of a 3 x 3 matrix and the 3-term dot products
@@ -200,9 +200,105 @@ done:
     return res;
 }
 
+/* kalman(cov, mean, idx, H, z, noise, S, gate) -> chi2: installation_estimate.py's
+ * innovation of z (2,) = H (2 x k) theta[idx] + noise against the estimate (cov (M x M),
+ * mean (M,)): its covariance H P H^T + noise into S (2 x 2) and its chi-square (NaN where S
+ * is not positive definite or not finite); where that is <= gate, the update taken in place:
+ * mean += P H^T S^-1 v, cov -= Y Y^T (Y = P H^T G, G G^T = S^-1, exactly symmetric). */
+static PyObject *kalman(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[7];
+    double gate;
+    if (!PyArg_ParseTuple(args, "OOOOOOOd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &gate))
+        return NULL;
+    for (int i = 0; i < 7; i++) {
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i < 2 || i == 6 ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
+        s.n++;
+        if (!of_kind(&s.b[i], i == 2)) {
+            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
+                         i, i == 2 ? "int64" : "float64");
+            release(&s);
+            return NULL;
+        }
+    }
+    PyObject *res = NULL;
+    double *PHt = NULL;
+    Py_ssize_t M = s.b[1].len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t k = s.b[2].len / (Py_ssize_t)sizeof(int64_t);
+    if (!(sized(&s.b[0], M * M, "cov") && sized(&s.b[3], 2 * k, "H") && sized(&s.b[4], 2, "z")
+          && sized(&s.b[5], 4, "noise") && sized(&s.b[6], 4, "S")))
+        goto done;
+    double *P = s.b[0].buf, *mean = s.b[1].buf, *S = s.b[6].buf;
+    const int64_t *idx = s.b[2].buf;
+    const double *H = s.b[3].buf, *z = s.b[4].buf, *noise = s.b[5].buf;
+    for (Py_ssize_t j = 0; j < k; j++)
+        if (idx[j] < 0 || idx[j] >= M) {
+            PyErr_SetString(PyExc_ValueError, "laser kernel: a state index out of range");
+            goto done;
+        }
+    PHt = malloc(sizeof(double) * 2 * (M > 0 ? M : 1));
+    if (PHt == NULL) { PyErr_NoMemory(); goto done; }
+    double v[2];
+    for (int c = 0; c < 2; c++) {
+        double hm = 0.0;
+        for (Py_ssize_t j = 0; j < k; j++) hm += H[c * k + j] * mean[idx[j]];
+        v[c] = z[c] - hm;
+    }
+    for (Py_ssize_t i = 0; i < M; i++) {
+        const double *row = P + i * M;
+        double a0 = 0.0, a1 = 0.0;
+        for (Py_ssize_t j = 0; j < k; j++) {
+            double p = row[idx[j]];
+            a0 += p * H[j];
+            a1 += p * H[k + j];
+        }
+        PHt[2 * i] = a0;
+        PHt[2 * i + 1] = a1;
+    }
+    for (int c = 0; c < 2; c++)
+        for (int e = 0; e < 2; e++) {
+            double acc = 0.0;
+            for (Py_ssize_t j = 0; j < k; j++) acc += H[c * k + j] * PHt[2 * idx[j] + e];
+            S[2 * c + e] = acc + noise[2 * c + e];
+        }
+    /* _covariance_inverse2 and _chi2 */
+    double a = S[0], b = S[1], c = S[2], d = S[3], det = a * d - b * c;
+    double chi2 = NAN, Si[4];
+    if (a > 0.0 && det > 0.0 && isfinite(det)) {
+        Si[0] = d / det; Si[1] = -b / det; Si[2] = -c / det; Si[3] = a / det;
+        chi2 = (v[0] * Si[0] + v[1] * Si[2]) * v[0] + (v[0] * Si[1] + v[1] * Si[3]) * v[1];
+    }
+    if (chi2 <= gate) {
+        /* mean += (P H^T S^-T) v; _root2 of S^-1; cov -= Y Y^T */
+        double g00 = sqrt(Si[0]), g10 = 0.5 * (Si[1] + Si[2]) / g00;
+        double rest = Si[3] - g10 * g10, g11 = sqrt(rest > 0.0 ? rest : 0.0);
+        for (Py_ssize_t i = 0; i < M; i++) {
+            double p0 = PHt[2 * i], p1 = PHt[2 * i + 1];
+            double k0 = p0 * Si[0] + p1 * Si[1], k1 = p0 * Si[2] + p1 * Si[3];
+            mean[i] += k0 * v[0] + k1 * v[1];
+            PHt[2 * i] = p0 * g00 + p1 * g10;
+            PHt[2 * i + 1] = p1 * g11;
+        }
+        for (Py_ssize_t i = 0; i < M; i++) {
+            double y0 = PHt[2 * i], y1 = PHt[2 * i + 1];
+            double *row = P + i * M;
+            for (Py_ssize_t j = 0; j < M; j++) row[j] -= y0 * PHt[2 * j] + y1 * PHt[2 * j + 1];
+        }
+    }
+    res = PyFloat_FromDouble(chi2);
+done:
+    free(PHt);
+    release(&s);
+    return res;
+}
+
 static PyMethodDef methods[] = {
     {"dot_moves", dot_moves, METH_VARARGS,
      "Each dot's moves per installation parameter (tracker._dot_moves), into out."},
+    {"kalman", kalman, METH_VARARGS,
+     "The installation estimate's innovation chi-square, its update taken in place if gated in."},
     {NULL, NULL, 0, NULL},
 };
 

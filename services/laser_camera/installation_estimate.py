@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from agent.errors import InvalidInputError
+from agent.runtime import compiled_twin
 
 
 class InstallationEstimate:
@@ -89,6 +91,10 @@ class InstallationEstimate:
         covariance that is not positive definite, a ``noise`` that is not a covariance),
         and the covariance it is taken under (2, 2): what a change of ``z`` must exceed to
         show."""
+        if KERNELS is not None:
+            S = np.empty((2, 2))
+            chi2 = self._kalman(np.asarray(z, float), noise, names, H, S, -math.inf)
+            return chi2, S
         _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
         return _chi2(v, _covariance_inverse2(S)), S
 
@@ -103,10 +109,24 @@ class InstallationEstimate:
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(noise))):
             self.refused += 1
             return False
-        _, PHt, v, S = self._innovation(z, noise, names, np.asarray(H, float))
+        if KERNELS is not None:  # the same steps, compiled
+            taken = self._kalman(z, noise, names, H, np.empty((2, 2)), self.gate_chi2) \
+                <= self.gate_chi2  # NaN: refused too
+        else:
+            taken = self._take(z, noise, names, np.asarray(H, float))
+        if taken:
+            self._root = None
+            self.accepted += 1
+        else:
+            self.refused += 1
+        return taken
+
+    def _take(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str],
+              H: np.ndarray) -> bool:
+        """``update``'s gate and update in numpy: whether ``z`` passed and was taken."""
+        _, PHt, v, S = self._innovation(z, noise, names, H)
         Sinv = _covariance_inverse2(S)
         if not _chi2(v, Sinv) <= self.gate_chi2:  # NaN: refused too
-            self.refused += 1
             return False
         self._mean += PHt @ Sinv.T @ v
         # Joseph-free form (the gain is optimal), its rank-2 part P H^T S^-1 H P taken as
@@ -114,9 +134,15 @@ class InstallationEstimate:
         # symmetric, so the covariance stays so without a pass to symmetrise it
         Y = PHt @ _root2(Sinv)
         self._cov -= Y @ Y.T
-        self._root = None
-        self.accepted += 1
         return True
+
+    def _kalman(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str], H: np.ndarray,
+                S: np.ndarray, gate: float) -> float:
+        """The compiled innovation (its covariance into ``S``) and its chi-square, the
+        update taken in place where that is at most ``gate``."""
+        idx = self._columns(names)  # first: a new name grows the mean and covariance
+        return KERNELS.kalman(self._cov, self._mean, idx, np.ascontiguousarray(H, float), z,
+                              np.ascontiguousarray(noise, float), S, gate)
 
     def rows(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The state indices of ``names`` (adding unseen ones at their prior), their
@@ -154,6 +180,10 @@ class InstallationEstimate:
         """The remaining standard deviation of one parameter (1 if never seen)."""
         i = self._index.get(name)
         return 1.0 if i is None else float(np.sqrt(self._cov[i, i]))
+
+
+#: the compiled twin of the innovation and update (None: the numpy code runs)
+KERNELS: Any = compiled_twin("services.laser_camera._kernels", "UMA_LASER_PURE_PYTHON")
 
 
 def _covariance_inverse2(S: np.ndarray) -> np.ndarray:
