@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -58,6 +58,7 @@ from itertools import combinations
 from typing import Any, NamedTuple
 
 import numpy as np
+from scipy.special import gammaincinv
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
@@ -143,6 +144,13 @@ class TrackerParams:
     start_confirm_sets: int = 3
     #: calibration error of a dot on the screen (1 sigma) when the file does not tell
     calib_sigma_m: float = 0.0005
+    #: the miss's change test takes the dots' assumed frame-to-frame noise scaled down to
+    #: what the changes of the last this many frame sets that passed it show (an upper
+    #: bound, ``_NoiseScale``), never up: an assumed noise above the dots' (a calibration
+    #: that states no error gets ``calib_sigma_m`` per dot, a homography's error that holds
+    #: from frame set to frame set) lets stray blobs a centimetre long pass the test, so
+    #: almost every pose left widened by the cover; 0: the assumed noise as it is
+    noise_pool_changes: int = 150
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
     #: default: none -- the installation's tolerances below model them dot by dot)
     model_pos_std_m: float = 0.0
@@ -208,6 +216,8 @@ class TrackerParams:
                                     "is confirmed by a later frame set)")
         if self.roi_half_px < 0 or self.roi_refresh_s < 0:
             raise InvalidInputError("roi_half_px and roi_refresh_s must be >= 0")
+        if self.noise_pool_changes < 0:
+            raise InvalidInputError("noise_pool_changes must be >= 0")
         if not self.residual_drift_per_m > 0:
             raise InvalidInputError("residual_drift_per_m must be positive")
         if not (self.estimate_miss_floor_m >= 0 and self.estimate_gate_chi2 > 0):
@@ -343,6 +353,9 @@ class LaserTracker:
         #: the installation does not change when tracking starts again, so ``reset`` keeps it
         self.installation = InstallationEstimate(self.params.estimate_gate_chi2) \
             if self.params.estimate_installation else None
+        #: the share of the dots' assumed noise their misses' changes show; the dots'
+        #: noise does not change when tracking starts again, so ``reset`` keeps it
+        self.noise = _NoiseScale(self.params.noise_pool_changes)
 
     def reset(self) -> None:
         """Forget the previous pose: the next one is chosen by the upright rule (and its
@@ -623,7 +636,9 @@ class LaserTracker:
         confirms a held one is refused up to ``start_confirm_sets`` frame sets held in a
         row; that one, and such a labeling while tracking (the prediction cannot tell a
         centimetre within a frame set either), is published with its covariance widened
-        to cover every pose the blob could give.  Where the dots'
+        to cover every pose the blob could give.  The change test takes both frame sets'
+        noise as the changes before showed it (``_NoiseScale``: never above the assumed),
+        so dots said to be noisier than they are do not let a blob pass unseen.  Where the dots'
         noise outweighs the installation's part (an ideal installation) the chi-square of
         ``_fits`` is as sharp, and nothing is held."""
         p, last = self.params, self._miss
@@ -634,8 +649,8 @@ class LaserTracker:
             self._miss = replace(now, confirmed=True)  # the chi-square alone is as sharp
             return cov
         change = None if last is None or t <= last.t else last.change(
-            now, p.residual_drift_per_m)
-        chi2, S = (None, None) if change is None else change
+            now, p.residual_drift_per_m, self.noise.scale)
+        chi2, S, assumed = (None, None, None) if change is None else change
         bound = p.max_residual_chi2
         if chi2 is None and last is not None and last.confirmed:
             unexplained, S, bound = self._unexplained_miss(fit, dots)
@@ -651,6 +666,8 @@ class LaserTracker:
                 self._miss = now
             return NoPose(t, "residual_jump", n, "the fourth dot's miss moved off the last "
                           f"frame set's: chi-square {chi2:.1f} > {p.max_residual_chi2:g}")
+        else:
+            self.noise.add(assumed)
         unseen = _unseen_stray(fit, J, S, cov, p, bound)
         if unseen is None:
             self._miss = replace(now, confirmed=True)
@@ -1236,9 +1253,11 @@ class _Miss:
     #: against the one before (``start_confirm_sets``)
     held: int = 1
 
-    def change(self, later: _Miss, drift_per_m: float) -> tuple[float, np.ndarray] | None:
-        """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, or
-        None if the change
+    def change(self, later: _Miss, drift_per_m: float, noise_scale: float = 1.0,
+               ) -> tuple[float, np.ndarray, float] | None:
+        """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, both
+        frame sets' noise scaled by ``noise_scale`` (``_NoiseScale``), and its chi-square
+        under the noise as assumed (what the scale is estimated from); or None if the change
         cannot show a stray blob: the dots moved so far (``1 / drift_per_m``) that the
         installation's part may have changed whole, or more than one dot changed walls.
         Its covariance: both frame sets' noise, the installation's part of each dot that
@@ -1259,9 +1278,56 @@ class _Miss:
         edge_m = np.maximum(self.edge_m, later.edge_m)
         edge_share = np.where(other, 1.0, np.minimum(
             1.0, 0.5 * (each / np.where(edge_m > 0, edge_m, 1.0)) ** 2))
-        S = self.random + later.random + np.einsum("k,kij->ij", share, both) \
-            + np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
-        return float(_chi2((later.miss - self.miss)[None], S[None])[0]), S
+        noise = self.random + later.random
+        drift = np.einsum("k,kij->ij", share, both)
+        edge = np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
+        S = np.stack([noise_scale * noise + drift + edge, noise + drift + edge])
+        chi2 = _chi2(np.repeat((later.miss - self.miss)[None], 2, axis=0), S)
+        return float(chi2[0]), S[0], float(chi2[1])
+
+
+class _NoiseScale:
+    """How much of the dots' assumed frame-to-frame noise the fourth beam's miss shows: an
+    upper bound on ``kappa``, the dots' noise variance over the assumed one, from the
+    chi-squares (under the assumed noise) of the last ``window`` changes of the miss the
+    change test passed; at most 1, and 1 until they bound it below; at least
+    ``_NOISE_SCALE_FLOOR`` (noise-free dots, a simulation's exact hits, would leave the
+    test only the installation's part, singular where the dots stood still).
+
+    With the noise ``kappa R`` (``R`` as assumed, both frame sets') and the installation's
+    and edge parts ``D`` as assumed, a change's chi-square under ``S = R + D`` is a sum of
+    two chi-square(1) terms weighted by the eigenvalues of ``(kappa R + D) S^-1``, each at
+    least ``min(kappa, 1)``: their sum over ``n`` changes is at least ``kappa`` times a
+    chi-square, so ``sum / chi2_p(dof)`` exceeds ``kappa`` with probability at least ``1
+    - p`` (``_NOISE_BOUND_P``).  Consecutive changes share a frame set's miss (each
+    component's changes correlate by -1/2), which makes their squares' sum vary 1 + 2
+    (1/2)^2 = 1.5 times as much as independent ones': ``dof = 2 n / 1.5``.  Blobs the test
+    passes only raise the bound."""
+
+    def __init__(self, window: int):
+        self._chi2: deque[float] = deque(maxlen=window)
+        #: 1 / chi2_p(dof) of n = 1 .. window changes (chi2_p(k) = 2 P^-1(k / 2, p))
+        self._inverse = 0.5 / gammaincinv(np.arange(1, window + 1) / 1.5, _NOISE_BOUND_P)
+
+    def add(self, chi2: float) -> None:
+        """One change's chi-square under the assumed noise (no-op with no window)."""
+        if self._chi2.maxlen:
+            self._chi2.append(chi2)
+
+    @property
+    def scale(self) -> float:
+        """The bound on ``kappa``, at most 1."""
+        n = len(self._chi2)
+        if not n:
+            return 1.0
+        bound = math.fsum(self._chi2) * float(self._inverse[n - 1])
+        return min(1.0, max(bound, _NOISE_SCALE_FLOOR))
+
+
+#: the chance that ``_NoiseScale``'s bound lies below the dots' noise
+_NOISE_BOUND_P = 1e-3
+#: ... and the least share of the assumed noise variance it keeps
+_NOISE_SCALE_FLOOR = 0.01
 
 
 class _Unseen(NamedTuple):
