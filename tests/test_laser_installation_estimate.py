@@ -302,6 +302,32 @@ def test_the_compiled_moves_are_numpys(run, monkeypatch: pytest.MonkeyPatch, kno
 
 
 @pytest.mark.skipif(tracker_module.KERNELS is None, reason="the laser kernels are not built")
+@pytest.mark.parametrize("known", ["cameras", "no eyes"])
+def test_the_compiled_installation_covariances_are_numpys(
+        run, monkeypatch: pytest.MonkeyPatch, known: str) -> None:
+    """The compiled dots' installation covariances and slopes are numpy's (to rounding),
+    from one P0 and from one per dot, with the cameras' centres and screens' bend and
+    without them (the camera's residual instead of its turn)."""
+    _, tracker, poses = run
+    dots, res = tracker._dots, poses[-1][0]
+    idx = [0, 1, 2, 3, 0, 2]
+    x, A = dots.points[idx], dots.axes[idx]
+    bend, eyes = (dots.bend[idx], dots.eyes[idx]) if known == "cameras" else (None, None)
+    p0s = res.position + np.linspace(-0.3, 0.3, 18).reshape(6, 3)
+    for p0 in (res.position, p0s):
+        args = (x, A, bend, eyes, p0, tracker.params)
+        cov, slopes = tracker_module._installation_covariances(*args)
+        with monkeypatch.context() as m:
+            m.setattr(tracker_module, "KERNELS", None)
+            cov_py, slopes_py = tracker_module._installation_covariances(*args)
+        assert (slopes.turn is None) == (slopes_py.turn is None) == (eyes is None)
+        for got, want in [(cov, cov_py), (slopes.bend, slopes_py.bend)] + (
+                [] if eyes is None else [(slopes.turn, slopes_py.turn)]):
+            assert got.shape == want.shape
+            assert np.abs(got - want).max() <= 1e-15 * np.abs(want).max()
+
+
+@pytest.mark.skipif(tracker_module.KERNELS is None, reason="the laser kernels are not built")
 def test_the_compiled_moves_refuse_arrays_of_the_wrong_kind() -> None:
     """Arrays of another type or size than the moves need raise a ValueError naming the
     argument, not a read past their end."""
@@ -312,6 +338,11 @@ def test_the_compiled_moves_refuse_arrays_of_the_wrong_kind() -> None:
     for i, bad in [(0, f(4)), (0, np.zeros(3, np.float32)), (12, np.zeros(1, np.int64))]:
         with pytest.raises(ValueError, match="laser kernel"):
             k.dot_moves(*good[:i], bad, *good[i + 1:], (None,), 8, 1.0, 1.0, 1.0, 1.0, 1.0)
+    cov = [f(3), f(6), f(0), f(3), f(3), f(4), f(2), f(6)]
+    k.installation_covariances(*cov, 1.0, 1.0, 1.0, 1.0, 1.0)
+    for i, bad in [(4, f(6)), (5, f(2)), (7, f(0)), (2, np.zeros(1, np.int64))]:
+        with pytest.raises(ValueError, match="laser kernel"):
+            k.installation_covariances(*cov[:i], bad, *cov[i + 1:], 1.0, 1.0, 1.0, 1.0, 1.0)
 
 
 @pytest.mark.skipif(estimate_module.KERNELS is None, reason="the laser kernels are not built")

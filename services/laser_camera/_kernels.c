@@ -1,7 +1,9 @@
 /* The compiled twin of the laser tracker's installation estimate arithmetic on small
  * arrays: tracker.py's _dot_moves (how far each of a pose's dots moves along its wall's
  * axes per one std of each installation parameter, scattered into the parameters'
- * columns) and installation_estimate.py's innovation and rank-2 Kalman update.
+ * columns), _installation_covariances (each labeling's dots' in-plane covariance from the
+ * installation's tolerances, and the slopes it takes) and installation_estimate.py's
+ * innovation and rank-2 Kalman update.
  *
  * The same arithmetic as the numpy code, operation by operation, compiled without
  * floating-point contraction: the products of a 3 x 3 matrix and the 3-term dot products
@@ -200,6 +202,108 @@ done:
     return res;
 }
 
+/* np.maximum and np.minimum of two doubles: NaN where either is NaN */
+static double nan_max(double a, double b) { return isnan(a) || isnan(b) ? NAN : (a > b ? a : b); }
+static double nan_min(double a, double b) { return isnan(a) || isnan(b) ? NAN : (a < b ? a : b); }
+
+/* One dot's tracker._installation_covariances: its covariance (2 x 2) over its wall's axes
+ * from the installation's tolerances, its bend slope (2) and, seen from an eye, its
+ * camera-turn Jacobian (2 x 3). std: housing direction, housing offset, screen bulge,
+ * camera turn, camera residual. */
+static void dot_covariance(const double *x, const double *A, const double *p0, double shape,
+                           const double *eye, const double *std, double *cov, double *slope,
+                           double *turn) {
+    const double *A0 = A, *A1 = A + 3;
+    double n[3] = {A0[1] * A1[2] - A0[2] * A1[1], A0[2] * A1[0] - A0[0] * A1[2],
+                   A0[0] * A1[1] - A0[1] * A1[0]};
+    double d[3] = {x[0] - p0[0], x[1] - p0[1], x[2] - p0[2]};
+    double r = sqrt(dot3(d, d));
+    double dn = fabs(dot3(n, d));
+    double c = nan_min(nan_max(dn / r, 0.05), 1.0);  /* cos(incidence) */
+    double rd = r * std[0];
+    double across = rd * rd + std[1] * std[1];
+    double Ad[2] = {dot3(A0, d), dot3(A1, d)};
+    double norm = sqrt(Ad[0] * Ad[0] + Ad[1] * Ad[1]);
+    double u[2] = {1.0, 0.0};
+    if (norm > 0) { u[0] = Ad[0] / norm; u[1] = Ad[1] / norm; }
+    double stretch = 1 / (c * c) - 1;
+    for (int a = 0; a < 2; a++)
+        for (int b = 0; b < 2; b++)
+            cov[2 * a + b] = across * ((a == b ? 1.0 : 0.0) + stretch * (u[a] * u[b]));
+    double m = nan_max(dn, 0.05 * r);
+    for (int b = 0; b < 2; b++) slope[b] = -Ad[b] / m;
+    if (eye == NULL) {
+        double v = std[4] * std[4];
+        for (int a = 0; a < 2; a++)
+            for (int b = 0; b < 2; b++) cov[2 * a + b] += v * (a == b ? 1.0 : 0.0);
+    } else {
+        double back[3] = {x[0] - eye[0], x[1] - eye[1], x[2] - eye[2]};
+        double nb = dot3(n, back);
+        double minus[3] = {-back[0], -back[1], -back[2]};
+        for (int b = 0; b < 2; b++) slope[b] = slope[b] + dot3(A + 3 * b, minus) / fabs(nb);
+        /* e_t x back for each world axis t, as tracker._TURNED and _TURNED_SIGN take it */
+        double turned[3][3] = {{back[0] * 0.0, back[2] * -1.0, back[1] * 1.0},
+                               {back[2] * 1.0, back[0] * 0.0, back[0] * -1.0},
+                               {back[1] * -1.0, back[0] * 1.0, back[0] * 0.0}};
+        for (int t = 0; t < 3; t++) {
+            double towards = dot3(turned[t], n), moved[3];
+            for (int i = 0; i < 3; i++) moved[i] = turned[t][i] - towards * back[i] / nb;
+            for (int a = 0; a < 2; a++) turn[3 * a + t] = dot3(A + 3 * a, moved);
+        }
+        double v = std[3] * std[3];
+        for (int a = 0; a < 2; a++)
+            for (int b = 0; b < 2; b++)
+                cov[2 * a + b] += v * (turn[3 * a] * turn[3 * b] + turn[3 * a + 1] * turn[3 * b + 1]
+                                       + turn[3 * a + 2] * turn[3 * b + 2]);
+    }
+    double bulge = std[2] * shape;
+    for (int a = 0; a < 2; a++)
+        for (int b = 0; b < 2; b++) cov[2 * a + b] = cov[2 * a + b] + bulge * bulge * (slope[a] * slope[b]);
+}
+
+/* installation_covariances(x, A, bend, eyes, p0, cov, slope, turn, dir_std, offset_std,
+ *                          bulge_std, turn_std, residual_std): tracker._installation_covariances
+ * of k dots into cov (k x 2 x 2), slope (k x 2) and, where eyes is not empty, turn
+ * (k x 2 x 3); bend empty: a shape of 1; p0 one point (3) or one per dot (k x 3). */
+static PyObject *installation_covariances(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[8];
+    double std[5];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOddddd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &std[0], &std[1], &std[2], &std[3], &std[4]))
+        return NULL;
+    for (int i = 0; i < 8; i++) {
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i >= 5 ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
+        s.n++;
+        if (!of_kind(&s.b[i], 0)) {
+            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous "
+                         "float64 array", i);
+            release(&s);
+            return NULL;
+        }
+    }
+    Py_ssize_t k = s.b[0].len / (3 * (Py_ssize_t)sizeof(double));
+    int bent = s.b[2].len > 0, seen = s.b[3].len > 0;
+    int each = s.b[4].len != 3 * (Py_ssize_t)sizeof(double);
+    PyObject *res = NULL;
+    if (sized(&s.b[0], 3 * k, "x") && sized(&s.b[1], 6 * k, "A")
+        && (!bent || sized(&s.b[2], k, "bend")) && (!seen || sized(&s.b[3], 3 * k, "eyes"))
+        && (!each || sized(&s.b[4], 3 * k, "p0")) && sized(&s.b[5], 4 * k, "cov")
+        && sized(&s.b[6], 2 * k, "slope") && sized(&s.b[7], seen ? 6 * k : 0, "turn")) {
+        const double *x = s.b[0].buf, *A = s.b[1].buf, *bend = s.b[2].buf, *eyes = s.b[3].buf;
+        const double *p0 = s.b[4].buf;
+        double *cov = s.b[5].buf, *slope = s.b[6].buf, *turn = s.b[7].buf;
+        for (Py_ssize_t i = 0; i < k; i++)
+            dot_covariance(x + 3 * i, A + 6 * i, each ? p0 + 3 * i : p0, bent ? bend[i] : 1.0,
+                           seen ? eyes + 3 * i : NULL, std, cov + 4 * i, slope + 2 * i,
+                           seen ? turn + 6 * i : NULL);
+        res = Py_NewRef(Py_None);
+    }
+    release(&s);
+    return res;
+}
+
 /* kalman(cov, mean, idx, H, z, noise, S, gate) -> chi2: installation_estimate.py's
  * innovation of z (2,) = H (2 x k) theta[idx] + noise against the estimate (cov (M x M),
  * mean (M,)): its covariance H P H^T + noise into S (2 x 2) and its chi-square (NaN where S
@@ -297,6 +401,9 @@ done:
 static PyMethodDef methods[] = {
     {"dot_moves", dot_moves, METH_VARARGS,
      "Each dot's moves per installation parameter (tracker._dot_moves), into out."},
+    {"installation_covariances", installation_covariances, METH_VARARGS,
+     "Each dot's installation covariance and slopes (tracker._installation_covariances), into "
+     "the given arrays."},
     {"kalman", kalman, METH_VARARGS,
      "The installation estimate's innovation chi-square, its update taken in place if gated in."},
     {NULL, NULL, 0, NULL},

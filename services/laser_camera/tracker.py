@@ -1142,7 +1142,19 @@ def _installation_covariances(x: np.ndarray, A: np.ndarray, bend: np.ndarray | N
     """:func:`_installation_covariance` of dots ``x`` (k, 3) on walls with in-plane axes
     ``A`` (k, 2, 3), seen from ``eyes`` (k, 3) or None, for a rig at ``p0`` ((3,) or one
     per dot), all at once (a frame set's labelings hold a few dozen dots), and the dots'
-    :class:`_DotSlopes` it took (the chosen labeling's estimate moves its dots by them)."""
+    :class:`_DotSlopes` it took (the chosen labeling's estimate moves its dots by them).
+    Compiled where the laser kernels are built (``KERNELS``)."""
+    if KERNELS is not None:
+        k, empty = len(x), _EMPTY
+        cov, bend_slopes = np.empty((k, 2, 2)), np.empty((k, 2))
+        turn = None if eyes is None else np.empty((k, 2, 3))
+        KERNELS.installation_covariances(
+            x, A, empty if bend is None else np.ascontiguousarray(bend, float),
+            empty if eyes is None else eyes, np.ascontiguousarray(p0, float), cov,
+            bend_slopes, empty if turn is None else turn, p.housing_dir_std_rad,
+            p.housing_offset_std_m, p.screen_bulge_std_m, p.camera_turn_std_rad,
+            p.camera_residual_std_m)
+        return cov, _DotSlopes(bend_slopes, turn)
     n = geo.cross(A[:, 0], A[:, 1])  # outward
     d = x - p0
     r = np.sqrt(np.einsum("ki,ki->k", d, d))
@@ -1701,32 +1713,22 @@ def _dot_moves(dots: WorldDots, idx: list[int], labels: list[int], p0: np.ndarra
         tuple(labels), tuple(dots.walls[i] for i in idx), tuple(dots.cameras[i] for i in idx),
         eyes is not None, mapped)
     shape = np.ones(k4) if dots.bend is None else np.asarray(dots.bend, float)[idx]
-    if slopes is None:
-        n, d, r, dn = _dot_geometry(x, A, p0)
-        slopes = _slopes(x, A, n, np.einsum("kai,ki->ka", A, d), np.abs(dn), r, eyes)
+    if slopes is None:  # as the fits take them
+        slopes = _installation_covariances(x, A, None, eyes, np.asarray(p0, float), p)[1]
     out = np.zeros(k4 * 2 * len(names))
     if KERNELS is None:
         out[dst] = _move_blocks(x, A, p0, quaternion, across, shape, slopes, p, width,
                                 screens, cams).take(src)
     else:
         maps = (screens.translation, screens.rotation, screens.side, screens.sigma) \
-            if any(mapped) else _NO_MAPS
+            if any(mapped) else (_EMPTY,) * 4
         KERNELS.dot_moves(
             x, A, np.ascontiguousarray(p0, float), np.ascontiguousarray(quaternion, float),
-            across, shape, slopes.bend, _NO_MAPS[0] if slopes.turn is None else slopes.turn,
+            across, shape, slopes.bend, _EMPTY if slopes.turn is None else slopes.turn,
             *maps, src, dst, out, cams or (None,) * k4, width, p.housing_dir_std_rad,
             p.housing_offset_std_m, p.screen_bulge_std_m, p.camera_turn_std_rad,
             p.camera_residual_std_m)
     return names, out.reshape(k4, 2, len(names))
-
-
-def _dot_geometry(x: np.ndarray, A: np.ndarray, p0: np.ndarray,
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each dot's wall normal (k, 3; outward), its ray from P0 (k, 3), that ray's length
-    (k,) and the normal's dot product with it (k,)."""
-    n = geo.cross(A[:, 0], A[:, 1])
-    d = x - p0
-    return n, d, np.sqrt(np.einsum("ki,ki->k", d, d)), np.einsum("ki,ki->k", n, d)
 
 
 def _move_blocks(x: np.ndarray, A: np.ndarray, p0: np.ndarray, quaternion: np.ndarray,
@@ -1737,7 +1739,10 @@ def _move_blocks(x: np.ndarray, A: np.ndarray, p0: np.ndarray, quaternion: np.nd
     offset b (``_BEAM_NAMES``' order; ``across`` (k, 2, 3): the beam's two rig axes across
     it), its screen's bend (``shape`` at the dot), its camera's turn (or residual), and
     where ``cams`` holds any camera its map's eight coefficients."""
-    n, d, r, dn = _dot_geometry(x, A, p0)
+    n = geo.cross(A[:, 0], A[:, 1])
+    d = x - p0
+    r = np.sqrt(np.einsum("ki,ki->k", d, d))
+    dn = np.einsum("ki,ki->k", n, d)
     k4 = len(x)
     unit = d / r[:, None]
     nd = np.where(dn < 0, -1.0, 1.0) * np.maximum(np.abs(dn) / r, 0.05)  # cos(incidence)
@@ -1802,8 +1807,8 @@ def _move_layout(labels: tuple[int, ...], walls: tuple[str, ...], cameras: tuple
 
 #: the compiled twin of ``_dot_moves``' blocks and scatter (None: the numpy code runs)
 KERNELS: Any = compiled_twin("services.laser_camera._kernels", "UMA_LASER_PURE_PYTHON")
-#: no screen maps, no camera turns: the compiled twin's empty arrays
-_NO_MAPS = (np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+#: what the compiled twin takes for an array not there (no screen maps, eyes, bend)
+_EMPTY = np.zeros(0)
 #: per beam label, its parameters' names in ``_dot_moves``' order
 _BEAM_NAMES = {label: [f"beam {label} {kind} {axis}"
                        for axis in "ab" for kind in ("tilt", "offset")]
