@@ -1293,9 +1293,13 @@ class _Miss:
         noise = self.random + later.random
         drift = np.einsum("k,kij->ij", share, both)
         edge = np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
-        S = np.stack([noise_scale * noise + drift + edge, noise + drift + edge])
-        chi2 = _chi2(np.repeat((later.miss - self.miss)[None], 2, axis=0), S)
-        return float(chi2[0]), S[0], float(chi2[1])
+        said = noise + drift + edge
+        d = (later.miss - self.miss)[None]
+        said_chi2 = float(_chi2(d, said[None])[0])
+        if noise_scale == 1.0:
+            return said_chi2, said, said_chi2
+        S = noise_scale * noise + drift + edge
+        return float(_chi2(d, S[None])[0]), S, said_chi2
 
 
 class _NoiseScale:
@@ -1318,22 +1322,24 @@ class _NoiseScale:
 
     def __init__(self, window: int):
         self._chi2: deque[float] = deque(maxlen=window)
+        self._sum = 0.0  # of ``_chi2``, kept as they come and go (read every frame set)
         #: 1 / chi2_p(dof) of n = 1 .. window changes (chi2_p(k) = 2 P^-1(k / 2, p))
-        self._inverse = 0.5 / gammaincinv(np.arange(1, window + 1) / 1.5, _NOISE_BOUND_P)
+        self._inverse = (0.5 / gammaincinv(np.arange(1, window + 1) / 1.5,
+                                           _NOISE_BOUND_P)).tolist()
+        #: the bound on ``kappa``, at most 1 (1 before any change)
+        self.scale = 1.0
 
     def add(self, chi2: float) -> None:
         """One change's chi-square under the assumed noise (no-op with no window)."""
-        if self._chi2.maxlen:
-            self._chi2.append(chi2)
-
-    @property
-    def scale(self) -> float:
-        """The bound on ``kappa``, at most 1."""
-        n = len(self._chi2)
-        if not n:
-            return 1.0
-        bound = math.fsum(self._chi2) * float(self._inverse[n - 1])
-        return min(1.0, max(bound, _NOISE_SCALE_FLOOR))
+        window = self._chi2.maxlen
+        if not window:
+            return
+        if len(self._chi2) == window:
+            self._sum -= self._chi2[0]
+        self._chi2.append(chi2)
+        self._sum += chi2
+        bound = self._sum * self._inverse[len(self._chi2) - 1]
+        self.scale = min(1.0, max(bound, _NOISE_SCALE_FLOOR))
 
 
 #: the chance that ``_NoiseScale``'s bound lies below the dots' noise
