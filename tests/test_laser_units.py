@@ -10,6 +10,7 @@ import pytest
 from agent import geometry as geo
 from services.installation.ivy import intersect_beam, make_walls, on_active_area, screen_to_world
 from services.installation.laser_housing import BEAM_DIRECTIONS, LABELS
+from services.laser_camera import pose as pose_module
 from services.laser_camera.detection import (
     DetectorParams,
     _component_stats,
@@ -604,3 +605,48 @@ def test_simulated_cameras_skip_the_frames_an_overrun_missed() -> None:
     # 120 ms late: the frames at 1.05 and 1.10 are gone, the next one is at 1.15, not now
     assert next_frame_time(1.0, 0.05, 1.12) == pytest.approx(1.15)
     assert next_frame_time(1.0, 0.0, 5.0) == 1.0  # a capture paces itself
+
+
+@pytest.mark.skipif(pose_module.KERNELS is None, reason="the laser kernels are not built")
+def test_the_compiled_labelings_and_frames_are_numpys(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled labelings (eps, P0, rays of all 24), frames of labeled hits and
+    rotations are numpy's (to 1e-15 of the largest; the same bits where numpy's einsum
+    sums as on x86-64), the degenerate ones too: coincident points (eps inf) and P3 on
+    the line P1P2 (no frame: NaN)."""
+    rng = np.random.default_rng(3)
+    sets = [rng.normal(size=(4, 3)) for _ in range(20)]
+    sets += [np.array([[0.0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0]]),
+             np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 0, 1]])]
+    hits = np.array(sets)
+    v1, v3 = rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    v3[0] = 0.0
+
+    def everything() -> list[np.ndarray]:
+        out = [a for points in sets for a in pose_module._labelings(points)]
+        return out + list(pose_module.frames_from_points(hits)) + [pose_module._rotations(v1, v3)]
+
+    compiled = everything()
+    monkeypatch.setattr(pose_module, "KERNELS", None)
+    for got, want in zip(compiled, everything(), strict=True):
+        assert got.shape == want.shape
+        same = np.isfinite(want)
+        assert np.array_equal(np.isfinite(got), same)
+        assert np.array_equal(got[~same], want[~same], equal_nan=True)
+        assert np.abs(got[same] - want[same]).max() <= 1e-15 * np.abs(want[same]).max()
+    eps_coincident, R, rotations = compiled[3 * 20], compiled[-2], compiled[-1]
+    assert np.isinf(eps_coincident).any() and np.isnan(R[-1]).all()
+    assert np.isnan(rotations[0]).all() and np.isfinite(rotations[1:]).all()
+
+
+@pytest.mark.skipif(pose_module.KERNELS is None, reason="the laser kernels are not built")
+def test_the_compiled_frames_refuse_arrays_of_the_wrong_kind() -> None:
+    """A stack of the wrong size or type raises a ValueError naming the laser kernel."""
+    k = pose_module.KERNELS
+    with pytest.raises(ValueError, match="laser kernel"):
+        k.frames(np.zeros((2, 4, 3)), np.empty((1, 3)), np.empty((2, 3, 3)))
+    with pytest.raises(ValueError, match="laser kernel"):
+        k.labelings(np.zeros((4, 3)), pose_module.PERMUTATIONS.astype(float), np.empty(24),
+                    np.empty((24, 3)), np.empty((24, 4, 3)))
+    with pytest.raises(ValueError, match="laser kernel"):
+        k.labelings(np.zeros((4, 3)), pose_module.PERMUTATIONS + 1, np.empty(24),
+                    np.empty((24, 3)), np.empty((24, 4, 3)))

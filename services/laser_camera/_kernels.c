@@ -3,15 +3,19 @@
  * axes per one std of each installation parameter, scattered into the parameters'
  * columns), _installation_covariances (each labeling's dots' in-plane covariance from the
  * installation's tolerances, and the slopes it takes) and installation_estimate.py's
- * innovation and rank-2 Kalman update.
+ * innovation and rank-2 Kalman update; pose.py's labelings of four dots (eq. 5.6's eps of
+ * all 24, their P0 and rays) and the rig frames of labeled dots (frames_from_points,
+ * _rotations).
  *
  * The same arithmetic as the numpy code, operation by operation, compiled without
- * floating-point contraction: the products of a 3 x 3 matrix and the 3-term dot products
- * sum in numpy's order, so the results agree with it to rounding (a few 1e-16 relative)
- * where numpy's matrix products take another order.  Why compiled: a frame set's four dots
- * see some sixty parameters, and the numpy code spends about thirty calls per frame set on
- * a few hundred numbers, the interpreter's cost rather than the arithmetic's.  Optional:
- * when this does not build, tracker.py runs in pure Python. */
+ * floating-point contraction, its 3-term sums in the order numpy's einsum and add.reduce
+ * take them (dot3, norm3): the covariances, labelings and frames agree with numpy's to the
+ * bit where numpy sums so (its SIMD einsum on x86-64), the moves to rounding (the rig's
+ * rotation from the quaternion by its formula, not numpy's product), the estimate's
+ * update, whose numpy matrix products sum in BLAS's order, to rounding (a few 1e-16).
+ * Why compiled: a frame set spends some hundred numpy calls here on a few hundred numbers,
+ * the interpreter's cost rather than the arithmetic's.  Optional: when this does not
+ * build, tracker.py, pose.py and installation_estimate.py run in pure Python. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -47,7 +51,12 @@ static int of_kind(const Py_buffer *b, int integer) {
     return integer ? !strcmp(f, "l") || !strcmp(f, "q") : !strcmp(f, "d");
 }
 
-static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+/* A 3-term dot product summed as numpy's einsum sums one (two SIMD lanes: the first and
+ * third products, then the second), so that the twins round as the numpy code does. */
+static double dot3(const double *a, const double *b) { return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]; }
+
+/* A 3-vector's norm summed as np.add.reduce sums (in order): pose.row_norms */
+static double norm3(const double *a) { return sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]); }
 
 /* geometry.quat_to_matrix of a unit quaternion (x, y, z, w), row-major */
 static void quat_matrix(const double *q, double R[9]) {
@@ -79,7 +88,7 @@ static void dot_block(const double *x, const double *A, const double *p0, const 
     for (int a = 0; a < 2; a++) {
         const double *e = across_rig + 3 * a;
         double c[3], w[3];
-        for (int i = 0; i < 3; i++) c[i] = R[3 * i] * e[0] + R[3 * i + 1] * e[1] + R[3 * i + 2] * e[2];
+        for (int i = 0; i < 3; i++) c[i] = dot3(R + 3 * i, e);
         double along = dot3(c, unit);
         for (int i = 0; i < 3; i++) c[i] -= along * unit[i];
         double toward = dot3(c, n);
@@ -253,8 +262,7 @@ static void dot_covariance(const double *x, const double *A, const double *p0, d
         double v = std[3] * std[3];
         for (int a = 0; a < 2; a++)
             for (int b = 0; b < 2; b++)
-                cov[2 * a + b] += v * (turn[3 * a] * turn[3 * b] + turn[3 * a + 1] * turn[3 * b + 1]
-                                       + turn[3 * a + 2] * turn[3 * b + 2]);
+                cov[2 * a + b] += v * dot3(turn + 3 * a, turn + 3 * b);
     }
     double bulge = std[2] * shape;
     for (int a = 0; a < 2; a++)
@@ -398,7 +406,159 @@ done:
     return res;
 }
 
+/* pose._rotations of one labeling: the rig's rotation (row-major) from the directions
+ * P0 -> P1 (v1) and P0 -> P3 (v3); NaN throughout where they define no frame. */
+static void rotation(const double *v1, const double *v3, double *R) {
+    double n[3] = {v1[1] * v3[2] - v1[2] * v3[1], v1[2] * v3[0] - v1[0] * v3[2],
+                   v1[0] * v3[1] - v1[1] * v3[0]};
+    double len_v3 = norm3(v3), len_n = norm3(n);
+    double x[3], z[3];
+    for (int i = 0; i < 3; i++) {
+        x[i] = -v3[i] / len_v3;
+        z[i] = n[i] / len_n;
+    }
+    double y[3] = {z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]};
+    int finite = 1;
+    for (int i = 0; i < 3; i++) {
+        R[3 * i] = x[i];
+        R[3 * i + 1] = y[i];
+        R[3 * i + 2] = z[i];
+        finite &= isfinite(x[i]) && isfinite(y[i]) && isfinite(z[i]);
+    }
+    if (!finite || len_v3 < 1e-9 || len_n < 1e-12)
+        for (int i = 0; i < 9; i++) R[i] = NAN;
+}
+
+/* The foot of P on the line through P1 along d12: P1 + lam d12, lam = (P - P1).d12 / d12.d12 */
+static void foot(const double *P, const double *P1, const double *d12, double dd, double *out) {
+    double w[3] = {P[0] - P1[0], P[1] - P1[1], P[2] - P1[2]};
+    double lam = dot3(w, d12) / dd;
+    for (int i = 0; i < 3; i++) out[i] = P1[i] + lam * d12[i];
+}
+
+/* Gets n buffers of o (float64; int64 where integer[i]; writable from index writable on),
+ * checked; 0 (error set, released) if one is not. */
+static int get_all(PyObject **o, int n, const int *integer, int writable, buffers_t *s) {
+    for (int i = 0; i < n; i++) {
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i >= writable ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &s->b[i], flags) < 0) { release(s); return 0; }
+        s->n++;
+        int ints = integer != NULL && integer[i];
+        if (!of_kind(&s->b[i], ints)) {
+            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
+                         i, ints ? "int64" : "float64");
+            release(s);
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* frames(P, P0, R): pose.frames_from_points of m labeled hits P (m x 4 x 3) into P0 (m x 3)
+ * and R (m x 3 x 3). */
+static PyObject *frames(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO", &o[0], &o[1], &o[2]) || !get_all(o, 3, NULL, 1, &s))
+        return NULL;
+    Py_ssize_t m = s.b[0].len / (12 * (Py_ssize_t)sizeof(double));
+    PyObject *res = NULL;
+    if (sized(&s.b[0], 12 * m, "P") && sized(&s.b[1], 3 * m, "P0") && sized(&s.b[2], 9 * m, "R")) {
+        const double *P = s.b[0].buf;
+        double *P0 = s.b[1].buf, *R = s.b[2].buf;
+        for (Py_ssize_t j = 0; j < m; j++) {
+            const double *P1 = P + 12 * j, *P2 = P1 + 3, *P3 = P1 + 6;
+            double d12[3] = {P2[0] - P1[0], P2[1] - P1[1], P2[2] - P1[2]}, *p0 = P0 + 3 * j;
+            foot(P3, P1, d12, dot3(d12, d12), p0);
+            double v1[3] = {P1[0] - p0[0], P1[1] - p0[1], P1[2] - p0[2]};
+            double v3[3] = {P3[0] - p0[0], P3[1] - p0[1], P3[2] - p0[2]};
+            rotation(v1, v3, R + 9 * j);
+        }
+        res = Py_NewRef(Py_None);
+    }
+    release(&s);
+    return res;
+}
+
+/* rotations(v1, v3, R): pose._rotations of m direction pairs (m x 3 each) into R (m x 3 x 3). */
+static PyObject *rotations(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO", &o[0], &o[1], &o[2]) || !get_all(o, 3, NULL, 2, &s))
+        return NULL;
+    Py_ssize_t m = s.b[0].len / (3 * (Py_ssize_t)sizeof(double));
+    PyObject *res = NULL;
+    if (sized(&s.b[0], 3 * m, "v1") && sized(&s.b[1], 3 * m, "v3") && sized(&s.b[2], 9 * m, "R")) {
+        const double *v1 = s.b[0].buf, *v3 = s.b[1].buf;
+        for (Py_ssize_t j = 0; j < m; j++) rotation(v1 + 3 * j, v3 + 3 * j, (double *)s.b[2].buf + 9 * j);
+        res = Py_NewRef(Py_None);
+    }
+    release(&s);
+    return res;
+}
+
+/* labelings(points, perms, eps, P0, rays): pose._labelings of four points (4 x 3) under the
+ * labelings perms (L x 4, the point labeled each diode): eq. 5.6's eps of each (inf where
+ * not finite), its P0 (L x 3) and its rays from P0 to the points labeled diodes 1..4
+ * (L x 4 x 3). */
+static PyObject *labelings(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 0};
+    PyObject *o[5];
+    static const int integer[5] = {0, 1, 0, 0, 0};
+    /* eq. 5.7's pairs that must be perpendicular: beam 4 with 1, 2, 3; beam 3 with 1, 2 */
+    static const int pa[5] = {3, 3, 3, 0, 1}, pb[5] = {0, 1, 2, 2, 2};
+    if (!PyArg_ParseTuple(args, "OOOOO", &o[0], &o[1], &o[2], &o[3], &o[4])
+        || !get_all(o, 5, integer, 2, &s))
+        return NULL;
+    Py_ssize_t L = s.b[1].len / (4 * (Py_ssize_t)sizeof(int64_t));
+    PyObject *res = NULL;
+    if (sized(&s.b[0], 12, "points") && sized(&s.b[2], L, "eps") && sized(&s.b[3], 3 * L, "P0")
+        && sized(&s.b[4], 12 * L, "rays")) {
+        const double *pts = s.b[0].buf;
+        const int64_t *perms = s.b[1].buf;
+        double *eps = s.b[2].buf, *P0 = s.b[3].buf, *rays = s.b[4].buf;
+        for (Py_ssize_t i = 0; i < L; i++) {
+            const double *P[4];
+            for (int k = 0; k < 4; k++) {
+                int64_t j = perms[4 * i + k];
+                if (j < 0 || j > 3) {
+                    PyErr_SetString(PyExc_ValueError, "laser kernel: a labeling's point out of range");
+                    goto done;
+                }
+                P[k] = pts + 3 * j;
+            }
+            double d12[3] = {P[1][0] - P[0][0], P[1][1] - P[0][1], P[1][2] - P[0][2]};
+            double dd = dot3(d12, d12), *p0 = P0 + 3 * i, other[3], *r = rays + 12 * i, u[4][3];
+            foot(P[2], P[0], d12, dd, p0);     /* P0, eq. 5.6's frame */
+            foot(P[3], P[0], d12, dd, other);  /* P0', eq. 5.8 */
+            for (int k = 0; k < 4; k++) {
+                for (int c = 0; c < 3; c++) r[3 * k + c] = P[k][c] - p0[c];
+                double len = norm3(r + 3 * k);
+                for (int c = 0; c < 3; c++) u[k][c] = r[3 * k + c] / len;
+            }
+            double perp = 0.0;
+            for (int q = 0; q < 5; q++) perp += fabs(dot3(u[pa[q]], u[pb[q]]));
+            double apart[3] = {p0[0] - other[0], p0[1] - other[1], p0[2] - other[2]};
+            const double *a = r, *b = r + 6;
+            double n[3] = {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                           a[0] * b[1] - a[1] * b[0]};
+            double e = perp + dot3(apart, apart) + (dot3(n, r + 9) <= 0 ? 1.0 : 0.0);
+            eps[i] = isfinite(e) ? e : INFINITY;
+        }
+        res = Py_NewRef(Py_None);
+    }
+done:
+    release(&s);
+    return res;
+}
+
 static PyMethodDef methods[] = {
+    {"labelings", labelings, METH_VARARGS,
+     "Eq. 5.6's eps of every labeling of four points, their P0 and rays (pose._labelings)."},
+    {"frames", frames, METH_VARARGS,
+     "The rig frames of labeled hits (pose.frames_from_points), into P0 and R."},
+    {"rotations", rotations, METH_VARARGS,
+     "The rig rotations from P0's directions to P1 and P3 (pose._rotations), into R."},
     {"dot_moves", dot_moves, METH_VARARGS,
      "Each dot's moves per installation parameter (tracker._dot_moves), into out."},
     {"installation_covariances", installation_covariances, METH_VARARGS,

@@ -25,15 +25,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import permutations
+from typing import Any
 
 import numpy as np
 
 from agent import geometry as geo
 from agent.errors import InvalidInputError
+from agent.runtime import compiled_twin
 
 #: every assignment of four points to the diodes: PERMUTATIONS[i][k] = index of the point
 #: labeled diode k + 1
-PERMUTATIONS = np.array(list(permutations(range(4))))
+PERMUTATIONS = np.array(list(permutations(range(4))), np.int64)
 _ORDERS = list(permutations(range(4)))  # the same, as the tuples LabeledPose holds
 
 
@@ -63,8 +65,14 @@ def frames_from_points(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     NaN where no frame exists.
 
     The stack holds a handful of frames (the labelings that fit, the covariance's nine
-    perturbed copies), so numpy's per-call overhead, not arithmetic, is the cost: each
-    norm is taken once and R is filled in place rather than stacked."""
+    perturbed copies), so numpy's per-call overhead, not arithmetic, is the cost: compiled
+    where the laser kernels are built (``KERNELS``); in numpy each norm is taken once and R
+    is filled in place rather than stacked."""
+    if KERNELS is not None:
+        P = np.ascontiguousarray(P, float)
+        P0, R = np.empty((len(P), 3)), np.empty((len(P), 3, 3))
+        KERNELS.frames(P, P0, R)
+        return P0, R
     P1, P2, P3 = P[:, 0], P[:, 1], P[:, 2]
     d12 = P2 - P1
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -78,6 +86,9 @@ def _rotations(v1: np.ndarray, v3: np.ndarray) -> np.ndarray:
     """The rig's rotations (m, 3, 3) from the directions P0 -> P1 and P0 -> P3 (m, 3); NaN
     where they define no frame."""
     R = np.empty((len(v3), 3, 3))
+    if KERNELS is not None:
+        KERNELS.rotations(np.ascontiguousarray(v1), np.ascontiguousarray(v3), R)
+        return R
     with np.errstate(divide="ignore", invalid="ignore"):
         n = geo.cross(v1, v3)
         len_v3, len_n = row_norms(v3), row_norms(n)
@@ -100,7 +111,12 @@ def _labelings(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     points labeled diodes 1..4 (24, 4, 3): the frame of a labeling is made of these
     (``_rotations``), so its candidates need not be solved again.  (The directions from
     P0 to all four points are one (24, 4, 3) array: a numpy call per labeling array, not
-    per point.)"""
+    per point.)  Compiled where the laser kernels are built (``KERNELS``)."""
+    if KERNELS is not None:
+        eps, P0, rays = np.empty(len(PERMUTATIONS)), np.empty((len(PERMUTATIONS), 3)), \
+            np.empty((len(PERMUTATIONS), 4, 3))
+        KERNELS.labelings(np.ascontiguousarray(points, float), PERMUTATIONS, eps, P0, rays)
+        return eps, P0, rays
     P = points[PERMUTATIONS]  # (24, 4, 3): P[i, k] = point labeled diode k + 1
     P1 = P[:, 0]
     d12 = P[:, 1] - P1
@@ -122,6 +138,8 @@ def _labelings(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.where(np.isfinite(eps), eps, np.inf), P0, rays
 
 
+#: the compiled twin of the labelings and frames (None: the numpy code runs)
+KERNELS: Any = compiled_twin("services.laser_camera._kernels", "UMA_LASER_PURE_PYTHON")
 #: the direction pairs of eq. 5.7 that must be perpendicular (diode indices - 1)
 _PERP_A, _PERP_B = np.array([3, 3, 3, 0, 1]), np.array([0, 1, 2, 2, 2])
 
