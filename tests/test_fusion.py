@@ -758,6 +758,21 @@ def test_the_nees_band_counts_the_samples_of_the_whitened_errors():
     assert about_zero["bounds_95"][0] < 1.3 and about_zero["bounds_95"][1] > 14
 
 
+@pytest.mark.parametrize("bad, why", [(-1e-9, "not positive definite"),
+                                       (np.nan, "not finite")])
+def test_a_published_covariance_without_a_nees_is_named(bad: float, why: str) -> None:
+    """A fused covariance that is indefinite or not finite has no NEES: the eval names its
+    sample (a LinAlgError from the Cholesky factor, or a NaN mean, otherwise)."""
+    n = 40
+    t = np.arange(n) / 300.0
+    cov = np.tile(np.eye(6) * 1e-6, (n, 1, 1))
+    cov[17, 2, 2] = bad
+    rec = SimpleNamespace(t=t, p=np.zeros((n, 3)), q=np.tile([0, 0, 0, 1.0], (n, 1)),
+                          cov=cov, optical_t=t[::20])
+    with pytest.raises(InvalidInputError, match=rf"t = 0\.0567 s \(sample 17\) is {why}"):
+        fe.nees_figures(rec, np.full((n, 3), 1e-4), rec.q, np.ones(n, bool))
+
+
 @pytest.mark.slow
 def test_short_eval_measures_gaps_from_the_last_optical_pose():
     """A 9 s ``uma eval fusion`` (the 60 s runs are by hand) on the realistic installation:

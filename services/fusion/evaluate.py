@@ -305,7 +305,8 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
     e = np.concatenate([p_true - rec.p, geo.quat_to_rotvec(
         geo.quat_multiply(q_true, geo.quat_conjugate(rec.q)))], axis=1)[mask]
     cov = rec.cov[mask]
-    nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+    w = whitened(e, cov, rec.t[mask])
+    nees = np.einsum("ni,ni->n", w, w)
     tau = autocorrelation_time(nees, about="mean")
     k = nees.size / tau
     span = float(rec.t[mask][-1] - rec.t[mask][0]) if mask.any() else 0.0
@@ -319,15 +320,30 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
             "bounds_95_one_sample_per_optical_frame": list(_mean_bounds(k_frames)),
             "share_inside_single_95": float(np.mean(inside)),
             "by_regime": _nees_by_regime(rec, e, cov, mask),
-            "errors_about_zero": consistency.nees_figures(whitened(e, cov), np.broadcast_to(
+            "errors_about_zero": consistency.nees_figures(w, np.broadcast_to(
                 np.eye(6), cov.shape)),
             "within_bounds_about_own_mean": bool(lo <= mean <= hi)}
 
 
-def whitened(e: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Errors (n, d) whitened by their covariances (n, d, d): ``L^-1 e`` with ``L L^T`` the
-    covariance, whose squared norm is the NEES."""
-    return np.linalg.solve(np.linalg.cholesky(cov), e[..., None])[..., 0]
+def whitened(e: np.ndarray, cov: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Errors (n, d) at motion times ``t`` (n,) whitened by their covariances (n, d, d):
+    ``L^-1 e`` with ``L L^T`` the covariance, whose squared norm is the NEES.  The filter
+    keeps its covariances symmetric, not provably positive definite (``P_random``'s
+    scalar updates subtract); a published one that is not, or is not finite, has no NEES,
+    and the eval names the sample instead of a LinAlgError or a NaN mean."""
+    finite = np.isfinite(cov).all(axis=(-2, -1))
+    if finite.all():
+        try:
+            return np.linalg.solve(np.linalg.cholesky(cov), e[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            least = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, -1, -2)))[:, 0]
+            k = int(np.argmin(least))
+            why = f"not positive definite (least eigenvalue {least[k]:.3g})"
+    else:
+        k = int(np.argmin(finite))
+        why = "not finite"
+    raise InvalidInputError(f"fusion eval: the fused covariance at t = {t[k]:.4f} s "
+                            f"(sample {k}) is {why}: it has no NEES")
 
 
 def _nees_by_regime(rec: Recording, e: np.ndarray, cov: np.ndarray,
