@@ -404,6 +404,17 @@ def test_a_stray_blob_the_miss_cannot_see_at_all_is_refused_not_covered(world) -
     assert "diode 2" in unseen.detail and "singular" in unseen.detail
 
 
+def test_a_miss_test_that_is_no_covariance_vouches_for_nothing(world) -> None:
+    """A change test whose covariance is singular cannot show a blob: the check refuses by
+    name, without a cover, never a ZeroDivisionError from ``1 / det(S)``."""
+    fit, dots = _true_fit(world)
+    p = TrackerParams()
+    unseen = _unseen_stray(fit, _pose_jacobian(dots, fit.idx, fit.pose.position),
+                           np.zeros((2, 2)), np.eye(6), p, p.max_residual_chi2)
+    assert unseen is not None and unseen.cover is None
+    assert "not positive definite" in unseen.detail
+
+
 def starts_with_a_blob(world: IvyWorld, rng: np.random.Generator, edge_std_m: float,
                        blob_at: int = 1, seconds: float = 40.0,
                        ) -> tuple[int, int, int, int]:

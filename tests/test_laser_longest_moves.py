@@ -40,3 +40,12 @@ def test_a_move_the_miss_does_not_see_is_infinitely_long() -> None:
     got = _longest_passing_moves(Jm, S)
     assert got[0] == math.inf and got[2] == math.inf
     assert np.isclose(got[1], _reference(Jm[1:2], S)[0], rtol=1e-12, atol=0)
+
+
+def test_a_miss_covariance_that_is_not_positive_definite_defines_no_move() -> None:
+    """``S`` singular, indefinite or not finite: no move has ``m^T S^-1 m = 1`` to measure
+    (a ZeroDivisionError or a negative length otherwise); the stray check refuses on it."""
+    Jm = np.tile(np.eye(2), (3, 1, 1))
+    for S in (np.zeros((2, 2)), np.array([[1e-6, 1e-6], [1e-6, 1e-6]]),
+              np.diag([1e-6, -1e-6]), np.diag([-1e-6, -1e-6]), np.diag([np.nan, 1e-6])):
+        assert _longest_passing_moves(Jm, S) is None, S

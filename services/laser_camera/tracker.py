@@ -1377,9 +1377,14 @@ def _unseen_stray(fit: _Fit, J: np.ndarray, S: np.ndarray, cov: np.ndarray,
     sets).  Every move the test passes changes the miss by ``m`` with ``m^T S^-1 m`` at
     most ``bound`` and the pose by ``Jp Jm^-T m``: the cover is that map of ``bound S``,
     summed over the harmful dots.  A dot whose ``Jm`` is singular has a move the miss
-    does not see at all: the blob is unbounded, and no cover is given."""
+    does not see at all: the blob is unbounded, and no cover is given.  An ``S`` that is
+    not positive definite (or not finite) is no test a chi-square can pass, as ``_chi2``
+    takes it: it vouches for nothing, and no cover is given either."""
     Jm = fit.jacobian[:3]  # (dot, wall axis, miss component)
     longest = _longest_passing_moves(Jm, S)
+    if longest is None:
+        return _Unseen("the fourth dot's miss was tested under a covariance that is not "
+                       "positive definite: it cannot show a stray blob", None)
     if math.inf in longest:
         k = longest.index(math.inf)
         return _Unseen(f"a stray blob beside diode {k + 1}'s dot could move the pose along "
@@ -1411,14 +1416,17 @@ def _unseen_stray(fit: _Fit, J: np.ndarray, S: np.ndarray, cov: np.ndarray,
                    "dot's miss", 0.5 * (cover + cover.T))
 
 
-def _longest_passing_moves(Jm: np.ndarray, S: np.ndarray) -> list[float]:
+def _longest_passing_moves(Jm: np.ndarray, S: np.ndarray) -> list[float] | None:
     """Per dot (``Jm``: (3, wall axis, miss component)), the squared length of the
     longest move along its wall whose change of the miss ``m`` has ``m^T S^-1 m = 1``:
     one over the least eigenvalue of ``B = Jm^T S^-1 Jm``; inf where ``Jm`` is singular
-    (a move the miss does not see).  On plain floats: it runs for every labeling
+    (a move the miss does not see); None where ``S`` is not positive definite and finite
+    (no such move is defined).  On plain floats: it runs for every labeling
     published, and numpy's per-call overhead on 2 x 2 matrices costs more than this."""
     (s00, s01), (s10, s11) = S.tolist()
     det_s = s00 * s11 - s01 * s10
+    if not (s00 > 0.0 and det_s > 0.0 and math.isfinite(det_s)):
+        return None
     i00, i01, i10, i11 = s11 / det_s, -s01 / det_s, -s10 / det_s, s00 / det_s
     out = []
     for (m00, m01), (m10, m11) in Jm.tolist():
