@@ -51,6 +51,24 @@ static int of_kind(const Py_buffer *b, int integer) {
     return integer ? !strcmp(f, "l") || !strcmp(f, "q") : !strcmp(f, "d");
 }
 
+/* Gets n buffers of o (float64; int64 where integer[i]; writable from index writable on),
+ * checked; 0 (error set, released) if one is not. */
+static int get_all(PyObject **o, int n, const int *integer, int writable, buffers_t *s) {
+    for (int i = 0; i < n; i++) {
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i >= writable ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &s->b[i], flags) < 0) { release(s); return 0; }
+        s->n++;
+        int ints = integer != NULL && integer[i];
+        if (!of_kind(&s->b[i], ints)) {
+            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
+                         i, ints ? "int64" : "float64");
+            release(s);
+            return 0;
+        }
+    }
+    return 1;
+}
+
 /* A 3-term dot product summed as numpy's einsum sums one (two SIMD lanes: the first and
  * third products, then the second), so that the twins round as the numpy code does. */
 static double dot3(const double *a, const double *b) { return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]; }
@@ -133,23 +151,14 @@ static void dot_block(const double *x, const double *A, const double *p0, const 
 static PyObject *dot_moves(PyObject *self, PyObject *args) {
     buffers_t s = {.n = 0};
     PyObject *o[NBUF], *cams;
+    static const int integer[NBUF] = {[12] = 1, [13] = 1};  /* src, dst */
     Py_ssize_t width;
     double std[5];
     if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOnddddd", &o[0], &o[1], &o[2], &o[3], &o[4],
                           &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13],
-                          &o[14], &cams, &width, &std[0], &std[1], &std[2], &std[3], &std[4]))
+                          &o[14], &cams, &width, &std[0], &std[1], &std[2], &std[3], &std[4])
+        || !get_all(o, NBUF, integer, 14, &s))
         return NULL;
-    for (int i = 0; i < NBUF; i++) {
-        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i == 14 ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
-        s.n++;
-        if (!of_kind(&s.b[i], i == 12 || i == 13)) {
-            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
-                         i, i == 12 || i == 13 ? "int64" : "float64");
-            release(&s);
-            return NULL;
-        }
-    }
     PyObject *res = NULL, *fast = NULL;
     double *blocks = NULL;
     Py_ssize_t k = s.b[0].len / (3 * (Py_ssize_t)sizeof(double));
@@ -278,19 +287,9 @@ static PyObject *installation_covariances(PyObject *self, PyObject *args) {
     PyObject *o[8];
     double std[5];
     if (!PyArg_ParseTuple(args, "OOOOOOOOddddd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
-                          &o[6], &o[7], &std[0], &std[1], &std[2], &std[3], &std[4]))
+                          &o[6], &o[7], &std[0], &std[1], &std[2], &std[3], &std[4])
+        || !get_all(o, 8, NULL, 5, &s))
         return NULL;
-    for (int i = 0; i < 8; i++) {
-        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i >= 5 ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
-        s.n++;
-        if (!of_kind(&s.b[i], 0)) {
-            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous "
-                         "float64 array", i);
-            release(&s);
-            return NULL;
-        }
-    }
     Py_ssize_t k = s.b[0].len / (3 * (Py_ssize_t)sizeof(double));
     int bent = s.b[2].len > 0, seen = s.b[3].len > 0;
     int each = s.b[4].len != 3 * (Py_ssize_t)sizeof(double);
@@ -312,7 +311,7 @@ static PyObject *installation_covariances(PyObject *self, PyObject *args) {
     return res;
 }
 
-/* kalman(cov, mean, idx, H, z, noise, S, gate) -> chi2: installation_estimate.py's
+/* kalman(idx, H, z, noise, cov, mean, S, gate) -> chi2: installation_estimate.py's
  * innovation of z (2,) = H (2 x k) theta[idx] + noise against the estimate (cov (M x M),
  * mean (M,)): its covariance H P H^T + noise into S (2 x 2) and its chi-square (NaN where S
  * is not positive definite or not finite); where that is <= gate, the update taken in place:
@@ -321,30 +320,21 @@ static PyObject *kalman(PyObject *self, PyObject *args) {
     buffers_t s = {.n = 0};
     PyObject *o[7];
     double gate;
+    static const int integer[7] = {1, 0, 0, 0, 0, 0, 0};  /* idx */
     if (!PyArg_ParseTuple(args, "OOOOOOOd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
-                          &gate))
+                          &gate)
+        || !get_all(o, 7, integer, 4, &s))
         return NULL;
-    for (int i = 0; i < 7; i++) {
-        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i < 2 || i == 6 ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o[i], &s.b[i], flags) < 0) { release(&s); return NULL; }
-        s.n++;
-        if (!of_kind(&s.b[i], i == 2)) {
-            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
-                         i, i == 2 ? "int64" : "float64");
-            release(&s);
-            return NULL;
-        }
-    }
     PyObject *res = NULL;
     double *PHt = NULL;
-    Py_ssize_t M = s.b[1].len / (Py_ssize_t)sizeof(double);
-    Py_ssize_t k = s.b[2].len / (Py_ssize_t)sizeof(int64_t);
-    if (!(sized(&s.b[0], M * M, "cov") && sized(&s.b[3], 2 * k, "H") && sized(&s.b[4], 2, "z")
-          && sized(&s.b[5], 4, "noise") && sized(&s.b[6], 4, "S")))
+    Py_ssize_t M = s.b[5].len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t k = s.b[0].len / (Py_ssize_t)sizeof(int64_t);
+    if (!(sized(&s.b[4], M * M, "cov") && sized(&s.b[1], 2 * k, "H") && sized(&s.b[2], 2, "z")
+          && sized(&s.b[3], 4, "noise") && sized(&s.b[6], 4, "S")))
         goto done;
-    double *P = s.b[0].buf, *mean = s.b[1].buf, *S = s.b[6].buf;
-    const int64_t *idx = s.b[2].buf;
-    const double *H = s.b[3].buf, *z = s.b[4].buf, *noise = s.b[5].buf;
+    double *P = s.b[4].buf, *mean = s.b[5].buf, *S = s.b[6].buf;
+    const int64_t *idx = s.b[0].buf;
+    const double *H = s.b[1].buf, *z = s.b[2].buf, *noise = s.b[3].buf;
     for (Py_ssize_t j = 0; j < k; j++)
         if (idx[j] < 0 || idx[j] >= M) {
             PyErr_SetString(PyExc_ValueError, "laser kernel: a state index out of range");
@@ -434,24 +424,6 @@ static void foot(const double *P, const double *P1, const double *d12, double dd
     double w[3] = {P[0] - P1[0], P[1] - P1[1], P[2] - P1[2]};
     double lam = dot3(w, d12) / dd;
     for (int i = 0; i < 3; i++) out[i] = P1[i] + lam * d12[i];
-}
-
-/* Gets n buffers of o (float64; int64 where integer[i]; writable from index writable on),
- * checked; 0 (error set, released) if one is not. */
-static int get_all(PyObject **o, int n, const int *integer, int writable, buffers_t *s) {
-    for (int i = 0; i < n; i++) {
-        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (i >= writable ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o[i], &s->b[i], flags) < 0) { release(s); return 0; }
-        s->n++;
-        int ints = integer != NULL && integer[i];
-        if (!of_kind(&s->b[i], ints)) {
-            PyErr_Format(PyExc_ValueError, "laser kernel: argument %d is not a contiguous %s array",
-                         i, ints ? "int64" : "float64");
-            release(s);
-            return 0;
-        }
-    }
-    return 1;
 }
 
 /* frames(P, P0, R): pose.frames_from_points of m labeled hits P (m x 4 x 3) into P0 (m x 3)

@@ -141,8 +141,8 @@ class InstallationEstimate:
         """The compiled innovation (its covariance into ``S``) and its chi-square, the
         update taken in place where that is at most ``gate``."""
         idx = self._columns(names)  # first: a new name grows the mean and covariance
-        return KERNELS.kalman(self._cov, self._mean, idx, np.ascontiguousarray(H, float), z,
-                              np.ascontiguousarray(noise, float), S, gate)
+        return KERNELS.kalman(idx, np.ascontiguousarray(H, float), z,
+                              np.ascontiguousarray(noise, float), self._cov, self._mean, S, gate)
 
     def rows(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The state indices of ``names`` (adding unseen ones at their prior), their
