@@ -383,6 +383,26 @@ def test_the_compiled_update_is_numpys(monkeypatch: pytest.MonkeyPatch) -> None:
     assert np.abs(est.covariance(est.names) - est_py.covariance(est.names)).max() <= 1e-12
 
 
+@pytest.mark.skipif(estimate_module.KERNELS is None, reason="the laser kernels are not built")
+def test_the_compiled_update_takes_what_numpys_takes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A miss that is a strided view or a list, a list of rows for ``H``: the compiled
+    innovation and update take them as the numpy code does (a contiguous buffer is the
+    kernel's business, not the caller's)."""
+    z = np.array([[0.1, 5.0], [-0.2, 6.0]])[:, 0]  # not contiguous
+    args = [(z, 0.01 * np.eye(2), ["a", "b"], [[1.0, 0.0], [0.5, 1.0]]),
+            ([0.05, -0.1], 0.01 * np.eye(2), ["b", "c"], np.eye(2))]
+
+    def replay() -> list:
+        est = InstallationEstimate(gate_chi2=9.0)
+        return [(est.innovation_chi2(*a)[0], est.update(*a)) for a in args]
+
+    compiled = replay()
+    monkeypatch.setattr(estimate_module, "KERNELS", None)
+    numpy_steps = replay()
+    assert [c for c, _ in compiled] == pytest.approx([c for c, _ in numpy_steps], rel=1e-12)
+    assert [t for _, t in compiled] == [t for _, t in numpy_steps] == [True, True]
+
+
 def test_a_noise_that_is_not_a_covariance_is_refused() -> None:
     """A residual covariance that is not positive definite (here a negative ``noise``) has
     no meaningful chi-square: the observation is refused and the estimate left alone,

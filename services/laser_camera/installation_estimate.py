@@ -93,7 +93,7 @@ class InstallationEstimate:
         show."""
         if KERNELS is not None:
             S = np.empty((2, 2))
-            chi2 = self._kalman(np.asarray(z, float), noise, names, H, S, -math.inf)
+            chi2 = self._kalman(z, noise, names, H, S, -math.inf)
             return chi2, S
         _, _, v, S = self._innovation(np.asarray(z, float), noise, names, np.asarray(H, float))
         return _chi2(v, _covariance_inverse2(S)), S
@@ -139,9 +139,10 @@ class InstallationEstimate:
     def _kalman(self, z: np.ndarray, noise: np.ndarray, names: Sequence[str], H: np.ndarray,
                 S: np.ndarray, gate: float) -> float:
         """The compiled innovation (its covariance into ``S``) and its chi-square, the
-        update taken in place where that is at most ``gate``."""
+        update taken in place where that is at most ``gate``.  The kernel reads contiguous
+        float64 buffers only: ``z``, ``H`` and ``noise`` are made so, as numpy takes any."""
         idx = self._columns(names)  # first: a new name grows the mean and covariance
-        return KERNELS.kalman(idx, np.ascontiguousarray(H, float), z,
+        return KERNELS.kalman(idx, np.ascontiguousarray(H, float), np.ascontiguousarray(z, float),
                               np.ascontiguousarray(noise, float), self._cov, self._mean, S, gate)
 
     def rows(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
