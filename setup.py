@@ -5,12 +5,14 @@ on without them and :mod:`agent.srg.kernel`, the pose decoder
 (:func:`schemas.codec.decode_pose`), the answer reader
 (:func:`agent.protocol.query.pose_from_wire`), the dead reckoner
 (:mod:`services.accel_rig.integrator`), the marker segmentation
-(:mod:`services.outside_in.blobs`), the outside-in pose fit (:mod:`services.outside_in.pose`)
+(:mod:`services.outside_in.blobs`), the outside-in pose fit (:mod:`services.outside_in.pose`),
 the fiducial tracker's fits and edge crossings (:mod:`services.fiducials.pose`,
-:mod:`services.fiducials.edges`) and the laser tracker's installation moves
-(:mod:`services.laser_camera.tracker`) run in pure Python (same results, slower; the fits' to
-rounding).  The pose decoder, the answer reader, the dead reckoner's step, the segmentation,
-the fiducial and the laser kernels are compiled without floating-point contraction, so that their
+:mod:`services.fiducials.edges`) and the laser tracker's labelings, frames, installation
+covariances and moves and its installation estimate's update (:mod:`services.laser_camera.pose`,
+:mod:`services.laser_camera.tracker`, :mod:`services.laser_camera.installation_estimate`) run
+in pure Python (same results, slower; the fits' and the laser kernels' to rounding).  The
+pose decoder, the answer reader, the dead reckoner's step, the segmentation, the fiducial
+and the laser kernels are compiled without floating-point contraction, so that their
 arithmetic rounds as Python's does.
 
 A kernel that fails to build also loses the copy an earlier build left beside its source
