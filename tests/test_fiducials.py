@@ -676,6 +676,18 @@ def test_eval_bundle_scene_reports_the_gain_over_its_most_accurate_tag():
     assert 0 < out["nees"]["effective_samples"] <= out["bundle_samples"]
 
 
+def test_eval_bundle_scene_names_why_it_has_no_figures(monkeypatch):
+    """A bundle scene in which no tag is found compares nothing and says so."""
+    from services.fiducials import evaluate
+
+    monkeypatch.setattr(evaluate.FiducialTracker, "observe", lambda self, image: ({}, {}))
+    rng = np.random.default_rng(3)
+    camera = webcam(rng, 160, 120)
+    out = evaluate._bundle(rng, camera, SimCamera(camera), 1, 10.0)
+    assert out == {"frames": 1, "bundle_samples": 0, "single_samples": 0,
+                   "skipped": "the bundle was never solved from all four of its tags"}
+
+
 def test_a_bundle_judges_its_planar_ambiguity_by_its_corners_covariance():
     """Four tags on a 19 cm plate at 2.5 m, tilted 0.15 rad: the two solutions' residuals
     differ by a few times a lone tag's corner floor (covered), but by hundreds of times

@@ -263,7 +263,9 @@ def _same_frames(rows: dict[str, list], other: str, lo: float, hi: float) -> dic
 def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
             fps: float) -> dict[str, Any]:
     """Four tags on a plate: the bundle's position error and claimed std vs its tags'
-    (pooled, the most accurate one's, the one claimed most accurate, and every one's)."""
+    (pooled, the most accurate one's, the one claimed most accurate, and every one's).
+    Where the bundle was never solved whole, or no tag of it alone, there is nothing to
+    compare: the counts and why (``skipped``)."""
     ids = [int(i) for i in rng.choice(500, 4, replace=False)]
     offsets = [(-1, 1), (1, 1), (1, -1), (-1, -1)]
     in_plate = []
@@ -299,7 +301,9 @@ def _bundle(rng: np.random.Generator, camera: Any, sim: SimCamera, n: int,
             per_tag[marker][1].append(1000 * math.sqrt(np.trace(est.covariance[:3, :3])))
     single_err = [e for errs, _ in per_tag.values() for e in errs]
     if not bundle_err or not single_err:
-        return {"frames": n, "bundle_samples": len(bundle_err)}
+        return {"frames": n, "bundle_samples": len(bundle_err), "single_samples": len(single_err),
+                "skipped": "the bundle was never solved from all four of its tags"
+                if not bundle_err else "no tag of the bundle was solved alone"}
     single_std = [s for _, stds in per_tag.values() for s in stds]
     rms_b, rms_s = _rms(bundle_err), _rms(single_err)
     claimed_b, claimed_s = _rms(bundle_std), _rms(single_std)
