@@ -190,6 +190,7 @@ def _mean_nees(cal: sn.Calibration, device: SensorTruth, runs: int) -> float:
     return float(np.mean(nees))
 
 
+@pytest.mark.slow
 def test_reported_covariance_is_honest_nees():
     """Mean NEES within the two-sided 95 % chi-square bounds; a model that claims 4x less
     noise than there is fails the same check."""
@@ -257,6 +258,7 @@ def test_eval_plugin_reports_every_figure():
                              poses="six", pose_seconds=2.0))
 
 
+@pytest.mark.slow
 def test_eval_noise_draws_repeat_the_runs_with_fresh_noise_only():
     """``--noise-draws``: the eval's own runs are unchanged, each repeat has the same rig and
     start times (its errors are of the same size) and other noise (another mean NEES)."""

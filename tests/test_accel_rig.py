@@ -272,6 +272,7 @@ def test_reset_keeps_unreset_velocity_and_takes_pose_covariance():
         dr.reset(0.0, np.zeros(3), geo.quat_identity(), covariance=-np.eye(6))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "python"])
 def test_a_tilted_start_leaves_the_height_given_the_rest_honest(compiled, monkeypatch):
     """A rig at rest, its dead reckoning started 1 mm and 30-50 mrad off, as drawn from

@@ -388,6 +388,7 @@ def _nees_of(result, x: Pose) -> float:
                                      d))
 
 
+@pytest.mark.slow
 def test_a_trackers_held_error_is_in_the_covariance() -> None:
     """An error that stays with sensor a (``A_k -> A_k E``: a housing's beams) cancels from
     every residual and moves X by E, so no bootstrap over stations sees it; the tracker's
@@ -431,6 +432,7 @@ def test_only_the_part_a_tracker_calls_systematic_is_held() -> None:
         PoseSeries(a.t, a.position, a.quaternion, "a", held + noise, systematic=held[1:])
 
 
+@pytest.mark.slow
 def test_an_error_the_stations_share_through_parameters_is_in_the_covariance() -> None:
     """An error that differs from station to station but comes from parameters every
     station shares (here sensor a's rotation read 2 % too large about each axis: its error
@@ -471,6 +473,7 @@ def test_published_covariances_are_checked() -> None:
         == (6, 6)
 
 
+@pytest.mark.slow
 def test_the_propagated_covariance_is_xs_spread_over_the_stations_noise() -> None:
     """X's covariance propagated from each station's own noise (both trackers', each
     station alone, so that the pairs sharing a station move together) is the covariance
@@ -519,6 +522,7 @@ def test_the_propagated_covariance_is_xs_spread_over_the_stations_noise() -> Non
     assert np.trace(np.linalg.solve(C, independent)) < 0.5 * 6
 
 
+@pytest.mark.slow
 def test_the_bootstraps_factor_makes_the_nested_estimates_inverse_unbiased() -> None:
     """The bootstrap's covariance estimates from 40 stations an ideal bootstrap that 100
     resamples estimate again: with the factor of both, the mean NEES of an error drawn from

@@ -115,6 +115,7 @@ def run_bench(bench: str, options: list[str], timeout: float = 120) -> dict:
     return json.loads(lines[-1])  # --json: the last line is one JSON object
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bench", sorted(BENCHES))
 def test_bench_runs_and_reports_median_p99(bench: str) -> None:
     options, expected = BENCHES[bench]
@@ -128,6 +129,7 @@ def test_bench_runs_and_reports_median_p99(bench: str) -> None:
             assert node[key] >= 0.0, (bench, path, key, node)
 
 
+@pytest.mark.slow
 def test_bench_scale_quick_reports_every_sweep_with_its_growth() -> None:
     """``bench_scale.py --quick``: one realm of 2 agents on loopback and tiny in-process
     sweeps; every row has its figures, later rows their growth, no row failed."""

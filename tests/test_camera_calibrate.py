@@ -99,6 +99,7 @@ def check_intrinsics(summary, noise_px):
     assert abs(summary["rms_px"] / noise_px - 1) < 0.10
 
 
+@pytest.mark.slow
 def test_uma_calibrate_camera_recovers_known_intrinsics(board_video, tmp_path, capsys):
     path, noise = board_video
     out = tmp_path / "cam.yaml"

@@ -315,6 +315,7 @@ def test_nees_of_far_rendered_frames_decided_by_the_track_is_inside_its_band():
     assert len(errors) >= 25 and figures["within_bounds"], figures
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("margin", [1, 3])
 def test_a_steep_tags_corners_do_not_follow_its_thin_border(monkeypatch, margin):
     """A tag tilted 73 degrees from the line of sight at 1 m (its image's corners 38-143
@@ -381,6 +382,7 @@ def _steep_frames(margin: int, blur_px: float):
     return camera, T, true, frames
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("margin", "blur_px"), [(1, 0.6), (3, 0.8)])
 def test_the_thinnest_borders_edges_come_from_the_decoded_tags_modelled_image(margin, blur_px):
     """Across the long sides of :func:`_steep_view`'s tag each profile's crossing moves
@@ -534,6 +536,7 @@ def test_edge_points_that_crossed_a_neighbouring_cell_do_not_move_the_line():
     assert abs(after) < 0.05 < 0.2 < abs(before)
 
 
+@pytest.mark.slow
 def test_corner_covariance_of_the_edge_fits_matches_monte_carlo():
     """Without blur each edge point's noise is its own: the edge fits' covariance alone
     (before the tracker's allowance for blur-shared noise) is the corners' scatter."""
@@ -653,6 +656,7 @@ rotation = [0.0, 1.5707963267948966, 0.0]
     assert np.trace(est.covariance) < np.trace(single.covariance) / 2
 
 
+@pytest.mark.slow
 def test_eval_bundle_scene_reports_the_gain_over_its_most_accurate_tag():
     from services.fiducials.evaluate import _bundle
 
@@ -849,6 +853,7 @@ def test_the_code_cells_behind_a_thin_border_move_its_crossings_by_their_white()
     assert np.abs(bias(black, 5.0)).max() < 0.01 and np.abs(bias(white, 5.0)).max() < 0.01
 
 
+@pytest.mark.slow
 def test_a_sides_crossings_are_corrected_for_the_code_behind_it():
     """The eval's seed 7 at 3 s: a tag 2.1 m away tilted 58 degrees, the cells 1.7 px
     across two of its sides.  Behind one of them the code row is black but for one cell:
@@ -947,6 +952,7 @@ def test_pixel_locking_pulls_edges_towards_the_pixel_borders_at_every_sample_spa
     assert 0.03 < amplitude < 0.1, amplitude
 
 
+@pytest.mark.slow
 def test_the_cameras_pixel_locking_is_learnt_from_its_frames_and_taken_out():
     """The sides of a tag turned 5 degrees sweep several pixels across their axis: their
     scatter teaches the camera's locking amplitude, which then takes the locking out of

@@ -200,6 +200,7 @@ def test_two_poses_start_the_filter_with_their_motion_and_an_honest_covariance()
     assert 2.0 < np.mean(nees) < 9.0
 
 
+@pytest.mark.slow
 def test_reading_spread_is_the_variance_the_linearisation_leaves_out():
     """Monte Carlo over the rotation error and angular velocity: the exact reading minus
     its linearisation at the estimate varies as ``reading_spreads`` says (centripetal and
@@ -227,6 +228,7 @@ def test_reading_spread_is_the_variance_the_linearisation_leaves_out():
     assert spreads.max() > 5 * ekf.accel.variance.max()
 
 
+@pytest.mark.slow
 def test_a_start_from_poses_far_apart_coasts_within_its_covariance():
     """Two poses 0.3 s apart (a lone pose, then frame sets without one) give a rate that is
     off by tenths of a rad/s: the accelerometers alone over the next 0.5 s must not make

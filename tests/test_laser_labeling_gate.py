@@ -506,6 +506,7 @@ def _short_run(seed: int, seconds: float, rng: np.random.Generator) -> dict[str,
     return out
 
 
+@pytest.mark.slow
 def test_no_wrong_labeling_is_published_on_random_seeds() -> None:
     """Property: over installations and trajectories drawn at random, with lost spots and
     stray blobs near the true ones (some in a lost spot's place), no published pose has a

@@ -93,6 +93,7 @@ def _dot_nees(world: IvyWorld, ideal: IvyWorld, tracker: LaserTracker,
     return out
 
 
+@pytest.mark.slow
 def test_each_dots_installation_error_is_covered_with_the_cameras_view(world,
                                                                       calibration) -> None:
     """Over installations drawn with the tolerances the tracker is told, its dots' errors
@@ -236,6 +237,7 @@ def test_the_cached_calibration_is_one_per_installation() -> None:
     assert name != laser_calibration_name(IvyWorld(seed=4, ideal=True))
 
 
+@pytest.mark.slow
 def test_short_run_on_the_realistic_installation_meets_marvins_figures(world,
                                                                       calibration) -> None:
     """The default world (projected imagery, housing, screens and camera residuals) lands
@@ -263,6 +265,7 @@ def test_short_run_on_the_realistic_installation_meets_marvins_figures(world,
     assert 4.0 < parts["measurement"]["mean"] < 12.0, parts
 
 
+@pytest.mark.slow
 def test_short_run_on_the_ideal_installation_is_ten_times_better(world, calibration) -> None:
     ideal = IvyWorld(seed=4, ideal=True)  # same cameras: the same calibration holds
     fig = evaluate(ideal, calibration, seconds=4.0, rate_hz=30.0, params=TrackerParams.ideal())
@@ -413,6 +416,7 @@ def test_windows_track_like_the_full_frame_and_reacquire_after_a_loss(world,
     assert roi.passes["roi"] == before["roi"] + 3
 
 
+@pytest.mark.slow
 def test_uma_eval_command(calibration_file) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "agent.cli", "eval", "laser-camera", "--seconds", "1",

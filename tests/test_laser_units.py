@@ -452,6 +452,7 @@ def test_covariance_is_a_valid_pose_covariance(world) -> None:
     assert 1e-7 < dec[0, 0] < 1e-4 and 1e-8 < dec[3, 3] < 1e-4
 
 
+@pytest.mark.slow
 def test_installation_tolerances_make_the_covariance_honest(world) -> None:
     """Across many housings and screens drawn with the tolerances the tracker is told, the
     pose errors they cause have the covariance the tracker reports (mean NEES ~ 6); with

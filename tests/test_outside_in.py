@@ -66,6 +66,7 @@ def blob_image(centres: list[tuple[float, float]], radius: float = 1.5,
 
 # ------------------------------------------------------------------------ blobs
 
+@pytest.mark.slow
 def test_blob_centroids_are_sub_pixel_and_their_std_is_honest() -> None:
     rng = np.random.default_rng(3)
     centres = [(100 + 40 * i + rng.uniform(), 200 + rng.uniform()) for i in range(10)]
@@ -85,6 +86,7 @@ def test_blob_centroids_are_sub_pixel_and_their_std_is_honest() -> None:
     assert 0.7 < np.sqrt(np.mean((e / s[:, None]) ** 2)) < 1.4
 
 
+@pytest.mark.slow
 def test_marker_centres_are_fitted_closer_than_centroids_with_honest_stds() -> None:
     """The simulated rig's isolated marker images (no other marker within 8 px),
     against their true centres: small blobs (under ``locking_area`` pixels, far markers)
@@ -185,6 +187,7 @@ def _same_blobs(image: np.ndarray, predicted_uv: np.ndarray | None = None,
             assert np.array_equal(a, b), field
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(blobs.NATIVE is None, reason="the compiled segmentation is not built")
 def test_compiled_segmentation_finds_the_pure_python_blobs_to_the_bit() -> None:
     """Simulated IR frames (markers, reflections, a rail, a lamp) whole and in windows,
@@ -252,6 +255,7 @@ def test_pure_python_paths_are_forced_by_the_environment(variable: str, module: 
     assert out.stdout.strip() == "True"
 
 
+@pytest.mark.slow
 def test_fitted_centres_of_small_still_markers_lose_the_pixel_locking() -> None:
     """Small far markers (a pixel in radius, 70 DN) averaged over 20 frames: their
     centroids keep a bias that depends on the sub-pixel phase; the fitted model's centres
@@ -512,6 +516,7 @@ def test_compiled_fit_agrees_with_the_pure_python_one() -> None:
     assert refused < 40
 
 
+@pytest.mark.slow
 def test_velocity_error_shared_by_a_cameras_observations_is_in_the_covariance() -> None:
     """Monte Carlo: cameras exposed 4-8 ms from the pose's time, moved there by velocities
     known to their covariance; the mean NEES lies in its band only when that covariance
@@ -859,6 +864,7 @@ def test_a_blob_nearest_to_several_markers_goes_to_none() -> None:
     assert tracker.counts["ambiguous_blobs"] == without + 14
 
 
+@pytest.mark.slow
 def test_bodies_found_by_unsynchronised_cameras_have_honest_covariances() -> None:
     """Seeds 1 and 13, cameras at their own phases: the first frame set finds each body
     while it moves up to 8 mm between the exposures; each first pose's error lies within

@@ -143,6 +143,7 @@ def test_uma_calibrate_body_adds_a_body_and_warns_of_a_twin(tmp_path, capsys) ->
     assert np.allclose(bodies[0].signature, sim.bodies[1].signature, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_wand_frames_one_camera_saw_do_not_derail_the_adjustment() -> None:
     """Wand images projected from the truth (0.03 px noise), some frames seen by one
     camera only -- one in twenty with 8 cameras at the volume's edges -- and the L-frame:

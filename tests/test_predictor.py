@@ -123,6 +123,7 @@ def test_predicts_a_screw_motion_exactly():
     assert np.allclose(f.omega, omega, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_prediction_beats_holding_the_last_pose_on_head_motion():
     fig = ep.head_trajectory_prediction(6.0, seed=3)
     assert fig["predicted_position_rmse_mm"] < 0.8 * fig["hold_last_position_rmse_mm"]

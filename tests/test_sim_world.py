@@ -104,6 +104,7 @@ def _subpixel_corner_errors_px(img: np.ndarray, pattern: tuple[int, int],
     return np.linalg.norm(found[:, None] - true_uv[None], axis=2).min(axis=1)
 
 
+@pytest.mark.slow
 def test_calibration_patterns_put_corners_where_they_project(world: IvyWorld) -> None:
     """The lens blur is applied before sampling: a hard edge point-sampled 2x2 per pixel and
     blurred afterwards moved sub-pixel corners by up to 0.35 px, and every calibration made
@@ -180,6 +181,7 @@ def test_installation_imperfections_are_applied_when_asked() -> None:
         WorldConfig(screen_bulge_m=-1.0)
 
 
+@pytest.mark.slow
 def test_realistic_default_shows_moving_content_and_keeps_the_calibration_images() -> None:
     """The default world: projected content behind the notch filter (below the detector's
     threshold, moving), cameras turned a little since calibration, imperfections drawn from
