@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent import geometry as geo
 from services.fusion import evaluate as fe
@@ -55,3 +56,32 @@ def test_a_run_that_never_started_reports_no_reset() -> None:
     rec = recording(traj, [], drift_rad_s=0.0)
     f = fe.reset_figures(rec, *errors(rec, traj), traj)
     assert f == {"starts": 0, "window_s": fe.RESET_WINDOW_S}
+
+
+def test_the_gaussian_share_beyond_3_sigma_is_chi_square_for_a_3d_error() -> None:
+    """The reference of the reset bound's test: 1-D's 0.27 % for one dominant axis,
+    chi-square(3) beyond 9 (2.9 %) for three equal ones, and in between otherwise."""
+    from scipy.stats import chi2
+
+    lam = np.array([[1e-12, 1e-12, 1.0], [2.0, 2.0, 2.0], [0.3, 0.5, 1.0]])
+    share = fe.gaussian_share_beyond_3_sigma(lam)
+    assert share[0] == pytest.approx(chi2.sf(9.0, 1), rel=1e-3)
+    assert share[1] == pytest.approx(chi2.sf(9.0, 3), rel=5e-3)
+    z = np.random.default_rng(3).standard_normal((2_000_000, 3))
+    assert share[2] == pytest.approx(np.mean(z**2 @ lam[2] > 9.0), rel=0.03)
+
+
+def test_errors_heavier_than_their_covariance_show_beyond_3_sigma() -> None:
+    """Errors drawn from their own covariance meet the Gaussian share; the same errors a
+    fifth larger than the covariance claims lie beyond it several times as often."""
+    rng = np.random.default_rng(5)
+    n = 20_000
+    axes = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    cov = np.broadcast_to(axes @ np.diag([0.2, 0.6, 1.0]) @ axes.T, (n, 3, 3))
+    e = rng.standard_normal((n, 3)) @ np.linalg.cholesky(cov[0]).T
+    honest = fe.beyond_3_sigma(e, cov)
+    expected = honest["gaussian_share"]
+    assert 0.004 < expected < 0.01
+    assert honest["share"] == pytest.approx(expected, abs=4 * math.sqrt(expected / n))
+    heavy = fe.beyond_3_sigma(1.2 * e, cov)
+    assert heavy["gaussian_share"] == expected and heavy["share"] > 3 * expected
