@@ -146,10 +146,12 @@ class TrackerParams:
     calib_sigma_m: float = 0.0005
     #: the miss's change test takes the dots' assumed frame-to-frame noise scaled down to
     #: what the changes of the last this many frame sets that passed it show (an upper
-    #: bound, ``_NoiseScale``), never up: an assumed noise above the dots' (a calibration
-    #: that states no error gets ``calib_sigma_m`` per dot, a homography's error that holds
-    #: from frame set to frame set) lets stray blobs a centimetre long pass the test, so
-    #: almost every pose left widened by the cover; 0: the assumed noise as it is
+    #: bound, ``_NoiseScale``): an assumed noise above the dots' (a calibration that states
+    #: no error gets ``calib_sigma_m`` per dot, a homography's error that holds from frame
+    #: set to frame set) lets stray blobs a centimetre long pass the test, so almost every
+    #: pose left widened by the cover; and the dots' std is taken up, for every test and
+    #: the pose's covariance, where those changes show more noise than assumed beyond
+    #: doubt (``_NoiseScale.excess``); 0: the assumed noise as it is
     noise_pool_changes: int = 150
     #: errors the dots cannot reveal, added to every pose covariance (1 sigma, per axis;
     #: default: none -- the installation's tolerances below model them dot by dot)
@@ -471,6 +473,8 @@ class LaserTracker:
     def _choose(self, dots: WorldDots, t: float) -> PoseEstimate | NoPose:
         """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
+        if self.noise.excess > 1.0:  # dots noisier than they say (``_NoiseScale``)
+            dots = replace(dots, std_m=dots.std_m * np.sqrt(self.noise.excess))
         self._dots = dots
         n = len(dots.points)
         if n < 4:
@@ -637,14 +641,14 @@ class LaserTracker:
         row; that one, and such a labeling while tracking (the prediction cannot tell a
         centimetre within a frame set either), is published with its covariance widened
         to cover every pose the blob could give.  The change test takes both frame sets'
-        noise as the changes before showed it (``_NoiseScale``: never above the assumed),
-        so dots said to be noisier than they are do not let a blob pass unseen.  Where the dots'
-        noise outweighs the installation's part (an ideal installation) the chi-square of
+        noise as the changes before showed it (``_NoiseScale``), so dots said to be
+        noisier than they are do not let a blob pass unseen.  Where the dots' noise
+        outweighs the installation's part (an ideal installation) the chi-square of
         ``_fits`` is as sharp, and nothing is held."""
         p, last = self.params, self._miss
         noise, edge, edge_m = _edge_parts(dots, fit)
         now = _Miss(t, tuple(dots.walls[i] for i in fit.idx), dots.points[fit.idx], fit.miss,
-                    noise, fit.systematic, edge, edge_m)
+                    noise, fit.systematic, edge, edge_m, excess=self.noise.excess)
         if np.trace(fit.systematic.sum(axis=0) + edge.sum(axis=0)) <= np.trace(noise):
             self._miss = replace(now, confirmed=True)  # the chi-square alone is as sharp
             return cov
@@ -1261,6 +1265,8 @@ class _Miss:
     edge: np.ndarray  # (4, 2, 2) from each dot's edge std (``_edge_parts``)
     edge_m: np.ndarray  # (4,) each dot's edge std
     confirmed: bool = False  # published (it agreed with the miss before it)
+    #: the factor its dots' noise variance took (``_NoiseScale.excess``)
+    excess: float = 1.0
     #: frame sets held in a row up to this one, each miss passing the change test
     #: against the one before (``start_confirm_sets``)
     held: int = 1
@@ -1269,7 +1275,8 @@ class _Miss:
                ) -> tuple[float, np.ndarray, float] | None:
         """Chi-square (2 dof) of the miss's change to ``later`` and its covariance, both
         frame sets' noise scaled by ``noise_scale`` (``_NoiseScale``), and its chi-square
-        under the noise as assumed (what the scale is estimated from); or None if the change
+        under the noise as assumed, without the ``excess`` each frame set's noise took
+        (what the scale and the excess are estimated from); or None if the change
         cannot show a stray blob: the dots moved so far (``1 / drift_per_m``) that the
         installation's part may have changed whole, or more than one dot changed walls.
         Its covariance: both frame sets' noise, the installation's part of each dot that
@@ -1293,11 +1300,9 @@ class _Miss:
         noise = self.random + later.random
         drift = np.einsum("k,kij->ij", share, both)
         edge = np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
-        said = noise + drift + edge
+        said = self.random / self.excess + later.random / later.excess + drift + edge
         d = (later.miss - self.miss)[None]
         said_chi2 = float(_chi2(d, said[None])[0])
-        if noise_scale == 1.0:
-            return said_chi2, said, said_chi2
         S = noise_scale * noise + drift + edge
         return float(_chi2(d, S[None])[0]), S, said_chi2
 
@@ -1320,7 +1325,15 @@ class _NoiseScale:
     it is about ``1.5 chi2(dof)`` with ``dof = 2 n / 1.5``, so ``sum / (1.5 chi2_p(dof))``
     lies below ``kappa`` with probability about ``p`` (``_NOISE_BOUND_P``; simulated
     consecutive changes put it at 0.04 p for one change, rising to 0.9 p at 150).  Blobs
-    the test passes only raise the bound."""
+    the test passes only raise the bound.
+
+    Where the dots are noisier than assumed (``kappa > 1``) each weight is at most
+    ``kappa``, so the same sum over ``1.5 chi2_(1-p)(dof)`` exceeds ``kappa`` with
+    probability about ``p``: a lower bound (blobs the test passes raise it too, towards
+    more noise).  Once it exceeds 1, ``excess`` is the sum's mean per change over 2 (the
+    weights lie between 1 and ``kappa``) and the dots' std is taken up by its root, for
+    every test and the pose's covariance; else 1.  The change test refuses changes
+    above its gate, so where the dots understate their noise the estimate lags it."""
 
     def __init__(self, window: int):
         self._chi2: deque[float] = deque(maxlen=window)
@@ -1328,8 +1341,13 @@ class _NoiseScale:
         #: 1 / (1.5 chi2_p(dof)) of n = 1 .. window changes (chi2_p(k) = 2 P^-1(k / 2, p))
         self._inverse = (1 / (3 * gammaincinv(np.arange(1, window + 1) / 1.5,
                                               _NOISE_BOUND_P))).tolist()
+        #: 1 / (1.5 chi2_(1-p)(dof)): the lower bound's
+        self._lower = (1 / (3 * gammaincinv(np.arange(1, window + 1) / 1.5,
+                                            1 - _NOISE_BOUND_P))).tolist()
         #: the bound on ``kappa``, at most 1 (1 before any change)
         self.scale = 1.0
+        #: the estimate of ``kappa`` where its lower bound exceeds 1, else 1
+        self.excess = 1.0
 
     def add(self, chi2: float) -> None:
         """One change's chi-square under the assumed noise (no-op with no window)."""
@@ -1342,6 +1360,9 @@ class _NoiseScale:
         self._sum += chi2
         bound = self._sum * self._inverse[len(self._chi2) - 1]
         self.scale = min(1.0, max(bound, _NOISE_SCALE_FLOOR))
+        n = len(self._chi2)
+        self.excess = max(1.0, self._sum / (2 * n)) if self._sum * self._lower[n - 1] > 1.0 \
+            else 1.0
 
 
 #: the chance that ``_NoiseScale``'s bound lies below the dots' noise
