@@ -85,3 +85,22 @@ def test_errors_heavier_than_their_covariance_show_beyond_3_sigma() -> None:
     assert honest["share"] == pytest.approx(expected, abs=4 * math.sqrt(expected / n))
     heavy = fe.beyond_3_sigma(1.2 * e, cov)
     assert heavy["gaussian_share"] == expected and heavy["share"] > 3 * expected
+
+
+@pytest.mark.parametrize("rho", [0.6, 0.9, 0.95, 0.99, 1.0])
+def test_the_gaussian_share_is_exact_for_every_ratio_of_the_axes(rho: float) -> None:
+    """Against one-dimensional integrals of two cases with a closed inner probability (one
+    smaller axis of ratio ``rho``, the other none; both ``rho``): an axis near the largest
+    puts the end of the integrand's support where a rule over all z would cross it."""
+    from scipy.integrate import quad
+    from scipy.special import erf
+    from scipy.stats import norm
+
+    def beyond(inside_given_z3) -> float:
+        return 1.0 - quad(lambda z: norm.pdf(z) * inside_given_z3(9.0 - z * z), -3.0, 3.0,
+                          epsabs=1e-14, epsrel=1e-12)[0]
+
+    one = beyond(lambda a: erf(math.sqrt(a / (2.0 * rho))))
+    two = beyond(lambda a: 1.0 - math.exp(-a / (2.0 * rho)))
+    share = fe.gaussian_share_beyond_3_sigma(np.array([[0.0, rho, 1.0], [rho, rho, 1.0]]))
+    assert share == pytest.approx([one, two], rel=1e-4)

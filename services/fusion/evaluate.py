@@ -394,28 +394,50 @@ def beyond_3_sigma(e: np.ndarray, cov: np.ndarray) -> dict[str, float]:
             if e.size else float("nan")}
 
 
-#: probabilists' Gauss-Hermite rule (nodes, weights summing to 1) over each of the two
-#: smaller axes: 32 nodes put the share within 0.3 % of its exact value (chi-square(3)
-#: beyond 9 for three equal axes)
-_HERMITE_X, _HERMITE_W = np.polynomial.hermite_e.hermegauss(32)
-_HERMITE_W = _HERMITE_W / math.sqrt(2 * math.pi)
+#: Gauss-Legendre nodes and weights on [0, pi/2], the angle ``t`` of ``z = c sin t`` along
+#: each of the two smaller axes: 24 put the share within 1e-5 of its value (relative) for
+#: every ratio of the axes (against a 12,001-point grid's integral)
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(24)
+_SIN, _COS = np.sin((_NODES + 1) * math.pi / 4), np.cos((_NODES + 1) * math.pi / 4)
+_WEIGHTS = _WEIGHTS * math.pi / 4
+#: beyond 8.5 standard deviations a normal's density (1e-16) adds nothing
+_Z_MAX = 8.5
 _CHUNK = 2048
 
 
 def gaussian_share_beyond_3_sigma(lam: np.ndarray) -> np.ndarray:
     """P(|e| > 3 sqrt(lam_max)) for e ~ N(0, C) whose eigenvalues, ascending, are the rows
     of ``lam`` (n, 3): with ``z`` standard normal along the axes, the largest axis's
-    term is below ``9 - r1 z1^2 - r2 z2^2`` (``r`` the smaller eigenvalues over the
-    largest) with probability ``erf(sqrt(that / 2))``, averaged over z1 and z2."""
-    r = lam[:, :2] / lam[:, 2:]
-    x2 = _HERMITE_X**2
+    term is below ``a = 9 - r1 z1^2 - r2 z2^2`` (``r`` the smaller eigenvalues over the
+    largest) with probability ``erf(sqrt(a / 2))``, averaged over z1 and z2 where
+    ``a > 0``.
+
+    Why ``z = c sin t``: the integrand ends with a kink where ``a`` reaches 0, which a rule
+    over all z (Gauss-Hermite) crosses between its nodes, several percent off where an axis
+    is near the largest; integrating each axis up to that end (``c``) instead, in ``t``,
+    leaves a smooth integrand (``a`` becomes a multiple of ``cos(t)^2``)."""
+    r = np.clip(lam[:, :2] / lam[:, 2:], 0.0, 1.0)
     out = np.empty(len(r))
-    for a in range(0, len(r), _CHUNK):  # a 60 s run's samples at once: 130 MB per array
-        c = r[a:a + _CHUNK]
-        rest = 9.0 - c[:, 0, None, None] * x2[:, None] - c[:, 1, None, None] * x2[None, :]
-        inside = erf(np.sqrt(np.maximum(rest, 0.0) / 2.0))
-        out[a:a + _CHUNK] = 1.0 - np.einsum("nij,i,j->n", inside, _HERMITE_W, _HERMITE_W)
+    for k in range(0, len(r), _CHUNK):  # a 60 s run's samples at once: 70 MB per array
+        r1, r2 = r[k:k + _CHUNK, :1], r[k:k + _CHUNK, 1:]
+        c1 = _reach(9.0, r1)
+        z1 = c1 * _SIN
+        a = np.maximum(9.0 - r1 * z1**2, 0.0)
+        c2 = _reach(a, r2)
+        z2_sq = c2[..., None] ** 2 * _SIN**2
+        rest = np.maximum(a[..., None] - r2[..., None] * z2_sq, 0.0)
+        inner = np.exp(-0.5 * z2_sq) * erf(np.sqrt(0.5 * rest)) * (c2[..., None] * _COS)
+        below = 2.0 * np.einsum("nij,j->ni", inner, _WEIGHTS)
+        out[k:k + _CHUNK] = 1.0 - np.einsum("ni,ni,i->n", np.exp(-0.5 * z1**2) * below,
+                                            c1 * _COS, _WEIGHTS) / math.pi
     return out
+
+
+def _reach(a: np.ndarray | float, r: np.ndarray) -> np.ndarray:
+    """How far ``z`` goes along an axis of ratio ``r`` before ``r z^2`` uses up ``a``, at
+    most ``_Z_MAX``."""
+    with np.errstate(divide="ignore"):
+        return np.minimum(np.sqrt(a / r), _Z_MAX)
 
 
 def _mean_bounds(k: float) -> tuple[float, float]:
