@@ -24,6 +24,7 @@ from services.laser_camera.tracker import (
     WorldDots,
     _dot_moves,
     _installation_covariance,
+    _noise_taken_up,
     _NoiseScale,
     _pose_jacobian,
     _unseen_stray,
@@ -342,6 +343,21 @@ def test_dots_noisier_than_said_get_the_noise_their_misss_changes_show(world) ->
         world, noise_m=float(np.hypot(2e-4, TrackerParams().calib_sigma_m)), std_m=2e-4)
     assert late >= 80 and outside == 0, (late, widened, outside)
     assert tr.noise.excess > 3.0 and tr.noise.scale == 1.0
+
+
+def test_the_excess_takes_up_the_dots_noise_and_leaves_their_edge_bias() -> None:
+    """``_NoiseScale.excess`` scales the dots' noise variance only: the part of a dot's std
+    for lying near a screen's edge (a clipped spot's bias, ``edge_m``) stays as it is, so
+    ``_edge_parts`` leaves the miss exactly the noise taken up and ``_Miss.change`` the noise
+    as said once it divides the excess out."""
+    noise, edge = np.array([2e-4, 3e-4, 2e-4, 5e-4]), np.array([0.0, 1e-3, 0.0, 2e-3])
+    dots = WorldDots(np.zeros((4, 3)), np.hypot(noise, edge), ["front"] * 4,
+                     np.zeros((4, 2, 3)), ["c"] * 4, edge_m=edge)
+    taken = _noise_taken_up(dots, 5.0)
+    assert taken.std_m**2 - edge**2 == pytest.approx(5.0 * noise**2, rel=1e-9)
+    assert taken.edge_m is edge
+    plain = _noise_taken_up(replace(dots, std_m=noise, edge_m=None), 5.0)
+    assert plain.std_m == pytest.approx(np.sqrt(5.0) * noise, rel=1e-12)
 
 
 def test_the_noise_bound_lies_below_the_dots_noise_as_often_as_it_says() -> None:

@@ -474,7 +474,7 @@ class LaserTracker:
         """``solve`` without counting the result: a window pass may be retried in full."""
         p = self.params
         if self.noise.excess > 1.0:  # dots noisier than they say (``_NoiseScale``)
-            dots = replace(dots, std_m=dots.std_m * np.sqrt(self.noise.excess))
+            dots = _noise_taken_up(dots, self.noise.excess)
         self._dots = dots
         n = len(dots.points)
         if n < 4:
@@ -1472,6 +1472,14 @@ def _longest_passing_moves(Jm: np.ndarray, S: np.ndarray) -> list[float] | None:
 #: a dot's miss Jacobian (2 x 2) about this ill-conditioned has a move the miss does not
 #: see
 _SINGULAR_COND = 1e8
+
+
+def _noise_taken_up(dots: WorldDots, excess: float) -> WorldDots:
+    """``dots`` with their noise variance taken up by ``excess`` (``_NoiseScale``); the part
+    of their std for lying near a screen's edge (``edge_m``) as it is: a clipped spot's
+    bias, which the miss's changes do not show and ``_edge_parts`` takes out whole."""
+    edge_sq = 0.0 if dots.edge_m is None else dots.edge_m ** 2
+    return replace(dots, std_m=np.sqrt(excess * (dots.std_m ** 2 - edge_sq) + edge_sq))
 
 
 def _edge_parts(dots: WorldDots, fit: _Fit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
