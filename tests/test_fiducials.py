@@ -692,6 +692,26 @@ def test_eval_bundle_scene_names_why_it_has_no_figures(monkeypatch):
                    "skipped": "the bundle was never solved from all four of its tags"}
 
 
+def test_eval_bundle_scene_names_why_it_has_no_figures_when_no_tag_is_solved_alone(monkeypatch):
+    """A bundle scene whose bundle is solved whole but none of whose tags is solved alone has
+    nothing to compare the bundle with, and says so (not a mean over no samples)."""
+    from services.fiducials import evaluate
+    from services.fiducials.tracker import Estimate
+
+    def bundle_only(self, seen, t_ns, noise=None):
+        return [Estimate(b.name, t_ns, np.eye(3), np.array([0.0, 0.0, 1.5]), 1e-6 * np.eye(6),
+                         0.05, 0.05, "none", tuple(b.corners), float("inf"))
+                for b in self.bundles]
+
+    monkeypatch.setattr(evaluate.FiducialTracker, "observe", lambda self, image: ({}, {}))
+    monkeypatch.setattr(evaluate.FiducialTracker, "estimate", bundle_only)
+    rng = np.random.default_rng(3)
+    camera = webcam(rng, 160, 120)
+    out = evaluate._bundle(rng, camera, SimCamera(camera), 2, 10.0)
+    assert out == {"frames": 2, "bundle_samples": 2, "single_samples": 0,
+                   "skipped": "no tag of the bundle was solved alone"}
+
+
 def test_a_bundle_judges_its_planar_ambiguity_by_its_corners_covariance():
     """Four tags on a 19 cm plate at 2.5 m, tilted 0.15 rad: the two solutions' residuals
     differ by a few times a lone tag's corner floor (covered), but by hundreds of times
