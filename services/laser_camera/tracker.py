@@ -1300,11 +1300,13 @@ class _Miss:
         noise = self.random + later.random
         drift = np.einsum("k,kij->ij", share, both)
         edge = np.einsum("k,kij->ij", edge_share, self.edge + later.edge)
-        said = self.random / self.excess + later.random / later.excess + drift + edge
         d = (later.miss - self.miss)[None]
-        said_chi2 = float(_chi2(d, said[None])[0])
         S = noise_scale * noise + drift + edge
-        return float(_chi2(d, S[None])[0]), S, said_chi2
+        chi2 = float(_chi2(d, S[None])[0])
+        if noise_scale == 1.0 and self.excess == 1.0 and later.excess == 1.0:
+            return chi2, S, chi2  # the noise as assumed: the same sum
+        said = self.random / self.excess + later.random / later.excess + drift + edge
+        return chi2, S, float(_chi2(d, said[None])[0])
 
 
 class _NoiseScale:
