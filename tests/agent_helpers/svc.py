@@ -158,7 +158,10 @@ def main() -> int:
                 next_report = now + 0.25
                 with lock:
                     emit(event="counts", counts=dict(counts))
-            time.sleep(max(0.0, min(next_pub, now + 0.01) - time.monotonic()))
+            # every 10 ms (a match to report, a command to follow), sooner for a sample due;
+            # a service without an ability has none due, so its next_pub never gates
+            wake = now + 0.01 if out is None else min(next_pub, now + 0.01)
+            time.sleep(max(0.0, wake - time.monotonic()))
     finally:
         svc.close()
     return 0
