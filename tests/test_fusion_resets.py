@@ -1,6 +1,6 @@
 """The fusion eval's reset figure: after each (re)start the error must stay within the
-error of the optical pose the filter started from plus three of its own standard
-deviations; a start that runs away is reported as unbounded."""
+error of the optical pose the filter started from plus what its covariance claims (its
+99.73 % ellipsoid along the error); a start that runs away is reported as unbounded."""
 
 from __future__ import annotations
 
@@ -34,27 +34,56 @@ def recording(traj: HeadTrajectory, starts: list[float], drift_rad_s: float,
                         {}, np.zeros(0), {}, np.array(starts))
 
 
-def errors(rec: fe.Recording, traj: HeadTrajectory) -> tuple[np.ndarray, np.ndarray]:
-    p, q = traj.pose(rec.t)
-    return geo.pose_error(rec.p, rec.q, p, q)
-
-
 def test_a_start_that_converges_is_bounded_and_one_that_runs_away_is_not() -> None:
     traj = HeadTrajectory(seed=1)
     calm = recording(traj, [0.1, 3.0], drift_rad_s=math.radians(0.05))
-    f = fe.reset_figures(calm, *errors(calm, traj), traj)
+    f = fe.reset_figures(calm, traj)
     assert f["starts"] == 2 and f["bounded"], f
     assert f["worst_orientation_deg"] < 0.11 and f["worst_orientation_excess_deg"] < 0
     wild = recording(traj, [0.1, 3.0], drift_rad_s=math.radians(13))  # 26 deg in 2 s
-    f = fe.reset_figures(wild, *errors(wild, traj), traj)
+    f = fe.reset_figures(wild, traj)
     assert not f["bounded"] and f["worst_orientation_deg"] > 20, f
     assert f["worst_orientation_excess_deg"] > 19
+    assert not f["largest_axis_3_sigma"]["bounded"]
+
+
+def test_the_bound_is_the_covariance_s_claim_along_the_error() -> None:
+    """The covariance's 99.73 % ellipsoid, not a sphere of three of its largest axis's
+    standard deviations: along the largest axis an error of 3.5 sigma is inside what the
+    covariance claims (3.76 sigma) and beyond the sphere; along a small axis one of 5 of
+    that axis's sigma is beyond the claim and well inside the sphere."""
+    traj = HeadTrajectory(seed=1)
+    sigma = np.radians([0.02, 0.02, 0.2])   # world axes: z the largest
+    for axis, k, claim_ok in ((2, 3.5, True), (0, 5.0, False)):
+        rec = recording(traj, [0.1], drift_rad_s=0.0)
+        turn = np.zeros((rec.t.size, 3))
+        turn[:, axis] = np.where(rec.t > 1.0, k * sigma[axis], 0.0)
+        _, q = traj.pose(rec.t)
+        rec.q[:] = geo.quat_multiply(geo.rotvec_to_quat(-turn), q)
+        rec.cov[:, 3:, 3:] = np.diag(sigma**2)
+        f = fe.reset_figures(rec, traj)
+        assert f["bounded"] == claim_ok, f
+        assert f["largest_axis_3_sigma"]["bounded"] == (k * sigma[axis] < 3 * sigma[2]), f
+
+
+def test_a_gaussian_error_leaves_the_claim_at_its_rate_whatever_the_covariance() -> None:
+    """``claim_reach`` is the reach of the ellipsoid chi-square(3) puts 99.73 % inside:
+    errors drawn from their covariance lie beyond it 0.27 % of the time for round and
+    flat covariances alike (the largest axis's 3 sigma: 0.27-2.9 %)."""
+    rng = np.random.default_rng(11)
+    n = 100_000
+    for lam in ([1.0, 1.0, 1.0], [0.01, 0.3, 1.0], [1e-6, 1e-6, 1.0]):
+        axes = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+        cov = axes @ np.diag(lam) @ axes.T
+        e = rng.standard_normal((n, 3)) @ np.linalg.cholesky(cov).T
+        beyond = np.linalg.norm(e, axis=1) > fe.claim_reach(e, np.broadcast_to(cov, (n, 3, 3)))
+        assert np.mean(beyond) == pytest.approx(0.0027, abs=4 * math.sqrt(0.0027 / n))
 
 
 def test_a_run_that_never_started_reports_no_reset() -> None:
     traj = HeadTrajectory(seed=1)
     rec = recording(traj, [], drift_rad_s=0.0)
-    f = fe.reset_figures(rec, *errors(rec, traj), traj)
+    f = fe.reset_figures(rec, traj)
     assert f == {"starts": 0, "window_s": fe.RESET_WINDOW_S}
 
 

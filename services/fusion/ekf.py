@@ -281,7 +281,8 @@ class FusionEKF:
         self._rejected_in_row = 0
 
     def start_from_poses(self, a: OpticalPose, b: OpticalPose) -> None:
-        """Start from two poses: at their midpoint with the motion between them, then ``b``.
+        """Start from two poses: at their midpoint with the motion between them, carried to
+        ``b``.
 
         A difference quotient is the rate at the interval's midpoint to second order: its
         error there is the jerk times dt^2 / 24, where at either end it is the acceleration
@@ -289,13 +290,21 @@ class FusionEKF:
         tell how much of that to remove.  So the filter starts at the midpoint
         (``v = (p_b - p_a) / dt``, ``w = R^T (theta_b - theta_a) / dt`` in body axes, the
         pose halfway, off by the acceleration times dt^2 / 8), and the motion model carries
-        it to ``b``, whose pose is then an ordinary update.
+        it to ``b``.
+
+        Those two offsets are the unknown acceleration's and jerk's, the very quantities
+        the filter's acceleration and jerk states start ignorant of, so they enter the
+        covariance correlated with those states; carried to ``b`` they cancel (the
+        estimate there is ``b``'s pose, its error ``b``'s, and so is the covariance).
+        ``b`` is not applied again as an update: the start holds all it says, and applied
+        again its error would count as new, the covariance claiming less than the error
+        it carries (0.88 of ``b``'s std with 1 mm per axis).
         """
         dt = b.t - a.t
         if not dt > 0:
             raise InvalidInputError(
                 f"fusion: a start needs two poses in time order, got {a.t} and {b.t}")
-        cfg = self.config
+        cfg, lay = self.config, self.layout
         _, sod, _, sa, _ = cfg.initial_std
         q_mid = geo.slerp(a.q, b.q, 0.5)
         # the persistent errors of two poses 1/15 s apart are one: the midpoint has it too
@@ -305,18 +314,27 @@ class FusionEKF:
         self.x[W] = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_conjugate(a.q), b.q)) / dt
         self.x[V] = (b.p - a.p) / dt
         eye = np.eye(3)
-        blocks = ((P, V, 0, eye, sa, cfg.linear_jerk_std, cfg.linear_jerk_psd),
-                  (TH, W, 3, R, sod, cfg.angular_jerk_std, cfg.angular_jerk_psd))
-        for pos, rate, k, rot, s_acc, s_jerk, psd in blocks:  # rot: the rate's axes
+        blocks = ((P, V, A, lay.linear_jerk, 0, eye, sa, cfg.linear_jerk_std,
+                   cfg.linear_jerk_psd),
+                  (TH, W, WD, lay.angular_jerk, 3, R, sod, cfg.angular_jerk_std,
+                   cfg.angular_jerk_psd))
+        # rot: the rate's axes; acc and jerk: the states whose errors the offsets are
+        for pos, rate, acc, jerk_state, k, rot, s_acc, s_jerk, psd in blocks:
             ca, cb = a.cov[k:k + 3, k:k + 3], b.cov[k:k + 3, k:k + 3]
             jerk = s_jerk or math.sqrt(psd / dt)   # white jerk averaged over the interval
             self.P[pos, pos] += eye * (s_acc * dt * dt / 8) ** 2
             self.P[pos, rate] = (cb - ca) @ rot / (2 * dt)
             self.P[rate, pos] = self.P[pos, rate].T
             self.P[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
+            # pose offset +acc dt^2 / 8 against the state's error -acc (and rot's axes)
+            self.P[pos, acc] = rot * (-s_acc**2 * dt * dt / 8)
+            self.P[acc, pos] = self.P[pos, acc].T
+            if size(jerk_state):  # rate offset +jerk dt^2 / 24 against the state's -jerk
+                self.P[rate, jerk_state] = eye * (-s_jerk**2 * dt * dt / 24)
+                self.P[jerk_state, rate] = self.P[rate, jerk_state].T
         self.P_random = self.P.copy()
-        self._update_with(b)
-        self.start_t = b.t
+        self.predict_to(b.t)
+        self.start_t = self.last_optical_t = b.t
 
     # ------------------------------------------------------------------ time update
 

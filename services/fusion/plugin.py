@@ -125,7 +125,9 @@ FUSION_EVAL = EvalPlugin(
          "outside the gaps; errors through optical gaps and recovery, +20 ms prediction "
          "error, NEES, updates/s.  Samples left out, filter restarts and rejections are "
          "counted; 'resets': the worst error in the 2 s after each (re)start against the "
-         "starting optical pose's error plus the filter's own 3 sigma; "
+         "starting optical pose's error plus what the filter's covariance claims (its "
+         "99.73 % ellipsoid along the error; 'largest_axis_3_sigma': three standard "
+         "deviations of its largest axis in every direction); "
          "'given_by_simulator' lists what the run takes from the simulator's truth (the "
          "accelerometers' noise model and latency).",
     add_arguments=add_fusion_eval_arguments,
