@@ -22,6 +22,7 @@ from agent_helpers.site import Site, unavailable
 
 from agent.deploy.certs import SiteSpec, create_site
 from agent.deploy.zenoh_config import write_configs
+from agent.runtime.processes import stop_processes
 
 MARKER_NS = 123_456_789  # the sample time an intruder stamps its poses with
 
@@ -40,6 +41,16 @@ def secured(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SecuredSite]:
         yield s
     finally:
         site.close()
+
+
+@pytest.fixture(autouse=True)
+def own_processes(secured: SecuredSite) -> Iterator[None]:
+    """What a test starts on the module's site stops when the test ends: a camera left
+    streaming at 50 Hz to a service that reports every sample, or an extra agent, would
+    load the machine for the rest of the module."""
+    first = len(secured.site.procs)
+    yield
+    stop_processes(secured.site.procs[first:])
 
 
 def agents_seen(s: SecuredSite, realm: str | None = None) -> list[str]:
