@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import json
 import stat
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
-from agent_helpers.harness import ROOT, START_WAIT_S, Proc, poll, spawn
+from agent_helpers.harness import START_WAIT_S, Proc, poll, spawn, uma_here
 from conftest import free_port
 from cryptography import x509
 from cryptography.x509.oid import NameOID
@@ -27,9 +25,6 @@ SPEC = SiteSpec(site="lab", router="r", hosts=["a", "b"], clients=["c"],
                 addresses={"r": ["127.0.0.1", "router.lab"]})
 
 
-def uma(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "agent.cli", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)
 
 
 def load(path: Path) -> x509.Certificate:
@@ -103,13 +98,13 @@ def test_config_writes_each_role_with_tls_only(tmp_path: Path) -> None:
 
 
 def test_the_commands_explain_themselves_and_name_bad_input(tmp_path: Path) -> None:
-    assert "one certificate per host" in uma("deploy", "--help").stdout
-    assert "--router-endpoint" in uma("deploy", "config", "--help").stdout
-    ok = uma("deploy", "certs", str(tmp_path), "--site", "lab", "--hosts", "a,b",
-             "--router", "r", "--address", "r=127.0.0.1")
+    assert "one certificate per host" in uma_here("deploy", "--help").stdout
+    assert "--router-endpoint" in uma_here("deploy", "config", "--help").stdout
+    ok = uma_here("deploy", "certs", str(tmp_path), "--site", "lab", "--hosts", "a,b",
+                  "--router", "r", "--address", "r=127.0.0.1")
     assert ok.returncode == 0 and "uma deploy config" in ok.stdout, ok.stderr
-    ok = uma("deploy", "config", str(tmp_path), "--realm", "lab", "--router-endpoint",
-             "tls/127.0.0.1:7447")
+    ok = uma_here("deploy", "config", str(tmp_path), "--realm", "lab", "--router-endpoint",
+                  "tls/127.0.0.1:7447")
     assert ok.returncode == 0 and "router.json5" in ok.stdout, ok.stderr
     for args, message in [
         (("certs", str(tmp_path), "--site", "lab", "--hosts", "a"), "exists already"),
@@ -121,9 +116,9 @@ def test_the_commands_explain_themselves_and_name_bad_input(tmp_path: Path) -> N
         (("config", str(tmp_path), "--realm", "lab", "--router-endpoint",
           "tcp/127.0.0.1:7447"), "TLS only"),
     ]:
-        out = uma("deploy", *args)
+        out = uma_here("deploy", *args)
         assert out.returncode == 1 and message in out.stderr, (args, out.stderr)
-    missing = uma("services", "--zenoh-config", str(tmp_path / "nope.json5"))
+    missing = uma_here("services", "--zenoh-config", str(tmp_path / "nope.json5"))
     assert missing.returncode == 1 and "does not exist" in missing.stderr
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from agent_helpers.harness import ROOT, agent, poll, services_json, spawn
+from agent_helpers.harness import ROOT, agent, poll, services_json, spawn, uma_here
 from conftest import Processes, endpoint, free_port
 
 from agent.errors import UmaError
@@ -253,17 +253,17 @@ def test_a_truncated_file_is_read_up_to_the_damage(recorded, tmp_path) -> None:
 
 
 def test_bad_files_and_arguments_get_clear_errors(tmp_path) -> None:
-    missing = uma("info", str(tmp_path / "none.mcap"))
+    missing = uma_here("info", str(tmp_path / "none.mcap"))
     assert missing.returncode == 1 and "cannot read" in missing.stderr
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all" * 10)
-    out = uma("info", str(junk))
+    out = uma_here("info", str(junk))
     assert out.returncode == 1 and "not a readable MCAP file" in out.stderr
     for args, text in ((["play", str(junk), "--rate", "0"], "--rate"),
                        (["play", str(junk), "--start", "3", "--end", "1"], "--end"),
                        (["record", str(tmp_path / "x.mcap"), "--duration", "-1"], "--duration"),
                        (["record", str(tmp_path / "x.mcap"), "--keys", "a/b?c/d"], "--keys")):
-        out = uma(*args)
+        out = uma_here(*args)
         assert out.returncode == 1 and text in out.stderr and "Traceback" not in out.stderr
 
 

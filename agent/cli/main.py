@@ -317,18 +317,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
+def status(argv: Sequence[str] | None = None) -> int:
+    """:func:`main`'s exit status, argparse's exits (``--help``, a bad option) included:
+    what the ``uma`` executable exits with."""
+    try:
+        return main(argv)
+    except SystemExit as stop:
+        if stop.code is not None and not isinstance(stop.code, int):
+            print(stop.code, file=sys.stderr)
+        return stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+
+
 def run() -> NoReturn:
-    """The ``uma`` executable: :func:`main`, then the process ends without Python's
+    """The ``uma`` executable: :func:`status`, then the process ends without Python's
     finalization.  Zenoh's native threads may still deliver a callback after ``main``
     returns (a session that could not close in time ends with the process); one that
     meets a finalizing interpreter aborts the whole process ("FATAL: exception not
     rethrown") and turns a clean exit into SIGABRT."""
-    try:
-        code = main()
-    except SystemExit as stop:  # argparse's errors and --help
-        if stop.code is not None and not isinstance(stop.code, int):
-            print(stop.code, file=sys.stderr)
-        code = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+    code = status()
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing left to say

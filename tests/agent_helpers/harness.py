@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from agent.cli.agent import STALLED_START, START_LIMIT_S
-from agent.cli.main import main
+from agent.cli.main import status
 from agent.errors import UmaError
+from agent.runtime.session import ZENOH_CONFIG_ENV
 
 ROOT = str(Path(__file__).resolve().parents[2])
 WAIT_S = 20.0  # generous: 2 shared cores, many test processes
@@ -225,15 +226,34 @@ def service(processes: Any, realm: str, sid: str, agent_id: str, endpoint: str,
                              "--agent", agent_id, "--connect", endpoint, *extra], env)
 
 
-def services_json(realm: str, endpoint: str) -> dict[str, Any]:
-    """``uma services --json`` as a dict, run in this process (the command's own entry
-    point, without a fresh interpreter's imports: about half a CPU-second a call; the
-    command in a process of its own is tested in test_cli and on the sites)."""
+def uma_here(*args: str) -> subprocess.CompletedProcess:
+    """``uma ARGS`` run in this process, its output captured: the executable's own exit
+    status (:func:`agent.cli.main.status`) without a fresh interpreter's imports, about
+    half a CPU-second a command.  For commands that end by themselves (not ``uma agent``);
+    what a command sets for its process is put back: ``--zenoh-config``'s variable and the
+    SIGINT and SIGTERM handlers of a long-running command."""
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(["services", "--realm", realm, "--connect", endpoint, "--json"])
-    assert code == 0, err.getvalue()
-    return json.loads(out.getvalue().strip().splitlines()[-1])
+    config = os.environ.get(ZENOH_CONFIG_ENV)
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = status(list(args))
+    finally:
+        if config is None:
+            os.environ.pop(ZENOH_CONFIG_ENV, None)
+        else:
+            os.environ[ZENOH_CONFIG_ENV] = config
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    return subprocess.CompletedProcess(["uma", *args], code, out.getvalue(), err.getvalue())
+
+
+def services_json(realm: str, endpoint: str) -> dict[str, Any]:
+    """``uma services --json`` as a dict (run in this process: :func:`uma_here`; the
+    command in a process of its own is tested in test_cli and on the sites)."""
+    out = uma_here("services", "--realm", realm, "--connect", endpoint, "--json")
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def matched_to(ev: dict[str, Any], need: str, *sources: str) -> bool:
