@@ -141,6 +141,12 @@ def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
+def seeds(n: int, default: int = 2) -> list:
+    """``range(n)`` as test parameters for an equivalence checked over many seeds: the
+    first ``default`` seeds in the default run, the rest marked slow (CI's second step)."""
+    return [s if s < default else pytest.param(s, marks=pytest.mark.slow) for s in range(n)]
+
+
 @pytest.fixture
 def realm() -> str:
     """A realm no other test uses, so concurrent tests never see each other."""

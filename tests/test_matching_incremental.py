@@ -7,6 +7,7 @@ from __future__ import annotations
 import random
 
 import pytest
+from conftest import seeds
 
 from agent.daemon.matching import (
     MAX_TOUCHED,
@@ -94,7 +95,7 @@ class World:
                          current=self.current)
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", seeds(6))
 @pytest.mark.parametrize("max_candidates", [1024, 3])
 def test_incremental_rematch_equals_the_full_one(seed: int, max_candidates: int) -> None:
     world = World(seed, max_candidates)

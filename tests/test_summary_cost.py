@@ -9,6 +9,7 @@ import random
 
 import numpy as np
 import pytest
+from conftest import seeds
 
 from agent import geometry as geo
 from agent.attributes import SUMMARY_ERRORS
@@ -55,7 +56,7 @@ def close(a: object, b: object) -> bool:
     return a == b
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", seeds(6))
 @pytest.mark.parametrize("extra", [0, 4])
 def test_links_describe_the_best_paths_a_query_would_take(seed: int, extra: int) -> None:
     g, boundary = random_graph(seed, 14, extra)
