@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from agent_helpers.harness import agent, poll
+from agent_helpers.harness import agent, poll, uma_here
 from conftest import endpoint, free_port
 
 from agent import geometry as geo
@@ -164,20 +164,16 @@ def zenoh_peer(ep: str) -> Iterator[None]:
 
 def test_uma_query_without_agents_is_a_clear_error(realm):
     ep = endpoint(free_port())
-    out = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--realm",
-                          realm, "--timeout", "0.3", "--connect", ep],
-                         capture_output=True, text=True, timeout=30)
+    out = uma_here("query", WORLD, HEAD, "--realm", realm, "--timeout", "0.3", "--connect", ep)
     assert out.returncode == 1
     # a client of its host's agent: nothing at the endpoint is named as such
     assert f"cannot reach {ep}" in out.stderr and "is the agent" in out.stderr
     assert "Traceback" not in out.stderr
     # a listening peer that finds the endpoint but no agent of the realm says so
     with zenoh_peer(ep):
-        out = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD,
-                              "--realm", realm, "--timeout", "0.3", "--connect", ep],
-                             capture_output=True, text=True, timeout=30)
+        out = uma_here("query", WORLD, HEAD, "--realm", realm, "--timeout", "0.3", "--connect",
+                       ep)
     assert out.returncode == 1
     assert f"no agent answered in realm {realm!r}" in out.stderr and "Traceback" not in out.stderr
-    bad = subprocess.run([sys.executable, "-m", "agent.cli", "query", WORLD, HEAD, "--at",
-                          "yesterday"], capture_output=True, text=True, timeout=30)
+    bad = uma_here("query", WORLD, HEAD, "--at", "yesterday")
     assert bad.returncode == 1 and "--at 'yesterday'" in bad.stderr
