@@ -210,21 +210,22 @@ def test_two_poses_start_the_filter_with_their_motion_and_an_honest_covariance()
 
 def test_a_start_claims_the_error_of_the_pose_it_stands_on():
     """The start from two poses is carried to the second: the estimate there is that
-    pose, and so is its error, so the covariance is that pose's.  Applying the second pose
-    again as an update counted its error twice and claimed 0.88 of its std (1 mm and
-    0.05 deg per axis: the midpoint's acceleration offset, uncorrelated with the
-    acceleration state, kept it from half the variance)."""
+    pose, and so is its error, so the covariance is that pose's, its systematic part
+    counted once (a laser pose's is most of it).  Applying the second pose again as an
+    update would count its error twice and claim 0.88 of its std (1 mm and 0.05 deg per
+    axis: the midpoint's acceleration offset, uncorrelated with the acceleration state,
+    kept it from half the variance)."""
     traj = HeadTrajectory(4)
     rng = np.random.default_rng(4)
     ps, rs = 1e-3, np.radians(0.05)
     cov = np.diag([ps**2] * 3 + [rs**2] * 3)
-    for t in (2.0, 9.0, 17.0):
+    for t, systematic in ((2.0, None), (9.0, None), (17.0, None), (9.0, 0.9 * cov)):
         ekf = FusionEKF(_model())
         for ti in (t - 1 / 15, t):
             p, q = traj.pose(ti)
             p_b = p[0] + rng.normal(0, ps, 3)
             q_b = geo.quat_multiply(geo.rotvec_to_quat(rng.normal(0, rs, 3)), q[0])
-            ekf.update_pose(ti, p_b, q_b, cov)
+            ekf.update_pose(ti, p_b, q_b, cov, systematic)
         assert ekf.t == t and ekf.start_t == t
         assert np.allclose(ekf.position, p_b, atol=1e-9)
         assert geo.quat_angle(ekf.q, q_b) < 1e-6

@@ -237,9 +237,9 @@ class FusionEKF:
                    systematic: Array | None = None) -> None:
         """Start (or restart) from an absolute pose; motion unknown (initial_std).
         ``systematic``: the part of the pose's error that persists (``update_pose``).
-        ``P_random`` starts as ``P``: the start's covariance counts its systematic part as
-        if it were new, and the rates of a start from two poses keep it whole
-        (``start_from_poses``), where it may not cancel, until the updates replace it."""
+        ``P_random`` starts as ``P``: a start from this one pose counts its systematic part
+        as if it were new until the updates replace it (``start_from_poses`` takes it out
+        of ``P_random``; its ``P`` keeps it whole in the rates, where it may not cancel)."""
         cfg, lay = self.config, self.layout
         so, sod, sv, sa, _ = cfg.initial_std
         self.t = float(t)
@@ -299,6 +299,11 @@ class FusionEKF:
         ``b`` is not applied again as an update: the start holds all it says, and applied
         again its error would count as new, the covariance claiming less than the error
         it carries (0.88 of ``b``'s std with 1 mm per axis).
+
+        ``P_random`` is built the same way from the poses' random parts (each covariance
+        less its systematic part), so that at ``b`` it holds ``b``'s random part and the
+        fused covariance, it plus ``b``'s systematic part, is ``b``'s covariance: built
+        from the whole covariances it would count the systematic part twice there.
         """
         dt = b.t - a.t
         if not dt > 0:
@@ -314,25 +319,27 @@ class FusionEKF:
         self.x[W] = geo.quat_to_rotvec(geo.quat_multiply(geo.quat_conjugate(a.q), b.q)) / dt
         self.x[V] = (b.p - a.p) / dt
         eye = np.eye(3)
+        self.P_random[np.ix_(POSE_INDEX, POSE_INDEX)] -= 0.25 * (a.systematic + b.systematic)
         blocks = ((P, V, A, lay.linear_jerk, 0, eye, sa, cfg.linear_jerk_std,
                    cfg.linear_jerk_psd),
                   (TH, W, WD, lay.angular_jerk, 3, R, sod, cfg.angular_jerk_std,
                    cfg.angular_jerk_psd))
         # rot: the rate's axes; acc and jerk: the states whose errors the offsets are
         for pos, rate, acc, jerk_state, k, rot, s_acc, s_jerk, psd in blocks:
-            ca, cb = a.cov[k:k + 3, k:k + 3], b.cov[k:k + 3, k:k + 3]
             jerk = s_jerk or math.sqrt(psd / dt)   # white jerk averaged over the interval
-            self.P[pos, pos] += eye * (s_acc * dt * dt / 8) ** 2
-            self.P[pos, rate] = (cb - ca) @ rot / (2 * dt)
-            self.P[rate, pos] = self.P[pos, rate].T
-            self.P[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
-            # pose offset +acc dt^2 / 8 against the state's error -acc (and rot's axes)
-            self.P[pos, acc] = rot * (-s_acc**2 * dt * dt / 8)
-            self.P[acc, pos] = self.P[pos, acc].T
-            if size(jerk_state):  # rate offset +jerk dt^2 / 24 against the state's -jerk
-                self.P[rate, jerk_state] = eye * (-s_jerk**2 * dt * dt / 24)
-                self.P[jerk_state, rate] = self.P[rate, jerk_state].T
-        self.P_random = self.P.copy()
+            for M, ca6, cb6 in ((self.P, a.cov, b.cov),
+                                (self.P_random, a.cov - a.systematic, b.cov - b.systematic)):
+                ca, cb = ca6[k:k + 3, k:k + 3], cb6[k:k + 3, k:k + 3]
+                M[pos, pos] += eye * (s_acc * dt * dt / 8) ** 2
+                M[pos, rate] = (cb - ca) @ rot / (2 * dt)
+                M[rate, pos] = M[pos, rate].T
+                M[rate, rate] = rot.T @ (ca + cb) @ rot / dt**2 + eye * (jerk * dt * dt / 24) ** 2
+                # pose offset +acc dt^2 / 8 against the state's error -acc (and rot's axes)
+                M[pos, acc] = rot * (-s_acc**2 * dt * dt / 8)
+                M[acc, pos] = M[pos, acc].T
+                if size(jerk_state):  # rate offset +jerk dt^2 / 24 against the state's -jerk
+                    M[rate, jerk_state] = eye * (-s_jerk**2 * dt * dt / 24)
+                    M[jerk_state, rate] = M[rate, jerk_state].T
         self.predict_to(b.t)
         self.start_t = self.last_optical_t = b.t
 
