@@ -137,6 +137,30 @@ def test_a_frame_set_with_two_housings_is_refused_not_guessed(world) -> None:
     assert tr.counts["ambiguous_labeling"] == 2
 
 
+@pytest.mark.parametrize("off_m, reason", [(0.002, "residual_jump"),
+                                            (0.03, "inconsistent_dots")])
+def test_a_frame_set_refused_for_a_bad_dot_passes_on_no_dot_labeled_by_prediction(
+        world, off_m, reason) -> None:
+    """A dot off its spot (2 mm: ten of its std, against the last miss; 3 cm: against one
+    pose) refuses the frame set; labeling its dots by the prediction instead would pass
+    the bad one on as sound.  Three dots alone still are."""
+    p, q = np.array([0.1, -0.1, 0.3]), upright(20)
+    points, walls = hits_of(world, p, q)
+    tr = LaserTracker(None)
+    for k in range(3):  # a start, held until the next confirms it, then tracking
+        res = tr.solve(dots_on_walls(world, points, walls), k / RATE_HZ)
+    assert res.ok
+    moved = list(points)
+    moved[2] = points[2] + off_m * along_wall(world, walls[2], 0.3)
+    res = tr.solve(dots_on_walls(world, moved, walls), 3 / RATE_HZ)
+    assert isinstance(res, NoPose) and res.reason == reason, res
+    assert not tr.label_dots(res).labels
+    assert tr.counts["dot_unlabeled_frame_set_refused"] == 4
+    res = tr.solve(dots_on_walls(world, points[:3], walls[:3]), 4 / RATE_HZ)
+    assert isinstance(res, NoPose) and res.reason == "too_few_dots"
+    assert sorted(tr.label_dots(res).labels) == [1, 2, 3]
+
+
 def test_a_head_pitched_so_far_that_its_reflection_is_as_upright_is_refused(world) -> None:
     """At initialisation the labeling and its reflection are told apart by which one's up
     axis is nearer the world's up; pitched 45 degrees, both are equally near."""

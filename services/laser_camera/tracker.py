@@ -80,6 +80,9 @@ NO_POSE_REASONS = ("too_few_dots", "too_many_dots", "no_consistent_labeling",
 #: the reasons that refuse a frame set whose dots were all there: the labeling gate
 GATE_REASONS = ("inconsistent_dots", "ambiguous_labeling", "gated_jump", "residual_jump",
                 "unconfirmed_labeling")
+#: the refusals that hold a frame set's dots themselves in doubt: none of them is labeled
+#: by the prediction either (``LaserTracker.label_dots``)
+DOUBTED_DOTS_REASONS = (*GATE_REASONS, "no_consistent_labeling")
 
 
 @dataclass(frozen=True)
@@ -722,17 +725,20 @@ class LaserTracker:
     def label_dots(self, result: PoseEstimate | NoPose) -> LabeledDots:
         """The labeled dots of the frame set ``result`` came from (the last one solved).
 
-        With a pose, its four dots.  Without one (fewer than four dots seen, or no
-        labeling fits), each dot gets the label whose predicted spot on the dot's own wall
-        is nearest, within ``label_gate_m``, one dot per label (temporal coherence, Hogue
-        2003 §5.3: a head moves little in a frame).  A label's spot is predicted from its
-        last two labeled sightings on that wall at their velocity, which chains through a
-        run of frame sets without a pose; failing that, as the beam hit of the pose
-        predicted from the last two.  A dot that gets no label is counted in ``counts``
-        under ``dot_unlabeled_<why>``, never passed on with a guessed label.  With the
-        installation's estimate the dots are corrected by it as a pose's are (through the
-        predicted pose's beams), each with the estimate's remaining error as its
-        installation std."""
+        With a pose, its four dots.  Without one (fewer than four dots seen, or four
+        too nearly degenerate to solve), each dot gets the label whose predicted spot on
+        the dot's own wall is nearest, within ``label_gate_m``, one dot per label
+        (temporal coherence, Hogue 2003 §5.3: a head moves little in a frame).  A label's
+        spot is predicted from its last two labeled sightings on that wall at their
+        velocity, which chains through a run of frame sets without a pose; failing that,
+        as the beam hit of the pose predicted from the last two.  A dot that gets no label
+        is counted in ``counts`` under ``dot_unlabeled_<why>``, never passed on with a
+        guessed label.  A frame set refused because its dots disagree with the housing,
+        with one pose, with the last miss or with a head's reach (``DOUBTED_DOTS_REASONS``)
+        passes on no dot: the prediction would label the dot the gate caught and pass it
+        on with its noise's std as if it were sound.  With the installation's estimate the
+        dots are corrected by it as a pose's are (through the predicted pose's beams),
+        each with the estimate's remaining error as its installation std."""
         if isinstance(result, PoseEstimate):
             labels = sorted(result.dots)
             return LabeledDots(result.t, labels, np.array([result.dots[k] for k in labels]),
@@ -743,6 +749,9 @@ class LaserTracker:
         n, t = len(dots.points), result.t
         if n > self.params.max_dots:
             self.counts["dot_unlabeled_too_many_dots"] += n
+            return _labeled(t, dots, [], [], np.zeros(3), self.params)
+        if result.reason in DOUBTED_DOTS_REASONS:
+            self.counts["dot_unlabeled_frame_set_refused"] += n
             return _labeled(t, dots, [], [], np.zeros(3), self.params)
         pose = self._predict(t)
         predictions = [[self._predicted_spot(dots, i, label, t, pose)
