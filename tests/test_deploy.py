@@ -25,8 +25,6 @@ SPEC = SiteSpec(site="lab", router="r", hosts=["a", "b"], clients=["c"],
                 addresses={"r": ["127.0.0.1", "router.lab"]})
 
 
-
-
 def load(path: Path) -> x509.Certificate:
     return x509.load_pem_x509_certificate(path.read_bytes())
 

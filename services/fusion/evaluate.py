@@ -311,8 +311,7 @@ def nees_figures(rec: Recording, p_true: np.ndarray, q_true: np.ndarray,
     far narrower than the run's information on the realistic installation; it is reported
     for the ideal one, where the two agree.
     """
-    e = np.concatenate([p_true - rec.p, geo.quat_to_rotvec(
-        geo.quat_multiply(q_true, geo.quat_conjugate(rec.q)))], axis=1)[mask]
+    e = error_vectors(rec.p, rec.q, p_true, q_true)[mask]
     cov = rec.cov[mask]
     w = whitened(e, cov, rec.t[mask])
     nees = np.einsum("ni,ni->n", w, w)
@@ -386,6 +385,14 @@ def _nees_by_regime(rec: Recording, e: np.ndarray, cov: np.ndarray,
                 "ni,ni->n", x, np.linalg.solve(cov[sel][:, b, b], x[..., None])[..., 0])))
         out[name] = {"share": float(np.mean(sel)), **parts}
     return out
+
+
+def error_vectors(p: np.ndarray, q: np.ndarray, p_true: np.ndarray, q_true: np.ndarray,
+                  ) -> np.ndarray:
+    """The fused poses' errors (n, 6): position (truth less estimate) and rotation vector
+    (truth times the estimate's inverse), the order and frames of the filter's covariance."""
+    return np.concatenate([p_true - p, geo.quat_to_rotvec(
+        geo.quat_multiply(q_true, geo.quat_conjugate(q)))], axis=1)
 
 
 def _mahalanobis_sq(e: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -664,8 +671,7 @@ def reset_figures(rec: Recording, traj: Any) -> dict[str, Any]:
         p0, q0 = traj.pose(rec.optical_t[k])
         e0 = geo.pose_error(rec.optical_p[k], rec.optical_q[k], p0[0], q0[0])
         p_true, q_true = traj.pose(rec.t[window])
-        e = np.concatenate([p_true - rec.p[window], geo.quat_to_rotvec(geo.quat_multiply(
-            q_true, geo.quat_conjugate(rec.q[window])))], axis=1)
+        e = error_vectors(rec.p[window], rec.q[window], p_true, q_true)
         worst, claim, sphere = [], [], []
         for b, start_error in ((slice(0, 3), e0[0]), (slice(3, 6), e0[1])):
             x, cov = e[:, b], rec.cov[window][:, b, b]
