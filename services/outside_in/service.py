@@ -85,6 +85,9 @@ SEARCH_BURST_S = 0.06
 #: than the newest it has gathered: behind further, it skips to the present
 #: (``RecentSets``), its windows then still in time for the cameras (``PREDICTION_AGE_S``)
 BEHIND_S = 0.025
+#: one frame set's tracking CPU (s) beyond which a warning names it: a frame period and more
+#: holds every set after it back
+SLOW_SET_S = 0.1
 #: ``extra`` key of a windows sample: a body is lost, search whole images too
 SEARCH = "search"
 
@@ -493,6 +496,7 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
     lock = threading.Lock()    # the frame sets' bookkeeping: dispatch and tracking threads
     recent = RecentSets()
     failed = RateLimitedLog(log)
+    slow = RateLimitedLog(log)
     with Service(args.id, realm=args.realm, agent=args.agent, connect=args.connect,
                  listen=args.listen or None) as svc:
         outs = {b.name: svc.ability(b.name, type="pose6d",
@@ -519,6 +523,10 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
                 ahead = rec.windows(svc.now_ns())
             search = rec.tracker.searching
             t1 = time.thread_time()
+            if t1 - t0 > SLOW_SET_S:
+                slow.warning("outside-in", f"one frame set took {1e3 * (t1 - t0):.0f} ms of "
+                             f"CPU ({len(frames)} cameras, "
+                             f"{sum(len(f.blobs.uv) for f in frames)} blobs, search {search})")
             for e in estimates:
                 outs[e.body].publish(round(e.t * 1e9), e.p, e.q, e.cov_se3)
             extra = {MARKERS_CALIBRATION: rec.version, SEARCH: search}
@@ -554,11 +562,15 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
         log.info("outside-in: tracking %s with %d cameras (calibration %s)",
                  ", ".join(b.name for b in rec.bodies), len(rec.index), rec.version)
         while not stop.wait(5.0):
-            n = max(cpu[2], 1)
-            log.info("outside-in: %d frame sets, %s, %d samples refused, %d late, %d "
-                     "stale, %d sets superseded; CPU per frame set: tracking %.2f ms, "
-                     "publishing %.2f ms",
-                     rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late,
-                     rec.stale, recent.superseded, 1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
+            _log_counts(rec, recent, cpu)
         tracker.join(timeout=5.0)
+        _log_counts(rec, recent, cpu)   # the whole run's, also when it lasted under 5 s
     return 0
+
+
+def _log_counts(rec: Reconstruction, recent: RecentSets, cpu: list) -> None:
+    n = max(cpu[2], 1)
+    log.info("outside-in: %d frame sets, %s, %d samples refused, %d late, %d stale, %d sets "
+             "superseded; CPU per frame set: tracking %.2f ms, publishing %.2f ms",
+             rec.frame_sets, dict(rec.tracker.counts), rec.refused_count, rec.late,
+             rec.stale, recent.superseded, 1e3 * cpu[0] / n, 1e3 * cpu[1] / n)
