@@ -149,6 +149,30 @@ def test_windows_go_to_each_camera_in_time_and_not_at_every_frame_set(tmp_path) 
         assert np.all(gaps < WINDOWS_EVERY_S + 1.5 / 120)
 
 
+def test_while_a_body_is_lost_every_camera_searches_the_same_frames_whole() -> None:
+    """Cameras that started at different frames (their own frame counts apart) all search
+    every exposure whole while the reconstruction says a body is lost: the search needs
+    the body's markers in two cameras' whole images of one frame set, and whole images on
+    each camera's own every n-th frame never met in one for cameras four counts apart."""
+    from services.outside_in.service import SEARCH, Windows
+    sim = Simulation(seed=SEED, config=SimConfig(n_cameras=4, rate_hz=RATE))
+    period = round(1e9 / RATE)
+    cams = [Windows("v") for _ in range(4)]
+    for k, w in enumerate(cams):   # started k frames apart
+        w.frames = k
+    for i in range(8):
+        frames = [sim.render(c, i) for c in range(4)]
+        t_ns = round(frames[0].t * 1e9)
+        lost = Measurement("markers2d", t_ns, points=np.zeros((0, 2)), values=np.zeros(0),
+                           extra={MARKERS_CALIBRATION: "v", SEARCH: True})
+        found = []
+        for w, fr in zip(cams, frames, strict=True):
+            w.on_sample(lost)
+            found.append(len(w.find(fr.image, t_ns, period)))
+        assert all(found), (i, found)
+    assert all(w.whole == 8 and w.windowed == 0 for w in cams)
+
+
 @pytest.mark.slow
 def test_cameras_on_two_skewed_hosts_and_the_reconstruction_on_a_third(processes, realm,
                                                                       tmp_path) -> None:
