@@ -456,10 +456,16 @@ def test_services_reach_a_client_in_another_process(calibration_file, processes,
     truth = IvyWorld(seed=4)
     with Client(realm=realm, connect=[ep]) as client:
         r = _wait_pose(client, "ivy/world", "marvin/laser_rig", svc, deadline)
-        # the laser pose is the simulated rig's at the sample's time (same seed and clock)
-        p, q = truth.rig_pose(sim_time_s(r.stamps[0][0]))
-        dp, da = geo.pose_error(r.position, r.quaternion, p[0], q[0])
-        assert dp < 0.01 and np.degrees(da) < 0.3, (dp, np.degrees(da))
+        # the laser pose is the simulated rig's at the sample's time (same seed and clock),
+        # which comes back through the client's estimate of the agent's clock offset: as
+        # far off as half its fastest round trip, milliseconds on a loaded machine, where
+        # the rig turns up to 0.2 deg a millisecond
+        bound = client.clock.best("lab").delay_ns / 2
+        dp, da = min((geo.pose_error(r.position, r.quaternion, p[0], q[0])
+                      for dt in np.linspace(-bound, bound, 21)
+                      for p, q in [truth.rig_pose(sim_time_s(r.stamps[0][0] + dt))]),
+                     key=lambda e: e[1])
+        assert dp < 0.01 and np.degrees(da) < 0.3, (dp, np.degrees(da), bound)
         assert r.path == ["ivy/world", "marvin/laser_rig"]
         geo.check_covariance(r.covariance)
         assert 1 < r.attributes["frequency_hz"] <= 25  # measured by the service itself
