@@ -103,15 +103,19 @@ class _Case:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if not args.rate_hz > 0:
         raise InvalidInputError(f"--rate-hz must be positive, got {args.rate_hz}")
+    if not 1 <= args.track_every <= 100:
+        raise InvalidInputError(f"--track-every must be in [1, 100], got {args.track_every}")
     sim = Simulation(seed=args.seed, config=SimConfig(
         n_cameras=args.cameras, rate_hz=args.rate_hz, synchronized=not args.unsynchronized))
-    return evaluate(sim, args.seconds, bump_deg=args.bump_deg)
+    return evaluate(sim, args.seconds, bump_deg=args.bump_deg, every=args.track_every)
 
 
 def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = None,
-             bump_deg: float = 0.0) -> dict[str, Any]:
+             bump_deg: float = 0.0, every: int = 1) -> dict[str, Any]:
+    """The figures of one run; the trackers and the baseline take every ``every``-th frame
+    set only (``--track-every``)."""
     n = max(round(seconds * sim.config.rate_hz), 1)
-    bump_at = n // 2 if bump_deg else None
+    bump_at = -(-(n // 2) // every) * every if bump_deg else None   # a frame set taken
     hide_from = round(0.4 * n)
     hide_to = hide_from + round(min(2.0, 0.3 * seconds) * sim.config.rate_hz)
     calibrated = list(sim.cameras)      # what the trackers and the baseline were told
@@ -123,7 +127,7 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
     fewer_than_two = 0
     coverage = [0, 0]   # body frames seeable, with a uma pose
     t_track, t_detect = [], []
-    for i in range(n):
+    for i in range(0, n, every):
         sim.hidden = {0} if hide_from <= i < hide_to else set()
         if i == bump_at:
             sim.cameras[BUMPED] = bumped(sim.cameras[BUMPED], bump_deg)
@@ -158,6 +162,7 @@ def evaluate(sim: Simulation, seconds: float, params: TrackerParams | None = Non
                                 cases[case])
     figures: dict[str, Any] = {
         "cameras": len(sim.cameras), "rate_hz": sim.config.rate_hz, "frames": n,
+        "track_every": every,
         "synchronized": sim.config.synchronized,
         "occluded_camera": {"camera": sim.cameras[0].name,
                             "from_s": round(hide_from / sim.config.rate_hz, 3),

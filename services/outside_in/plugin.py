@@ -91,6 +91,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--unsynchronized", action="store_true",
                         help="every camera exposes at its own phase within the frame period "
                              "(cheap cameras without a sync cable)")
+    parser.add_argument("--track-every", type=int, default=1, metavar="N",
+                        help="the trackers take every N-th frame set only, as a "
+                             "reconstruction behind on a busy host does (default 1: all)")
 
 
 EVAL = EvalPlugin(

@@ -37,6 +37,9 @@ from services.outside_in.rig import RigCamera, RigImages
 from services.outside_in.triangulation import MatchParams, match_and_triangulate
 
 Array = np.ndarray
+#: a tracked marker takes the nearest blob within this many stds of its predicted image's
+#: spread, when that is wider than ``TrackerParams.gate_px``
+GATE_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,9 @@ class TrackerParams:
     outlier_px: float = 0.4               # an observation further from the fit is dropped,
     outlier_sigmas: float = 5.0           # ... or further than this many of its stds
     max_rms_px: float = 1.0               # a fit with a larger rms is refused
+    min_observations: int = 4             # marker images a fit needs: three fit any pose
+                                          # exactly (rms 0), so a wrong claim of one of
+                                          # them could not be told from a right one
     lost_after: int = 5                   # frame sets without a pose before a new search
     health: HealthParams = field(default_factory=HealthParams)
 
@@ -129,6 +135,11 @@ class _Track:
     body: RigidBody
     filter: ImmFilter
     missed: int = 0
+    #: the furthest marker's distance (m) from the body's origin
+    reach: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.reach = float(np.max(np.linalg.norm(self.body.markers, axis=1)))
 
 
 class OutsideInTracker:
@@ -243,13 +254,21 @@ class OutsideInTracker:
         if not tracked:
             return {}
         bounds = np.cumsum([0, *(len(track.body.markers) for _, track in tracked)])
+        sizes = np.diff(bounds)
         cams = np.array([f.camera for f in frames])
         z = np.empty((len(frames), bounds[-1]))
         uv = np.empty((len(frames), bounds[-1], 2))
+        spread = np.empty((len(frames), bounds[-1]))
         for t in {f.t for f in frames}:   # synchronised cameras share a time
             at = np.flatnonzero([f.t == t for f in frames])
             world = np.vstack([_markers_at(track, t) for _, track in tracked])
             z[at], uv[at] = self.images.depth_and_pixels(world, cams[at])
+            spread[at] = np.repeat([_spread_m(track, t) for _, track in tracked], sizes)
+        # a marker's gate: gate_px, or GATE_SIGMAS of its predicted image's spread where
+        # the prediction is less sure (a body just found, whose motion is not known yet;
+        # frame sets skipped on a busy host): a fixed gate lost such bodies again and again
+        focal = np.array([self.cameras[c].K[0, 0] for c in cams])[:, None]
+        gate = np.maximum(p.gate_px, GATE_SIGMAS * focal * spread / np.maximum(z, 0.05))
         # every camera's blobs, padded with blobs infinitely far
         blobs = np.full((len(frames), max(len(f.blobs) for f in frames), 2), np.inf)
         for i, f in enumerate(frames):
@@ -264,7 +283,7 @@ class OutsideInTracker:
         ambiguous = near > p.ambiguity_ratio * second
         # markers near a blob, of bodies wholly in front of the camera
         front = np.minimum.reduceat(z, bounds[:-1], axis=1) > 0.05
-        taken = ~(near > p.gate_px) & np.repeat(front, np.diff(bounds), axis=1)
+        taken = ~(near > gate) & np.repeat(front, sizes, axis=1)
         self.counts["ambiguous_blobs"] += int(np.count_nonzero(taken & ambiguous))
         fi, mi = np.nonzero(taken & ~ambiguous)           # in the frames' and markers' order
         bi = nearest[fi, mi]
@@ -317,7 +336,7 @@ class OutsideInTracker:
             if clean is not None and (fit is None
                                       or np.count_nonzero(clean[0]) > np.count_nonzero(keep)):
                 keep, fit = clean
-        if fit is None or fit.rms_px > p.max_rms_px:
+        if fit is None or fit.rms_px > p.max_rms_px or fit.n_observations < p.min_observations:
             self.counts["refused_fit"] += 1
             return None
         if acquired:
@@ -432,6 +451,15 @@ class OutsideInTracker:
     def _miss_all(self, done: set[int]) -> None:
         for k, track in enumerate(self.tracks):
             track.missed = 0 if k in done else track.missed + 1
+
+
+def _spread_m(track: _Track, t: float) -> float:
+    """How far (m, one std) the filter's prediction at ``t`` may put the track's furthest
+    marker: its position's and its turn's (times the marker's distance from the body's
+    origin) spread, each the root of its covariance's trace (at most sqrt(3) times the
+    least certain direction's std, and a tenth of the cost of its eigenvalues)."""
+    P = track.filter.predicted(t)[2]
+    return float(np.sqrt(np.trace(P[:3, :3])) + track.reach * np.sqrt(np.trace(P[3:, 3:])))
 
 
 def _markers_at(track: _Track, t: float) -> Array:
