@@ -308,6 +308,25 @@ def test_poses_too_far_apart_do_not_start_the_filter():
         FusionConfig(start_max_gap_s=0.0)
 
 
+def test_a_restart_from_rejected_poses_scales_their_systematic_part_with_them():
+    """The poses a restart starts from are kept with the covariance the filter weighed them
+    by, scaled by the optics' matched noise (``pose_noise_scale``); their systematic part
+    scales with it, or a scale under 1 leaves it larger than the whole and the random
+    part of the fused covariance negative."""
+    ekf = FusionEKF(_model(), FusionConfig(max_rejected_poses=2))
+    cov = np.eye(6) * 1e-6
+    systematic = np.eye(6) * 0.8e-6
+    ekf.update_pose(0.0, np.zeros(3), [0, 0, 0, 1], cov, systematic)
+    ekf.update_pose(0.05, np.zeros(3), [0, 0, 0, 1], cov, systematic)
+    ekf.stats.pose_noise_scale = (0.5, 0.5)    # the optics' noise matched at half of it
+    far = np.array([0.5, 0.0, 0.0])
+    assert not ekf.update_pose(0.10, far, [0, 0, 0, 1], cov, systematic)
+    assert ekf.update_pose(0.15, far, [0, 0, 0, 1], cov, systematic)   # the optics win
+    assert ekf.start_t == 0.15
+    assert np.linalg.eigvalsh(ekf.P_random).min() > 0
+    assert np.linalg.eigvalsh(ekf.pose_covariance_decoupled()).min() > 0
+
+
 def test_a_restart_cuts_the_history_a_late_pose_cannot_reach_behind_it():
     tracker, p, q, cov, rest = _still_rig(FusionConfig(max_rejected_poses=2))
     for i in range(1, 60):

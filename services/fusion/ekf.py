@@ -463,7 +463,7 @@ class FusionEKF:
         if inn.nis > self.config.pose_gate:
             self.stats.pose_rejected += 1
             self._rejected_in_row += 1
-            pose = OpticalPose(pose.t, pose.p, pose.q, inn.R, pose.systematic)
+            pose = OpticalPose(pose.t, pose.p, pose.q, inn.R, inn.R_sys)
             if self._rejected_in_row >= self.config.max_rejected_poses:
                 previous = self._last_rejected
                 self.stop()                      # the optics win: start again from them
