@@ -258,15 +258,18 @@ class OutsideInTracker:
         cams = np.array([f.camera for f in frames])
         z = np.empty((len(frames), bounds[-1]))
         uv = np.empty((len(frames), bounds[-1], 2))
-        spread = np.empty((len(frames), bounds[-1]))
         for t in {f.t for f in frames}:   # synchronised cameras share a time
             at = np.flatnonzero([f.t == t for f in frames])
             world = np.vstack([_markers_at(track, t) for _, track in tracked])
             z[at], uv[at] = self.images.depth_and_pixels(world, cams[at])
-            spread[at] = np.repeat([_spread_m(track, t) for _, track in tracked], sizes)
         # a marker's gate: gate_px, or GATE_SIGMAS of its predicted image's spread where
         # the prediction is less sure (a body just found, whose motion is not known yet;
-        # frame sets skipped on a busy host): a fixed gate lost such bodies again and again
+        # frame sets skipped on a busy host): a fixed gate lost such bodies again and again.
+        # The spread at the set's last exposure serves all its cameras: it is the widest
+        # (it grows with the time predicted over), and a covariance prediction per body
+        # and exposure time cost 8 unsynchronised cameras a sixth of their tracking CPU
+        t_last = max(f.t for f in frames)
+        spread = np.repeat([_spread_m(track, t_last) for _, track in tracked], sizes)
         focal = np.array([self.cameras[c].K[0, 0] for c in cams])[:, None]
         gate = np.maximum(p.gate_px, GATE_SIGMAS * focal * spread / np.maximum(z, 0.05))
         # every camera's blobs, padded with blobs infinitely far
