@@ -464,9 +464,11 @@ def test_a_tag_left_to_the_image_fit_skips_the_border_model_unless_the_fit_fails
             continue
         assert fitted is None
         in_image = modelled + (quads - camera.ideal_pixels(quads).reshape(quads.shape))
+        gains = np.empty((1, 4, 2))
+        edges.refine(frame, quads, 8, camera, _CELLS[[9]], gains=gains)
         assert np.array_equal(corners[9], modelled[0])
         assert np.array_equal(cov[9], fiducial_tracker.corner_covariance(
-            edge_cov, modelled, in_image, 8)[0])
+            edge_cov, modelled, in_image, 8, fiducial_tracker.LOCK_PX, gains)[0])
 
 
 def test_the_tracker_fits_the_steep_tags_image_and_its_pose_follows(monkeypatch):
@@ -619,13 +621,15 @@ def test_side_offsets_move_the_corners_as_their_lines_do():
     turn = cv2.Rodrigues(np.array([0.0, 0.0, 0.2]))[0][:2, :2]
     turned = side_offset_covariance(quad[None], quad[None] @ turn.T, 8)[0]
     assert np.all(np.diag(turned) < np.diag(cov))  # no side along a pixel axis any more
-    # corner k lies on side k: its offset across that side is the side's own; with no
-    # side along a pixel axis, the long sides' (narrow cells across them) are the larger
-    # (by less than their offsets alone: the code turns the short sides' ends)
-    across_std = np.array([np.sqrt(nk @ turned[2 * k:2 * k + 2, 2 * k:2 * k + 2] @ nk)
-                           for k, nk in enumerate(normals)])
+    # the sides' offsets and turns read back from the corners' covariance: with no side
+    # along a pixel axis, the long sides' offsets (narrow cells across them) are the larger,
+    # the short sides' turns (the code behind their wider cells) the larger
+    shift, turns_of, _ = fiducial_tracker._side_moves(quad[None] @ turn.T, 8)
+    moves = np.linalg.inv(np.concatenate([shift[0], turns_of[0]], axis=1))
+    std = np.sqrt(np.diag(moves @ turned @ moves.T))
     order = np.argsort(length)
-    assert across_std[order[2:]].min() > 1.2 * across_std[order[:2]].max()
+    assert std[order[2:]].min() > 1.2 * std[order[:2]].max()
+    assert std[4 + order[:2]].min() > 1.2 * std[4 + order[2:]].max()
 
 
 def test_a_bundle_is_solved_from_all_its_corners(tmp_path):
@@ -966,7 +970,7 @@ def test_pixel_locking_pulls_edges_towards_the_pixel_borders_at_every_sample_spa
     """A side along a pixel axis, each pixel integrated over its area: its crossings, the
     chords between pixel centres of a blurred step, lie off the edge towards the border
     between the pixels, ``A sin(2π x)`` with ``A`` > 0, whether the profiles' samples lie
-    0.42, 0.71 or 1.18 px apart (sides of 25, 42.6 and 71 px)."""
+    0.21, 0.36 or 0.59 px apart (sides of 25, 42.6 and 71 px)."""
     err, where = _side_offsets_along_x(0.0, side_px, np.arange(8) / 8)
     amplitude = _locking_amplitude(err, where)
     assert 0.03 < amplitude < 0.1, amplitude
@@ -1038,8 +1042,84 @@ def test_once_the_camera_has_learnt_its_locking_the_covariance_carries_what_is_l
     quads = np.asarray(raw, np.float64).reshape(-1, 4, 2)
     for tracker, lock_px in ((fresh, fiducial_tracker.LOCK_PX),
                              (learnt, fiducial_tracker.LOCK_LEFT_PX)):
+        gains = np.empty((len(quads), 4, 2))
         ideal, edge_cov = edges.refine(along, quads, 8, IDEAL, _CELLS[[9]],
-                                       locking=copy.copy(tracker._locking))
+                                       locking=copy.copy(tracker._locking), gains=gains)
         _, cov = tracker.observe(along)  # the ideal camera: no lens offset
         np.testing.assert_allclose(cov[9], fiducial_tracker.corner_covariance(
-            edge_cov, ideal, ideal, 8, lock_px)[0], rtol=1e-12, atol=0)
+            edge_cov, ideal, ideal, 8, lock_px, gains)[0], rtol=1e-12, atol=0)
+
+
+def test_the_locking_sine_is_taken_out_of_the_edge_fits_scatter_not_their_noise():
+    """A side 5 degrees off a pixel axis sweeps several pixels across it: its points lie off
+    its line by the locking's ``A sin(2π x)`` (which its line averages out) and their noise.
+    The corners' covariance pools the noise alone: the sine and cosine fitted out of each
+    such side, two dof each; a side along the axis (all its points at one phase) and a side
+    with too few points keep their scatter whole."""
+    rng = np.random.default_rng(3)
+    noise, amplitude, n, k = 0.04, 0.05, 200, edges.SAMPLES
+    turn = math.radians(5.0)
+    square = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float)
+    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    corners = square @ rotation.T + [100.3, 200.7]
+    side = corners[[1, 2, 3, 0]] - corners
+    normal = side[:, ::-1] * [-1.0, 1.0] / 40
+    points = (corners[:, None] + edges._SECOND * side[:, None])[None] \
+        + rng.normal(0, noise, (n, 4, k, 1)) * normal[None, :, None]
+    axis = np.array([1, 0, 1, 0])  # the image axis nearer each side's normal
+    phase = np.take_along_axis(points, axis[None, :, None, None], -1)[..., 0]
+    points += (amplitude * np.sin(2 * np.pi * phase))[..., None] * np.eye(2)[axis][None, :, None]
+    w = np.ones((n, 4, k))
+    mean, dev, direction = edges._lines(points, w)
+    few = np.zeros((n, 4, 1), bool)
+    taken = edges._locking_scatter(points, dev, direction, w)
+    assert np.all(taken[..., 1] == 2.0)
+    cov = edges._corner_covariance(corners[None].repeat(n, 0), mean, direction, dev, w, few,
+                                   taken)
+    whole = edges._corner_covariance(corners[None].repeat(n, 0), mean, direction, dev, w, few,
+                                     np.zeros_like(taken))
+    # the pooled variance, read off the covariance's scale: the noise's, not the sine's too
+    normal_fit = direction[..., ::-1] * [-1.0, 1.0]
+    across = np.einsum("nksc,nkc->nks", dev, normal_fit)
+    s2_whole = (across ** 2).sum((1, 2)) / (w.sum(-1) - 2).sum(-1)
+    s2 = s2_whole * cov[:, 0, 0] / whole[:, 0, 0]
+    # (what is left over the noise: the sine's second order, its phase read off points it
+    # has moved itself)
+    assert 0.97 < np.mean(s2) / noise ** 2 < 1.1 and np.mean(s2_whole) > 1.6 * noise ** 2
+    # along an axis every point of a side shares one phase: nothing to fit there; nor on a
+    # side with too few points
+    flat = points.copy()
+    coordinate = np.take_along_axis(flat, axis[None, :, None, None], -1)
+    np.put_along_axis(flat, axis[None, :, None, None], coordinate.mean(2, keepdims=True), -1)
+    _, dev, direction = edges._lines(flat, w)
+    assert not edges._locking_scatter(flat, dev, direction, w).any()
+    few_points = w.copy()
+    few_points[:, :, edges.LOCK_FIT_POINTS - 1:] = 0.0
+    _, dev, direction = edges._lines(points, few_points)
+    assert not edges._locking_scatter(points, dev, direction, few_points).any()
+
+
+def test_a_sides_points_that_sample_the_locking_at_one_phase_carry_it_whole():
+    """Twenty points along a side 17 degrees off a pixel axis, spaced so that each steps
+    about a whole pixel across it, all see the locking at nearly one phase: it moves the
+    line by its whole amplitude (gain near 1, at that angle the fade's), however far the side
+    sweeps across the axis; spaced so that their phases spread over a period, it averages
+    out (gain near 0), as the continuum's ``sinc(sweep)`` says for both."""
+    angle = math.radians(17.0)
+    direction = np.array([math.cos(angle), math.sin(angle)])
+
+    def gains(step: float) -> np.ndarray:
+        u = (np.arange(20) - 9.5) * step
+        points = 100.0 + u[:, None] * direction  # x along the side, y across its axis
+        edge = points[None, None].repeat(4, 1)
+        dev = (points - points.mean(0))[None, None].repeat(4, 1)
+        w = np.ones((1, 4, 20))
+        corners = np.array([[[0.0, 0.0], [60.0, 0.0], [60.0, 60.0], [0.0, 60.0]]])
+        return edges._locking_gains(edge, dev, np.broadcast_to(direction, (1, 4, 2)), w,
+                                    corners)[0, 0]
+
+    fade = float(np.interp(17.0, edges.LOCK_FADE_DEG, edges.LOCK_FADE))
+    aliased = gains(1.0 / math.sin(angle))  # a whole pixel across the axis per point
+    spread = gains(1.05 / 20 / math.sin(angle) * 20)  # 1.05 px a point: phases spread
+    assert aliased[0] == pytest.approx(fade, rel=1e-6)
+    assert spread[0] < 0.1 * fade

@@ -107,8 +107,10 @@ def test_compiled_line_fits_and_corner_covariance_agree_with_numpy(numpy_only):
         mean, dev, direction = edges._lines(points, w)
         point = np.where(few, corners, mean)
         found, _ = edges._intersections(point, direction, corners, np.full((n, 4, 1), 5.0))
+        taken = edges._locking_scatter(points, dev, direction, w)
+        assert taken[..., 0].any()  # the locking's share taken out of some sides' scatter
         return mean, dev, direction, edges._corner_covariance(found, point, direction, dev, w,
-                                                              few)
+                                                              few, taken)
 
     compiled = both()
     numpy_only()

@@ -298,27 +298,30 @@ static PyObject *lines(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* corner_covariance(corners, point, direction, dev, w, few, fallback_std, out): per marker
- * (4 sides of k edge points), edges.py's _corner_covariance: the corners' joint covariance
- * (8 x 8) from the four lines' fits, each line off by a at its points' mean and turned by
- * b, corner c moved by sides c - 1 and c through the inverse of their normals. */
+/* corner_covariance(corners, point, direction, dev, w, few, taken, fallback_std, out): per
+ * marker (4 sides of k edge points), edges.py's _corner_covariance: the corners' joint
+ * covariance (8 x 8) from the four lines' fits (their pooled scatter less the locking's
+ * share and dof, taken), each line off by a at its points' mean and turned by b, corner c
+ * moved by sides c - 1 and c through the inverse of their normals. */
 static PyObject *corner_covariance(PyObject *self, PyObject *args) {
-    buffers_t s = {.n = 7};
+    buffers_t s = {.n = 8};
     double fallback;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dw*", &s.b[0], &s.b[1], &s.b[2], &s.b[3], &s.b[4],
-                          &s.b[5], &fallback, &s.b[6]))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dw*", &s.b[0], &s.b[1], &s.b[2], &s.b[3],
+                          &s.b[4], &s.b[5], &s.b[6], &fallback, &s.b[7]))
         return NULL;
     Py_ssize_t d = (Py_ssize_t)sizeof(double);
-    Py_ssize_t n = s.b[6].len / (64 * d), k = n > 0 ? s.b[4].len / (4 * n * d) : 0;
-    int ok = n > 0 && s.b[6].len == n * 64 * d && s.b[0].len == n * 8 * d
+    Py_ssize_t n = s.b[7].len / (64 * d), k = n > 0 ? s.b[4].len / (4 * n * d) : 0;
+    int ok = n > 0 && s.b[7].len == n * 64 * d && s.b[0].len == n * 8 * d
              && s.b[1].len == n * 8 * d && s.b[2].len == n * 8 * d && s.b[5].len == n * 4
-             && s.b[4].len == n * 4 * k * d && s.b[3].len == n * 8 * k * d;
+             && s.b[4].len == n * 4 * k * d && s.b[3].len == n * 8 * k * d
+             && s.b[6].len == n * 8 * d;
     if (ok) {
         static const int prev[4] = {3, 0, 1, 2}, next[4] = {1, 2, 3, 0};
         const double *corners = s.b[0].buf, *point = s.b[1].buf, *direction = s.b[2].buf;
         const double *dev = s.b[3].buf, *w = s.b[4].buf;
         const unsigned char *few = s.b[5].buf;
-        double *out = s.b[6].buf, fallback2 = fallback * fallback;
+        const double *taken = s.b[6].buf;
+        double *out = s.b[7].buf, fallback2 = fallback * fallback;
         for (Py_ssize_t m = 0; m < n; m++) {
             const double *c = corners + 8 * m, *pt = point + 8 * m, *dir = direction + 8 * m;
             const unsigned char *f = few + 4 * m;
@@ -339,8 +342,9 @@ static PyObject *corner_covariance(PyObject *self, PyObject *args) {
                 count[e] = total;
                 s_uu[e] = length2 > 1e-12 ? length2 : 1e-12;
                 if (!f[e]) {
-                    rss += cross;
-                    dof += total - 2 > 0 ? total - 2 : 0;
+                    const double *tk = taken + 2 * (4 * m + e);
+                    rss += cross - tk[0];
+                    dof += (total - 2 > 0 ? total - 2 : 0) - tk[1];
                 }
             }
             double s2 = dof > 0 ? rss / (dof > 1 ? dof : 1) : fallback2;

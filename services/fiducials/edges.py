@@ -50,7 +50,18 @@ SAMPLES = 20
 SPAN = 0.86
 FIRST_SAMPLES = 8
 FIRST_SPAN = 0.6
-STEPS = 13
+#: the profile's samples across a side, over twice the reach: a profile's crossing is the
+#: chord between the two samples either side of its middle, which misses a blurred edge
+#: by more the farther apart they lie; the miss is the same at every point of a side and
+#: so moves its whole line.  A near tag's reach is wide (0.8 of cells 8-10 px across): at
+#: 13 samples they lay 1.1-1.3 px apart and its corners erred by 0.030 px RMS, 1.3 times
+#: the variance their covariance claimed (8-dof NEES 10.45); at 25, 0.019 px (7.53).  On seeds
+#: 1-10 of ``uma eval fiducials`` (10 s, the 577 tags the image fit leaves to the edge
+#: fits, by the cells' width across the tag's narrowest side, 0-2.5 / 2.5-3.5 / 3.5-5 /
+#: 5-8 / 8+ px): the corners 0.041 / 0.027 / 0.021 / 0.019 / 0.019 px RMS from the truth
+#: (13 samples: 0.039 / 0.029 / 0.024 / 0.024 / 0.030), their NEES 8.10 / 8.23 / 8.10 /
+#: 7.48 / 7.53 with the locking's sine out of the scatter (:func:`_locking_scatter`)
+STEPS = 25
 MIN_CONTRAST = 20.0
 MIN_POINTS = 3
 #: how far across a side the profile reaches each way, in cells: past the one-cell black
@@ -157,6 +168,17 @@ LOCK_NOISE_PX = 0.042
 #: seed) 0.95 and 0.99 taught alike: the amplitude moves by 0.001 px RMS from frame to
 #: frame after the fifth, within 0.0035-0.0041 px of its mean over a seed, with either
 LOCK_MEMORY = 0.98
+#: the sides whose points sweep ``LOCK_SWEEP_PX`` or more across the axis nearer their
+#: normal, at least this many of them, have the locking's sine and cosine fitted out of
+#: their scatter before it is pooled into the corners' noise
+#: (:func:`_locking_scatter`): two of their dof, so that a side left with fewer than six
+#: keeps its scatter whole
+LOCK_FIT_POINTS = 8
+#: the locking's amplitude against the learnt one (sides within ``LOCK_ANGLE_DEG`` of an
+#: axis) by a side's angle to its nearer axis, degrees: the rendered tags' 0.06 px at 3-10
+#: degrees, 0.046 at 20, 0.01 at 30 (beyond, the locking turns two-dimensional and fades)
+LOCK_FADE_DEG = (LOCK_ANGLE_DEG, 20.0, 30.0, 45.0)
+LOCK_FADE = (1.0, 0.77, 0.17, 0.0)
 
 
 #: the profile's steps across a side
@@ -228,7 +250,8 @@ def place(gray: np.ndarray, quads: np.ndarray, modules: int) -> np.ndarray:
 def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraModel,
            cells: np.ndarray | None = None, placed: np.ndarray | None = None,
            modelled: np.ndarray | None = None, locking: Locking | None = None,
-           learn: bool = True) -> tuple[np.ndarray, np.ndarray]:
+           learn: bool = True, gains: np.ndarray | None = None,
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Corners (n, 4, 2) in ideal pixels (``camera.K``, no distortion) of the detected
     ``quads`` (n, 4, 2, distorted pixels) of markers ``modules`` cells wide, and each
     marker's corners' joint covariance (n, 8, 8) from the edge fits' scatter.  With the
@@ -278,8 +301,12 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     point = np.where(few, fallback, mean)
     direction = np.where(few, chord, direction)
     corners, ok = _intersections(point, direction, fallback, reach)
-    cov = _corner_covariance(corners, point, direction, dev, w, few)
+    cov = _corner_covariance(corners, point, direction, dev, w, few,
+                             _locking_scatter(edge, dev, direction, w))
     cov = np.where(ok[:, None, None], cov, FALLBACK_STD ** 2 * np.eye(8))
+    if gains is not None:
+        gains[...] = np.where(ok[:, None, None], _locking_gains(edge, dev, direction, w, corners),
+                              0.0)
     return np.where(ok[:, None, None], corners, fallback), cov
 
 
@@ -330,9 +357,7 @@ def _unlocked(ideal: np.ndarray, edge: np.ndarray, dev: np.ndarray, direction: n
     near, x, unit = _locking_axes(edge, direction)
     if not near.any():
         return False
-    along = _dot2(dev, direction[:, :, None])
-    extent = np.where(w > 0, along, -np.inf).max(-1) + np.where(w > 0, -along, -np.inf).max(-1)
-    sweep = extent * np.abs(_dot2(direction, unit))
+    sweep = _sweeps(dev, direction, w, unit)
     teach = near & (sweep >= LOCK_TEACH_PX)
     if learn and teach.any():
         locking.add(*_locking_evidence(dev, direction, w, teach, x, unit))
@@ -342,6 +367,79 @@ def _unlocked(ideal: np.ndarray, edge: np.ndarray, dev: np.ndarray, direction: n
     move = np.where(locked[..., None], locking.amplitude * np.sin(2 * np.pi * x), 0.0)
     ideal -= move[..., None] * unit[:, :, None, :]
     return True
+
+
+def _sweeps(dev: np.ndarray, direction: np.ndarray, w: np.ndarray, unit: np.ndarray,
+            ) -> np.ndarray:
+    """How far (n, 4, px) each side's points (``dev``: from their mean; ``w``: weights)
+    sweep across its locking axis ``unit`` (:func:`_locking_axes`)."""
+    along = _dot2(dev, direction[:, :, None])
+    extent = np.where(w > 0, along, -np.inf).max(-1) + np.where(w > 0, -along, -np.inf).max(-1)
+    return np.maximum(extent, 0.0) * np.abs(_dot2(direction, unit))
+
+
+def _locking_scatter(edge: np.ndarray, dev: np.ndarray, direction: np.ndarray,
+                     w: np.ndarray) -> np.ndarray:
+    """Per side (n, 4, 2): the share of its points' squared scatter across its line
+    (``dev``: from their mean; ``w``: weights; ``edge``: where they lie in the image) that
+    a sine and a cosine of their phase on the pixel grid explain (the axis nearer the
+    side's normal, :func:`_locking_axes`) beyond the line's own offset and turn, and the
+    2 dof that fit takes, on the sides whose points sweep ``LOCK_SWEEP_PX`` or more across
+    that axis and number ``LOCK_FIT_POINTS`` or more; zero on the others.  Why: the
+    locking, ``A sin(2π x)``, scatters a side's points by up to ``A / sqrt(2)`` (0.035-0.047
+    px on the eval's frames, against 0.04 of noise; its phases explain 41-75 % of the
+    sides' squared scatter at every angle to the axis, where noise alone would explain 22
+    %) but moves its line by only what :func:`_locking_gains` says: counted as noise it
+    would claim the line errs by as much again, where the covariance's locking terms carry
+    what it moves the line by (``tracker.side_offset_covariance``)."""
+    _, x, unit = _locking_axes(edge, direction)
+    normal = direction[..., ::-1] * [-1.0, 1.0]
+    across = _dot2(dev, normal[:, :, None])
+    u = _dot2(dev, direction[:, :, None])
+    count = w.sum(-1, keepdims=True)
+    spread = np.maximum((w * u * u).sum(-1, keepdims=True), 1e-12)
+
+    def off_line(f: np.ndarray) -> np.ndarray:
+        """``f`` less its weighted straight-line fit along the side."""
+        centred = f - (w * f).sum(-1, keepdims=True) / np.maximum(count, 1.0)
+        return centred - (w * u * centred).sum(-1, keepdims=True) / spread * u
+
+    phase = 2 * np.pi * x
+    s, c = off_line(np.sin(phase)), off_line(np.cos(phase))
+    ss, sc, cc = (w * s * s).sum(-1), (w * s * c).sum(-1), (w * c * c).sum(-1)
+    sr, cr = (w * s * across).sum(-1), (w * c * across).sum(-1)
+    det = ss * cc - sc * sc
+    use = ((count[..., 0] >= LOCK_FIT_POINTS)
+           & (_sweeps(dev, direction, w, unit) >= LOCK_SWEEP_PX)
+           & (det > 1e-6 * np.maximum(count[..., 0], 1.0) ** 2))
+    explained = (cc * sr * sr - 2 * sc * sr * cr + ss * cr * cr) / np.where(use, det, 1.0)
+    return np.stack([np.where(use, explained, 0.0), np.where(use, 2.0, 0.0)], axis=-1)
+
+
+def _locking_gains(edge: np.ndarray, dev: np.ndarray, direction: np.ndarray, w: np.ndarray,
+                   corners: np.ndarray) -> np.ndarray:
+    """Per side (n, 4, 2): how far a pixel locking of unit amplitude, ``sin(2π(x + φ))``
+    at its points' phases ``x`` on the pixel grid (the axis nearer the side's normal, in
+    the image: ``edge``) and a random ``φ``, moves its fitted line (one standard deviation
+    over ``φ`` is ``1 / sqrt(2)`` of these): the offset at the points' mean, ``|mean
+    exp(2πix)|``, and the turn, the points' straight-line fit of it along the side
+    (``dev``: from their mean; ``w``: weights) at the side's ends (half the side between
+    ``corners``).  Why the points' own phases: they sample the sine at discrete steps, and
+    where a step is near a whole pixel the sine does not average out along the side
+    however far the side sweeps across the axis (a near tag's 20 points lie 3-4 px
+    apart along a side)."""
+    _, x, _ = _locking_axes(edge, direction)
+    z = np.exp(2j * np.pi * x)
+    count = np.maximum(w.sum(-1), 1.0)
+    mean = (w * z).sum(-1) / count
+    u = _dot2(dev, direction[:, :, None])
+    spread = np.maximum((w * u * u).sum(-1), 1e-12)
+    side = corners[:, _NEXT] - corners
+    half = np.sqrt(_dot2(side, side)) / 2
+    turn = np.abs((w * u * (z - mean[..., None])).sum(-1)) / spread * half
+    angle = np.degrees(np.arccos(np.clip(np.abs(direction).max(-1), 0.0, 1.0)))
+    fade = np.interp(angle, LOCK_FADE_DEG, LOCK_FADE)
+    return np.stack([np.abs(mean), turn], axis=-1) * fade[..., None]
 
 
 def cell_widths(quads: np.ndarray, modules: int) -> np.ndarray:
@@ -604,13 +702,16 @@ def _lines(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 
 def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.ndarray,
-                       dev: np.ndarray, w: np.ndarray, few: np.ndarray) -> np.ndarray:
+                       dev: np.ndarray, w: np.ndarray, few: np.ndarray,
+                       taken: np.ndarray) -> np.ndarray:
     """The corners' joint covariance (n, 8, 8) (x and y of corner 0, of corner 1, ...) from
     the fits of the four lines they are the intersections of.  A line fitted to N edge
     points scattered by s across it is off by ``a`` (s/sqrt(N)) at the points' mean and
     turned by ``b`` (s/sqrt(sum u^2), u: the points' distances along it from their mean),
     independently; at u along it, it is off by ``a + u b`` across itself.  s^2 is pooled
-    over the marker's four sides (their residuals across the fitted lines).  Corner k moves
+    over the marker's four sides (their residuals across the fitted lines, less what the
+    pixel locking explains of them and the dof its fit takes: ``taken`` (n, 4, 2),
+    :func:`_locking_scatter`).  Corner k moves
     by the offsets of sides k-1 and k through the inverse of the 2x2 matrix of their
     normals, so the two corners of a side move together with its line: their covariance is
     not block-diagonal (across the side, a turn moves them oppositely, correlation about
@@ -624,16 +725,16 @@ def _corner_covariance(corners: np.ndarray, point: np.ndarray, direction: np.nda
         if len(corners):
             NATIVE.corner_covariance(c(corners, np.float64), c(point, np.float64),
                                      c(direction, np.float64), c(dev, np.float64),
-                                     c(w, np.float64), c(few[..., 0], np.uint8), FALLBACK_STD,
-                                     out)
+                                     c(w, np.float64), c(few[..., 0], np.uint8),
+                                     c(taken, np.float64), FALLBACK_STD, out)
         return out
     normal = direction[..., ::-1] * [-1.0, 1.0]  # (n, 4, 2)
     across = _dot2(dev, normal[:, :, None])
     along = _dot2(dev, direction[:, :, None])
     count = w.sum(-1)
     fitted = ~few[..., 0]
-    rss = np.where(fitted, (w * (across * across)).sum(-1), 0.0).sum(-1)
-    dof = np.where(fitted, np.maximum(count - 2, 0), 0).sum(-1)
+    rss = np.where(fitted, (w * (across * across)).sum(-1) - taken[..., 0], 0.0).sum(-1)
+    dof = np.where(fitted, np.maximum(count - 2, 0) - taken[..., 1], 0).sum(-1)
     s2 = np.where(dof > 0, rss / np.maximum(dof, 1), FALLBACK_STD ** 2)[:, None]  # (n, 1)
     s_uu = np.maximum((w * (along * along)).sum(-1), 1e-12)
     # where corner k lies along side k (its near end) and along side k - 1 (its far end)

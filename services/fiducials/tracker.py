@@ -96,28 +96,34 @@ FLOOR_B = 1.58
 #: tag: a tilted tag's long sides have narrow cells across them and err, its short sides
 #: have wide ones and do not.  What the code's cells behind the border add is corrected
 #: (:func:`edges.refine`): this is what remains
-SIDE_A = 0.080
-SIDE_SCALE_PX = 1.07
+SIDE_A = 0.025
+SIDE_SCALE_PX = 1.70
 SIDE_CORRELATION = 1.0
 #: ... and an edge's crossing errs with its sub-pixel phase against the pixel grid (pixel
 #: locking), by ``LOCK_PX * sin(2π phase)`` (on the eval's frames 0.04-0.06 px where a
 #: side lies within a third of a pixel of an axis, its sign following the phase, on seeds
-#: 1-10 and 101-110 alike): along a side that sweeps many pixels across its axis the
-#: phases vary and the error shows in the fit's scatter, but the points of a side nearly
-#: parallel to a pixel axis share one phase and their error moves the whole line, by
-#: ``LOCK_PX / sqrt(2) * sinc(sweep)``, and turns it (:func:`_locked_slope`), ``sweep``
-#: the pixels the side's fitted span sweeps across that axis, in the image (independent
-#: from side to side, offset and turn uncorrelated over the phase).  Beyond these the
-#: sides' offsets err by ``EDGE_SHARE`` of the cells' width across them, independently:
-#: what grows with the tag's size in the image (the near tags' corners at 7-10 px cells
-#: erred 1.2-1.8 times their edge fits' covariance, those at 2-5 px as it says).  With them
-#: the edge fits' own covariance needs no factor (fitted beside them it came out 0.96).
-#: The five figures were fitted on seeds 1-10 of ``uma eval fiducials`` by maximum
-#: likelihood, the errors of the four corners against the truth of the 577 tags the image
-#: fit leaves to the edge fits (a side's offset 0.013 px where its cells are 2 px across).
-#: The corners' mean 8-dof NEES 7.8 (fresh seeds 101-110, nothing fitted there, 8.1)
+#: 1-10 and 101-110 alike): where a side's points lie at phases spread over a period the
+#: error shows in the fit's scatter (and is taken out of it, :func:`edges.refine`), but
+#: where they share one phase (a side nearly along an axis, or points a whole pixel apart
+#: across it) it moves the whole line and turns it, by ``LOCK_PX / sqrt(2)`` times the
+#: gains read off the points' own phases (:func:`edges.refine`'s ``gains``; without them
+#: the continuum's ``sinc(sweep)`` and :func:`_locked_slope`, ``sweep`` the pixels the
+#: side's fitted span sweeps across that axis), independent from side to side, offset
+#: and turn uncorrelated over the phase.  Beyond these the sides' offsets err by
+#: ``EDGE_SHARE`` of the cells' width across them, independently: what grows with the
+#: tag's size in the image; and the edge fits' own covariance is ``EDGE_FIT_SCALE`` times
+#: what their scatter says: sensor noise alone it states (a tag rendered 60 times with
+#: fresh noise, at 0.6-1.4 m: the corners' scatter 0.88-1.12 of the claim), so the rest
+#: is the frames' other errors, shared by neighbouring points.  The five figures
+#: (``SIDE_A``, ``SIDE_SCALE_PX``, ``EDGE_SHARE``, ``EDGE_FIT_SCALE``, ``CODE_TURN_A``;
+#: the locking's kept) were fitted by maximum likelihood on seeds 1-10 of ``uma eval
+#: fiducials`` at 10 s and 60 s together, the errors of the four corners against the
+#: truth of the 4,129 tags the image fit leaves to the edge fits (a side's offset 0.008
+#: px where its cells are 2 px across): the corners' mean 8-dof NEES 8.8 at 10 s, 7.7 at
+#: 60 s; the bundle scenes' tags at 10 s, not fitted, 7.3
 LOCK_PX = edges.LOCK_PRIOR_PX
-EDGE_SHARE = 0.00095
+EDGE_FIT_SCALE = 1.17
+EDGE_SHARE = 0.00070
 #: ... and once the camera has learnt its locking (:class:`edges.Locking`) and takes it out
 #: of the sides along an axis, the covariance's locking term is what is left: the larger of
 #: ``LOCK_LEFT_PX`` and the learnt amplitude's own spread.  Refitted by maximum likelihood
@@ -134,12 +140,12 @@ LOCK_LEFT_PX = 0.029
 #: side.  On seeds 1-10 of ``uma eval fiducials`` (the 577 edge-fitted tags' corners)
 #: how far the sides' ends move oppositely against the truth jumps at the gate: 0.020 /
 #: 0.017 px RMS at 2.6-2.8 / 2.8-3.0 px, 0.024 / 0.027 at 3.0-3.2 / 3.2-3.4 (fresh seeds
-#: 101-110: 0.019 / 0.018, 0.025 / 0.028), where the other terms claim 0.021-0.024.  The
-#: two figures are fitted by maximum likelihood on those corners, the others kept
-#: (refitted beside them they move by 1-14 %, the likelihood by nothing).  The sides'
+#: 101-110: 0.019 / 0.018, 0.025 / 0.028), where the other terms claim 0.021-0.024.
+#: ``CODE_TURN_A`` is fitted with the figures above, ``CODE_TURN_SCALE_PX`` on those
+#: corners alone.  The sides'
 #: offsets do not jump alike on the fresh seeds, and an offset beside the turn puts the
 #: poses' NEES at 1.5-2 m under its band: none is carried
-CODE_TURN_A = 1.11
+CODE_TURN_A = 1.38
 CODE_TURN_SCALE_PX = 0.70
 #: the tag-wide part of that offset (``SIDE_CORRELATION``) is shared by the tags of a
 #: bundle: seen alike (the same blur, view and cell widths), they look smaller or larger
@@ -279,40 +285,54 @@ def _covered(own: np.ndarray, chosen: pose.Solution, solutions: list[pose.Soluti
 
 
 def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, in_image: np.ndarray,
-                      modules: int, lock_px: float = LOCK_PX) -> np.ndarray:
+                      modules: int, lock_px: float | np.ndarray = LOCK_PX,
+                      gains: np.ndarray | None = None) -> np.ndarray:
     """The joint covariances (m, 8, 8) of the corners (m, 4, 2, ideal pixels) of ``m``
     markers ``modules`` cells wide, at ``in_image`` in the image's pixels (m, 4, 2: where
-    the sides' pixel locking is), from their edge fits' (:func:`edges.refine`), plus the
-    four sides' offsets and turns that the fits cannot show
-    (:func:`side_offset_covariance`, pixel locking of amplitude ``lock_px``)."""
-    return edge_fit + side_offset_covariance(corners, in_image, modules, lock_px)
+    the sides' pixel locking is), from their edge fits' (:func:`edges.refine`, times
+    ``EDGE_FIT_SCALE``), plus the four sides' offsets and turns that the fits cannot show
+    (:func:`side_offset_covariance`, pixel locking of amplitude ``lock_px``, per side
+    (m, 4) or one for all, and ``gains``, :func:`edges.refine`'s)."""
+    return EDGE_FIT_SCALE * edge_fit + side_offset_covariance(corners, in_image, modules,
+                                                              lock_px, gains)
 
 
 def side_offset_covariance(corners: np.ndarray, in_image: np.ndarray,
-                           modules: int, lock_px: float = LOCK_PX) -> np.ndarray:
+                           modules: int, lock_px: float | np.ndarray = LOCK_PX,
+                           gains: np.ndarray | None = None) -> np.ndarray:
     """The corners' covariance (m, 8, 8) from their four sides' lines moving across
     themselves: by ``SIDE_A * exp(-across / SIDE_SCALE_PX)`` px, the four sides together
     at ``SIDE_CORRELATION``; each by ``EDGE_SHARE`` of its cells' width and by its pixel
-    locking, ``LOCK_PX / sqrt(2) * sinc(sweep)``, which also turns it, as the code's cells
-    behind an uncorrected side do (:func:`_code_turn_px`) (``sweep``: how many
-    pixels across its nearer image axis the side's fitted span covers in the image,
-    ``in_image``: the refined corners there, not the detector's whole pixels, since a
-    pixel's difference in ``sweep`` is the whole term).  Corner k is where side k - 1
+    locking, ``lock_px / sqrt(2)`` times the offset gain of ``gains`` (m, 4, 2), which
+    also turns it by the turn gain, as the code's cells behind an uncorrected side do
+    (:func:`_code_turn_px`).  Without ``gains``, those of a continuum of phases,
+    ``sinc(sweep)`` and :func:`_locked_slope` (``sweep``: how many pixels across its
+    nearer image axis the side's fitted span covers in the image, ``in_image``: the
+    refined corners there, not the detector's whole pixels, since a pixel's difference in
+    ``sweep`` is the whole term).  Corner k is where side k - 1
     ends and side k starts: when side k moves across itself by ``o``, corner k slides
     along side k - 1 by ``o / sin`` of the angle between them, and when side k - 1
     moves, back along side k (the sides' outward directions all flip with the quad's
     orientation, which the covariance does not see)."""
     shift, turn, across = _side_moves(corners, modules)
-    in_image = np.asarray(in_image, np.float64)
-    sweep = np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
+    sweep = side_sweeps(in_image)
     tau = _side_offset_px(across)
-    own = ((1 - SIDE_CORRELATION) * tau ** 2 + lock_px ** 2 / 2 * np.sinc(sweep) ** 2
+    if gains is None:
+        gains = np.stack([np.sinc(sweep), _locked_slope(sweep)], axis=-1)
+    own = ((1 - SIDE_CORRELATION) * tau ** 2 + lock_px ** 2 / 2 * gains[..., 0] ** 2
            + (EDGE_SHARE * across) ** 2)
-    tilt = lock_px ** 2 / 2 * _locked_slope(sweep) ** 2 + _code_turn_px(across) ** 2
+    tilt = lock_px ** 2 / 2 * gains[..., 1] ** 2 + _code_turn_px(across) ** 2
     common = (shift * tau[:, None, :]).sum(axis=-1)
     return (SIDE_CORRELATION * common[:, :, None] * common[:, None, :]
             + (shift * own[:, None, :]) @ np.swapaxes(shift, -1, -2)
             + (turn * tilt[:, None, :]) @ np.swapaxes(turn, -1, -2))
+
+
+def side_sweeps(in_image: np.ndarray) -> np.ndarray:
+    """How many pixels (m, 4) across its nearer image axis each side's fitted span
+    covers, its quad's corners ``in_image`` (m, 4, 2) in the image's pixels."""
+    in_image = np.asarray(in_image, np.float64)
+    return np.abs(in_image[:, _NEXT] - in_image).min(axis=-1) * edges.SPAN
 
 
 def _locked_slope(sweep: np.ndarray) -> np.ndarray:
@@ -547,12 +567,26 @@ class FiducialTracker:
         distortion's offset at the detected corners; ``learn``: whether their sides teach
         the camera's pixel locking (once a frame: not when the tags the image fit rejected
         are fitted again)."""
+        gains = np.empty((len(detected), 4, 2))
         ideal, cov = edges.refine(gray, detected, self._modules, self.camera, cells, placed,
-                                  modelled, self._locking, learn)
+                                  modelled, self._locking, learn, gains)
         # the refined corners in the image's pixels: the distortion's offset is smooth, the
         # detector's corner a pixel away has the same
-        return ideal, corner_covariance(cov, ideal, ideal + lens, self._modules,
-                                        max(LOCK_LEFT_PX, self._locking.spread))
+        in_image = ideal + lens
+        return ideal, corner_covariance(cov, ideal, in_image, self._modules,
+                                        self._lock_px(side_sweeps(in_image)), gains)
+
+    def _lock_px(self, sweep: np.ndarray) -> np.ndarray:
+        """The pixel locking (px) the covariance carries on each side sweeping ``sweep``
+        (m, 4) px across its axis: what is left of it (``LOCK_LEFT_PX``, or the learnt
+        amplitude's spread) on the sides :func:`edges.refine` takes it out of, and the
+        whole of it on the others (the learnt amplitude, its spread added): near an axis
+        their fits' scatter has it taken out (:func:`edges._locking_scatter`), so nothing
+        else carries what it moves their lines by; farther from one it fades, and so does
+        this term (``sinc`` of a sweep of several pixels)."""
+        locking = self._locking
+        return np.where(sweep < edges.LOCK_SWEEP_PX, max(LOCK_LEFT_PX, locking.spread),
+                        math.hypot(locking.amplitude, locking.spread))
 
     def process(self, image: np.ndarray, t_ns: int) -> list[Estimate]:
         """Every body seen in ``image`` (captured at ``t_ns``)."""
