@@ -939,6 +939,14 @@ def test_eval_outside_in_takes_every_nth_frame_set_when_asked() -> None:
     assert f["uma_3plus"]["wrong_poses"] == f["uma_2"]["wrong_poses"] == 0
 
 
+@pytest.mark.parametrize("every", ["0", "101"])
+def test_eval_outside_in_names_a_track_every_out_of_range(capsys, every: str) -> None:
+    from agent.cli.main import main
+    assert main(["eval", "outside-in", "--track-every", every]) == 1
+    err = capsys.readouterr().err
+    assert f"--track-every must be in [1, 100], got {every}" in err and "Traceback" not in err
+
+
 def test_eval_scores_the_fit_apart_from_the_filter() -> None:
     """A pose's fit counts against its own covariance, the filtered pose against the
     filter's, each with its own error; a wrong pose adds neither."""
