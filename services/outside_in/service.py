@@ -571,7 +571,10 @@ def run_outside_in(args: argparse.Namespace, stop: threading.Event) -> int:
     return 0
 
 
-def _log_counts(rec: Reconstruction, recent: RecentSets, cpu: list) -> None:
+def _log_counts(rec: Reconstruction, recent: RecentSets, cpu: list[float]) -> None:
+    """The reconstruction's counts so far and its tracking thread's CPU per frame set
+    (``cpu``: tracking s, publishing s, sets): every 5 s and once more on stop, so that a
+    run shorter than that (a demo, a test) still leaves them in its log."""
     n = max(cpu[2], 1)
     log.info("outside-in: %d frame sets, %s, %d samples refused, %d late, %d stale, %d sets "
              "superseded; CPU per frame set: tracking %.2f ms, publishing %.2f ms",
