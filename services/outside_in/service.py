@@ -14,12 +14,14 @@ frame set it publishes, per camera (at most every ``WINDOWS_EVERY_S``, and only 
 they can come in time: ``Reconstruction.windows``), where the tracked bodies' markers will
 image at that camera's next exposure (a ``markers2d`` ability ``windows-NAME`` on ``SITE/NAME ->
 SITE/NAME/windows``, its time the exposure's, ``extra["search"]`` true while a body is
-lost; each point's value the distance in pixels within which the reconstruction takes a
-blob).  Each marker camera needs its own and looks for blobs only in windows around those
-points (``find_blobs``' windowed mode: a fraction of the whole image's cost), and in the
-whole image when no prediction for this exposure (or up to ``PREDICTION_AGE_S`` before
-it) has come, and while a body is lost: every camera's every frame then, since the search
-needs a body's markers in two cameras' whole images of one frame set.
+lost; each point's value the least distance in pixels within which the reconstruction
+takes a blob, ``TrackerParams.gate_px``: where its prediction is less sure it takes one
+further off, ``tracker.GATE_SIGMAS``).  Each marker camera needs its own and looks for
+blobs only in windows around those points (``find_blobs``' windowed mode: a fraction of
+the whole image's cost), and in the whole image when no prediction for this exposure (or
+up to ``PREDICTION_AGE_S`` before it) has come, and while a body is lost: every camera's
+every frame then, since the search needs a body's markers in two cameras' whole images of
+one frame set.
 
 The **reconstruction** needs ``markers2d`` on ``world -> SITE/*`` from up to 16 cameras:
 whatever camera appears is used, one that stops is left out.  Samples are gathered into
