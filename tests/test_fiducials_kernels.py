@@ -92,7 +92,7 @@ def test_compiled_crossings_agree_with_numpy_to_the_bit(numpy_only):
 
 
 @native
-def test_compiled_line_fits_and_corner_covariance_agree_with_numpy(numpy_only):
+def test_compiled_line_fits_locking_terms_and_corner_covariance_agree_with_numpy(numpy_only):
     rng = np.random.default_rng(11)
     n, k = 6, edges.SAMPLES
     corners = np.array([[0, 0], [40, 2], [42, 38], [-1, 40]], float) + rng.normal(0, 5, (n, 1, 2))
@@ -107,10 +107,11 @@ def test_compiled_line_fits_and_corner_covariance_agree_with_numpy(numpy_only):
         mean, dev, direction = edges._lines(points, w)
         point = np.where(few, corners, mean)
         found, _ = edges._intersections(point, direction, corners, np.full((n, 4, 1), 5.0))
-        taken = edges._locking_scatter(points, dev, direction, w)
+        taken, gains = edges._locking_terms(points, dev, direction, w, found)
         assert taken[..., 0].any()  # the locking's share taken out of some sides' scatter
-        return mean, dev, direction, edges._corner_covariance(found, point, direction, dev, w,
-                                                              few, taken)
+        assert gains[..., 1].any()  # and its line gains, offset and turn
+        return mean, dev, direction, taken, gains, edges._corner_covariance(
+            found, point, direction, dev, w, few, taken)
 
     compiled = both()
     numpy_only()

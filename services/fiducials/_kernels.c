@@ -1,8 +1,8 @@
 /* The compiled twin of the fiducial tracker's per-frame arithmetic on small arrays:
  * pose.py's fits (the reprojection residuals and Jacobian of a stack of poses) and
  * gauss_newton (their undamped Gauss-Newton steps); edges.py's profile crossings (each
- * profile's rising crossing of its level nearest the centre), side lines' fits and the
- * corners' covariance; border.py's crossing_bias (the modelled profiles across thin sides
+ * profile's rising crossing of its level nearest the centre), side lines' fits, the pixel
+ * locking's share of their scatter and its line gains, and the corners' covariance; border.py's crossing_bias (the modelled profiles across thin sides
  * and their crossings).
  *
  * The same arithmetic as the numpy code: the Jacobian in the decoupled [position,
@@ -493,6 +493,108 @@ static PyObject *code_crossings(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* locking_terms(edge, dev, direction, w, corners, fade_deg, fade, fit_points, sweep_px,
+ * taken, gains): per side (k weighted points), edges.py's _locking_terms: the share of the
+ * points' squared scatter across their line that a sine and a cosine of their phase on the
+ * pixel grid explain beyond the line's offset and turn, with its 2 dof (where the side has
+ * fit_points or more points sweeping sweep_px or more across the axis nearer its normal;
+ * else zeros), and how far a unit locking moves its line (the offset at the points' mean,
+ * the turn at the side's ends), faded by the side's angle to that axis (fade_deg, fade:
+ * np.interp's table). */
+static PyObject *locking_terms(PyObject *self, PyObject *args) {
+    buffers_t s = {.n = 9};
+    double fit_points, sweep_px;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*ddw*w*", &s.b[0], &s.b[1], &s.b[2], &s.b[3],
+                          &s.b[4], &s.b[5], &s.b[6], &fit_points, &sweep_px, &s.b[7],
+                          &s.b[8]))
+        return NULL;
+    Py_ssize_t d = (Py_ssize_t)sizeof(double);
+    Py_ssize_t sides = s.b[2].len / (2 * d), k = sides > 0 ? s.b[3].len / (sides * d) : 0;
+    Py_ssize_t nf = s.b[5].len / d;
+    int ok = sides > 0 && sides % 4 == 0 && s.b[2].len == sides * 2 * d
+             && s.b[3].len == sides * k * d && s.b[0].len == sides * k * 2 * d
+             && s.b[1].len == s.b[0].len && s.b[4].len == sides * 2 * d && nf > 0
+             && s.b[6].len == nf * d && s.b[7].len == sides * 2 * d
+             && s.b[8].len == sides * 2 * d;
+    if (ok) {
+        const double *edge = s.b[0].buf, *dev = s.b[1].buf, *direction = s.b[2].buf;
+        const double *w = s.b[3].buf, *corners = s.b[4].buf, *fdeg = s.b[5].buf;
+        const double *fval = s.b[6].buf;
+        double *taken = s.b[7].buf, *gains = s.b[8].buf;
+        const double two_pi = 2 * M_PI;
+        for (Py_ssize_t i = 0; i < sides; i++) {
+            const double *e = edge + 2 * k * i, *dv = dev + 2 * k * i, *wi = w + k * i;
+            const double dx = direction[2 * i], dy = direction[2 * i + 1];
+            const int axis = fabs(dx) >= fabs(dy) ? 1 : 0;  /* the normal's larger part */
+            const double nx = -dy, ny = dx;
+            double count = 0.0, suu = 0.0, hi = -INFINITY, lo = -INFINITY;
+            double ws = 0.0, wc = 0.0;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                double u = dv[2 * j] * dx + dv[2 * j + 1] * dy;
+                double ph = two_pi * e[2 * j + axis];
+                count += wi[j];
+                suu += wi[j] * u * u;
+                ws += wi[j] * sin(ph);
+                wc += wi[j] * cos(ph);
+                if (wi[j] > 0) {
+                    if (u > hi) hi = u;
+                    if (-u > lo) lo = -u;
+                }
+            }
+            double scale = count > 1.0 ? count : 1.0, spread = suu > 1e-12 ? suu : 1e-12;
+            double ms = ws / scale, mc = wc / scale;
+            /* the sine and cosine less their straight-line fit along the side */
+            double us = 0.0, uc = 0.0;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                double u = dv[2 * j] * dx + dv[2 * j + 1] * dy;
+                double ph = two_pi * e[2 * j + axis];
+                us += wi[j] * u * (sin(ph) - ms);
+                uc += wi[j] * u * (cos(ph) - mc);
+            }
+            double bs = us / spread, bc = uc / spread;
+            double ss = 0.0, sc = 0.0, cc = 0.0, sr = 0.0, cr = 0.0;
+            for (Py_ssize_t j = 0; j < k; j++) {
+                double u = dv[2 * j] * dx + dv[2 * j + 1] * dy;
+                double across = dv[2 * j] * nx + dv[2 * j + 1] * ny;
+                double ph = two_pi * e[2 * j + axis];
+                double sj = sin(ph) - ms - bs * u, cj = cos(ph) - mc - bc * u;
+                ss += wi[j] * sj * sj;
+                sc += wi[j] * sj * cj;
+                cc += wi[j] * cj * cj;
+                sr += wi[j] * sj * across;
+                cr += wi[j] * cj * across;
+            }
+            double extent = hi + lo, det = ss * cc - sc * sc;
+            double sweep = (extent > 0 ? extent : 0.0) * fabs(axis ? dy : dx);
+            int use = count >= fit_points && sweep >= sweep_px && det > 1e-6 * scale * scale;
+            taken[2 * i] = use ? (cc * sr * sr - 2 * sc * sr * cr + ss * cr * cr) / det : 0.0;
+            taken[2 * i + 1] = use ? 2.0 : 0.0;
+            /* the gains: |mean exp(2 pi i x)| and its line's slope at the side's ends */
+            const double *c0 = corners + 2 * i;
+            const double *c1 = corners + 2 * ((i % 4 == 3) ? i - 3 : i + 1);
+            double half = hypot(c1[0] - c0[0], c1[1] - c0[1]) / 2;
+            double along = fabs(dx) > fabs(dy) ? fabs(dx) : fabs(dy);
+            double angle = acos(along < 1.0 ? (along > 0.0 ? along : 0.0) : 1.0) * 180.0 / M_PI;
+            double f = fval[nf - 1];
+            if (angle <= fdeg[0]) f = fval[0];
+            else
+                for (Py_ssize_t q = 1; q < nf; q++)
+                    if (angle <= fdeg[q]) {
+                        f = fval[q - 1] + (fval[q] - fval[q - 1]) * (angle - fdeg[q - 1])
+                                              / (fdeg[q] - fdeg[q - 1]);
+                        break;
+                    }
+            gains[2 * i] = hypot(mc, ms) * f;
+            gains[2 * i + 1] = hypot(uc, us) / spread * half * f;
+        }
+    } else {
+        PyErr_SetString(PyExc_ValueError, "fiducial kernel: inconsistent locking sizes");
+    }
+    release(&s);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"fits", fits, METH_VARARGS,
      "Reprojection residuals and Jacobians of a stack of poses, into the given arrays."},
@@ -508,6 +610,8 @@ static PyMethodDef methods[] = {
      "The modelled profiles' crossings across thin sides (border.crossing_bias), into out."},
     {"corner_covariance", corner_covariance, METH_VARARGS,
      "Each marker's corners' joint covariance from its four line fits, into the given array."},
+    {"locking_terms", locking_terms, METH_VARARGS,
+     "Each side's pixel-locking share of its scatter and its line gains, into the given arrays."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -301,12 +301,11 @@ def refine(gray: np.ndarray, quads: np.ndarray, modules: int, camera: CameraMode
     point = np.where(few, fallback, mean)
     direction = np.where(few, chord, direction)
     corners, ok = _intersections(point, direction, fallback, reach)
-    cov = _corner_covariance(corners, point, direction, dev, w, few,
-                             _locking_scatter(edge, dev, direction, w))
+    taken, locked = _locking_terms(edge, dev, direction, w, corners)
+    cov = _corner_covariance(corners, point, direction, dev, w, few, taken)
     cov = np.where(ok[:, None, None], cov, FALLBACK_STD ** 2 * np.eye(8))
     if gains is not None:
-        gains[...] = np.where(ok[:, None, None], _locking_gains(edge, dev, direction, w, corners),
-                              0.0)
+        gains[...] = np.where(ok[:, None, None], locked, 0.0)
     return np.where(ok[:, None, None], corners, fallback), cov
 
 
@@ -376,6 +375,25 @@ def _sweeps(dev: np.ndarray, direction: np.ndarray, w: np.ndarray, unit: np.ndar
     along = _dot2(dev, direction[:, :, None])
     extent = np.where(w > 0, along, -np.inf).max(-1) + np.where(w > 0, -along, -np.inf).max(-1)
     return np.maximum(extent, 0.0) * np.abs(_dot2(direction, unit))
+
+
+def _locking_terms(edge: np.ndarray, dev: np.ndarray, direction: np.ndarray, w: np.ndarray,
+                   corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_locking_scatter` and :func:`_locking_gains` of the same sides, in one call
+    of the compiled twin where it is built (in numpy some hundred calls a frame on a few
+    hundred numbers: the interpreter's cost)."""
+    if NATIVE is None or not len(edge):
+        return (_locking_scatter(edge, dev, direction, w),
+                _locking_gains(edge, dev, direction, w, corners))
+    c = np.ascontiguousarray
+    taken, gains = np.empty((*w.shape[:2], 2)), np.empty((*w.shape[:2], 2))
+    NATIVE.locking_terms(c(edge, np.float64), c(dev, np.float64), c(direction, np.float64),
+                         c(w, np.float64), c(corners, np.float64), _FADE_DEG, _FADE,
+                         float(LOCK_FIT_POINTS), LOCK_SWEEP_PX, taken, gains)
+    return taken, gains
+
+
+_FADE_DEG, _FADE = np.array(LOCK_FADE_DEG), np.array(LOCK_FADE)
 
 
 def _locking_scatter(edge: np.ndarray, dev: np.ndarray, direction: np.ndarray,
@@ -516,9 +534,9 @@ def _crossings(profile: np.ndarray, level: np.ndarray) -> np.ndarray:
     return np.take_along_axis(where, pick[..., None], -1)[..., 0]
 
 
-#: the compiled twin of :func:`_crossings` (to the bit), :func:`_lines` and
-#: :func:`_corner_covariance` (to rounding) (``_kernels.c``; tests set it to None to run the
-#: numpy code)
+#: the compiled twin of :func:`_crossings` (to the bit), :func:`_lines`,
+#: :func:`_locking_terms` and :func:`_corner_covariance` (to rounding) (``_kernels.c``;
+#: tests set it to None to run the numpy code)
 NATIVE: Any = compiled_twin("services.fiducials._kernels", "UMA_FIDUCIALS_PURE_PYTHON")
 
 
