@@ -54,13 +54,12 @@ FIRST_SPAN = 0.6
 #: chord between the two samples either side of its middle, which misses a blurred edge
 #: by more the farther apart they lie; the miss is the same at every point of a side and
 #: so moves its whole line.  A near tag's reach is wide (0.8 of cells 8-10 px across): at
-#: 13 samples they lay 1.1-1.3 px apart and its corners erred by 0.030 px RMS, 1.3 times
-#: the variance their covariance claimed (8-dof NEES 10.45); at 25, 0.019 px (7.53).  On seeds
+#: 13 samples they lay 1.1-1.3 px apart and its corners erred by 0.030 px RMS; at 25,
+#: 0.019 px.  On seeds
 #: 1-10 of ``uma eval fiducials`` (10 s, the 577 tags the image fit leaves to the edge
 #: fits, by the cells' width across the tag's narrowest side, 0-2.5 / 2.5-3.5 / 3.5-5 /
 #: 5-8 / 8+ px): the corners 0.041 / 0.027 / 0.021 / 0.019 / 0.019 px RMS from the truth
-#: (13 samples: 0.039 / 0.029 / 0.024 / 0.024 / 0.030), their NEES 8.10 / 8.23 / 8.10 /
-#: 7.48 / 7.53 with the locking's sine out of the scatter (:func:`_locking_scatter`)
+#: (13 samples: 0.039 / 0.029 / 0.024 / 0.024 / 0.030)
 STEPS = 25
 MIN_CONTRAST = 20.0
 MIN_POINTS = 3
