@@ -284,6 +284,26 @@ def _covered(own: np.ndarray, chosen: pose.Solution, solutions: list[pose.Soluti
     return (1 - weight) * own + weight * (np.outer(d, d) + cov_of(other))
 
 
+def tilt(solution: pose.Solution) -> float:
+    """The angle (rad) between a solution's marker plane normal and its line of sight."""
+    sight = solution.tvec / np.linalg.norm(solution.tvec)
+    return math.acos(min(abs(float(solution.rotation[:, 2] @ sight)), 1.0))
+
+
+def _met(own: np.ndarray, chosen: pose.Solution, meet_rad: float) -> np.ndarray:
+    """The covariance of a pose whose two planar solutions refined to one minimum: the
+    marker faces the camera within ``meet_rad`` (:func:`apparent_tilt`), where its
+    corners tell its tilt only to second order, so the fit's curvature there claims far
+    less than the tilt's spread (a tag 2.8 degrees from facing the camera at 3 m, its
+    neighbours' frames covered by 4-15 degrees, was claimed to 1.9 degrees and erred 5.1).
+    The tilt lies anywhere within ``meet_rad`` about the line of sight: ``meet_rad² / 4``
+    on each of the two axes across it, added to the fit's own."""
+    sight = chosen.tvec / np.linalg.norm(chosen.tvec)
+    out = own.copy()
+    out[3:, 3:] += meet_rad ** 2 / 4 * (np.eye(3) - np.outer(sight, sight))
+    return out
+
+
 def corner_covariance(edge_fit: np.ndarray, corners: np.ndarray, in_image: np.ndarray,
                       modules: int, lock_px: float | np.ndarray = LOCK_PX,
                       gains: np.ndarray | None = None) -> np.ndarray:
@@ -679,7 +699,8 @@ class FiducialTracker:
             if weight is not None and len(ids) > 1 and len(solutions) > 1:
                 solutions, gap = _weighted_gap(solutions, weight)
             picks.append(_Pick(body, ids, solutions, module_px, sigma2,
-                               *self._judge(solutions, sigma2, module_px, state, t_ns, gap)))
+                               *self._judge(solutions, sigma2, module_px, state, t_ns, gap,
+                                            lone=len(ids) == 1)))
             kept.append(weight)
         if not picks:
             return []
@@ -697,7 +718,9 @@ class FiducialTracker:
         out = []
         for k, (p, cov) in enumerate(zip(picks, covariances(fit, slice(None)), strict=True)):
             chosen = fit.solution(k)
-            if p.ambiguity == "covered":
+            if p.ambiguity == "covered" and len(p.solutions) == 1:
+                cov = _met(cov, chosen, self._meet(p.sigma2, p.module_px))
+            elif p.ambiguity == "covered":
                 cov = _covered(
                     cov, chosen, p.solutions,
                     lambda s, k=k: covariances(pose.Fits.of([s]), slice(k, k + 1))[0],
@@ -720,6 +743,12 @@ class FiducialTracker:
              bundle_covariance([noise[i] for i in ids], [seen[i] for i in ids], self._modules)
              for _, ids in bodies])))
 
+    def _meet(self, sigma2: float, module_px: float) -> float:
+        """The tilt (rad) within which this marker's two solutions cannot be told apart
+        (:func:`apparent_tilt` at the body's corner noise, no less than the prior's)."""
+        return apparent_tilt(math.sqrt(max(sigma2, self._prior_sigma2)),
+                             module_px * self._modules)
+
     def _sigma2(self, state: _BodyState) -> float:
         """The corner noise variance pooled over the body's recent fits."""
         prior_dof = max(FULL_DOF - state.dof, PRIOR_DOF)
@@ -735,8 +764,8 @@ class FiducialTracker:
         return self._frames[key]
 
     def _judge(self, solutions: list[pose.Solution], sigma2: float, module_px: float,
-               state: _BodyState, t_ns: int,
-               gap: float | None = None) -> tuple[pose.Solution, str, float, float]:
+               state: _BodyState, t_ns: int, gap: float | None = None,
+               lone: bool = True) -> tuple[pose.Solution, str, float, float]:
         """(the solution reported, how it was chosen, the χ² gap to the other, the chance
         that the other is the true one); the body's branch evidence moved on to this
         frame.  The gap is ``gap`` where given (a bundle's, :func:`_weighted_gap`), else
@@ -748,11 +777,16 @@ class FiducialTracker:
         if gap is None:
             gap = float("inf") if other is None else \
                 (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
+        meet = self._meet(sigma2, module_px)
+        if lone and other is None and tilt(best) < meet:
+            # both solutions refined to one minimum: the tag faces the camera within what
+            # its corners can tell (_met; a bundle's markers spread over its plate tell
+            # its tilt to first order)
+            self._move_branch(state, best.rotation, 0.0, t_ns)
+            return best, "covered", gap, 0.5
         if gap > AMBIGUITY_GAP:  # outweighs anything history carries
             self._move_branch(state, best.rotation, min(gap / 2, _DECISIVE), t_ns)
             return best, "none", gap, _flip(gap / 2)
-        meet = apparent_tilt(math.sqrt(max(sigma2, self._prior_sigma2)),
-                             module_px * self._modules)
         carried = self._carried(state, best, other, t_ns, meet)
         llr = carried + gap / 2
         chosen = best if llr >= 0 else other
