@@ -284,7 +284,7 @@ def _covered(own: np.ndarray, chosen: pose.Solution, solutions: list[pose.Soluti
     return (1 - weight) * own + weight * (np.outer(d, d) + cov_of(other))
 
 
-def tilt(solution: pose.Solution) -> float:
+def _tilt(solution: pose.Solution) -> float:
     """The angle (rad) between a solution's marker plane normal and its line of sight."""
     sight = solution.tvec / np.linalg.norm(solution.tvec)
     return math.acos(min(abs(float(solution.rotation[:, 2] @ sight)), 1.0))
@@ -778,7 +778,7 @@ class FiducialTracker:
             gap = float("inf") if other is None else \
                 (other.rss_px2 - best.rss_px2) / max(sigma2, self._prior_sigma2)
         meet = self._meet(sigma2, module_px)
-        if lone and other is None and tilt(best) < meet:
+        if lone and other is None and _tilt(best) < meet:
             # both solutions refined to one minimum: the tag faces the camera within what
             # its corners can tell (_met; a bundle's markers spread over its plate tell
             # its tilt to first order)
